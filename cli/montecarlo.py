@@ -1,0 +1,7 @@
+"""`calib montecarlo` (not implemented yet)."""
+import typer
+
+
+def montecarlo():
+    """Not implemented yet."""
+    raise typer.Exit(1)

@@ -1,0 +1,403 @@
+"""Readers and writers for the directories of ``FORMATS.md`` (features/, calibration/, truth/).
+
+Every reader validates what it reads and raises :class:`InputError` with a one-line message that names
+the file, the row (1-based line number in the file, header = line 1) and the problem. Every writer is
+atomic: it writes into a temporary sibling directory and renames it into place, so an interrupted or
+failed write never leaves a partial directory that a later run could trust.
+
+In-memory representation (plain dicts of pandas DataFrames, sorted, with clean dtypes):
+
+``features``
+    ``meta`` (dict), ``events`` (event, t_emit, odom_x, odom_y, odom_z), ``tdoa_m`` (event, array, tdoa),
+    ``tdoa_s`` (array, from_event, to_event, tdoa), ``doa`` (event, array, ux, uy, uz). Extra columns
+    (e.g. ``quality``) are kept.
+``calibration``
+    ``arrays`` (array, x, y, z, qw, qx, qy, qz, offset, drift, optional ``*_std``), ``sources``
+    (event, x, y, z, optional ``*_std``), ``report`` (dict).
+``truth``
+    ``arrays`` and ``sources`` as in calibration, with NaN where unknown.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+
+class InputError(ValueError):
+    """Bad user input: the message is one line naming the file and the problem."""
+
+
+EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
+TDOA_M_COLS = ["event", "array", "tdoa"]
+TDOA_S_COLS = ["array", "from_event", "to_event", "tdoa"]
+DOA_COLS = ["event", "array", "ux", "uy", "uz"]
+ARRAYS_COLS = ["array", "x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
+SOURCES_COLS = ["event", "x", "y", "z"]
+SIGMA_KEYS = ("sigma_tdoa", "sigma_doa_deg", "sigma_odo")
+DOA_NORM_TOL = 1e-3
+
+
+# ----------------------------------------------------------------------------------------------- atomic
+@contextlib.contextmanager
+def atomic_dir(path):
+    """Yield a temporary directory that replaces ``path`` only if the ``with`` block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if path.exists():
+        old = path.parent / f".{path.name}.old-{os.getpid()}"
+        if old.exists():
+            shutil.rmtree(old)
+        path.rename(old)
+    tmp.rename(path)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def atomic_write_text(path, text):
+    """Write ``text`` to ``path`` through a temporary file and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+# ----------------------------------------------------------------------------------------------- CSV
+def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), required_values=None):
+    """Read a CSV with validation.
+
+    Parameters
+    ----------
+    path : path of the CSV file.
+    columns : required columns, in canonical order.
+    int_cols, str_cols : columns parsed as integers / kept as strings; all others are floats.
+    optional_cols : numeric columns whose empty cells are allowed (become NaN).
+    required_values : numeric columns that must be present in every row; default: all of ``columns``
+        not in ``optional_cols``.
+
+    Returns a DataFrame with the required columns first, then any extra columns (kept as read).
+    Raises :class:`InputError` on a missing file or column, an unparsable or non-finite number.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    try:
+        raw = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+    except Exception as exc:  # pandas raises many kinds on malformed files
+        raise InputError(f"{path}: cannot parse CSV ({str(exc).splitlines()[0]})") from None
+    raw.columns = [c.strip() for c in raw.columns]
+    missing = [c for c in columns if c not in raw.columns]
+    if missing:
+        raise InputError(f"{path}: missing column(s) {', '.join(missing)}")
+    out = {}
+    for col in columns:
+        vals = raw[col].str.strip()
+        if col in str_cols:
+            bad = np.flatnonzero(vals.to_numpy() == "")
+            if bad.size:
+                raise InputError(f"{path}: line {bad[0] + 2}: empty '{col}'")
+            out[col] = vals.to_numpy(dtype=object).astype(str)
+            continue
+        arr = np.full(len(vals), np.nan)
+        for k, v in enumerate(vals):
+            if v == "":
+                if col in optional_cols:
+                    continue
+                raise InputError(f"{path}: line {k + 2}: empty '{col}'")
+            try:
+                x = float(v)
+            except ValueError:
+                raise InputError(f"{path}: line {k + 2}: '{col}' is not a number: {v!r}") from None
+            if not math.isfinite(x):
+                raise InputError(f"{path}: line {k + 2}: '{col}' is not finite: {v!r}")
+            if col in int_cols and x != int(x):
+                raise InputError(f"{path}: line {k + 2}: '{col}' is not an integer: {v!r}")
+            arr[k] = x
+        out[col] = arr.astype(int) if col in int_cols else arr
+    df = pd.DataFrame(out)
+    extra = [c for c in raw.columns if c not in columns]
+    for c in extra:
+        conv = pd.to_numeric(raw[c].replace("", np.nan), errors="coerce")
+        df[c] = conv if conv.notna().sum() == (raw[c] != "").sum() else raw[c]
+    df.attrs["path"] = str(path)
+    return df
+
+
+def _check_unique(df, keys, path):
+    dup = df.duplicated(subset=list(keys), keep="first").to_numpy()
+    if dup.any():
+        k = int(np.flatnonzero(dup)[0])
+        what = ", ".join(f"{c}={df[c].iloc[k]}" for c in keys)
+        raise InputError(f"{path}: line {k + 2}: duplicate row ({what})")
+
+
+def _check_member(df, col, allowed, path, what):
+    allowed = set(allowed)
+    bad = ~df[col].isin(allowed).to_numpy()
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{path}: line {k + 2}: unknown {what} {df[col].iloc[k]!r}")
+
+
+def write_table(df, path, columns=None, float_format="%.10g"):
+    """Write a DataFrame as CSV (atomic). ``columns`` fixes the leading column order."""
+    if columns is not None:
+        rest = [c for c in df.columns if c not in columns]
+        df = df[[c for c in columns if c in df.columns] + rest]
+    atomic_write_text(path, df.to_csv(index=False, float_format=float_format, lineterminator="\n"))
+
+
+def _read_json(path):
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: invalid JSON ({exc})") from None
+
+
+# ----------------------------------------------------------------------------------------------- events
+def read_events(path):
+    """Read and validate an ``events.csv`` (FORMATS.md section 1/2). Sorted by event."""
+    ev = read_table(path, EVENTS_COLS, int_cols=("event",))
+    if len(ev) == 0:
+        raise InputError(f"{path}: no events")
+    _check_unique(ev, ["event"], path)
+    if (ev["event"] < 0).any():
+        k = int(np.flatnonzero(ev["event"].to_numpy() < 0)[0])
+        raise InputError(f"{path}: line {k + 2}: negative event id")
+    ev = ev.sort_values("event", kind="stable").reset_index(drop=True)
+    if np.any(np.diff(ev["t_emit"].to_numpy()) <= 0):
+        k = int(np.flatnonzero(np.diff(ev["t_emit"].to_numpy()) <= 0)[0]) + 1
+        raise InputError(f"{path}: event {ev['event'].iloc[k]}: t_emit does not increase with event id")
+    ev.attrs["path"] = str(path)
+    return ev
+
+
+# ----------------------------------------------------------------------------------------------- features
+def validate_meta(meta, path="meta.json"):
+    """Check a features meta dict; returns a cleaned copy (sigmas as floats or absent)."""
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: must be a JSON object")
+    for key in ("speed_of_sound", "reference_array", "arrays"):
+        if key not in meta:
+            raise InputError(f"{path}: missing key '{key}'")
+    out = dict(meta)
+    try:
+        out["speed_of_sound"] = float(meta["speed_of_sound"])
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: 'speed_of_sound' is not a number") from None
+    if not (math.isfinite(out["speed_of_sound"]) and out["speed_of_sound"] > 0):
+        raise InputError(f"{path}: 'speed_of_sound' must be positive and finite")
+    arrays = meta["arrays"]
+    if not isinstance(arrays, list) or not arrays or not all(isinstance(a, str) and a for a in arrays):
+        raise InputError(f"{path}: 'arrays' must be a non-empty list of names")
+    if len(set(arrays)) != len(arrays):
+        raise InputError(f"{path}: duplicate array name in 'arrays'")
+    if meta["reference_array"] not in arrays:
+        raise InputError(f"{path}: reference_array {meta['reference_array']!r} is not in 'arrays'")
+    for key in SIGMA_KEYS:
+        if meta.get(key) is None:
+            out.pop(key, None)
+            continue
+        try:
+            v = float(meta[key])
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: '{key}' is not a number") from None
+        if not (math.isfinite(v) and v > 0):
+            raise InputError(f"{path}: '{key}' must be positive and finite")
+        out[key] = v
+    return out
+
+
+def validate_features(feats):
+    """Validate an in-memory features dict (as produced by a reader or a simulator). Returns it cleaned."""
+    meta = validate_meta(feats["meta"], feats["meta"].get("_path", "meta.json"))
+    arrays = meta["arrays"]
+    ev = feats["events"]
+    events = set(ev["event"].tolist())
+    out = {"meta": meta, "events": ev}
+
+    tm = feats.get("tdoa_m")
+    if tm is None:
+        tm = pd.DataFrame({"event": np.zeros(0, int), "array": np.zeros(0, str), "tdoa": np.zeros(0)})
+    p = tm.attrs.get("path", "tdoa_m.csv")
+    _check_member(tm, "array", arrays, p, "array")
+    _check_member(tm, "event", events, p, "event id")
+    _check_unique(tm, ["event", "array"], p)
+    tm = tm[tm["array"] != meta["reference_array"]]
+    out["tdoa_m"] = tm.sort_values(["event", "array"], kind="stable").reset_index(drop=True)
+
+    ts = feats.get("tdoa_s")
+    if ts is None:
+        ts = pd.DataFrame({"array": np.zeros(0, str), "from_event": np.zeros(0, int),
+                           "to_event": np.zeros(0, int), "tdoa": np.zeros(0)})
+    p = ts.attrs.get("path", "tdoa_s.csv")
+    _check_member(ts, "array", arrays, p, "array")
+    _check_member(ts, "from_event", events, p, "event id")
+    _check_member(ts, "to_event", events, p, "event id")
+    _check_unique(ts, ["array", "from_event", "to_event"], p)
+    bad = (ts["to_event"] <= ts["from_event"]).to_numpy()
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{p}: line {k + 2}: to_event must be after from_event")
+    out["tdoa_s"] = ts.sort_values(["array", "from_event", "to_event"], kind="stable").reset_index(drop=True)
+
+    doa = feats.get("doa")
+    if doa is None:
+        doa = pd.DataFrame({c: np.zeros(0) for c in DOA_COLS}).astype({"event": int, "array": str})
+    p = doa.attrs.get("path", "doa.csv")
+    _check_member(doa, "array", arrays, p, "array")
+    _check_member(doa, "event", events, p, "event id")
+    _check_unique(doa, ["event", "array"], p)
+    u = doa[["ux", "uy", "uz"]].to_numpy(float)
+    n = np.linalg.norm(u, axis=1)
+    bad = np.abs(n - 1.0) > DOA_NORM_TOL
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{p}: line {k + 2}: DOA is not a unit vector (norm {n[k]:.4g})")
+    doa = doa.copy()
+    doa[["ux", "uy", "uz"]] = u / n[:, None] if len(n) else u
+    out["doa"] = doa.sort_values(["event", "array"], kind="stable").reset_index(drop=True)
+    return out
+
+
+def read_features(directory):
+    """Read and validate a ``features/`` directory (FORMATS.md section 2).
+
+    ``tdoa_s.csv``, ``tdoa_m.csv`` and ``doa.csv`` are optional (absent = no such measurements).
+    """
+    d = Path(directory)
+    if not d.is_dir():
+        raise InputError(f"{d}: not a directory")
+    meta = _read_json(d / "meta.json")
+    meta = validate_meta(meta, d / "meta.json")
+    feats = {"meta": meta, "events": read_events(d / "events.csv")}
+    specs = {
+        "tdoa_m": (TDOA_M_COLS, ("event",), ("array",)),
+        "tdoa_s": (TDOA_S_COLS, ("from_event", "to_event"), ("array",)),
+        "doa": (DOA_COLS, ("event",), ("array",)),
+    }
+    for name, (cols, ints, strs) in specs.items():
+        p = d / f"{name}.csv"
+        feats[name] = read_table(p, cols, int_cols=ints, str_cols=strs) if p.exists() else None
+    feats["meta"]["_path"] = str(d / "meta.json")
+    out = validate_features(feats)
+    out["meta"].pop("_path", None)
+    return out
+
+
+def write_features(directory, feats):
+    """Write a features dict to ``directory`` atomically (validated first, so nothing bad is written)."""
+    feats = validate_features({**feats, "meta": dict(feats["meta"])})
+    with atomic_dir(directory) as tmp:
+        meta = {k: v for k, v in feats["meta"].items() if not k.startswith("_")}
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+        write_table(feats["events"], tmp / "events.csv", EVENTS_COLS, float_format="%.9f")
+        write_table(feats["tdoa_m"], tmp / "tdoa_m.csv", TDOA_M_COLS, float_format="%.12g")
+        write_table(feats["tdoa_s"], tmp / "tdoa_s.csv", TDOA_S_COLS, float_format="%.12g")
+        write_table(feats["doa"], tmp / "doa.csv", DOA_COLS, float_format="%.10g")
+
+
+# ----------------------------------------------------------------------------------------------- calibration / truth
+def _read_arrays(path, *, known=None, truth=False):
+    opt = ARRAYS_COLS[1:] if truth else ("offset", "drift")
+    df = read_table(path, ARRAYS_COLS, str_cols=("array",), optional_cols=opt)
+    _check_unique(df, ["array"], path)
+    if known is not None:
+        _check_member(df, "array", known, path, "array")
+    q = df[["qw", "qx", "qy", "qz"]].to_numpy(float).copy()
+    n = np.linalg.norm(q, axis=1)
+    have = np.isfinite(n)
+    bad = have & (np.abs(n - 1) > DOA_NORM_TOL)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{path}: line {k + 2}: quaternion is not unit norm (norm {n[k]:.4g})")
+    q[have] /= n[have, None]
+    df[["qw", "qx", "qy", "qz"]] = q
+    return df.reset_index(drop=True)
+
+
+def _read_sources(path, truth=False):
+    df = read_table(path, SOURCES_COLS, int_cols=("event",), optional_cols=("x", "y", "z") if truth else ())
+    _check_unique(df, ["event"], path)
+    return df.sort_values("event", kind="stable").reset_index(drop=True)
+
+
+def read_calibration(directory):
+    """Read a ``calibration/`` directory (arrays.csv, sources.csv, optional report.json)."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise InputError(f"{d}: not a directory")
+    arrays = _read_arrays(d / "arrays.csv")
+    sources = _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
+    report = _read_json(d / "report.json") if (d / "report.json").exists() else {}
+    return {"arrays": arrays, "sources": sources, "report": report}
+
+
+def write_calibration(directory, calib):
+    """Write a calibration dict atomically: arrays.csv, sources.csv, report.json."""
+    with atomic_dir(directory) as tmp:
+        write_table(calib["arrays"], tmp / "arrays.csv", ARRAYS_COLS, float_format="%.12g")
+        if calib.get("sources") is not None:
+            write_table(calib["sources"], tmp / "sources.csv", SOURCES_COLS, float_format="%.9g")
+        (tmp / "report.json").write_text(json.dumps(calib.get("report", {}), indent=2, default=_json_default) + "\n")
+
+
+def read_truth(directory):
+    """Read a ``truth/`` directory; unknown values are NaN."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise InputError(f"{d}: not a directory")
+    arrays = _read_arrays(d / "arrays.csv", truth=True)
+    sources = _read_sources(d / "sources.csv", truth=True) if (d / "sources.csv").exists() else None
+    return {"arrays": arrays, "sources": sources}
+
+
+def write_truth(directory, truth, extra_files=None):
+    """Write a truth dict atomically; ``extra_files`` maps file names to text (e.g. a manifest)."""
+    with atomic_dir(directory) as tmp:
+        write_table(truth["arrays"], tmp / "arrays.csv", ARRAYS_COLS, float_format="%.12g")
+        if truth.get("sources") is not None:
+            write_table(truth["sources"], tmp / "sources.csv", SOURCES_COLS, float_format="%.12g")
+        for name, text in (extra_files or {}).items():
+            (tmp / name).write_text(text)
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def dumps_json(obj, **kw):
+    """``json.dumps`` that understands numpy scalars/arrays and paths."""
+    return json.dumps(obj, default=_json_default, **kw)
