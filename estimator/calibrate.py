@@ -1,0 +1,261 @@
+"""The estimator: initialise → IVE (paper's stage 1) → joint robust NLS → outlier removal → final NLS.
+
+``calibrate(features) -> calibration dict`` is the library entry point; see :func:`calibrate`.
+"""
+from __future__ import annotations
+
+import time
+from importlib.metadata import PackageNotFoundError, version
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
+
+from .init import ObservabilityError, initialise, kabsch, subproblem
+from .problem import build_problem, make_layout
+from .solver import levenberg_marquardt, linearise
+
+ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission"]
+UNITS = {"tdoa_s": ("us", 1e6), "tdoa_m": ("us", 1e6), "doa": ("deg", np.rad2deg(1.0)), "odometry": ("cm", 100.0),
+         "emission": ("us", 1e6)}
+
+
+def _version():
+    try:
+        return version("calib")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def check_observability(p, lay, kinds, st, rel_tol=1e-9):
+    """Raise ObservabilityError naming what the data cannot determine (rank of the Fisher information)."""
+    K = p["K"]
+    if K < 3:
+        raise ObservabilityError(f"only {K} event(s): at least 3 are needed to calibrate")
+    for i in range(p["N"]):
+        if i == p["ref"]:
+            continue
+        nd = int((p["doa_arr"] == i).sum())
+        nt = int((p["tm_arr"] == i).sum())
+        if nd < 2:
+            raise ObservabilityError(f"array {p['names'][i]} has DOAs for {nd} event(s); its orientation needs >= 2")
+        if nt < 1:
+            raise ObservabilityError(f"array {p['names'][i]} has no TDOA-M: its clock offset is undetermined")
+    _, J, _, _, _ = linearise(p, st, lay, kinds)
+    norms = np.linalg.norm(J, axis=0)
+    if np.any(norms == 0):
+        k = int(np.flatnonzero(norms == 0)[0])
+        raise ObservabilityError(f"{describe_param(p, lay, k)} is not touched by any measurement")
+    U, S, Vt = np.linalg.svd(J / norms, full_matrices=False)
+    if S[-1] < rel_tol * S[0] * np.sqrt(J.shape[1]) or S[-1] < 1e-6:
+        v = np.abs(Vt[-1])
+        worst = np.argsort(v)[::-1][:3]
+        what = ", ".join(describe_param(p, lay, int(k)) for k in worst if v[k] > 0.1 * v.max())
+        s = st["s"] - st["s"].mean(0)
+        sv = np.linalg.svd(s, compute_uv=False)
+        hint = " (all sources are nearly collinear)" if sv[1] < 1e-3 * max(sv[0], 1e-12) else ""
+        raise ObservabilityError(f"the data cannot determine {what}{hint}")
+
+
+def describe_param(p, lay, k):
+    for key, label in (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift")):
+        hit = np.argwhere(lay[key].reshape(p["N"], -1) == k)
+        if hit.size:
+            return f"the {label} of array {p['names'][hit[0, 0]]}"
+    hit = np.argwhere(lay["s"] == k)
+    if hit.size:
+        return f"the position of source (event {p['events'][hit[0, 0]]})"
+    hit = np.argwhere(lay["e"] == k)
+    if hit.size:
+        return f"the emission time of event {p['events'][hit[0, 0]]}"
+    return f"parameter {k}"
+
+
+def rotations_by_kabsch(p, st):
+    """Each non-reference array's rotation by SVD alignment of DOA-scaled points (the paper's IVE step)."""
+    for i in range(p["N"]):
+        m = p["doa_arr"] == i
+        if i == p["ref"] or m.sum() < 2:
+            continue
+        j = p["doa_ev"][m]
+        w = st["s"][j] - st["x"][i]
+        d = np.linalg.norm(w, axis=1, keepdims=True)
+        st["R"][i], _ = kabsch(p["doa_u"][m] * d, w)
+    return st
+
+
+def residual_table(fs, mask=None):
+    """Per measurement type: count, RMS in natural units (µs, deg, cm)."""
+    out = {}
+    for f in fs:
+        if len(f["r"]) == 0:
+            continue
+        keep = mask[f["kind"]] if mask and f["kind"] in mask else np.ones(len(f["r"]), bool)
+        r = f["r"][keep] * f["sigma"]
+        if f["dim"] == 3:
+            r = np.linalg.norm(r.reshape(-1, 3), axis=1)
+        unit, scale = UNITS[f["kind"]]
+        out[f["kind"]] = {"n": int(len(r)), f"rms_{unit}": float(np.sqrt(np.mean(r * r)) * scale) if len(r) else 0.0}
+    return out
+
+
+def covariance(J, lay_n):
+    """(JᵀJ)⁻¹ for whitened residuals (Jacobi-scaled for conditioning)."""
+    d = np.linalg.norm(J, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    Js = J / d
+    return np.linalg.pinv(Js.T @ Js) / d[:, None] / d[None, :]
+
+
+def std_from_cov(p, lay, cov):
+    """1-σ std per parameter, as arrays keyed like the state (NaN where fixed)."""
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+    def pick(idx):
+        return np.where(idx >= 0, sd[np.maximum(idx, 0)], np.nan)
+
+    return {"x": pick(lay["x"]), "rot": pick(lay["rot"]), "offset": pick(lay["offset"]),
+            "drift": pick(lay["drift"]), "s": pick(lay["s"]), "e": pick(lay["e"])}
+
+
+def to_frames(p, st, std=None):
+    """State (+ std) → arrays and sources DataFrames of FORMATS.md section 3."""
+    q = Rotation.from_matrix(st["R"]).as_quat(scalar_first=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    arrays = pd.DataFrame({"array": list(p["names"]), "x": st["x"][:, 0], "y": st["x"][:, 1], "z": st["x"][:, 2],
+                           "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+                           "offset": st["offset"], "drift": st["drift"]})
+    sources = pd.DataFrame({"event": p["events"], "x": st["s"][:, 0], "y": st["s"][:, 1], "z": st["s"][:, 2]})
+    if std is not None:
+        for k, c in enumerate("xyz"):
+            arrays[f"{c}_std"] = std["x"][:, k]
+        for k, c in enumerate("xyz"):
+            arrays[f"r{c}_std"] = std["rot"][:, k]
+        arrays["offset_std"] = std["offset"]
+        arrays["drift_std"] = std["drift"]
+        for k, c in enumerate("xyz"):
+            sources[f"{c}_std"] = std["s"][:, k]
+    return arrays, sources
+
+
+def _outlier_mask(fs, threshold):
+    """Boolean keep-masks for the robust factors: drop |r| beyond ``threshold`` robust scales."""
+    mask, flagged = {}, []
+    for f in fs:
+        if not f["robust"] or len(f["r"]) == 0:
+            continue
+        r = f["r"]
+        mad = 1.4826 * np.median(np.abs(r))
+        scale = max(1.0, mad)  # never tighter than the stated sigma
+        keep = np.abs(r) <= threshold * scale
+        mask[f["kind"]] = keep
+        for k in np.flatnonzero(~keep):
+            flagged.append({"type": f["kind"], "row": int(f["row"][k]), "residual_sigma": float(r[k]),
+                            "residual_us": float(r[k] * f["sigma"] * 1e6)})
+    return mask, flagged
+
+
+def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200):
+    """Joint NLS from a given state: robust pass → outlier mask → plain least squares. Returns (state, info)."""
+    lay = make_layout(p)
+    info = {}
+    st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter)
+    _, _, _, _, fs = linearise(p, st, lay, kinds)
+    mask, flagged = _outlier_mask(fs, outlier_threshold) if loss else ({}, [])
+    st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+    info["mask"], info["outliers"], info["layout"] = mask, flagged, lay
+    return st, info
+
+
+def calibrate(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
+              outlier_threshold=5.0, max_iter=200, init_state=None):
+    """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
+
+    Parameters
+    ----------
+    features : dict from ``pipeline.io.read_features`` (or a simulator).
+    method : "hybrid" (this project's estimator, Zhang et al. structure) or "wang" (the baseline; see
+        ``estimator.wang``).
+    use_tdoa_s : use TDOA-S measurements (False gives Wang et al.'s setting with our solver).
+    emission_sigma : prior std (s) of per-interval emission-time errors; 0 disables the correction.
+    loss : robust loss on TDOA residuals for the first joint pass ("cauchy", "huber" or None).
+    robust_k : robust scale, in units of the TDOA sigma.
+    outlier_threshold : TDOA residuals beyond this many (robust) sigmas are flagged and excluded.
+    init_state : optional state to start the joint solve from (skips initialisation; used to compare
+        with a solve started from ground truth).
+
+    Returns
+    -------
+    dict with ``arrays`` and ``sources`` DataFrames (with ``*_std`` columns: 1-σ from (JᵀWJ)⁻¹, rotation
+    std per axis of the array frame in rad) and ``report`` (dict, see docs/method.md).
+    """
+    times = {}
+    t0 = time.perf_counter()
+    if method == "wang":
+        from .wang import wang_initialise
+
+        use_tdoa_s = False
+    p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma)
+    kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
+    stages = {}
+    if init_state is None:
+        if method == "wang":
+            st, init_info = wang_initialise(p)
+        else:
+            st, init_info = initialise(p)
+        times["init"] = time.perf_counter() - t0
+        lay_full = make_layout(p)
+        check_observability(p, lay_full, kinds, st)
+        stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
+        if method == "hybrid" and len(p["ts_val"]) > 0:
+            # Stage 1 (IVE): positions, clocks and sources from hybrid TDOA, odometry and the reference
+            # array's DOAs; then rotations by SVD alignment of DOA-scaled points.
+            t1 = time.perf_counter()
+            q = subproblem(p, np.arange(p["N"]), doa_arrays=[p["ref"]])
+            lay_ive = make_layout(q, rotations=False)
+            st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+                                          k=robust_k, max_iter=max_iter)
+            st = rotations_by_kabsch(p, st)
+            stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
+            times["ive"] = time.perf_counter() - t1
+    else:
+        st = {k: np.array(v, dtype=float, copy=True) for k, v in init_state.items()}
+    t2 = time.perf_counter()
+    st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
+                          max_iter=max_iter)
+    times["joint"] = time.perf_counter() - t2
+    lay = info["layout"]
+    r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])
+    J = J[w > 0]
+    cov = covariance(J, lay["n"])
+    std = std_from_cov(p, lay, cov)
+    arrays, sources = to_frames(p, st, std)
+    times["total"] = time.perf_counter() - t0
+    n_res = int(J.shape[0])
+    report = {
+        "software": {"name": "calib", "version": _version()},
+        "method": method,
+        "converged": bool(info["final"]["converged"]),
+        "reason": info["final"]["reason"],
+        "iterations": {"robust": info["robust"]["iterations"], "final": info["final"]["iterations"]},
+        "cost": {**{k: v["cost"] for k, v in stages.items()}, "joint_robust": info["robust"]["cost"],
+                 "final": cost},
+        "stages": stages,
+        "chi2_per_dof": float(2 * cost / max(n_res - lay["n"], 1)),
+        "residuals": residual_table(fs, info["mask"]),
+        "outliers": info["outliers"],
+        "used": {"tdoa_s": bool(len(p["ts_val"])), "tdoa_m": bool(len(p["tm_val"])), "doa": bool(len(p["doa_u"])),
+                 "emission_correction": emission_sigma > 0},
+        "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",
+        "sigmas": {"tdoa_s": p["sigma_tdoa"], "doa_rad_per_axis": p["sigma_doa"], "odometry_m": p["sigma_odo"],
+                   "emission_s": emission_sigma},
+        "timings_s": times,
+    }
+    if emission_sigma > 0:
+        report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p["events"], st["e"])}
+    return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p}
+
+
+def _jsonable(d):
+    return {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in d.items()
+            if isinstance(v, (int, float, str, np.floating, dict))}

@@ -1,0 +1,140 @@
+"""Measurement factors: each one residual (whitened by its sigma) and its analytic Jacobian, in one place.
+
+Every factor is a function ``f(p, st, lay) -> dict`` with
+
+``kind`` (str), ``r`` (m,) whitened residuals, ``J`` (m, n) Jacobian w.r.t. the free parameters of
+``lay``, ``row`` (m,) the measurement's row in its CSV (for reports), ``dim`` residuals per measurement,
+``robust`` (bool) whether the robust loss applies, ``sigma`` the whitening scale (SI units).
+
+Adding a measurement type = adding one function here and listing it in ``FACTORS``.
+Clock model (docs/architecture.md): arrival a_ij = (1+δ_i)(t_j + e_j + |s_j − x_i|/c) + τ_i + β δ_i.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _put(J, rows, cols, vals):
+    """J[rows, cols] += vals for the free columns (cols >= 0). rows (m,), cols/vals (m, q).
+
+    Within one call the (row, col) pairs are distinct (a row names each parameter once), so buffered
+    fancy-index addition is exact.
+    """
+    cols = np.asarray(cols).reshape(len(rows), -1)
+    m = cols >= 0
+    if m.any():
+        vals = np.broadcast_to(np.asarray(vals, float).reshape(len(rows), -1), cols.shape)
+        rr = np.broadcast_to(rows[:, None], cols.shape)
+        J[rr[m], cols[m]] += vals[m]
+
+
+def _dist(st, arr, ev):
+    """Distances (m,) and unit vectors (m, 3) from arrays ``arr`` to sources ``ev``."""
+    w = st["s"][ev] - st["x"][arr]
+    d = np.linalg.norm(w, axis=1)
+    return d, w / d[:, None]
+
+
+def _out(kind, r, J, row, dim, robust, sigma):
+    return {"kind": kind, "r": r, "J": J, "row": row, "dim": dim, "robust": robust, "sigma": sigma}
+
+
+def tdoa_s(p, st, lay):
+    """TDOA-S: a_{i,b} − a_{i,a} = (1+δ_i)(t_b − t_a + e_b − e_a + (d_ib − d_ia)/c)."""
+    i, a, b, z = p["ts_arr"], p["ts_a"], p["ts_b"], p["ts_val"]
+    m, c, sig = len(z), p["c"], p["sigma_tdoa"]
+    J = np.zeros((m, lay["n"]))
+    if m == 0:
+        return _out("tdoa_s", np.zeros(0), J, p["ts_row"], 1, True, sig)
+    da, na = _dist(st, i, a)
+    db, nb = _dist(st, i, b)
+    h = p["t"][b] - p["t"][a] + st["e"][b] - st["e"][a] + (db - da) / c
+    g = 1.0 + st["drift"][i]
+    r = (g * h - z) / sig
+    gc = (g / (c * sig))[:, None]
+    _put(J, np.arange(m),
+         np.column_stack([lay["drift"][i], lay["x"][i], lay["s"][b], lay["s"][a], lay["e"][b], lay["e"][a]]),
+         np.column_stack([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
+    return _out("tdoa_s", r, J, p["ts_row"], 1, True, sig)
+
+
+def tdoa_m(p, st, lay):
+    """TDOA-M: a_ij − a_{ref,j}."""
+    i, j, z = p["tm_arr"], p["tm_ev"], p["tm_val"]
+    ref, m, c, sig, beta = p["ref"], len(z), p["c"], p["sigma_tdoa"], p["beta"]
+    J = np.zeros((m, lay["n"]))
+    if m == 0:
+        return _out("tdoa_m", np.zeros(0), J, p["tm_row"], 1, True, sig)
+    r0 = np.full(m, ref)
+    di, ni = _dist(st, i, j)
+    d0, n0 = _dist(st, r0, j)
+    te = p["t"][j] + st["e"][j]
+    gi, g0 = 1.0 + st["drift"][i], 1.0 + st["drift"][ref]
+    model = (gi * (te + di / c) + st["offset"][i] + beta * st["drift"][i]
+             - g0 * (te + d0 / c) - st["offset"][ref] - beta * st["drift"][ref])
+    r = (model - z) / sig
+    one = np.full(m, 1.0 / sig)
+    _put(J, np.arange(m),
+         np.column_stack([lay["drift"][i], lay["drift"][r0], lay["offset"][i], lay["offset"][r0], lay["x"][i],
+                          lay["x"][r0], lay["s"][j], lay["e"][j]]),
+         np.column_stack([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
+                          -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig)) * n0,
+                          (gi[:, None] * ni - g0 * n0) / (c * sig), (gi - g0) / sig]))
+    return _out("tdoa_m", r, J, p["tm_row"], 1, True, sig)
+
+
+def doa(p, st, lay):
+    """DOA: R_iᵀ (s_j − x_i)/|s_j − x_i| − u_ij, three components per measurement."""
+    i, j, u = p["doa_arr"], p["doa_ev"], p["doa_u"]
+    m, sig = len(i), p["sigma_doa"]
+    J = np.zeros((3 * m, lay["n"]))
+    if m == 0:
+        return _out("doa", np.zeros(0), J, p["doa_row"], 3, False, sig)
+    d, n = _dist(st, i, j)
+    Rt = np.transpose(st["R"][i], (0, 2, 1))
+    v = np.einsum("kab,kb->ka", Rt, n)
+    r = ((v - u) / sig).ravel()
+    # dv/dφ = [v]x for R → R Exp(φ); dv/ds = Rᵀ (I − n nᵀ)/d = −dv/dx
+    vx = np.zeros((m, 3, 3))
+    vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    vx[:, 1, 0], vx[:, 2, 0], vx[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
+    dvds = np.einsum("kab,kbc->kac", Rt, P)
+    cols = np.repeat(np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]), 3, axis=0)
+    vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig
+    _put(J, np.arange(3 * m), cols, vals)
+    return _out("doa", r, J, np.repeat(p["doa_row"], 3), 3, False, sig)
+
+
+def odometry(p, st, lay):
+    """Odometry: (s_{j+1} − s_j) − (o_{j+1} − o_j), three components per step."""
+    K, sig = p["K"], p["sigma_odo"]
+    J = np.zeros((3 * (K - 1), lay["n"]))
+    if K < 2:
+        return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
+    r = ((np.diff(st["s"], axis=0) - np.diff(p["odom"], axis=0)) / sig).ravel()
+    k = np.arange(3 * (K - 1))
+    _put(J, k, lay["s"][1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
+    _put(J, k, lay["s"][:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
+    return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
+
+
+def emission(p, st, lay):
+    """Prior on the per-interval emission-time corrections: (e_{j+1} − e_j) ~ N(0, sigma_emit²)."""
+    K, sig = p["K"], p["sigma_emit"]
+    if sig <= 0 or K < 2 or not (lay["e"] >= 0).any():
+        return _out("emission", np.zeros(0), np.zeros((0, lay["n"])), np.zeros(0, int), 1, False, max(sig, 1.0))
+    r = np.diff(st["e"]) / sig
+    J = np.zeros((K - 1, lay["n"]))
+    k = np.arange(K - 1)
+    _put(J, k, lay["e"][1:], np.full(K - 1, 1.0 / sig))
+    _put(J, k, lay["e"][:-1], np.full(K - 1, -1.0 / sig))
+    return _out("emission", r, J, np.arange(1, K), 1, False, sig)
+
+
+FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry, "emission": emission}
+
+
+def evaluate(p, st, lay, kinds=None):
+    """Evaluate the listed factors (default all) → list of factor dicts."""
+    return [FACTORS[k](p, st, lay) for k in (kinds or FACTORS)]

@@ -1,0 +1,196 @@
+"""Deterministic initialisation (no ground truth, no random restarts).
+
+1. Sources: the reference array's DOAs are rays from the origin; the odometry fixes the sources up to
+   one start point ``s_0``, found by linear least squares (rays vs. ``s_0 + odom_j``). A small NLS on
+   the reference array's own measurements (DOA, TDOA-S, odometry) then refines sources and its drift.
+2. Arrays, one at a time with the sources fixed: a coarse 3-D grid over positions where, at each grid
+   point, offset and drift are solved in closed form (robust IRLS on TDOA-S + TDOA-M) and the rotation
+   by Kabsch alignment of DOAs (SVD); the best few local minima are polished by LM and the best is kept.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import minimum_filter
+
+from .problem import copy_state, empty_state, make_layout
+from .solver import levenberg_marquardt
+
+
+class ObservabilityError(ValueError):
+    """The data cannot determine the calibration (the message says what is missing)."""
+
+
+def subproblem(p, arrays, *, doa_arrays=None):
+    """The problem restricted to measurements of ``arrays`` (TDOA-M rows also need the reference).
+
+    ``doa_arrays`` (default ``arrays``) selects whose DOAs are kept.
+    """
+    arrays = np.asarray(arrays)
+    doa_arrays = arrays if doa_arrays is None else np.asarray(doa_arrays)
+    q = dict(p)
+    for prefix, col, keep in (("tm", "tm_arr", arrays), ("ts", "ts_arr", arrays), ("doa", "doa_arr", doa_arrays)):
+        m = np.isin(p[col], keep)
+        for key in [k for k in p if k.startswith(prefix + "_")]:
+            q[key] = p[key][m]
+    return q
+
+
+def kabsch(u, v, w=None):
+    """Rotation(s) R minimising Σ w |R u − v|². u, v: (..., n, 3) → R (..., 3, 3), cost (...)."""
+    w = np.ones(u.shape[:-1]) if w is None else w
+    M = np.einsum("...n,...na,...nb->...ab", w, v, u)
+    A, S, Bt = np.linalg.svd(M)
+    sgn = np.sign(np.linalg.det(A @ Bt))
+    sgn = np.where(sgn == 0, 1.0, sgn)
+    D = np.ones(S.shape)
+    D[..., 2] = sgn
+    R = A @ (D[..., :, None] * Bt)
+    cost = 2.0 * w.sum(-1) - 2.0 * (S * D).sum(-1)
+    return R, np.maximum(cost, 0.0)
+
+
+def init_sources(p):
+    """Sources s_j = s_0 + odom_j with s_0 from the reference array's DOA rays (linear LS)."""
+    ref = p["ref"]
+    m = p["doa_arr"] == ref
+    if m.sum() < 2:
+        raise ObservabilityError(
+            f"the reference array {p['names'][ref]} has DOAs for {int(m.sum())} event(s); at least 2 are needed "
+            "to place the sources in its frame")
+    u, j = p["doa_u"][m], p["doa_ev"][m]
+    o = p["odom"] - p["odom"][0]
+    P = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
+    A = P.sum(0)
+    if np.linalg.cond(A) > 1e8:
+        raise ObservabilityError(
+            f"the reference array {p['names'][ref]}'s DOAs are all parallel: the source start point is undetermined")
+    s0 = np.linalg.solve(A, -np.einsum("kab,kb->a", P, o[j]))
+    return s0 + o
+
+
+def refine_reference(p, st):
+    """NLS on the reference array's own measurements: sources and (with TDOA-S) its drift."""
+    ref = p["ref"]
+    q = subproblem(p, [ref])  # TDOA-M rows never name the reference, so this keeps none of them
+    lay = make_layout(q, arrays=[ref], emission=False)
+    st, info = levenberg_marquardt(q, st, lay, ["tdoa_s", "doa", "odometry"], loss="cauchy", k=3.0, max_iter=50,
+                                   rtol=1e-6)
+    return st, info, q, lay
+
+
+def source_spread(q, st, lay):
+    """RMS 1-σ source position uncertainty (m) of the reference-only solve (floored at 2 cm)."""
+    from .solver import linearise
+
+    _, J, _, _, _ = linearise(q, st, lay, ["tdoa_s", "doa", "odometry"])
+    cols = lay["s"].ravel()
+    try:
+        cov = np.linalg.pinv(J.T @ J)
+        var = np.diag(cov)[cols]
+        return max(float(np.sqrt(np.mean(var) * 3)), 0.02)
+    except np.linalg.LinAlgError:
+        return 0.3
+
+
+def grid_points(s, n_per_axis=12, margin=None):
+    """A regular grid around the sources: (nx, ny, nz, 3) points."""
+    lo, hi = s.min(0), s.max(0)
+    ext = float(np.max(hi - lo))
+    margin = max(1.0, 0.35 * ext) if margin is None else margin
+    lo, hi = lo - margin, hi + margin
+    step = float(np.max(hi - lo)) / n_per_axis
+    axes = [np.arange(lo[k], hi[k] + 0.5 * step, step) for k in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1), step
+
+
+def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6):
+    """Concentrated cost of array ``i`` at candidate positions ``pts`` (G, 3), sources fixed.
+
+    Drift and offset are solved in closed form per point (robust Cauchy IRLS, scale ``kappa`` s) from
+    TDOA-S and TDOA-M; the rotation by Kabsch on the DOAs (per-axis scale ``sigma_d`` rad).
+    Returns cost (G,), drift (G,), offset (G,), R (G, 3, 3).
+    """
+    c, beta, ref, s, t = p["c"], p["beta"], p["ref"], st["s"], p["t"]
+    G = len(pts)
+    d = np.linalg.norm(s[None, :, :] - pts[:, None, :], axis=2)  # (G, K)
+    ms, mm, md = p["ts_arr"] == i, p["tm_arr"] == i, p["doa_arr"] == i
+    a, b, zs = p["ts_a"][ms], p["ts_b"][ms], p["ts_val"][ms]
+    h = (t[b] - t[a])[None] + (d[:, b] - d[:, a]) / c                 # (G, ns): model δ·h = zs − h
+    ys = zs[None] - h
+    j, zm = p["tm_ev"][mm], p["tm_val"][mm]
+    dr = np.linalg.norm(s[j] - st["x"][ref], axis=1)
+    g0 = 1.0 + st["drift"][ref]
+    qm = t[j][None] + d[:, j] / c + beta                                # model δ·qm + off = ym
+    ym = zm[None] - (t[j][None] + d[:, j] / c) + g0 * (t[j] + dr / c)[None] + beta * st["drift"][ref]
+    ws, wm = np.ones_like(ys), np.ones_like(ym)
+    use_off = mm.sum() >= 2
+    drift, off = np.zeros(G), np.zeros(G)
+    for _ in range(n_irls):
+        a11 = (ws * h * h).sum(1) + (wm * qm * qm).sum(1)
+        b1 = (ws * h * ys).sum(1) + (wm * qm * ym).sum(1)
+        if use_off:
+            a12, a22, b2 = (wm * qm).sum(1), wm.sum(1), (wm * ym).sum(1)
+            det = a11 * a22 - a12 * a12
+            ok = np.abs(det) > 1e-300
+            drift = np.where(ok, (b1 * a22 - a12 * b2) / np.where(ok, det, 1), 0.0)
+            off = np.where(ok, (a11 * b2 - a12 * b1) / np.where(ok, det, 1), 0.0)
+        else:
+            drift = np.where(a11 > 0, b1 / np.where(a11 > 0, a11, 1), 0.0)
+            off = np.zeros(G)
+        rs = (ys - drift[:, None] * h) / kappa
+        rm = (ym - drift[:, None] * qm - off[:, None]) / kappa
+        ws, wm = 1.0 / (1.0 + rs * rs), 1.0 / (1.0 + rm * rm)
+    cost = np.log1p(rs * rs).sum(1) + np.log1p(rm * rm).sum(1)
+    R = np.tile(np.eye(3), (G, 1, 1))
+    if md.sum() >= 2:
+        jd, u = p["doa_ev"][md], p["doa_u"][md]
+        v = s[jd][None] - pts[:, None, :]
+        v /= np.linalg.norm(v, axis=2, keepdims=True)
+        R, kc = kabsch(np.broadcast_to(u, v.shape), v)
+        cost = cost + kc / (2.0 * sigma_d ** 2)
+    return cost, drift, off, R
+
+
+def init_array(p, st, i, kappa, sigma_d, n_candidates=4):
+    """Position, rotation, offset and drift of array ``i`` (sources fixed). Returns (state, cost)."""
+    grid, step = grid_points(st["s"])
+    shape = grid.shape[:3]
+    pts = grid.reshape(-1, 3)
+    cost, drift, off, R = profile_cost(p, st, i, pts, kappa, sigma_d)
+    # Too close to a source the model is singular; keep candidates at least half a step away.
+    dmin = np.min(np.linalg.norm(st["s"][None] - pts[:, None], axis=2), axis=1)
+    cost = np.where(dmin > 0.5 * step, cost, np.inf)
+    C = cost.reshape(shape)
+    is_min = (C == minimum_filter(C, size=3, mode="nearest")) & np.isfinite(C)
+    cand = np.flatnonzero(is_min.ravel())
+    cand = cand[np.argsort(cost[cand])][:n_candidates]
+    q = subproblem(p, [i])
+    lay = make_layout(q, arrays=[i], sources=False, ref_drift=False, emission=False)
+    kinds = ["tdoa_s", "tdoa_m", "doa"]
+    best, best_cost = None, np.inf
+    for g in cand:
+        trial = copy_state(st)
+        trial["x"][i], trial["R"][i], trial["drift"][i], trial["offset"][i] = pts[g], R[g], drift[g], off[g]
+        trial, info = levenberg_marquardt(q, trial, lay, kinds, loss="cauchy", k=3.0, max_iter=60, rtol=1e-6)
+        if info["cost"] < best_cost:
+            best, best_cost = trial, info["cost"]
+    return best, best_cost
+
+
+def initialise(p):
+    """Deterministic initial state for the whole problem. Returns (state, info dict)."""
+    st = empty_state(p)
+    st["s"] = init_sources(p)
+    st, info_ref, q, lay = refine_reference(p, st)
+    sig_src = source_spread(q, st, lay)
+    dist = np.median(np.linalg.norm(st["s"], axis=1))
+    kappa = max(3.0 * p["sigma_tdoa"], 2.0 * sig_src / p["c"])
+    sigma_d = float(np.hypot(p["sigma_doa"], sig_src / max(dist, 0.1)))
+    costs = {}
+    for i in range(p["N"]):
+        if i == p["ref"]:
+            continue
+        trial, costs[p["names"][i]] = init_array(p, st, i, kappa, sigma_d)
+        for key in ("x", "R", "drift", "offset"):
+            st[key][i] = trial[key][i]
+    return st, {"source_sigma": sig_src, "array_costs": costs, "reference_iterations": info_ref["iterations"]}

@@ -1,0 +1,159 @@
+"""The numeric problem: features dict → index arrays, and the state ↔ parameter-vector layout.
+
+A *problem* is a dict of numpy arrays (built once per data set)::
+
+    names (N,) array names, ref (int) index of the reference array, c (m/s), beta (s per unit drift),
+    t (K,) emission times minus t_0 (s), events (K,) event ids, odom (K, 3) cumulative odometry (m),
+    tm_ev, tm_arr, tm_val (n_m,)         TDOA-M rows: event index, array index, value (s)
+    ts_arr, ts_a, ts_b, ts_val (n_s,)    TDOA-S rows: array index, from/to event index, value (s)
+    doa_ev, doa_arr (n_d,), doa_u (n_d, 3)   DOA rows: event index, array index, unit vector (array frame)
+    sigma_tdoa (s), sigma_doa (rad, per tangent axis), sigma_odo (m), sigma_emit (s or 0 = off)
+    *_row (n,) the row index of each measurement in its CSV (for outlier reports)
+
+A *state* is a dict: ``x`` (N, 3), ``R`` (N, 3, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3),
+``e`` (K,) emission-time corrections (s; e[0] = 0).
+
+A *layout* says which of them are free in a solve and where they sit in the parameter vector.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# Documented defaults when meta.json gives no sigmas (the paper's real-data settings).
+DEFAULT_SIGMA_TDOA = 1e-4      # s
+DEFAULT_SIGMA_DOA_DEG = 5.0    # deg, paper convention: rotation about a random axis by N(0, sigma)
+DEFAULT_SIGMA_ODO = 0.01       # m per axis per step
+
+
+def sigma_doa_per_axis(sigma_deg):
+    """Paper-convention DOA sigma (deg) → std per tangent axis (rad).
+
+    A rotation about an isotropic random axis by N(0, σ²) moves a unit vector by σ²/3 per tangent axis.
+    """
+    return np.deg2rad(sigma_deg) / np.sqrt(3.0)
+
+
+def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0):
+    """Index the measurements of a (validated) features dict. See module docstring for the keys."""
+    meta = features["meta"]
+    names = np.asarray(meta["arrays"], dtype=object)
+    idx = {n: k for k, n in enumerate(names)}
+    ev = features["events"]
+    events = ev["event"].to_numpy(int)
+    eidx = {e: k for k, e in enumerate(events)}
+    t_emit = ev["t_emit"].to_numpy(float)
+    odom = ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+
+    def rows(df, use):
+        return df if use else df.iloc[:0]
+
+    tm = rows(features["tdoa_m"], use_tdoa_m)
+    ts = rows(features["tdoa_s"], use_tdoa_s)
+    doa = rows(features["doa"], use_doa)
+    p = {
+        "names": names,
+        "ref": idx[meta["reference_array"]],
+        "c": float(meta["speed_of_sound"]),
+        "beta": float(meta.get("chirp_drift_bias", 0.0) or 0.0),
+        "t": t_emit - t_emit[0],
+        "events": events,
+        "odom": odom,
+        "tm_ev": np.array([eidx[e] for e in tm["event"]], dtype=int),
+        "tm_arr": np.array([idx[a] for a in tm["array"]], dtype=int),
+        "tm_val": tm["tdoa"].to_numpy(float),
+        "tm_row": tm.index.to_numpy(int),
+        "ts_arr": np.array([idx[a] for a in ts["array"]], dtype=int),
+        "ts_a": np.array([eidx[e] for e in ts["from_event"]], dtype=int),
+        "ts_b": np.array([eidx[e] for e in ts["to_event"]], dtype=int),
+        "ts_val": ts["tdoa"].to_numpy(float),
+        "ts_row": ts.index.to_numpy(int),
+        "doa_ev": np.array([eidx[e] for e in doa["event"]], dtype=int),
+        "doa_arr": np.array([idx[a] for a in doa["array"]], dtype=int),
+        "doa_u": doa[["ux", "uy", "uz"]].to_numpy(float).reshape(-1, 3),
+        "doa_row": doa.index.to_numpy(int),
+        "sigma_tdoa": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
+        "sigma_doa": float(sigma_doa_per_axis(meta.get("sigma_doa_deg", DEFAULT_SIGMA_DOA_DEG))),
+        "sigma_odo": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)),
+        "sigma_emit": float(sigma_emit),
+    }
+    p["N"], p["K"] = len(names), len(events)
+    return p
+
+
+def empty_state(p):
+    """A state with every array at the origin, identity rotations, zero clocks and sources."""
+    N, K = p["N"], p["K"]
+    return {"x": np.zeros((N, 3)), "R": np.tile(np.eye(3), (N, 1, 1)), "offset": np.zeros(N),
+            "drift": np.zeros(N), "s": np.zeros((K, 3)), "e": np.zeros(K)}
+
+
+def copy_state(st):
+    return {k: v.copy() for k, v in st.items()}
+
+
+def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=True, arrays=None):
+    """Positions of the free parameters in the vector.
+
+    Returns a dict of index arrays (-1 where a parameter is fixed):
+    ``x`` (N, 3), ``rot`` (N, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3), ``e`` (K,), and ``n``.
+    The reference array's position, rotation and offset are always fixed (they define the frame and the
+    time origin). Its drift is free when TDOA-S is present (``ref_drift=None`` decides that).
+    ``arrays`` restricts the free array parameters to these indices (others are fixed).
+    """
+    N, K, ref = p["N"], p["K"], p["ref"]
+    if ref_drift is None:
+        ref_drift = len(p["ts_val"]) > 0
+    if emission is None:
+        emission = p["sigma_emit"] > 0
+    free_arr = np.zeros(N, bool)
+    free_arr[np.arange(N) if arrays is None else np.asarray(arrays, int)] = True
+    lay = {"x": -np.ones((N, 3), int), "rot": -np.ones((N, 3), int), "offset": -np.ones(N, int),
+           "drift": -np.ones(N, int), "s": -np.ones((K, 3), int), "e": -np.ones(K, int)}
+    n = 0
+
+    def take(k):
+        nonlocal n
+        out = np.arange(n, n + k)
+        n += k
+        return out
+
+    for i in range(N):
+        if not free_arr[i]:
+            continue
+        if i != ref:
+            lay["x"][i] = take(3)
+            if rotations:
+                lay["rot"][i] = take(3)
+            lay["offset"][i] = take(1)[0]
+        if i != ref or ref_drift:
+            lay["drift"][i] = take(1)[0]
+    if sources:
+        lay["s"][:] = take(3 * K).reshape(K, 3)
+    if emission and K > 1:
+        lay["e"][1:] = take(K - 1)
+    lay["n"] = n
+    return lay
+
+
+def retract(st, lay, delta):
+    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ)."""
+    out = copy_state(st)
+    for key in ("x", "s"):
+        m = lay[key] >= 0
+        out[key][m] += delta[lay[key][m]]
+    for key in ("offset", "drift", "e"):
+        m = lay[key] >= 0
+        out[key][m] += delta[lay[key][m]]
+    rows = np.flatnonzero(lay["rot"][:, 0] >= 0)
+    if rows.size:
+        phi = delta[lay["rot"][rows]]
+        out["R"][rows] = st["R"][rows] @ Rotation.from_rotvec(phi).as_matrix()
+    return out
+
+
+def state_to_frames(p, st):
+    """State → (arrays DataFrame columns as dict of arrays, sources (K, 3))."""
+    q = Rotation.from_matrix(st["R"]).as_quat(scalar_first=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)  # canonical sign: qw >= 0
+    return q

@@ -1,0 +1,83 @@
+"""Calibration vs ground truth: the metrics of FORMATS.md section 4 (the paper's, Zhang et al. 2025)."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .io import InputError
+
+P_PAPER = np.ones(3) / np.sqrt(3.0)
+
+
+def _rms(v):
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(v * v))) if v.size else float("nan")
+
+
+def array_errors(est, truth, reference=None):
+    """Per-array errors of a calibration against truth.
+
+    est, truth : arrays DataFrames (FORMATS.md sections 3/4). ``reference``: name of the reference array
+    (default: the truth row at the origin with identity rotation, else the first row).
+
+    Returns a dict of (n,) arrays over the non-reference arrays present in both: ``array``,
+    ``position_m``, ``geodesic_deg``, ``paper_deg``, ``offset_s``, ``drift``, ``relative_drift`` (NaN where
+    truth is unknown).
+    """
+    e = est.set_index("array")
+    t = truth.set_index("array")
+    missing = [a for a in t.index if a not in e.index]
+    if missing:
+        raise InputError(f"calibration has no array {missing[0]!r} that truth has")
+    if reference is None:
+        at_origin = (np.linalg.norm(t[["x", "y", "z"]].to_numpy(float), axis=1) < 1e-12)
+        reference = t.index[int(np.argmax(at_origin))] if at_origin.any() else t.index[0]
+    names = [a for a in t.index if a != reference]
+    e_, t_ = e.loc[names], t.loc[names]
+    pos = np.linalg.norm(e_[["x", "y", "z"]].to_numpy(float) - t_[["x", "y", "z"]].to_numpy(float), axis=1)
+    qe = e_[["qw", "qx", "qy", "qz"]].to_numpy(float)
+    qt = t_[["qw", "qx", "qy", "qz"]].to_numpy(float)
+    geo = np.full(len(names), np.nan)
+    paper = np.full(len(names), np.nan)
+    ok = np.all(np.isfinite(qt), axis=1)
+    if ok.any():
+        Re = Rotation.from_quat(qe[ok], scalar_first=True)
+        Rt = Rotation.from_quat(qt[ok], scalar_first=True)
+        geo[ok] = np.rad2deg((Rt.inv() * Re).magnitude())
+        cosang = np.clip(np.sum(Rt.apply(P_PAPER) * Re.apply(P_PAPER), axis=1), -1.0, 1.0)
+        paper[ok] = np.rad2deg(np.arccos(cosang))
+    off = e_["offset"].to_numpy(float) - t_["offset"].to_numpy(float)
+    dr = e_["drift"].to_numpy(float) - t_["drift"].to_numpy(float)
+    ref_dr = float(e.loc[reference, "drift"]) - float(t.loc[reference, "drift"]) if reference in e.index else np.nan
+    return {"array": names, "position_m": pos, "geodesic_deg": geo, "paper_deg": paper, "offset_s": off,
+            "drift": dr, "relative_drift": dr - ref_dr}
+
+
+def evaluate(calib, truth):
+    """Metrics of a calibration dict against a truth dict (both as in ``pipeline.io``).
+
+    Returns a dict: ``position_rmse_m``, ``orientation_geodesic_deg`` (RMS over arrays),
+    ``orientation_paper_deg`` (RMS of the angle between R_gt·p and R_est·p, p = [1,1,1]/√3),
+    ``offset_rmse_s``, ``drift_rmse`` (absolute drifts), ``relative_drift_rmse`` (δ_i − δ_ref, the paper's),
+    ``source_rmse_m`` (when both have sources) and ``per_array`` (list of dicts). NaN where truth is unknown.
+    """
+    errs = array_errors(calib["arrays"], truth["arrays"])
+    out = {
+        "position_rmse_m": _rms(errs["position_m"]),
+        "orientation_geodesic_deg": _rms(errs["geodesic_deg"]),
+        "orientation_paper_deg": _rms(errs["paper_deg"]),
+        "offset_rmse_s": _rms(errs["offset_s"]),
+        "drift_rmse": _rms(errs["drift"]),
+        "relative_drift_rmse": _rms(errs["relative_drift"]),
+        "source_rmse_m": float("nan"),
+    }
+    se, stt = calib.get("sources"), truth.get("sources")
+    if se is not None and stt is not None and len(stt):
+        m = stt.merge(se, on="event", suffixes=("_t", "_e"))
+        d = m[["x_e", "y_e", "z_e"]].to_numpy(float) - m[["x_t", "y_t", "z_t"]].to_numpy(float)
+        out["source_rmse_m"] = _rms(np.linalg.norm(d, axis=1))
+    out["per_array"] = [
+        {"array": a, **{k: float(errs[k][n]) for k in errs if k != "array"}} for n, a in enumerate(errs["array"])
+    ]
+    return out
