@@ -1,7 +1,25 @@
-"""`calib evaluate` (not implemented yet)."""
+"""`calib evaluate CALIB TRUTH`: the metrics of FORMATS.md section 4 as a table, or one JSON line."""
+from __future__ import annotations
+
+from pathlib import Path
+
 import typer
 
+from pipeline.evaluate import evaluate as evaluate_metrics
+from pipeline.io import dumps_json, read_calibration, read_truth
+from .common import user_errors
+from .tables import print_metrics
 
-def evaluate():
-    """Not implemented yet."""
-    raise typer.Exit(1)
+
+@user_errors
+def evaluate(
+    calib: Path = typer.Argument(..., help="calibration/ directory"),
+    truth: Path = typer.Argument(..., help="truth/ directory"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON line instead of a table"),
+):
+    """Compare a calibration with ground truth."""
+    metrics = evaluate_metrics(read_calibration(calib), read_truth(truth))
+    if json_out:
+        print(dumps_json(metrics))
+    else:
+        print_metrics(metrics)

@@ -363,7 +363,7 @@ def write_calibration(directory, calib):
         write_table(calib["arrays"], tmp / "arrays.csv", ARRAYS_COLS, float_format="%.12g")
         if calib.get("sources") is not None:
             write_table(calib["sources"], tmp / "sources.csv", SOURCES_COLS, float_format="%.9g")
-        (tmp / "report.json").write_text(json.dumps(calib.get("report", {}), indent=2, default=_json_default) + "\n")
+        (tmp / "report.json").write_text(dumps_json(calib.get("report", {}), indent=2) + "\n")
 
 
 def read_truth(directory):
@@ -398,6 +398,19 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
+def _finite(obj):
+    """Replace NaN/inf floats by None (JSON has no NaN) throughout nested dicts/lists."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    return obj
+
+
 def dumps_json(obj, **kw):
-    """``json.dumps`` that understands numpy scalars/arrays and paths."""
-    return json.dumps(obj, default=_json_default, **kw)
+    """``json.dumps`` that understands numpy scalars/arrays and paths, and writes NaN as null."""
+    return json.dumps(_finite(obj), default=_json_default, allow_nan=False, **kw)

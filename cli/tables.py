@@ -1,0 +1,63 @@
+"""Rich tables shared by the commands (one place for how arrays and metrics are shown)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+from scipy.spatial.transform import Rotation
+
+out = Console()
+
+
+def _f(v, fmt):
+    return "—" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, fmt)
+
+
+def print_arrays(calib, console=None):
+    """Table of calibrated arrays: position (m), orientation (rotation vector, deg), offset (ms), drift (ppm)."""
+    a = calib["arrays"]
+    t = Table(title="Calibrated arrays: position m, rotation angle deg, offset ms, drift ppm, 1-σ cm / deg",
+              padding=(0, 1), collapse_padding=True)
+    for col in ("array", "x", "y", "z", "angle", "offset", "drift", "±pos", "±rot"):
+        t.add_column(col, justify="right")
+    # rotation shown as its angle (the axis is in arrays.csv); keeps the table within 80 columns
+    rv = np.rad2deg(Rotation.from_quat(a[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).magnitude())
+    for k, row in a.reset_index(drop=True).iterrows():
+        pos_sd = math.sqrt(sum(row.get(f"{c}_std", float("nan")) ** 2 for c in "xyz")) * 100
+        rot_sd = math.degrees(math.sqrt(sum(row.get(f"r{c}_std", float("nan")) ** 2 for c in "xyz")))
+        t.add_row(str(row["array"]), _f(row["x"], ".3f"), _f(row["y"], ".3f"), _f(row["z"], ".3f"),
+                  _f(rv[k], ".1f"), _f(row["offset"] * 1e3, ".3f"),
+                  _f(row["drift"] * 1e6, ".2f"), _f(pos_sd, ".2f"), _f(rot_sd, ".2f"))
+    (console or out).print(t)
+
+
+METRIC_ROWS = (
+    ("position_rmse_m", "array position RMSE", 100.0, "cm"),
+    ("orientation_geodesic_deg", "orientation RMS (geodesic)", 1.0, "deg"),
+    ("orientation_paper_deg", "orientation RMS (paper metric)", 1.0, "deg"),
+    ("offset_rmse_s", "offset RMSE", 1e6, "µs"),
+    ("drift_rmse", "drift RMSE", 1e6, "ppm"),
+    ("relative_drift_rmse", "drift RMSE relative to reference", 1e6, "ppm"),
+    ("source_rmse_m", "source position RMSE", 100.0, "cm"),
+)
+
+
+def print_metrics(metrics, console=None):
+    """Table of evaluation metrics (and per-array errors)."""
+    t = Table(title="Calibration vs ground truth")
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    t.add_column("unit")
+    for key, label, scale, unit in METRIC_ROWS:
+        v = metrics.get(key, float("nan"))
+        t.add_row(label, _f(v * scale if v is not None else v, ".3f"), unit)
+    (console or out).print(t)
+    pa = Table(title="Per array")
+    for col in ("array", "position [cm]", "geodesic [deg]", "paper [deg]", "offset [µs]", "drift [ppm]"):
+        pa.add_column(col, justify="right")
+    for r in metrics.get("per_array", []):
+        pa.add_row(r["array"], _f(100 * r["position_m"], ".2f"), _f(r["geodesic_deg"], ".2f"),
+                   _f(r["paper_deg"], ".2f"), _f(1e6 * r["offset_s"], ".1f"), _f(1e6 * r["drift"], ".2f"))
+    (console or out).print(pa)
