@@ -1,0 +1,932 @@
+"""Room (audio) simulator with per-array drifting clocks → a recording session folder + ``truth/``.
+
+pyroomacoustics gives the image-source model (ISM) of a shoebox room, but all its microphones share one
+integer ``fs``, ``add_source(delay=...)`` floors the emission delay to whole samples and ``compute_rir``
+shifts every RIR by ``frac_delay_length // 2`` samples. This module adds what is missing, exactly:
+
+* Clock model (docs/architecture.md): array ``i`` reads local time ``L_i(t) = (1 + δ_i)(t − t_0) + τ_i``
+  with ``t_0 = t_emit[0]``; sample ``n`` of its WAV is taken at local time ``n / fs``. Sample 0 is local
+  time 0, i.e. true time ``t_0 − τ_i / (1 + δ_i)``.
+* Every mic signal is synthesised directly on its array's sample instants: on array ``i`` the true-time
+  step between samples is ``1 / fs'_i`` with ``fs'_i = fs (1 + δ_i)``. The chirp is evaluated analytically
+  at those instants (sub-sample emission time, stretched by the drift) and convolved with an RIR whose
+  image delays are expressed in the same samples (``fs'_i · d / c``), built by pyroomacoustics' own
+  windowed-sinc RIR builder. Band-limited interpolation makes the sum of images exact up to the
+  fractional-delay filter (81-tap Hann-windowed sinc); the builder's global delay is measured once
+  (``builder_delay``) and removed.
+
+The scenario is a plain dict (see :func:`make_scenario`); :func:`simulate` writes FORMATS.md section 1
+(``session.toml``, one float32/PCM WAV per array, ``events.csv``, ``chirp.wav``) plus ``truth/``
+(section 4, in the reference array's frame) and ``truth/manifest.json`` (the room-frame scenario and
+everything derived from it).
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.signal import fftconvolve
+from scipy.spatial.transform import Rotation
+
+from .io import ARRAYS_COLS, EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
+from .session import write_session_toml
+
+# ----------------------------------------------------------------------------------------------- constants
+FDL = 81           # fractional-delay filter length (pyroomacoustics default)
+LUT_GRAN = 512     # sinc look-up granularity of the RIR builder (pra default 20; finer = more exact delays)
+N_THREADS = 2      # fixed so that the builder's summation order (hence every output byte) is reproducible
+PAD = FDL // 2 + 1  # samples added to every image delay so the builder never indexes before 0
+SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
+
+# Speaker trajectories of Zhang et al. 2025 (simulation section; published with their code, gt_generation.m).
+_PAPER_TRAJ = {
+    "paper-traj1": 3.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
+                                   [0, 1, 1], [0, 0, 1], [1, 0, 1], [1, 1, 1]], float),
+    "paper-traj2": np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [2, 4, 0], [2, 6, 0],
+                             [2, 6, 2], [2, 4, 2], [2, 2, 2], [2, 0, 2], [0, 0, 2]], float),
+    "paper-traj3": 2.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 2, 0], [0, 2, 0], [-1, 2, 0], [-1, 1, 0],
+                                   [-1, 0, 0], [-1, 0, 1], [-1, 1, 1], [-1, 2, 1], [0, 2, 1], [1, 2, 1],
+                                   [1, 1, 1]], float),
+}
+# The real lab loop (zhang_real_01 truth, x/y in metres, centred): 7 stops, flown at two speaker heights.
+_LAB_LOOP = np.array([[0.87, 0.25], [0.87, -0.27], [0.37, -0.57], [-0.40, -0.57],
+                      [-0.87, -0.03], [-0.44, 0.56], [0.36, 0.56]])
+_LAB_HEIGHTS = (1.12, 0.75)  # m above the floor: first loop high, second low (as in the real data)
+
+PRESETS = {
+    "paper-traj1": {"n_arrays": 5, "room_margin": 1.5},
+    "paper-traj2": {"n_arrays": 5, "room_margin": 1.5},
+    "paper-traj3": {"n_arrays": 5, "room_margin": 1.5},
+    "lab3": {"n_arrays": 3, "room_dim": [6.0, 5.0, 3.0], "tilt_deg": 3.0},
+}
+
+# Keys that only steer the random generation in make_scenario (kept in the scenario for the record).
+GEN_DEFAULTS = {
+    "n_arrays": 5,             # number of arrays (names A1..AN, A1 = reference)
+    "n_events": None,          # speaker stops used (≤ the preset's trajectory length; None = all)
+    "interval": 2.0,           # mean time between chirp emissions, s
+    "interval_jitter": 0.25,   # each interval is interval · U(1 − jitter, 1 + jitter)
+    "offset_max": 0.1,         # offsets τ_i − τ_ref ~ U(−offset_max, offset_max), s (reference: 0)
+    "drift_max": 1e-4,         # drifts δ_i ~ U(−drift_max, drift_max) for every array (reference included)
+    "lead_in": 0.3,            # the earliest-starting clock reads τ = lead_in at t_emit[0], s
+    "n_mics": 6,               # default mic geometry: circular array of n_mics ...
+    "mic_radius": 0.0354,      # ... with this radius (m), in the array's x-y plane, origin at the centre
+    "tilt_deg": None,          # None: rotations uniform on SO(3); else upright, random yaw, tilt N(0, tilt_deg)
+    "room_margin": 1.5,        # paper presets: room = trajectory box + this margin on each side, m
+    "wall_margin": 0.3,        # generated arrays keep at least this distance from the walls, m
+    "min_source_distance": 0.5,  # generated arrays keep at least this distance from every speaker stop, m
+    "n_interferers": 0,        # random interfering noise bursts (see the 'interferers' key)
+    "interferer_level_db": 0.0,  # their power relative to the chirp's, dB
+}
+
+SCENE_DEFAULTS = {
+    "fs": 16000,
+    "speed_of_sound": 343.0,
+    "room_dim": None,
+    "rt60": 0.3,
+    "max_order": None,
+    "chirp": {"f0": 500.0, "f1": 4000.0, "duration": 0.5, "fade": 0.005},
+    "snr": 30.0,
+    "diffuse_snr": math.inf,
+    "sigma_odo": 0.01,
+    "priors": {"sigma_tdoa": 1e-4, "sigma_doa_deg": 5.0},
+    "subtype": "FLOAT",
+    "tail": 0.3,
+    "reference_array": "A1",
+}
+SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers"}
+META_KEYS = {"preset", "seed"}
+ALL_KEYS = SCENE_KEYS | set(GEN_DEFAULTS) | META_KEYS
+
+
+# ----------------------------------------------------------------------------------------------- signals
+def chirp_signal(u, f0, f1, duration, fade):
+    """The emitted chirp at times ``u`` (s since its start): a linear sweep ``f0 → f1`` (Hz) over
+    ``duration`` (s), unit amplitude, with raised-cosine fades of ``fade`` s at both ends; 0 outside.
+
+    ``s(u) = w(u) sin(2π (f0 u + (f1 − f0) u² / (2 duration)))``, ``w = ½(1 − cos(π u / fade))`` on the
+    first ``fade`` s, mirrored on the last, 1 in between.
+    """
+    u = np.asarray(u, float)
+    k = (f1 - f0) / duration
+    inside = (u >= 0) & (u <= duration)
+    s = np.sin(2 * np.pi * (f0 * u + 0.5 * k * u * u))
+    if fade > 0:
+        edge = np.minimum(u, duration - u)
+        s = s * np.where(edge < fade, 0.5 * (1 - np.cos(np.pi * np.clip(edge, 0, fade) / fade)), 1.0)
+    return np.where(inside, s, 0.0)
+
+
+def chirp_power(chirp):
+    """Mean of ``chirp_signal²`` over its duration (dimensionless, ≈ 0.5)."""
+    u = np.linspace(0, chirp["duration"], 200_001)
+    return float(np.mean(chirp_signal(u, chirp["f0"], chirp["f1"], chirp["duration"], chirp["fade"]) ** 2))
+
+
+def circular_array(n_mics=6, radius=0.0354):
+    """Mic positions (n_mics, 3) of a uniform circular array in the x-y plane, centred on the origin (m)."""
+    a = 2 * np.pi * np.arange(n_mics) / n_mics
+    return np.round(np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(n_mics)], axis=1), 12) + 0.0
+
+
+def _burst_params(seed, index, f_lo, f_hi, n_tones=48):
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(100, index)))
+    return rng.uniform(f_lo, f_hi, n_tones), rng.uniform(0, 2 * np.pi, n_tones)
+
+
+def burst_signal(u, duration, freqs, phases):
+    """An interferer: sum of tones with a Hann envelope over ``duration`` (s), unit power; 0 outside.
+
+    Analytic so that every array can evaluate it on its own clock, like the chirp.
+    """
+    u = np.asarray(u, float)
+    env = np.where((u >= 0) & (u <= duration), np.sin(np.pi * np.clip(u, 0, duration) / duration) ** 2, 0.0)
+    s = np.zeros_like(u)
+    for f, p in zip(freqs, phases):
+        s += np.cos(2 * np.pi * f * u + p)
+    # mean of env² over the burst is 3/8, mean of the tone sum² is n_tones / 2
+    return env * s / np.sqrt(3 / 8 * len(freqs) / 2)
+
+
+def _pink_noise(rng, shape):
+    """Unit-variance pink (1/f power) noise along the last axis, flat below 20 Hz cut."""
+    n = shape[-1]
+    spec = np.fft.rfft(rng.standard_normal(shape), axis=-1)
+    f = np.fft.rfftfreq(n)
+    w = np.zeros_like(f)
+    w[1:] = 1 / np.sqrt(f[1:])
+    x = np.fft.irfft(spec * w, n=n, axis=-1)
+    return x / x.std(axis=-1, keepdims=True)
+
+
+# ----------------------------------------------------------------------------------------------- scenario
+def _rng(seed, purpose):
+    # one independent stream per purpose: overriding one part of a scene never changes the draws of another
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(purpose,)))
+
+
+def _merge(base, over):
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = {**out[k], **v} if isinstance(out.get(k), dict) and isinstance(v, dict) else copy.deepcopy(v)
+    return out
+
+
+def make_scenario(preset="paper-traj3", seed=0, **overrides):
+    """A complete, deterministic scenario (plain dict) from a preset, a seed and overrides.
+
+    Presets: ``paper-traj1`` (8 stops, 3×3×3 m cube), ``paper-traj2`` (10 stops, 2×6×2 m),
+    ``paper-traj3`` (14 stops, 4×4×2 m) — the trajectories of Zhang et al. 2025, 5 arrays at random
+    positions inside the trajectory box and rotations uniform on SO(3), room = box + 1.5 m on each side —
+    and ``lab3`` (3 roughly upright arrays near the floor, 7 stops on a ~1.7 m loop flown at 1.12 m then
+    0.75 m, like the paper's real experiment, in a 6×5×3 m room).
+
+    Any key below may be overridden (nested dicts ``chirp``/``priors`` are merged). All values are SI and
+    in the ROOM frame (origin at a room corner, walls along the axes).
+
+    Scene keys (what :func:`simulate` uses):
+      ``preset`` str, ``seed`` int (drives every random draw, including noise and odometry);
+      ``fs`` int Hz (nominal rate of every recorder); ``speed_of_sound`` m/s; ``room_dim`` (3,) m;
+      ``rt60`` s (Sabine, via ``pyroomacoustics.inverse_sabine``; 0 = anechoic); ``max_order`` int|None
+      (ISM order; None = from inverse_sabine); ``chirp`` {f0 Hz, f1 Hz, duration s, fade s};
+      ``arrays`` list of {``name`` str, ``position`` (3,) m, ``quat`` (4,) scalar-first rotation array
+      frame → room, ``mics`` (M, 3) m in the array frame (one per WAV channel), ``tau`` s (local clock
+      reading at t_emit[0]), ``drift`` (δ, dimensionless), optional ``doa_hemisphere`` (3,) array frame};
+      ``reference_array`` str (its frame is the world frame of everything written);
+      ``sources`` (K, 3) m speaker stops; ``t_emit`` (K,) s emission times of the chirp STARTS on the
+      emitter clock; ``snr`` dB (white sensor noise re. the mean direct-path chirp power at the mics;
+      inf = none); ``diffuse_snr`` dB (incoherent pink noise, same reference; inf = none);
+      ``interferers`` list of {``position`` (3,) m, ``t_start`` s (emitter clock), ``duration`` s,
+      ``level_db`` dB re. the chirp's emitted power, ``f_lo``/``f_hi`` Hz}; ``sigma_odo`` m (odometry
+      step noise, per axis); ``priors`` {sigma_tdoa s, sigma_doa_deg deg} written to session.toml
+      [noise]; ``subtype`` FLOAT|PCM_24|PCM_16; ``tail`` s recorded after the last reverberation.
+    Generation keys (only steer the random draws): see ``GEN_DEFAULTS``.
+    """
+    if preset not in PRESETS:
+        raise InputError(f"scenario: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"scenario: seed must be a non-negative integer, got {seed!r}")
+    unknown = sorted(set(overrides) - ALL_KEYS)
+    if unknown:
+        raise InputError(f"scenario: unknown key(s) {', '.join(map(repr, unknown))}")
+    seed = int(seed)
+    g = {**GEN_DEFAULTS, **{k: v for k, v in PRESETS[preset].items() if k in GEN_DEFAULTS},
+         **{k: v for k, v in overrides.items() if k in GEN_DEFAULTS}}
+    base = _merge(SCENE_DEFAULTS, {k: v for k, v in PRESETS[preset].items() if k in SCENE_DEFAULTS})
+    sc = _merge(base, {k: v for k, v in overrides.items()
+                       if k in SCENE_DEFAULTS and k not in ("reference_array",)})
+    sc = {"preset": preset, "seed": seed, **sc}
+    n_arrays = _int(g["n_arrays"], "n_arrays", 1)
+
+    # speaker stops (room frame) and the room
+    if "sources" in overrides:
+        sources = _matrix(overrides["sources"], "sources", 3)
+        if sc["room_dim"] is None:
+            raise InputError("scenario: 'sources' given without 'room_dim'")
+        room = _vector(sc["room_dim"], "room_dim", 3)
+    else:
+        sources, room = _make_sources(preset, g, sc["room_dim"], _rng(seed, 1))
+    if g["n_events"] is not None and "sources" not in overrides:
+        k = _int(g["n_events"], "n_events", 0)
+        if k == 0:
+            raise InputError("scenario: n_events must be at least 1 (zero events)")
+        if k > len(sources):
+            raise InputError(f"scenario: preset {preset!r} has {len(sources)} speaker stops, "
+                             f"n_events={k} asked")
+        sources = sources[:k]
+    sc["room_dim"] = room.tolist()
+    sc["sources"] = np.asarray(sources, float).tolist()
+
+    # arrays: poses and clocks
+    if "arrays" in overrides:
+        arrays = _user_arrays(overrides["arrays"], g)
+    else:
+        arrays = _make_arrays(preset, g, np.asarray(sources), room, n_arrays, _rng(seed, 2), _rng(seed, 3))
+    sc["arrays"] = arrays
+    sc["reference_array"] = overrides.get("reference_array", arrays[0]["name"])
+
+    # emission schedule: t_emit[0] = lead time after the latest clock start, rounded to the microsecond
+    if "t_emit" in overrides:
+        sc["t_emit"] = _vector(overrides["t_emit"], "t_emit").tolist()
+    else:
+        sc["t_emit"] = _make_emissions(len(sources), g, max(a["tau"] for a in arrays), _rng(seed, 4)).tolist()
+
+    if "interferers" in overrides:
+        sc["interferers"] = copy.deepcopy(list(overrides["interferers"]))
+    else:
+        sc["interferers"] = _make_interferers(g, room, sc["t_emit"], _rng(seed, 5))
+    sc["generator"] = {k: g[k] for k in GEN_DEFAULTS}
+    return sc
+
+
+def _int(v, name, lo):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer, float)) or v != int(v) or v < lo:
+        raise InputError(f"scenario: {name} must be an integer ≥ {lo}, got {v!r}")
+    return int(v)
+
+
+def _float(v, name, lo=None, allow_inf=False, strict=False):
+    if v is None and allow_inf:
+        return math.inf
+    if isinstance(v, str) and allow_inf and v.strip().lower() in ("inf", "+inf", "infinity"):
+        return math.inf
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise InputError(f"scenario: {name} must be a number, got {v!r}")
+    v = float(v)
+    if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
+        raise InputError(f"scenario: {name} must be finite, got {v!r}")
+    if lo is not None and (v < lo or (strict and v == lo)):
+        raise InputError(f"scenario: {name} must be {'>' if strict else '≥'} {lo:g}, got {v:g}")
+    return v
+
+
+def _vector(v, name, n=None):
+    try:
+        a = np.asarray(v, float)
+    except (TypeError, ValueError):
+        raise InputError(f"scenario: {name} must be a list of numbers") from None
+    if a.ndim != 1 or (n is not None and a.size != n) or not np.all(np.isfinite(a)):
+        raise InputError(f"scenario: {name} must be {n if n else 'a list of'} finite numbers")
+    return a
+
+
+def _matrix(v, name, ncol):
+    try:
+        a = np.asarray(v, float)
+    except (TypeError, ValueError):
+        raise InputError(f"scenario: {name} must be a list of [x, y, z]") from None
+    if a.size == 0:
+        raise InputError(f"scenario: {name} is empty (zero events)" if name == "sources" else
+                         f"scenario: {name} is empty")
+    if a.ndim != 2 or a.shape[1] != ncol or not np.all(np.isfinite(a)):
+        raise InputError(f"scenario: {name} must be a list of [x, y, z] with finite numbers")
+    return a
+
+
+def _make_sources(preset, g, room_dim, rng):
+    """Speaker stops (K, 3) in the room frame and the room size (3,)."""
+    if preset in _PAPER_TRAJ:
+        traj = _PAPER_TRAJ[preset]
+        extent = traj.max(0) - traj.min(0)
+        room = (extent + 2 * float(g["room_margin"]) if room_dim is None else _vector(room_dim, "room_dim", 3))
+        return traj - traj.min(0) + (room - extent) / 2, np.asarray(room, float)
+    # lab3: the real loop, rotated about z, jittered, centred near the middle of the room
+    room = _vector(room_dim, "room_dim", 3)
+    psi = rng.uniform(-np.pi, np.pi)
+    rot = np.array([[np.cos(psi), -np.sin(psi)], [np.sin(psi), np.cos(psi)]])
+    centre = room[:2] / 2 + rng.uniform(-0.3, 0.3, 2)
+    stops = []
+    for h in _LAB_HEIGHTS:
+        xy = _LAB_LOOP @ rot.T + centre + rng.normal(0, 0.03, (len(_LAB_LOOP), 2))
+        stops.append(np.column_stack([xy, h + rng.normal(0, 0.01, len(_LAB_LOOP))]))
+    return np.concatenate(stops), room
+
+
+def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock):
+    """Random array poses (rejection sampling under the distance constraints) and clocks."""
+    wall, dmin = float(g["wall_margin"]), float(g["min_source_distance"])
+    if preset == "lab3":
+        lo = np.r_[sources[:, :2].min(0) + 0.2, 0.30]
+        hi = np.r_[sources[:, :2].max(0) - 0.2, 0.40]
+        pair = (0.5, 1.2)
+    else:
+        lo, hi = sources.min(0), sources.max(0)
+        pair = (0.3, np.inf)
+    lo, hi = np.maximum(lo, wall), np.minimum(hi, room - wall)
+    if np.any(lo >= hi):
+        raise InputError("scenario: no room to place arrays (room too small for the wall margin)")
+    pos = []
+    for _ in range(20000):
+        if len(pos) == n:
+            break
+        p = rng_pose.uniform(lo, hi)
+        if np.min(np.linalg.norm(sources - p, axis=1)) < dmin:
+            continue
+        d = [np.linalg.norm(p - q) for q in pos]
+        if d and (min(d) < pair[0] or max(d) > pair[1]):
+            continue
+        pos.append(p)
+    if len(pos) < n:
+        raise InputError(f"scenario: cannot place {n} arrays under the distance constraints "
+                         f"(≥ {dmin} m from speaker stops, ≥ {wall} m from walls)")
+    if g["tilt_deg"] is None:
+        rots = Rotation.random(n, rng=rng_pose)
+    else:
+        yaw = Rotation.from_euler("z", rng_pose.uniform(-np.pi, np.pi, (n, 1)))
+        tilt = np.zeros((n, 3))
+        tilt[:, :2] = np.deg2rad(float(g["tilt_deg"])) * rng_pose.standard_normal((n, 2))
+        rots = Rotation.from_rotvec(tilt) * yaw
+    offmax, drmax = float(g["offset_max"]), float(g["drift_max"])
+    off = rng_clock.uniform(-offmax, offmax, n)
+    off[0] = 0.0
+    drift = rng_clock.uniform(-drmax, drmax, n)
+    tau = off - off.min() + float(g["lead_in"])
+    mics = circular_array(_int(g["n_mics"], "n_mics", 1), float(g["mic_radius"]))
+    out = []
+    for i in range(n):
+        q = rots[i].as_quat(scalar_first=True)
+        q = q if q[0] >= 0 else -q
+        a = {"name": f"A{i + 1}", "position": pos[i].tolist(), "quat": q.tolist(), "mics": mics.tolist(),
+             "tau": float(tau[i]), "drift": float(drift[i])}
+        if g["tilt_deg"] is not None:
+            a["doa_hemisphere"] = [0.0, 0.0, 1.0]  # upright planar arrays below the speaker
+        out.append(a)
+    return out
+
+
+def _user_arrays(arrays, g):
+    if not isinstance(arrays, (list, tuple)) or not arrays:
+        raise InputError("scenario: 'arrays' must be a non-empty list of tables")
+    out = []
+    for k, a in enumerate(arrays):
+        if not isinstance(a, dict):
+            raise InputError(f"scenario: arrays[{k}] must be a table")
+        a = copy.deepcopy(a)
+        a.setdefault("name", f"A{k + 1}")
+        a.setdefault("quat", [1.0, 0.0, 0.0, 0.0])
+        a.setdefault("mics", circular_array(_int(g["n_mics"], "n_mics", 1), float(g["mic_radius"])).tolist())
+        a.setdefault("tau", float(g["lead_in"]))
+        a.setdefault("drift", 0.0)
+        out.append(a)
+    return out
+
+
+def _make_emissions(k, g, tau_max, rng):
+    mean = _float(g["interval"], "interval", 0, strict=True)
+    jit = _float(g["interval_jitter"], "interval_jitter", 0)
+    if jit >= 1:
+        raise InputError("scenario: interval_jitter must be < 1")
+    steps = mean * rng.uniform(1 - jit, 1 + jit, max(k - 1, 0))
+    t = 0.3 + tau_max + np.concatenate([[0.0], np.cumsum(steps)])
+    return np.round(t, 6)
+
+
+def _make_interferers(g, room, t_emit, rng):
+    n = _int(g["n_interferers"], "n_interferers", 0)
+    out = []
+    wall = float(g["wall_margin"])
+    for _ in range(n):
+        out.append({"position": rng.uniform(wall, room - wall).tolist(),
+                    "t_start": float(np.round(rng.uniform(t_emit[0], t_emit[-1] + 0.5), 6)),
+                    "duration": float(np.round(rng.uniform(0.1, 0.4), 6)),
+                    "level_db": float(g["interferer_level_db"]), "f_lo": 300.0, "f_hi": 5000.0})
+    return out
+
+
+def load_scenario(path, **overrides):
+    """A scenario from a TOML file (or a ``truth/manifest.json``) of overrides, then ``overrides``.
+
+    The TOML holds top-level ``preset`` and ``seed`` plus any key of :func:`make_scenario`, e.g.::
+
+        preset = "lab3"
+        seed = 4
+        rt60 = 0.4
+        [chirp]
+        duration = 0.2
+        [[arrays]]              # optional: the full list of arrays
+        name = "A1"
+        position = [2.0, 2.0, 0.4]
+        quat = [1.0, 0.0, 0.0, 0.0]
+        tau = 0.3
+        drift = 2e-5
+    Errors name the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    try:
+        if path.suffix == ".json":
+            cfg = json.loads(path.read_text()).get("scenario")
+            if not isinstance(cfg, dict):
+                raise InputError(f"{path}: no 'scenario' object in the manifest")
+        else:
+            cfg = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot parse ({' '.join(str(exc).split())})") from None
+    cfg = {k: v for k, v in cfg.items() if k != "generator"} | (
+        cfg.get("generator", {}) if isinstance(cfg.get("generator"), dict) else {})
+    cfg = {**cfg, **overrides}
+    preset, seed = cfg.pop("preset", "paper-traj3"), cfg.pop("seed", 0)
+    try:
+        sc = make_scenario(preset, seed, **cfg)
+        validate_scenario(sc)
+    except InputError as exc:
+        raise InputError(f"{path}: {str(exc).removeprefix('scenario: ')}") from None
+    return sc
+
+
+# ----------------------------------------------------------------------------------------------- validation
+def validate_scenario(scenario):
+    """Check a scenario; return a normalised copy with numpy arrays (raises InputError, one line).
+
+    The copy has ``room_dim`` (3,), ``sources`` (K, 3), ``t_emit`` (K,), ``chirp`` floats, and per array
+    ``position`` (3,), ``R`` (3, 3) array → room, ``mics`` (M, 3), ``mics_room`` (M, 3), ``tau``, ``drift``.
+    """
+    sc = copy.deepcopy(scenario)
+    for key in ("fs", "speed_of_sound", "room_dim", "rt60", "chirp", "arrays", "sources", "t_emit"):
+        if key not in sc:
+            raise InputError(f"scenario: missing key {key!r}")
+    if sc.get("preset", "paper-traj3") not in PRESETS:
+        raise InputError(f"scenario: unknown preset {sc['preset']!r} (choose from {', '.join(PRESETS)})")
+    sc["fs"] = _int(sc["fs"], "fs", 1000)
+    c = sc["speed_of_sound"] = _float(sc["speed_of_sound"], "speed_of_sound", 0, strict=True)
+    room = sc["room_dim"] = _vector(sc["room_dim"], "room_dim", 3)
+    if np.any(room <= 0):
+        raise InputError("scenario: room_dim must be positive")
+    sc["rt60"] = _float(sc["rt60"], "rt60", 0)
+    if sc.get("max_order") is not None:
+        sc["max_order"] = _int(sc["max_order"], "max_order", 0)
+    for key in ("snr", "diffuse_snr"):
+        sc[key] = _float(sc.get(key, math.inf), key, allow_inf=True)
+    sc["sigma_odo"] = _float(sc.get("sigma_odo", 0.0), "sigma_odo", 0)
+    sc["tail"] = _float(sc.get("tail", 0.3), "tail", 0)
+    sc["subtype"] = str(sc.get("subtype", "FLOAT")).upper()
+    if sc["subtype"] not in SUBTYPES:
+        raise InputError(f"scenario: subtype must be one of {', '.join(SUBTYPES)}, got {sc['subtype']!r}")
+    pri = sc.get("priors") or {}
+    sc["priors"] = {k: _float(v, f"priors.{k}", 0, strict=True) for k, v in pri.items()}
+
+    ch = sc["chirp"]
+    if not isinstance(ch, dict):
+        raise InputError("scenario: chirp must be a table")
+    ch = sc["chirp"] = {k: _float(ch.get(k), f"chirp.{k}", 0, strict=k != "fade")
+                        for k in ("f0", "f1", "duration", "fade")}
+    if ch["f0"] == ch["f1"]:
+        raise InputError("scenario: chirp.f0 and chirp.f1 must differ")
+    if max(ch["f0"], ch["f1"]) > 0.45 * sc["fs"]:
+        raise InputError(f"scenario: chirp up to {max(ch['f0'], ch['f1']):g} Hz needs fs > "
+                         f"{max(ch['f0'], ch['f1']) / 0.45:.0f} Hz (fs = {sc['fs']})")
+    if 2 * ch["fade"] > ch["duration"]:
+        raise InputError("scenario: chirp.fade must be at most half of chirp.duration")
+
+    src = sc["sources"] = _matrix(sc["sources"], "sources", 3)
+    k_ev = len(src)
+    t = sc["t_emit"] = _vector(sc["t_emit"], "t_emit")
+    if t.size != k_ev:
+        raise InputError(f"scenario: t_emit has {t.size} values for {k_ev} speaker stops")
+    if np.any(np.diff(t) <= 0):
+        raise InputError("scenario: t_emit must increase strictly")
+    for j, s in enumerate(src):
+        if np.any(s < 0.05) or np.any(s > room - 0.05):
+            raise InputError(f"scenario: speaker stop {j} {np.round(s, 3).tolist()} is outside the room "
+                             f"{room.tolist()} (or within 5 cm of a wall)")
+
+    arrays = sc["arrays"]
+    if not isinstance(arrays, (list, tuple)) or not arrays:
+        raise InputError("scenario: no arrays")
+    out = []
+    for k, a in enumerate(arrays):
+        if not isinstance(a, dict):
+            raise InputError(f"scenario: arrays[{k}] must be a table")
+        name = a.get("name")
+        if not isinstance(name, str) or not name or any(ch_ in name for ch_ in "/\\\0") or name.startswith("."):
+            raise InputError(f"scenario: arrays[{k}] needs a name usable as a file name, got {name!r}")
+        for key in ("position", "quat", "mics", "tau", "drift"):
+            if key not in a:
+                raise InputError(f"scenario: array {name!r}: missing {key!r}")
+        pos = _vector(a["position"], f"array {name!r} position", 3)
+        q = _vector(a["quat"], f"array {name!r} quat", 4)
+        if not np.linalg.norm(q) > 1e-9:
+            raise InputError(f"scenario: array {name!r}: quat must be non-zero")
+        q = q / np.linalg.norm(q)
+        R = Rotation.from_quat(q, scalar_first=True).as_matrix()
+        mics = _matrix(a["mics"], f"array {name!r} mics", 3)
+        tau = _float(a["tau"], f"array {name!r} tau")
+        drift = _float(a["drift"], f"array {name!r} drift")
+        if abs(drift) >= 0.01:
+            raise InputError(f"scenario: array {name!r}: |drift| must be < 0.01, got {drift:g}")
+        mr = pos + mics @ R.T
+        if np.any(pos <= 0) or np.any(pos >= room) or np.any(mr <= 0.01) or np.any(mr >= room - 0.01):
+            raise InputError(f"scenario: array {name!r} at {np.round(pos, 3).tolist()} is outside the room "
+                             f"{room.tolist()}")
+        dmin = np.min(np.linalg.norm(src[:, None, :] - mr[None], axis=2))
+        if dmin < 0.05:
+            raise InputError(f"scenario: array {name!r} is within 5 cm of a speaker stop")
+        hemi = a.get("doa_hemisphere")
+        if hemi is not None:
+            hemi = _vector(hemi, f"array {name!r} doa_hemisphere", 3)
+        out.append({"name": name, "position": pos, "quat": q, "R": R, "mics": mics, "mics_room": mr,
+                    "tau": tau, "drift": drift, "doa_hemisphere": hemi})
+    names = [a["name"] for a in out]
+    if len(set(n.lower() for n in names)) != len(names):
+        raise InputError("scenario: duplicate array name")
+    sc["arrays"] = out
+    ref = sc.get("reference_array", names[0])
+    if ref not in names:
+        raise InputError(f"scenario: reference_array {ref!r} is not one of the arrays {names}")
+    sc["reference_array"] = ref
+
+    its = []
+    for k, it in enumerate(sc.get("interferers") or []):
+        if not isinstance(it, dict):
+            raise InputError(f"scenario: interferers[{k}] must be a table")
+        p = _vector(it.get("position"), f"interferers[{k}] position", 3)
+        if np.any(p < 0.05) or np.any(p > room - 0.05):
+            raise InputError(f"scenario: interferers[{k}] is outside the room")
+        f_lo = _float(it.get("f_lo", 300.0), f"interferers[{k}] f_lo", 0, strict=True)
+        f_hi = _float(it.get("f_hi", 5000.0), f"interferers[{k}] f_hi", f_lo, strict=True)
+        if f_hi > 0.45 * sc["fs"]:
+            f_hi = 0.45 * sc["fs"]  # keep the burst band-limited on every clock
+        its.append({"position": p, "t_start": _float(it.get("t_start"), f"interferers[{k}] t_start"),
+                    "duration": _float(it.get("duration"), f"interferers[{k}] duration", 0, strict=True),
+                    "level_db": _float(it.get("level_db", 0.0), f"interferers[{k}] level_db"),
+                    "f_lo": f_lo, "f_hi": max(f_hi, f_lo + 1.0)})
+    sc["interferers"] = its
+
+    # every chirp must be fully recorded and separated from the next one at every array
+    a = _arrivals(sc)  # (N, K, M)
+    dur = ch["duration"]
+    for i, arr in enumerate(out):
+        first = np.nanmin(a[i, 0])
+        if first < 0.0:
+            raise InputError(f"scenario: array {arr['name']!r} starts recording after the first chirp arrives "
+                             f"(tau = {arr['tau']:.6g} s; its clock must read ≥ 0 when the chirp arrives)")
+        gap = np.nanmin(a[i, 1:], axis=1) - np.nanmax(a[i, :-1], axis=1) - (1 + arr["drift"]) * dur
+        if gap.size and gap.min() < 0.05:
+            j = int(np.argmin(gap))
+            raise InputError(f"scenario: chirps {j} and {j + 1} overlap at array {arr['name']!r} "
+                             f"(gap {gap[j]:.3f} s < 0.05 s): increase the interval between emissions")
+    if sc["rt60"] > 0 and sc.get("max_order") is None:
+        _room_acoustics(sc)  # raises if the RT60 is not reachable in this room
+    return sc
+
+
+def _room_acoustics(sc):
+    """(energy absorption, max ISM order) for the scenario's room."""
+    import pyroomacoustics as pra
+
+    if sc["rt60"] == 0:
+        return 1.0, 0
+    try:
+        e_abs, order = pra.inverse_sabine(sc["rt60"], list(sc["room_dim"]), c=sc["speed_of_sound"])
+    except ValueError:
+        raise InputError(f"scenario: rt60 = {sc['rt60']:g} s is too short for a "
+                         f"{'×'.join(f'{x:g}' for x in sc['room_dim'])} m room (Sabine absorption > 1)") from None
+    if sc.get("max_order") is not None:
+        order = sc["max_order"]
+    return float(e_abs), int(order)
+
+
+# ----------------------------------------------------------------------------------------------- analytic truth
+def local_time(t, tau, drift, t0):
+    """Array clock reading ``L(t) = (1 + δ)(t − t0) + τ`` at true (emitter) time ``t`` (s)."""
+    return (1.0 + drift) * (np.asarray(t, float) - t0) + tau
+
+
+def _arrivals(sc):
+    """(N, K, M) local arrival times of the direct path at each mic (normalised scenario, equal M)."""
+    t0 = sc["t_emit"][0]
+    out = []
+    for a in sc["arrays"]:
+        d = np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None], axis=2)  # (K, M)
+        out.append(local_time(sc["t_emit"][:, None] + d / sc["speed_of_sound"], a["tau"], a["drift"], t0))
+    m = {x.shape[1] for x in out}
+    if len(m) == 1:
+        return np.stack(out)
+    width = max(m)  # ragged mic counts: pad with NaN so min/max still work with nan-aware callers
+    return np.stack([np.pad(x, ((0, 0), (0, width - x.shape[1])), constant_values=np.nan) for x in out])
+
+
+def arrival_times(scenario, mics=False):
+    """Analytic arrival times of each chirp's START, on each array's own clock (s).
+
+    ``a_ij = L_i(t_emit[j] + |s_j − x_i| / c)`` at the array ORIGIN: returns (n_arrays, n_events).
+    With ``mics=True``: a list (one per array) of (n_events, n_mics) times at the individual mics.
+    """
+    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
+    t0 = sc["t_emit"][0]
+    if mics:
+        return [local_time(sc["t_emit"][:, None] + np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None],
+                                                                  axis=2) / sc["speed_of_sound"],
+                           a["tau"], a["drift"], t0) for a in sc["arrays"]]
+    return np.stack([local_time(sc["t_emit"] + np.linalg.norm(sc["sources"] - a["position"], axis=1)
+                                / sc["speed_of_sound"], a["tau"], a["drift"], t0) for a in sc["arrays"]])
+
+
+def _normalise_light(scenario):
+    sc = {"t_emit": np.asarray(scenario["t_emit"], float), "sources": np.asarray(scenario["sources"], float),
+          "speed_of_sound": float(scenario["speed_of_sound"]), "arrays": []}
+    for a in scenario["arrays"]:
+        R = Rotation.from_quat(np.asarray(a["quat"], float), scalar_first=True).as_matrix()
+        pos = np.asarray(a["position"], float)
+        sc["arrays"].append({"name": a["name"], "position": pos, "R": R, "tau": float(a["tau"]),
+                             "drift": float(a["drift"]), "mics_room": pos + np.asarray(a["mics"], float) @ R.T})
+    return sc
+
+
+def scenario_truth(scenario):
+    """Truth in the reference array's frame: ``{"arrays": df, "sources": df}`` (FORMATS.md section 4).
+
+    ``x_i' = R_refᵀ(x_i − x_ref)``, ``R_i' = R_refᵀ R_i``, ``s_j' = R_refᵀ(s_j − x_ref)``,
+    ``offset_i = τ_i − τ_ref``, ``drift_i = δ_i``.
+    """
+    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
+    ref = next(a for a in sc["arrays"] if a["name"] == scenario.get("reference_array", sc["arrays"][0]["name"]))
+    Rr, xr = ref["R"], ref["position"]
+    rows = []
+    for a in sc["arrays"]:
+        x = Rr.T @ (a["position"] - xr)
+        q = Rotation.from_matrix(Rr.T @ a["R"]).as_quat(scalar_first=True)
+        q = q if q[0] >= 0 else -q
+        rows.append([a["name"], *x, *q, a["tau"] - ref["tau"], a["drift"]])
+    arrays = pd.DataFrame(rows, columns=ARRAYS_COLS)
+    arrays.loc[arrays["array"] == ref["name"], ["x", "y", "z", "offset"]] = 0.0
+    s = (sc["sources"] - xr) @ Rr
+    sources = pd.DataFrame({"event": np.arange(len(s)), "x": s[:, 0], "y": s[:, 1], "z": s[:, 2]})
+    return {"arrays": arrays, "sources": sources}
+
+
+def odometry(scenario):
+    """(K, 3) odometry in the reference frame: ``R_refᵀ(s_j − s_0)`` + cumulative N(0, σ_odo²) steps."""
+    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
+    ref = next(a for a in sc["arrays"] if a["name"] == scenario.get("reference_array", sc["arrays"][0]["name"]))
+    s = sc["sources"]
+    steps = _rng(int(scenario.get("seed", 0)), 10).normal(0.0, float(scenario.get("sigma_odo", 0.0)), s.shape)
+    steps[0] = 0.0
+    return (s - s[0]) @ ref["R"] + np.cumsum(steps, axis=0)
+
+
+# ----------------------------------------------------------------------------------------------- RIRs
+def _build_rirs(delays, amps, length):
+    """RIRs (n_mics, length) from image delays in SAMPLES (n_img, n_mics) and amplitudes (n_img, n_mics).
+
+    pyroomacoustics' windowed-sinc builder takes times and an integer rate; we hand it delays already in
+    the array's samples (rate 1) plus ``PAD`` so the filter never starts before index 0.
+    """
+    from pyroomacoustics import libroom
+
+    out = np.zeros((delays.shape[1], length))
+    for m in range(delays.shape[1]):
+        libroom.rir_builder(out[m], np.ascontiguousarray(delays[:, m] + PAD), np.ascontiguousarray(amps[:, m]),
+                            1, FDL, LUT_GRAN, N_THREADS)
+    return out
+
+
+def builder_delay():
+    """Global delay (samples) of :func:`_build_rirs`, measured: the peak of a lone image at an integer delay."""
+    n0 = 3 * FDL
+    h = _build_rirs(np.array([[float(n0)]]), np.array([[1.0]]), 6 * FDL)[0]
+    k = int(np.argmax(h))
+    if not abs(h[k] - 1.0) < 1e-3 or np.max(np.abs(np.delete(h, k))) > 1e-3:
+        raise RuntimeError("pyroomacoustics RIR builder: unexpected impulse shape")
+    return k - n0
+
+
+def _images(sc, e_abs, order, positions):
+    """Image sources of each position: list of (images (3, n_img), amplitude numerators (n_img,))."""
+    import pyroomacoustics as pra
+
+    room = pra.ShoeBox(sc["room_dim"].tolist(), fs=sc["fs"], materials=pra.Material(e_abs), max_order=order,
+                       air_absorption=False, use_rand_ism=False)
+    for p in positions:
+        room.add_source(np.asarray(p, float))
+    mics = np.concatenate([a["mics_room"] for a in sc["arrays"]]).T
+    room.add_microphone_array(mics)
+    room.image_source_model()
+    out = []
+    for k, src in enumerate(room.sources):
+        # a shoebox sees every image from every point inside it; keep the check in case that ever changes
+        vis = room.visibility[k].all(axis=0)
+        out.append((src.images[:, vis], src.damping[0, vis]))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- simulate
+def simulate(scenario, out_dir, progress=False, overwrite=False):
+    """Simulate a scenario and write a recording session (+ truth/) to ``out_dir``; returns its Path.
+
+    Written (atomically: a failure leaves nothing): ``session.toml``, ``<array>.wav`` (n_samples,
+    n_mics), ``chirp.wav`` (the emitted chirp sampled at fs from its start), ``events.csv`` (t_emit,
+    odometry), ``truth/arrays.csv``, ``truth/sources.csv``, ``truth/manifest.json``.
+    Noise: white Gaussian with variance ``P / 10^(snr/10)`` where ``P`` is the mean over arrays, mics and
+    events of the direct-path chirp power at the mic; ``diffuse_snr`` adds incoherent pink noise the same
+    way. Signals are scaled so the largest direct-path amplitude is 0.25 (and the whole set never clips).
+    """
+    sc = validate_scenario(scenario)
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
+        raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
+    fs, c, ch = sc["fs"], sc["speed_of_sound"], sc["chirp"]
+    e_abs, order = _room_acoustics(sc)
+    delay = builder_delay()
+    t0 = sc["t_emit"][0]
+    K = len(sc["sources"])
+
+    emitters = [("chirp", j, s) for j, s in enumerate(sc["sources"])]
+    emitters += [("interferer", k, it["position"]) for k, it in enumerate(sc["interferers"])]
+
+    from rich.console import Console
+    from rich.progress import Progress
+
+    with Progress(console=Console(stderr=True), disable=not progress) as bar:
+        task = bar.add_task("image sources", total=1)
+        images = _images(sc, e_abs, order, [e[2] for e in emitters])
+        bar.update(task, completed=1)
+
+        # direct-path amplitudes → global gain and noise level (see docstring)
+        direct = np.concatenate([1.0 / np.linalg.norm(sc["sources"][:, None] - a["mics_room"][None], axis=2).ravel()
+                                 for a in sc["arrays"]])
+        gain = 0.25 / direct.max()
+        p_chirp = chirp_power(ch)
+        p_direct = float(np.mean((gain * direct) ** 2) * p_chirp)
+
+        # recording lengths: last reverberation of the last emission + tail
+        ends = []
+        for a in sc["arrays"]:
+            last = 0.0
+            for (kind, k, _), (img, _) in zip(emitters, images):
+                dmax = np.max(np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0))
+                if kind == "chirp":
+                    t_end = sc["t_emit"][k] + dmax / c + ch["duration"]
+                else:
+                    continue  # interferers are clipped to the recording
+                last = max(last, local_time(t_end, a["tau"], a["drift"], t0))
+            ends.append(int(math.ceil((last + sc["tail"]) * fs)) + FDL)
+        signals = [np.zeros((len(a["mics"]), n)) for a, n in zip(sc["arrays"], ends)]
+
+        task = bar.add_task("arrays × emissions", total=len(emitters) * len(sc["arrays"]))
+        for (kind, k, _), (img, damp) in zip(emitters, images):
+            if kind == "chirp":
+                t_start, dur = sc["t_emit"][k], ch["duration"]
+
+                def wave(u):
+                    return chirp_signal(u, ch["f0"], ch["f1"], ch["duration"], ch["fade"])
+                level = gain
+            else:
+                it = sc["interferers"][k]
+                t_start, dur = it["t_start"], it["duration"]
+                freqs, phases = _burst_params(sc["seed"], k, it["f_lo"], it["f_hi"])
+
+                def wave(u, dur=dur, freqs=freqs, phases=phases):
+                    return burst_signal(u, dur, freqs, phases)
+                level = gain * math.sqrt(p_chirp) * 10 ** (it["level_db"] / 20)
+            for a, y in zip(sc["arrays"], signals):
+                _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level)
+                bar.advance(task)
+
+        task = bar.add_task("noise + writing", total=len(sc["arrays"]) + 1)
+        sigma = math.sqrt(p_direct / 10 ** (sc["snr"] / 10)) if math.isfinite(sc["snr"]) else 0.0
+        sigma_diff = math.sqrt(p_direct / 10 ** (sc["diffuse_snr"] / 10)) if math.isfinite(sc["diffuse_snr"]) else 0.0
+        for i, y in enumerate(signals):
+            if sigma > 0:
+                y += sigma * _rng(sc["seed"], 20 + 2 * i).standard_normal(y.shape)
+            if sigma_diff > 0:
+                y += sigma_diff * _pink_noise(_rng(sc["seed"], 21 + 2 * i), y.shape)
+        peak = max(float(np.max(np.abs(y))) for y in signals)
+        rescale = 0.95 / peak if peak > 0.95 else 1.0
+        arrivals = arrival_times(sc)
+        with atomic_dir(out_dir) as tmp:
+            _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, sigma_diff, p_direct,
+                           ends, arrivals, scenario)
+            bar.advance(task, len(sc["arrays"]) + 1)
+    return out_dir
+
+
+def _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level):
+    """Add one emission (signal ``wave`` starting at true time ``t_start``) to array ``a``'s channels ``y``."""
+    fsp = fs * (1.0 + a["drift"])                    # true-time rate of this array's samples
+    nu = fs * local_time(t_start, a["tau"], a["drift"], t0)   # emission instant in this array's samples
+    n0 = int(math.floor(nu))
+    frac = nu - n0
+    p = np.arange(int(math.ceil(dur * fsp + frac)) + 2)
+    x = wave((p - frac) / fsp)                       # the emitted wave on this array's sample grid
+    dist = np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0)  # (n_img, M)
+    taps = dist * (fsp / c)                          # image delays in this array's samples
+    h = _build_rirs(taps, damp[:, None] / dist, int(math.ceil(taps.max())) + PAD + FDL)
+    seg = fftconvolve(h, x[None, :], axes=1) * level
+    start = n0 - delay                               # conv index `delay` ↔ emission instant
+    lo, hi = max(start, 0), min(start + seg.shape[1], y.shape[1])
+    if hi > lo:
+        y[:, lo:hi] += seg[:, lo - start:hi - start]
+
+
+def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, sigma_diff, p_direct, ends,
+                   arrivals, scenario):
+    import soundfile as sf
+    import pyroomacoustics as pra
+
+    fs, ch = sc["fs"], sc["chirp"]
+    for a, y in zip(sc["arrays"], signals):
+        sf.write(tmp / f"{a['name']}.wav", (y * rescale).T.astype(np.float32), fs, subtype=sc["subtype"])
+    n_chirp = int(math.floor(ch["duration"] * fs)) + 1
+    ref = chirp_signal(np.arange(n_chirp) / fs, ch["f0"], ch["f1"], ch["duration"], ch["fade"])
+    sf.write(tmp / "chirp.wav", ref.astype(np.float32), fs, subtype="FLOAT")
+
+    odo = odometry(sc)
+    ev = pd.DataFrame({"event": np.arange(len(sc["t_emit"])), "t_emit": sc["t_emit"],
+                       "odom_x": odo[:, 0], "odom_y": odo[:, 1], "odom_z": odo[:, 2]})
+    write_table(ev, tmp / "events.csv", EVENTS_COLS, float_format="%.9f")
+
+    priors = {"sigma_tdoa": 1e-4, "sigma_doa_deg": 5.0, **sc["priors"]}
+    priors.setdefault("sigma_odo", sc["sigma_odo"] if sc["sigma_odo"] > 0 else 1e-3)
+    write_session_toml(
+        tmp / "session.toml", speed_of_sound=sc["speed_of_sound"], reference_array=sc["reference_array"],
+        chirp={"f0": ch["f0"], "f1": ch["f1"], "duration": ch["duration"], "fade": ch["fade"],
+               "reference": "chirp.wav"},
+        arrays=[{"name": a["name"], "wav": f"{a['name']}.wav", "mics": a["mics"],
+                 "doa_hemisphere": a["doa_hemisphere"]} for a in sc["arrays"]],
+        noise={k: priors[k] for k in ("sigma_tdoa", "sigma_doa_deg", "sigma_odo")})
+
+    truth = scenario_truth(sc)
+    mic_arr = arrival_times(sc, mics=True)
+    manifest = {
+        "generator": "calib simulate (pipeline.roomsim)",
+        "versions": {"numpy": np.__version__, "pyroomacoustics": pra.__version__},
+        "frame": "room (origin at a room corner, axes along the walls); truth/*.csv are in the reference "
+                 "array's frame",
+        "clock_model": "L_i(t) = (1 + drift_i) (t - t_emit[0]) + tau_i; WAV sample n at L_i = n / fs",
+        "scenario": _jsonable(_public(scenario, sc)),
+        "derived": {
+            "absorption": e_abs, "max_order": order, "rir_builder_delay_samples": delay,
+            "fractional_delay_length": FDL, "gain": gain * rescale, "rescale": rescale,
+            "sensor_noise_std": sigma * rescale, "diffuse_noise_std": sigma_diff * rescale,
+            "direct_power_mean": p_direct * rescale ** 2,
+            "snr_definition": "10 log10(P / noise variance), P = mean over arrays, mics, events of the "
+                              "direct-path chirp power at the mic",
+            "n_samples": {a["name"]: int(n) for a, n in zip(sc["arrays"], ends)},
+            "recording_start_true_time": {a["name"]: float(sc["t_emit"][0] - a["tau"] / (1 + a["drift"]))
+                                          for a in sc["arrays"]},
+            "arrival_times_origin": {a["name"]: arrivals[i].tolist() for i, a in enumerate(sc["arrays"])},
+            "arrival_times_mics": {a["name"]: mic_arr[i].tolist() for i, a in enumerate(sc["arrays"])},
+        },
+    }
+    write_truth(tmp / "truth", truth,
+                extra_files={"manifest.json": json.dumps(_jsonable(manifest), indent=1, allow_nan=False) + "\n"})
+
+
+def _public(scenario, sc):
+    """The scenario as the user gave it, with normalised values (room frame) for the record."""
+    out = {k: v for k, v in scenario.items()}
+    for k in ("fs", "speed_of_sound", "room_dim", "rt60", "snr", "diffuse_snr", "sigma_odo", "subtype",
+              "tail", "chirp", "sources", "t_emit", "reference_array", "priors"):
+        out[k] = sc[k]
+    out["arrays"] = [{"name": a["name"], "position": a["position"], "quat": a["quat"], "mics": a["mics"],
+                      "tau": a["tau"], "drift": a["drift"],
+                      **({"doa_hemisphere": a["doa_hemisphere"]} if a["doa_hemisphere"] is not None else {})}
+                     for a in sc["arrays"]]
+    out["interferers"] = sc["interferers"]
+    return out
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    if isinstance(o, (np.floating, float)):
+        return None if math.isinf(float(o)) else float(o)  # inf (no noise) ↔ null
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    return o
+
+
+__all__ = ["make_scenario", "load_scenario", "validate_scenario", "simulate", "arrival_times", "scenario_truth",
+           "odometry", "chirp_signal", "circular_array", "local_time", "builder_delay", "PRESETS"]
+
