@@ -1,7 +1,53 @@
-"""`calib simulate` (not implemented yet)."""
+"""`calib simulate OUT_DIR`: a simulated recording session (FORMATS.md section 1) + truth/ (section 4)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
 import typer
 
+from pipeline.io import InputError
+from pipeline.roomsim import PRESETS, load_scenario, make_scenario, simulate as run_simulation, validate_scenario
+from .common import console, user_errors
 
-def simulate():
-    """Not implemented yet."""
-    raise typer.Exit(1)
+
+@user_errors
+def simulate(
+    out_dir: Path = typer.Argument(..., help="session folder to write (session.toml, <array>.wav, events.csv, truth/)"),
+    preset: Optional[str] = typer.Option(None, help=f"scene preset: {', '.join(PRESETS)} [default: paper-traj3]"),
+    seed: Optional[int] = typer.Option(None, help="random seed: same seed, same bytes [default: 0]"),
+    scenario: Optional[Path] = typer.Option(None, "--scenario", help="TOML file of scenario keys (options below win)"),
+    rt60: Optional[float] = typer.Option(None, help="reverberation time RT60, s (0 = anechoic) [default: 0.3]"),
+    snr: Optional[float] = typer.Option(None, help="sensor SNR re. the mean direct-path chirp power, dB "
+                                                   "('inf' = noise-free) [default: 30]"),
+    diffuse_snr: Optional[float] = typer.Option(None, help="incoherent pink-noise SNR, dB [default: inf = off]"),
+    fs: Optional[int] = typer.Option(None, help="sampling rate of every recorder, Hz [default: 16000]"),
+    n_arrays: Optional[int] = typer.Option(None, help="number of arrays [default: 5, lab3: 3]"),
+    n_events: Optional[int] = typer.Option(None, help="use the first N speaker stops of the preset [default: all]"),
+    interval: Optional[float] = typer.Option(None, help="mean time between chirps, s (±25 % jitter) [default: 2]"),
+    chirp_duration: Optional[float] = typer.Option(None, help="chirp length, s [default: 0.5]"),
+    interferers: Optional[int] = typer.Option(None, help="number of random interfering noise bursts [default: 0]"),
+    sigma_odo: Optional[float] = typer.Option(None, help="odometry noise per step and axis, m [default: 0.01]"),
+    subtype: Optional[str] = typer.Option(None, help="WAV sample format: FLOAT, PCM_24 or PCM_16 [default: FLOAT]"),
+    force: bool = typer.Option(False, "--force", help="replace OUT_DIR if it exists and is not empty"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
+):
+    """Simulate a room with asynchronous microphone arrays and a chirping speaker; write a session."""
+    over = {k: v for k, v in {
+        "preset": preset, "seed": seed, "rt60": rt60, "snr": snr, "diffuse_snr": diffuse_snr, "fs": fs,
+        "n_arrays": n_arrays, "n_events": n_events, "interval": interval, "n_interferers": interferers,
+        "sigma_odo": sigma_odo, "subtype": subtype}.items() if v is not None}
+    if chirp_duration is not None:
+        over["chirp"] = {"duration": chirp_duration}
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not force:
+        raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
+    if scenario is not None:
+        sc = load_scenario(scenario, **over)
+    else:
+        sc = make_scenario(over.pop("preset", "paper-traj3"), over.pop("seed", 0), **over)
+        validate_scenario(sc)
+    path = run_simulation(sc, out_dir, progress=not quiet, overwrite=True)
+    if not quiet:
+        t = sc["t_emit"]
+        console.print(f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "
+                      f"{t[-1] - t[0]:.1f} s, RT60 {sc['rt60']:g} s, SNR {sc['snr']:g} dB, fs {sc['fs']} Hz → {path}")
