@@ -30,8 +30,6 @@ def _version():
 def check_observability(p, lay, kinds, st, rel_tol=1e-9):
     """Raise ObservabilityError naming what the data cannot determine (rank of the Fisher information)."""
     K = p["K"]
-    if K < 3:
-        raise ObservabilityError(f"only {K} event(s): at least 3 are needed to calibrate")
     for i in range(p["N"]):
         if i == p["ref"]:
             continue
@@ -41,6 +39,12 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9):
             raise ObservabilityError(f"array {p['names'][i]} has DOAs for {nd} event(s); its orientation needs >= 2")
         if nt < 1:
             raise ObservabilityError(f"array {p['names'][i]} has no TDOA-M: its clock offset is undetermined")
+    o = p["odom"] - p["odom"].mean(0)
+    sv = np.linalg.svd(o, compute_uv=False)
+    if sv[1] / np.sqrt(K) < max(2.0 * p["sigma_odo"], 1e-3 * sv[0] / np.sqrt(K)):
+        raise ObservabilityError(
+            "all sources are (nearly) collinear (odometry spread across the path "
+            f"{100 * sv[1] / np.sqrt(K):.1f} cm): each array's rotation about that line is unobservable")
     _, J, _, _, _ = linearise(p, st, lay, kinds)
     norms = np.linalg.norm(J, axis=0)
     if np.any(norms == 0):
@@ -196,6 +200,8 @@ def calibrate(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0,
 
         use_tdoa_s = False
     p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma)
+    if p["K"] < 3:
+        raise ObservabilityError(f"only {p['K']} event(s): at least 3 are needed to calibrate")
     kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
     stages = {}
     if init_state is None:

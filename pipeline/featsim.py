@@ -59,7 +59,7 @@ def arrival_times(x, s, t, offset, drift, c, beta=0.0):
 
 def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.03, seed=0, *,
                       n_arrays=5, c=340.0, max_offset=0.1, max_drift=1e-4, max_interval=10.0,
-                      tdoa_s=True, tdoa_m=True, names=None):
+                      tdoa_s=True, tdoa_m=True, names=None, noise=True, reference_drift=None):
     """Draw one scene of the paper's protocol and its noisy features.
 
     Parameters
@@ -71,12 +71,15 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     sigma_odo : odometry noise std per axis and step (m).
     seed : seed of the numpy Generator; same seed, same scene and noise.
     tdoa_s, tdoa_m : include that measurement type.
+    noise : False gives exact measurements (the sigmas still go to meta.json as weights).
+    reference_drift : force the reference array's drift (e.g. 0, the gauge used without TDOA-S).
 
     Returns
     -------
     features, truth : dicts as returned by ``pipeline.io.read_features`` / ``read_truth``.
     """
     rng = np.random.default_rng(seed)
+    scale = 1.0 if noise else 0.0
     if np.ndim(trajectory) == 0:
         spec = TRAJECTORIES[int(trajectory)]
         stops, (lo, size) = spec["stops"] + SHIFT, spec["box"]
@@ -95,27 +98,29 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     offset = rng.uniform(-max_offset, max_offset, N)
     offset[0] = 0.0
     drift = rng.uniform(-max_drift, max_drift, N)
+    if reference_drift is not None:
+        drift[0] = reference_drift
     dt = rng.uniform(0, max_interval, K - 1)
     t = np.concatenate([[0.0], np.cumsum(dt)])
 
     a = arrival_times(x, stops, t, offset, drift, c)
     ev = np.arange(K)
-    odo_steps = np.diff(stops, axis=0) + rng.normal(0, sigma_odo, (K - 1, 3))
+    odo_steps = np.diff(stops, axis=0) + scale * rng.normal(0, sigma_odo, (K - 1, 3))
     odom = np.vstack([np.zeros(3), np.cumsum(odo_steps, axis=0)])
     events = pd.DataFrame({"event": ev, "t_emit": t, "odom_x": odom[:, 0], "odom_y": odom[:, 1],
                            "odom_z": odom[:, 2]})
 
     ii, jj = np.meshgrid(np.arange(1, N), ev, indexing="ij")
     tm = pd.DataFrame({"event": jj.ravel(), "array": np.asarray(names)[ii.ravel()],
-                       "tdoa": (a[1:] - a[:1]).ravel() + rng.normal(0, sigma_tdoa, ii.size)})
+                       "tdoa": (a[1:] - a[:1]).ravel() + scale * rng.normal(0, sigma_tdoa, ii.size)})
     ii, jj = np.meshgrid(np.arange(N), ev[:-1], indexing="ij")
     ts = pd.DataFrame({"array": np.asarray(names)[ii.ravel()], "from_event": jj.ravel(), "to_event": jj.ravel() + 1,
-                       "tdoa": np.diff(a, axis=1).ravel() + rng.normal(0, sigma_tdoa, ii.size)})
+                       "tdoa": np.diff(a, axis=1).ravel() + scale * rng.normal(0, sigma_tdoa, ii.size)})
     ii, jj = np.meshgrid(np.arange(N), ev, indexing="ij")
     ii, jj = ii.ravel(), jj.ravel()
     u_true = rot[ii].inv().apply(stops[jj] - x[ii])
     u_true /= np.linalg.norm(u_true, axis=1, keepdims=True)
-    u = perturb_directions(rng, u_true, np.deg2rad(sigma_doa_deg))
+    u = perturb_directions(rng, u_true, scale * np.deg2rad(sigma_doa_deg))
     doa = pd.DataFrame({"event": jj, "array": np.asarray(names)[ii], "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]})
 
     empty_m = pd.DataFrame({"event": np.zeros(0, int), "array": np.zeros(0, str), "tdoa": np.zeros(0)})

@@ -157,7 +157,9 @@ def _check_member(df, col, allowed, path, what):
     bad = ~df[col].isin(allowed).to_numpy()
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
-        raise InputError(f"{path}: line {k + 2}: unknown {what} {df[col].iloc[k]!r}")
+        v = df[col].iloc[k]
+        v = repr(str(v)) if isinstance(v, str) else v
+        raise InputError(f"{path}: line {k + 2}: unknown {what} {v}")
 
 
 def write_table(df, path, columns=None, float_format="%.10g"):

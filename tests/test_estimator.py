@@ -1,0 +1,107 @@
+"""Estimator against simulated ground truth: exact recovery, robustness, observability, honest error bars."""
+import numpy as np
+import pandas as pd
+import pytest
+
+from estimator import ObservabilityError, calibrate
+from estimator.uncertainty import crlb
+from pipeline.evaluate import evaluate
+from pipeline.featsim import simulate_features
+
+
+def arrays_close(cal, truth, tol):
+    e, t = cal["arrays"], truth["arrays"]
+    for cols in (["x", "y", "z"], ["offset"], ["drift"], ["qw", "qx", "qy", "qz"]):
+        np.testing.assert_allclose(e[cols].to_numpy(float), t[cols].to_numpy(float), atol=tol)
+    np.testing.assert_allclose(cal["sources"][["x", "y", "z"]].to_numpy(float),
+                               truth["sources"][["x", "y", "z"]].to_numpy(float), atol=tol)
+
+
+@pytest.mark.parametrize("traj,seed", [(1, 0), (2, 1), (3, 2)])
+def test_noise_free_data_is_recovered_exactly(traj, seed):
+    feats, truth = simulate_features(traj, seed=seed, noise=False)
+    cal = calibrate(feats)
+    assert cal["report"]["converged"]
+    arrays_close(cal, truth, 1e-6)
+
+
+def test_without_tdoa_s_still_solves():
+    # without TDOA-S only drifts relative to the reference are observable: its drift is fixed at 0
+    feats, truth = simulate_features(3, seed=4, noise=False, tdoa_s=False, reference_drift=0.0)
+    cal = calibrate(feats)
+    assert not cal["report"]["used"]["tdoa_s"]
+    arrays_close(cal, truth, 1e-6)
+
+
+def test_noisy_solution_is_deterministic_and_near_truth():
+    feats, truth = simulate_features(3, 1e-4, 5.0, seed=7)
+    a, b = calibrate(feats), calibrate(feats)
+    pd.testing.assert_frame_equal(a["arrays"], b["arrays"])
+    m = evaluate(a, truth)
+    assert m["position_rmse_m"] < 0.15 and m["orientation_geodesic_deg"] < 5
+
+
+def test_gross_tdoa_outliers_are_flagged_and_do_not_drag_the_solution():
+    feats, truth = simulate_features(3, 1e-4, 5.0, seed=11)
+    clean = evaluate(calibrate(feats), truth)
+    tm = feats["tdoa_m"].copy()
+    bad = [5, 20]
+    tm.loc[bad, "tdoa"] += [0.04, -0.035]  # ~40 ms, as in real sets 07/08
+    ts = feats["tdoa_s"].copy()
+    ts.loc[3, "tdoa"] += 0.02
+    cal = calibrate({**feats, "tdoa_m": tm, "tdoa_s": ts})
+    flagged = {(o["type"], o["row"]) for o in cal["report"]["outliers"]}
+    assert {("tdoa_m", 5), ("tdoa_m", 20), ("tdoa_s", 3)} <= flagged
+    m = evaluate(cal, truth)
+    assert m["position_rmse_m"] < clean["position_rmse_m"] + 0.02
+    assert m["offset_rmse_s"] < clean["offset_rmse_s"] + 50e-6
+
+
+def test_missing_measurements_are_tolerated():
+    feats, truth = simulate_features(3, 1e-4, 5.0, seed=5)
+    rng = np.random.default_rng(0)
+    drop = lambda df, frac: df.drop(index=rng.choice(len(df), int(frac * len(df)), replace=False))
+    # array A3 misses event 6 entirely
+    feats = {**feats,
+             "tdoa_m": drop(feats["tdoa_m"][~((feats["tdoa_m"].array == "A3") & (feats["tdoa_m"].event == 6))], 0.1),
+             "doa": drop(feats["doa"][~((feats["doa"].array == "A3") & (feats["doa"].event == 6))], 0.1),
+             "tdoa_s": drop(feats["tdoa_s"][~((feats["tdoa_s"].array == "A3") & (feats["tdoa_s"].to_event == 6))], 0.1)}
+    m = evaluate(calibrate(feats), truth)
+    assert m["position_rmse_m"] < 0.2 and m["orientation_geodesic_deg"] < 6
+
+
+def test_collinear_sources_are_refused():
+    stops = np.column_stack([np.linspace(0, 4, 8), np.full(8, 1.0), np.full(8, 0.5)])
+    feats, _ = simulate_features(stops, seed=1, noise=False)
+    with pytest.raises(ObservabilityError, match="collinear"):
+        calibrate(feats)
+
+
+def test_two_events_are_refused():
+    feats, _ = simulate_features(np.array([[0.0, 0, 0], [1.0, 1, 1]]), seed=1, noise=False)
+    with pytest.raises(ObservabilityError, match="at least 3"):
+        calibrate(feats)
+
+
+def test_array_without_doas_is_refused_with_its_name():
+    feats, _ = simulate_features(3, seed=2, noise=False)
+    feats["doa"] = feats["doa"][feats["doa"].array != "A4"]
+    with pytest.raises(ObservabilityError, match="A4"):
+        calibrate(feats)
+
+
+def test_error_bars_are_honest():
+    """Normalised errors (estimate − truth)/std over many scenes have unit RMS, and std ≈ CRLB."""
+    z, ratio = [], []
+    for seed in range(24):
+        feats, truth = simulate_features(3, 1e-4, 5.0, seed=100 + seed)
+        cal = calibrate(feats)
+        e, t = cal["arrays"].iloc[1:], truth["arrays"].iloc[1:]
+        for c in "xyz":
+            z.append((e[c] - t[c]).to_numpy() / e[f"{c}_std"].to_numpy())
+        z.append((e["offset"] - t["offset"]).to_numpy() / e["offset_std"].to_numpy())
+        bound = crlb(feats, truth)
+        ratio.append(e["x_std"].to_numpy() / bound["std"]["x"][1:, 0])
+    z = np.concatenate(z)
+    assert 0.8 < np.sqrt(np.mean(z ** 2)) < 1.25
+    assert np.all(np.abs(np.concatenate(ratio) - 1) < 0.25)
