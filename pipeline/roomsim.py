@@ -231,6 +231,13 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
         room = _vector(sc["room_dim"], "room_dim", 3)
     else:
         sources, room = _make_sources(preset, g, sc["room_dim"], _rng(seed, 1))
+    # arrays: poses and clocks (placed around the full trajectory, so n_events does not move them)
+    if "arrays" in overrides:
+        arrays = _user_arrays(overrides["arrays"], g)
+    else:
+        arrays = _make_arrays(preset, g, np.asarray(sources), room, n_arrays, _rng(seed, 2), _rng(seed, 3))
+    sc["arrays"] = arrays
+    sc["reference_array"] = overrides.get("reference_array", arrays[0]["name"])
     if g["n_events"] is not None and "sources" not in overrides:
         k = _int(g["n_events"], "n_events", 0)
         if k == 0:
@@ -241,14 +248,6 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
         sources = sources[:k]
     sc["room_dim"] = room.tolist()
     sc["sources"] = np.asarray(sources, float).tolist()
-
-    # arrays: poses and clocks
-    if "arrays" in overrides:
-        arrays = _user_arrays(overrides["arrays"], g)
-    else:
-        arrays = _make_arrays(preset, g, np.asarray(sources), room, n_arrays, _rng(seed, 2), _rng(seed, 3))
-    sc["arrays"] = arrays
-    sc["reference_array"] = overrides.get("reference_array", arrays[0]["name"])
 
     # emission schedule: t_emit[0] = lead time after the latest clock start, rounded to the microsecond
     if "t_emit" in overrides:
@@ -847,15 +846,14 @@ def _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level):
 
 def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, sigma_diff, p_direct, ends,
                    arrivals, scenario):
-    import soundfile as sf
     import pyroomacoustics as pra
 
     fs, ch = sc["fs"], sc["chirp"]
     for a, y in zip(sc["arrays"], signals):
-        sf.write(tmp / f"{a['name']}.wav", (y * rescale).T.astype(np.float32), fs, subtype=sc["subtype"])
+        _write_wav(tmp / f"{a['name']}.wav", (y * rescale).T.astype(np.float32), fs, sc["subtype"])
     n_chirp = int(math.floor(ch["duration"] * fs)) + 1
     ref = chirp_signal(np.arange(n_chirp) / fs, ch["f0"], ch["f1"], ch["duration"], ch["fade"])
-    sf.write(tmp / "chirp.wav", ref.astype(np.float32), fs, subtype="FLOAT")
+    _write_wav(tmp / "chirp.wav", ref.astype(np.float32), fs, "FLOAT")
 
     odo = odometry(sc)
     ev = pd.DataFrame({"event": np.arange(len(sc["t_emit"])), "t_emit": sc["t_emit"],
@@ -899,17 +897,30 @@ def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, 
                 extra_files={"manifest.json": json.dumps(_jsonable(manifest), indent=1, allow_nan=False) + "\n"})
 
 
+def _write_wav(path, data, fs, subtype):
+    """soundfile WAV with the PEAK chunk's timestamp zeroed, so equal signals give equal bytes."""
+    import soundfile as sf
+
+    sf.write(path, data, fs, subtype=subtype, format="WAV")
+    with open(path, "r+b") as f:
+        f.seek(12)
+        while True:
+            head = f.read(8)
+            if len(head) < 8:
+                break
+            size = int.from_bytes(head[4:], "little")
+            if head[:4] == b"PEAK":
+                f.seek(4, 1)                 # version, then the 4-byte timestamp
+                f.write(b"\0\0\0\0")
+                break
+            f.seek(size + (size & 1), 1)
+
+
 def _public(scenario, sc):
-    """The scenario as the user gave it, with normalised values (room frame) for the record."""
-    out = {k: v for k, v in scenario.items()}
-    for k in ("fs", "speed_of_sound", "room_dim", "rt60", "snr", "diffuse_snr", "sigma_odo", "subtype",
-              "tail", "chirp", "sources", "t_emit", "reference_array", "priors"):
-        out[k] = sc[k]
-    out["arrays"] = [{"name": a["name"], "position": a["position"], "quat": a["quat"], "mics": a["mics"],
-                      "tau": a["tau"], "drift": a["drift"],
-                      **({"doa_hemisphere": a["doa_hemisphere"]} if a["doa_hemisphere"] is not None else {})}
-                     for a in sc["arrays"]]
-    out["interferers"] = sc["interferers"]
+    """The scenario as given (room frame; exactly what reproduces these bytes), defaults filled in."""
+    out = copy.deepcopy(dict(scenario))
+    for k in ("snr", "diffuse_snr", "sigma_odo", "subtype", "tail", "priors", "reference_array", "interferers"):
+        out.setdefault(k, sc[k])
     return out
 
 
