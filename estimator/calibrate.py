@@ -163,7 +163,9 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     """Joint NLS from a given state: robust pass → outlier mask → plain least squares. Returns (state, info)."""
     lay = make_layout(p)
     info = {}
-    st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter)
+    # the robust pass only has to find the basin and the outliers; the final pass converges tightly
+    st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter,
+                                             rtol=1e-6)
     _, _, _, _, fs = linearise(p, st, lay, kinds)
     mask, flagged = _outlier_mask(fs, outlier_threshold) if loss else ({}, [])
     st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
@@ -220,7 +222,7 @@ def calibrate(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0,
             q = subproblem(p, np.arange(p["N"]), doa_arrays=[p["ref"]])
             lay_ive = make_layout(q, rotations=False)
             st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
-                                          k=robust_k, max_iter=max_iter)
+                                          k=robust_k, max_iter=max_iter, rtol=1e-6)
             st = rotations_by_kabsch(p, st)
             stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
             times["ive"] = time.perf_counter() - t1

@@ -22,16 +22,19 @@ from scipy.spatial.transform import Rotation
 
 # Documented defaults when meta.json gives no sigmas (the paper's real-data settings).
 DEFAULT_SIGMA_TDOA = 1e-4      # s
-DEFAULT_SIGMA_DOA_DEG = 5.0    # deg, paper convention: rotation about a random axis by N(0, sigma)
+DEFAULT_SIGMA_DOA_DEG = 5.0    # deg per tangent axis
 DEFAULT_SIGMA_ODO = 0.01       # m per axis per step
 
 
 def sigma_doa_per_axis(sigma_deg):
-    """Paper-convention DOA sigma (deg) → std per tangent axis (rad).
+    """meta ``sigma_doa_deg`` → std per tangent axis of the DOA direction error (rad).
 
-    A rotation about an isotropic random axis by N(0, σ²) moves a unit vector by σ²/3 per tangent axis.
+    ``sigma_doa_deg`` is the standard deviation of the DOA error along each of the two axes
+    perpendicular to the true direction (the weighting of the paper's code, where each component of the
+    unit-vector residual has std 2·sin(σ/2) ≈ σ). The paper's simulation draws a rotation about an isotropic
+    random axis by N(0, σ²); that is σ/√3 per axis (``pipeline.featsim`` writes it so).
     """
-    return np.deg2rad(sigma_deg) / np.sqrt(3.0)
+    return float(np.deg2rad(sigma_deg))
 
 
 def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0):

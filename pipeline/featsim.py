@@ -67,7 +67,8 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     trajectory : 1, 2 or 3 (see ``TRAJECTORIES``), or a (K, 3) array of speaker stops (arrays are then
         drawn in the stops' bounding box).
     sigma_tdoa : TDOA noise std (s), applied to every TDOA-S and TDOA-M value.
-    sigma_doa_deg : DOA noise: rotation about a random axis by an angle ~ N(0, sigma) (degrees).
+    sigma_doa_deg : DOA noise: rotation about a random axis by an angle ~ N(0, sigma) (degrees, the
+        paper's convention; meta.json gets the equivalent per-axis std sigma/√3).
     sigma_odo : odometry noise std per axis and step (m).
     seed : seed of the numpy Generator; same seed, same scene and noise.
     tdoa_s, tdoa_m : include that measurement type.
@@ -126,8 +127,10 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     empty_m = pd.DataFrame({"event": np.zeros(0, int), "array": np.zeros(0, str), "tdoa": np.zeros(0)})
     empty_s = pd.DataFrame({"array": np.zeros(0, str), "from_event": np.zeros(0, int), "to_event": np.zeros(0, int),
                             "tdoa": np.zeros(0)})
+    # meta's sigma_doa_deg is the std per tangent axis: a rotation by N(0, σ²) about an isotropic random
+    # axis moves a direction by σ/√3 along each axis perpendicular to it
     meta = {"speed_of_sound": c, "reference_array": names[0], "arrays": list(names), "sigma_tdoa": sigma_tdoa,
-            "sigma_doa_deg": sigma_doa_deg, "sigma_odo": sigma_odo}
+            "sigma_doa_deg": sigma_doa_deg / np.sqrt(3.0), "sigma_odo": sigma_odo}
     features = {"meta": meta, "events": events, "tdoa_m": tm if tdoa_m else empty_m,
                 "tdoa_s": ts if tdoa_s else empty_s, "doa": doa}
     q = rot.as_quat(scalar_first=True)
