@@ -1,7 +1,117 @@
-"""`calib run` (not implemented yet)."""
+"""`calib run RECORDINGS [-o OUT]`: features → estimate → report, skipping stages whose inputs are unchanged."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Optional
+
 import typer
 
+from pipeline.io import dumps_json
+from .common import console, user_errors
+from .tables import out as stdout, print_arrays, print_metrics
 
-def run():
-    """Not implemented yet."""
-    raise typer.Exit(1)
+
+class _Display:
+    """Rich progress: one line per stage (a bar for the frontend and the report, a spinner for the estimate)."""
+
+    def __init__(self, enabled):
+        self.enabled = enabled
+        self.tasks = {}
+        self.progress = None
+        if enabled:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, \
+                TimeElapsedColumn
+
+            self.progress = Progress(SpinnerColumn(), TextColumn("{task.description:<10}"), BarColumn(),
+                                     MofNCompleteColumn(), TextColumn("{task.fields[msg]}"), TimeElapsedColumn(),
+                                     console=console, transient=False)
+
+    def __enter__(self):
+        if self.progress is not None:
+            self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self.progress is not None:
+            self.progress.__exit__(*exc)
+
+    def log(self, stage, status, detail):
+        if not self.enabled:
+            return
+        if status == "skipped":
+            console.print(f"[dim]{stage:<10} skipped ({detail})[/dim]")
+        elif status == "run":
+            self.tasks[stage] = self.progress.add_task(stage, total=None, msg=f"[dim]{detail}[/dim]")
+        elif status == "done":
+            t = self.tasks[stage]
+            total = self.progress.tasks[t].total or 1
+            self.progress.update(t, total=total, completed=total, msg=f"done in {detail:.1f} s")
+            self.progress.stop_task(t)
+
+    def update(self, stage, done, total, msg):
+        if self.enabled and stage in self.tasks:
+            self.progress.update(self.tasks[stage], total=total, completed=done, msg=msg)
+
+
+@user_errors
+def run(
+    recordings: Path = typer.Argument(..., help="recording session folder (session.toml, WAVs, events.csv, "
+                                                "optional truth/)"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="output folder [default: ./<session>-calib]"),
+    force: bool = typer.Option(False, "--force", help="recompute every stage even if its inputs are unchanged"),
+    method: str = typer.Option("hybrid", help="estimator: hybrid (ours) or wang (baseline, no TDOA-S)"),
+    no_tdoa_s: bool = typer.Option(False, "--no-tdoa-s", help="ignore TDOA-S (Wang et al.'s measurement set)"),
+    emission_sigma: float = typer.Option(0.0, help="prior std (s) of emission-interval errors to estimate; 0 = off"),
+    loss: str = typer.Option("cauchy", help="robust loss on TDOA residuals: cauchy, huber or linear"),
+    outlier_threshold: float = typer.Option(5.0, help="flag and drop TDOA residuals beyond this many sigmas"),
+    detect_threshold: Optional[float] = typer.Option(
+        None, help="chirp detection threshold: matched-filter peak / local background [default: frontend's, 8]"),
+    max_drift: Optional[float] = typer.Option(None, help="bound on |clock drift| for association [default: 1e-3]"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="print nothing but errors"),
+    json_out: bool = typer.Option(False, "--json", help="print one JSON line (stages, timings, metrics, paths)"),
+):
+    """Calibrate from recordings: features → estimate → report (+ evaluation when RECORDINGS/truth exists).
+
+    Writes OUT/features, OUT/diagnostics, OUT/calibration and OUT/report. Re-running skips every stage whose
+    inputs (file contents), settings and software are unchanged; edit OUT/features/*.csv by hand and re-run
+    to re-estimate from your edits.
+    """
+    from pipeline.run import run as run_pipeline
+
+    out = out if out is not None else Path(f"{recordings.resolve().name}-calib")
+    feat_opts = {k: v for k, v in {"threshold": detect_threshold, "max_drift": max_drift}.items() if v is not None}
+    est_opts = {"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma, "loss": loss,
+                "outlier_threshold": outlier_threshold}
+    show = not quiet and not json_out
+    try:
+        with _Display(show) as disp:
+            res = run_pipeline(recordings, out, force=force, features_options=feat_opts, estimate_options=est_opts,
+                               progress=disp.update, log=disp.log)
+    except KeyboardInterrupt:
+        print("interrupted: the stage in progress kept no output; re-run to resume", file=sys.stderr)
+        raise typer.Exit(130) from None
+
+    stages = res["stages"]
+    if json_out:
+        rep = res["calibration"]["report"]
+        print(dumps_json({
+            "out": str(res["out"]),
+            "ran": [s for s, v in stages.items() if v["status"] == "run"],
+            "skipped": [s for s, v in stages.items() if v["status"] == "skipped"],
+            "stages": stages,
+            "seconds": res["seconds"],
+            "converged": rep.get("converged"),
+            "metrics": res["metrics"],
+            "outputs": {"features": str(res["out"] / "features"), "diagnostics": str(res["out"] / "diagnostics"),
+                        "calibration": str(res["out"] / "calibration"), "report": str(res["report"])},
+        }))
+        return
+    if quiet:
+        return
+    print_arrays(res["calibration"])
+    if res["metrics"] is not None:
+        print_metrics(res["metrics"])
+    skipped = [s for s, v in stages.items() if v["status"] == "skipped"]
+    note = f"; skipped (unchanged): {', '.join(skipped)}" if skipped else ""
+    stdout.print(f"report: {res['report']}  ({res['seconds']:.1f} s{note})")

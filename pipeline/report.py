@@ -1,0 +1,507 @@
+"""The report of a calibration: PNG plots and a markdown summary (``calib run`` writes OUT/report/).
+
+``make_report(directory, features, calib, truth=None, diagnostics_dir=None)`` writes, atomically:
+
+- ``scene_3d.png``: arrays as axis triads (x red, y green, z blue), sources, odometry path, truth
+  overlaid when given, 1-σ position ellipsoids scaled up by the factor written in the legend;
+- ``residuals.png``: one histogram per measurement type in natural units (µs, deg, cm) with the stated
+  σ marked and the Gaussian (Rayleigh for DOA angles) the model expects;
+- ``detections.png``: the frontend's detection timeline (copied from diagnostics/ when present);
+- ``summary.md``: arrays table, metrics vs truth, residuals, outliers, convergence, timings, links;
+- ``metrics.json`` (only with truth): ``pipeline.evaluate.evaluate`` of the calibration.
+
+Everything is computed from the files' contents (features + calibration), so a report made after a
+skipped estimate is the same as one made right after it. Residuals and covariances come from the
+estimator's own factors at the estimate (``estimator.solver.linearise``).
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from .io import atomic_dir, dumps_json
+
+UNIT_LABEL = {"tdoa_s": "TDOA-S residual (µs)", "tdoa_m": "TDOA-M residual (µs)",
+              "doa": "DOA angular error (deg)", "odometry": "odometry residual per axis (cm)",
+              "emission": "emission-interval correction (µs)"}
+TITLE = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "Odometry", "emission": "Emission"}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+# ----------------------------------------------------------------------------------------------- model
+def rebuild(features, calib):
+    """The estimator's problem, state, layout, factor kinds and outlier mask at a calibration read from disk.
+
+    Returns None when the calibration cannot be evaluated against these features (no sources.csv, or
+    arrays/events that do not match).
+    """
+    from estimator.calibrate import ALL_KINDS
+    from estimator.problem import build_problem, make_layout
+    from estimator.uncertainty import state_from_frames
+
+    rep = calib.get("report") or {}
+    src = calib.get("sources")
+    names = set(features["meta"]["arrays"])
+    if src is None or set(calib["arrays"]["array"]) != names or \
+            set(src["event"]) != set(features["events"]["event"]):
+        return None
+    sig_e = float((rep.get("sigmas") or {}).get("emission_s") or 0.0)
+    use_ts = bool((rep.get("used") or {}).get("tdoa_s", True))
+    p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e)
+    st = state_from_frames(p, calib["arrays"], src)
+    corr = rep.get("emission_corrections_s") or {}
+    st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p["events"]])
+    kinds = [k for k in ALL_KINDS if k != "emission" or sig_e > 0]
+    lay = make_layout(p)
+    flagged = {}
+    for o in rep.get("outliers") or []:
+        flagged.setdefault(o["type"], set()).add(int(o["row"]))
+    from estimator.factors import evaluate as factors
+
+    mask = {f["kind"]: ~np.isin(f["row"], list(flagged[f["kind"]]))
+            for f in factors(p, st, lay, kinds) if f["kind"] in flagged}
+    return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask}
+
+
+def residuals(model):
+    """Residuals per measurement type in natural units.
+
+    Returns {kind: {"values": (m,) µs / deg / cm, "outlier": (m,) bool, "sigma": stated 1-σ in the same
+    unit, "dist": "normal" | "rayleigh", "unit": str}}. DOA values are angles between the measured and
+    the predicted direction; odometry values are per axis.
+    """
+    from estimator.calibrate import UNITS
+    from estimator.factors import evaluate as factors
+
+    out = {}
+    for f in factors(model["problem"], model["state"], model["layout"], model["kinds"]):
+        if len(f["r"]) == 0:
+            continue
+        unit, scale = UNITS[f["kind"]]
+        keep = model["mask"].get(f["kind"], np.ones(len(f["r"]), bool))
+        r = f["r"] * f["sigma"]
+        if f["kind"] == "doa":
+            d = np.linalg.norm(r.reshape(-1, 3), axis=1)  # |v − u| = 2 sin(θ/2)
+            vals = np.rad2deg(2 * np.arcsin(np.clip(d / 2, 0, 1)))
+            keep = keep.reshape(-1, 3).all(axis=1)
+            # per tangent axis σ → the angle is Rayleigh(σ); shown with its scale
+            out["doa"] = {"values": vals, "outlier": ~keep, "sigma": np.rad2deg(f["sigma"]), "dist": "rayleigh",
+                          "unit": "deg"}
+            continue
+        out[f["kind"]] = {"values": r * scale, "outlier": ~keep, "sigma": f["sigma"] * scale, "dist": "normal",
+                          "unit": unit.replace("us", "µs")}
+    return out
+
+
+def position_covariances(model):
+    """1-σ position covariances at the estimate: arrays (N, 3, 3) and sources (K, 3, 3), m² (NaN where fixed)."""
+    from estimator.calibrate import covariance
+    from estimator.solver import linearise
+
+    p, lay = model["problem"], model["layout"]
+    _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
+    cov = covariance(J[w > 0], lay["n"])
+
+    def blocks(idx):
+        out = np.full((len(idx), 3, 3), np.nan)
+        for k, ix in enumerate(idx):
+            if np.all(ix >= 0):
+                out[k] = cov[np.ix_(ix, ix)]
+        return out
+
+    return blocks(lay["x"]), blocks(lay["s"])
+
+
+# ----------------------------------------------------------------------------------------------- plots
+def _nice_scale(x):
+    """Smallest 1, 2, 5 × 10^n that is ≥ x (and ≥ 1)."""
+    if not np.isfinite(x) or x <= 1:
+        return 1
+    e = 10 ** math.floor(math.log10(x))
+    return int(next(m * e for m in (1, 2, 5, 10) if m * e >= x))
+
+
+def _rotations(df):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(df[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).as_matrix()
+
+
+def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=None):
+    """3D view and top view (x-y) of the calibrated scene in the reference array's frame."""
+    plt = _plt()
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Ellipse
+
+    arr = calib["arrays"].reset_index(drop=True)
+    X = arr[["x", "y", "z"]].to_numpy(float)
+    R = _rotations(arr)
+    src = calib.get("sources")
+    S = src[["x", "y", "z"]].to_numpy(float) if src is not None else np.zeros((0, 3))
+    odo = features["events"][["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+    O = odo - odo[0] + (S[0] if len(S) else 0.0)  # odometry is relative: anchor it at the first source
+    tA = tS = None
+    if truth is not None:
+        ta = truth["arrays"].set_index("array").reindex(arr["array"])
+        tA = ta[["x", "y", "z"]].to_numpy(float)
+        tR = np.full((len(ta), 3, 3), np.nan)
+        okq = np.all(np.isfinite(ta[["qw", "qx", "qy", "qz"]].to_numpy(float)), axis=1)
+        if okq.any():
+            tR[okq] = _rotations(ta[okq])
+        if truth.get("sources") is not None:
+            tS = truth["sources"][["x", "y", "z"]].to_numpy(float)
+    pts = [X, S, O] + ([tA[np.all(np.isfinite(tA), axis=1)]] if tA is not None else []) + \
+          ([tS] if tS is not None else [])
+    allp = np.vstack([q for q in pts if len(q)])
+    lo, hi = allp.min(0), allp.max(0)
+    extent = float(max(np.max(hi - lo), 0.5))
+    L = 0.08 * extent  # triad length
+
+    # ellipsoid scale: the largest array 1-σ semi-axis becomes ~3 % of the scene
+    scale, sd_max = 1, np.nan
+    if cov_arrays is not None:
+        ev = [np.linalg.eigvalsh(c) for c in cov_arrays if np.all(np.isfinite(c))]
+        if ev:
+            sd_max = math.sqrt(max(float(np.max(e)) for e in ev))
+            scale = _nice_scale(0.03 * extent / max(sd_max, 1e-12))
+
+    fig = plt.figure(figsize=(15, 7.2))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    ax2 = fig.add_subplot(1, 2, 2)
+    axis_col = ("tab:red", "tab:green", "tab:blue")
+    u, v = np.mgrid[0:2 * np.pi:16j, 0:np.pi:9j]
+    sphere = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], -1)
+    for i, name in enumerate(arr["array"]):
+        for k in range(3):
+            e = X[i] + L * R[i][:, k]
+            ax.plot(*np.c_[X[i], e], color=axis_col[k], lw=2.2)
+            ax2.plot(*np.c_[X[i], e][:2], color=axis_col[k], lw=2.2)
+        if tA is not None and np.all(np.isfinite(tA[i])):
+            ax.plot(*np.c_[X[i], tA[i]], color="k", lw=0.8)  # error vector estimate → truth
+            ax2.plot(*np.c_[X[i], tA[i]][:2], color="k", lw=0.8)
+            ax.scatter(*tA[i], s=70, facecolors="none", edgecolors="k", lw=1.2)
+            ax2.scatter(*tA[i][:2], s=90, facecolors="none", edgecolors="k", lw=1.2, zorder=4)
+            if np.all(np.isfinite(tR[i])):
+                for k in range(3):
+                    e = tA[i] + L * tR[i][:, k]
+                    ax.plot(*np.c_[tA[i], e], color=axis_col[k], lw=1, ls=":", alpha=0.8)
+                    ax2.plot(*np.c_[tA[i], e][:2], color=axis_col[k], lw=1, ls=":", alpha=0.8)
+        ax.scatter(*X[i], color="k", s=14)
+        ax.text(*(X[i] + 0.35 * L), name, fontsize=11, weight="bold")
+        ax2.scatter(*X[i][:2], color="k", s=14, zorder=5)
+        ax2.annotate(name, X[i][:2], xytext=(6, 6), textcoords="offset points", fontsize=11, weight="bold")
+        if cov_arrays is not None and np.all(np.isfinite(cov_arrays[i])):
+            w, V = np.linalg.eigh(cov_arrays[i])
+            E = X[i] + scale * (sphere * np.sqrt(np.maximum(w, 0))) @ V.T
+            ax.plot_wireframe(E[..., 0], E[..., 1], E[..., 2], color="tab:purple", lw=0.5, alpha=0.6)
+            _ellipse(ax2, Ellipse, X[i][:2], scale * cov_arrays[i][:2, :2] * scale, "tab:purple")
+    if len(S):
+        ax.plot(*S.T, "o-", color="tab:orange", ms=4, lw=1)
+        ax2.plot(*S[:, :2].T, "o-", color="tab:orange", ms=4, lw=1)
+        for j in (0, len(S) - 1):
+            ev = int(src["event"].iloc[j])
+            ax2.annotate(f"event {ev}", S[j, :2], xytext=(5, -12), textcoords="offset points", fontsize=9,
+                         color="tab:orange")
+        if cov_sources is not None:
+            for j in range(len(S)):
+                if np.all(np.isfinite(cov_sources[j])):
+                    _ellipse(ax2, Ellipse, S[j, :2], scale * cov_sources[j][:2, :2] * scale, "tab:orange")
+    ax.plot(*O.T, "--", color="0.45", lw=1)
+    ax2.plot(*O[:, :2].T, "--", color="0.45", lw=1)
+    if tS is not None:
+        ax.scatter(*tS.T, marker="x", color="k", s=22, lw=1)
+        ax2.scatter(*tS[:, :2].T, marker="x", color="k", s=22, lw=1)
+
+    handles = [Line2D([], [], color=c, lw=2.2, label=f"array {a} axis") for c, a in zip(axis_col, "xyz")]
+    handles += [Line2D([], [], color="tab:orange", marker="o", ms=4, lw=1, label="sources (estimate)"),
+                Line2D([], [], color="0.45", ls="--", label="odometry path (anchored at first source)")]
+    if tA is not None:
+        handles += [Line2D([], [], marker="o", mfc="none", mec="k", ls="", label="arrays (truth, dotted axes; line = error)")]
+    if tS is not None:
+        handles += [Line2D([], [], marker="x", color="k", ls="", label="sources (truth)")]
+    if np.isfinite(sd_max):
+        handles += [Line2D([], [], color="tab:purple", lw=1,
+                           label=f"1-σ position ellipsoids ×{scale} (largest σ {100 * sd_max:.1f} cm)")]
+    ax2.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=9, frameon=False)
+
+    mid = 0.5 * (lo + hi)
+    half = 0.5 * extent * 1.05
+    ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half),
+           zlim=(mid[2] - half, mid[2] + half), xlabel="x (m)", ylabel="y (m)", zlabel="z (m)")
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=25, azim=-60)
+    ax.set_title("3D view (reference array's frame)")
+    ax2.set_aspect("equal", adjustable="datalim")
+    ax2.set(xlabel="x (m)", ylabel="y (m)", title="Top view (x-y)")
+    ax2.grid(alpha=0.3)
+    fig.suptitle(_scene_title(calib, truth), fontsize=13)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _ellipse(ax, Ellipse, c, cov2, color):
+    w, V = np.linalg.eigh(cov2)
+    w = np.sqrt(np.maximum(w, 0))
+    ang = np.degrees(np.arctan2(V[1, 1], V[0, 1]))
+    ax.add_patch(Ellipse(c, 2 * w[1], 2 * w[0], angle=ang, fill=False, color=color, lw=1, alpha=0.8))
+
+
+def _scene_title(calib, truth):
+    n = len(calib["arrays"])
+    k = len(calib["sources"]) if calib.get("sources") is not None else 0
+    return f"Calibrated scene: {n} arrays, {k} sources" + (" — estimate vs truth" if truth is not None else "")
+
+
+def plot_residuals(path, res):
+    """One histogram per measurement type, natural units, stated σ marked, outliers counted."""
+    plt = _plt()
+    kinds = list(res)
+    fig, axes = plt.subplots(1, max(len(kinds), 1), figsize=(4.4 * max(len(kinds), 1), 4.6), squeeze=False)
+    for ax, kind in zip(axes[0], kinds):
+        d = res[kind]
+        v, o, sig = d["values"], d["outlier"], d["sigma"]
+        inl = v[~o]
+        if d["dist"] == "rayleigh":
+            hi = max(4 * sig, 1.05 * float(inl.max()) if inl.size else 0.0)
+            lo_ = 0.0
+        else:
+            hi = max(4 * sig, 1.05 * float(np.abs(inl).max()) if inl.size else 0.0)
+            lo_ = -hi
+        bins = np.linspace(lo_, hi, 25)
+        ax.hist(np.clip(inl, lo_, hi), bins=bins, color="tab:blue", alpha=0.75, label=f"used ({inl.size})")
+        if o.any():
+            ax.hist(np.clip(v[o], lo_, hi), bins=bins, color="tab:red", alpha=0.85,
+                    label=f"outliers ({int(o.sum())}, clipped)")
+        xs = np.linspace(lo_, hi, 300)
+        bw = bins[1] - bins[0]
+        if d["dist"] == "rayleigh":
+            pdf = xs / sig ** 2 * np.exp(-0.5 * (xs / sig) ** 2)
+            ax.axvline(sig, color="k", ls="--", lw=1)
+            lab = f"expected (Rayleigh, σ={sig:.3g} {d['unit']}/axis)"
+        else:
+            pdf = np.exp(-0.5 * (xs / sig) ** 2) / (sig * np.sqrt(2 * np.pi))
+            for s in (-sig, sig):
+                ax.axvline(s, color="k", ls="--", lw=1)
+            lab = f"expected N(0, σ), σ = {sig:.3g} {d['unit']}"
+        ax.plot(xs, pdf * inl.size * bw, color="k", lw=1.2, label=lab)
+        rms = float(np.sqrt(np.mean(inl ** 2))) if inl.size else float("nan")
+        ax.set_title(f"{TITLE[kind]}: RMS {rms:.3g} {d['unit']}")
+        ax.set_xlabel(UNIT_LABEL[kind])
+        ax.set_ylabel("count")
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)
+    fig.suptitle("Residuals at the estimate (dashed: stated σ)", fontsize=12)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_detections(path, diag):
+    """Detection timeline from a diagnostics dict (JSON form): one row per array, each array's own clock."""
+    plt = _plt()
+    arrays = diag.get("arrays", {})
+    fig, ax = plt.subplots(figsize=(12, 0.7 * len(arrays) + 1.6))
+    for k, (name, a) in enumerate(arrays.items()):
+        det = a.get("detections", [])
+        t = np.array([d["time"] for d in det])
+        matched = np.array([d.get("event") is not None for d in det], bool)
+        y = len(arrays) - 1 - k
+        ax.hlines(y, 0, a.get("duration_s", t.max() if t.size else 1.0), color="0.85", lw=6)
+        if matched.any():
+            ax.scatter(t[matched], np.full(matched.sum(), y), marker="|", s=300, color="tab:green", lw=2)
+            for d in det:
+                if d.get("event") is not None:
+                    ax.annotate(str(d["event"]), (d["time"], y), xytext=(0, 9), textcoords="offset points",
+                                ha="center", fontsize=7)
+        if (~matched).any():
+            ax.scatter(t[~matched], np.full((~matched).sum(), y), marker="x", s=60, color="tab:red", lw=2)
+        miss = a.get("missed_events", [])
+        label = f"{name}  ({int(matched.sum())} matched, {len(miss)} missed, {int((~matched).sum())} spurious)"
+        ax.text(0, y - 0.32, label, fontsize=8, va="top")
+    ax.set_yticks(range(len(arrays)), list(arrays)[::-1])
+    ax.set_ylim(-0.8, len(arrays) - 0.4)
+    ax.set_xlabel("time on each array's own clock (s)")
+    ax.set_title("Chirp detections (green: matched, label = event id; red ×: spurious)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _json_diag(diag):
+    """Diagnostics without the private (``_``) keys, at any depth."""
+    if isinstance(diag, dict):
+        return {k: _json_diag(v) for k, v in diag.items() if not str(k).startswith("_")}
+    if isinstance(diag, list):
+        return [_json_diag(v) for v in diag]
+    return diag
+
+
+def write_diagnostics_fallback(directory, diag):
+    """diagnostics.json + detections.png (used only if the frontend has no writer of its own)."""
+    with atomic_dir(directory) as tmp:
+        clean = _json_diag(diag)
+        (tmp / "diagnostics.json").write_text(dumps_json(clean, indent=2) + "\n")
+        plot_detections(tmp / "detections.png", clean)
+
+
+# ----------------------------------------------------------------------------------------------- summary
+def _fmt(v, fmt, scale=1.0):
+    try:
+        v = float(v) * scale
+    except (TypeError, ValueError):
+        return "—"
+    return format(v, fmt) if math.isfinite(v) else "—"
+
+
+def arrays_markdown(arrays):
+    from scipy.spatial.transform import Rotation
+
+    rv = Rotation.from_quat(arrays[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).as_rotvec()
+    lines = ["| array | x (m) | y (m) | z (m) | rotation (deg) about axis | offset (ms) | drift (ppm) "
+             "| ±pos (cm) | ±rot (deg) | ±offset (µs) | ±drift (ppm) |",
+             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+    for k, r in arrays.reset_index(drop=True).iterrows():
+        ang = np.linalg.norm(rv[k])
+        ax = rv[k] / ang if ang > 0 else np.array([0.0, 0.0, 1.0])
+        pos_sd = math.sqrt(sum(float(r.get(f"{c}_std", np.nan)) ** 2 for c in "xyz"))
+        rot_sd = math.degrees(math.sqrt(sum(float(r.get(f"r{c}_std", np.nan)) ** 2 for c in "xyz")))
+        lines.append(f"| {r['array']} | {r['x']:.3f} | {r['y']:.3f} | {r['z']:.3f} | "
+                     f"{np.degrees(ang):.1f} about ({ax[0]:.2f}, {ax[1]:.2f}, {ax[2]:.2f}) | "
+                     f"{_fmt(r['offset'], '.3f', 1e3)} | {_fmt(r['drift'], '.2f', 1e6)} | {_fmt(pos_sd, '.2f', 100)} | "
+                     f"{_fmt(rot_sd, '.2f')} | {_fmt(r.get('offset_std'), '.1f', 1e6)} | "
+                     f"{_fmt(r.get('drift_std'), '.3f', 1e6)} |")
+    return "\n".join(lines)
+
+
+def metrics_markdown(metrics):
+    from cli.tables import METRIC_ROWS  # one place for metric names and units
+
+    lines = ["| metric | value | unit |", "|---|---:|---|"]
+    for key, label, scale, unit in METRIC_ROWS:
+        lines.append(f"| {label} | {_fmt(metrics.get(key), '.3f', scale)} | {unit} |")
+    lines += ["", "| array | position (cm) | geodesic (deg) | paper metric (deg) | offset (µs) | drift (ppm) |",
+              "|---|---:|---:|---:|---:|---:|"]
+    for r in metrics.get("per_array", []):
+        lines.append(f"| {r['array']} | {_fmt(r['position_m'], '.2f', 100)} | {_fmt(r['geodesic_deg'], '.2f')} | "
+                     f"{_fmt(r['paper_deg'], '.2f')} | {_fmt(r['offset_s'], '.1f', 1e6)} | "
+                     f"{_fmt(r['drift'], '.3f', 1e6)} |")
+    return "\n".join(lines)
+
+
+def _outlier_lines(features, outliers):
+    out = []
+    for o in outliers:
+        df = features.get(o["type"])
+        row = int(o["row"])
+        what = ""
+        if df is not None and 0 <= row < len(df):
+            r = df.iloc[row]
+            if o["type"] == "tdoa_m":
+                what = f"event {r['event']}, array {r['array']}"
+            elif o["type"] == "tdoa_s":
+                what = f"array {r['array']}, events {r['from_event']}→{r['to_event']}"
+        out.append(f"- {o['type']} ({what}): residual {o['residual_us']:+.0f} µs = "
+                   f"{o['residual_sigma']:+.1f} σ — excluded from the final solve")
+    return out
+
+
+def summary_markdown(features, calib, res, metrics, diag, images):
+    rep = calib.get("report") or {}
+    L = ["# Calibration report", ""]
+    L += [f"Reference array **{features['meta']['reference_array']}** (its frame is the world frame); "
+          f"{len(calib['arrays'])} arrays, {len(features['events'])} events, method `{rep.get('method', '?')}`, "
+          f"calib {(rep.get('software') or {}).get('version', '?')}.", ""]
+    L += ["## Calibrated arrays", "",
+          "Position in the reference array's frame, rotation (array frame → reference frame) as angle and "
+          "axis, clock offset at the first event and drift relative to the emitter's clock; ± columns are "
+          "1-σ from the estimator's covariance (position: norm over x, y, z).", "", arrays_markdown(calib["arrays"]), ""]
+    if metrics is not None:
+        L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
+    L += ["## Scene", "", f"![scene]({images['scene']})", ""]
+    L += ["## Residuals", "", "| type | n | RMS | stated σ |", "|---|---:|---:|---:|"]
+    for kind, d in res.items():
+        v = d["values"][~d["outlier"]]
+        rms = float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
+        L.append(f"| {TITLE[kind]} | {v.size} | {rms:.3g} {d['unit']} | {d['sigma']:.3g} {d['unit']}"
+                 f"{' per axis' if d['dist'] == 'rayleigh' else ''} |")
+    if res:
+        L += ["", f"![residuals]({images['residuals']})", ""]
+    outl = rep.get("outliers") or []
+    L += ["## Outliers", ""] + (_outlier_lines(features, outl) if outl else ["None flagged."]) + [""]
+    it = rep.get("iterations") or {}
+    cost = rep.get("cost") or {}
+    L += ["## Convergence", "",
+          f"- converged: **{rep.get('converged', '?')}** ({rep.get('reason', '?')}); iterations: robust pass "
+          f"{it.get('robust', '?')}, final pass {it.get('final', '?')}",
+          "- cost by stage: " + ", ".join(f"{k} {_fmt(v, '.4g')}" for k, v in cost.items()),
+          f"- χ²/dof at the estimate: {_fmt(rep.get('chi2_per_dof'), '.3f')} (≈ 1 when the stated σ are right)",
+          f"- drift reference: {rep.get('drift_reference', '?')}", ""]
+    if diag is not None:
+        L += ["## Detections", ""]
+        for name, a in (diag.get("arrays") or {}).items():
+            det = a.get("detections", [])
+            n_sp = len(a.get("spurious", []))
+            miss = a.get("missed_events", [])
+            L.append(f"- {name}: {len(det) - n_sp} matched, missed events {miss or 'none'}, {n_sp} spurious"
+                     + "".join(f"; warning: {w}" for w in a.get("warnings", [])))
+        L += ["", f"![detections]({images['detections']})", ""] if images.get("detections") else [""]
+    L += ["## Timings", ""]
+    if diag is not None and diag.get("elapsed_s") is not None:
+        rec = diag.get("recording_duration_s")
+        L.append(f"- features: {diag['elapsed_s']:.2f} s" + (f" for {rec:.1f} s of recording" if rec else ""))
+    for k, v in (rep.get("timings_s") or {}).items():
+        L.append(f"- estimator {k}: {v:.3f} s")
+    return "\n".join(L) + "\n"
+
+
+# ----------------------------------------------------------------------------------------------- driver
+def make_report(directory, features, calib, truth=None, diagnostics_dir=None, progress=None):
+    """Write the report folder atomically. Returns the evaluation metrics (dict) when ``truth`` is given."""
+    step = (lambda k, msg: progress(k, 5, msg)) if progress else (lambda k, msg: None)
+    metrics = None
+    if truth is not None:
+        from .evaluate import evaluate
+
+        metrics = evaluate(calib, truth)
+    step(0, "residuals")
+    model = rebuild(features, calib)
+    res = residuals(model) if model is not None else {}
+    cov_a = cov_s = None
+    if model is not None:
+        cov_a, cov_s = position_covariances(model)
+    diag = None
+    if diagnostics_dir is not None and (Path(diagnostics_dir) / "diagnostics.json").is_file():
+        diag = json.loads((Path(diagnostics_dir) / "diagnostics.json").read_text())
+    images = {"scene": "scene_3d.png", "residuals": "residuals.png"}
+    with atomic_dir(directory) as tmp:
+        step(1, "scene plot")
+        plot_scene(tmp / "scene_3d.png", calib, features, truth, cov_a, cov_s)
+        step(2, "residual plot")
+        if res:
+            plot_residuals(tmp / "residuals.png", res)
+        step(3, "detections")
+        src_png = Path(diagnostics_dir) / "detections.png" if diagnostics_dir is not None else None
+        if src_png is not None and src_png.is_file():
+            shutil.copyfile(src_png, tmp / "detections.png")
+            images["detections"] = "detections.png"
+        elif diag is not None:
+            plot_detections(tmp / "detections.png", diag)
+            images["detections"] = "detections.png"
+        step(4, "summary")
+        if metrics is not None:
+            (tmp / "metrics.json").write_text(dumps_json(metrics, indent=2) + "\n")
+        (tmp / "summary.md").write_text(summary_markdown(features, calib, res, metrics, diag, images))
+    step(5, "done")
+    return metrics

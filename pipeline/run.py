@@ -1,0 +1,314 @@
+"""``calib run``: recordings → features → calibration → report, with content-hash stage caching.
+
+Layout of an output folder ``OUT`` (every sub-folder is written atomically, FORMATS.md formats)::
+
+    OUT/features/      features (section 2) + .calib-stage.json     ← stage "features"
+    OUT/diagnostics/   detection diagnostics of the frontend         (same stage)
+    OUT/calibration/   calibration (section 3) + .calib-stage.json  ← stage "estimate"
+    OUT/report/        summary.md, PNG plots, metrics.json + stamp   ← stage "report"
+
+A stage's *key* is the sha256 of (its input files' contents, sorted by name; its settings; the calib
+version and a digest of the source code of the packages it runs). The stamp ``.calib-stage.json`` is
+written LAST, after the stage's output is atomically in place, and removed before a stage recomputes, so
+an interrupted stage never leaves a stamp a later run would trust. A stage is skipped when its stamp holds
+the same key and its outputs exist. Stage outputs are inputs of the next stage *by content*: a
+hand-edited ``OUT/features/tdoa_m.csv`` changes the estimate's key (re-estimated), not the features' key
+(the recordings did not change, so the user's edit is kept).
+
+Library use (a notebook)::
+
+    from pipeline.run import run
+    result = run("sample_data/lab3", "calib-out")
+    result["calibration"]["arrays"], result["metrics"], result["stages"]
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+from .io import InputError, atomic_write_text, dumps_json, read_calibration, read_features, read_truth
+
+STAMP = ".calib-stage.json"
+STAGES = ("features", "estimate", "report")
+FEATURE_FILES = ("meta.json", "events.csv", "tdoa_m.csv", "tdoa_s.csv", "doa.csv")
+CALIBRATION_FILES = ("arrays.csv", "sources.csv", "report.json")
+TRUTH_FILES = ("arrays.csv", "sources.csv")
+ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
+                     "outlier_threshold": 5.0}
+# source code each stage runs: a change there invalidates the stage even when the version number does not
+CODE = {
+    "features": ("frontend", "pipeline/session.py", "pipeline/io.py"),
+    "estimate": ("estimator", "pipeline/io.py"),
+    "report": ("pipeline/report.py", "pipeline/evaluate.py", "estimator", "pipeline/io.py"),
+}
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ----------------------------------------------------------------------------------------------- hashing
+def software_version():
+    try:
+        return version("calib")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def file_sha256(path, chunk=1 << 20):
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def code_digest(parts):
+    """sha256 over the ``.py`` files of packages / modules named relative to the project root."""
+    h = hashlib.sha256()
+    for part in parts:
+        p = ROOT / part
+        files = sorted(p.rglob("*.py")) if p.is_dir() else [p]
+        for f in files:
+            if f.is_file():
+                h.update(str(f.relative_to(ROOT)).encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def stage_key(inputs, settings, code):
+    """Key of a stage run.
+
+    inputs : dict label → sha256 hex (or None for an absent optional file); labels are relative names
+        (``recordings/A1.wav``, ``features/tdoa_m.csv``) so moving folders does not invalidate a stage.
+    settings : JSON-able dict of the options that change the stage's output.
+    code : list of project paths whose source the stage runs.
+
+    Returns (key hex, the stamp dict without timings).
+    """
+    stamp = {"inputs": dict(sorted(inputs.items())), "settings": settings,
+             "version": software_version(), "code": code_digest(code)}
+    key = hashlib.sha256(json.dumps(stamp, sort_keys=True, default=str).encode()).hexdigest()
+    return key, {"key": key, **stamp}
+
+
+def hash_files(root, label, names):
+    """{label/name: sha256 or None} for the files ``names`` of folder ``root`` (absent files → None)."""
+    root = Path(root)
+    return {f"{label}/{n}": file_sha256(root / n) if (root / n).is_file() else None for n in names}
+
+
+def read_stamp(directory):
+    try:
+        return json.loads((Path(directory) / STAMP).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def write_stamp(directory, stamp):
+    atomic_write_text(Path(directory) / STAMP, dumps_json(stamp, indent=2) + "\n")
+
+
+def clear_stamp(directory):
+    (Path(directory) / STAMP).unlink(missing_ok=True)
+
+
+def why_stale(old, new):
+    """One line saying why a stage must run (``None`` when the stamp matches)."""
+    if old is None:
+        return "no previous result"
+    if old.get("key") == new["key"]:
+        return None
+    changed = [k for k in sorted(set(old.get("inputs", {})) | set(new["inputs"]))
+               if old.get("inputs", {}).get(k) != new["inputs"].get(k)]
+    if changed:
+        more = f" (+{len(changed) - 3} more)" if len(changed) > 3 else ""
+        return "changed: " + ", ".join(changed[:3]) + more
+    if old.get("settings") != new["settings"]:
+        diff = [k for k in sorted(set(old.get("settings", {})) | set(new["settings"]))
+                if old.get("settings", {}).get(k) != new["settings"].get(k)]
+        return "settings changed: " + ", ".join(diff)
+    return "software changed"
+
+
+# ----------------------------------------------------------------------------------------------- inputs
+def session_inputs(session):
+    """Hashes of the files a recording session's feature extraction reads (session.toml, events, WAVs)."""
+    d = Path(session["dir"])
+    files = {d / "session.toml", d / "events.csv"} | {Path(a["wav"]) for a in session["arrays"]}
+    if session["chirp"].get("reference") is not None:
+        files.add(Path(session["chirp"]["reference"]))
+    out = {}
+    for f in sorted(files):
+        try:
+            rel = f.resolve().relative_to(d.resolve())
+        except ValueError:  # a WAV outside the session folder: name it by its absolute path
+            rel = f.resolve()
+        out[f"recordings/{rel.as_posix()}"] = file_sha256(f)
+    return out
+
+
+def features_inputs(out):
+    return hash_files(Path(out) / "features", "features", FEATURE_FILES)
+
+
+# ----------------------------------------------------------------------------------------------- stages
+def features_stage(recordings, out, options, progress=None):
+    """Frontend: recordings → OUT/diagnostics/ then OUT/features/ (both atomic). Returns the diagnostics."""
+    from frontend import extract_features
+
+    cb = None if progress is None else (lambda done, total, msg: progress("features", done, total, msg))
+    feats, diag = extract_features(recordings, progress=cb, **options)
+    write_diagnostics(Path(out) / "diagnostics", diag)
+    from .io import write_features
+
+    write_features(Path(out) / "features", feats)
+    return diag
+
+
+def write_diagnostics(directory, diag):
+    """The frontend's diagnostics folder (diagnostics.json + detections.png), via the frontend's writer."""
+    import frontend
+
+    writer = getattr(frontend, "write_diagnostics", None)
+    if writer is not None:
+        return writer(directory, diag)
+    from .report import write_diagnostics_fallback  # until the frontend ships its own writer
+
+    return write_diagnostics_fallback(directory, diag)
+
+
+def estimate_stage(out, options):
+    """Estimator: OUT/features/ → OUT/calibration/ (atomic). Returns the calibration dict."""
+    from estimator import calibrate
+
+    from .io import write_calibration
+
+    feats = read_features(Path(out) / "features")
+    opts = dict(options)
+    loss = opts.pop("loss")
+    calib = calibrate(feats, loss=None if loss == "linear" else loss, **opts)
+    write_calibration(Path(out) / "calibration", calib)
+    return calib
+
+
+def report_stage(out, truth_dir=None, progress=None):
+    """Report: OUT/features + calibration (+ truth, diagnostics) → OUT/report/ (atomic). Returns metrics."""
+    from .report import make_report
+
+    out = Path(out)
+    feats = read_features(out / "features")
+    calib = read_calibration(out / "calibration")
+    truth = read_truth(truth_dir) if truth_dir is not None else None
+    diag_dir = out / "diagnostics"
+    cb = None if progress is None else (lambda done, total, msg: progress("report", done, total, msg))
+    return make_report(out / "report", feats, calib, truth=truth,
+                       diagnostics_dir=diag_dir if diag_dir.is_dir() else None, progress=cb)
+
+
+# ----------------------------------------------------------------------------------------------- driver
+def _check_options(estimate_options):
+    opts = {**ESTIMATE_DEFAULTS, **(estimate_options or {})}
+    unknown = set(opts) - set(ESTIMATE_DEFAULTS)
+    if unknown:
+        raise TypeError(f"unknown estimate option(s): {', '.join(sorted(unknown))}")
+    if opts["method"] not in ("hybrid", "wang"):
+        raise ValueError(f"method must be hybrid or wang, not {opts['method']!r}")
+    if opts["loss"] not in ("cauchy", "huber", "linear"):
+        raise ValueError(f"loss must be cauchy, huber or linear, not {opts['loss']!r}")
+    if not opts["emission_sigma"] >= 0:
+        raise ValueError(f"emission_sigma must be >= 0, not {opts['emission_sigma']!r}")
+    if not opts["outlier_threshold"] > 0:
+        raise ValueError(f"outlier_threshold must be > 0, not {opts['outlier_threshold']!r}")
+    return opts
+
+
+def run(recordings, out, *, force=False, features_options=None, estimate_options=None, progress=None,
+        log=None):
+    """Run the pipeline on a recording session, skipping stages whose inputs and settings are unchanged.
+
+    Parameters
+    ----------
+    recordings : session folder (FORMATS.md section 1); ``recordings/truth`` is used for evaluation if present.
+    out : output folder (created); its sub-folders features/, diagnostics/, calibration/, report/ belong
+        to this function and are replaced atomically.
+    force : recompute every stage.
+    features_options : options of ``frontend.extract_features`` (e.g. ``{"threshold": 8.0}``).
+    estimate_options : method, use_tdoa_s, emission_sigma, loss ("cauchy", "huber", "linear"),
+        outlier_threshold (see ``estimator.calibrate``).
+    progress : optional ``progress(stage, done, total, message)`` callback.
+    log : optional ``log(stage, status, detail)`` callback, called when a stage starts ("run", reason),
+        is skipped ("skipped", reason) or ends ("done", seconds).
+
+    Returns
+    -------
+    dict: ``out`` (Path), ``stages`` {name: {"status": "run" | "skipped", "reason", "seconds", "output"}},
+    ``calibration`` (dict as ``pipeline.io.read_calibration``), ``metrics`` (dict or None, the metrics of
+    ``pipeline.evaluate.evaluate``), ``report`` (Path of summary.md), ``seconds`` (total).
+    """
+    from .session import read_session
+
+    t_start = time.perf_counter()
+    out = Path(out)
+    est_opts = _check_options(estimate_options)
+    feat_opts = dict(features_options or {})
+    # validate every input before any work, so bad input fails fast and writes nothing
+    session = read_session(recordings)
+    truth_dir = Path(recordings) / "truth"
+    truth_dir = truth_dir if truth_dir.is_dir() else None
+    if truth_dir is not None:
+        read_truth(truth_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    if out.resolve() == Path(recordings).resolve():
+        raise InputError(f"{out}: the output folder must differ from the recordings folder")
+    out.mkdir(parents=True, exist_ok=True)
+
+    log = log or (lambda stage, status, detail: None)
+    stages = {}
+    metrics = None
+
+    def stage(name, out_dirs, inputs, settings, work):
+        key, stamp = stage_key(inputs, settings, CODE[name])
+        stamp_dir = out_dirs[0]
+        old = read_stamp(stamp_dir)
+        reason = "--force" if force else why_stale(old, stamp)
+        if reason is None and not all(d.is_dir() for d in out_dirs):
+            reason = "output missing"
+        if reason is None:
+            log(name, "skipped", "inputs and settings unchanged")
+            stages[name] = {"status": "skipped", "reason": "unchanged", "seconds": 0.0,
+                            "output": str(stamp_dir)}
+            return None
+        log(name, "run", reason)
+        clear_stamp(stamp_dir)  # from here until the new stamp, this stage's output is untrusted
+        t0 = time.perf_counter()
+        result = work()
+        secs = time.perf_counter() - t0
+        write_stamp(stamp_dir, {**stamp, "stage": name, "seconds": secs,
+                                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+        stages[name] = {"status": "run", "reason": reason, "seconds": secs, "output": str(stamp_dir)}
+        log(name, "done", secs)
+        return result
+
+    stage("features", [out / "features", out / "diagnostics"], session_inputs(session), feat_opts,
+          lambda: features_stage(recordings, out, feat_opts, progress))
+
+    stage("estimate", [out / "calibration"], features_inputs(out), est_opts,
+          lambda: estimate_stage(out, est_opts))
+
+    rep_inputs = {**features_inputs(out),
+                  **hash_files(out / "calibration", "calibration", CALIBRATION_FILES),
+                  **hash_files(out / "diagnostics", "diagnostics", ("diagnostics.json", "detections.png"))}
+    if truth_dir is not None:
+        rep_inputs.update(hash_files(truth_dir, "truth", TRUTH_FILES))
+    metrics = stage("report", [out / "report"], rep_inputs, {"truth": truth_dir is not None},
+                    lambda: report_stage(out, truth_dir, progress))
+    calib = read_calibration(out / "calibration")
+    if metrics is None and truth_dir is not None:  # report skipped: same metrics as `calib evaluate`
+        from .evaluate import evaluate
+
+        metrics = evaluate(calib, read_truth(truth_dir))
+
+    return {"out": out, "stages": stages, "calibration": calib,
+            "metrics": metrics, "report": out / "report" / "summary.md",
+            "seconds": time.perf_counter() - t_start}

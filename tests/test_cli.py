@@ -1,0 +1,113 @@
+"""CLI behaviour of `calib estimate`, `calib evaluate` and `calib run`: one-line errors with exit code 2 and
+nothing written on bad input; machine-readable --json; --quiet."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli.main import app
+from estimator import calibrate
+from pipeline.evaluate import evaluate
+from pipeline.featsim import simulate_features
+from pipeline.io import read_calibration, read_features, write_features, write_truth
+from pipeline.roomsim import make_scenario, simulate
+
+runner = CliRunner()
+
+
+def invoke(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def assert_user_error(r, *fragments):
+    assert r.exit_code == 2, (r.exit_code, r.stdout, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+
+
+@pytest.fixture(scope="module")
+def featdir(tmp_path_factory):
+    feats, truth = simulate_features(trajectory=1, seed=2)
+    d = tmp_path_factory.mktemp("f")
+    write_features(d / "features", feats)
+    write_truth(d / "truth", truth)
+    return d, feats, truth
+
+
+def test_estimate_bad_inputs(featdir, tmp_path):
+    d, _, _ = featdir
+    assert_user_error(invoke("estimate", tmp_path / "none", "-o", tmp_path / "c1"), "none: not a directory")
+    bad = tmp_path / "bad"
+    shutil.copytree(d / "features", bad)
+    lines = (bad / "tdoa_m.csv").read_text().splitlines()
+    lines[3] = lines[3].rsplit(",", 1)[0] + ",abc"
+    (bad / "tdoa_m.csv").write_text("\n".join(lines) + "\n")
+    assert_user_error(invoke("estimate", bad, "-o", tmp_path / "c2"), "tdoa_m.csv", "line 4", "not a number")
+    assert_user_error(invoke("estimate", d / "features", "-o", tmp_path / "c3", "--method", "magic"), "--method")
+    few = tmp_path / "few"
+    shutil.copytree(d / "features", few)
+    ev = (few / "events.csv").read_text().splitlines()
+    (few / "events.csv").write_text("\n".join(ev[:3]) + "\n")  # events 0, 1 only
+    for name in ("tdoa_m.csv", "tdoa_s.csv", "doa.csv"):
+        rows = (few / name).read_text().splitlines()
+        keep = [rows[0]] + [r for r in rows[1:] if all(f in ("0", "1") for f in _event_fields(name, r))]
+        (few / name).write_text("\n".join(keep) + "\n")
+    assert_user_error(invoke("estimate", few, "-o", tmp_path / "c4"), "at least 3")
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(("c", ".c"))]  # nothing written
+
+
+def _event_fields(name, row):
+    f = row.split(",")
+    return [f[0]] if name in ("tdoa_m.csv", "doa.csv") else [f[1], f[2]]
+
+
+def test_estimate_then_evaluate_json(featdir, tmp_path):
+    d, feats, truth = featdir
+    r = invoke("estimate", d / "features", "-o", tmp_path / "cal", "-q")
+    assert r.exit_code == 0 and r.stdout == ""
+    got = read_calibration(tmp_path / "cal")
+    want = calibrate(read_features(d / "features"))["arrays"]  # the CLI = the library on the same files
+    np.testing.assert_allclose(got["arrays"][["x", "y", "z"]].to_numpy(), want[["x", "y", "z"]].to_numpy(), atol=1e-9)
+    r = invoke("evaluate", tmp_path / "cal", d / "truth", "--json")
+    assert r.exit_code == 0 and len(r.stdout.strip().splitlines()) == 1
+    m = json.loads(r.stdout)
+    assert m["position_rmse_m"] == pytest.approx(evaluate(got, truth)["position_rmse_m"])
+    assert_user_error(invoke("evaluate", tmp_path / "cal", tmp_path / "nowhere"), "nowhere: not a directory")
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rec") / "s"
+    simulate(make_scenario("lab3", 5, n_events=6, interval=0.8, chirp={"duration": 0.2}, rt60=0.15, snr=30), d)
+    return d
+
+
+def test_run_bad_inputs_write_nothing(session, tmp_path):
+    assert_user_error(invoke("run", tmp_path / "none", "-o", tmp_path / "o1"), "none: not a directory")
+    assert_user_error(invoke("run", session, "-o", tmp_path / "o2", "--loss", "square"), "loss")
+    broken = tmp_path / "broken"
+    shutil.copytree(session, broken)
+    (broken / "A2.wav").unlink()
+    assert_user_error(invoke("run", broken, "-o", tmp_path / "o3"), "A2.wav", "file not found")
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(("o", ".o"))]
+
+
+def test_run_json_quiet_and_skip(session, tmp_path):
+    out = tmp_path / "out"
+    r = invoke("run", session, "-o", out, "--json")
+    assert r.exit_code == 0, r.stderr
+    first = json.loads(r.stdout)
+    assert first["ran"] == ["features", "estimate", "report"] and first["skipped"] == []
+    assert first["metrics"]["position_rmse_m"] < 0.15
+    assert (out / "report" / "summary.md").is_file() and first["outputs"]["report"].endswith("summary.md")
+    r = invoke("run", session, "-o", out, "-q")
+    assert r.exit_code == 0 and r.stdout == "" and r.stderr == ""
+    r = invoke("run", session, "-o", out)
+    assert r.exit_code == 0
+    assert "skipped" in r.stderr and "features" in r.stderr
+    assert "Calibrated arrays" in r.stdout and "Calibration vs ground truth" in r.stdout
+    assert "skipped (unchanged): features, estimate, report" in " ".join(r.stdout.split())

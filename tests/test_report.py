@@ -1,0 +1,140 @@
+"""`pipeline.report`: residuals in natural units against the injected noise, outlier masks and
+covariances rebuilt from files, the report folder (atomic), and a real data set with a known outlier."""
+import json
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pytest
+
+import pipeline.report as report
+from estimator import calibrate
+from pipeline.evaluate import evaluate
+from pipeline.featsim import simulate_features
+from pipeline.io import read_calibration, read_features, read_truth, write_calibration
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"
+
+
+def _truth_calib(truth):
+    return {"arrays": truth["arrays"], "sources": truth["sources"], "report": {}}
+
+
+def test_residuals_at_truth_are_the_injected_noise():
+    noisy, truth = simulate_features(trajectory=3, seed=11, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.02)
+    clean, _ = simulate_features(trajectory=3, seed=11, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.02,
+                                 noise=False)
+    res = report.residuals(report.rebuild(noisy, _truth_calib(truth)))
+    assert set(res) == {"tdoa_s", "tdoa_m", "doa", "odometry"}
+    for kind in ("tdoa_s", "tdoa_m"):  # residual = model − measured = clean − noisy, in µs
+        want = (clean[kind]["tdoa"].to_numpy() - noisy[kind]["tdoa"].to_numpy()) * 1e6
+        np.testing.assert_allclose(res[kind]["values"], want, atol=1e-6)
+        assert res[kind]["unit"] == "µs" and res[kind]["sigma"] == pytest.approx(100.0)
+        assert not res[kind]["outlier"].any()
+    u0 = clean["doa"][["ux", "uy", "uz"]].to_numpy()
+    u1 = noisy["doa"][["ux", "uy", "uz"]].to_numpy()
+    ang = np.degrees(np.arccos(np.clip(np.sum(u0 * u1, axis=1), -1, 1)))
+    np.testing.assert_allclose(res["doa"]["values"], ang, atol=1e-5)
+    steps = lambda f: np.diff(f["events"][["odom_x", "odom_y", "odom_z"]].to_numpy(), axis=0)  # noqa: E731
+    np.testing.assert_allclose(res["odometry"]["values"], ((steps(clean) - steps(noisy)) * 100).ravel(), atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    """A feature-level scene with one gross TDOA-M error, calibrated and written to disk."""
+    feats, truth = simulate_features(trajectory=3, seed=4, sigma_tdoa=5e-5, sigma_doa_deg=3.0)
+    tm = feats["tdoa_m"]
+    row = int(np.flatnonzero((tm["event"] == 3).to_numpy() & (tm["array"] == "A3").to_numpy())[0])
+    tm.loc[row, "tdoa"] += 5e-3
+    calib = calibrate(feats)
+    d = tmp_path_factory.mktemp("cal") / "calibration"
+    write_calibration(d, calib)
+    return feats, truth, calib, read_calibration(d), row
+
+
+def test_rebuilt_model_matches_the_estimator(calibrated):
+    feats, _, calib, from_disk, row = calibrated
+    model = report.rebuild(feats, from_disk)
+    res = report.residuals(model)
+    assert np.flatnonzero(res["tdoa_m"]["outlier"]).tolist() == [row]
+    assert res["tdoa_m"]["values"][row] == pytest.approx(-5000, abs=300)  # the typed-in 5 ms, in µs
+    assert not res["tdoa_s"]["outlier"].any()
+    # covariance blocks rebuilt from the files = the estimator's own 1-σ columns
+    cov_a, cov_s = report.position_covariances(model)
+    a = calib["arrays"]
+    np.testing.assert_allclose(np.sqrt(np.diagonal(cov_a[1:], axis1=1, axis2=2)),
+                               a[["x_std", "y_std", "z_std"]].to_numpy()[1:], rtol=1e-4)
+    assert np.isnan(cov_a[0]).all()  # the reference array is fixed
+    np.testing.assert_allclose(np.sqrt(np.diagonal(cov_s, axis1=1, axis2=2)),
+                               calib["sources"][["x_std", "y_std", "z_std"]].to_numpy(), rtol=1e-4)
+    # RMS of the inliers as in the estimator's report
+    for kind in ("tdoa_s", "tdoa_m"):
+        v = res[kind]["values"][~res[kind]["outlier"]]
+        assert np.sqrt(np.mean(v ** 2)) == pytest.approx(calib["report"]["residuals"][kind]["rms_us"], rel=1e-4)
+
+
+def test_report_folder(calibrated, tmp_path):
+    feats, truth, _, from_disk, row = calibrated
+    out = tmp_path / "report"
+    metrics = report.make_report(out, feats, from_disk, truth=truth)
+    assert metrics["position_rmse_m"] == pytest.approx(evaluate(from_disk, truth)["position_rmse_m"])
+    assert json.loads((out / "metrics.json").read_text())["position_rmse_m"] == pytest.approx(
+        metrics["position_rmse_m"])
+    for png in ("scene_3d.png", "residuals.png"):
+        img = matplotlib.image.imread(out / png)
+        assert img.shape[0] > 300 and img.shape[1] > 600
+    md = (out / "summary.md").read_text()
+    for name in feats["meta"]["arrays"]:
+        assert f"| {name} |" in md
+    ev = feats["tdoa_m"].loc[row]
+    assert f"tdoa_m (event {ev['event']}, array {ev['array']})" in md
+    assert "](scene_3d.png)" in md and "](residuals.png)" in md and "Evaluation against ground truth" in md
+    # without truth: no metrics
+    assert report.make_report(tmp_path / "r2", feats, from_disk) is None
+    assert not (tmp_path / "r2" / "metrics.json").exists()
+    assert "Evaluation" not in (tmp_path / "r2" / "summary.md").read_text()
+
+
+def test_failed_report_leaves_previous_one(calibrated, tmp_path, monkeypatch):
+    feats, _, _, from_disk, _ = calibrated
+    out = tmp_path / "report"
+    report.make_report(out, feats, from_disk)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def boom(*a, **k):
+        raise RuntimeError("plot failed (injected)")
+
+    monkeypatch.setattr(report, "plot_residuals", boom)
+    with pytest.raises(RuntimeError, match="injected"):
+        report.make_report(out, feats, from_disk)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert [p.name for p in tmp_path.iterdir()] == ["report"]
+
+
+def test_diagnostics_fallback_drops_private_keys(tmp_path):
+    diag = {"arrays": {"A1": {"duration_s": 10.0, "missed_events": [2], "warnings": [], "_env": np.ones(5),
+                              "detections": [{"time": 1.0, "score": 9.0, "event": 0},
+                                             {"time": 4.0, "score": 8.5, "event": None}]}},
+            "elapsed_s": 0.5}
+    report.write_diagnostics_fallback(tmp_path / "diag", diag)
+    back = json.loads((tmp_path / "diag" / "diagnostics.json").read_text())
+    assert "_env" not in back["arrays"]["A1"] and back["arrays"]["A1"]["missed_events"] == [2]
+    assert matplotlib.image.imread(tmp_path / "diag" / "detections.png").shape[1] > 600
+
+
+def test_nice_scale():
+    assert [report._nice_scale(x) for x in (0.3, 1.0, 1.5, 3.0, 7.0, 11.0, 4000.0)] == [1, 1, 2, 5, 10, 20, 5000]
+
+
+@pytest.mark.skipif(not (REAL / "zhang_real_07").is_dir(), reason="shared real-world data not available")
+def test_real_set_07_reports_its_known_outlier(tmp_path):
+    """Set 07 has a TDOA-M of array A3 off by about 40 ms (shared/real_world/README.md)."""
+    feats = read_features(REAL / "zhang_real_07" / "features")
+    truth = read_truth(REAL / "zhang_real_07" / "truth")
+    d = tmp_path / "calibration"
+    write_calibration(d, calibrate(feats))
+    m = report.make_report(tmp_path / "report", feats, read_calibration(d), truth=truth)
+    md = (tmp_path / "report" / "summary.md").read_text()
+    line = [s for s in md.splitlines() if s.startswith("- tdoa_m (") and "array A3" in s]
+    assert len(line) == 1 and 30000 < abs(float(line[0].split("residual ")[1].split(" µs")[0])) < 50000
+    assert m["position_rmse_m"] < 0.15
