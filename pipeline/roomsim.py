@@ -40,6 +40,8 @@ from .session import write_session_toml
 FDL = 81           # fractional-delay filter length (pyroomacoustics default)
 LUT_GRAN = 512     # sinc look-up granularity of the RIR builder (pra default 20; finer = more exact delays)
 N_THREADS = 2      # fixed so that the builder's summation order (hence every output byte) is reproducible
+FDL_LATE = 21      # shorter filter for late reflections (> EARLY s after the direct path)
+EARLY = 0.05       # s
 PAD = FDL // 2 + 1  # samples added to every image delay so the builder never indexes before 0
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
 
@@ -691,29 +693,42 @@ def odometry(scenario):
 
 
 # ----------------------------------------------------------------------------------------------- RIRs
-def _build_rirs(delays, amps, length):
+def _build_rirs(delays, amps, length, early=np.inf, horizon=np.inf):
     """RIRs (n_mics, length) from image delays in SAMPLES (n_img, n_mics) and amplitudes (n_img, n_mics).
 
     pyroomacoustics' windowed-sinc builder takes times and an integer rate; we hand it delays already in
-    the array's samples (rate 1) plus ``PAD`` so the filter never starts before index 0.
+    the array's samples (rate 1) plus ``PAD`` so the filter never starts before index 0. Images arriving
+    within ``early`` samples of the first one get the full ``FDL``-tap filter; later (weak, dense) ones a
+    ``FDL_LATE``-tap one (< 1 % response error below fs/3); images beyond ``horizon`` samples after the
+    first are dropped (Sabine: > 60 dB down once ``horizon`` = RT60).
     """
     from pyroomacoustics import libroom
 
     out = np.zeros((delays.shape[1], length))
     for m in range(delays.shape[1]):
-        libroom.rir_builder(out[m], np.ascontiguousarray(delays[:, m] + PAD), np.ascontiguousarray(amps[:, m]),
-                            1, FDL, LUT_GRAN, N_THREADS)
+        d, a = delays[:, m], amps[:, m]
+        rel = d - d.min()
+        for fdl, sel in ((FDL, rel <= early), (FDL_LATE, (rel > early) & (rel <= horizon))):
+            if sel.any():
+                libroom.rir_builder(out[m], np.ascontiguousarray(d[sel] + PAD), np.ascontiguousarray(a[sel]),
+                                    1, fdl, LUT_GRAN, N_THREADS)
     return out
 
 
 def builder_delay():
-    """Global delay (samples) of :func:`_build_rirs`, measured: the peak of a lone image at an integer delay."""
+    """Global delay (samples) of :func:`_build_rirs`, measured: the peak of a lone image at an integer delay
+    (for both filter lengths, which must agree)."""
     n0 = 3 * FDL
-    h = _build_rirs(np.array([[float(n0)]]), np.array([[1.0]]), 6 * FDL)[0]
-    k = int(np.argmax(h))
-    if not abs(h[k] - 1.0) < 1e-3 or np.max(np.abs(np.delete(h, k))) > 1e-3:
-        raise RuntimeError("pyroomacoustics RIR builder: unexpected impulse shape")
-    return k - n0
+    found = set()
+    for early in (np.inf, -1.0):
+        h = _build_rirs(np.array([[float(n0)]]), np.array([[1.0]]), 6 * FDL, early=early)[0]
+        k = int(np.argmax(h))
+        if not abs(h[k] - 1.0) < 1e-3 or np.max(np.abs(np.delete(h, k))) > 1e-3:
+            raise RuntimeError("pyroomacoustics RIR builder: unexpected impulse shape")
+        found.add(k - n0)
+    if len(found) != 1:
+        raise RuntimeError(f"pyroomacoustics RIR builder: filter lengths disagree on the delay {found}")
+    return found.pop()
 
 
 def _images(sc, e_abs, order, positions):
@@ -805,7 +820,7 @@ def simulate(scenario, out_dir, progress=False, overwrite=False):
                     return burst_signal(u, dur, freqs, phases)
                 level = gain * math.sqrt(p_chirp) * 10 ** (it["level_db"] / 20)
             for a, y in zip(sc["arrays"], signals):
-                _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level)
+                _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level, sc["rt60"])
                 bar.advance(task)
 
         task = bar.add_task("noise + writing", total=len(sc["arrays"]) + 1)
@@ -826,7 +841,7 @@ def simulate(scenario, out_dir, progress=False, overwrite=False):
     return out_dir
 
 
-def _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level):
+def _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level, rt60=0.0):
     """Add one emission (signal ``wave`` starting at true time ``t_start``) to array ``a``'s channels ``y``."""
     fsp = fs * (1.0 + a["drift"])                    # true-time rate of this array's samples
     nu = fs * local_time(t_start, a["tau"], a["drift"], t0)   # emission instant in this array's samples
@@ -836,7 +851,8 @@ def _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level):
     x = wave((p - frac) / fsp)                       # the emitted wave on this array's sample grid
     dist = np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0)  # (n_img, M)
     taps = dist * (fsp / c)                          # image delays in this array's samples
-    h = _build_rirs(taps, damp[:, None] / dist, int(math.ceil(taps.max())) + PAD + FDL)
+    h = _build_rirs(taps, damp[:, None] / dist, int(math.ceil(taps.max())) + PAD + FDL,
+                    early=EARLY * fsp, horizon=rt60 * fsp if rt60 > 0 else np.inf)
     seg = fftconvolve(h, x[None, :], axes=1) * level
     start = n0 - delay                               # conv index `delay` ↔ emission instant
     lo, hi = max(start, 0), min(start + seg.shape[1], y.shape[1])
@@ -881,7 +897,8 @@ def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, 
         "scenario": _jsonable(_public(scenario, sc)),
         "derived": {
             "absorption": e_abs, "max_order": order, "rir_builder_delay_samples": delay,
-            "fractional_delay_length": FDL, "gain": gain * rescale, "rescale": rescale,
+            "fractional_delay_length": FDL, "fractional_delay_length_late": FDL_LATE,
+            "late_after_direct_s": EARLY, "images_dropped_after_direct_s": sc["rt60"] or None, "gain": gain * rescale, "rescale": rescale,
             "sensor_noise_std": sigma * rescale, "diffuse_noise_std": sigma_diff * rescale,
             "direct_power_mean": p_direct * rescale ** 2,
             "snr_definition": "10 log10(P / noise variance), P = mean over arrays, mics, events of the "

@@ -367,3 +367,28 @@ def test_cli_bad_input_one_line_nothing_written(tmp_path, args, expect):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and expect in lines[0], r.stderr
     assert not out.exists() and not any(p.name.startswith(".never") for p in tmp_path.iterdir())
+
+
+# ----------------------------------------------------------------------------------------------- bundled sample
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "lab3"
+
+
+@pytest.mark.skipif(not SAMPLE.is_dir(), reason="sample_data/lab3 not present")
+def test_sample_data_is_consistent_with_its_manifest():
+    ses = read_session(SAMPLE)
+    assert sum(p.stat().st_size for p in SAMPLE.rglob("*") if p.is_file()) <= 10e6
+    sc = rs.load_scenario(SAMPLE / "truth" / "manifest.json")
+    truth = read_truth(SAMPLE / "truth")
+    again = rs.scenario_truth(rs.validate_scenario(sc))
+    cols = ["x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
+    assert np.allclose(truth["arrays"][cols].to_numpy(float), again["arrays"][cols].to_numpy(float), atol=1e-9)
+    assert np.allclose(truth["sources"][["x", "y", "z"]].to_numpy(), again["sources"][["x", "y", "z"]].to_numpy(),
+                       atol=1e-9)
+    man = json.loads((SAMPLE / "truth" / "manifest.json").read_text())
+    for i, a in enumerate(ses["arrays"]):
+        info = sf.info(a["wav"])
+        assert info.channels == len(a["mics"]) and info.samplerate == sc["fs"]
+        assert info.frames == man["derived"]["n_samples"][a["name"]]
+        # every chirp (and its reverberation) lies inside the recording
+        assert np.all(np.array(man["derived"]["arrival_times_origin"][a["name"]]) * info.samplerate
+                      < info.frames - 0.5 * info.samplerate)
