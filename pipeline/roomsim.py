@@ -474,6 +474,7 @@ def validate_scenario(scenario):
             raise InputError(f"scenario: missing key {key!r}")
     if sc.get("preset", "paper-traj3") not in PRESETS:
         raise InputError(f"scenario: unknown preset {sc['preset']!r} (choose from {', '.join(PRESETS)})")
+    sc["seed"] = _int(sc.get("seed", 0), "seed", 0)
     sc["fs"] = _int(sc["fs"], "fs", 1000)
     c = sc["speed_of_sound"] = _float(sc["speed_of_sound"], "speed_of_sound", 0, strict=True)
     room = sc["room_dim"] = _vector(sc["room_dim"], "room_dim", 3)
@@ -769,7 +770,6 @@ def simulate(scenario, out_dir, progress=False, overwrite=False):
     e_abs, order = _room_acoustics(sc)
     delay = builder_delay()
     t0 = sc["t_emit"][0]
-    K = len(sc["sources"])
 
     emitters = [("chirp", j, s) for j, s in enumerate(sc["sources"])]
     emitters += [("interferer", k, it["position"]) for k, it in enumerate(sc["interferers"])]
@@ -789,17 +789,15 @@ def simulate(scenario, out_dir, progress=False, overwrite=False):
         p_chirp = chirp_power(ch)
         p_direct = float(np.mean((gain * direct) ** 2) * p_chirp)
 
-        # recording lengths: last reverberation of the last emission + tail
+        # recording lengths: the last chirp's reverberation (images kept up to RT60 after the direct path)
+        # + tail; interferers are clipped to the recording
         ends = []
         for a in sc["arrays"]:
             last = 0.0
-            for (kind, k, _), (img, _) in zip(emitters, images):
-                dmax = np.max(np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0))
-                if kind == "chirp":
-                    t_end = sc["t_emit"][k] + dmax / c + ch["duration"]
-                else:
-                    continue  # interferers are clipped to the recording
-                last = max(last, local_time(t_end, a["tau"], a["drift"], t0))
+            for j, (img, _) in enumerate(images[:len(sc["sources"])]):
+                dist = np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0)
+                reach = dist.max() / c if sc["rt60"] == 0 else min(dist.max() / c, dist.min() / c + sc["rt60"])
+                last = max(last, local_time(sc["t_emit"][j] + reach + ch["duration"], a["tau"], a["drift"], t0))
             ends.append(int(math.ceil((last + sc["tail"]) * fs)) + FDL)
         signals = [np.zeros((len(a["mics"]), n)) for a, n in zip(sc["arrays"], ends)]
 
