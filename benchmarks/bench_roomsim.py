@@ -61,7 +61,8 @@ def run_case(preset, fs, rt60, tmp, accuracy=False, **kw):
     d = rs.simulate(sc, Path(tmp) / f"{preset}-{fs}-{rt60}-{len(kw)}", overwrite=True)
     wall = time.perf_counter() - t0
     n = sf.info(d / "A1.wav").frames
-    row = {"preset": preset, "fs": fs, "rt60": rt60, "arrays x mics": f"{len(v['arrays'])}x{len(v['arrays'][0]['mics'])}",
+    row = {"preset": preset, "fs": fs, "rt60": rt60,
+           "arrays x mics": f"{len(v['arrays'])}x{len(v['arrays'][0]['mics'])}",
            "events": len(v["sources"]), "max_order": order, "audio_s": n / fs, "wall_s": wall,
            "MB": sum(p.stat().st_size for p in d.rglob("*") if p.is_file()) / 1e6}
     if accuracy:

@@ -78,6 +78,7 @@ GEN_DEFAULTS = {
     "lead_in": 0.3,            # the earliest-starting clock reads τ = lead_in at t_emit[0], s
     "n_mics": 6,               # default mic geometry: circular array of n_mics ...
     "mic_radius": 0.0354,      # ... with this radius (m), in the array's x-y plane, origin at the centre
+    "mics": None,              # or one (M, 3) geometry (m, array frame) for every generated array
     "tilt_deg": None,          # None: rotations uniform on SO(3); else upright, random yaw, tilt N(0, tilt_deg)
     "room_margin": 1.5,        # paper presets: room = trajectory box + this margin on each side, m
     "wall_margin": 0.3,        # generated arrays keep at least this distance from the walls, m
@@ -367,7 +368,7 @@ def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock):
     off[0] = 0.0
     drift = rng_clock.uniform(-drmax, drmax, n)
     tau = off - off.min() + float(g["lead_in"])
-    mics = circular_array(_int(g["n_mics"], "n_mics", 1), float(g["mic_radius"]))
+    mics = _default_mics(g)
     out = []
     for i in range(n):
         q = rots[i].as_quat(scalar_first=True)
@@ -380,6 +381,12 @@ def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock):
     return out
 
 
+def _default_mics(g):
+    if g.get("mics") is not None:
+        return _matrix(g["mics"], "mics", 3)
+    return circular_array(_int(g["n_mics"], "n_mics", 1), float(g["mic_radius"]))
+
+
 def _user_arrays(arrays, g):
     if not isinstance(arrays, (list, tuple)) or not arrays:
         raise InputError("scenario: 'arrays' must be a non-empty list of tables")
@@ -390,7 +397,7 @@ def _user_arrays(arrays, g):
         a = copy.deepcopy(a)
         a.setdefault("name", f"A{k + 1}")
         a.setdefault("quat", [1.0, 0.0, 0.0, 0.0])
-        a.setdefault("mics", circular_array(_int(g["n_mics"], "n_mics", 1), float(g["mic_radius"])).tolist())
+        a.setdefault("mics", _default_mics(g).tolist())
         a.setdefault("tau", float(g["lead_in"]))
         a.setdefault("drift", 0.0)
         out.append(a)
@@ -823,7 +830,8 @@ def simulate(scenario, out_dir, progress=False, overwrite=False):
 
         task = bar.add_task("noise + writing", total=len(sc["arrays"]) + 1)
         sigma = math.sqrt(p_direct / 10 ** (sc["snr"] / 10)) if math.isfinite(sc["snr"]) else 0.0
-        sigma_diff = math.sqrt(p_direct / 10 ** (sc["diffuse_snr"] / 10)) if math.isfinite(sc["diffuse_snr"]) else 0.0
+        sigma_diff = (math.sqrt(p_direct / 10 ** (sc["diffuse_snr"] / 10)) if math.isfinite(sc["diffuse_snr"])
+                      else 0.0)
         for i, y in enumerate(signals):
             if sigma > 0:
                 y += sigma * _rng(sc["seed"], 20 + 2 * i).standard_normal(y.shape)
@@ -896,7 +904,8 @@ def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, 
         "derived": {
             "absorption": e_abs, "max_order": order, "rir_builder_delay_samples": delay,
             "fractional_delay_length": FDL, "fractional_delay_length_late": FDL_LATE,
-            "late_after_direct_s": EARLY, "images_dropped_after_direct_s": sc["rt60"] or None, "gain": gain * rescale, "rescale": rescale,
+            "late_after_direct_s": EARLY, "images_dropped_after_direct_s": sc["rt60"] or None,
+            "gain": gain * rescale, "rescale": rescale,
             "sensor_noise_std": sigma * rescale, "diffuse_noise_std": sigma_diff * rescale,
             "direct_power_mean": p_direct * rescale ** 2,
             "snr_definition": "10 log10(P / noise variance), P = mean over arrays, mics, events of the "

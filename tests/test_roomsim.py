@@ -313,6 +313,8 @@ def test_overrides_and_toml(tmp_path):
     assert len(sc["arrays"]) == 3 and len(sc["sources"]) == 5 and sc["fs"] == 48000
     assert sc["chirp"] == {"f0": 500.0, "f1": 8000.0, "duration": 0.5, "fade": 0.005}
     assert 0.75 <= np.diff(sc["t_emit"]).min() and np.diff(sc["t_emit"]).max() <= 1.25
+    tetra = [[0.03, 0.03, 0.03], [0.03, -0.03, -0.03], [-0.03, 0.03, -0.03], [-0.03, -0.03, 0.03]]
+    assert all(a["mics"] == tetra for a in rs.make_scenario("paper-traj2", mics=tetra)["arrays"])
     # n_events does not move the arrays
     full = rs.make_scenario("paper-traj1", seed=1, n_arrays=3)
     assert [a["position"] for a in full["arrays"]] == [a["position"] for a in sc["arrays"]]
