@@ -1,0 +1,176 @@
+"""Frontend benchmark: `extract_features` on sessions from the room simulator, against its analytic truth.
+
+    python benchmarks/bench_frontend.py                 # the table of docs/frontend.md (~5 min)
+    python benchmarks/bench_frontend.py --seeds 0 --quick
+
+Scenes: preset paper-traj3 (5 arrays × 6 mics, 16 kHz, 14 chirps of 0.5 s, 500–4000 Hz, ~2 s apart,
+arrays at random positions and rotations, drifts up to 1e-4, offsets up to 0.1 s) for RT60 ∈ {0, 0.3,
+0.6} s × SNR ∈ {30, 10} dB, plus the acceptance case (0.3 s, 20 dB) and stress cases (drifts up to 1e-3;
+interfering noise bursts). Mics: the default planar circle (r = 3.54 cm) cannot tell the two sides of its
+plane apart (no `doa_hemisphere` for randomly rotated arrays), so the main table uses the same circle with
+the mics alternately 2 cm above and below the plane ("3D"); the "planar" rows report the DOA error up to
+that mirror ambiguity.
+
+Columns: recall = matched-and-correct detections / (arrays × events); false = spurious detections kept
+in the output + wrong associations; TDOA errors vs `pipeline.roomsim.arrival_times` (µs): TDOA-M raw and
+after removing the drift bias β(δ_i − δ_ref) that the estimator models (architecture.md); DOA angular
+error (deg) vs the true direction in the array frame; runtime = wall time of extract_features / the
+longest recording.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from frontend import extract_features  # noqa: E402
+from pipeline import roomsim  # noqa: E402
+
+MICS_3D = np.c_[0.0354 * np.cos(np.arange(6) * np.pi / 3), 0.0354 * np.sin(np.arange(6) * np.pi / 3),
+                0.02 * (-1.0) ** np.arange(6)]
+
+
+def truth(sc):
+    """Arrival times (N, K), drifts (N,), true DOAs (N, K, 3) in each array's frame."""
+    arr = roomsim.arrival_times(sc)
+    src = np.asarray(sc["sources"], float)
+    doa = []
+    for a in sc["arrays"]:
+        v = src - np.asarray(a["position"], float)
+        doa.append(Rotation.from_quat(a["quat"], scalar_first=True).inv().apply(v / np.linalg.norm(v, axis=1)[:, None]))
+    return arr, np.array([a["drift"] for a in sc["arrays"]], float), np.array(doa)
+
+
+def evaluate(feats, diag, sc, tol=0.05):
+    """Error statistics of one session's features (see the module docstring)."""
+    a, delta, doa_t = truth(sc)
+    names = [x["name"] for x in sc["arrays"]]
+    ref = names.index(sc["reference_array"])
+    beta = feats["meta"].get("chirp_drift_bias", 0.0)
+    out = {}
+    n_ok = n_false = 0
+    for i, n in enumerate(names):
+        d = diag["arrays"][n]
+        n_false += len(d["spurious"])
+        for det in d["detections"]:
+            if det["event"] is None:
+                continue
+            if abs(det["time"] - a[i, det["event"]]) <= tol:
+                n_ok += 1
+            else:
+                n_false += 1
+    out["recall"] = n_ok / a.size
+    out["false"] = n_false
+    tm = feats["tdoa_m"]
+    i = np.array([names.index(n) for n in tm["array"]], int)
+    j = tm["event"].to_numpy(int)
+    raw = tm["tdoa"].to_numpy() - (a[i, j] - a[ref, j])
+    ts = feats["tdoa_s"]
+    i2 = np.array([names.index(n) for n in ts["array"]], int)
+    es = ts["tdoa"].to_numpy() - (a[i2, ts["to_event"].to_numpy(int)] - a[i2, ts["from_event"].to_numpy(int)])
+    doa = feats["doa"]
+    i3 = np.array([names.index(n) for n in doa["array"]], int)
+    u = doa[["ux", "uy", "uz"]].to_numpy()
+    ut = doa_t[i3, doa["event"].to_numpy(int)]
+    ang = np.degrees(np.arccos(np.clip(np.sum(u * ut, axis=1), -1, 1)))
+    # error up to the mirror image across the mic plane (planar arrays)
+    folded = ang.copy()
+    for k, ii in enumerate(i3):
+        m = np.asarray(sc["arrays"][ii]["mics"], float)
+        _, sv, vt = np.linalg.svd(m - m.mean(axis=0))
+        if sv[2] < 1e-6:
+            um = ut[k] - 2 * (ut[k] @ vt[2]) * vt[2]
+            folded[k] = min(ang[k], np.degrees(np.arccos(np.clip(u[k] @ um, -1, 1))))
+    out.update(
+        tdoa_m=raw - beta * (delta[i] - delta[ref]), tdoa_m_raw=raw, tdoa_s=es, doa=ang, doa_folded=folded,
+        runtime=diag["elapsed_s"] / diag["recording_duration_s"])
+    return out
+
+
+def cases(quick):
+    rows = [("3D", rt, snr, {}) for rt in (0.0, 0.3, 0.6) for snr in (30.0, 10.0)]
+    rows.insert(3, ("3D", 0.3, 20.0, {}))
+    if quick:
+        rows = [("3D", 0.3, 20.0, {})]
+    rows += [("planar", 0.3, 20.0, {}), ("3D", 0.3, 20.0, {"drift_max": 1e-3}),
+             ("3D", 0.3, 20.0, {"n_interferers": 3, "interferer_level_db": 0.0})]
+    return rows
+
+
+def label(geom, rt, snr, extra):
+    s = f"{geom} RT60 {rt:g} SNR {snr:g}"
+    if "drift_max" in extra:
+        s += f" drift {extra['drift_max']:g}"
+    if "n_interferers" in extra:
+        s += f" +{extra['n_interferers']} bursts"
+    return s
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    p.add_argument("--quick", action="store_true", help="only the acceptance case and the stress cases")
+    p.add_argument("--json", type=Path, help="also write the raw numbers here")
+    args = p.parse_args()
+
+    warm = True
+    table, raw = [], {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for geom, rt, snr, extra in cases(args.quick):
+            acc = []
+            for seed in args.seeds:
+                ov = {"rt60": rt, "snr": snr, **extra}
+                if geom == "3D":
+                    ov["mics"] = MICS_3D.tolist()
+                sc = roomsim.make_scenario("paper-traj3", seed, **ov)
+                d = Path(tmp) / f"{geom}-{rt}-{snr}-{seed}-{len(table)}"
+                roomsim.simulate(sc, d)
+                sc = json.loads((d / "truth" / "manifest.json").read_text())["scenario"]
+                if warm:  # first call pays one-off costs (caches); the CLI pays them too, once per run
+                    extract_features(d)
+                    warm = False
+                t = time.perf_counter()
+                feats, diag = extract_features(d)
+                diag["elapsed_s"] = time.perf_counter() - t
+                acc.append(evaluate(feats, diag, sc))
+            cat = {k: np.concatenate([np.atleast_1d(a[k]) for a in acc]) for k in acc[0]}
+            rms = lambda x: float(np.sqrt(np.mean(np.square(x)))) * 1e6  # noqa: E731
+            row = {
+                "case": label(geom, rt, snr, extra),
+                "recall": float(np.mean(cat["recall"])), "false": int(np.sum(cat["false"])),
+                "tdoa_m_rmse": rms(cat["tdoa_m"]), "tdoa_m_max": float(np.abs(cat["tdoa_m"]).max() * 1e6),
+                "tdoa_m_raw_rmse": rms(cat["tdoa_m_raw"]),
+                "tdoa_s_rmse": rms(cat["tdoa_s"]), "tdoa_s_max": float(np.abs(cat["tdoa_s"]).max() * 1e6),
+                "doa_med": float(np.median(cat["doa"])), "doa_p95": float(np.percentile(cat["doa"], 95)),
+                "doa_fold_med": float(np.median(cat["doa_folded"])),
+                "doa_fold_p95": float(np.percentile(cat["doa_folded"], 95)),
+                "runtime_pct": float(np.max(cat["runtime"]) * 100),
+            }
+            table.append(row)
+            print(f"{row['case']}: done", file=sys.stderr, flush=True)
+
+    print(f"seeds {args.seeds}; errors pooled over seeds; runtime = worst seed\n")
+    print("| case | recall | false | TDOA-M RMSE / max (µs) | TDOA-M raw RMSE (µs) | TDOA-S RMSE / max (µs) "
+          "| DOA median / p95 (deg) | runtime (% of audio) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in table:
+        doa = (f"{r['doa_med']:.2f} / {r['doa_p95']:.2f}" if not r["case"].startswith("planar") else
+               f"{r['doa_fold_med']:.2f} / {r['doa_fold_p95']:.2f} (mirror-folded; raw {r['doa_med']:.0f} / "
+               f"{r['doa_p95']:.0f})")
+        print(f"| {r['case']} | {100 * r['recall']:.1f}% | {r['false']} | {r['tdoa_m_rmse']:.2f} / "
+              f"{r['tdoa_m_max']:.2f} | {r['tdoa_m_raw_rmse']:.1f} | {r['tdoa_s_rmse']:.2f} / {r['tdoa_s_max']:.2f} "
+              f"| {doa} | {r['runtime_pct']:.2f} |")
+    if args.json:
+        args.json.write_text(json.dumps(table, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,266 @@
+"""``extract_features``: a recording session (FORMATS.md section 1) → features (section 2) + diagnostics.
+
+Per array (each at its own sample rate, all times in seconds on its own clock):
+1. matched-filter envelope of the whole recording, peaks → detections (:mod:`frontend.detect`);
+2. detections ↔ events by the emission-time pattern (:mod:`frontend.associate`);
+3. per matched event, sub-sample chirp start at every mic (:mod:`frontend.timing`);
+4. SRP-PHAT DOA on the time-gated direct path (:mod:`frontend.doa`);
+5. mic times referred to the array origin with the DOA (a plane wave from ``u`` reaches mic ``m``
+   ``u·m/c`` before the origin) and fused robustly → arrival ``a_ij`` of event ``j`` at array ``i``.
+TDOA-S and TDOA-M are differences of these arrival times.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pandas as pd
+from scipy.signal.windows import tukey
+from threadpoolctl import threadpool_limits
+
+from pipeline.io import InputError
+from pipeline.session import read_session
+
+from . import associate as assoc_mod
+from .detect import matched_envelope, pick_peaks, refine_peak
+from .doa import srp_doa, srp_setup
+from .signals import chirp_band, chirp_template, read_array_audio, read_header
+from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
+
+DEFAULTS = {
+    "threshold": 8.0,        # detection: peak / local background of the matched-filter envelope
+    "detect_channels": 3,    # detection: channels whose matched-filter envelopes are summed (speed)
+    "max_drift": 1e-3,       # association: bound on |clock drift|
+    "tolerance": None,       # association: max |arrival − predicted| (s); None = min(0.1, spacing / 4)
+    "search_before": 0.030,  # direct path may precede the strongest envelope peak by this much (s)
+    "search_after": 0.003,   # ... or follow the detection by this much (s)
+    "first_peak": 0.35,      # direct path = earliest envelope peak ≥ this × the strongest one
+    "whiten_hz": 500.0,      # GCC whitening: magnitude smoothed over this band (Hz); 0 = plain matched filter
+    "grid_deg": 3.0,         # SRP grid spacing (deg), refined locally to 0.01°
+    "gate_pulses": 3.0,      # DOA gate: flat over the aperture ± this many pulse widths (1 / bandwidth)
+    "min_mic_quality": 0.1,  # a mic whose normalised GCC peak is below this (× the event's best) is ignored
+}
+
+
+def _check_audio(session):
+    """Open every WAV's header first, so bad input fails before any work."""
+    for a in session["arrays"]:
+        read_header(a)
+
+
+def extract_features(session_dir, progress=None, **options):
+    """Features of a recording session.
+
+    Parameters
+    ----------
+    session_dir : folder with session.toml, the WAVs and events.csv.
+    progress : optional callable ``progress(done, total, message)``, called as arrays are processed.
+    options : overrides of :data:`DEFAULTS`.
+
+    Returns
+    -------
+    features : dict as ``pipeline.io.read_features`` returns (meta, events, tdoa_m, tdoa_s, doa), with
+        a ``quality`` column in tdoa_m, tdoa_s and doa (docs/frontend.md).
+    diagnostics : dict (JSON-able except keys starting with ``_``): per-array detections, matches,
+        missed events, spurious detections, association fit, warnings, timings.
+    """
+    opt = {**DEFAULTS, **options}
+    unknown = set(options) - set(DEFAULTS)
+    if unknown:
+        raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
+    t_start = time.perf_counter()
+    session = read_session(session_dir)
+    _check_audio(session)
+    c = session["speed_of_sound"]
+    events = session["events"]
+    t_emit = events["t_emit"].to_numpy(float)
+    ev_ids = events["event"].to_numpy(int)
+    ref = session["reference_array"]
+    arrays = session["arrays"]
+    order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
+
+    results, beta = {}, None
+    # single-threaded BLAS: the SRP's thin complex products are ~10x slower with OpenBLAS threads when
+    # the cores are busy (FFTs still use both cores through scipy.fft workers)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for n_done, k in enumerate(order):
+            a = arrays[k]
+            if progress is not None:
+                progress(n_done, len(arrays), f"array {a['name']}")
+            res = process_array(a, session, t_emit, c, opt)
+            if beta is None:  # β: a property of the chirp and of this estimator, at the reference's rate
+                beta = drift_bias(res["template"], res["fs"], res["band"], **res["beta_args"])
+            results[a["name"]] = res
+    if progress is not None:
+        progress(len(arrays), len(arrays), "done")
+
+    feats = _tables(session, results, ev_ids, beta)
+    diag = _diagnostics(session, results, ev_ids, beta, time.perf_counter() - t_start)
+    return feats, diag
+
+
+def process_array(a, session, t_emit, c, opt):
+    """Detection, association, timing and DOA for one array."""
+    timings = {}
+    t0 = time.perf_counter()
+    x, fs = read_array_audio(a)
+    timings["read"] = time.perf_counter() - t0
+    chirp = session["chirp"]
+    template = chirp_template(chirp, fs)
+    band = chirp_band(chirp, template, fs)
+    dur = len(template) / fs
+
+    t0 = time.perf_counter()
+    det_ch = np.unique(np.linspace(0, len(x) - 1, min(opt["detect_channels"], len(x))).round().astype(int))
+    env, dec = matched_envelope(x[det_ch], template, fs, band)
+    env_rate = fs / dec
+    spacing = np.min(np.diff(t_emit)) if len(t_emit) > 1 else np.inf
+    idx, score = pick_peaks(env, env_rate, min(dur, 0.5 * spacing), opt["threshold"])
+    det_t = refine_peak(env, idx) / env_rate if len(idx) else np.zeros(0)
+    timings["detect"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    asc = assoc_mod.associate(det_t, score, t_emit, tol=opt["tolerance"], max_drift=opt["max_drift"])
+    if asc["n_matched"] < 2:
+        raise InputError(f"{a['wav']}: found {asc['n_matched']} chirp(s) matching the events in events.csv "
+                         f"({len(det_t)} detection(s)); need at least 2")
+    timings["associate"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    ev_idx = np.flatnonzero(asc["det_of"] >= 0)
+    mics = np.asarray(a["mics"], float)
+    aperture = np.max(np.linalg.norm(mics - mics.mean(axis=0), axis=1)) / c
+    pulse = 1.0 / (band[1] - band[0])
+    half = int(np.ceil((aperture + 0.5 * pulse) * fs))  # a mic's lag vs the array's: aperture + half a pulse
+    flat, taper = half + int(np.ceil(opt["gate_pulses"] * pulse * fs)), int(np.ceil(2 * pulse * fs))
+    pre = int(round((opt["search_before"] + 0.002) * fs))  # segment starts this long before the detection
+    after = int(round(opt["search_after"] * fs))
+    locate_kw = {"lo": pre - int(round(opt["search_before"] * fs)), "hi": pre + after, "half_width": half,
+                 "alpha": opt["first_peak"], "dominance": int(np.ceil(2.5 * pulse * fs)), "gate": flat + taper}
+    max_lag = pre + after + flat + taper + half + 4  # largest lag locate() looks at
+    seg_len = max_lag + len(template) + int(np.ceil(opt["max_drift"] * len(template))) + 4
+    starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - pre
+    setup = spectra_setup(template, fs, band, seg_len, opt["whiten_hz"])
+    C = segment_spectra(x, starts, setup)  # (J, M, Fb)
+    del x
+
+    loc = locate(C, setup, **locate_kw)
+    tau, val, phase = loc["tau"], loc["value"], loc["phase"]
+    timings["timing"] = time.perf_counter() - t0
+
+    # DOA from the gated direct path
+    t0 = time.perf_counter()
+    g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], flat, taper, phase)
+    sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], a.get("doa_hemisphere"))
+    u, power, contrast = srp_doa(g_spec, sset, g_w)
+    timings["doa"] = time.perf_counter() - t0
+
+    # refer mic times to the origin and fuse
+    t_mic = starts[:, None] / fs + tau  # (J, M) local seconds
+    good = val >= opt["min_mic_quality"] * np.max(val, axis=1, keepdims=True)
+    t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
+    arrival, spread = fuse_times(t_org)
+    quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
+
+    warnings = []
+    if sset["planar_normal"] is not None and a.get("doa_hemisphere") is None:
+        warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
+    if asc["ambiguous"]:
+        warnings.append("association ambiguous: another alignment of the events explains as many detections")
+    return {
+        "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
+        "template": template, "phase": phase, "env": env, "env_rate": env_rate, "det_t": det_t,
+        "det_score": score, "assoc": asc, "ev_idx": ev_idx, "arrival": arrival, "spread": spread,
+        "quality": quality, "u": u, "doa_power": power, "doa_contrast": contrast, "mic_times": t_mic,
+        "mic_quality": val, "warnings": warnings, "timings": timings,
+        "beta_args": {"locate_kw": locate_kw, "pre": pre, "seg_len": seg_len, "whiten_hz": opt["whiten_hz"]},
+    }
+
+
+def gated_spectra(r, r_lo, fs, setup, center, flat, taper, phase):
+    """Spectra of each mic's response gated around the direct path, PHAT-normalised.
+
+    The gate is flat over ``center ± flat`` samples (wide enough for every mic's pulse, so the gate does
+    not pull the pulses toward its centre, which would compress the inter-mic delays and bias the DOA) and
+    rolls off over ``taper`` samples on each side.
+
+    r : (J, M, T) analytic correlation on lags r_lo... center : (J,) int lags.
+    Returns g (J, M, F'), freqs (F',), weights (F',).
+    """
+    half_width = flat + taper
+    width = 2 * half_width + 1
+    nfft = int(2 ** np.ceil(np.log2(4 * width)))  # dense frequency sampling: per-bin PHAT is then accurate
+    idx = (np.asarray(center) - half_width - r_lo)[:, None] + np.arange(width)  # (J, W)
+    seg = np.real(np.take_along_axis(r, idx[:, None, :], axis=-1) * np.exp(-1j * phase))
+    seg *= tukey(width, 2 * taper / width)
+    spec = np.fft.rfft(seg, nfft, axis=-1)
+    freqs = np.fft.rfftfreq(nfft, 1 / fs)
+    w = np.interp(freqs, setup["freqs"], setup["weights"] / setup["weights"].max(), left=0.0, right=0.0)
+    keep = w > 0.05
+    spec = spec[..., keep]
+    return spec / np.maximum(np.abs(spec), 1e-30), freqs[keep], w[keep]
+
+
+def _tables(session, results, ev_ids, beta):
+    ref = session["reference_array"]
+    names = [a["name"] for a in session["arrays"]]
+    arr = {}
+    for name, r in results.items():
+        arr[name] = {int(ev_ids[j]): (r["arrival"][k], r["quality"][k], r["spread"][k])
+                     for k, j in enumerate(r["ev_idx"])}
+    tm, ts, doa = [], [], []
+    for name in names:
+        for e, (t, q, s) in arr[name].items():
+            if name != ref and e in arr[ref]:
+                tr, qr, sr = arr[ref][e]
+                tm.append((e, name, t - tr, min(q, qr)))
+        evs = sorted(arr[name])
+        for e1, e2 in zip(evs[:-1], evs[1:]):
+            ts.append((name, e1, e2, arr[name][e2][0] - arr[name][e1][0], min(arr[name][e1][1], arr[name][e2][1])))
+        r = results[name]
+        for k, j in enumerate(r["ev_idx"]):
+            doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k]))
+    meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
+            **session["noise"], "chirp_drift_bias": beta}
+    return {
+        "meta": meta,
+        "events": session["events"].copy(),
+        "tdoa_m": pd.DataFrame(tm, columns=["event", "array", "tdoa", "quality"]).astype({"event": int}),
+        "tdoa_s": pd.DataFrame(ts, columns=["array", "from_event", "to_event", "tdoa", "quality"])
+        .astype({"from_event": int, "to_event": int}),
+        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality"]).astype({"event": int}),
+    }
+
+
+def _diagnostics(session, results, ev_ids, beta, elapsed):
+    arrays = {}
+    total_dur = 0.0
+    for a in session["arrays"]:
+        r = results[a["name"]]
+        asc = r["assoc"]
+        dur = r["n_samples"] / r["fs"]
+        total_dur = max(total_dur, dur)
+        dets = []
+        for k, t in enumerate(r["det_t"]):
+            e = int(asc["event_of"][k])
+            dets.append({"time": float(t), "score": float(r["det_score"][k]),
+                         "event": int(ev_ids[e]) if e >= 0 else None})
+        arrays[a["name"]] = {
+            "wav": str(a["wav"]), "fs": r["fs"], "channels": r["channels"], "duration_s": dur,
+            "detections": dets,
+            "missed_events": [int(ev_ids[j]) for j in np.flatnonzero(asc["det_of"] < 0)],
+            "spurious": [d for d in dets if d["event"] is None],
+            "association": {"offset_s": float(asc["offset"]), "scale": float(asc["scale"]),
+                            "n_matched": int(asc["n_matched"]), "tolerance_s": asc["tolerance"],
+                            "residual_rms_s": float(asc["residual_rms"]), "ambiguous": bool(asc["ambiguous"])},
+            "arrival_spread_median_s": float(np.nanmedian(r["spread"])),
+            "chirp_phase_rad": float(r["phase"]),
+            "warnings": r["warnings"],
+            "timings_s": r["timings"],
+            "_env": r["env"], "_env_rate": r["env_rate"],
+            "_predicted": asc["offset"] + asc["scale"] * (session["events"]["t_emit"].to_numpy() -
+                                                         session["events"]["t_emit"].iloc[0]),
+        }
+    return {"arrays": arrays, "chirp_drift_bias": beta,
+            "elapsed_s": elapsed, "recording_duration_s": total_dur,
+            "event_ids": [int(e) for e in ev_ids]}

@@ -1,0 +1,245 @@
+"""Sub-sample arrival times of the chirp at each microphone: band-limited GCC-PHAT against the emitted chirp.
+
+For an event segment ``x_m`` of mic ``m`` (starting a little before the detection), the whitened,
+band-limited cross-spectrum with the template ``s`` is ``C_m(f) = W(f) X_m S* / A_m(f)``, with ``W`` a
+tapered window over the chirp's band and ``A_m`` the magnitude of ``X_m S*`` smoothed over ~500 Hz (a
+"smoothed PHAT": full PHAT, ``A = |X S*|``, also whitens the fine structure of the reverberation, and its
+two-sided inverse filter then smears reflection energy ahead of the direct path; on simulated rooms it
+doubled the TDOA error and the DOA error). Its inverse transform ``r_m(τ)`` is the mic's impulse response
+as seen through the chirp: a sharp pulse at the direct path's lag (the chirp's start), then reflections. Times are found in three steps:
+
+1. the array's direct path: the earliest strong peak of the channel-averaged envelope ``Σ|r_m|`` near the
+   detection (the strongest peak can be a reflection; a reflection never precedes the direct path);
+2. per mic, the envelope peak within the lags the array's aperture allows around it;
+3. per mic, the carrier peak of ``Re(e^{-jφ} r_m(τ))`` nearest that envelope peak (half a carrier period at
+   most, so no cycle slips), refined by Newton steps on the exact band-limited correlation.
+
+``φ`` is the phase of the received chirp relative to the template at the envelope peak. It is 0 for an
+exact template on a perfect clock, π for a speaker wired with inverted polarity, ±π/2 for a sine/cosine
+mix-up, and a clock drift ``δ`` rotates it too (an LFM stretched in time is a slightly different LFM;
+about 0.4 rad per 1e-4 for a 0.5 s, 500–4000 Hz sweep). So it is estimated per array from all its events
+and mics (:func:`estimate_phase`); the carrier then refines the envelope's timing, event to event, without
+cycle slips, and the timing follows the envelope's drift bias, which is linear in ``δ``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.fft as sfft
+from scipy.ndimage import maximum_filter1d, uniform_filter1d
+from scipy.signal import resample
+
+from .signals import band_weights
+
+
+def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
+    """Fixed FFT quantities for one array: FFT size, in-band bins and weights, template spectrum.
+
+    seg_len : samples per event segment; lags up to ``seg_len − len(template)`` are free of circular
+    wrap-around. whiten_hz : width (Hz) of the smoothing of the magnitude that
+    whitens the cross-spectrum; 0 = plain matched filter. Returns a dict (nfft, kb (Fb,), freqs (Fb,),
+    weights (Fb,), tmpl_conj (Fb,), fs, seg_len, whiten_bins).
+    """
+    nfft = sfft.next_fast_len(seg_len)  # the lags we use keep the whole template inside the segment
+    freqs_all = sfft.rfftfreq(nfft, 1 / fs)
+    w = band_weights(freqs_all, band)
+    kb = np.flatnonzero(w > 0)
+    tmpl = sfft.rfft(template, nfft)[kb]
+    return {"nfft": nfft, "kb": kb, "freqs": freqs_all[kb], "weights": w[kb], "tmpl_conj": np.conj(tmpl),
+            "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
+
+
+def segment_spectra(x, starts, setup):
+    """Whitened, band-limited cross-spectra of event segments with the template (a GCC against the chirp).
+
+    x : (M, N) recording. starts : (J,) int, first sample of each segment (may run off either end of the
+    recording; the missing part is zero). Returns C : (J, M, Fb) complex128, scaled so that a perfect
+    single-path match has a correlation peak of 1.
+    """
+    m, n = x.shape
+    seg_len, nfft = setup["seg_len"], setup["nfft"]
+    j = len(starts)
+    seg = np.zeros((j, m, seg_len), np.float32)
+    for i, s0 in enumerate(np.asarray(starts, int)):
+        a, b = max(s0, 0), min(s0 + seg_len, n)
+        if b > a:
+            seg[i, :, a - s0 : b - s0] = x[:, a:b]
+    spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)[..., setup["kb"]].astype(np.complex128)
+    c = spec * setup["tmpl_conj"]
+    if setup["whiten_bins"]:
+        # divide by the locally smoothed magnitude: removes the spectral colour of speaker, room and noise
+        # (as PHAT does) but not the fine structure of the reverberation, whose full whitening would smear
+        # energy ahead of the direct path (a zero-phase inverse filter is two-sided)
+        p = uniform_filter1d(np.abs(c) ** 2, setup["whiten_bins"], axis=-1, mode="nearest")
+        c = c / np.sqrt(np.maximum(p, 1e-30 * max(float(p.max(initial=0.0)), 1e-300)))
+    else:
+        c = c / np.sqrt(np.maximum(np.mean(np.abs(c) ** 2, axis=-1, keepdims=True), 1e-300))
+    return c * (setup["weights"] / setup["weights"].sum())
+
+
+def lag_grid(c, setup, lo, hi):
+    """Analytic correlation on the native lag grid: (J, M, hi − lo) complex for lag samples lo..hi-1."""
+    full = np.zeros(c.shape[:-1] + (setup["nfft"],), np.complex128)
+    full[..., setup["kb"]] = c
+    r = sfft.ifft(full, axis=-1, workers=-1) * setup["nfft"]
+    return r[..., lo:hi]
+
+
+def phasors(freqs, tau):
+    """``exp(j 2π f τ)`` for every f: (...,) lags (s) → (..., F) complex.
+
+    The band's frequencies are uniformly spaced, so the phasors are a geometric sequence: one complex
+    multiply per element (cumulative product) instead of a complex exponential, ~6x faster.
+    """
+    tau = np.asarray(tau, float)
+    df = np.diff(freqs)
+    if len(freqs) < 3 or np.ptp(df) > 1e-9 * abs(df[0]):
+        return np.exp(2j * np.pi * freqs * tau[..., None])
+    out = np.empty(tau.shape + (len(freqs),), np.complex128)
+    out[..., 0] = 1.0
+    out[..., 1:] = np.exp(2j * np.pi * df[0] * tau)[..., None]
+    np.cumprod(out, axis=-1, out=out)
+    out *= np.exp(2j * np.pi * freqs[0] * tau)[..., None]
+    return out
+
+
+def corr_at(c, freqs, tau):
+    """Analytic correlation at arbitrary lags: c (..., Fb), tau (...) seconds → (...) complex."""
+    return np.einsum("...f,...f->...", c, phasors(freqs, tau))
+
+
+def newton_peak(c, freqs, tau, phase=0.0, iters=3, max_step=None):
+    """Refine peaks of ``Re(e^{-jφ} r(τ))`` by Newton steps on the exact band-limited correlation.
+
+    c : (..., Fb). tau : (...) start lags (s), within a fraction of a carrier period of the peak.
+    Returns (tau, value) refined, same shapes.
+    """
+    w = 2 * np.pi * freqs
+    cw, cww = c * w, c * (w * w)
+    tau = np.array(tau, float)
+    max_step = max_step if max_step is not None else 0.25 / freqs.max()
+    rot = np.exp(-1j * phase)
+    for _ in range(iters):
+        p = phasors(freqs, tau) * rot
+        d1 = -np.imag(np.einsum("...f,...f->...", cw, p))
+        d2 = -np.real(np.einsum("...f,...f->...", cww, p))
+        step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
+        tau = tau + np.clip(step, -max_step, max_step)
+    val = np.real(corr_at(c, freqs, tau) * rot)
+    return tau, val
+
+
+def direct_path_lag(env, guard, alpha=0.35, dominance=0):
+    """Index of the direct path in a (J, T) array-averaged envelope.
+
+    The envelope's maximum may be a reflection: take the earliest peak within ``guard`` samples before it
+    that reaches ``alpha`` × the maximum and is the highest within ``± dominance`` samples (so the
+    sidelobes of a stronger arrival just after it do not count). Returns (J,) int.
+    """
+    j, t = env.shape
+    kmax = np.argmax(env, axis=1)
+    out = kmax.copy()
+    peak = env[np.arange(j), kmax]
+    local = maximum_filter1d(env, 2 * dominance + 1, axis=1, mode="nearest") if dominance else env
+    is_max = np.zeros_like(env, bool)
+    is_max[:, 1:-1] = (env[:, 1:-1] >= env[:, :-2]) & (env[:, 1:-1] > env[:, 2:])
+    is_max &= env >= local
+    for i in range(j):
+        lo = max(0, kmax[i] - guard)
+        cand = np.flatnonzero(is_max[i, lo : kmax[i]] & (env[i, lo : kmax[i]] >= alpha * peak[i]))
+        if cand.size:
+            out[i] = lo + cand[0]
+    return out
+
+
+def refine_peak_along(y, k):
+    """Parabolic sub-sample peak positions along the last axis. y : (..., T), k : (...) int."""
+    k = np.clip(k, 1, y.shape[-1] - 2)[..., None]
+    a, b, c = (np.take_along_axis(y, k + d, axis=-1)[..., 0] for d in (-1, 0, 1))
+    den = a - 2 * b + c
+    off = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
+    return k[..., 0] + np.clip(off, -0.5, 0.5)
+
+
+def locate(c, setup, lo, hi, half_width, alpha=0.35, dominance=0, gate=0, phase=None):
+    """Direct path and sub-sample chirp start at every mic, for all events of one array.
+
+    c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path.
+    half_width : samples a mic's arrival may differ from the array's (aperture / c plus half a pulse).
+    alpha, dominance : :func:`direct_path_lag`. gate : extra lags kept around the window for the DOA.
+    phase : carrier phase at the envelope peak (rad); None = estimate it from these measurements.
+
+    Returns a dict: ``dp`` (J,) int direct-path lag; ``tau`` (J, M) start lags (s since segment start);
+    ``value`` (J, M) normalised carrier peak (1 = one clean path); ``phase``; ``r`` (J, M, T) analytic
+    correlation on lags ``r_lo`` .. ``r_lo + T − 1``.
+    """
+    fs, freqs = setup["fs"], setup["freqs"]
+    pad = gate + half_width + 2
+    r_lo = max(0, lo - pad)
+    r = lag_grid(c, setup, r_lo, min(setup["nfft"], hi + pad))  # (J, M, T)
+    env = np.abs(r)
+    dp = lo + direct_path_lag(env[:, :, lo - r_lo : hi - r_lo].mean(axis=1), hi - lo, alpha, dominance)
+    # per mic: envelope peak within the lags the aperture allows around the array's direct path
+    k = np.arange(r_lo, r_lo + r.shape[-1])
+    allowed = np.abs(k[None, :] - dp[:, None]) <= half_width  # (J, T)
+    kk = np.argmax(np.where(allowed[:, None, :], env, -1.0), axis=-1)  # (J, M)
+    env_tau = (refine_peak_along(env, kk) + r_lo) / fs
+    z = corr_at(c, freqs, env_tau)
+    if phase is None:
+        phase = estimate_phase(z)
+    # carrier peak nearest the envelope peak (within half a carrier period), then Newton
+    fc = np.sum(setup["weights"] * freqs) / np.sum(setup["weights"])
+    dphi = np.angle(z * np.exp(-1j * phase))
+    tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), phase)
+    return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo}
+
+
+def estimate_phase(z):
+    """Session phase of the received chirp relative to the template: weighted circular mean of the
+    phases of the correlation at the envelope peaks. z : complex array (any shape)."""
+    z = np.asarray(z).ravel()
+    return float(np.angle(np.sum(z))) if z.size else 0.0
+
+
+def fuse_times(t_origin, spread_floor=2e-6):
+    """Robust fusion of per-mic times referred to the array origin.
+
+    t_origin : (J, M) seconds (NaN = unusable). The median, then the mean of the mics within 3 robust
+    standard deviations of it (efficient for Gaussian errors, immune to a mic locked on a wrong peak).
+    Returns (J,) fused times and (J,) standard error estimates (s).
+    """
+    med = np.nanmedian(t_origin, axis=1)
+    dev = np.abs(t_origin - med[:, None])
+    mad = 1.4826 * np.nanmedian(dev, axis=1)
+    keep = dev <= 3 * np.maximum(mad, spread_floor)[:, None]
+    n = keep.sum(axis=1)
+    t = np.where(keep, t_origin, 0.0).sum(axis=1) / np.maximum(n, 1)
+    res = np.where(keep, t_origin - t[:, None], 0.0)
+    sd = np.sqrt((res**2).sum(axis=1) / np.maximum(n - 1, 1))
+    return t, sd / np.sqrt(np.maximum(n, 1))
+
+
+def drift_bias(template, fs, band, locate_kw, pre, seg_len, whiten_hz=500.0, delta=1e-3):
+    """``β``: how far (s per unit drift) a chirp recorded on a clock running ``1 + δ`` fast moves this
+    estimator's arrival time: ``measured = true_start + β δ``.
+
+    A clock running fast records the chirp stretched in time (``s(t / (1 + δ))``), and an LFM matched
+    filter trades that stretch for delay (range–Doppler coupling). Measured on the template itself,
+    stretched exactly (band-limited FFT resampling) by ``±δ``, through :func:`locate` with the settings of
+    the real measurement (``locate_kw``; ``pre`` = lag of the expected start in a segment of ``seg_len``
+    samples); the central difference removes any constant offset of the estimator.
+    """
+    n = len(template)
+    pad = seg_len + 2 * pre
+    setup = spectra_setup(template, fs, band, seg_len, whiten_hz)
+    out = []
+    for d in (delta, -delta):
+        k = int(round(d * pad))
+        dd = k / pad  # stretch realisable exactly by resampling pad → pad + k samples
+        buf = np.zeros(pad)
+        buf[pre : pre + n] = template
+        y = resample(buf, pad + k)[:seg_len]  # y[i] = buf(i / (1 + dd)): the chirp starts at pre (1 + dd)
+        c = segment_spectra(y[None, :], np.zeros(1, int), setup)
+        res = locate(c, setup, **locate_kw)
+        out.append((res["tau"][0, 0] - pre * (1 + dd) / fs, dd))
+    (s1, d1), (s2, d2) = out
+    return float((s1 - s2) / (d1 - d2))
