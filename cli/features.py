@@ -1,7 +1,63 @@
-"""`calib features` (not implemented yet)."""
+"""`calib features RECORDINGS -o FEATURES`: recordings → features/ (FORMATS.md section 2) + diagnostics."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
 import typer
 
+from .common import console, user_errors
 
-def features():
-    """Not implemented yet."""
-    raise typer.Exit(1)
+
+@user_errors
+def features(
+    recordings: Path = typer.Argument(..., help="recording session folder (session.toml, WAVs, events.csv)"),
+    out: Path = typer.Option(..., "-o", "--out", help="features folder to write (replaced atomically)"),
+    diagnostics: Optional[Path] = typer.Option(
+        None, "--diagnostics", help="where to write diagnostics.json and detections.png "
+                                    "[default: 'diagnostics' beside the features folder]"),
+    threshold: float = typer.Option(8.0, help="detection threshold: matched-filter peak over local background"),
+    max_drift: float = typer.Option(1e-3, help="largest clock drift |δ| the association allows"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
+):
+    """Detect the chirps, match them to the robot's events, measure TDOA-M, TDOA-S and DOA."""
+    from frontend import extract_features, write_diagnostics
+    from pipeline.io import write_features
+
+    diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
+    opts = {"threshold": threshold, "max_drift": max_drift}
+    if quiet:
+        feats, diag = extract_features(recordings, **opts)
+    else:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        with Progress(TextColumn("features"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[msg]}"),
+                      TimeElapsedColumn(), console=console) as bar:
+            task = bar.add_task("features", total=None, msg="")
+
+            def progress(done, total, msg):
+                bar.update(task, total=total, completed=done, msg=msg)
+
+            feats, diag = extract_features(recordings, progress=progress, **opts)
+    write_features(out, feats)
+    write_diagnostics(diag_dir, diag)
+    if not quiet:
+        _summary(feats, diag, out, diag_dir)
+
+
+def _summary(feats, diag, out, diag_dir):
+    from rich.table import Table
+
+    t = Table(title=f"features of {len(feats['events'])} events in {diag['elapsed_s']:.2f} s "
+                    f"({100 * diag['elapsed_s'] / diag['recording_duration_s']:.1f} % of the recording)")
+    for col in ("array", "fs", "matched", "missed", "spurious", "TDOA-S", "DOA", "notes"):
+        t.add_column(col)
+    ts = feats["tdoa_s"]
+    for name, a in diag["arrays"].items():
+        n_m = sum(d["event"] is not None for d in a["detections"])
+        t.add_row(name, f"{a['fs']}", str(n_m), ", ".join(map(str, a["missed_events"])) or "-",
+                  str(len(a["spurious"])), str(int((ts["array"] == name).sum())),
+                  str(int((feats["doa"]["array"] == name).sum())), "; ".join(a["warnings"]))
+    console.print(t)
+    console.print(f"TDOA-M: {len(feats['tdoa_m'])}; chirp drift bias β = {diag['chirp_drift_bias']:.4g} s "
+                  f"→ {out}  (diagnostics: {diag_dir})")

@@ -128,6 +128,26 @@ def newton_peak(c, freqs, tau, phase=0.0, iters=3, max_step=None):
     return tau, val
 
 
+def newton_envelope(c, freqs, tau, iters=2):
+    """Refine peaks of the envelope ``|r(τ)|²`` by Newton steps on the exact band-limited correlation
+    (the parabola through three samples is biased by a fraction of a sample, which would bias the
+    carrier phase read at the peak). Returns (tau, r(tau))."""
+    w = 2 * np.pi * freqs
+    cw, cww = c * (1j * w), c * (-(w * w))
+    tau = np.array(tau, float)
+    max_step = 0.25 / freqs.max()
+    for _ in range(iters):
+        p = phasors(freqs, tau)
+        z = np.einsum("...f,...f->...", c, p)
+        z1 = np.einsum("...f,...f->...", cw, p)
+        z2 = np.einsum("...f,...f->...", cww, p)
+        d1 = 2 * np.real(np.conj(z) * z1)
+        d2 = 2 * np.real(np.conj(z1) * z1 + np.conj(z) * z2)
+        step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
+        tau = tau + np.clip(step, -max_step, max_step)
+    return tau, corr_at(c, freqs, tau)
+
+
 def direct_path_lag(env, guard, alpha=0.35, dominance=0):
     """Index of the direct path in a (J, T) array-averaged envelope.
 
@@ -182,8 +202,7 @@ def locate(c, setup, lo, hi, half_width, alpha=0.35, dominance=0, gate=0, phase=
     k = np.arange(r_lo, r_lo + r.shape[-1])
     allowed = np.abs(k[None, :] - dp[:, None]) <= half_width  # (J, T)
     kk = np.argmax(np.where(allowed[:, None, :], env, -1.0), axis=-1)  # (J, M)
-    env_tau = (refine_peak_along(env, kk) + r_lo) / fs
-    z = corr_at(c, freqs, env_tau)
+    env_tau, z = newton_envelope(c, freqs, (refine_peak_along(env, kk) + r_lo) / fs)
     if phase is None:
         phase = estimate_phase(z)
     # carrier peak nearest the envelope peak (within half a carrier period), then Newton

@@ -1,0 +1,85 @@
+"""Diagnostics of the frontend: ``diagnostics.json`` and the detection timeline ``detections.png``."""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.io import atomic_dir, dumps_json
+
+
+def public(diag):
+    """The JSON part of a diagnostics dict: keys starting with ``_`` dropped and non-finite numbers made
+    None, at any depth."""
+    if isinstance(diag, dict):
+        return {k: public(v) for k, v in diag.items() if not str(k).startswith("_")}
+    if isinstance(diag, (list, tuple)):
+        return [public(v) for v in diag]
+    if isinstance(diag, (float, np.floating)) and not np.isfinite(diag):
+        return None
+    return diag
+
+
+def write_diagnostics(directory, diag):
+    """Write ``diagnostics.json`` and ``detections.png`` into ``directory`` (atomically)."""
+    with atomic_dir(directory) as tmp:
+        (tmp / "diagnostics.json").write_text(dumps_json(public(diag), indent=2) + "\n")
+        plot_detections(tmp / "detections.png", diag)
+
+
+def _pool(env, rate, width=4000):
+    """Max-pool an envelope to about ``width`` points (peaks stay visible). Returns (t, y)."""
+    k = max(1, len(env) // width)
+    n = len(env) // k * k
+    y = env[:n].reshape(-1, k).max(axis=1)
+    return (np.arange(len(y)) * k + k / 2) / rate, y
+
+
+def plot_detections(path, diag):
+    """Detection timeline, one row per array on its own clock: matched-filter envelope (dB re. its median),
+    matched detections (green, event id), spurious ones (red ×), missed events at their predicted time
+    (grey dashed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    arrays = diag["arrays"]
+    n = len(arrays)
+    fig, axes = plt.subplots(n, 1, figsize=(13, 1.55 * n + 0.9), sharex=True, squeeze=False)
+    t_max = max(a["duration_s"] for a in arrays.values())
+    for ax, (name, a) in zip(axes[:, 0], arrays.items()):
+        if "_env" in a:
+            t, y = _pool(np.asarray(a["_env"]), a["_env_rate"])
+            ydb = 20 * np.log10(np.maximum(y, 1e-12) / max(np.median(a["_env"]), 1e-12))
+            ax.plot(t, ydb, color="0.45", lw=0.6)
+            top = max(float(ydb.max()), 20.0)
+        else:
+            top = 40.0
+        det = a["detections"]
+        for d in det:
+            if d["event"] is not None:
+                ax.axvline(d["time"], color="tab:green", lw=1.2, alpha=0.8)
+                ax.text(d["time"], top * 1.02, str(d["event"]), color="tab:green", ha="center", va="bottom",
+                        fontsize=7)
+            else:
+                ax.plot(d["time"], top * 0.5, "x", color="tab:red", ms=8, mew=2)
+        pred = a.get("_predicted")
+        for e in a["missed_events"]:
+            if pred is not None:
+                te = pred[diag["event_ids"].index(e)]
+                ax.axvline(te, color="0.3", ls="--", lw=1)
+                ax.text(te, top * 1.02, f"{e}?", color="0.3", ha="center", va="bottom", fontsize=7)
+        n_m = sum(d["event"] is not None for d in det)
+        warn = "  ⚠ " + "; ".join(a["warnings"]) if a["warnings"] else ""
+        ax.set_title(f"{name}: {n_m} matched, {len(a['missed_events'])} missed "
+                     f"({', '.join(map(str, a['missed_events'])) or 'none'}), {len(a['spurious'])} spurious"
+                     f"{warn}", fontsize=9, loc="left")
+        ax.set_ylim(-5, top * 1.18)
+        ax.set_ylabel("dB", fontsize=8)
+        ax.tick_params(labelsize=8)
+        ax.set_xlim(0, t_max)
+    axes[-1, 0].set_xlabel("time on each array's own clock (s)")
+    fig.suptitle("Chirp detections: matched-filter envelope; green = matched (event id), red × = spurious, "
+                 "dashed = missed event (predicted time)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
