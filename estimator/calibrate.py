@@ -12,7 +12,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
-from .init import ObservabilityError, initialise, kabsch, subproblem
+from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .problem import build_problem, make_layout
 from .solver import levenberg_marquardt, linearise
 
@@ -90,7 +90,13 @@ def rotations_by_kabsch(p, st):
         j = p["doa_ev"][m]
         w = st["s"][j] - st["x"][i]
         d = np.linalg.norm(w, axis=1, keepdims=True)
-        st["R"][i], _ = kabsch(p["doa_u"][m] * d, w)
+        u = p["doa_u"][m]
+        n = p["fold"][i]
+        if np.any(n):
+            # mirror-ambiguous DOAs: decide which events lie behind the mic plane afresh from the IVE's
+            # positions and sources, which no longer depend on this array's DOAs
+            u = np.where(((w @ doa_rotation(p, st, i, st["x"][i])) @ n < 0)[:, None], reflect(u, n), u)
+        st["R"][i], _ = kabsch(u * d, w)
     return st
 
 

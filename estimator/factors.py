@@ -93,11 +93,20 @@ def doa(p, st, lay):
     d, n = _dist(st, i, j)
     Rt = np.transpose(st["R"][i], (0, 2, 1))
     v = np.einsum("kab,kb->ka", Rt, n)
+    # Mirror-ambiguous (planar) arrays: compare the prediction folded to the measured side, v → H v with
+    # the reflection H = I − 2 n nᵀ where n·v < 0 (so the Jacobians are multiplied by H there too).
+    nf = p["fold"][i]
+    flip = np.einsum("ka,ka->k", nf, v) < 0
+    H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
+    Rt = np.einsum("kab,kbc->kac", H, Rt)
+    v = np.einsum("kab,kb->ka", Rt, n)
     r = ((v - u) / sig).ravel()
-    # dv/dφ = [v]x for R → R Exp(φ); dv/ds = Rᵀ (I − n nᵀ)/d = −dv/dx
-    vx = np.zeros((m, 3, 3))
-    vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    vx[:, 1, 0], vx[:, 2, 0], vx[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    # dv/dφ = H [w]x with w = Rᵀn (unfolded) for R → R Exp(φ); dv/ds = H Rᵀ (I − n nᵀ)/d = −dv/dx
+    w = np.einsum("kab,kb->ka", H, v)  # H is its own inverse
+    wx = np.zeros((m, 3, 3))
+    wx[:, 0, 1], wx[:, 0, 2], wx[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    wx[:, 1, 0], wx[:, 2, 0], wx[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    vx = np.einsum("kab,kbc->kac", H, wx)
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = np.einsum("kab,kbc->kac", Rt, P)
     cols = np.repeat(np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]), 3, axis=0)

@@ -50,7 +50,11 @@ def kabsch(u, v, w=None):
 
 
 def init_sources(p):
-    """Sources s_j = s_0 + odom_j with s_0 from the reference array's DOA rays (linear LS)."""
+    """Source hypotheses s_j = s_0 + odom_j with s_0 from the reference array's DOA rays (linear LS).
+
+    Returns a list of (K, 3) arrays: one, or for a mirror-ambiguous (planar) reference array one per
+    self-consistent choice of the events behind its plane (the caller keeps the best after refinement).
+    """
     ref = p["ref"]
     m = p["doa_arr"] == ref
     if m.sum() < 2:
@@ -59,13 +63,51 @@ def init_sources(p):
             "to place the sources in its frame")
     u, j = p["doa_u"][m], p["doa_ev"][m]
     o = p["odom"] - p["odom"][0]
-    P = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
-    A = P.sum(0)
-    if np.linalg.cond(A) > 1e8:
-        raise ObservabilityError(
-            f"the reference array {p['names'][ref]}'s DOAs are all parallel: the source start point is undetermined")
-    s0 = np.linalg.solve(A, -np.einsum("kab,kb->a", P, o[j]))
-    return s0 + o
+
+    def solve(u):
+        P = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
+        A = P.sum(0)
+        if np.linalg.cond(A) > 1e8:
+            raise ObservabilityError(f"the reference array {p['names'][ref]}'s DOAs are all parallel: "
+                                     "the source start point is undetermined")
+        return np.linalg.solve(A, -np.einsum("kab,kb->a", P, o[j]))
+
+    n = p["fold"][ref]
+    if not np.any(n):
+        return [solve(u) + o]
+    return [s0 + o for s0 in _folded_start_points(u, o[j], n)]
+
+
+def _folded_start_points(u, oj, n, n_keep=3, zoom_levels=5):
+    """Start points s_0 for a mirror-ambiguous reference array (R = I, plane normal n known).
+
+    Grid search of the folded-DOA misfit Σ_j |fold(dir(s_0 + o_j)) − u_j|² over s_0, then zoom into the
+    best local minima; returns up to ``n_keep`` of them, best first. (The linear triangulation cannot be
+    used: which events lie behind the plane is unknown.)
+    """
+    def misfit(s0):  # s0 (G, 3)
+        v = s0[:, None, :] + oj[None]
+        v = v / np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-9)
+        v = np.where((v @ n < 0)[..., None], reflect(v, n), v)
+        return ((v - u[None]) ** 2).sum((1, 2))
+
+    span = max(5.0, 2.0 * float(np.max(np.ptp(oj, axis=0))))
+    grid, step = grid_points(np.array([[-span, -span, -span], [span, span, span]]), n_per_axis=40, margin=0.0)
+    shape, pts = grid.shape[:3], grid.reshape(-1, 3)
+    c = misfit(pts)
+    C = c.reshape(shape)
+    cand = np.flatnonzero((C == minimum_filter(C, size=3, mode="nearest")).ravel())
+    cand = cand[np.argsort(c[cand])][:n_keep]
+    offsets = np.stack(np.meshgrid(*[np.arange(-2, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    out = []
+    for g in cand:
+        centre, h = pts[g], step
+        for _ in range(zoom_levels):
+            h *= 0.5
+            sub = centre + h * offsets
+            centre = sub[int(np.argmin(misfit(sub)))]
+        out.append(centre)
+    return out
 
 
 def refine_reference(p, st):
@@ -142,7 +184,12 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6):
         ws, wm = 1.0 / (1.0 + rs * rs), 1.0 / (1.0 + rm * rm)
     cost = np.log1p(rs * rs).sum(1) + np.log1p(rm * rm).sum(1)
     if md.sum() >= 2:
-        cost = cost + kabsch_cost(p["doa_u"][md], _directions(s[p["doa_ev"][md]], pts)) / (2.0 * sigma_d ** 2)
+        u, v = p["doa_u"][md], _directions(s[p["doa_ev"][md]], pts)
+        if np.any(p["fold"][i]):
+            kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p["fold"][i], v)])
+        else:
+            kc = kabsch_cost(u, v)
+        cost = cost + kc / (2.0 * sigma_d ** 2)
     return cost, drift, off
 
 
@@ -153,15 +200,47 @@ def _directions(src, pts):
 
 
 def kabsch_cost(u, v):
-    """min_R Σ |R u_k − v_k|² for u (n, 3) and a batch v (G, n, 3), without forming R.
+    """min_R Σ |R u_k − v_k|² for u (n, 3) or (G, n, 3) and a batch v (G, n, 3), without forming R.
 
     With M = Σ v uᵀ, the optimum is 2n − 2(σ1 + σ2 + sign(det M) σ3); the singular values come from the
     eigenvalues of the symmetric MᵀM, several times cheaper than a batched SVD.
     """
-    M = np.einsum("gna,nb->gab", v, u)
+    M = np.einsum("gna,nb->gab", v, u) if u.ndim == 2 else np.einsum("gna,gnb->gab", v, u)
     ev = np.sqrt(np.maximum(np.linalg.eigvalsh(np.einsum("gba,gbc->gac", M, M)), 0.0))  # ascending
     sgn = np.where(np.linalg.det(M) < 0, -1.0, 1.0)
     return np.maximum(2.0 * len(u) - 2.0 * (ev[:, 2] + ev[:, 1] + sgn * ev[:, 0]), 0.0)
+
+
+def hemisphere_normals(n=200):
+    """Quasi-uniform unit vectors (n, 3) on the upper hemisphere (Fibonacci lattice)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - k / n
+    phi = k * np.pi * (3.0 - np.sqrt(5.0))
+    r = np.sqrt(1.0 - z * z)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+_NORMALS = hemisphere_normals()
+
+
+def reflect(u, n):
+    """Mirror image of directions u (..., 3) across the plane with unit normal n (3,)."""
+    return u - 2.0 * (u @ n)[..., None] * n
+
+
+def unfold_candidates(u, n_a, v):
+    """The two sign patterns that unfold mirror-ambiguous DOAs, for world directions v (G, n, 3).
+
+    A planar array measures u folded to n_a·u >= 0. Its plane normal in the world, ±n_w = ±R n_a, is the
+    direction that best explains |n_w·v_j| = n_a·u_j; the sign of n_w·v_j then says which events lie
+    behind the plane. Returns (u_plus, u_minus), each (G, n, 3), for R n_a = +n_w and −n_w.
+    """
+    c = u @ n_a
+    proj = np.einsum("gna,ha->gnh", v, _NORMALS)
+    h = np.argmin(((np.abs(proj) - c[None, :, None]) ** 2).sum(1), axis=1)
+    behind = (np.take_along_axis(proj, h[:, None, None], axis=2)[..., 0] < 0)[..., None]
+    ur = reflect(u, n_a)
+    return np.where(behind, ur, u), np.where(behind, u, ur)
 
 
 def doa_rotation(p, st, i, x):
@@ -169,7 +248,11 @@ def doa_rotation(p, st, i, x):
     md = p["doa_arr"] == i
     if md.sum() < 2:
         return np.eye(3)
-    return kabsch(p["doa_u"][md], _directions(st["s"][p["doa_ev"][md]], x[None])[0])[0]
+    u, v = p["doa_u"][md], _directions(st["s"][p["doa_ev"][md]], x[None])
+    if not np.any(p["fold"][i]):
+        return kabsch(u, v[0])[0]
+    fits = [kabsch(uu[0], v[0]) for uu in unfold_candidates(u, p["fold"][i], v)]
+    return min(fits, key=lambda f: f[1])[0]
 
 
 def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4):
@@ -212,9 +295,14 @@ def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4):
 
 def initialise(p):
     """Deterministic initial state for the whole problem. Returns (state, info dict)."""
-    st = empty_state(p)
-    st["s"] = init_sources(p)
-    st, info_ref, q, lay = refine_reference(p, st)
+    best = None
+    for sources in init_sources(p):
+        st = empty_state(p)
+        st["s"] = sources
+        st, info_ref, q, lay = refine_reference(p, st)
+        if best is None or info_ref["cost"] < best[1]["cost"]:
+            best = (st, info_ref, q, lay)
+    st, info_ref, q, lay = best
     sig_src = source_spread(q, st, lay)
     dist = np.median(np.linalg.norm(st["s"], axis=1))
     kappa = max(3.0 * p["sigma_tdoa"], 2.0 * sig_src / p["c"])

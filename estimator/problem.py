@@ -8,6 +8,7 @@ A *problem* is a dict of numpy arrays (built once per data set)::
     ts_arr, ts_a, ts_b, ts_val (n_s,)    TDOA-S rows: array index, from/to event index, value (s)
     doa_ev, doa_arr (n_d,), doa_u (n_d, 3)   DOA rows: event index, array index, unit vector (array frame)
     sigma_tdoa (s), sigma_doa (rad, per tangent axis), sigma_odo (m), sigma_emit (s or 0 = off)
+    fold (N, 3) mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere)
     *_row (n,) the row index of each measurement in its CSV (for outlier reports)
 
 A *state* is a dict: ``x`` (N, 3), ``R`` (N, 3, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3),
@@ -80,6 +81,11 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         "sigma_odo": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)),
         "sigma_emit": float(sigma_emit),
     }
+    # Planar arrays without a stated hemisphere: their DOAs are known up to the mirror image across the
+    # mic plane (normal n, array frame) and are given folded to n·u >= 0.
+    p["fold"] = np.zeros((len(names), 3))
+    for name, n in (meta.get("doa_fold_normals") or {}).items():
+        p["fold"][idx[name]] = np.asarray(n, float) / np.linalg.norm(n)
     p["N"], p["K"] = len(names), len(events)
     return p
 

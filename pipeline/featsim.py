@@ -59,7 +59,7 @@ def arrival_times(x, s, t, offset, drift, c, beta=0.0):
 
 def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.03, seed=0, *,
                       n_arrays=5, c=340.0, max_offset=0.1, max_drift=1e-4, max_interval=10.0,
-                      tdoa_s=True, tdoa_m=True, names=None, noise=True, reference_drift=None):
+                      tdoa_s=True, tdoa_m=True, names=None, noise=True, reference_drift=None, planar=None):
     """Draw one scene of the paper's protocol and its noisy features.
 
     Parameters
@@ -74,6 +74,8 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     tdoa_s, tdoa_m : include that measurement type.
     noise : False gives exact measurements (the sigmas still go to meta.json as weights).
     reference_drift : force the reference array's drift (e.g. 0, the gauge used without TDOA-S).
+    planar : None, or a mic-plane normal (3,) in the array frame: every array is then planar and its DOAs
+        are mirror-ambiguous, given folded to n·u >= 0 with meta ``doa_fold_normals``.
 
     Returns
     -------
@@ -122,6 +124,9 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     u_true = rot[ii].inv().apply(stops[jj] - x[ii])
     u_true /= np.linalg.norm(u_true, axis=1, keepdims=True)
     u = perturb_directions(rng, u_true, scale * np.deg2rad(sigma_doa_deg))
+    if planar is not None:
+        n = np.asarray(planar, float) / np.linalg.norm(planar)
+        u = np.where((u @ n < 0)[:, None], u - 2.0 * (u @ n)[:, None] * n, u)
     doa = pd.DataFrame({"event": jj, "array": np.asarray(names)[ii], "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]})
 
     empty_m = pd.DataFrame({"event": np.zeros(0, int), "array": np.zeros(0, str), "tdoa": np.zeros(0)})
@@ -131,6 +136,8 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     # axis moves a direction by σ/√3 along each axis perpendicular to it
     meta = {"speed_of_sound": c, "reference_array": names[0], "arrays": list(names), "sigma_tdoa": sigma_tdoa,
             "sigma_doa_deg": sigma_doa_deg / np.sqrt(3.0), "sigma_odo": sigma_odo}
+    if planar is not None:
+        meta["doa_fold_normals"] = {a: n.tolist() for a in names}
     features = {"meta": meta, "events": events, "tdoa_m": tm if tdoa_m else empty_m,
                 "tdoa_s": ts if tdoa_s else empty_s, "doa": doa}
     q = rot.as_quat(scalar_first=True)

@@ -25,6 +25,16 @@ def test_noise_free_data_is_recovered_exactly(traj, seed):
     arrays_close(cal, truth, 1e-6)
 
 
+@pytest.mark.parametrize("traj,seed", [(1, 3), (3, 8)])
+def test_planar_arrays_with_mirror_ambiguous_doas(traj, seed):
+    """Planar arrays at random 3-D rotations only know DOAs up to the mirror image across their plane."""
+    feats, truth = simulate_features(traj, seed=seed, noise=False, planar=(0, 0, 1))
+    arrays_close(calibrate(feats), truth, 1e-6)
+    feats, truth = simulate_features(traj, 1e-4, 5.0, seed=seed, planar=(0, 0, 1))
+    m = evaluate(calibrate(feats), truth)
+    assert m["position_rmse_m"] < 0.15 and m["orientation_geodesic_deg"] < 6
+
+
 def test_without_tdoa_s_still_solves():
     # without TDOA-S only drifts relative to the reference are observable: its drift is fixed at 0
     feats, truth = simulate_features(3, seed=4, noise=False, tdoa_s=False, reference_drift=0.0)

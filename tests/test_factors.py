@@ -15,10 +15,10 @@ def random_state(p, rng):
             "s": rng.normal(0, 2, (K, 3)), "e": rng.normal(0, 1e-3, K)}
 
 
-@pytest.mark.parametrize("kind", list(FACTORS))
-def test_jacobian_matches_central_differences(kind):
+@pytest.mark.parametrize("kind,planar", [(k, None) for k in FACTORS] + [("doa", (0.3, -0.2, 0.9))])
+def test_jacobian_matches_central_differences(kind, planar):
     rng = np.random.default_rng(3)
-    feats, _ = simulate_features(trajectory=3, seed=1)
+    feats, _ = simulate_features(trajectory=3, seed=1, planar=planar)
     feats["meta"]["chirp_drift_bias"] = 0.3
     p = build_problem(feats, sigma_emit=1e-3)
     st = random_state(p, rng)
