@@ -55,12 +55,13 @@ def local_floor(env, block):
     env : (N,). block : samples per block. Returns (N,).
     """
     n = len(env)
-    nb = max(1, -(-n // block))
-    pad = np.full(nb * block, np.nan)
-    pad[:n] = env
-    med = np.nanmedian(pad.reshape(nb, block), axis=1)
+    nb = max(1, n // block)
+    med = np.median(env[: nb * block].reshape(nb, -1), axis=1) if n >= block else np.array([np.median(env)])
+    med = np.r_[med, med[-1]] if nb * block < n and n >= block else med  # the partial last block
     neigh = np.maximum(med, np.maximum(np.r_[med[1:], med[-1]], np.r_[med[0], med[:-1]]))
-    return np.maximum(np.repeat(neigh, block)[:n], np.median(env))
+    full = np.repeat(neigh, block)
+    full = np.r_[full, np.full(max(0, n - len(full)), full[-1])][:n]
+    return np.maximum(full, np.median(env))
 
 
 def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):

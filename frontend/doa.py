@@ -110,7 +110,7 @@ def _fold(u, setup):
     return u / np.linalg.norm(u, axis=-1, keepdims=True)
 
 
-def srp_doa(g, setup, weights=None, refine_to_deg=0.01):
+def srp_doa(g, setup, weights=None, refine_to_deg=0.02):
     """DOA of each event.
 
     g : (J, M, F) PHAT-normalised gated spectra (F matches setup["freqs"]).
@@ -140,7 +140,7 @@ def srp_doa(g, setup, weights=None, refine_to_deg=0.01):
     second = np.where(far, p, -np.inf).max(axis=0)
 
     # local refinement: 3x3 stencil in the tangent plane, quadratic fit, shrink
-    h = setup["step"]
+    h = 0.5 * setup["step"]  # the grid's best point is within about half a step of the peak
     s = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], float)  # (9, 2)
     design = np.c_[np.ones(9), s, s[:, 0] ** 2, s[:, 1] ** 2, s[:, 0] * s[:, 1]]
     pinv = np.linalg.pinv(design)

@@ -29,7 +29,6 @@ from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_set
 
 DEFAULTS = {
     "threshold": 8.0,        # detection: peak / local background of the matched-filter envelope
-    "detect_channels": 3,    # detection: channels whose matched-filter envelopes are summed (speed)
     "max_drift": 1e-3,       # association: bound on |clock drift|
     "tolerance": None,       # association: max |arrival − predicted| (s); None = min(0.1, spacing / 4)
     "search_before": 0.030,  # direct path may precede the strongest envelope peak by this much (s)
@@ -111,8 +110,9 @@ def process_array(a, session, t_emit, c, opt):
     dur = len(template) / fs
 
     t0 = time.perf_counter()
-    det_ch = np.unique(np.linspace(0, len(x) - 1, min(opt["detect_channels"], len(x))).round().astype(int))
-    env, dec = matched_envelope(x[det_ch], template, fs, band)
+    # detection on the sum of the channels: one FFT instead of M; a few-cm array sums the chirp's band
+    # nearly coherently (on simulated rooms the weakest chirp stood out as well as with 3 channels' envelopes)
+    env, dec = matched_envelope((x.T @ np.ones(len(x), x.dtype))[None], template, fs, band)  # x.T: contiguous
     env_rate = fs / dec
     spacing = np.min(np.diff(t_emit)) if len(t_emit) > 1 else np.inf
     idx, score = pick_peaks(env, env_rate, min(dur, 0.5 * spacing), opt["threshold"])
@@ -161,6 +161,7 @@ def process_array(a, session, t_emit, c, opt):
     t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
     arrival, spread = fuse_times(t_org)
     quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
+    doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c)
 
     warnings = []
     if sset["planar_normal"] is not None and a.get("doa_hemisphere") is None:
@@ -171,10 +172,30 @@ def process_array(a, session, t_emit, c, opt):
         "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
         "template": template, "phase": phase, "env": env, "env_rate": env_rate, "det_t": det_t,
         "det_score": score, "assoc": asc, "ev_idx": ev_idx, "arrival": arrival, "spread": spread,
-        "quality": quality, "u": u, "doa_power": power, "doa_contrast": contrast, "mic_times": t_mic,
+        "quality": quality, "u": u, "doa_power": power, "doa_spread": doa_sd,
+        "ambiguous_plane": sset["planar_normal"] if a.get("doa_hemisphere") is None else None, "doa_contrast": contrast, "mic_times": t_mic,
         "mic_quality": val, "warnings": warnings, "timings": timings,
         "beta_args": {"locate_kw": locate_kw, "pre": pre, "seg_len": seg_len, "whiten_hz": opt["whiten_hz"]},
     }
+
+
+def doa_spread(res, u, mics, c):
+    """Internal-consistency standard deviation (rad, per tangent axis) of each DOA.
+
+    res : (J, M) residuals of the mic times referred to the origin (s, NaN = unused). For the plane-wave
+    fit ``t_m = t_0 − u·m/c`` the covariance of ``u`` is ``c² σ² P S⁺ P`` (S the scatter of the mic
+    positions, P the projector orthogonal to u, σ the residual spread). A lower bound: biases common to
+    all mics are invisible here. Returns (J,).
+    """
+    ok = np.isfinite(res)
+    n = ok.sum(axis=1)
+    sig2 = np.where(ok, res, 0.0) ** 2
+    sig2 = sig2.sum(axis=1) / np.maximum(n - 3, 1)  # 3 dof of the fit (t_0 and two angles)
+    d = mics - mics.mean(axis=0)
+    s_pinv = np.linalg.pinv(d.T @ d)
+    p = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
+    tr = np.einsum("jab,bc,jca->j", p, s_pinv, p)
+    return c * np.sqrt(sig2 * tr / 2)
 
 
 def gated_spectra(r, r_lo, fs, setup, center, flat, taper, phase):
@@ -220,8 +241,13 @@ def _tables(session, results, ev_ids, beta):
         r = results[name]
         for k, j in enumerate(r["ev_idx"]):
             doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k]))
+    est = noise_estimates(results)
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
-            **session["noise"], "chirp_drift_bias": beta}
+            **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta}
+    planes = {n: [float(v) for v in results[n]["ambiguous_plane"]] for n in names
+              if results[n]["ambiguous_plane"] is not None}
+    if planes:
+        meta["doa_mirror_normals"] = planes
     return {
         "meta": meta,
         "events": session["events"].copy(),
@@ -230,6 +256,19 @@ def _tables(session, results, ev_ids, beta):
         .astype({"from_event": int, "to_event": int}),
         "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality"]).astype({"event": int}),
     }
+
+
+def noise_estimates(results):
+    """Measurement noise from the spread between mics (lower bounds, see docs/frontend.md).
+
+    sigma_tdoa: √2 × the median standard error of an arrival time (a TDOA is a difference of two);
+    sigma_doa_deg: the median of :func:`doa_spread`. None where there is nothing to estimate from.
+    """
+    spread = np.concatenate([r["spread"] for r in results.values()])
+    dsd = np.concatenate([r["doa_spread"] for r in results.values()])
+    spread, dsd = spread[np.isfinite(spread) & (spread > 0)], dsd[np.isfinite(dsd) & (dsd > 0)]
+    return {"sigma_tdoa": float(np.sqrt(2) * np.median(spread)) if spread.size else None,
+            "sigma_doa_deg": float(np.degrees(np.median(dsd))) if dsd.size else None}
 
 
 def _diagnostics(session, results, ev_ids, beta, elapsed):
@@ -261,6 +300,6 @@ def _diagnostics(session, results, ev_ids, beta, elapsed):
             "_predicted": asc["offset"] + asc["scale"] * (session["events"]["t_emit"].to_numpy() -
                                                          session["events"]["t_emit"].iloc[0]),
         }
-    return {"arrays": arrays, "chirp_drift_bias": beta,
+    return {"arrays": arrays, "chirp_drift_bias": beta, "noise_estimates": noise_estimates(results),
             "elapsed_s": elapsed, "recording_duration_s": total_dur,
             "event_ids": [int(e) for e in ev_ids]}

@@ -42,7 +42,7 @@ def read_array_audio(array):
 
     Returns
     -------
-    x : (M, N) float32 ndarray, channel-major.
+    x : (M, N) float32 ndarray (a transposed view of the sample-major file data).
     fs : int, sample rate (Hz).
     """
     read_header(array)
@@ -53,7 +53,7 @@ def read_array_audio(array):
         raise InputError(f"{path}: cannot read audio ({_first_line(exc)})") from None
     if not np.all(np.isfinite(data)):
         raise InputError(f"{path}: contains non-finite samples")
-    return np.ascontiguousarray(data.T), int(fs)
+    return data.T, int(fs)  # a view: slicing events out of it is cheaper than transposing everything
 
 
 def _first_line(exc):

@@ -62,7 +62,7 @@ def segment_spectra(x, starts, setup):
     for i, s0 in enumerate(np.asarray(starts, int)):
         a, b = max(s0, 0), min(s0 + seg_len, n)
         if b > a:
-            seg[i, :, a - s0 : b - s0] = x[:, a:b]
+            seg[i, :, a - s0 : b - s0] = x[:, a:b]  # x may be a transposed (sample-major) view
     spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)[..., setup["kb"]].astype(np.complex128)
     c = spec * setup["tmpl_conj"]
     if setup["whiten_bins"]:
@@ -77,8 +77,9 @@ def segment_spectra(x, starts, setup):
 
 
 def lag_grid(c, setup, lo, hi):
-    """Analytic correlation on the native lag grid: (J, M, hi − lo) complex for lag samples lo..hi-1."""
-    full = np.zeros(c.shape[:-1] + (setup["nfft"],), np.complex128)
+    """Analytic correlation on the native lag grid: (J, M, hi − lo) complex64 for lag samples lo..hi-1
+    (for peak search and gating; precise values come from :func:`corr_at`)."""
+    full = np.zeros(c.shape[:-1] + (setup["nfft"],), np.complex64)
     full[..., setup["kb"]] = c
     r = sfft.ifft(full, axis=-1, workers=-1) * setup["nfft"]
     return r[..., lo:hi]
@@ -107,7 +108,7 @@ def corr_at(c, freqs, tau):
     return np.einsum("...f,...f->...", c, phasors(freqs, tau))
 
 
-def newton_peak(c, freqs, tau, phase=0.0, iters=3, max_step=None):
+def newton_peak(c, freqs, tau, phase=0.0, iters=2, max_step=None):
     """Refine peaks of ``Re(e^{-jφ} r(τ))`` by Newton steps on the exact band-limited correlation.
 
     c : (..., Fb). tau : (...) start lags (s), within a fraction of a carrier period of the peak.
@@ -128,7 +129,7 @@ def newton_peak(c, freqs, tau, phase=0.0, iters=3, max_step=None):
     return tau, val
 
 
-def newton_envelope(c, freqs, tau, iters=2):
+def newton_envelope(c, freqs, tau, iters=1):
     """Refine peaks of the envelope ``|r(τ)|²`` by Newton steps on the exact band-limited correlation
     (the parabola through three samples is biased by a fraction of a sample, which would bias the
     carrier phase read at the peak). Returns (tau, r(tau))."""
