@@ -293,3 +293,14 @@ def test_bad_audio_one_clear_error_nothing_written(scene, tmp_path, break_it, ex
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and "A2.wav" in lines[0]
     assert not out.exists()
+
+
+def test_periodic_schedule_with_a_lost_end_event_is_flagged_ambiguous():
+    # chirps every 2 s exactly and the first one lost: "events 1..9" and "events 0..8" fit equally well;
+    # an irregular schedule (the robot's usual log) decides
+    t_emit = np.arange(10) * 2.0
+    res = associate(5.0 + t_emit[1:] + 0.01, np.ones(9), t_emit)
+    assert res["ambiguous"]
+    t_emit = np.cumsum(np.r_[0.0, 2.0 + np.random.default_rng(0).uniform(-0.3, 0.3, 9)])
+    res = associate(5.0 + t_emit[1:] + 0.01, np.ones(9), t_emit)
+    assert not res["ambiguous"] and list(res["event_of"]) == list(range(1, 10))
