@@ -81,11 +81,15 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         "sigma_odo": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)),
         "sigma_emit": float(sigma_emit),
     }
-    # Planar arrays without a stated hemisphere: their DOAs are known up to the mirror image across the
-    # mic plane (normal n, array frame) and are given folded to n·u >= 0.
+    # Planar arrays without a stated hemisphere (meta doa_mirror_normals): their DOAs are known up to the
+    # mirror image across the mic plane (normal n, array frame).
     p["fold"] = np.zeros((len(names), 3))
-    for name, n in (meta.get("doa_fold_normals") or {}).items():
+    for name, n in (meta.get("doa_mirror_normals") or {}).items():
         p["fold"][idx[name]] = np.asarray(n, float) / np.linalg.norm(n)
+    # fold the measured DOAs of those arrays to n·u >= 0 whatever side a frontend reported
+    nf = p["fold"][p["doa_arr"]]
+    dots = np.einsum("ka,ka->k", nf, p["doa_u"])
+    p["doa_u"] = np.where((dots < 0)[:, None], p["doa_u"] - 2.0 * dots[:, None] * nf, p["doa_u"])
     p["N"], p["K"] = len(names), len(events)
     return p
 

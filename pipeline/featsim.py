@@ -75,7 +75,7 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     noise : False gives exact measurements (the sigmas still go to meta.json as weights).
     reference_drift : force the reference array's drift (e.g. 0, the gauge used without TDOA-S).
     planar : None, or a mic-plane normal (3,) in the array frame: every array is then planar and its DOAs
-        are mirror-ambiguous, given folded to n·u >= 0 with meta ``doa_fold_normals``.
+        are mirror-ambiguous, given folded to n·u >= 0 with meta ``doa_mirror_normals``.
 
     Returns
     -------
@@ -137,7 +137,7 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     meta = {"speed_of_sound": c, "reference_array": names[0], "arrays": list(names), "sigma_tdoa": sigma_tdoa,
             "sigma_doa_deg": sigma_doa_deg / np.sqrt(3.0), "sigma_odo": sigma_odo}
     if planar is not None:
-        meta["doa_fold_normals"] = {a: n.tolist() for a in names}
+        meta["doa_mirror_normals"] = {a: n.tolist() for a in names}
     features = {"meta": meta, "events": events, "tdoa_m": tm if tdoa_m else empty_m,
                 "tdoa_s": ts if tdoa_s else empty_s, "doa": doa}
     q = rot.as_quat(scalar_first=True)

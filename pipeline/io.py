@@ -238,22 +238,22 @@ def validate_meta(meta, path="meta.json"):
             raise InputError(f"{path}: 'chirp_drift_bias' is not a number") from None
         if not math.isfinite(out["chirp_drift_bias"]):
             raise InputError(f"{path}: 'chirp_drift_bias' must be finite")
-    folds = meta.get("doa_fold_normals")
+    folds = meta.get("doa_mirror_normals")
     if folds is not None:
         if not isinstance(folds, dict):
-            raise InputError(f"{path}: 'doa_fold_normals' must map array names to [x, y, z]")
+            raise InputError(f"{path}: 'doa_mirror_normals' must map array names to [x, y, z]")
         clean = {}
         for name, n in folds.items():
             if name not in arrays:
-                raise InputError(f"{path}: 'doa_fold_normals' names unknown array {name!r}")
+                raise InputError(f"{path}: 'doa_mirror_normals' names unknown array {name!r}")
             try:
                 v = np.asarray(n, dtype=float)
             except (TypeError, ValueError):
                 v = np.zeros(0)
             if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
-                raise InputError(f"{path}: 'doa_fold_normals' of {name!r} must be a non-zero [x, y, z]")
+                raise InputError(f"{path}: 'doa_mirror_normals' of {name!r} must be a non-zero [x, y, z]")
             clean[name] = (v / np.linalg.norm(v)).tolist()
-        out["doa_fold_normals"] = clean
+        out["doa_mirror_normals"] = clean
     return out
 
 

@@ -1,0 +1,152 @@
+"""`calib montecarlo`: the study driver writes its tables and figure, resumes instead of recomputing,
+is reproducible from its seeds (locally and on a Dask cluster), and rejects bad input cleanly."""
+import io
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+import pipeline.montecarlo as mc
+from cli.main import app
+from pipeline.io import InputError
+
+CELL = [(1e-4, 10.0)]
+TINY = dict(cells=CELL, trajectories=[1, 3], methods=("hybrid", "wang"), progress=False)
+
+
+def without_time(path):
+    """runs.csv text without the wall-clock column (the only one that is not a function of the seeds)."""
+    df = pd.read_csv(path, dtype=str, keep_default_na=False)
+    return df.drop(columns="time_s").to_csv(index=False)
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("mc") / "study"
+    return out, mc.run_study(out, runs=2, jobs=1, **TINY)
+
+
+def test_study_writes_runs_summary_and_figure(study):
+    out, res = study
+    runs = pd.read_csv(out / "runs.csv")
+    assert len(runs) == 1 * 2 * 2 * 2 and res["computed"] == 8 and res["skipped"] == 0
+    assert list(runs.columns[:6]) == ["sigma_tdoa", "sigma_doa_deg", "trajectory", "run", "method", "stage"]
+    assert runs["ok"].all() and runs["converged"].notna().all()
+    assert set(runs["method"]) == {"hybrid", "wang"} and set(runs["trajectory"]) == {1, 3}
+    # plausible errors for 0.1 ms / 10°: centimetres to decimetres, a few degrees, sub-ms offsets
+    assert runs["position_rmse_m"].between(0.005, 0.5).all()
+    assert runs["orientation_paper_deg"].between(0.1, 15).all()
+    assert (runs["offset_rmse_s"] < 1e-3).all() and runs["crlb_position_rmse_m"].notna().all()
+    # same scene for both methods of a run (the seed does not depend on the method)
+    assert (runs.groupby(["trajectory", "run"])["seed"].nunique() == 1).all()
+    summary = pd.read_csv(out / "summary.csv")
+    assert len(summary) == 2 and set(summary["method"]) == {"hybrid", "wang"}
+    for _, r in summary.iterrows():
+        sel = runs[runs["method"] == r["method"]]
+        assert r["runs"] == 4 and r["failed"] == 0
+        assert r["loc_cm"] == pytest.approx(100 * mc.iqr_mean(sel["position_rmse_m"]), rel=1e-5)
+        assert r["drift_ppm"] == pytest.approx(1e6 * mc.iqr_mean(sel["relative_drift_rmse"]), rel=1e-5)
+        assert r["converged_pct"] == pytest.approx(100 * sel["converged"].mean())
+    hyb = summary.set_index("method").loc["hybrid"]
+    assert (hyb["paper_loc_cm"], hyb["paper_ang_deg"]) == mc.PAPER_FINAL[(1e-4, 10.0)]
+    png = (out / "fig3.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+    assert not (out / "parts").exists()
+
+
+def test_iqr_mean_is_the_mean_between_the_quartiles():
+    x = np.array([1.0, 2.0, 3.0, 4.0, 100.0])     # quartiles 2 and 4 → mean of 2, 3, 4
+    assert mc.iqr_mean(x) == pytest.approx(3.0)
+    assert mc.iqr_mean([np.nan, 5.0]) == 5.0 and np.isnan(mc.iqr_mean([]))
+    assert mc.iqr_mean([1.0, 3.0]) == 2.0  # no value strictly between the quartiles: the median
+
+
+def test_resume_computes_only_missing_runs_and_matches_a_fresh_study(study, tmp_path):
+    fresh, _ = study
+    out = tmp_path / "grown"
+    first = mc.run_study(out, runs=1, jobs=1, **TINY)
+    assert first["computed"] == 4
+    before = pd.read_csv(out / "runs.csv", dtype=str)
+    res = mc.run_study(out, runs=2, jobs=2, **TINY)                 # grows the study, on 2 local processes
+    assert res["computed"] == 4 and res["skipped"] == 4
+    after = pd.read_csv(out / "runs.csv", dtype=str).set_index(mc.KEY)
+    # the first runs were not recomputed: even their wall-clock times are unchanged
+    pd.testing.assert_frame_equal(after.loc[before.set_index(mc.KEY).index], before.set_index(mc.KEY))
+    assert without_time(out / "runs.csv") == without_time(fresh / "runs.csv")
+    again = mc.run_study(out, runs=2, jobs=1, **TINY)
+    assert again["computed"] == 0 and again["skipped"] == 8
+
+
+def test_interrupted_study_keeps_finished_chunks_and_resumes(study, tmp_path, monkeypatch):
+    fresh, _ = study
+    out = tmp_path / "killed"
+    real = mc._run_chunk
+    calls = []
+
+    def dying(tasks, settings):
+        calls.append(len(tasks))
+        if len(calls) == 3:
+            raise KeyboardInterrupt  # as if the user pressed Ctrl-C while the third chunk ran
+        return real(tasks, settings)
+
+    monkeypatch.setattr(mc, "_run_chunk", dying)
+    with pytest.raises(KeyboardInterrupt):
+        mc.run_study(out, runs=2, jobs=1, chunk_size=1, **TINY)
+    parts = sorted((out / "parts").glob("part-*.csv"))
+    assert len(parts) == 2 and not (out / "runs.csv").exists()
+    assert sum(len(pd.read_csv(p)) for p in parts) == 4               # 2 runs × 2 methods, complete rows
+    monkeypatch.setattr(mc, "_run_chunk", real)
+    res = mc.run_study(out, runs=2, jobs=1, **TINY)
+    assert res["computed"] == 4 and res["skipped"] == 4
+    assert without_time(out / "runs.csv") == without_time(fresh / "runs.csv")
+
+
+def test_dask_cluster_gives_the_same_rows(study, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    fresh, _ = study
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as c:
+        res = mc.run_study(tmp_path / "dask", runs=2, scheduler=c.scheduler_address, **TINY)
+    assert res["computed"] == 8
+    assert without_time(tmp_path / "dask" / "runs.csv") == without_time(fresh / "runs.csv")
+
+
+def test_resume_with_other_settings_is_refused(study):
+    out, _ = study
+    with pytest.raises(InputError, match="study.json.*sigma_odo"):
+        mc.run_study(out, runs=2, jobs=1, sigma_odo=0.01, **TINY)
+
+
+def test_grid_file(tmp_path):
+    p = tmp_path / "grid.toml"
+    p.write_text("sigma_tdoa = [5e-5, 5e-4]\nsigma_doa_deg = [15]\ntrajectories = [2]\nruns = 3\n"
+                 "methods = ['wang']\n")
+    g = mc.read_grid(p)
+    assert g["cells"] == [(5e-5, 15.0), (5e-4, 15.0)] and g["trajectories"] == [2] and g["runs"] == 3
+    assert g["methods"] == ["wang"] and g["sigma_odo"] == mc.SIGMA_ODO
+    for text, msg in (("runs = 0", "runs"), ("methods = ['magic']", "methods"), ("trajectories = [4]", "traject"),
+                      ("colour = 3", "unknown key 'colour'"), ("runs = [", "invalid TOML"),
+                      ("cells = [[1e-4, 5]]\nsigma_tdoa = [1e-4]", "either")):
+        p.write_text(text)
+        with pytest.raises(InputError, match=msg) as e:
+            mc.read_grid(p)
+        assert str(p) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_cli_runs_a_grid_and_rejects_bad_input_without_output(tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "cli"
+    r = runner.invoke(app, ["montecarlo", "-o", str(out), "--runs", "1", "--sigma-tdoa", "0.1", "--sigma-doa", "10",
+                            "--trajectories", "2", "--methods", "wang", "--jobs", "1", "--no-crlb",
+                            "--no-check-convergence", "-q"])
+    assert r.exit_code == 0, r.output
+    runs = pd.read_csv(out / "runs.csv")
+    assert len(runs) == 1 and runs.loc[0, "method"] == "wang" and runs["converged"].isna().all()
+    assert runs.loc[0, "sigma_tdoa"] == pytest.approx(1e-4)
+    bad = tmp_path / "bad"
+    for args, msg in ((["--methods", "magic"], "methods"), (["--sigma-doa", "x"], "--sigma-doa"),
+                      (["--grid", str(tmp_path / "nope.toml")], "nope.toml: file not found"),
+                      (["--jobs", "0"], "jobs")):
+        r = runner.invoke(app, ["montecarlo", "-o", str(bad), "-q", *args])
+        assert r.exit_code == 2 and msg in r.output and r.output.startswith("error: "), r.output
+        assert not bad.exists()
