@@ -185,6 +185,52 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     return st, info
 
 
+SIGMA_KEY = {"tdoa_s": "sigma_tdoa_s", "tdoa_m": "sigma_tdoa_m", "doa": "sigma_doa", "odometry": "sigma_odo"}
+
+
+def estimate_noise(p, st, kinds, mask, *, iterations=3, min_redundancy=5.0, max_iter=200):
+    """Re-estimate each measurement type's sigma from its residuals (variance-component estimation).
+
+    σ_k² ← σ_k² · Σ_k r² / Σ_k (1 − h_ii), h the hat matrix of the whitened Jacobian, then re-solve;
+    types with redundancy below ``min_redundancy`` keep their sigma. Returns (state, p with new sigmas,
+    info with the scale factors).
+    """
+    p = dict(p)
+    lay = make_layout(p)
+    scales = {k: 1.0 for k in SIGMA_KEY}
+    info = {}
+    for _ in range(iterations):
+        r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
+        keep = w > 0
+        Jk = J[keep]
+        d = np.linalg.norm(Jk, axis=0)
+        d = np.where(d > 0, d, 1.0)
+        A = np.linalg.pinv((Jk / d).T @ (Jk / d))
+        h = np.zeros(len(r))
+        h[keep] = np.einsum("ij,jk,ik->i", Jk / d, A, Jk / d)
+        start = 0
+        changed = False
+        for f in fs:
+            n = len(f["r"])
+            sl = slice(start, start + n)
+            start += n
+            key = SIGMA_KEY.get(f["kind"])
+            if key is None or n == 0:
+                continue
+            red = float(np.sum((1.0 - h[sl])[keep[sl]]))
+            if red < min_redundancy:
+                continue
+            factor = float(np.sum(r[sl][keep[sl]] ** 2)) / red
+            factor = float(np.clip(factor, 1e-6, 1e6))
+            p[key] *= np.sqrt(factor)
+            scales[f["kind"]] *= np.sqrt(factor)
+            changed |= abs(np.sqrt(factor) - 1.0) > 0.01
+        st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+        if not changed:
+            break
+    return st, p, {"scale": scales, **info}
+
+
 def calibrate(features, **options):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
@@ -195,7 +241,7 @@ def calibrate(features, **options):
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-              outlier_threshold=5.0, max_iter=200, init_state=None):
+              outlier_threshold=5.0, max_iter=200, init_state=None, noise="meta"):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters
@@ -210,6 +256,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     outlier_threshold : TDOA residuals beyond this many (robust) sigmas are flagged and excluded.
     init_state : optional state to start the joint solve from (skips initialisation; used to compare
         with a solve started from ground truth).
+    noise : "meta" weights with the sigmas of meta.json (documented defaults when absent); "estimate"
+        then re-estimates one sigma per measurement type from the residuals (variance components) and
+        re-solves, so weights and error bars follow the data's actual noise.
 
     Returns
     -------
@@ -252,6 +301,12 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     t2 = time.perf_counter()
     st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
                           max_iter=max_iter)
+    if noise == "estimate":
+        st, p, vce = estimate_noise(p, st, kinds, info["mask"], max_iter=max_iter)
+        info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
+        stages["noise"] = {"scale": vce["scale"]}
+    elif noise != "meta":
+        raise ValueError(f"noise must be 'meta' or 'estimate', not {noise!r}")
     times["joint"] = time.perf_counter() - t2
     lay = info["layout"]
     r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])
@@ -267,7 +322,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         "converged": bool(info["final"]["converged"]),
         "reason": info["final"]["reason"],
         "iterations": {"robust": info["robust"]["iterations"], "final": info["final"]["iterations"]},
-        "cost": {**{k: v["cost"] for k, v in stages.items()}, "joint_robust": info["robust"]["cost"],
+        "cost": {**{k: v["cost"] for k, v in stages.items() if "cost" in v}, "joint_robust": info["robust"]["cost"],
                  "final": cost},
         "stages": stages,
         "chi2_per_dof": float(2 * cost / max(n_res - lay["n"], 1)),
@@ -276,8 +331,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         "used": {"tdoa_s": bool(len(p["ts_val"])), "tdoa_m": bool(len(p["tm_val"])), "doa": bool(len(p["doa_u"])),
                  "emission_correction": emission_sigma > 0},
         "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",
-        "sigmas": {"tdoa_s": p["sigma_tdoa"], "doa_rad_per_axis": p["sigma_doa"], "odometry_m": p["sigma_odo"],
-                   "emission_s": emission_sigma},
+        "sigmas": {"tdoa_s": p["sigma_tdoa_s"], "tdoa_m": p["sigma_tdoa_m"], "doa_rad_per_axis": p["sigma_doa"],
+                   "odometry_m": p["sigma_odo"], "emission_s": emission_sigma, "source": noise},
         "timings_s": times,
     }
     if emission_sigma > 0:

@@ -42,7 +42,7 @@ def _out(kind, r, J, row, dim, robust, sigma):
 def tdoa_s(p, st, lay):
     """TDOA-S: a_{i,b} − a_{i,a} = (1+δ_i)(t_b − t_a + e_b − e_a + (d_ib − d_ia)/c)."""
     i, a, b, z = p["ts_arr"], p["ts_a"], p["ts_b"], p["ts_val"]
-    m, c, sig = len(z), p["c"], p["sigma_tdoa"]
+    m, c, sig = len(z), p["c"], p["sigma_tdoa_s"]
     J = np.zeros((m, lay["n"]))
     if m == 0:
         return _out("tdoa_s", np.zeros(0), J, p["ts_row"], 1, True, sig)
@@ -61,7 +61,7 @@ def tdoa_s(p, st, lay):
 def tdoa_m(p, st, lay):
     """TDOA-M: a_ij − a_{ref,j}."""
     i, j, z = p["tm_arr"], p["tm_ev"], p["tm_val"]
-    ref, m, c, sig, beta = p["ref"], len(z), p["c"], p["sigma_tdoa"], p["beta"]
+    ref, m, c, sig, beta = p["ref"], len(z), p["c"], p["sigma_tdoa_m"], p["beta"]
     J = np.zeros((m, lay["n"]))
     if m == 0:
         return _out("tdoa_m", np.zeros(0), J, p["tm_row"], 1, True, sig)

@@ -7,7 +7,8 @@ A *problem* is a dict of numpy arrays (built once per data set)::
     tm_ev, tm_arr, tm_val (n_m,)         TDOA-M rows: event index, array index, value (s)
     ts_arr, ts_a, ts_b, ts_val (n_s,)    TDOA-S rows: array index, from/to event index, value (s)
     doa_ev, doa_arr (n_d,), doa_u (n_d, 3)   DOA rows: event index, array index, unit vector (array frame)
-    sigma_tdoa (s), sigma_doa (rad, per tangent axis), sigma_odo (m), sigma_emit (s or 0 = off)
+    sigma_tdoa (s), sigma_doa (rad, per tangent axis), sigma_odo (m), sigma_emit (s or 0 = off);
+    sigma_tdoa_s, sigma_tdoa_m: the TDOA sigma per type (both sigma_tdoa unless re-estimated)
     fold (N, 3) mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere)
     *_row (n,) the row index of each measurement in its CSV (for outlier reports)
 
@@ -77,6 +78,8 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         "doa_u": doa[["ux", "uy", "uz"]].to_numpy(float).reshape(-1, 3),
         "doa_row": doa.index.to_numpy(int),
         "sigma_tdoa": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
+        "sigma_tdoa_s": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
+        "sigma_tdoa_m": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
         "sigma_doa": float(sigma_doa_per_axis(meta.get("sigma_doa_deg", DEFAULT_SIGMA_DOA_DEG))),
         "sigma_odo": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)),
         "sigma_emit": float(sigma_emit),

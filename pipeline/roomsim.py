@@ -97,7 +97,7 @@ SCENE_DEFAULTS = {
     "snr": 30.0,
     "diffuse_snr": math.inf,
     "sigma_odo": 0.01,
-    "priors": {"sigma_tdoa": 1e-4, "sigma_doa_deg": 5.0},
+    "priors": {},  # none by default: the frontend then estimates TDOA/DOA noise from the recordings
     "subtype": "FLOAT",
     "tail": 0.3,
     "reference_array": "A1",
@@ -206,8 +206,9 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
       inf = none); ``diffuse_snr`` dB (incoherent pink noise, same reference; inf = none);
       ``interferers`` list of {``position`` (3,) m, ``t_start`` s (emitter clock), ``duration`` s,
       ``level_db`` dB re. the chirp's emitted power, ``f_lo``/``f_hi`` Hz}; ``sigma_odo`` m (odometry
-      step noise, per axis); ``priors`` {sigma_tdoa s, sigma_doa_deg deg} written to session.toml
-      [noise]; ``subtype`` FLOAT|PCM_24|PCM_16; ``tail`` s recorded after the last reverberation.
+      step noise, per axis); ``priors`` {sigma_tdoa s, sigma_doa_deg deg} written to session.toml [noise]
+      (default none: the frontend estimates TDOA/DOA noise itself; sigma_odo is always written);
+      ``subtype`` FLOAT|PCM_24|PCM_16; ``tail`` s recorded after the last reverberation.
     Generation keys (only steer the random draws): see ``GEN_DEFAULTS``.
     """
     if preset not in PRESETS:
@@ -882,7 +883,9 @@ def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, 
                        "odom_x": odo[:, 0], "odom_y": odo[:, 1], "odom_z": odo[:, 2]})
     write_table(ev, tmp / "events.csv", EVENTS_COLS, float_format="%.9f")
 
-    priors = {"sigma_tdoa": 1e-4, "sigma_doa_deg": 5.0, **sc["priors"]}
+    # [noise] holds what the "user" knows: the odometry noise the robot was simulated with, plus any
+    # priors the scenario states. Invented TDOA/DOA priors would override the frontend's own estimates.
+    priors = {**sc["priors"]}
     priors.setdefault("sigma_odo", sc["sigma_odo"] if sc["sigma_odo"] > 0 else 1e-3)
     write_session_toml(
         tmp / "session.toml", speed_of_sound=sc["speed_of_sound"], reference_array=sc["reference_array"],
@@ -890,7 +893,7 @@ def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, 
                "reference": "chirp.wav"},
         arrays=[{"name": a["name"], "wav": f"{a['name']}.wav", "mics": a["mics"],
                  "doa_hemisphere": a["doa_hemisphere"]} for a in sc["arrays"]],
-        noise={k: priors[k] for k in ("sigma_tdoa", "sigma_doa_deg", "sigma_odo")})
+        noise={k: priors[k] for k in ("sigma_tdoa", "sigma_doa_deg", "sigma_odo") if k in priors})
 
     truth = scenario_truth(sc)
     mic_arr = arrival_times(sc, mics=True)
