@@ -78,7 +78,7 @@ def init_sources(p):
     return [s0 + o for s0 in _folded_start_points(u, o[j], n)]
 
 
-def _folded_start_points(u, oj, n, n_keep=3, zoom_levels=5):
+def _folded_start_points(u, oj, n, n_keep=3, zoom_levels=6):
     """Start points s_0 for a mirror-ambiguous reference array (R = I, plane normal n known).
 
     Grid search of the folded-DOA misfit Σ_j |fold(dir(s_0 + o_j)) − u_j|² over s_0, then zoom into the
@@ -92,7 +92,7 @@ def _folded_start_points(u, oj, n, n_keep=3, zoom_levels=5):
         return ((v - u[None]) ** 2).sum((1, 2))
 
     span = max(5.0, 2.0 * float(np.max(np.ptp(oj, axis=0))))
-    grid, step = grid_points(np.array([[-span, -span, -span], [span, span, span]]), n_per_axis=40, margin=0.0)
+    grid, step = grid_points(np.array([[-span, -span, -span], [span, span, span]]), n_per_axis=28, margin=0.0)
     shape, pts = grid.shape[:3], grid.reshape(-1, 3)
     c = misfit(pts)
     C = c.reshape(shape)
@@ -186,7 +186,8 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6):
     if md.sum() >= 2:
         u, v = p["doa_u"][md], _directions(s[p["doa_ev"][md]], pts)
         if np.any(p["fold"][i]):
-            kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p["fold"][i], v)])
+            normals = _NORMALS_COARSE if G > 500 else _NORMALS
+            kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p["fold"][i], v, normals)])
         else:
             kc = kabsch_cost(u, v)
         cost = cost + kc / (2.0 * sigma_d ** 2)
@@ -221,6 +222,7 @@ def hemisphere_normals(n=200):
 
 
 _NORMALS = hemisphere_normals()
+_NORMALS_COARSE = hemisphere_normals(64)  # ~20° apart: enough to rank a coarse position grid
 
 
 def reflect(u, n):
@@ -228,7 +230,7 @@ def reflect(u, n):
     return u - 2.0 * (u @ n)[..., None] * n
 
 
-def unfold_candidates(u, n_a, v):
+def unfold_candidates(u, n_a, v, normals=_NORMALS):
     """The two sign patterns that unfold mirror-ambiguous DOAs, for world directions v (G, n, 3).
 
     A planar array measures u folded to n_a·u >= 0. Its plane normal in the world, ±n_w = ±R n_a, is the
@@ -236,7 +238,7 @@ def unfold_candidates(u, n_a, v):
     behind the plane. Returns (u_plus, u_minus), each (G, n, 3), for R n_a = +n_w and −n_w.
     """
     c = u @ n_a
-    proj = np.einsum("gna,ha->gnh", v, _NORMALS)
+    proj = (v.reshape(-1, 3) @ normals.T).reshape(v.shape[0], v.shape[1], -1)  # BLAS, not einsum
     h = np.argmin(((np.abs(proj) - c[None, :, None]) ** 2).sum(1), axis=1)
     behind = (np.take_along_axis(proj, h[:, None, None], axis=2)[..., 0] < 0)[..., None]
     ur = reflect(u, n_a)
