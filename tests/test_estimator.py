@@ -88,7 +88,7 @@ def test_collinear_sources_are_refused():
 
 
 def test_two_events_are_refused():
-    feats, _ = simulate_features(np.array([[0.0, 0, 0], [1.0, 1, 1]]), seed=1, noise=False)
+    feats, _ = simulate_features(np.array([[0.5, 0.5, 0.5], [1.5, 1.5, 1.0]]), seed=1, noise=False)
     with pytest.raises(ObservabilityError, match="at least 3"):
         calibrate(feats)
 

@@ -100,7 +100,9 @@ def test_features_match_the_simulated_truth(scene, extracted):
     # meta: what the estimator needs
     meta = feats["meta"]
     assert meta["arrays"] == [a["name"] for a in sc["arrays"]] and meta["reference_array"] == "A1"
-    assert meta["speed_of_sound"] == C and meta["sigma_tdoa"] == 1e-4  # the session's [noise] is kept
+    # the simulated session states only its odometry noise: that is kept, TDOA/DOA noise is estimated
+    assert meta["speed_of_sound"] == C and meta["sigma_odo"] == sc["sigma_odo"]
+    assert 0 < meta["sigma_tdoa"] < 5e-6 and 0 < meta["sigma_doa_deg"] < 3.0
     for name in ("tdoa_m", "tdoa_s", "doa"):
         q = feats[name]["quality"].to_numpy()
         assert np.all((q > 0) & (q <= 1.0 + 1e-9))
