@@ -16,7 +16,7 @@ Columns: recall = correctly matched detections / events present in the audio; sp
 reported and discarded; wrong = detections matched to the wrong event (false measurements); TDOA errors vs `pipeline.roomsim.arrival_times` (µs): TDOA-M raw and
 after removing the drift bias β(δ_i − δ_ref) that the estimator models (architecture.md); DOA angular
 error (deg) vs the true direction in the array frame; runtime = wall time of extract_features / the
-longest recording.
+longest recording (fastest of --repeat runs: other jobs on a shared machine only slow it down).
 """
 from __future__ import annotations
 
@@ -179,6 +179,7 @@ def main():
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--quick", action="store_true", help="only the acceptance case and the stress cases")
     p.add_argument("--json", type=Path, help="also write the raw numbers here")
+    p.add_argument("--repeat", type=int, default=3, help="runs per session; the fastest is reported")
     args = p.parse_args()
 
     warm = True
@@ -198,9 +199,12 @@ def main():
                 if warm:  # first call pays one-off costs (caches); the CLI pays them too, once per run
                     extract_features(d)
                     warm = False
-                t = time.perf_counter()
-                feats, diag = extract_features(d)
-                diag["elapsed_s"] = time.perf_counter() - t
+                walls = []
+                for _ in range(args.repeat):  # the machine may be shared: the fastest run is the cost
+                    t = time.perf_counter()
+                    feats, diag = extract_features(d)
+                    walls.append(time.perf_counter() - t)
+                diag["elapsed_s"] = min(walls)
                 acc.append(evaluate(feats, diag, sc, absent=absent))
             cat = {k: np.concatenate([np.atleast_1d(a[k]) for a in acc]) for k in acc[0]}
             rms = lambda x: float(np.sqrt(np.mean(np.square(x)))) * 1e6  # noqa: E731
@@ -222,7 +226,7 @@ def main():
 
     print(f"seeds {args.seeds}; errors pooled over seeds; recall over the events present in the audio; "
           f"spurious = detections reported and discarded; wrong = detections matched to the wrong event; "
-          f"runtime: median / max over seeds\n")
+          f"runtime: fastest of {args.repeat} runs per session, median / max over seeds\n")
     print("| case | recall | spurious | wrong | TDOA-M RMSE / max (µs) | TDOA-M raw RMSE (µs) "
           "| TDOA-S RMSE / max (µs) | DOA median / p95 (deg) | runtime (% of audio) |")
     print("|---|---|---|---|---|---|---|---|---|")

@@ -61,7 +61,7 @@ def plot_detections(path, diag):
                 ax.text(d["time"], top * 1.02, str(d["event"]), color="tab:green", ha="center", va="bottom",
                         fontsize=7)
             else:
-                ax.plot(d["time"], top * 0.5, "x", color="tab:red", ms=8, mew=2)
+                ax.plot(d["time"], 20 * np.log10(max(d["score"], 1.0)), "x", color="tab:red", ms=8, mew=2)
         pred = a.get("_predicted")
         for e in a["missed_events"]:
             if pred is not None:

@@ -16,7 +16,6 @@ import time
 import numpy as np
 import pandas as pd
 from scipy.signal.windows import tukey
-from threadpoolctl import threadpool_limits
 
 from pipeline.io import InputError
 from pipeline.session import read_session
@@ -35,7 +34,7 @@ DEFAULTS = {
     "search_after": 0.003,   # ... or follow the detection by this much (s)
     "first_peak": 0.35,      # direct path = earliest envelope peak ≥ this × the strongest one
     "whiten_hz": 500.0,      # GCC whitening: magnitude smoothed over this band (Hz); 0 = plain matched filter
-    "grid_deg": 3.0,         # SRP grid spacing (deg), refined locally to 0.01°
+    "grid_deg": 3.0,         # SRP grid spacing (deg), refined locally to 0.02°
     "gate_pulses": 3.0,      # DOA gate: flat over the aperture ± this many pulse widths (1 / bandwidth)
     "min_mic_quality": 0.1,  # a mic whose normalised GCC peak is below this (× the event's best) is ignored
 }
@@ -79,17 +78,14 @@ def extract_features(session_dir, progress=None, **options):
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
     results, beta = {}, None
-    # single-threaded BLAS: the SRP's thin complex products are ~10x slower with OpenBLAS threads when
-    # the cores are busy (FFTs still use both cores through scipy.fft workers)
-    with threadpool_limits(limits=1, user_api="blas"):
-        for n_done, k in enumerate(order):
-            a = arrays[k]
-            if progress is not None:
-                progress(n_done, len(arrays), f"array {a['name']}")
-            res = process_array(a, session, t_emit, c, opt)
-            if beta is None:  # β: a property of the chirp and of this estimator, at the reference's rate
-                beta = drift_bias(res["template"], res["fs"], res["band"], **res["beta_args"])
-            results[a["name"]] = res
+    for n_done, k in enumerate(order):
+        a = arrays[k]
+        if progress is not None:
+            progress(n_done, len(arrays), f"array {a['name']}")
+        res = process_array(a, session, t_emit, c, opt)
+        if beta is None:  # β: a property of the chirp and of this estimator, at the reference's rate
+            beta = drift_bias(res["template"], res["fs"], res["band"], **res["beta_args"])
+        results[a["name"]] = res
     if progress is not None:
         progress(len(arrays), len(arrays), "done")
 
@@ -152,7 +148,7 @@ def process_array(a, session, t_emit, c, opt):
     t0 = time.perf_counter()
     g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], flat, taper, phase)
     sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], a.get("doa_hemisphere"))
-    u, power, contrast = srp_doa(g_spec, sset, g_w)
+    u, power, _ = srp_doa(g_spec, sset, g_w)
     timings["doa"] = time.perf_counter() - t0
 
     # refer mic times to the origin and fuse
@@ -172,8 +168,8 @@ def process_array(a, session, t_emit, c, opt):
         "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
         "template": template, "phase": phase, "env": env, "env_rate": env_rate, "det_t": det_t,
         "det_score": score, "assoc": asc, "ev_idx": ev_idx, "arrival": arrival, "spread": spread,
-        "quality": quality, "u": u, "doa_power": power, "doa_spread": doa_sd,
-        "ambiguous_plane": sset["planar_normal"] if a.get("doa_hemisphere") is None else None, "doa_contrast": contrast, "mic_times": t_mic,
+        "quality": quality, "u": u, "doa_power": power, "doa_spread": doa_sd, "mic_times": t_mic,
+        "ambiguous_plane": sset["planar_normal"] if a.get("doa_hemisphere") is None else None,
         "mic_quality": val, "warnings": warnings, "timings": timings,
         "beta_args": {"locate_kw": locate_kw, "pre": pre, "seg_len": seg_len, "whiten_hz": opt["whiten_hz"]},
     }
@@ -231,13 +227,14 @@ def _tables(session, results, ev_ids, beta):
                      for k, j in enumerate(r["ev_idx"])}
     tm, ts, doa = [], [], []
     for name in names:
-        for e, (t, q, s) in arr[name].items():
+        for e, (t, q, _) in arr[name].items():
             if name != ref and e in arr[ref]:
-                tr, qr, sr = arr[ref][e]
+                tr, qr, _ = arr[ref][e]
                 tm.append((e, name, t - tr, min(q, qr)))
         evs = sorted(arr[name])
         for e1, e2 in zip(evs[:-1], evs[1:]):
-            ts.append((name, e1, e2, arr[name][e2][0] - arr[name][e1][0], min(arr[name][e1][1], arr[name][e2][1])))
+            (t1, q1, _), (t2, q2, _) = arr[name][e1], arr[name][e2]
+            ts.append((name, e1, e2, t2 - t1, min(q1, q2)))
         r = results[name]
         for k, j in enumerate(r["ev_idx"]):
             doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k]))
