@@ -1,24 +1,49 @@
-"""Monte-Carlo study of the paper's protocol (Zhang et al. 2025, Sec. IV-A, Fig. 3).
+"""Monte-Carlo study of the paper's protocol (Zhang et al. 2025, Sec. IV-A, Fig. 3): ``calib montecarlo``.
 
-One *run* = one scene from ``pipeline.featsim`` calibrated by one method, scored against truth, next to
-the same solve started from ground truth (the convergence check) and to one draw from the CRLB.
+One *run* = one scene from ``pipeline.featsim`` (a cell ``(sigma_tdoa, sigma_doa_deg)``, a trajectory, a
+run number → a seed) calibrated by one method, scored against truth, next to the same solve started from
+ground truth (the convergence check) and to one draw from the CRLB.
+
+A *study* (:func:`run_study`) runs a grid of runs for several methods and writes into ``out_dir``:
+
+``runs.csv``     one row per run and stage (``final``, plus the estimator's intermediate stages when it
+                 exposes them), sorted; every column but ``time_s`` is a deterministic function of the seeds
+``summary.csv``  per cell × method × stage: IQR-means (the paper's statistic) of the errors, convergence
+                 rate, the CRLB draws' IQR-means and the paper's published values
+``fig3.png``     the paper's Fig. 3 layout: one panel per metric, boxes per cell and method, CRLB and paper
+``study.json``   the settings every row depends on (a resumed study must use the same)
+``parts/``       while running: each finished chunk of runs as its own CSV (written atomically), so a killed
+                 study loses at most the chunks in flight; a rerun skips every run already in a part or in
+                 runs.csv, then merges them into runs.csv and removes parts/.
 """
 from __future__ import annotations
 
+import itertools
+import json
+import math
+import os
 import time
+import tomllib
 import zlib
+from pathlib import Path
 
 import numpy as np
+import pandas as pd
+from threadpoolctl import ThreadpoolController
 
 from estimator import calibrate
 from estimator.calibrate import to_frames
 from estimator.uncertainty import crlb, draw_from_crlb, state_from_frames
 from .evaluate import evaluate
 from .featsim import simulate_features
+from .io import InputError, atomic_write_text, dumps_json
 
 SIGMA_TDOA = (5e-5, 1e-4, 5e-4)
 SIGMA_DOA_DEG = (5.0, 10.0, 15.0)
 TRAJECTORIES = (1, 2, 3)
+METHODS = ("hybrid", "wang")
+RUNS = 200            # per cell and trajectory (the paper: 9 cells × 3 trajectories × 200)
+SIGMA_ODO = 0.03      # m per axis and step (the paper's odometry noise)
 # Published IQR-means of the paper's final estimates (Zhang et al. 2025): location cm / angle deg.
 PAPER_FINAL = {
     (5e-5, 5.0): (5.22, 1.80), (1e-4, 5.0): (6.99, 1.81), (5e-4, 5.0): (15.4, 2.15),
@@ -27,45 +52,102 @@ PAPER_FINAL = {
 }
 METRICS = ("position_rmse_m", "orientation_paper_deg", "orientation_geodesic_deg", "offset_rmse_s",
            "relative_drift_rmse", "source_rmse_m")
+KEY = ["sigma_tdoa", "sigma_doa_deg", "trajectory", "run", "method"]
+RUN_COLUMNS = (KEY + ["stage", "seed", "ok", "error", "converged", "solver_converged", "cost", "cost_truth_start",
+                      "n_outliers"] + list(METRICS) + [f"crlb_{m}" for m in METRICS] + ["time_s"])
+STAGE_ORDER = {"init": 0, "ive": 1, "final": 9}
+# summary column → (runs.csv metric, scale): the paper's units (offset in 1e-4 s, drift "µs" = ppm).
+SUMMARY_METRICS = {"loc_cm": ("position_rmse_m", 100.0), "ang_deg": ("orientation_paper_deg", 1.0),
+                   "geo_deg": ("orientation_geodesic_deg", 1.0), "offset_1e-4s": ("offset_rmse_s", 1e4),
+                   "drift_ppm": ("relative_drift_rmse", 1e6), "src_cm": ("source_rmse_m", 100.0)}
+SETTINGS = ("base_seed", "sigma_odo", "check_convergence", "with_crlb")
+_BLAS = ThreadpoolController()  # tiny matrices: single-threaded BLAS, parallelism across runs instead
 
 
+# --------------------------------------------------------------------------------------------- one run
 def run_seed(sigma_tdoa, sigma_doa_deg, trajectory, run, base_seed=0):
     """Deterministic seed of one run (same cell/trajectory/run → same scene, whatever the order)."""
     key = f"{base_seed}|{sigma_tdoa:.6g}|{sigma_doa_deg:.6g}|{trajectory}|{run}".encode()
     return zlib.crc32(key)
 
 
-def run_one(sigma_tdoa, sigma_doa_deg, trajectory, run, *, method="hybrid", base_seed=0, check_truth_start=True,
-            with_crlb=True, sigma_odo=0.03):
-    """Simulate, calibrate and score one run. Returns a flat dict (one row of runs.csv)."""
+def truth_state(p, truth):
+    """Ground truth as a state of problem ``p``, in the parametrisation the estimator solves for.
+
+    Without TDOA-S the reference array's drift is fixed to 0 (drifts relative to it), so the truth start
+    is expressed the same way; otherwise a truth start would solve a different model.
+    """
+    st = state_from_frames(p, truth["arrays"], truth["sources"])
+    if len(p["ts_val"]) == 0:
+        st["drift"] = (1.0 + st["drift"]) / (1.0 + st["drift"][p["ref"]]) - 1.0
+    return st
+
+
+def _scores(p, st, truth):
+    arrays, sources = to_frames(p, st)
+    m = evaluate({"arrays": arrays, "sources": sources}, truth)
+    return {k: m[k] for k in METRICS}
+
+
+def run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, *, methods=("hybrid",), base_seed=0,
+                check_convergence=True, with_crlb=True, sigma_odo=SIGMA_ODO):
+    """Simulate one scene, calibrate it with each method and score it. Returns a list of row dicts.
+
+    Per method: one ``final`` row, plus one row per intermediate stage when ``calibrate`` returns
+    ``stage_states`` (dict stage → state). Failures (any exception of the estimator) give a row with
+    ``ok=False`` and the message: counted, never hidden.
+    """
     seed = run_seed(sigma_tdoa, sigma_doa_deg, trajectory, run, base_seed)
     feats, truth = simulate_features(trajectory, sigma_tdoa, sigma_doa_deg, sigma_odo, seed=seed)
-    row = {"sigma_tdoa": sigma_tdoa, "sigma_doa_deg": sigma_doa_deg, "trajectory": trajectory, "run": run,
-           "seed": seed, "method": method}
-    t0 = time.perf_counter()
-    try:
-        cal = calibrate(feats, method=method)
-    except ValueError as exc:  # unobservable draw: counted as a failure, never hidden
-        row.update({"ok": False, "error": str(exc), "time_s": time.perf_counter() - t0})
-        return row
-    row["time_s"] = time.perf_counter() - t0
-    row["ok"] = True
-    row["cost"] = cal["report"]["cost"]["final"]
-    row["n_outliers"] = len(cal["report"]["outliers"])
-    row.update({k: v for k, v in evaluate(cal, truth).items() if k in METRICS})
-    if check_truth_start:
+    rows = []
+    for method in methods:
+        base = {"sigma_tdoa": sigma_tdoa, "sigma_doa_deg": sigma_doa_deg, "trajectory": trajectory, "run": run,
+                "method": method, "seed": seed}
+        row = {**base, "stage": "final"}
+        t0 = time.perf_counter()
+        try:
+            cal = calibrate(feats, method=method)
+        except Exception as exc:  # noqa: BLE001 - unobservable draw or estimator failure: a counted failure
+            row.update({"ok": False, "error": f"{type(exc).__name__}: {exc}", "time_s": time.perf_counter() - t0})
+            rows.append(row)
+            continue
+        row["time_s"] = time.perf_counter() - t0
+        row["ok"] = True
         p = cal["problem"]
-        gt = calibrate(feats, method=method, init_state=state_from_frames(p, truth["arrays"], truth["sources"]))
-        row["cost_truth_start"] = gt["report"]["cost"]["final"]
-        row["converged"] = bool(row["cost"] <= row["cost_truth_start"] * (1 + 1e-6) + 1e-9)
-    if with_crlb:
-        rng = np.random.default_rng(seed + 1)
-        bound = crlb(feats, truth, use_tdoa_s=method != "wang")
-        arrays, sources = to_frames(bound["problem"], draw_from_crlb(bound, rng))
-        for k, v in evaluate({"arrays": arrays, "sources": sources}, truth).items():
-            if k in METRICS:
-                row[f"crlb_{k}"] = v
-    return row
+        for stage, st in (cal.get("stage_states") or {}).items():
+            rows.append({**base, "stage": stage, "ok": True, **_scores(p, st, truth)})
+        row["solver_converged"] = bool(cal["report"]["converged"])
+        row["cost"] = cal["report"]["cost"]["final"]
+        row["n_outliers"] = len(cal["report"]["outliers"])
+        row.update({k: v for k, v in evaluate(cal, truth).items() if k in METRICS})
+        if check_convergence:
+            gt = calibrate(feats, method=method, init_state=truth_state(p, truth))
+            row["cost_truth_start"] = gt["report"]["cost"]["final"]
+            row["converged"] = bool(row["cost"] <= row["cost_truth_start"] * (1 + 1e-6) + 1e-9)
+        if with_crlb:
+            rng = np.random.default_rng(seed + 1)
+            with _BLAS.limit(limits=1, user_api="blas"):
+                bound = crlb(feats, truth, use_tdoa_s=bool(len(p["ts_val"])))
+                row.update({f"crlb_{k}": v for k, v in _scores(bound["problem"], draw_from_crlb(bound, rng),
+                                                                truth).items()})
+        rows.append(row)
+    return rows
+
+
+def run_one(sigma_tdoa, sigma_doa_deg, trajectory, run, *, method="hybrid", base_seed=0, check_truth_start=True,
+            with_crlb=True, sigma_odo=SIGMA_ODO):
+    """Simulate, calibrate and score one run with one method. Returns the flat ``final`` row (dict)."""
+    rows = run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, methods=(method,), base_seed=base_seed,
+                       check_convergence=check_truth_start, with_crlb=with_crlb, sigma_odo=sigma_odo)
+    return rows[-1]
+
+
+def paper_values(sigma_tdoa, sigma_doa_deg):
+    """The paper's published (location cm, angle deg) for a cell, or None if it is not one of its cells."""
+    for (st, sd), v in PAPER_FINAL.items():
+        if np.isclose(st, sigma_tdoa, rtol=1e-6, atol=0) and np.isclose(sd, sigma_doa_deg, rtol=1e-6, atol=0):
+            return v
+    return None
 
 
 def iqr_mean(x):
@@ -75,4 +157,431 @@ def iqr_mean(x):
     if not x.size:
         return float("nan")
     q1, q3 = np.percentile(x, [25, 75])
-    return float(np.mean(x[(x >= q1) & (x <= q3)]))
+    inner = x[(x >= q1) & (x <= q3)]
+    return float(np.mean(inner)) if inner.size else float(np.median(x))  # n = 2: nothing strictly inside
+
+
+# ------------------------------------------------------------------------------------------------ grid
+def paper_grid():
+    """The paper's protocol: 3 TDOA × 3 DOA noise cells, 3 trajectories, 200 runs each, both methods."""
+    return {"cells": [(st, sd) for sd in SIGMA_DOA_DEG for st in SIGMA_TDOA], "trajectories": list(TRAJECTORIES),
+            "runs": RUNS, "methods": list(METHODS), "sigma_odo": SIGMA_ODO, "base_seed": 0}
+
+
+def check_grid(grid, where="grid"):
+    """Validate a grid dict (keys of :func:`paper_grid`); returns a cleaned copy. Raises InputError."""
+    g = dict(grid)
+
+    def pos_num(v, what):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise InputError(f"{where}: {what} must be a non-negative number, got {v!r}")
+        return float(v)
+
+    cells = g.get("cells")
+    if not cells:
+        raise InputError(f"{where}: no noise cells")
+    try:
+        g["cells"] = [(pos_num(c[0], "sigma_tdoa"), pos_num(c[1], "sigma_doa_deg")) for c in cells]
+    except (TypeError, IndexError, KeyError):
+        raise InputError(f"{where}: cells must be pairs [sigma_tdoa (s), sigma_doa_deg]") from None
+    if any(st > 0.01 for st, _ in g["cells"]):
+        raise InputError(f"{where}: sigma_tdoa is in seconds; {max(st for st, _ in g['cells'])!r} s is not plausible")
+    trajs = g.get("trajectories")
+    if not trajs or any(isinstance(t, bool) or t not in TRAJECTORIES for t in trajs):
+        raise InputError(f"{where}: trajectories must be a non-empty list of {list(TRAJECTORIES)}, got {trajs!r}")
+    g["trajectories"] = [int(t) for t in dict.fromkeys(trajs)]
+    runs = g.get("runs")
+    if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
+        raise InputError(f"{where}: runs must be a positive integer, got {runs!r}")
+    methods = g.get("methods")
+    if not methods or any(m not in METHODS for m in methods):
+        raise InputError(f"{where}: methods must be a non-empty list of {list(METHODS)}, got {methods!r}")
+    g["methods"] = list(dict.fromkeys(methods))
+    g["sigma_odo"] = pos_num(g.get("sigma_odo", SIGMA_ODO), "sigma_odo")
+    seed = g.get("base_seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise InputError(f"{where}: base_seed must be a non-negative integer, got {seed!r}")
+    g["cells"] = list(dict.fromkeys(g["cells"]))
+    return g
+
+
+def read_grid(path):
+    """A grid from a TOML file, over the paper's defaults. Keys (all optional)::
+
+        sigma_tdoa = [5e-5, 1e-4, 5e-4]   # s      } the cells are their product ...
+        sigma_doa_deg = [5, 10, 15]       # deg    }
+        cells = [[5e-5, 5.0], [5e-4, 15.0]]        # ... or an explicit list of (s, deg) pairs
+        trajectories = [1, 2, 3]
+        runs = 200                        # per cell and trajectory
+        methods = ["hybrid", "wang"]
+        sigma_odo = 0.03                  # m
+        base_seed = 0
+    """
+    path = Path(path)
+    try:
+        cfg = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: invalid TOML ({exc})") from None
+    known = {"sigma_tdoa", "sigma_doa_deg", "cells", "trajectories", "runs", "methods", "sigma_odo", "base_seed"}
+    unknown = sorted(set(cfg) - known)
+    if unknown:
+        raise InputError(f"{path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(known))})")
+    g = paper_grid()
+    if "cells" in cfg and ("sigma_tdoa" in cfg or "sigma_doa_deg" in cfg):
+        raise InputError(f"{path}: give either 'cells' or 'sigma_tdoa'/'sigma_doa_deg', not both")
+    if "cells" in cfg:
+        g["cells"] = cfg["cells"]
+    elif "sigma_tdoa" in cfg or "sigma_doa_deg" in cfg:
+        st = cfg.get("sigma_tdoa", list(SIGMA_TDOA))
+        sd = cfg.get("sigma_doa_deg", list(SIGMA_DOA_DEG))
+        if not isinstance(st, list) or not isinstance(sd, list):
+            raise InputError(f"{path}: sigma_tdoa and sigma_doa_deg must be lists")
+        g["cells"] = [(a, b) for b in sd for a in st]
+    for k in ("trajectories", "runs", "methods", "sigma_odo", "base_seed"):
+        if k in cfg:
+            g[k] = cfg[k]
+    return check_grid(g, str(path))
+
+
+# ----------------------------------------------------------------------------------------------- study
+def _key(sigma_tdoa, sigma_doa_deg, trajectory, run, method):
+    # Same 6-digit rounding as run_seed: cells closer than that are the same scenes.
+    return (f"{float(sigma_tdoa):.6g}", f"{float(sigma_doa_deg):.6g}", int(trajectory), int(run), str(method))
+
+
+def _run_chunk(tasks, settings):
+    """Worker entry point: tasks = [(sigma_tdoa, sigma_doa_deg, trajectory, run, methods)] → rows."""
+    rows = []
+    with _BLAS.limit(limits=1, user_api="blas"):
+        for st, sd, traj, run, methods in tasks:
+            rows += run_methods(st, sd, traj, run, methods=tuple(methods), **settings)
+    return rows
+
+
+def _rows_to_csv(rows):
+    df = pd.DataFrame(rows)
+    for c in RUN_COLUMNS:
+        if c not in df:
+            df[c] = np.nan
+    return df[RUN_COLUMNS].to_csv(index=False, float_format="%.10g")
+
+
+def _read_text_table(path):
+    """A runs CSV as strings (no type inference), so merging never re-formats a value."""
+    return pd.read_csv(path, dtype=str, keep_default_na=False)
+
+
+def _sorted_runs(df):
+    order = pd.DataFrame({"a": df["sigma_tdoa"].astype(float), "b": df["sigma_doa_deg"].astype(float),
+                          "c": df["trajectory"].astype(int), "d": df["run"].astype(int), "e": df["method"],
+                          "f": df["stage"].map(lambda s: (STAGE_ORDER.get(s, 5), s))})
+    idx = order.sort_values(list("abcdef"), kind="stable").index
+    return df.loc[idx].reset_index(drop=True)
+
+
+def _existing(out):
+    """Rows already computed in ``out`` (runs.csv and any part files), as a string table, deduplicated."""
+    tables = []
+    if (out / "runs.csv").is_file():
+        tables.append(_read_text_table(out / "runs.csv"))
+    tables += [_read_text_table(f) for f in sorted((out / "parts").glob("part-*.csv"))]
+    if not tables:
+        return pd.DataFrame(columns=RUN_COLUMNS)
+    df = pd.concat(tables, ignore_index=True)
+    missing = [c for c in KEY + ["stage"] if c not in df]
+    if missing:
+        raise InputError(f"{out / 'runs.csv'}: not a runs table of calib montecarlo (no column {missing[0]!r})")
+    return df.drop_duplicates(subset=KEY + ["stage"], keep="first").reset_index(drop=True)
+
+
+def _check_settings(out, settings):
+    path = out / "study.json"
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            raise InputError(f"{path}: not valid JSON; remove the study directory or use another one") from None
+        for k in SETTINGS:
+            if k in old and old[k] != settings[k]:
+                raise InputError(f"{path}: this study was run with {k}={old[k]!r}, not {settings[k]!r}; "
+                                 "use the same settings to resume or another output directory")
+
+
+def _chunks(tasks, n_chunks):
+    """Split tasks into contiguous chunks (a chunk = one part file)."""
+    n_chunks = max(1, min(n_chunks, len(tasks)))
+    bounds = np.linspace(0, len(tasks), n_chunks + 1).round().astype(int)
+    return [tasks[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def _connect(scheduler):
+    """A ``distributed.Client`` for an address (or the given client). Raises InputError if unreachable."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise InputError("--scheduler needs dask.distributed: pip install 'calib[dask]'") from None
+    if isinstance(scheduler, Client):
+        return scheduler
+    try:
+        return Client(str(scheduler), timeout="20s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+
+
+def _execute(chunks, settings, jobs, client):
+    """Yield each chunk's rows as it finishes (joblib on local cores, or a Dask cluster)."""
+    if client is None:
+        if jobs == 1:
+            for c in chunks:
+                yield _run_chunk(c, settings)
+            return
+        from joblib import Parallel, delayed
+
+        yield from Parallel(n_jobs=jobs, return_as="generator_unordered")(
+            delayed(_run_chunk)(c, settings) for c in chunks)
+        return
+    from distributed import as_completed
+
+    futures = client.map(_run_chunk, chunks, settings=settings, pure=False)
+    try:
+        for fut in as_completed(futures):
+            yield fut.result()
+    finally:
+        client.cancel(futures)
+
+
+def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS, jobs=-1, scheduler=None,
+              progress=True, *, base_seed=0, sigma_odo=SIGMA_ODO, check_convergence=True, with_crlb=True,
+              chunk_size=None, figure=True):
+    """Run (or resume) a Monte-Carlo study and write runs.csv, summary.csv and fig3.png into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : output directory (created; an existing study there is resumed).
+    cells : list of (sigma_tdoa s, sigma_doa_deg) pairs; default the paper's 3 × 3.
+    trajectories : subset of (1, 2, 3); default all. ``runs`` : runs per cell and trajectory.
+    methods : estimator methods ("hybrid", "wang").
+    jobs : local worker processes (joblib; -1 = all cores, 1 = in this process).
+    scheduler : address of a Dask distributed scheduler (or a ``distributed.Client``): run there instead.
+    progress : show a rich progress bar (stderr).
+    base_seed, sigma_odo : scene generation (``run_seed``, odometry noise m); check_convergence: also solve
+        from ground truth (``converged`` column); with_crlb: score one CRLB draw per run. These four must
+        match the ones of a study being resumed (``study.json``).
+    chunk_size : runs per part file / worker task (default: about 8 chunks per worker, at most 40 runs).
+
+    Returns
+    -------
+    dict: ``runs`` (DataFrame of the requested grid's rows), ``summary`` (DataFrame), ``computed`` and
+    ``skipped`` (numbers of runs × methods), ``wall_s``, ``paths`` (dict of written files).
+    """
+    g = paper_grid()
+    grid = check_grid({**g, "cells": g["cells"] if cells is None else cells,
+                       "trajectories": g["trajectories"] if trajectories is None else trajectories,
+                       "runs": runs, "methods": list(methods), "sigma_odo": sigma_odo, "base_seed": base_seed})
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs == 0 or jobs < -1:
+        raise InputError(f"jobs must be a positive integer or -1 (all cores), got {jobs!r}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    settings = {"base_seed": grid["base_seed"], "sigma_odo": grid["sigma_odo"],
+                "check_convergence": bool(check_convergence), "with_crlb": bool(with_crlb)}
+    if out.is_dir():
+        _check_settings(out, settings)
+    done = _existing(out) if out.is_dir() else pd.DataFrame(columns=RUN_COLUMNS)
+    done_keys = set(zip(done["sigma_tdoa"].astype(float), done["sigma_doa_deg"].astype(float),
+                        done["trajectory"].astype(int), done["run"].astype(int), done["method"]))
+    done_keys = {_key(*k) for k in done_keys}
+    tasks, skipped = [], 0
+    for (st, sd), traj, r in itertools.product(grid["cells"], grid["trajectories"], range(grid["runs"])):
+        todo = [m for m in grid["methods"] if _key(st, sd, traj, r, m) not in done_keys]
+        skipped += len(grid["methods"]) - len(todo)
+        if todo:
+            tasks.append((st, sd, traj, r, todo))
+    client = _connect(scheduler) if scheduler is not None and tasks else None  # before writing anything
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "study.json", dumps_json({**settings, "grid": grid}, indent=2) + "\n")
+    n_workers = (os.cpu_count() or 1) if jobs == -1 else jobs
+    if chunk_size is None:
+        chunk_size = int(np.clip(math.ceil(len(tasks) / (8 * max(n_workers, 1))), 1, 40))
+    chunks = _chunks(tasks, math.ceil(len(tasks) / chunk_size)) if tasks else []
+    total = sum(len(t[4]) for t in tasks)
+    t0 = time.perf_counter()
+    if chunks:
+        (out / "parts").mkdir(exist_ok=True)
+        stamp = f"{time.time_ns():x}"
+        try:
+            with _progress(progress, skipped) as bar:
+                task_id = bar.add_task("calibrations", total=total)
+                for k, rows in enumerate(_execute(chunks, settings, jobs, client)):
+                    atomic_write_text(out / "parts" / f"part-{stamp}-{k:05d}.csv", _rows_to_csv(rows))
+                    bar.advance(task_id, sum(r["stage"] == "final" for r in rows))
+        finally:
+            if client is not None and client is not scheduler:
+                client.close()
+    elif client is not None and client is not scheduler:
+        client.close()
+    wall = time.perf_counter() - t0
+    paths = finish_study(out, grid, figure=figure)
+    all_runs = pd.read_csv(paths["runs"])
+    sel = _select(all_runs, grid)
+    return {"runs": sel, "summary": pd.read_csv(paths["summary"]), "computed": total, "skipped": skipped,
+            "wall_s": wall, "paths": paths}
+
+
+def _progress(enabled, skipped):
+    from rich.console import Console
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
+
+    return Progress(TextColumn(f"montecarlo ({skipped} already done)"), BarColumn(), MofNCompleteColumn(),
+                    TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), disable=not enabled)
+
+
+def _select(df, grid):
+    """The rows of ``df`` (numeric runs table) that belong to ``grid``."""
+    keys = {_key(st, sd, t, r, m) for (st, sd), t, r, m in
+            itertools.product(grid["cells"], grid["trajectories"], range(grid["runs"]), grid["methods"])}
+    mask = [_key(*k) in keys for k in zip(df["sigma_tdoa"], df["sigma_doa_deg"], df["trajectory"], df["run"],
+                                           df["method"])]
+    return df[np.asarray(mask, bool)].reset_index(drop=True)
+
+
+def finish_study(out, grid, figure=True):
+    """Merge the part files into runs.csv (sorted), then write summary.csv and the figure."""
+    out = Path(out)
+    merged = _sorted_runs(_existing(out))
+    cols = RUN_COLUMNS + [c for c in merged.columns if c not in RUN_COLUMNS]
+    for c in cols:
+        if c not in merged:
+            merged[c] = ""
+    atomic_write_text(out / "runs.csv", merged[cols].to_csv(index=False))
+    parts = out / "parts"
+    if parts.is_dir():
+        for f in parts.glob("part-*.csv"):
+            f.unlink()
+        for f in parts.glob(".part-*"):  # leftovers of a write interrupted mid-way
+            f.unlink()
+        parts.rmdir()
+    runs = _select(pd.read_csv(out / "runs.csv"), grid)
+    summary = summarise(runs)
+    atomic_write_text(out / "summary.csv", summary.to_csv(index=False, float_format="%.6g"))
+    paths = {"runs": out / "runs.csv", "summary": out / "summary.csv"}
+    if figure and len(runs):
+        paths["figure"] = plot_study(runs, summary, out / "fig3.png")
+    return paths
+
+
+def summarise(runs):
+    """Per cell × method × stage: IQR-means (paper units), convergence rate, CRLB IQR-means, paper values.
+
+    runs : numeric runs table (runs.csv). Failed runs (``ok`` false) count in ``failed`` and are left out
+    of the statistics; the convergence rate is over all runs (a failure is not converged).
+    """
+    out = []
+    if not len(runs):
+        return pd.DataFrame()
+    ok_all = runs["ok"].astype(str).str.lower() == "true"
+    for (st, sd, method, stage), g in runs.groupby(["sigma_tdoa", "sigma_doa_deg", "method", "stage"], sort=False):
+        ok = g[ok_all.loc[g.index]]
+        row = {"sigma_tdoa_ms": st * 1e3, "sigma_doa_deg": sd, "method": method, "stage": stage, "runs": len(g),
+               "failed": int(len(g) - len(ok))}
+        if stage == "final" and "converged" in g and g["converged"].notna().any():
+            row["converged_pct"] = 100.0 * float((g["converged"].astype(str).str.lower() == "true").mean())
+        else:
+            row["converged_pct"] = np.nan
+        for name, (col, scale) in SUMMARY_METRICS.items():
+            row[name] = scale * iqr_mean(ok[col]) if col in ok else np.nan
+        for name, (col, scale) in SUMMARY_METRICS.items():
+            c = f"crlb_{col}"
+            row[f"crlb_{name}"] = scale * iqr_mean(ok[c]) if stage == "final" and c in ok else np.nan
+        paper = paper_values(st, sd) if method == "hybrid" and stage == "final" else None
+        row["paper_loc_cm"], row["paper_ang_deg"] = paper if paper else (np.nan, np.nan)
+        t = ok["time_s"] if "time_s" in ok else pd.Series(dtype=float)
+        row["median_ms"] = 1e3 * float(t.median()) if stage == "final" and t.notna().any() else np.nan
+        out.append(row)
+    df = pd.DataFrame(out)
+    order = df["stage"].map(lambda s: (STAGE_ORDER.get(s, 5), s))
+    df = df.assign(_o=order).sort_values(["sigma_doa_deg", "sigma_tdoa_ms", "method", "_o"], kind="stable")
+    return df.drop(columns="_o").reset_index(drop=True)
+
+
+# ---------------------------------------------------------------------------------------------- figure
+def plot_study(runs, summary, path):
+    """The paper's Fig. 3 layout: per metric a panel; per cell, one box per method/stage (whiskers at the
+    5th/95th percentiles), the CRLB draws' IQR-mean (bar) and the paper's published value (star)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
+
+    ok = runs[runs["ok"].astype(str).str.lower() == "true"]
+    cells = sorted({(st, sd) for st, sd in zip(ok["sigma_tdoa"], ok["sigma_doa_deg"])}, key=lambda c: (c[1], c[0]))
+    series = sorted({(m, s) for m, s in zip(ok["method"], ok["stage"])},
+                    key=lambda x: (x[0] != "hybrid", x[0], STAGE_ORDER.get(x[1], 5)))
+    colors = {("hybrid", "final"): "#1f77b4", ("wang", "final"): "#d62728", ("hybrid", "ive"): "#9ecae1",
+              ("wang", "init"): "#f4a6a6", ("hybrid", "init"): "#c6dbef"}
+    panels = [("loc_cm", "location error (cm)"), ("ang_deg", "orientation error (deg)"),
+              ("offset_1e-4s", "time offset error (1e-4 s)"), ("drift_ppm", "clock drift error (ppm = paper's µs)")]
+    fig, axes = plt.subplots(len(panels), 1, figsize=(max(8.0, 1.25 * len(cells) + 3), 3.2 * len(panels)),
+                             sharex=True)
+    width = 0.8 / max(len(series), 1)
+    for ax, (name, label) in zip(np.atleast_1d(axes), panels):
+        col, scale = SUMMARY_METRICS[name]
+        for k, (m, s) in enumerate(series):
+            pos = np.arange(len(cells)) + (k - (len(series) - 1) / 2) * width
+            data = [scale * ok.loc[(ok["sigma_tdoa"] == st) & (ok["sigma_doa_deg"] == sd) & (ok["method"] == m)
+                                   & (ok["stage"] == s), col].dropna().to_numpy() for st, sd in cells]
+            keep = [i for i, d in enumerate(data) if len(d)]
+            if not keep:
+                continue
+            bp = ax.boxplot([data[i] for i in keep], positions=pos[keep], widths=0.85 * width, whis=(5, 95),
+                            showfliers=False, patch_artist=True, manage_ticks=False)
+            for b in bp["boxes"]:
+                b.set(facecolor=colors.get((m, s), "#bbbbbb"), alpha=0.85)
+            for med in bp["medians"]:
+                med.set(color="k")
+            ax.plot([], [], "s", color=colors.get((m, s), "#bbbbbb"), label=f"{m} ({s})")
+            if s == "final":
+                sm = summary[(summary["method"] == m) & (summary["stage"] == s)]
+                for i, (st, sd) in enumerate(cells):
+                    r = sm[np.isclose(sm["sigma_tdoa_ms"], st * 1e3) & np.isclose(sm["sigma_doa_deg"], sd)]
+                    if len(r) and np.isfinite(r[f"crlb_{name}"].iloc[0]):
+                        ax.plot(pos[i], r[f"crlb_{name}"].iloc[0], "_", color="k", ms=14, mew=2,
+                                label="CRLB of the method's measurements (IQR-mean of draws)")
+                    if name in ("loc_cm", "ang_deg") and len(r):
+                        pv = r["paper_loc_cm" if name == "loc_cm" else "paper_ang_deg"].iloc[0]
+                        if np.isfinite(pv):
+                            ax.plot(pos[i], pv, "*", color="gold", mec="k", ms=11,
+                                    label="published, Zhang et al. 2025 (IQR-mean)")
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 1.5, 2.0, 3.0, 5.0, 7.0)))
+        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.set_ylabel(label, fontsize=9)
+        ax.grid(True, axis="y", which="both", alpha=0.3)
+        for i in range(1, len(cells)):
+            ax.axvline(i - 0.5, color="0.85", lw=0.8)
+    seen = {}
+    for ax in np.atleast_1d(axes):
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(lab, h)
+    last = np.atleast_1d(axes)[-1]
+    last.set_xticks(np.arange(len(cells)))
+    last.set_xticklabels([f"TDOA {st * 1e3:g} ms\nDOA {sd:g}°" for st, sd in cells], fontsize=8)
+    n_runs = ok.groupby(["sigma_tdoa", "sigma_doa_deg", "method", "stage"]).size()
+    H = fig.get_figheight()  # header laid out in inches: title, then the legend, then the panels
+    fig.suptitle(f"Monte-Carlo study: {len(cells)} noise cells, {int(n_runs.median()) if len(n_runs) else 0} runs "
+                 "per cell and method\nboxes: quartiles and median; whiskers: 5th-95th percentiles", fontsize=10,
+                 y=1 - 0.05 / H, va="top")
+    fig.legend(seen.values(), seen.keys(), loc="upper center", bbox_to_anchor=(0.5, 1 - 0.45 / H), ncol=4,
+               fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.25 / H))  # (tight_layout already leaves room for the title)
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path

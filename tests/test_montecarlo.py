@@ -1,6 +1,5 @@
 """`calib montecarlo`: the study driver writes its tables and figure, resumes instead of recomputing,
 is reproducible from its seeds (locally and on a Dask cluster), and rejects bad input cleanly."""
-import io
 
 import numpy as np
 import pandas as pd

@@ -102,3 +102,9 @@ def test_too_few_doas_is_an_observability_error_naming_the_array():
     feats["doa"] = doa[(doa["array"] != "A3") | (doa["event"] < 3)].reset_index(drop=True)
     with pytest.raises(ObservabilityError, match="A3"):
         calibrate(feats, method="wang")
+
+
+def test_mirror_ambiguous_doas_are_refused_with_a_clear_message():
+    feats, _ = simulate_features(1, seed=0, noise=False, planar=(0, 0, 1))
+    with pytest.raises(ObservabilityError, match="mirror-ambiguous.*hybrid"):
+        calibrate(feats, method="wang")
