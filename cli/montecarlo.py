@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -75,9 +76,14 @@ def montecarlo(
         g["runs"] = runs
     if seed is not None:
         g["base_seed"] = seed
-    res = run_study(out, g["cells"], g["trajectories"], g["runs"], g["methods"], jobs=jobs, scheduler=scheduler,
-                    progress=not quiet, base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
-                    check_convergence=check_convergence, with_crlb=crlb)
+    try:
+        res = run_study(out, g["cells"], g["trajectories"], g["runs"], g["methods"], jobs=jobs, scheduler=scheduler,
+                        progress=not quiet, base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
+                        check_convergence=check_convergence, with_crlb=crlb)
+    except KeyboardInterrupt:
+        print(f"interrupted: the finished runs are kept in {out}; run the same command again to resume",
+              file=sys.stderr)
+        raise typer.Exit(130) from None
     if not quiet:
         _print_summary(res)
 

@@ -402,7 +402,10 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     client = _connect(scheduler) if scheduler is not None and tasks else None  # before writing anything
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "study.json", dumps_json({**settings, "grid": grid}, indent=2) + "\n")
-    n_workers = (os.cpu_count() or 1) if jobs == -1 else jobs
+    if client is not None:
+        n_workers = sum(client.nthreads().values())
+    else:
+        n_workers = (os.cpu_count() or 1) if jobs == -1 else jobs
     if chunk_size is None:
         chunk_size = int(np.clip(math.ceil(len(tasks) / (8 * max(n_workers, 1))), 1, 40))
     chunks = _chunks(tasks, math.ceil(len(tasks) / chunk_size)) if tasks else []
