@@ -144,11 +144,17 @@ def process_array(a, session, t_emit, c, opt):
     tau, val, phase = loc["tau"], loc["value"], loc["phase"]
     timings["timing"] = time.perf_counter() - t0
 
-    # DOA from the gated direct path
+    # DOA from the gated direct path (needs 3 mics or more: 2 give a cone, 1 nothing)
     t0 = time.perf_counter()
-    g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], flat, taper, phase)
-    sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], a.get("doa_hemisphere"))
-    u, power, _ = srp_doa(g_spec, sset, g_w)
+    warnings = []
+    if len(mics) >= 3:
+        g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], flat, taper, phase)
+        sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], a.get("doa_hemisphere"))
+        u, power, _ = srp_doa(g_spec, sset, g_w)
+        normal = sset["planar_normal"]
+    else:
+        u, power, normal = np.zeros((len(ev_idx), 3)), np.full(len(ev_idx), np.nan), None
+        warnings.append(f"{len(mics)} mic(s): no DOA; arrival times are taken at the mics, not referred to the origin")
     timings["doa"] = time.perf_counter() - t0
 
     # refer mic times to the origin and fuse
@@ -157,10 +163,9 @@ def process_array(a, session, t_emit, c, opt):
     t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
     arrival, spread = fuse_times(t_org)
     quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
-    doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c)
+    doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c) if len(mics) >= 3 else np.full(len(u), np.nan)
 
-    warnings = []
-    if sset["planar_normal"] is not None and a.get("doa_hemisphere") is None:
+    if normal is not None and a.get("doa_hemisphere") is None:
         warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
     if asc["ambiguous"]:
         warnings.append("association ambiguous: another alignment of the events explains as many detections")
@@ -169,7 +174,7 @@ def process_array(a, session, t_emit, c, opt):
         "template": template, "phase": phase, "env": env, "env_rate": env_rate, "det_t": det_t,
         "det_score": score, "assoc": asc, "ev_idx": ev_idx, "arrival": arrival, "spread": spread,
         "quality": quality, "u": u, "doa_power": power, "doa_spread": doa_sd, "mic_times": t_mic,
-        "ambiguous_plane": sset["planar_normal"] if a.get("doa_hemisphere") is None else None,
+        "ambiguous_plane": normal if a.get("doa_hemisphere") is None else None, "has_doa": len(mics) >= 3,
         "mic_quality": val, "warnings": warnings, "timings": timings,
         "beta_args": {"locate_kw": locate_kw, "pre": pre, "seg_len": seg_len, "whiten_hz": opt["whiten_hz"]},
     }
@@ -236,7 +241,7 @@ def _tables(session, results, ev_ids, beta):
             (t1, q1, _), (t2, q2, _) = arr[name][e1], arr[name][e2]
             ts.append((name, e1, e2, t2 - t1, min(q1, q2)))
         r = results[name]
-        for k, j in enumerate(r["ev_idx"]):
+        for k, j in enumerate(r["ev_idx"] if r["has_doa"] else []):
             doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k]))
     est = noise_estimates(results)
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
