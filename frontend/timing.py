@@ -4,9 +4,10 @@ For an event segment ``x_m`` of mic ``m`` (starting a little before the detectio
 band-limited cross-spectrum with the template ``s`` is ``C_m(f) = W(f) X_m S* / A_m(f)``, with ``W`` a
 tapered window over the chirp's band and ``A_m`` the magnitude of ``X_m S*`` smoothed over ~500 Hz (a
 "smoothed PHAT": full PHAT, ``A = |X S*|``, also whitens the fine structure of the reverberation, and its
-two-sided inverse filter then smears reflection energy ahead of the direct path; on simulated rooms it
-doubled the TDOA error and the DOA error). Its inverse transform ``r_m(τ)`` is the mic's impulse response
-as seen through the chirp: a sharp pulse at the direct path's lag (the chirp's start), then reflections. Times are found in three steps:
+two-sided inverse filter then smears reflection energy ahead of the direct path; on the simulator's rooms
+it tripled the TDOA error and multiplied the DOA error by 5–10, docs/frontend.md). Its inverse transform
+``r_m(τ)`` is the mic's impulse response as seen through the chirp: a sharp pulse at the direct path's lag
+(the chirp's start), then reflections. Times are found in three steps:
 
 1. the array's direct path: the earliest strong peak of the channel-averaged envelope ``Σ|r_m|`` near the
    detection (the strongest peak can be a reflection; a reflection never precedes the direct path);
