@@ -115,7 +115,7 @@ def srp_speed(n_events=14, step_deg=3.0):
     setup = srp_setup(MICS_3D, freqs[band], c, step_deg)
     first = (time.perf_counter() - t) / n_events  # steering precomputation, once per array geometry
     t = time.perf_counter()
-    est, _, _ = srp_doa(g, setup)
+    est, _ = srp_doa(g, setup)
     ours = (time.perf_counter() - t) / n_events
     err_ours = np.degrees(np.arccos(np.clip(np.sum(est * u, 1), -1, 1)))
     doa = pra.doa.algorithms["SRP"](MICS_3D.T, fs, nfft, c=c, num_src=1, dim=3, n_grid=n_grid)

@@ -122,8 +122,6 @@ def srp_doa(g, setup, weights=None, refine_to_deg=0.02):
     -------
     u : (J, 3) unit vectors (array frame, toward the source).
     power : (J,) normalised SRP at u (1 = one clean plane wave).
-    contrast : (J,) normalised SRP at u minus the best grid value more than 25° away (a sharp,
-        unambiguous peak has a large contrast).
     """
     j = g.shape[0]
     freqs, mics, c = setup["freqs"], setup["mics"], setup["c"]
@@ -139,10 +137,7 @@ def srp_doa(g, setup, weights=None, refine_to_deg=0.02):
             y = setup["steer"][f] @ gt[f]
             p += w[fidx[f]] * (y.real**2 + y.imag**2)
     p = _normalise(p, w[fidx].sum(), len(mics))  # (G, J)
-    best = np.argmax(p, axis=0)
-    u = setup["grid"][best].copy()
-    far = (setup["grid"] @ u.T) < np.cos(np.deg2rad(25.0))  # (G, J)
-    second = np.where(far, p, -np.inf).max(axis=0)
+    u = setup["grid"][np.argmax(p, axis=0)].copy()
 
     # local refinement: 3x3 stencil in the tangent plane, quadratic fit, shrink
     h = 0.5 * setup["step"]  # the grid's best point is within about half a step of the peak
@@ -165,8 +160,5 @@ def srp_doa(g, setup, weights=None, refine_to_deg=0.02):
         bad = ~neg_def | (np.abs(delta).max(axis=1) > 1.0)
         delta[bad] = s[np.argmax(val[bad], axis=1)]
         u = _fold(u + h * (delta[:, 0:1] * e1 + delta[:, 1:2] * e2), setup)
-        h *= 0.5 if not bad.all() else 1.0
-        if bad.all():
-            h *= 0.7
-    power = srp_power(g, mics, freqs, c, u[:, None, :], w)[:, 0]
-    return u, power, power - np.maximum(second, -1.0)
+        h *= 0.7 if bad.all() else 0.5
+    return u, srp_power(g, mics, freqs, c, u[:, None, :], w)[:, 0]

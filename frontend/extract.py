@@ -150,7 +150,7 @@ def process_array(a, session, t_emit, c, opt):
     if len(mics) >= 3:
         g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], flat, taper, phase)
         sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], a.get("doa_hemisphere"))
-        u, power, _ = srp_doa(g_spec, sset, g_w)
+        u, power = srp_doa(g_spec, sset, g_w)
         normal = sset["planar_normal"]
     else:
         u, power, normal = np.zeros((len(ev_idx), 3)), np.full(len(ev_idx), np.nan), None

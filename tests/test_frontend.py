@@ -223,7 +223,7 @@ def test_srp_finds_plane_wave_directions(hemisphere):
         u_true = u_true[u_true[:, 2] > 0.05]
     g = np.exp(2j * np.pi * freqs[None, None, :] * (u_true @ mics.T)[:, :, None] / C)
     setup = srp_setup(mics, freqs, C, 3.0, None if hemisphere is None else np.array(hemisphere))
-    u, power, _ = srp_doa(g, setup)
+    u, power = srp_doa(g, setup)
     err = np.degrees(np.arccos(np.clip(np.sum(u * u_true, 1), -1, 1)))
     assert err.max() < 0.05  # grid 3°, refined
     np.testing.assert_allclose(power, 1.0, atol=1e-6)
