@@ -46,12 +46,24 @@ DOA_NORM_TOL = 1e-3
 
 
 # ----------------------------------------------------------------------------------------------- atomic
+def _umask():
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _publish_mode(path, directory=False):
+    """mkdtemp/mkstemp create private (0700/0600) entries; give outputs the usual umask-based mode."""
+    os.chmod(path, (0o777 if directory else 0o666) & ~_umask())
+
+
 @contextlib.contextmanager
 def atomic_dir(path):
     """Yield a temporary directory that replaces ``path`` only if the ``with`` block succeeds."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    _publish_mode(tmp, directory=True)
     try:
         yield tmp
     except BaseException:
@@ -76,6 +88,7 @@ def atomic_write_text(path, text):
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
+        _publish_mode(tmp)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

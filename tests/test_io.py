@@ -105,3 +105,15 @@ def test_failed_write_leaves_previous_output_intact(tmp_path):
         write_calibration(out, {**truth, "report": {"bad": object()}})
     assert read_calibration(out)["report"] == {"ok": 1}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration"]
+
+
+def test_outputs_are_readable_by_others(tmp_path):
+    import os
+    import stat
+
+    feats, _ = simulate_features(1, seed=0)
+    write_features(tmp_path / "features", feats)
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE((tmp_path / "features").stat().st_mode) == 0o777 & ~mask
+    assert stat.S_IMODE((tmp_path / "features" / "doa.csv").stat().st_mode) == 0o666 & ~mask
