@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
-from .problem import build_problem, make_layout
+from .problem import build_problem, copy_state, make_layout
 from .solver import levenberg_marquardt, linearise
 
 ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission"]
@@ -275,7 +275,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     if p["K"] < 3:
         raise ObservabilityError(f"only {p['K']} event(s): at least 3 are needed to calibrate")
     kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
-    stages = {}
+    stages, stage_states = {}, {}
     if init_state is None:
         if method == "wang":
             st, init_info = wang_initialise(p)
@@ -285,6 +285,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         lay_full = make_layout(p)
         check_observability(p, lay_full, kinds, st)
         stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
+        stage_states["init"] = copy_state(st)
         if method == "hybrid" and len(p["ts_val"]) > 0:
             # Stage 1 (IVE): positions, clocks and sources from hybrid TDOA, odometry and the reference
             # array's DOAs; then rotations by SVD alignment of DOA-scaled points.
@@ -294,6 +295,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
             st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
                                           k=robust_k, max_iter=max_iter, rtol=1e-6)
             st = rotations_by_kabsch(p, st)
+            stage_states["ive"] = copy_state(st)
             stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
             times["ive"] = time.perf_counter() - t1
     else:
@@ -337,7 +339,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     }
     if emission_sigma > 0:
         report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p["events"], st["e"])}
-    return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p}
+    return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,
+            "stage_states": stage_states}
 
 
 def _jsonable(d):
