@@ -29,6 +29,10 @@ def study(tmp_path_factory):
 def test_study_writes_runs_summary_and_figure(study):
     out, res = study
     runs = pd.read_csv(out / "runs.csv")
+    # one final row per run, plus the intermediate stages (hybrid: init and IVE; wang: init)
+    assert set(runs.groupby("method")["stage"].agg(lambda s: tuple(sorted(set(s)))).items()) == {
+        ("hybrid", ("final", "init", "ive")), ("wang", ("final", "init"))}
+    runs = runs[runs["stage"] == "final"]
     assert len(runs) == 1 * 2 * 2 * 2 and res["computed"] == 8 and res["skipped"] == 0
     assert list(runs.columns[:6]) == ["sigma_tdoa", "sigma_doa_deg", "trajectory", "run", "method", "stage"]
     assert runs["ok"].all() and runs["converged"].notna().all()
@@ -40,6 +44,8 @@ def test_study_writes_runs_summary_and_figure(study):
     # same scene for both methods of a run (the seed does not depend on the method)
     assert (runs.groupby(["trajectory", "run"])["seed"].nunique() == 1).all()
     summary = pd.read_csv(out / "summary.csv")
+    assert len(summary) == 5 and set(summary["stage"]) == {"init", "ive", "final"}  # hybrid 3 stages, wang 2
+    summary = summary[summary["stage"] == "final"]
     assert len(summary) == 2 and set(summary["method"]) == {"hybrid", "wang"}
     for _, r in summary.iterrows():
         sel = runs[runs["method"] == r["method"]]
@@ -69,9 +75,10 @@ def test_resume_computes_only_missing_runs_and_matches_a_fresh_study(study, tmp_
     before = pd.read_csv(out / "runs.csv", dtype=str)
     res = mc.run_study(out, runs=2, jobs=2, **TINY)                 # grows the study, on 2 local processes
     assert res["computed"] == 4 and res["skipped"] == 4
-    after = pd.read_csv(out / "runs.csv", dtype=str).set_index(mc.KEY)
+    key = mc.KEY + ["stage"]
+    after = pd.read_csv(out / "runs.csv", dtype=str).set_index(key)
     # the first runs were not recomputed: even their wall-clock times are unchanged
-    pd.testing.assert_frame_equal(after.loc[before.set_index(mc.KEY).index], before.set_index(mc.KEY))
+    pd.testing.assert_frame_equal(after.loc[before.set_index(key).index], before.set_index(key))
     assert without_time(out / "runs.csv") == without_time(fresh / "runs.csv")
     again = mc.run_study(out, runs=2, jobs=1, **TINY)
     assert again["computed"] == 0 and again["skipped"] == 8
@@ -94,7 +101,8 @@ def test_interrupted_study_keeps_finished_chunks_and_resumes(study, tmp_path, mo
         mc.run_study(out, runs=2, jobs=1, chunk_size=1, **TINY)
     parts = sorted((out / "parts").glob("part-*.csv"))
     assert len(parts) == 2 and not (out / "runs.csv").exists()
-    assert sum(len(pd.read_csv(p)) for p in parts) == 4               # 2 runs × 2 methods, complete rows
+    finals = sum((pd.read_csv(p)["stage"] == "final").sum() for p in parts)
+    assert finals == 4                                                # 2 runs × 2 methods, complete rows
     monkeypatch.setattr(mc, "_run_chunk", real)
     res = mc.run_study(out, runs=2, jobs=1, **TINY)
     assert res["computed"] == 4 and res["skipped"] == 4
@@ -140,6 +148,7 @@ def test_cli_runs_a_grid_and_rejects_bad_input_without_output(tmp_path):
                             "--no-check-convergence", "-q"])
     assert r.exit_code == 0, r.output
     runs = pd.read_csv(out / "runs.csv")
+    runs = runs[runs["stage"] == "final"].reset_index(drop=True)
     assert len(runs) == 1 and runs.loc[0, "method"] == "wang" and runs["converged"].isna().all()
     assert runs.loc[0, "sigma_tdoa"] == pytest.approx(1e-4)
     bad = tmp_path / "bad"
