@@ -10,7 +10,6 @@ CRLB draw per run, and the paper's published values; then timings and the per-se
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path

@@ -34,29 +34,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from frontend import extract_features  # noqa: E402
 from pipeline import roomsim  # noqa: E402
+from pipeline.evaluate import feature_errors  # noqa: E402
 
 MICS_3D = np.c_[0.0354 * np.cos(np.arange(6) * np.pi / 3), 0.0354 * np.sin(np.arange(6) * np.pi / 3),
                 0.02 * (-1.0) ** np.arange(6)]
 
 
-def truth(sc):
-    """Arrival times (N, K), drifts (N,), true DOAs (N, K, 3) in each array's frame."""
-    arr = roomsim.arrival_times(sc)
-    src = np.asarray(sc["sources"], float)
-    doa = []
-    for a in sc["arrays"]:
-        v = src - np.asarray(a["position"], float)
-        doa.append(Rotation.from_quat(a["quat"], scalar_first=True).inv().apply(v / np.linalg.norm(v, axis=1)[:, None]))
-    return arr, np.array([a["drift"] for a in sc["arrays"]], float), np.array(doa)
-
-
 def evaluate(feats, diag, sc, tol=0.05, absent=()):
     """Error statistics of one session's features (see the module docstring). ``absent``: (array index,
     event) pairs removed from the audio (they should be missed, not counted against recall)."""
-    a, delta, doa_t = truth(sc)
+    a = roomsim.arrival_times(sc)
     names = [x["name"] for x in sc["arrays"]]
-    ref = names.index(sc["reference_array"])
-    beta = feats["meta"].get("chirp_drift_bias", 0.0)
     out = {}
     n_ok = n_wrong = n_spur = 0
     for i, n in enumerate(names):
@@ -72,28 +60,9 @@ def evaluate(feats, diag, sc, tol=0.05, absent=()):
     out["recall"] = n_ok / (a.size - len(absent))
     out["spurious"] = n_spur
     out["wrong"] = n_wrong
-    tm = feats["tdoa_m"]
-    i = np.array([names.index(n) for n in tm["array"]], int)
-    j = tm["event"].to_numpy(int)
-    raw = tm["tdoa"].to_numpy() - (a[i, j] - a[ref, j])
-    ts = feats["tdoa_s"]
-    i2 = np.array([names.index(n) for n in ts["array"]], int)
-    es = ts["tdoa"].to_numpy() - (a[i2, ts["to_event"].to_numpy(int)] - a[i2, ts["from_event"].to_numpy(int)])
-    doa = feats["doa"]
-    i3 = np.array([names.index(n) for n in doa["array"]], int)
-    u = doa[["ux", "uy", "uz"]].to_numpy()
-    ut = doa_t[i3, doa["event"].to_numpy(int)]
-    ang = np.degrees(np.arccos(np.clip(np.sum(u * ut, axis=1), -1, 1)))
-    # error up to the mirror image across the mic plane (planar arrays)
-    folded = ang.copy()
-    for k, ii in enumerate(i3):
-        m = np.asarray(sc["arrays"][ii]["mics"], float)
-        _, sv, vt = np.linalg.svd(m - m.mean(axis=0))
-        if sv[2] < 1e-6:
-            um = ut[k] - 2 * (ut[k] @ vt[2]) * vt[2]
-            folded[k] = min(ang[k], np.degrees(np.arccos(np.clip(u[k] @ um, -1, 1))))
+    e = feature_errors(feats, sc)
     out.update(
-        tdoa_m=raw - beta * (delta[i] - delta[ref]), tdoa_m_raw=raw, tdoa_s=es, doa=ang, doa_folded=folded,
+        tdoa_m=e["tdoa_m"], tdoa_m_raw=e["tdoa_m_raw"], tdoa_s=e["tdoa_s"], doa=e["doa"], doa_folded=e["doa_folded"],
         runtime=diag["elapsed_s"] / diag["recording_duration_s"])
     return out
 
@@ -149,7 +118,7 @@ def edit_session(d, sc):
     replaced by noise of the recording's level). Returns the (array, event) pairs removed."""
     import soundfile as sf
 
-    a, _, _ = truth(sc)
+    a = roomsim.arrival_times(sc)
     tmpl, fs_t = sf.read(d / "chirp.wav")
     x, fs = sf.read(d / "A2.wav", always_2d=True)
     for j in (3, 9):
@@ -183,7 +152,7 @@ def main():
     args = p.parse_args()
 
     warm = True
-    table, raw = [], {}
+    table = []
     with tempfile.TemporaryDirectory() as tmp:
         for geom, rt, snr, extra in cases(args.quick):
             acc = []

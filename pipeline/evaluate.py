@@ -81,3 +81,50 @@ def evaluate(calib, truth):
         {"array": a, **{k: float(errs[k][n]) for k in errs if k != "array"}} for n, a in enumerate(errs["array"])
     ]
     return out
+
+
+def feature_errors(feats, scenario):
+    """Errors of features against a simulated scenario (``pipeline.roomsim``), per measurement row.
+
+    Returns a dict of arrays: ``tdoa_m_raw`` (s, measured − true arrival difference), ``tdoa_m`` (s, after
+    removing the matched-filter drift bias β(δ_i − δ_ref) the estimator models), ``tdoa_s`` (s), ``doa``
+    (deg, angle to the true direction in the array frame) and ``doa_folded`` (deg, the smaller of the angles
+    to the true direction and to its mirror image across the mic plane, for planar arrays).
+    """
+    from .roomsim import arrival_times  # the room simulator is only needed here
+
+    a = arrival_times(scenario)
+    arrays = scenario["arrays"]
+    names = [x["name"] for x in arrays]
+    ref = names.index(scenario["reference_array"])
+    delta = np.array([x["drift"] for x in arrays], float)
+    beta = float(feats["meta"].get("chirp_drift_bias", 0.0) or 0.0)
+    index = {n: k for k, n in enumerate(names)}
+
+    tm = feats["tdoa_m"]
+    i, j = tm["array"].map(index).to_numpy(int), tm["event"].to_numpy(int)
+    raw = tm["tdoa"].to_numpy(float) - (a[i, j] - a[ref, j])
+    ts = feats["tdoa_s"]
+    i2 = ts["array"].map(index).to_numpy(int)
+    es = ts["tdoa"].to_numpy(float) - (a[i2, ts["to_event"].to_numpy(int)] - a[i2, ts["from_event"].to_numpy(int)])
+
+    d = feats["doa"]
+    i3, j3 = d["array"].map(index).to_numpy(int), d["event"].to_numpy(int)
+    src = np.asarray(scenario["sources"], float)
+    pos = np.array([x["position"] for x in arrays], float)
+    rot = Rotation.from_quat(np.array([x["quat"] for x in arrays], float), scalar_first=True)
+    v = src[j3] - pos[i3]
+    ut = rot[i3].inv().apply(v / np.linalg.norm(v, axis=1, keepdims=True))
+    u = d[["ux", "uy", "uz"]].to_numpy(float)
+    ang = np.degrees(np.arccos(np.clip(np.sum(u * ut, axis=1), -1.0, 1.0)))
+    folded = ang.copy()
+    for k, mics in enumerate(np.asarray(x["mics"], float) for x in arrays):
+        _, sv, vt = np.linalg.svd(mics - mics.mean(axis=0))
+        rows = i3 == k
+        if sv[2] < 1e-6 and rows.any():
+            n = vt[2]
+            um = ut[rows] - 2.0 * (ut[rows] @ n)[:, None] * n
+            alt = np.degrees(np.arccos(np.clip(np.sum(u[rows] * um, axis=1), -1.0, 1.0)))
+            folded[rows] = np.minimum(ang[rows], alt)
+    return {"tdoa_m_raw": raw, "tdoa_m": raw - beta * (delta[i] - delta[ref]), "tdoa_s": es, "doa": ang,
+            "doa_folded": folded, "dd": delta[i] - delta[ref]}

@@ -484,7 +484,7 @@ def validate_scenario(scenario):
         raise InputError(f"scenario: unknown preset {sc['preset']!r} (choose from {', '.join(PRESETS)})")
     sc["seed"] = _int(sc.get("seed", 0), "seed", 0)
     sc["fs"] = _int(sc["fs"], "fs", 1000)
-    c = sc["speed_of_sound"] = _float(sc["speed_of_sound"], "speed_of_sound", 0, strict=True)
+    sc["speed_of_sound"] = _float(sc["speed_of_sound"], "speed_of_sound", 0, strict=True)
     room = sc["room_dim"] = _vector(sc["room_dim"], "room_dim", 3)
     if np.any(room <= 0):
         raise InputError("scenario: room_dim must be positive")

@@ -5,13 +5,11 @@ from __future__ import annotations
 
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
 import soundfile as sf
 from scipy.signal import resample_poly
-from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from cli.main import app
@@ -21,6 +19,7 @@ from frontend.doa import fibonacci_sphere, srp_doa, srp_setup
 from frontend.signals import chirp_template
 from frontend.timing import locate, segment_spectra, spectra_setup
 from pipeline import roomsim
+from pipeline.evaluate import feature_errors
 from pipeline.io import InputError, read_features
 
 C = 343.0
@@ -36,37 +35,10 @@ def small_scene(seed=0, **over):
     return roomsim.make_scenario("paper-traj3", seed, **kw)
 
 
-def truth(sc):
-    """Arrival times (N, K) at the array origins, drifts (N,), DOAs (N, K, 3) in each array's frame."""
-    arr = roomsim.arrival_times(sc)
-    src = np.asarray(sc["sources"], float)
-    doa = []
-    for a in sc["arrays"]:
-        v = src - np.asarray(a["position"], float)
-        R = Rotation.from_quat(a["quat"], scalar_first=True)
-        doa.append(R.inv().apply(v / np.linalg.norm(v, axis=1)[:, None]))
-    return arr, np.array([a["drift"] for a in sc["arrays"]]), np.array(doa)
-
-
 def errors(feats, sc):
-    """TDOA-M errors (raw and with the drift-bias model), TDOA-S errors (s), DOA errors (deg)."""
-    a, delta, doa = truth(sc)
-    names = [x["name"] for x in sc["arrays"]]
-    ref = names.index(sc["reference_array"])
-    beta = feats["meta"]["chirp_drift_bias"]
-    tm = feats["tdoa_m"]
-    i = np.array([names.index(n) for n in tm["array"]], int)
-    j = tm["event"].to_numpy(int)
-    raw = tm["tdoa"].to_numpy() - (a[i, j] - a[ref, j])
-    ts = feats["tdoa_s"]
-    i2 = np.array([names.index(n) for n in ts["array"]], int)
-    es = ts["tdoa"].to_numpy() - (a[i2, ts["to_event"].to_numpy(int)] - a[i2, ts["from_event"].to_numpy(int)])
-    d = feats["doa"]
-    i3 = np.array([names.index(n) for n in d["array"]], int)
-    u = d[["ux", "uy", "uz"]].to_numpy()
-    ang = np.degrees(np.arccos(np.clip(np.sum(u * doa[i3, d["event"].to_numpy(int)], 1), -1, 1)))
-    return {"raw": raw, "tdoa_m": raw - beta * (delta[i] - delta[ref]), "dd": delta[i] - delta[ref],
-            "tdoa_s": es, "doa": ang}
+    """Per-row feature errors against the simulated truth (pipeline.evaluate.feature_errors)."""
+    e = feature_errors(feats, sc)
+    return {**e, "raw": e["tdoa_m_raw"]}
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +108,7 @@ def test_spurious_burst_and_missed_event_do_not_shift_the_association(scene, tmp
     sc, src = scene
     d = tmp_path / "rec"
     shutil.copytree(src, d)
-    a, _, _ = truth(sc)
+    a = roomsim.arrival_times(sc)
     tmpl = chirp_template({"reference": d / "chirp.wav"}, 16000)
 
     def add_burst(x, fs):  # a chirp-like burst (the chirp itself) halfway between events 2 and 3 on A2

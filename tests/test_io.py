@@ -1,6 +1,5 @@
 """Readers reject bad input with one line naming the file, the row and the problem; writers are atomic."""
 import json
-import shutil
 import subprocess
 import sys
 
