@@ -20,16 +20,20 @@ def estimate(
     emission_sigma: float = typer.Option(0.0, help="prior std (s) of emission-interval errors to estimate; 0 = off"),
     loss: str = typer.Option("cauchy", help="robust loss on TDOA residuals: cauchy, huber or linear"),
     outlier_threshold: float = typer.Option(5.0, help="flag and drop TDOA residuals beyond this many sigmas"),
+    noise: str = typer.Option("meta", help="weights: meta (the sigmas of meta.json) or estimate (re-estimated "
+                                           "per measurement type from the residuals)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="print nothing but errors"),
 ):
     """Estimate array poses, clock offsets/drifts and source positions from features."""
     if method not in ("hybrid", "wang"):
         raise ValueError(f"--method must be hybrid or wang, not {method!r}")
+    if noise not in ("meta", "estimate"):
+        raise ValueError(f"--noise must be meta or estimate, not {noise!r}")
     if loss not in ("cauchy", "huber", "linear"):
         raise ValueError(f"--loss must be cauchy, huber or linear, not {loss!r}")
     feats = read_features(features)
     calib = calibrate(feats, method=method, use_tdoa_s=not no_tdoa_s, emission_sigma=emission_sigma,
-                      loss=None if loss == "linear" else loss, outlier_threshold=outlier_threshold)
+                      loss=None if loss == "linear" else loss, outlier_threshold=outlier_threshold, noise=noise)
     write_calibration(out, calib)
     if not quiet:
         print_arrays(calib)
