@@ -20,15 +20,16 @@ def estimate(
     emission_sigma: float = typer.Option(0.0, help="prior std (s) of emission-interval errors to estimate; 0 = off"),
     loss: str = typer.Option("cauchy", help="robust loss on TDOA residuals: cauchy, huber or linear"),
     outlier_threshold: float = typer.Option(5.0, help="flag and drop TDOA residuals beyond this many sigmas"),
-    noise: str = typer.Option("meta", help="weights: meta (the sigmas of meta.json) or estimate (re-estimated "
-                                           "per measurement type from the residuals)"),
+    noise: str = typer.Option("auto", help="weights: meta (the sigmas of meta.json), estimate (re-estimated per "
+                                           "measurement type from the residuals) or auto (estimate when meta.json "
+                                           "lists sigmas_estimated by the frontend)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="print nothing but errors"),
 ):
     """Estimate array poses, clock offsets/drifts and source positions from features."""
     if method not in ("hybrid", "wang"):
         raise ValueError(f"--method must be hybrid or wang, not {method!r}")
-    if noise not in ("meta", "estimate"):
-        raise ValueError(f"--noise must be meta or estimate, not {noise!r}")
+    if noise not in ("auto", "meta", "estimate"):
+        raise ValueError(f"--noise must be auto, meta or estimate, not {noise!r}")
     if loss not in ("cauchy", "huber", "linear"):
         raise ValueError(f"--loss must be cauchy, huber or linear, not {loss!r}")
     feats = read_features(features)

@@ -188,12 +188,13 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
 SIGMA_KEY = {"tdoa_s": "sigma_tdoa_s", "tdoa_m": "sigma_tdoa_m", "doa": "sigma_doa", "odometry": "sigma_odo"}
 
 
-def estimate_noise(p, st, kinds, mask, *, iterations=3, min_redundancy=5.0, max_iter=200):
+def estimate_noise(p, st, kinds, mask, *, iterations=1, min_redundancy=5.0, max_iter=200):
     """Re-estimate each measurement type's sigma from its residuals (variance-component estimation).
 
     σ_k² ← σ_k² · Σ_k r² / Σ_k (1 − h_ii), h the hat matrix of the whitened Jacobian, then re-solve;
-    types with redundancy below ``min_redundancy`` keep their sigma. Returns (state, p with new sigmas,
-    info with the scale factors).
+    types with redundancy below ``min_redundancy`` keep their sigma, and a factor is clipped to 1e-4..1e4.
+    One step by default: iterating lets a type that the parameters can absorb (e.g. TDOAs with few arrays
+    and free sources) shrink without bound. Returns (state, p with new sigmas, info with the scales).
     """
     p = dict(p)
     lay = make_layout(p)
@@ -218,10 +219,12 @@ def estimate_noise(p, st, kinds, mask, *, iterations=3, min_redundancy=5.0, max_
             if key is None or n == 0:
                 continue
             red = float(np.sum((1.0 - h[sl])[keep[sl]]))
+            if f["dim"] == 3 and f["kind"] == "doa":
+                red -= n / 3.0  # a unit-vector residual has no noise along the direction itself
             if red < min_redundancy:
                 continue
             factor = float(np.sum(r[sl][keep[sl]] ** 2)) / red
-            factor = float(np.clip(factor, 1e-6, 1e6))
+            factor = float(np.clip(factor, 1e-4, 1e4))
             p[key] *= np.sqrt(factor)
             scales[f["kind"]] *= np.sqrt(factor)
             changed |= abs(np.sqrt(factor) - 1.0) > 0.01
@@ -241,7 +244,7 @@ def calibrate(features, **options):
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-              outlier_threshold=5.0, max_iter=200, init_state=None, noise="meta"):
+              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto"):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters
@@ -258,7 +261,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         with a solve started from ground truth).
     noise : "meta" weights with the sigmas of meta.json (documented defaults when absent); "estimate"
         then re-estimates one sigma per measurement type from the residuals (variance components) and
-        re-solves, so weights and error bars follow the data's actual noise.
+        re-solves, so weights and error bars follow the data's actual noise; "auto" (default) estimates
+        when meta.json says its sigmas are a frontend's own figures (``sigmas_estimated``), else "meta".
 
     Returns
     -------
@@ -303,12 +307,14 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     t2 = time.perf_counter()
     st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
                           max_iter=max_iter)
+    if noise == "auto":
+        noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
     if noise == "estimate":
         st, p, vce = estimate_noise(p, st, kinds, info["mask"], max_iter=max_iter)
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
         stages["noise"] = {"scale": vce["scale"]}
     elif noise != "meta":
-        raise ValueError(f"noise must be 'meta' or 'estimate', not {noise!r}")
+        raise ValueError(f"noise must be 'auto', 'meta' or 'estimate', not {noise!r}")
     times["joint"] = time.perf_counter() - t2
     lay = info["layout"]
     r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])

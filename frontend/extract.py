@@ -246,6 +246,9 @@ def _tables(session, results, ev_ids, beta):
     est = noise_estimates(results)
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
             **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta}
+    # which sigmas are the frontend's own (spread-based, optimistic) figures rather than the user's priors:
+    # the estimator's noise="auto" then re-estimates the weights from the residuals
+    meta["sigmas_estimated"] = sorted(k for k, v in est.items() if v is not None and k not in session["noise"])
     planes = {n: [float(v) for v in results[n]["ambiguous_plane"]] for n in names
               if results[n]["ambiguous_plane"] is not None}
     if planes:
