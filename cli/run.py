@@ -65,6 +65,8 @@ def run(
     emission_sigma: float = typer.Option(0.0, help="prior std (s) of emission-interval errors to estimate; 0 = off"),
     loss: str = typer.Option("cauchy", help="robust loss on TDOA residuals: cauchy, huber or linear"),
     outlier_threshold: float = typer.Option(5.0, help="flag and drop TDOA residuals beyond this many sigmas"),
+    noise: str = typer.Option("auto", help="weights: auto (re-estimate the frontend's own noise figures from the "
+                                           "residuals), meta (use meta.json's sigmas as they are) or estimate"),
     detect_threshold: Optional[float] = typer.Option(
         None, help="chirp detection threshold: matched-filter peak / local background [default: frontend's, 8]"),
     max_drift: Optional[float] = typer.Option(None, help="bound on |clock drift| for association [default: 1e-3]"),
@@ -82,7 +84,7 @@ def run(
     out = out if out is not None else Path(f"{recordings.resolve().name}-calib")
     feat_opts = {k: v for k, v in {"threshold": detect_threshold, "max_drift": max_drift}.items() if v is not None}
     est_opts = {"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma, "loss": loss,
-                "outlier_threshold": outlier_threshold}
+                "outlier_threshold": outlier_threshold, "noise": noise}
     show = not quiet and not json_out
     try:
         with _Display(show) as disp:

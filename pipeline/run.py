@@ -37,7 +37,7 @@ FEATURE_FILES = ("meta.json", "events.csv", "tdoa_m.csv", "tdoa_s.csv", "doa.csv
 CALIBRATION_FILES = ("arrays.csv", "sources.csv", "report.json")
 TRUTH_FILES = ("arrays.csv", "sources.csv")
 ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
-                     "outlier_threshold": 5.0}
+                     "outlier_threshold": 5.0, "noise": "auto"}
 # source code each stage runs: a change there invalidates the stage even when the version number does not
 CODE = {
     "features": ("frontend", "pipeline/session.py", "pipeline/io.py"),
@@ -215,6 +215,8 @@ def _check_options(estimate_options):
         raise ValueError(f"method must be hybrid or wang, not {opts['method']!r}")
     if opts["loss"] not in ("cauchy", "huber", "linear"):
         raise ValueError(f"loss must be cauchy, huber or linear, not {opts['loss']!r}")
+    if opts["noise"] not in ("auto", "meta", "estimate"):
+        raise ValueError(f"noise must be auto, meta or estimate, not {opts['noise']!r}")
     if not opts["emission_sigma"] >= 0:
         raise ValueError(f"emission_sigma must be >= 0, not {opts['emission_sigma']!r}")
     if not opts["outlier_threshold"] > 0:
@@ -233,7 +235,8 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
         to this function and are replaced atomically.
     force : recompute every stage.
     features_options : options of ``frontend.extract_features`` (e.g. ``{"threshold": 8.0}``).
-    estimate_options : method, use_tdoa_s, emission_sigma, loss ("cauchy", "huber", "linear"),
+    estimate_options : method, use_tdoa_s, emission_sigma, noise ("auto", "meta", "estimate"),
+        loss ("cauchy", "huber", "linear"),
         outlier_threshold (see ``estimator.calibrate``).
     progress : optional ``progress(stage, done, total, message)`` callback.
     log : optional ``log(stage, status, detail)`` callback, called when a stage starts ("run", reason),
