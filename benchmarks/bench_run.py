@@ -65,7 +65,7 @@ def main():
             again = run(SAMPLE, out)
             t2 = time.perf_counter()
             print(f"sample_data/lab3: first run {t1 - t0:.1f} s, second run {t2 - t1:.2f} s "
-                  f"(skipped: {', '.join(again['skipped'])})")
+                  f"(skipped: {', '.join(k for k, v in again['stages'].items() if v['status'] == 'skipped')})")
     return 0
 
 
