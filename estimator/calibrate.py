@@ -166,7 +166,7 @@ def _outlier_mask(fs, threshold):
         keep = np.abs(r) <= threshold * scale
         mask[f["kind"]] = keep
         for k in np.flatnonzero(~keep):
-            flagged.append({"type": f["kind"], "row": int(f["row"][k]), "residual_sigma": float(r[k]),
+            flagged.append({"type": f["kind"], "line": int(f["row"][k]), "residual_sigma": float(r[k]),
                             "residual_us": float(r[k] * f["sigma"] * 1e6)})
     return mask, flagged
 

@@ -10,7 +10,7 @@ A *problem* is a dict of numpy arrays (built once per data set)::
     sigma_tdoa (s), sigma_doa (rad, per tangent axis), sigma_odo (m), sigma_emit (s or 0 = off);
     sigma_tdoa_s, sigma_tdoa_m: the TDOA sigma per type (both sigma_tdoa unless re-estimated)
     fold (N, 3) mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere)
-    *_row (n,) the row index of each measurement in its CSV (for outlier reports)
+    *_row (n,) the line of each measurement in its CSV file, header = line 1 (for outlier reports)
 
 A *state* is a dict: ``x`` (N, 3), ``R`` (N, 3, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3),
 ``e`` (K,) emission-time corrections (s; e[0] = 0).
@@ -67,16 +67,16 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         "tm_ev": np.array([eidx[e] for e in tm["event"]], dtype=int),
         "tm_arr": np.array([idx[a] for a in tm["array"]], dtype=int),
         "tm_val": tm["tdoa"].to_numpy(float),
-        "tm_row": tm.index.to_numpy(int),
+        "tm_row": _lines(tm),
         "ts_arr": np.array([idx[a] for a in ts["array"]], dtype=int),
         "ts_a": np.array([eidx[e] for e in ts["from_event"]], dtype=int),
         "ts_b": np.array([eidx[e] for e in ts["to_event"]], dtype=int),
         "ts_val": ts["tdoa"].to_numpy(float),
-        "ts_row": ts.index.to_numpy(int),
+        "ts_row": _lines(ts),
         "doa_ev": np.array([eidx[e] for e in doa["event"]], dtype=int),
         "doa_arr": np.array([idx[a] for a in doa["array"]], dtype=int),
         "doa_u": doa[["ux", "uy", "uz"]].to_numpy(float).reshape(-1, 3),
-        "doa_row": doa.index.to_numpy(int),
+        "doa_row": _lines(doa),
         "sigma_tdoa": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
         "sigma_tdoa_s": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
         "sigma_tdoa_m": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
@@ -95,6 +95,11 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     p["doa_u"] = np.where((dots < 0)[:, None], p["doa_u"] - 2.0 * dots[:, None] * nf, p["doa_u"])
     p["N"], p["K"] = len(names), len(events)
     return p
+
+
+def _lines(df):
+    """Line numbers of the rows in their CSV file (header = line 1), or data-row positions + 2 in memory."""
+    return df["_line"].to_numpy(int) if "_line" in df else df.index.to_numpy(int) + 2
 
 
 def empty_state(p):

@@ -153,6 +153,7 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), req
     for c in extra:
         conv = pd.to_numeric(raw[c].replace("", np.nan), errors="coerce")
         df[c] = conv if conv.notna().sum() == (raw[c] != "").sum() else raw[c]
+    df["_line"] = np.arange(len(df)) + 2  # line in the file (header = 1), kept for error and outlier reports
     df.attrs["path"] = str(path)
     return df
 
@@ -177,6 +178,7 @@ def _check_member(df, col, allowed, path, what):
 
 def write_table(df, path, columns=None, float_format="%.10g"):
     """Write a DataFrame as CSV (atomic). ``columns`` fixes the leading column order."""
+    df = df[[c for c in df.columns if not str(c).startswith("_")]]  # private bookkeeping columns stay in memory
     if columns is not None:
         rest = [c for c in df.columns if c not in columns]
         df = df[[c for c in columns if c in df.columns] + rest]

@@ -67,7 +67,7 @@ def rebuild(features, calib):
     lay = make_layout(p)
     flagged = {}
     for o in rep.get("outliers") or []:
-        flagged.setdefault(o["type"], set()).add(int(o["row"]))
+        flagged.setdefault(o["type"], set()).add(int(o["line"]))
     from estimator.factors import evaluate as factors
 
     mask = {f["kind"]: ~np.isin(f["row"], list(flagged[f["kind"]]))
@@ -404,10 +404,11 @@ def _outlier_lines(features, outliers):
     out = []
     for o in outliers:
         df = features.get(o["type"])
-        row = int(o["row"])
+        line = int(o["line"])
         what = ""
-        if df is not None and 0 <= row < len(df):
-            r = df.iloc[row]
+        hit = None if df is None else (df[df["_line"] == line] if "_line" in df else df.iloc[line - 2:line - 1])
+        if hit is not None and len(hit):
+            r = hit.iloc[0]
             if o["type"] == "tdoa_m":
                 what = f"event {r['event']}, array {r['array']}"
             elif o["type"] == "tdoa_s":

@@ -60,8 +60,8 @@ def test_gross_tdoa_outliers_are_flagged_and_do_not_drag_the_solution():
     ts = feats["tdoa_s"].copy()
     ts.loc[3, "tdoa"] += 0.02
     cal = calibrate({**feats, "tdoa_m": tm, "tdoa_s": ts})
-    flagged = {(o["type"], o["row"]) for o in cal["report"]["outliers"]}
-    assert {("tdoa_m", 5), ("tdoa_m", 20), ("tdoa_s", 3)} <= flagged
+    flagged = {(o["type"], o["line"]) for o in cal["report"]["outliers"]}
+    assert {("tdoa_m", 7), ("tdoa_m", 22), ("tdoa_s", 5)} <= flagged  # data rows 5, 20, 3 = file lines 7, 22, 5
     m = evaluate(cal, truth)
     assert m["position_rmse_m"] < clean["position_rmse_m"] + 0.02
     assert m["offset_rmse_s"] < clean["offset_rmse_s"] + 50e-6

@@ -86,7 +86,7 @@ def test_edited_tdoa_reestimates_but_keeps_features(base, session, tmp_path):
     assert p.read_bytes() == edited  # the user's edit survives
     # the estimate really used the edited file: that row is now flagged as an outlier
     outl = read_calibration(out / "calibration")["report"]["outliers"]
-    assert any(o["type"] == "tdoa_m" and o["row"] == 2 and o["residual_us"] < -2000 for o in outl)
+    assert any(o["type"] == "tdoa_m" and o["line"] == 4 and o["residual_us"] < -2000 for o in outl)  # data row 2
     assert ("estimate", "run", res["stages"]["estimate"]["reason"]) in logs
 
 
