@@ -308,54 +308,6 @@ def plot_residuals(path, res):
     plt.close(fig)
 
 
-def plot_detections(path, diag):
-    """Detection timeline from a diagnostics dict (JSON form): one row per array, each array's own clock."""
-    plt = _plt()
-    arrays = diag.get("arrays", {})
-    fig, ax = plt.subplots(figsize=(12, 0.7 * len(arrays) + 1.6))
-    for k, (name, a) in enumerate(arrays.items()):
-        det = a.get("detections", [])
-        t = np.array([d["time"] for d in det])
-        matched = np.array([d.get("event") is not None for d in det], bool)
-        y = len(arrays) - 1 - k
-        ax.hlines(y, 0, a.get("duration_s", t.max() if t.size else 1.0), color="0.85", lw=6)
-        if matched.any():
-            ax.scatter(t[matched], np.full(matched.sum(), y), marker="|", s=300, color="tab:green", lw=2)
-            for d in det:
-                if d.get("event") is not None:
-                    ax.annotate(str(d["event"]), (d["time"], y), xytext=(0, 9), textcoords="offset points",
-                                ha="center", fontsize=7)
-        if (~matched).any():
-            ax.scatter(t[~matched], np.full((~matched).sum(), y), marker="x", s=60, color="tab:red", lw=2)
-        miss = a.get("missed_events", [])
-        label = f"{name}  ({int(matched.sum())} matched, {len(miss)} missed, {int((~matched).sum())} spurious)"
-        ax.text(0, y - 0.32, label, fontsize=8, va="top")
-    ax.set_yticks(range(len(arrays)), list(arrays)[::-1])
-    ax.set_ylim(-0.8, len(arrays) - 0.4)
-    ax.set_xlabel("time on each array's own clock (s)")
-    ax.set_title("Chirp detections (green: matched, label = event id; red ×: spurious)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _json_diag(diag):
-    """Diagnostics without the private (``_``) keys, at any depth."""
-    if isinstance(diag, dict):
-        return {k: _json_diag(v) for k, v in diag.items() if not str(k).startswith("_")}
-    if isinstance(diag, list):
-        return [_json_diag(v) for v in diag]
-    return diag
-
-
-def write_diagnostics_fallback(directory, diag):
-    """diagnostics.json + detections.png (used only if the frontend has no writer of its own)."""
-    with atomic_dir(directory) as tmp:
-        clean = _json_diag(diag)
-        (tmp / "diagnostics.json").write_text(dumps_json(clean, indent=2) + "\n")
-        plot_detections(tmp / "detections.png", clean)
-
-
 # ----------------------------------------------------------------------------------------------- summary
 def _fmt(v, fmt, scale=1.0):
     try:
@@ -498,6 +450,8 @@ def make_report(directory, features, calib, truth=None, diagnostics_dir=None, pr
             shutil.copyfile(src_png, tmp / "detections.png")
             images["detections"] = "detections.png"
         elif diag is not None:
+            from frontend.diagnostics import plot_detections  # the frontend owns its timeline plot
+
             plot_detections(tmp / "detections.png", diag)
             images["detections"] = "detections.png"
         step(4, "summary")

@@ -167,14 +167,9 @@ def features_stage(recordings, out, options, progress=None):
 
 def write_diagnostics(directory, diag):
     """The frontend's diagnostics folder (diagnostics.json + detections.png), via the frontend's writer."""
-    import frontend
+    from frontend import write_diagnostics as write
 
-    writer = getattr(frontend, "write_diagnostics", None)
-    if writer is not None:
-        return writer(directory, diag)
-    from .report import write_diagnostics_fallback  # until the frontend ships its own writer
-
-    return write_diagnostics_fallback(directory, diag)
+    return write(directory, diag)
 
 
 def estimate_stage(out, options):

@@ -111,17 +111,6 @@ def test_failed_report_leaves_previous_one(calibrated, tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["report"]
 
 
-def test_diagnostics_fallback_drops_private_keys(tmp_path):
-    diag = {"arrays": {"A1": {"duration_s": 10.0, "missed_events": [2], "warnings": [], "_env": np.ones(5),
-                              "detections": [{"time": 1.0, "score": 9.0, "event": 0},
-                                             {"time": 4.0, "score": 8.5, "event": None}]}},
-            "elapsed_s": 0.5}
-    report.write_diagnostics_fallback(tmp_path / "diag", diag)
-    back = json.loads((tmp_path / "diag" / "diagnostics.json").read_text())
-    assert "_env" not in back["arrays"]["A1"] and back["arrays"]["A1"]["missed_events"] == [2]
-    assert matplotlib.image.imread(tmp_path / "diag" / "detections.png").shape[1] > 600
-
-
 def test_nice_scale():
     assert [report._nice_scale(x) for x in (0.3, 1.0, 1.5, 3.0, 7.0, 11.0, 4000.0)] == [1, 1, 2, 5, 10, 20, 5000]
 
