@@ -8,7 +8,8 @@ from typing import Optional
 import typer
 
 from pipeline.io import dumps_json
-from .common import console, user_errors
+from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
+                     estimate_options, user_errors)
 from .tables import out as stdout, print_arrays, print_metrics
 
 
@@ -60,17 +61,16 @@ def run(
                                                 "optional truth/)"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="output folder [default: ./<session>-calib]"),
     force: bool = typer.Option(False, "--force", help="recompute every stage even if its inputs are unchanged"),
-    method: str = typer.Option("hybrid", help="estimator: hybrid (ours) or wang (baseline, no TDOA-S)"),
-    no_tdoa_s: bool = typer.Option(False, "--no-tdoa-s", help="ignore TDOA-S (Wang et al.'s measurement set)"),
-    emission_sigma: float = typer.Option(0.0, help="prior std (s) of emission-interval errors to estimate; 0 = off"),
-    loss: str = typer.Option("cauchy", help="robust loss on TDOA residuals: cauchy, huber or linear"),
-    outlier_threshold: float = typer.Option(5.0, help="flag and drop TDOA residuals beyond this many sigmas"),
-    noise: str = typer.Option("auto", help="weights: auto (re-estimate the frontend's own noise figures from the "
-                                           "residuals), meta (use meta.json's sigmas as they are) or estimate"),
+    method: Method = "hybrid",
+    no_tdoa_s: NoTdoaS = False,
+    emission_sigma: EmissionSigma = 0.0,
+    loss: Loss = "cauchy",
+    outlier_threshold: OutlierThreshold = 5.0,
+    noise: Noise = "auto",
     detect_threshold: Optional[float] = typer.Option(
         None, help="chirp detection threshold: matched-filter peak / local background [default: frontend's, 8]"),
     max_drift: Optional[float] = typer.Option(None, help="bound on |clock drift| for association [default: 1e-3]"),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="print nothing but errors"),
+    quiet: Quiet = False,
     json_out: bool = typer.Option(False, "--json", help="print one JSON line (stages, timings, metrics, paths)"),
 ):
     """Calibrate from recordings: features → estimate → report (+ evaluation when RECORDINGS/truth exists).
@@ -83,8 +83,7 @@ def run(
 
     out = out if out is not None else Path(f"{recordings.resolve().name}-calib")
     feat_opts = {k: v for k, v in {"threshold": detect_threshold, "max_drift": max_drift}.items() if v is not None}
-    est_opts = {"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma, "loss": loss,
-                "outlier_threshold": outlier_threshold, "noise": noise}
+    est_opts = estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise)
     show = not quiet and not json_out
     try:
         with _Display(show) as disp:
