@@ -4,8 +4,8 @@
 
 - ``scene_3d.png``: arrays as axis triads (x red, y green, z blue), sources, odometry path, truth
   overlaid when given, 1-σ position ellipsoids scaled up by the factor written in the legend;
-- ``residuals.png``: one histogram per measurement type in natural units (µs, deg, cm) with the stated
-  σ marked and the Gaussian (Rayleigh for DOA angles) the model expects;
+- ``residuals.png``: one histogram per measurement type in natural units (µs, deg, cm) with the σ the
+  estimator weighted it with marked and the Gaussian (Rayleigh for DOA angles) the model expects;
 - ``detections.png``: the frontend's detection timeline (copied from diagnostics/ when present);
 - ``summary.md``: arrays table, metrics vs truth, residuals, outliers, convergence, timings, links;
 - ``metrics.json`` (only with truth): ``pipeline.evaluate.evaluate`` of the calibration.
@@ -60,6 +60,12 @@ def rebuild(features, calib):
     sig_e = float((rep.get("sigmas") or {}).get("emission_s") or 0.0)
     use_ts = bool((rep.get("used") or {}).get("tdoa_s", True))
     p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e)
+    # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
+    for key, name in (("tdoa_s", "sigma_tdoa_s"), ("tdoa_m", "sigma_tdoa_m"), ("doa_rad_per_axis", "sigma_doa"),
+                      ("odometry_m", "sigma_odo")):
+        v = (rep.get("sigmas") or {}).get(key)
+        if isinstance(v, (int, float)) and v > 0:
+            p[name] = float(v)
     st = state_from_frames(p, calib["arrays"], src)
     corr = rep.get("emission_corrections_s") or {}
     st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p["events"]])
@@ -78,8 +84,8 @@ def rebuild(features, calib):
 def residuals(model):
     """Residuals per measurement type in natural units.
 
-    Returns {kind: {"values": (m,) µs / deg / cm, "outlier": (m,) bool, "sigma": stated 1-σ in the same
-    unit, "dist": "normal" | "rayleigh", "unit": str}}. DOA values are angles between the measured and
+    Returns {kind: {"values": (m,) µs / deg / cm, "outlier": (m,) bool, "sigma": the 1-σ the estimator
+    weighted with (report.json "sigmas"), same unit, "dist": "normal" | "rayleigh", "unit": str}}. DOA values are angles between the measured and
     the predicted direction; odometry values are per axis.
     """
     from estimator.calibrate import UNITS
@@ -217,7 +223,8 @@ def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=N
         if cov_sources is not None:
             for j in range(len(S)):
                 if np.all(np.isfinite(cov_sources[j])):
-                    _ellipse(ax2, Ellipse, S[j, :2], scale * cov_sources[j][:2, :2] * scale, "tab:orange")
+                    _ellipse(ax2, Ellipse, S[j, :2], scale * cov_sources[j][:2, :2] * scale, "tab:orange",
+                             lw=0.7, alpha=0.5)
     ax.plot(*O.T, "--", color="0.45", lw=1)
     ax2.plot(*O[:, :2].T, "--", color="0.45", lw=1)
     if tS is not None:
@@ -233,7 +240,10 @@ def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=N
         handles += [Line2D([], [], marker="x", color="k", ls="", label="sources (truth)")]
     if np.isfinite(sd_max):
         handles += [Line2D([], [], color="tab:purple", lw=1,
-                           label=f"1-σ position ellipsoids ×{scale} (largest σ {100 * sd_max:.1f} cm)")]
+                           label=f"1-σ array position ellipsoids ×{scale} (largest σ {100 * sd_max:.1f} cm)")]
+        if cov_sources is not None and len(S):
+            handles += [Line2D([], [], color="tab:orange", lw=0.7, alpha=0.6,
+                               label=f"1-σ source ellipses (x-y) ×{scale}")]
     ax2.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=9, frameon=False)
 
     mid = 0.5 * (lo + hi)
@@ -252,11 +262,11 @@ def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=N
     plt.close(fig)
 
 
-def _ellipse(ax, Ellipse, c, cov2, color):
+def _ellipse(ax, Ellipse, c, cov2, color, lw=1.0, alpha=0.8):
     w, V = np.linalg.eigh(cov2)
     w = np.sqrt(np.maximum(w, 0))
     ang = np.degrees(np.arctan2(V[1, 1], V[0, 1]))
-    ax.add_patch(Ellipse(c, 2 * w[1], 2 * w[0], angle=ang, fill=False, color=color, lw=1, alpha=0.8))
+    ax.add_patch(Ellipse(c, 2 * w[1], 2 * w[0], angle=ang, fill=False, color=color, lw=lw, alpha=alpha))
 
 
 def _scene_title(calib, truth):
@@ -266,7 +276,7 @@ def _scene_title(calib, truth):
 
 
 def plot_residuals(path, res):
-    """One histogram per measurement type, natural units, stated σ marked, outliers counted."""
+    """One histogram per measurement type, natural units, the σ used marked, outliers counted."""
     plt = _plt()
     kinds = list(res)
     fig, axes = plt.subplots(1, max(len(kinds), 1), figsize=(4.4 * max(len(kinds), 1), 4.6), squeeze=False)
@@ -274,12 +284,11 @@ def plot_residuals(path, res):
         d = res[kind]
         v, o, sig = d["values"], d["outlier"], d["sigma"]
         inl = v[~o]
-        if d["dist"] == "rayleigh":
-            hi = max(4 * sig, 1.05 * float(inl.max()) if inl.size else 0.0)
-            lo_ = 0.0
-        else:
-            hi = max(4 * sig, 1.05 * float(np.abs(inl).max()) if inl.size else 0.0)
-            lo_ = -hi
+        data_hi = 1.15 * float(np.abs(inl).max()) if inl.size and np.abs(inl).max() > 0 else sig
+        # show the σ's range unless it would squash the data into a bin or two
+        show_sig = sig <= 1.5 * data_hi
+        hi = max(data_hi, 1.1 * sig) if show_sig else data_hi
+        lo_ = 0.0 if d["dist"] == "rayleigh" else -hi
         bins = np.linspace(lo_, hi, 25)
         ax.hist(np.clip(inl, lo_, hi), bins=bins, color="tab:blue", alpha=0.75, label=f"used ({inl.size})")
         if o.any():
@@ -289,20 +298,27 @@ def plot_residuals(path, res):
         bw = bins[1] - bins[0]
         if d["dist"] == "rayleigh":
             pdf = xs / sig ** 2 * np.exp(-0.5 * (xs / sig) ** 2)
-            ax.axvline(sig, color="k", ls="--", lw=1)
+            marks = (sig,)
             lab = f"expected (Rayleigh, σ={sig:.3g} {d['unit']}/axis)"
         else:
             pdf = np.exp(-0.5 * (xs / sig) ** 2) / (sig * np.sqrt(2 * np.pi))
-            for s in (-sig, sig):
-                ax.axvline(s, color="k", ls="--", lw=1)
+            marks = (-sig, sig)
             lab = f"expected N(0, σ), σ = {sig:.3g} {d['unit']}"
-        ax.plot(xs, pdf * inl.size * bw, color="k", lw=1.2, label=lab)
+        if show_sig:
+            for m_ in marks:
+                ax.axvline(m_, color="k", ls="--", lw=1)
+            ax.plot(xs, pdf * inl.size * bw, color="k", lw=1.2, label=lab)
+        else:
+            rms_ = float(np.sqrt(np.mean(inl ** 2))) if inl.size else float("nan")
+            ax.text(0.02, 0.97, f"σ used = {sig:.3g} {d['unit']} (off scale):\n"
+                    f"the RMS is {sig / rms_:.1f}× smaller", transform=ax.transAxes, va="top",
+                    fontsize=8, bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.7"})
         rms = float(np.sqrt(np.mean(inl ** 2))) if inl.size else float("nan")
         ax.set_title(f"{TITLE[kind]}: RMS {rms:.3g} {d['unit']}")
         ax.set_xlabel(UNIT_LABEL[kind])
         ax.set_ylabel("count")
         ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)
-    fig.suptitle("Residuals at the estimate (dashed: stated σ)", fontsize=12)
+    fig.suptitle("Residuals at the estimate (dashed: the σ the estimator weighted with)", fontsize=12)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -383,7 +399,7 @@ def summary_markdown(features, calib, res, metrics, diag, images):
     if metrics is not None:
         L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
     L += ["## Scene", "", f"![scene]({images['scene']})", ""]
-    L += ["## Residuals", "", "| type | n | RMS | stated σ |", "|---|---:|---:|---:|"]
+    L += ["## Residuals", "", f"| type | n | RMS | σ used ({(rep.get('sigmas') or {}).get('source', 'meta')}) |", "|---|---:|---:|---:|"]
     for kind, d in res.items():
         v = d["values"][~d["outlier"]]
         rms = float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
@@ -399,7 +415,7 @@ def summary_markdown(features, calib, res, metrics, diag, images):
           f"- converged: **{rep.get('converged', '?')}** ({rep.get('reason', '?')}); iterations: robust pass "
           f"{it.get('robust', '?')}, final pass {it.get('final', '?')}",
           "- cost by stage: " + ", ".join(f"{k} {_fmt(v, '.4g')}" for k, v in cost.items()),
-          f"- χ²/dof at the estimate: {_fmt(rep.get('chi2_per_dof'), '.3f')} (≈ 1 when the stated σ are right)",
+          f"- χ²/dof at the estimate: {_fmt(rep.get('chi2_per_dof'), '.3f')} (≈ 1 when the σ used are right)",
           f"- drift reference: {rep.get('drift_reference', '?')}", ""]
     if diag is not None:
         L += ["## Detections", ""]

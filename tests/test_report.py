@@ -43,10 +43,11 @@ def test_residuals_at_truth_are_the_injected_noise():
 def calibrated(tmp_path_factory):
     """A feature-level scene with one gross TDOA-M error, calibrated and written to disk."""
     feats, truth = simulate_features(trajectory=3, seed=4, sigma_tdoa=5e-5, sigma_doa_deg=3.0)
+    feats["meta"].update(sigma_tdoa=2e-4, sigma_doa_deg=6.0)  # stated 4x and 2x too large
     tm = feats["tdoa_m"]
     row = int(np.flatnonzero((tm["event"] == 3).to_numpy() & (tm["array"] == "A3").to_numpy())[0])
     tm.loc[row, "tdoa"] += 5e-3
-    calib = calibrate(feats)
+    calib = calibrate(feats, noise="estimate")  # weights differ from meta.json: the report must use them
     d = tmp_path_factory.mktemp("cal") / "calibration"
     write_calibration(d, calib)
     return feats, truth, calib, read_calibration(d), row
