@@ -59,7 +59,8 @@ class _Display:
 def run(
     recordings: Path = typer.Argument(..., help="recording session folder (session.toml, WAVs, events.csv, "
                                                 "optional truth/)"),
-    out: Optional[Path] = typer.Option(None, "-o", "--out", help="output folder [default: ./<session>-calib]"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out",
+                                       help="output folder (default: ./<session folder name>-calib)"),
     force: bool = typer.Option(False, "--force", help="recompute every stage even if its inputs are unchanged"),
     method: Method = "hybrid",
     no_tdoa_s: NoTdoaS = False,
@@ -68,8 +69,8 @@ def run(
     outlier_threshold: OutlierThreshold = 5.0,
     noise: Noise = "auto",
     detect_threshold: Optional[float] = typer.Option(
-        None, help="chirp detection threshold: matched-filter peak / local background [default: frontend's, 8]"),
-    max_drift: Optional[float] = typer.Option(None, help="bound on |clock drift| for association [default: 1e-3]"),
+        None, help="chirp detection threshold: matched-filter peak / local background (default: the frontend's, 8)"),
+    max_drift: Optional[float] = typer.Option(None, help="bound on |clock drift| for association (default: 1e-3)"),
     quiet: Quiet = False,
     json_out: bool = typer.Option(False, "--json", help="print one JSON line (stages, timings, metrics, paths)"),
 ):

@@ -85,8 +85,8 @@ def residuals(model):
     """Residuals per measurement type in natural units.
 
     Returns {kind: {"values": (m,) µs / deg / cm, "outlier": (m,) bool, "sigma": the 1-σ the estimator
-    weighted with (report.json "sigmas"), same unit, "dist": "normal" | "rayleigh", "unit": str}}. DOA values are angles between the measured and
-    the predicted direction; odometry values are per axis.
+    weighted with (report.json "sigmas"), same unit, "dist": "normal" | "rayleigh", "unit": str}}.
+    DOA values are angles between the measured and the predicted direction; odometry values are per axis.
     """
     from estimator.calibrate import UNITS
     from estimator.factors import evaluate as factors
@@ -235,7 +235,8 @@ def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=N
     handles += [Line2D([], [], color="tab:orange", marker="o", ms=4, lw=1, label="sources (estimate)"),
                 Line2D([], [], color="0.45", ls="--", label="odometry path (anchored at first source)")]
     if tA is not None:
-        handles += [Line2D([], [], marker="o", mfc="none", mec="k", ls="", label="arrays (truth, dotted axes; line = error)")]
+        handles += [Line2D([], [], marker="o", mfc="none", mec="k", ls="",
+                           label="arrays (truth, dotted axes; line = error)")]
     if tS is not None:
         handles += [Line2D([], [], marker="x", color="k", ls="", label="sources (truth)")]
     if np.isfinite(sd_max):
@@ -381,7 +382,8 @@ def _outlier_lines(features, outliers):
                 what = f"event {r['event']}, array {r['array']}"
             elif o["type"] == "tdoa_s":
                 what = f"array {r['array']}, events {r['from_event']}→{r['to_event']}"
-        out.append(f"- {o['type']} ({what}): residual {o['residual_us']:+.0f} µs = "
+        out.append(f"- {o['type']} ({what}), features/{o['type']}.csv line {line}: "
+                   f"residual {o['residual_us']:+.0f} µs = "
                    f"{o['residual_sigma']:+.1f} σ — excluded from the final solve")
     return out
 
@@ -395,11 +397,13 @@ def summary_markdown(features, calib, res, metrics, diag, images):
     L += ["## Calibrated arrays", "",
           "Position in the reference array's frame, rotation (array frame → reference frame) as angle and "
           "axis, clock offset at the first event and drift relative to the emitter's clock; ± columns are "
-          "1-σ from the estimator's covariance (position: norm over x, y, z).", "", arrays_markdown(calib["arrays"]), ""]
+          "1-σ from the estimator's covariance (position: norm over x, y, z).", "",
+          arrays_markdown(calib["arrays"]), ""]
     if metrics is not None:
         L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
     L += ["## Scene", "", f"![scene]({images['scene']})", ""]
-    L += ["## Residuals", "", f"| type | n | RMS | σ used ({(rep.get('sigmas') or {}).get('source', 'meta')}) |", "|---|---:|---:|---:|"]
+    source = (rep.get("sigmas") or {}).get("source", "meta")
+    L += ["## Residuals", "", f"| type | n | RMS | σ used ({source}) |", "|---|---:|---:|---:|"]
     for kind, d in res.items():
         v = d["values"][~d["outlier"]]
         rms = float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")

@@ -88,7 +88,7 @@ def test_report_folder(calibrated, tmp_path):
     for name in feats["meta"]["arrays"]:
         assert f"| {name} |" in md
     ev = feats["tdoa_m"].loc[row]
-    assert f"tdoa_m (event {ev['event']}, array {ev['array']})" in md
+    assert f"tdoa_m (event {ev['event']}, array {ev['array']}), features/tdoa_m.csv line {row + 2}:" in md
     assert "](scene_3d.png)" in md and "](residuals.png)" in md and "Evaluation against ground truth" in md
     # without truth: no metrics
     assert report.make_report(tmp_path / "r2", feats, from_disk) is None
