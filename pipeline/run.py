@@ -36,6 +36,9 @@ STAGES = ("features", "estimate", "report")
 FEATURE_FILES = ("meta.json", "events.csv", "tdoa_m.csv", "tdoa_s.csv", "doa.csv")
 CALIBRATION_FILES = ("arrays.csv", "sources.csv", "report.json")
 TRUTH_FILES = ("arrays.csv", "sources.csv")
+# files whose absence makes a stamped stage run again (a user deleted part of an output)
+REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostics.json",),
+            "calibration": ("arrays.csv", "report.json"), "report": ("summary.md",)}
 ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
                      "outlier_threshold": 5.0, "noise": "auto"}
 # source code each stage runs: a change there invalidates the stage even when the version number does not
@@ -270,7 +273,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
         stamp_dir = out_dirs[0]
         old = read_stamp(stamp_dir)
         reason = "--force" if force else why_stale(old, stamp)
-        if reason is None and not all(d.is_dir() for d in out_dirs):
+        if reason is None and not all((d / f).is_file() for d in out_dirs for f in REQUIRED.get(d.name, ())):
             reason = "output missing"
         if reason is None:
             log(name, "skipped", "inputs and settings unchanged")

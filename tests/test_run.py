@@ -71,6 +71,15 @@ def test_second_run_skips_everything_and_changes_nothing(base, session, tmp_path
     assert res["metrics"]["position_rmse_m"] == pytest.approx(base[1]["metrics"]["position_rmse_m"])
 
 
+def test_deleted_output_is_recomputed(base, session, tmp_path):
+    out = copy_of(base, tmp_path)
+    (out / "report" / "summary.md").unlink()
+    res = run(session, out)
+    assert res["stages"]["report"] == {**res["stages"]["report"], "status": "run", "reason": "output missing"}
+    assert (out / "report" / "summary.md").is_file()
+    assert res["stages"]["estimate"]["status"] == "skipped"
+
+
 def test_edited_tdoa_reestimates_but_keeps_features(base, session, tmp_path):
     out = copy_of(base, tmp_path)
     p = out / "features" / "tdoa_m.csv"
