@@ -18,12 +18,11 @@ import numpy as np
 import pandas as pd
 from joblib import Parallel, delayed
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimator import calibrate  # noqa: E402
-from pipeline.evaluate import evaluate  # noqa: E402
-from pipeline.io import read_features, read_truth  # noqa: E402
-from pipeline.montecarlo import (PAPER_FINAL, SIGMA_DOA_DEG, SIGMA_TDOA, TRAJECTORIES, iqr_mean,  # noqa: E402
+from calib.estimator import calibrate
+from calib.pipeline.evaluate import evaluate
+from calib.pipeline.io import read_features, read_truth
+from calib.pipeline.montecarlo import (PAPER_FINAL, SIGMA_DOA_DEG, SIGMA_TDOA, TRAJECTORIES, iqr_mean,
                                  run_one)
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"

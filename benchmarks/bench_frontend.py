@@ -30,11 +30,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from frontend import extract_features  # noqa: E402
-from pipeline import roomsim  # noqa: E402
-from pipeline.evaluate import feature_errors  # noqa: E402
+from calib.pipeline.features import session_features as extract_features
+from calib.pipeline import roomsim
+from calib.pipeline.evaluate import feature_errors
 
 MICS_3D = np.c_[0.0354 * np.cos(np.arange(6) * np.pi / 3), 0.0354 * np.sin(np.arange(6) * np.pi / 3),
                 0.02 * (-1.0) ** np.arange(6)]
@@ -72,7 +71,7 @@ def srp_speed(n_events=14, step_deg=3.0):
     only) on ideal plane waves, same 3D array, same grid density."""
     import pyroomacoustics as pra
 
-    from frontend.doa import fibonacci_sphere, srp_doa, srp_setup
+    from calib.frontend.doa import fibonacci_sphere, srp_doa, srp_setup
 
     fs, nfft, c = 16000, 256, 343.0
     freqs = np.fft.rfftfreq(nfft, 1 / fs)

@@ -22,12 +22,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from estimator import calibrate  # noqa: E402
-from pipeline.evaluate import evaluate  # noqa: E402
-from pipeline.io import read_features, read_truth  # noqa: E402
-from pipeline.montecarlo import _run_chunk, run_study  # noqa: E402
+from calib.estimator import calibrate
+from calib.pipeline.evaluate import evaluate
+from calib.pipeline.io import read_features, read_truth
+from calib.pipeline.montecarlo import _run_chunk, run_study
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"
 

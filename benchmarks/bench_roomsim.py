@@ -22,9 +22,8 @@ import numpy as np
 import soundfile as sf
 from scipy.optimize import minimize_scalar
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline import roomsim as rs  # noqa: E402
+from calib.pipeline import roomsim as rs
 
 INF = float("inf")
 

@@ -18,10 +18,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.roomsim import make_scenario, simulate  # noqa: E402
-from pipeline.run import run  # noqa: E402
+from calib.pipeline.roomsim import make_scenario, simulate
+from calib.pipeline.run import run
 
 BOUNDS = {"loc_cm": 5.0, "geo_deg": 3.0, "offset_us": 50.0, "drift_ppm": 5.0}
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "lab3"

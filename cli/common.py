@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from pipeline.io import InputError
+from calib.pipeline.io import InputError
 
 EXIT_INPUT = 2
 

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import typer
 
-from estimator import calibrate
-from pipeline.io import read_features, write_calibration
+from calib.estimator import calibrate
+from calib.pipeline.io import read_features, write_calibration
 from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
                      estimate_options, user_errors)
 from .tables import print_arrays

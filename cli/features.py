@@ -21,13 +21,12 @@ def features(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
     """Detect the chirps, match them to the robot's events, measure TDOA-M, TDOA-S and DOA."""
-    from frontend import extract_features, write_diagnostics
-    from pipeline.io import write_features
+    from calib.pipeline.features import session_features, write_feature_outputs
 
     diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
     opts = {"threshold": threshold, "max_drift": max_drift}
     if quiet:
-        feats, diag = extract_features(recordings, **opts)
+        feats, diag = session_features(recordings, **opts)
     else:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -38,9 +37,8 @@ def features(
             def progress(done, total, msg):
                 bar.update(task, total=total, completed=done, msg=msg)
 
-            feats, diag = extract_features(recordings, progress=progress, **opts)
-    write_features(out, feats)
-    write_diagnostics(diag_dir, diag)
+            feats, diag = session_features(recordings, progress=progress, **opts)
+    write_feature_outputs(out, diag_dir, feats, diag)
     if not quiet:
         _summary(feats, diag, out, diag_dir)
 

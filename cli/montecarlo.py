@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from pipeline.io import InputError
+from calib.pipeline.io import InputError
 from .common import user_errors
 
 
@@ -61,7 +61,7 @@ def montecarlo(
     OUT/summary.csv (IQR-means per cell and method, convergence rate, CRLB, the paper's values) and
     OUT/fig3.png. Interrupt it at any time: re-running the same command continues where it stopped.
     """
-    from pipeline.montecarlo import paper_grid, read_grid, run_study
+    from calib.pipeline.montecarlo import paper_grid, read_grid, run_study
 
     g = read_grid(grid) if grid is not None else paper_grid()
     if sigma_tdoa is not None or sigma_doa is not None:

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from pipeline.io import dumps_json
+from calib.pipeline.io import dumps_json
 from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
                      estimate_options, user_errors)
 from .tables import out as stdout, print_arrays, print_metrics
@@ -80,7 +80,7 @@ def run(
     inputs (file contents), settings and software are unchanged; edit OUT/features/*.csv by hand and re-run
     to re-estimate from your edits.
     """
-    from pipeline.run import run as run_pipeline
+    from calib.pipeline.run import run as run_pipeline
 
     out = out if out is not None else Path(f"{recordings.resolve().name}-calib")
     feat_opts = {k: v for k, v in {"threshold": detect_threshold, "max_drift": max_drift}.items() if v is not None}

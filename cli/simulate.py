@@ -6,8 +6,8 @@ from typing import Optional
 
 import typer
 
-from pipeline.io import InputError
-from pipeline.roomsim import PRESETS, load_scenario, make_scenario, simulate as run_simulation, validate_scenario
+from calib.pipeline.io import InputError
+from calib.pipeline.roomsim import PRESETS, load_scenario, make_scenario, simulate as run_simulation, validate_scenario
 from .common import console, user_errors
 
 

@@ -8,6 +8,8 @@ from rich.console import Console
 from rich.table import Table
 from scipy.spatial.transform import Rotation
 
+from calib.pipeline.evaluate import METRIC_ROWS
+
 out = Console()
 
 
@@ -31,17 +33,6 @@ def print_arrays(calib, console=None):
                   _f(rv[k], ".1f"), _f(row["offset"] * 1e3, ".3f"),
                   _f(row["drift"] * 1e6, ".2f"), _f(pos_sd, ".2f"), _f(rot_sd, ".2f"))
     (console or out).print(t)
-
-
-METRIC_ROWS = (
-    ("position_rmse_m", "array position RMSE", 100.0, "cm"),
-    ("orientation_geodesic_deg", "orientation RMS (geodesic)", 1.0, "deg"),
-    ("orientation_paper_deg", "orientation RMS (paper metric)", 1.0, "deg"),
-    ("offset_rmse_s", "offset RMSE", 1e6, "µs"),
-    ("drift_rmse", "drift RMSE", 1e6, "ppm"),
-    ("relative_drift_rmse", "drift RMSE relative to reference", 1e6, "ppm"),
-    ("source_rmse_m", "source position RMSE", 100.0, "cm"),
-)
 
 
 def print_metrics(metrics, console=None):

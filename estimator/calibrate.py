@@ -5,20 +5,20 @@
 from __future__ import annotations
 
 import time
-from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
+from calib import __version__
+
+from .factors import ALL_KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .problem import build_problem, copy_state, make_layout
 from .solver import levenberg_marquardt, linearise
+from .uncertainty import covariance, std_from_cov
 
-ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission"]
-UNITS = {"tdoa_s": ("us", 1e6), "tdoa_m": ("us", 1e6), "doa": ("deg", np.rad2deg(1.0)), "odometry": ("cm", 100.0),
-         "emission": ("us", 1e6)}
 
 
 # The matrices here are tiny (~400 × 100): multi-threaded BLAS only adds synchronisation (measured 4×
@@ -26,11 +26,6 @@ UNITS = {"tdoa_s": ("us", 1e6), "tdoa_m": ("us", 1e6), "doa": ("deg", np.rad2deg
 _BLAS = ThreadpoolController()
 
 
-def _version():
-    try:
-        return version("calib")
-    except PackageNotFoundError:
-        return "unknown"
 
 
 def check_observability(p, lay, kinds, st, rel_tol=1e-9):
@@ -113,25 +108,6 @@ def residual_table(fs, mask=None):
         unit, scale = UNITS[f["kind"]]
         out[f["kind"]] = {"n": int(len(r)), f"rms_{unit}": float(np.sqrt(np.mean(r * r)) * scale) if len(r) else 0.0}
     return out
-
-
-def covariance(J, lay_n):
-    """(JᵀJ)⁻¹ for whitened residuals (Jacobi-scaled for conditioning)."""
-    d = np.linalg.norm(J, axis=0)
-    d = np.where(d > 0, d, 1.0)
-    Js = J / d
-    return np.linalg.pinv(Js.T @ Js) / d[:, None] / d[None, :]
-
-
-def std_from_cov(p, lay, cov):
-    """1-σ std per parameter, as arrays keyed like the state (NaN where fixed)."""
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-
-    def pick(idx):
-        return np.where(idx >= 0, sd[np.maximum(idx, 0)], np.nan)
-
-    return {"x": pick(lay["x"]), "rot": pick(lay["rot"]), "offset": pick(lay["offset"]),
-            "drift": pick(lay["drift"]), "s": pick(lay["s"]), "e": pick(lay["e"])}
 
 
 def to_frames(p, st, std=None):
@@ -325,7 +301,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     times["total"] = time.perf_counter() - t0
     n_res = int(J.shape[0])
     report = {
-        "software": {"name": "calib", "version": _version()},
+        "software": {"name": "calib", "version": __version__},
         "method": method,
         "converged": bool(info["final"]["converged"]),
         "reason": info["final"]["reason"],

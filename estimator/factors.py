@@ -13,6 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
+ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission"]
+# report unit of each kind and the factor from SI: µs, degrees, cm
+UNITS = {"tdoa_s": ("us", 1e6), "tdoa_m": ("us", 1e6), "doa": ("deg", np.rad2deg(1.0)), "odometry": ("cm", 100.0),
+         "emission": ("us", 1e6)}
+
 
 def _put(J, rows, cols, vals):
     """J[rows, cols] += vals for the free columns (cols >= 0). rows (m,), cols/vals (m, q).

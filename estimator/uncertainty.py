@@ -8,9 +8,28 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .calibrate import ALL_KINDS, covariance, std_from_cov
+from .factors import ALL_KINDS
 from .problem import build_problem, empty_state, make_layout, retract
 from .solver import linearise
+
+
+def covariance(J, lay_n):
+    """(JᵀJ)⁻¹ for whitened residuals (Jacobi-scaled for conditioning)."""
+    d = np.linalg.norm(J, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    Js = J / d
+    return np.linalg.pinv(Js.T @ Js) / d[:, None] / d[None, :]
+
+
+def std_from_cov(p, lay, cov):
+    """1-σ std per parameter, as arrays keyed like the state (NaN where fixed)."""
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+    def pick(idx):
+        return np.where(idx >= 0, sd[np.maximum(idx, 0)], np.nan)
+
+    return {"x": pick(lay["x"]), "rot": pick(lay["rot"]), "offset": pick(lay["offset"]),
+            "drift": pick(lay["drift"]), "s": pick(lay["s"]), "e": pick(lay["e"])}
 
 
 def state_from_frames(p, arrays, sources=None):

@@ -1,29 +1,7 @@
-"""Diagnostics of the frontend: ``diagnostics.json`` and the detection timeline ``detections.png``."""
+"""The frontend's detection-timeline plot (``detections.png``); ``calib.pipeline.features`` writes it."""
 from __future__ import annotations
 
 import numpy as np
-
-from pipeline.io import atomic_dir, dumps_json
-
-
-def public(diag):
-    """The JSON part of a diagnostics dict: keys starting with ``_`` dropped and non-finite numbers made
-    None, at any depth."""
-    if isinstance(diag, dict):
-        return {k: public(v) for k, v in diag.items() if not str(k).startswith("_")}
-    if isinstance(diag, (list, tuple)):
-        return [public(v) for v in diag]
-    if isinstance(diag, (float, np.floating)) and not np.isfinite(diag):
-        return None
-    return diag
-
-
-def write_diagnostics(directory, diag):
-    """Write ``diagnostics.json`` and ``detections.png`` into ``directory`` (atomically)."""
-    with atomic_dir(directory) as tmp:
-        (tmp / "diagnostics.json").write_text(dumps_json(public(diag), indent=2) + "\n")
-        plot_detections(tmp / "detections.png", diag)
-
 
 def _pool(env, rate, width=4000):
     """Max-pool an envelope to about ``width`` points (peaks stay visible). Returns (t, y)."""

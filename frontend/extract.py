@@ -17,8 +17,7 @@ import numpy as np
 import pandas as pd
 from scipy.signal.windows import tukey
 
-from pipeline.io import InputError
-from pipeline.session import read_session
+from calib.errors import InputError
 
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, refine_peak
@@ -46,12 +45,13 @@ def _check_audio(session):
         read_header(a)
 
 
-def extract_features(session_dir, progress=None, **options):
+def extract_features(session, progress=None, **options):
     """Features of a recording session.
 
     Parameters
     ----------
-    session_dir : folder with session.toml, the WAVs and events.csv.
+    session : the in-memory session (``calib.pipeline.session.read_session`` of a folder with
+        session.toml, the WAVs and events.csv): speed_of_sound, reference_array, events, arrays.
     progress : optional callable ``progress(done, total, message)``, called as arrays are processed.
     options : overrides of :data:`DEFAULTS`.
 
@@ -67,7 +67,6 @@ def extract_features(session_dir, progress=None, **options):
     if unknown:
         raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
     t_start = time.perf_counter()
-    session = read_session(session_dir)
     _check_audio(session)
     c = session["speed_of_sound"]
     events = session["events"]

@@ -14,7 +14,7 @@ import scipy.fft as sfft
 import scipy.signal as ss
 import soundfile as sf
 
-from pipeline.io import InputError
+from calib.errors import InputError
 
 
 def read_header(array):

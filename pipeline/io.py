@@ -31,8 +31,8 @@ import numpy as np
 import pandas as pd
 
 
-class InputError(ValueError):
-    """Bad user input: the message is one line naming the file and the problem."""
+from calib.errors import InputError  # noqa: F401  (re-exported: readers raise it)
+from calib.jsonutil import dumps_json  # noqa: F401
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
@@ -426,31 +426,3 @@ def write_truth(directory, truth, extra_files=None):
             (tmp / name).write_text(text)
 
 
-def _json_default(o):
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o)}")
-
-
-def _finite(obj):
-    """Replace NaN/inf floats by None (JSON has no NaN) throughout nested dicts/lists."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
-    return obj
-
-
-def dumps_json(obj, **kw):
-    """``json.dumps`` that understands numpy scalars/arrays and paths, and writes NaN as null."""
-    return json.dumps(_finite(obj), default=_json_default, allow_nan=False, **kw)

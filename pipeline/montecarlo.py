@@ -31,9 +31,8 @@ import numpy as np
 import pandas as pd
 from threadpoolctl import ThreadpoolController
 
-from estimator import calibrate
-from estimator.calibrate import to_frames
-from estimator.uncertainty import crlb, draw_from_crlb, state_from_frames
+from calib.estimator import calibrate, crlb, draw_from_crlb, state_from_frames, to_frames
+
 from .evaluate import evaluate
 from .featsim import simulate_features
 from .io import InputError, atomic_write_text, dumps_json

@@ -23,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.estimator import position_covariances, rebuild, residuals
+
+from .evaluate import METRIC_ROWS
 from .io import atomic_dir, dumps_json
 
 UNIT_LABEL = {"tdoa_s": "TDOA-S residual (µs)", "tdoa_m": "TDOA-M residual (µs)",
@@ -38,96 +41,6 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-# ----------------------------------------------------------------------------------------------- model
-def rebuild(features, calib):
-    """The estimator's problem, state, layout, factor kinds and outlier mask at a calibration read from disk.
-
-    Returns None when the calibration cannot be evaluated against these features (no sources.csv, or
-    arrays/events that do not match).
-    """
-    from estimator.calibrate import ALL_KINDS
-    from estimator.problem import build_problem, make_layout
-    from estimator.uncertainty import state_from_frames
-
-    rep = calib.get("report") or {}
-    src = calib.get("sources")
-    names = set(features["meta"]["arrays"])
-    if src is None or set(calib["arrays"]["array"]) != names or \
-            set(src["event"]) != set(features["events"]["event"]):
-        return None
-    sig_e = float((rep.get("sigmas") or {}).get("emission_s") or 0.0)
-    use_ts = bool((rep.get("used") or {}).get("tdoa_s", True))
-    p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e)
-    # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
-    for key, name in (("tdoa_s", "sigma_tdoa_s"), ("tdoa_m", "sigma_tdoa_m"), ("doa_rad_per_axis", "sigma_doa"),
-                      ("odometry_m", "sigma_odo")):
-        v = (rep.get("sigmas") or {}).get(key)
-        if isinstance(v, (int, float)) and v > 0:
-            p[name] = float(v)
-    st = state_from_frames(p, calib["arrays"], src)
-    corr = rep.get("emission_corrections_s") or {}
-    st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p["events"]])
-    kinds = [k for k in ALL_KINDS if k != "emission" or sig_e > 0]
-    lay = make_layout(p)
-    flagged = {}
-    for o in rep.get("outliers") or []:
-        flagged.setdefault(o["type"], set()).add(int(o["line"]))
-    from estimator.factors import evaluate as factors
-
-    mask = {f["kind"]: ~np.isin(f["row"], list(flagged[f["kind"]]))
-            for f in factors(p, st, lay, kinds) if f["kind"] in flagged}
-    return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask}
-
-
-def residuals(model):
-    """Residuals per measurement type in natural units.
-
-    Returns {kind: {"values": (m,) µs / deg / cm, "outlier": (m,) bool, "sigma": the 1-σ the estimator
-    weighted with (report.json "sigmas"), same unit, "dist": "normal" | "rayleigh", "unit": str}}.
-    DOA values are angles between the measured and the predicted direction; odometry values are per axis.
-    """
-    from estimator.calibrate import UNITS
-    from estimator.factors import evaluate as factors
-
-    out = {}
-    for f in factors(model["problem"], model["state"], model["layout"], model["kinds"]):
-        if len(f["r"]) == 0:
-            continue
-        unit, scale = UNITS[f["kind"]]
-        keep = model["mask"].get(f["kind"], np.ones(len(f["r"]), bool))
-        r = f["r"] * f["sigma"]
-        if f["kind"] == "doa":
-            d = np.linalg.norm(r.reshape(-1, 3), axis=1)  # |v − u| = 2 sin(θ/2)
-            vals = np.rad2deg(2 * np.arcsin(np.clip(d / 2, 0, 1)))
-            keep = keep.reshape(-1, 3).all(axis=1)
-            # per tangent axis σ → the angle is Rayleigh(σ); shown with its scale
-            out["doa"] = {"values": vals, "outlier": ~keep, "sigma": np.rad2deg(f["sigma"]), "dist": "rayleigh",
-                          "unit": "deg"}
-            continue
-        out[f["kind"]] = {"values": r * scale, "outlier": ~keep, "sigma": f["sigma"] * scale, "dist": "normal",
-                          "unit": unit.replace("us", "µs")}
-    return out
-
-
-def position_covariances(model):
-    """1-σ position covariances at the estimate: arrays (N, 3, 3) and sources (K, 3, 3), m² (NaN where fixed)."""
-    from estimator.calibrate import covariance
-    from estimator.solver import linearise
-
-    p, lay = model["problem"], model["layout"]
-    _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
-    cov = covariance(J[w > 0], lay["n"])
-
-    def blocks(idx):
-        out = np.full((len(idx), 3, 3), np.nan)
-        for k, ix in enumerate(idx):
-            if np.all(ix >= 0):
-                out[k] = cov[np.ix_(ix, ix)]
-        return out
-
-    return blocks(lay["x"]), blocks(lay["s"])
 
 
 # ----------------------------------------------------------------------------------------------- plots
@@ -355,7 +268,6 @@ def arrays_markdown(arrays):
 
 
 def metrics_markdown(metrics):
-    from cli.tables import METRIC_ROWS  # one place for metric names and units
 
     lines = ["| metric | value | unit |", "|---|---:|---|"]
     for key, label, scale, unit in METRIC_ROWS:
@@ -470,7 +382,7 @@ def make_report(directory, features, calib, truth=None, diagnostics_dir=None, pr
             shutil.copyfile(src_png, tmp / "detections.png")
             images["detections"] = "detections.png"
         elif diag is not None:
-            from frontend.diagnostics import plot_detections  # the frontend owns its timeline plot
+            from calib.frontend import plot_detections  # the frontend owns its timeline plot
 
             plot_detections(tmp / "detections.png", diag)
             images["detections"] = "detections.png"

@@ -17,7 +17,7 @@ hand-edited ``OUT/features/tdoa_m.csv`` changes the estimate's key (re-estimated
 
 Library use (a notebook)::
 
-    from pipeline.run import run
+    from calib.pipeline.run import run
     result = run("sample_data/lab3", "calib-out")
     result["calibration"]["arrays"], result["metrics"], result["stages"]
 """
@@ -26,8 +26,10 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+
+from calib import __version__
+from calib.modgraph import module_closure
 
 from .io import InputError, atomic_write_text, dumps_json, read_calibration, read_features, read_truth
 
@@ -41,21 +43,19 @@ REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostic
             "calibration": ("arrays.csv", "report.json"), "report": ("summary.md",)}
 ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
                      "outlier_threshold": 5.0, "noise": "auto"}
-# source code each stage runs: a change there invalidates the stage even when the version number does not
+# The modules each stage calls into. Their source, and that of every calib module they import
+# (transitively, found from the import statements), is hashed into the stage key, so editing any of
+# them invalidates the stage even when the version number does not change.
 CODE = {
-    "features": ("frontend", "pipeline/session.py", "pipeline/io.py"),
-    "estimate": ("estimator", "pipeline/io.py"),
-    "report": ("pipeline/report.py", "pipeline/evaluate.py", "estimator", "pipeline/io.py"),
+    "features": ("calib.pipeline.features",),
+    "estimate": ("calib.estimator", "calib.pipeline.io"),
+    "report": ("calib.pipeline.report",),
 }
-ROOT = Path(__file__).resolve().parents[1]
 
 
 # ----------------------------------------------------------------------------------------------- hashing
 def software_version():
-    try:
-        return version("calib")
-    except PackageNotFoundError:
-        return "unknown"
+    return __version__
 
 
 def file_sha256(path, chunk=1 << 20):
@@ -66,15 +66,11 @@ def file_sha256(path, chunk=1 << 20):
     return h.hexdigest()
 
 
-def code_digest(parts):
-    """sha256 over the ``.py`` files of packages / modules named relative to the project root."""
+def code_digest(modules):
+    """sha256 over the source of ``modules`` and every calib module they import, transitively."""
     h = hashlib.sha256()
-    for part in parts:
-        p = ROOT / part
-        files = sorted(p.rglob("*.py")) if p.is_dir() else [p]
-        for f in files:
-            if f.is_file():
-                h.update(str(f.relative_to(ROOT)).encode() + b"\0" + f.read_bytes() + b"\0")
+    for name, path in sorted(module_closure(modules).items()):
+        h.update(name.encode() + b"\0" + Path(path).read_bytes() + b"\0")
     return h.hexdigest()
 
 
@@ -157,10 +153,10 @@ def features_inputs(out):
 # ----------------------------------------------------------------------------------------------- stages
 def features_stage(recordings, out, options, progress=None):
     """Frontend: recordings → OUT/diagnostics/ then OUT/features/ (both atomic). Returns the diagnostics."""
-    from frontend import extract_features
+    from .features import session_features, write_diagnostics
 
     cb = None if progress is None else (lambda done, total, msg: progress("features", done, total, msg))
-    feats, diag = extract_features(recordings, progress=cb, **options)
+    feats, diag = session_features(recordings, progress=cb, **options)
     write_diagnostics(Path(out) / "diagnostics", diag)
     from .io import write_features
 
@@ -168,16 +164,9 @@ def features_stage(recordings, out, options, progress=None):
     return diag
 
 
-def write_diagnostics(directory, diag):
-    """The frontend's diagnostics folder (diagnostics.json + detections.png), via the frontend's writer."""
-    from frontend import write_diagnostics as write
-
-    return write(directory, diag)
-
-
 def estimate_stage(out, options):
     """Estimator: OUT/features/ → OUT/calibration/ (atomic). Returns the calibration dict."""
-    from estimator import calibrate
+    from calib.estimator import calibrate
 
     from .io import write_calibration
 

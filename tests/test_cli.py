@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cli.main import app
-from estimator import calibrate
-from pipeline.evaluate import evaluate
-from pipeline.featsim import simulate_features
-from pipeline.io import read_calibration, read_features, write_features, write_truth
-from pipeline.roomsim import make_scenario, simulate
+from calib.cli.main import app
+from calib.estimator import calibrate
+from calib.pipeline.evaluate import evaluate
+from calib.pipeline.featsim import simulate_features
+from calib.pipeline.io import read_calibration, read_features, write_features, write_truth
+from calib.pipeline.roomsim import make_scenario, simulate
 
 runner = CliRunner()
 

@@ -3,10 +3,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from estimator import ObservabilityError, calibrate
-from estimator.uncertainty import crlb
-from pipeline.evaluate import evaluate
-from pipeline.featsim import simulate_features
+from calib.estimator import ObservabilityError, calibrate
+from calib.estimator.uncertainty import crlb
+from calib.pipeline.evaluate import evaluate
+from calib.pipeline.featsim import simulate_features
 
 
 def arrays_close(cal, truth, tol):

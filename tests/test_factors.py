@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimator.factors import FACTORS
-from estimator.problem import build_problem, make_layout, retract
-from pipeline.featsim import simulate_features
+from calib.estimator.factors import FACTORS
+from calib.estimator.problem import build_problem, make_layout, retract
+from calib.pipeline.featsim import simulate_features
 
 
 def random_state(p, rng):

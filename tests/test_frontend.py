@@ -12,15 +12,15 @@ import soundfile as sf
 from scipy.signal import resample_poly
 from typer.testing import CliRunner
 
-from cli.main import app
-from frontend import extract_features
-from frontend.associate import associate
-from frontend.doa import fibonacci_sphere, srp_doa, srp_setup
-from frontend.signals import chirp_template
-from frontend.timing import locate, segment_spectra, spectra_setup
-from pipeline import roomsim
-from pipeline.evaluate import feature_errors
-from pipeline.io import InputError, read_features
+from calib.cli.main import app
+from calib.pipeline.features import session_features as extract_features
+from calib.frontend.associate import associate
+from calib.frontend.doa import fibonacci_sphere, srp_doa, srp_setup
+from calib.frontend.signals import chirp_template
+from calib.frontend.timing import locate, segment_spectra, spectra_setup
+from calib.pipeline import roomsim
+from calib.pipeline.evaluate import feature_errors
+from calib.pipeline.io import InputError, read_features
 
 C = 343.0
 # 6 mics on a 3.54 cm circle, alternately 2 cm above and below its plane: a 3D array has no mirror ambiguity

@@ -6,9 +6,9 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-import pipeline.montecarlo as mc
-from cli.main import app
-from pipeline.io import InputError
+from calib.pipeline import montecarlo as mc
+from calib.cli.main import app
+from calib.pipeline.io import InputError
 
 CELL = [(1e-4, 10.0)]
 TINY = dict(cells=CELL, trajectories=[1, 3], methods=("hybrid", "wang"), progress=False)

@@ -7,11 +7,11 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-import pipeline.report as report
-from estimator import calibrate
-from pipeline.evaluate import evaluate
-from pipeline.featsim import simulate_features
-from pipeline.io import read_calibration, read_features, read_truth, write_calibration
+from calib.pipeline import report as report
+from calib.estimator import calibrate
+from calib.pipeline.evaluate import evaluate
+from calib.pipeline.featsim import simulate_features
+from calib.pipeline.io import read_calibration, read_features, read_truth, write_calibration
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"
 

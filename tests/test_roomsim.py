@@ -18,10 +18,10 @@ from scipy.signal import fftconvolve
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from cli.main import app
-from pipeline import roomsim as rs
-from pipeline.io import InputError, read_events, read_truth
-from pipeline.session import read_session
+from calib.cli.main import app
+from calib.pipeline import roomsim as rs
+from calib.pipeline.io import InputError, read_events, read_truth
+from calib.pipeline.session import read_session
 
 INF = float("inf")
 

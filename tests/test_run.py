@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import pipeline.io
-from pipeline.io import InputError, read_calibration
-from pipeline.roomsim import make_scenario, simulate
-from pipeline.run import STAMP, run
+from calib.pipeline import io as pio
+from calib.pipeline.io import InputError, read_calibration
+from calib.pipeline.roomsim import make_scenario, simulate
+from calib.pipeline.run import STAMP, run
 
 
 def tree_digest(root):
@@ -111,14 +111,14 @@ def test_changed_setting_reruns_only_downstream(base, session, tmp_path):
 def test_crash_while_writing_features_leaves_nothing_trusted(base, session, tmp_path, monkeypatch):
     out = copy_of(base, tmp_path)
     before = tree_digest(out / "features")
-    real = pipeline.io.write_table
+    real = pio.write_table
 
     def crash_on_doa(df, path, *a, **k):
         if Path(path).name == "doa.csv":
             raise RuntimeError("disk full (injected)")
         return real(df, path, *a, **k)
 
-    monkeypatch.setattr(pipeline.io, "write_table", crash_on_doa)
+    monkeypatch.setattr(pio, "write_table", crash_on_doa)
     with pytest.raises(RuntimeError, match="injected"):
         run(session, out, force=True)
     monkeypatch.undo()
@@ -132,7 +132,7 @@ def test_crash_while_writing_features_leaves_nothing_trusted(base, session, tmp_
 
 
 def test_interrupt_in_estimate_then_resume(base, session, tmp_path, monkeypatch):
-    import estimator
+    from calib import estimator
 
     out = copy_of(base, tmp_path)
     p = out / "features" / "tdoa_s.csv"

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimator import ObservabilityError, calibrate
-from estimator.calibrate import to_frames
-from estimator.problem import build_problem
-from estimator.wang import clock_line_fit, pose_by_alignment, range_windows, wang_initialise, wang_ranges
-from pipeline.evaluate import evaluate
-from pipeline.featsim import simulate_features
+from calib.estimator import ObservabilityError, calibrate
+from calib.estimator.calibrate import to_frames
+from calib.estimator.problem import build_problem
+from calib.estimator.wang import clock_line_fit, pose_by_alignment, range_windows, wang_initialise, wang_ranges
+from calib.pipeline.evaluate import evaluate
+from calib.pipeline.featsim import simulate_features
 
 
 def scene(rng, n=9):

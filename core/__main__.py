@@ -1,0 +1,5 @@
+"""``python -m calib``: the same as the ``calib`` command."""
+from calib.cli.main import main
+
+if __name__ == "__main__":
+    main()

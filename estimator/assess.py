@@ -1,0 +1,91 @@
+"""A calibration read back from disk, evaluated against its features: residuals per measurement type
+and position covariances. The public API the report (and a notebook) uses; no estimator internals leak.
+
+``model = rebuild(features, calibration)``; ``residuals(model)``; ``position_covariances(model)``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .factors import ALL_KINDS, UNITS
+from .factors import evaluate as factors
+from .problem import build_problem, make_layout
+from .solver import linearise
+from .uncertainty import covariance, state_from_frames
+
+
+def rebuild(features, calib):
+    """The estimator's problem, state, layout, factor kinds and outlier mask at a calibration read from disk.
+
+    Returns None when the calibration cannot be evaluated against these features (no sources.csv, or
+    arrays/events that do not match).
+    """
+    rep = calib.get("report") or {}
+    src = calib.get("sources")
+    names = set(features["meta"]["arrays"])
+    if src is None or set(calib["arrays"]["array"]) != names or \
+            set(src["event"]) != set(features["events"]["event"]):
+        return None
+    sig_e = float((rep.get("sigmas") or {}).get("emission_s") or 0.0)
+    use_ts = bool((rep.get("used") or {}).get("tdoa_s", True))
+    p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e)
+    # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
+    for key, name in (("tdoa_s", "sigma_tdoa_s"), ("tdoa_m", "sigma_tdoa_m"), ("doa_rad_per_axis", "sigma_doa"),
+                      ("odometry_m", "sigma_odo")):
+        v = (rep.get("sigmas") or {}).get(key)
+        if isinstance(v, (int, float)) and v > 0:
+            p[name] = float(v)
+    st = state_from_frames(p, calib["arrays"], src)
+    corr = rep.get("emission_corrections_s") or {}
+    st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p["events"]])
+    kinds = [k for k in ALL_KINDS if k != "emission" or sig_e > 0]
+    lay = make_layout(p)
+    flagged = {}
+    for o in rep.get("outliers") or []:
+        flagged.setdefault(o["type"], set()).add(int(o["line"]))
+    mask = {f["kind"]: ~np.isin(f["row"], list(flagged[f["kind"]]))
+            for f in factors(p, st, lay, kinds) if f["kind"] in flagged}
+    return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask}
+
+
+def residuals(model):
+    """Residuals per measurement type in natural units.
+
+    Returns {kind: {"values": (m,) µs / deg / cm, "outlier": (m,) bool, "sigma": the 1-σ the estimator
+    weighted with (report.json "sigmas"), same unit, "dist": "normal" | "rayleigh", "unit": str}}.
+    DOA values are angles between the measured and the predicted direction; odometry values are per axis.
+    """
+    out = {}
+    for f in factors(model["problem"], model["state"], model["layout"], model["kinds"]):
+        if len(f["r"]) == 0:
+            continue
+        unit, scale = UNITS[f["kind"]]
+        keep = model["mask"].get(f["kind"], np.ones(len(f["r"]), bool))
+        r = f["r"] * f["sigma"]
+        if f["kind"] == "doa":
+            d = np.linalg.norm(r.reshape(-1, 3), axis=1)  # |v − u| = 2 sin(θ/2)
+            vals = np.rad2deg(2 * np.arcsin(np.clip(d / 2, 0, 1)))
+            keep = keep.reshape(-1, 3).all(axis=1)
+            # per tangent axis σ → the angle is Rayleigh(σ); shown with its scale
+            out["doa"] = {"values": vals, "outlier": ~keep, "sigma": np.rad2deg(f["sigma"]), "dist": "rayleigh",
+                          "unit": "deg"}
+            continue
+        out[f["kind"]] = {"values": r * scale, "outlier": ~keep, "sigma": f["sigma"] * scale, "dist": "normal",
+                          "unit": unit.replace("us", "µs")}
+    return out
+
+
+def position_covariances(model):
+    """1-σ position covariances at the estimate: arrays (N, 3, 3) and sources (K, 3, 3), m² (NaN where fixed)."""
+    p, lay = model["problem"], model["layout"]
+    _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
+    cov = covariance(J[w > 0], lay["n"])
+
+    def blocks(idx):
+        out = np.full((len(idx), 3, 3), np.nan)
+        for k, ix in enumerate(idx):
+            if np.all(ix >= 0):
+                out[k] = cov[np.ix_(ix, ix)]
+        return out
+
+    return blocks(lay["x"]), blocks(lay["s"])

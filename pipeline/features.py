@@ -1,0 +1,30 @@
+"""The features stage as files: a recording folder → features/ and diagnostics/ (both atomic)."""
+from __future__ import annotations
+
+from calib.frontend import extract_features, plot_detections
+from calib.jsonutil import dumps_json
+
+from .io import atomic_dir, write_features
+from .session import read_session
+
+
+def session_features(recordings, progress=None, **options):
+    """Read the session folder ``recordings`` and run the frontend on it.
+
+    progress : optional ``progress(done, total, message)``. options : ``calib.frontend.DEFAULTS`` overrides.
+    Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
+    """
+    return extract_features(read_session(recordings), progress=progress, **options)
+
+
+def write_diagnostics(directory, diag):
+    """Write ``diagnostics.json`` (private ``_`` keys dropped, NaN as null) and ``detections.png``."""
+    with atomic_dir(directory) as tmp:
+        (tmp / "diagnostics.json").write_text(dumps_json(diag, drop_private=True, indent=2) + "\n")
+        plot_detections(tmp / "detections.png", diag)
+
+
+def write_feature_outputs(features_dir, diagnostics_dir, feats, diag):
+    """Features, then diagnostics, each atomically."""
+    write_features(features_dir, feats)
+    write_diagnostics(diagnostics_dir, diag)

@@ -1,0 +1,62 @@
+"""Package structure: one import package ``calib`` whose layers import one way
+(cli → pipeline → {frontend, estimator} → core), read from the import statements of every module."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from calib.modgraph import imported_modules, module_closure
+
+ROOT = Path(__file__).resolve().parents[1]
+LAYERS = {"core": "calib", "frontend": "calib.frontend", "estimator": "calib.estimator",
+          "pipeline": "calib.pipeline", "cli": "calib.cli"}
+# what each layer may import besides itself and the core (the root package's own modules)
+ALLOWED = {"core": set(), "frontend": set(), "estimator": set(),
+           "pipeline": {"frontend", "estimator"}, "cli": {"pipeline", "frontend", "estimator"}}
+ENTRY_POINTS = {"calib.__main__"}  # ``python -m calib`` runs the CLI by definition
+
+
+def layer_of(module):
+    for layer, pkg in sorted(LAYERS.items(), key=lambda kv: -len(kv[1])):
+        if module == pkg or module.startswith(pkg + "."):
+            return layer
+    raise AssertionError(module)
+
+
+def all_modules():
+    for layer, pkg in LAYERS.items():
+        for f in sorted((ROOT / layer).glob("*.py")):
+            name = pkg if f.stem == "__init__" else f"{pkg}.{f.stem}"
+            yield name, f
+
+
+@pytest.mark.parametrize("name,path", list(all_modules()), ids=lambda v: str(v))
+def test_imports_run_one_way(name, path):
+    if name in ENTRY_POINTS:
+        return
+    layer = layer_of(name)
+    for dep in imported_modules(name, path):
+        dep_layer = layer_of(dep)
+        assert dep_layer in ALLOWED[layer] | {layer, "core"}, f"{name} ({layer}) imports {dep} ({dep_layer})"
+
+
+def test_no_bare_top_level_imports():
+    """Every project import goes through ``calib.``: no module imports ``pipeline`` etc. as top level."""
+    bad = []
+    for folder in ("core", "frontend", "estimator", "pipeline", "cli", "tests", "benchmarks"):
+        for f in (ROOT / folder).glob("*.py"):
+            for node in ast.walk(ast.parse(f.read_text())):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                    [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
+                bad += [f"{f.relative_to(ROOT)}: {n}" for n in names if n.split(".")[0] in LAYERS]
+    assert not bad, bad
+
+
+def test_closure_follows_imports():
+    """The code digest of a stage covers modules reached only through other modules' imports."""
+    mods = module_closure(["calib.pipeline.report"])
+    assert "calib.estimator.solver" in mods          # report → estimator (package) → assess → solver
+    assert "calib.frontend.diagnostics" in mods      # report → frontend (package) → diagnostics
+    assert "calib.cli.tables" not in mods            # nothing in the report imports the CLI
