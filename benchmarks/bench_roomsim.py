@@ -44,7 +44,7 @@ def timing_errors(sc, d):
 
                 def neg(tc):
                     u = (n / fs - tc) * rate / fs
-                    return -np.dot(seg, rs.chirp_signal(u, ch["f0"], ch["f1"], ch["duration"], ch["fade"]))
+                    return -np.dot(seg, rs.chirp_signal(u, ch))
                 # search ±3 samples around the model: wide enough to expose any sample-level error
                 r = minimize_scalar(neg, bounds=(t[j, m] - 3 / fs, t[j, m] + 3 / fs), method="bounded",
                                     options={"xatol": 1e-11})

@@ -61,16 +61,32 @@ def _first_line(exc):
     return msg[0] if msg else type(exc).__name__
 
 
-def lfm_chirp(t, f0, f1, duration):
-    """The linear sweep of ``[chirp]``: ``sin(2π (f0 t + (f1 − f0) t² / (2 T)))`` for ``0 ≤ t < T``, else 0.
+SWEEP_KINDS = ("linear", "exponential")
 
-    t : (N,) times (s) since the chirp's start.
+
+def sweep(u, f0, f1, duration, fade=0.0, kind="linear"):
+    """The emitted sweep at times ``u`` (s since its start), unit amplitude, 0 outside ``[0, duration]``.
+
+    kind : "linear", phase ``2π (f0 u + (f1 − f0) u² / (2 T))``; or "exponential" (log sweep, Farina),
+        phase ``2π f0 T / ln(f1/f0) · ((f1/f0)^(u/T) − 1)``, instantaneous frequency ``f0 (f1/f0)^(u/T)``.
+    fade : raised-cosine fades of ``fade`` s at both ends (``½(1 − cos(π u / fade))`` on the first ``fade``
+        s, mirrored on the last).
+
+    The one definition of the chirp: the simulators render it, the frontend's template samples it.
     """
-    t = np.asarray(t, float)
-    k = (f1 - f0) / duration
-    out = np.sin(2 * np.pi * (f0 * t + 0.5 * k * t * t))
-    out[(t < 0) | (t >= duration)] = 0.0
-    return out
+    u = np.asarray(u, float)
+    if kind == "linear":
+        phase = f0 * u + 0.5 * (f1 - f0) / duration * u * u
+    elif kind == "exponential":
+        ratio = f1 / f0
+        phase = f0 * duration / np.log(ratio) * (np.power(ratio, u / duration) - 1.0)
+    else:
+        raise ValueError(f"unknown sweep kind {kind!r} (expected one of {SWEEP_KINDS})")
+    s = np.sin(2 * np.pi * phase)
+    if fade > 0:
+        edge = np.minimum(u, duration - u)
+        s = s * np.where(edge < fade, 0.5 * (1 - np.cos(np.pi * np.clip(edge, 0, fade) / fade)), 1.0)
+    return np.where((u >= 0) & (u < duration), s, 0.0)
 
 
 def resample(x, fs_from, fs_to):
@@ -84,7 +100,7 @@ def resample(x, fs_from, fs_to):
 def chirp_template(chirp, fs):
     """The emitted signal sampled at ``fs``, starting at sample 0.
 
-    chirp : the session's chirp dict (f0, f1, duration, reference). A reference WAV (mono) wins over the
+    chirp : the session's chirp dict (f0, f1, duration, kind, reference). A reference WAV (mono) wins over the
         synthesised sweep; it is resampled to ``fs`` when its rate differs.
 
     Returns (L,) float64 ndarray.
@@ -102,7 +118,8 @@ def chirp_template(chirp, fs):
             raise InputError(f"{ref}: chirp reference is silent")
         return s
     n = int(math.ceil(chirp["duration"] * fs))
-    return lfm_chirp(np.arange(n) / fs, chirp["f0"], chirp["f1"], chirp["duration"])
+    return sweep(np.arange(n) / fs, chirp["f0"], chirp["f1"], chirp["duration"], chirp.get("fade", 0.0),
+                 chirp.get("kind", "linear"))
 
 
 def chirp_band(chirp, template, fs):

@@ -33,6 +33,8 @@ import pandas as pd
 from scipy.signal import fftconvolve
 from scipy.spatial.transform import Rotation
 
+from calib.frontend.signals import SWEEP_KINDS, sweep  # noqa: F401  (SWEEP_KINDS: valid chirp kinds)
+
 from .io import ARRAYS_COLS, EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
 from .session import write_session_toml
 
@@ -108,27 +110,15 @@ ALL_KEYS = SCENE_KEYS | set(GEN_DEFAULTS) | META_KEYS
 
 
 # ----------------------------------------------------------------------------------------------- signals
-def chirp_signal(u, f0, f1, duration, fade):
-    """The emitted chirp at times ``u`` (s since its start): a linear sweep ``f0 → f1`` (Hz) over
-    ``duration`` (s), unit amplitude, with raised-cosine fades of ``fade`` s at both ends; 0 outside.
-
-    ``s(u) = w(u) sin(2π (f0 u + (f1 − f0) u² / (2 duration)))``, ``w = ½(1 − cos(π u / fade))`` on the
-    first ``fade`` s, mirrored on the last, 1 in between.
-    """
-    u = np.asarray(u, float)
-    k = (f1 - f0) / duration
-    inside = (u >= 0) & (u <= duration)
-    s = np.sin(2 * np.pi * (f0 * u + 0.5 * k * u * u))
-    if fade > 0:
-        edge = np.minimum(u, duration - u)
-        s = s * np.where(edge < fade, 0.5 * (1 - np.cos(np.pi * np.clip(edge, 0, fade) / fade)), 1.0)
-    return np.where(inside, s, 0.0)
+def chirp_signal(u, ch):
+    """The scenario's chirp ``ch`` (f0, f1, duration, fade, kind) at times ``u`` (s since its start)."""
+    return sweep(u, ch["f0"], ch["f1"], ch["duration"], ch["fade"], ch.get("kind", "linear"))
 
 
 def chirp_power(chirp):
     """Mean of ``chirp_signal²`` over its duration (dimensionless, ≈ 0.5)."""
     u = np.linspace(0, chirp["duration"], 200_001)
-    return float(np.mean(chirp_signal(u, chirp["f0"], chirp["f1"], chirp["duration"], chirp["fade"]) ** 2))
+    return float(np.mean(chirp_signal(u, chirp) ** 2))
 
 
 def circular_array(n_mics=6, radius=0.0354):
@@ -815,7 +805,7 @@ def simulate(scenario, out_dir, progress=False, overwrite=False):
                 t_start, dur = sc["t_emit"][k], ch["duration"]
 
                 def wave(u):
-                    return chirp_signal(u, ch["f0"], ch["f1"], ch["duration"], ch["fade"])
+                    return chirp_signal(u, ch)
                 level = gain
             else:
                 it = sc["interferers"][k]
@@ -875,7 +865,7 @@ def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, 
     for a, y in zip(sc["arrays"], signals):
         _write_wav(tmp / f"{a['name']}.wav", (y * rescale).T.astype(np.float32), fs, sc["subtype"])
     n_chirp = int(math.floor(ch["duration"] * fs)) + 1
-    ref = chirp_signal(np.arange(n_chirp) / fs, ch["f0"], ch["f1"], ch["duration"], ch["fade"])
+    ref = chirp_signal(np.arange(n_chirp) / fs, ch)
     _write_wav(tmp / "chirp.wav", ref.astype(np.float32), fs, "FLOAT")
 
     odo = odometry(sc)

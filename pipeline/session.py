@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.frontend.signals import SWEEP_KINDS
+
 from .io import InputError, atomic_write_text, read_events, SIGMA_KEYS
 
 
@@ -64,6 +66,13 @@ def read_session(directory):
             chirp[key] = num(chirp_cfg, key, "chirp.")
     if chirp["f0"] is not None and chirp["f1"] is not None and chirp["f0"] == chirp["f1"]:
         raise InputError(f"{p}: chirp.f0 and chirp.f1 must differ")
+    kind = chirp_cfg.get("kind", "linear")
+    if kind not in SWEEP_KINDS:
+        raise InputError(f"{p}: chirp.kind must be one of {', '.join(SWEEP_KINDS)}, not {kind!r}")
+    if kind == "exponential" and chirp["f0"] is not None and min(chirp["f0"], chirp["f1"]) <= 0:
+        raise InputError(f"{p}: an exponential sweep needs chirp.f0 and chirp.f1 > 0")
+    chirp["kind"] = kind
+    chirp["fade"] = num(chirp_cfg, "fade", "chirp.", positive=False) if "fade" in chirp_cfg else 0.0
     noise = {k: num(cfg.get("noise", {}), k, "noise.") for k in SIGMA_KEYS if k in cfg.get("noise", {})}
 
     arrays = []

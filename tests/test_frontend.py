@@ -16,7 +16,7 @@ from calib.cli.main import app
 from calib.pipeline.features import session_features as extract_features
 from calib.frontend.associate import associate
 from calib.frontend.doa import fibonacci_sphere, srp_doa, srp_setup
-from calib.frontend.signals import chirp_template
+from calib.frontend.signals import chirp_template, sweep
 from calib.frontend.timing import locate, segment_spectra, spectra_setup
 from calib.pipeline import roomsim
 from calib.pipeline.evaluate import feature_errors
@@ -169,7 +169,7 @@ def test_gcc_timing_of_fractional_delays(echo, snr_db, tol_abs, tol_rel):
     fs, f0, f1, T = 16000, 500.0, 4000.0, 0.25
 
     def chirp(t):
-        return roomsim.chirp_signal(t, f0, f1, T, 0.005)
+        return sweep(t, f0, f1, T, 0.005)
 
     rng = np.random.default_rng(0)
     seg_len = 8000
