@@ -67,6 +67,7 @@ def test_iqr_mean_is_the_mean_between_the_quartiles():
     assert mc.iqr_mean([1.0, 3.0]) == 2.0  # no value strictly between the quartiles: the median
 
 
+@pytest.mark.slow
 def test_resume_computes_only_missing_runs_and_matches_a_fresh_study(study, tmp_path):
     fresh, _ = study
     out = tmp_path / "grown"
@@ -109,6 +110,7 @@ def test_interrupted_study_keeps_finished_chunks_and_resumes(study, tmp_path, mo
     assert without_time(out / "runs.csv") == without_time(fresh / "runs.csv")
 
 
+@pytest.mark.slow
 def test_dask_cluster_gives_the_same_rows(study, tmp_path):
     distributed = pytest.importorskip("distributed")
     fresh, _ = study
