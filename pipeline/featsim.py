@@ -6,6 +6,8 @@ measurements of ``docs/architecture.md`` and adds noise, returning the same dict
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
@@ -57,9 +59,29 @@ def arrival_times(x, s, t, offset, drift, c, beta=0.0):
     return (1.0 + drift[:, None]) * (t[None, :] + d / c) + offset[:, None] + beta * drift[:, None]
 
 
+@dataclass(frozen=True)
+class SceneSpec:
+    """How the paper's protocol draws a scene (defaults: Zhang et al. 2025, Sec. IV-A).
+
+    n_arrays : number of arrays (the first is the reference). c : speed of sound (m/s).
+    max_offset : clock offsets uniform in ±max_offset (s). max_drift : drifts uniform in ±max_drift.
+    max_interval : emission intervals uniform in [0, max_interval] (s). names : array names (default A1..AN).
+    reference_drift : force the reference array's drift (e.g. 0, the gauge used without TDOA-S).
+    planar : None, or a mic-plane normal (3,) in the array frame: every array is then planar and its DOAs
+        are mirror-ambiguous, given folded to n·u >= 0 with meta ``doa_mirror_normals``.
+    """
+    n_arrays: int = 5
+    c: float = 340.0
+    max_offset: float = 0.1
+    max_drift: float = 1e-4
+    max_interval: float = 10.0
+    names: tuple | None = None
+    reference_drift: float | None = None
+    planar: tuple | None = None
+
+
 def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.03, seed=0, *,
-                      n_arrays=5, c=340.0, max_offset=0.1, max_drift=1e-4, max_interval=10.0,
-                      tdoa_s=True, tdoa_m=True, names=None, noise=True, reference_drift=None, planar=None):
+                      tdoa_s=True, tdoa_m=True, noise=True, **scene):
     """Draw one scene of the paper's protocol and its noisy features.
 
     Parameters
@@ -73,75 +95,94 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     seed : seed of the numpy Generator; same seed, same scene and noise.
     tdoa_s, tdoa_m : include that measurement type.
     noise : False gives exact measurements (the sigmas still go to meta.json as weights).
-    reference_drift : force the reference array's drift (e.g. 0, the gauge used without TDOA-S).
-    planar : None, or a mic-plane normal (3,) in the array frame: every array is then planar and its DOAs
-        are mirror-ambiguous, given folded to n·u >= 0 with meta ``doa_mirror_normals``.
+    scene : fields of :class:`SceneSpec` (n_arrays, c, max_offset, max_drift, max_interval, names,
+        reference_drift, planar).
 
     Returns
     -------
-    features, truth : dicts as returned by ``pipeline.io.read_features`` / ``read_truth``.
+    features, truth : dicts as returned by ``calib.pipeline.io.read_features`` / ``read_truth``.
     """
+    spec = SceneSpec(**scene)
     rng = np.random.default_rng(seed)
-    scale = 1.0 if noise else 0.0
-    if np.ndim(trajectory) == 0:
-        spec = TRAJECTORIES[int(trajectory)]
-        stops, (lo, size) = spec["stops"] + SHIFT, spec["box"]
-    else:
-        stops = np.asarray(trajectory, float)
-        lo, size = stops.min(0), np.ptp(stops, 0)
-    K = len(stops)
-    N = n_arrays
-    names = names or [f"A{i + 1}" for i in range(N)]
-    x = np.zeros((N, 3))
-    x[1:] = lo + size * rng.uniform(0, 1, (N - 1, 3))
-    rot = random_rotations(rng, N)
-    rotvec = rot.as_rotvec()
-    rotvec[0] = 0.0
-    rot = Rotation.from_rotvec(rotvec)
-    offset = rng.uniform(-max_offset, max_offset, N)
-    offset[0] = 0.0
-    drift = rng.uniform(-max_drift, max_drift, N)
-    if reference_drift is not None:
-        drift[0] = reference_drift
-    dt = rng.uniform(0, max_interval, K - 1)
-    t = np.concatenate([[0.0], np.cumsum(dt)])
-
-    a = arrival_times(x, stops, t, offset, drift, c)
-    ev = np.arange(K)
-    odo_steps = np.diff(stops, axis=0) + scale * rng.normal(0, sigma_odo, (K - 1, 3))
-    odom = np.vstack([np.zeros(3), np.cumsum(odo_steps, axis=0)])
-    events = pd.DataFrame({"event": ev, "t_emit": t, "odom_x": odom[:, 0], "odom_y": odom[:, 1],
-                           "odom_z": odom[:, 2]})
-
-    ii, jj = np.meshgrid(np.arange(1, N), ev, indexing="ij")
-    tm = pd.DataFrame({"event": jj.ravel(), "array": np.asarray(names)[ii.ravel()],
-                       "tdoa": (a[1:] - a[:1]).ravel() + scale * rng.normal(0, sigma_tdoa, ii.size)})
-    ii, jj = np.meshgrid(np.arange(N), ev[:-1], indexing="ij")
-    ts = pd.DataFrame({"array": np.asarray(names)[ii.ravel()], "from_event": jj.ravel(), "to_event": jj.ravel() + 1,
-                       "tdoa": np.diff(a, axis=1).ravel() + scale * rng.normal(0, sigma_tdoa, ii.size)})
-    ii, jj = np.meshgrid(np.arange(N), ev, indexing="ij")
-    ii, jj = ii.ravel(), jj.ravel()
-    u_true = rot[ii].inv().apply(stops[jj] - x[ii])
-    u_true /= np.linalg.norm(u_true, axis=1, keepdims=True)
-    u = perturb_directions(rng, u_true, scale * np.deg2rad(sigma_doa_deg))
-    if planar is not None:
-        n = np.asarray(planar, float) / np.linalg.norm(planar)
-        u = np.where((u @ n < 0)[:, None], u - 2.0 * (u @ n)[:, None] * n, u)
-    doa = pd.DataFrame({"event": jj, "array": np.asarray(names)[ii], "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]})
-
-    empty_m = pd.DataFrame({"event": np.zeros(0, int), "array": np.zeros(0, str), "tdoa": np.zeros(0)})
-    empty_s = pd.DataFrame({"array": np.zeros(0, str), "from_event": np.zeros(0, int), "to_event": np.zeros(0, int),
-                            "tdoa": np.zeros(0)})
+    stops, box = _stops_and_box(trajectory)
+    truth = _draw_scene(rng, stops, box, spec)
+    sig = {"tdoa": sigma_tdoa, "doa": np.deg2rad(sigma_doa_deg), "odo": sigma_odo}
+    features = _measure(rng, stops, truth, spec, sig, 1.0 if noise else 0.0, tdoa_s, tdoa_m)
     # meta's sigma_doa_deg is the std per tangent axis: a rotation by N(0, σ²) about an isotropic random
     # axis moves a direction by σ/√3 along each axis perpendicular to it
-    meta = {"speed_of_sound": c, "reference_array": names[0], "arrays": list(names), "sigma_tdoa": sigma_tdoa,
-            "sigma_doa_deg": sigma_doa_deg / np.sqrt(3.0), "sigma_odo": sigma_odo}
-    if planar is not None:
-        meta["doa_mirror_normals"] = {a: n.tolist() for a in names}
-    features = {"meta": meta, "events": events, "tdoa_m": tm if tdoa_m else empty_m,
-                "tdoa_s": ts if tdoa_s else empty_s, "doa": doa}
-    q = rot.as_quat(scalar_first=True)
-    arrays = pd.DataFrame({"array": names, "x": x[:, 0], "y": x[:, 1], "z": x[:, 2], "qw": q[:, 0], "qx": q[:, 1],
-                           "qy": q[:, 2], "qz": q[:, 3], "offset": offset, "drift": drift})
-    sources = pd.DataFrame({"event": ev, "x": stops[:, 0], "y": stops[:, 1], "z": stops[:, 2]})
-    return features, {"arrays": arrays, "sources": sources}
+    features["meta"] = {"speed_of_sound": spec.c, "reference_array": truth["names"][0],
+                        "arrays": list(truth["names"]), "sigma_tdoa": sigma_tdoa,
+                        "sigma_doa_deg": sigma_doa_deg / np.sqrt(3.0), "sigma_odo": sigma_odo}
+    if spec.planar is not None:
+        features["meta"]["doa_mirror_normals"] = {a: _unit(spec.planar).tolist() for a in truth["names"]}
+    return features, _truth_frames(stops, truth)
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+def _stops_and_box(trajectory):
+    """(K, 3) speaker stops and the (low corner, size) box the non-reference arrays are drawn in."""
+    if np.ndim(trajectory) == 0:
+        spec = TRAJECTORIES[int(trajectory)]
+        return spec["stops"] + SHIFT, spec["box"]
+    stops = np.asarray(trajectory, float)
+    return stops, (stops.min(0), np.ptp(stops, 0))
+
+
+def _draw_scene(rng, stops, box, spec):
+    """Array poses, clocks and emission times (the draw order fixes every seed's scene)."""
+    N, K = spec.n_arrays, len(stops)
+    lo, size = box
+    x = np.zeros((N, 3))
+    x[1:] = lo + size * rng.uniform(0, 1, (N - 1, 3))
+    rotvec = random_rotations(rng, N).as_rotvec()
+    rotvec[0] = 0.0
+    offset = rng.uniform(-spec.max_offset, spec.max_offset, N)
+    offset[0] = 0.0
+    drift = rng.uniform(-spec.max_drift, spec.max_drift, N)
+    if spec.reference_drift is not None:
+        drift[0] = spec.reference_drift
+    t = np.concatenate([[0.0], np.cumsum(rng.uniform(0, spec.max_interval, K - 1))])
+    names = list(spec.names or [f"A{i + 1}" for i in range(N)])
+    return {"x": x, "rot": Rotation.from_rotvec(rotvec), "offset": offset, "drift": drift, "t": t,
+            "names": names}
+
+
+def _measure(rng, stops, tr, spec, sig, scale, use_tdoa_s, use_tdoa_m):
+    """Noisy events, TDOA-M, TDOA-S and DOA tables of a drawn scene (noise std × ``scale``)."""
+    N, K = spec.n_arrays, len(stops)
+    names = np.asarray(tr["names"])
+    a = arrival_times(tr["x"], stops, tr["t"], tr["offset"], tr["drift"], spec.c)
+    ev = np.arange(K)
+    odo_steps = np.diff(stops, axis=0) + scale * rng.normal(0, sig["odo"], (K - 1, 3))
+    odom = np.vstack([np.zeros(3), np.cumsum(odo_steps, axis=0)])
+    events = pd.DataFrame({"event": ev, "t_emit": tr["t"], "odom_x": odom[:, 0], "odom_y": odom[:, 1],
+                           "odom_z": odom[:, 2]})
+    ii, jj = np.meshgrid(np.arange(1, N), ev, indexing="ij")
+    tm = pd.DataFrame({"event": jj.ravel(), "array": names[ii.ravel()],
+                       "tdoa": (a[1:] - a[:1]).ravel() + scale * rng.normal(0, sig["tdoa"], ii.size)})
+    ii, jj = np.meshgrid(np.arange(N), ev[:-1], indexing="ij")
+    ts = pd.DataFrame({"array": names[ii.ravel()], "from_event": jj.ravel(), "to_event": jj.ravel() + 1,
+                       "tdoa": np.diff(a, axis=1).ravel() + scale * rng.normal(0, sig["tdoa"], ii.size)})
+    ii, jj = (g.ravel() for g in np.meshgrid(np.arange(N), ev, indexing="ij"))
+    u_true = tr["rot"][ii].inv().apply(stops[jj] - tr["x"][ii])
+    u_true /= np.linalg.norm(u_true, axis=1, keepdims=True)
+    u = perturb_directions(rng, u_true, scale * sig["doa"])
+    if spec.planar is not None:
+        n = _unit(spec.planar)
+        u = np.where((u @ n < 0)[:, None], u - 2.0 * (u @ n)[:, None] * n, u)
+    doa = pd.DataFrame({"event": jj, "array": names[ii], "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]})
+    return {"events": events, "tdoa_m": tm if use_tdoa_m else tm.iloc[:0].reset_index(drop=True),
+            "tdoa_s": ts if use_tdoa_s else ts.iloc[:0].reset_index(drop=True), "doa": doa}
+
+
+def _truth_frames(stops, tr):
+    """Truth dict (arrays, sources DataFrames) of a drawn scene."""
+    x, q = tr["x"], tr["rot"].as_quat(scalar_first=True)
+    arrays = pd.DataFrame({"array": tr["names"], "x": x[:, 0], "y": x[:, 1], "z": x[:, 2], "qw": q[:, 0],
+                           "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3], "offset": tr["offset"], "drift": tr["drift"]})
+    sources = pd.DataFrame({"event": np.arange(len(stops)), "x": stops[:, 0], "y": stops[:, 1], "z": stops[:, 2]})
+    return {"arrays": arrays, "sources": sources}

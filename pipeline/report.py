@@ -58,20 +58,44 @@ def _rotations(df):
     return Rotation.from_quat(df[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).as_matrix()
 
 
-def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=None):
-    """3D view and top view (x-y) of the calibrated scene in the reference array's frame."""
-    plt = _plt()
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Ellipse
+AXIS_COLOURS = ("tab:red", "tab:green", "tab:blue")  # an array's x, y, z axes
+TRIAD = 0.08            # axis triad length, as a fraction of the scene's extent
+ELLIPSOID_SHARE = 0.03  # the largest array 1-σ semi-axis is drawn at about this fraction of the extent
 
+
+def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=None):
+    """3D view and top view (x-y) of the calibrated scene in the reference array's frame.
+
+    cov_arrays (N, 3, 3), cov_sources (K, 3, 3): 1-σ position covariances (m²), drawn as ellipsoids /
+    ellipses magnified by a round factor so that they are visible."""
+    plt = _plt()
+    sc = _scene_points(calib, features, truth)
+    scale, sd_max = _ellipsoid_scale(cov_arrays, sc["extent"])
+    fig = plt.figure(figsize=(15, 7.2))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    ax2 = fig.add_subplot(1, 2, 2)
+    for i in range(len(sc["X"])):
+        _draw_array(ax, ax2, sc, i, None if cov_arrays is None else cov_arrays[i], scale)
+    _draw_sources(ax, ax2, sc, cov_sources, scale)
+    ax2.legend(handles=_scene_legend(sc, scale, sd_max, cov_sources is not None), loc="upper left",
+               bbox_to_anchor=(1.02, 1.0), fontsize=9, frameon=False)
+    _finish_scene_axes(ax, ax2, sc)
+    fig.suptitle(_scene_title(calib, truth), fontsize=13)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _scene_points(calib, features, truth):
+    """Everything the scene plot draws, in the reference frame: arrays X (N,3), R (N,3,3), sources S,
+    odometry O (anchored at the first source), truth tA/tR/tS (or None), extent (m), triad length L."""
     arr = calib["arrays"].reset_index(drop=True)
-    X = arr[["x", "y", "z"]].to_numpy(float)
-    R = _rotations(arr)
+    X, R = arr[["x", "y", "z"]].to_numpy(float), _rotations(arr)
     src = calib.get("sources")
     S = src[["x", "y", "z"]].to_numpy(float) if src is not None else np.zeros((0, 3))
     odo = features["events"][["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     O = odo - odo[0] + (S[0] if len(S) else 0.0)  # odometry is relative: anchor it at the first source
-    tA = tS = None
+    tA = tR = tS = None
     if truth is not None:
         ta = truth["arrays"].set_index("array").reindex(arr["array"])
         tA = ta[["x", "y", "z"]].to_numpy(float)
@@ -86,82 +110,96 @@ def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=N
     allp = np.vstack([q for q in pts if len(q)])
     lo, hi = allp.min(0), allp.max(0)
     extent = float(max(np.max(hi - lo), 0.5))
-    L = 0.08 * extent  # triad length
+    return {"names": list(arr["array"]), "X": X, "R": R, "S": S, "events": None if src is None else
+            src["event"].to_numpy(int), "O": O, "tA": tA, "tR": tR, "tS": tS, "lo": lo, "hi": hi,
+            "extent": extent, "L": TRIAD * extent}
 
-    # ellipsoid scale: the largest array 1-σ semi-axis becomes ~3 % of the scene
-    scale, sd_max = 1, np.nan
-    if cov_arrays is not None:
-        ev = [np.linalg.eigvalsh(c) for c in cov_arrays if np.all(np.isfinite(c))]
-        if ev:
-            sd_max = math.sqrt(max(float(np.max(e)) for e in ev))
-            scale = _nice_scale(0.03 * extent / max(sd_max, 1e-12))
 
-    fig = plt.figure(figsize=(15, 7.2))
-    ax = fig.add_subplot(1, 2, 1, projection="3d")
-    ax2 = fig.add_subplot(1, 2, 2)
-    axis_col = ("tab:red", "tab:green", "tab:blue")
-    u, v = np.mgrid[0:2 * np.pi:16j, 0:np.pi:9j]
-    sphere = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], -1)
-    for i, name in enumerate(arr["array"]):
-        for k in range(3):
-            e = X[i] + L * R[i][:, k]
-            ax.plot(*np.c_[X[i], e], color=axis_col[k], lw=2.2)
-            ax2.plot(*np.c_[X[i], e][:2], color=axis_col[k], lw=2.2)
-        if tA is not None and np.all(np.isfinite(tA[i])):
-            ax.plot(*np.c_[X[i], tA[i]], color="k", lw=0.8)  # error vector estimate → truth
-            ax2.plot(*np.c_[X[i], tA[i]][:2], color="k", lw=0.8)
-            ax.scatter(*tA[i], s=70, facecolors="none", edgecolors="k", lw=1.2)
-            ax2.scatter(*tA[i][:2], s=90, facecolors="none", edgecolors="k", lw=1.2, zorder=4)
-            if np.all(np.isfinite(tR[i])):
-                for k in range(3):
-                    e = tA[i] + L * tR[i][:, k]
-                    ax.plot(*np.c_[tA[i], e], color=axis_col[k], lw=1, ls=":", alpha=0.8)
-                    ax2.plot(*np.c_[tA[i], e][:2], color=axis_col[k], lw=1, ls=":", alpha=0.8)
-        ax.scatter(*X[i], color="k", s=14)
-        ax.text(*(X[i] + 0.35 * L), name, fontsize=11, weight="bold")
-        ax2.scatter(*X[i][:2], color="k", s=14, zorder=5)
-        ax2.annotate(name, X[i][:2], xytext=(6, 6), textcoords="offset points", fontsize=11, weight="bold")
-        if cov_arrays is not None and np.all(np.isfinite(cov_arrays[i])):
-            w, V = np.linalg.eigh(cov_arrays[i])
-            E = X[i] + scale * (sphere * np.sqrt(np.maximum(w, 0))) @ V.T
-            ax.plot_wireframe(E[..., 0], E[..., 1], E[..., 2], color="tab:purple", lw=0.5, alpha=0.6)
-            _ellipse(ax2, Ellipse, X[i][:2], scale * cov_arrays[i][:2, :2] * scale, "tab:purple")
+def _ellipsoid_scale(cov_arrays, extent):
+    """(magnification, largest array 1-σ in m or NaN): a 1, 2, 5 × 10^n factor for the ellipsoids."""
+    if cov_arrays is None:
+        return 1, np.nan
+    ev = [np.linalg.eigvalsh(c) for c in cov_arrays if np.all(np.isfinite(c))]
+    if not ev:
+        return 1, np.nan
+    sd_max = math.sqrt(max(float(np.max(e)) for e in ev))
+    return _nice_scale(ELLIPSOID_SHARE * extent / max(sd_max, 1e-12)), sd_max
+
+
+def _triad(ax, ax2, origin, R, L, **style):
+    """An array's axes as three coloured segments in both views."""
+    for k in range(3):
+        seg = np.c_[origin, origin + L * R[:, k]]
+        ax.plot(*seg, color=AXIS_COLOURS[k], **style)
+        ax2.plot(*seg[:2], color=AXIS_COLOURS[k], **style)
+
+
+def _draw_array(ax, ax2, sc, i, cov, scale):
+    """Array ``i``: axis triad, name, truth (circle, dotted axes, error line), 1-σ ellipsoid."""
+    X, L, tA = sc["X"][i], sc["L"], sc["tA"]
+    _triad(ax, ax2, X, sc["R"][i], L, lw=2.2)
+    if tA is not None and np.all(np.isfinite(tA[i])):
+        ax.plot(*np.c_[X, tA[i]], color="k", lw=0.8)  # error vector estimate → truth
+        ax2.plot(*np.c_[X, tA[i]][:2], color="k", lw=0.8)
+        ax.scatter(*tA[i], s=70, facecolors="none", edgecolors="k", lw=1.2)
+        ax2.scatter(*tA[i][:2], s=90, facecolors="none", edgecolors="k", lw=1.2, zorder=4)
+        if np.all(np.isfinite(sc["tR"][i])):
+            _triad(ax, ax2, tA[i], sc["tR"][i], L, lw=1, ls=":", alpha=0.8)
+    ax.scatter(*X, color="k", s=14)
+    ax.text(*(X + 0.35 * L), sc["names"][i], fontsize=11, weight="bold")
+    ax2.scatter(*X[:2], color="k", s=14, zorder=5)
+    ax2.annotate(sc["names"][i], X[:2], xytext=(6, 6), textcoords="offset points", fontsize=11, weight="bold")
+    if cov is not None and np.all(np.isfinite(cov)):
+        u, v = np.mgrid[0:2 * np.pi:16j, 0:np.pi:9j]
+        sphere = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], -1)
+        w, V = np.linalg.eigh(cov)
+        E = X + scale * (sphere * np.sqrt(np.maximum(w, 0))) @ V.T
+        ax.plot_wireframe(E[..., 0], E[..., 1], E[..., 2], color="tab:purple", lw=0.5, alpha=0.6)
+        _ellipse(ax2, X[:2], scale * cov[:2, :2] * scale, "tab:purple")
+
+
+def _draw_sources(ax, ax2, sc, cov_sources, scale):
+    """Estimated sources (path), their 1-σ ellipses, the odometry path and the true sources."""
+    S = sc["S"]
     if len(S):
         ax.plot(*S.T, "o-", color="tab:orange", ms=4, lw=1)
         ax2.plot(*S[:, :2].T, "o-", color="tab:orange", ms=4, lw=1)
         for j in (0, len(S) - 1):
-            ev = int(src["event"].iloc[j])
-            ax2.annotate(f"event {ev}", S[j, :2], xytext=(5, -12), textcoords="offset points", fontsize=9,
-                         color="tab:orange")
-        if cov_sources is not None:
-            for j in range(len(S)):
-                if np.all(np.isfinite(cov_sources[j])):
-                    _ellipse(ax2, Ellipse, S[j, :2], scale * cov_sources[j][:2, :2] * scale, "tab:orange",
-                             lw=0.7, alpha=0.5)
-    ax.plot(*O.T, "--", color="0.45", lw=1)
-    ax2.plot(*O[:, :2].T, "--", color="0.45", lw=1)
-    if tS is not None:
-        ax.scatter(*tS.T, marker="x", color="k", s=22, lw=1)
-        ax2.scatter(*tS[:, :2].T, marker="x", color="k", s=22, lw=1)
+            ax2.annotate(f"event {sc['events'][j]}", S[j, :2], xytext=(5, -12), textcoords="offset points",
+                         fontsize=9, color="tab:orange")
+        for j in range(len(S) if cov_sources is not None else 0):
+            if np.all(np.isfinite(cov_sources[j])):
+                _ellipse(ax2, S[j, :2], scale * cov_sources[j][:2, :2] * scale, "tab:orange", lw=0.7, alpha=0.5)
+    ax.plot(*sc["O"].T, "--", color="0.45", lw=1)
+    ax2.plot(*sc["O"][:, :2].T, "--", color="0.45", lw=1)
+    if sc["tS"] is not None:
+        ax.scatter(*sc["tS"].T, marker="x", color="k", s=22, lw=1)
+        ax2.scatter(*sc["tS"][:, :2].T, marker="x", color="k", s=22, lw=1)
 
-    handles = [Line2D([], [], color=c, lw=2.2, label=f"array {a} axis") for c, a in zip(axis_col, "xyz")]
+
+def _scene_legend(sc, scale, sd_max, with_source_cov):
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=c, lw=2.2, label=f"array {a} axis") for c, a in zip(AXIS_COLOURS, "xyz")]
     handles += [Line2D([], [], color="tab:orange", marker="o", ms=4, lw=1, label="sources (estimate)"),
                 Line2D([], [], color="0.45", ls="--", label="odometry path (anchored at first source)")]
-    if tA is not None:
+    if sc["tA"] is not None:
         handles += [Line2D([], [], marker="o", mfc="none", mec="k", ls="",
                            label="arrays (truth, dotted axes; line = error)")]
-    if tS is not None:
+    if sc["tS"] is not None:
         handles += [Line2D([], [], marker="x", color="k", ls="", label="sources (truth)")]
     if np.isfinite(sd_max):
         handles += [Line2D([], [], color="tab:purple", lw=1,
                            label=f"1-σ array position ellipsoids ×{scale} (largest σ {100 * sd_max:.1f} cm)")]
-        if cov_sources is not None and len(S):
+        if with_source_cov and len(sc["S"]):
             handles += [Line2D([], [], color="tab:orange", lw=0.7, alpha=0.6,
                                label=f"1-σ source ellipses (x-y) ×{scale}")]
-    ax2.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=9, frameon=False)
+    return handles
 
-    mid = 0.5 * (lo + hi)
-    half = 0.5 * extent * 1.05
+
+def _finish_scene_axes(ax, ax2, sc):
+    mid = 0.5 * (sc["lo"] + sc["hi"])
+    half = 0.5 * sc["extent"] * 1.05
     ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half),
            zlim=(mid[2] - half, mid[2] + half), xlabel="x (m)", ylabel="y (m)", zlabel="z (m)")
     ax.set_box_aspect((1, 1, 1))
@@ -170,13 +208,12 @@ def plot_scene(path, calib, features, truth=None, cov_arrays=None, cov_sources=N
     ax2.set_aspect("equal", adjustable="datalim")
     ax2.set(xlabel="x (m)", ylabel="y (m)", title="Top view (x-y)")
     ax2.grid(alpha=0.3)
-    fig.suptitle(_scene_title(calib, truth), fontsize=13)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
-def _ellipse(ax, Ellipse, c, cov2, color, lw=1.0, alpha=0.8):
+def _ellipse(ax, c, cov2, color, lw=1.0, alpha=0.8):
+    """The 1-σ ellipse of a 2×2 covariance ``cov2`` centred at ``c``."""
+    from matplotlib.patches import Ellipse
+
     w, V = np.linalg.eigh(cov2)
     w = np.sqrt(np.maximum(w, 0))
     ang = np.degrees(np.arctan2(V[1, 1], V[0, 1]))
