@@ -329,6 +329,15 @@ def _connect(scheduler):
         raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
 
 
+def _kill_workers():
+    """Stop joblib's worker processes now (they would otherwise finish their chunks after the parent stops)."""
+    from joblib.externals.loky import reusable_executor
+
+    executor = getattr(reusable_executor, "_executor", None)  # None: no pool was started
+    if executor is not None:
+        executor.shutdown(wait=False, kill_workers=True)
+
+
 def _execute(chunks, settings, jobs, client):
     """Yield each chunk's rows as it finishes (joblib on local cores, or a Dask cluster)."""
     if client is None:
@@ -338,8 +347,12 @@ def _execute(chunks, settings, jobs, client):
             return
         from joblib import Parallel, delayed
 
-        yield from Parallel(n_jobs=jobs, return_as="generator_unordered")(
-            delayed(_run_chunk)(c, settings) for c in chunks)
+        try:
+            yield from Parallel(n_jobs=jobs, return_as="generator_unordered")(
+                delayed(_run_chunk)(c, settings) for c in chunks)
+        except BaseException:  # interrupt (SIGINT/SIGTERM) or error: stop the workers, do not let them compute on
+            _kill_workers()
+            raise
         return
     from distributed import as_completed
 
