@@ -23,20 +23,24 @@ def features(
 ):
     """Detect the chirps, match them to the robot's events, measure TDOA-M, TDOA-S and DOA."""
     from calib.pipeline.features import write_feature_outputs
-    from calib.pipeline.outputs import owned_output
+    from calib.pipeline.outputs import check_separate, owned_output
+    from calib.pipeline.session import read_session
     from calib.pipeline.validate import features_options
 
     diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
     opts = features_options({"threshold": threshold, "max_drift": max_drift})
-    with owned_output([out, diag_dir], [recordings], command="calib features", on_wait=waiting):
-        feats, diag = _extract(recordings, opts, quiet)
+    check_separate([out, diag_dir], [recordings])
+    session = read_session(recordings)  # every input checked before any output is touched
+    inputs = [recordings, *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]
+    with owned_output([out, diag_dir], inputs, command="calib features", on_wait=waiting):
+        feats, diag = _extract(session, opts, quiet)
         write_feature_outputs(out, diag_dir, feats, diag)
     if not quiet:
         _summary(feats, diag, out, diag_dir)
 
 
 def _extract(recordings, opts, quiet):
-    """Features and diagnostics of a session folder, with a progress bar unless ``quiet``."""
+    """Features and diagnostics of a session (folder or read session), with a progress bar unless ``quiet``."""
     from calib.pipeline.features import session_features
 
     if quiet:

@@ -66,7 +66,7 @@ def montecarlo(
     from calib.pipeline.montecarlo import paper_grid, read_grid, run_study
 
     from calib.pipeline import validate as V
-    from calib.pipeline.outputs import owned_output
+    from calib.pipeline.outputs import output_lock
 
     V.option(runs, "runs", lo=1, hi=10**6, integer=True)
     if jobs != -1:
@@ -85,7 +85,7 @@ def montecarlo(
     if seed is not None:
         g["base_seed"] = seed
     try:
-        with owned_output([out], [grid], command="calib montecarlo", on_wait=waiting, check=False):
+        with output_lock(out, on_wait=waiting):  # a resumable study folder: locked, appended to, never replaced
             res = run_study(out, g["cells"], g["trajectories"], g["runs"], g["methods"], jobs=jobs, scheduler=scheduler,
                             progress=not quiet, base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
                             check_convergence=check_convergence, with_crlb=crlb)

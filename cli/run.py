@@ -29,12 +29,11 @@ class _Display:
                                      console=console, transient=False)
 
     def __enter__(self):
-        if self.progress is not None:
-            self.progress.__enter__()
+        self.started = False  # the display starts with the first stage, after the inputs are validated
         return self
 
     def __exit__(self, *exc):
-        if self.progress is not None:
+        if self.started:
             self.progress.__exit__(*exc)
 
     def log(self, stage, status, detail):
@@ -43,6 +42,9 @@ class _Display:
         if status == "skipped":
             console.print(f"[dim]{stage:<10} skipped ({detail})[/dim]")
         elif status == "run":
+            if not self.started:
+                self.progress.__enter__()
+                self.started = True
             self.tasks[stage] = self.progress.add_task(stage, total=None, msg=f"[dim]{detail}[/dim]")
         elif status == "done":
             t = self.tasks[stage]

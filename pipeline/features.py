@@ -10,12 +10,13 @@ from .session import read_session
 
 
 def session_features(recordings, progress=None, **options):
-    """Read the session folder ``recordings`` and run the frontend on it.
+    """Read the session folder ``recordings`` (or take an already read session dict) and run the frontend.
 
     progress : optional ``progress(done, total, message)``. options : ``calib.frontend.DEFAULTS`` overrides.
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
-    return extract_features(read_session(recordings), progress=progress, **options)
+    session = recordings if isinstance(recordings, dict) else read_session(recordings)
+    return extract_features(session, progress=progress, **options)
 
 
 def write_diagnostics(directory, diag):

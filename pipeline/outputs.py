@@ -96,8 +96,11 @@ def write_marker(folder, command):
                                                   indent=1) + "\n")
 
 
-def check_replaceable(folder):
-    """Raise InputError unless calib may replace ``folder`` (absent, empty, or owned and unedited)."""
+def check_replaceable(folder, edits=True):
+    """Raise InputError unless calib may replace ``folder`` (absent, empty, or owned and unedited).
+
+    edits : also refuse files edited since calib wrote them (False: only files calib did not write).
+    """
     folder = Path(folder)
     if not folder.exists() and not folder.is_symlink():
         return
@@ -114,7 +117,7 @@ def check_replaceable(folder):
         p = folder / rel.rstrip("/")
         if rel not in marker:
             raise InputError(f"{p}: not written by calib; move it out of {folder} (calib never deletes your files)")
-        if _sha256(p) != marker[rel]:
+        if edits and _sha256(p) != marker[rel]:
             raise InputError(f"{p}: edited since calib wrote it; move it away or rename it to keep your edit")
 
 
@@ -130,14 +133,42 @@ def output_lock(folder, on_wait=None):
     folder = Path(folder)
     parent = folder.resolve().parent
     path = parent / f".{folder.name}{LOCK_SUFFIX}"
+    created = _make_parents(parent, folder)
+    try:
+        with _locked(path, folder, on_wait):
+            yield
+    finally:
+        for d in reversed(created):  # folders made only for this output and left empty (a failed command)
+            try:
+                d.rmdir()
+            except OSError:
+                break
+
+
+def _make_parents(parent, folder):
+    """mkdir -p ``parent``; returns the folders it created (outermost first)."""
+    missing = []
+    p = parent
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise os_error(exc, folder) from None
+    return missing[::-1]
+
+
+@contextlib.contextmanager
+def _locked(path, folder, on_wait):
+    """flock the file ``path`` (created), retrying if its holder removed it meanwhile; removed on release."""
     told = False
     while True:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        except FileNotFoundError:  # another command removed its empty parent folder meanwhile: make it again
+            _make_parents(path.parent, folder)
+            continue
         except OSError as exc:
             raise InputError(f"{exc.filename or folder}: cannot create the output ({exc.strerror})") from None
         try:
@@ -265,7 +296,8 @@ def owned_output(folders, inputs=(), *, command="calib", on_wait=None, lock=None
     """The whole policy for a command writing ``folders``: separation, lock, litter, replaceability.
 
     lock : the folder whose lock to hold (default: every one of ``folders``, in a fixed order).
-    check : check now that every folder may be replaced (``calib run`` checks per stage instead).
+    check : check now that every folder may be replaced; False: only that no folder holds a file calib
+        did not write (``calib run`` checks hand-edits per stage: an edit is fine if its stage is skipped).
     Nothing is written here; write with :func:`publish` inside this context.
     """
     folders = [Path(f) for f in folders]
@@ -276,6 +308,5 @@ def owned_output(folders, inputs=(), *, command="calib", on_wait=None, lock=None
             stack.enter_context(output_lock(f, on_wait=on_wait))
         for f in folders:
             remove_litter(f)
-            if check:
-                check_replaceable(f)
+            check_replaceable(f, edits=check)
         yield

@@ -33,7 +33,7 @@ from calib.modgraph import module_closure
 
 from . import validate as V
 from .io import InputError, atomic_write_text, dumps_json, read_calibration, read_features, read_truth
-from .outputs import check_replaceable, owned_output
+from .outputs import check_replaceable, check_separate, owned_output
 
 STAMP = ".calib-stage.json"
 STAGES = ("features", "estimate", "report")
@@ -256,6 +256,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
     inputs = [Path(recordings), *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]
+    check_separate([out], inputs)
     subdirs = [out / n for n in OUT_DIRS]
     with owned_output(subdirs, inputs, command="calib run", on_wait=on_wait, lock=out,
                       check=False):
