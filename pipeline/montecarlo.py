@@ -36,6 +36,7 @@ from calib.estimator import calibrate, crlb, draw_from_crlb, state_from_frames, 
 from .evaluate import evaluate
 from .featsim import simulate_features
 from .io import InputError, atomic_write_text, dumps_json
+from .validate import read_text
 
 SIGMA_TDOA = (5e-5, 1e-4, 5e-4)
 SIGMA_DOA_DEG = (5.0, 10.0, 15.0)
@@ -218,10 +219,8 @@ def read_grid(path):
     """
     path = Path(path)
     try:
-        cfg = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        cfg = tomllib.loads(read_text(path))
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
         raise InputError(f"{path}: invalid TOML ({exc})") from None
     known = {"sigma_tdoa", "sigma_doa_deg", "cells", "trajectories", "runs", "methods", "sigma_odo", "base_seed"}
     unknown = sorted(set(cfg) - known)
