@@ -63,7 +63,7 @@ def simulate(
 SIM_OPTION_RANGES = {
     "rt60": (0.0, 10.0, False, False), "snr": (-60.0, 300.0, False, False),
     "diffuse_snr": (-60.0, 300.0, False, False), "fs": (*V.SAMPLE_RATE, False, True),
-    "n_arrays": (1, 64, False, True), "n_events": (1, V.MAX_EVENTS, False, True),
+    "n_arrays": (1, 64, False, True), "n_events": (0, V.MAX_EVENTS, False, True),
     "interval": (0.0, 3600.0, True, False), "chirp_duration": (*V.CHIRP_DURATION, False, False),
     "interferers": (0, 1000, False, True), "sigma_odo": (0.0, 100.0, False, False), "seed": (0, 2**32 - 1, False, True),
 }
