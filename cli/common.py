@@ -50,9 +50,11 @@ class _Warnings:
 
     def __init__(self):
         self.seen = []
+        self.other = warnings.showwarning  # warnings of other kinds are shown as Python shows them
 
     def show(self, message, category, filename, lineno, file=None, line=None):
         if not issubclass(category, InputWarning):
+            self.other(message, category, filename, lineno, file, line)
             return
         text = _one_line(message)
         if text in self.seen:

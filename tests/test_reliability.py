@@ -21,7 +21,7 @@ import pytest
 from typer.testing import CliRunner
 
 from calib.cli.main import app
-from calib.errors import InputError, InputWarning
+from calib.errors import InputWarning
 from calib.pipeline.featsim import simulate_features
 from calib.pipeline.io import write_calibration, write_features, write_truth
 from calib.pipeline.outputs import MARKER
