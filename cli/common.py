@@ -1,33 +1,124 @@
-"""Shared CLI plumbing: one-line errors with exit code 2, consoles."""
+"""Shared CLI plumbing: one-line errors with exit code 2, internal errors, interrupts, consoles.
+
+Exit codes (docs/reliability.md): 0 ok, 1 internal error (a bug: the traceback is written to a file
+whose path is printed), 2 bad input (``error: <file>: <problem>``), 130 SIGINT, 143 SIGTERM.
+"""
 from __future__ import annotations
 
+import datetime
 import functools
+import os
 import sys
+import tempfile
+import traceback
+import warnings
 from typing import Annotated
 
 import typer
 from rich.console import Console
 
-from calib.pipeline.io import InputError
+from calib.errors import InputError, InputWarning
+from calib.pipeline import validate as V
+from calib.pipeline.outputs import ENVIRONMENT_ERRNOS
 
-EXIT_INPUT = 2
+from . import signals
+from .signals import EXIT_INPUT, EXIT_INTERNAL  # noqa: F401  (re-exported)
 
 console = Console(stderr=True)
+MAX_WARNINGS = 5  # input warnings printed per command; the rest are counted in one line
+
+
+def _one_line(text):
+    return " ".join(str(text).split())
+
+
+def _report_bug(exc):
+    """Write the traceback to a file in the temp folder; return its path."""
+    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    path = os.path.join(tempfile.gettempdir(), f"calib-internal-error-{stamp}-{os.getpid()}.txt")
+    try:
+        with open(path, "w") as f:
+            f.write(f"calib {' '.join(sys.argv[1:])}\n\n")
+            traceback.print_exception(exc, file=f)
+    except OSError:
+        return None
+    return path
+
+
+class _Warnings:
+    """Show InputWarnings as ``warning: <file>: <problem>`` lines (at most MAX_WARNINGS, then a count)."""
+
+    def __init__(self):
+        self.seen = []
+        self.other = warnings.showwarning  # warnings of other kinds are shown as Python shows them
+
+    def show(self, message, category, filename, lineno, file=None, line=None):
+        if not issubclass(category, InputWarning):
+            self.other(message, category, filename, lineno, file, line)
+            return
+        text = _one_line(message)
+        if text in self.seen:
+            return
+        self.seen.append(text)
+        if len(self.seen) <= MAX_WARNINGS:
+            print(f"warning: {text}", file=sys.stderr)
+
+    def summary(self):
+        if len(self.seen) > MAX_WARNINGS:
+            print(f"warning: {len(self.seen) - MAX_WARNINGS} more warning(s) not shown", file=sys.stderr)
 
 
 def user_errors(func):
-    """Turn expected user-facing failures into ``error: <one line>`` on stderr and exit code 2."""
+    """Run a command with the project's error policy.
+
+    InputError (bad input) and OSErrors of the environment (full disk, read-only folder, over-long name)
+    → ``error: <one line>`` on stderr, exit 2. KeyboardInterrupt / SIGTERM → one line, exit 130 / 143.
+    Anything else is a bug → ``internal error`` with the traceback in a file, exit 1.
+    """
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
+        previous = signals.install()
+        shown = _Warnings()
         try:
-            return func(*args, **kwargs)
-        except (InputError, ValueError) as exc:  # library errors for bad input are ValueErrors
-            msg = " ".join(str(exc).split())
-            print(f"error: {msg}", file=sys.stderr)
+            with warnings.catch_warnings():
+                warnings.simplefilter("always", InputWarning)
+                warnings.showwarning = shown.show
+                result = func(*args, **kwargs)
+            shown.summary()
+            return result
+        except (typer.Exit, typer.Abort, SystemExit):
+            raise
+        except InputError as exc:
+            print(f"error: {_one_line(exc)}", file=sys.stderr)
             raise typer.Exit(EXIT_INPUT) from None
+        except OSError as exc:
+            if exc.errno not in ENVIRONMENT_ERRNOS:
+                _internal(exc)
+            where = exc.filename if exc.filename is not None else "output"
+            print(f"error: {where}: {_one_line(exc.strerror or exc)}", file=sys.stderr)
+            raise typer.Exit(EXIT_INPUT) from None
+        except KeyboardInterrupt as exc:
+            raise typer.Exit(signals.interrupted(exc)) from None
+        except Exception as exc:  # a bug in calib, not bad input
+            _internal(exc)
+        finally:
+            signals.restore(previous)
 
     return wrapper
+
+
+def waiting(message):
+    """``on_wait`` of the output lock: say why the command pauses."""
+    print(f"waiting: {message}", file=sys.stderr)
+
+
+def _internal(exc):
+    path = _report_bug(exc)
+    where = f"traceback written to {path}" if path else "no traceback file could be written"
+    print(f"internal error: {type(exc).__name__}: {_one_line(exc)[:200]} (a bug in calib; {where}; please report "
+          "it)", file=sys.stderr)
+    raise typer.Exit(EXIT_INTERNAL) from None
 
 
 # Estimator options shared by `calib estimate` and `calib run` (one declaration, one help text).
@@ -42,10 +133,6 @@ Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="print nothing but er
 
 
 def estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise):
-    """Validated keyword arguments of ``estimator.calibrate`` from the shared CLI options."""
-    for name, value, allowed in (("method", method, ("hybrid", "wang")), ("loss", loss, ("cauchy", "huber", "linear")),
-                                 ("noise", noise, ("auto", "meta", "estimate"))):
-        if value not in allowed:
-            raise ValueError(f"--{name} must be {', '.join(allowed[:-1])} or {allowed[-1]}, not {value!r}")
-    return {"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma, "loss": loss,
-            "outlier_threshold": outlier_threshold, "noise": noise}
+    """Validated keyword arguments of ``estimator.calibrate`` from the shared CLI options (InputError)."""
+    return V.estimate_options({"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma,
+                               "loss": loss, "outlier_threshold": outlier_threshold, "noise": noise})

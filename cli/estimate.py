@@ -5,10 +5,11 @@ from pathlib import Path
 
 import typer
 
-from calib.estimator import calibrate
-from calib.pipeline.io import read_features, write_calibration
+from calib.pipeline.io import write_calibration
+from calib.pipeline.outputs import owned_output
+from calib.pipeline.run import estimate_features
 from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
-                     estimate_options, user_errors)
+                     estimate_options, user_errors, waiting)
 from .tables import print_arrays
 
 
@@ -26,8 +27,9 @@ def estimate(
 ):
     """Estimate array poses, clock offsets/drifts and source positions from features."""
     opts = estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise)
-    calib = calibrate(read_features(features), **{**opts, "loss": None if loss == "linear" else loss})
-    write_calibration(out, calib)
+    with owned_output([out], [features], command="calib estimate", on_wait=waiting):
+        calib = estimate_features(features, opts)
+        write_calibration(out, calib, command="calib estimate")
     if not quiet:
         print_arrays(calib)
         rep = calib["report"]

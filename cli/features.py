@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from .common import console, user_errors
+from .common import console, user_errors, waiting
 
 
 @user_errors
@@ -15,16 +15,34 @@ def features(
     out: Path = typer.Option(..., "-o", "--out", help="features folder to write (replaced atomically)"),
     diagnostics: Optional[Path] = typer.Option(
         None, "--diagnostics", help="where to write diagnostics.json and detections.png "
-                                    "[default: 'diagnostics' beside the features folder]"),
+                                    "[default: 'diagnostics' beside the features folder] (written with the "
+                                    "features: both or neither)"),
     threshold: float = typer.Option(8.0, help="detection threshold: matched-filter peak over local background"),
     max_drift: float = typer.Option(1e-3, help="largest clock drift |δ| the association allows"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
     """Detect the chirps, match them to the robot's events, measure TDOA-M, TDOA-S and DOA."""
-    from calib.pipeline.features import session_features, write_feature_outputs
+    from calib.pipeline.features import write_feature_outputs
+    from calib.pipeline.outputs import check_separate, owned_output
+    from calib.pipeline.session import read_session
+    from calib.pipeline.validate import features_options
 
     diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
-    opts = {"threshold": threshold, "max_drift": max_drift}
+    opts = features_options({"threshold": threshold, "max_drift": max_drift})
+    check_separate([out, diag_dir], [recordings])
+    session = read_session(recordings)  # every input checked before any output is touched
+    inputs = [recordings, *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]
+    with owned_output([out, diag_dir], inputs, command="calib features", on_wait=waiting):
+        feats, diag = _extract(session, opts, quiet)
+        write_feature_outputs(out, diag_dir, feats, diag)
+    if not quiet:
+        _summary(feats, diag, out, diag_dir)
+
+
+def _extract(recordings, opts, quiet):
+    """Features and diagnostics of a session (folder or read session), with a progress bar unless ``quiet``."""
+    from calib.pipeline.features import session_features
+
     if quiet:
         feats, diag = session_features(recordings, **opts)
     else:
@@ -38,9 +56,7 @@ def features(
                 bar.update(task, total=total, completed=done, msg=msg)
 
             feats, diag = session_features(recordings, progress=progress, **opts)
-    write_feature_outputs(out, diag_dir, feats, diag)
-    if not quiet:
-        _summary(feats, diag, out, diag_dir)
+    return feats, diag
 
 
 def _summary(feats, diag, out, diag_dir):

@@ -2,14 +2,14 @@
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from calib.pipeline.io import InputError
-from .common import user_errors
+from .common import user_errors, waiting
+from .signals import interrupted
 
 
 def _floats(text, what):
@@ -17,6 +17,8 @@ def _floats(text, what):
         vals = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise InputError(f"--{what}: expected comma-separated numbers, got {text!r}") from None
+    if not all(math.isfinite(v) and v >= 0 for v in vals):
+        raise InputError(f"--{what}: values must be finite and non-negative, got {text!r}")
     if not vals:
         raise InputError(f"--{what}: no values in {text!r}")
     return vals
@@ -63,6 +65,12 @@ def montecarlo(
     """
     from calib.pipeline.montecarlo import paper_grid, read_grid, run_study
 
+    from calib.pipeline import validate as V
+    from calib.pipeline.outputs import output_lock
+
+    V.option(runs, "runs", lo=1, hi=10**6, integer=True)
+    if jobs != -1:
+        V.option(jobs, "jobs", lo=1, hi=1024, integer=True)
     g = read_grid(grid) if grid is not None else paper_grid()
     if sigma_tdoa is not None or sigma_doa is not None:
         st = [v * 1e-3 for v in _floats(sigma_tdoa, "sigma-tdoa")] if sigma_tdoa else sorted({c[0] for c in g["cells"]})
@@ -77,13 +85,13 @@ def montecarlo(
     if seed is not None:
         g["base_seed"] = seed
     try:
-        res = run_study(out, g["cells"], g["trajectories"], g["runs"], g["methods"], jobs=jobs, scheduler=scheduler,
-                        progress=not quiet, base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
-                        check_convergence=check_convergence, with_crlb=crlb)
-    except KeyboardInterrupt:
-        print(f"interrupted: the finished runs are kept in {out}; run the same command again to resume",
-              file=sys.stderr)
-        raise typer.Exit(130) from None
+        with output_lock(out, on_wait=waiting):  # a resumable study folder: locked, appended to, never replaced
+            res = run_study(out, g["cells"], g["trajectories"], g["runs"], g["methods"], jobs=jobs, scheduler=scheduler,
+                            progress=not quiet, base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
+                            check_convergence=check_convergence, with_crlb=crlb)
+    except KeyboardInterrupt as exc:
+        raise typer.Exit(interrupted(exc, f"the finished runs are kept in {out}; run the same command again to "
+                                          "resume")) from None
     if not quiet:
         _print_summary(res)
 

@@ -1,7 +1,6 @@
 """`calib run RECORDINGS [-o OUT]`: features → estimate → report, skipping stages whose inputs are unchanged."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Optional
 
@@ -9,7 +8,8 @@ import typer
 
 from calib.pipeline.io import dumps_json
 from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
-                     estimate_options, user_errors)
+                     estimate_options, user_errors, waiting)
+from .signals import interrupted
 from .tables import out as stdout, print_arrays, print_metrics
 
 
@@ -29,12 +29,11 @@ class _Display:
                                      console=console, transient=False)
 
     def __enter__(self):
-        if self.progress is not None:
-            self.progress.__enter__()
+        self.started = False  # the display starts with the first stage, after the inputs are validated
         return self
 
     def __exit__(self, *exc):
-        if self.progress is not None:
+        if self.started:
             self.progress.__exit__(*exc)
 
     def log(self, stage, status, detail):
@@ -43,6 +42,9 @@ class _Display:
         if status == "skipped":
             console.print(f"[dim]{stage:<10} skipped ({detail})[/dim]")
         elif status == "run":
+            if not self.started:
+                self.progress.__enter__()
+                self.started = True
             self.tasks[stage] = self.progress.add_task(stage, total=None, msg=f"[dim]{detail}[/dim]")
         elif status == "done":
             t = self.tasks[stage]
@@ -89,10 +91,9 @@ def run(
     try:
         with _Display(show) as disp:
             res = run_pipeline(recordings, out, force=force, features_options=feat_opts, estimate_options=est_opts,
-                               progress=disp.update, log=disp.log)
-    except KeyboardInterrupt:
-        print("interrupted: the stage in progress kept no output; re-run to resume", file=sys.stderr)
-        raise typer.Exit(130) from None
+                               progress=disp.update, log=disp.log, on_wait=waiting)
+    except KeyboardInterrupt as exc:
+        raise typer.Exit(interrupted(exc, "the stage in progress kept no output; re-run to resume")) from None
 
     stages = res["stages"]
     if json_out:

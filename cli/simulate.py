@@ -6,9 +6,11 @@ from typing import Optional
 
 import typer
 
+from calib.pipeline import validate as V
 from calib.pipeline.io import InputError
+from calib.pipeline.outputs import owned_output
 from calib.pipeline.roomsim import PRESETS, load_scenario, make_scenario, simulate as run_simulation, validate_scenario
-from .common import console, user_errors
+from .common import console, user_errors, waiting
 
 
 @user_errors
@@ -33,6 +35,9 @@ def simulate(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
     """Simulate a room with asynchronous microphone arrays and a chirping speaker; write a session."""
+    _check_options(rt60=rt60, snr=snr, diffuse_snr=diffuse_snr, fs=fs, n_arrays=n_arrays, n_events=n_events,
+                   interval=interval, chirp_duration=chirp_duration, interferers=interferers, sigma_odo=sigma_odo,
+                   seed=seed)
     over = {k: v for k, v in {
         "preset": preset, "seed": seed, "rt60": rt60, "snr": snr, "diffuse_snr": diffuse_snr, "fs": fs,
         "n_arrays": n_arrays, "n_events": n_events, "interval": interval, "n_interferers": interferers,
@@ -46,8 +51,29 @@ def simulate(
     else:
         sc = make_scenario(over.pop("preset", "paper-traj3"), over.pop("seed", 0), **over)
         validate_scenario(sc)
-    path = run_simulation(sc, out_dir, progress=not quiet, overwrite=True)
+    with owned_output([out_dir], [scenario], command="calib simulate", on_wait=waiting):
+        path = run_simulation(sc, out_dir, progress=not quiet, overwrite=True)
     if not quiet:
         t = sc["t_emit"]
         console.print(f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "
                       f"{t[-1] - t[0]:.1f} s, RT60 {sc['rt60']:g} s, SNR {sc['snr']:g} dB, fs {sc['fs']} Hz → {path}")
+
+
+# ranges of the numeric options (docs/reliability.md): (lo, hi, lo open, integer)
+SIM_OPTION_RANGES = {
+    "rt60": (0.0, 10.0, False, False), "snr": (-60.0, 300.0, False, False),
+    "diffuse_snr": (-60.0, 300.0, False, False), "fs": (*V.SAMPLE_RATE, False, True),
+    "n_arrays": (1, 64, False, True), "n_events": (0, V.MAX_EVENTS, False, True),
+    "interval": (0.0, 3600.0, True, False), "chirp_duration": (*V.CHIRP_DURATION, False, False),
+    "interferers": (0, 1000, False, True), "sigma_odo": (0.0, 100.0, False, False), "seed": (0, 2**32 - 1, False, True),
+}
+NO_NOISE = ("snr", "diffuse_snr")  # 'inf' switches this noise off
+
+
+def _check_options(**values):
+    """InputError unless every given numeric option is finite (or inf where documented) and in range."""
+    for name, v in values.items():
+        if v is None or (name in NO_NOISE and v == float("inf")):
+            continue
+        lo, hi, lo_open, integer = SIM_OPTION_RANGES[name]
+        V.option(v, name.replace("_", "-"), lo=lo, hi=hi, lo_open=lo_open, integer=integer)

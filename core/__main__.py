@@ -1,5 +1,5 @@
 """``python -m calib``: the same as the ``calib`` command."""
-from calib.cli.main import main
+from calib.cli.entry import main
 
 if __name__ == "__main__":
     main()

@@ -12,12 +12,14 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import minimum_filter
 
+from calib.errors import InputError
+
 from .problem import copy_state, empty_state, make_layout
 from .solver import levenberg_marquardt
 
 
-class ObservabilityError(ValueError):
-    """The data cannot determine the calibration (the message says what is missing)."""
+class ObservabilityError(InputError):
+    """The data cannot determine the calibration (the message says what is missing): bad input, not a bug."""
 
 
 def subproblem(p, arrays, *, doa_arrays=None):

@@ -4,27 +4,35 @@ from __future__ import annotations
 from calib.frontend import extract_features, plot_detections
 from calib.jsonutil import dumps_json
 
-from .io import atomic_dir, write_features
+from .io import atomic_dir, write_features_files
+from .outputs import publish
 from .session import read_session
 
 
 def session_features(recordings, progress=None, **options):
-    """Read the session folder ``recordings`` and run the frontend on it.
+    """Read the session folder ``recordings`` (or take an already read session dict) and run the frontend.
 
     progress : optional ``progress(done, total, message)``. options : ``calib.frontend.DEFAULTS`` overrides.
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
-    return extract_features(read_session(recordings), progress=progress, **options)
+    session = recordings if isinstance(recordings, dict) else read_session(recordings)
+    return extract_features(session, progress=progress, **options)
 
 
 def write_diagnostics(directory, diag):
-    """Write ``diagnostics.json`` (private ``_`` keys dropped, NaN as null) and ``detections.png``."""
+    """Write ``diagnostics.json`` (private ``_`` keys dropped, NaN as null) and ``detections.png`` atomically."""
     with atomic_dir(directory) as tmp:
-        (tmp / "diagnostics.json").write_text(dumps_json(diag, drop_private=True, indent=2) + "\n")
-        plot_detections(tmp / "detections.png", diag)
+        write_diagnostics_files(tmp, diag)
 
 
-def write_feature_outputs(features_dir, diagnostics_dir, feats, diag):
-    """Features, then diagnostics, each atomically."""
-    write_features(features_dir, feats)
-    write_diagnostics(diagnostics_dir, diag)
+def write_diagnostics_files(folder, diag):
+    """Write ``diagnostics.json`` and ``detections.png`` into the existing (temporary) folder ``folder``."""
+    (folder / "diagnostics.json").write_text(dumps_json(diag, drop_private=True, indent=2) + "\n")
+    plot_detections(folder / "detections.png", diag)
+
+
+def write_feature_outputs(features_dir, diagnostics_dir, feats, diag, command="calib features"):
+    """Features and diagnostics, published together: both are written, or neither (pipeline/outputs.py)."""
+    with publish([features_dir, diagnostics_dir], command=command) as (f_tmp, d_tmp):
+        write_features_files(f_tmp, feats)
+        write_diagnostics_files(d_tmp, diag)

@@ -20,10 +20,9 @@ In-memory representation (plain dicts of pandas DataFrames, sorted, with clean d
 from __future__ import annotations
 
 import contextlib
+import io
 import json
-import math
 import os
-import shutil
 import tempfile
 from pathlib import Path
 
@@ -33,6 +32,9 @@ import pandas as pd
 
 from calib.errors import InputError  # noqa: F401  (re-exported: readers raise it)
 from calib.jsonutil import dumps_json  # noqa: F401
+
+from . import validate as V
+from .outputs import publish, publish_mode
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
@@ -46,38 +48,15 @@ DOA_NORM_TOL = 1e-3
 
 
 # ----------------------------------------------------------------------------------------------- atomic
-def _umask():
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _publish_mode(path, directory=False):
-    """mkdtemp/mkstemp create private (0700/0600) entries; give outputs the usual umask-based mode."""
-    os.chmod(path, (0o777 if directory else 0o666) & ~_umask())
-
-
 @contextlib.contextmanager
-def atomic_dir(path):
-    """Yield a temporary directory that replaces ``path`` only if the ``with`` block succeeds."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-    _publish_mode(tmp, directory=True)
-    try:
+def atomic_dir(path, command="calib"):
+    """Yield a temporary directory that replaces ``path`` only if the ``with`` block succeeds.
+
+    The output policy applies (pipeline/outputs.py): ``path`` is replaced only if calib owns it (marker
+    ``.calib-output``, every file unedited); the published folder gets a marker.
+    """
+    with publish([path], command=command) as (tmp,):
         yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = None
-    if path.exists():
-        old = path.parent / f".{path.name}.old-{os.getpid()}"
-        if old.exists():
-            shutil.rmtree(old)
-        path.rename(old)
-    tmp.rename(path)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def atomic_write_text(path, text):
@@ -88,7 +67,7 @@ def atomic_write_text(path, text):
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
-        _publish_mode(tmp)
+        publish_mode(tmp)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -97,58 +76,41 @@ def atomic_write_text(path, text):
 
 
 # ----------------------------------------------------------------------------------------------- CSV
-def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), required_values=None):
+def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bounds=None, max_rows=None):
     """Read a CSV with validation.
 
     Parameters
     ----------
-    path : path of the CSV file.
+    path : path of the CSV file (UTF-8; a BOM and CRLF line ends are accepted).
     columns : required columns, in canonical order.
     int_cols, str_cols : columns parsed as integers / kept as strings; all others are floats.
     optional_cols : numeric columns whose empty cells are allowed (become NaN).
-    required_values : numeric columns that must be present in every row; default: all of ``columns``
-        not in ``optional_cols``.
+    bounds : {column: (lo, hi)} allowed ranges; default: integers in [0, MAX_EVENT_ID], floats within
+        ±MAX_ABS_TIME (validate.py).
+    max_rows : refuse longer files (memory), default ``validate.MAX_EVENTS * validate.MAX_ARRAYS``.
 
     Returns a DataFrame with the required columns first, then any extra columns (kept as read).
-    Raises :class:`InputError` on a missing file or column, an unparsable or non-finite number.
+    Raises :class:`InputError` on a missing file or column, an unparsable, non-finite or out-of-range number.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    text = V.read_text(path)
     try:
-        raw = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+        raw = pd.read_csv(io.StringIO(text), dtype=str, keep_default_na=False, skipinitialspace=True)
     except Exception as exc:  # pandas raises many kinds on malformed files
-        raise InputError(f"{path}: cannot parse CSV ({str(exc).splitlines()[0]})") from None
-    raw.columns = [c.strip() for c in raw.columns]
+        raise InputError(f"{path}: cannot parse CSV ({_first_line(exc)})") from None
+    raw.columns = [str(c).strip() for c in raw.columns]
     missing = [c for c in columns if c not in raw.columns]
     if missing:
         raise InputError(f"{path}: missing column(s) {', '.join(missing)}")
-    out = {}
-    for col in columns:
-        vals = raw[col].str.strip()
-        if col in str_cols:
-            bad = np.flatnonzero(vals.to_numpy() == "")
-            if bad.size:
-                raise InputError(f"{path}: line {bad[0] + 2}: empty '{col}'")
-            out[col] = vals.to_numpy(dtype=object).astype(str)
-            continue
-        arr = np.full(len(vals), np.nan)
-        for k, v in enumerate(vals):
-            if v == "":
-                if col in optional_cols:
-                    continue
-                raise InputError(f"{path}: line {k + 2}: empty '{col}'")
-            try:
-                x = float(v)
-            except ValueError:
-                raise InputError(f"{path}: line {k + 2}: '{col}' is not a number: {v!r}") from None
-            if not math.isfinite(x):
-                raise InputError(f"{path}: line {k + 2}: '{col}' is not finite: {v!r}")
-            if col in int_cols and x != int(x):
-                raise InputError(f"{path}: line {k + 2}: '{col}' is not an integer: {v!r}")
-            arr[k] = x
-        out[col] = arr.astype(int) if col in int_cols else arr
-    df = pd.DataFrame(out)
+    if len(set(raw.columns)) != len(raw.columns):
+        raise InputError(f"{path}: duplicate column name")
+    limit = max_rows if max_rows is not None else V.MAX_EVENTS * V.MAX_ARRAYS
+    if len(raw) > limit:
+        raise InputError(f"{path}: {len(raw)} rows, more than the {limit} calib handles in one session")
+    bounds = bounds or {}
+    out = {col: _column(raw[col].str.strip(), col, path, col in str_cols, col in int_cols, col in optional_cols,
+                        bounds.get(col)) for col in columns}
+    df = pd.DataFrame(out, index=pd.RangeIndex(len(raw)))
     extra = [c for c in raw.columns if c not in columns]
     for c in extra:
         conv = pd.to_numeric(raw[c].replace("", np.nan), errors="coerce")
@@ -156,6 +118,44 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), req
     df["_line"] = np.arange(len(df)) + 2  # line in the file (header = 1), kept for error and outlier reports
     df.attrs["path"] = str(path)
     return df
+
+
+def _column(vals, col, path, is_str, is_int, optional, bound):
+    """One validated column (vectorised): strings, or floats / ints within ``bound`` (see read_table)."""
+    empty = (vals == "").to_numpy()
+    if is_str:
+        if empty.any():
+            raise InputError(f"{path}: line {np.flatnonzero(empty)[0] + 2}: empty '{col}'")
+        return vals.to_numpy(dtype=object).astype(str)
+    if empty.any() and not optional:
+        raise InputError(f"{path}: line {np.flatnonzero(empty)[0] + 2}: empty '{col}'")
+    arr = pd.to_numeric(vals.where(~empty, "nan"), errors="coerce").to_numpy(dtype=float)
+    bad = np.isnan(arr) & ~empty
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        v = vals.iloc[k]
+        why = "is not finite" if v.lower().lstrip("+-") in ("nan", "inf", "infinity") else "is not a number"
+        raise InputError(f"{path}: line {k + 2}: '{col}' {why}: {v!r}")
+    if np.isinf(arr).any():
+        k = int(np.flatnonzero(np.isinf(arr))[0])
+        raise InputError(f"{path}: line {k + 2}: '{col}' is not finite: {vals.iloc[k]!r}")
+    lo, hi = bound if bound is not None else ((0, V.MAX_EVENT_ID) if is_int else (-V.MAX_ABS_TIME, V.MAX_ABS_TIME))
+    out = (arr < lo) | (arr > hi)
+    if out.any():
+        k = int(np.flatnonzero(out)[0])
+        raise InputError(f"{path}: line {k + 2}: '{col}' = {vals.iloc[k]} is outside [{lo:g}, {hi:g}]")
+    if is_int:
+        frac = arr != np.round(arr)
+        if frac.any():
+            k = int(np.flatnonzero(frac)[0])
+            raise InputError(f"{path}: line {k + 2}: '{col}' is not an integer: {vals.iloc[k]!r}")
+        return arr.astype(np.int64)
+    return arr
+
+
+def _first_line(exc):
+    msg = str(exc).strip().splitlines()
+    return msg[0] if msg else type(exc).__name__
 
 
 def _check_unique(df, keys, path):
@@ -186,19 +186,21 @@ def write_table(df, path, columns=None, float_format="%.10g"):
 
 
 def _read_json(path):
+    """A JSON file (BOM and CRLF accepted) → Python value. Raises InputError naming the file."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    text = V.read_text(path)
     try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: invalid JSON ({exc})") from None
+        return json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"{path}: invalid JSON ({_first_line(exc)})") from None
 
 
 # ----------------------------------------------------------------------------------------------- events
 def read_events(path):
     """Read and validate an ``events.csv`` (FORMATS.md section 1/2). Sorted by event."""
-    ev = read_table(path, EVENTS_COLS, int_cols=("event",))
+    pos = (-V.MAX_ABS_POSITION, V.MAX_ABS_POSITION)
+    ev = read_table(path, EVENTS_COLS, int_cols=("event",), max_rows=V.MAX_EVENTS,
+                    bounds={"odom_x": pos, "odom_y": pos, "odom_z": pos})
     if len(ev) == 0:
         raise InputError(f"{path}: no events")
     _check_unique(ev, ["event"], path)
@@ -214,45 +216,44 @@ def read_events(path):
 
 
 # ----------------------------------------------------------------------------------------------- features
+META_KEYS = ("speed_of_sound", "reference_array", "arrays", *SIGMA_KEYS, "chirp_drift_bias", "sigmas_estimated",
+             "doa_mirror_normals")
+
+
 def validate_meta(meta, path="meta.json"):
-    """Check a features meta dict; returns a cleaned copy (sigmas as floats or absent)."""
+    """Check a features meta dict; returns a cleaned copy (sigmas as floats or absent).
+
+    Typed values only (no numeric strings, no booleans), within the ranges of ``validate.py``; unknown
+    keys warn with a did-you-mean.
+    """
     if not isinstance(meta, dict):
         raise InputError(f"{path}: must be a JSON object")
+    V.check_keys([k for k in meta if not str(k).startswith("_")], META_KEYS, str(path))
     for key in ("speed_of_sound", "reference_array", "arrays"):
         if key not in meta:
             raise InputError(f"{path}: missing key '{key}'")
     out = dict(meta)
-    try:
-        out["speed_of_sound"] = float(meta["speed_of_sound"])
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: 'speed_of_sound' is not a number") from None
-    if not (math.isfinite(out["speed_of_sound"]) and out["speed_of_sound"] > 0):
-        raise InputError(f"{path}: 'speed_of_sound' must be positive and finite")
+    out["speed_of_sound"] = V.speed_of_sound(meta["speed_of_sound"], f"{path}: 'speed_of_sound'")
     arrays = meta["arrays"]
     if not isinstance(arrays, list) or not arrays or not all(isinstance(a, str) and a for a in arrays):
         raise InputError(f"{path}: 'arrays' must be a non-empty list of names")
+    if len(arrays) > V.MAX_ARRAYS:
+        raise InputError(f"{path}: {len(arrays)} arrays, more than {V.MAX_ARRAYS}")
     if len(set(arrays)) != len(arrays):
         raise InputError(f"{path}: duplicate array name in 'arrays'")
-    if meta["reference_array"] not in arrays:
+    if not isinstance(meta["reference_array"], str) or meta["reference_array"] not in arrays:
         raise InputError(f"{path}: reference_array {meta['reference_array']!r} is not in 'arrays'")
     for key in SIGMA_KEYS:
         if meta.get(key) is None:
             out.pop(key, None)
             continue
-        try:
-            v = float(meta[key])
-        except (TypeError, ValueError):
-            raise InputError(f"{path}: '{key}' is not a number") from None
-        if not (math.isfinite(v) and v > 0):
-            raise InputError(f"{path}: '{key}' must be positive and finite")
-        out[key] = v
+        out[key] = V.sigma(key, meta[key], f"{path}: '{key}'")
     if meta.get("chirp_drift_bias") is not None:
-        try:
-            out["chirp_drift_bias"] = float(meta["chirp_drift_bias"])
-        except (TypeError, ValueError):
-            raise InputError(f"{path}: 'chirp_drift_bias' is not a number") from None
-        if not math.isfinite(out["chirp_drift_bias"]):
-            raise InputError(f"{path}: 'chirp_drift_bias' must be finite")
+        out["chirp_drift_bias"] = V.number(meta["chirp_drift_bias"], f"{path}: 'chirp_drift_bias'",
+                                           lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME)
+    est = meta.get("sigmas_estimated")
+    if est is not None and (not isinstance(est, list) or not all(k in SIGMA_KEYS for k in est)):
+        raise InputError(f"{path}: 'sigmas_estimated' must be a list of {', '.join(SIGMA_KEYS)}")
     folds = meta.get("doa_mirror_normals")
     if folds is not None:
         if not isinstance(folds, dict):
@@ -261,12 +262,7 @@ def validate_meta(meta, path="meta.json"):
         for name, n in folds.items():
             if name not in arrays:
                 raise InputError(f"{path}: 'doa_mirror_normals' names unknown array {name!r}")
-            try:
-                v = np.asarray(n, dtype=float)
-            except (TypeError, ValueError):
-                v = np.zeros(0)
-            if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
-                raise InputError(f"{path}: 'doa_mirror_normals' of {name!r} must be a non-zero [x, y, z]")
+            v = np.asarray(V.vector3(n, f"{path}: 'doa_mirror_normals' of {name!r}", nonzero=True))
             clean[name] = (v / np.linalg.norm(v)).tolist()
         out["doa_mirror_normals"] = clean
     return out
@@ -321,6 +317,8 @@ def validate_features(feats):
     doa = doa.copy()
     doa[["ux", "uy", "uz"]] = u / n[:, None] if len(n) else u
     out["doa"] = doa.sort_values(["event", "array"], kind="stable").reset_index(drop=True)
+    where = Path(feats["meta"].get("_path", "features/meta.json")).parent
+    V.check_problem_size(len(ev), len(arrays), len(out["tdoa_m"]) + len(out["tdoa_s"]) + 3 * len(out["doa"]), where)
     return out
 
 
@@ -349,22 +347,29 @@ def read_features(directory):
     return out
 
 
-def write_features(directory, feats):
+def write_features(directory, feats, command="calib"):
     """Write a features dict to ``directory`` atomically (validated first, so nothing bad is written)."""
+    with atomic_dir(directory, command=command) as tmp:
+        write_features_files(tmp, feats)
+
+
+def write_features_files(folder, feats):
+    """Validate a features dict and write its files into the existing (temporary) folder ``folder``."""
     feats = validate_features({**feats, "meta": dict(feats["meta"])})
-    with atomic_dir(directory) as tmp:
-        meta = {k: v for k, v in feats["meta"].items() if not k.startswith("_")}
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
-        write_table(feats["events"], tmp / "events.csv", EVENTS_COLS, float_format="%.9f")
-        write_table(feats["tdoa_m"], tmp / "tdoa_m.csv", TDOA_M_COLS, float_format="%.12g")
-        write_table(feats["tdoa_s"], tmp / "tdoa_s.csv", TDOA_S_COLS, float_format="%.12g")
-        write_table(feats["doa"], tmp / "doa.csv", DOA_COLS, float_format="%.10g")
+    meta = {k: v for k, v in feats["meta"].items() if not k.startswith("_")}
+    (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    write_table(feats["events"], folder / "events.csv", EVENTS_COLS, float_format="%.9f")
+    write_table(feats["tdoa_m"], folder / "tdoa_m.csv", TDOA_M_COLS, float_format="%.12g")
+    write_table(feats["tdoa_s"], folder / "tdoa_s.csv", TDOA_S_COLS, float_format="%.12g")
+    write_table(feats["doa"], folder / "doa.csv", DOA_COLS, float_format="%.10g")
 
 
 # ----------------------------------------------------------------------------------------------- calibration / truth
 def _read_arrays(path, *, known=None, truth=False):
     opt = ARRAYS_COLS[1:] if truth else ("offset", "drift")
-    df = read_table(path, ARRAYS_COLS, str_cols=("array",), optional_cols=opt)
+    pos = (-V.MAX_ABS_POSITION, V.MAX_ABS_POSITION)
+    df = read_table(path, ARRAYS_COLS, str_cols=("array",), optional_cols=opt, max_rows=V.MAX_ARRAYS,
+                    bounds={"x": pos, "y": pos, "z": pos})
     _check_unique(df, ["array"], path)
     if known is not None:
         _check_member(df, "array", known, path, "array")
@@ -381,7 +386,9 @@ def _read_arrays(path, *, known=None, truth=False):
 
 
 def _read_sources(path, truth=False):
-    df = read_table(path, SOURCES_COLS, int_cols=("event",), optional_cols=("x", "y", "z") if truth else ())
+    pos = (-V.MAX_ABS_POSITION, V.MAX_ABS_POSITION)
+    df = read_table(path, SOURCES_COLS, int_cols=("event",), optional_cols=("x", "y", "z") if truth else (),
+                    max_rows=V.MAX_EVENTS, bounds={"x": pos, "y": pos, "z": pos})
     _check_unique(df, ["event"], path)
     return df.sort_values("event", kind="stable").reset_index(drop=True)
 
@@ -394,12 +401,14 @@ def read_calibration(directory):
     arrays = _read_arrays(d / "arrays.csv")
     sources = _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
     report = _read_json(d / "report.json") if (d / "report.json").exists() else {}
+    if not isinstance(report, dict):
+        raise InputError(f"{d / 'report.json'}: must be a JSON object")
     return {"arrays": arrays, "sources": sources, "report": report}
 
 
-def write_calibration(directory, calib):
+def write_calibration(directory, calib, command="calib"):
     """Write a calibration dict atomically: arrays.csv, sources.csv, report.json."""
-    with atomic_dir(directory) as tmp:
+    with atomic_dir(directory, command=command) as tmp:
         write_table(calib["arrays"], tmp / "arrays.csv", ARRAYS_COLS, float_format="%.12g")
         if calib.get("sources") is not None:
             write_table(calib["sources"], tmp / "sources.csv", SOURCES_COLS, float_format="%.9g")

@@ -36,6 +36,7 @@ from calib.estimator import calibrate, crlb, draw_from_crlb, state_from_frames, 
 from .evaluate import evaluate
 from .featsim import simulate_features
 from .io import InputError, atomic_write_text, dumps_json
+from .validate import read_text
 
 SIGMA_TDOA = (5e-5, 1e-4, 5e-4)
 SIGMA_DOA_DEG = (5.0, 10.0, 15.0)
@@ -218,10 +219,8 @@ def read_grid(path):
     """
     path = Path(path)
     try:
-        cfg = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        cfg = tomllib.loads(read_text(path))
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
         raise InputError(f"{path}: invalid TOML ({exc})") from None
     known = {"sigma_tdoa", "sigma_doa_deg", "cells", "trajectories", "runs", "methods", "sigma_odo", "base_seed"}
     unknown = sorted(set(cfg) - known)
@@ -329,6 +328,15 @@ def _connect(scheduler):
         raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
 
 
+def _kill_workers():
+    """Stop joblib's worker processes now (they would otherwise finish their chunks after the parent stops)."""
+    from joblib.externals.loky import reusable_executor
+
+    executor = getattr(reusable_executor, "_executor", None)  # None: no pool was started
+    if executor is not None:
+        executor.shutdown(wait=False, kill_workers=True)
+
+
 def _execute(chunks, settings, jobs, client):
     """Yield each chunk's rows as it finishes (joblib on local cores, or a Dask cluster)."""
     if client is None:
@@ -338,8 +346,12 @@ def _execute(chunks, settings, jobs, client):
             return
         from joblib import Parallel, delayed
 
-        yield from Parallel(n_jobs=jobs, return_as="generator_unordered")(
-            delayed(_run_chunk)(c, settings) for c in chunks)
+        try:
+            yield from Parallel(n_jobs=jobs, return_as="generator_unordered")(
+                delayed(_run_chunk)(c, settings) for c in chunks)
+        except BaseException:  # interrupt (SIGINT/SIGTERM) or error: stop the workers, do not let them compute on
+            _kill_workers()
+            raise
         return
     from distributed import as_completed
 

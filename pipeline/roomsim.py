@@ -36,6 +36,7 @@ from scipy.spatial.transform import Rotation
 from calib.frontend.signals import SWEEP_KINDS, sweep  # noqa: F401  (SWEEP_KINDS: valid chirp kinds)
 
 from .io import ARRAYS_COLS, EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
+from .validate import read_text
 from .session import write_session_toml
 
 # ----------------------------------------------------------------------------------------------- constants
@@ -440,12 +441,13 @@ def load_scenario(path, **overrides):
         raise InputError(f"{path}: file not found")
     try:
         if path.suffix == ".json":
-            cfg = json.loads(path.read_text()).get("scenario")
+            cfg = json.loads(read_text(path))
+            cfg = cfg.get("scenario") if isinstance(cfg, dict) else None
             if not isinstance(cfg, dict):
                 raise InputError(f"{path}: no 'scenario' object in the manifest")
         else:
-            cfg = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+            cfg = tomllib.loads(read_text(path))
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise InputError(f"{path}: cannot parse ({' '.join(str(exc).split())})") from None
     cfg = {k: v for k, v in cfg.items() if k != "generator"} | (
         cfg.get("generator", {}) if isinstance(cfg.get("generator"), dict) else {})

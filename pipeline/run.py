@@ -31,10 +31,13 @@ from pathlib import Path
 from calib import __version__
 from calib.modgraph import module_closure
 
+from . import validate as V
 from .io import InputError, atomic_write_text, dumps_json, read_calibration, read_features, read_truth
+from .outputs import check_replaceable, check_separate, owned_output
 
 STAMP = ".calib-stage.json"
 STAGES = ("features", "estimate", "report")
+OUT_DIRS = ("features", "diagnostics", "calibration", "report")  # the sub-folders of OUT that run owns
 FEATURE_FILES = ("meta.json", "events.csv", "tdoa_m.csv", "tdoa_s.csv", "doa.csv")
 CALIBRATION_FILES = ("arrays.csv", "sources.csv", "report.json")
 TRUTH_FILES = ("arrays.csv", "sources.csv")
@@ -152,30 +155,38 @@ def features_inputs(out):
 
 # ----------------------------------------------------------------------------------------------- stages
 def features_stage(recordings, out, options, progress=None):
-    """Frontend: recordings → OUT/diagnostics/ then OUT/features/ (both atomic). Returns the diagnostics."""
-    from .features import session_features, write_diagnostics
+    """Frontend: recordings → OUT/features/ and OUT/diagnostics/ (published together). Returns the diagnostics."""
+    from .features import session_features, write_feature_outputs
 
     cb = None if progress is None else (lambda done, total, msg: progress("features", done, total, msg))
     feats, diag = session_features(recordings, progress=cb, **options)
-    write_diagnostics(Path(out) / "diagnostics", diag)
-    from .io import write_features
-
-    write_features(Path(out) / "features", feats)
+    write_feature_outputs(Path(out) / "features", Path(out) / "diagnostics", feats, diag, command="calib run")
     return diag
 
 
 def estimate_stage(out, options):
     """Estimator: OUT/features/ → OUT/calibration/ (atomic). Returns the calibration dict."""
-    from calib.estimator import calibrate
-
     from .io import write_calibration
 
-    feats = read_features(Path(out) / "features")
-    opts = dict(options)
-    loss = opts.pop("loss")
-    calib = calibrate(feats, loss=None if loss == "linear" else loss, **opts)
+    calib = estimate_features(Path(out) / "features", options)
     write_calibration(Path(out) / "calibration", calib)
     return calib
+
+
+def estimate_features(features_dir, options):
+    """Read a features folder and calibrate it (options as ``ESTIMATE_DEFAULTS``; loss "linear" = none).
+
+    Data that cannot determine the calibration raises InputError naming the features folder.
+    """
+    from calib.estimator import ObservabilityError, calibrate
+
+    feats = read_features(features_dir)
+    opts = dict(options)
+    loss = opts.pop("loss", "cauchy")
+    try:
+        return calibrate(feats, loss=None if loss == "linear" else loss, **opts)
+    except ObservabilityError as exc:
+        raise InputError(f"{features_dir}: {exc}") from None
 
 
 def report_stage(out, truth_dir=None, progress=None):
@@ -198,21 +209,11 @@ def _check_options(estimate_options):
     unknown = set(opts) - set(ESTIMATE_DEFAULTS)
     if unknown:
         raise TypeError(f"unknown estimate option(s): {', '.join(sorted(unknown))}")
-    if opts["method"] not in ("hybrid", "wang"):
-        raise ValueError(f"method must be hybrid or wang, not {opts['method']!r}")
-    if opts["loss"] not in ("cauchy", "huber", "linear"):
-        raise ValueError(f"loss must be cauchy, huber or linear, not {opts['loss']!r}")
-    if opts["noise"] not in ("auto", "meta", "estimate"):
-        raise ValueError(f"noise must be auto, meta or estimate, not {opts['noise']!r}")
-    if not opts["emission_sigma"] >= 0:
-        raise ValueError(f"emission_sigma must be >= 0, not {opts['emission_sigma']!r}")
-    if not opts["outlier_threshold"] > 0:
-        raise ValueError(f"outlier_threshold must be > 0, not {opts['outlier_threshold']!r}")
-    return opts
+    return V.estimate_options(opts)
 
 
 def run(recordings, out, *, force=False, features_options=None, estimate_options=None, progress=None,
-        log=None):
+        log=None, on_wait=None):
     """Run the pipeline on a recording session, skipping stages whose inputs and settings are unchanged.
 
     Parameters
@@ -228,6 +229,11 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     progress : optional ``progress(stage, done, total, message)`` callback.
     log : optional ``log(stage, status, detail)`` callback, called when a stage starts ("run", reason),
         is skipped ("skipped", reason) or ends ("done", seconds).
+    on_wait : optional ``on_wait(message)``, called if another process is writing ``out`` (this run waits).
+
+    Output policy (pipeline/outputs.py): ``out`` must not equal, contain or lie inside an input; one run
+    at a time per ``out`` (a lock); a sub-folder is replaced only if calib wrote it and no file in it was
+    added or edited since (else InputError naming the file, before the stage runs).
 
     Returns
     -------
@@ -240,7 +246,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     t_start = time.perf_counter()
     out = Path(out)
     est_opts = _check_options(estimate_options)
-    feat_opts = dict(features_options or {})
+    feat_opts = V.features_options(features_options or {})
     # validate every input before any work, so bad input fails fast and writes nothing
     session = read_session(recordings)
     truth_dir = Path(recordings) / "truth"
@@ -249,10 +255,17 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
         read_truth(truth_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
-    if out.resolve() == Path(recordings).resolve():
-        raise InputError(f"{out}: the output folder must differ from the recordings folder")
-    out.mkdir(parents=True, exist_ok=True)
+    inputs = [Path(recordings), *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]
+    check_separate([out], inputs)
+    subdirs = [out / n for n in OUT_DIRS]
+    with owned_output(subdirs, inputs, command="calib run", on_wait=on_wait, lock=out,
+                      check=False):
+        res = _run_stages(recordings, out, session, truth_dir, force, feat_opts, est_opts, progress, log)
+    return {**res, "seconds": time.perf_counter() - t_start}
 
+
+def _run_stages(recordings, out, session, truth_dir, force, feat_opts, est_opts, progress, log):
+    """The stages of :func:`run` (lock held, inputs validated). Returns run's dict without seconds."""
     log = log or (lambda stage, status, detail: None)
     stages = {}
     metrics = None
@@ -269,6 +282,8 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
             stages[name] = {"status": "skipped", "reason": "unchanged", "seconds": 0.0,
                             "output": str(stamp_dir)}
             return None
+        for d in out_dirs:  # a user's file in the way stops the run before the stage's work
+            check_replaceable(d)
         log(name, "run", reason)
         clear_stamp(stamp_dir)  # from here until the new stamp, this stage's output is untrusted
         t0 = time.perf_counter()
@@ -280,6 +295,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
         log(name, "done", secs)
         return result
 
+    out.mkdir(parents=True, exist_ok=True)
     stage("features", [out / "features", out / "diagnostics"], session_inputs(session), feat_opts,
           lambda: features_stage(recordings, out, feat_opts, progress))
 
@@ -300,5 +316,4 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
         metrics = evaluate(calib, read_truth(truth_dir))
 
     return {"out": out, "stages": stages, "calibration": calib,
-            "metrics": metrics, "report": out / "report" / "summary.md",
-            "seconds": time.perf_counter() - t_start}
+            "metrics": metrics, "report": out / "report" / "summary.md"}

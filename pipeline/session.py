@@ -15,98 +15,58 @@ A session in memory is a plain dict::
 """
 from __future__ import annotations
 
-import math
 import tomllib
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from calib.frontend.signals import SWEEP_KINDS
 
+from calib.errors import InputWarning
+
+from . import validate as V
 from .io import InputError, atomic_write_text, read_events, SIGMA_KEYS
+
+DEFAULT_SPEED_OF_SOUND = 343.0  # m/s, air at 20 °C
+MAX_MIC_RADIUS = 10.0           # m: mic coordinates are relative to their array's centre
+SPAN_WAVELENGTHS = 50.0         # an array wider than this many wavelengths is a unit mistake (mm for m)
+
+
+TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays")
+CHIRP_KEYS = ("f0", "f1", "duration", "reference", "kind", "fade")
+ARRAY_KEYS = ("name", "wav", "mics", "doa_hemisphere")
 
 
 def read_session(directory):
-    """Read and validate a recording session folder. WAV files are checked to exist, not opened."""
+    """Read and validate a recording session folder. WAV headers are checked (channels, sample rate vs
+    the chirp band), the samples are not read.
+
+    Every value is typed (numbers are TOML numbers, not strings or booleans) and within the ranges of
+    ``pipeline/validate.py``; unknown keys warn with a did-you-mean (:class:`calib.errors.InputWarning`).
+    """
     d = Path(directory)
     if not d.is_dir():
         raise InputError(f"{d}: not a directory")
     p = d / "session.toml"
-    if not p.is_file():
-        raise InputError(f"{p}: file not found")
     try:
-        cfg = tomllib.loads(p.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: invalid TOML ({exc})") from None
-
-    def num(table, key, where, default=None, positive=True):
-        if key not in table:
-            if default is None:
-                raise InputError(f"{p}: missing '{where}{key}'")
-            return default
-        v = table[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise InputError(f"{p}: '{where}{key}' is not a finite number")
-        if positive and v <= 0:
-            raise InputError(f"{p}: '{where}{key}' must be positive")
-        return float(v)
-
-    c = num(cfg, "speed_of_sound", "", default=343.0)
-    chirp_cfg = cfg.get("chirp")
-    if not isinstance(chirp_cfg, dict):
-        raise InputError(f"{p}: missing [chirp] table")
-    chirp = {"f0": None, "f1": None, "duration": None, "reference": None}
-    if "reference" in chirp_cfg:
-        ref = d / str(chirp_cfg["reference"])
-        if not ref.is_file():
-            raise InputError(f"{p}: chirp reference {ref} not found")
-        chirp["reference"] = ref
-    for key in ("f0", "f1", "duration"):
-        if key in chirp_cfg or chirp["reference"] is None:
-            chirp[key] = num(chirp_cfg, key, "chirp.")
-    if chirp["f0"] is not None and chirp["f1"] is not None and chirp["f0"] == chirp["f1"]:
-        raise InputError(f"{p}: chirp.f0 and chirp.f1 must differ")
-    kind = chirp_cfg.get("kind", "linear")
-    if kind not in SWEEP_KINDS:
-        raise InputError(f"{p}: chirp.kind must be one of {', '.join(SWEEP_KINDS)}, not {kind!r}")
-    if kind == "exponential" and chirp["f0"] is not None and min(chirp["f0"], chirp["f1"]) <= 0:
-        raise InputError(f"{p}: an exponential sweep needs chirp.f0 and chirp.f1 > 0")
-    chirp["kind"] = kind
-    chirp["fade"] = num(chirp_cfg, "fade", "chirp.", positive=False) if "fade" in chirp_cfg else 0.0
-    noise = {k: num(cfg.get("noise", {}), k, "noise.") for k in SIGMA_KEYS if k in cfg.get("noise", {})}
-
-    arrays = []
-    if not isinstance(cfg.get("arrays"), list) or not cfg["arrays"]:
-        raise InputError(f"{p}: no [[arrays]] given")
-    for k, a in enumerate(cfg["arrays"]):
-        name = a.get("name")
-        if not isinstance(name, str) or not name:
-            raise InputError(f"{p}: arrays[{k}] has no name")
-        if "wav" not in a:
-            raise InputError(f"{p}: array {name!r} has no 'wav'")
-        wav = d / str(a["wav"])
-        if not wav.is_file():
-            raise InputError(f"{wav}: file not found (array {name!r} in {p.name})")
-        try:
-            mics = np.asarray(a.get("mics"), dtype=float)
-        except (TypeError, ValueError):
-            raise InputError(f"{p}: array {name!r}: 'mics' must be a list of [x, y, z]") from None
-        if mics.ndim != 2 or mics.shape[1] != 3 or mics.shape[0] < 1 or not np.all(np.isfinite(mics)):
-            raise InputError(f"{p}: array {name!r}: 'mics' must be a non-empty list of [x, y, z]")
-        hemi = a.get("doa_hemisphere")
-        if hemi is not None:
-            hemi = np.asarray(hemi, dtype=float)
-            if hemi.shape != (3,) or not np.linalg.norm(hemi) > 0:
-                raise InputError(f"{p}: array {name!r}: 'doa_hemisphere' must be a non-zero [x, y, z]")
-            hemi = hemi / np.linalg.norm(hemi)
-        arrays.append({"name": name, "wav": wav, "mics": mics, "doa_hemisphere": hemi})
+        cfg = tomllib.loads(V.read_text(p))
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise InputError(f"{p}: invalid TOML ({' '.join(str(exc).split())})") from None
+    V.check_keys(cfg, TOP_KEYS, str(p))
+    c = V.speed_of_sound(cfg.get("speed_of_sound", DEFAULT_SPEED_OF_SOUND), f"{p}: 'speed_of_sound'")
+    chirp = _read_chirp(cfg.get("chirp"), d, p)
+    noise_cfg = cfg.get("noise", {})
+    if not isinstance(noise_cfg, dict):
+        raise InputError(f"{p}: [noise] must be a table of {', '.join(SIGMA_KEYS)}")
+    V.check_keys(noise_cfg, SIGMA_KEYS, f"{p}: [noise]")
+    noise = {k: V.sigma(k, noise_cfg[k], f"{p}: 'noise.{k}'") for k in SIGMA_KEYS if k in noise_cfg}
+    arrays = _read_arrays(cfg.get("arrays"), d, p)
     names = [a["name"] for a in arrays]
-    if len(set(names)) != len(names):
-        raise InputError(f"{p}: duplicate array name")
     ref = cfg.get("reference_array", names[0])
-    if ref not in names:
+    if not isinstance(ref, str) or ref not in names:
         raise InputError(f"{p}: reference_array {ref!r} is not one of the arrays")
-    return {
+    session = {
         "dir": d,
         "speed_of_sound": c,
         "reference_array": ref,
@@ -115,6 +75,110 @@ def read_session(directory):
         "arrays": arrays,
         "events": read_events(d / "events.csv"),
     }
+    _check_audio(session, p)
+    return session
+
+
+def _read_chirp(chirp_cfg, d, p):
+    """The [chirp] table → dict f0, f1, duration, reference, kind, fade (validated)."""
+    if not isinstance(chirp_cfg, dict):
+        raise InputError(f"{p}: missing [chirp] table")
+    V.check_keys(chirp_cfg, CHIRP_KEYS, f"{p}: [chirp]")
+    chirp = {"f0": None, "f1": None, "duration": None, "reference": None}
+    if "reference" in chirp_cfg:
+        ref = d / V.string(chirp_cfg["reference"], f"{p}: 'chirp.reference'")
+        if not ref.is_file():
+            raise InputError(f"{p}: chirp reference {ref} not found")
+        chirp["reference"] = ref
+    for key in ("f0", "f1", "duration"):
+        if key in chirp_cfg or chirp["reference"] is None:
+            if key not in chirp_cfg:
+                raise InputError(f"{p}: missing 'chirp.{key}'")
+            lo, hi = V.CHIRP_DURATION if key == "duration" else (0.0, V.SAMPLE_RATE[1] / 2)
+            chirp[key] = V.number(chirp_cfg[key], f"{p}: 'chirp.{key}'", lo=lo, hi=hi)
+    if chirp["f0"] is not None and chirp["f1"] is not None and chirp["f0"] == chirp["f1"]:
+        raise InputError(f"{p}: chirp.f0 and chirp.f1 must differ")
+    kind = chirp_cfg.get("kind", "linear")
+    if kind not in SWEEP_KINDS:
+        raise InputError(f"{p}: chirp.kind must be one of {', '.join(SWEEP_KINDS)}, not {kind!r}")
+    if kind == "exponential" and chirp["f0"] is not None and min(chirp["f0"], chirp["f1"]) <= 0:
+        raise InputError(f"{p}: an exponential sweep needs chirp.f0 and chirp.f1 > 0")
+    chirp["kind"] = kind
+    chirp["fade"] = 0.0
+    if "fade" in chirp_cfg:
+        chirp["fade"] = V.number(chirp_cfg["fade"], f"{p}: 'chirp.fade'", lo=0.0,
+                                 hi=chirp["duration"] / 2 if chirp["duration"] else None)
+    return chirp
+
+
+def _read_arrays(items, d, p):
+    """The [[arrays]] tables → list of dicts name, wav, mics (M, 3), doa_hemisphere (validated)."""
+    if not isinstance(items, list) or not items or not all(isinstance(a, dict) for a in items):
+        raise InputError(f"{p}: no [[arrays]] given")
+    if len(items) > V.MAX_ARRAYS:
+        raise InputError(f"{p}: {len(items)} arrays, more than {V.MAX_ARRAYS}")
+    arrays, wavs = [], {}
+    for k, a in enumerate(items):
+        name = a.get("name")
+        if not isinstance(name, str) or not name:
+            raise InputError(f"{p}: arrays[{k}] needs a 'name' (a non-empty string), not {name!r}")
+        V.check_keys(a, ARRAY_KEYS, f"{p}: array {name!r}")
+        if "wav" not in a:
+            raise InputError(f"{p}: array {name!r} has no 'wav'")
+        wav = d / V.string(a["wav"], f"{p}: array {name!r}: 'wav'")
+        if not wav.is_file():
+            raise InputError(f"{wav}: file not found (array {name!r} in {p.name})")
+        real = wav.resolve()
+        if real in wavs:
+            raise InputError(f"{p}: arrays {wavs[real]!r} and {name!r} share one recording {a['wav']!r}")
+        wavs[real] = name
+        mics = _read_mics(a.get("mics"), f"{p}: array {name!r}: 'mics'")
+        hemi = a.get("doa_hemisphere")
+        if hemi is not None:
+            hemi = np.asarray(V.vector3(hemi, f"{p}: array {name!r}: 'doa_hemisphere'", nonzero=True))
+            hemi = hemi / np.linalg.norm(hemi)
+        arrays.append({"name": name, "wav": wav, "mics": mics, "doa_hemisphere": hemi})
+    names = [a["name"] for a in arrays]
+    if len(set(names)) != len(names):
+        raise InputError(f"{p}: duplicate array name")
+    return arrays
+
+
+def _read_mics(value, where):
+    """A non-empty list of [x, y, z] (m, within an array's reach), no two mics at one place → (M, 3)."""
+    if not isinstance(value, list) or not value:
+        raise InputError(f"{where} must be a non-empty list of [x, y, z]")
+    if len(value) > V.MAX_MICS:
+        raise InputError(f"{where}: {len(value)} mics, more than {V.MAX_MICS}")
+    mics = np.array([V.vector3(m, where, bound=MAX_MIC_RADIUS) for m in value])
+    dist = np.linalg.norm(mics[:, None] - mics[None], axis=2)
+    np.fill_diagonal(dist, np.inf)
+    if dist.min() < V.MIN_MIC_SPACING:
+        i, j = np.unravel_index(np.argmin(dist), dist.shape)
+        raise InputError(f"{where}: mics {i + 1} and {j + 1} are at the same place ({dist[i, j] * 1e3:.2g} mm apart)")
+    return mics
+
+
+def _check_audio(session, p):
+    """Each WAV header: channels = mics, sample rate in range, chirp band below Nyquist; warn on spatial aliasing."""
+    from calib.frontend.signals import read_header
+
+    chirp, c = session["chirp"], session["speed_of_sound"]
+    f_hi = max(chirp["f0"], chirp["f1"]) if chirp["f0"] is not None else None
+    for a in session["arrays"]:
+        info = read_header(a)
+        fs = info.samplerate
+        if not V.SAMPLE_RATE[0] <= fs <= V.SAMPLE_RATE[1]:
+            raise InputError(f"{a['wav']}: sample rate {fs} Hz is outside [{V.SAMPLE_RATE[0]}, {V.SAMPLE_RATE[1]}] Hz")
+        if f_hi is not None and f_hi >= fs / 2:
+            raise InputError(f"{p}: the chirp reaches {f_hi:g} Hz, at or above the Nyquist frequency {fs / 2:g} Hz "
+                             f"of {a['wav'].name} (array {a['name']!r})")
+        if f_hi is not None and len(a["mics"]) > 1:
+            span = float(np.max(np.linalg.norm(a["mics"][:, None] - a["mics"][None], axis=2)))
+            if span > SPAN_WAVELENGTHS * c / max(f_hi, 1.0):
+                warnings.warn(f"{p}: array {a['name']!r} spans {span:.3g} m, more than {SPAN_WAVELENGTHS:g} "
+                              f"wavelengths at {f_hi:g} Hz: check the mic coordinates are in metres", InputWarning,
+                              stacklevel=3)
 
 
 def _toml_value(v):

@@ -1,0 +1,210 @@
+"""One validation layer for every input: typed values, finiteness, documented physical ranges, unknown keys.
+
+Every reader of session.toml, events.csv, meta.json, the feature/calibration/truth CSVs and every CLI
+option checks its values here, so one value has one rule and one message. Problems raise
+:class:`calib.errors.InputError` (``<file>: <problem>``); suspicious but usable values warn with
+:class:`calib.errors.InputWarning`. The ranges are documented in docs/reliability.md.
+
+Conventions for text inputs (the same for CSV, JSON and TOML):
+
+- a UTF-8 byte-order mark is ignored, CRLF line ends are accepted;
+- typed formats (JSON, TOML) need real numbers: ``"343"`` (a string) and ``true`` (a boolean) are errors;
+- CSV cells are text by nature and are parsed as numbers (surrounding spaces ignored).
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import numbers
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from calib.errors import InputError, InputWarning
+
+BOM = "\ufeff"
+
+# ---- documented ranges (docs/reliability.md); SI units
+SPEED_OF_SOUND = (150.0, 2000.0)      # m/s: any gas to water; air is ~343
+SAMPLE_RATE = (1000, 1_000_000)       # Hz, WAV sample rates the frontend handles
+SIGMA_RANGES = {"sigma_tdoa": (0.0, 1.0), "sigma_doa_deg": (0.0, 180.0), "sigma_odo": (0.0, 100.0)}  # (lo, hi]
+MAX_ABS_POSITION = 1e5                # m: coordinates, odometry (100 km; beyond is a unit mistake)
+MAX_ABS_TIME = 1e7                    # s: emission times, TDOAs, offsets (~115 days)
+MAX_ABS_DRIFT = 0.01                  # clock drift (1 %: far beyond any real crystal)
+MAX_EVENT_ID = 10**9
+MAX_EVENTS = 10_000                   # events in one session (memory of the frontend and estimator)
+MAX_ARRAYS = 256
+MAX_MICS = 64                         # mics per array
+MIN_MIC_SPACING = 1e-3                # m: closer mics are the same mic (a typo)
+CHIRP_DURATION = (1e-3, 60.0)         # s
+MIN_DIRECTION_NORM = 1e-9             # a direction vector shorter than this has no direction
+# dense Jacobians of the estimator: refuse problems whose working set would not fit
+ESTIMATOR_MEMORY_BUDGET = 4 * 2**30   # bytes (capped further at half the machine's RAM)
+
+
+def strip_bom(text):
+    """Text without a leading UTF-8 byte-order mark."""
+    return text[1:] if text.startswith(BOM) else text
+
+
+def read_text(path):
+    """Read a UTF-8 text file (BOM dropped, CRLF → LF). Raises InputError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not UTF-8 text") from None
+    return strip_bom(text).replace("\r\n", "\n")
+
+
+def number(value, where, *, lo=None, hi=None, lo_open=False, integer=False, allow_none=False):
+    """A typed number from JSON/TOML/CLI: not a bool or string, finite, within [lo, hi] (lo open if asked).
+
+    where : "<file>: '<key>'" or "--option", the start of the message.
+    Returns float (or int when ``integer``), or None for None when ``allow_none``.
+    """
+    if value is None and allow_none:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise InputError(f"{where} must be a number, not {_show(value)}")
+    if isinstance(value, numbers.Integral) and abs(int(value)) > 1e300:
+        raise InputError(f"{where} is out of range: {_show(value)}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise InputError(f"{where} must be finite, not {v}")
+    if integer and v != int(v):
+        raise InputError(f"{where} must be an integer, not {v:g}")
+    check_range(v, where, lo=lo, hi=hi, lo_open=lo_open)
+    return int(v) if integer else v
+
+
+def check_range(v, where, *, lo=None, hi=None, lo_open=False):
+    """Raise InputError unless ``lo <= v <= hi`` (``lo < v`` when ``lo_open``)."""
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise InputError(f"{where} must be {'>' if lo_open else '≥'} {lo:g}, not {v:g}")
+    if hi is not None and v > hi:
+        raise InputError(f"{where} must be ≤ {hi:g}, not {v:g}")
+
+
+def string(value, where, *, allow_empty=False):
+    """A typed non-empty string."""
+    if not isinstance(value, str) or (not value and not allow_empty):
+        raise InputError(f"{where} must be a {'' if allow_empty else 'non-empty '}string, not {_show(value)}")
+    return value
+
+
+def vector3(value, where, *, nonzero=False, bound=MAX_ABS_POSITION):
+    """A list of three finite numbers (no booleans, no strings) → tuple of floats."""
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise InputError(f"{where} must be [x, y, z], not {_show(value)}")
+    v = tuple(number(x, where, lo=-bound, hi=bound) for x in value)
+    if nonzero and not math.hypot(*v) > MIN_DIRECTION_NORM:
+        raise InputError(f"{where} must be a non-zero direction")
+    return v
+
+
+def sigma(key, value, where):
+    """A noise figure of meta.json / session.toml within its documented range (see SIGMA_RANGES)."""
+    lo, hi = SIGMA_RANGES[key]
+    return number(value, where, lo=lo, hi=hi, lo_open=True)
+
+
+def speed_of_sound(value, where):
+    return number(value, where, lo=SPEED_OF_SOUND[0], hi=SPEED_OF_SOUND[1])
+
+
+def check_keys(table, known, where):
+    """Warn (InputWarning) about keys of ``table`` not in ``known``, suggesting the closest known key."""
+    for key in table:
+        if key in known:
+            continue
+        close = difflib.get_close_matches(str(key), list(known), n=1, cutoff=0.6)
+        hint = f" (did you mean '{close[0]}'?)" if close else f" (known: {', '.join(sorted(known))})"
+        warnings.warn(f"{where}: unknown key '{key}' ignored{hint}", InputWarning, stacklevel=2)
+
+
+def estimator_budget():
+    """Bytes the estimator's dense Jacobians may take: ESTIMATOR_MEMORY_BUDGET, at most half the RAM."""
+    try:
+        ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        ram = 2 * ESTIMATOR_MEMORY_BUDGET
+    return min(ESTIMATOR_MEMORY_BUDGET, ram // 2)
+
+
+def check_problem_size(n_events, n_arrays, n_rows, where):
+    """Refuse an estimation whose dense Jacobian (rows × parameters float64) would not fit in memory.
+
+    n_rows : scalar measurement rows (a DOA counts 3). Parameters: 4 per event, 10 per array.
+    """
+    n_par = 4 * n_events + 10 * n_arrays
+    need = 8.0 * (n_rows + 3 * n_events) * n_par
+    if need > estimator_budget():
+        raise InputError(f"{where}: {n_events} events and {n_rows} measurements need {need / 2**30:.3g} GiB "
+                         f"for the estimator (limit {estimator_budget() / 2**30:.3g} GiB); split the session")
+
+
+# ---------------------------------------------------------------------------------------------- CLI options
+def option(value, name, *, lo=None, hi=None, lo_open=False, integer=False, allow_none=True):
+    """A numeric CLI option (``--name``): finite and in range. None (not given) passes when allowed."""
+    if value is None and allow_none:
+        return None
+    return number(value, f"--{name}", lo=lo, hi=hi, lo_open=lo_open, integer=integer)
+
+
+def choice(value, name, allowed):
+    """A CLI option from a fixed set."""
+    if value not in allowed:
+        raise InputError(f"--{name} must be {', '.join(allowed[:-1])} or {allowed[-1]}, not {value!r}")
+    return value
+
+
+def _show(value):
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+# ---------------------------------------------------------------------------------------------- command options
+ESTIMATE_CHOICES = {"method": ("hybrid", "wang"), "loss": ("cauchy", "huber", "linear"),
+                    "noise": ("auto", "meta", "estimate")}
+MAX_EMISSION_SIGMA = 10.0          # s: prior std of emission-interval errors
+OUTLIER_THRESHOLD = (1.0, 1e3)     # sigmas
+DETECT_THRESHOLD = (1.0, 1e6)      # matched-filter peak over local background
+MAX_DRIFT = (1e-9, MAX_ABS_DRIFT)  # bound on |clock drift| for association
+
+
+def estimate_options(opts):
+    """Validate estimator options (keys method, use_tdoa_s, emission_sigma, loss, outlier_threshold, noise).
+
+    Messages name the CLI option (``--outlier-threshold``). Returns a cleaned copy.
+    """
+    out = dict(opts)
+    for key, allowed in ESTIMATE_CHOICES.items():
+        if key in out:
+            choice(out[key], key, allowed)
+    if "emission_sigma" in out:
+        out["emission_sigma"] = option(out["emission_sigma"], "emission-sigma", lo=0.0, hi=MAX_EMISSION_SIGMA,
+                                       allow_none=False)
+    if "outlier_threshold" in out:
+        out["outlier_threshold"] = option(out["outlier_threshold"], "outlier-threshold", lo=OUTLIER_THRESHOLD[0],
+                                          hi=OUTLIER_THRESHOLD[1], allow_none=False)
+    return out
+
+
+def features_options(opts):
+    """Validate frontend options given on the command line (threshold, max_drift). Returns a cleaned copy."""
+    out = dict(opts)
+    if out.get("threshold") is not None:
+        out["threshold"] = option(out["threshold"], "detect-threshold", lo=DETECT_THRESHOLD[0],
+                                  hi=DETECT_THRESHOLD[1])
+    if out.get("max_drift") is not None:
+        out["max_drift"] = option(out["max_drift"], "max-drift", lo=MAX_DRIFT[0], hi=MAX_DRIFT[1])
+    return out
