@@ -137,10 +137,8 @@ def process_array(a, session, t_emit, c, opt):
     seg_len = max_lag + len(template) + int(np.ceil(opt["max_drift"] * len(template))) + 4
     starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - pre
     setup = spectra_setup(template, fs, band, seg_len, opt["whiten_hz"])
-    C = segment_spectra(x, starts, setup)  # (J, M, Fb)
+    loc = locate_events(x, starts, setup, locate_kw)  # event segments read and processed in chunks
     x.close()
-
-    loc = locate(C, setup, **locate_kw)
     tau, val, phase = loc["tau"], loc["value"], loc["phase"]
     timings["timing"] = time.perf_counter() - t0
 
@@ -178,6 +176,31 @@ def process_array(a, session, t_emit, c, opt):
         "mic_quality": val, "warnings": warnings, "timings": timings,
         "beta_args": {"locate_kw": locate_kw, "pre": pre, "seg_len": seg_len, "whiten_hz": opt["whiten_hz"]},
     }
+
+
+TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
+
+
+def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
+    """:func:`timing.locate` on all events, a chunk of events at a time (memory bounded by ``chunk_bytes``).
+
+    x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
+    The carrier phase is estimated on the first chunk (all events when they fit in one, as before) and
+    used for every chunk, so all of the array's events share it. Returns locate's dict with the per-event
+    arrays concatenated over chunks.
+    """
+    m = x.shape[0]
+    per_event = 16 * m * setup["nfft"]  # complex64 spectrum + its inverse transform, per event
+    n = max(1, int(chunk_bytes // per_event))
+    parts, phase = [], locate_kw.get("phase")
+    for j0 in range(0, max(len(starts), 1), n):
+        c = segment_spectra(x, starts[j0 : j0 + n], setup)  # (J_c, M, Fb)
+        res = locate(c, setup, **{**locate_kw, "phase": phase})
+        res["r"] = res["r"].copy()  # r is a view of the chunk's full inverse transform: keep only its lags
+        parts.append(res)
+        phase = parts[0]["phase"]
+    out = {k: np.concatenate([p[k] for p in parts]) for k in ("dp", "tau", "value", "r")}
+    return {**out, "phase": phase, "r_lo": parts[0]["r_lo"]}
 
 
 def doa_spread(res, u, mics, c):

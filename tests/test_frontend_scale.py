@@ -188,3 +188,31 @@ def test_envelope_memory_does_not_grow_with_the_recording(tmp_path):
         tracemalloc.stop()
     assert peak < env.nbytes + 40e6, f"{peak / 1e6:.0f} MB traced (envelope {env.nbytes / 1e6:.0f} MB)"
     assert abs(np.argmax(env) * dec - fs) <= dec or abs(np.argmax(env) * dec - 100 * fs) <= dec
+
+
+def test_timing_in_chunks_equals_timing_at_once():
+    # the timing stage reads and processes events a chunk at a time: with the carrier phase fixed the
+    # result does not depend on the chunking; without it, the phase comes from the first chunk
+    from pathlib import Path
+
+    from calib.frontend.extract import locate_events
+    from calib.frontend.signals import chirp_template
+    from calib.frontend.timing import locate, segment_spectra, spectra_setup
+
+    wav = Path(__file__).resolve().parents[1] / "sample_data" / "lab3" / "A1.wav"
+    arr = {"name": "A1", "wav": wav, "mics": np.zeros((6, 3))}
+    with ArrayAudio(arr) as x:
+        tmpl = chirp_template({"reference": wav.parent / "chirp.wav"}, x.fs)
+        env, dec = matched_envelope(x.channel_sum(), tmpl, x.fs, (500.0, 4000.0))
+        peaks = np.flatnonzero((env > 0.5 * env.max()) & (env >= np.maximum(np.roll(env, 1), np.roll(env, -1))))
+        starts = peaks * dec - 200
+        setup = spectra_setup(tmpl, x.fs, (500.0, 4000.0), len(tmpl) + 600)
+        kw = {"lo": 100, "hi": 300, "half_width": 10}
+        whole = locate(segment_spectra(x, starts, setup), setup, **kw)
+        fixed = locate_events(x, starts, setup, {**kw, "phase": whole["phase"]}, chunk_bytes=1)  # 1 per chunk
+        np.testing.assert_allclose(fixed["tau"], whole["tau"], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(fixed["dp"], whole["dp"])
+        np.testing.assert_allclose(fixed["r"], whole["r"], rtol=1e-6, atol=1e-6 * np.abs(whole["r"]).max())
+        first = locate_events(x, starts, setup, kw, chunk_bytes=1)
+        assert first["phase"] == locate(segment_spectra(x, starts[:1], setup), setup, **kw)["phase"]
+    assert len(starts) >= 10
