@@ -3,6 +3,7 @@
     python benchmarks/bench_features_scale.py                       # 14, 60, 240, 960 events at 16 and 48 kHz
     python benchmarks/bench_features_scale.py --events 14 60 --rates 16000
     python benchmarks/bench_features_scale.py --plot docs/img/features_scale.png
+    python benchmarks/bench_features_scale.py --association   # association alone, 240 … 16000 events
 
 Sessions: anechoic and synthetic, written block by block (so writing them is cheap and bounded in memory;
 the room simulator is not needed to measure the frontend's cost): 5 arrays × 6 mics (a 3.54 cm circle,
@@ -135,6 +136,31 @@ def run_case(folder, n_events, seed):
     return r
 
 
+def association_table(sizes=(240, 960, 2000, 4000, 8000, 16000), seed=0):
+    """CPU time of frontend.associate on synthetic detections: drift up to 1e-3, offsets of seconds, 30 ms
+    of propagation jitter, 5 % of events lost, 10 % spurious detections (≥ 0.3 s from any arrival)."""
+    from calib.frontend.associate import associate
+
+    print("| events | detections | CPU (s) | µs per event | all assigned right |")
+    print("|---|---|---|---|---|")
+    for k in sizes:
+        rng = np.random.default_rng(seed + k)
+        t_emit = np.cumsum(np.r_[rng.uniform(0, 5), rng.uniform(1.5, 3.5, k - 1)])
+        drift, offset = rng.uniform(-1e-3, 1e-3), rng.uniform(-20, 20)
+        arr = offset + (1 + drift) * (t_emit - t_emit[0] + rng.uniform(0, 0.03, k))
+        keep = rng.random(k) > 0.05
+        spur = rng.uniform(arr.min() - 2, arr.max() + 2, k // 10)
+        p = np.clip(np.searchsorted(arr, spur), 1, k - 1)
+        spur = spur[np.minimum(np.abs(spur - arr[p - 1]), np.abs(spur - arr[p])) > 0.3]
+        det = np.r_[arr[keep], spur]
+        score = np.r_[rng.uniform(20, 100, keep.sum()), rng.uniform(10, 200, len(spur))]
+        truth = np.r_[np.flatnonzero(keep), np.full(len(spur), -1)]
+        t0 = time.process_time()
+        res = associate(det, score, t_emit)
+        cpu = time.process_time() - t0
+        print(f"| {k} | {len(det)} | {cpu:.3f} | {1e6 * cpu / k:.0f} | {bool(np.all(res['event_of'] == truth))} |")
+
+
 def plot(rows, path):
     import matplotlib
 
@@ -169,7 +195,11 @@ def main():
     ap.add_argument("--plot", type=Path, default=Path("docs/img/features_scale.png"))
     ap.add_argument("--json", type=Path, help="also write the raw numbers here")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--association", action="store_true", help="only the association timing table")
     args = ap.parse_args()
+    if args.association:
+        association_table(seed=args.seed)
+        return
     rows = []
     print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f} (1/5/15 min)")
     print("| events | fs | audio (s) | write (s) | features (s) | CPU (s) | % of audio | peak RSS (MB) | matched | spurious"
