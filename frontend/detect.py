@@ -32,8 +32,8 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
 
     Returns
     -------
-    env : (N_d,) float64, sum over channels of |matched filter| normalised by the template energy
-        (≈ the amplitude of a clean chirp), sampled at ``fs / dec``.
+    env : (N_d,) float32 (the one array that grows with the recording), sum over channels of |matched
+        filter| normalised by the template energy (≈ the amplitude of a clean chirp), sampled at ``fs / dec``.
     dec : int, decimation factor (env[k] is at sample k * dec).
     """
     m, n = x.shape
@@ -50,7 +50,7 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
     s_conj = np.conj(sfft.rfft(template.astype(np.float32), nfft)[k0:k1])
     scale = 2.0 / (float(np.dot(template, template)) * dec)
     n_valid = -(-n // dec)
-    env = np.zeros(n_valid)
+    env = np.zeros(n_valid, np.float32)
     buf = np.zeros(nd, np.complex64)
     for q0 in range(0, n_valid, step):  # q0: first decimated output of this block
         s0 = (q0 - guard) * dec          # first input sample of the block
@@ -60,7 +60,7 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
             spec = sfft.rfft(seg[ch], nfft)
             buf[: k1 - k0] = spec[k0:k1] * s_conj
             env[q0:q1] += np.abs(sfft.ifft(buf)[guard : guard + q1 - q0])
-    env *= scale / m
+    env *= np.float32(scale / m)
     return env, dec
 
 
