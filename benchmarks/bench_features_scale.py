@@ -4,6 +4,7 @@
     python benchmarks/bench_features_scale.py --events 14 60 --rates 16000
     python benchmarks/bench_features_scale.py --plot docs/img/features_scale.png
     python benchmarks/bench_features_scale.py --association   # association alone, 240 … 16000 events
+    python benchmarks/bench_features_scale.py --json r.json; ... --replot r.json --plot out.png
 
 Sessions: anechoic and synthetic, written block by block (so writing them is cheap and bounded in memory;
 the room simulator is not needed to measure the frontend's cost): 5 arrays × 6 mics (a 3.54 cm circle,
@@ -171,11 +172,13 @@ def plot(rows, path):
     for fs in sorted({r["fs"] for r in rows}):
         rr = sorted((r for r in rows if r["fs"] == fs), key=lambda r: r["duration_s"])
         d = [r["duration_s"] for r in rr]
-        ax[0].loglog(d, [r["features_s"] for r in rr], "o-", label=f"{fs // 1000} kHz")
+        line, = ax[0].loglog(d, [r["features_s"] for r in rr], "o-", label=f"{fs // 1000} kHz wall")
+        ax[0].loglog(d, [r["cpu_s"] for r in rr], "s:", color=line.get_color(), label=f"{fs // 1000} kHz CPU")
         ax[1].semilogx(d, [r["peak_rss_mb"] for r in rr], "o-", label=f"{fs // 1000} kHz")
     d = np.array([min(r["duration_s"] for r in rows), max(r["duration_s"] for r in rows)])
     ax[0].loglog(d, 0.01 * d, "k--", lw=1, label="1 % of the audio")
-    ax[0].set(xlabel="recording duration (s)", ylabel="calib features wall time (s)", title="time")
+    ax[0].set(xlabel="recording duration (s)", ylabel="calib features time (s)",
+              title="time (wall depends on the machine's load)")
     ax[1].axhline(1024, color="k", ls="--", lw=1, label="1 GB")
     ax[1].set(xlabel="recording duration (s)", ylabel="peak RSS (MB)", title="peak memory", ylim=(0, None))
     for a in ax:
@@ -196,7 +199,11 @@ def main():
     ap.add_argument("--json", type=Path, help="also write the raw numbers here")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--association", action="store_true", help="only the association timing table")
+    ap.add_argument("--replot", type=Path, help="only redraw --plot from a --json file of an earlier run")
     args = ap.parse_args()
+    if args.replot:
+        plot(json.loads(args.replot.read_text()), args.plot)
+        return
     if args.association:
         association_table(seed=args.seed)
         return
