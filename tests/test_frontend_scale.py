@@ -216,3 +216,28 @@ def test_timing_in_chunks_equals_timing_at_once():
         first = locate_events(x, starts, setup, kw, chunk_bytes=1)
         assert first["phase"] == locate(segment_spectra(x, starts[:1], setup), setup, **kw)["phase"]
     assert len(starts) >= 10
+
+
+def test_non_finite_sample_late_in_a_recording_is_one_clear_error(tmp_path):
+    # the recording is read in blocks, so a NaN far into it is found mid-way: still one error line,
+    # exit 2, nothing written
+    import shutil
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from calib.cli.main import app
+    from calib.pipeline.features import session_features
+
+    d = tmp_path / "rec"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "sample_data" / "lab3", d)
+    x, fs = sf.read(d / "A2.wav", always_2d=True)
+    x[int(0.9 * len(x)), 3] = np.nan
+    sf.write(d / "A2.wav", x, fs, subtype="FLOAT")
+    with pytest.raises(InputError, match="A2.wav: contains non-finite samples"):
+        session_features(d)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(app, ["features", str(d), "-o", str(out / "features"), "-q"])
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and "A2.wav" in lines[0]
+    assert not out.exists()
