@@ -190,13 +190,13 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
     arrays concatenated over chunks.
     """
     m = x.shape[0]
-    per_event = 16 * m * setup["nfft"]  # complex64 spectrum + its inverse transform, per event
+    per_event = 16 * m * setup["nfft"]  # bound on a segment + its FFT + band spectra, per event
     n = max(1, int(chunk_bytes // per_event))
     parts, phase = [], locate_kw.get("phase")
     for j0 in range(0, max(len(starts), 1), n):
         c = segment_spectra(x, starts[j0 : j0 + n], setup)  # (J_c, M, Fb)
         res = locate(c, setup, **{**locate_kw, "phase": phase})
-        res["r"] = res["r"].copy()  # r is a view of the chunk's full inverse transform: keep only its lags
+        res["r"] = np.array(res["r"])  # keep only its lags, never a view of a chunk-sized transform
         parts.append(res)
         phase = parts[0]["phase"]
     out = {k: np.concatenate([p[k] for p in parts]) for k in ("dp", "tau", "value", "r")}
