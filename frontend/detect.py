@@ -1,4 +1,4 @@
-"""Chirp detection: matched-filter envelope of a whole recording and robust peak picking."""
+"""Chirp detection: matched-filter envelope of a whole recording (block-wise) and robust peak picking."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,44 +6,69 @@ import scipy.fft as sfft
 import scipy.signal as ss
 
 
-def matched_envelope(x, template, fs, band):
+BLOCK_SAMPLES = 1 << 18  # envelope block (FFT) length: ~5 s at 48 kHz, bounded memory for any duration
+EDGE_GUARD = 0.25        # × template length discarded at each block edge, beyond the L − 1 of overlap-save
+
+
+def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
     """Envelope of the matched filter (correlation with the template), summed over channels, decimated.
 
     Only the chirp's band carries signal, so the analytic correlation is formed in the frequency domain
     from the band's bins alone and inverse-transformed at a reduced rate (complex baseband). Its magnitude
     is the envelope: a chirp starting at sample n gives a peak at n.
 
+    Computed block by block (overlap-save): each block of about ``block`` samples is read, transformed and
+    dropped, so memory is bounded by one block whatever the recording's length. Each block's outputs
+    exclude the ``L − 1`` lags whose correlation wraps around plus a guard of ``EDGE_GUARD × L`` samples at
+    either end, where the band-limiting (a circular filter over the block) would see the wrapped part.
+
     Parameters
     ----------
-    x : (M, N) recording.
+    x : (M, N) recording: an ndarray or anything sliceable as ``x[:, a:b]`` with a ``shape``
+        (:class:`calib.frontend.signals.ArrayAudio`; zeros outside ``0..N−1``).
     template : (L,) emitted chirp at ``fs``.
     band : (f_lo, f_hi) Hz.
+    block : FFT length per block (samples; raised to fit the template).
 
     Returns
     -------
-    env : (N_d,) float64, sum over channels of |matched filter| normalised by the template energy
-        (≈ the amplitude of a clean chirp), sampled at ``fs / dec``.
+    env : (N_d,) float32 (the one array that grows with the recording), sum over channels of |matched
+        filter| normalised by the template energy (≈ the amplitude of a clean chirp), sampled at ``fs / dec``.
     dec : int, decimation factor (env[k] is at sample k * dec).
     """
     m, n = x.shape
+    n_t = len(template)
     bw = band[1] - band[0]
     dec = max(1, int(fs / (1.25 * bw)))
-    nd = sfft.next_fast_len(-(-(n + len(template)) // dec))
+    guard = -(-int(EDGE_GUARD * n_t) // dec)  # in decimated samples
+    nd = sfft.next_fast_len(max(-(-block // dec), -(-(n_t - 1) // dec) + 2 * guard + 64))
     nfft = nd * dec
+    step = nd - (-(-(n_t - 1) // dec)) - 2 * guard  # valid decimated outputs per block
     k0 = int(np.floor(band[0] * nfft / fs))
     k1 = min(int(np.ceil(band[1] * nfft / fs)) + 1, nfft // 2 + 1)
     k1 = min(k1, k0 + nd)
     s_conj = np.conj(sfft.rfft(template.astype(np.float32), nfft)[k0:k1])
     scale = 2.0 / (float(np.dot(template, template)) * dec)
-    env = np.zeros(nd)
-    buf = np.zeros(nd, np.complex64)
-    for ch in range(m):  # one channel at a time bounds memory on long recordings
-        spec = sfft.rfft(x[ch], nfft, workers=-1)
-        buf[: k1 - k0] = spec[k0:k1] * s_conj
-        env += np.abs(sfft.ifft(buf, workers=-1))
-    env *= scale / m
     n_valid = -(-n // dec)
-    return env[:n_valid], dec
+    env = np.zeros(n_valid, np.float32)
+    buf = np.zeros(nd, np.complex64)
+    for q0 in range(0, n_valid, step):  # q0: first decimated output of this block
+        s0 = (q0 - guard) * dec          # first input sample of the block
+        seg = _columns(x, s0, s0 + nfft)
+        q1 = min(q0 + step, n_valid)
+        for ch in range(m):  # one channel at a time
+            spec = sfft.rfft(seg[ch], nfft)
+            buf[: k1 - k0] = spec[k0:k1] * s_conj
+            env[q0:q1] += np.abs(sfft.ifft(buf)[guard : guard + q1 - q0])
+    env *= np.float32(scale / m)
+    return env, dec
+
+
+def _columns(x, a, b):
+    """``x[:, a:b]`` with zeros for columns before 0 (those after the end are left out: the FFT pads)."""
+    if a >= 0 or not isinstance(x, np.ndarray):
+        return x[:, a:b]
+    return np.concatenate([np.zeros((x.shape[0], -a), x.dtype), x[:, 0 : max(b, 0)]], axis=1)
 
 
 def local_floor(env, block):

@@ -1,7 +1,7 @@
 """``extract_features``: a recording session (FORMATS.md section 1) → features (section 2) + diagnostics.
 
 Per array (each at its own sample rate, all times in seconds on its own clock):
-1. matched-filter envelope of the whole recording, peaks → detections (:mod:`frontend.detect`);
+1. matched-filter envelope of the whole recording (read block-wise), peaks → detections (:mod:`frontend.detect`);
 2. detections ↔ events by the emission-time pattern (:mod:`frontend.associate`);
 3. per matched event, sub-sample chirp start at every mic (:mod:`frontend.timing`);
 4. SRP-PHAT DOA on the time-gated direct path (:mod:`frontend.doa`);
@@ -22,7 +22,7 @@ from calib.errors import InputError
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, refine_peak
 from .doa import srp_doa, srp_setup
-from .signals import chirp_band, chirp_template, read_array_audio, read_header
+from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
 
 DEFAULTS = {
@@ -97,7 +97,8 @@ def process_array(a, session, t_emit, c, opt):
     """Detection, association, timing and DOA for one array."""
     timings = {}
     t0 = time.perf_counter()
-    x, fs = read_array_audio(a)
+    x = ArrayAudio(a)  # read on demand (blocks, event segments): memory bounded whatever the length
+    fs = x.fs
     timings["read"] = time.perf_counter() - t0
     chirp = session["chirp"]
     template = chirp_template(chirp, fs)
@@ -107,7 +108,7 @@ def process_array(a, session, t_emit, c, opt):
     t0 = time.perf_counter()
     # detection on the sum of the channels: one FFT instead of M; a few-cm array sums the chirp's band
     # nearly coherently (on simulated rooms the weakest chirp stood out as well as with 3 channels' envelopes)
-    env, dec = matched_envelope((x.T @ np.ones(len(x), x.dtype))[None], template, fs, band)  # x.T: contiguous
+    env, dec = matched_envelope(x.channel_sum(), template, fs, band)  # (1, N): summed as read
     env_rate = fs / dec
     spacing = np.min(np.diff(t_emit)) if len(t_emit) > 1 else np.inf
     idx, score = pick_peaks(env, env_rate, min(dur, 0.5 * spacing), opt["threshold"])
@@ -136,10 +137,8 @@ def process_array(a, session, t_emit, c, opt):
     seg_len = max_lag + len(template) + int(np.ceil(opt["max_drift"] * len(template))) + 4
     starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - pre
     setup = spectra_setup(template, fs, band, seg_len, opt["whiten_hz"])
-    C = segment_spectra(x, starts, setup)  # (J, M, Fb)
-    del x
-
-    loc = locate(C, setup, **locate_kw)
+    loc = locate_events(x, starts, setup, locate_kw)  # event segments read and processed in chunks
+    x.close()
     tau, val, phase = loc["tau"], loc["value"], loc["phase"]
     timings["timing"] = time.perf_counter() - t0
 
@@ -177,6 +176,31 @@ def process_array(a, session, t_emit, c, opt):
         "mic_quality": val, "warnings": warnings, "timings": timings,
         "beta_args": {"locate_kw": locate_kw, "pre": pre, "seg_len": seg_len, "whiten_hz": opt["whiten_hz"]},
     }
+
+
+TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
+
+
+def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
+    """:func:`timing.locate` on all events, a chunk of events at a time (memory bounded by ``chunk_bytes``).
+
+    x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
+    The carrier phase is estimated on the first chunk (all events when they fit in one, as before) and
+    used for every chunk, so all of the array's events share it. Returns locate's dict with the per-event
+    arrays concatenated over chunks.
+    """
+    m = x.shape[0]
+    per_event = 16 * m * setup["nfft"]  # bound on a segment + its FFT + band spectra, per event
+    n = max(1, int(chunk_bytes // per_event))
+    parts, phase = [], locate_kw.get("phase")
+    for j0 in range(0, max(len(starts), 1), n):
+        c = segment_spectra(x, starts[j0 : j0 + n], setup)  # (J_c, M, Fb)
+        res = locate(c, setup, **{**locate_kw, "phase": phase})
+        res["r"] = np.array(res["r"])  # keep only its lags, never a view of a chunk-sized transform
+        parts.append(res)
+        phase = parts[0]["phase"]
+    out = {k: np.concatenate([p[k] for p in parts]) for k in ("dp", "tau", "value", "r")}
+    return {**out, "phase": phase, "r_lo": parts[0]["r_lo"]}
 
 
 def doa_spread(res, u, mics, c):

@@ -38,22 +38,126 @@ def read_header(array):
 
 
 def read_array_audio(array):
-    """Read one array's recording, checked as :func:`read_header` does.
+    """Read one array's whole recording, checked as :func:`read_header` does (short files, tests; the
+    frontend reads through :class:`ArrayAudio`, in bounded memory).
 
     Returns
     -------
     x : (M, N) float32 ndarray (a transposed view of the sample-major file data).
     fs : int, sample rate (Hz).
     """
-    read_header(array)
-    path = array["wav"]
-    try:
-        data, fs = sf.read(str(path), dtype="float32", always_2d=True)
-    except Exception as exc:
-        raise InputError(f"{path}: cannot read audio ({_first_line(exc)})") from None
-    if not np.all(np.isfinite(data)):
-        raise InputError(f"{path}: contains non-finite samples")
-    return data.T, int(fs)  # a view: slicing events out of it is cheaper than transposing everything
+    with ArrayAudio(array) as audio:
+        return audio[:, 0 : audio.frames], audio.fs
+
+
+# integer PCM subtypes read as integers (libsndfile's float conversion divides by the full scale)
+_INTEGER_READ = {"PCM_S8": (np.int16, 32768.0), "PCM_U8": (np.int16, 32768.0), "PCM_16": (np.int16, 32768.0),
+                 "PCM_24": (np.int32, 2.0**31), "PCM_32": (np.int32, 2.0**31)}
+
+
+class ArrayAudio:
+    """One array's recording, read on demand: memory is bounded by what is asked for, not the file's length.
+
+    Behaves as the ``(M, N)`` float32 recording for slicing ``x[:, a:b]`` (any ``a < b``; samples outside
+    the file are 0), which is all :func:`calib.frontend.timing.segment_spectra` and
+    :func:`calib.frontend.detect.matched_envelope` use. Non-finite samples raise :class:`InputError`
+    naming the file when they are read. Use as a context manager (or call :meth:`close`).
+
+    array : dict from ``pipeline.session.read_session`` (``name``, ``wav``, ``mics``); checked with
+    :func:`read_header` on opening.
+    """
+
+    def __init__(self, array):
+        info = read_header(array)
+        self.path = array["wav"]
+        self.fs, self.channels, self.frames = int(info.samplerate), int(info.channels), int(info.frames)
+        self._int = _INTEGER_READ.get(info.subtype)  # (dtype, full scale) for integer PCM, else None
+        self._file = None
+
+    @property
+    def shape(self):
+        """(M, N): channels, frames."""
+        return (self.channels, self.frames)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def _handle(self):
+        if self._file is None:
+            try:
+                self._file = sf.SoundFile(str(self.path))
+            except Exception as exc:
+                raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
+        return self._file
+
+    def segment(self, start, stop, channel_sum=False):
+        """Samples ``start .. stop − 1`` (zeros outside the file).
+
+        Returns (M, stop − start) float32 (a transposed view of sample-major data), or (stop − start,) the
+        sum over channels if ``channel_sum`` (integer PCM is then summed before its conversion to float:
+        a quarter of the memory traffic of reading floats; the same values up to float32 rounding).
+        """
+        start, stop = int(start), int(stop)
+        n = max(stop - start, 0)
+        a, b = max(start, 0), min(stop, self.frames)
+        raw = channel_sum and self._int is not None
+        out = np.zeros((n, self.channels), self._int[0] if raw else np.float32)
+        if b > a:
+            self._read_into(a, out[a - start : b - start])
+        if raw:
+            acc = out[:, 0].astype(np.float32)
+            for ch in range(1, self.channels):
+                acc += out[:, ch]
+            return acc * np.float32(1.0 / self._int[1])
+        if channel_sum:
+            return out @ np.ones(self.channels, np.float32)
+        return out.T
+
+    def _read_into(self, first, out):
+        """Read ``len(out)`` frames from frame ``first`` into ``out`` ((n, M), C-contiguous)."""
+        f = self._handle()
+        try:
+            f.seek(first)
+            got = f.read(len(out), dtype=out.dtype.name, always_2d=True, out=out)
+        except Exception as exc:
+            raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
+        if len(got) != len(out):
+            raise InputError(f"{self.path}: file ends after {first + len(got)} of {self.frames} frames")
+        if out.dtype.kind == "f" and not np.all(np.isfinite(got)):
+            raise InputError(f"{self.path}: contains non-finite samples")
+
+    def __getitem__(self, key):
+        """``x[:, a:b]``: as :meth:`segment` (a view-like (M, b − a) float32 array)."""
+        if not (isinstance(key, tuple) and len(key) == 2 and key[0] == slice(None) and isinstance(key[1], slice)
+                and key[1].step in (None, 1)):
+            raise TypeError("ArrayAudio supports x[:, a:b] only")
+        a = 0 if key[1].start is None else key[1].start
+        b = self.frames if key[1].stop is None else key[1].stop
+        return self.segment(a, b)
+
+    def channel_sum(self):
+        """A (1, N) view whose slices are the sum over channels (read on demand)."""
+        return _ChannelSum(self)
+
+
+class _ChannelSum:
+    """The sum over an :class:`ArrayAudio`'s channels, sliceable as a (1, N) array."""
+
+    def __init__(self, audio):
+        self.audio = audio
+        self.shape = (1, audio.frames)
+
+    def __getitem__(self, key):
+        a, b = key[1].start, key[1].stop
+        return self.audio.segment(a, b, channel_sum=True)[None]
 
 
 def _first_line(exc):

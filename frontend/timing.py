@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
-from scipy.signal import resample
+from scipy.signal import CZT, resample
 
 from .signals import band_weights
 
@@ -79,11 +79,18 @@ def segment_spectra(x, starts, setup):
 
 def lag_grid(c, setup, lo, hi):
     """Analytic correlation on the native lag grid: (J, M, hi − lo) complex64 for lag samples lo..hi-1
-    (for peak search and gating; precise values come from :func:`corr_at`)."""
-    full = np.zeros(c.shape[:-1] + (setup["nfft"],), np.complex64)
-    full[..., setup["kb"]] = c
-    r = sfft.ifft(full, axis=-1, workers=-1) * setup["nfft"]
-    return r[..., lo:hi]
+    (for peak search and gating; precise values come from :func:`corr_at`).
+
+    ``r[n] = Σ_k c_k e^{j2πkn/nfft}`` over the band's bins only, evaluated at the wanted lags alone by a
+    chirp z-transform (FFTs of about Fb + (hi − lo) points instead of a full-length inverse FFT per mic).
+    """
+    nfft, kb = setup["nfft"], setup["kb"]
+    k0, n_q, n_t = int(kb[0]), int(kb[-1] - kb[0] + 1), hi - lo
+    d = np.zeros(c.shape[:-1] + (n_q,), np.complex64)
+    d[..., kb - k0] = c
+    czt = CZT(n_q, n_t, w=np.exp(2j * np.pi / nfft), a=np.exp(-2j * np.pi * lo / nfft))
+    shift = np.exp(2j * np.pi * k0 * (lo + np.arange(n_t)) / nfft)  # the band's first bin back to its place
+    return (czt(d, axis=-1) * shift).astype(np.complex64)
 
 
 def phasors(freqs, tau):
