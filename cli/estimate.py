@@ -26,8 +26,9 @@ def estimate(
 ):
     """Estimate array poses, clock offsets/drifts and source positions from features."""
     opts = estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise)
-    calib = calibrate(read_features(features), **{**opts, "loss": None if loss == "linear" else loss})
-    write_calibration(out, calib)
+    feats = read_features(features)
+    calib = calibrate(feats, **{**opts, "loss": None if loss == "linear" else loss})
+    write_calibration(out, calib, features=feats)  # + calibration.json
     if not quiet:
         print_arrays(calib)
         rep = calib["report"]

@@ -397,13 +397,18 @@ def read_calibration(directory):
     return {"arrays": arrays, "sources": sources, "report": report}
 
 
-def write_calibration(directory, calib):
-    """Write a calibration dict atomically: arrays.csv, sources.csv, report.json."""
+def write_calibration(directory, calib, features=None):
+    """Write a calibration dict atomically: arrays.csv, sources.csv, report.json (+ calibration.json when the
+    ``features`` it was estimated from are given: :mod:`calib.pipeline.calibration_json`)."""
     with atomic_dir(directory) as tmp:
         write_table(calib["arrays"], tmp / "arrays.csv", ARRAYS_COLS, float_format="%.12g")
         if calib.get("sources") is not None:
             write_table(calib["sources"], tmp / "sources.csv", SOURCES_COLS, float_format="%.9g")
         (tmp / "report.json").write_text(dumps_json(calib.get("report", {}), indent=2) + "\n")
+        if features is not None:
+            from .calibration_json import calibration_document  # (imports the estimator: only when asked)
+
+            (tmp / "calibration.json").write_text(dumps_json(calibration_document(calib, features), indent=2) + "\n")
 
 
 def read_truth(directory):

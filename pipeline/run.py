@@ -40,7 +40,7 @@ CALIBRATION_FILES = ("arrays.csv", "sources.csv", "report.json")
 TRUTH_FILES = ("arrays.csv", "sources.csv")
 # files whose absence makes a stamped stage run again (a user deleted part of an output)
 REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostics.json",),
-            "calibration": ("arrays.csv", "report.json"), "report": ("summary.md",)}
+            "calibration": ("arrays.csv", "report.json", "calibration.json"), "report": ("summary.md",)}
 ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
                      "outlier_threshold": 5.0, "noise": "auto"}
 # The modules each stage calls into. Their source, and that of every calib module they import
@@ -174,7 +174,7 @@ def estimate_stage(out, options):
     opts = dict(options)
     loss = opts.pop("loss")
     calib = calibrate(feats, loss=None if loss == "linear" else loss, **opts)
-    write_calibration(Path(out) / "calibration", calib)
+    write_calibration(Path(out) / "calibration", calib, features=feats)  # + calibration.json
     return calib
 
 
