@@ -16,7 +16,8 @@ def features(
     diagnostics: Optional[Path] = typer.Option(
         None, "--diagnostics", help="where to write diagnostics.json and detections.png "
                                     "[default: 'diagnostics' beside the features folder]"),
-    threshold: float = typer.Option(8.0, help="detection threshold: matched-filter peak over local background"),
+    detect_threshold: float = typer.Option(8.0, help="chirp detection threshold: matched-filter peak over local "
+                                                     "background"),
     max_drift: float = typer.Option(1e-3, help="largest clock drift |δ| the association allows"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
@@ -24,7 +25,7 @@ def features(
     from calib.pipeline.features import session_features, write_feature_outputs
 
     diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
-    opts = {"threshold": threshold, "max_drift": max_drift}
+    opts = {"threshold": detect_threshold, "max_drift": max_drift}
     if quiet:
         feats, diag = session_features(recordings, **opts)
     else:

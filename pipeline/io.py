@@ -377,13 +377,13 @@ def _read_arrays(path, *, known=None, truth=False):
         raise InputError(f"{path}: line {k + 2}: quaternion is not unit norm (norm {n[k]:.4g})")
     q[have] /= n[have, None]
     df[["qw", "qx", "qy", "qz"]] = q
-    return df.reset_index(drop=True)
+    return df.drop(columns="_line").reset_index(drop=True)  # no private column in what the API returns
 
 
 def _read_sources(path, truth=False):
     df = read_table(path, SOURCES_COLS, int_cols=("event",), optional_cols=("x", "y", "z") if truth else ())
     _check_unique(df, ["event"], path)
-    return df.sort_values("event", kind="stable").reset_index(drop=True)
+    return df.drop(columns="_line").sort_values("event", kind="stable").reset_index(drop=True)
 
 
 def read_calibration(directory):
