@@ -18,14 +18,12 @@ def _out_dir(positional, option):
         raise InputError("give the output folder once: -o OUT_DIR")
     if positional is None and option is None:
         raise InputError("missing the output folder: -o OUT_DIR")
-    if positional is not None:
-        print("note: `calib simulate OUT_DIR` is deprecated; use `calib simulate -o OUT_DIR`", file=sys.stderr)
     return positional if positional is not None else option
 
 
 @user_errors
 def simulate(
-    out_pos: Optional[Path] = typer.Argument(None, metavar="[OUT_DIR]", show_default=False,
+    out_pos: Optional[Path] = typer.Argument(None, metavar="OUT_DIR", show_default=False,
                                              help="deprecated: use -o OUT_DIR"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", show_default=False,
                                        help="session folder to write (session.toml, <array>.wav, events.csv, truth/)"),
@@ -63,6 +61,8 @@ def simulate(
         sc = make_scenario(over.pop("preset", "paper-traj3"), over.pop("seed", 0), **over)
         validate_scenario(sc)
     path = run_simulation(sc, out_dir, progress=not quiet, overwrite=True)
+    if out_pos is not None:  # after success only: a bad input stays one line
+        print("note: `calib simulate OUT_DIR` is deprecated; use `calib simulate -o OUT_DIR`", file=sys.stderr)
     if not quiet:
         t = sc["t_emit"]
         console.print(f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "
