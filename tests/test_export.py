@@ -220,3 +220,20 @@ def test_version_help_and_python_m():
     assert "[default: paper-traj3]" in h and "<bool>" not in h  # defaults in help texts stay visible
     f = CliRunner().invoke(app, ["features", "--help"], env={"COLUMNS": "200"}).stdout
     assert "--detect-threshold" in f and "--threshold " not in f  # one name per option
+
+
+def test_estimate_cli_writes_calibration_json_and_old_features_still_work(tmp_path):
+    from calib.pipeline.io import write_features
+
+    feats, _ = simulate_features(1, seed=4)  # features written before meta.json carried mics
+    write_features(tmp_path / "features", feats)
+    r = CliRunner().invoke(app, ["estimate", str(tmp_path / "features"), "-o", str(tmp_path / "cal"), "-q"])
+    assert r.exit_code == 0, r.output
+    cal = load_calibration(tmp_path / "cal")
+    assert all(a.mics is None for a in cal.arrays) and cal.clock.reference_offset is None
+    assert cal.covariance is not None and cal.names == feats["meta"]["arrays"]
+    with pytest.raises(ValueError, match="reference_offset"):
+        cal.to_emitter_time(cal.names[1], 1.0)  # no anchor: said, not guessed
+    r = CliRunner().invoke(app, ["export", str(tmp_path / "cal"), "-f", "pyroomacoustics", "-o", str(tmp_path / "m.npy")])
+    assert r.exit_code == 2 and "needs the mic geometry" in r.stderr and not (tmp_path / "m.npy").exists()
+    assert CliRunner().invoke(app, ["export", str(tmp_path / "cal"), "-f", "tf", "-o", str(tmp_path / "t.sh")]).exit_code == 0
