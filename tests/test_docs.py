@@ -32,6 +32,25 @@ def test_localisation_example_finds_the_held_back_source(tmp_path, monkeypatch, 
     assert err_tdoa < MAX_ERROR_M
     assert err_doa > err_tdoa  # the DOA-only result is reported beside it (and is the weaker one)
     assert "TDOA + clocks" in capsys.readouterr().out
+    # acceptance: calibration.json's mics_reference and the pyroomacoustics export are R·m + x of arrays.csv
+    # (quaternion written out by hand) and session.toml's mics, to 1e-9 m
+    import json
+    import tomllib
+
+    import pandas as pd
+    from tests.test_export import quat_matrix
+
+    arrays = pd.read_csv(tmp_path / "out/calibration/arrays.csv").set_index("array")
+    session = tomllib.loads((tmp_path / "rec/session.toml").read_text())
+    doc = json.loads((tmp_path / "out/calibration/calibration.json").read_text())
+    want = []
+    for a, entry in zip(session["arrays"], doc["arrays"]):
+        row = arrays.loc[a["name"]]
+        ref = np.asarray(a["mics"]) @ quat_matrix(row[["qw", "qx", "qy", "qz"]].to_numpy(float)).T + \
+            row[["x", "y", "z"]].to_numpy(float)
+        assert entry["name"] == a["name"] and np.abs(np.asarray(entry["mics_reference"]) - ref).max() < 1e-9
+        want.append(ref)
+    assert np.abs(np.load(tmp_path / "mics.npy") - np.vstack(want).T).max() < 1e-9
 
 
 def _shell_commands(text):
