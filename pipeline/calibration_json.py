@@ -40,7 +40,8 @@ def reference_offset(meta, arrays, sources, events):
 
     From ``meta["reference_detections_s"]`` (the frontend's detection times of the reference array), the
     calibrated source positions and the reference's drift: d_j = (1 + δ)(t_j − t0 + |s_j − x_ref|/c) + τ + βδ.
-    Returns (tau, std, n) or (None, None, 0) when the features carry no detections.
+    Returns (tau, std, n) or (None, None, 0) when the features carry no detections. ``std`` is the scatter of
+    the median only; the detector's systematic error (tens of µs, docs/formats.md) is not in it.
     """
     dets = meta.get("reference_detections_s") or {}
     if sources is None or len(dets) < MIN_ANCHOR_EVENTS:
