@@ -1,7 +1,7 @@
 """Typed calibration results (dataclasses with DataFrame views) and the helpers a downstream tool needs.
 
 ``cal = load_calibration("out/calibration")`` reads ``calibration.json`` (docs/formats.md) into a
-:class:`Calibration`:
+:class:`Calibration` (``to_calibration(calibrate(features), features)`` builds one in memory):
 
 - ``cal.mics("reference")`` (all mics, arrays in calibration order, channels in WAV order, (M, 3)),
   ``cal.mics("A2")`` (A2's mics in its own frame), ``cal.mics("reference", array="A2")``,
@@ -182,6 +182,13 @@ def from_document(doc, path="calibration.json"):
                            odometry_frame=doc.get("odometry_frame"), document=doc)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{path}: malformed calibration.json ({type(exc).__name__}: {exc})") from None
+
+
+def to_calibration(calib, features) -> Calibration:
+    """A :class:`Calibration` from an in-memory result of ``estimator.calibrate(features)`` (no files)."""
+    from .calibration_json import calibration_document
+
+    return from_document(calibration_document(calib, features), "calibration")
 
 
 def load_calibration(path) -> Calibration:

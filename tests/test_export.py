@@ -192,6 +192,12 @@ def test_typed_views_have_public_columns_only(calibrated):
     # mics in an array's own frame round-trip through the reference frame
     a = cal.arrays[1]
     assert np.abs(cal.mics(a.name, array=a.name) - a.mics).max() < 1e-12
+    # the same typed object straight from the estimator's in-memory result
+    from calib.pipeline.results import to_calibration
+
+    feats = calibrated[1]
+    mem = to_calibration(calibrate(feats), feats)
+    assert np.allclose(mem.arrays_frame()[["x", "y", "z"]], df[["x", "y", "z"]], atol=1e-9)
 
 
 def test_export_cli_and_bad_input(calibrated, tmp_path):
