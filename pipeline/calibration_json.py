@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib import __version__
+from calib.errors import InputError
 
 FORMAT_NAME = "calib-calibration"
 FORMAT_VERSION = 1
@@ -50,10 +51,16 @@ def reference_offset(meta, arrays, sources, events):
     x_ref, drift = ref[["x", "y", "z"]].to_numpy(float), float(ref["drift"])
     ev = events.set_index("event")["t_emit"]
     src = sources.set_index("event")[["x", "y", "z"]]
-    keep = [int(e) for e in dets if int(e) in src.index and int(e) in ev.index]
+    try:
+        keep = [int(e) for e in dets if int(e) in src.index and int(e) in ev.index]
+    except (TypeError, ValueError):
+        raise InputError("meta.json: 'reference_detections_s' keys must be event ids") from None
     if len(keep) < MIN_ANCHOR_EVENTS:
         return None, None, 0
-    d = np.array([float(dets[str(e)] if str(e) in dets else dets[e]) for e in keep])
+    try:
+        d = np.array([float(dets[str(e)] if str(e) in dets else dets[e]) for e in keep])
+    except (TypeError, ValueError):
+        raise InputError("meta.json: 'reference_detections_s' must map event ids to times (s)") from None
     t = ev.loc[keep].to_numpy(float) - float(events["t_emit"].min())
     rng = np.linalg.norm(src.loc[keep].to_numpy(float) - x_ref, axis=1) / float(meta["speed_of_sound"])
     beta = float(meta.get("chirp_drift_bias") or 0.0)
@@ -64,12 +71,23 @@ def reference_offset(meta, arrays, sources, events):
 
 
 def mic_geometry(meta):
-    """{array: (M, 3) ndarray} from meta.json's optional ``mics`` (empty dict when absent)."""
+    """{array: (M, 3) ndarray} from meta.json's optional ``mics`` (empty dict when absent).
+
+    Raises InputError for an unknown array or rows that are not finite [x, y, z]."""
     out = {}
-    for name, m in (meta.get("mics") or {}).items():
-        m = np.asarray(m, float)
-        if m.ndim == 2 and m.shape[1] == 3 and m.shape[0] >= 1 and np.all(np.isfinite(m)):
-            out[name] = m
+    mics = meta.get("mics") or {}
+    if not isinstance(mics, dict):
+        raise InputError("meta.json: 'mics' must map array names to [[x, y, z], ...]")
+    for name, m in mics.items():
+        if name not in meta["arrays"]:
+            raise InputError(f"meta.json: 'mics' names unknown array {name!r}")
+        try:
+            m = np.asarray(m, float)
+        except (TypeError, ValueError):
+            m = np.zeros(0)
+        if m.ndim != 2 or m.shape[1] != 3 or m.shape[0] < 1 or not np.all(np.isfinite(m)):
+            raise InputError(f"meta.json: 'mics' of {name!r} must be a non-empty list of finite [x, y, z]")
+        out[name] = m
     return out
 
 

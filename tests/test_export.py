@@ -243,3 +243,15 @@ def test_estimate_cli_writes_calibration_json_and_old_features_still_work(tmp_pa
     r = CliRunner().invoke(app, ["export", str(tmp_path / "cal"), "-f", "pyroomacoustics", "-o", str(tmp_path / "m.npy")])
     assert r.exit_code == 2 and "needs the mic geometry" in r.stderr and not (tmp_path / "m.npy").exists()
     assert CliRunner().invoke(app, ["export", str(tmp_path / "cal"), "-f", "tf", "-o", str(tmp_path / "t.sh")]).exit_code == 0
+
+
+def test_malformed_meta_mics_is_one_clear_error_and_nothing_written(tmp_path):
+    from calib.pipeline.io import write_features
+
+    feats, _ = simulate_features(1, seed=4)
+    feats["meta"]["mics"] = {feats["meta"]["arrays"][0]: [[0.0, 0.1]]}
+    write_features(tmp_path / "features", feats)
+    r = CliRunner().invoke(app, ["estimate", str(tmp_path / "features"), "-o", str(tmp_path / "cal")])
+    assert r.exit_code == 2 and r.stderr.strip() == (
+        f"error: meta.json: 'mics' of {feats['meta']['arrays'][0]!r} must be a non-empty list of finite [x, y, z]")
+    assert not (tmp_path / "cal").exists()
