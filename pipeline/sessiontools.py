@@ -191,6 +191,9 @@ def _check_audio(session):
             continue
         rates[a["name"]] = info.samplerate
         rows.append(_row(a["name"], "channels vs mics", "ok", f"{info.channels} channels, {len(a['mics'])} mics"))
+        if len(a["mics"]) > 1 and not np.ptp(a["mics"], axis=0).any():
+            rows.append(_row(a["name"], "mic geometry", "FAIL", "all mics at one point: fill in 'mics' in "
+                                                                "session.toml (calib init --model custom leaves zeros)"))
         dur = info.frames / info.samplerate
         rows.append(_row(a["name"], "duration", "ok" if dur > t_end else "FAIL",
                          f"{dur:.1f} s recorded, events span {t_end:.1f} s"))

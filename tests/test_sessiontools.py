@@ -1,4 +1,5 @@
 """calib chirp, calib init and calib check against hand-derived values and simulated sessions."""
+import re
 import shutil
 
 import numpy as np
@@ -104,3 +105,10 @@ def test_check_passes_a_good_session_and_lists_every_problem(small_session, tmp_
     assert ("A2", "channels vs mics") in fails and ("A3", "duration") in fails
     assert ((rows["check"] == "odometry steps") & (rows["status"] == "warn")).any()
     assert "FAIL" in r.stdout and "A2" in r.stdout
+    # a custom session.toml whose mics were never filled in
+    zeros = tmp_path / "zeros"
+    shutil.copytree(small_session, zeros)
+    text = (zeros / "session.toml").read_text()
+    (zeros / "session.toml").write_text(re.sub(r"mics = \[.*\]", "mics = " + str([[0.0, 0.0, 0.0]] * 6), text))
+    rows = check_session(zeros, detect=False)
+    assert set(rows.loc[rows["check"] == "mic geometry", "status"]) == {"FAIL"}
