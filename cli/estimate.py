@@ -28,8 +28,8 @@ def estimate(
     """Estimate array poses, clock offsets/drifts and source positions from features."""
     opts = estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise)
     with owned_output([out], [features], command="calib estimate", on_wait=waiting):
-        calib = estimate_features(features, opts)
-        write_calibration(out, calib, command="calib estimate")
+        calib, feats = estimate_features(features, opts)
+        write_calibration(out, calib, features=feats, command="calib estimate")  # + calibration.json
     if not quiet:
         print_arrays(calib)
         rep = calib["report"]

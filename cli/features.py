@@ -17,7 +17,8 @@ def features(
         None, "--diagnostics", help="where to write diagnostics.json and detections.png "
                                     "[default: 'diagnostics' beside the features folder] (written with the "
                                     "features: both or neither)"),
-    threshold: float = typer.Option(8.0, help="detection threshold: matched-filter peak over local background"),
+    detect_threshold: float = typer.Option(8.0, help="chirp detection threshold: matched-filter peak over local "
+                                                     "background"),
     max_drift: float = typer.Option(1e-3, help="largest clock drift |δ| the association allows"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
@@ -28,7 +29,7 @@ def features(
     from calib.pipeline.validate import features_options
 
     diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
-    opts = features_options({"threshold": threshold, "max_drift": max_drift})
+    opts = features_options({"threshold": detect_threshold, "max_drift": max_drift})
     check_separate([out, diag_dir], [recordings])
     session = read_session(recordings)  # every input checked before any output is touched
     inputs = [recordings, *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]

@@ -71,8 +71,10 @@ def run(
     outlier_threshold: OutlierThreshold = 5.0,
     noise: Noise = "auto",
     detect_threshold: Optional[float] = typer.Option(
-        None, help="chirp detection threshold: matched-filter peak / local background (default: the frontend's, 8)"),
-    max_drift: Optional[float] = typer.Option(None, help="bound on |clock drift| for association (default: 1e-3)"),
+        None, show_default=False,
+        help="chirp detection threshold: matched-filter peak over local background [default: 8]"),
+    max_drift: Optional[float] = typer.Option(None, show_default=False,
+                                              help="largest clock drift |δ| the association allows [default: 1e-3]"),
     quiet: Quiet = False,
     json_out: bool = typer.Option(False, "--json", help="print one JSON line (stages, timings, metrics, paths)"),
 ):

@@ -1,6 +1,7 @@
-"""`calib simulate OUT_DIR`: a simulated recording session (FORMATS.md section 1) + truth/ (section 4)."""
+"""`calib simulate -o OUT_DIR`: a simulated recording session (FORMATS.md section 1) + truth/ (section 4)."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -13,9 +14,21 @@ from calib.pipeline.roomsim import PRESETS, load_scenario, make_scenario, simula
 from .common import console, user_errors, waiting
 
 
+def _out_dir(positional, option):
+    """The output folder from -o (or, deprecated, the positional argument)."""
+    if positional is not None and option is not None:
+        raise InputError("give the output folder once: -o OUT_DIR")
+    if positional is None and option is None:
+        raise InputError("missing the output folder: -o OUT_DIR")
+    return positional if positional is not None else option
+
+
 @user_errors
 def simulate(
-    out_dir: Path = typer.Argument(..., help="session folder to write (session.toml, <array>.wav, events.csv, truth/)"),
+    out_pos: Optional[Path] = typer.Argument(None, metavar="OUT_DIR", show_default=False,
+                                             help="deprecated: use -o OUT_DIR"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", show_default=False,
+                                       help="session folder to write (session.toml, <array>.wav, events.csv, truth/)"),
     preset: Optional[str] = typer.Option(None, help=f"scene preset: {', '.join(PRESETS)} [default: paper-traj3]"),
     seed: Optional[int] = typer.Option(None, help="random seed: same seed, same bytes [default: 0]"),
     scenario: Optional[Path] = typer.Option(None, "--scenario", help="TOML file of scenario keys (options below win)"),
@@ -34,7 +47,8 @@ def simulate(
     force: bool = typer.Option(False, "--force", help="replace OUT_DIR if it exists and is not empty"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
-    """Simulate a room with asynchronous microphone arrays and a chirping speaker; write a session."""
+    """Simulate a room with asynchronous microphone arrays and a chirping speaker; write a session (-o OUT_DIR)."""
+    out_dir = _out_dir(out_pos, out)
     _check_options(rt60=rt60, snr=snr, diffuse_snr=diffuse_snr, fs=fs, n_arrays=n_arrays, n_events=n_events,
                    interval=interval, chirp_duration=chirp_duration, interferers=interferers, sigma_odo=sigma_odo,
                    seed=seed)
@@ -53,6 +67,8 @@ def simulate(
         validate_scenario(sc)
     with owned_output([out_dir], [scenario], command="calib simulate", on_wait=waiting):
         path = run_simulation(sc, out_dir, progress=not quiet, overwrite=True)
+    if out_pos is not None:  # after success only: a bad input stays one line
+        print("note: `calib simulate OUT_DIR` is deprecated; use `calib simulate -o OUT_DIR`", file=sys.stderr)
     if not quiet:
         t = sc["t_emit"]
         console.print(f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "

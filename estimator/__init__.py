@@ -1,13 +1,13 @@
 """Estimator: measurement factors, deterministic initialisation, IVE, joint NLS, uncertainty and CRLB.
 
 Public API: :func:`calibrate` (features → calibration), :func:`crlb` and :func:`draw_from_crlb` (the
-Cramér–Rao bound at a ground truth), :func:`rebuild`, :func:`residuals`, :func:`position_covariances`
-(a calibration evaluated against its features), :func:`to_frames` / :func:`state_from_frames`.
+Cramér–Rao bound at a ground truth), :func:`rebuild`, :func:`residuals`, :func:`position_covariances`,
+:func:`array_covariance` (a calibration evaluated against its features), :func:`to_frames` / :func:`state_from_frames`.
 """
-from .assess import position_covariances, rebuild, residuals
+from .assess import array_covariance, position_covariances, rebuild, residuals
 from .calibrate import calibrate, to_frames
 from .init import ObservabilityError
 from .uncertainty import crlb, draw_from_crlb, state_from_frames
 
-__all__ = ["calibrate", "crlb", "draw_from_crlb", "ObservabilityError", "position_covariances", "rebuild",
-           "residuals", "state_from_frames", "to_frames"]
+__all__ = ["array_covariance", "calibrate", "crlb", "draw_from_crlb", "ObservabilityError", "position_covariances",
+           "rebuild", "residuals", "state_from_frames", "to_frames"]

@@ -89,3 +89,28 @@ def position_covariances(model):
         return out
 
     return blocks(lay["x"]), blocks(lay["s"])
+
+
+ARRAY_PARAMS = (("x", ("x", "y", "z")), ("rot", ("rx", "ry", "rz")), ("offset", ("offset",)), ("drift", ("drift",)))
+
+
+def array_covariance(model):
+    """Full 1-σ covariance of the free array parameters at the estimate (the (JᵀWJ)⁻¹ of the ``*_std`` columns).
+
+    Returns (labels, cov): labels (n,) ``"<array>.<param>"`` with param in x, y, z (m), rx, ry, rz (rad,
+    rotation about the array's own axes: φ in R Exp(φ)), offset (s), drift; cov (n, n) in those units. Arrays
+    in the problem's order, each array's parameters in that order; the reference array's fixed ones are absent.
+    """
+    p, lay = model["problem"], model["layout"]
+    _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
+    cov = covariance(J[w > 0], lay["n"])
+    labels, idx = [], []
+    for i, name in enumerate(p["names"]):
+        for key, names in ARRAY_PARAMS:
+            cols = np.atleast_1d(lay[key][i])
+            for col, label in zip(cols, names):
+                if col >= 0:
+                    labels.append(f"{name}.{label}")
+                    idx.append(int(col))
+    idx = np.asarray(idx, int)
+    return labels, cov[np.ix_(idx, idx)]

@@ -16,7 +16,23 @@ def session_features(recordings, progress=None, **options):
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
     session = recordings if isinstance(recordings, dict) else read_session(recordings)
-    return extract_features(session, progress=progress, **options)
+    feats, diag = extract_features(session, progress=progress, **options)
+    return add_session_meta(feats, session, diag), diag
+
+
+def add_session_meta(feats, session, diag):
+    """Extend features/meta.json with what later stages need from the session (docs/formats.md).
+
+    ``mics``: {array: (M, 3) list, array frame, WAV channel order}, so ``calib estimate`` can write the mic
+    geometry into calibration.json. ``reference_detections_s``: {event: local time (s) of the reference
+    array's matched chirp detections} (the frontend's detection times, same chirp point as its arrivals): the
+    anchor of the reference array's absolute clock offset. Returns ``feats`` with an updated meta copy.
+    """
+    meta = dict(feats["meta"])
+    meta["mics"] = {a["name"]: [[float(v) for v in m] for m in a["mics"]] for a in session["arrays"]}
+    dets = (diag.get("arrays", {}).get(session["reference_array"]) or {}).get("detections") or []
+    meta["reference_detections_s"] = {str(d["event"]): float(d["time"]) for d in dets if d.get("event") is not None}
+    return {**feats, "meta": meta}
 
 
 def write_diagnostics(directory, diag):

@@ -216,8 +216,9 @@ def read_events(path):
 
 
 # ----------------------------------------------------------------------------------------------- features
+# every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", *SIGMA_KEYS, "chirp_drift_bias", "sigmas_estimated",
-             "doa_mirror_normals")
+             "doa_mirror_normals", "mics", "reference_detections_s")
 
 
 def validate_meta(meta, path="meta.json"):
@@ -382,7 +383,7 @@ def _read_arrays(path, *, known=None, truth=False):
         raise InputError(f"{path}: line {k + 2}: quaternion is not unit norm (norm {n[k]:.4g})")
     q[have] /= n[have, None]
     df[["qw", "qx", "qy", "qz"]] = q
-    return df.reset_index(drop=True)
+    return df.drop(columns="_line").reset_index(drop=True)  # no private column in what the API returns
 
 
 def _read_sources(path, truth=False):
@@ -390,7 +391,7 @@ def _read_sources(path, truth=False):
     df = read_table(path, SOURCES_COLS, int_cols=("event",), optional_cols=("x", "y", "z") if truth else (),
                     max_rows=V.MAX_EVENTS, bounds={"x": pos, "y": pos, "z": pos})
     _check_unique(df, ["event"], path)
-    return df.sort_values("event", kind="stable").reset_index(drop=True)
+    return df.drop(columns="_line").sort_values("event", kind="stable").reset_index(drop=True)
 
 
 def read_calibration(directory):
@@ -406,13 +407,18 @@ def read_calibration(directory):
     return {"arrays": arrays, "sources": sources, "report": report}
 
 
-def write_calibration(directory, calib, command="calib"):
-    """Write a calibration dict atomically: arrays.csv, sources.csv, report.json."""
+def write_calibration(directory, calib, features=None, command="calib"):
+    """Write a calibration dict atomically: arrays.csv, sources.csv, report.json (+ calibration.json when the
+    ``features`` it was estimated from are given: :mod:`calib.pipeline.calibration_json`)."""
     with atomic_dir(directory, command=command) as tmp:
         write_table(calib["arrays"], tmp / "arrays.csv", ARRAYS_COLS, float_format="%.12g")
         if calib.get("sources") is not None:
             write_table(calib["sources"], tmp / "sources.csv", SOURCES_COLS, float_format="%.9g")
         (tmp / "report.json").write_text(dumps_json(calib.get("report", {}), indent=2) + "\n")
+        if features is not None:
+            from .calibration_json import calibration_document  # (imports the estimator: only when asked)
+
+            (tmp / "calibration.json").write_text(dumps_json(calibration_document(calib, features), indent=2) + "\n")
 
 
 def read_truth(directory):

@@ -43,7 +43,7 @@ CALIBRATION_FILES = ("arrays.csv", "sources.csv", "report.json")
 TRUTH_FILES = ("arrays.csv", "sources.csv")
 # files whose absence makes a stamped stage run again (a user deleted part of an output)
 REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostics.json",),
-            "calibration": ("arrays.csv", "report.json"), "report": ("summary.md",)}
+            "calibration": ("arrays.csv", "report.json", "calibration.json"), "report": ("summary.md",)}
 ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
                      "outlier_threshold": 5.0, "noise": "auto"}
 # The modules each stage calls into. Their source, and that of every calib module they import
@@ -168,13 +168,14 @@ def estimate_stage(out, options):
     """Estimator: OUT/features/ → OUT/calibration/ (atomic). Returns the calibration dict."""
     from .io import write_calibration
 
-    calib = estimate_features(Path(out) / "features", options)
-    write_calibration(Path(out) / "calibration", calib)
+    calib, feats = estimate_features(Path(out) / "features", options)
+    write_calibration(Path(out) / "calibration", calib, features=feats)  # + calibration.json
     return calib
 
 
 def estimate_features(features_dir, options):
     """Read a features folder and calibrate it (options as ``ESTIMATE_DEFAULTS``; loss "linear" = none).
+    Returns (calibration, features).
 
     Data that cannot determine the calibration raises InputError naming the features folder.
     """
@@ -184,7 +185,7 @@ def estimate_features(features_dir, options):
     opts = dict(options)
     loss = opts.pop("loss", "cauchy")
     try:
-        return calibrate(feats, loss=None if loss == "linear" else loss, **opts)
+        return calibrate(feats, loss=None if loss == "linear" else loss, **opts), feats
     except ObservabilityError as exc:
         raise InputError(f"{features_dir}: {exc}") from None
 

@@ -38,9 +38,10 @@ CHIRP_KEYS = ("f0", "f1", "duration", "reference", "kind", "fade")
 ARRAY_KEYS = ("name", "wav", "mics", "doa_hemisphere")
 
 
-def read_session(directory):
+def read_session(directory, check_audio=True):
     """Read and validate a recording session folder. WAV headers are checked (channels, sample rate vs
-    the chirp band), the samples are not read.
+    the chirp band), the samples are not read; ``check_audio=False`` skips that (``calib check`` lists
+    every audio problem itself instead of stopping at the first).
 
     Every value is typed (numbers are TOML numbers, not strings or booleans) and within the ranges of
     ``pipeline/validate.py``; unknown keys warn with a did-you-mean (:class:`calib.errors.InputWarning`).
@@ -75,7 +76,8 @@ def read_session(directory):
         "arrays": arrays,
         "events": read_events(d / "events.csv"),
     }
-    _check_audio(session, p)
+    if check_audio:
+        _check_audio(session, p)
     return session
 
 

@@ -1,0 +1,47 @@
+"""`calib init FOLDER --model MODEL`: a session.toml from the WAVs of a folder and an array model."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from calib.pipeline.io import InputError, atomic_write_text
+from calib.pipeline.sessiontools import MODELS, init_session
+from .common import Quiet, console, user_errors
+
+
+@user_errors
+def init(
+    folder: Path = typer.Argument(..., help="folder with one multichannel WAV per array (named after the array)"),
+    model: List[str] = typer.Option(["custom"], "--model", "-m",
+                                    help=f"array model ({', '.join(MODELS)}) for every WAV, or NAME=MODEL per "
+                                         "WAV (repeat); custom leaves the mics to fill in"),
+    reference: Optional[str] = typer.Option(None, show_default=False,
+                                            help="reference array [default: the first WAV, by name]"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", show_default=False,
+                                       help="file to write [default: FOLDER/session.toml]"),
+    force: bool = typer.Option(False, "--force", help="replace an existing session.toml"),
+    quiet: Quiet = False,
+):
+    """Write a session.toml for the WAVs in FOLDER: each WAV one array, mics from the array model.
+
+    Models: respeaker-6-circular, minidsp-uma8, matrix-voice (geometry of the ODAS configurations),
+    respeaker-4-linear (nominal spacing: measure your board) and custom (zeros to fill in). Check the result,
+    add events.csv, then run `calib check FOLDER`.
+    """
+    per = dict(m.split("=", 1) for m in model if "=" in m)
+    plain = [m for m in model if "=" not in m]
+    if len(plain) > 1:
+        raise InputError("give one --model for all WAVs, or NAME=MODEL for each")
+    for m in list(per.values()) + plain:
+        if m not in MODELS:
+            raise InputError(f"--model must be one of {', '.join(MODELS)}, not {m!r}")
+    spec = {**{p.stem: plain[0] if plain else "custom" for p in folder.glob("*.wav")}, **per} if per else plain[0]
+    path = out if out is not None else folder / "session.toml"
+    if path.exists() and not force:
+        raise InputError(f"{path}: exists (use --force to replace it)")
+    text = init_session(folder, spec, reference=reference)
+    atomic_write_text(path, text)
+    if not quiet:
+        console.print(f"wrote {path}")

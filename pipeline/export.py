@@ -1,0 +1,166 @@
+"""``calib export``: a calibration (calibration.json) in the formats robot-audition tools read.
+
+=================  ==========================================================================================
+format             what is written
+=================  ==========================================================================================
+``json``           calibration.json itself (docs/formats.md)
+``yaml``           Kalibr-style YAML: one block per array with ``T_ref_array`` (4×4, maps array-frame points into
+                   the reference frame), ``quaternion_wxyz``, ``mics``, ``mics_reference``, ``clock``
+``pyroomacoustics`` ``.npy`` of shape (3, all mics): the ``R`` argument of ``pyroomacoustics.MicrophoneArray``,
+                   reference frame, arrays in calibration order, channels in WAV order
+``odas``           the ``mics = (...)`` block of an ODAS configuration per array: ``mu`` = R·m (array-centred, axes
+                   of the reference frame, so ODAS's directions come out in the reference frame), ``sigma2`` the
+                   mic-position covariance from the rotation's, ``direction`` the array's z axis
+``urdf``           a URDF robot: a link per array and per mic, fixed joints (xyz, rpy)
+``tf``             a shell script of ROS 2 ``static_transform_publisher`` commands, reference → each array
+=================  ==========================================================================================
+"""
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from .io import atomic_write_text
+from .results import REFERENCE, Calibration
+from calib.errors import InputError
+
+FORMATS = ("json", "yaml", "pyroomacoustics", "odas", "urdf", "tf")
+SUFFIX = {"json": ".json", "yaml": ".yaml", "pyroomacoustics": ".npy", "odas": ".cfg", "urdf": ".urdf", "tf": ".sh"}
+# ODAS's default microphone pick-up cone (deg): full gain up to 80°, none beyond 90° off the array's z axis
+ODAS_ANGLE_DEG = (80.0, 90.0)
+
+
+def _f(v):
+    """A float written so that reading it back gives the same double (repr is shortest round-trip)."""
+    return repr(float(v))
+
+
+def to_yaml_dict(cal: Calibration):
+    """The Kalibr-style mapping: ``calib`` (frame, units, clock) and one block per array."""
+    out = {"calib": {"format": "calib-calibration (Kalibr-style export)", "reference_array": cal.reference_array,
+                     "speed_of_sound": cal.speed_of_sound, "conventions": cal.document.get("conventions"),
+                     "units": cal.document.get("units"), "clock": cal.document.get("clock")}}
+    for a, doc in zip(cal.arrays, cal.document["arrays"]):
+        out[a.name] = {"T_ref_array": a.matrix.tolist(), "quaternion_wxyz": a.quaternion.tolist(),
+                       "mics": None if a.mics is None else a.mics.tolist(),
+                       "mics_reference": None if a.mics is None else cal.mics(REFERENCE, a.name).tolist(),
+                       "clock": doc["clock"], "std": doc.get("std")}
+    return out
+
+
+def to_yaml(cal: Calibration):
+    import yaml  # PyYAML: a dependency for this export (Kalibr's files are YAML)
+
+    return yaml.safe_dump(to_yaml_dict(cal), sort_keys=False, default_flow_style=None, width=120)
+
+
+def _skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def odas_mic_blocks(cal: Calibration):
+    """{array: [(mu (3,), sigma2 (3, 3), direction (3,)), ...]} for the ODAS export (see module docstring)."""
+    labels = [] if cal.covariance is None else list(cal.covariance.index)
+    out = {}
+    for a in cal.arrays:
+        R = a.rotation.as_matrix()
+        rot_lab = [f"{a.name}.r{c}" for c in "xyz"]
+        if all(lab in labels for lab in rot_lab):
+            S_phi = cal.covariance.loc[rot_lab, rot_lab].to_numpy(float)
+        else:
+            S_phi = np.zeros((3, 3))  # the reference array: its rotation is the frame, known exactly
+        rows = []
+        for m in a.mics:
+            J = -R @ _skew(m)  # d(R Exp(φ) m)/dφ at φ = 0
+            rows.append((R @ m, J @ S_phi @ J.T, R[:, 2]))
+        out[a.name] = rows
+    return out
+
+
+def to_odas(cal: Calibration):
+    lines = ["# ODAS mic blocks from calib (calibration.json): one `mics` block per array; paste the one of an",
+             "# array into its ODAS configuration. mu = R·m (m): array-centred, axes of the reference array's",
+             f"# frame ({cal.reference_array}), so ODAS's directions are in that frame. sigma2: mic-position",
+             "# covariance (m²) from the calibrated rotation's. direction: the array's z axis.", ""]
+    for name, rows in odas_mic_blocks(cal).items():
+        lines += [f"# array {name}", "mics = ("]
+        for k, (mu, s2, d) in enumerate(rows):
+            sep = "," if k < len(rows) - 1 else ""
+            lines += [f"    # microphone {k + 1} (WAV channel {k})", "    {",
+                      f"        mu = ( {', '.join(_f(v) for v in mu)} );",
+                      f"        sigma2 = ( {', '.join(_f(v) for v in s2.ravel())} );",
+                      f"        direction = ( {', '.join(_f(v) for v in d)} );",
+                      f"        angle = ( {ODAS_ANGLE_DEG[0]}, {ODAS_ANGLE_DEG[1]} );", "    }" + sep]
+        lines += [");", ""]
+    return "\n".join(lines)
+
+
+def _rpy(rot):
+    """URDF roll, pitch, yaw (fixed axes x, y, z: R = Rz(yaw) Ry(pitch) Rx(roll))."""
+    return rot.as_euler("xyz")
+
+
+def to_urdf(cal: Calibration, robot="calib_arrays"):
+    root = ET.Element("robot", name=robot)
+    ref = cal.reference_array
+    ET.SubElement(root, "link", name=ref)
+    for a in cal.arrays:
+        if a.name != ref:
+            ET.SubElement(root, "link", name=a.name)
+            j = ET.SubElement(root, "joint", name=f"{ref}_to_{a.name}", type="fixed")
+            ET.SubElement(j, "parent", link=ref)
+            ET.SubElement(j, "child", link=a.name)
+            ET.SubElement(j, "origin", xyz=" ".join(_f(v) for v in a.position),
+                          rpy=" ".join(_f(v) for v in _rpy(a.rotation)))
+        for k, m in enumerate([] if a.mics is None else a.mics):
+            mic = f"{a.name}_mic{k}"
+            ET.SubElement(root, "link", name=mic)
+            j = ET.SubElement(root, "joint", name=f"{a.name}_to_{mic}", type="fixed")
+            ET.SubElement(j, "parent", link=a.name)
+            ET.SubElement(j, "child", link=mic)
+            ET.SubElement(j, "origin", xyz=" ".join(_f(v) for v in m), rpy="0 0 0")
+    ET.indent(root)
+    return '<?xml version="1.0"?>\n<!-- calib: arrays and mics (one link per WAV channel) -->\n' + \
+        ET.tostring(root, encoding="unicode") + "\n"
+
+
+def to_tf(cal: Calibration):
+    lines = ["#!/bin/sh", "# ROS 2 static transforms from calib: the reference array's frame to each array's frame",
+             "# (translation m; rotation as a quaternion, given by name: ROS is scalar-last).", ""]
+    for a in cal.arrays:
+        if a.name == cal.reference_array:
+            continue
+        x, y, z = (_f(v) for v in a.position)
+        qw, qx, qy, qz = (_f(v) for v in a.quaternion)
+        lines.append(f"ros2 run tf2_ros static_transform_publisher --x {x} --y {y} --z {z} --qx {qx} --qy {qy} "
+                     f"--qz {qz} --qw {qw} --frame-id {cal.reference_array} --child-frame-id {a.name} &")
+    lines.append("wait")
+    return "\n".join(lines) + "\n"
+
+
+def export(cal: Calibration, fmt, path):
+    """Write ``cal`` in format ``fmt`` (one of :data:`FORMATS`) to ``path`` (atomic). Returns the path."""
+    path = Path(path)
+    if fmt not in FORMATS:
+        raise InputError(f"unknown export format {fmt!r}: one of {', '.join(FORMATS)}")
+    missing = [a.name for a in cal.arrays if a.mics is None]
+    if missing and fmt in ("pyroomacoustics", "odas", "urdf"):
+        raise InputError(f"{fmt} export needs the mic geometry; none for {', '.join(missing)} "
+                         "(features/meta.json without 'mics': re-run `calib features`)")
+    if fmt == "pyroomacoustics":
+        import io as _io
+
+        buf = _io.BytesIO()
+        np.save(buf, cal.mics(REFERENCE).T)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_bytes(buf.getvalue())
+        tmp.replace(path)
+        return path
+    text = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml, "odas": to_odas,
+            "urdf": to_urdf, "tf": to_tf}[fmt](cal)
+    atomic_write_text(path, text)
+    return path

@@ -1,0 +1,237 @@
+"""Tools for before a recording: the chirp to play and its schedule, a session.toml, a session check.
+
+- :func:`chirp_files` — the sweep (``calib.frontend.signals.sweep``) as a WAV to play from the robot, and an
+  emission schedule (``event,t_emit``, jittered intervals) the robot follows and logs into events.csv.
+- :func:`init_session` — a ``session.toml`` from the WAVs of a folder and an array model (:data:`ARRAY_MODELS`).
+- :func:`check_session` — validates a session without estimating: one row per check (array, check, status,
+  detail), so a user sees everything that is wrong at once.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import soundfile as sf
+
+from calib.errors import InputError
+from calib.frontend.signals import sweep
+
+from .io import atomic_write_text
+from .session import session_toml
+
+
+def _circle(n, radius, start_deg=0.0, ccw=True, z=0.0):
+    a = np.deg2rad(start_deg + (1 if ccw else -1) * 360.0 * np.arange(n) / n)
+    return np.column_stack([radius * np.cos(a), radius * np.sin(a), np.full(n, z)])
+
+
+# Mic geometries (m, the array's own frame, WAV channel order) of common arrays. Sources: the ODAS project's
+# configurations (introlab/odas config/odaslive: respeaker_6_mic_array, minidsp (UMA-8), matrix_voice).
+# respeaker-4-linear is NOMINAL (4 mics on x, 4 cm apart, centred): measure your board and edit session.toml.
+ARRAY_MODELS = {
+    "respeaker-6-circular": {"mics": [[-0.0232, 0.0401, 0.0], [-0.0463, 0.0, 0.0], [-0.0232, -0.0401, 0.0],
+                                      [0.0232, -0.0401, 0.0], [0.0463, 0.0, 0.0], [0.0232, 0.0401, 0.0]],
+                             "note": "ReSpeaker 6-Mic Circular Array kit: r = 46.3 mm (ODAS configuration)"},
+    "minidsp-uma8": {"mics": [[0.0, 0.0, 0.0], [0.0, 0.043, 0.0], [0.037, 0.021, 0.0], [0.037, -0.021, 0.0],
+                              [0.0, -0.043, 0.0], [-0.037, -0.021, 0.0], [-0.037, 0.021, 0.0]],
+                     "note": "miniDSP UMA-8: centre mic + 6 on r = 43 mm (ODAS configuration)"},
+    "matrix-voice": {"mics": [[0.0, 0.0, 0.0], [-0.038133, 0.003576, 0.0], [-0.020980, 0.032043, 0.0],
+                              [0.011971, 0.036381, 0.0], [0.035908, 0.013323, 0.0], [0.032805, -0.019767, 0.0],
+                              [0.004999, -0.037972, 0.0], [-0.026571, -0.027584, 0.0]],
+                     "note": "MATRIX Voice: 8 mics (ODAS configuration)"},
+    "respeaker-4-linear": {"mics": [[-0.06, 0.0, 0.0], [-0.02, 0.0, 0.0], [0.02, 0.0, 0.0], [0.06, 0.0, 0.0]],
+                           "note": "ReSpeaker 4-Mic Linear Array: NOMINAL spacing (4 cm): measure your board"},
+}
+MODELS = tuple(ARRAY_MODELS) + ("custom",)
+# planar arrays: DOAs are taken on the side of +z (the side the mics face); say so in session.toml
+PLANAR_HEMISPHERE = [0.0, 0.0, 1.0]
+
+# Chirp defaults and why (docs/cli.md `calib chirp`):
+CHIRP_F0 = 500.0        # Hz: above most room modes, HVAC hum and footsteps; small speakers still radiate it
+CHIRP_F1 = 4000.0       # Hz: below spatial aliasing of ~4 cm mic spacings (c / 2d ≈ 4.3 kHz), within 16 kHz rates
+CHIRP_DURATION = 0.5    # s: time-bandwidth 1750 → ~32 dB matched-filter gain; short against robot motion
+CHIRP_FADE = 0.005      # s: raised-cosine edges, no click (a broadband click would spoil the matched filter)
+INTERVAL = 2.0          # s: longer than RT60 + the largest propagation delay + the chirp, so chirps never overlap
+JITTER = 0.25           # ± fraction of the interval: irregular spacing makes the event association unambiguous
+
+
+def chirp_signal(fs, f0=CHIRP_F0, f1=CHIRP_F1, duration=CHIRP_DURATION, fade=CHIRP_FADE, kind="linear"):
+    """The sweep sampled at ``fs`` (L,) float64, peak 1 (the session's ``[chirp]`` signal)."""
+    n = int(np.ceil(duration * fs))
+    return sweep(np.arange(n) / fs, f0, f1, duration, fade, kind)
+
+
+def emission_schedule(n_events, interval=INTERVAL, jitter=JITTER, start=1.0, seed=0):
+    """Emission times (n,) s: ``start`` then intervals drawn uniformly in interval·(1 ± jitter)."""
+    if n_events < 3:
+        raise InputError("n_events must be at least 3 (the estimator needs 3 events or more)")
+    if not (0 <= jitter < 1) or interval <= 0:
+        raise InputError("interval must be > 0 and jitter in [0, 1)")
+    rng = np.random.default_rng(seed)
+    steps = interval * (1 + jitter * rng.uniform(-1, 1, n_events - 1))
+    return start + np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def chirp_files(out_dir, *, fs=48000, n_events=30, interval=INTERVAL, jitter=JITTER, seed=0, f0=CHIRP_F0,
+                f1=CHIRP_F1, duration=CHIRP_DURATION, fade=CHIRP_FADE, kind="linear", amplitude=0.5):
+    """Write ``chirp.wav`` (mono, PCM_24), ``schedule.csv`` (event,t_emit) and ``chirp.toml`` (the [chirp] table
+    for session.toml) into ``out_dir``. Returns {name: path}."""
+    if duration >= interval * (1 - jitter):
+        raise InputError(f"the chirp ({duration} s) must be shorter than the shortest interval "
+                         f"({interval * (1 - jitter):.3g} s)")
+    if max(f0, f1) >= 0.5 * fs:
+        raise InputError(f"f1 = {max(f0, f1)} Hz is not below the Nyquist frequency of fs = {fs} Hz")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    x = amplitude * chirp_signal(fs, f0, f1, duration, fade, kind)
+    tmp = out / ".chirp.wav.tmp"
+    sf.write(str(tmp), x, int(fs), subtype="PCM_24", format="WAV")
+    tmp.replace(out / "chirp.wav")
+    t = emission_schedule(n_events, interval, jitter, seed=seed)
+    atomic_write_text(out / "schedule.csv", pd.DataFrame({"event": np.arange(len(t)), "t_emit": t})
+                      .to_csv(index=False, float_format="%.6f", lineterminator="\n"))
+    atomic_write_text(out / "chirp.toml", "[chirp]\n" + "".join(
+        f"{k} = {v!r}\n" for k, v in (("f0", float(f0)), ("f1", float(f1)), ("duration", float(duration)),
+                                       ("fade", float(fade)), ("kind", kind), ("reference", "chirp.wav"))))
+    return {"chirp": out / "chirp.wav", "schedule": out / "schedule.csv", "toml": out / "chirp.toml"}
+
+
+def model_mics(model, channels):
+    """Mic geometry (M, 3) of ``model`` for a WAV of ``channels`` channels (custom: zeros to fill in)."""
+    if model == "custom":
+        return np.zeros((channels, 3))
+    if model not in ARRAY_MODELS:
+        raise InputError(f"unknown array model {model!r}: one of {', '.join(MODELS)}")
+    return np.asarray(ARRAY_MODELS[model]["mics"], float)
+
+
+def init_session(folder, model, *, reference=None, chirp=None, speed_of_sound=343.0):
+    """``session.toml`` text for the WAVs of ``folder`` (each one array, named after the file).
+
+    model : a name of :data:`ARRAY_MODELS` or "custom" (mics left as zeros to fill in), or {wav stem: model}.
+    chirp : the [chirp] values (default: :func:`chirp_files`'s defaults, with reference = chirp.wav if present).
+    Raises InputError when the folder has no WAV or a WAV's channel count does not fit its model.
+    """
+    d = Path(folder)
+    wavs = sorted(p for p in d.glob("*.wav") if p.name != "chirp.wav")
+    if not wavs:
+        raise InputError(f"{d}: no array WAV files (*.wav other than chirp.wav)")
+    arrays, notes = [], []
+    for w in wavs:
+        m = model.get(w.stem, "custom") if isinstance(model, dict) else model
+        try:
+            ch = sf.info(str(w)).channels
+        except Exception as exc:
+            raise InputError(f"{w}: cannot read audio ({str(exc).splitlines()[0]})") from None
+        mics = model_mics(m, ch)
+        if len(mics) != ch:
+            raise InputError(f"{w}: {ch} channels, but a {m} has {len(mics)} mics (record only the mic channels, "
+                             f"or use --model custom)")
+        planar = np.ptp(mics[:, 2]) == 0 and m != "custom"
+        arrays.append({"name": w.stem, "wav": w.name, "mics": mics,
+                       "doa_hemisphere": PLANAR_HEMISPHERE if planar else None})
+        notes.append(f"# {w.stem}: {m}" + (f" ({ARRAY_MODELS[m]['note']})" if m in ARRAY_MODELS else
+                                          ": FILL IN the mic positions (m, array frame, one row per channel)"))
+    if chirp is None:
+        chirp = {"f0": CHIRP_F0, "f1": CHIRP_F1, "duration": CHIRP_DURATION, "fade": CHIRP_FADE}
+        if (d / "chirp.wav").is_file():
+            chirp["reference"] = "chirp.wav"
+    ref = reference or arrays[0]["name"]
+    if ref not in [a["name"] for a in arrays]:
+        raise InputError(f"{d}: reference array {ref!r} is not one of {', '.join(a['name'] for a in arrays)}")
+    head = "# written by `calib init`; check every value (docs/formats.md)\n" + "\n".join(notes) + "\n"
+    return head + session_toml(speed_of_sound, ref, chirp, arrays)
+
+
+# ----------------------------------------------------------------------------------------------- check
+# An array that matched fewer than this fraction of the events probably cannot hear the chirp well enough
+MIN_MATCHED_FRACTION = 0.5
+# Odometry: a step longer than this between two chirps is implausible for an indoor robot (m)
+MAX_STEP_M = 5.0
+# Odometry extent (m) below which array positions are poorly determined along that axis
+MIN_SPAN_M = 0.5
+
+
+def _row(what, check, status, detail):
+    return {"what": what, "check": check, "status": status, "detail": detail}
+
+
+def _check_events(session):
+    ev = session["events"]
+    rows = [_row("events.csv", "events", "ok" if len(ev) >= 3 else "FAIL", f"{len(ev)} events (at least 3 needed)")]
+    t = ev["t_emit"].to_numpy(float)
+    dur = session["chirp"].get("duration")
+    if len(t) > 1 and dur is not None:
+        gap = float(np.min(np.diff(t)))
+        rows.append(_row("events.csv", "intervals", "ok" if gap > dur else "FAIL",
+                         f"shortest interval {gap:.3g} s vs chirp {dur:.3g} s"))
+    odo = ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+    step = np.linalg.norm(np.diff(odo, axis=0), axis=1) if len(odo) > 1 else np.zeros(1)
+    rows.append(_row("events.csv", "odometry steps", "ok" if step.max() <= MAX_STEP_M else "warn",
+                     f"largest step {step.max():.2f} m (> {MAX_STEP_M:g} m is implausible)"))
+    span = np.ptp(odo, axis=0)
+    small = [ax for ax, s in zip("xyz", span) if s < MIN_SPAN_M]
+    rows.append(_row("events.csv", "odometry span", "warn" if len(small) > 1 else "ok",
+                     "span x {:.2f}, y {:.2f}, z {:.2f} m".format(*span) +
+                     (f"; small along {', '.join(small)}: poses weakly determined there" if small else "")))
+    return rows
+
+
+def _check_audio(session):
+    from calib.frontend.signals import read_header
+
+    rows, rates = [], {}
+    t_end = float(session["events"]["t_emit"].iloc[-1] - session["events"]["t_emit"].iloc[0])
+    for a in session["arrays"]:
+        try:
+            info = read_header(a)
+        except InputError as exc:
+            rows.append(_row(a["name"], "channels vs mics", "FAIL", str(exc)))
+            continue
+        rates[a["name"]] = info.samplerate
+        rows.append(_row(a["name"], "channels vs mics", "ok", f"{info.channels} channels, {len(a['mics'])} mics"))
+        dur = info.frames / info.samplerate
+        rows.append(_row(a["name"], "duration", "ok" if dur > t_end else "FAIL",
+                         f"{dur:.1f} s recorded, events span {t_end:.1f} s"))
+        f1 = max(session["chirp"].get("f0") or 0, session["chirp"].get("f1") or 0)
+        rows.append(_row(a["name"], "rate", "ok" if f1 < 0.5 * info.samplerate else "FAIL",
+                         f"{info.samplerate} Hz (chirp up to {f1:g} Hz)"))
+    if len(set(rates.values())) > 1:
+        rows.append(_row("arrays", "rates", "warn", "different sample rates: " +
+                         ", ".join(f"{k} {v}" for k, v in rates.items()) + " (allowed; each array on its own)"))
+    return rows
+
+
+def _check_detections(session, options):
+    from calib.frontend import extract_features
+
+    try:
+        _, diag = extract_features(session, **options)
+    except InputError as exc:
+        return [_row("frontend", "chirp audible", "FAIL", str(exc))]
+    rows, n = [], len(session["events"])
+    for name, a in diag["arrays"].items():
+        matched = sum(d["event"] is not None for d in a["detections"])
+        ok = matched >= MIN_MATCHED_FRACTION * n
+        rows.append(_row(name, "chirp audible", "ok" if ok else "FAIL",
+                         f"{matched}/{n} events heard, {len(a['spurious'])} spurious" +
+                         (f"; missed {a['missed_events'][:8]}" if a["missed_events"] else "")))
+        for w in a["warnings"]:
+            rows.append(_row(name, "frontend", "warn", w))
+    return rows
+
+
+def check_session(folder, *, detect=True, **options):
+    """Validate a recording session without estimating. Returns a DataFrame (what, check, status, detail) with
+    status ok, warn or FAIL. detect: also run the frontend (is the chirp audible in each array?)."""
+    from .session import read_session
+
+    try:
+        session = read_session(folder, check_audio=False)  # audio problems: listed below, one row each
+    except InputError as exc:
+        return pd.DataFrame([_row("session", "session.toml / events.csv", "FAIL", str(exc))])
+    rows = _check_events(session) + _check_audio(session)
+    if detect and not any(r["status"] == "FAIL" and r["check"] in ("channels vs mics", "rate") for r in rows):
+        rows += _check_detections(session, options)
+    return pd.DataFrame(rows)
