@@ -46,7 +46,19 @@ def simulate(
     else:
         sc = make_scenario(over.pop("preset", "paper-traj3"), over.pop("seed", 0), **over)
         validate_scenario(sc)
-    path = run_simulation(sc, out_dir, progress=not quiet, overwrite=True)
+    if quiet:
+        path = run_simulation(sc, out_dir, overwrite=True)
+    else:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        with Progress(TextColumn("simulate"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[msg]}"),
+                      TimeElapsedColumn(), console=console) as bar:
+            task = bar.add_task("simulate", total=None, msg="")
+
+            def progress(done, total, msg):
+                bar.update(task, total=total, completed=done, msg=msg)
+
+            path = run_simulation(sc, out_dir, progress=progress, overwrite=True)
     if not quiet:
         t = sc["t_emit"]
         console.print(f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "

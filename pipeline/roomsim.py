@@ -30,22 +30,20 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.signal import fftconvolve
 from scipy.spatial.transform import Rotation
 
-from calib.frontend.signals import SWEEP_KINDS, sweep  # noqa: F401  (SWEEP_KINDS: valid chirp kinds)
+from calib.frontend.signals import SWEEP_KINDS
 
+from . import acoustics as ac
+from . import scenes
 from .io import ARRAYS_COLS, EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
+from .render import EARLY, FDL, FDL_LATE, builder_delay, local_time  # noqa: F401  (public names)
 from .session import write_session_toml
+from .simrender import direct_amplitudes, impulse_response, noise_levels, render_session  # noqa: F401
+from .sounds import burst_signal, chirp_power, chirp_signal  # noqa: F401  (public names of the simulator)
 
-# ----------------------------------------------------------------------------------------------- constants
-FDL = 81           # fractional-delay filter length (pyroomacoustics default)
-LUT_GRAN = 512     # sinc look-up granularity of the RIR builder (pra default 20; finer = more exact delays)
-N_THREADS = 2      # fixed so that the builder's summation order (hence every output byte) is reproducible
-FDL_LATE = 21      # shorter filter for late reflections (> EARLY s after the direct path)
-EARLY = 0.05       # s
-PAD = FDL // 2 + 1  # samples added to every image delay so the builder never indexes before 0
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
+MODELS = ("flat", "bands")
 
 # Speaker trajectories of Zhang et al. 2025 (simulation section; published with their code, gt_generation.m).
 _PAPER_TRAJ = {
@@ -68,6 +66,18 @@ PRESETS = {
     "paper-traj3": {"n_arrays": 5, "room_margin": 1.5},
     "lab3": {"n_arrays": 3, "room_dim": [6.0, 5.0, 3.0], "tilt_deg": 3.0},
 }
+# Realistic presets (model "bands"): see docs/simulation.md "Realistic acoustics".
+_REAL = {"model": "bands", "directivity": "cardioid", "snr": 40.0, "diffuse_snr": 20.0, "hum_snr": 30.0,
+         "gain_mismatch_db": 2.0}
+PRESETS |= {
+    "lab": {**_REAL, "n_arrays": 4, "room_dim": [6.0, 5.0, 3.0], "rt60": 0.4, "fs": 16000, "interval": 1.5},
+    "hall": {**_REAL, "n_arrays": 6, "room_dim": [12.0, 8.0, 4.0], "rt60": 0.8, "fs": 48000, "interval": 2.0,
+             "chirp": {"f0": 500.0, "f1": 10000.0}},
+    "hard": {**_REAL, "n_arrays": 4, "room_dim": [6.0, 5.0, 3.0], "rt60": 0.4, "fs": 16000, "interval": 1.5,
+             "n_occluded": 1, "n_speech": 1, "n_quiet": 1},
+}
+REALISTIC = ("lab", "hall", "hard")
+DEFAULT_MATERIALS = {"walls": "plasterboard", "floor": "linoleum_on_concrete", "ceiling": "ceiling_plasterboard"}
 
 # Keys that only steer the random generation in make_scenario (kept in the scenario for the record).
 GEN_DEFAULTS = {
@@ -88,6 +98,16 @@ GEN_DEFAULTS = {
     "n_interferers": 0,        # random interfering noise bursts (see the 'interferers' key)
     "interferer_level_db": 0.0,  # their power relative to the chirp's, dB
 }
+NEW_GEN_DEFAULTS = {
+    "n_occluded": 0,           # 'hard': wall arrays whose direct path is occluded (see occlusion_*)
+    "occlusion_db": 15.0,      # ... their direct path this many dB below the wall reflection, ...
+    "occlusion_delay": 6e-4,   # ... which arrives this much later (median over the stops), s
+    "n_speech": 0,             # speech-like interferers, each between two consecutive chirps
+    "speech_level_db": 0.0,    # their power re. the chirp's emitted power, dB
+    "n_quiet": 0,              # quiet events: emitted so that one array's matched-filter SNR is ...
+    "quiet_snr_db": 0.0,       # ... this (single mic, white self-noise + diffuse noise), dB
+}
+GEN_DEFAULTS |= NEW_GEN_DEFAULTS
 
 SCENE_DEFAULTS = {
     "fs": 16000,
@@ -104,63 +124,37 @@ SCENE_DEFAULTS = {
     "tail": 0.3,
     "reference_array": "A1",
 }
+# Keys of the realistic acoustics; their defaults keep the original ("flat") simulator unchanged.
+NEW_SCENE_DEFAULTS = {
+    "model": "flat",           # "flat" (ISM, one absorption) | "bands" (materials, air, tail, directivity)
+    "materials": None,         # bands: {walls, floor, ceiling, west, east, south, north} → material
+    "air_absorption": True,    # bands: air absorption per band (pyroomacoustics coefficients)
+    "mixing_time": 0.05,       # bands: image sources up to this long after the direct path, then the tail
+    "directivity": "omni",     # bands: speaker pattern (omni|subcardioid|cardioid|supercardioid|hypercardioid|p)
+    "source_axis": None,       # bands: (K, 3) speaker axes; None = the heading along the trajectory
+    "event_level_db": None,    # (K,) emission level of each chirp, dB (None = all 0)
+    "hum_snr": math.inf,       # mains hum re. P, dB (inf = off)
+    "hum_freq": 50.0,          # Hz
+    "hum_harmonics": 5,        # number of harmonics (amplitude 1/h)
+    "gain_mismatch_db": 0.0,   # per-mic gains drawn U(−x, x) dB (arrays may give mic_gain_db instead)
+}
+SCENE_DEFAULTS |= NEW_SCENE_DEFAULTS
 SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers"}
 META_KEYS = {"preset", "seed"}
 ALL_KEYS = SCENE_KEYS | set(GEN_DEFAULTS) | META_KEYS
 
 
 # ----------------------------------------------------------------------------------------------- signals
-def chirp_signal(u, ch):
-    """The scenario's chirp ``ch`` (f0, f1, duration, fade, kind) at times ``u`` (s since its start)."""
-    return sweep(u, ch["f0"], ch["f1"], ch["duration"], ch["fade"], ch.get("kind", "linear"))
-
-
-def chirp_power(chirp):
-    """Mean of ``chirp_signal²`` over its duration (dimensionless, ≈ 0.5)."""
-    u = np.linspace(0, chirp["duration"], 200_001)
-    return float(np.mean(chirp_signal(u, chirp) ** 2))
-
-
 def circular_array(n_mics=6, radius=0.0354):
     """Mic positions (n_mics, 3) of a uniform circular array in the x-y plane, centred on the origin (m)."""
     a = 2 * np.pi * np.arange(n_mics) / n_mics
     return np.round(np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(n_mics)], axis=1), 12) + 0.0
 
 
-def _burst_params(seed, index, f_lo, f_hi, n_tones=48):
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(100, index)))
-    return rng.uniform(f_lo, f_hi, n_tones), rng.uniform(0, 2 * np.pi, n_tones)
-
-
-def burst_signal(u, duration, freqs, phases):
-    """An interferer: sum of tones with a Hann envelope over ``duration`` (s), unit power; 0 outside.
-
-    Analytic so that every array can evaluate it on its own clock, like the chirp.
-    """
-    u = np.asarray(u, float)
-    env = np.where((u >= 0) & (u <= duration), np.sin(np.pi * np.clip(u, 0, duration) / duration) ** 2, 0.0)
-    s = np.zeros_like(u)
-    for f, p in zip(freqs, phases):
-        s += np.cos(2 * np.pi * f * u + p)
-    # mean of env² over the burst is 3/8, mean of the tone sum² is n_tones / 2
-    return env * s / np.sqrt(3 / 8 * len(freqs) / 2)
-
-
-def _pink_noise(rng, shape):
-    """Unit-variance pink (1/f power) noise along the last axis, flat below 20 Hz cut."""
-    n = shape[-1]
-    spec = np.fft.rfft(rng.standard_normal(shape), axis=-1)
-    f = np.fft.rfftfreq(n)
-    w = np.zeros_like(f)
-    w[1:] = 1 / np.sqrt(f[1:])
-    x = np.fft.irfft(spec * w, n=n, axis=-1)
-    return x / x.std(axis=-1, keepdims=True)
-
-
 # ----------------------------------------------------------------------------------------------- scenario
-def _rng(seed, purpose):
+def _rng(seed, *purpose):
     # one independent stream per purpose: overriding one part of a scene never changes the draws of another
-    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(purpose,)))
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=purpose))
 
 
 def _merge(base, over):
@@ -176,8 +170,12 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
     Presets: ``paper-traj1`` (8 stops, 3×3×3 m cube), ``paper-traj2`` (10 stops, 2×6×2 m),
     ``paper-traj3`` (14 stops, 4×4×2 m) — the trajectories of Zhang et al. 2025, 5 arrays at random
     positions inside the trajectory box and rotations uniform on SO(3), room = box + 1.5 m on each side —
-    and ``lab3`` (3 roughly upright arrays near the floor, 7 stops on a ~1.7 m loop flown at 1.12 m then
-    0.75 m, like the paper's real experiment, in a 6×5×3 m room).
+    ``lab3`` (3 roughly upright arrays near the floor, 7 stops on a ~1.7 m loop flown at 1.12 m then
+    0.75 m, like the paper's real experiment, in a 6×5×3 m room), and the realistic presets (``bands``
+    model: materials, air absorption, late tail, cardioid speaker, noise, hum, gain mismatch) ``lab``
+    (6×5×3 m, RT60 0.4 s, 16 kHz, 4 planar 6-mic circles on tables and walls), ``hall`` (12×8×4 m, RT60
+    0.8 s, 48 kHz, 6 non-planar arrays) and ``hard`` (the lab plus an occluded array, a speech-like
+    interferer and a quiet event).
 
     Any key below may be overridden (nested dicts ``chirp``/``priors`` are merged). All values are SI and
     in the ROOM frame (origin at a room corner, walls along the axes).
@@ -185,38 +183,27 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
     Scene keys (what :func:`simulate` uses):
       ``preset`` str, ``seed`` int (drives every random draw, including noise and odometry);
       ``fs`` int Hz (nominal rate of every recorder); ``speed_of_sound`` m/s; ``room_dim`` (3,) m;
-      ``rt60`` s (Sabine, via ``pyroomacoustics.inverse_sabine``; 0 = anechoic); ``max_order`` int|None
-      (ISM order; None = from inverse_sabine); ``chirp`` {f0 Hz, f1 Hz, duration s, fade s};
+      ``rt60`` s (flat: Sabine, via ``pyroomacoustics.inverse_sabine``; bands: Sabine RT60 of the 1 kHz
+      octave; 0 = anechoic); ``max_order`` int|None (flat ISM order; None = from inverse_sabine);
+      ``chirp`` {f0 Hz, f1 Hz, duration s, fade s, kind linear|exponential};
       ``arrays`` list of {``name`` str, ``position`` (3,) m, ``quat`` (4,) scalar-first rotation array
       frame → room, ``mics`` (M, 3) m in the array frame (one per WAV channel), ``tau`` s (local clock
-      reading at t_emit[0]), ``drift`` (δ, dimensionless), optional ``doa_hemisphere`` (3,) array frame};
+      reading at t_emit[0]), ``drift`` (δ, dimensionless), optional ``doa_hemisphere`` (3,) array frame,
+      ``direct_db`` dB (bands: direct-path gain, default 0), ``mic_gain_db`` (M,) dB};
       ``reference_array`` str (its frame is the world frame of everything written);
       ``sources`` (K, 3) m speaker stops; ``t_emit`` (K,) s emission times of the chirp STARTS on the
       emitter clock; ``snr`` dB (white sensor noise re. the mean direct-path chirp power at the mics;
-      inf = none); ``diffuse_snr`` dB (incoherent pink noise, same reference; inf = none);
+      inf = none); ``diffuse_snr`` dB (pink noise with diffuse-field coherence, same reference);
       ``interferers`` list of {``position`` (3,) m, ``t_start`` s (emitter clock), ``duration`` s,
-      ``level_db`` dB re. the chirp's emitted power, ``f_lo``/``f_hi`` Hz}; ``sigma_odo`` m (odometry
-      step noise, per axis); ``priors`` {sigma_tdoa s, sigma_doa_deg deg} written to session.toml [noise]
-      (default none: the frontend estimates TDOA/DOA noise itself; sigma_odo is always written);
-      ``subtype`` FLOAT|PCM_24|PCM_16; ``tail`` s recorded after the last reverberation.
+      ``level_db`` dB re. the chirp's emitted power, ``kind`` tones|speech, ``f_lo``/``f_hi`` Hz (tones),
+      ``f0`` Hz (speech pitch)}; ``sigma_odo`` m (odometry step noise, per axis); ``priors``
+      {sigma_tdoa s, sigma_doa_deg deg} written to session.toml [noise] (default none);
+      ``subtype`` FLOAT|PCM_24|PCM_16; ``tail`` s recorded after the last reverberation;
+      and the realistic-acoustics keys of ``NEW_SCENE_DEFAULTS`` (docs/simulation.md).
     Generation keys (only steer the random draws): see ``GEN_DEFAULTS``.
     """
-    if preset not in PRESETS:
-        raise InputError(f"scenario: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"scenario: seed must be a non-negative integer, got {seed!r}")
-    unknown = sorted(set(overrides) - ALL_KEYS)
-    if unknown:
-        raise InputError(f"scenario: unknown key(s) {', '.join(map(repr, unknown))}")
-    seed = int(seed)
-    g = {**GEN_DEFAULTS, **{k: v for k, v in PRESETS[preset].items() if k in GEN_DEFAULTS},
-         **{k: v for k, v in overrides.items() if k in GEN_DEFAULTS}}
-    base = _merge(SCENE_DEFAULTS, {k: v for k, v in PRESETS[preset].items() if k in SCENE_DEFAULTS})
-    sc = _merge(base, {k: v for k, v in overrides.items()
-                       if k in SCENE_DEFAULTS and k not in ("reference_array",)})
-    sc = {"preset": preset, "seed": seed, **sc}
-    n_arrays = _int(g["n_arrays"], "n_arrays", 1)
-
+    g, sc = _start(preset, seed, overrides)
+    seed = sc["seed"]
     # speaker stops (room frame) and the room
     if "sources" in overrides:
         sources = _matrix(overrides["sources"], "sources", 3)
@@ -229,17 +216,12 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
     if "arrays" in overrides:
         arrays = _user_arrays(overrides["arrays"], g)
     else:
-        arrays = _make_arrays(preset, g, np.asarray(sources), room, n_arrays, _rng(seed, 2), _rng(seed, 3))
+        arrays = _make_arrays(preset, g, np.asarray(sources), room, _int(g["n_arrays"], "n_arrays", 1),
+                              _rng(seed, 2), _rng(seed, 3), sc)
     sc["arrays"] = arrays
     sc["reference_array"] = overrides.get("reference_array", arrays[0]["name"])
     if g["n_events"] is not None and "sources" not in overrides:
-        k = _int(g["n_events"], "n_events", 0)
-        if k == 0:
-            raise InputError("scenario: n_events must be at least 1 (zero events)")
-        if k > len(sources):
-            raise InputError(f"scenario: preset {preset!r} has {len(sources)} speaker stops, "
-                             f"n_events={k} asked")
-        sources = sources[:k]
+        sources = _first_events(sources, g["n_events"], preset)
     sc["room_dim"] = room.tolist()
     sc["sources"] = np.asarray(sources, float).tolist()
 
@@ -253,8 +235,37 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
         sc["interferers"] = copy.deepcopy(list(overrides["interferers"]))
     else:
         sc["interferers"] = _make_interferers(g, room, sc["t_emit"], _rng(seed, 5))
+        sc["interferers"] += _make_speech(g, room, sc, _rng(seed, 6))
+    if "event_level_db" not in overrides and _int(g["n_quiet"], "n_quiet", 0) > 0:
+        sc["event_level_db"] = _quiet_events(sc, g)
     sc["generator"] = {k: g[k] for k in GEN_DEFAULTS}
     return sc
+
+
+def _start(preset, seed, overrides):
+    """Checked preset/seed/keys → (generation keys, scene keys with preset and overrides merged)."""
+    if preset not in PRESETS:
+        raise InputError(f"scenario: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"scenario: seed must be a non-negative integer, got {seed!r}")
+    unknown = sorted(set(overrides) - ALL_KEYS)
+    if unknown:
+        raise InputError(f"scenario: unknown key(s) {', '.join(map(repr, unknown))}")
+    g = {**GEN_DEFAULTS, **{k: v for k, v in PRESETS[preset].items() if k in GEN_DEFAULTS},
+         **{k: v for k, v in overrides.items() if k in GEN_DEFAULTS}}
+    base = _merge(SCENE_DEFAULTS, {k: v for k, v in PRESETS[preset].items() if k in SCENE_DEFAULTS})
+    sc = _merge(base, {k: v for k, v in overrides.items()
+                       if k in SCENE_DEFAULTS and k not in ("reference_array",)})
+    return g, {"preset": preset, "seed": int(seed), **sc}
+
+
+def _first_events(sources, n_events, preset):
+    k = _int(n_events, "n_events", 0)
+    if k == 0:
+        raise InputError("scenario: n_events must be at least 1 (zero events)")
+    if k > len(sources):
+        raise InputError(f"scenario: preset {preset!r} has {len(sources)} speaker stops, n_events={k} asked")
+    return sources[:k]
 
 
 def _int(v, name, lo):
@@ -308,6 +319,10 @@ def _make_sources(preset, g, room_dim, rng):
         extent = traj.max(0) - traj.min(0)
         room = (extent + 2 * float(g["room_margin"]) if room_dim is None else _vector(room_dim, "room_dim", 3))
         return traj - traj.min(0) + (room - extent) / 2, np.asarray(room, float)
+    if preset in REALISTIC:
+        room = _vector(room_dim, "room_dim", 3)
+        radii, heights = ((4.0, 2.6), (1.5, 1.0)) if preset == "hall" else ((1.6, 1.2), (1.3, 1.05))
+        return scenes.loop_stops(room, rng, radii, heights), room
     # lab3: the real loop, rotated about z, jittered, centred near the middle of the room
     room = _vector(room_dim, "room_dim", 3)
     psi = rng.uniform(-np.pi, np.pi)
@@ -320,8 +335,31 @@ def _make_sources(preset, g, room_dim, rng):
     return np.concatenate(stops), room
 
 
-def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock):
+def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock, sc):
     """Random array poses (rejection sampling under the distance constraints) and clocks."""
+    if preset in REALISTIC:
+        positions, rots, extra = _realistic_poses(preset, g, sources, room, n, rng_pose, sc)
+        mics = scenes.octahedron_mics() if preset == "hall" and g["mics"] is None else _default_mics(g)
+    else:
+        positions, rots = _legacy_poses(preset, g, sources, room, n, rng_pose)
+        extra = [{"doa_hemisphere": [0.0, 0.0, 1.0]} if g["tilt_deg"] is not None else {} for _ in range(n)]
+        mics = _default_mics(g)
+    offmax, drmax = float(g["offset_max"]), float(g["drift_max"])
+    off = rng_clock.uniform(-offmax, offmax, n)
+    off[0] = 0.0
+    drift = rng_clock.uniform(-drmax, drmax, n)
+    tau = off - off.min() + float(g["lead_in"])
+    out = []
+    for i in range(n):
+        q = rots[i].as_quat(scalar_first=True)
+        q = q if q[0] >= 0 else -q
+        out.append({"name": f"A{i + 1}", "position": np.asarray(positions[i], float).tolist(), "quat": q.tolist(),
+                    "mics": mics.tolist(), "tau": float(tau[i]), "drift": float(drift[i]), **extra[i]})
+    return out
+
+
+def _legacy_poses(preset, g, sources, room, n, rng_pose):
+    """Poses of the paper and lab3 presets: (positions list, Rotation of n)."""
     wall, dmin = float(g["wall_margin"]), float(g["min_source_distance"])
     if preset == "lab3":
         lo = np.r_[sources[:, :2].min(0) + 0.2, 0.30]
@@ -348,28 +386,64 @@ def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock):
         raise InputError(f"scenario: cannot place {n} arrays under the distance constraints "
                          f"(≥ {dmin} m from speaker stops, ≥ {wall} m from walls)")
     if g["tilt_deg"] is None:
-        rots = Rotation.random(n, rng=rng_pose)
-    else:
-        yaw = Rotation.from_euler("z", rng_pose.uniform(-np.pi, np.pi, (n, 1)))
-        tilt = np.zeros((n, 3))
-        tilt[:, :2] = np.deg2rad(float(g["tilt_deg"])) * rng_pose.standard_normal((n, 2))
-        rots = Rotation.from_rotvec(tilt) * yaw
-    offmax, drmax = float(g["offset_max"]), float(g["drift_max"])
-    off = rng_clock.uniform(-offmax, offmax, n)
-    off[0] = 0.0
-    drift = rng_clock.uniform(-drmax, drmax, n)
-    tau = off - off.min() + float(g["lead_in"])
-    mics = _default_mics(g)
-    out = []
+        return pos, Rotation.random(n, rng=rng_pose)
+    yaw = Rotation.from_euler("z", rng_pose.uniform(-np.pi, np.pi, (n, 1)))
+    tilt = np.zeros((n, 3))
+    tilt[:, :2] = np.deg2rad(float(g["tilt_deg"])) * rng_pose.standard_normal((n, 2))
+    return pos, Rotation.from_rotvec(tilt) * yaw
+
+
+WALL_ARRAY_DEPTH = 0.1     # m: wall-mounted arrays of lab/hard sit this far from their wall
+HALL_WALL_DEPTH = 0.15     # m: the hall's wall arrays
+
+
+def _realistic_poses(preset, g, sources, room, n, rng, sc):
+    """Poses of lab/hall/hard: lab alternates tables and walls (planar, hemisphere = the array normal);
+    the hall puts 4 arrays on the walls (1.5-3 m high) and the rest on stands (any rotation).
+    ``hard`` moves its first ``n_occluded`` wall arrays to the depth where the wall's reflection arrives
+    ``occlusion_delay`` after the direct path and attenuates that direct path (``direct_db``)."""
+    walls = list(rng.permutation(4))
+    n_occ = _int(g["n_occluded"], "n_occluded", 0)
+    kinds, extra = [], []
     for i in range(n):
-        q = rots[i].as_quat(scalar_first=True)
-        q = q if q[0] >= 0 else -q
-        a = {"name": f"A{i + 1}", "position": pos[i].tolist(), "quat": q.tolist(), "mics": mics.tolist(),
-             "tau": float(tau[i]), "drift": float(drift[i])}
-        if g["tilt_deg"] is not None:
-            a["doa_hemisphere"] = [0.0, 0.0, 1.0]  # upright planar arrays below the speaker
-        out.append(a)
-    return out
+        if preset == "hall":
+            kinds.append(("wall", walls[i % 4], (1.5, 3.0), HALL_WALL_DEPTH) if i < 4 else ("stand", (1.0, 1.6)))
+            extra.append({})
+            continue
+        if i % 2 == 0:
+            kinds.append(("table",))
+            extra.append({"doa_hemisphere": [0.0, 0.0, 1.0]})
+            continue
+        wall, depth, e = walls[(i // 2) % 4], WALL_ARRAY_DEPTH, {"doa_hemisphere": [0.0, 0.0, 1.0]}
+        if i // 2 < n_occ:
+            depth = scenes.occlusion_depth(sources, wall, room, sc["speed_of_sound"], float(g["occlusion_delay"]))
+            e["direct_db"] = _occlusion_db(sources, wall, room, depth, sc, float(g["occlusion_db"]))
+        kinds.append(("wall", wall, (2.0, 2.4), depth))
+        extra.append(e)
+    poses = scenes.place(kinds, room, sources, rng, float(g["min_source_distance"]))
+    if poses is None:
+        raise InputError(f"scenario: cannot place {n} arrays under the distance constraints")
+    return [p for p, _ in poses], [r for _, r in poses], extra
+
+
+def _occlusion_db(sources, wall, room, depth, sc, below_db):
+    """Direct-path gain (dB) that puts the direct path ``below_db`` under the first-order reflection on
+    ``wall`` (median over the stops; reflection factor of the wall at 1 kHz, spherical spreading)."""
+    alpha = ac.scaled_absorption(_materials(sc), room, sc["rt60"], sc["speed_of_sound"]) if sc["rt60"] > 0 \
+        else np.ones((6, len(ac.BAND_CENTERS)))
+    beta = math.sqrt(1 - alpha[wall, ac.BAND_CENTERS.index(ac.RT60_BAND)])
+    pos = np.array(room, float) / 2
+    axis, far = divmod(wall, 2)
+    pos[axis] = room[axis] - depth if far else depth
+    extra = scenes.reflection_delay(sources, pos, wall, room, 1.0)       # path difference, m
+    d = np.linalg.norm(sources - pos, axis=1)
+    ratio = float(np.median(beta * d / (d + extra)))
+    return round(20 * math.log10(ratio) - below_db, 2)
+
+
+def _materials(sc):
+    m = sc.get("materials") or DEFAULT_MATERIALS
+    return {"walls": m} if isinstance(m, (str, list)) else m
 
 
 def _default_mics(g):
@@ -415,6 +489,40 @@ def _make_interferers(g, room, t_emit, rng):
                     "duration": float(np.round(rng.uniform(0.1, 0.4), 6)),
                     "level_db": float(g["interferer_level_db"]), "f_lo": 300.0, "f_hi": 5000.0})
     return out
+
+
+def _make_speech(g, room, sc, rng):
+    """``n_speech`` speech-like interferers, each in the gap between two consecutive chirps (the middle
+    ones), at a random place in the room: from a quarter into the gap, half the gap long."""
+    n = _int(g["n_speech"], "n_speech", 0)
+    t, dur = sc["t_emit"], sc["chirp"]["duration"]
+    wall = float(g["wall_margin"])
+    out = []
+    for i in range(min(n, len(t) - 1)):
+        j = (len(t) - 1) // 2 + i - n // 2
+        gap = t[j + 1] - t[j] - dur
+        out.append({"kind": "speech", "position": rng.uniform(wall, room - wall).tolist(),
+                    "t_start": float(np.round(t[j] + dur + 0.25 * gap, 6)),
+                    "duration": float(np.round(0.5 * gap, 6)), "level_db": float(g["speech_level_db"]),
+                    "f0": float(np.round(rng.uniform(100.0, 220.0), 1))})
+    return out
+
+
+def _quiet_events(sc, g):
+    """Per-event emission levels (dB, list) with ``n_quiet`` quiet events: those whose weakest array is
+    most below the others, emitted so that array's single-mic matched-filter SNR is ``quiet_snr_db``."""
+    v = validate_scenario({**sc, "event_level_db": None})
+    lv = noise_levels(v)
+    amp = np.stack([x.mean(axis=1) for x in direct_amplitudes(v)]) * lv["gain"]      # (N, K)
+    energy = lv["p_chirp"] * v["chirp"]["duration"] * v["fs"]
+    noise = math.hypot(lv["sigma"], lv["sigma_diff"])
+    snr = 10 * np.log10(amp ** 2 * energy / noise ** 2)
+    srt = np.sort(snr, axis=0)
+    gap = srt[1] - srt[0] if len(snr) > 1 else np.zeros(snr.shape[1])
+    levels = np.zeros(snr.shape[1])
+    for j in np.argsort(-gap)[:_int(g["n_quiet"], "n_quiet", 0)]:
+        levels[j] = round(float(g["quiet_snr_db"]) - float(srt[0, j]), 2)
+    return levels.tolist()
 
 
 def load_scenario(path, **overrides):
@@ -463,8 +571,11 @@ def load_scenario(path, **overrides):
 def validate_scenario(scenario):
     """Check a scenario; return a normalised copy with numpy arrays (raises InputError, one line).
 
-    The copy has ``room_dim`` (3,), ``sources`` (K, 3), ``t_emit`` (K,), ``chirp`` floats, and per array
-    ``position`` (3,), ``R`` (3, 3) array → room, ``mics`` (M, 3), ``mics_room`` (M, 3), ``tau``, ``drift``.
+    The copy has ``room_dim`` (3,), ``sources`` (K, 3), ``t_emit`` (K,), ``chirp`` floats (+ ``kind``),
+    ``event_level_db`` (K,), per array ``position`` (3,), ``R`` (3, 3) array → room, ``mics`` (M, 3),
+    ``mics_room`` (M, 3), ``tau``, ``drift``, ``direct_db``, ``mic_gain_db`` (M,), ``index``; with the
+    ``bands`` model also ``source_axis`` (K, 3) and ``acoustic`` (absorption (6, 7), air (7,),
+    ``rt60_bands`` (7,), ``volume``).
     """
     sc = copy.deepcopy(scenario)
     for key in ("fs", "speed_of_sound", "room_dim", "rt60", "chirp", "arrays", "sources", "t_emit"):
@@ -472,6 +583,43 @@ def validate_scenario(scenario):
             raise InputError(f"scenario: missing key {key!r}")
     if sc.get("preset", "paper-traj3") not in PRESETS:
         raise InputError(f"scenario: unknown preset {sc['preset']!r} (choose from {', '.join(PRESETS)})")
+    _check_scalars(sc)
+    sc["chirp"] = _check_chirp(sc["chirp"], sc["fs"])
+    src = sc["sources"] = _matrix(sc["sources"], "sources", 3)
+    room = sc["room_dim"]
+    t = sc["t_emit"] = _vector(sc["t_emit"], "t_emit")
+    if t.size != len(src):
+        raise InputError(f"scenario: t_emit has {t.size} values for {len(src)} speaker stops")
+    if np.any(np.diff(t) <= 0):
+        raise InputError("scenario: t_emit must increase strictly")
+    for j, s_ in enumerate(src):
+        if np.any(s_ < 0.05) or np.any(s_ > room - 0.05):
+            raise InputError(f"scenario: speaker stop {j} {np.round(s_, 3).tolist()} is outside the room "
+                             f"{room.tolist()} (or within 5 cm of a wall)")
+    lev = sc.get("event_level_db")
+    sc["event_level_db"] = np.zeros(len(src)) if lev is None else _vector(lev, "event_level_db", len(src))
+    arrays = sc["arrays"]
+    if not isinstance(arrays, (list, tuple)) or not arrays:
+        raise InputError("scenario: no arrays")
+    sc["arrays"] = [_check_array(k, a, sc) for k, a in enumerate(arrays)]
+    names = [a["name"] for a in sc["arrays"]]
+    if len(set(n.lower() for n in names)) != len(names):
+        raise InputError("scenario: duplicate array name")
+    ref = sc.get("reference_array", names[0])
+    if ref not in names:
+        raise InputError(f"scenario: reference_array {ref!r} is not one of the arrays {names}")
+    sc["reference_array"] = ref
+    sc["interferers"] = [_check_interferer(k, it, sc) for k, it in enumerate(sc.get("interferers") or [])]
+    _check_spacing(sc)
+    if sc["model"] == "bands":
+        _check_bands(sc)
+    elif sc["rt60"] > 0 and sc.get("max_order") is None:
+        _room_acoustics(sc)  # raises if the RT60 is not reachable in this room
+    return sc
+
+
+def _check_scalars(sc):
+    """Scalar scene keys, in place (defaults for the optional ones)."""
     sc["seed"] = _int(sc.get("seed", 0), "seed", 0)
     sc["fs"] = _int(sc["fs"], "fs", 1000)
     sc["speed_of_sound"] = _float(sc["speed_of_sound"], "speed_of_sound", 0, strict=True)
@@ -481,7 +629,7 @@ def validate_scenario(scenario):
     sc["rt60"] = _float(sc["rt60"], "rt60", 0)
     if sc.get("max_order") is not None:
         sc["max_order"] = _int(sc["max_order"], "max_order", 0)
-    for key in ("snr", "diffuse_snr"):
+    for key in ("snr", "diffuse_snr", "hum_snr"):
         sc[key] = _float(sc.get(key, math.inf), key, allow_inf=True)
     sc["sigma_odo"] = _float(sc.get("sigma_odo", 0.0), "sigma_odo", 0)
     sc["tail"] = _float(sc.get("tail", 0.3), "tail", 0)
@@ -490,98 +638,108 @@ def validate_scenario(scenario):
         raise InputError(f"scenario: subtype must be one of {', '.join(SUBTYPES)}, got {sc['subtype']!r}")
     pri = sc.get("priors") or {}
     sc["priors"] = {k: _float(v, f"priors.{k}", 0, strict=True) for k, v in pri.items()}
+    for k, v in NEW_SCENE_DEFAULTS.items():
+        sc.setdefault(k, copy.deepcopy(v))
+    if sc["model"] not in MODELS:
+        raise InputError(f"scenario: model must be one of {', '.join(MODELS)}, got {sc['model']!r}")
+    sc["hum_freq"] = _float(sc["hum_freq"], "hum_freq", 0, strict=True)
+    sc["hum_harmonics"] = _int(sc["hum_harmonics"], "hum_harmonics", 1)
+    sc["gain_mismatch_db"] = _float(sc["gain_mismatch_db"], "gain_mismatch_db", 0)
+    sc["mixing_time"] = _float(sc["mixing_time"], "mixing_time", 0, strict=True)
+    d = sc["directivity"]
+    if not (d in ac.PATTERNS or (not isinstance(d, (str, bool)) and isinstance(d, (int, float)) and 0 <= d <= 1)):
+        raise InputError(f"scenario: directivity must be one of {', '.join(ac.PATTERNS)} or a number in [0, 1], "
+                         f"got {d!r}")
+    if sc["model"] == "flat" and d != "omni":
+        raise InputError("scenario: directivity needs model = \"bands\"")
 
-    ch = sc["chirp"]
+
+def _check_chirp(ch, fs):
     if not isinstance(ch, dict):
         raise InputError("scenario: chirp must be a table")
-    ch = sc["chirp"] = {k: _float(ch.get(k), f"chirp.{k}", 0, strict=k != "fade")
-                        for k in ("f0", "f1", "duration", "fade")}
-    if ch["f0"] == ch["f1"]:
+    kind = ch.get("kind", "linear")
+    out = {k: _float(ch.get(k), f"chirp.{k}", 0, strict=k != "fade") for k in ("f0", "f1", "duration", "fade")}
+    if kind not in SWEEP_KINDS:
+        raise InputError(f"scenario: chirp.kind must be one of {', '.join(SWEEP_KINDS)}, got {kind!r}")
+    out["kind"] = kind
+    if out["f0"] == out["f1"]:
         raise InputError("scenario: chirp.f0 and chirp.f1 must differ")
-    if max(ch["f0"], ch["f1"]) > 0.45 * sc["fs"]:
-        raise InputError(f"scenario: chirp up to {max(ch['f0'], ch['f1']):g} Hz needs fs > "
-                         f"{max(ch['f0'], ch['f1']) / 0.45:.0f} Hz (fs = {sc['fs']})")
-    if 2 * ch["fade"] > ch["duration"]:
+    if max(out["f0"], out["f1"]) > 0.45 * fs:
+        raise InputError(f"scenario: chirp up to {max(out['f0'], out['f1']):g} Hz needs fs > "
+                         f"{max(out['f0'], out['f1']) / 0.45:.0f} Hz (fs = {fs})")
+    if 2 * out["fade"] > out["duration"]:
         raise InputError("scenario: chirp.fade must be at most half of chirp.duration")
+    return out
 
-    src = sc["sources"] = _matrix(sc["sources"], "sources", 3)
-    k_ev = len(src)
-    t = sc["t_emit"] = _vector(sc["t_emit"], "t_emit")
-    if t.size != k_ev:
-        raise InputError(f"scenario: t_emit has {t.size} values for {k_ev} speaker stops")
-    if np.any(np.diff(t) <= 0):
-        raise InputError("scenario: t_emit must increase strictly")
-    for j, s in enumerate(src):
-        if np.any(s < 0.05) or np.any(s > room - 0.05):
-            raise InputError(f"scenario: speaker stop {j} {np.round(s, 3).tolist()} is outside the room "
-                             f"{room.tolist()} (or within 5 cm of a wall)")
 
-    arrays = sc["arrays"]
-    if not isinstance(arrays, (list, tuple)) or not arrays:
-        raise InputError("scenario: no arrays")
-    out = []
-    for k, a in enumerate(arrays):
-        if not isinstance(a, dict):
-            raise InputError(f"scenario: arrays[{k}] must be a table")
-        name = a.get("name")
-        if not isinstance(name, str) or not name or any(ch_ in name for ch_ in "/\\\0") or name.startswith("."):
-            raise InputError(f"scenario: arrays[{k}] needs a name usable as a file name, got {name!r}")
-        for key in ("position", "quat", "mics", "tau", "drift"):
-            if key not in a:
-                raise InputError(f"scenario: array {name!r}: missing {key!r}")
-        pos = _vector(a["position"], f"array {name!r} position", 3)
-        q = _vector(a["quat"], f"array {name!r} quat", 4)
-        if not np.linalg.norm(q) > 1e-9:
-            raise InputError(f"scenario: array {name!r}: quat must be non-zero")
-        q = q / np.linalg.norm(q)
-        R = Rotation.from_quat(q, scalar_first=True).as_matrix()
-        mics = _matrix(a["mics"], f"array {name!r} mics", 3)
-        tau = _float(a["tau"], f"array {name!r} tau")
-        drift = _float(a["drift"], f"array {name!r} drift")
-        if abs(drift) >= 0.01:
-            raise InputError(f"scenario: array {name!r}: |drift| must be < 0.01, got {drift:g}")
-        mr = pos + mics @ R.T
-        if np.any(pos <= 0) or np.any(pos >= room) or np.any(mr <= 0.01) or np.any(mr >= room - 0.01):
-            raise InputError(f"scenario: array {name!r} at {np.round(pos, 3).tolist()} is outside the room "
-                             f"{room.tolist()}")
-        dmin = np.min(np.linalg.norm(src[:, None, :] - mr[None], axis=2))
-        if dmin < 0.05:
-            raise InputError(f"scenario: array {name!r} is within 5 cm of a speaker stop")
-        hemi = a.get("doa_hemisphere")
-        if hemi is not None:
-            hemi = _vector(hemi, f"array {name!r} doa_hemisphere", 3)
-        out.append({"name": name, "position": pos, "quat": q, "R": R, "mics": mics, "mics_room": mr,
-                    "tau": tau, "drift": drift, "doa_hemisphere": hemi})
-    names = [a["name"] for a in out]
-    if len(set(n.lower() for n in names)) != len(names):
-        raise InputError("scenario: duplicate array name")
-    sc["arrays"] = out
-    ref = sc.get("reference_array", names[0])
-    if ref not in names:
-        raise InputError(f"scenario: reference_array {ref!r} is not one of the arrays {names}")
-    sc["reference_array"] = ref
+def _check_array(k, a, sc):
+    """One array (dict) → its normalised form (see :func:`validate_scenario`)."""
+    if not isinstance(a, dict):
+        raise InputError(f"scenario: arrays[{k}] must be a table")
+    name = a.get("name")
+    if not isinstance(name, str) or not name or any(ch_ in name for ch_ in "/\\\0") or name.startswith("."):
+        raise InputError(f"scenario: arrays[{k}] needs a name usable as a file name, got {name!r}")
+    for key in ("position", "quat", "mics", "tau", "drift"):
+        if key not in a:
+            raise InputError(f"scenario: array {name!r}: missing {key!r}")
+    room, src = sc["room_dim"], sc["sources"]
+    pos = _vector(a["position"], f"array {name!r} position", 3)
+    q = _vector(a["quat"], f"array {name!r} quat", 4)
+    if not np.linalg.norm(q) > 1e-9:
+        raise InputError(f"scenario: array {name!r}: quat must be non-zero")
+    q = q / np.linalg.norm(q)
+    R = Rotation.from_quat(q, scalar_first=True).as_matrix()
+    mics = _matrix(a["mics"], f"array {name!r} mics", 3)
+    tau = _float(a["tau"], f"array {name!r} tau")
+    drift = _float(a["drift"], f"array {name!r} drift")
+    if abs(drift) >= 0.01:
+        raise InputError(f"scenario: array {name!r}: |drift| must be < 0.01, got {drift:g}")
+    mr = pos + mics @ R.T
+    if np.any(pos <= 0) or np.any(pos >= room) or np.any(mr <= 0.01) or np.any(mr >= room - 0.01):
+        raise InputError(f"scenario: array {name!r} at {np.round(pos, 3).tolist()} is outside the room "
+                         f"{room.tolist()}")
+    if np.min(np.linalg.norm(src[:, None, :] - mr[None], axis=2)) < 0.05:
+        raise InputError(f"scenario: array {name!r} is within 5 cm of a speaker stop")
+    hemi = a.get("doa_hemisphere")
+    if hemi is not None:
+        hemi = _vector(hemi, f"array {name!r} doa_hemisphere", 3)
+    direct_db = _float(a.get("direct_db", 0.0), f"array {name!r} direct_db")
+    if direct_db != 0 and sc["model"] != "bands":
+        raise InputError(f"scenario: array {name!r}: direct_db needs model = \"bands\"")
+    if a.get("mic_gain_db") is not None:
+        gains = _vector(a["mic_gain_db"], f"array {name!r} mic_gain_db", len(mics))
+    else:
+        x = sc["gain_mismatch_db"]
+        gains = _rng(sc["seed"], 7, k).uniform(-x, x, len(mics)) if x > 0 else np.zeros(len(mics))
+    return {"name": name, "position": pos, "quat": q, "R": R, "mics": mics, "mics_room": mr, "tau": tau,
+            "drift": drift, "doa_hemisphere": hemi, "direct_db": direct_db, "mic_gain_db": gains, "index": k}
 
-    its = []
-    for k, it in enumerate(sc.get("interferers") or []):
-        if not isinstance(it, dict):
-            raise InputError(f"scenario: interferers[{k}] must be a table")
-        p = _vector(it.get("position"), f"interferers[{k}] position", 3)
-        if np.any(p < 0.05) or np.any(p > room - 0.05):
-            raise InputError(f"scenario: interferers[{k}] is outside the room")
-        f_lo = _float(it.get("f_lo", 300.0), f"interferers[{k}] f_lo", 0, strict=True)
-        f_hi = _float(it.get("f_hi", 5000.0), f"interferers[{k}] f_hi", f_lo, strict=True)
-        if f_hi > 0.45 * sc["fs"]:
-            f_hi = 0.45 * sc["fs"]  # keep the burst band-limited on every clock
-        its.append({"position": p, "t_start": _float(it.get("t_start"), f"interferers[{k}] t_start"),
-                    "duration": _float(it.get("duration"), f"interferers[{k}] duration", 0, strict=True),
-                    "level_db": _float(it.get("level_db", 0.0), f"interferers[{k}] level_db"),
-                    "f_lo": f_lo, "f_hi": max(f_hi, f_lo + 1.0)})
-    sc["interferers"] = its
 
-    # every chirp must be fully recorded and separated from the next one at every array
+def _check_interferer(k, it, sc):
+    if not isinstance(it, dict):
+        raise InputError(f"scenario: interferers[{k}] must be a table")
+    room = sc["room_dim"]
+    p = _vector(it.get("position"), f"interferers[{k}] position", 3)
+    if np.any(p < 0.05) or np.any(p > room - 0.05):
+        raise InputError(f"scenario: interferers[{k}] is outside the room")
+    kind = it.get("kind", "tones")
+    if kind not in ("tones", "speech"):
+        raise InputError(f"scenario: interferers[{k}] kind must be tones or speech, got {kind!r}")
+    f_lo = _float(it.get("f_lo", 300.0), f"interferers[{k}] f_lo", 0, strict=True)
+    f_hi = _float(it.get("f_hi", 5000.0), f"interferers[{k}] f_hi", f_lo, strict=True)
+    f_hi = min(f_hi, 0.45 * sc["fs"])  # keep the burst band-limited on every clock
+    return {"position": p, "t_start": _float(it.get("t_start"), f"interferers[{k}] t_start"),
+            "duration": _float(it.get("duration"), f"interferers[{k}] duration", 0, strict=True),
+            "level_db": _float(it.get("level_db", 0.0), f"interferers[{k}] level_db"),
+            "f_lo": f_lo, "f_hi": max(f_hi, f_lo + 1.0), "kind": kind,
+            "f0": _float(it.get("f0", 120.0), f"interferers[{k}] f0", 20.0)}
+
+
+def _check_spacing(sc):
+    """Every chirp must be fully recorded and separated from the next one at every array."""
     a = _arrivals(sc)  # (N, K, M)
-    dur = ch["duration"]
-    for i, arr in enumerate(out):
+    dur = sc["chirp"]["duration"]
+    for i, arr in enumerate(sc["arrays"]):
         first = np.nanmin(a[i, 0])
         if first < 0.0:
             raise InputError(f"scenario: array {arr['name']!r} starts recording after the first chirp arrives "
@@ -591,9 +749,28 @@ def validate_scenario(scenario):
             j = int(np.argmin(gap))
             raise InputError(f"scenario: chirps {j} and {j + 1} overlap at array {arr['name']!r} "
                              f"(gap {gap[j]:.3f} s < 0.05 s): increase the interval between emissions")
-    if sc["rt60"] > 0 and sc.get("max_order") is None:
-        _room_acoustics(sc)  # raises if the RT60 is not reachable in this room
-    return sc
+
+
+def _check_bands(sc):
+    """The ``bands`` model: speaker axes and the per-band acoustics (in place)."""
+    k = len(sc["sources"])
+    if sc["source_axis"] is None:
+        sc["source_axis"] = scenes.headings(sc["sources"])
+    else:
+        ax = _matrix(sc["source_axis"], "source_axis", 3)
+        if len(ax) != k or np.any(np.linalg.norm(ax, axis=1) < 1e-9):
+            raise InputError(f"scenario: source_axis must be {k} non-zero [x, y, z]")
+        sc["source_axis"] = ax / np.linalg.norm(ax, axis=1, keepdims=True)
+    room, c, air = sc["room_dim"], sc["speed_of_sound"], bool(sc["air_absorption"])
+    try:
+        alpha = (ac.scaled_absorption(_materials(sc), room, sc["rt60"], c, air) if sc["rt60"] > 0
+                 else np.ones((6, len(ac.BAND_CENTERS))))
+    except ValueError as exc:
+        raise InputError(f"scenario: {exc}") from None
+    sc["acoustic"] = {
+        "alpha": alpha, "air": ac.air_attenuation() if air else np.zeros(len(ac.BAND_CENTERS)),
+        "rt60_bands": ac.band_rt60(alpha, room, c, air) if sc["rt60"] > 0 else np.zeros(len(ac.BAND_CENTERS)),
+        "volume": float(np.prod(room))}
 
 
 def _room_acoustics(sc):
@@ -613,11 +790,6 @@ def _room_acoustics(sc):
 
 
 # ----------------------------------------------------------------------------------------------- analytic truth
-def local_time(t, tau, drift, t0):
-    """Array clock reading ``L(t) = (1 + δ)(t − t0) + τ`` at true (emitter) time ``t`` (s)."""
-    return (1.0 + drift) * (np.asarray(t, float) - t0) + tau
-
-
 def _arrivals(sc):
     """(N, K, M) local arrival times of the direct path at each mic (normalised scenario, equal M)."""
     t0 = sc["t_emit"][0]
@@ -691,179 +863,33 @@ def odometry(scenario):
     return (s - s[0]) @ ref["R"] + np.cumsum(steps, axis=0)
 
 
-# ----------------------------------------------------------------------------------------------- RIRs
-def _build_rirs(delays, amps, length, early=np.inf, horizon=np.inf):
-    """RIRs (n_mics, length) from image delays in SAMPLES (n_img, n_mics) and amplitudes (n_img, n_mics).
-
-    pyroomacoustics' windowed-sinc builder takes times and an integer rate; we hand it delays already in
-    the array's samples (rate 1) plus ``PAD`` so the filter never starts before index 0. Images arriving
-    within ``early`` samples of the first one get the full ``FDL``-tap filter; later (weak, dense) ones a
-    ``FDL_LATE``-tap one (< 1 % response error below fs/3); images beyond ``horizon`` samples after the
-    first are dropped (Sabine: > 60 dB down once ``horizon`` = RT60).
-    """
-    from pyroomacoustics import libroom
-
-    out = np.zeros((delays.shape[1], length))
-    for m in range(delays.shape[1]):
-        d, a = delays[:, m], amps[:, m]
-        rel = d - d.min()
-        for fdl, sel in ((FDL, rel <= early), (FDL_LATE, (rel > early) & (rel <= horizon))):
-            if sel.any():
-                libroom.rir_builder(out[m], np.ascontiguousarray(d[sel] + PAD), np.ascontiguousarray(a[sel]),
-                                    1, fdl, LUT_GRAN, N_THREADS)
-    return out
-
-
-def builder_delay():
-    """Global delay (samples) of :func:`_build_rirs`, measured: the peak of a lone image at an integer delay
-    (for both filter lengths, which must agree)."""
-    n0 = 3 * FDL
-    found = set()
-    for early in (np.inf, -1.0):
-        h = _build_rirs(np.array([[float(n0)]]), np.array([[1.0]]), 6 * FDL, early=early)[0]
-        k = int(np.argmax(h))
-        if not abs(h[k] - 1.0) < 1e-3 or np.max(np.abs(np.delete(h, k))) > 1e-3:
-            raise RuntimeError("pyroomacoustics RIR builder: unexpected impulse shape")
-        found.add(k - n0)
-    if len(found) != 1:
-        raise RuntimeError(f"pyroomacoustics RIR builder: filter lengths disagree on the delay {found}")
-    return found.pop()
-
-
-def _images(sc, e_abs, order, positions):
-    """Image sources of each position: list of (images (3, n_img), amplitude numerators (n_img,))."""
-    import pyroomacoustics as pra
-
-    room = pra.ShoeBox(sc["room_dim"].tolist(), fs=sc["fs"], materials=pra.Material(e_abs), max_order=order,
-                       air_absorption=False, use_rand_ism=False)
-    for p in positions:
-        room.add_source(np.asarray(p, float))
-    mics = np.concatenate([a["mics_room"] for a in sc["arrays"]]).T
-    room.add_microphone_array(mics)
-    room.image_source_model()
-    out = []
-    for k, src in enumerate(room.sources):
-        # a shoebox sees every image from every point inside it; keep the check in case that ever changes
-        vis = room.visibility[k].all(axis=0)
-        out.append((src.images[:, vis], src.damping[0, vis]))
-    return out
-
-
 # ----------------------------------------------------------------------------------------------- simulate
-def simulate(scenario, out_dir, progress=False, overwrite=False):
+def simulate(scenario, out_dir, progress=None, overwrite=False):
     """Simulate a scenario and write a recording session (+ truth/) to ``out_dir``; returns its Path.
 
     Written (atomically: a failure leaves nothing): ``session.toml``, ``<array>.wav`` (n_samples,
     n_mics), ``chirp.wav`` (the emitted chirp sampled at fs from its start), ``events.csv`` (t_emit,
     odometry), ``truth/arrays.csv``, ``truth/sources.csv``, ``truth/manifest.json``.
     Noise: white Gaussian with variance ``P / 10^(snr/10)`` where ``P`` is the mean over arrays, mics and
-    events of the direct-path chirp power at the mic; ``diffuse_snr`` adds incoherent pink noise the same
-    way. Signals are scaled so the largest direct-path amplitude is 0.25 (and the whole set never clips).
+    events of the direct-path chirp power at the mic; ``diffuse_snr`` (coherent pink) and ``hum_snr`` the
+    same way. Signals are scaled so the largest direct-path amplitude is 0.25 (and the whole set never
+    clips). Recordings are rendered emission by emission and streamed to the WAVs (bounded memory).
+    progress : optional callback ``progress(done, total, message)``.
     """
     sc = validate_scenario(scenario)
     out_dir = Path(out_dir)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
         raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
-    fs, c, ch = sc["fs"], sc["speed_of_sound"], sc["chirp"]
-    e_abs, order = _room_acoustics(sc)
-    delay = builder_delay()
-    t0 = sc["t_emit"][0]
-
-    emitters = [("chirp", j, s) for j, s in enumerate(sc["sources"])]
-    emitters += [("interferer", k, it["position"]) for k, it in enumerate(sc["interferers"])]
-
-    from rich.console import Console
-    from rich.progress import Progress
-
-    with Progress(console=Console(stderr=True), disable=not progress) as bar:
-        task = bar.add_task("image sources", total=1)
-        images = _images(sc, e_abs, order, [e[2] for e in emitters])
-        bar.update(task, completed=1)
-
-        # direct-path amplitudes → global gain and noise level (see docstring)
-        direct = np.concatenate([1.0 / np.linalg.norm(sc["sources"][:, None] - a["mics_room"][None], axis=2).ravel()
-                                 for a in sc["arrays"]])
-        gain = 0.25 / direct.max()
-        p_chirp = chirp_power(ch)
-        p_direct = float(np.mean((gain * direct) ** 2) * p_chirp)
-
-        # recording lengths: the last chirp's reverberation (images kept up to RT60 after the direct path)
-        # + tail; interferers are clipped to the recording
-        ends = []
-        for a in sc["arrays"]:
-            last = 0.0
-            for j, (img, _) in enumerate(images[:len(sc["sources"])]):
-                dist = np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0)
-                reach = dist.max() / c if sc["rt60"] == 0 else min(dist.max() / c, dist.min() / c + sc["rt60"])
-                last = max(last, local_time(sc["t_emit"][j] + reach + ch["duration"], a["tau"], a["drift"], t0))
-            ends.append(int(math.ceil((last + sc["tail"]) * fs)) + FDL)
-        signals = [np.zeros((len(a["mics"]), n)) for a, n in zip(sc["arrays"], ends)]
-
-        task = bar.add_task("arrays × emissions", total=len(emitters) * len(sc["arrays"]))
-        for (kind, k, _), (img, damp) in zip(emitters, images):
-            if kind == "chirp":
-                t_start, dur = sc["t_emit"][k], ch["duration"]
-
-                def wave(u):
-                    return chirp_signal(u, ch)
-                level = gain
-            else:
-                it = sc["interferers"][k]
-                t_start, dur = it["t_start"], it["duration"]
-                freqs, phases = _burst_params(sc["seed"], k, it["f_lo"], it["f_hi"])
-
-                def wave(u, dur=dur, freqs=freqs, phases=phases):
-                    return burst_signal(u, dur, freqs, phases)
-                level = gain * math.sqrt(p_chirp) * 10 ** (it["level_db"] / 20)
-            for a, y in zip(sc["arrays"], signals):
-                _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level, sc["rt60"])
-                bar.advance(task)
-
-        task = bar.add_task("noise + writing", total=len(sc["arrays"]) + 1)
-        sigma = math.sqrt(p_direct / 10 ** (sc["snr"] / 10)) if math.isfinite(sc["snr"]) else 0.0
-        sigma_diff = (math.sqrt(p_direct / 10 ** (sc["diffuse_snr"] / 10)) if math.isfinite(sc["diffuse_snr"])
-                      else 0.0)
-        for i, y in enumerate(signals):
-            if sigma > 0:
-                y += sigma * _rng(sc["seed"], 20 + 2 * i).standard_normal(y.shape)
-            if sigma_diff > 0:
-                y += sigma_diff * _pink_noise(_rng(sc["seed"], 21 + 2 * i), y.shape)
-        peak = max(float(np.max(np.abs(y))) for y in signals)
-        rescale = 0.95 / peak if peak > 0.95 else 1.0
-        arrivals = arrival_times(sc)
-        with atomic_dir(out_dir) as tmp:
-            _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, sigma_diff, p_direct,
-                           ends, arrivals, scenario)
-            bar.advance(task, len(sc["arrays"]) + 1)
+    flat = _room_acoustics(sc) if sc["model"] == "flat" else (None, None)
+    with atomic_dir(out_dir) as tmp:
+        derived = render_session(sc, tmp, flat, progress=progress, zero_peak=_zero_peak_timestamp)
+        _write_session(tmp, sc, derived, flat, scenario)
     return out_dir
 
 
-def _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level, rt60=0.0):
-    """Add one emission (signal ``wave`` starting at true time ``t_start``) to array ``a``'s channels ``y``."""
-    fsp = fs * (1.0 + a["drift"])                    # true-time rate of this array's samples
-    nu = fs * local_time(t_start, a["tau"], a["drift"], t0)   # emission instant in this array's samples
-    n0 = int(math.floor(nu))
-    frac = nu - n0
-    p = np.arange(int(math.ceil(dur * fsp + frac)) + 2)
-    x = wave((p - frac) / fsp)                       # the emitted wave on this array's sample grid
-    dist = np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0)  # (n_img, M)
-    taps = dist * (fsp / c)                          # image delays in this array's samples
-    h = _build_rirs(taps, damp[:, None] / dist, int(math.ceil(taps.max())) + PAD + FDL,
-                    early=EARLY * fsp, horizon=rt60 * fsp if rt60 > 0 else np.inf)
-    seg = fftconvolve(h, x[None, :], axes=1) * level
-    start = n0 - delay                               # conv index `delay` ↔ emission instant
-    lo, hi = max(start, 0), min(start + seg.shape[1], y.shape[1])
-    if hi > lo:
-        y[:, lo:hi] += seg[:, lo - start:hi - start]
-
-
-def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, sigma_diff, p_direct, ends,
-                   arrivals, scenario):
-    import pyroomacoustics as pra
-
+def _write_session(tmp, sc, derived, flat, scenario):
+    """Everything but the recordings: chirp.wav, events.csv, session.toml, truth/ (+ manifest.json)."""
     fs, ch = sc["fs"], sc["chirp"]
-    for a, y in zip(sc["arrays"], signals):
-        _write_wav(tmp / f"{a['name']}.wav", (y * rescale).T.astype(np.float32), fs, sc["subtype"])
     n_chirp = int(math.floor(ch["duration"] * fs)) + 1
     ref = chirp_signal(np.arange(n_chirp) / fs, ch)
     _write_wav(tmp / "chirp.wav", ref.astype(np.float32), fs, "FLOAT")
@@ -877,41 +903,76 @@ def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, 
     # priors the scenario states. Invented TDOA/DOA priors would override the frontend's own estimates.
     priors = {**sc["priors"]}
     priors.setdefault("sigma_odo", sc["sigma_odo"] if sc["sigma_odo"] > 0 else 1e-3)
+    chirp = {"f0": ch["f0"], "f1": ch["f1"], "duration": ch["duration"], "fade": ch["fade"]}
+    if ch["kind"] != "linear":
+        chirp["kind"] = ch["kind"]
     write_session_toml(
         tmp / "session.toml", speed_of_sound=sc["speed_of_sound"], reference_array=sc["reference_array"],
-        chirp={"f0": ch["f0"], "f1": ch["f1"], "duration": ch["duration"], "fade": ch["fade"],
-               "reference": "chirp.wav"},
+        chirp={**chirp, "reference": "chirp.wav"},
         arrays=[{"name": a["name"], "wav": f"{a['name']}.wav", "mics": a["mics"],
                  "doa_hemisphere": a["doa_hemisphere"]} for a in sc["arrays"]],
         noise={k: priors[k] for k in ("sigma_tdoa", "sigma_doa_deg", "sigma_odo") if k in priors})
-
-    truth = scenario_truth(sc)
-    mic_arr = arrival_times(sc, mics=True)
     manifest = {
         "generator": "calib simulate (pipeline.roomsim)",
-        "versions": {"numpy": np.__version__, "pyroomacoustics": pra.__version__},
+        "versions": {"numpy": np.__version__, "pyroomacoustics": _pra_version()},
         "frame": "room (origin at a room corner, axes along the walls); truth/*.csv are in the reference "
                  "array's frame",
         "clock_model": "L_i(t) = (1 + drift_i) (t - t_emit[0]) + tau_i; WAV sample n at L_i = n / fs",
         "scenario": _jsonable(_public(scenario, sc)),
-        "derived": {
-            "absorption": e_abs, "max_order": order, "rir_builder_delay_samples": delay,
-            "fractional_delay_length": FDL, "fractional_delay_length_late": FDL_LATE,
-            "late_after_direct_s": EARLY, "images_dropped_after_direct_s": sc["rt60"] or None,
-            "gain": gain * rescale, "rescale": rescale,
-            "sensor_noise_std": sigma * rescale, "diffuse_noise_std": sigma_diff * rescale,
-            "direct_power_mean": p_direct * rescale ** 2,
-            "snr_definition": "10 log10(P / noise variance), P = mean over arrays, mics, events of the "
-                              "direct-path chirp power at the mic",
-            "n_samples": {a["name"]: int(n) for a, n in zip(sc["arrays"], ends)},
-            "recording_start_true_time": {a["name"]: float(sc["t_emit"][0] - a["tau"] / (1 + a["drift"]))
-                                          for a in sc["arrays"]},
-            "arrival_times_origin": {a["name"]: arrivals[i].tolist() for i, a in enumerate(sc["arrays"])},
-            "arrival_times_mics": {a["name"]: mic_arr[i].tolist() for i, a in enumerate(sc["arrays"])},
-        },
+        "derived": _derived(sc, derived, flat),
     }
-    write_truth(tmp / "truth", truth,
+    write_truth(tmp / "truth", scenario_truth(sc),
                 extra_files={"manifest.json": json.dumps(_jsonable(manifest), indent=1, allow_nan=False) + "\n"})
+
+
+def _pra_version():
+    import pyroomacoustics as pra
+
+    return pra.__version__
+
+
+def _derived(sc, derived, flat):
+    """The manifest's ``derived`` section (keys of the ``bands`` model only when it is used)."""
+    lv, rescale = derived["levels"], derived["rescale"]
+    arrivals, mic_arr = arrival_times(sc), arrival_times(sc, mics=True)
+    out = {"absorption": flat[0], "max_order": flat[1]} if sc["model"] == "flat" else {}
+    out |= {
+        "rir_builder_delay_samples": derived["delay"],
+        "fractional_delay_length": FDL, "fractional_delay_length_late": FDL_LATE,
+        "late_after_direct_s": EARLY}
+    if sc["model"] == "flat":
+        out["images_dropped_after_direct_s"] = sc["rt60"] or None
+    out |= {
+        "gain": lv["gain"] * rescale, "rescale": rescale,
+        "sensor_noise_std": lv["sigma"] * rescale, "diffuse_noise_std": lv["sigma_diff"] * rescale,
+        "direct_power_mean": lv["p_direct"] * rescale ** 2,
+        "snr_definition": "10 log10(P / noise variance), P = mean over arrays, mics, events of the "
+                          "direct-path chirp power at the mic",
+        "n_samples": {a["name"]: int(n) for a, n in zip(sc["arrays"], derived["ends"])},
+        "recording_start_true_time": {a["name"]: float(sc["t_emit"][0] - a["tau"] / (1 + a["drift"]))
+                                      for a in sc["arrays"]},
+        "arrival_times_origin": {a["name"]: arrivals[i].tolist() for i, a in enumerate(sc["arrays"])},
+        "arrival_times_mics": {a["name"]: mic_arr[i].tolist() for i, a in enumerate(sc["arrays"])},
+    }
+    if sc["model"] == "bands":
+        out |= _derived_bands(sc, lv, rescale)
+    return out
+
+
+def _derived_bands(sc, lv, rescale):
+    ab = sc["acoustic"]
+    amp = direct_amplitudes(sc)
+    return {
+        "band_centers_hz": list(ac.BAND_CENTERS),
+        "wall_absorption": {w: ab["alpha"][k].tolist() for k, w in enumerate(ac.WALLS)},
+        "air_attenuation_per_m": ab["air"].tolist(), "rt60_bands_s": ab["rt60_bands"].tolist(),
+        "hum_std": lv["hum_std"] * rescale,
+        "mic_gain_db": {a["name"]: a["mic_gain_db"].tolist() for a in sc["arrays"]},
+        "source_axis": sc["source_axis"].tolist(),
+        "direct_amplitude": {a["name"]: (lv["gain"] * rescale * x.mean(axis=1)
+                                         * 10 ** (sc["event_level_db"] / 20)).tolist()
+                             for a, x in zip(sc["arrays"], amp)},
+    }
 
 
 def _write_wav(path, data, fs, subtype):
@@ -919,6 +980,10 @@ def _write_wav(path, data, fs, subtype):
     import soundfile as sf
 
     sf.write(path, data, fs, subtype=subtype, format="WAV")
+    _zero_peak_timestamp(path)
+
+
+def _zero_peak_timestamp(path):
     with open(path, "r+b") as f:
         f.seek(12)
         while True:
@@ -934,11 +999,25 @@ def _write_wav(path, data, fs, subtype):
 
 
 def _public(scenario, sc):
-    """The scenario as given (room frame; exactly what reproduces these bytes), defaults filled in."""
+    """The scenario as given (room frame; exactly what reproduces these bytes), defaults filled in; keys
+    of the realistic models that keep their default are left out (older manifests stay byte-identical)."""
     out = copy.deepcopy(dict(scenario))
     for k in ("snr", "diffuse_snr", "sigma_odo", "subtype", "tail", "priors", "reference_array", "interferers"):
         out.setdefault(k, sc[k])
+    for k, v in NEW_SCENE_DEFAULTS.items():
+        if k in out and _same(out[k], v):
+            del out[k]
+    if isinstance(out.get("generator"), dict):
+        out["generator"] = {k: v for k, v in out["generator"].items()
+                            if not (k in NEW_GEN_DEFAULTS and _same(v, NEW_GEN_DEFAULTS[k]))}
     return out
+
+
+def _same(a, b):
+    try:
+        return a == b or (a is None and b is None)
+    except ValueError:
+        return False
 
 
 def _jsonable(o):
