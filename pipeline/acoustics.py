@@ -30,6 +30,7 @@ SABINE = 24 * math.log(10)  # RT60 = SABINE V / (c A), A = Σ S α + 4 m V (m: a
 # pattern name → omnidirectional weight p of the gain p + (1 − p) cos θ
 REAR_FLOOR = 0.1     # a real "cardioid" loudspeaker still radiates about −20 dB backwards (no exact null)
 PATTERNS = {"omni": 1.0, "subcardioid": 0.7, "cardioid": 0.5, "supercardioid": 0.37, "hypercardioid": 0.25}
+COHERENCE_GRID = 10.0  # Hz between exact diffuse-coherence square roots (interpolated in between)
 WALLS = ("west", "east", "south", "north", "floor", "ceiling")  # x = 0, x = Lx, y = 0, y = Ly, z = 0, z = Lz
 
 
@@ -126,7 +127,8 @@ def shoebox_images(src, room, centre, reach):
 
 def image_band_amplitudes(hits, alpha):
     """Pressure reflection factor per image and band (n, 7): Π_walls sqrt(1 − α_wall,band)^hits."""
-    return np.exp(hits @ (0.5 * np.log1p(-alpha)))
+    r = np.sqrt(1.0 - alpha)                                            # (6, B); 0 for a fully absorbing wall
+    return np.prod(r[None] ** hits[:, :, None], axis=1)                 # 0⁰ = 1: images not hitting it
 
 
 def emission_directions(images, mics):
@@ -183,10 +185,15 @@ def diffuse_coherence_mix(mics, freqs, c):
     """Mixing matrices (F, M, M): the symmetric square root ``A = Γ(f)^½`` (so ``A Aᵀ = Γ``), with
     Γ_mn = sinc(2 f |r_m − r_n| / c) (spherically diffuse field). The principal root is smooth in f, so
     the mixing filters are short (an eigenvector basis would jump between bins and smear in time)."""
+    freqs = np.asarray(freqs, float)
     d = np.linalg.norm(mics[:, None] - mics[None], axis=2)
-    gamma = np.sinc(2 * np.asarray(freqs)[:, None, None] * d[None] / c)
-    w, v = np.linalg.eigh(gamma)
-    return (v * np.sqrt(np.clip(w, 0, None))[:, None, :]) @ np.swapaxes(v, 1, 2)
+    # the root is smooth in f: computed on a coarse grid (≤ COHERENCE_GRID Hz apart), interpolated
+    coarse = np.linspace(freqs.min(), freqs.max(), max(2, int(np.ptp(freqs) / COHERENCE_GRID) + 2))
+    w, v = np.linalg.eigh(np.sinc(2 * coarse[:, None, None] * d[None] / c))
+    root = (v * np.sqrt(np.clip(w, 0, None))[:, None, :]) @ np.swapaxes(v, 1, 2)      # (F', M, M)
+    flat = root.reshape(len(coarse), -1)
+    out = np.stack([np.interp(freqs, coarse, flat[:, k]) for k in range(flat.shape[1])], axis=1)
+    return out.reshape(len(freqs), *d.shape)
 
 
 # ----------------------------------------------------------------------------------------------- measurement

@@ -135,7 +135,8 @@ def band_rir(em, a, fsp, sc, delay, rng, cache):
     for b in range(len(ac.BAND_CENTERS)):
         amp = refl[:, b, None] * gain * np.exp(-0.5 * ab["air"][b] * dist) / dist
         H += W[b] * rfft(build_rirs(taps, amp, L), nfft, axis=1)
-    H += _tail_spectrum(a, fsp, sc, first, delay, rng, nfft, W, em["diffuse_gain"], cache)
+    if sc["rt60"] > 0:
+        H += _tail_spectrum(a, fsp, sc, first, delay, rng, nfft, W, em["diffuse_gain"], cache)
     return irfft(H, nfft, axis=1)[:, :L]
 
 
@@ -151,7 +152,7 @@ def _tail_spectrum(a, fsp, sc, first, delay, rng, nfft, W, diffuse_gain, cache):
     ab, c = sc["acoustic"], sc["speed_of_sound"]
     L, M = a["rir_length"], len(a["mics_room"])
     n = np.arange(L)
-    t = (n - PAD - delay) / fsp                   # propagation time of RIR index n
+    t = (n - delay) / fsp                         # propagation time of RIR index n
     t0 = (first) / fsp + sc["mixing_time"]
     fade = np.clip((t - t0) / TAIL_FADE, 0, 1)
     fade = 0.5 - 0.5 * np.cos(np.pi * fade)

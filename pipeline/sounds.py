@@ -15,7 +15,7 @@ from calib.frontend.signals import sweep
 from .acoustics import diffuse_coherence_mix
 
 NOISE_BLOCK = 1 << 16       # samples per independently seeded block of white noise
-PINK_PERIODS = (1 << 17) + 1, (1 << 17) - 1   # co-prime periods of the two summed pink-noise loops (samples)
+PINK_PERIODS = (1 << 15) + 1, (1 << 15) - 1   # co-prime periods of the two summed pink-noise loops (samples)
 SYLLABLE_RATE = 4.0         # Hz, syllables of the speech-like interferer
 VOWELS = np.array([[700, 1220, 2600], [530, 1840, 2480], [270, 2290, 3010], [570, 840, 2410],
                    [300, 870, 2240]], float)   # formant frequencies F1-F3 (Hz) of a, e, i, o, u
