@@ -29,6 +29,8 @@ def simulate(
     interferers: Optional[int] = typer.Option(None, help="number of random interfering noise bursts [default: 0]"),
     sigma_odo: Optional[float] = typer.Option(None, help="odometry noise per step and axis, m [default: 0.01]"),
     subtype: Optional[str] = typer.Option(None, help="WAV sample format: FLOAT, PCM_24 or PCM_16 [default: FLOAT]"),
+    set_: Optional[list[str]] = typer.Option(None, "--set", help="any scenario key: KEY=VALUE (TOML value; "
+                                             "dotted keys for tables, e.g. chirp.kind=exponential); repeatable"),
     force: bool = typer.Option(False, "--force", help="replace OUT_DIR if it exists and is not empty"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
@@ -39,6 +41,8 @@ def simulate(
         "sigma_odo": sigma_odo, "subtype": subtype}.items() if v is not None}
     if chirp_duration is not None:
         over["chirp"] = {"duration": chirp_duration}
+    for item in set_ or []:
+        _set(over, item)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not force:
         raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
     if scenario is not None:
@@ -63,3 +67,24 @@ def simulate(
         t = sc["t_emit"]
         console.print(f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "
                       f"{t[-1] - t[0]:.1f} s, RT60 {sc['rt60']:g} s, SNR {sc['snr']:g} dB, fs {sc['fs']} Hz → {path}")
+
+
+def _set(over, item):
+    """Apply one ``--set KEY=VALUE`` to the overrides (VALUE read as TOML, else as a string)."""
+    import tomllib
+
+    key, sep, text = item.partition("=")
+    key = key.strip()
+    if not sep or not key or any(not k for k in key.split(".")):
+        raise InputError(f"--set {item!r}: expected KEY=VALUE")
+    try:
+        value = tomllib.loads(f"v = {text.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text.strip()
+    *path, last = key.split(".")
+    node = over
+    for k in path:
+        node = node.setdefault(k, {})
+        if not isinstance(node, dict):
+            raise InputError(f"--set {item!r}: {k!r} is not a table")
+    node[last] = value
