@@ -569,3 +569,16 @@ def test_realistic_preset_is_deterministic_and_streams_short_sessions(tmp_path):
     man = json.loads((a / "truth" / "manifest.json").read_text())
     assert man["scenario"]["model"] == "bands" and len(man["derived"]["rt60_bands_s"]) == 7
     assert sf.info(a / "A1.wav").frames == man["derived"]["n_samples"]["A1"]
+
+
+def test_cli_set_overrides_any_key(tmp_path):
+    out = tmp_path / "set"
+    r = _cli([out, "--preset", "lab", "--seed", "2", "--n-events", "2", "--set", "chirp.kind=exponential",
+              "--set", "chirp.duration=0.2", "--set", "rt60=0", "--set", "directivity=omni", "--quiet"])
+    assert r.exit_code == 0, r.output
+    man = json.loads((out / "truth" / "manifest.json").read_text())["scenario"]
+    assert man["chirp"]["kind"] == "exponential" and man["chirp"]["duration"] == 0.2 and man["rt60"] == 0
+    assert read_session(out)["chirp"]["kind"] == "exponential"
+    for bad, expect in (("nokey", "KEY=VALUE"), ("bogus=1", "unknown key"), ("directivity=weird", "directivity")):
+        r = _cli([tmp_path / "never", "--preset", "lab", "--set", bad, "--quiet"])
+        assert r.exit_code == 2 and expect in r.stderr, r.stderr
