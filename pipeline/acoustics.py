@@ -28,7 +28,7 @@ RT60_BAND = 1000.0   # the scenario's ``rt60`` is the Sabine RT60 of this octave
 ALPHA_MAX = 0.95     # energy absorption is capped here after scaling a material to the target RT60
 SABINE = 24 * math.log(10)  # RT60 = SABINE V / (c A), A = Σ S α + 4 m V (m: air energy attenuation, 1/m)
 # pattern name → omnidirectional weight p of the gain p + (1 − p) cos θ
-REAR_FLOOR = 0.1     # a real "cardioid" loudspeaker still radiates about −20 dB backwards (no exact null)
+REAR_FLOOR_DB = -20.0  # default: a real "cardioid" loudspeaker still radiates about −20 dB backwards (no null)
 PATTERNS = {"omni": 1.0, "subcardioid": 0.7, "cardioid": 0.5, "supercardioid": 0.37, "hypercardioid": 0.25}
 COHERENCE_GRID = 10.0  # Hz between exact diffuse-coherence square roots (interpolated in between)
 WALLS = ("west", "east", "south", "north", "floor", "ceiling")  # x = 0, x = Lx, y = 0, y = Ly, z = 0, z = Lz
@@ -138,17 +138,17 @@ def emission_directions(images, mics):
     return d / np.linalg.norm(d, axis=2, keepdims=True)
 
 
-def directivity_gain(pattern, axis, directions):
-    """Gain ``max(p + (1 − p) cos θ, REAR_FLOOR)`` of a first-order pattern; θ from ``axis`` (3,) unit."""
+def directivity_gain(pattern, axis, directions, floor_db=REAR_FLOOR_DB):
+    """Gain ``max(p + (1 − p) cos θ, 10^(floor_db/20))`` of a first-order pattern; θ from ``axis`` (3,) unit."""
     p = PATTERNS[pattern] if isinstance(pattern, str) else float(pattern)
-    return np.maximum(p + (1 - p) * directions @ np.asarray(axis, float), REAR_FLOOR)
+    return np.maximum(p + (1 - p) * directions @ np.asarray(axis, float), 10 ** (floor_db / 20))
 
 
-def mean_power_gain(pattern):
+def mean_power_gain(pattern, floor_db=REAR_FLOOR_DB):
     """Power gain of :func:`directivity_gain` averaged over all directions (the diffuse-field share):
     p² + (1 − p)²/3 without the floor; integrated numerically over cos θ with it."""
     x = np.linspace(-1.0, 1.0, 20001)
-    g = directivity_gain(pattern, np.array([0.0, 0.0, 1.0]), np.stack([0 * x, 0 * x, x], axis=1))
+    g = directivity_gain(pattern, np.array([0.0, 0.0, 1.0]), np.stack([0 * x, 0 * x, x], axis=1), floor_db)
     return float(np.trapezoid(g ** 2, x) / 2)
 
 

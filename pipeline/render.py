@@ -125,7 +125,8 @@ def band_rir(em, a, fsp, sc, delay, rng, cache):
     taps = np.where(taps <= first + sc["mixing_time"] * fsp, taps, np.nan)      # early part: images
     gain = np.ones_like(dist)
     if em["axis"] is not None:
-        gain = ac.directivity_gain(sc["directivity"], em["axis"], ac.emission_directions(img, mics))
+        gain = ac.directivity_gain(sc["directivity"], em["axis"], ac.emission_directions(img, mics),
+                                    sc["rear_floor_db"])
     gain[img["direct"]] *= 10 ** (a["direct_db"] / 20)
     refl = ac.image_band_amplitudes(img["hits"], ab["alpha"])                   # (n, B)
     L = a["rir_length"]

@@ -131,6 +131,7 @@ NEW_SCENE_DEFAULTS = {
     "air_absorption": True,    # bands: air absorption per band (pyroomacoustics coefficients)
     "mixing_time": 0.05,       # bands: image sources up to this long after the direct path, then the tail
     "directivity": "omni",     # bands: speaker pattern (omni|subcardioid|cardioid|supercardioid|hypercardioid|p)
+    "rear_floor_db": -20.0,    # bands: the pattern's gain never drops below this (real speakers have no null)
     "source_axis": None,       # bands: (K, 3) speaker axes; None = the heading along the trajectory
     "event_level_db": None,    # (K,) emission level of each chirp, dB (None = all 0)
     "hum_snr": math.inf,       # mains hum re. P, dB (inf = off)
@@ -646,6 +647,7 @@ def _check_scalars(sc):
     sc["hum_harmonics"] = _int(sc["hum_harmonics"], "hum_harmonics", 1)
     sc["gain_mismatch_db"] = _float(sc["gain_mismatch_db"], "gain_mismatch_db", 0)
     sc["mixing_time"] = _float(sc["mixing_time"], "mixing_time", 0, strict=True)
+    sc["rear_floor_db"] = _float(sc["rear_floor_db"], "rear_floor_db")
     d = sc["directivity"]
     if not (d in ac.PATTERNS or (not isinstance(d, (str, bool)) and isinstance(d, (int, float)) and 0 <= d <= 1)):
         raise InputError(f"scenario: directivity must be one of {', '.join(ac.PATTERNS)} or a number in [0, 1], "

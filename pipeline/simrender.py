@@ -37,7 +37,7 @@ def direct_amplitudes(sc):
         if sc["model"] == "bands":
             u = (a["mics_room"][None] - sc["sources"][:, None]) / d[..., None]        # (K, M, 3)
             if sc["directivity"] != "omni":
-                amp = amp * np.stack([ac.directivity_gain(sc["directivity"], ax, uj)
+                amp = amp * np.stack([ac.directivity_gain(sc["directivity"], ax, uj, sc["rear_floor_db"])
                                       for ax, uj in zip(sc["source_axis"], u)])
             amp = amp * 10 ** (a["direct_db"] / 20)
         out.append(amp)
@@ -98,7 +98,7 @@ def _attach_images(sc, em, flat, lo, hi):
         else:
             reach = 2 * np.linalg.norm(mics - e["pos"], axis=1).max() + c * sc["mixing_time"] + 0.1
             e["images"] = ac.shoebox_images(np.asarray(e["pos"], float), sc["room_dim"], e["pos"], reach)
-            e["diffuse_gain"] = ac.mean_power_gain(sc["directivity"]) if e["axis"] is not None else 1.0
+            e["diffuse_gain"] = ac.mean_power_gain(sc["directivity"], sc["rear_floor_db"]) if e["axis"] is not None else 1.0
 
 
 def _tail_length(sc):
