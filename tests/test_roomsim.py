@@ -582,3 +582,23 @@ def test_cli_set_overrides_any_key(tmp_path):
     for bad, expect in (("nokey", "KEY=VALUE"), ("bogus=1", "unknown key"), ("directivity=weird", "directivity")):
         r = _cli([tmp_path / "never", "--preset", "lab", "--set", bad, "--quiet"])
         assert r.exit_code == 2 and expect in r.stderr, r.stderr
+
+
+def test_late_tail_continues_the_image_source_energy():
+    """At the mixing time the stochastic tail (level from diffuse-field theory) carries the same 1 kHz-band
+    energy as the image sources just before it (median over arrays and events within 2 dB)."""
+    from scipy.signal import butter, sosfiltfilt
+
+    from calib.pipeline.render import builder_delay
+
+    sc = rs.validate_scenario(rs.make_scenario("lab", seed=4, directivity="omni"))
+    res = []
+    for j in range(0, 14, 3):
+        for i, a in enumerate(sc["arrays"]):
+            h, fsp = rs.impulse_response(sc, j, i)
+            x = sosfiltfilt(butter(4, [700, 1400], btype="band", fs=fsp, output="sos"), h[0])
+            t = int(np.linalg.norm(sc["sources"][j] - a["mics_room"][0]) / 343.0 * fsp + builder_delay()
+                    + sc["mixing_time"] * fsp)
+            w, g = int(0.015 * fsp), int(0.004 * fsp)
+            res.append(10 * np.log10(np.mean(x[t + g:t + w] ** 2) / np.mean(x[t - w:t - g // 2] ** 2)))
+    assert abs(np.median(res)) < 2.0, res
