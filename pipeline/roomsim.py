@@ -39,7 +39,8 @@ from . import scenes
 from .io import ARRAYS_COLS, EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
 from .render import EARLY, FDL, FDL_LATE, builder_delay, local_time  # noqa: F401  (public names)
 from .session import write_session_toml
-from .simrender import direct_amplitudes, impulse_response, noise_levels, render_session  # noqa: F401
+from . import simrender
+from .simrender import direct_amplitudes, noise_levels, render_session
 from .sounds import burst_signal, chirp_power, chirp_signal  # noqa: F401  (public names of the simulator)
 
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
@@ -889,6 +890,15 @@ def simulate(scenario, out_dir, progress=None, overwrite=False):
     return out_dir
 
 
+def impulse_response(scenario, event, array):
+    """The simulator's impulse response (M, L) from chirp ``event`` to array number ``array`` on that
+    array's sample grid (unit emission; index ``n`` is ``n − builder_delay()`` samples after the emission)
+    and the grid's true-time rate fs' (Hz): ``(h, fs')``."""
+    sc = validate_scenario(scenario) if not isinstance(scenario.get("room_dim"), np.ndarray) else scenario
+    flat = _room_acoustics(sc) if sc["model"] == "flat" else (None, None)
+    return simrender.impulse_response(sc, event, array, flat)
+
+
 def _write_session(tmp, sc, derived, flat, scenario):
     """Everything but the recordings: chirp.wav, events.csv, session.toml, truth/ (+ manifest.json)."""
     fs, ch = sc["fs"], sc["chirp"]
@@ -1037,5 +1047,5 @@ def _jsonable(o):
 
 
 __all__ = ["make_scenario", "load_scenario", "validate_scenario", "simulate", "arrival_times", "scenario_truth",
-           "odometry", "chirp_signal", "circular_array", "local_time", "builder_delay", "PRESETS"]
+           "odometry", "chirp_signal", "circular_array", "local_time", "builder_delay", "impulse_response", "PRESETS"]
 

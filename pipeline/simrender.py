@@ -214,24 +214,14 @@ def render_session(sc, tmp, flat, progress=None, zero_peak=None):
     return {"levels": lv, "rescale": rescale, "ends": ends, "delay": delay}
 
 
-def impulse_response(sc, event, array):
+def impulse_response(sc, event, array, flat=(None, None)):
     """Impulse response (M, L) from chirp ``event``'s speaker (its directivity and axis) to ``array``
     (indices), on that array's sample grid, unit emission (no global gain), and that grid's rate ``fsp``.
-    Index ``n`` is ``n − delay`` samples after the emission (``delay = render.builder_delay()``)."""
+    Index ``n`` is ``n − delay`` samples after the emission (``delay = render.builder_delay()``).
+    flat : (energy absorption, ISM order) for the ``flat`` model."""
     delay = rd.builder_delay()
     em = [e for e in emitters(sc, {"gain": 1.0, "p_chirp": 1.0}) if e["kind"] == "chirp"]
     a = _prepare_arrays(sc, delay)[array]
-    _attach_images(sc, em, _flat_or_none(sc), event, event + 1)
+    _attach_images(sc, em, flat, event, event + 1)
     fsp = sc["fs"] * (1 + a["drift"])
     return _rir_function(sc, em[event], a, delay, {})(fsp), fsp
-
-
-def _flat_or_none(sc):
-    if sc["model"] != "flat":
-        return None, None
-    import pyroomacoustics as pra
-
-    if sc["rt60"] == 0:
-        return 1.0, 0
-    e_abs, order = pra.inverse_sabine(sc["rt60"], list(sc["room_dim"]), c=sc["speed_of_sound"])
-    return float(e_abs), int(sc["max_order"] if sc.get("max_order") is not None else order)
