@@ -18,6 +18,7 @@ from . import render as rd
 from .sounds import (BlockWhite, CoherentPink, RowMajorWhite, burst_params, burst_signal, chirp_power,
                      chirp_signal, hum, speech_params, speech_signal)
 
+IMAGE_CACHE = 2_000_000  # flat model: image sources kept between the two passes up to this many (~64 MB)
 TARGET_PEAK = 0.25   # the largest direct-path amplitude at any mic
 CLIP = 0.95          # recordings are scaled down if any sample would exceed this
 
@@ -93,7 +94,9 @@ def _attach_images(sc, em, flat, lo, hi):
     c = sc["speed_of_sound"]
     mics = np.concatenate([a["mics_room"] for a in sc["arrays"]])
     for e in em[lo:hi]:
-        if sc["model"] == "flat":
+        if "cached_images" in e:
+            e["images"] = e.pop("cached_images")
+        elif sc["model"] == "flat":
             e["images"] = rd.pra_images(sc, *flat, e["pos"])
         else:
             reach = 2 * np.linalg.norm(mics - e["pos"], axis=1).max() + c * sc["mixing_time"] + 0.1
@@ -110,11 +113,15 @@ def recording_ends(sc, em, flat):
     c, fs, dur, t0 = sc["speed_of_sound"], sc["fs"], sc["chirp"]["duration"], sc["t_emit"][0]
     chirps = [e for e in em if e["kind"] == "chirp"]
     last = np.zeros(len(sc["arrays"]))
+    kept = 0
     for n, e in enumerate(chirps):
         if sc["model"] == "flat":
             _attach_images(sc, chirps, flat, n, n + 1)
             images = e.pop("images")
             reach = [rd.flat_reach(images, a, c, sc["rt60"]) for a in sc["arrays"]]
+            kept += images[1].size
+            if kept <= IMAGE_CACHE:                   # short sessions: no second image-source pass
+                e["cached_images"] = images
         else:
             reach = [np.linalg.norm(a["mics_room"] - e["pos"], axis=1).max() / c + sc["mixing_time"]
                      + _tail_length(sc) for a in sc["arrays"]]
