@@ -20,7 +20,8 @@ def simulate(
     rt60: Optional[float] = typer.Option(None, help="reverberation time RT60, s (0 = anechoic) [default: 0.3]"),
     snr: Optional[float] = typer.Option(None, help="sensor SNR re. the mean direct-path chirp power, dB "
                                                    "('inf' = noise-free) [default: 30]"),
-    diffuse_snr: Optional[float] = typer.Option(None, help="incoherent pink-noise SNR, dB [default: inf = off]"),
+    diffuse_snr: Optional[float] = typer.Option(None, help="diffuse pink-noise SNR (diffuse-field coherence), dB "
+                                                           "[default: inf = off]"),
     fs: Optional[int] = typer.Option(None, help="sampling rate of every recorder, Hz [default: 16000]"),
     n_arrays: Optional[int] = typer.Option(None, help="number of arrays [default: 5, lab3: 3]"),
     n_events: Optional[int] = typer.Option(None, help="use the first N speaker stops of the preset [default: all]"),

@@ -405,7 +405,7 @@ def load_scenario(path, **overrides):
         raise InputError(f"{path}: cannot parse ({' '.join(str(exc).split())})") from None
     cfg = {k: v for k, v in cfg.items() if k != "generator"} | (
         cfg.get("generator", {}) if isinstance(cfg.get("generator"), dict) else {})
-    cfg = {**cfg, **overrides}
+    cfg = _merge(cfg, overrides)                # tables (chirp, priors) merge: --set chirp.kind keeps chirp.f0
     preset, seed = cfg.pop("preset", "paper-traj3"), cfg.pop("seed", 0)
     try:
         sc = make_scenario(preset, seed, **cfg)

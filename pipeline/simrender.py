@@ -99,9 +99,11 @@ def _attach_images(sc, em, flat, lo, hi):
         elif sc["model"] == "flat":
             e["images"] = rd.pra_images(sc, *flat, e["pos"])
         else:
+            # every image that can arrive within mixing_time of the direct path at any mic (+10 cm margin)
             reach = 2 * np.linalg.norm(mics - e["pos"], axis=1).max() + c * sc["mixing_time"] + 0.1
             e["images"] = ac.shoebox_images(np.asarray(e["pos"], float), sc["room_dim"], e["pos"], reach)
-            e["diffuse_gain"] = ac.mean_power_gain(sc["directivity"], sc["rear_floor_db"]) if e["axis"] is not None else 1.0
+            e["diffuse_gain"] = (ac.mean_power_gain(sc["directivity"], sc["rear_floor_db"])
+                                 if e["axis"] is not None else 1.0)
 
 
 def _tail_length(sc):
