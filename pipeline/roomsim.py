@@ -274,15 +274,18 @@ def _realistic_poses(preset, g, sources, room, n, rng, sc):
 def _occlusion_db(sources, wall, room, depth, sc, below_db):
     """Direct-path gain (dB) that puts the direct path ``below_db`` under the first-order reflection on
     ``wall`` (median over the stops; reflection factor of the wall at 1 kHz, spherical spreading)."""
-    alpha = ac.scaled_absorption(_materials(sc), room, sc["rt60"], sc["speed_of_sound"]) if sc["rt60"] > 0 \
-        else np.ones((6, len(ac.BAND_CENTERS)))
+    try:
+        alpha = ac.scaled_absorption(_materials(sc), room, _float(sc["rt60"], "rt60", 0), sc["speed_of_sound"]) \
+            if sc["rt60"] > 0 else np.ones((6, len(ac.BAND_CENTERS)))
+    except ValueError as exc:
+        raise InputError(f"scenario: {exc}") from None
     beta = math.sqrt(1 - alpha[wall, ac.BAND_CENTERS.index(ac.RT60_BAND)])
     pos = np.array(room, float) / 2
     axis, far = divmod(wall, 2)
     pos[axis] = room[axis] - depth if far else depth
     extra = scenes.reflection_delay(sources, pos, wall, room, 1.0)       # path difference, m
     d = np.linalg.norm(sources - pos, axis=1)
-    ratio = float(np.median(beta * d / (d + extra)))
+    ratio = float(np.median(beta * d / (d + extra))) if beta > 0 else 1.0   # anechoic: re. the direct path
     return round(20 * math.log10(ratio) - below_db, 2)
 
 
@@ -353,6 +356,8 @@ def _quiet_events(sc, g):
     most below the others (by :func:`early_snr_db`), emitted so that array's SNR is ``quiet_snr_db``
     (default 0 dB: it cannot detect the event; the others are 8-20 dB above it in the presets)."""
     snr = early_snr_db(validate_scenario({**sc, "event_level_db": None}))
+    if not np.all(np.isfinite(snr)):
+        return [0.0] * snr.shape[1]             # noise-free: no level makes an array miss a chirp
     srt = np.sort(snr, axis=0)
     gap = srt[1] - srt[0] if len(snr) > 1 else np.zeros(snr.shape[1])
     levels = np.zeros(snr.shape[1])

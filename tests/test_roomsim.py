@@ -620,3 +620,25 @@ def test_bands_model_keeps_the_exact_clock(tmp_path):
             for m in (0, 3):
                 err.append(measure(y[:, m], fs, model[i, j, m], drift[i], chirp) - model[i, j, m])
     assert np.max(np.abs(err)) < 2e-6, np.max(np.abs(err))
+
+
+def test_speech_interferer_between_two_chirps_is_voiced_at_its_pitch(tmp_path):
+    """The 'hard' preset's speech-like interferer arrives in the gap between two chirps (clock model) and
+    is voiced: its autocorrelation peaks at the pitch period 1/f0 (±10 %, vibrato ±8 %)."""
+    sc = rs.make_scenario("hard", seed=2, n_events=3, rt60=0.0, **QUIET)
+    (it,) = [x for x in sc["interferers"] if x.get("kind") == "speech"]
+    d = rs.simulate(sc, tmp_path / "speech")
+    a = sc["arrays"][0]
+    y, fs = sf.read(d / f"{a['name']}.wav", always_2d=True)
+    t0 = sc["t_emit"][0]
+    dist = np.linalg.norm(np.array(it["position"]) - a["position"])
+    t = rs.local_time(it["t_start"] + dist / 343.0, a["tau"], a["drift"], t0)
+    arr = rs.arrival_times(sc)[0]
+    assert arr[1] + sc["chirp"]["duration"] < t and t + it["duration"] < arr[2]
+    seg = y[int(t * fs):int((t + it["duration"]) * fs), 0]
+    before = y[int((arr[1] + sc["chirp"]["duration"] + 0.02) * fs):int((t - 0.01) * fs), 0]
+    assert np.mean(seg ** 2) > 1e3 * np.mean(before ** 2)
+    ac_ = np.correlate(seg, seg, mode="full")[seg.size - 1:]
+    lo, hi = int(fs / 400), int(fs / 60)                  # search 60-400 Hz pitches
+    period = (lo + np.argmax(ac_[lo:hi])) / fs
+    assert abs(period * it["f0"] - 1) < 0.1, (1 / period, it["f0"])
