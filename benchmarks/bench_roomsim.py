@@ -1,7 +1,12 @@
-"""Room simulator benchmark (issue #3): wall time per session and timing accuracy on the written WAVs.
+"""Room simulator benchmark (issues #3, #9, #12): wall time, peak memory and timing accuracy.
 
-    python benchmarks/bench_roomsim.py            # all cases (~1-2 min on 2 cores)
+    python benchmarks/bench_roomsim.py            # all cases (several minutes on 2 cores)
     python benchmarks/bench_roomsim.py --quick    # the acceptance case only
+    python benchmarks/bench_roomsim.py --realistic [--long N]   # lab, hall, hard + an N-event lab session
+
+Realistic presets (issue #9): each case runs in its own process, which reports its wall time and peak
+resident memory (``ru_maxrss``); the long session repeats the lab's speaker loop to N events (1.5 s apart)
+to show that memory does not grow with the session length (recordings are streamed to the WAVs).
 
 Speed: `simulate` wall time (image sources + RIRs + convolutions + noise + writing) per case; the target
 is ≤ 60 s for 5 arrays × 6 mics × 14 events at 16 kHz with RT60 0.3 s (paper-traj3 defaults).
@@ -71,10 +76,71 @@ def run_case(preset, fs, rt60, tmp, accuracy=False, **kw):
     return row
 
 
+def realistic_case(preset, n_events, tmp):
+    """Simulate one realistic case in this process; a table row with wall time and peak memory."""
+    import resource
+
+    sc = rs.make_scenario(preset, seed=0)
+    if n_events > len(sc["sources"]):           # long session: the speaker keeps flying the same loop
+        reps = -(-n_events // len(sc["sources"]))
+        sc["sources"] = (sc["sources"] * reps)[:n_events]
+        sc["t_emit"] = (sc["t_emit"][0] + 1.5 * np.arange(n_events)).round(6).tolist()
+        sc["event_level_db"] = None
+        sc["interferers"] = []
+    t0 = time.perf_counter()
+    d = rs.simulate(sc, Path(tmp) / f"{preset}-{n_events}", overwrite=True)
+    wall = time.perf_counter() - t0
+    v = rs.validate_scenario(sc)
+    n = sf.info(d / "A1.wav").frames
+    return {"preset": preset, "fs": v["fs"], "rt60": v["rt60"],
+            "arrays x mics": f"{len(v['arrays'])}x{len(v['arrays'][0]['mics'])}", "events": len(v["sources"]),
+            "audio_s": n / v["fs"], "MB": sum(p.stat().st_size for p in d.rglob("*") if p.is_file()) / 1e6,
+            "wall_s": wall, "peak_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "float64_session_MB": sum(sf.info(d / f"{a['name']}.wav").frames * len(a["mics"]) * 8
+                                      for a in v["arrays"]) / 1e6}
+
+
+def run_realistic(long_events):
+    import json
+    import subprocess
+
+    rows = []
+    for preset, n in [("lab", 14), ("hall", 14), ("hard", 14), ("lab", long_events)]:
+        out = subprocess.run([sys.executable, __file__, "--case", preset, str(n)], capture_output=True, text=True,
+                             check=True)
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        print(f"  {preset} {n} events: {rows[-1]['wall_s']:.1f} s", file=sys.stderr)
+    return rows, ["preset", "fs", "rt60", "arrays x mics", "events", "audio_s", "MB", "wall_s", "peak_MB",
+                  "float64_session_MB"]
+
+
+def print_table(rows, cols):
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for r in rows:
+        print("| " + " | ".join(f"{r.get(c, ''):.3g}" if isinstance(r.get(c), float) else str(r.get(c, ""))
+                                for c in cols) + " |")
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="only the acceptance speed case")
+    ap.add_argument("--realistic", action="store_true", help="the realistic presets and a long session")
+    ap.add_argument("--long", type=int, default=240, help="events of the long lab session [240]")
+    ap.add_argument("--case", nargs=2, help=argparse.SUPPRESS)    # internal: one realistic case, JSON row
     args = ap.parse_args()
+    if args.case:
+        import json
+
+        with tempfile.TemporaryDirectory() as tmp:
+            print(json.dumps(realistic_case(args.case[0], int(args.case[1]), tmp)))
+        return
+    if args.realistic:
+        rows, cols = run_realistic(args.long)
+        print_table(rows, cols)
+        print(f"\npeak_MB = ru_maxrss of the process that ran the case (imports included); float64_session_MB = "
+              "what holding every recording in float64 would take.")
+        return
     cases = [("paper-traj3", 16000, 0.3, False, {})]
     if not args.quick:
         cases += [

@@ -35,7 +35,8 @@ def simulate(
     rt60: Optional[float] = typer.Option(None, help="reverberation time RT60, s (0 = anechoic) [default: 0.3]"),
     snr: Optional[float] = typer.Option(None, help="sensor SNR re. the mean direct-path chirp power, dB "
                                                    "('inf' = noise-free) [default: 30]"),
-    diffuse_snr: Optional[float] = typer.Option(None, help="incoherent pink-noise SNR, dB [default: inf = off]"),
+    diffuse_snr: Optional[float] = typer.Option(None, help="diffuse pink-noise SNR (diffuse-field coherence), dB "
+                                                           "[default: inf = off]"),
     fs: Optional[int] = typer.Option(None, help="sampling rate of every recorder, Hz [default: 16000]"),
     n_arrays: Optional[int] = typer.Option(None, help="number of arrays [default: 5, lab3: 3]"),
     n_events: Optional[int] = typer.Option(None, help="use the first N speaker stops of the preset [default: all]"),
@@ -44,6 +45,8 @@ def simulate(
     interferers: Optional[int] = typer.Option(None, help="number of random interfering noise bursts [default: 0]"),
     sigma_odo: Optional[float] = typer.Option(None, help="odometry noise per step and axis, m [default: 0.01]"),
     subtype: Optional[str] = typer.Option(None, help="WAV sample format: FLOAT, PCM_24 or PCM_16 [default: FLOAT]"),
+    set_: Optional[list[str]] = typer.Option(None, "--set", help="any scenario key: KEY=VALUE (TOML value; "
+                                             "dotted keys for tables, e.g. chirp.kind=exponential); repeatable"),
     force: bool = typer.Option(False, "--force", help="replace OUT_DIR if it exists and is not empty"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
@@ -58,6 +61,8 @@ def simulate(
         "sigma_odo": sigma_odo, "subtype": subtype}.items() if v is not None}
     if chirp_duration is not None:
         over["chirp"] = {"duration": chirp_duration}
+    for item in set_ or []:
+        _set(over, item)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not force:
         raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
     if scenario is not None:
@@ -66,7 +71,10 @@ def simulate(
         sc = make_scenario(over.pop("preset", "paper-traj3"), over.pop("seed", 0), **over)
         validate_scenario(sc)
     with owned_output([out_dir], [scenario], command="calib simulate", on_wait=waiting):
-        path = run_simulation(sc, out_dir, progress=not quiet, overwrite=True)
+        if quiet:
+            path = run_simulation(sc, out_dir, overwrite=True)
+        else:
+            path = _simulate_with_bar(sc, out_dir)
     if out_pos is not None:  # after success only: a bad input stays one line
         print("note: `calib simulate OUT_DIR` is deprecated; use `calib simulate -o OUT_DIR`", file=sys.stderr)
     if not quiet:
@@ -93,3 +101,38 @@ def _check_options(**values):
             continue
         lo, hi, lo_open, integer = SIM_OPTION_RANGES[name]
         V.option(v, name.replace("_", "-"), lo=lo, hi=hi, lo_open=lo_open, integer=integer)
+
+
+def _simulate_with_bar(sc, out_dir):
+    """The simulation with a rich progress bar (the library reports progress through a callback)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("simulate"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[msg]}"),
+                  TimeElapsedColumn(), console=console) as bar:
+        task = bar.add_task("simulate", total=None, msg="")
+
+        def progress(done, total, msg):
+            bar.update(task, total=total, completed=done, msg=msg)
+
+        return run_simulation(sc, out_dir, progress=progress, overwrite=True)
+
+
+def _set(over, item):
+    """Apply one ``--set KEY=VALUE`` to the overrides (VALUE read as TOML, else as a string)."""
+    import tomllib
+
+    key, sep, text = item.partition("=")
+    key = key.strip()
+    if not sep or not key or any(not k for k in key.split(".")):
+        raise InputError(f"--set {item!r}: expected KEY=VALUE")
+    try:
+        value = tomllib.loads(f"v = {text.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text.strip()
+    *path, last = key.split(".")
+    node = over
+    for k in path:
+        node = node.setdefault(k, {})
+        if not isinstance(node, dict):
+            raise InputError(f"--set {item!r}: {k!r} is not a table")
+    node[last] = value

@@ -30,155 +30,42 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.signal import fftconvolve
 from scipy.spatial.transform import Rotation
 
-from calib.frontend.signals import SWEEP_KINDS, sweep  # noqa: F401  (SWEEP_KINDS: valid chirp kinds)
-
-from .io import ARRAYS_COLS, EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
-from .validate import read_text
+from . import acoustics as ac
+from . import scenes, simrender
+from .io import EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
+from .render import EARLY, FDL, FDL_LATE, builder_delay, local_time  # noqa: F401  (public names)
+from .scenario import (  # noqa: F401  (PRESETS, REALISTIC, _PAPER_TRAJ, _room_acoustics: public/test names)
+    _LAB_HEIGHTS, _LAB_LOOP, _PAPER_TRAJ, ALL_KEYS, GEN_DEFAULTS, NEW_GEN_DEFAULTS,
+    NEW_SCENE_DEFAULTS, PRESETS, REALISTIC, SCENE_DEFAULTS, _float, _int, _materials, _matrix, _merge,
+    _room_acoustics, _rng, _vector, arrival_times, odometry, scenario_truth, validate_scenario)
 from .session import write_session_toml
-
-# ----------------------------------------------------------------------------------------------- constants
-FDL = 81           # fractional-delay filter length (pyroomacoustics default)
-LUT_GRAN = 512     # sinc look-up granularity of the RIR builder (pra default 20; finer = more exact delays)
-N_THREADS = 2      # fixed so that the builder's summation order (hence every output byte) is reproducible
-FDL_LATE = 21      # shorter filter for late reflections (> EARLY s after the direct path)
-EARLY = 0.05       # s
-PAD = FDL // 2 + 1  # samples added to every image delay so the builder never indexes before 0
-SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
-
-# Speaker trajectories of Zhang et al. 2025 (simulation section; published with their code, gt_generation.m).
-_PAPER_TRAJ = {
-    "paper-traj1": 3.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
-                                   [0, 1, 1], [0, 0, 1], [1, 0, 1], [1, 1, 1]], float),
-    "paper-traj2": np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [2, 4, 0], [2, 6, 0],
-                             [2, 6, 2], [2, 4, 2], [2, 2, 2], [2, 0, 2], [0, 0, 2]], float),
-    "paper-traj3": 2.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 2, 0], [0, 2, 0], [-1, 2, 0], [-1, 1, 0],
-                                   [-1, 0, 0], [-1, 0, 1], [-1, 1, 1], [-1, 2, 1], [0, 2, 1], [1, 2, 1],
-                                   [1, 1, 1]], float),
-}
-# The real lab loop (zhang_real_01 truth, x/y in metres, centred): 7 stops, flown at two speaker heights.
-_LAB_LOOP = np.array([[0.87, 0.25], [0.87, -0.27], [0.37, -0.57], [-0.40, -0.57],
-                      [-0.87, -0.03], [-0.44, 0.56], [0.36, 0.56]])
-_LAB_HEIGHTS = (1.12, 0.75)  # m above the floor: first loop high, second low (as in the real data)
-
-PRESETS = {
-    "paper-traj1": {"n_arrays": 5, "room_margin": 1.5},
-    "paper-traj2": {"n_arrays": 5, "room_margin": 1.5},
-    "paper-traj3": {"n_arrays": 5, "room_margin": 1.5},
-    "lab3": {"n_arrays": 3, "room_dim": [6.0, 5.0, 3.0], "tilt_deg": 3.0},
-}
-
-# Keys that only steer the random generation in make_scenario (kept in the scenario for the record).
-GEN_DEFAULTS = {
-    "n_arrays": 5,             # number of arrays (names A1..AN, A1 = reference)
-    "n_events": None,          # speaker stops used (≤ the preset's trajectory length; None = all)
-    "interval": 2.0,           # mean time between chirp emissions, s
-    "interval_jitter": 0.25,   # each interval is interval · U(1 − jitter, 1 + jitter)
-    "offset_max": 0.1,         # offsets τ_i − τ_ref ~ U(−offset_max, offset_max), s (reference: 0)
-    "drift_max": 1e-4,         # drifts δ_i ~ U(−drift_max, drift_max) for every array (reference included)
-    "lead_in": 0.3,            # the earliest-starting clock reads τ = lead_in at t_emit[0], s
-    "n_mics": 6,               # default mic geometry: circular array of n_mics ...
-    "mic_radius": 0.0354,      # ... with this radius (m), in the array's x-y plane, origin at the centre
-    "mics": None,              # or one (M, 3) geometry (m, array frame) for every generated array
-    "tilt_deg": None,          # None: rotations uniform on SO(3); else upright, random yaw, tilt N(0, tilt_deg)
-    "room_margin": 1.5,        # paper presets: room = trajectory box + this margin on each side, m
-    "wall_margin": 0.3,        # generated arrays keep at least this distance from the walls, m
-    "min_source_distance": 0.5,  # generated arrays keep at least this distance from every speaker stop, m
-    "n_interferers": 0,        # random interfering noise bursts (see the 'interferers' key)
-    "interferer_level_db": 0.0,  # their power relative to the chirp's, dB
-}
-
-SCENE_DEFAULTS = {
-    "fs": 16000,
-    "speed_of_sound": 343.0,
-    "room_dim": None,
-    "rt60": 0.3,
-    "max_order": None,
-    "chirp": {"f0": 500.0, "f1": 4000.0, "duration": 0.5, "fade": 0.005},
-    "snr": 30.0,
-    "diffuse_snr": math.inf,
-    "sigma_odo": 0.01,
-    "priors": {},  # none by default: the frontend then estimates TDOA/DOA noise from the recordings
-    "subtype": "FLOAT",
-    "tail": 0.3,
-    "reference_array": "A1",
-}
-SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers"}
-META_KEYS = {"preset", "seed"}
-ALL_KEYS = SCENE_KEYS | set(GEN_DEFAULTS) | META_KEYS
+from .validate import read_text
+from .simrender import direct_amplitudes, noise_levels, render_session
+from .sounds import burst_signal, chirp_power, chirp_signal  # noqa: F401  (public names of the simulator)
 
 
 # ----------------------------------------------------------------------------------------------- signals
-def chirp_signal(u, ch):
-    """The scenario's chirp ``ch`` (f0, f1, duration, fade, kind) at times ``u`` (s since its start)."""
-    return sweep(u, ch["f0"], ch["f1"], ch["duration"], ch["fade"], ch.get("kind", "linear"))
-
-
-def chirp_power(chirp):
-    """Mean of ``chirp_signal²`` over its duration (dimensionless, ≈ 0.5)."""
-    u = np.linspace(0, chirp["duration"], 200_001)
-    return float(np.mean(chirp_signal(u, chirp) ** 2))
-
-
 def circular_array(n_mics=6, radius=0.0354):
     """Mic positions (n_mics, 3) of a uniform circular array in the x-y plane, centred on the origin (m)."""
     a = 2 * np.pi * np.arange(n_mics) / n_mics
     return np.round(np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(n_mics)], axis=1), 12) + 0.0
 
 
-def _burst_params(seed, index, f_lo, f_hi, n_tones=48):
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(100, index)))
-    return rng.uniform(f_lo, f_hi, n_tones), rng.uniform(0, 2 * np.pi, n_tones)
-
-
-def burst_signal(u, duration, freqs, phases):
-    """An interferer: sum of tones with a Hann envelope over ``duration`` (s), unit power; 0 outside.
-
-    Analytic so that every array can evaluate it on its own clock, like the chirp.
-    """
-    u = np.asarray(u, float)
-    env = np.where((u >= 0) & (u <= duration), np.sin(np.pi * np.clip(u, 0, duration) / duration) ** 2, 0.0)
-    s = np.zeros_like(u)
-    for f, p in zip(freqs, phases):
-        s += np.cos(2 * np.pi * f * u + p)
-    # mean of env² over the burst is 3/8, mean of the tone sum² is n_tones / 2
-    return env * s / np.sqrt(3 / 8 * len(freqs) / 2)
-
-
-def _pink_noise(rng, shape):
-    """Unit-variance pink (1/f power) noise along the last axis, flat below 20 Hz cut."""
-    n = shape[-1]
-    spec = np.fft.rfft(rng.standard_normal(shape), axis=-1)
-    f = np.fft.rfftfreq(n)
-    w = np.zeros_like(f)
-    w[1:] = 1 / np.sqrt(f[1:])
-    x = np.fft.irfft(spec * w, n=n, axis=-1)
-    return x / x.std(axis=-1, keepdims=True)
-
-
 # ----------------------------------------------------------------------------------------------- scenario
-def _rng(seed, purpose):
-    # one independent stream per purpose: overriding one part of a scene never changes the draws of another
-    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(purpose,)))
-
-
-def _merge(base, over):
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        out[k] = {**out[k], **v} if isinstance(out.get(k), dict) and isinstance(v, dict) else copy.deepcopy(v)
-    return out
-
-
 def make_scenario(preset="paper-traj3", seed=0, **overrides):
     """A complete, deterministic scenario (plain dict) from a preset, a seed and overrides.
 
     Presets: ``paper-traj1`` (8 stops, 3×3×3 m cube), ``paper-traj2`` (10 stops, 2×6×2 m),
     ``paper-traj3`` (14 stops, 4×4×2 m) — the trajectories of Zhang et al. 2025, 5 arrays at random
     positions inside the trajectory box and rotations uniform on SO(3), room = box + 1.5 m on each side —
-    and ``lab3`` (3 roughly upright arrays near the floor, 7 stops on a ~1.7 m loop flown at 1.12 m then
-    0.75 m, like the paper's real experiment, in a 6×5×3 m room).
+    ``lab3`` (3 roughly upright arrays near the floor, 7 stops on a ~1.7 m loop flown at 1.12 m then
+    0.75 m, like the paper's real experiment, in a 6×5×3 m room), and the realistic presets (``bands``
+    model: materials, air absorption, late tail, cardioid speaker, noise, hum, gain mismatch) ``lab``
+    (6×5×3 m, RT60 0.4 s, 16 kHz, 4 planar 6-mic circles on tables and walls), ``hall`` (12×8×4 m, RT60
+    0.8 s, 48 kHz, 6 non-planar arrays) and ``hard`` (the lab plus an occluded array, a speech-like
+    interferer and a quiet event).
 
     Any key below may be overridden (nested dicts ``chirp``/``priors`` are merged). All values are SI and
     in the ROOM frame (origin at a room corner, walls along the axes).
@@ -186,38 +73,27 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
     Scene keys (what :func:`simulate` uses):
       ``preset`` str, ``seed`` int (drives every random draw, including noise and odometry);
       ``fs`` int Hz (nominal rate of every recorder); ``speed_of_sound`` m/s; ``room_dim`` (3,) m;
-      ``rt60`` s (Sabine, via ``pyroomacoustics.inverse_sabine``; 0 = anechoic); ``max_order`` int|None
-      (ISM order; None = from inverse_sabine); ``chirp`` {f0 Hz, f1 Hz, duration s, fade s};
+      ``rt60`` s (flat: Sabine, via ``pyroomacoustics.inverse_sabine``; bands: Sabine RT60 of the 1 kHz
+      octave; 0 = anechoic); ``max_order`` int|None (flat ISM order; None = from inverse_sabine);
+      ``chirp`` {f0 Hz, f1 Hz, duration s, fade s, kind linear|exponential};
       ``arrays`` list of {``name`` str, ``position`` (3,) m, ``quat`` (4,) scalar-first rotation array
       frame → room, ``mics`` (M, 3) m in the array frame (one per WAV channel), ``tau`` s (local clock
-      reading at t_emit[0]), ``drift`` (δ, dimensionless), optional ``doa_hemisphere`` (3,) array frame};
+      reading at t_emit[0]), ``drift`` (δ, dimensionless), optional ``doa_hemisphere`` (3,) array frame,
+      ``direct_db`` dB (bands: direct-path gain, default 0), ``mic_gain_db`` (M,) dB};
       ``reference_array`` str (its frame is the world frame of everything written);
       ``sources`` (K, 3) m speaker stops; ``t_emit`` (K,) s emission times of the chirp STARTS on the
       emitter clock; ``snr`` dB (white sensor noise re. the mean direct-path chirp power at the mics;
-      inf = none); ``diffuse_snr`` dB (incoherent pink noise, same reference; inf = none);
+      inf = none); ``diffuse_snr`` dB (pink noise with diffuse-field coherence, same reference);
       ``interferers`` list of {``position`` (3,) m, ``t_start`` s (emitter clock), ``duration`` s,
-      ``level_db`` dB re. the chirp's emitted power, ``f_lo``/``f_hi`` Hz}; ``sigma_odo`` m (odometry
-      step noise, per axis); ``priors`` {sigma_tdoa s, sigma_doa_deg deg} written to session.toml [noise]
-      (default none: the frontend estimates TDOA/DOA noise itself; sigma_odo is always written);
-      ``subtype`` FLOAT|PCM_24|PCM_16; ``tail`` s recorded after the last reverberation.
+      ``level_db`` dB re. the chirp's emitted power, ``kind`` tones|speech, ``f_lo``/``f_hi`` Hz (tones),
+      ``f0`` Hz (speech pitch)}; ``sigma_odo`` m (odometry step noise, per axis); ``priors``
+      {sigma_tdoa s, sigma_doa_deg deg} written to session.toml [noise] (default none);
+      ``subtype`` FLOAT|PCM_24|PCM_16; ``tail`` s recorded after the last reverberation;
+      and the realistic-acoustics keys of ``NEW_SCENE_DEFAULTS`` (docs/simulation.md).
     Generation keys (only steer the random draws): see ``GEN_DEFAULTS``.
     """
-    if preset not in PRESETS:
-        raise InputError(f"scenario: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"scenario: seed must be a non-negative integer, got {seed!r}")
-    unknown = sorted(set(overrides) - ALL_KEYS)
-    if unknown:
-        raise InputError(f"scenario: unknown key(s) {', '.join(map(repr, unknown))}")
-    seed = int(seed)
-    g = {**GEN_DEFAULTS, **{k: v for k, v in PRESETS[preset].items() if k in GEN_DEFAULTS},
-         **{k: v for k, v in overrides.items() if k in GEN_DEFAULTS}}
-    base = _merge(SCENE_DEFAULTS, {k: v for k, v in PRESETS[preset].items() if k in SCENE_DEFAULTS})
-    sc = _merge(base, {k: v for k, v in overrides.items()
-                       if k in SCENE_DEFAULTS and k not in ("reference_array",)})
-    sc = {"preset": preset, "seed": seed, **sc}
-    n_arrays = _int(g["n_arrays"], "n_arrays", 1)
-
+    g, sc = _start(preset, seed, overrides)
+    seed = sc["seed"]
     # speaker stops (room frame) and the room
     if "sources" in overrides:
         sources = _matrix(overrides["sources"], "sources", 3)
@@ -230,17 +106,12 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
     if "arrays" in overrides:
         arrays = _user_arrays(overrides["arrays"], g)
     else:
-        arrays = _make_arrays(preset, g, np.asarray(sources), room, n_arrays, _rng(seed, 2), _rng(seed, 3))
+        arrays = _make_arrays(preset, g, np.asarray(sources), room, _int(g["n_arrays"], "n_arrays", 1),
+                              _rng(seed, 2), _rng(seed, 3), sc)
     sc["arrays"] = arrays
     sc["reference_array"] = overrides.get("reference_array", arrays[0]["name"])
     if g["n_events"] is not None and "sources" not in overrides:
-        k = _int(g["n_events"], "n_events", 0)
-        if k == 0:
-            raise InputError("scenario: n_events must be at least 1 (zero events)")
-        if k > len(sources):
-            raise InputError(f"scenario: preset {preset!r} has {len(sources)} speaker stops, "
-                             f"n_events={k} asked")
-        sources = sources[:k]
+        sources = _first_events(sources, g["n_events"], preset)
     sc["room_dim"] = room.tolist()
     sc["sources"] = np.asarray(sources, float).tolist()
 
@@ -254,52 +125,37 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
         sc["interferers"] = copy.deepcopy(list(overrides["interferers"]))
     else:
         sc["interferers"] = _make_interferers(g, room, sc["t_emit"], _rng(seed, 5))
+        sc["interferers"] += _make_speech(g, room, sc, _rng(seed, 6))
+    if "event_level_db" not in overrides and _int(g["n_quiet"], "n_quiet", 0) > 0:
+        sc["event_level_db"] = _quiet_events(sc, g)
     sc["generator"] = {k: g[k] for k in GEN_DEFAULTS}
     return sc
 
 
-def _int(v, name, lo):
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer, float)) or v != int(v) or v < lo:
-        raise InputError(f"scenario: {name} must be an integer ≥ {lo}, got {v!r}")
-    return int(v)
+def _start(preset, seed, overrides):
+    """Checked preset/seed/keys → (generation keys, scene keys with preset and overrides merged)."""
+    if preset not in PRESETS:
+        raise InputError(f"scenario: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"scenario: seed must be a non-negative integer, got {seed!r}")
+    unknown = sorted(set(overrides) - ALL_KEYS)
+    if unknown:
+        raise InputError(f"scenario: unknown key(s) {', '.join(map(repr, unknown))}")
+    g = {**GEN_DEFAULTS, **{k: v for k, v in PRESETS[preset].items() if k in GEN_DEFAULTS},
+         **{k: v for k, v in overrides.items() if k in GEN_DEFAULTS}}
+    base = _merge(SCENE_DEFAULTS, {k: v for k, v in PRESETS[preset].items() if k in SCENE_DEFAULTS})
+    sc = _merge(base, {k: v for k, v in overrides.items()
+                       if k in SCENE_DEFAULTS and k not in ("reference_array",)})
+    return g, {"preset": preset, "seed": int(seed), **sc}
 
 
-def _float(v, name, lo=None, allow_inf=False, strict=False):
-    if v is None and allow_inf:
-        return math.inf
-    if isinstance(v, str) and allow_inf and v.strip().lower() in ("inf", "+inf", "infinity"):
-        return math.inf
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise InputError(f"scenario: {name} must be a number, got {v!r}")
-    v = float(v)
-    if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
-        raise InputError(f"scenario: {name} must be finite, got {v!r}")
-    if lo is not None and (v < lo or (strict and v == lo)):
-        raise InputError(f"scenario: {name} must be {'>' if strict else '≥'} {lo:g}, got {v:g}")
-    return v
-
-
-def _vector(v, name, n=None):
-    try:
-        a = np.asarray(v, float)
-    except (TypeError, ValueError):
-        raise InputError(f"scenario: {name} must be a list of numbers") from None
-    if a.ndim != 1 or (n is not None and a.size != n) or not np.all(np.isfinite(a)):
-        raise InputError(f"scenario: {name} must be {n if n else 'a list of'} finite numbers")
-    return a
-
-
-def _matrix(v, name, ncol):
-    try:
-        a = np.asarray(v, float)
-    except (TypeError, ValueError):
-        raise InputError(f"scenario: {name} must be a list of [x, y, z]") from None
-    if a.size == 0:
-        raise InputError(f"scenario: {name} is empty (zero events)" if name == "sources" else
-                         f"scenario: {name} is empty")
-    if a.ndim != 2 or a.shape[1] != ncol or not np.all(np.isfinite(a)):
-        raise InputError(f"scenario: {name} must be a list of [x, y, z] with finite numbers")
-    return a
+def _first_events(sources, n_events, preset):
+    k = _int(n_events, "n_events", 0)
+    if k == 0:
+        raise InputError("scenario: n_events must be at least 1 (zero events)")
+    if k > len(sources):
+        raise InputError(f"scenario: preset {preset!r} has {len(sources)} speaker stops, n_events={k} asked")
+    return sources[:k]
 
 
 def _make_sources(preset, g, room_dim, rng):
@@ -309,6 +165,10 @@ def _make_sources(preset, g, room_dim, rng):
         extent = traj.max(0) - traj.min(0)
         room = (extent + 2 * float(g["room_margin"]) if room_dim is None else _vector(room_dim, "room_dim", 3))
         return traj - traj.min(0) + (room - extent) / 2, np.asarray(room, float)
+    if preset in REALISTIC:
+        room = _vector(room_dim, "room_dim", 3)
+        radii, heights = ((4.0, 2.6), (1.5, 1.0)) if preset == "hall" else ((1.6, 1.2), (1.3, 1.05))
+        return scenes.loop_stops(room, rng, radii, heights), room
     # lab3: the real loop, rotated about z, jittered, centred near the middle of the room
     room = _vector(room_dim, "room_dim", 3)
     psi = rng.uniform(-np.pi, np.pi)
@@ -321,8 +181,31 @@ def _make_sources(preset, g, room_dim, rng):
     return np.concatenate(stops), room
 
 
-def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock):
+def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock, sc):
     """Random array poses (rejection sampling under the distance constraints) and clocks."""
+    if preset in REALISTIC:
+        positions, rots, extra = _realistic_poses(preset, g, sources, room, n, rng_pose, sc)
+        mics = scenes.octahedron_mics() if preset == "hall" and g["mics"] is None else _default_mics(g)
+    else:
+        positions, rots = _legacy_poses(preset, g, sources, room, n, rng_pose)
+        extra = [{"doa_hemisphere": [0.0, 0.0, 1.0]} if g["tilt_deg"] is not None else {} for _ in range(n)]
+        mics = _default_mics(g)
+    offmax, drmax = float(g["offset_max"]), float(g["drift_max"])
+    off = rng_clock.uniform(-offmax, offmax, n)
+    off[0] = 0.0
+    drift = rng_clock.uniform(-drmax, drmax, n)
+    tau = off - off.min() + float(g["lead_in"])
+    out = []
+    for i in range(n):
+        q = rots[i].as_quat(scalar_first=True)
+        q = q if q[0] >= 0 else -q
+        out.append({"name": f"A{i + 1}", "position": np.asarray(positions[i], float).tolist(), "quat": q.tolist(),
+                    "mics": mics.tolist(), "tau": float(tau[i]), "drift": float(drift[i]), **extra[i]})
+    return out
+
+
+def _legacy_poses(preset, g, sources, room, n, rng_pose):
+    """Poses of the paper and lab3 presets: (positions list, Rotation of n)."""
     wall, dmin = float(g["wall_margin"]), float(g["min_source_distance"])
     if preset == "lab3":
         lo = np.r_[sources[:, :2].min(0) + 0.2, 0.30]
@@ -349,28 +232,62 @@ def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock):
         raise InputError(f"scenario: cannot place {n} arrays under the distance constraints "
                          f"(≥ {dmin} m from speaker stops, ≥ {wall} m from walls)")
     if g["tilt_deg"] is None:
-        rots = Rotation.random(n, rng=rng_pose)
-    else:
-        yaw = Rotation.from_euler("z", rng_pose.uniform(-np.pi, np.pi, (n, 1)))
-        tilt = np.zeros((n, 3))
-        tilt[:, :2] = np.deg2rad(float(g["tilt_deg"])) * rng_pose.standard_normal((n, 2))
-        rots = Rotation.from_rotvec(tilt) * yaw
-    offmax, drmax = float(g["offset_max"]), float(g["drift_max"])
-    off = rng_clock.uniform(-offmax, offmax, n)
-    off[0] = 0.0
-    drift = rng_clock.uniform(-drmax, drmax, n)
-    tau = off - off.min() + float(g["lead_in"])
-    mics = _default_mics(g)
-    out = []
+        return pos, Rotation.random(n, rng=rng_pose)
+    yaw = Rotation.from_euler("z", rng_pose.uniform(-np.pi, np.pi, (n, 1)))
+    tilt = np.zeros((n, 3))
+    tilt[:, :2] = np.deg2rad(float(g["tilt_deg"])) * rng_pose.standard_normal((n, 2))
+    return pos, Rotation.from_rotvec(tilt) * yaw
+
+
+WALL_ARRAY_DEPTH = 0.1     # m: wall-mounted arrays of lab/hard sit this far from their wall
+HALL_WALL_DEPTH = 0.15     # m: the hall's wall arrays
+
+
+def _realistic_poses(preset, g, sources, room, n, rng, sc):
+    """Poses of lab/hall/hard: lab alternates tables and walls (planar, hemisphere = the array normal);
+    the hall puts 4 arrays on the walls (1.5-3 m high) and the rest on stands (any rotation).
+    ``hard`` moves its first ``n_occluded`` wall arrays to the depth where the wall's reflection arrives
+    ``occlusion_delay`` after the direct path and attenuates that direct path (``direct_db``)."""
+    walls = list(rng.permutation(4))
+    n_occ = _int(g["n_occluded"], "n_occluded", 0)
+    kinds, extra = [], []
     for i in range(n):
-        q = rots[i].as_quat(scalar_first=True)
-        q = q if q[0] >= 0 else -q
-        a = {"name": f"A{i + 1}", "position": pos[i].tolist(), "quat": q.tolist(), "mics": mics.tolist(),
-             "tau": float(tau[i]), "drift": float(drift[i])}
-        if g["tilt_deg"] is not None:
-            a["doa_hemisphere"] = [0.0, 0.0, 1.0]  # upright planar arrays below the speaker
-        out.append(a)
-    return out
+        if preset == "hall":
+            kinds.append(("wall", walls[i % 4], (1.5, 3.0), HALL_WALL_DEPTH) if i < 4 else ("stand", (1.0, 1.6)))
+            extra.append({})
+            continue
+        if i % 2 == 0:
+            kinds.append(("table",))
+            extra.append({"doa_hemisphere": [0.0, 0.0, 1.0]})
+            continue
+        wall, depth, e = walls[(i // 2) % 4], WALL_ARRAY_DEPTH, {"doa_hemisphere": [0.0, 0.0, 1.0]}
+        if i // 2 < n_occ:
+            depth = scenes.occlusion_depth(sources, wall, room, sc["speed_of_sound"], float(g["occlusion_delay"]))
+            e["direct_db"] = _occlusion_db(sources, wall, room, depth, sc, float(g["occlusion_db"]))
+        kinds.append(("wall", wall, (2.0, 2.4), depth))
+        extra.append(e)
+    poses = scenes.place(kinds, room, sources, rng, float(g["min_source_distance"]))
+    if poses is None:
+        raise InputError(f"scenario: cannot place {n} arrays under the distance constraints")
+    return [p for p, _ in poses], [r for _, r in poses], extra
+
+
+def _occlusion_db(sources, wall, room, depth, sc, below_db):
+    """Direct-path gain (dB) that puts the direct path ``below_db`` under the first-order reflection on
+    ``wall`` (median over the stops; reflection factor of the wall at 1 kHz, spherical spreading)."""
+    try:
+        alpha = ac.scaled_absorption(_materials(sc), room, _float(sc["rt60"], "rt60", 0), sc["speed_of_sound"]) \
+            if sc["rt60"] > 0 else np.ones((6, len(ac.BAND_CENTERS)))
+    except ValueError as exc:
+        raise InputError(f"scenario: {exc}") from None
+    beta = math.sqrt(1 - alpha[wall, ac.BAND_CENTERS.index(ac.RT60_BAND)])
+    pos = np.array(room, float) / 2
+    axis, far = divmod(wall, 2)
+    pos[axis] = room[axis] - depth if far else depth
+    extra = scenes.reflection_delay(sources, pos, wall, room, 1.0)       # path difference, m
+    d = np.linalg.norm(sources - pos, axis=1)
+    ratio = float(np.median(beta * d / (d + extra))) if beta > 0 else 1.0   # anechoic: re. the direct path
+    return round(20 * math.log10(ratio) - below_db, 2)
 
 
 def _default_mics(g):
@@ -418,6 +335,50 @@ def _make_interferers(g, room, t_emit, rng):
     return out
 
 
+def _make_speech(g, room, sc, rng):
+    """``n_speech`` speech-like interferers, each in the gap between two consecutive chirps (the middle
+    ones), at a random place in the room: from a quarter into the gap, half the gap long."""
+    n = _int(g["n_speech"], "n_speech", 0)
+    t, dur = sc["t_emit"], sc["chirp"]["duration"]
+    wall = float(g["wall_margin"])
+    out = []
+    for i in range(min(n, len(t) - 1)):
+        j = (len(t) - 1) // 2 + i - n // 2
+        gap = t[j + 1] - t[j] - dur
+        out.append({"kind": "speech", "position": rng.uniform(wall, room - wall).tolist(),
+                    "t_start": float(np.round(t[j] + dur + 0.25 * gap, 6)),
+                    "duration": float(np.round(0.5 * gap, 6)), "level_db": float(g["speech_level_db"]),
+                    "f0": float(np.round(rng.uniform(100.0, 220.0), 1))})
+    return out
+
+
+def _quiet_events(sc, g):
+    """Per-event emission levels (dB, list) with ``n_quiet`` quiet events: those whose weakest array is
+    most below the others (by :func:`early_snr_db`), emitted so that array's SNR is ``quiet_snr_db``
+    (default 0 dB: it cannot detect the event; the others are 8-20 dB above it in the presets)."""
+    snr = early_snr_db(validate_scenario({**sc, "event_level_db": None}))
+    if not np.all(np.isfinite(snr)):
+        return [0.0] * snr.shape[1]             # noise-free: no level makes an array miss a chirp
+    srt = np.sort(snr, axis=0)
+    gap = srt[1] - srt[0] if len(snr) > 1 else np.zeros(snr.shape[1])
+    levels = np.zeros(snr.shape[1])
+    for j in np.argsort(-gap)[:_int(g["n_quiet"], "n_quiet", 0)]:
+        levels[j] = round(float(g["quiet_snr_db"]) - float(srt[0, j]), 2)
+    return levels.tolist()
+
+
+def early_snr_db(v):
+    """(N, K) single-mic matched-filter SNR (dB) of each chirp's strongest early arrival at each array
+    (validated scenario): the direct path WITHOUT any ``direct_db`` attenuation (an occluded array still
+    hears the wall reflection right after it), emission levels included, over self-noise + diffuse noise."""
+    lv = noise_levels(v)
+    amp2 = np.stack([np.mean(x ** 2, axis=1) * 10 ** (-a["direct_db"] / 10)
+                     for a, x in zip(v["arrays"], direct_amplitudes(v))]) * lv["gain"] ** 2
+    energy = lv["p_chirp"] * v["chirp"]["duration"] * v["fs"] * 10 ** (v["event_level_db"] / 10)
+    noise = lv["sigma"] ** 2 + lv["sigma_diff"] ** 2
+    return 10 * np.log10(amp2 * energy / noise) if noise > 0 else np.full(amp2.shape, np.inf)
+
+
 def load_scenario(path, **overrides):
     """A scenario from a TOML file (or a ``truth/manifest.json``) of overrides, then ``overrides``.
 
@@ -451,7 +412,7 @@ def load_scenario(path, **overrides):
         raise InputError(f"{path}: cannot parse ({' '.join(str(exc).split())})") from None
     cfg = {k: v for k, v in cfg.items() if k != "generator"} | (
         cfg.get("generator", {}) if isinstance(cfg.get("generator"), dict) else {})
-    cfg = {**cfg, **overrides}
+    cfg = _merge(cfg, overrides)                # tables (chirp, priors) merge: --set chirp.kind keeps chirp.f0
     preset, seed = cfg.pop("preset", "paper-traj3"), cfg.pop("seed", 0)
     try:
         sc = make_scenario(preset, seed, **cfg)
@@ -460,412 +421,42 @@ def load_scenario(path, **overrides):
         raise InputError(f"{path}: {str(exc).removeprefix('scenario: ')}") from None
     return sc
 
-
-# ----------------------------------------------------------------------------------------------- validation
-def validate_scenario(scenario):
-    """Check a scenario; return a normalised copy with numpy arrays (raises InputError, one line).
-
-    The copy has ``room_dim`` (3,), ``sources`` (K, 3), ``t_emit`` (K,), ``chirp`` floats, and per array
-    ``position`` (3,), ``R`` (3, 3) array → room, ``mics`` (M, 3), ``mics_room`` (M, 3), ``tau``, ``drift``.
-    """
-    sc = copy.deepcopy(scenario)
-    for key in ("fs", "speed_of_sound", "room_dim", "rt60", "chirp", "arrays", "sources", "t_emit"):
-        if key not in sc:
-            raise InputError(f"scenario: missing key {key!r}")
-    if sc.get("preset", "paper-traj3") not in PRESETS:
-        raise InputError(f"scenario: unknown preset {sc['preset']!r} (choose from {', '.join(PRESETS)})")
-    sc["seed"] = _int(sc.get("seed", 0), "seed", 0)
-    sc["fs"] = _int(sc["fs"], "fs", 1000)
-    sc["speed_of_sound"] = _float(sc["speed_of_sound"], "speed_of_sound", 0, strict=True)
-    room = sc["room_dim"] = _vector(sc["room_dim"], "room_dim", 3)
-    if np.any(room <= 0):
-        raise InputError("scenario: room_dim must be positive")
-    sc["rt60"] = _float(sc["rt60"], "rt60", 0)
-    if sc.get("max_order") is not None:
-        sc["max_order"] = _int(sc["max_order"], "max_order", 0)
-    for key in ("snr", "diffuse_snr"):
-        sc[key] = _float(sc.get(key, math.inf), key, allow_inf=True)
-    sc["sigma_odo"] = _float(sc.get("sigma_odo", 0.0), "sigma_odo", 0)
-    sc["tail"] = _float(sc.get("tail", 0.3), "tail", 0)
-    sc["subtype"] = str(sc.get("subtype", "FLOAT")).upper()
-    if sc["subtype"] not in SUBTYPES:
-        raise InputError(f"scenario: subtype must be one of {', '.join(SUBTYPES)}, got {sc['subtype']!r}")
-    pri = sc.get("priors") or {}
-    sc["priors"] = {k: _float(v, f"priors.{k}", 0, strict=True) for k, v in pri.items()}
-
-    ch = sc["chirp"]
-    if not isinstance(ch, dict):
-        raise InputError("scenario: chirp must be a table")
-    ch = sc["chirp"] = {k: _float(ch.get(k), f"chirp.{k}", 0, strict=k != "fade")
-                        for k in ("f0", "f1", "duration", "fade")}
-    if ch["f0"] == ch["f1"]:
-        raise InputError("scenario: chirp.f0 and chirp.f1 must differ")
-    if max(ch["f0"], ch["f1"]) > 0.45 * sc["fs"]:
-        raise InputError(f"scenario: chirp up to {max(ch['f0'], ch['f1']):g} Hz needs fs > "
-                         f"{max(ch['f0'], ch['f1']) / 0.45:.0f} Hz (fs = {sc['fs']})")
-    if 2 * ch["fade"] > ch["duration"]:
-        raise InputError("scenario: chirp.fade must be at most half of chirp.duration")
-
-    src = sc["sources"] = _matrix(sc["sources"], "sources", 3)
-    k_ev = len(src)
-    t = sc["t_emit"] = _vector(sc["t_emit"], "t_emit")
-    if t.size != k_ev:
-        raise InputError(f"scenario: t_emit has {t.size} values for {k_ev} speaker stops")
-    if np.any(np.diff(t) <= 0):
-        raise InputError("scenario: t_emit must increase strictly")
-    for j, s in enumerate(src):
-        if np.any(s < 0.05) or np.any(s > room - 0.05):
-            raise InputError(f"scenario: speaker stop {j} {np.round(s, 3).tolist()} is outside the room "
-                             f"{room.tolist()} (or within 5 cm of a wall)")
-
-    arrays = sc["arrays"]
-    if not isinstance(arrays, (list, tuple)) or not arrays:
-        raise InputError("scenario: no arrays")
-    out = []
-    for k, a in enumerate(arrays):
-        if not isinstance(a, dict):
-            raise InputError(f"scenario: arrays[{k}] must be a table")
-        name = a.get("name")
-        if not isinstance(name, str) or not name or any(ch_ in name for ch_ in "/\\\0") or name.startswith("."):
-            raise InputError(f"scenario: arrays[{k}] needs a name usable as a file name, got {name!r}")
-        for key in ("position", "quat", "mics", "tau", "drift"):
-            if key not in a:
-                raise InputError(f"scenario: array {name!r}: missing {key!r}")
-        pos = _vector(a["position"], f"array {name!r} position", 3)
-        q = _vector(a["quat"], f"array {name!r} quat", 4)
-        if not np.linalg.norm(q) > 1e-9:
-            raise InputError(f"scenario: array {name!r}: quat must be non-zero")
-        q = q / np.linalg.norm(q)
-        R = Rotation.from_quat(q, scalar_first=True).as_matrix()
-        mics = _matrix(a["mics"], f"array {name!r} mics", 3)
-        tau = _float(a["tau"], f"array {name!r} tau")
-        drift = _float(a["drift"], f"array {name!r} drift")
-        if abs(drift) >= 0.01:
-            raise InputError(f"scenario: array {name!r}: |drift| must be < 0.01, got {drift:g}")
-        mr = pos + mics @ R.T
-        if np.any(pos <= 0) or np.any(pos >= room) or np.any(mr <= 0.01) or np.any(mr >= room - 0.01):
-            raise InputError(f"scenario: array {name!r} at {np.round(pos, 3).tolist()} is outside the room "
-                             f"{room.tolist()}")
-        dmin = np.min(np.linalg.norm(src[:, None, :] - mr[None], axis=2))
-        if dmin < 0.05:
-            raise InputError(f"scenario: array {name!r} is within 5 cm of a speaker stop")
-        hemi = a.get("doa_hemisphere")
-        if hemi is not None:
-            hemi = _vector(hemi, f"array {name!r} doa_hemisphere", 3)
-        out.append({"name": name, "position": pos, "quat": q, "R": R, "mics": mics, "mics_room": mr,
-                    "tau": tau, "drift": drift, "doa_hemisphere": hemi})
-    names = [a["name"] for a in out]
-    if len(set(n.lower() for n in names)) != len(names):
-        raise InputError("scenario: duplicate array name")
-    sc["arrays"] = out
-    ref = sc.get("reference_array", names[0])
-    if ref not in names:
-        raise InputError(f"scenario: reference_array {ref!r} is not one of the arrays {names}")
-    sc["reference_array"] = ref
-
-    its = []
-    for k, it in enumerate(sc.get("interferers") or []):
-        if not isinstance(it, dict):
-            raise InputError(f"scenario: interferers[{k}] must be a table")
-        p = _vector(it.get("position"), f"interferers[{k}] position", 3)
-        if np.any(p < 0.05) or np.any(p > room - 0.05):
-            raise InputError(f"scenario: interferers[{k}] is outside the room")
-        f_lo = _float(it.get("f_lo", 300.0), f"interferers[{k}] f_lo", 0, strict=True)
-        f_hi = _float(it.get("f_hi", 5000.0), f"interferers[{k}] f_hi", f_lo, strict=True)
-        if f_hi > 0.45 * sc["fs"]:
-            f_hi = 0.45 * sc["fs"]  # keep the burst band-limited on every clock
-        its.append({"position": p, "t_start": _float(it.get("t_start"), f"interferers[{k}] t_start"),
-                    "duration": _float(it.get("duration"), f"interferers[{k}] duration", 0, strict=True),
-                    "level_db": _float(it.get("level_db", 0.0), f"interferers[{k}] level_db"),
-                    "f_lo": f_lo, "f_hi": max(f_hi, f_lo + 1.0)})
-    sc["interferers"] = its
-
-    # every chirp must be fully recorded and separated from the next one at every array
-    a = _arrivals(sc)  # (N, K, M)
-    dur = ch["duration"]
-    for i, arr in enumerate(out):
-        first = np.nanmin(a[i, 0])
-        if first < 0.0:
-            raise InputError(f"scenario: array {arr['name']!r} starts recording after the first chirp arrives "
-                             f"(tau = {arr['tau']:.6g} s; its clock must read ≥ 0 when the chirp arrives)")
-        gap = np.nanmin(a[i, 1:], axis=1) - np.nanmax(a[i, :-1], axis=1) - (1 + arr["drift"]) * dur
-        if gap.size and gap.min() < 0.05:
-            j = int(np.argmin(gap))
-            raise InputError(f"scenario: chirps {j} and {j + 1} overlap at array {arr['name']!r} "
-                             f"(gap {gap[j]:.3f} s < 0.05 s): increase the interval between emissions")
-    if sc["rt60"] > 0 and sc.get("max_order") is None:
-        _room_acoustics(sc)  # raises if the RT60 is not reachable in this room
-    return sc
-
-
-def _room_acoustics(sc):
-    """(energy absorption, max ISM order) for the scenario's room."""
-    import pyroomacoustics as pra
-
-    if sc["rt60"] == 0:
-        return 1.0, 0
-    try:
-        e_abs, order = pra.inverse_sabine(sc["rt60"], list(sc["room_dim"]), c=sc["speed_of_sound"])
-    except ValueError:
-        raise InputError(f"scenario: rt60 = {sc['rt60']:g} s is too short for a "
-                         f"{'×'.join(f'{x:g}' for x in sc['room_dim'])} m room (Sabine absorption > 1)") from None
-    if sc.get("max_order") is not None:
-        order = sc["max_order"]
-    return float(e_abs), int(order)
-
-
-# ----------------------------------------------------------------------------------------------- analytic truth
-def local_time(t, tau, drift, t0):
-    """Array clock reading ``L(t) = (1 + δ)(t − t0) + τ`` at true (emitter) time ``t`` (s)."""
-    return (1.0 + drift) * (np.asarray(t, float) - t0) + tau
-
-
-def _arrivals(sc):
-    """(N, K, M) local arrival times of the direct path at each mic (normalised scenario, equal M)."""
-    t0 = sc["t_emit"][0]
-    out = []
-    for a in sc["arrays"]:
-        d = np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None], axis=2)  # (K, M)
-        out.append(local_time(sc["t_emit"][:, None] + d / sc["speed_of_sound"], a["tau"], a["drift"], t0))
-    m = {x.shape[1] for x in out}
-    if len(m) == 1:
-        return np.stack(out)
-    width = max(m)  # ragged mic counts: pad with NaN so min/max still work with nan-aware callers
-    return np.stack([np.pad(x, ((0, 0), (0, width - x.shape[1])), constant_values=np.nan) for x in out])
-
-
-def arrival_times(scenario, mics=False):
-    """Analytic arrival times of each chirp's START, on each array's own clock (s).
-
-    ``a_ij = L_i(t_emit[j] + |s_j − x_i| / c)`` at the array ORIGIN: returns (n_arrays, n_events).
-    With ``mics=True``: a list (one per array) of (n_events, n_mics) times at the individual mics.
-    """
-    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
-    t0 = sc["t_emit"][0]
-    if mics:
-        return [local_time(sc["t_emit"][:, None] + np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None],
-                                                                  axis=2) / sc["speed_of_sound"],
-                           a["tau"], a["drift"], t0) for a in sc["arrays"]]
-    return np.stack([local_time(sc["t_emit"] + np.linalg.norm(sc["sources"] - a["position"], axis=1)
-                                / sc["speed_of_sound"], a["tau"], a["drift"], t0) for a in sc["arrays"]])
-
-
-def _normalise_light(scenario):
-    sc = {"t_emit": np.asarray(scenario["t_emit"], float), "sources": np.asarray(scenario["sources"], float),
-          "speed_of_sound": float(scenario["speed_of_sound"]), "arrays": []}
-    for a in scenario["arrays"]:
-        R = Rotation.from_quat(np.asarray(a["quat"], float), scalar_first=True).as_matrix()
-        pos = np.asarray(a["position"], float)
-        sc["arrays"].append({"name": a["name"], "position": pos, "R": R, "tau": float(a["tau"]),
-                             "drift": float(a["drift"]), "mics_room": pos + np.asarray(a["mics"], float) @ R.T})
-    return sc
-
-
-def scenario_truth(scenario):
-    """Truth in the reference array's frame: ``{"arrays": df, "sources": df}`` (FORMATS.md section 4).
-
-    ``x_i' = R_refᵀ(x_i − x_ref)``, ``R_i' = R_refᵀ R_i``, ``s_j' = R_refᵀ(s_j − x_ref)``,
-    ``offset_i = τ_i − τ_ref``, ``drift_i = δ_i``.
-    """
-    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
-    ref = next(a for a in sc["arrays"] if a["name"] == scenario.get("reference_array", sc["arrays"][0]["name"]))
-    Rr, xr = ref["R"], ref["position"]
-    rows = []
-    for a in sc["arrays"]:
-        x = Rr.T @ (a["position"] - xr)
-        q = Rotation.from_matrix(Rr.T @ a["R"]).as_quat(scalar_first=True)
-        q = q if q[0] >= 0 else -q
-        rows.append([a["name"], *x, *q, a["tau"] - ref["tau"], a["drift"]])
-    arrays = pd.DataFrame(rows, columns=ARRAYS_COLS)
-    arrays.loc[arrays["array"] == ref["name"], ["x", "y", "z", "offset"]] = 0.0
-    s = (sc["sources"] - xr) @ Rr
-    sources = pd.DataFrame({"event": np.arange(len(s)), "x": s[:, 0], "y": s[:, 1], "z": s[:, 2]})
-    return {"arrays": arrays, "sources": sources}
-
-
-def odometry(scenario):
-    """(K, 3) odometry in the reference frame: ``R_refᵀ(s_j − s_0)`` + cumulative N(0, σ_odo²) steps."""
-    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
-    ref = next(a for a in sc["arrays"] if a["name"] == scenario.get("reference_array", sc["arrays"][0]["name"]))
-    s = sc["sources"]
-    steps = _rng(int(scenario.get("seed", 0)), 10).normal(0.0, float(scenario.get("sigma_odo", 0.0)), s.shape)
-    steps[0] = 0.0
-    return (s - s[0]) @ ref["R"] + np.cumsum(steps, axis=0)
-
-
-# ----------------------------------------------------------------------------------------------- RIRs
-def _build_rirs(delays, amps, length, early=np.inf, horizon=np.inf):
-    """RIRs (n_mics, length) from image delays in SAMPLES (n_img, n_mics) and amplitudes (n_img, n_mics).
-
-    pyroomacoustics' windowed-sinc builder takes times and an integer rate; we hand it delays already in
-    the array's samples (rate 1) plus ``PAD`` so the filter never starts before index 0. Images arriving
-    within ``early`` samples of the first one get the full ``FDL``-tap filter; later (weak, dense) ones a
-    ``FDL_LATE``-tap one (< 1 % response error below fs/3); images beyond ``horizon`` samples after the
-    first are dropped (Sabine: > 60 dB down once ``horizon`` = RT60).
-    """
-    from pyroomacoustics import libroom
-
-    out = np.zeros((delays.shape[1], length))
-    for m in range(delays.shape[1]):
-        d, a = delays[:, m], amps[:, m]
-        rel = d - d.min()
-        for fdl, sel in ((FDL, rel <= early), (FDL_LATE, (rel > early) & (rel <= horizon))):
-            if sel.any():
-                libroom.rir_builder(out[m], np.ascontiguousarray(d[sel] + PAD), np.ascontiguousarray(a[sel]),
-                                    1, fdl, LUT_GRAN, N_THREADS)
-    return out
-
-
-def builder_delay():
-    """Global delay (samples) of :func:`_build_rirs`, measured: the peak of a lone image at an integer delay
-    (for both filter lengths, which must agree)."""
-    n0 = 3 * FDL
-    found = set()
-    for early in (np.inf, -1.0):
-        h = _build_rirs(np.array([[float(n0)]]), np.array([[1.0]]), 6 * FDL, early=early)[0]
-        k = int(np.argmax(h))
-        if not abs(h[k] - 1.0) < 1e-3 or np.max(np.abs(np.delete(h, k))) > 1e-3:
-            raise RuntimeError("pyroomacoustics RIR builder: unexpected impulse shape")
-        found.add(k - n0)
-    if len(found) != 1:
-        raise RuntimeError(f"pyroomacoustics RIR builder: filter lengths disagree on the delay {found}")
-    return found.pop()
-
-
-def _images(sc, e_abs, order, positions):
-    """Image sources of each position: list of (images (3, n_img), amplitude numerators (n_img,))."""
-    import pyroomacoustics as pra
-
-    room = pra.ShoeBox(sc["room_dim"].tolist(), fs=sc["fs"], materials=pra.Material(e_abs), max_order=order,
-                       air_absorption=False, use_rand_ism=False)
-    for p in positions:
-        room.add_source(np.asarray(p, float))
-    mics = np.concatenate([a["mics_room"] for a in sc["arrays"]]).T
-    room.add_microphone_array(mics)
-    room.image_source_model()
-    out = []
-    for k, src in enumerate(room.sources):
-        # a shoebox sees every image from every point inside it; keep the check in case that ever changes
-        vis = room.visibility[k].all(axis=0)
-        out.append((src.images[:, vis], src.damping[0, vis]))
-    return out
-
-
 # ----------------------------------------------------------------------------------------------- simulate
-def simulate(scenario, out_dir, progress=False, overwrite=False):
+def simulate(scenario, out_dir, progress=None, overwrite=False):
     """Simulate a scenario and write a recording session (+ truth/) to ``out_dir``; returns its Path.
 
     Written (atomically: a failure leaves nothing): ``session.toml``, ``<array>.wav`` (n_samples,
     n_mics), ``chirp.wav`` (the emitted chirp sampled at fs from its start), ``events.csv`` (t_emit,
     odometry), ``truth/arrays.csv``, ``truth/sources.csv``, ``truth/manifest.json``.
     Noise: white Gaussian with variance ``P / 10^(snr/10)`` where ``P`` is the mean over arrays, mics and
-    events of the direct-path chirp power at the mic; ``diffuse_snr`` adds incoherent pink noise the same
-    way. Signals are scaled so the largest direct-path amplitude is 0.25 (and the whole set never clips).
+    events of the direct-path chirp power at the mic; ``diffuse_snr`` (coherent pink) and ``hum_snr`` the
+    same way. Signals are scaled so the largest direct-path amplitude is 0.25 (and the whole set never
+    clips). Recordings are rendered emission by emission and streamed to the WAVs (bounded memory).
+    progress : optional callback ``progress(done, total, message)``.
     """
     sc = validate_scenario(scenario)
     out_dir = Path(out_dir)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
         raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
-    fs, c, ch = sc["fs"], sc["speed_of_sound"], sc["chirp"]
-    e_abs, order = _room_acoustics(sc)
-    delay = builder_delay()
-    t0 = sc["t_emit"][0]
-
-    emitters = [("chirp", j, s) for j, s in enumerate(sc["sources"])]
-    emitters += [("interferer", k, it["position"]) for k, it in enumerate(sc["interferers"])]
-
-    from rich.console import Console
-    from rich.progress import Progress
-
-    with Progress(console=Console(stderr=True), disable=not progress) as bar:
-        task = bar.add_task("image sources", total=1)
-        images = _images(sc, e_abs, order, [e[2] for e in emitters])
-        bar.update(task, completed=1)
-
-        # direct-path amplitudes → global gain and noise level (see docstring)
-        direct = np.concatenate([1.0 / np.linalg.norm(sc["sources"][:, None] - a["mics_room"][None], axis=2).ravel()
-                                 for a in sc["arrays"]])
-        gain = 0.25 / direct.max()
-        p_chirp = chirp_power(ch)
-        p_direct = float(np.mean((gain * direct) ** 2) * p_chirp)
-
-        # recording lengths: the last chirp's reverberation (images kept up to RT60 after the direct path)
-        # + tail; interferers are clipped to the recording
-        ends = []
-        for a in sc["arrays"]:
-            last = 0.0
-            for j, (img, _) in enumerate(images[:len(sc["sources"])]):
-                dist = np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0)
-                reach = dist.max() / c if sc["rt60"] == 0 else min(dist.max() / c, dist.min() / c + sc["rt60"])
-                last = max(last, local_time(sc["t_emit"][j] + reach + ch["duration"], a["tau"], a["drift"], t0))
-            ends.append(int(math.ceil((last + sc["tail"]) * fs)) + FDL)
-        signals = [np.zeros((len(a["mics"]), n)) for a, n in zip(sc["arrays"], ends)]
-
-        task = bar.add_task("arrays × emissions", total=len(emitters) * len(sc["arrays"]))
-        for (kind, k, _), (img, damp) in zip(emitters, images):
-            if kind == "chirp":
-                t_start, dur = sc["t_emit"][k], ch["duration"]
-
-                def wave(u):
-                    return chirp_signal(u, ch)
-                level = gain
-            else:
-                it = sc["interferers"][k]
-                t_start, dur = it["t_start"], it["duration"]
-                freqs, phases = _burst_params(sc["seed"], k, it["f_lo"], it["f_hi"])
-
-                def wave(u, dur=dur, freqs=freqs, phases=phases):
-                    return burst_signal(u, dur, freqs, phases)
-                level = gain * math.sqrt(p_chirp) * 10 ** (it["level_db"] / 20)
-            for a, y in zip(sc["arrays"], signals):
-                _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level, sc["rt60"])
-                bar.advance(task)
-
-        task = bar.add_task("noise + writing", total=len(sc["arrays"]) + 1)
-        sigma = math.sqrt(p_direct / 10 ** (sc["snr"] / 10)) if math.isfinite(sc["snr"]) else 0.0
-        sigma_diff = (math.sqrt(p_direct / 10 ** (sc["diffuse_snr"] / 10)) if math.isfinite(sc["diffuse_snr"])
-                      else 0.0)
-        for i, y in enumerate(signals):
-            if sigma > 0:
-                y += sigma * _rng(sc["seed"], 20 + 2 * i).standard_normal(y.shape)
-            if sigma_diff > 0:
-                y += sigma_diff * _pink_noise(_rng(sc["seed"], 21 + 2 * i), y.shape)
-        peak = max(float(np.max(np.abs(y))) for y in signals)
-        rescale = 0.95 / peak if peak > 0.95 else 1.0
-        arrivals = arrival_times(sc)
-        with atomic_dir(out_dir) as tmp:
-            _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, sigma_diff, p_direct,
-                           ends, arrivals, scenario)
-            bar.advance(task, len(sc["arrays"]) + 1)
+    flat = _room_acoustics(sc) if sc["model"] == "flat" else (None, None)
+    with atomic_dir(out_dir) as tmp:
+        derived = render_session(sc, tmp, flat, progress=progress, zero_peak=_zero_peak_timestamp)
+        _write_session(tmp, sc, derived, flat, scenario)
     return out_dir
 
 
-def _render(y, wave, t_start, dur, img, damp, a, fs, c, t0, delay, level, rt60=0.0):
-    """Add one emission (signal ``wave`` starting at true time ``t_start``) to array ``a``'s channels ``y``."""
-    fsp = fs * (1.0 + a["drift"])                    # true-time rate of this array's samples
-    nu = fs * local_time(t_start, a["tau"], a["drift"], t0)   # emission instant in this array's samples
-    n0 = int(math.floor(nu))
-    frac = nu - n0
-    p = np.arange(int(math.ceil(dur * fsp + frac)) + 2)
-    x = wave((p - frac) / fsp)                       # the emitted wave on this array's sample grid
-    dist = np.linalg.norm(img[:, :, None] - a["mics_room"].T[:, None, :], axis=0)  # (n_img, M)
-    taps = dist * (fsp / c)                          # image delays in this array's samples
-    h = _build_rirs(taps, damp[:, None] / dist, int(math.ceil(taps.max())) + PAD + FDL,
-                    early=EARLY * fsp, horizon=rt60 * fsp if rt60 > 0 else np.inf)
-    seg = fftconvolve(h, x[None, :], axes=1) * level
-    start = n0 - delay                               # conv index `delay` ↔ emission instant
-    lo, hi = max(start, 0), min(start + seg.shape[1], y.shape[1])
-    if hi > lo:
-        y[:, lo:hi] += seg[:, lo - start:hi - start]
+def impulse_response(scenario, event, array):
+    """The simulator's impulse response (M, L) from chirp ``event`` to array number ``array`` on that
+    array's sample grid (unit emission; index ``n`` is ``n − builder_delay()`` samples after the emission)
+    and the grid's true-time rate fs' (Hz): ``(h, fs')``."""
+    sc = validate_scenario(scenario) if not isinstance(scenario.get("room_dim"), np.ndarray) else scenario
+    flat = _room_acoustics(sc) if sc["model"] == "flat" else (None, None)
+    return simrender.impulse_response(sc, event, array, flat)
 
 
-def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, sigma_diff, p_direct, ends,
-                   arrivals, scenario):
-    import pyroomacoustics as pra
-
+def _write_session(tmp, sc, derived, flat, scenario):
+    """Everything but the recordings: chirp.wav, events.csv, session.toml, truth/ (+ manifest.json)."""
     fs, ch = sc["fs"], sc["chirp"]
-    for a, y in zip(sc["arrays"], signals):
-        _write_wav(tmp / f"{a['name']}.wav", (y * rescale).T.astype(np.float32), fs, sc["subtype"])
     n_chirp = int(math.floor(ch["duration"] * fs)) + 1
     ref = chirp_signal(np.arange(n_chirp) / fs, ch)
     _write_wav(tmp / "chirp.wav", ref.astype(np.float32), fs, "FLOAT")
@@ -879,41 +470,77 @@ def _write_session(tmp, sc, signals, rescale, e_abs, order, delay, gain, sigma, 
     # priors the scenario states. Invented TDOA/DOA priors would override the frontend's own estimates.
     priors = {**sc["priors"]}
     priors.setdefault("sigma_odo", sc["sigma_odo"] if sc["sigma_odo"] > 0 else 1e-3)
+    chirp = {"f0": ch["f0"], "f1": ch["f1"], "duration": ch["duration"], "fade": ch["fade"]}
+    if ch["kind"] != "linear":
+        chirp["kind"] = ch["kind"]
     write_session_toml(
         tmp / "session.toml", speed_of_sound=sc["speed_of_sound"], reference_array=sc["reference_array"],
-        chirp={"f0": ch["f0"], "f1": ch["f1"], "duration": ch["duration"], "fade": ch["fade"],
-               "reference": "chirp.wav"},
+        chirp={**chirp, "reference": "chirp.wav"},
         arrays=[{"name": a["name"], "wav": f"{a['name']}.wav", "mics": a["mics"],
                  "doa_hemisphere": a["doa_hemisphere"]} for a in sc["arrays"]],
         noise={k: priors[k] for k in ("sigma_tdoa", "sigma_doa_deg", "sigma_odo") if k in priors})
-
-    truth = scenario_truth(sc)
-    mic_arr = arrival_times(sc, mics=True)
     manifest = {
         "generator": "calib simulate (pipeline.roomsim)",
-        "versions": {"numpy": np.__version__, "pyroomacoustics": pra.__version__},
+        "versions": {"numpy": np.__version__, "pyroomacoustics": _pra_version()},
         "frame": "room (origin at a room corner, axes along the walls); truth/*.csv are in the reference "
                  "array's frame",
         "clock_model": "L_i(t) = (1 + drift_i) (t - t_emit[0]) + tau_i; WAV sample n at L_i = n / fs",
         "scenario": _jsonable(_public(scenario, sc)),
-        "derived": {
-            "absorption": e_abs, "max_order": order, "rir_builder_delay_samples": delay,
-            "fractional_delay_length": FDL, "fractional_delay_length_late": FDL_LATE,
-            "late_after_direct_s": EARLY, "images_dropped_after_direct_s": sc["rt60"] or None,
-            "gain": gain * rescale, "rescale": rescale,
-            "sensor_noise_std": sigma * rescale, "diffuse_noise_std": sigma_diff * rescale,
-            "direct_power_mean": p_direct * rescale ** 2,
-            "snr_definition": "10 log10(P / noise variance), P = mean over arrays, mics, events of the "
-                              "direct-path chirp power at the mic",
-            "n_samples": {a["name"]: int(n) for a, n in zip(sc["arrays"], ends)},
-            "recording_start_true_time": {a["name"]: float(sc["t_emit"][0] - a["tau"] / (1 + a["drift"]))
-                                          for a in sc["arrays"]},
-            "arrival_times_origin": {a["name"]: arrivals[i].tolist() for i, a in enumerate(sc["arrays"])},
-            "arrival_times_mics": {a["name"]: mic_arr[i].tolist() for i, a in enumerate(sc["arrays"])},
-        },
+        "derived": _derived(sc, derived, flat),
     }
-    write_truth(tmp / "truth", truth,
+    write_truth(tmp / "truth", scenario_truth(sc),
                 extra_files={"manifest.json": json.dumps(_jsonable(manifest), indent=1, allow_nan=False) + "\n"})
+
+
+def _pra_version():
+    import pyroomacoustics as pra
+
+    return pra.__version__
+
+
+def _derived(sc, derived, flat):
+    """The manifest's ``derived`` section (keys of the ``bands`` model only when it is used)."""
+    lv, rescale = derived["levels"], derived["rescale"]
+    arrivals, mic_arr = arrival_times(sc), arrival_times(sc, mics=True)
+    out = {"absorption": flat[0], "max_order": flat[1]} if sc["model"] == "flat" else {}
+    out |= {
+        "rir_builder_delay_samples": derived["delay"],
+        "fractional_delay_length": FDL, "fractional_delay_length_late": FDL_LATE,
+        "late_after_direct_s": EARLY}
+    if sc["model"] == "flat":
+        out["images_dropped_after_direct_s"] = sc["rt60"] or None
+    out |= {
+        "gain": lv["gain"] * rescale, "rescale": rescale,
+        "sensor_noise_std": lv["sigma"] * rescale, "diffuse_noise_std": lv["sigma_diff"] * rescale,
+        "direct_power_mean": lv["p_direct"] * rescale ** 2,
+        "snr_definition": "10 log10(P / noise variance), P = mean over arrays, mics, events of the "
+                          "direct-path chirp power at the mic",
+        "n_samples": {a["name"]: int(n) for a, n in zip(sc["arrays"], derived["ends"])},
+        "recording_start_true_time": {a["name"]: float(sc["t_emit"][0] - a["tau"] / (1 + a["drift"]))
+                                      for a in sc["arrays"]},
+        "arrival_times_origin": {a["name"]: arrivals[i].tolist() for i, a in enumerate(sc["arrays"])},
+        "arrival_times_mics": {a["name"]: mic_arr[i].tolist() for i, a in enumerate(sc["arrays"])},
+    }
+    if sc["model"] == "bands":
+        out |= _derived_bands(sc, lv, rescale)
+    return out
+
+
+def _derived_bands(sc, lv, rescale):
+    ab = sc["acoustic"]
+    amp = direct_amplitudes(sc)
+    return {
+        "band_centers_hz": list(ac.BAND_CENTERS),
+        "wall_absorption": {w: ab["alpha"][k].tolist() for k, w in enumerate(ac.WALLS)},
+        "air_attenuation_per_m": ab["air"].tolist(), "rt60_bands_s": ab["rt60_bands"].tolist(),
+        "hum_std": lv["hum_std"] * rescale,
+        "mic_gain_db": {a["name"]: a["mic_gain_db"].tolist() for a in sc["arrays"]},
+        "source_axis": sc["source_axis"].tolist(),
+        "direct_amplitude": {a["name"]: (lv["gain"] * rescale * x.mean(axis=1)
+                                         * 10 ** (sc["event_level_db"] / 20)).tolist()
+                             for a, x in zip(sc["arrays"], amp)},
+        "early_snr_db": {a["name"]: x.tolist() for a, x in zip(sc["arrays"], early_snr_db(sc))},
+    }
 
 
 def _write_wav(path, data, fs, subtype):
@@ -921,6 +548,10 @@ def _write_wav(path, data, fs, subtype):
     import soundfile as sf
 
     sf.write(path, data, fs, subtype=subtype, format="WAV")
+    _zero_peak_timestamp(path)
+
+
+def _zero_peak_timestamp(path):
     with open(path, "r+b") as f:
         f.seek(12)
         while True:
@@ -936,11 +567,25 @@ def _write_wav(path, data, fs, subtype):
 
 
 def _public(scenario, sc):
-    """The scenario as given (room frame; exactly what reproduces these bytes), defaults filled in."""
+    """The scenario as given (room frame; exactly what reproduces these bytes), defaults filled in; keys
+    of the realistic models that keep their default are left out (older manifests stay byte-identical)."""
     out = copy.deepcopy(dict(scenario))
     for k in ("snr", "diffuse_snr", "sigma_odo", "subtype", "tail", "priors", "reference_array", "interferers"):
         out.setdefault(k, sc[k])
+    for k, v in NEW_SCENE_DEFAULTS.items():
+        if k in out and _same(out[k], v):
+            del out[k]
+    if isinstance(out.get("generator"), dict):
+        out["generator"] = {k: v for k, v in out["generator"].items()
+                            if not (k in NEW_GEN_DEFAULTS and _same(v, NEW_GEN_DEFAULTS[k]))}
     return out
+
+
+def _same(a, b):
+    try:
+        return a == b or (a is None and b is None)
+    except ValueError:
+        return False
 
 
 def _jsonable(o):
@@ -958,5 +603,5 @@ def _jsonable(o):
 
 
 __all__ = ["make_scenario", "load_scenario", "validate_scenario", "simulate", "arrival_times", "scenario_truth",
-           "odometry", "chirp_signal", "circular_array", "local_time", "builder_delay", "PRESETS"]
+           "odometry", "chirp_signal", "circular_array", "local_time", "builder_delay", "impulse_response", "PRESETS"]
 
