@@ -295,7 +295,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     lay = info["layout"]
     r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])
     J = J[w > 0]
-    cov = covariance(J, lay["n"])
+    cov = covariance(J, lay["n"], lay)
     std = std_from_cov(p, lay, cov)
     arrays, sources = to_frames(p, st, std)
     times["total"] = time.perf_counter() - t0
