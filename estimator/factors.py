@@ -71,7 +71,10 @@ def _put(J, rows, cols, vals):
         vals = np.broadcast_to(np.asarray(vals, float).reshape(len(rows), -1), cols.shape)
         rr = np.broadcast_to(rows[:, None], cols.shape)
         if isinstance(J, Jacobian):
-            J.add(rr[m], cols[m], vals[m])
+            if m.all():  # every column free: flat views, no boolean gathers
+                J.add(rr.ravel(), cols.ravel(), vals.ravel())
+            else:
+                J.add(rr[m], cols[m], vals[m])
         else:
             J[rr[m], cols[m]] += vals[m]
 

@@ -11,9 +11,15 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import minimum_filter
+from scipy.spatial import cKDTree
 
 from .problem import copy_state, empty_state, make_layout
 from .solver import levenberg_marquardt
+
+
+# The grid search of each array's pose uses at most this many events (evenly spaced): enough to rank grid
+# points far beyond the noise, and it keeps the initialisation linear in the number of events.
+GRID_MAX_EVENTS = 100
 
 
 class ObservabilityError(ValueError):
@@ -123,14 +129,14 @@ def refine_reference(p, st):
 def source_spread(q, st, lay):
     """RMS 1-σ source position uncertainty (m) of the reference-only solve (floored at 2 cm)."""
     from .solver import linearise
+    from .uncertainty import cov_diagonal, covariance
 
     _, J, _, _, _ = linearise(q, st, lay, ["tdoa_s", "doa", "odometry"])
     cols = lay["s"].ravel()
     try:
-        cov = np.linalg.pinv(J.T @ J)
-        var = np.diag(cov)[cols]
+        var = cov_diagonal(covariance(J, lay["n"], lay))[cols]
         return max(float(np.sqrt(np.mean(var) * 3)), 0.02)
-    except np.linalg.LinAlgError:
+    except (np.linalg.LinAlgError, RuntimeError):
         return 0.3
 
 
@@ -154,16 +160,19 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6):
     """
     c, beta, ref, s, t = p["c"], p["beta"], p["ref"], st["s"], p["t"]
     G = len(pts)
-    d = np.linalg.norm(s[None, :, :] - pts[:, None, :], axis=2)  # (G, K)
     ms, mm, md = p["ts_arr"] == i, p["tm_arr"] == i, p["doa_arr"] == i
     a, b, zs = p["ts_a"][ms], p["ts_b"][ms], p["ts_val"][ms]
-    h = (t[b] - t[a])[None] + (d[:, b] - d[:, a]) / c                 # (G, ns): model δ·h = zs − h
-    ys = zs[None] - h
     j, zm = p["tm_ev"][mm], p["tm_val"][mm]
+    need = np.unique(np.concatenate([a, b, j]))                        # the events these rows name
+    col = np.zeros(len(s), int)
+    col[need] = np.arange(len(need))
+    d = np.linalg.norm(s[need][None, :, :] - pts[:, None, :], axis=2)  # (G, events named)
+    h = (t[b] - t[a])[None] + (d[:, col[b]] - d[:, col[a]]) / c       # (G, ns): model δ·h = zs − h
+    ys = zs[None] - h
     dr = np.linalg.norm(s[j] - st["x"][ref], axis=1)
     g0 = 1.0 + st["drift"][ref]
-    qm = t[j][None] + d[:, j] / c + beta                                # model δ·qm + off = ym
-    ym = zm[None] - (t[j][None] + d[:, j] / c) + g0 * (t[j] + dr / c)[None] + beta * st["drift"][ref]
+    qm = t[j][None] + d[:, col[j]] / c + beta                           # model δ·qm + off = ym
+    ym = zm[None] - (t[j][None] + d[:, col[j]] / c) + g0 * (t[j] + dr / c)[None] + beta * st["drift"][ref]
     ws, wm = np.ones_like(ys), np.ones_like(ym)
     use_off = mm.sum() >= 2
     drift, off = np.zeros(G), np.zeros(G)
@@ -257,18 +266,40 @@ def doa_rotation(p, st, i, x):
     return min(fits, key=lambda f: f[1])[0]
 
 
+def event_subsample(p, i, max_events=GRID_MAX_EVENTS):
+    """Array ``i``'s measurement rows restricted to at most ``max_events`` evenly spaced events.
+
+    The grid search's cost is (grid points) × (measurements); on a subsample of events it is bounded and
+    the initialisation stays linear in the number of events. TDOA-S rows are kept by their ``from`` event
+    (their other source is known as well). Returns a problem dict (``p`` itself if nothing is dropped).
+    """
+    K = p["K"]
+    if K <= max_events:
+        return p
+    keep = np.zeros(K, bool)
+    keep[np.unique(np.linspace(0, K - 1, max_events).round().astype(int))] = True
+    q = dict(p)
+    for prefix, col in (("tm", "tm_ev"), ("ts", "ts_a"), ("doa", "doa_ev")):
+        m = keep[p[col]] & (p[col.split("_")[0] + "_arr"] == i)
+        for key in [k for k in p if k.startswith(prefix + "_")]:
+            q[key] = p[key][m]
+    return q
+
+
 def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4):
     """Position, rotation, offset and drift of array ``i`` (sources fixed). Returns (state, cost).
 
     Coarse grid → the best local minima → each zoomed in by successively halved 5×5×5 grids (vectorised,
-    no iterative solver) → the lowest concentrated cost wins.
+    no iterative solver) → the lowest concentrated cost wins. With more than ``GRID_MAX_EVENTS`` events the
+    search uses an evenly spaced subsample of them (the joint solve refines with all of them).
     """
+    p = event_subsample(p, i)
     grid, step = grid_points(st["s"])
     shape = grid.shape[:3]
     pts = grid.reshape(-1, 3)
     cost = profile_cost(p, st, i, pts, kappa, sigma_d)[0]
     # Too close to a source the model is singular; keep candidates at least half a step away.
-    dmin = np.min(np.linalg.norm(st["s"][None] - pts[:, None], axis=2), axis=1)
+    dmin = cKDTree(st["s"]).query(pts)[0]
     cost = np.where(dmin > 0.5 * step, cost, np.inf)
     C = cost.reshape(shape)
     is_min = (C == minimum_filter(C, size=3, mode="nearest")) & np.isfinite(C)

@@ -61,14 +61,17 @@ def stack_jacobians(Js, n, dense):
     rows, cols, vals, off = [], [], [], 0
     for J in Js:
         if isinstance(J, Jacobian):
-            r, c, v = J.triplets()
+            chunks = J.chunks
         else:
             C = scipy.sparse.coo_matrix(J)
-            r, c, v = C.row, C.col, C.data
-        rows.append(r + off)
-        cols.append(c)
-        vals.append(v)
+            chunks = [(C.row, C.col, C.data)]
+        for r, c, v in chunks:
+            rows.append(r + off)
+            cols.append(c)
+            vals.append(v)
         off += J.shape[0]
+    if not rows:
+        return scipy.sparse.csr_matrix((M, n))
     rows, cols, vals = (np.concatenate(z) for z in (rows, cols, vals))
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
 
@@ -105,19 +108,75 @@ def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
     return cost
 
 
+def scale_rows(J, w):
+    """diag(w) @ J for a CSR matrix, by scaling its stored values (no sparse product)."""
+    out = J.copy()
+    out.data *= np.repeat(w, np.diff(J.indptr))
+    return out
+
+
+def scale_sym(H, d):
+    """diag(d) @ H @ diag(d) for a CSR matrix, by scaling its stored values."""
+    out = H.copy()
+    out.data *= np.repeat(d, np.diff(H.indptr)) * d[H.indices]
+    return out
+
+
 def normal_equations(J, w, r):
     """H = Jᵀ W J and g = Jᵀ W r (dense arrays, or H sparse CSR when J is sparse)."""
     if scipy.sparse.issparse(J):
-        Jw = scipy.sparse.diags(w) @ J
-        return (J.T @ Jw).tocsr(), J.T @ (w * r)
+        J = scipy.sparse.csr_matrix(J)
+        return (J.T.tocsr() @ scale_rows(J, w)).tocsr(), J.T @ (w * r)
     Jw = J * w[:, None]
     return J.T @ Jw, Jw.T @ r
 
 
 def event_columns(lay):
-    """Sorted parameter columns of the per-event unknowns (source positions, emission corrections)."""
-    cols = np.concatenate([lay["s"].ravel(), lay["e"].ravel()])
-    return np.sort(cols[cols >= 0])
+    """Parameter columns of the per-event unknowns (source position, emission correction), event by event.
+
+    In this order the event block of JᵀJ is banded: events couple only to their neighbours in time
+    (odometry, TDOA-S between consecutive events, the emission prior).
+    """
+    cols = np.column_stack([lay["s"], lay["e"][:, None]]).ravel()
+    return cols[cols >= 0]
+
+
+# The event block is factorised as a band matrix (LAPACK banded Cholesky) when its half-bandwidth is at
+# most this; beyond (TDOA-S between events far apart in time) by sparse LU.
+BAND_MAX = 64
+
+
+class _BandedSPD:
+    """Banded Cholesky of a sparse SPD matrix A + lam I (upper band storage), with a SuperLU-like solve."""
+
+    def __init__(self, A, lam, u):
+        C = A.tocoo()
+        C.sum_duplicates()
+        m = C.row <= C.col
+        ab = np.zeros((u + 1, A.shape[0]))
+        ab[u + C.row[m] - C.col[m], C.col[m]] = C.data[m]
+        ab[u] += lam
+        self.cb = scipy.linalg.cholesky_banded(ab, check_finite=False)
+
+    def solve(self, b):
+        return scipy.linalg.cho_solve_banded((self.cb, False), b, check_finite=False)
+
+
+def _factor_spd(A, lam):
+    """Factor of the sparse SPD matrix A + lam I with a ``solve(b)`` method (banded Cholesky or SuperLU).
+
+    Raises RuntimeError if it is singular.
+    """
+    C = A.tocoo()
+    u = int(np.max(np.abs(C.col - C.row), initial=0))
+    if u <= BAND_MAX:
+        try:
+            return _BandedSPD(A, lam, u)
+        except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+            pass  # not numerically positive definite: let the pivoting LU decide
+    A = (A + lam * scipy.sparse.identity(A.shape[0], format="csc")).tocsc()
+    return scipy.sparse.linalg.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                    options={"SymmetricMode": True})
 
 
 class Schur:
@@ -125,7 +184,7 @@ class Schur:
 
     ``factor(lam)`` prepares (H + lam diag H) for solving by eliminating the event block (bundle-adjustment
     style): the event block H_EE is banded (each event couples to its neighbours through odometry and
-    TDOA-S only) and factorised sparse (SuperLU); the reduced array system S = H_AA − H_AE H_EE⁻¹ H_EA is
+    TDOA-S only) and factorised as a band matrix (or by SuperLU); the reduced array system S = H_AA − H_AE H_EE⁻¹ H_EA is
     small and dense. Scaling by d = sqrt(diag H) is the same Jacobi scaling as the dense path.
     """
 
@@ -136,8 +195,7 @@ class Schur:
         ar = np.setdiff1d(np.arange(n), ev)
         self.perm, self.nA = np.concatenate([ar, ev]), len(ar)
         self.d = np.sqrt(np.maximum(H.diagonal(), 1e-300))
-        Dinv = scipy.sparse.diags(1.0 / self.d)
-        P = (Dinv @ H @ Dinv).tocsr()
+        P = scale_sym(H, 1.0 / self.d)
         if not np.array_equal(self.perm, np.arange(n)):
             P = P[self.perm][:, self.perm]
         nA = self.nA
@@ -149,9 +207,7 @@ class Schur:
         """Factorise Hs + lam I (Hs the scaled H). Raises RuntimeError if the event block is singular."""
         nE = self.Hee.shape[0]
         if nE:
-            A = (self.Hee + lam * scipy.sparse.identity(nE, format="csc")).tocsc()
-            self.lu = scipy.sparse.linalg.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                               options={"SymmetricMode": True})
+            self.lu = _factor_spd(self.Hee, lam)
             self.X = self.lu.solve(self.Hea) if self.nA else np.zeros((nE, 0))
         else:
             self.lu, self.X = None, np.zeros((0, self.nA))

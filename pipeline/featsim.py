@@ -59,7 +59,8 @@ def arrival_times(x, s, t, offset, drift, c, beta=0.0):
 
 def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.03, seed=0, *,
                       n_arrays=5, c=340.0, max_offset=0.1, max_drift=1e-4, max_interval=10.0,
-                      tdoa_s=True, tdoa_m=True, names=None, noise=True, reference_drift=None, planar=None):
+                      tdoa_s=True, tdoa_m=True, names=None, noise=True, reference_drift=None, planar=None,
+                      positions=None):
     """Draw one scene of the paper's protocol and its noisy features.
 
     Parameters
@@ -76,6 +77,8 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     reference_drift : force the reference array's drift (e.g. 0, the gauge used without TDOA-S).
     planar : None, or a mic-plane normal (3,) in the array frame: every array is then planar and its DOAs
         are mirror-ambiguous, given folded to n·u >= 0 with meta ``doa_mirror_normals``.
+    positions : None, or the array positions (N, 3) (then ``n_arrays`` = N); positions[0] is the
+        reference array and must be the origin (it defines the frame).
 
     Returns
     -------
@@ -90,10 +93,15 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
         stops = np.asarray(trajectory, float)
         lo, size = stops.min(0), np.ptp(stops, 0)
     K = len(stops)
-    N = n_arrays
+    N = n_arrays if positions is None else len(positions)
     names = names or [f"A{i + 1}" for i in range(N)]
     x = np.zeros((N, 3))
-    x[1:] = lo + size * rng.uniform(0, 1, (N - 1, 3))
+    if positions is None:
+        x[1:] = lo + size * rng.uniform(0, 1, (N - 1, 3))
+    else:
+        x[:] = positions
+        if np.any(x[0] != 0):
+            raise ValueError("positions[0] (the reference array) must be the origin")
     rot = random_rotations(rng, N)
     rotvec = rot.as_rotvec()
     rotvec[0] = 0.0
