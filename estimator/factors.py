@@ -66,17 +66,20 @@ def _put(J, rows, cols, vals):
     pairs are distinct (a row names each parameter once), so buffered fancy-index addition is exact.
     """
     cols = np.asarray(cols).reshape(len(rows), -1)
-    m = cols >= 0
-    if m.any():
-        vals = np.broadcast_to(np.asarray(vals, float).reshape(len(rows), -1), cols.shape)
-        rr = np.broadcast_to(rows[:, None], cols.shape)
-        if isinstance(J, Jacobian):
-            if m.all():  # every column free: flat views, no boolean gathers
-                J.add(rr.ravel(), cols.ravel(), vals.ravel())
-            else:
-                J.add(rr[m], cols[m], vals[m])
-        else:
-            J[rr[m], cols[m]] += vals[m]
+    q = cols.shape[1]
+    vals = np.asarray(vals, float)
+    if vals.size != cols.size:
+        vals = np.broadcast_to(vals.reshape(len(rows), -1), cols.shape)
+    rr, cc, vv = np.repeat(rows, q), cols.ravel(), vals.ravel()
+    m = cc >= 0
+    if not m.all():
+        rr, cc, vv = rr[m], cc[m], vv[m]
+    if not len(cc):
+        return
+    if isinstance(J, Jacobian):
+        J.add(rr, cc, vv)
+    else:
+        J[rr, cc] += vv
 
 
 def _dist(st, arr, ev):
