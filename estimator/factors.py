@@ -152,7 +152,7 @@ def doa(p, st, lay):
     nf = p["fold"][i]
     flip = np.einsum("ka,ka->k", nf, v) < 0
     H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
-    Rt = np.einsum("kab,kbc->kac", H, Rt)
+    Rt = H @ Rt
     v = np.einsum("kab,kb->ka", Rt, n)
     r = ((v - u) / sig).ravel()
     # dv/dφ = H [w]x with w = Rᵀn (unfolded) for R → R Exp(φ); dv/ds = H Rᵀ (I − n nᵀ)/d = −dv/dx
@@ -160,9 +160,9 @@ def doa(p, st, lay):
     wx = np.zeros((m, 3, 3))
     wx[:, 0, 1], wx[:, 0, 2], wx[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
     wx[:, 1, 0], wx[:, 2, 0], wx[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    vx = np.einsum("kab,kbc->kac", H, wx)
+    vx = H @ wx
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
-    dvds = np.einsum("kab,kbc->kac", Rt, P)
+    dvds = Rt @ P
     cols = np.repeat(np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]), 3, axis=0)
     vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig
     _put(J, np.arange(3 * m), cols, vals)

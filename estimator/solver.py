@@ -47,17 +47,6 @@ def stack_jacobians(Js, n, dense):
     Returns the (M, n) Jacobian: a dense array if ``dense`` else a ``scipy.sparse.csr_matrix``.
     """
     M = sum(J.shape[0] for J in Js)
-    if dense:
-        out = np.zeros((M, n))
-        off = 0
-        for J in Js:
-            if isinstance(J, Jacobian):
-                for r, c, v in J.chunks:
-                    out[r + off, c] += v
-            else:
-                out[off:off + J.shape[0]] += J.toarray() if scipy.sparse.issparse(J) else J
-            off += J.shape[0]
-        return out
     rows, cols, vals, off = [], [], [], 0
     for J in Js:
         if isinstance(J, Jacobian):
@@ -71,8 +60,10 @@ def stack_jacobians(Js, n, dense):
             vals.append(v)
         off += J.shape[0]
     if not rows:
-        return scipy.sparse.csr_matrix((M, n))
+        return np.zeros((M, n)) if dense else scipy.sparse.csr_matrix((M, n))
     rows, cols, vals = (np.concatenate(z) for z in (rows, cols, vals))
+    if dense:  # one pass over all entries; bincount sums any duplicates
+        return np.bincount(rows * n + cols, weights=vals, minlength=M * n).reshape(M, n)
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
 
 
@@ -87,12 +78,12 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f["r"]
-        keep = np.ones(len(r), bool) if mask is None or f["kind"] not in mask else mask[f["kind"]]
-        rr = np.where(keep, r, 0.0)
-        c, w = rho(rr, loss if f["robust"] else None, k)
-        w = np.where(keep, w, 0.0)
-        cost += 0.5 * float(np.sum(np.where(keep, c, 0.0)))
-        r_all.append(rr)
+        c, w = rho(r, loss if f["robust"] else None, k)
+        if mask is not None and f["kind"] in mask:  # excluded residuals: zero residual, weight and cost
+            keep = mask[f["kind"]]
+            r, c, w = np.where(keep, r, 0.0), np.where(keep, c, 0.0), np.where(keep, w, 0.0)
+        cost += 0.5 * float(np.sum(c))
+        r_all.append(r)
         w_all.append(w)
     J = stack_jacobians([f["J"] for f in fs], lay["n"], use_dense(lay) if dense is None else dense)
     return np.concatenate(r_all), J, np.concatenate(w_all), cost, fs
