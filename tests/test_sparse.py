@@ -1,7 +1,7 @@
 """The sparse estimator (Schur complement, block covariance, sparse observability) against the dense one.
 
-The dense path (``dense=True``: dense Jacobian, Cholesky of the whole normal matrix, pinv covariance, thin
-SVD for observability) is the independent reference: on problems small enough for both, the sparse path
+The dense path (``dense=True``: dense Jacobian, Cholesky of the whole normal matrix, pinv covariance, dense
+eigen-decomposition for observability) is the independent reference: on problems small enough for both, the sparse path
 must give the same minimum (cost within 1e-9 relative, parameters within 1e-6 of their σ), the same
 covariance blocks, the same observability verdicts, and exact draws from the CRLB.
 """
