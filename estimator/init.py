@@ -156,8 +156,9 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
 
     Drift and offset are solved in closed form per point (robust Cauchy IRLS, scale ``kappa`` s) from
     TDOA-S and TDOA-M; the rotation by Kabsch on the DOAs (per-axis scale ``sigma_d`` rad).
-    ``geom`` optionally holds the distances ``d`` (G, K) and unit directions ``u`` (G, K, 3) from ``pts``
-    to every source (shared by all arrays on the coarse grid).
+    ``geom`` optionally holds the distances ``d`` (G, E) and unit directions ``u`` (G, E, 3) from ``pts``
+    to the sources of E events, ``col`` (K,) mapping an event to its column (shared by all arrays on the
+    coarse grid; see :func:`coarse_grid`).
     Returns cost (G,), drift (G,), offset (G,).
     """
     c, beta, ref, s, t = p["c"], p["beta"], p["ref"], st["s"], p["t"]
@@ -171,7 +172,7 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
         col[need] = np.arange(len(need))
         d = np.linalg.norm(s[need][None, :, :] - pts[:, None, :], axis=2)  # (G, events named)
     else:
-        col, d = np.arange(len(s)), geom["d"]
+        col, d = geom["col"], geom["d"]
     ns = len(zs)
     # TDOA-S and TDOA-M stacked: model δ·X + off·[TDOA-M] = Y, columns (G, ns + nm)
     dr = np.linalg.norm(s[j] - st["x"][ref], axis=1)
@@ -201,7 +202,7 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     cost = np.log1p(r2).sum(1)
     if md.sum() >= 2:
         ev = p["doa_ev"][md]
-        u, v = p["doa_u"][md], (_directions(s[ev], pts) if geom is None else geom["u"][:, ev])
+        u, v = p["doa_u"][md], (_directions(s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
         if np.any(p["fold"][i]):
             normals = _NORMALS_COARSE if G > 500 else _NORMALS
             kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p["fold"][i], v, normals)])
@@ -211,17 +212,23 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     return cost, drift, off
 
 
-def coarse_grid(s):
+def coarse_grid(s, events=None):
     """The coarse search grid around sources ``s`` (K, 3) and its geometry, shared by every array.
 
-    Returns dict: ``pts`` (G, 3), ``shape`` (3,), ``step`` (m), ``d`` (G, K) distances and ``u`` (G, K, 3)
-    unit directions from each point to each source, ``dmin`` (G,) distance to the nearest source.
+    ``events`` (E,) restricts the geometry to those events (default all), so its memory stays bounded
+    (G × E) however many events there are. Returns dict: ``pts`` (G, 3), ``shape`` (3,), ``step`` (m),
+    ``d`` (G, E) distances and ``u`` (G, E, 3) unit directions from each point to each of those sources,
+    ``col`` (K,) the column of each event (-1 if not included), ``dmin`` (G,) distance to the nearest
+    source of all K.
     """
+    events = np.arange(len(s)) if events is None else np.asarray(events, int)
     grid, step = grid_points(s)
     pts = grid.reshape(-1, 3)
-    w = s[None] - pts[:, None, :]
+    w = s[events][None] - pts[:, None, :]
     d = np.linalg.norm(w, axis=2)
-    return {"pts": pts, "shape": grid.shape[:3], "step": step, "d": d, "u": w / d[..., None],
+    col = np.full(len(s), -1)
+    col[events] = np.arange(len(events))
+    return {"pts": pts, "shape": grid.shape[:3], "step": step, "d": d, "u": w / d[..., None], "col": col,
             "dmin": cKDTree(s).query(pts)[0]}
 
 
@@ -288,6 +295,21 @@ def doa_rotation(p, st, i, x):
     return min(fits, key=lambda f: f[1])[0]
 
 
+def _subsample_mask(K, max_events):
+    """Boolean (K,): at most ``max_events`` evenly spaced events (all of them if K <= max_events)."""
+    if K <= max_events:
+        return np.ones(K, bool)
+    keep = np.zeros(K, bool)
+    keep[np.unique(np.linspace(0, K - 1, max_events).round().astype(int))] = True
+    return keep
+
+
+def grid_events(p, max_events=GRID_MAX_EVENTS):
+    """Indices of the events the subsampled grid search names (its events and their TDOA-S partners)."""
+    keep = _subsample_mask(p["K"], max_events)
+    return np.union1d(np.flatnonzero(keep), p["ts_b"][keep[p["ts_a"]]])
+
+
 def event_subsample(p, i, max_events=GRID_MAX_EVENTS):
     """Array ``i``'s measurement rows restricted to at most ``max_events`` evenly spaced events.
 
@@ -295,11 +317,9 @@ def event_subsample(p, i, max_events=GRID_MAX_EVENTS):
     the initialisation stays linear in the number of events. TDOA-S rows are kept by their ``from`` event
     (their other source is known as well). Returns a problem dict (``p`` itself if nothing is dropped).
     """
-    K = p["K"]
-    if K <= max_events:
+    keep = _subsample_mask(p["K"], max_events)
+    if keep.all():
         return p
-    keep = np.zeros(K, bool)
-    keep[np.unique(np.linspace(0, K - 1, max_events).round().astype(int))] = True
     q = dict(p)
     for prefix, col in (("tm", "tm_ev"), ("ts", "ts_a"), ("doa", "doa_ev")):
         m = keep[p[col]] & (p[col.split("_")[0] + "_arr"] == i)
@@ -316,8 +336,8 @@ def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=Non
     search uses an evenly spaced subsample of them (the joint solve refines with all of them).
     ``grid``: :func:`coarse_grid` of the current sources (computed if None).
     """
+    grid = coarse_grid(st["s"], grid_events(p)) if grid is None else grid
     p = event_subsample(p, i)
-    grid = coarse_grid(st["s"]) if grid is None else grid
     shape, step, pts = grid["shape"], grid["step"], grid["pts"]
     cost = profile_cost(p, st, i, pts, kappa, sigma_d, geom=grid)[0]
     # Too close to a source the model is singular; keep candidates at least half a step away.
@@ -362,7 +382,7 @@ def initialise(p):
     kappa = max(3.0 * p["sigma_tdoa"], 2.0 * sig_src / p["c"])
     sigma_d = float(np.hypot(p["sigma_doa"], sig_src / max(dist, 0.1)))
     costs = {}
-    grid = coarse_grid(st["s"])  # the sources stay fixed while the arrays are placed
+    grid = coarse_grid(st["s"], grid_events(p))  # the sources stay fixed while the arrays are placed
     for i in range(p["N"]):
         if i == p["ref"]:
             continue
