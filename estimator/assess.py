@@ -11,7 +11,7 @@ from .factors import ALL_KINDS, UNITS
 from .factors import evaluate as factors
 from .problem import build_problem, make_layout
 from .solver import linearise
-from .uncertainty import covariance, state_from_frames
+from .uncertainty import cov_block, covariance, state_from_frames
 
 
 def rebuild(features, calib):
@@ -79,13 +79,13 @@ def position_covariances(model):
     """1-σ position covariances at the estimate: arrays (N, 3, 3) and sources (K, 3, 3), m² (NaN where fixed)."""
     p, lay = model["problem"], model["layout"]
     _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
-    cov = covariance(J[w > 0], lay["n"])
+    cov = covariance(J[w > 0], lay["n"], lay)
 
     def blocks(idx):
         out = np.full((len(idx), 3, 3), np.nan)
         for k, ix in enumerate(idx):
             if np.all(ix >= 0):
-                out[k] = cov[np.ix_(ix, ix)]
+                out[k] = cov_block(cov, ix)
         return out
 
     return blocks(lay["x"]), blocks(lay["s"])

@@ -15,6 +15,7 @@ from calib import __version__
 
 from .factors import ALL_KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
+from .observability import check_observability
 from .problem import build_problem, copy_state, make_layout
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
@@ -26,54 +27,6 @@ from .uncertainty import covariance, std_from_cov
 _BLAS = ThreadpoolController()
 
 
-
-
-def check_observability(p, lay, kinds, st, rel_tol=1e-9):
-    """Raise ObservabilityError naming what the data cannot determine (rank of the Fisher information)."""
-    K = p["K"]
-    for i in range(p["N"]):
-        if i == p["ref"]:
-            continue
-        nd = int((p["doa_arr"] == i).sum())
-        nt = int((p["tm_arr"] == i).sum())
-        if nd < 2:
-            raise ObservabilityError(f"array {p['names'][i]} has DOAs for {nd} event(s); its orientation needs >= 2")
-        if nt < 1:
-            raise ObservabilityError(f"array {p['names'][i]} has no TDOA-M: its clock offset is undetermined")
-    o = p["odom"] - p["odom"].mean(0)
-    sv = np.linalg.svd(o, compute_uv=False)
-    if sv[1] / np.sqrt(K) < max(2.0 * p["sigma_odo"], 1e-3 * sv[0] / np.sqrt(K)):
-        raise ObservabilityError(
-            "all sources are (nearly) collinear (odometry spread across the path "
-            f"{100 * sv[1] / np.sqrt(K):.1f} cm): each array's rotation about that line is unobservable")
-    _, J, _, _, _ = linearise(p, st, lay, kinds)
-    norms = np.linalg.norm(J, axis=0)
-    if np.any(norms == 0):
-        k = int(np.flatnonzero(norms == 0)[0])
-        raise ObservabilityError(f"{describe_param(p, lay, k)} is not touched by any measurement")
-    U, S, Vt = np.linalg.svd(J / norms, full_matrices=False)
-    if S[-1] < rel_tol * S[0] * np.sqrt(J.shape[1]) or S[-1] < 1e-6:
-        v = np.abs(Vt[-1])
-        worst = np.argsort(v)[::-1][:3]
-        what = ", ".join(describe_param(p, lay, int(k)) for k in worst if v[k] > 0.1 * v.max())
-        s = st["s"] - st["s"].mean(0)
-        sv = np.linalg.svd(s, compute_uv=False)
-        hint = " (all sources are nearly collinear)" if sv[1] < 1e-3 * max(sv[0], 1e-12) else ""
-        raise ObservabilityError(f"the data cannot determine {what}{hint}")
-
-
-def describe_param(p, lay, k):
-    for key, label in (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift")):
-        hit = np.argwhere(lay[key].reshape(p["N"], -1) == k)
-        if hit.size:
-            return f"the {label} of array {p['names'][hit[0, 0]]}"
-    hit = np.argwhere(lay["s"] == k)
-    if hit.size:
-        return f"the position of source (event {p['events'][hit[0, 0]]})"
-    hit = np.argwhere(lay["e"] == k)
-    if hit.size:
-        return f"the emission time of event {p['events'][hit[0, 0]]}"
-    return f"parameter {k}"
 
 
 def rotations_by_kabsch(p, st):
@@ -177,7 +130,7 @@ def estimate_noise(p, st, kinds, mask, *, iterations=1, min_redundancy=5.0, max_
     scales = {k: 1.0 for k in SIGMA_KEY}
     info = {}
     for _ in range(iterations):
-        r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
+        r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask, dense=True)
         keep = w > 0
         Jk = J[keep]
         d = np.linalg.norm(Jk, axis=0)
@@ -263,7 +216,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
             st, init_info = initialise(p)
         times["init"] = time.perf_counter() - t0
         lay_full = make_layout(p)
+        t_obs = time.perf_counter()
         check_observability(p, lay_full, kinds, st)
+        times["observability"] = time.perf_counter() - t_obs
         stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
         stage_states["init"] = copy_state(st)
         if method == "hybrid" and len(p["ts_val"]) > 0:
@@ -295,7 +250,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     lay = info["layout"]
     r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])
     J = J[w > 0]
-    cov = covariance(J, lay["n"])
+    t_cov = time.perf_counter()
+    cov = covariance(J, lay["n"], lay)
+    times["uncertainty"] = time.perf_counter() - t_cov
     std = std_from_cov(p, lay, cov)
     arrays, sources = to_frames(p, st, std)
     times["total"] = time.perf_counter() - t0

@@ -3,7 +3,8 @@
 Every factor is a function ``f(p, st, lay) -> dict`` with
 
 ``kind`` (str), ``r`` (m,) whitened residuals, ``J`` (m, n) Jacobian w.r.t. the free parameters of
-``lay``, ``row`` (m,) the measurement's row in its CSV (for reports), ``dim`` residuals per measurement,
+``lay`` (a sparse :class:`Jacobian` from :func:`jacobian`, filled by :func:`_put`; a dense array works too),
+``row`` (m,) the measurement's row in its CSV (for reports), ``dim`` residuals per measurement,
 ``robust`` (bool) whether the robust loss applies, ``sigma`` the whitening scale (SI units).
 
 Adding a measurement type = adding one function here and listing it in ``FACTORS``.
@@ -19,18 +20,66 @@ UNITS = {"tdoa_s": ("us", 1e6), "tdoa_m": ("us", 1e6), "doa": ("deg", np.rad2deg
          "emission": ("us", 1e6)}
 
 
+class Jacobian:
+    """A factor's Jacobian (m, n) as a sparse accumulator: ``_put`` appends (row, col, value) chunks.
+
+    Each measurement row touches one or two arrays and one or two sources, so J is almost all zeros for
+    large problems; :func:`calib.estimator.solver.linearise` stacks the chunks of all factors into one
+    dense or ``scipy.sparse`` matrix. ``np.asarray(J)`` / ``J.toarray()`` give the dense (m, n) matrix.
+    """
+
+    __slots__ = ("shape", "chunks")
+
+    def __init__(self, m, n):
+        self.shape = (int(m), int(n))
+        self.chunks = []  # (rows, cols, vals), each (k,); pairs distinct within a chunk
+
+    def add(self, rows, cols, vals):
+        self.chunks.append((rows, cols, vals))
+
+    def triplets(self):
+        """All entries as (rows, cols, vals) arrays (duplicates to be summed)."""
+        if not self.chunks:
+            return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+        return tuple(np.concatenate(z) for z in zip(*self.chunks))
+
+    def toarray(self):
+        out = np.zeros(self.shape)
+        for r, c, v in self.chunks:
+            out[r, c] += v  # distinct (row, col) pairs within a chunk: buffered addition is exact
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        out = self.toarray()
+        return out if dtype is None else out.astype(dtype)
+
+
+def jacobian(m, lay):
+    """An empty (m, n free parameters) Jacobian for a factor to ``_put`` into."""
+    return Jacobian(m, lay["n"])
+
+
 def _put(J, rows, cols, vals):
     """J[rows, cols] += vals for the free columns (cols >= 0). rows (m,), cols/vals (m, q).
 
-    Within one call the (row, col) pairs are distinct (a row names each parameter once), so buffered
-    fancy-index addition is exact.
+    ``J`` is a :class:`Jacobian` (sparse accumulator) or a dense (m, n) array. Within one call the (row, col)
+    pairs are distinct (a row names each parameter once), so buffered fancy-index addition is exact.
     """
     cols = np.asarray(cols).reshape(len(rows), -1)
-    m = cols >= 0
-    if m.any():
-        vals = np.broadcast_to(np.asarray(vals, float).reshape(len(rows), -1), cols.shape)
-        rr = np.broadcast_to(rows[:, None], cols.shape)
-        J[rr[m], cols[m]] += vals[m]
+    q = cols.shape[1]
+    vals = np.asarray(vals, float)
+    if vals.size != cols.size:
+        vals = np.broadcast_to(vals.reshape(len(rows), -1), cols.shape)
+    rr, cc, vv = np.repeat(rows, q), cols.ravel(), vals.ravel()
+    m = cc >= 0
+    if not m.all():
+        rr, cc, vv = rr[m], cc[m], vv[m]
+    if not len(cc):
+        return
+    if isinstance(J, Jacobian):
+        J.add(rr, cc, vv)
+    else:
+        J[rr, cc] += vv
 
 
 def _dist(st, arr, ev):
@@ -48,7 +97,7 @@ def tdoa_s(p, st, lay):
     """TDOA-S: a_{i,b} − a_{i,a} = (1+δ_i)(t_b − t_a + e_b − e_a + (d_ib − d_ia)/c)."""
     i, a, b, z = p["ts_arr"], p["ts_a"], p["ts_b"], p["ts_val"]
     m, c, sig = len(z), p["c"], p["sigma_tdoa_s"]
-    J = np.zeros((m, lay["n"]))
+    J = jacobian(m, lay)
     if m == 0:
         return _out("tdoa_s", np.zeros(0), J, p["ts_row"], 1, True, sig)
     da, na = _dist(st, i, a)
@@ -67,7 +116,7 @@ def tdoa_m(p, st, lay):
     """TDOA-M: a_ij − a_{ref,j}."""
     i, j, z = p["tm_arr"], p["tm_ev"], p["tm_val"]
     ref, m, c, sig, beta = p["ref"], len(z), p["c"], p["sigma_tdoa_m"], p["beta"]
-    J = np.zeros((m, lay["n"]))
+    J = jacobian(m, lay)
     if m == 0:
         return _out("tdoa_m", np.zeros(0), J, p["tm_row"], 1, True, sig)
     r0 = np.full(m, ref)
@@ -92,7 +141,7 @@ def doa(p, st, lay):
     """DOA: R_iᵀ (s_j − x_i)/|s_j − x_i| − u_ij, three components per measurement."""
     i, j, u = p["doa_arr"], p["doa_ev"], p["doa_u"]
     m, sig = len(i), p["sigma_doa"]
-    J = np.zeros((3 * m, lay["n"]))
+    J = jacobian(3 * m, lay)
     if m == 0:
         return _out("doa", np.zeros(0), J, p["doa_row"], 3, False, sig)
     d, n = _dist(st, i, j)
@@ -103,7 +152,7 @@ def doa(p, st, lay):
     nf = p["fold"][i]
     flip = np.einsum("ka,ka->k", nf, v) < 0
     H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
-    Rt = np.einsum("kab,kbc->kac", H, Rt)
+    Rt = H @ Rt
     v = np.einsum("kab,kb->ka", Rt, n)
     r = ((v - u) / sig).ravel()
     # dv/dφ = H [w]x with w = Rᵀn (unfolded) for R → R Exp(φ); dv/ds = H Rᵀ (I − n nᵀ)/d = −dv/dx
@@ -111,9 +160,9 @@ def doa(p, st, lay):
     wx = np.zeros((m, 3, 3))
     wx[:, 0, 1], wx[:, 0, 2], wx[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
     wx[:, 1, 0], wx[:, 2, 0], wx[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    vx = np.einsum("kab,kbc->kac", H, wx)
+    vx = H @ wx
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
-    dvds = np.einsum("kab,kbc->kac", Rt, P)
+    dvds = Rt @ P
     cols = np.repeat(np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]), 3, axis=0)
     vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig
     _put(J, np.arange(3 * m), cols, vals)
@@ -123,7 +172,7 @@ def doa(p, st, lay):
 def odometry(p, st, lay):
     """Odometry: (s_{j+1} − s_j) − (o_{j+1} − o_j), three components per step."""
     K, sig = p["K"], p["sigma_odo"]
-    J = np.zeros((3 * (K - 1), lay["n"]))
+    J = jacobian(3 * (K - 1), lay)
     if K < 2:
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
     r = ((np.diff(st["s"], axis=0) - np.diff(p["odom"], axis=0)) / sig).ravel()
@@ -137,9 +186,9 @@ def emission(p, st, lay):
     """Prior on the per-interval emission-time corrections: (e_{j+1} − e_j) ~ N(0, sigma_emit²)."""
     K, sig = p["K"], p["sigma_emit"]
     if sig <= 0 or K < 2 or not (lay["e"] >= 0).any():
-        return _out("emission", np.zeros(0), np.zeros((0, lay["n"])), np.zeros(0, int), 1, False, max(sig, 1.0))
+        return _out("emission", np.zeros(0), jacobian(0, lay), np.zeros(0, int), 1, False, max(sig, 1.0))
     r = np.diff(st["e"]) / sig
-    J = np.zeros((K - 1, lay["n"]))
+    J = jacobian(K - 1, lay)
     k = np.arange(K - 1)
     _put(J, k, lay["e"][1:], np.full(K - 1, 1.0 / sig))
     _put(J, k, lay["e"][:-1], np.full(K - 1, -1.0 / sig))

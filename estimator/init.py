@@ -11,11 +11,17 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import minimum_filter
+from scipy.spatial import cKDTree
 
 from calib.errors import InputError
 
 from .problem import copy_state, empty_state, make_layout
 from .solver import levenberg_marquardt
+
+
+# The grid search of each array's pose uses at most this many events (evenly spaced): enough to rank grid
+# points far beyond the noise, and it keeps the initialisation linear in the number of events.
+GRID_MAX_EVENTS = 100
 
 
 class ObservabilityError(InputError):
@@ -125,14 +131,14 @@ def refine_reference(p, st):
 def source_spread(q, st, lay):
     """RMS 1-σ source position uncertainty (m) of the reference-only solve (floored at 2 cm)."""
     from .solver import linearise
+    from .uncertainty import cov_diagonal, covariance
 
     _, J, _, _, _ = linearise(q, st, lay, ["tdoa_s", "doa", "odometry"])
     cols = lay["s"].ravel()
     try:
-        cov = np.linalg.pinv(J.T @ J)
-        var = np.diag(cov)[cols]
+        var = cov_diagonal(covariance(J, lay["n"], lay))[cols]
         return max(float(np.sqrt(np.mean(var) * 3)), 0.02)
-    except np.linalg.LinAlgError:
+    except (np.linalg.LinAlgError, RuntimeError):
         return 0.3
 
 
@@ -147,46 +153,58 @@ def grid_points(s, n_per_axis=12, margin=None):
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1), step
 
 
-def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6):
+def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     """Concentrated cost of array ``i`` at candidate positions ``pts`` (G, 3), sources fixed.
 
     Drift and offset are solved in closed form per point (robust Cauchy IRLS, scale ``kappa`` s) from
     TDOA-S and TDOA-M; the rotation by Kabsch on the DOAs (per-axis scale ``sigma_d`` rad).
+    ``geom`` optionally holds the distances ``d`` (G, E) and unit directions ``u`` (G, E, 3) from ``pts``
+    to the sources of E events, ``col`` (K,) mapping an event to its column (shared by all arrays on the
+    coarse grid; see :func:`coarse_grid`).
     Returns cost (G,), drift (G,), offset (G,).
     """
     c, beta, ref, s, t = p["c"], p["beta"], p["ref"], st["s"], p["t"]
     G = len(pts)
-    d = np.linalg.norm(s[None, :, :] - pts[:, None, :], axis=2)  # (G, K)
     ms, mm, md = p["ts_arr"] == i, p["tm_arr"] == i, p["doa_arr"] == i
     a, b, zs = p["ts_a"][ms], p["ts_b"][ms], p["ts_val"][ms]
-    h = (t[b] - t[a])[None] + (d[:, b] - d[:, a]) / c                 # (G, ns): model δ·h = zs − h
-    ys = zs[None] - h
     j, zm = p["tm_ev"][mm], p["tm_val"][mm]
+    if geom is None:
+        need = np.unique(np.concatenate([a, b, j]))                    # the events these rows name
+        col = np.zeros(len(s), int)
+        col[need] = np.arange(len(need))
+        d = np.linalg.norm(s[need][None, :, :] - pts[:, None, :], axis=2)  # (G, events named)
+    else:
+        col, d = geom["col"], geom["d"]
+    ns = len(zs)
+    # TDOA-S and TDOA-M stacked: model δ·X + off·[TDOA-M] = Y, columns (G, ns + nm)
     dr = np.linalg.norm(s[j] - st["x"][ref], axis=1)
     g0 = 1.0 + st["drift"][ref]
-    qm = t[j][None] + d[:, j] / c + beta                                # model δ·qm + off = ym
-    ym = zm[None] - (t[j][None] + d[:, j] / c) + g0 * (t[j] + dr / c)[None] + beta * st["drift"][ref]
-    ws, wm = np.ones_like(ys), np.ones_like(ym)
+    h = (t[b] - t[a])[None] + (d[:, col[b]] - d[:, col[a]]) / c
+    dj = t[j][None] + d[:, col[j]] / c
+    X = np.concatenate([h, dj + beta], axis=1)
+    Y = np.concatenate([zs[None] - h, zm[None] - dj + (g0 * (t[j] + dr / c) + beta * st["drift"][ref])[None]], axis=1)
+    w = np.ones_like(X)
     use_off = mm.sum() >= 2
     drift, off = np.zeros(G), np.zeros(G)
     for _ in range(n_irls):
-        a11 = (ws * h * h).sum(1) + (wm * qm * qm).sum(1)
-        b1 = (ws * h * ys).sum(1) + (wm * qm * ym).sum(1)
+        wX = w * X
+        a11, b1 = np.einsum("gk,gk->g", wX, X), np.einsum("gk,gk->g", wX, Y)
         if use_off:
-            a12, a22, b2 = (wm * qm).sum(1), wm.sum(1), (wm * ym).sum(1)
+            a12, a22, b2 = wX[:, ns:].sum(1), w[:, ns:].sum(1), np.einsum("gk,gk->g", w[:, ns:], Y[:, ns:])
             det = a11 * a22 - a12 * a12
             ok = np.abs(det) > 1e-300
             drift = np.where(ok, (b1 * a22 - a12 * b2) / np.where(ok, det, 1), 0.0)
             off = np.where(ok, (a11 * b2 - a12 * b1) / np.where(ok, det, 1), 0.0)
         else:
             drift = np.where(a11 > 0, b1 / np.where(a11 > 0, a11, 1), 0.0)
-            off = np.zeros(G)
-        rs = (ys - drift[:, None] * h) / kappa
-        rm = (ym - drift[:, None] * qm - off[:, None]) / kappa
-        ws, wm = 1.0 / (1.0 + rs * rs), 1.0 / (1.0 + rm * rm)
-    cost = np.log1p(rs * rs).sum(1) + np.log1p(rm * rm).sum(1)
+        r = Y - drift[:, None] * X
+        r[:, ns:] -= off[:, None]
+        r2 = (r / kappa) ** 2
+        w = 1.0 / (1.0 + r2)
+    cost = np.log1p(r2).sum(1)
     if md.sum() >= 2:
-        u, v = p["doa_u"][md], _directions(s[p["doa_ev"][md]], pts)
+        ev = p["doa_ev"][md]
+        u, v = p["doa_u"][md], (_directions(s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
         if np.any(p["fold"][i]):
             normals = _NORMALS_COARSE if G > 500 else _NORMALS
             kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p["fold"][i], v, normals)])
@@ -194,6 +212,26 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6):
             kc = kabsch_cost(u, v)
         cost = cost + kc / (2.0 * sigma_d ** 2)
     return cost, drift, off
+
+
+def coarse_grid(s, events=None):
+    """The coarse search grid around sources ``s`` (K, 3) and its geometry, shared by every array.
+
+    ``events`` (E,) restricts the geometry to those events (default all), so its memory stays bounded
+    (G × E) however many events there are. Returns dict: ``pts`` (G, 3), ``shape`` (3,), ``step`` (m),
+    ``d`` (G, E) distances and ``u`` (G, E, 3) unit directions from each point to each of those sources,
+    ``col`` (K,) the column of each event (-1 if not included), ``dmin`` (G,) distance to the nearest
+    source of all K.
+    """
+    events = np.arange(len(s)) if events is None else np.asarray(events, int)
+    grid, step = grid_points(s)
+    pts = grid.reshape(-1, 3)
+    w = s[events][None] - pts[:, None, :]
+    d = np.linalg.norm(w, axis=2)
+    col = np.full(len(s), -1)
+    col[events] = np.arange(len(events))
+    return {"pts": pts, "shape": grid.shape[:3], "step": step, "d": d, "u": w / d[..., None], "col": col,
+            "dmin": cKDTree(s).query(pts)[0]}
 
 
 def _directions(src, pts):
@@ -208,10 +246,10 @@ def kabsch_cost(u, v):
     With M = Σ v uᵀ, the optimum is 2n − 2(σ1 + σ2 + sign(det M) σ3); the singular values come from the
     eigenvalues of the symmetric MᵀM, several times cheaper than a batched SVD.
     """
-    M = np.einsum("gna,nb->gab", v, u) if u.ndim == 2 else np.einsum("gna,gnb->gab", v, u)
-    ev = np.sqrt(np.maximum(np.linalg.eigvalsh(np.einsum("gba,gbc->gac", M, M)), 0.0))  # ascending
+    M = np.matmul(v.transpose(0, 2, 1), u)  # (G, 3, 3) = Σ_n v_n u_nᵀ (batched matmul beats einsum here)
+    ev = np.sqrt(np.maximum(np.linalg.eigvalsh(np.matmul(M.transpose(0, 2, 1), M)), 0.0))  # ascending
     sgn = np.where(np.linalg.det(M) < 0, -1.0, 1.0)
-    return np.maximum(2.0 * len(u) - 2.0 * (ev[:, 2] + ev[:, 1] + sgn * ev[:, 0]), 0.0)
+    return np.maximum(2.0 * u.shape[-2] - 2.0 * (ev[:, 2] + ev[:, 1] + sgn * ev[:, 0]), 0.0)
 
 
 def hemisphere_normals(n=200):
@@ -259,19 +297,53 @@ def doa_rotation(p, st, i, x):
     return min(fits, key=lambda f: f[1])[0]
 
 
-def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4):
+def _subsample_mask(K, max_events):
+    """Boolean (K,): at most ``max_events`` evenly spaced events (all of them if K <= max_events)."""
+    if K <= max_events:
+        return np.ones(K, bool)
+    keep = np.zeros(K, bool)
+    keep[np.unique(np.linspace(0, K - 1, max_events).round().astype(int))] = True
+    return keep
+
+
+def grid_events(p, max_events=GRID_MAX_EVENTS):
+    """Indices of the events the subsampled grid search names (its events and their TDOA-S partners)."""
+    keep = _subsample_mask(p["K"], max_events)
+    return np.union1d(np.flatnonzero(keep), p["ts_b"][keep[p["ts_a"]]])
+
+
+def event_subsample(p, i, max_events=GRID_MAX_EVENTS):
+    """Array ``i``'s measurement rows restricted to at most ``max_events`` evenly spaced events.
+
+    The grid search's cost is (grid points) × (measurements); on a subsample of events it is bounded and
+    the initialisation stays linear in the number of events. TDOA-S rows are kept by their ``from`` event
+    (their other source is known as well). Returns a problem dict (``p`` itself if nothing is dropped).
+    """
+    keep = _subsample_mask(p["K"], max_events)
+    if keep.all():
+        return p
+    q = dict(p)
+    for prefix, col in (("tm", "tm_ev"), ("ts", "ts_a"), ("doa", "doa_ev")):
+        m = keep[p[col]] & (p[col.split("_")[0] + "_arr"] == i)
+        for key in [k for k in p if k.startswith(prefix + "_")]:
+            q[key] = p[key][m]
+    return q
+
+
+def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=None):
     """Position, rotation, offset and drift of array ``i`` (sources fixed). Returns (state, cost).
 
     Coarse grid → the best local minima → each zoomed in by successively halved 5×5×5 grids (vectorised,
-    no iterative solver) → the lowest concentrated cost wins.
+    no iterative solver) → the lowest concentrated cost wins. With more than ``GRID_MAX_EVENTS`` events the
+    search uses an evenly spaced subsample of them (the joint solve refines with all of them).
+    ``grid``: :func:`coarse_grid` of the current sources (computed if None).
     """
-    grid, step = grid_points(st["s"])
-    shape = grid.shape[:3]
-    pts = grid.reshape(-1, 3)
-    cost = profile_cost(p, st, i, pts, kappa, sigma_d)[0]
+    grid = coarse_grid(st["s"], grid_events(p)) if grid is None else grid
+    p = event_subsample(p, i)
+    shape, step, pts = grid["shape"], grid["step"], grid["pts"]
+    cost = profile_cost(p, st, i, pts, kappa, sigma_d, geom=grid)[0]
     # Too close to a source the model is singular; keep candidates at least half a step away.
-    dmin = np.min(np.linalg.norm(st["s"][None] - pts[:, None], axis=2), axis=1)
-    cost = np.where(dmin > 0.5 * step, cost, np.inf)
+    cost = np.where(grid["dmin"] > 0.5 * step, cost, np.inf)
     C = cost.reshape(shape)
     is_min = (C == minimum_filter(C, size=3, mode="nearest")) & np.isfinite(C)
     cand = np.flatnonzero(is_min.ravel())
@@ -280,18 +352,18 @@ def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4):
     # paper's protocol a minimum 350+ cost units worse never won, while near-ties do occur.
     cand = cand[cost[cand] <= cost[cand[0]] + max(50.0, 0.5 * abs(cost[cand[0]]))]
     offsets = np.stack(np.meshgrid(*[np.arange(-2, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    best, best_cost = None, np.inf
-    for g in cand:
-        centre, h = pts[g], step
-        for _ in range(zoom_levels):
-            h *= 0.5
-            sub = centre + h * offsets
-            c_sub, d_sub, o_sub = profile_cost(p, st, i, sub, kappa, sigma_d)
-            k = int(np.argmin(c_sub))
-            centre = sub[k]
-        if c_sub[k] < best_cost:
-            best_cost = float(c_sub[k])
-            best = (centre, doa_rotation(p, st, i, centre), d_sub[k], o_sub[k])
+    # every candidate zooms in at once: one batched evaluation per level (points are independent)
+    centres, h, nc = pts[cand], step, len(cand)
+    for _ in range(zoom_levels):
+        h *= 0.5
+        sub = (centres[:, None, :] + h * offsets[None]).reshape(-1, 3)
+        c_sub, d_sub, o_sub = (z.reshape(nc, len(offsets)) for z in profile_cost(p, st, i, sub, kappa, sigma_d))
+        k = np.argmin(c_sub, axis=1)
+        centres = sub.reshape(nc, len(offsets), 3)[np.arange(nc), k]
+    c_end = c_sub[np.arange(nc), k]
+    g = int(np.argmin(c_end))  # the first of equal minima, as a sequential search would keep
+    best_cost = float(c_end[g])
+    best = (centres[g], doa_rotation(p, st, i, centres[g]), d_sub[g, k[g]], o_sub[g, k[g]])
     out = copy_state(st)
     out["x"][i], out["R"][i], out["drift"][i], out["offset"][i] = best
     return out, best_cost
@@ -312,10 +384,11 @@ def initialise(p):
     kappa = max(3.0 * p["sigma_tdoa"], 2.0 * sig_src / p["c"])
     sigma_d = float(np.hypot(p["sigma_doa"], sig_src / max(dist, 0.1)))
     costs = {}
+    grid = coarse_grid(st["s"], grid_events(p))  # the sources stay fixed while the arrays are placed
     for i in range(p["N"]):
         if i == p["ref"]:
             continue
-        trial, costs[p["names"][i]] = init_array(p, st, i, kappa, sigma_d)
+        trial, costs[p["names"][i]] = init_array(p, st, i, kappa, sigma_d, grid=grid)
         for key in ("x", "R", "drift", "offset"):
             st[key][i] = trial[key][i]
     return st, {"source_sigma": sig_src, "array_costs": costs, "reference_iterations": info_ref["iterations"]}

@@ -3,13 +3,16 @@
 The robust loss applies to the factors flagged ``robust`` (the TDOAs) and is minimised by iteratively
 reweighted least squares inside LM: each iteration linearises, weights each robust residual by
 ρ'(r)/(2r) and solves the damped, Jacobi-scaled normal equations. Deterministic: no random restarts.
+Small problems solve them dense; large ones with a sparse Jacobian and a Schur complement (:class:`Schur`).
 """
 from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
 
-from .factors import evaluate
+from .factors import Jacobian, evaluate
 from .problem import retract
 
 
@@ -27,31 +30,206 @@ def rho(r, loss, k):
     raise ValueError(f"unknown loss {loss!r}")
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None):
+# Up to this many free parameters the normal equations are formed and solved dense (LAPACK on a small
+# matrix beats any sparse bookkeeping: the paper's 5 arrays x 14 events have 75); above it the Jacobian
+# is assembled sparse and the LM step eliminates the event (source) blocks by a Schur complement.
+DENSE_MAX_PARAMS = 300
+
+
+def use_dense(lay):
+    """Whether a problem with layout ``lay`` takes the dense path (see ``DENSE_MAX_PARAMS``)."""
+    return lay["n"] <= DENSE_MAX_PARAMS
+
+
+def stack_jacobians(Js, n, dense):
+    """Stack the factors' Jacobians (each a ``factors.Jacobian``, a dense array or scipy.sparse matrix).
+
+    Returns the (M, n) Jacobian: a dense array if ``dense`` else a ``scipy.sparse.csr_matrix``.
+    """
+    M = sum(J.shape[0] for J in Js)
+    rows, cols, vals, off = [], [], [], 0
+    for J in Js:
+        if isinstance(J, Jacobian):
+            chunks = J.chunks
+        else:
+            C = scipy.sparse.coo_matrix(J)
+            chunks = [(C.row, C.col, C.data)]
+        for r, c, v in chunks:
+            rows.append(r + off)
+            cols.append(c)
+            vals.append(v)
+        off += J.shape[0]
+    if not rows:
+        return np.zeros((M, n)) if dense else scipy.sparse.csr_matrix((M, n))
+    rows, cols, vals = (np.concatenate(z) for z in (rows, cols, vals))
+    if dense:  # one pass over all entries; bincount sums any duplicates
+        return np.bincount(rows * n + cols, weights=vals, minlength=M * n).reshape(M, n)
+    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
+
+
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
+    ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
+    (None, see :func:`use_dense`).
     """
     fs = evaluate(p, st, lay, kinds)
-    r_all, J_all, w_all, cost = [], [], [], 0.0
+    r_all, w_all, cost = [], [], 0.0
     for f in fs:
-        r, J = f["r"], f["J"]
-        keep = np.ones(len(r), bool) if mask is None or f["kind"] not in mask else mask[f["kind"]]
-        rr = np.where(keep, r, 0.0)
-        c, w = rho(rr, loss if f["robust"] else None, k)
-        w = np.where(keep, w, 0.0)
-        cost += 0.5 * float(np.sum(np.where(keep, c, 0.0)))
-        r_all.append(rr)
-        J_all.append(J)
+        r = f["r"]
+        c, w = rho(r, loss if f["robust"] else None, k)
+        if mask is not None and f["kind"] in mask:  # excluded residuals: zero residual, weight and cost
+            keep = mask[f["kind"]]
+            r, c, w = np.where(keep, r, 0.0), np.where(keep, c, 0.0), np.where(keep, w, 0.0)
+        cost += 0.5 * float(np.sum(c))
+        r_all.append(r)
         w_all.append(w)
-    return np.concatenate(r_all), np.vstack(J_all), np.concatenate(w_all), cost, fs
+    J = stack_jacobians([f["J"] for f in fs], lay["n"], use_dense(lay) if dense is None else dense)
+    return np.concatenate(r_all), J, np.concatenate(w_all), cost, fs
 
 
 def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
-    return linearise(p, st, lay, kinds, loss, k, mask)[3]
+    """½ Σ ρ(r) at ``st`` (residuals only: no Jacobian is stacked)."""
+    cost = 0.0
+    for f in evaluate(p, st, lay, kinds):
+        keep = np.ones(len(f["r"]), bool) if mask is None or f["kind"] not in mask else mask[f["kind"]]
+        c, _ = rho(np.where(keep, f["r"], 0.0), loss if f["robust"] else None, k)
+        cost += 0.5 * float(np.sum(np.where(keep, c, 0.0)))
+    return cost
+
+
+def scale_rows(J, w):
+    """diag(w) @ J for a CSR matrix, by scaling its stored values (no sparse product)."""
+    out = J.copy()
+    out.data *= np.repeat(w, np.diff(J.indptr))
+    return out
+
+
+def scale_sym(H, d):
+    """diag(d) @ H @ diag(d) for a CSR matrix, by scaling its stored values."""
+    out = H.copy()
+    out.data *= np.repeat(d, np.diff(H.indptr)) * d[H.indices]
+    return out
+
+
+def normal_equations(J, w, r):
+    """H = Jᵀ W J and g = Jᵀ W r (dense arrays, or H sparse CSR when J is sparse)."""
+    if scipy.sparse.issparse(J):
+        J = scipy.sparse.csr_matrix(J)
+        return (J.T.tocsr() @ scale_rows(J, w)).tocsr(), J.T @ (w * r)
+    Jw = J * w[:, None]
+    return J.T @ Jw, Jw.T @ r
+
+
+def event_columns(lay):
+    """Parameter columns of the per-event unknowns (source position, emission correction), event by event.
+
+    In this order the event block of JᵀJ is banded: events couple only to their neighbours in time
+    (odometry, TDOA-S between consecutive events, the emission prior).
+    """
+    cols = np.column_stack([lay["s"], lay["e"][:, None]]).ravel()
+    return cols[cols >= 0]
+
+
+# The event block is factorised as a band matrix (LAPACK banded Cholesky) when its half-bandwidth is at
+# most this; beyond (TDOA-S between events far apart in time) by sparse LU.
+BAND_MAX = 64
+
+
+class _BandedSPD:
+    """Banded Cholesky of a sparse SPD matrix A + lam I (upper band storage), with a SuperLU-like solve."""
+
+    def __init__(self, A, lam, u):
+        C = A.tocoo()
+        C.sum_duplicates()
+        m = C.row <= C.col
+        ab = np.zeros((u + 1, A.shape[0]))
+        ab[u + C.row[m] - C.col[m], C.col[m]] = C.data[m]
+        ab[u] += lam
+        self.cb = scipy.linalg.cholesky_banded(ab, check_finite=False)
+
+    def solve(self, b):
+        return scipy.linalg.cho_solve_banded((self.cb, False), b, check_finite=False)
+
+
+def _factor_spd(A, lam):
+    """Factor of the sparse SPD matrix A + lam I with a ``solve(b)`` method (banded Cholesky or SuperLU).
+
+    Raises RuntimeError if it is singular.
+    """
+    C = A.tocoo()
+    u = int(np.max(np.abs(C.col - C.row), initial=0))
+    if u <= BAND_MAX:
+        try:
+            return _BandedSPD(A, lam, u)
+        except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+            pass  # not numerically positive definite: let the pivoting LU decide
+    A = (A + lam * scipy.sparse.identity(A.shape[0], format="csc")).tocsc()
+    return scipy.sparse.linalg.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                    options={"SymmetricMode": True})
+
+
+class Schur:
+    """The Jacobi-scaled symmetric system H (n, n) split into array (A) and event (E) parameters.
+
+    ``factor(lam)`` prepares (H + lam diag H) for solving by eliminating the event block (bundle-adjustment
+    style): the event block H_EE is banded (each event couples to its neighbours through odometry and
+    TDOA-S only) and factorised as a band matrix (or by SuperLU); the reduced array system S = H_AA − H_AE H_EE⁻¹ H_EA is
+    small and dense. Scaling by d = sqrt(diag H) is the same Jacobi scaling as the dense path.
+    """
+
+    def __init__(self, H, lay):
+        H = scipy.sparse.csr_matrix(H)
+        n = H.shape[0]
+        ev = event_columns(lay)
+        ar = np.setdiff1d(np.arange(n), ev)
+        self.perm, self.nA = np.concatenate([ar, ev]), len(ar)
+        self.d = np.sqrt(np.maximum(H.diagonal(), 1e-300))
+        P = scale_sym(H, 1.0 / self.d)
+        if not np.array_equal(self.perm, np.arange(n)):
+            P = P[self.perm][:, self.perm]
+        nA = self.nA
+        self.Haa = P[:nA, :nA].toarray()
+        self.Hea = P[nA:, :nA].toarray()
+        self.Hee = P[nA:, nA:].tocsc()
+
+    def factor(self, lam=0.0):
+        """Factorise Hs + lam I (Hs the scaled H). Raises RuntimeError if the event block is singular."""
+        nE = self.Hee.shape[0]
+        if nE:
+            self.lu = _factor_spd(self.Hee, lam)
+            self.X = self.lu.solve(self.Hea) if self.nA else np.zeros((nE, 0))
+        else:
+            self.lu, self.X = None, np.zeros((0, self.nA))
+        self.S = self.Haa + lam * np.eye(self.nA) - self.Hea.T @ self.X
+        try:
+            self.cho = scipy.linalg.cho_factor(self.S, check_finite=False)
+        except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+            self.cho = None
+        return self
+
+    def _solve_scaled(self, b):
+        """z solving (Hs + lam I) z = b in the permuted, scaled variables (b (nA + nE,) or (·, k))."""
+        bA, bE = b[:self.nA], b[self.nA:]
+        y = self.lu.solve(bE) if self.lu is not None else bE
+        rhs = bA - self.Hea.T @ y
+        if self.cho is not None:
+            zA = scipy.linalg.cho_solve(self.cho, rhs, check_finite=False)
+        else:
+            zA = np.linalg.lstsq(self.S, rhs, rcond=None)[0]
+        return np.concatenate([zA, y - self.X @ zA])
+
+    def solve(self, b):
+        """x solving (H + lam diag H) x = b, b (n,) in the original parameter order."""
+        z = self._solve_scaled((b / self.d)[self.perm])
+        x = np.empty_like(z)
+        x[self.perm] = z
+        return x / self.d
 
 
 def _solve_damped(H, g, lam):
+    """Dense LM step: −(H + lam diag H)⁻¹ g via Cholesky of the Jacobi-scaled matrix (lstsq if singular)."""
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
     Hs = H / d[:, None] / d[None, :]
     A = Hs + lam * np.eye(len(d))
@@ -63,26 +241,31 @@ def _solve_damped(H, g, lam):
 
 
 def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_iter=200, rtol=1e-12,
-                        lam0=1e-4):
-    """Minimise ½ Σ ρ(r) over the free parameters of ``lay``. Returns (state, info)."""
+                        lam0=1e-4, dense=None):
+    """Minimise ½ Σ ρ(r) over the free parameters of ``lay``. Returns (state, info).
+
+    ``dense`` chooses the linear algebra (True: dense Cholesky; False: sparse Jacobian and Schur
+    complement on the event blocks; None: by size, :func:`use_dense`); both take the same steps.
+    """
     if lay["n"] == 0:
         return st, {"iterations": 0, "cost": cost_of(p, st, lay, kinds, loss, k, mask), "converged": True,
                     "reason": "no free parameters"}
+    dense = use_dense(lay) if dense is None else dense
     lam, nu = lam0, 2.0
-    r, J, w, cost, _ = linearise(p, st, lay, kinds, loss, k, mask)
+    r, J, w, cost, _ = linearise(p, st, lay, kinds, loss, k, mask, dense=dense)
     reason, it = "max_iter", 0
     for it in range(1, max_iter + 1):
-        Jw = J * w[:, None]
-        H = J.T @ Jw
-        g = Jw.T @ r
-        if np.max(np.abs(g) / np.sqrt(np.maximum(np.diag(H), 1e-300))) < 1e-10 * max(1.0, np.sqrt(cost)):
+        H, g = normal_equations(J, w, r)
+        diag = np.diag(H) if dense else H.diagonal()
+        if np.max(np.abs(g) / np.sqrt(np.maximum(diag, 1e-300))) < 1e-10 * max(1.0, np.sqrt(cost)):
             reason = "gradient"
             break
+        system = None if dense else Schur(H, lay)
         accepted = False
         for _ in range(30):
-            step = _solve_damped(H, g, lam)
+            step = _solve_damped(H, g, lam) if dense else system.factor(lam).solve(-g)
             cand = retract(st, lay, step)
-            r2, J2, w2, cost2, _ = linearise(p, cand, lay, kinds, loss, k, mask)
+            r2, J2, w2, cost2, _ = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense)
             pred = -(step @ g) - 0.5 * step @ (H @ step)
             ratio = (cost - cost2) / pred if pred > 0 else -1.0
             if cost2 < cost and np.isfinite(cost2):

@@ -6,24 +6,148 @@ Cramér–Rao lower bound for unbiased estimators under the stated Gaussian nois
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse
 from scipy.spatial.transform import Rotation
 
 from .factors import ALL_KINDS
 from .problem import build_problem, empty_state, make_layout, retract
-from .solver import linearise
+from .solver import Schur, linearise
 
 
-def covariance(J, lay_n):
-    """(JᵀJ)⁻¹ for whitened residuals (Jacobi-scaled for conditioning)."""
+# Events per batch of right-hand sides when the event block's inverse is read off by solves (memory
+# bound: n_events x 3 x this many doubles).
+_SELECTED_INVERSE_BATCH = 256
+
+
+def covariance(J, lay_n, lay=None):
+    """(JᵀJ)⁻¹ for whitened residuals (Jacobi-scaled for conditioning).
+
+    A dense J gives the dense (n, n) matrix (pseudo-inverse). A sparse J (large problems, with ``lay``)
+    gives a :class:`BlockCovariance`: no n × n inverse is formed.
+    """
+    if scipy.sparse.issparse(J):
+        if lay is None:
+            J = J.toarray()
+        else:
+            return BlockCovariance(J, lay)
     d = np.linalg.norm(J, axis=0)
     d = np.where(d > 0, d, 1.0)
     Js = J / d
     return np.linalg.pinv(Js.T @ Js) / d[:, None] / d[None, :]
 
 
+class BlockCovariance:
+    """(JᵀJ)⁻¹ of a large problem as the blocks anyone reads: the full diagonal, the dense block of the
+    array parameters (the inverse of the Schur complement S) and each source's 3 × 3 marginal.
+
+    With X = H_EE⁻¹ H_EA (scaled), the event block of the inverse is H_EE⁻¹ + X S⁻¹ Xᵀ; only its diagonal
+    and its 3 × 3 source blocks are formed (H_EE⁻¹'s by batched sparse solves).
+    Attributes: ``diag`` (n,), ``arr_cols`` (nA,), ``arr`` (nA, nA), ``src_blocks`` (K, 3, 3) (NaN for
+    fixed sources), ``shape``.
+    """
+
+    def __init__(self, J, lay):
+        J = scipy.sparse.csr_matrix(J)
+        n = lay["n"]
+        self.shape, self.J, self.lay = (n, n), J, lay
+        H = (J.T @ J).tocsr()
+        dead = H.diagonal() <= 0
+        if dead.any():  # untouched parameters: decouple them (unit diagonal), report NaN variance
+            H = H + scipy.sparse.diags(dead.astype(float))
+        self.system = sch = Schur(H, lay).factor(0.0)
+        d, nA = sch.d, sch.nA
+        Sinv = np.linalg.pinv(sch.S)
+        XS = sch.X @ Sinv
+        diag_s = np.empty(n)
+        diag_s[:nA] = np.diag(Sinv)
+        Einv = self._event_inverse_blocks(sch, lay)
+        diag_s[nA:] = Einv["diag"] + np.einsum("ia,ia->i", XS, sch.X)
+        diag = np.empty(n)
+        diag[sch.perm] = diag_s / d[sch.perm] ** 2
+        diag[dead] = np.nan
+        self.diag = diag
+        self.arr_cols = sch.perm[:nA]
+        self.arr = Sinv / d[self.arr_cols][:, None] / d[self.arr_cols][None, :]
+        self.src_blocks = self._source_blocks(sch, lay, Einv, XS, dead)
+
+    @staticmethod
+    def _event_inverse_blocks(sch, lay):
+        """Diagonal of H_EE⁻¹ (scaled, event order) and each source's 3 × 3 block of it."""
+        nE, nA = sch.Hee.shape[0], sch.nA
+        pos = np.full(lay["n"], -1)
+        pos[sch.perm[nA:]] = np.arange(nE)
+        src = np.where(lay["s"] >= 0, pos[np.maximum(lay["s"], 0)], -1)  # (K, 3) positions in E
+        diag, blocks = np.zeros(nE), np.full((len(src), 3, 3), np.nan)
+        covered = np.zeros(nE, bool)
+        has = np.flatnonzero((src >= 0).all(axis=1))
+        for b in range(0, len(has), _SELECTED_INVERSE_BATCH):
+            ks = has[b:b + _SELECTED_INVERSE_BATCH]
+            cols = src[ks].ravel()
+            rhs = np.zeros((nE, len(cols)))
+            rhs[cols, np.arange(len(cols))] = 1.0
+            Z = sch.lu.solve(rhs)  # (nE, 3 m)
+            Zb = Z[src[ks][:, :, None], np.arange(len(cols)).reshape(-1, 3)[:, None, :]]  # (m, 3, 3)
+            blocks[ks] = 0.5 * (Zb + np.transpose(Zb, (0, 2, 1)))
+            diag[cols] = Z[cols, np.arange(len(cols))]
+            covered[cols] = True
+        rest = np.flatnonzero(~covered)  # e.g. emission corrections: one column at a time, batched
+        for b in range(0, len(rest), 3 * _SELECTED_INVERSE_BATCH):
+            cols = rest[b:b + 3 * _SELECTED_INVERSE_BATCH]
+            rhs = np.zeros((nE, len(cols)))
+            rhs[cols, np.arange(len(cols))] = 1.0
+            diag[cols] = sch.lu.solve(rhs)[cols, np.arange(len(cols))]
+        return {"diag": diag, "src": src, "blocks": blocks}
+
+    @staticmethod
+    def _source_blocks(sch, lay, Einv, XS, dead):
+        """3 × 3 covariance of every source (unscaled; NaN where not all three coordinates are free)."""
+        src = Einv["src"]
+        out = np.full((len(src), 3, 3), np.nan)
+        has = np.flatnonzero((src >= 0).all(axis=1))
+        if not len(has):
+            return out
+        e = src[has]
+        blk = Einv["blocks"][has] + np.einsum("kia,kja->kij", XS[e], sch.X[e])
+        dd = sch.d[lay["s"][has]]
+        blk = blk / dd[:, :, None] / dd[:, None, :]
+        blk[dead[lay["s"][has]].any(axis=1)] = np.nan
+        out[has] = blk
+        return out
+
+    def diagonal(self):
+        return self.diag
+
+    def block(self, ix):
+        """Covariance block of the parameter columns ``ix`` (array parameters, or one source's 3 columns)."""
+        ix = np.asarray(ix)
+        where = {int(c): k for k, c in enumerate(self.arr_cols)}
+        if all(int(c) in where for c in ix):
+            k = np.array([where[int(c)] for c in ix])
+            return self.arr[np.ix_(k, k)]
+        hit = np.flatnonzero((self.lay["s"] == ix[None, :]).all(axis=1)) if len(ix) == 3 else []
+        if len(hit):
+            return self.src_blocks[hit[0]]
+        raise ValueError("only array-parameter blocks and single-source 3x3 blocks are kept for large problems")
+
+    def sample(self, rng):
+        """One draw (n,) from N(0, (JᵀJ)⁻¹): H⁻¹ Jᵀ z with z ~ N(0, I) has exactly that covariance."""
+        z = rng.standard_normal(self.J.shape[0])
+        return self.system.solve(self.J.T @ z)
+
+
+def cov_diagonal(cov):
+    """Diagonal (n,) of a dense covariance or a :class:`BlockCovariance`."""
+    return cov.diagonal() if isinstance(cov, BlockCovariance) else np.diag(cov)
+
+
+def cov_block(cov, ix):
+    """Covariance block of the columns ``ix`` of a dense covariance or a :class:`BlockCovariance`."""
+    return cov.block(ix) if isinstance(cov, BlockCovariance) else cov[np.ix_(ix, ix)]
+
+
 def std_from_cov(p, lay, cov):
     """1-σ std per parameter, as arrays keyed like the state (NaN where fixed)."""
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    sd = np.sqrt(np.maximum(cov_diagonal(cov), 0.0))
 
     def pick(idx):
         return np.where(idx >= 0, sd[np.maximum(idx, 0)], np.nan)
@@ -60,20 +184,22 @@ def fisher(p, st, kinds=None):
 def crlb(features, truth, *, use_tdoa_s=True, emission_sigma=0.0):
     """Cramér–Rao bound at ground truth.
 
-    Returns dict: ``cov`` (n, n) over the free parameters, ``layout``, ``std`` (per-parameter 1-σ keyed
+    Returns dict: ``cov`` (n, n) over the free parameters (a :class:`BlockCovariance` for large problems), ``layout``, ``std`` (per-parameter 1-σ keyed
     like the state: x (N,3) m, rot (N,3) rad, offset (N,) s, drift (N,), s (K,3) m, e (K,) s),
     ``problem`` and ``state`` (the truth state).
     """
     p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma)
     st = state_from_frames(p, truth["arrays"], truth.get("sources"))
     J, lay = fisher(p, st)
-    cov = covariance(J, lay["n"])
+    cov = covariance(J, lay["n"], lay)
     return {"cov": cov, "layout": lay, "std": std_from_cov(p, lay, cov), "problem": p, "state": st}
 
 
 def draw_from_crlb(bound, rng):
     """One estimate drawn from N(truth, CRLB) as a state (rotations perturbed on the manifold)."""
     cov = bound["cov"]
+    if isinstance(cov, BlockCovariance):
+        return retract(bound["state"], bound["layout"], cov.sample(rng))
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     delta = V @ (np.sqrt(np.maximum(w, 0.0)) * rng.standard_normal(len(w)))
     return retract(bound["state"], bound["layout"], delta)

@@ -6,7 +6,7 @@ measurements of ``docs/architecture.md`` and adds noise, returning the same dict
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -69,6 +69,8 @@ class SceneSpec:
     reference_drift : force the reference array's drift (e.g. 0, the gauge used without TDOA-S).
     planar : None, or a mic-plane normal (3,) in the array frame: every array is then planar and its DOAs
         are mirror-ambiguous, given folded to n·u >= 0 with meta ``doa_mirror_normals``.
+    positions : None, or the array positions (N, 3) (then ``n_arrays`` = N); positions[0] is the
+        reference array and must be the origin (it defines the frame).
     """
     n_arrays: int = 5
     c: float = 340.0
@@ -78,6 +80,7 @@ class SceneSpec:
     names: tuple | None = None
     reference_drift: float | None = None
     planar: tuple | None = None
+    positions: object = None
 
 
 def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.03, seed=0, *,
@@ -96,13 +99,17 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
     tdoa_s, tdoa_m : include that measurement type.
     noise : False gives exact measurements (the sigmas still go to meta.json as weights).
     scene : fields of :class:`SceneSpec` (n_arrays, c, max_offset, max_drift, max_interval, names,
-        reference_drift, planar).
+        reference_drift, planar, positions).
 
     Returns
     -------
     features, truth : dicts as returned by ``calib.pipeline.io.read_features`` / ``read_truth``.
     """
     spec = SceneSpec(**scene)
+    if spec.positions is not None:
+        if np.any(np.asarray(spec.positions, float)[0] != 0):
+            raise ValueError("positions[0] (the reference array) must be the origin")
+        spec = replace(spec, n_arrays=len(spec.positions))
     rng = np.random.default_rng(seed)
     stops, box = _stops_and_box(trajectory)
     truth = _draw_scene(rng, stops, box, spec)
@@ -137,7 +144,10 @@ def _draw_scene(rng, stops, box, spec):
     N, K = spec.n_arrays, len(stops)
     lo, size = box
     x = np.zeros((N, 3))
-    x[1:] = lo + size * rng.uniform(0, 1, (N - 1, 3))
+    if spec.positions is None:
+        x[1:] = lo + size * rng.uniform(0, 1, (N - 1, 3))
+    else:
+        x[:] = np.asarray(spec.positions, float)
     rotvec = random_rotations(rng, N).as_rotvec()
     rotvec[0] = 0.0
     offset = rng.uniform(-spec.max_offset, spec.max_offset, N)
