@@ -16,8 +16,11 @@ from calib import __version__
 from .factors import ALL_KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .problem import build_problem, copy_state, make_layout
+from .robust import (FAMILY_ALPHA, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
+                     remove_outliers)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
+from .verdict import make_verdict, residual_ratios
 
 
 
@@ -130,84 +133,205 @@ def to_frames(p, st, std=None):
     return arrays, sources
 
 
-def _outlier_mask(fs, threshold):
-    """Boolean keep-masks for the robust factors: drop |r| beyond ``threshold`` robust scales."""
-    mask, flagged = {}, []
-    for f in fs:
-        if not f["robust"] or len(f["r"]) == 0:
-            continue
-        r = f["r"]
-        mad = 1.4826 * np.median(np.abs(r))
-        scale = max(1.0, mad)  # never tighter than the stated sigma
-        keep = np.abs(r) <= threshold * scale
-        mask[f["kind"]] = keep
-        for k in np.flatnonzero(~keep):
-            flagged.append({"type": f["kind"], "line": int(f["row"][k]), "residual_sigma": float(r[k]),
-                            "residual_us": float(r[k] * f["sigma"] * 1e6)})
-    return mask, flagged
+def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200,
+               check_arrays=True):
+    """Joint NLS from a given state: robust pass → inconsistent arrays → outlier rows → plain least squares.
 
-
-def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200):
-    """Joint NLS from a given state: robust pass → outlier mask → plain least squares. Returns (state, info)."""
+    Returns (state, info); info holds ``robust``/``final`` solver infos, ``mask`` (kind → keep per
+    residual), ``outliers`` (flag records), ``layout``, ``arrays`` (per-array consistency results),
+    ``capped`` (the row-wise removal hit its cap) and ``n_measurements``.
+    """
     lay = make_layout(p)
-    info = {}
+    info = {"arrays": [], "capped": False}
     # the robust pass only has to find the basin and the outliers; the final pass converges tightly
     st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter,
                                              rtol=1e-6)
-    _, _, _, _, fs = linearise(p, st, lay, kinds)
-    mask, flagged = _outlier_mask(fs, outlier_threshold) if loss else ({}, [])
-    st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
-    info["mask"], info["outliers"], info["layout"] = mask, flagged, lay
+    mask, flagged, dropped = {}, [], []
+    if loss:
+        if check_arrays:
+            st, lay, mask, dropped, info["arrays"] = consistency_stage(
+                p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter)
+        st, mask, flagged, _, _, cap1 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
+                                                        loss=loss, k=robust_k, max_iter=max_iter)
+        st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+        # outliers that only show at the least-squares solution (the robust loss hid their pull)
+        st, mask, more, _, _, cap2 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
+                                                     loss=None, k=robust_k, max_iter=max_iter)
+        info["capped"] = cap1 or cap2
+        if more:
+            flagged += more
+            st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+    else:
+        st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+    stats = measurement_stats(p, st, lay, kinds, mask)
+    info["n_measurements"] = int(np.sum(~np.isin(stats.array, dropped)))
+    for i in dropped:
+        # the dropped array's own pose and clock from its data, everything else fixed (marked unreliable)
+        st, _ = fit_array_alone(p, st, i, kinds, {}, loss=loss, k=robust_k, max_iter=max_iter)
+    info["mask"], info["outliers"], info["layout"], info["dropped"] = mask, flagged, lay, dropped
     return st, info
 
 
+def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
+    """Per-array consistency: for each candidate array (``robust.array_candidates``), re-solve without it
+    and keep the drop when the χ² drop test rejects it at FAMILY_ALPHA / N.
+
+    Returns (state, layout, mask, dropped array indices, per-candidate records for the report).
+    """
+    sizes = {f["kind"]: len(f["r"]) for f in linearise(p, st, lay, kinds)[4]}
+    stats = measurement_stats(p, st, lay, kinds, mask)
+    records, dropped = [], []
+    for i, ratios in array_candidates(p, stats):
+        if len(dropped) + 2 >= p["N"]:
+            break                      # keep the reference and at least one other array
+        keep_arr = [a for a in range(p["N"]) if a != i and a not in dropped]
+        lay_w = make_layout(p, arrays=keep_arr)
+        mask_w = array_mask(p, mask, sizes, i)
+        st_w, _ = levenberg_marquardt(p, st, lay_w, kinds, loss=loss, k=robust_k, mask=mask_w, max_iter=max_iter,
+                                      rtol=1e-6)
+        T, dof, logp = drop_test(p, st, st_w, lay, lay_w, kinds, mask, mask_w, 1.0)
+        inconsistent = bool(logp < np.log(FAMILY_ALPHA / p["N"]))
+        rec = {"array": str(p["names"][i]), "median_ratio": {k: float(v) for k, v in ratios.items()},
+               "drop_chi2": T, "drop_dof": dof, "inconsistent": inconsistent}
+        if inconsistent:
+            rec["moves_sigma"] = _moves_sigma(p, st, st_w, lay_w, kinds, mask_w)
+            rec["with_array"] = {"x": st["x"].tolist()}
+            st, lay, mask = st_w, lay_w, mask_w
+            dropped.append(i)
+        records.append(rec)
+    return st, lay, mask, dropped, records
+
+
+def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
+    """Largest move of any free array position or source between two states, in 1-σ of state b."""
+    _, J, w, _, _ = linearise(p, st_b, lay, kinds, mask=mask)
+    std = std_from_cov(p, lay, covariance(J[w > 0], lay["n"]))
+    z = []
+    for key in ("x", "s"):
+        free = lay[key] >= 0
+        z.append(np.abs(st_a[key] - st_b[key])[free] / np.maximum(std[key][free], 1e-12))
+    z = np.concatenate(z)
+    return float(z.max()) if z.size else 0.0
+
+
 SIGMA_KEY = {"tdoa_s": "sigma_tdoa_s", "tdoa_m": "sigma_tdoa_m", "doa": "sigma_doa", "odometry": "sigma_odo"}
+META_KEY = {"tdoa_s": "sigma_tdoa", "tdoa_m": "sigma_tdoa", "doa": "sigma_doa_deg", "odometry": "sigma_odo"}
+# A sigma the user states as measured (meta.json/session.toml, not listed in ``sigmas_estimated``) is a
+# prior: variance components may move it by at most this factor either way (the data can say "a bit
+# worse than stated", never replace a 3 cm odometry prior with 3 m and so hide a failure).
+PRIOR_MAX_FACTOR = 3.0
+FREE_MAX_FACTOR = 100.0   # a frontend's own figure (or noise="estimate" for TDOA/DOA): bounded, not fixed
+VCE_ITERATIONS = 4        # variance-component steps at most; stopped early when a factor reverses or settles
 
 
-def estimate_noise(p, st, kinds, mask, *, iterations=1, min_redundancy=5.0, max_iter=200):
+def sigma_bounds(meta, noise):
+    """Per measurement type, the largest factor (either way) variance components may apply to its sigma.
+
+    ``noise="estimate"``: TDOA and DOA sigmas are free (bounded by FREE_MAX_FACTOR), odometry is a prior
+    unless meta lists it in ``sigmas_estimated``; ``"auto"``: only the sigmas meta lists as estimated are
+    free, the others are priors (PRIOR_MAX_FACTOR).
+    """
+    est = set(meta.get("sigmas_estimated") or [])
+    out = {}
+    for kind, key in META_KEY.items():
+        free = key in est or (noise == "estimate" and kind != "odometry")
+        out[kind] = FREE_MAX_FACTOR if free else PRIOR_MAX_FACTOR
+    return out
+
+
+def _vce_factors(p, st, lay, kinds, mask, min_redundancy):
+    """One variance-component step: {kind: Σ_k r² / Σ_k (1 − h_ii)} for types with enough redundancy."""
+    r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
+    keep = w > 0
+    Jk = J[keep]
+    d = np.linalg.norm(Jk, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    A = np.linalg.pinv((Jk / d).T @ (Jk / d))
+    h = np.zeros(len(r))
+    h[keep] = np.einsum("ij,jk,ik->i", Jk / d, A, Jk / d)
+    out, start = {}, 0
+    for f in fs:
+        n = len(f["r"])
+        sl = slice(start, start + n)
+        start += n
+        if f["kind"] not in SIGMA_KEY or n == 0:
+            continue
+        red = float(np.sum((1.0 - h[sl])[keep[sl]]))
+        if f["kind"] == "doa":
+            red -= float(keep[sl].sum()) / 3.0  # a unit-vector residual has no noise along the direction itself
+        if red >= min_redundancy:
+            out[f["kind"]] = float(np.sum(r[sl][keep[sl]] ** 2)) / red
+    return out
+
+
+def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS, min_redundancy=5.0,
+                   max_iter=200, lay=None):
     """Re-estimate each measurement type's sigma from its residuals (variance-component estimation).
 
-    σ_k² ← σ_k² · Σ_k r² / Σ_k (1 − h_ii), h the hat matrix of the whitened Jacobian, then re-solve;
-    types with redundancy below ``min_redundancy`` keep their sigma, and a factor is clipped to 1e-4..1e4.
-    One step by default: iterating lets a type that the parameters can absorb (e.g. TDOAs with few arrays
-    and free sources) shrink without bound. Returns (state, p with new sigmas, info with the scales).
+    σ_k² ← σ_k² · Σ_k r² / Σ_k (1 − h_ii), h the hat matrix of the whitened Jacobian, then re-solve (warm);
+    types with redundancy below ``min_redundancy`` keep their sigma. The total factor of type k stays
+    within [1/bounds[k], bounds[k]] (see :func:`sigma_bounds`). Iterated while stable: at most
+    ``iterations`` steps, stopping when every step factor is within 1 % of 1, or when a type's factor
+    reverses direction (a type the parameters can absorb would otherwise shrink without bound).
+    Returns (state, p with new sigmas, info with the total scales and which types hit their bound).
     """
     p = dict(p)
-    lay = make_layout(p)
+    lay = lay or make_layout(p)
+    bounds = bounds or {k: FREE_MAX_FACTOR for k in SIGMA_KEY}
+    base = {k: p[v] for k, v in SIGMA_KEY.items()}
     scales = {k: 1.0 for k in SIGMA_KEY}
-    info = {}
+    last_dir = {}
+    info, at_bound = {}, {}
     for _ in range(iterations):
-        r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
-        keep = w > 0
-        Jk = J[keep]
-        d = np.linalg.norm(Jk, axis=0)
-        d = np.where(d > 0, d, 1.0)
-        A = np.linalg.pinv((Jk / d).T @ (Jk / d))
-        h = np.zeros(len(r))
-        h[keep] = np.einsum("ij,jk,ik->i", Jk / d, A, Jk / d)
-        start = 0
-        changed = False
-        for f in fs:
-            n = len(f["r"])
-            sl = slice(start, start + n)
-            start += n
-            key = SIGMA_KEY.get(f["kind"])
-            if key is None or n == 0:
-                continue
-            red = float(np.sum((1.0 - h[sl])[keep[sl]]))
-            if f["dim"] == 3 and f["kind"] == "doa":
-                red -= n / 3.0  # a unit-vector residual has no noise along the direction itself
-            if red < min_redundancy:
-                continue
-            factor = float(np.sum(r[sl][keep[sl]] ** 2)) / red
-            factor = float(np.clip(factor, 1e-4, 1e4))
-            p[key] *= np.sqrt(factor)
-            scales[f["kind"]] *= np.sqrt(factor)
-            changed |= abs(np.sqrt(factor) - 1.0) > 0.01
+        fac = _vce_factors(p, st, lay, kinds, mask, min_redundancy)
+        changed, reversed_ = False, False
+        for kind, f2 in fac.items():
+            step = float(np.sqrt(np.clip(f2, 1e-8, 1e8)))
+            b = bounds.get(kind, FREE_MAX_FACTOR)
+            total = float(np.clip(scales[kind] * step, 1.0 / b, b))
+            at_bound[kind] = bool(scales[kind] * step > b * (1 + 1e-9) or scales[kind] * step < (1 - 1e-9) / b)
+            step = total / scales[kind]
+            d = np.sign(step - 1.0) if abs(step - 1.0) > 0.01 else 0.0
+            reversed_ |= bool(d and last_dir.get(kind, d) != d)
+            last_dir[kind] = d
+            scales[kind] = total
+            p[SIGMA_KEY[kind]] = base[kind] * total
+            changed |= abs(step - 1.0) > 0.01
         st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
-        if not changed:
+        if not changed or reversed_:
             break
-    return st, p, {"scale": scales, **info}
+    return st, p, {"scale": scales, "at_bound": at_bound, "bounds": bounds, **info}
+
+
+def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
+                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto"):
+    """Raise ValueError with a clear message for any option of :func:`calibrate_features` out of range.
+
+    The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
+    any data): NaN, infinities and negative values are refused, never silently used.
+    """
+    choices = {"method": (method, ("hybrid", "wang")), "loss": (loss, ("cauchy", "huber", "linear", None)),
+               "noise": (noise, ("auto", "meta", "estimate"))}
+    for name, (value, allowed) in choices.items():
+        if value not in allowed:
+            shown = [a for a in allowed if a is not None]
+            raise ValueError(f"{name} must be {', '.join(shown[:-1])} or {shown[-1]}, not {value!r}")
+
+    def number(name, v, lo, strict):
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a number, not {v!r}") from None
+        if not np.isfinite(f) or (f <= lo if strict else f < lo):
+            raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {lo:g}, not {v!r}")
+
+    number("emission_sigma", emission_sigma, 0.0, False)
+    number("robust_k", robust_k, 0.0, True)
+    number("outlier_threshold", outlier_threshold, 0.0, True)
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter must be an integer >= 1, not {max_iter!r}")
+    if not isinstance(use_tdoa_s, (bool, np.bool_)):
+        raise ValueError(f"use_tdoa_s must be True or False, not {use_tdoa_s!r}")
 
 
 def calibrate(features, **options):
@@ -245,6 +369,10 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     dict with ``arrays`` and ``sources`` DataFrames (with ``*_std`` columns: 1-σ from (JᵀWJ)⁻¹, rotation
     std per axis of the array frame in rad) and ``report`` (dict, see docs/method.md).
     """
+    validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
+                     robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise)
+    if loss == "linear":
+        loss = None
     times = {}
     t0 = time.perf_counter()
     if method == "wang":
@@ -285,22 +413,32 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                           max_iter=max_iter)
     if noise == "auto":
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
+    bounds = sigma_bounds(features["meta"], noise)
+    scales = {k: 1.0 for k in SIGMA_KEY}
     if noise == "estimate":
-        st, p, vce = estimate_noise(p, st, kinds, info["mask"], max_iter=max_iter)
+        st, p, vce = estimate_noise(p, st, kinds, info["mask"], bounds=bounds, max_iter=max_iter,
+                                    lay=info["layout"])
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
-        stages["noise"] = {"scale": vce["scale"]}
-    elif noise != "meta":
-        raise ValueError(f"noise must be 'auto', 'meta' or 'estimate', not {noise!r}")
+        stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds}
+        scales = vce["scale"]
     times["joint"] = time.perf_counter() - t2
-    lay = info["layout"]
-    r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])
-    J = J[w > 0]
-    cov = covariance(J, lay["n"])
+    lay = make_layout(p)
+    mask = info["mask"]
+    r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=mask)
+    cov = covariance(J[w > 0], lay["n"])
     std = std_from_cov(p, lay, cov)
     arrays, sources = to_frames(p, st, std)
     times["total"] = time.perf_counter() - t0
-    n_res = int(J.shape[0])
+    # the statistics below leave out the rows of dropped arrays (their pose was fitted to them alone)
+    lay_s = info["layout"]
+    cost = float(linearise(p, st, lay_s, kinds, mask=mask)[3])
+    n_res = int((linearise(p, st, lay_s, kinds, mask=mask)[2] > 0).sum())
+    ratios = residual_ratios(_vce_factors(p, st, lay_s, kinds, mask, 1.0), scales, bounds)
+    verdict = make_verdict(converged=bool(info["final"]["converged"]), reason=info["final"]["reason"],
+                           ratios=ratios, n_outliers=len(info["outliers"]), n_measurements=info["n_measurements"],
+                           capped=info["capped"], arrays=info["arrays"])
     report = {
+        "verdict": verdict,
         "software": {"name": "calib", "version": __version__},
         "method": method,
         "converged": bool(info["final"]["converged"]),
@@ -309,9 +447,12 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         "cost": {**{k: v["cost"] for k, v in stages.items() if "cost" in v}, "joint_robust": info["robust"]["cost"],
                  "final": cost},
         "stages": stages,
-        "chi2_per_dof": float(2 * cost / max(n_res - lay["n"], 1)),
-        "residuals": residual_table(fs, info["mask"]),
+        "chi2_per_dof": float(2 * cost / max(n_res - lay_s["n"], 1)),
+        "residual_ratio": ratios,
+        "residuals": residual_table(fs, mask),
         "outliers": info["outliers"],
+        "array_consistency": info["arrays"],
+        "unreliable_arrays": [str(p["names"][i]) for i in info["dropped"]],
         "used": {"tdoa_s": bool(len(p["ts_val"])), "tdoa_m": bool(len(p["tm_val"])), "doa": bool(len(p["doa_u"])),
                  "emission_correction": emission_sigma > 0},
         "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",

@@ -94,7 +94,7 @@ def doa(p, st, lay):
     m, sig = len(i), p["sigma_doa"]
     J = np.zeros((3 * m, lay["n"]))
     if m == 0:
-        return _out("doa", np.zeros(0), J, p["doa_row"], 3, False, sig)
+        return _out("doa", np.zeros(0), J, p["doa_row"], 3, True, sig)
     d, n = _dist(st, i, j)
     Rt = np.transpose(st["R"][i], (0, 2, 1))
     v = np.einsum("kab,kb->ka", Rt, n)
@@ -117,7 +117,7 @@ def doa(p, st, lay):
     cols = np.repeat(np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]), 3, axis=0)
     vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig
     _put(J, np.arange(3 * m), cols, vals)
-    return _out("doa", r, J, np.repeat(p["doa_row"], 3), 3, False, sig)
+    return _out("doa", r, J, np.repeat(p["doa_row"], 3), 3, True, sig)
 
 
 def odometry(p, st, lay):
