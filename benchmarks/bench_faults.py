@@ -11,7 +11,8 @@ Scenes come from ``calib.pipeline.featsim.simulate_features`` (trajectories 1–
   random direction;
 - ``array``: one non-reference array with all arrivals 1 ms late and every DOA pointing at the mirror
   image of the source in one wall (an occluded array hearing a reflection);
-- ``odo_rot``: the odometry rotated by 20° about the vertical (odometry frame ≠ reference frame);
+- ``odo_rot``: the odometry vectors rotated by +20° about the vertical (odometry frame ≠ reference frame;
+  the estimated yaw, odometry → reference, is then −20°);
 - ``t_emit``: emission times scaled by 1.5 (a wrong schedule).
 
 Prints per run: location error (mean over non-reference arrays, cm), orientation error (geodesic, deg),
@@ -193,7 +194,7 @@ def acceptance(df):
     g = df[df.fault == "odo_rot"]
     if len(g):
         ok = g.loc_cm <= 1.2 * g.clean_loc_cm
-        yaw = (np.abs(g["yaw_deg"] - ODO_YAW_DEG) <= 1.0).sum() if "yaw_deg" in g else 0
+        yaw = (np.abs(g["yaw_deg"] + ODO_YAW_DEG) <= 1.0).sum() if "yaw_deg" in g else 0
         out.append(f"odometry rotated {ODO_YAW_DEG:g} deg: within 1.2x aligned in {ok.sum()}/{len(g)} runs; "
                    f"yaw within 1 deg in {yaw}/{len(g)}")
     g = df[df.fault == "t_emit"]

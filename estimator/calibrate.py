@@ -15,6 +15,7 @@ from calib import __version__
 
 from .factors import ALL_KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
+from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import build_problem, copy_state, make_layout
 from .robust import (FAMILY_ALPHA, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
                      remove_outliers)
@@ -146,6 +147,10 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     # the robust pass only has to find the basin and the outliers; the final pass converges tightly
     st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter,
                                              rtol=1e-6)
+    info["yaw_test"] = None
+    if lay["odo_yaw"][0] >= 0:
+        st, lay, info["yaw_test"] = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k,
+                                                       max_iter=max_iter)
     mask, flagged, dropped = {}, [], []
     if loss:
         if check_arrays:
@@ -170,6 +175,22 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
         st, _ = fit_array_alone(p, st, i, kinds, {}, loss=loss, k=robust_k, max_iter=max_iter)
     info["mask"], info["outliers"], info["layout"], info["dropped"] = mask, flagged, lay, dropped
     return st, info
+
+
+def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
+    """Keep the odometry yaw free only when significant (``odoframe.YAW_SIGNIFICANCE``); else fix it at 0
+    (sets ``p["odo_yaw_free"] = False``) and re-solve. Returns (state, layout, {yaw_deg, std_deg, kept})."""
+    _, J, w, _, _ = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
+    cov = covariance(J * np.sqrt(w)[:, None], lay["n"])
+    k = int(lay["odo_yaw"][0])
+    yaw, sd = float(st["odo_yaw"][0]), float(np.sqrt(max(cov[k, k], 0.0)))
+    test = {"yaw_deg": float(np.rad2deg(yaw)), "std_deg": float(np.rad2deg(sd)), "kept": yaw_is_significant(yaw, sd)}
+    if not test["kept"]:
+        p["odo_yaw_free"] = False
+        lay = make_layout(p)
+        st = {**st, "odo_yaw": np.zeros(1)}
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+    return st, lay, test
 
 
 def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
@@ -344,7 +365,7 @@ def calibrate(features, **options):
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto"):
+              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters
@@ -379,16 +400,20 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         from .wang import wang_initialise
 
         use_tdoa_s = False
-    p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma)
+    p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
     if p["K"] < 3:
         raise ObservabilityError(f"only {p['K']} event(s): at least 3 are needed to calibrate")
     kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
     stages, stage_states = {}, {}
     if init_state is None:
+        # the odometry frame's yaw: a start value from the reference DOAs, the initialisation in that frame
+        yaw0 = initial_yaw(p) if p["odo_yaw_free"] else 0.0
+        p_init = {**p, "odom": rotate_odometry(p["odom"], yaw0), "odo_yaw_free": False}
         if method == "wang":
-            st, init_info = wang_initialise(p)
+            st, init_info = wang_initialise(p_init)
         else:
-            st, init_info = initialise(p)
+            st, init_info = initialise(p_init)
+        st["odo_yaw"] = np.array([yaw0])
         times["init"] = time.perf_counter() - t0
         lay_full = make_layout(p)
         check_observability(p, lay_full, kinds, st)
@@ -408,6 +433,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
             times["ive"] = time.perf_counter() - t1
     else:
         st = {k: np.array(v, dtype=float, copy=True) for k, v in init_state.items()}
+        st.setdefault("odo_yaw", np.zeros(1))
     t2 = time.perf_counter()
     st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
                           max_iter=max_iter)
@@ -460,6 +486,14 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                    "odometry_m": p["sigma_odo"], "emission_s": emission_sigma, "source": noise},
         "timings_s": times,
     }
+    yaw_i = int(lay["odo_yaw"][0])
+    report["odometry_frame"] = {
+        "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),
+        "yaw_std_deg": float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0)))) if yaw_i >= 0 else None,
+        "estimated": yaw_i >= 0,
+        "test": info.get("yaw_test"),
+        "convention": "odometry z = reference z; a step Δo (odometry frame) is Rz(yaw) Δo in the reference frame"}
+    report["odometry_yaw_deg"] = report["odometry_frame"]["yaw_deg"]
     if emission_sigma > 0:
         report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p["events"], st["e"])}
     return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,

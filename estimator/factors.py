@@ -146,7 +146,32 @@ def emission(p, st, lay):
     return _out("emission", r, J, np.arange(1, K), 1, False, sig)
 
 
-FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry, "emission": emission}
+def odometry_frame(p, st, lay):
+    """Odometry in its own frame: (s_{j+1} − s_j) − Rz(ψ)(o_{j+1} − o_j), three components per step.
+
+    ψ (``st["odo_yaw"]``, rad) is the odometry frame's rotation about the reference frame's z axis
+    (taken as the vertical: the odometry's z is the reference array's z). ψ = 0 (or no ``odo_yaw`` in the
+    state/layout) is the plain :func:`odometry` factor.
+    """
+    K, sig = p["K"], p["sigma_odo"]
+    J = np.zeros((3 * max(K - 1, 0), lay["n"]))
+    if K < 2:
+        return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
+    psi = float(np.asarray(st.get("odo_yaw", 0.0)).ravel()[0]) if "odo_yaw" in st else 0.0
+    c, s = np.cos(psi), np.sin(psi)
+    do = np.diff(p["odom"], axis=0)
+    rot = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
+    drot = np.column_stack([-s * do[:, 0] - c * do[:, 1], c * do[:, 0] - s * do[:, 1], np.zeros(K - 1)])
+    r = ((np.diff(st["s"], axis=0) - rot) / sig).ravel()
+    k = np.arange(3 * (K - 1))
+    _put(J, k, lay["s"][1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
+    _put(J, k, lay["s"][:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
+    yaw_col = lay.get("odo_yaw", -np.ones(1, int))
+    _put(J, k, np.full(3 * (K - 1), yaw_col[0]), -drot.ravel() / sig)
+    return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
+
+
+FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission}
 
 
 def evaluate(p, st, lay, kinds=None):

@@ -13,7 +13,10 @@ A *problem* is a dict of numpy arrays (built once per data set)::
     *_row (n,) the line of each measurement in its CSV file, header = line 1 (for outlier reports)
 
 A *state* is a dict: ``x`` (N, 3), ``R`` (N, 3, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3),
-``e`` (K,) emission-time corrections (s; e[0] = 0).
+``e`` (K,) emission-time corrections (s; e[0] = 0), ``odo_yaw`` (1,) the odometry frame's rotation about
+the vertical (rad; see ``factors.odometry_frame``).
+
+``odo_yaw_free`` (bool, problem) says whether that yaw is estimated (``build_problem(odometry_yaw=...)``).
 
 A *layout* says which of them are free in a solve and where they sit in the parameter vector.
 """
@@ -39,7 +42,7 @@ def sigma_doa_per_axis(sigma_deg):
     return float(np.deg2rad(sigma_deg))
 
 
-def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0):
+def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0, odometry_yaw=False):
     """Index the measurements of a (validated) features dict. See module docstring for the keys."""
     meta = features["meta"]
     names = np.asarray(meta["arrays"], dtype=object)
@@ -94,7 +97,19 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     dots = np.einsum("ka,ka->k", nf, p["doa_u"])
     p["doa_u"] = np.where((dots < 0)[:, None], p["doa_u"] - 2.0 * dots[:, None] * nf, p["doa_u"])
     p["N"], p["K"] = len(names), len(events)
+    p["odo_yaw_free"] = bool(odometry_yaw) and odometry_yaw_observable(p)
     return p
+
+
+# The yaw of the odometry frame needs horizontal motion: a spread of the odometry across the vertical
+# below this (m, RMS) leaves it to the noise.
+MIN_HORIZONTAL_SPREAD = 0.05
+
+
+def odometry_yaw_observable(p):
+    """True when the odometry moves horizontally enough (and there are DOAs) to fix its yaw."""
+    o = p["odom"][:, :2] - p["odom"][:, :2].mean(0)
+    return bool(len(p["doa_u"]) > 0 and p["K"] >= 3 and np.sqrt(np.mean(np.sum(o * o, axis=1))) > MIN_HORIZONTAL_SPREAD)
 
 
 def _lines(df):
@@ -106,14 +121,14 @@ def empty_state(p):
     """A state with every array at the origin, identity rotations, zero clocks and sources."""
     N, K = p["N"], p["K"]
     return {"x": np.zeros((N, 3)), "R": np.tile(np.eye(3), (N, 1, 1)), "offset": np.zeros(N),
-            "drift": np.zeros(N), "s": np.zeros((K, 3)), "e": np.zeros(K)}
+            "drift": np.zeros(N), "s": np.zeros((K, 3)), "e": np.zeros(K), "odo_yaw": np.zeros(1)}
 
 
 def copy_state(st):
     return {k: v.copy() for k, v in st.items()}
 
 
-def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=True, arrays=None):
+def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=True, arrays=None, odo_yaw=None):
     """Positions of the free parameters in the vector.
 
     Returns a dict of index arrays (-1 where a parameter is fixed):
@@ -121,6 +136,8 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     The reference array's position, rotation and offset are always fixed (they define the frame and the
     time origin). Its drift is free when TDOA-S is present (``ref_drift=None`` decides that).
     ``arrays`` restricts the free array parameters to these indices (others are fixed).
+    ``odo_yaw`` (1,): the odometry frame's yaw, free when the problem says so (``odo_yaw_free``) and the
+    sources are free (``odo_yaw=None``), or as forced.
     """
     N, K, ref = p["N"], p["K"], p["ref"]
     if ref_drift is None:
@@ -153,6 +170,9 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
         lay["s"][:] = take(3 * K).reshape(K, 3)
     if emission and K > 1:
         lay["e"][1:] = take(K - 1)
+    if odo_yaw is None:
+        odo_yaw = bool(p.get("odo_yaw_free", False)) and sources
+    lay["odo_yaw"] = take(1) if odo_yaw else -np.ones(1, int)
     lay["n"] = n
     return lay
 
@@ -163,7 +183,11 @@ def retract(st, lay, delta):
     for key in ("x", "s"):
         m = lay[key] >= 0
         out[key][m] += delta[lay[key][m]]
-    for key in ("offset", "drift", "e"):
+    for key in ("offset", "drift", "e", "odo_yaw"):
+        if key not in lay:
+            continue
+        if key not in out:
+            out[key] = np.zeros(len(lay[key]))
         m = lay[key] >= 0
         out[key][m] += delta[lay[key][m]]
     rows = np.flatnonzero(lay["rot"][:, 0] >= 0)

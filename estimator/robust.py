@@ -69,14 +69,13 @@ def measurement_arrays(p, kind):
     raise KeyError(kind)
 
 
-def _hat_blocks(J, keep, groups, dim):
-    """Hat-matrix blocks (G, dim, dim) of the rows ``groups`` (G, dim) of the kept, Jacobi-scaled J."""
+def _hat_factor(J, keep):
+    """(B, Js): Jacobi-scaled J (all rows) and B = Js (JsₖᵀJsₖ)⁺ over the kept rows k; H_ab = B_a · Js_b."""
     Jk = J[keep]
     d = np.linalg.norm(Jk, axis=0)
     d = np.where(d > 0, d, 1.0)
-    A = np.linalg.pinv((Jk / d).T @ (Jk / d))
-    Jg = (J / d)[groups]                       # (G, dim, n)
-    return np.einsum("gin,nk,gjk->gij", Jg, A, Jg)
+    Js = J / d
+    return Js @ np.linalg.pinv(Js[keep].T @ Js[keep], hermitian=True), Js
 
 
 def measurement_stats(p, st, lay, kinds, mask):
@@ -95,9 +94,9 @@ def measurement_stats(p, st, lay, kinds, mask):
         m = n // dim
         groups = sl0 + np.arange(n).reshape(m, dim)
         blocks.append((f, groups, dim, m))
-    A_rows = keep_rows
+    B, Js = _hat_factor(J, keep_rows) if blocks else (None, None)
     for f, groups, dim, m in blocks:
-        H = _hat_blocks(J, A_rows, groups, dim)
+        H = np.einsum("gin,gjn->gij", B[groups], Js[groups])
         rg = f["r"].reshape(m, dim)
         kept = keep_rows[groups[:, 0]]
         I_H = np.eye(dim)[None] - H

@@ -6,7 +6,7 @@ Every reason is a measured quantity against a documented level (docs/method.md, 
 | check | suspect | failed |
 | --- | --- | --- |
 | solver converged | | not converged (max_iter) |
-| RMS normalised residual of a type, against its *stated* sigma (priors) or its estimated sigma (free) | > RESIDUAL_SUSPECT | > RESIDUAL_FAILED |
+| RMS normalised residual of a type, against its *stated* sigma (priors) or its estimated sigma (free) | > RESIDUAL_SUSPECT | > RESIDUAL_FAILED, or > RESIDUAL_SUSPECT for TYPES_FAILED types at once |
 | fraction of measurements flagged as outliers | > OUTLIER_SUSPECT | > OUTLIER_FAILED or removal cap hit |
 | an array inconsistent with the others (dropped, its pose refitted alone) | named | |
 | the other arrays/sources move by more than MOVE_SIGMA σ when it is dropped | yes | |
@@ -19,6 +19,7 @@ RESIDUAL_SUSPECT = 3.0   # RMS residual 3× its sigma: the weights (or the model
 RESIDUAL_FAILED = 10.0   # 10×: the data contradict the model (e.g. wrong emission times)
 OUTLIER_SUSPECT = 0.15   # fraction of measurements removed as outliers
 OUTLIER_FAILED = 0.30
+TYPES_FAILED = 2         # residuals of this many types above RESIDUAL_SUSPECT at once: the model is wrong
 MOVE_SIGMA = 3.0         # a dropped array moved the rest by more than this many σ
 STATUS_RANK = {"ok": 0, "suspect": 1, "failed": 2}
 TYPE_LABEL = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "odometry"}
@@ -58,11 +59,13 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
 
     if not converged:
         worse("failed", f"not converged ({reason})")
+    high = [k for k, r in ratios.items() if r > RESIDUAL_SUSPECT]
     for kind, r in ratios.items():
         label = TYPE_LABEL.get(kind, kind)
-        if r > RESIDUAL_FAILED:
-            worse("failed", f"{label} residuals {r:.1f}× their sigma (> {RESIDUAL_FAILED:g}: the data contradict "
-                            "the model)")
+        if r > RESIDUAL_FAILED or (r > RESIDUAL_SUSPECT and len(high) >= TYPES_FAILED):
+            why = f"> {RESIDUAL_FAILED:g}" if r > RESIDUAL_FAILED else \
+                f"> {RESIDUAL_SUSPECT:g} for {len(high)} measurement types at once"
+            worse("failed", f"{label} residuals {r:.1f}× their sigma ({why}: the data contradict the model)")
         elif r > RESIDUAL_SUSPECT:
             worse("suspect", f"{label} residuals {r:.1f}× their sigma (> {RESIDUAL_SUSPECT:g})")
     frac = n_outliers / max(n_measurements, 1)
