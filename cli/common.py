@@ -2,15 +2,18 @@
 from __future__ import annotations
 
 import functools
+import re
 import sys
 from typing import Annotated
 
 import typer
 from rich.console import Console
 
+from calib.estimator import validate_options
 from calib.pipeline.io import InputError
 
 EXIT_INPUT = 2
+EXIT_FAILED = 3   # the calibration ran but its verdict is "failed" (report.json: verdict); docs/cli.md
 
 console = Console(stderr=True)
 
@@ -47,5 +50,31 @@ def estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold,
                                  ("noise", noise, ("auto", "meta", "estimate"))):
         if value not in allowed:
             raise ValueError(f"--{name} must be {', '.join(allowed[:-1])} or {allowed[-1]}, not {value!r}")
-    return {"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma, "loss": loss,
+    opts = {"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma, "loss": loss,
             "outlier_threshold": outlier_threshold, "noise": noise}
+    try:
+        validate_options(**opts)
+    except ValueError as exc:
+        msg = str(exc)
+        for key in opts:
+            msg = re.sub(rf"\b{key}\b", "--" + key.replace("_", "-"), msg)
+        raise ValueError(msg) from None
+    return opts
+
+
+def print_verdict(report, console):
+    """The verdict, last: status in capitals, then one line per reason (report.json ``verdict``)."""
+    v = report.get("verdict") or {}
+    status = str(v.get("status", "?"))
+    colour = {"ok": "green", "suspect": "yellow", "failed": "bold red"}.get(status, "")
+    flagged = v.get("flagged_arrays") or []
+    extra = f" (flagged arrays: {', '.join(flagged)})" if flagged else ""
+    console.print(f"verdict: [{colour}]{status.upper()}[/{colour}]{extra}" if colour else f"verdict: {status}")
+    for r in v.get("reasons") or []:
+        console.print(f"  - {r}", highlight=False)
+
+
+def exit_on_failed(report):
+    """Exit with EXIT_FAILED when the verdict is "failed" (after everything has been written and shown)."""
+    if (report.get("verdict") or {}).get("status") == "failed":
+        raise typer.Exit(EXIT_FAILED)

@@ -8,7 +8,7 @@ import typer
 from calib.estimator import calibrate
 from calib.pipeline.io import read_features, write_calibration
 from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
-                     estimate_options, user_errors)
+                     estimate_options, exit_on_failed, print_verdict, user_errors)
 from .tables import print_arrays
 
 
@@ -24,7 +24,11 @@ def estimate(
     noise: Noise = "auto",
     quiet: Quiet = False,
 ):
-    """Estimate array poses, clock offsets/drifts and source positions from features."""
+    """Estimate array poses, clock offsets/drifts and source positions from features.
+
+    Exit code 0 when the verdict is ok or suspect, 3 when it is failed (the calibration is still written),
+    2 on bad input.
+    """
     opts = estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise)
     calib = calibrate(read_features(features), **{**opts, "loss": None if loss == "linear" else loss})
     write_calibration(out, calib)
@@ -33,3 +37,5 @@ def estimate(
         rep = calib["report"]
         console.print(f"converged: {rep['converged']} ({rep['reason']}), final cost {rep['cost']['final']:.4g}, "
                       f"{len(rep['outliers'])} outlier(s) → {out}")
+        print_verdict(calib["report"], console)
+    exit_on_failed(calib["report"])

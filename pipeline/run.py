@@ -198,16 +198,9 @@ def _check_options(estimate_options):
     unknown = set(opts) - set(ESTIMATE_DEFAULTS)
     if unknown:
         raise TypeError(f"unknown estimate option(s): {', '.join(sorted(unknown))}")
-    if opts["method"] not in ("hybrid", "wang"):
-        raise ValueError(f"method must be hybrid or wang, not {opts['method']!r}")
-    if opts["loss"] not in ("cauchy", "huber", "linear"):
-        raise ValueError(f"loss must be cauchy, huber or linear, not {opts['loss']!r}")
-    if opts["noise"] not in ("auto", "meta", "estimate"):
-        raise ValueError(f"noise must be auto, meta or estimate, not {opts['noise']!r}")
-    if not opts["emission_sigma"] >= 0:
-        raise ValueError(f"emission_sigma must be >= 0, not {opts['emission_sigma']!r}")
-    if not opts["outlier_threshold"] > 0:
-        raise ValueError(f"outlier_threshold must be > 0, not {opts['outlier_threshold']!r}")
+    from calib.estimator import validate_options
+
+    validate_options(**opts)   # the estimator's one check: NaN, inf, negatives and unknown choices refused
     return opts
 
 
