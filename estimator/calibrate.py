@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 from threadpoolctl import ThreadpoolController
 
 from calib import __version__
@@ -17,7 +18,7 @@ from .factors import ALL_KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import build_problem, copy_state, make_layout
-from .robust import (FAMILY_ALPHA, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
+from .robust import (DOF, FAMILY_ALPHA, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
                      remove_outliers)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
@@ -135,8 +136,11 @@ def to_frames(p, st, std=None):
 
 
 def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200,
-               check_arrays=True):
+               check_arrays=True, noise_bounds=None):
     """Joint NLS from a given state: robust pass → inconsistent arrays → outlier rows → plain least squares.
+
+    ``noise_bounds`` ({kind: factor}, noise="estimate"): first move the sigmas by the medians of the
+    residual statistics (:func:`robust_noise_steps`). ``p`` is updated in place (sigmas, ``odo_yaw_free``).
 
     Returns (state, info); info holds ``robust``/``final`` solver infos, ``mask`` (kind → keep per
     residual), ``outliers`` (flag records), ``layout``, ``arrays`` (per-array consistency results),
@@ -148,6 +152,10 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter,
                                              rtol=1e-6)
     info["yaw_test"] = None
+    if noise_bounds is not None and loss:
+        stated = {k: p[v] for k, v in SIGMA_KEY.items()}
+        st = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
+                                robust_k=robust_k, max_iter=max_iter)
     if lay["odo_yaw"][0] >= 0:
         st, lay, info["yaw_test"] = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k,
                                                        max_iter=max_iter)
@@ -175,6 +183,30 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
         st, _ = fit_array_alone(p, st, i, kinds, {}, loss=loss, k=robust_k, max_iter=max_iter)
     info["mask"], info["outliers"], info["layout"], info["dropped"] = mask, flagged, lay, dropped
     return st, info
+
+
+ROBUST_VCE_STEPS = 2   # median-based sigma steps before the outlier tests (noise="estimate")
+
+
+def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max_iter, steps=ROBUST_VCE_STEPS):
+    """Sigmas from the median of each type's normalised statistics (outliers do not move a median), so
+    the outlier tests and the robust loss work in the data's own noise units. Updates p in place."""
+    for _ in range(steps):
+        stats = measurement_stats(p, st, lay, kinds, {})
+        changed = False
+        for kind in SIGMA_KEY:
+            m = stats.kept & (stats.kind == kind)
+            if m.sum() < 5:
+                continue
+            f = float(np.sqrt(np.median(stats.q[m]) / chi2.median(DOF[kind])))
+            b = bounds.get(kind, FREE_MAX_FACTOR)
+            new = float(np.clip(p[SIGMA_KEY[kind]] * f, stated[kind] / b, stated[kind] * b))
+            changed |= abs(new / p[SIGMA_KEY[kind]] - 1.0) > 0.05
+            p[SIGMA_KEY[kind]] = new
+        if not changed:
+            break
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+    return st
 
 
 def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
@@ -286,12 +318,12 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy):
 
 
 def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS, min_redundancy=5.0,
-                   max_iter=200, lay=None):
+                   max_iter=200, lay=None, stated=None):
     """Re-estimate each measurement type's sigma from its residuals (variance-component estimation).
 
     σ_k² ← σ_k² · Σ_k r² / Σ_k (1 − h_ii), h the hat matrix of the whitened Jacobian, then re-solve (warm);
     types with redundancy below ``min_redundancy`` keep their sigma. The total factor of type k stays
-    within [1/bounds[k], bounds[k]] (see :func:`sigma_bounds`). Iterated while stable: at most
+    within [1/bounds[k], bounds[k]] of ``stated`` (default: p's sigmas; see :func:`sigma_bounds`). Iterated while stable: at most
     ``iterations`` steps, stopping when every step factor is within 1 % of 1, or when a type's factor
     reverses direction (a type the parameters can absorb would otherwise shrink without bound).
     Returns (state, p with new sigmas, info with the total scales and which types hit their bound).
@@ -299,8 +331,8 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
     p = dict(p)
     lay = lay or make_layout(p)
     bounds = bounds or {k: FREE_MAX_FACTOR for k in SIGMA_KEY}
-    base = {k: p[v] for k, v in SIGMA_KEY.items()}
-    scales = {k: 1.0 for k in SIGMA_KEY}
+    base = stated or {k: p[v] for k, v in SIGMA_KEY.items()}
+    scales = {k: p[v] / base[k] for k, v in SIGMA_KEY.items()}
     last_dir = {}
     info, at_bound = {}, {}
     for _ in range(iterations):
@@ -435,18 +467,18 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         st = {k: np.array(v, dtype=float, copy=True) for k, v in init_state.items()}
         st.setdefault("odo_yaw", np.zeros(1))
     t2 = time.perf_counter()
-    st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
-                          max_iter=max_iter)
     if noise == "auto":
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
     bounds = sigma_bounds(features["meta"], noise)
-    scales = {k: 1.0 for k in SIGMA_KEY}
+    stated = {k: p[v] for k, v in SIGMA_KEY.items()}
+    st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
+                          max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None)
     if noise == "estimate":
         st, p, vce = estimate_noise(p, st, kinds, info["mask"], bounds=bounds, max_iter=max_iter,
-                                    lay=info["layout"])
+                                    lay=info["layout"], stated=stated)
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
         stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds}
-        scales = vce["scale"]
+    scales = {k: p[v] / stated[k] for k, v in SIGMA_KEY.items()}
     times["joint"] = time.perf_counter() - t2
     lay = make_layout(p)
     mask = info["mask"]

@@ -41,7 +41,7 @@ class MeasurementStats:
     kind (M,) str, index (M,) measurement index within its factor, line (M,) CSV line, array (M,) array index
     (-1 for odometry), event (M,) event index, q (M,) χ² statistic, dof (M,), kept (M,) bool (not masked),
     z (M,) equivalent two-sided normal z after the per-type robust variance factor (0 where not kept),
-    natural (M,) residual size in natural units (µs / deg / cm), scale {kind: robust variance factor}.
+    natural (M,) residual in natural units (µs signed for TDOAs; |·| in deg / cm for DOA / odometry), scale {kind: robust variance factor}.
     """
     kind: np.ndarray
     index: np.ndarray
@@ -108,7 +108,7 @@ def measurement_stats(p, st, lay, kinds, mask):
             q = np.einsum("gi,gij,gj->g", rg, np.linalg.pinv(I_H, rcond=1e-6, hermitian=True), rg)
         arr, ev = measurement_arrays(p, f["kind"])
         unit_scale = UNITS[f["kind"]][1]
-        nat = np.abs(rg[:, 0]) if dim == 1 else np.linalg.norm(rg, axis=1)
+        nat = rg[:, 0] if dim == 1 else np.linalg.norm(rg, axis=1)   # signed for scalar measurements
         out["kind"].append(np.full(m, f["kind"], dtype=object))
         out["index"].append(np.arange(m))
         out["line"].append(np.asarray(f["row"]).reshape(m, dim)[:, 0] if len(f["row"]) else np.zeros(m, int))
@@ -171,7 +171,8 @@ def flag_record(p, stats, k, reason="normalised residual"):
     kind = str(stats.kind[k])
     a = int(stats.array[k])
     rec = {"type": kind, "line": int(stats.line[k]), "array": str(p["names"][a]) if a >= 0 else None,
-           "event": int(p["events"][stats.event[k]]), "residual_sigma": float(min(stats.z[k], 1e6)),
+           "event": int(p["events"][stats.event[k]]),
+           "residual_sigma": float(np.sign(stats.natural[k]) * min(stats.z[k], 1e6)),
            "residual": float(stats.natural[k]), "unit": UNITS[kind][0].replace("us", "µs"), "reason": reason}
     if kind in ("tdoa_s", "tdoa_m"):
         rec["residual_us"] = float(stats.natural[k])
