@@ -19,7 +19,7 @@ from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect,
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import build_problem, copy_state, make_layout
 from .robust import (DOF, FAMILY_ALPHA, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
-                     remove_outliers)
+                     remove_outliers, restore_inliers)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
 from .verdict import make_verdict, residual_ratios
@@ -171,8 +171,10 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
         st, mask, more, _, _, cap2 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
                                                      loss=None, k=robust_k, max_iter=max_iter)
         info["capped"] = cap1 or cap2
-        if more:
-            flagged += more
+        n_flagged = len(flagged) + len(more)
+        st, mask, flagged = restore_inliers(p, st, lay, kinds, mask, flagged + more, threshold=outlier_threshold,
+                                            max_iter=max_iter)
+        if more or len(flagged) < n_flagged:
             st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
     else:
         st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)

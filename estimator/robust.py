@@ -40,7 +40,8 @@ class MeasurementStats:
 
     kind (M,) str, index (M,) measurement index within its factor, line (M,) CSV line, array (M,) array index
     (-1 for odometry), event (M,) event index, q (M,) χ² statistic, dof (M,), kept (M,) bool (not masked),
-    z (M,) equivalent two-sided normal z after the per-type robust variance factor (0 where not kept),
+    z (M,) equivalent two-sided normal z after the per-type robust variance factor (excluded rows: of
+    their deletion residual, prediction variance I + H),
     natural (M,) residual in natural units (µs signed for TDOAs; |·| in deg / cm for DOA / odometry), scale {kind: robust variance factor}.
     """
     kind: np.ndarray
@@ -82,6 +83,9 @@ def measurement_stats(p, st, lay, kinds, mask):
     """Test statistics of every measurement at ``st`` with the outlier ``mask`` (kind → keep per residual)."""
     r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
     keep_rows = w > 0
+    # residuals of excluded rows too (linearise zeroes them): the restore test needs them
+    r = np.concatenate([f["r"] for f in fs]) if fs else r
+    fs = [{**f, "r": f["r"]} for f in fs]
     out = {k: [] for k in ("kind", "index", "line", "array", "event", "q", "dof", "kept", "natural")}
     start = 0
     blocks = []
@@ -99,7 +103,8 @@ def measurement_stats(p, st, lay, kinds, mask):
         H = np.einsum("gin,gjn->gij", B[groups], Js[groups])
         rg = f["r"].reshape(m, dim)
         kept = keep_rows[groups[:, 0]]
-        I_H = np.eye(dim)[None] - H
+        # kept rows: residual variance I − H; excluded rows: prediction variance I + H (deletion residual)
+        I_H = np.eye(dim)[None] + np.where(kept, -1.0, 1.0)[:, None, None] * H
         if dim == 1:
             den = I_H[:, 0, 0]
             q = np.where(den > UNTESTABLE, rg[:, 0] ** 2 / np.maximum(den, UNTESTABLE), 0.0)
@@ -138,8 +143,8 @@ def _normal_scores(kind, q, dof, kept):
         d = int(dof[m][0])
         v = max(1.0, float(np.median(q[m])) / chi2.median(d))
         scale[str(k)] = v
-        logp = chi2.logsf(q[m] / v, d)
-        z[m] = _z_from_logp(logp)
+        a = kind == k                      # excluded rows are scored in the kept rows' units
+        z[a] = _z_from_logp(chi2.logsf(q[a] / v, d))
     return z, scale
 
 
@@ -209,6 +214,36 @@ def remove_outliers(p, st, lay, kinds, mask, *, threshold, loss, k, max_iter, ex
         mask = _mask_measurement(mask, sizes[kind][0], kind, int(stats.index[worst]), sizes[kind][1])
         st, info = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=k, mask=mask, max_iter=max_iter, rtol=1e-6)
     return st, mask, flagged, info, stats, capped
+
+
+def restore_inliers(p, st, lay, kinds, mask, flagged, *, threshold, max_iter):
+    """Give back flagged rows that fit the final solution (a bad row can make a good one look worst first).
+
+    One at a time, the flagged row with the smallest deletion-residual z below the rejection level is
+    restored and the least-squares solution re-solved (warm). Returns (state, mask, flagged left).
+    """
+    mask = {kk: v.copy() for kk, v in mask.items()}
+    flagged = list(flagged)
+    sizes = {f["kind"]: (len(f["r"]), f["dim"]) for f in linearise(p, st, lay, kinds, mask=mask)[4]}
+    while flagged:
+        stats = measurement_stats(p, st, lay, kinds, mask)
+        zc = critical_z(threshold, int(stats.kept.sum()))
+        pos = []
+        for rec in flagged:
+            hit = np.flatnonzero((stats.kind == rec["type"]) & (stats.line == rec["line"]) & ~stats.kept)
+            pos.append(int(hit[0]) if hit.size else -1)
+        zs = np.array([stats.z[k] if k >= 0 else np.inf for k in pos])
+        best = int(np.argmin(zs))
+        if not zs[best] < zc:
+            break
+        k = pos[best]
+        kind, dim = str(stats.kind[k]), sizes[str(stats.kind[k])][1]
+        keep = mask[kind].copy()
+        keep[int(stats.index[k]) * dim:(int(stats.index[k]) + 1) * dim] = True
+        mask[kind] = keep
+        flagged.pop(best)
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter, rtol=1e-6)
+    return st, mask, flagged
 
 
 def array_mask(p, mask, sizes, i):
