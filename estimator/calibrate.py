@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 import pandas as pd
+import scipy.linalg
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
 from threadpoolctl import ThreadpoolController
 
 from calib import __version__
@@ -18,8 +18,8 @@ from .factors import ALL_KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import build_problem, copy_state, make_layout
-from .robust import (DOF, FAMILY_ALPHA, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
-                     remove_outliers, restore_inliers)
+from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
+                     count_measurements, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
 from .verdict import make_verdict, residual_ratios
@@ -151,21 +151,22 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     # the robust pass only has to find the basin and the outliers; the final pass converges tightly
     st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter,
                                              rtol=1e-6)
-    info["yaw_test"] = None
+    info["yaw_test"] = p.get("odo_yaw_test")
     if noise_bounds is not None and loss:
         stated = {k: p[v] for k, v in SIGMA_KEY.items()}
         st = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
                                 robust_k=robust_k, max_iter=max_iter)
-    if lay["odo_yaw"][0] >= 0:
+    if lay["odo_yaw"][0] >= 0 and info["yaw_test"] is None:
         st, lay, info["yaw_test"] = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k,
                                                        max_iter=max_iter)
     mask, flagged, dropped = {}, [], []
     if loss:
         if check_arrays:
-            st, lay, mask, dropped, info["arrays"] = consistency_stage(
+            st, lay, mask, dropped, info["arrays"], stats = consistency_stage(
                 p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter)
         st, mask, flagged, _, _, cap1 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
-                                                        loss=loss, k=robust_k, max_iter=max_iter)
+                                                        loss=loss, k=robust_k, max_iter=max_iter,
+                                                        stats=stats if check_arrays and not dropped else None)
         st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
         # outliers that only show at the least-squares solution (the robust loss hid their pull)
         st, mask, more, _, _, cap2 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
@@ -178,8 +179,7 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
             st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
     else:
         st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
-    stats = measurement_stats(p, st, lay, kinds, mask)
-    info["n_measurements"] = int(np.sum(~np.isin(stats.array, dropped)))
+    info["n_measurements"] = count_measurements(p, dropped)
     for i in dropped:
         # the dropped array's own pose and clock from its data, everything else fixed (marked unreliable)
         st, _ = fit_array_alone(p, st, i, kinds, {}, loss=loss, k=robust_k, max_iter=max_iter)
@@ -200,7 +200,7 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
             m = stats.kept & (stats.kind == kind)
             if m.sum() < 5:
                 continue
-            f = float(np.sqrt(np.median(stats.q[m]) / chi2.median(DOF[kind])))
+            f = float(np.sqrt(np.median(stats.q[m]) / chi2_median(DOF[kind])))
             b = bounds.get(kind, FREE_MAX_FACTOR)
             new = float(np.clip(p[SIGMA_KEY[kind]] * f, stated[kind] / b, stated[kind] * b))
             changed |= abs(new / p[SIGMA_KEY[kind]] - 1.0) > 0.05
@@ -215,23 +215,44 @@ def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
     """Keep the odometry yaw free only when significant (``odoframe.YAW_SIGNIFICANCE``); else fix it at 0
     (sets ``p["odo_yaw_free"] = False``) and re-solve. Returns (state, layout, {yaw_deg, std_deg, kept})."""
     _, J, w, _, _ = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
-    cov = covariance(J * np.sqrt(w)[:, None], lay["n"])
-    k = int(lay["odo_yaw"][0])
-    yaw, sd = float(st["odo_yaw"][0]), float(np.sqrt(max(cov[k, k], 0.0)))
+    test = _yaw_decision(p, st, J * np.sqrt(w)[:, None], int(lay["odo_yaw"][0]))
+    if not test["kept"]:
+        lay = make_layout(p)
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+    return st, lay, test
+
+
+def _yaw_decision(p, st, Jw, k):
+    """Test the odometry yaw (column k of the whitened Jacobian Jw); when not significant fix it: sets
+    ``p["odo_yaw_free"] = False`` and ``st["odo_yaw"] = 0`` in place. Returns {yaw_deg, std_deg, kept}."""
+    yaw, sd = float(st["odo_yaw"][0]), _param_std(Jw, k)
     test = {"yaw_deg": float(np.rad2deg(yaw)), "std_deg": float(np.rad2deg(sd)), "kept": yaw_is_significant(yaw, sd)}
     if not test["kept"]:
         p["odo_yaw_free"] = False
-        lay = make_layout(p)
-        st = {**st, "odo_yaw": np.zeros(1)}
-        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
-    return st, lay, test
+        st["odo_yaw"] = np.zeros(1)
+    return test
+
+
+def _param_std(J, k):
+    """1-σ of parameter k from whitened J: sqrt((JᵀJ)⁻¹_kk) by one Cholesky solve (pinv if singular)."""
+    d = np.linalg.norm(J, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    Js = J / d
+    e = np.zeros(J.shape[1])
+    e[k] = 1.0
+    try:
+        x = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Js.T @ Js), e)
+    except np.linalg.LinAlgError:
+        x = np.linalg.pinv(Js.T @ Js) @ e
+    return float(np.sqrt(max(x[k], 0.0)) / d[k])
 
 
 def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
     """Per-array consistency: for each candidate array (``robust.array_candidates``), re-solve without it
     and keep the drop when the χ² drop test rejects it at FAMILY_ALPHA / N.
 
-    Returns (state, layout, mask, dropped array indices, per-candidate records for the report).
+    Returns (state, layout, mask, dropped array indices, per-candidate records for the report, the
+    statistics at the input state).
     """
     sizes = {f["kind"]: len(f["r"]) for f in linearise(p, st, lay, kinds)[4]}
     stats = measurement_stats(p, st, lay, kinds, mask)
@@ -254,7 +275,7 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
             st, lay, mask = st_w, lay_w, mask_w
             dropped.append(i)
         records.append(rec)
-    return st, lay, mask, dropped, records
+    return st, lay, mask, dropped, records, stats
 
 
 def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
@@ -294,16 +315,22 @@ def sigma_bounds(meta, noise):
     return out
 
 
-def _vce_factors(p, st, lay, kinds, mask, min_redundancy):
-    """One variance-component step: {kind: Σ_k r² / Σ_k (1 − h_ii)} for types with enough redundancy."""
+def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None):
+    """One variance-component step: {kind: Σ_k r² / Σ_k (1 − h_ii)} for types with enough redundancy.
+
+    ``cov``: (JᵀJ)⁻¹ at (st, lay, mask) when already computed.
+    """
     r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
     keep = w > 0
     Jk = J[keep]
-    d = np.linalg.norm(Jk, axis=0)
-    d = np.where(d > 0, d, 1.0)
-    A = np.linalg.pinv((Jk / d).T @ (Jk / d))
     h = np.zeros(len(r))
-    h[keep] = np.einsum("ij,jk,ik->i", Jk / d, A, Jk / d)
+    if cov is None:
+        d = np.linalg.norm(Jk, axis=0)
+        d = np.where(d > 0, d, 1.0)
+        A = sym_inverse((Jk / d).T @ (Jk / d))
+        h[keep] = np.einsum("ij,jk,ik->i", Jk / d, A, Jk / d)
+    else:
+        h[keep] = np.einsum("ij,jk,ik->i", Jk, cov, Jk)
     out, start = {}, 0
     for f in fs:
         n = len(f["r"])
@@ -462,6 +489,12 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
             st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
                                           k=robust_k, max_iter=max_iter, rtol=1e-6)
             st = rotations_by_kabsch(p, st)
+            if lay_ive["odo_yaw"][0] >= 0:
+                # decide on the odometry yaw here (its σ from the IVE's data is a conservative one), so the
+                # joint pass starts in the right parameter set
+                _, J_ive, w_ive, _, _ = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+                                                  k=robust_k)
+                p["odo_yaw_test"] = _yaw_decision(p, st, J_ive * np.sqrt(w_ive)[:, None], int(lay_ive["odo_yaw"][0]))
             stage_states["ive"] = copy_state(st)
             stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
             times["ive"] = time.perf_counter() - t1
@@ -493,7 +526,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     lay_s = info["layout"]
     cost = float(linearise(p, st, lay_s, kinds, mask=mask)[3])
     n_res = int((linearise(p, st, lay_s, kinds, mask=mask)[2] > 0).sum())
-    ratios = residual_ratios(_vce_factors(p, st, lay_s, kinds, mask, 1.0), scales, bounds)
+    same = not info["dropped"]   # then lay_s is lay and cov is the one the factors need
+    ratios = residual_ratios(_vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None), scales, bounds)
     verdict = make_verdict(converged=bool(info["final"]["converged"]), reason=info["final"]["reason"],
                            ratios=ratios, n_outliers=len(info["outliers"]), n_measurements=info["n_measurements"],
                            capped=info["capped"], arrays=info["arrays"])

@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .init import ObservabilityError, init_sources
 
 COARSE_STEP_DEG = 5.0   # grid over the full circle, then refined
 FINE_STEP_DEG = 0.25
@@ -22,17 +21,26 @@ def rotate_odometry(odom, yaw):
     return Rotation.from_euler("z", yaw).apply(np.array(odom, float))
 
 
-def ray_misfit(p, yaw):
-    """Σ sin²(angle) between the reference DOAs and the source chain fitted to them for this yaw."""
-    q = dict(p, odom=rotate_odometry(p["odom"], yaw))
-    try:
-        s = init_sources(q)[0]
-    except ObservabilityError:
-        return np.inf
+def ray_misfit(p, yaws):
+    """Σ sin²(angle) between the reference DOAs and the source chain fitted to them, per yaw (Y,) → (Y,).
+
+    The chain's start point is the linear least-squares point of ``init.init_sources`` (rays vs.
+    ``s_0 + Rz(ψ) o_j``); its normal matrix does not depend on ψ, so all yaws are solved at once.
+    """
     m = p["doa_arr"] == p["ref"]
-    v = s[p["doa_ev"][m]]
-    v = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
-    return float(np.sum(1.0 - np.einsum("ka,ka->k", v, p["doa_u"][m]) ** 2))
+    u, j = p["doa_u"][m], p["doa_ev"][m]
+    o = (p["odom"] - p["odom"][0])[j]                                   # (n, 3)
+    P = np.eye(3)[None] - u[:, :, None] * u[:, None, :]                 # (n, 3, 3)
+    A = P.sum(0)
+    if np.linalg.cond(A) > 1e8:
+        return np.full(len(yaws), np.inf)
+    c, sn = np.cos(np.atleast_1d(yaws))[:, None], np.sin(np.atleast_1d(yaws))[:, None]
+    oy = np.stack([c * o[:, 0] - sn * o[:, 1], sn * o[:, 0] + c * o[:, 1],
+                   np.broadcast_to(o[:, 2], c.shape[:1] + o[:, 2].shape)], axis=2)   # (Y, n, 3) = Rz(ψ) o
+    s0 = -np.linalg.solve(A, np.einsum("nab,ynb->ay", P, oy)).T          # (Y, 3)
+    v = s0[:, None, :] + oy
+    v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-12)
+    return np.sum(1.0 - np.einsum("yna,na->yn", v, u) ** 2, axis=1)
 
 
 def initial_yaw(p):
@@ -42,9 +50,9 @@ def initial_yaw(p):
     if m.sum() < 3 or np.any(p["fold"][p["ref"]]):
         return 0.0
     coarse = np.deg2rad(np.arange(-180.0, 180.0, COARSE_STEP_DEG))
-    best = coarse[int(np.argmin([ray_misfit(p, y) for y in coarse]))]
+    best = coarse[int(np.argmin(ray_misfit(p, coarse)))]
     fine = best + np.deg2rad(np.arange(-COARSE_STEP_DEG, COARSE_STEP_DEG + 1e-9, FINE_STEP_DEG))
-    y = float(fine[int(np.argmin([ray_misfit(p, y) for y in fine]))])
+    y = float(fine[int(np.argmin(ray_misfit(p, fine)))])
     return float(np.angle(np.exp(1j * y)))
 
 

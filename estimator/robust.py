@@ -19,7 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2, norm
+import scipy.linalg
+from scipy.special import gammaincc, gammainccinv, gammaln, ndtri
 
 from .factors import UNITS
 from .problem import make_layout
@@ -76,7 +77,16 @@ def _hat_factor(J, keep):
     d = np.linalg.norm(Jk, axis=0)
     d = np.where(d > 0, d, 1.0)
     Js = J / d
-    return Js @ np.linalg.pinv(Js[keep].T @ Js[keep], hermitian=True), Js
+    return Js @ sym_inverse(Js[keep].T @ Js[keep]), Js
+
+
+def sym_inverse(H):
+    """Inverse of a symmetric positive semi-definite matrix: Cholesky when definite, else pseudo-inverse."""
+    try:
+        c = scipy.linalg.cho_factor(H, check_finite=False)
+        return scipy.linalg.cho_solve(c, np.eye(len(H)), check_finite=False)
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        return np.linalg.pinv(H, hermitian=True)
 
 
 def measurement_stats(p, st, lay, kinds, mask):
@@ -141,24 +151,37 @@ def _normal_scores(kind, q, dof, kept):
         if not m.any():
             continue
         d = int(dof[m][0])
-        v = max(1.0, float(np.median(q[m])) / chi2.median(d))
+        v = max(1.0, float(np.median(q[m])) / chi2_median(d))
         scale[str(k)] = v
         a = kind == k                      # excluded rows are scored in the kept rows' units
-        z[a] = _z_from_logp(chi2.logsf(q[a] / v, d))
+        z[a] = _z_from_logp(chi2_logsf(q[a] / v, d))
     return z, scale
+
+
+def chi2_median(dof):
+    """Median of χ²(dof)."""
+    return float(2.0 * gammainccinv(dof / 2.0, 0.5))
+
+
+def chi2_logsf(q, dof):
+    """log P(χ²(dof) > q), finite far into the tail (asymptotic form where the survival underflows)."""
+    q = np.maximum(np.asarray(q, float), 0.0)
+    sf = gammaincc(dof / 2.0, q / 2.0)
+    tail = (dof / 2.0 - 1.0) * np.log(np.maximum(q / 2.0, 1e-300)) - q / 2.0 - gammaln(dof / 2.0)
+    return np.where(sf > 1e-300, np.log(np.maximum(sf, 1e-300)), tail)
 
 
 def _z_from_logp(logp):
     """Two-sided normal z with tail probability exp(logp) (finite for any logp)."""
     p = np.exp(logp)
-    z = norm.isf(np.clip(p, 1e-300, 1.0) / 2.0)
+    z = -ndtri(np.clip(p, 1e-300, 1.0) / 2.0)
     # beyond double precision: the asymptotic inverse of the normal tail, z ≈ sqrt(−2 log p)
     return np.where(p > 1e-300, z, np.sqrt(-2.0 * (logp - np.log(2.0))))
 
 
 def critical_z(threshold, n_tests, alpha=FAMILY_ALPHA):
     """Rejection level: the larger of ``threshold`` and the Bonferroni z at family-wise ``alpha``."""
-    return max(float(threshold), float(norm.isf(alpha / (2.0 * max(n_tests, 1)))))
+    return max(float(threshold), float(-ndtri(alpha / (2.0 * max(n_tests, 1)))))
 
 
 def _mask_measurement(mask, f_len, kind, index, dim):
@@ -184,19 +207,27 @@ def flag_record(p, stats, k, reason="normalised residual"):
     return rec
 
 
+def count_measurements(p, exclude_arrays=()):
+    """Number of tested measurements (TDOA rows, DOAs, odometry steps), leaving out ``exclude_arrays``."""
+    n = max(p["K"] - 1, 0)
+    for col in ("ts_arr", "tm_arr", "doa_arr"):
+        n += int(np.sum(~np.isin(p[col], list(exclude_arrays))))
+    return n
+
+
 def remove_outliers(p, st, lay, kinds, mask, *, threshold, loss, k, max_iter, exclude_arrays=(),
-                    max_fraction=MAX_OUTLIER_FRACTION):
+                    max_fraction=MAX_OUTLIER_FRACTION, stats=None):
     """Remove the single worst measurement while it is an outlier, re-solving (warm start) after each.
 
     ``mask``: kind → keep (per residual), updated copy returned. ``exclude_arrays``: array indices whose
     rows are already dropped (not counted). Returns (state, mask, flagged records, info of the last solve,
-    stats at the end, stopped_at_cap bool).
+    stats at the end, stopped_at_cap bool). ``stats``: the statistics at (st, mask) when already known.
     """
     mask = {kk: v.copy() for kk, v in mask.items()}
     sizes = {f["kind"]: (len(f["r"]), f["dim"]) for f in linearise(p, st, lay, kinds, mask=mask)[4]}
     flagged, info, capped = [], None, False
     while True:
-        stats = measurement_stats(p, st, lay, kinds, mask)
+        stats = measurement_stats(p, st, lay, kinds, mask) if stats is None else stats
         live = stats.kept & ~np.isin(stats.array, list(exclude_arrays))
         n_tests = int(live.sum())
         if n_tests == 0:
@@ -213,6 +244,7 @@ def remove_outliers(p, st, lay, kinds, mask, *, threshold, loss, k, max_iter, ex
         kind = str(stats.kind[worst])
         mask = _mask_measurement(mask, sizes[kind][0], kind, int(stats.index[worst]), sizes[kind][1])
         st, info = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=k, mask=mask, max_iter=max_iter, rtol=1e-6)
+        stats = None
     return st, mask, flagged, info, stats, capped
 
 
@@ -271,7 +303,7 @@ def array_candidates(p, stats, ratio=ARRAY_RATIO, min_rows=ARRAY_MIN_ROWS):
         m = stats.kept & (stats.kind == kind)
         if m.sum() < 2 * min_rows:
             continue
-        qn = stats.q[m] / chi2.median(DOF[kind])
+        qn = stats.q[m] / chi2_median(DOF[kind])
         pooled = max(float(np.median(qn)), 1.0)
         arr = stats.array[m]
         for i in np.unique(arr):
@@ -297,7 +329,7 @@ def drop_test(p, st_all, st_without, lay, lay_without, kinds, mask, mask_without
     m_rows = int((w_a > 0).sum() - (w_w > 0).sum())
     dof = max(m_rows - (lay["n"] - lay_without["n"]), 1)
     T /= max(scale, 1.0)
-    return T, dof, float(chi2.logsf(max(T, 0.0), dof))
+    return T, dof, float(chi2_logsf(max(T, 0.0), dof))
 
 
 def fit_array_alone(p, st, i, kinds, mask, *, loss, k, max_iter):
