@@ -38,7 +38,9 @@ Method = Annotated[str, typer.Option(help="estimator: hybrid (ours) or wang (bas
 NoTdoaS = Annotated[bool, typer.Option("--no-tdoa-s", help="ignore TDOA-S (Wang et al.'s measurement set)")]
 EmissionSigma = Annotated[float, typer.Option(help="prior std (s) of emission-interval errors to estimate; 0 = off")]
 Loss = Annotated[str, typer.Option(help="robust loss on TDOA residuals: cauchy, huber or linear")]
-OutlierThreshold = Annotated[float, typer.Option(help="flag and drop TDOA residuals beyond this many sigmas")]
+OutlierThreshold = Annotated[float, typer.Option(help="flag and drop measurements (TDOA, DOA, odometry) whose "
+                                                       "normalised residual exceeds this many sigmas (or the "
+                                                       "Bonferroni level, if larger)")]
 Noise = Annotated[str, typer.Option(help="weights: auto (re-estimate the frontend's own noise figures from the "
                                          "residuals), meta (meta.json's sigmas as they are) or estimate")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="print nothing but errors")]

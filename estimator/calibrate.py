@@ -19,7 +19,7 @@ from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect,
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import build_problem, copy_state, make_layout
 from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
-                     count_measurements, remove_outliers, restore_inliers, sym_inverse)
+                     count_measurements, factor_sizes, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
 from .verdict import make_verdict, residual_ratios
@@ -33,16 +33,31 @@ _BLAS = ThreadpoolController()
 
 
 
+def undetermined_parameters(p):
+    """What the data leave undetermined but the estimator can work around, per parameter (report.json
+    ``undetermined``): orientations of arrays with DOAs for fewer than 2 events (single microphones, arrays
+    without usable DOAs) are not estimated — kept at identity with NaN std — while their positions and
+    clocks come from the TDOAs. Returns a list of {"parameter", "array", "reason"}."""
+    out = []
+    for i in range(p["N"]):
+        if i != p["ref"] and not p["rot_free"][i]:
+            nd = int(p["n_doa_events"][i])
+            out.append({"parameter": "orientation", "array": str(p["names"][i]),
+                        "reason": f"DOAs for {nd} event(s) (>= 2 needed): not estimated, reported as identity "
+                                  "with NaN std; position and clock from the TDOAs"})
+    return out
+
+
 def check_observability(p, lay, kinds, st, rel_tol=1e-9):
-    """Raise ObservabilityError naming what the data cannot determine (rank of the Fisher information)."""
+    """Raise ObservabilityError naming what the data cannot determine (rank of the Fisher information).
+
+    Arrays with too few DOAs for an orientation are not refused: see :func:`undetermined_parameters`.
+    """
     K = p["K"]
     for i in range(p["N"]):
         if i == p["ref"]:
             continue
-        nd = int((p["doa_arr"] == i).sum())
         nt = int((p["tm_arr"] == i).sum())
-        if nd < 2:
-            raise ObservabilityError(f"array {p['names'][i]} has DOAs for {nd} event(s); its orientation needs >= 2")
         if nt < 1:
             raise ObservabilityError(f"array {p['names'][i]} has no TDOA-M: its clock offset is undetermined")
     o = p["odom"] - p["odom"].mean(0)
@@ -254,7 +269,7 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
     Returns (state, layout, mask, dropped array indices, per-candidate records for the report, the
     statistics at the input state).
     """
-    sizes = {f["kind"]: len(f["r"]) for f in linearise(p, st, lay, kinds)[4]}
+    sizes = factor_sizes(p)
     stats = measurement_stats(p, st, lay, kinds, mask)
     records, dropped = [], []
     for i, ratios in array_candidates(p, stats):
@@ -524,9 +539,11 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     times["total"] = time.perf_counter() - t0
     # the statistics below leave out the rows of dropped arrays (their pose was fitted to them alone)
     lay_s = info["layout"]
-    cost = float(linearise(p, st, lay_s, kinds, mask=mask)[3])
-    n_res = int((linearise(p, st, lay_s, kinds, mask=mask)[2] > 0).sum())
     same = not info["dropped"]   # then lay_s is lay and cov is the one the factors need
+    n_res = int((w > 0).sum())
+    if not same:
+        _, _, w_s, cost, _ = linearise(p, st, lay_s, kinds, mask=mask)
+        n_res = int((w_s > 0).sum())
     ratios = residual_ratios(_vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None), scales, bounds)
     verdict = make_verdict(converged=bool(info["final"]["converged"]), reason=info["final"]["reason"],
                            ratios=ratios, n_outliers=len(info["outliers"]), n_measurements=info["n_measurements"],
@@ -547,6 +564,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         "outliers": info["outliers"],
         "array_consistency": info["arrays"],
         "unreliable_arrays": [str(p["names"][i]) for i in info["dropped"]],
+        "undetermined": undetermined_parameters(p),
         "used": {"tdoa_s": bool(len(p["ts_val"])), "tdoa_m": bool(len(p["tm_val"])), "doa": bool(len(p["doa_u"])),
                  "emission_correction": emission_sigma > 0},
         "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",

@@ -97,8 +97,21 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     dots = np.einsum("ka,ka->k", nf, p["doa_u"])
     p["doa_u"] = np.where((dots < 0)[:, None], p["doa_u"] - 2.0 * dots[:, None] * nf, p["doa_u"])
     p["N"], p["K"] = len(names), len(events)
+    # orientation estimated only for arrays with DOAs for >= MIN_DOA_EVENTS events (single microphones and
+    # arrays without usable DOAs: position and clock from the TDOAs, orientation reported undetermined)
+    n_doa = np.bincount(p["doa_arr"], minlength=len(names)) if len(p["doa_arr"]) else np.zeros(len(names), int)
+    p["rot_free"] = n_doa >= MIN_DOA_EVENTS
+    p["n_doa_events"] = n_doa
+    # a lone DOA of an array whose orientation is not estimated says nothing: leave it out
+    useless = ~p["rot_free"][p["doa_arr"]] & (p["doa_arr"] != p["ref"])
+    if useless.any():
+        for key in ("doa_ev", "doa_arr", "doa_u", "doa_row"):
+            p[key] = p[key][~useless]
     p["odo_yaw_free"] = bool(odometry_yaw) and odometry_yaw_observable(p)
     return p
+
+
+MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
 
 
 # The yaw of the odometry frame needs horizontal motion: a spread of the odometry across the vertical
@@ -161,7 +174,7 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
             continue
         if i != ref:
             lay["x"][i] = take(3)
-            if rotations:
+            if rotations and p.get("rot_free", np.ones(N, bool))[i]:
                 lay["rot"][i] = take(3)
             lay["offset"][i] = take(1)[0]
         if i != ref or ref_drift:

@@ -207,6 +207,12 @@ def flag_record(p, stats, k, reason="normalised residual"):
     return rec
 
 
+def factor_sizes(p):
+    """{kind: (number of residuals, residuals per measurement)} of the tested factors, from the problem."""
+    return {"tdoa_s": (len(p["ts_val"]), 1), "tdoa_m": (len(p["tm_val"]), 1), "doa": (3 * len(p["doa_u"]), 3),
+            "odometry": (3 * max(p["K"] - 1, 0), 3)}
+
+
 def count_measurements(p, exclude_arrays=()):
     """Number of tested measurements (TDOA rows, DOAs, odometry steps), leaving out ``exclude_arrays``."""
     n = max(p["K"] - 1, 0)
@@ -224,7 +230,7 @@ def remove_outliers(p, st, lay, kinds, mask, *, threshold, loss, k, max_iter, ex
     stats at the end, stopped_at_cap bool). ``stats``: the statistics at (st, mask) when already known.
     """
     mask = {kk: v.copy() for kk, v in mask.items()}
-    sizes = {f["kind"]: (len(f["r"]), f["dim"]) for f in linearise(p, st, lay, kinds, mask=mask)[4]}
+    sizes = factor_sizes(p)
     flagged, info, capped = [], None, False
     while True:
         stats = measurement_stats(p, st, lay, kinds, mask) if stats is None else stats
@@ -256,7 +262,7 @@ def restore_inliers(p, st, lay, kinds, mask, flagged, *, threshold, max_iter):
     """
     mask = {kk: v.copy() for kk, v in mask.items()}
     flagged = list(flagged)
-    sizes = {f["kind"]: (len(f["r"]), f["dim"]) for f in linearise(p, st, lay, kinds, mask=mask)[4]}
+    sizes = factor_sizes(p)
     while flagged:
         stats = measurement_stats(p, st, lay, kinds, mask)
         zc = critical_z(threshold, int(stats.kept.sum()))
@@ -284,7 +290,7 @@ def array_mask(p, mask, sizes, i):
     for kind, col, dim in (("tdoa_s", "ts_arr", 1), ("tdoa_m", "tm_arr", 1), ("doa", "doa_arr", 3)):
         if kind not in sizes:
             continue
-        keep = out.get(kind, np.ones(sizes[kind], bool)).copy()
+        keep = out.get(kind, np.ones(sizes[kind][0], bool)).copy()
         keep &= np.repeat(p[col] != i, dim)
         out[kind] = keep
     return out
