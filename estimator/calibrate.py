@@ -545,9 +545,17 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         _, _, w_s, cost, _ = linearise(p, st, lay_s, kinds, mask=mask)
         n_res = int((w_s > 0).sum())
     ratios = residual_ratios(_vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None), scales, bounds)
+    yaw_i = int(lay["odo_yaw"][0])
+    odo_frame = {
+        "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),
+        "yaw_std_deg": float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0)))) if yaw_i >= 0 else None,
+        "estimated": yaw_i >= 0,
+        "test": info.get("yaw_test"),
+        "convention": "odometry z = reference z; a step Δo (odometry frame) is Rz(yaw) Δo in the reference frame"}
     verdict = make_verdict(converged=bool(info["final"]["converged"]), reason=info["final"]["reason"],
                            ratios=ratios, n_outliers=len(info["outliers"]), n_measurements=info["n_measurements"],
-                           capped=info["capped"], arrays=info["arrays"])
+                           capped=info["capped"], arrays=info["arrays"], odometry_yaw={"kept": odo_frame["estimated"], "yaw_deg": odo_frame["yaw_deg"],
+                                         "std_deg": odo_frame["yaw_std_deg"]})
     report = {
         "verdict": verdict,
         "software": {"name": "calib", "version": __version__},
@@ -572,14 +580,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                    "odometry_m": p["sigma_odo"], "emission_s": emission_sigma, "source": noise},
         "timings_s": times,
     }
-    yaw_i = int(lay["odo_yaw"][0])
-    report["odometry_frame"] = {
-        "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),
-        "yaw_std_deg": float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0)))) if yaw_i >= 0 else None,
-        "estimated": yaw_i >= 0,
-        "test": info.get("yaw_test"),
-        "convention": "odometry z = reference z; a step Δo (odometry frame) is Rz(yaw) Δo in the reference frame"}
-    report["odometry_yaw_deg"] = report["odometry_frame"]["yaw_deg"]
+    report["odometry_frame"] = odo_frame
+    report["odometry_yaw_deg"] = odo_frame["yaw_deg"]
     if emission_sigma > 0:
         report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p["events"], st["e"])}
     return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,

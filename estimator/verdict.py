@@ -43,11 +43,12 @@ def residual_ratios(variance_factors, scales, bounds):
     return out
 
 
-def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, capped, arrays):
+def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, capped, arrays, odometry_yaw=None):
     """The verdict dict from the estimator's diagnostics.
 
     ratios : {kind: RMS normalised residual} (:func:`residual_ratios`); arrays: the consistency records
-    of ``calibrate.consistency_stage`` (``array``, ``inconsistent``, ``moves_sigma``).
+    of ``calibrate.consistency_stage`` (``array``, ``inconsistent``, ``moves_sigma``); odometry_yaw: the
+    yaw test ({yaw_deg, std_deg, kept}) — a kept yaw means the odometry is not in the frame it was said to be.
     """
     status, reasons = "ok", []
 
@@ -85,4 +86,7 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
         if a.get("moves_sigma", 0.0) > MOVE_SIGMA:
             worse("suspect", f"dropping array {a['array']} moves the solution by {a['moves_sigma']:.1f} σ "
                              f"(> {MOVE_SIGMA:g})")
+    if odometry_yaw and odometry_yaw.get("kept"):
+        worse("suspect", f"the odometry frame is rotated by {odometry_yaw['yaw_deg']:.1f} ± {odometry_yaw['std_deg']:.1f}° "
+                         "about the vertical relative to the reference array (estimated; check the odometry's axes)")
     return {"status": status, "reasons": reasons, "flagged_arrays": flagged}
