@@ -32,7 +32,7 @@ def rebuild(features, calib):
     p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e, odometry_yaw=bool(frame.get("estimated")))
     # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
     for key, name in (("tdoa_s", "sigma_tdoa_s"), ("tdoa_m", "sigma_tdoa_m"), ("doa_rad_per_axis", "sigma_doa"),
-                      ("odometry_m", "sigma_odo")):
+                      ("odometry_m", "sigma_odo"), ("cone_rad", "sigma_cone")):
         v = (rep.get("sigmas") or {}).get(key)
         if isinstance(v, (int, float)) and v > 0:
             p[name] = float(v)

@@ -16,6 +16,7 @@ from calib import __version__
 
 from .factors import ALL_KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
+from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import build_problem, copy_state, make_layout
 from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
@@ -40,6 +41,10 @@ def undetermined_parameters(p):
     clocks come from the TDOAs. Returns a list of {"parameter", "array", "reason"}."""
     out = []
     for i in range(p["N"]):
+        if i != p["ref"] and p["rot_free"][i] and p["rot_fixed_axis"][i] >= 0:
+            out.append({"parameter": "roll", "array": str(p["names"][i]),
+                        "reason": "linear array / mic pair: the rotation about its axis is not observable (not "
+                                  "estimated, NaN std); the axis direction is"})
         if i != p["ref"] and not p["rot_free"][i]:
             nd = int(p["n_doa_events"][i])
             out.append({"parameter": "orientation", "array": str(p["names"][i]),
@@ -305,8 +310,10 @@ def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
     return float(z.max()) if z.size else 0.0
 
 
-SIGMA_KEY = {"tdoa_s": "sigma_tdoa_s", "tdoa_m": "sigma_tdoa_m", "doa": "sigma_doa", "odometry": "sigma_odo"}
-META_KEY = {"tdoa_s": "sigma_tdoa", "tdoa_m": "sigma_tdoa", "doa": "sigma_doa_deg", "odometry": "sigma_odo"}
+SIGMA_KEY = {"tdoa_s": "sigma_tdoa_s", "tdoa_m": "sigma_tdoa_m", "doa": "sigma_doa", "odometry": "sigma_odo",
+             "cone": "sigma_cone"}
+META_KEY = {"tdoa_s": "sigma_tdoa", "tdoa_m": "sigma_tdoa", "doa": "sigma_doa_deg", "odometry": "sigma_odo",
+            "cone": "sigma_doa_deg"}
 # A sigma the user states as measured (meta.json/session.toml, not listed in ``sigmas_estimated``) is a
 # prior: variance components may move it by at most this factor either way (the data can say "a bit
 # worse than stated", never replace a 3 cm odometry prior with 3 m and so hide a failure).
@@ -490,6 +497,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         else:
             st, init_info = initialise(p_init)
         st["odo_yaw"] = np.array([yaw0])
+        st = init_cone_axes(p, st)
         times["init"] = time.perf_counter() - t0
         lay_full = make_layout(p)
         check_observability(p, lay_full, kinds, st)
@@ -503,7 +511,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
             lay_ive = make_layout(q, rotations=False)
             st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
                                           k=robust_k, max_iter=max_iter, rtol=1e-6)
-            st = rotations_by_kabsch(p, st)
+            st = init_cone_axes(p, rotations_by_kabsch(p, st))
             if lay_ive["odo_yaw"][0] >= 0:
                 # decide on the odometry yaw here (its σ from the IVE's data is a conservative one), so the
                 # joint pass starts in the right parameter set
@@ -577,7 +585,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                  "emission_correction": emission_sigma > 0},
         "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",
         "sigmas": {"tdoa_s": p["sigma_tdoa_s"], "tdoa_m": p["sigma_tdoa_m"], "doa_rad_per_axis": p["sigma_doa"],
-                   "odometry_m": p["sigma_odo"], "emission_s": emission_sigma, "source": noise},
+                   "odometry_m": p["sigma_odo"], "cone_rad": p["sigma_cone"], "emission_s": emission_sigma,
+                   "source": noise},
         "timings_s": times,
     }
     report["odometry_frame"] = odo_frame

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission"]
-# report unit of each kind and the factor from SI: µs, degrees, cm
+ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission", "cone"]
+# report unit of each kind and the factor from SI: µs, degrees, cm (cone: cosine difference ≈ rad · sin θ)
 UNITS = {"tdoa_s": ("us", 1e6), "tdoa_m": ("us", 1e6), "doa": ("deg", np.rad2deg(1.0)), "odometry": ("cm", 100.0),
-         "emission": ("us", 1e6)}
+         "emission": ("us", 1e6), "cone": ("deg", np.rad2deg(1.0))}
 
 
 def _put(J, rows, cols, vals):
@@ -171,7 +171,34 @@ def odometry_frame(p, st, lay):
     return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
 
 
-FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission}
+def cone(p, st, lay):
+    """Cone (linear arrays, 2-mic pairs): aᵀ R_iᵀ (s_j − x_i)/|s_j − x_i| − cos θ_ij, one per measurement.
+
+    ``a`` (array frame) is the array's axis, θ the measured angle between it and the source direction
+    (``p["cone_*"]``; ``problem.build_problem`` reads them from meta ``doa_axes``). The roll about the
+    axis does not enter (its rotation component is fixed in the layout). Whitened by ``sigma_cone``
+    (rad): the cosine error is sin θ · δθ ≤ δθ.
+    """
+    i, j, c0 = p.get("cone_arr", np.zeros(0, int)), p.get("cone_ev", np.zeros(0, int)), p.get("cone_cos", np.zeros(0))
+    m, sig = len(i), p.get("sigma_cone", p["sigma_doa"])
+    J = np.zeros((m, lay["n"]))
+    if m == 0:
+        return _out("cone", np.zeros(0), J, np.zeros(0, int), 1, True, sig)
+    d, n = _dist(st, i, j)
+    a = p["cone_axis"][i]                                    # (m, 3) array frame
+    w = np.einsum("kba,kb->ka", st["R"][i], n)               # Rᵀ n
+    r = (np.einsum("ka,ka->k", a, w) - c0) / sig
+    # R → R Exp(φ): w → w + w × φ, so d(aᵀw)/dφ = (a × w)ᵀ; d(aᵀw)/ds = (R a)ᵀ (I − n nᵀ)/d = −d/dx
+    dphi = np.cross(a, w)
+    b = np.einsum("kab,kb->ka", st["R"][i], a)
+    ds = (b - np.einsum("ka,ka->k", b, n)[:, None] * n) / d[:, None]
+    _put(J, np.arange(m), np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]),
+         np.column_stack([dphi, ds, -ds]) / sig)
+    return _out("cone", r, J, p["cone_row"], 1, True, sig)
+
+
+FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission,
+           "cone": cone}
 
 
 def evaluate(p, st, lay, kinds=None):

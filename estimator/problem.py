@@ -97,10 +97,12 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     dots = np.einsum("ka,ka->k", nf, p["doa_u"])
     p["doa_u"] = np.where((dots < 0)[:, None], p["doa_u"] - 2.0 * dots[:, None] * nf, p["doa_u"])
     p["N"], p["K"] = len(names), len(events)
+    _split_cones(p, meta, idx)
     # orientation estimated only for arrays with DOAs for >= MIN_DOA_EVENTS events (single microphones and
     # arrays without usable DOAs: position and clock from the TDOAs, orientation reported undetermined)
     n_doa = np.bincount(p["doa_arr"], minlength=len(names)) if len(p["doa_arr"]) else np.zeros(len(names), int)
-    p["rot_free"] = n_doa >= MIN_DOA_EVENTS
+    n_cone = np.bincount(p["cone_arr"], minlength=len(names)) if len(p["cone_arr"]) else np.zeros(len(names), int)
+    p["rot_free"] = (n_doa >= MIN_DOA_EVENTS) | (n_cone >= MIN_DOA_EVENTS)
     p["n_doa_events"] = n_doa
     # a lone DOA of an array whose orientation is not estimated says nothing: leave it out
     useless = ~p["rot_free"][p["doa_arr"]] & (p["doa_arr"] != p["ref"])
@@ -112,6 +114,33 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
 
 
 MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
+
+
+def _split_cones(p, meta, idx):
+    """Move the DOA rows of arrays listed in meta ``doa_axes`` (linear arrays, 2-mic pairs) to cone rows.
+
+    ``doa_axes``: {array: axis} with the axis one of the array frame's coordinate axes (x, y or z, sign
+    free). Such an array measures only the angle θ between its axis and the source direction; its doa.csv
+    rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Adds ``cone_ev``,
+    ``cone_arr``, ``cone_cos``, ``cone_row`` (n_c,), ``cone_axis`` (N, 3), ``rot_fixed_axis`` (N,) (the
+    rotation component about the axis, not observable: -1 for other arrays) and ``sigma_cone`` (rad).
+    """
+    N = len(p["names"])
+    p["cone_axis"] = np.zeros((N, 3))
+    p["rot_fixed_axis"] = -np.ones(N, int)
+    for name, ax in (meta.get("doa_axes") or {}).items():
+        a = np.asarray(ax, float) / np.linalg.norm(ax)
+        k = int(np.argmax(np.abs(a)))
+        if not np.isclose(abs(a[k]), 1.0):
+            raise ValueError(f"meta.json: doa_axes[{name!r}] must be a coordinate axis of the array frame")
+        p["cone_axis"][idx[name]] = a
+        p["rot_fixed_axis"][idx[name]] = k
+    is_cone = p["rot_fixed_axis"][p["doa_arr"]] >= 0
+    p["cone_ev"], p["cone_arr"], p["cone_row"] = p["doa_ev"][is_cone], p["doa_arr"][is_cone], p["doa_row"][is_cone]
+    p["cone_cos"] = np.clip(np.einsum("ka,ka->k", p["cone_axis"][p["cone_arr"]], p["doa_u"][is_cone]), -1.0, 1.0)
+    for key in ("doa_ev", "doa_arr", "doa_u", "doa_row"):
+        p[key] = p[key][~is_cone]
+    p["sigma_cone"] = p["sigma_doa"]
 
 
 # The yaw of the odometry frame needs horizontal motion: a spread of the odometry across the vertical
@@ -175,7 +204,11 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
         if i != ref:
             lay["x"][i] = take(3)
             if rotations and p.get("rot_free", np.ones(N, bool))[i]:
-                lay["rot"][i] = take(3)
+                k_fix = p.get("rot_fixed_axis", -np.ones(N, int))[i]
+                if k_fix >= 0:   # roll about a linear array's axis: not observable, not estimated
+                    lay["rot"][i, [c for c in range(3) if c != k_fix]] = take(2)
+                else:
+                    lay["rot"][i] = take(3)
             lay["offset"][i] = take(1)[0]
         if i != ref or ref_drift:
             lay["drift"][i] = take(1)[0]
@@ -203,9 +236,10 @@ def retract(st, lay, delta):
             out[key] = np.zeros(len(lay[key]))
         m = lay[key] >= 0
         out[key][m] += delta[lay[key][m]]
-    rows = np.flatnonzero(lay["rot"][:, 0] >= 0)
+    rows = np.flatnonzero(np.any(lay["rot"] >= 0, axis=1))
     if rows.size:
-        phi = delta[lay["rot"][rows]]
+        idx = lay["rot"][rows]
+        phi = np.where(idx >= 0, delta[np.maximum(idx, 0)], 0.0)
         out["R"][rows] = st["R"][rows] @ Rotation.from_rotvec(phi).as_matrix()
     return out
 

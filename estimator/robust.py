@@ -26,8 +26,8 @@ from .factors import UNITS
 from .problem import make_layout
 from .solver import levenberg_marquardt, linearise
 
-TESTED_KINDS = ("tdoa_s", "tdoa_m", "doa", "odometry")
-DOF = {"tdoa_s": 1, "tdoa_m": 1, "doa": 2, "odometry": 3}
+TESTED_KINDS = ("tdoa_s", "tdoa_m", "doa", "odometry", "cone")
+DOF = {"tdoa_s": 1, "tdoa_m": 1, "doa": 2, "odometry": 3, "cone": 1}
 FAMILY_ALPHA = 0.01          # family-wise false-alarm rate of the outlier test (Bonferroni over measurements)
 MAX_OUTLIER_FRACTION = 0.3   # the row-wise removal stops after this fraction of the measurements
 UNTESTABLE = 1e-6            # 1 − h below this: the row is fitted exactly by its own parameters
@@ -68,6 +68,8 @@ def measurement_arrays(p, kind):
         return p["doa_arr"], p["doa_ev"]
     if kind == "odometry":
         return np.full(max(p["K"] - 1, 0), -1), np.arange(1, p["K"])
+    if kind == "cone":
+        return p["cone_arr"], p["cone_ev"]
     raise KeyError(kind)
 
 
@@ -210,14 +212,14 @@ def flag_record(p, stats, k, reason="normalised residual"):
 def factor_sizes(p):
     """{kind: (number of residuals, residuals per measurement)} of the tested factors, from the problem."""
     return {"tdoa_s": (len(p["ts_val"]), 1), "tdoa_m": (len(p["tm_val"]), 1), "doa": (3 * len(p["doa_u"]), 3),
-            "odometry": (3 * max(p["K"] - 1, 0), 3)}
+            "odometry": (3 * max(p["K"] - 1, 0), 3), "cone": (len(p.get("cone_cos", ())), 1)}
 
 
 def count_measurements(p, exclude_arrays=()):
     """Number of tested measurements (TDOA rows, DOAs, odometry steps), leaving out ``exclude_arrays``."""
     n = max(p["K"] - 1, 0)
-    for col in ("ts_arr", "tm_arr", "doa_arr"):
-        n += int(np.sum(~np.isin(p[col], list(exclude_arrays))))
+    for col in ("ts_arr", "tm_arr", "doa_arr", "cone_arr"):
+        n += int(np.sum(~np.isin(p.get(col, np.zeros(0, int)), list(exclude_arrays))))
     return n
 
 
@@ -287,7 +289,8 @@ def restore_inliers(p, st, lay, kinds, mask, flagged, *, threshold, max_iter):
 def array_mask(p, mask, sizes, i):
     """``mask`` with every measurement of array i excluded (its TDOA-S, TDOA-M and DOA rows)."""
     out = {kk: v.copy() for kk, v in mask.items()}
-    for kind, col, dim in (("tdoa_s", "ts_arr", 1), ("tdoa_m", "tm_arr", 1), ("doa", "doa_arr", 3)):
+    for kind, col, dim in (("tdoa_s", "ts_arr", 1), ("tdoa_m", "tm_arr", 1), ("doa", "doa_arr", 3),
+                           ("cone", "cone_arr", 1)):
         if kind not in sizes:
             continue
         keep = out.get(kind, np.ones(sizes[kind][0], bool)).copy()
@@ -305,7 +308,7 @@ def array_candidates(p, stats, ratio=ARRAY_RATIO, min_rows=ARRAY_MIN_ROWS):
     Returns a list of (array index, {kind: ratio}) sorted by the largest ratio, worst first.
     """
     out = {}
-    for kind in ("tdoa_s", "tdoa_m", "doa"):
+    for kind in ("tdoa_s", "tdoa_m", "doa", "cone"):
         m = stats.kept & (stats.kind == kind)
         if m.sum() < 2 * min_rows:
             continue

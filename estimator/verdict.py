@@ -22,7 +22,7 @@ OUTLIER_FAILED = 0.30
 TYPES_FAILED = 2         # residuals of this many types above RESIDUAL_SUSPECT at once: the model is wrong
 MOVE_SIGMA = 3.0         # a dropped array moved the rest by more than this many σ
 STATUS_RANK = {"ok": 0, "suspect": 1, "failed": 2}
-TYPE_LABEL = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "odometry"}
+TYPE_LABEL = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "odometry", "cone": "cone (pair axis)"}
 
 
 def residual_ratios(variance_factors, scales, bounds):

@@ -30,8 +30,9 @@ from .io import atomic_dir, dumps_json
 
 UNIT_LABEL = {"tdoa_s": "TDOA-S residual (µs)", "tdoa_m": "TDOA-M residual (µs)",
               "doa": "DOA angular error (deg)", "odometry": "odometry residual per axis (cm)",
-              "emission": "emission-interval correction (µs)"}
-TITLE = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "Odometry", "emission": "Emission"}
+              "emission": "emission-interval correction (µs)", "cone": "cone (axis angle) residual, cos × 57.3 (≈ deg)"}
+TITLE = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "Odometry", "emission": "Emission",
+         "cone": "Cone"}
 
 
 def _plt():

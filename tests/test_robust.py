@@ -135,3 +135,29 @@ def test_bad_options_are_refused(opt, value):
     feats, _ = simulate_features(1, seed=0)
     with pytest.raises(ValueError, match=opt):
         calibrate(feats, **{opt: value})
+
+
+def _as_pairs(feats, names, axis=(1.0, 0.0, 0.0)):
+    """The DOAs of ``names`` reduced to what a mic pair along ``axis`` (x) measures: a unit vector on the cone."""
+    d = feats["doa"].copy()
+    m = d.array.isin(names).to_numpy()
+    ux = d.loc[m, "ux"].to_numpy()
+    d.loc[m, "uy"], d.loc[m, "uz"] = np.sqrt(1 - ux ** 2), 0.0
+    return {**feats, "doa": d, "meta": {**feats["meta"], "doa_axes": {n: list(axis) for n in names}}}
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_mic_pairs_calibrated_from_cones(noise):
+    """Three 2-mic pairs + two full arrays: pair positions and axes recovered, roll reported undetermined."""
+    feats, truth = simulate_features(3, 1e-4, 5.0, 0.03, seed=2, noise=noise)
+    cal = calibrate(_as_pairs(feats, ["A2", "A3", "A4"]))
+    a, t = cal["arrays"].set_index("array"), truth["arrays"].set_index("array")
+    pos = np.linalg.norm((a[["x", "y", "z"]] - t[["x", "y", "z"]]).to_numpy(float), axis=1)
+    q = ["qw", "qx", "qy", "qz"]
+    ea = Rotation.from_quat(a[q].to_numpy(float), scalar_first=True).apply([1, 0, 0])
+    ta = Rotation.from_quat(t[q].to_numpy(float), scalar_first=True).apply([1, 0, 0])
+    axis_deg = np.rad2deg(np.arccos(np.clip(np.sum(ea * ta, axis=1), -1, 1)))
+    tol_pos, tol_ax = (1e-6, 1e-4) if not noise else (0.06, 4.0)
+    assert np.all(pos < tol_pos) and np.all(axis_deg < tol_ax), (pos, axis_deg)
+    assert np.isnan(a.loc["A2", "rx_std"]) and np.isfinite(a.loc["A2", "ry_std"])     # roll about x
+    assert {u["array"] for u in cal["report"]["undetermined"] if u["parameter"] == "roll"} == {"A2", "A3", "A4"}
