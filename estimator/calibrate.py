@@ -20,7 +20,7 @@ from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import build_problem, copy_state, make_layout
 from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
-                     count_measurements, factor_sizes, remove_outliers, restore_inliers, sym_inverse)
+                     count_measurements, factor_sizes, variance_factors, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
 from .verdict import make_verdict, residual_ratios
@@ -167,7 +167,7 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     ``capped`` (the row-wise removal hit its cap) and ``n_measurements``.
     """
     lay = make_layout(p)
-    info = {"arrays": [], "capped": False}
+    info = {"arrays": [], "capped": False, "stats": None}
     # the robust pass only has to find the basin and the outliers; the final pass converges tightly
     st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter,
                                              rtol=1e-6)
@@ -189,14 +189,16 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
                                                         stats=stats if check_arrays and not dropped else None)
         st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
         # outliers that only show at the least-squares solution (the robust loss hid their pull)
-        st, mask, more, _, _, cap2 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
-                                                     loss=None, k=robust_k, max_iter=max_iter)
+        st, mask, more, _, stats_b, cap2 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
+                                                           loss=None, k=robust_k, max_iter=max_iter)
         info["capped"] = cap1 or cap2
         n_flagged = len(flagged) + len(more)
         st, mask, flagged = restore_inliers(p, st, lay, kinds, mask, flagged + more, threshold=outlier_threshold,
                                             max_iter=max_iter)
         if more or len(flagged) < n_flagged:
             st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+        else:
+            info["stats"] = stats_b   # the statistics at the final state (for the verdict)
     else:
         st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
     info["n_measurements"] = count_measurements(p, dropped)
@@ -552,7 +554,11 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     if not same:
         _, _, w_s, cost, _ = linearise(p, st, lay_s, kinds, mask=mask)
         n_res = int((w_s > 0).sum())
-    ratios = residual_ratios(_vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None), scales, bounds)
+    if info["stats"] is not None and noise != "estimate":
+        vf = variance_factors(info["stats"])
+    else:
+        vf = _vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None)
+    ratios = residual_ratios(vf, scales, bounds)
     yaw_i = int(lay["odo_yaw"][0])
     odo_frame = {
         "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),

@@ -157,17 +157,20 @@ def odometry_frame(p, st, lay):
     J = np.zeros((3 * max(K - 1, 0), lay["n"]))
     if K < 2:
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
-    psi = float(np.asarray(st.get("odo_yaw", 0.0)).ravel()[0]) if "odo_yaw" in st else 0.0
-    c, s = np.cos(psi), np.sin(psi)
+    psi = float(st["odo_yaw"][0]) if "odo_yaw" in st else 0.0
+    yaw_col = int(lay.get("odo_yaw", -np.ones(1, int))[0])
     do = np.diff(p["odom"], axis=0)
-    rot = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
-    drot = np.column_stack([-s * do[:, 0] - c * do[:, 1], c * do[:, 0] - s * do[:, 1], np.zeros(K - 1)])
-    r = ((np.diff(st["s"], axis=0) - rot) / sig).ravel()
+    if psi != 0.0:
+        c, s = np.cos(psi), np.sin(psi)
+        do = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
+    r = ((np.diff(st["s"], axis=0) - do) / sig).ravel()
     k = np.arange(3 * (K - 1))
     _put(J, k, lay["s"][1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
     _put(J, k, lay["s"][:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
-    yaw_col = lay.get("odo_yaw", -np.ones(1, int))
-    _put(J, k, np.full(3 * (K - 1), yaw_col[0]), -drot.ravel() / sig)
+    if yaw_col >= 0:
+        # d(Rz(ψ) Δo)/dψ = (−y', x', 0) of the rotated step (x', y', z') = Rz(ψ) Δo
+        drot = np.column_stack([-do[:, 1], do[:, 0], np.zeros(K - 1)])
+        _put(J, k, np.full(3 * (K - 1), yaw_col), -drot.ravel() / sig)
     return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
 
 

@@ -121,8 +121,8 @@ def measurement_stats(p, st, lay, kinds, mask):
             den = I_H[:, 0, 0]
             q = np.where(den > UNTESTABLE, rg[:, 0] ** 2 / np.maximum(den, UNTESTABLE), 0.0)
         else:
-            # pseudo-inverse per block: the DOA block is (near) singular along the predicted direction
-            q = np.einsum("gi,gij,gj->g", rg, np.linalg.pinv(I_H, rcond=1e-6, hermitian=True), rg)
+            # DOA: along the predicted direction H ≈ 0 and r ≈ 0, so I − H stays regular there
+            q = _block_quadratic(I_H, rg)
         arr, ev = measurement_arrays(p, f["kind"])
         unit_scale = UNITS[f["kind"]][1]
         nat = rg[:, 0] if dim == 1 else np.linalg.norm(rg, axis=1)   # signed for scalar measurements
@@ -142,6 +142,17 @@ def measurement_stats(p, st, lay, kinds, mask):
     cat = {k: np.concatenate(v) for k, v in out.items()}
     z, scale = _normal_scores(cat["kind"], cat["q"], cat["dof"], cat["kept"])
     return MeasurementStats(z=z, scale=scale, **cat)
+
+
+def _block_quadratic(M, r):
+    """rᵀ M⁻¹ r per block (G, d, d), (G, d): solve, pseudo-inverse where a block is (near) singular."""
+    try:
+        x = np.linalg.solve(M, r[..., None])[..., 0]
+        if np.all(np.isfinite(x)):
+            return np.einsum("gi,gi->g", r, x)
+    except np.linalg.LinAlgError:
+        pass
+    return np.einsum("gi,gij,gj->g", r, np.linalg.pinv(M, rcond=1e-6, hermitian=True), r)
 
 
 def _normal_scores(kind, q, dof, kept):
@@ -179,6 +190,16 @@ def _z_from_logp(logp):
     z = -ndtri(np.clip(p, 1e-300, 1.0) / 2.0)
     # beyond double precision: the asymptotic inverse of the normal tail, z ≈ sqrt(−2 log p)
     return np.where(p > 1e-300, z, np.sqrt(-2.0 * (logp - np.log(2.0))))
+
+
+def variance_factors(stats):
+    """{kind: Σ q / Σ dof over the kept rows}: each type's residual variance in units of its sigma²."""
+    out = {}
+    for k in np.unique(stats.kind):
+        m = stats.kept & (stats.kind == k)
+        if m.any():
+            out[str(k)] = float(np.sum(stats.q[m]) / np.sum(stats.dof[m]))
+    return out
 
 
 def critical_z(threshold, n_tests, alpha=FAMILY_ALPHA):
