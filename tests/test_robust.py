@@ -161,3 +161,22 @@ def test_mic_pairs_calibrated_from_cones(noise):
     assert np.all(pos < tol_pos) and np.all(axis_deg < tol_ax), (pos, axis_deg)
     assert np.isnan(a.loc["A2", "rx_std"]) and np.isfinite(a.loc["A2", "ry_std"])     # roll about x
     assert {u["array"] for u in cal["report"]["undetermined"] if u["parameter"] == "roll"} == {"A2", "A3", "A4"}
+
+
+def test_cli_exit_codes_for_failed_verdict_and_bad_options(tmp_path):
+    """`calib estimate`: verdict printed last, exit 3 on failed (calibration still written), 2 on NaN options."""
+    from typer.testing import CliRunner
+
+    from calib.cli.main import app
+    from calib.pipeline.io import write_features
+
+    feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
+    bad, _ = bench.fault_t_emit(feats, truth, None)
+    write_features(tmp_path / "f", bad)
+    runner = CliRunner()
+    r = runner.invoke(app, ["estimate", str(tmp_path / "f"), "-o", str(tmp_path / "c")])
+    assert r.exit_code == 3, (r.stdout, r.stderr)
+    assert r.stderr.rfind("verdict: FAILED") > r.stderr.rfind("converged:") > 0    # the verdict comes last
+    assert (tmp_path / "c" / "report.json").is_file()
+    r = runner.invoke(app, ["estimate", str(tmp_path / "f"), "-o", str(tmp_path / "c2"), "--outlier-threshold", "nan"])
+    assert r.exit_code == 2 and "--outlier-threshold" in r.stderr and not (tmp_path / "c2").exists()
