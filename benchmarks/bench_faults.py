@@ -145,6 +145,11 @@ def errors(cal, truth, skip=None):
     return loc, ang
 
 
+def _verdict(cal):
+    """The calibration's verdict (a version without one — the baseline — counts as "ok" with exit 0)."""
+    return cal["report"].get("verdict") or {"status": "ok (no verdict)", "reasons": [], "flagged_arrays": []}
+
+
 def one(seed, faults):
     traj = 1 + seed % 3
     feats, truth = simulate_features(traj, SIGMA_TDOA, SIGMA_DOA_DEG, SIGMA_ODO, seed=1000 + seed)
@@ -153,7 +158,7 @@ def one(seed, faults):
     clean = calibrate(feats)
     base = {"seed": seed, "traj": traj}
     cl, ca = errors(clean, truth)
-    rows.append({**base, "fault": "clean", "loc_cm": 100 * cl, "ang_deg": ca, "status": clean["report"]["verdict"]["status"],
+    rows.append({**base, "fault": "clean", "loc_cm": 100 * cl, "ang_deg": ca, "status": _verdict(clean)["status"],
                  "outliers": len(clean["report"]["outliers"]), "flagged": "", "bad": "",
                  "seconds": time.perf_counter() - t0, "clean_loc_cm": 100 * cl, "clean_ang_deg": ca})
     for name in faults:
@@ -168,10 +173,11 @@ def one(seed, faults):
         rep = cal["report"]
         loc, ang = errors(cal, truth, skip=bad)
         cl_o, ca_o = errors(clean, truth, skip=bad)
-        row = {**base, "fault": name, "loc_cm": 100 * loc, "ang_deg": ang, "status": rep["verdict"]["status"],
-               "outliers": len(rep["outliers"]), "flagged": ",".join(rep["verdict"]["flagged_arrays"]),
+        v = _verdict(cal)
+        row = {**base, "fault": name, "loc_cm": 100 * loc, "ang_deg": ang, "status": v["status"],
+               "outliers": len(rep["outliers"]), "flagged": ",".join(v["flagged_arrays"]),
                "bad": bad or "", "seconds": time.perf_counter() - t0, "clean_loc_cm": 100 * cl_o,
-               "clean_ang_deg": ca_o, "reasons": "; ".join(rep["verdict"]["reasons"])}
+               "clean_ang_deg": ca_o, "reasons": "; ".join(v["reasons"])}
         if "odometry_yaw_deg" in rep:
             row["yaw_deg"] = rep["odometry_yaw_deg"]
         rows.append(row)
@@ -203,7 +209,7 @@ def acceptance(df):
                    f"{g.status.astype(str).str.match('failed|refused').sum()}/{len(g)} runs")
     bad = df[(df.fault != "clean") & (df.loc_cm > 2 * df.clean_loc_cm + 2.0)]
     out.append(f"runs with location error > 2x clean + 2 cm: {len(bad)}, of which ending ok: "
-               f"{(bad.status == 'ok').sum()} (target 0)")
+               f"{bad.status.astype(str).str.startswith('ok').sum()} (target 0)")
     return out
 
 
