@@ -180,3 +180,15 @@ def test_cli_exit_codes_for_failed_verdict_and_bad_options(tmp_path):
     assert (tmp_path / "c" / "report.json").is_file()
     r = runner.invoke(app, ["estimate", str(tmp_path / "f"), "-o", str(tmp_path / "c2"), "--outlier-threshold", "nan"])
     assert r.exit_code == 2 and "--outlier-threshold" in r.stderr and not (tmp_path / "c2").exists()
+
+
+def test_report_first_line_states_the_verdict(tmp_path):
+    from calib.pipeline.io import read_calibration, write_calibration
+    from calib.pipeline.report import make_report
+
+    feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
+    for f, status in ((feats, "OK"), (bench.fault_t_emit(feats, truth, None)[0], "FAILED")):
+        write_calibration(tmp_path / status / "cal", calibrate(f))
+        make_report(tmp_path / status / "rep", f, read_calibration(tmp_path / status / "cal"))
+        first = (tmp_path / status / "rep" / "summary.md").read_text().splitlines()[0]
+        assert first.endswith(f"verdict: {status}"), first
