@@ -23,7 +23,7 @@ from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mas
                      count_measurements, factor_sizes, variance_factors, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
-from .verdict import make_verdict, residual_ratios
+from .verdict import concentrated_outliers, make_verdict, residual_ratios
 
 
 
@@ -231,6 +231,13 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
             break
         st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
     return st
+
+
+def _rows_per_array(p):
+    """{array name: number of its measurement rows (TDOA-S, TDOA-M, DOA, cone)}."""
+    cols = [p[c] for c in ("ts_arr", "tm_arr", "doa_arr", "cone_arr") if c in p]
+    counts = np.bincount(np.concatenate(cols).astype(int), minlength=p["N"]) if cols else np.zeros(p["N"], int)
+    return {str(n): int(k) for n, k in zip(p["names"], counts)}
 
 
 def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
@@ -569,7 +576,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     verdict = make_verdict(converged=bool(info["final"]["converged"]), reason=info["final"]["reason"],
                            ratios=ratios, n_outliers=len(info["outliers"]), n_measurements=info["n_measurements"],
                            capped=info["capped"], arrays=info["arrays"], odometry_yaw={"kept": odo_frame["estimated"], "yaw_deg": odo_frame["yaw_deg"],
-                                         "std_deg": odo_frame["yaw_std_deg"]})
+                                         "std_deg": odo_frame["yaw_std_deg"]},
+                           concentrated=concentrated_outliers(info["outliers"], _rows_per_array(p)))
     report = {
         "verdict": verdict,
         "software": {"name": "calib", "version": __version__},

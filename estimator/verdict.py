@@ -20,6 +20,9 @@ RESIDUAL_FAILED = 10.0   # 10×: the data contradict the model (e.g. wrong emiss
 OUTLIER_SUSPECT = 0.15   # fraction of measurements removed as outliers
 OUTLIER_FAILED = 0.30
 TYPES_FAILED = 2         # residuals of this many types above RESIDUAL_SUSPECT at once: the model is wrong
+CONCENTRATED_MIN = 4         # an array holding at least this many outlier rows,
+CONCENTRATED_SHARE = 0.5     # at least this share of all of them,
+CONCENTRATED_OWN = 0.1       # and at least this fraction of its own rows is named (kept, not dropped)
 MOVE_SIGMA = 3.0         # a dropped array moved the rest by more than this many σ
 STATUS_RANK = {"ok": 0, "suspect": 1, "failed": 2}
 TYPE_LABEL = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "odometry", "cone": "cone (pair axis)"}
@@ -43,7 +46,19 @@ def residual_ratios(variance_factors, scales, bounds):
     return out
 
 
-def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, capped, arrays, odometry_yaw=None):
+def concentrated_outliers(outliers, rows_per_array):
+    """Arrays holding most of the outlier rows: {array: (its outliers, its rows)} (see CONCENTRATED_*)."""
+    total = len(outliers)
+    out = {}
+    for a, n_rows in rows_per_array.items():
+        k = sum(1 for o in outliers if o.get("array") == a)
+        if k >= CONCENTRATED_MIN and k >= CONCENTRATED_SHARE * total and k >= CONCENTRATED_OWN * n_rows:
+            out[a] = (k, n_rows)
+    return out
+
+
+def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, capped, arrays, odometry_yaw=None,
+                 concentrated=None):
     """The verdict dict from the estimator's diagnostics.
 
     ratios : {kind: RMS normalised residual} (:func:`residual_ratios`); arrays: the consistency records
@@ -86,6 +101,11 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
         if a.get("moves_sigma", 0.0) > MOVE_SIGMA:
             worse("suspect", f"dropping array {a['array']} moves the solution by {a['moves_sigma']:.1f} σ "
                              f"(> {MOVE_SIGMA:g})")
+    for a, (k, n_rows) in (concentrated or {}).items():
+        if a not in flagged:
+            flagged.append(a)
+            worse("suspect", f"array {a} holds {k} of the {n_outliers} outliers ({k} of its {n_rows} rows): its "
+                             "data may be biased as a whole (reflections, occlusion)")
     if odometry_yaw and odometry_yaw.get("kept"):
         worse("suspect", f"the odometry frame is rotated by {odometry_yaw['yaw_deg']:.1f} ± {odometry_yaw['std_deg']:.1f}° "
                          "about the vertical relative to the reference array (estimated; check the odometry's axes)")
