@@ -416,6 +416,50 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
     return st, p, {"scale": scales, "at_bound": at_bound, "bounds": bounds, **info}
 
 
+def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
+    """Initialisation (hybrid or Wang et al.'s) in the odometry frame's start yaw, the observability check,
+    then the IVE (hybrid with TDOA-S), where the odometry yaw is kept or fixed. Returns (state, stages,
+    stage_states); ``times`` gets "init" and "ive" (s).
+    """
+    t0 = time.perf_counter()
+    stages, stage_states = {}, {}
+    # the odometry frame's yaw: a start value from the reference DOAs, the initialisation in that frame
+    yaw0 = initial_yaw(p) if p["odo_yaw_free"] else 0.0
+    p_init = {**p, "odom": rotate_odometry(p["odom"], yaw0), "odo_yaw_free": False}
+    if method == "wang":
+        from .wang import wang_initialise
+
+        st, init_info = wang_initialise(p_init)
+    else:
+        st, init_info = initialise(p_init)
+    st["odo_yaw"] = np.array([yaw0])
+    st = init_cone_axes(p, st)
+    times["init"] = time.perf_counter() - t0
+    lay_full = make_layout(p)
+    check_observability(p, lay_full, kinds, st)
+    stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
+    stage_states["init"] = copy_state(st)
+    if method == "hybrid" and len(p["ts_val"]) > 0:
+        # Stage 1 (IVE): positions, clocks and sources from hybrid TDOA, odometry and the reference
+        # array's DOAs; then rotations by SVD alignment of DOA-scaled points.
+        t1 = time.perf_counter()
+        q = subproblem(p, np.arange(p["N"]), doa_arrays=[p["ref"]])
+        lay_ive = make_layout(q, rotations=False)
+        st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+                                      k=robust_k, max_iter=max_iter, rtol=1e-6)
+        st = init_cone_axes(p, rotations_by_kabsch(p, st))
+        if lay_ive["odo_yaw"][0] >= 0:
+            # decide on the odometry yaw here (its σ from the IVE's data is a conservative one), so the
+            # joint pass starts in the right parameter set
+            _, J_ive, w_ive, _, _ = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+                                              k=robust_k)
+            p["odo_yaw_test"] = _yaw_decision(p, st, J_ive * np.sqrt(w_ive)[:, None], int(lay_ive["odo_yaw"][0]))
+        stage_states["ive"] = copy_state(st)
+        stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
+        times["ive"] = time.perf_counter() - t1
+    return st, stages, stage_states
+
+
 def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
                      outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto"):
     """Raise ValueError with a clear message for any option of :func:`calibrate_features` out of range.
@@ -447,6 +491,41 @@ def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, lo
         raise ValueError(f"use_tdoa_s must be True or False, not {use_tdoa_s!r}")
 
 
+def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
+    """Residual ratios, odometry frame and verdict at the final state.
+
+    ``lay``, ``cov``, ``w``, ``cost``: layout, covariance, weights and cost of the full final problem.
+    Returns (verdict, ratios, odometry_frame dict, cost and residual count without dropped arrays' rows).
+    """
+    mask = info["mask"]
+    # the statistics below leave out the rows of dropped arrays (their pose was fitted to them alone)
+    lay_s = info["layout"]
+    same = not info["dropped"]   # then lay_s is lay and cov is the one the factors need
+    n_res = int((w > 0).sum())
+    if not same:
+        _, _, w_s, cost, _ = linearise(p, st, lay_s, kinds, mask=mask)
+        n_res = int((w_s > 0).sum())
+    if info["stats"] is not None and noise != "estimate":
+        vf = variance_factors(info["stats"])
+    else:
+        vf = _vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None)
+    ratios = residual_ratios(vf, scales, bounds)
+    yaw_i = int(lay["odo_yaw"][0])
+    odo_frame = {
+        "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),
+        "yaw_std_deg": float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0)))) if yaw_i >= 0 else None,
+        "estimated": yaw_i >= 0,
+        "test": info.get("yaw_test"),
+        "convention": "odometry z = reference z; a step Δo (odometry frame) is Rz(yaw) Δo in the reference frame"}
+    verdict = make_verdict(converged=bool(info["final"]["converged"]), reason=info["final"]["reason"],
+                           ratios=ratios, n_outliers=len(info["outliers"]), n_measurements=info["n_measurements"],
+                           capped=info["capped"], arrays=info["arrays"],
+                           odometry_yaw={"kept": odo_frame["estimated"], "yaw_deg": odo_frame["yaw_deg"],
+                                         "std_deg": odo_frame["yaw_std_deg"]},
+                           concentrated=concentrated_outliers(info["outliers"], _rows_per_array(p)))
+    return verdict, ratios, odo_frame, cost, n_res
+
+
 def calibrate(features, **options):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
@@ -467,20 +546,23 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         ``estimator.wang``).
     use_tdoa_s : use TDOA-S measurements (False gives Wang et al.'s setting with our solver).
     emission_sigma : prior std (s) of per-interval emission-time errors; 0 disables the correction.
-    loss : robust loss on TDOA residuals for the first joint pass ("cauchy", "huber" or None).
-    robust_k : robust scale, in units of the TDOA sigma.
-    outlier_threshold : TDOA residuals beyond this many (robust) sigmas are flagged and excluded.
+    loss : robust loss on TDOA and DOA residuals for the robust passes ("cauchy", "huber", "linear"/None).
+    robust_k : robust scale, in units of each type's sigma.
+    outlier_threshold : measurements (TDOA, DOA, odometry, cone) whose normalised residual z exceeds
+        max(this, the Bonferroni level) are removed one at a time (``estimator.robust``) and reported.
     init_state : optional state to start the joint solve from (skips initialisation; used to compare
         with a solve started from ground truth).
     noise : "meta" weights with the sigmas of meta.json (documented defaults when absent); "estimate"
         then re-estimates one sigma per measurement type from the residuals (variance components) and
         re-solves, so weights and error bars follow the data's actual noise; "auto" (default) estimates
         when meta.json says its sigmas are a frontend's own figures (``sigmas_estimated``), else "meta".
+        User-stated sigmas move at most PRIOR_MAX_FACTOR (3×) either way.
+    odometry_yaw : estimate the odometry frame's yaw (kept only when significant; docs/method.md).
 
     Returns
     -------
     dict with ``arrays`` and ``sources`` DataFrames (with ``*_std`` columns: 1-σ from (JᵀWJ)⁻¹, rotation
-    std per axis of the array frame in rad) and ``report`` (dict, see docs/method.md).
+    std per axis of the array frame in rad) and ``report`` (dict with ``verdict`` first, see docs/method.md).
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
                      robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise)
@@ -489,48 +571,16 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     times = {}
     t0 = time.perf_counter()
     if method == "wang":
-        from .wang import wang_initialise
-
         use_tdoa_s = False
     p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
     if p["K"] < 3:
         raise ObservabilityError(f"only {p['K']} event(s): at least 3 are needed to calibrate")
     kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
-    stages, stage_states = {}, {}
     if init_state is None:
-        # the odometry frame's yaw: a start value from the reference DOAs, the initialisation in that frame
-        yaw0 = initial_yaw(p) if p["odo_yaw_free"] else 0.0
-        p_init = {**p, "odom": rotate_odometry(p["odom"], yaw0), "odo_yaw_free": False}
-        if method == "wang":
-            st, init_info = wang_initialise(p_init)
-        else:
-            st, init_info = initialise(p_init)
-        st["odo_yaw"] = np.array([yaw0])
-        st = init_cone_axes(p, st)
-        times["init"] = time.perf_counter() - t0
-        lay_full = make_layout(p)
-        check_observability(p, lay_full, kinds, st)
-        stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
-        stage_states["init"] = copy_state(st)
-        if method == "hybrid" and len(p["ts_val"]) > 0:
-            # Stage 1 (IVE): positions, clocks and sources from hybrid TDOA, odometry and the reference
-            # array's DOAs; then rotations by SVD alignment of DOA-scaled points.
-            t1 = time.perf_counter()
-            q = subproblem(p, np.arange(p["N"]), doa_arrays=[p["ref"]])
-            lay_ive = make_layout(q, rotations=False)
-            st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
-                                          k=robust_k, max_iter=max_iter, rtol=1e-6)
-            st = init_cone_axes(p, rotations_by_kabsch(p, st))
-            if lay_ive["odo_yaw"][0] >= 0:
-                # decide on the odometry yaw here (its σ from the IVE's data is a conservative one), so the
-                # joint pass starts in the right parameter set
-                _, J_ive, w_ive, _, _ = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
-                                                  k=robust_k)
-                p["odo_yaw_test"] = _yaw_decision(p, st, J_ive * np.sqrt(w_ive)[:, None], int(lay_ive["odo_yaw"][0]))
-            stage_states["ive"] = copy_state(st)
-            stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
-            times["ive"] = time.perf_counter() - t1
+        st, stages, stage_states = initial_state(p, kinds, method=method, loss=loss, robust_k=robust_k,
+                                                 max_iter=max_iter, times=times)
     else:
+        stages, stage_states = {}, {}
         st = {k: np.array(v, dtype=float, copy=True) for k, v in init_state.items()}
         st.setdefault("odo_yaw", np.zeros(1))
     t2 = time.perf_counter()
@@ -554,30 +604,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     std = std_from_cov(p, lay, cov)
     arrays, sources = to_frames(p, st, std)
     times["total"] = time.perf_counter() - t0
-    # the statistics below leave out the rows of dropped arrays (their pose was fitted to them alone)
+    verdict, ratios, odo_frame, cost_s, n_res = _judge(p, st, info, lay, cov, w, cost, scales=scales, bounds=bounds,
+                                                       noise=noise, kinds=kinds)
     lay_s = info["layout"]
-    same = not info["dropped"]   # then lay_s is lay and cov is the one the factors need
-    n_res = int((w > 0).sum())
-    if not same:
-        _, _, w_s, cost, _ = linearise(p, st, lay_s, kinds, mask=mask)
-        n_res = int((w_s > 0).sum())
-    if info["stats"] is not None and noise != "estimate":
-        vf = variance_factors(info["stats"])
-    else:
-        vf = _vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None)
-    ratios = residual_ratios(vf, scales, bounds)
-    yaw_i = int(lay["odo_yaw"][0])
-    odo_frame = {
-        "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),
-        "yaw_std_deg": float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0)))) if yaw_i >= 0 else None,
-        "estimated": yaw_i >= 0,
-        "test": info.get("yaw_test"),
-        "convention": "odometry z = reference z; a step Δo (odometry frame) is Rz(yaw) Δo in the reference frame"}
-    verdict = make_verdict(converged=bool(info["final"]["converged"]), reason=info["final"]["reason"],
-                           ratios=ratios, n_outliers=len(info["outliers"]), n_measurements=info["n_measurements"],
-                           capped=info["capped"], arrays=info["arrays"], odometry_yaw={"kept": odo_frame["estimated"], "yaw_deg": odo_frame["yaw_deg"],
-                                         "std_deg": odo_frame["yaw_std_deg"]},
-                           concentrated=concentrated_outliers(info["outliers"], _rows_per_array(p)))
     report = {
         "verdict": verdict,
         "software": {"name": "calib", "version": __version__},
@@ -586,9 +615,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         "reason": info["final"]["reason"],
         "iterations": {"robust": info["robust"]["iterations"], "final": info["final"]["iterations"]},
         "cost": {**{k: v["cost"] for k, v in stages.items() if "cost" in v}, "joint_robust": info["robust"]["cost"],
-                 "final": cost},
+                 "final": cost_s},
         "stages": stages,
-        "chi2_per_dof": float(2 * cost / max(n_res - lay_s["n"], 1)),
+        "chi2_per_dof": float(2 * cost_s / max(n_res - lay_s["n"], 1)),
         "residual_ratio": ratios,
         "residuals": residual_table(fs, mask),
         "outliers": info["outliers"],
