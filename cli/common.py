@@ -1,7 +1,8 @@
 """Shared CLI plumbing: one-line errors with exit code 2, internal errors, interrupts, consoles.
 
 Exit codes (docs/reliability.md): 0 ok, 1 internal error (a bug: the traceback is written to a file
-whose path is printed), 2 bad input (``error: <file>: <problem>``), 130 SIGINT, 143 SIGTERM.
+whose path is printed), 2 bad input (``error: <file>: <problem>``), 3 a calibration whose verdict is
+"failed" (everything is still written), 130 SIGINT, 143 SIGTERM.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from calib.pipeline import validate as V
 from calib.pipeline.outputs import ENVIRONMENT_ERRNOS
 
 from . import signals
-from .signals import EXIT_INPUT, EXIT_INTERNAL  # noqa: F401  (re-exported)
+from .signals import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL  # noqa: F401  (re-exported)
 
 console = Console(stderr=True)
 MAX_WARNINGS = 5  # input warnings printed per command; the rest are counted in one line
@@ -126,7 +127,9 @@ Method = Annotated[str, typer.Option(help="estimator: hybrid (ours) or wang (bas
 NoTdoaS = Annotated[bool, typer.Option("--no-tdoa-s", help="ignore TDOA-S (Wang et al.'s measurement set)")]
 EmissionSigma = Annotated[float, typer.Option(help="prior std (s) of emission-interval errors to estimate; 0 = off")]
 Loss = Annotated[str, typer.Option(help="robust loss on TDOA residuals: cauchy, huber or linear")]
-OutlierThreshold = Annotated[float, typer.Option(help="flag and drop TDOA residuals beyond this many sigmas")]
+OutlierThreshold = Annotated[float, typer.Option(help="flag and drop measurements (TDOA, DOA, odometry) whose "
+                                                       "normalised residual exceeds this many sigmas (or the "
+                                                       "Bonferroni level, if larger)")]
 Noise = Annotated[str, typer.Option(help="weights: auto (re-estimate the frontend's own noise figures from the "
                                          "residuals), meta (meta.json's sigmas as they are) or estimate")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="print nothing but errors")]
@@ -136,3 +139,21 @@ def estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold,
     """Validated keyword arguments of ``estimator.calibrate`` from the shared CLI options (InputError)."""
     return V.estimate_options({"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma,
                                "loss": loss, "outlier_threshold": outlier_threshold, "noise": noise})
+
+
+def print_verdict(report, console):
+    """The verdict, last: status in capitals, then one line per reason (report.json ``verdict``)."""
+    v = report.get("verdict") or {}
+    status = str(v.get("status", "?"))
+    colour = {"ok": "green", "suspect": "yellow", "failed": "bold red"}.get(status, "")
+    flagged = v.get("flagged_arrays") or []
+    extra = f" (flagged arrays: {', '.join(flagged)})" if flagged else ""
+    console.print(f"verdict: [{colour}]{status.upper()}[/{colour}]{extra}" if colour else f"verdict: {status}")
+    for r in v.get("reasons") or []:
+        console.print(f"  - {r}", highlight=False)
+
+
+def exit_on_failed(report):
+    """Exit with EXIT_FAILED when the verdict is "failed" (after everything has been written and shown)."""
+    if (report.get("verdict") or {}).get("status") == "failed":
+        raise typer.Exit(EXIT_FAILED)

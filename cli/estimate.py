@@ -9,7 +9,7 @@ from calib.pipeline.io import write_calibration
 from calib.pipeline.outputs import owned_output
 from calib.pipeline.run import estimate_features
 from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
-                     estimate_options, user_errors, waiting)
+                     estimate_options, exit_on_failed, print_verdict, user_errors, waiting)
 from .tables import print_arrays
 
 
@@ -25,7 +25,11 @@ def estimate(
     noise: Noise = "auto",
     quiet: Quiet = False,
 ):
-    """Estimate array poses, clock offsets/drifts and source positions from features."""
+    """Estimate array poses, clock offsets/drifts and source positions from features.
+
+    Exit code 0 when the verdict is ok or suspect, 3 when it is failed (the calibration is still written),
+    2 on bad input.
+    """
     opts = estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise)
     with owned_output([out], [features], command="calib estimate", on_wait=waiting):
         calib, feats = estimate_features(features, opts)
@@ -35,3 +39,5 @@ def estimate(
         rep = calib["report"]
         console.print(f"converged: {rep['converged']} ({rep['reason']}), final cost {rep['cost']['final']:.4g}, "
                       f"{len(rep['outliers'])} outlier(s) → {out}")
+        print_verdict(calib["report"], console)
+    exit_on_failed(calib["report"])

@@ -8,7 +8,7 @@ import typer
 
 from calib.pipeline.io import dumps_json
 from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
-                     estimate_options, user_errors, waiting)
+                     estimate_options, exit_on_failed, print_verdict, user_errors, waiting)
 from .signals import interrupted
 from .tables import out as stdout, print_arrays, print_metrics
 
@@ -83,6 +83,9 @@ def run(
     Writes OUT/features, OUT/diagnostics, OUT/calibration and OUT/report. Re-running skips every stage whose
     inputs (file contents), settings and software are unchanged; edit OUT/features/*.csv by hand and re-run
     to re-estimate from your edits.
+
+    Exit code 0 when the verdict is ok or suspect, 3 when it is failed (everything is still written), 2 on
+    bad input, 130 when interrupted.
     """
     from calib.pipeline.run import run as run_pipeline
 
@@ -107,12 +110,15 @@ def run(
             "stages": stages,
             "seconds": res["seconds"],
             "converged": rep.get("converged"),
+            "verdict": rep.get("verdict"),
             "metrics": res["metrics"],
             "outputs": {"features": str(res["out"] / "features"), "diagnostics": str(res["out"] / "diagnostics"),
                         "calibration": str(res["out"] / "calibration"), "report": str(res["report"])},
         }))
+        exit_on_failed(rep)
         return
     if quiet:
+        exit_on_failed(res["calibration"]["report"])
         return
     print_arrays(res["calibration"])
     if res["metrics"] is not None:
@@ -120,3 +126,5 @@ def run(
     skipped = [s for s, v in stages.items() if v["status"] == "skipped"]
     note = f"; skipped (unchanged): {', '.join(skipped)}" if skipped else ""
     stdout.print(f"report: {res['report']}  ({res['seconds']:.1f} s{note})")
+    print_verdict(res["calibration"]["report"], stdout)
+    exit_on_failed(res["calibration"]["report"])

@@ -13,6 +13,7 @@ import threading
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_INPUT = 2
+EXIT_FAILED = 3     # the calibration ran but its verdict is "failed" (report.json: verdict)
 EXIT_SIGINT = 130   # 128 + SIGINT
 EXIT_SIGTERM = 143  # 128 + SIGTERM
 

@@ -5,9 +5,9 @@ Cramér–Rao bound at a ground truth), :func:`rebuild`, :func:`residuals`, :fun
 :func:`array_covariance` (a calibration evaluated against its features), :func:`to_frames` / :func:`state_from_frames`.
 """
 from .assess import array_covariance, position_covariances, rebuild, residuals
-from .calibrate import calibrate, to_frames
+from .calibrate import calibrate, to_frames, validate_options
 from .init import ObservabilityError
 from .uncertainty import crlb, draw_from_crlb, state_from_frames
 
 __all__ = ["array_covariance", "calibrate", "crlb", "draw_from_crlb", "ObservabilityError", "position_covariances",
-           "rebuild", "residuals", "state_from_frames", "to_frames"]
+           "rebuild", "residuals", "state_from_frames", "to_frames", "validate_options"]

@@ -28,16 +28,18 @@ def rebuild(features, calib):
         return None
     sig_e = float((rep.get("sigmas") or {}).get("emission_s") or 0.0)
     use_ts = bool((rep.get("used") or {}).get("tdoa_s", True))
-    p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e)
+    frame = rep.get("odometry_frame") or {}
+    p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e, odometry_yaw=bool(frame.get("estimated")))
     # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
     for key, name in (("tdoa_s", "sigma_tdoa_s"), ("tdoa_m", "sigma_tdoa_m"), ("doa_rad_per_axis", "sigma_doa"),
-                      ("odometry_m", "sigma_odo")):
+                      ("odometry_m", "sigma_odo"), ("cone_rad", "sigma_cone")):
         v = (rep.get("sigmas") or {}).get(key)
         if isinstance(v, (int, float)) and v > 0:
             p[name] = float(v)
     st = state_from_frames(p, calib["arrays"], src)
     corr = rep.get("emission_corrections_s") or {}
     st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p["events"]])
+    st["odo_yaw"] = np.array([np.deg2rad(float(frame.get("yaw_deg") or 0.0))])
     kinds = [k for k in ALL_KINDS if k != "emission" or sig_e > 0]
     lay = make_layout(p)
     flagged = {}

@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pandas as pd
+import scipy.linalg
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
@@ -16,9 +17,14 @@ from calib import __version__
 from .factors import ALL_KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .observability import check_observability
+from .geometry import init_cone_axes
+from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import build_problem, copy_state, make_layout
+from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
+                     count_measurements, factor_sizes, variance_factors, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
+from .verdict import concentrated_outliers, make_verdict, residual_ratios
 
 
 
@@ -27,6 +33,25 @@ from .uncertainty import covariance, std_from_cov
 _BLAS = ThreadpoolController()
 
 
+
+
+def undetermined_parameters(p):
+    """What the data leave undetermined but the estimator can work around, per parameter (report.json
+    ``undetermined``): orientations of arrays with DOAs for fewer than 2 events (single microphones, arrays
+    without usable DOAs) are not estimated — kept at identity with NaN std — while their positions and
+    clocks come from the TDOAs. Returns a list of {"parameter", "array", "reason"}."""
+    out = []
+    for i in range(p["N"]):
+        if i != p["ref"] and p["rot_free"][i] and p["rot_fixed_axis"][i] >= 0:
+            out.append({"parameter": "roll", "array": str(p["names"][i]),
+                        "reason": "linear array / mic pair: the rotation about its axis is not observable (not "
+                                  "estimated, NaN std); the axis direction is"})
+        if i != p["ref"] and not p["rot_free"][i]:
+            nd = int(p["n_doa_events"][i])
+            out.append({"parameter": "orientation", "array": str(p["names"][i]),
+                        "reason": f"DOAs for {nd} event(s) (>= 2 needed): not estimated, reported as identity "
+                                  "with NaN std; position and clock from the TDOAs"})
+    return out
 
 
 def rotations_by_kabsch(p, st):
@@ -83,84 +108,377 @@ def to_frames(p, st, std=None):
     return arrays, sources
 
 
-def _outlier_mask(fs, threshold):
-    """Boolean keep-masks for the robust factors: drop |r| beyond ``threshold`` robust scales."""
-    mask, flagged = {}, []
-    for f in fs:
-        if not f["robust"] or len(f["r"]) == 0:
-            continue
-        r = f["r"]
-        mad = 1.4826 * np.median(np.abs(r))
-        scale = max(1.0, mad)  # never tighter than the stated sigma
-        keep = np.abs(r) <= threshold * scale
-        mask[f["kind"]] = keep
-        for k in np.flatnonzero(~keep):
-            flagged.append({"type": f["kind"], "line": int(f["row"][k]), "residual_sigma": float(r[k]),
-                            "residual_us": float(r[k] * f["sigma"] * 1e6)})
-    return mask, flagged
+def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200,
+               check_arrays=True, noise_bounds=None):
+    """Joint NLS from a given state: robust pass → inconsistent arrays → outlier rows → plain least squares.
 
+    ``noise_bounds`` ({kind: factor}, noise="estimate"): first move the sigmas by the medians of the
+    residual statistics (:func:`robust_noise_steps`). ``p`` is updated in place (sigmas, ``odo_yaw_free``).
 
-def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200):
-    """Joint NLS from a given state: robust pass → outlier mask → plain least squares. Returns (state, info)."""
+    Returns (state, info); info holds ``robust``/``final`` solver infos, ``mask`` (kind → keep per
+    residual), ``outliers`` (flag records), ``layout``, ``arrays`` (per-array consistency results),
+    ``capped`` (the row-wise removal hit its cap) and ``n_measurements``.
+    """
     lay = make_layout(p)
-    info = {}
+    info = {"arrays": [], "capped": False, "stats": None}
     # the robust pass only has to find the basin and the outliers; the final pass converges tightly
     st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter,
                                              rtol=1e-6)
-    _, _, _, _, fs = linearise(p, st, lay, kinds)
-    mask, flagged = _outlier_mask(fs, outlier_threshold) if loss else ({}, [])
-    st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
-    info["mask"], info["outliers"], info["layout"] = mask, flagged, lay
+    info["yaw_test"] = p.get("odo_yaw_test")
+    if noise_bounds is not None and loss:
+        stated = {k: p[v] for k, v in SIGMA_KEY.items()}
+        st = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
+                                robust_k=robust_k, max_iter=max_iter)
+    if lay["odo_yaw"][0] >= 0 and info["yaw_test"] is None:
+        st, lay, info["yaw_test"] = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k,
+                                                       max_iter=max_iter)
+    mask, flagged, dropped = {}, [], []
+    if loss:
+        if check_arrays:
+            st, lay, mask, dropped, info["arrays"], stats = consistency_stage(
+                p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter)
+        st, mask, flagged, _, _, cap1 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
+                                                        loss=loss, k=robust_k, max_iter=max_iter,
+                                                        stats=stats if check_arrays and not dropped else None)
+        st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+        # outliers that only show at the least-squares solution (the robust loss hid their pull)
+        st, mask, more, _, stats_b, cap2 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
+                                                           loss=None, k=robust_k, max_iter=max_iter)
+        info["capped"] = cap1 or cap2
+        n_flagged = len(flagged) + len(more)
+        st, mask, flagged = restore_inliers(p, st, lay, kinds, mask, flagged + more, threshold=outlier_threshold,
+                                            max_iter=max_iter)
+        if more or len(flagged) < n_flagged:
+            st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+        else:
+            info["stats"] = stats_b   # the statistics at the final state (for the verdict)
+    else:
+        st, info["final"] = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+    info["n_measurements"] = count_measurements(p, dropped)
+    for i in dropped:
+        # the dropped array's own pose and clock from its data, everything else fixed (marked unreliable)
+        st, _ = fit_array_alone(p, st, i, kinds, {}, loss=loss, k=robust_k, max_iter=max_iter)
+    info["mask"], info["outliers"], info["layout"], info["dropped"] = mask, flagged, lay, dropped
     return st, info
 
 
-SIGMA_KEY = {"tdoa_s": "sigma_tdoa_s", "tdoa_m": "sigma_tdoa_m", "doa": "sigma_doa", "odometry": "sigma_odo"}
+ROBUST_VCE_STEPS = 2   # median-based sigma steps before the outlier tests (noise="estimate")
 
 
-def estimate_noise(p, st, kinds, mask, *, iterations=1, min_redundancy=5.0, max_iter=200):
-    """Re-estimate each measurement type's sigma from its residuals (variance-component estimation).
-
-    σ_k² ← σ_k² · Σ_k r² / Σ_k (1 − h_ii), h the hat matrix of the whitened Jacobian, then re-solve;
-    types with redundancy below ``min_redundancy`` keep their sigma, and a factor is clipped to 1e-4..1e4.
-    One step by default: iterating lets a type that the parameters can absorb (e.g. TDOAs with few arrays
-    and free sources) shrink without bound. Returns (state, p with new sigmas, info with the scales).
-    """
-    p = dict(p)
-    lay = make_layout(p)
-    scales = {k: 1.0 for k in SIGMA_KEY}
-    info = {}
-    for _ in range(iterations):
-        r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask, dense=True)
-        keep = w > 0
-        Jk = J[keep]
-        d = np.linalg.norm(Jk, axis=0)
-        d = np.where(d > 0, d, 1.0)
-        A = np.linalg.pinv((Jk / d).T @ (Jk / d))
-        h = np.zeros(len(r))
-        h[keep] = np.einsum("ij,jk,ik->i", Jk / d, A, Jk / d)
-        start = 0
+def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max_iter, steps=ROBUST_VCE_STEPS):
+    """Sigmas from the median of each type's normalised statistics (outliers do not move a median), so
+    the outlier tests and the robust loss work in the data's own noise units. Updates p in place."""
+    for _ in range(steps):
+        stats = measurement_stats(p, st, lay, kinds, {})
         changed = False
-        for f in fs:
-            n = len(f["r"])
-            sl = slice(start, start + n)
-            start += n
-            key = SIGMA_KEY.get(f["kind"])
-            if key is None or n == 0:
+        for kind in SIGMA_KEY:
+            m = stats.kept & (stats.kind == kind)
+            if m.sum() < 5:
                 continue
-            red = float(np.sum((1.0 - h[sl])[keep[sl]]))
-            if f["dim"] == 3 and f["kind"] == "doa":
-                red -= n / 3.0  # a unit-vector residual has no noise along the direction itself
-            if red < min_redundancy:
-                continue
-            factor = float(np.sum(r[sl][keep[sl]] ** 2)) / red
-            factor = float(np.clip(factor, 1e-4, 1e4))
-            p[key] *= np.sqrt(factor)
-            scales[f["kind"]] *= np.sqrt(factor)
-            changed |= abs(np.sqrt(factor) - 1.0) > 0.01
-        st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+            f = float(np.sqrt(np.median(stats.q[m]) / chi2_median(DOF[kind])))
+            b = bounds.get(kind, FREE_MAX_FACTOR)
+            new = float(np.clip(p[SIGMA_KEY[kind]] * f, stated[kind] / b, stated[kind] * b))
+            changed |= abs(new / p[SIGMA_KEY[kind]] - 1.0) > 0.05
+            p[SIGMA_KEY[kind]] = new
         if not changed:
             break
-    return st, p, {"scale": scales, **info}
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+    return st
+
+
+def _rows_per_array(p):
+    """{array name: number of its measurement rows (TDOA-S, TDOA-M, DOA, cone)}."""
+    cols = [p[c] for c in ("ts_arr", "tm_arr", "doa_arr", "cone_arr") if c in p]
+    counts = np.bincount(np.concatenate(cols).astype(int), minlength=p["N"]) if cols else np.zeros(p["N"], int)
+    return {str(n): int(k) for n, k in zip(p["names"], counts)}
+
+
+def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
+    """Keep the odometry yaw free only when significant (``odoframe.YAW_SIGNIFICANCE``); else fix it at 0
+    (sets ``p["odo_yaw_free"] = False``) and re-solve. Returns (state, layout, {yaw_deg, std_deg, kept})."""
+    _, J, w, _, _ = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
+    test = _yaw_decision(p, st, J * np.sqrt(w)[:, None], int(lay["odo_yaw"][0]))
+    if not test["kept"]:
+        lay = make_layout(p)
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+    return st, lay, test
+
+
+def _yaw_decision(p, st, Jw, k):
+    """Test the odometry yaw (column k of the whitened Jacobian Jw); when not significant fix it: sets
+    ``p["odo_yaw_free"] = False`` and ``st["odo_yaw"] = 0`` in place. Returns {yaw_deg, std_deg, kept}."""
+    yaw, sd = float(st["odo_yaw"][0]), _param_std(Jw, k)
+    test = {"yaw_deg": float(np.rad2deg(yaw)), "std_deg": float(np.rad2deg(sd)), "kept": yaw_is_significant(yaw, sd)}
+    if not test["kept"]:
+        p["odo_yaw_free"] = False
+        st["odo_yaw"] = np.zeros(1)
+    return test
+
+
+def _param_std(J, k):
+    """1-σ of parameter k from whitened J: sqrt((JᵀJ)⁻¹_kk) by one Cholesky solve (pinv if singular)."""
+    d = np.linalg.norm(J, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    Js = J / d
+    e = np.zeros(J.shape[1])
+    e[k] = 1.0
+    try:
+        x = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Js.T @ Js), e)
+    except np.linalg.LinAlgError:
+        x = np.linalg.pinv(Js.T @ Js) @ e
+    return float(np.sqrt(max(x[k], 0.0)) / d[k])
+
+
+def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
+    """Per-array consistency: for each candidate array (``robust.array_candidates``), re-solve without it
+    and keep the drop when the χ² drop test rejects it at FAMILY_ALPHA / N.
+
+    Returns (state, layout, mask, dropped array indices, per-candidate records for the report, the
+    statistics at the input state).
+    """
+    sizes = factor_sizes(p)
+    stats = measurement_stats(p, st, lay, kinds, mask)
+    records, dropped = [], []
+    for i, ratios in array_candidates(p, stats):
+        if len(dropped) + 2 >= p["N"]:
+            break                      # keep the reference and at least one other array
+        keep_arr = [a for a in range(p["N"]) if a != i and a not in dropped]
+        lay_w = make_layout(p, arrays=keep_arr)
+        mask_w = array_mask(p, mask, sizes, i)
+        st_w, _ = levenberg_marquardt(p, st, lay_w, kinds, loss=loss, k=robust_k, mask=mask_w, max_iter=max_iter,
+                                      rtol=1e-6)
+        T, dof, logp = drop_test(p, st, st_w, lay, lay_w, kinds, mask, mask_w, 1.0)
+        inconsistent = bool(logp < np.log(FAMILY_ALPHA / p["N"]))
+        rec = {"array": str(p["names"][i]), "median_ratio": {k: float(v) for k, v in ratios.items()},
+               "drop_chi2": T, "drop_dof": dof, "inconsistent": inconsistent}
+        if inconsistent:
+            rec["moves_sigma"] = _moves_sigma(p, st, st_w, lay_w, kinds, mask_w)
+            rec["with_array"] = {"x": st["x"].tolist()}
+            st, lay, mask = st_w, lay_w, mask_w
+            dropped.append(i)
+        records.append(rec)
+    return st, lay, mask, dropped, records, stats
+
+
+def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
+    """Largest move of any free array position or source between two states, in 1-σ of state b."""
+    _, J, w, _, _ = linearise(p, st_b, lay, kinds, mask=mask)
+    std = std_from_cov(p, lay, covariance(J[w > 0], lay["n"]))
+    z = []
+    for key in ("x", "s"):
+        free = lay[key] >= 0
+        z.append(np.abs(st_a[key] - st_b[key])[free] / np.maximum(std[key][free], 1e-12))
+    z = np.concatenate(z)
+    return float(z.max()) if z.size else 0.0
+
+
+SIGMA_KEY = {"tdoa_s": "sigma_tdoa_s", "tdoa_m": "sigma_tdoa_m", "doa": "sigma_doa", "odometry": "sigma_odo",
+             "cone": "sigma_cone"}
+META_KEY = {"tdoa_s": "sigma_tdoa", "tdoa_m": "sigma_tdoa", "doa": "sigma_doa_deg", "odometry": "sigma_odo",
+            "cone": "sigma_doa_deg"}
+# A sigma the user states as measured (meta.json/session.toml, not listed in ``sigmas_estimated``) is a
+# prior: variance components may move it by at most this factor either way (the data can say "a bit
+# worse than stated", never replace a 3 cm odometry prior with 3 m and so hide a failure).
+PRIOR_MAX_FACTOR = 3.0
+FREE_MAX_FACTOR = 100.0   # a frontend's own figure (or noise="estimate" for TDOA/DOA): bounded, not fixed
+VCE_ITERATIONS = 4        # variance-component steps at most; stopped early when a factor reverses or settles
+
+
+def sigma_bounds(meta, noise):
+    """Per measurement type, the largest factor (either way) variance components may apply to its sigma.
+
+    ``noise="estimate"``: TDOA and DOA sigmas are free (bounded by FREE_MAX_FACTOR), odometry is a prior
+    unless meta lists it in ``sigmas_estimated``; ``"auto"``: only the sigmas meta lists as estimated are
+    free, the others are priors (PRIOR_MAX_FACTOR).
+    """
+    est = set(meta.get("sigmas_estimated") or [])
+    out = {}
+    for kind, key in META_KEY.items():
+        free = key in est or (noise == "estimate" and kind != "odometry")
+        out[kind] = FREE_MAX_FACTOR if free else PRIOR_MAX_FACTOR
+    return out
+
+
+def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None):
+    """One variance-component step: {kind: Σ_k r² / Σ_k (1 − h_ii)} for types with enough redundancy.
+
+    ``cov``: (JᵀJ)⁻¹ at (st, lay, mask) when already computed.
+    """
+    r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
+    keep = w > 0
+    Jk = J[keep]
+    h = np.zeros(len(r))
+    if cov is None:
+        d = np.linalg.norm(Jk, axis=0)
+        d = np.where(d > 0, d, 1.0)
+        A = sym_inverse((Jk / d).T @ (Jk / d))
+        h[keep] = np.einsum("ij,jk,ik->i", Jk / d, A, Jk / d)
+    else:
+        h[keep] = np.einsum("ij,jk,ik->i", Jk, cov, Jk)
+    out, start = {}, 0
+    for f in fs:
+        n = len(f["r"])
+        sl = slice(start, start + n)
+        start += n
+        if f["kind"] not in SIGMA_KEY or n == 0:
+            continue
+        red = float(np.sum((1.0 - h[sl])[keep[sl]]))
+        if f["kind"] == "doa":
+            red -= float(keep[sl].sum()) / 3.0  # a unit-vector residual has no noise along the direction itself
+        if red >= min_redundancy:
+            out[f["kind"]] = float(np.sum(r[sl][keep[sl]] ** 2)) / red
+    return out
+
+
+def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS, min_redundancy=5.0,
+                   max_iter=200, lay=None, stated=None):
+    """Re-estimate each measurement type's sigma from its residuals (variance-component estimation).
+
+    σ_k² ← σ_k² · Σ_k r² / Σ_k (1 − h_ii), h the hat matrix of the whitened Jacobian, then re-solve (warm);
+    types with redundancy below ``min_redundancy`` keep their sigma. The total factor of type k stays
+    within [1/bounds[k], bounds[k]] of ``stated`` (default: p's sigmas; see :func:`sigma_bounds`). Iterated while stable: at most
+    ``iterations`` steps, stopping when every step factor is within 1 % of 1, or when a type's factor
+    reverses direction (a type the parameters can absorb would otherwise shrink without bound).
+    Returns (state, p with new sigmas, info with the total scales and which types hit their bound).
+    """
+    p = dict(p)
+    lay = lay or make_layout(p)
+    bounds = bounds or {k: FREE_MAX_FACTOR for k in SIGMA_KEY}
+    base = stated or {k: p[v] for k, v in SIGMA_KEY.items()}
+    scales = {k: p[v] / base[k] for k, v in SIGMA_KEY.items()}
+    last_dir = {}
+    info, at_bound = {}, {}
+    for _ in range(iterations):
+        fac = _vce_factors(p, st, lay, kinds, mask, min_redundancy)
+        changed, reversed_ = False, False
+        for kind, f2 in fac.items():
+            step = float(np.sqrt(np.clip(f2, 1e-8, 1e8)))
+            b = bounds.get(kind, FREE_MAX_FACTOR)
+            total = float(np.clip(scales[kind] * step, 1.0 / b, b))
+            at_bound[kind] = bool(scales[kind] * step > b * (1 + 1e-9) or scales[kind] * step < (1 - 1e-9) / b)
+            step = total / scales[kind]
+            d = np.sign(step - 1.0) if abs(step - 1.0) > 0.01 else 0.0
+            reversed_ |= bool(d and last_dir.get(kind, d) != d)
+            last_dir[kind] = d
+            scales[kind] = total
+            p[SIGMA_KEY[kind]] = base[kind] * total
+            changed |= abs(step - 1.0) > 0.01
+        st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+        if not changed or reversed_:
+            break
+    return st, p, {"scale": scales, "at_bound": at_bound, "bounds": bounds, **info}
+
+
+def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
+    """Initialisation (hybrid or Wang et al.'s) in the odometry frame's start yaw, the observability check,
+    then the IVE (hybrid with TDOA-S), where the odometry yaw is kept or fixed. Returns (state, stages,
+    stage_states); ``times`` gets "init" and "ive" (s).
+    """
+    t0 = time.perf_counter()
+    stages, stage_states = {}, {}
+    # the odometry frame's yaw: a start value from the reference DOAs, the initialisation in that frame
+    yaw0 = initial_yaw(p) if p["odo_yaw_free"] else 0.0
+    p_init = {**p, "odom": rotate_odometry(p["odom"], yaw0), "odo_yaw_free": False}
+    if method == "wang":
+        from .wang import wang_initialise
+
+        st, init_info = wang_initialise(p_init)
+    else:
+        st, init_info = initialise(p_init)
+    st["odo_yaw"] = np.array([yaw0])
+    st = init_cone_axes(p, st)
+    times["init"] = time.perf_counter() - t0
+    lay_full = make_layout(p)
+    t_obs = time.perf_counter()
+    check_observability(p, lay_full, kinds, st)
+    times["observability"] = time.perf_counter() - t_obs
+    stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
+    stage_states["init"] = copy_state(st)
+    if method == "hybrid" and len(p["ts_val"]) > 0:
+        # Stage 1 (IVE): positions, clocks and sources from hybrid TDOA, odometry and the reference
+        # array's DOAs; then rotations by SVD alignment of DOA-scaled points.
+        t1 = time.perf_counter()
+        q = subproblem(p, np.arange(p["N"]), doa_arrays=[p["ref"]])
+        lay_ive = make_layout(q, rotations=False)
+        st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+                                      k=robust_k, max_iter=max_iter, rtol=1e-6)
+        st = init_cone_axes(p, rotations_by_kabsch(p, st))
+        if lay_ive["odo_yaw"][0] >= 0:
+            # decide on the odometry yaw here (its σ from the IVE's data is a conservative one), so the
+            # joint pass starts in the right parameter set
+            _, J_ive, w_ive, _, _ = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+                                              k=robust_k)
+            p["odo_yaw_test"] = _yaw_decision(p, st, J_ive * np.sqrt(w_ive)[:, None], int(lay_ive["odo_yaw"][0]))
+        stage_states["ive"] = copy_state(st)
+        stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
+        times["ive"] = time.perf_counter() - t1
+    return st, stages, stage_states
+
+
+def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
+                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto"):
+    """Raise ValueError with a clear message for any option of :func:`calibrate_features` out of range.
+
+    The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
+    any data): NaN, infinities and negative values are refused, never silently used.
+    """
+    choices = {"method": (method, ("hybrid", "wang")), "loss": (loss, ("cauchy", "huber", "linear", None)),
+               "noise": (noise, ("auto", "meta", "estimate"))}
+    for name, (value, allowed) in choices.items():
+        if value not in allowed:
+            shown = [a for a in allowed if a is not None]
+            raise ValueError(f"{name} must be {', '.join(shown[:-1])} or {shown[-1]}, not {value!r}")
+
+    def number(name, v, lo, strict):
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a number, not {v!r}") from None
+        if not np.isfinite(f) or (f <= lo if strict else f < lo):
+            raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {lo:g}, not {v!r}")
+
+    number("emission_sigma", emission_sigma, 0.0, False)
+    number("robust_k", robust_k, 0.0, True)
+    number("outlier_threshold", outlier_threshold, 0.0, True)
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter must be an integer >= 1, not {max_iter!r}")
+    if not isinstance(use_tdoa_s, (bool, np.bool_)):
+        raise ValueError(f"use_tdoa_s must be True or False, not {use_tdoa_s!r}")
+
+
+def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
+    """Residual ratios, odometry frame and verdict at the final state.
+
+    ``lay``, ``cov``, ``w``, ``cost``: layout, covariance, weights and cost of the full final problem.
+    Returns (verdict, ratios, odometry_frame dict, cost and residual count without dropped arrays' rows).
+    """
+    mask = info["mask"]
+    # the statistics below leave out the rows of dropped arrays (their pose was fitted to them alone)
+    lay_s = info["layout"]
+    same = not info["dropped"]   # then lay_s is lay and cov is the one the factors need
+    n_res = int((w > 0).sum())
+    if not same:
+        _, _, w_s, cost, _ = linearise(p, st, lay_s, kinds, mask=mask)
+        n_res = int((w_s > 0).sum())
+    if info["stats"] is not None and noise != "estimate":
+        vf = variance_factors(info["stats"])
+    else:
+        vf = _vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None)
+    ratios = residual_ratios(vf, scales, bounds)
+    yaw_i = int(lay["odo_yaw"][0])
+    odo_frame = {
+        "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),
+        "yaw_std_deg": float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0)))) if yaw_i >= 0 else None,
+        "estimated": yaw_i >= 0,
+        "test": info.get("yaw_test"),
+        "convention": "odometry z = reference z; a step Δo (odometry frame) is Rz(yaw) Δo in the reference frame"}
+    verdict = make_verdict(converged=bool(info["final"]["converged"]), reason=info["final"]["reason"],
+                           ratios=ratios, n_outliers=len(info["outliers"]), n_measurements=info["n_measurements"],
+                           capped=info["capped"], arrays=info["arrays"],
+                           odometry_yaw={"kept": odo_frame["estimated"], "yaw_deg": odo_frame["yaw_deg"],
+                                         "std_deg": odo_frame["yaw_std_deg"]},
+                           concentrated=concentrated_outliers(info["outliers"], _rows_per_array(p)))
+    return verdict, ratios, odo_frame, cost, n_res
 
 
 def calibrate(features, **options):
@@ -173,7 +491,7 @@ def calibrate(features, **options):
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto"):
+              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters
@@ -183,99 +501,96 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         ``estimator.wang``).
     use_tdoa_s : use TDOA-S measurements (False gives Wang et al.'s setting with our solver).
     emission_sigma : prior std (s) of per-interval emission-time errors; 0 disables the correction.
-    loss : robust loss on TDOA residuals for the first joint pass ("cauchy", "huber" or None).
-    robust_k : robust scale, in units of the TDOA sigma.
-    outlier_threshold : TDOA residuals beyond this many (robust) sigmas are flagged and excluded.
+    loss : robust loss on TDOA and DOA residuals for the robust passes ("cauchy", "huber", "linear"/None).
+    robust_k : robust scale, in units of each type's sigma.
+    outlier_threshold : measurements (TDOA, DOA, odometry, cone) whose normalised residual z exceeds
+        max(this, the Bonferroni level) are removed one at a time (``estimator.robust``) and reported.
     init_state : optional state to start the joint solve from (skips initialisation; used to compare
         with a solve started from ground truth).
     noise : "meta" weights with the sigmas of meta.json (documented defaults when absent); "estimate"
         then re-estimates one sigma per measurement type from the residuals (variance components) and
         re-solves, so weights and error bars follow the data's actual noise; "auto" (default) estimates
         when meta.json says its sigmas are a frontend's own figures (``sigmas_estimated``), else "meta".
+        User-stated sigmas move at most PRIOR_MAX_FACTOR (3×) either way.
+    odometry_yaw : estimate the odometry frame's yaw (kept only when significant; docs/method.md).
 
     Returns
     -------
     dict with ``arrays`` and ``sources`` DataFrames (with ``*_std`` columns: 1-σ from (JᵀWJ)⁻¹, rotation
-    std per axis of the array frame in rad) and ``report`` (dict, see docs/method.md).
+    std per axis of the array frame in rad) and ``report`` (dict with ``verdict`` first, see docs/method.md).
     """
+    validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
+                     robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise)
+    if loss == "linear":
+        loss = None
     times = {}
     t0 = time.perf_counter()
     if method == "wang":
-        from .wang import wang_initialise
-
         use_tdoa_s = False
-    p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma)
+    p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
     if p["K"] < 3:
         raise ObservabilityError(f"only {p['K']} event(s): at least 3 are needed to calibrate")
     kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
-    stages, stage_states = {}, {}
     if init_state is None:
-        if method == "wang":
-            st, init_info = wang_initialise(p)
-        else:
-            st, init_info = initialise(p)
-        times["init"] = time.perf_counter() - t0
-        lay_full = make_layout(p)
-        t_obs = time.perf_counter()
-        check_observability(p, lay_full, kinds, st)
-        times["observability"] = time.perf_counter() - t_obs
-        stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
-        stage_states["init"] = copy_state(st)
-        if method == "hybrid" and len(p["ts_val"]) > 0:
-            # Stage 1 (IVE): positions, clocks and sources from hybrid TDOA, odometry and the reference
-            # array's DOAs; then rotations by SVD alignment of DOA-scaled points.
-            t1 = time.perf_counter()
-            q = subproblem(p, np.arange(p["N"]), doa_arrays=[p["ref"]])
-            lay_ive = make_layout(q, rotations=False)
-            st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
-                                          k=robust_k, max_iter=max_iter, rtol=1e-6)
-            st = rotations_by_kabsch(p, st)
-            stage_states["ive"] = copy_state(st)
-            stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
-            times["ive"] = time.perf_counter() - t1
+        st, stages, stage_states = initial_state(p, kinds, method=method, loss=loss, robust_k=robust_k,
+                                                 max_iter=max_iter, times=times)
     else:
+        stages, stage_states = {}, {}
         st = {k: np.array(v, dtype=float, copy=True) for k, v in init_state.items()}
+        st.setdefault("odo_yaw", np.zeros(1))
     t2 = time.perf_counter()
-    st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
-                          max_iter=max_iter)
     if noise == "auto":
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
+    bounds = sigma_bounds(features["meta"], noise)
+    stated = {k: p[v] for k, v in SIGMA_KEY.items()}
+    st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
+                          max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None)
     if noise == "estimate":
-        st, p, vce = estimate_noise(p, st, kinds, info["mask"], max_iter=max_iter)
+        st, p, vce = estimate_noise(p, st, kinds, info["mask"], bounds=bounds, max_iter=max_iter,
+                                    lay=info["layout"], stated=stated)
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
-        stages["noise"] = {"scale": vce["scale"]}
-    elif noise != "meta":
-        raise ValueError(f"noise must be 'auto', 'meta' or 'estimate', not {noise!r}")
+        stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds}
+    scales = {k: p[v] / stated[k] for k, v in SIGMA_KEY.items()}
     times["joint"] = time.perf_counter() - t2
-    lay = info["layout"]
-    r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])
-    J = J[w > 0]
+    lay = make_layout(p)
+    mask = info["mask"]
+    r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=mask)
     t_cov = time.perf_counter()
-    cov = covariance(J, lay["n"], lay)
+    cov = covariance(J[w > 0], lay["n"], lay)
     times["uncertainty"] = time.perf_counter() - t_cov
     std = std_from_cov(p, lay, cov)
     arrays, sources = to_frames(p, st, std)
     times["total"] = time.perf_counter() - t0
-    n_res = int(J.shape[0])
+    verdict, ratios, odo_frame, cost_s, n_res = _judge(p, st, info, lay, cov, w, cost, scales=scales, bounds=bounds,
+                                                       noise=noise, kinds=kinds)
+    lay_s = info["layout"]
     report = {
+        "verdict": verdict,
         "software": {"name": "calib", "version": __version__},
         "method": method,
         "converged": bool(info["final"]["converged"]),
         "reason": info["final"]["reason"],
         "iterations": {"robust": info["robust"]["iterations"], "final": info["final"]["iterations"]},
         "cost": {**{k: v["cost"] for k, v in stages.items() if "cost" in v}, "joint_robust": info["robust"]["cost"],
-                 "final": cost},
+                 "final": cost_s},
         "stages": stages,
-        "chi2_per_dof": float(2 * cost / max(n_res - lay["n"], 1)),
-        "residuals": residual_table(fs, info["mask"]),
+        "chi2_per_dof": float(2 * cost_s / max(n_res - lay_s["n"], 1)),
+        "residual_ratio": ratios,
+        "residuals": residual_table(fs, mask),
         "outliers": info["outliers"],
+        "array_consistency": info["arrays"],
+        "unreliable_arrays": [str(p["names"][i]) for i in info["dropped"]],
+        "undetermined": undetermined_parameters(p),
         "used": {"tdoa_s": bool(len(p["ts_val"])), "tdoa_m": bool(len(p["tm_val"])), "doa": bool(len(p["doa_u"])),
                  "emission_correction": emission_sigma > 0},
         "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",
         "sigmas": {"tdoa_s": p["sigma_tdoa_s"], "tdoa_m": p["sigma_tdoa_m"], "doa_rad_per_axis": p["sigma_doa"],
-                   "odometry_m": p["sigma_odo"], "emission_s": emission_sigma, "source": noise},
+                   "odometry_m": p["sigma_odo"], "cone_rad": p["sigma_cone"], "emission_s": emission_sigma,
+                   "source": noise},
         "timings_s": times,
     }
+    report["odometry_frame"] = odo_frame
+    report["odometry_yaw_deg"] = odo_frame["yaw_deg"]
     if emission_sigma > 0:
         report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p["events"], st["e"])}
     return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission"]
-# report unit of each kind and the factor from SI: µs, degrees, cm
+ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission", "cone"]
+# report unit of each kind and the factor from SI: µs, degrees, cm (cone: cosine difference ≈ rad · sin θ)
 UNITS = {"tdoa_s": ("us", 1e6), "tdoa_m": ("us", 1e6), "doa": ("deg", np.rad2deg(1.0)), "odometry": ("cm", 100.0),
-         "emission": ("us", 1e6)}
+         "emission": ("us", 1e6), "cone": ("deg", np.rad2deg(1.0))}
 
 
 class Jacobian:
@@ -143,7 +143,7 @@ def doa(p, st, lay):
     m, sig = len(i), p["sigma_doa"]
     J = jacobian(3 * m, lay)
     if m == 0:
-        return _out("doa", np.zeros(0), J, p["doa_row"], 3, False, sig)
+        return _out("doa", np.zeros(0), J, p["doa_row"], 3, True, sig)
     d, n = _dist(st, i, j)
     Rt = np.transpose(st["R"][i], (0, 2, 1))
     v = np.einsum("kab,kb->ka", Rt, n)
@@ -166,7 +166,7 @@ def doa(p, st, lay):
     cols = np.repeat(np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]), 3, axis=0)
     vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig
     _put(J, np.arange(3 * m), cols, vals)
-    return _out("doa", r, J, np.repeat(p["doa_row"], 3), 3, False, sig)
+    return _out("doa", r, J, np.repeat(p["doa_row"], 3), 3, True, sig)
 
 
 def odometry(p, st, lay):
@@ -195,7 +195,62 @@ def emission(p, st, lay):
     return _out("emission", r, J, np.arange(1, K), 1, False, sig)
 
 
-FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry, "emission": emission}
+def odometry_frame(p, st, lay):
+    """Odometry in its own frame: (s_{j+1} − s_j) − Rz(ψ)(o_{j+1} − o_j), three components per step.
+
+    ψ (``st["odo_yaw"]``, rad) is the odometry frame's rotation about the reference frame's z axis
+    (taken as the vertical: the odometry's z is the reference array's z). ψ = 0 (or no ``odo_yaw`` in the
+    state/layout) is the plain :func:`odometry` factor.
+    """
+    K, sig = p["K"], p["sigma_odo"]
+    J = np.zeros((3 * max(K - 1, 0), lay["n"]))
+    if K < 2:
+        return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
+    psi = float(st["odo_yaw"][0]) if "odo_yaw" in st else 0.0
+    yaw_col = int(lay.get("odo_yaw", -np.ones(1, int))[0])
+    do = np.diff(p["odom"], axis=0)
+    if psi != 0.0:
+        c, s = np.cos(psi), np.sin(psi)
+        do = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
+    r = ((np.diff(st["s"], axis=0) - do) / sig).ravel()
+    k = np.arange(3 * (K - 1))
+    _put(J, k, lay["s"][1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
+    _put(J, k, lay["s"][:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
+    if yaw_col >= 0:
+        # d(Rz(ψ) Δo)/dψ = (−y', x', 0) of the rotated step (x', y', z') = Rz(ψ) Δo
+        drot = np.column_stack([-do[:, 1], do[:, 0], np.zeros(K - 1)])
+        _put(J, k, np.full(3 * (K - 1), yaw_col), -drot.ravel() / sig)
+    return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
+
+
+def cone(p, st, lay):
+    """Cone (linear arrays, 2-mic pairs): aᵀ R_iᵀ (s_j − x_i)/|s_j − x_i| − cos θ_ij, one per measurement.
+
+    ``a`` (array frame) is the array's axis, θ the measured angle between it and the source direction
+    (``p["cone_*"]``; ``problem.build_problem`` reads them from meta ``doa_axes``). The roll about the
+    axis does not enter (its rotation component is fixed in the layout). Whitened by ``sigma_cone``
+    (rad): the cosine error is sin θ · δθ ≤ δθ.
+    """
+    i, j, c0 = p.get("cone_arr", np.zeros(0, int)), p.get("cone_ev", np.zeros(0, int)), p.get("cone_cos", np.zeros(0))
+    m, sig = len(i), p.get("sigma_cone", p["sigma_doa"])
+    J = np.zeros((m, lay["n"]))
+    if m == 0:
+        return _out("cone", np.zeros(0), J, np.zeros(0, int), 1, True, sig)
+    d, n = _dist(st, i, j)
+    a = p["cone_axis"][i]                                    # (m, 3) array frame
+    w = np.einsum("kba,kb->ka", st["R"][i], n)               # Rᵀ n
+    r = (np.einsum("ka,ka->k", a, w) - c0) / sig
+    # R → R Exp(φ): w → w + w × φ, so d(aᵀw)/dφ = (a × w)ᵀ; d(aᵀw)/ds = (R a)ᵀ (I − n nᵀ)/d = −d/dx
+    dphi = np.cross(a, w)
+    b = np.einsum("kab,kb->ka", st["R"][i], a)
+    ds = (b - np.einsum("ka,ka->k", b, n)[:, None] * n) / d[:, None]
+    _put(J, np.arange(m), np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]),
+         np.column_stack([dphi, ds, -ds]) / sig)
+    return _out("cone", r, J, p["cone_row"], 1, True, sig)
+
+
+FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission,
+           "cone": cone}
 
 
 def evaluate(p, st, lay, kinds=None):

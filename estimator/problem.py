@@ -13,7 +13,10 @@ A *problem* is a dict of numpy arrays (built once per data set)::
     *_row (n,) the line of each measurement in its CSV file, header = line 1 (for outlier reports)
 
 A *state* is a dict: ``x`` (N, 3), ``R`` (N, 3, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3),
-``e`` (K,) emission-time corrections (s; e[0] = 0).
+``e`` (K,) emission-time corrections (s; e[0] = 0), ``odo_yaw`` (1,) the odometry frame's rotation about
+the vertical (rad; see ``factors.odometry_frame``).
+
+``odo_yaw_free`` (bool, problem) says whether that yaw is estimated (``build_problem(odometry_yaw=...)``).
 
 A *layout* says which of them are free in a solve and where they sit in the parameter vector.
 """
@@ -39,7 +42,7 @@ def sigma_doa_per_axis(sigma_deg):
     return float(np.deg2rad(sigma_deg))
 
 
-def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0):
+def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0, odometry_yaw=False):
     """Index the measurements of a (validated) features dict. See module docstring for the keys."""
     meta = features["meta"]
     names = np.asarray(meta["arrays"], dtype=object)
@@ -94,7 +97,61 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     dots = np.einsum("ka,ka->k", nf, p["doa_u"])
     p["doa_u"] = np.where((dots < 0)[:, None], p["doa_u"] - 2.0 * dots[:, None] * nf, p["doa_u"])
     p["N"], p["K"] = len(names), len(events)
+    _split_cones(p, meta, idx)
+    # orientation estimated only for arrays with DOAs for >= MIN_DOA_EVENTS events (single microphones and
+    # arrays without usable DOAs: position and clock from the TDOAs, orientation reported undetermined)
+    n_doa = np.bincount(p["doa_arr"], minlength=len(names)) if len(p["doa_arr"]) else np.zeros(len(names), int)
+    n_cone = np.bincount(p["cone_arr"], minlength=len(names)) if len(p["cone_arr"]) else np.zeros(len(names), int)
+    p["rot_free"] = (n_doa >= MIN_DOA_EVENTS) | (n_cone >= MIN_DOA_EVENTS)
+    p["n_doa_events"] = n_doa
+    # a lone DOA of an array whose orientation is not estimated says nothing: leave it out
+    useless = ~p["rot_free"][p["doa_arr"]] & (p["doa_arr"] != p["ref"])
+    if useless.any():
+        for key in ("doa_ev", "doa_arr", "doa_u", "doa_row"):
+            p[key] = p[key][~useless]
+    p["odo_yaw_free"] = bool(odometry_yaw) and odometry_yaw_observable(p)
     return p
+
+
+MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
+
+
+def _split_cones(p, meta, idx):
+    """Move the DOA rows of arrays listed in meta ``doa_axes`` (linear arrays, 2-mic pairs) to cone rows.
+
+    ``doa_axes``: {array: axis} with the axis one of the array frame's coordinate axes (x, y or z, sign
+    free). Such an array measures only the angle θ between its axis and the source direction; its doa.csv
+    rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Adds ``cone_ev``,
+    ``cone_arr``, ``cone_cos``, ``cone_row`` (n_c,), ``cone_axis`` (N, 3), ``rot_fixed_axis`` (N,) (the
+    rotation component about the axis, not observable: -1 for other arrays) and ``sigma_cone`` (rad).
+    """
+    N = len(p["names"])
+    p["cone_axis"] = np.zeros((N, 3))
+    p["rot_fixed_axis"] = -np.ones(N, int)
+    for name, ax in (meta.get("doa_axes") or {}).items():
+        a = np.asarray(ax, float) / np.linalg.norm(ax)
+        k = int(np.argmax(np.abs(a)))
+        if not np.isclose(abs(a[k]), 1.0):
+            raise ValueError(f"meta.json: doa_axes[{name!r}] must be a coordinate axis of the array frame")
+        p["cone_axis"][idx[name]] = a
+        p["rot_fixed_axis"][idx[name]] = k
+    is_cone = p["rot_fixed_axis"][p["doa_arr"]] >= 0
+    p["cone_ev"], p["cone_arr"], p["cone_row"] = p["doa_ev"][is_cone], p["doa_arr"][is_cone], p["doa_row"][is_cone]
+    p["cone_cos"] = np.clip(np.einsum("ka,ka->k", p["cone_axis"][p["cone_arr"]], p["doa_u"][is_cone]), -1.0, 1.0)
+    for key in ("doa_ev", "doa_arr", "doa_u", "doa_row"):
+        p[key] = p[key][~is_cone]
+    p["sigma_cone"] = p["sigma_doa"]
+
+
+# The yaw of the odometry frame needs horizontal motion: a spread of the odometry across the vertical
+# below this (m, RMS) leaves it to the noise.
+MIN_HORIZONTAL_SPREAD = 0.05
+
+
+def odometry_yaw_observable(p):
+    """True when the odometry moves horizontally enough (and there are DOAs) to fix its yaw."""
+    o = p["odom"][:, :2] - p["odom"][:, :2].mean(0)
+    return bool(len(p["doa_u"]) > 0 and p["K"] >= 3 and np.sqrt(np.mean(np.sum(o * o, axis=1))) > MIN_HORIZONTAL_SPREAD)
 
 
 def _lines(df):
@@ -106,14 +163,14 @@ def empty_state(p):
     """A state with every array at the origin, identity rotations, zero clocks and sources."""
     N, K = p["N"], p["K"]
     return {"x": np.zeros((N, 3)), "R": np.tile(np.eye(3), (N, 1, 1)), "offset": np.zeros(N),
-            "drift": np.zeros(N), "s": np.zeros((K, 3)), "e": np.zeros(K)}
+            "drift": np.zeros(N), "s": np.zeros((K, 3)), "e": np.zeros(K), "odo_yaw": np.zeros(1)}
 
 
 def copy_state(st):
     return {k: v.copy() for k, v in st.items()}
 
 
-def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=True, arrays=None):
+def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=True, arrays=None, odo_yaw=None):
     """Positions of the free parameters in the vector.
 
     Returns a dict of index arrays (-1 where a parameter is fixed):
@@ -121,6 +178,8 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     The reference array's position, rotation and offset are always fixed (they define the frame and the
     time origin). Its drift is free when TDOA-S is present (``ref_drift=None`` decides that).
     ``arrays`` restricts the free array parameters to these indices (others are fixed).
+    ``odo_yaw`` (1,): the odometry frame's yaw, free when the problem says so (``odo_yaw_free``) and the
+    sources are free (``odo_yaw=None``), or as forced.
     """
     N, K, ref = p["N"], p["K"], p["ref"]
     if ref_drift is None:
@@ -144,8 +203,12 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
             continue
         if i != ref:
             lay["x"][i] = take(3)
-            if rotations:
-                lay["rot"][i] = take(3)
+            if rotations and p.get("rot_free", np.ones(N, bool))[i]:
+                k_fix = p.get("rot_fixed_axis", -np.ones(N, int))[i]
+                if k_fix >= 0:   # roll about a linear array's axis: not observable, not estimated
+                    lay["rot"][i, [c for c in range(3) if c != k_fix]] = take(2)
+                else:
+                    lay["rot"][i] = take(3)
             lay["offset"][i] = take(1)[0]
         if i != ref or ref_drift:
             lay["drift"][i] = take(1)[0]
@@ -153,6 +216,9 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
         lay["s"][:] = take(3 * K).reshape(K, 3)
     if emission and K > 1:
         lay["e"][1:] = take(K - 1)
+    if odo_yaw is None:
+        odo_yaw = bool(p.get("odo_yaw_free", False)) and sources
+    lay["odo_yaw"] = take(1) if odo_yaw else -np.ones(1, int)
     lay["n"] = n
     return lay
 
@@ -163,12 +229,17 @@ def retract(st, lay, delta):
     for key in ("x", "s"):
         m = lay[key] >= 0
         out[key][m] += delta[lay[key][m]]
-    for key in ("offset", "drift", "e"):
+    for key in ("offset", "drift", "e", "odo_yaw"):
+        if key not in lay:
+            continue
+        if key not in out:
+            out[key] = np.zeros(len(lay[key]))
         m = lay[key] >= 0
         out[key][m] += delta[lay[key][m]]
-    rows = np.flatnonzero(lay["rot"][:, 0] >= 0)
+    rows = np.flatnonzero(np.any(lay["rot"] >= 0, axis=1))
     if rows.size:
-        phi = delta[lay["rot"][rows]]
+        idx = lay["rot"][rows]
+        phi = np.where(idx >= 0, delta[np.maximum(idx, 0)], 0.0)
         out["R"][rows] = st["R"][rows] @ Rotation.from_rotvec(phi).as_matrix()
     return out
 

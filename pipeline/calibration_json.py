@@ -159,7 +159,9 @@ def calibration_document(calib, features):
         },
         "arrays": [_array_entry(r, mics.get(r["array"]), tau) for r in rows],
         "covariance": None if labels is None else {"parameters": labels, "matrix": cov.tolist()},
-        "odometry_frame": report.get("odometry_frame"),
+        # the odometry-frame rotation when the estimator estimated it (report.json always says whether)
+        "odometry_frame": (report.get("odometry_frame") if (report.get("odometry_frame") or {}).get("estimated")
+                           else None),
         "sources": None if src is None else [
             {"event": int(r["event"]), "position": [float(r["x"]), float(r["y"]), float(r["z"])]}
             for _, r in src.iterrows()],

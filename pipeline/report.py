@@ -30,8 +30,9 @@ from .io import atomic_dir, dumps_json
 
 UNIT_LABEL = {"tdoa_s": "TDOA-S residual (µs)", "tdoa_m": "TDOA-M residual (µs)",
               "doa": "DOA angular error (deg)", "odometry": "odometry residual per axis (cm)",
-              "emission": "emission-interval correction (µs)"}
-TITLE = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "Odometry", "emission": "Emission"}
+              "emission": "emission-interval correction (µs)", "cone": "cone (axis angle) residual, cos × 57.3 (≈ deg)"}
+TITLE = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "Odometry", "emission": "Emission",
+         "cone": "Cone"}
 
 
 def _plt():
@@ -323,7 +324,8 @@ def _outlier_lines(features, outliers):
     for o in outliers:
         df = features.get(o["type"])
         line = int(o["line"])
-        what = ""
+        what = f"event {o['event']}, array {o['array']}" if o.get("array") else \
+            (f"step to event {o['event']}" if o.get("event") is not None else "")
         hit = None if df is None else (df[df["_line"] == line] if "_line" in df else df.iloc[line - 2:line - 1])
         if hit is not None and len(hit):
             r = hit.iloc[0]
@@ -331,15 +333,29 @@ def _outlier_lines(features, outliers):
                 what = f"event {r['event']}, array {r['array']}"
             elif o["type"] == "tdoa_s":
                 what = f"array {r['array']}, events {r['from_event']}→{r['to_event']}"
-        out.append(f"- {o['type']} ({what}), features/{o['type']}.csv line {line}: "
-                   f"residual {o['residual_us']:+.0f} µs = "
+        size = f"{o['residual_us']:+.0f} µs" if "residual_us" in o else f"{o.get('residual', float('nan')):.3g} " \
+                                                                       f"{o.get('unit', '')}"
+        where = f"step {line}" if o["type"] == "odometry" else f"features/{o['type']}.csv line {line}"
+        out.append(f"- {o['type']} ({what}), {where}: residual {size} = "
                    f"{o['residual_sigma']:+.1f} σ — excluded from the final solve")
     return out
 
 
+def verdict_markdown(verdict):
+    """The summary's first lines: title with the verdict's status, then its reasons (report.json ``verdict``)."""
+    if not verdict:
+        return ["# Calibration report — verdict: unknown (calibration written before verdicts existed)", ""]
+    L = [f"# Calibration report — verdict: {str(verdict.get('status', '?')).upper()}", ""]
+    if verdict.get("flagged_arrays"):
+        L += [f"Flagged arrays (inconsistent with the others; their pose is unreliable): "
+              f"**{', '.join(verdict['flagged_arrays'])}**", ""]
+    L += [f"- {r}" for r in verdict.get("reasons") or []]
+    return L + ([""] if verdict.get("reasons") else [])
+
+
 def summary_markdown(features, calib, res, metrics, diag, images):
     rep = calib.get("report") or {}
-    L = ["# Calibration report", ""]
+    L = verdict_markdown(rep.get("verdict"))
     L += [f"Reference array **{features['meta']['reference_array']}** (its frame is the world frame); "
           f"{len(calib['arrays'])} arrays, {len(features['events'])} events, method `{rep.get('method', '?')}`, "
           f"calib {(rep.get('software') or {}).get('version', '?')}.", ""]

@@ -196,6 +196,12 @@ def estimate_options(opts):
     if "outlier_threshold" in out:
         out["outlier_threshold"] = option(out["outlier_threshold"], "outlier-threshold", lo=OUTLIER_THRESHOLD[0],
                                           hi=OUTLIER_THRESHOLD[1], allow_none=False)
+    from calib.estimator import validate_options
+
+    try:  # the estimator's own check of its options (the library API uses it too) has the last word
+        validate_options(**out)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     return out
 
 

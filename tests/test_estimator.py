@@ -96,11 +96,21 @@ def test_two_events_are_refused():
         calibrate(feats)
 
 
-def test_array_without_doas_is_refused_with_its_name():
-    feats, _ = simulate_features(3, seed=2, noise=False)
-    feats["doa"] = feats["doa"][feats["doa"].array != "A4"]
-    with pytest.raises(ObservabilityError, match="A4"):
-        calibrate(feats)
+def test_arrays_without_doas_get_position_and_clock_from_tdoas():
+    """A single microphone (no DOAs) and an array with one DOA: positions and clocks from the TDOAs, the
+    orientation reported undetermined (not estimated, NaN std) instead of refusing the session."""
+    feats, truth = simulate_features(3, 1e-4, 5.0, seed=2)
+    d = feats["doa"]
+    feats["doa"] = d[~d.array.isin(["A2", "A4"]) | ((d.array == "A2") & (d.event == 3))]
+    cal = calibrate(feats)
+    und = {u["array"]: u for u in cal["report"]["undetermined"]}
+    assert set(und) == {"A2", "A4"} and und["A4"]["parameter"] == "orientation"
+    a = cal["arrays"].set_index("array")
+    assert np.isnan(a.loc["A4", "rx_std"]) and np.isfinite(a.loc["A3", "rx_std"])
+    t = truth["arrays"].set_index("array")
+    err = np.linalg.norm((a[["x", "y", "z"]] - t[["x", "y", "z"]]).to_numpy(float), axis=1)
+    assert np.all(err[1:] < 0.1)
+    np.testing.assert_allclose(a["offset"].to_numpy(float), t["offset"].to_numpy(float), atol=3e-4)
 
 
 @pytest.mark.slow

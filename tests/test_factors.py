@@ -20,6 +20,8 @@ def test_jacobian_matches_central_differences(kind, planar):
     rng = np.random.default_rng(3)
     feats, _ = simulate_features(trajectory=3, seed=1, planar=planar)
     feats["meta"]["chirp_drift_bias"] = 0.3
+    if kind == "cone":   # array A3 as a linear array along its y axis (roll about y not in the layout)
+        feats["meta"]["doa_axes"] = {"A3": [0, -1, 0]}
     p = build_problem(feats, sigma_emit=1e-3)
     st = random_state(p, rng)
     lay = make_layout(p, emission=True, ref_drift=True)

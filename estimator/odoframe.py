@@ -1,0 +1,68 @@
+"""The odometry frame: its rotation about the vertical relative to the reference array's frame.
+
+Convention (docs/method.md, "Odometry frame"): the odometry's z axis is the reference array's z axis;
+the odometry's x-y axes are rotated by the yaw ψ about it, so a step measured as Δo in the odometry frame
+is ``Rz(ψ) Δo`` in the reference frame (``factors.odometry_frame``). ψ is estimated with the rest when the
+odometry moves horizontally (``problem.odometry_yaw_observable``); its start value comes from the
+reference array's DOAs here, by a grid over ψ of the angular misfit of the source chain on their rays.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+COARSE_STEP_DEG = 5.0   # grid over the full circle, then refined
+FINE_STEP_DEG = 0.25
+
+
+def rotate_odometry(odom, yaw):
+    """Cumulative odometry (K, 3) expressed in the reference frame for the odometry yaw ``yaw`` (rad)."""
+    return Rotation.from_euler("z", yaw).apply(np.array(odom, float))
+
+
+def ray_misfit(p, yaws):
+    """Σ sin²(angle) between the reference DOAs and the source chain fitted to them, per yaw (Y,) → (Y,).
+
+    The chain's start point is the linear least-squares point of ``init.init_sources`` (rays vs.
+    ``s_0 + Rz(ψ) o_j``); its normal matrix does not depend on ψ, so all yaws are solved at once.
+    """
+    m = p["doa_arr"] == p["ref"]
+    u, j = p["doa_u"][m], p["doa_ev"][m]
+    o = (p["odom"] - p["odom"][0])[j]                                   # (n, 3)
+    P = np.eye(3)[None] - u[:, :, None] * u[:, None, :]                 # (n, 3, 3)
+    A = P.sum(0)
+    if np.linalg.cond(A) > 1e8:
+        return np.full(len(yaws), np.inf)
+    c, sn = np.cos(np.atleast_1d(yaws))[:, None], np.sin(np.atleast_1d(yaws))[:, None]
+    oy = np.stack([c * o[:, 0] - sn * o[:, 1], sn * o[:, 0] + c * o[:, 1],
+                   np.broadcast_to(o[:, 2], c.shape[:1] + o[:, 2].shape)], axis=2)   # (Y, n, 3) = Rz(ψ) o
+    s0 = -np.linalg.solve(A, np.einsum("nab,ynb->ay", P, oy)).T          # (Y, 3)
+    v = s0[:, None, :] + oy
+    v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-12)
+    return np.sum(1.0 - np.einsum("yna,na->yn", v, u) ** 2, axis=1)
+
+
+def initial_yaw(p):
+    """Start value of the odometry yaw (rad) from the reference array's DOAs; 0 when they cannot tell
+    (mirror-ambiguous reference DOAs, fewer than 3)."""
+    m = p["doa_arr"] == p["ref"]
+    if m.sum() < 3 or np.any(p["fold"][p["ref"]]):
+        return 0.0
+    coarse = np.deg2rad(np.arange(-180.0, 180.0, COARSE_STEP_DEG))
+    best = coarse[int(np.argmin(ray_misfit(p, coarse)))]
+    fine = best + np.deg2rad(np.arange(-COARSE_STEP_DEG, COARSE_STEP_DEG + 1e-9, FINE_STEP_DEG))
+    y = float(fine[int(np.argmin(ray_misfit(p, fine)))])
+    return float(np.angle(np.exp(1j * y)))
+
+
+# The yaw is kept free only when the data say the frames differ: |ψ| above this many σ. Below it the
+# odometry frame is taken as the reference frame (ψ = 0), as before this parameter existed: on the eight
+# real sets ψ comes out at −4..−6° (1.8° σ), a bias of the reference array's own DOAs that a free yaw
+# would pass on to every array position (mean location error 7.1 → 10.3 cm).
+YAW_SIGNIFICANCE = 5.0
+
+
+def yaw_is_significant(yaw, yaw_std, level=YAW_SIGNIFICANCE):
+    """True when the estimated yaw differs from 0 by more than ``level`` standard deviations."""
+    return bool(yaw_std is not None and np.isfinite(yaw_std) and abs(yaw) > level * yaw_std)

@@ -1,0 +1,112 @@
+"""An honest verdict on a calibration: ``{"status": "ok" | "suspect" | "failed", "reasons": [...],
+"flagged_arrays": [...]}`` (report.json top level; the CLI exits with EXIT_FAILED on "failed").
+
+Every reason is a measured quantity against a documented level (docs/method.md, "Verdict"):
+
+| check | suspect | failed |
+| --- | --- | --- |
+| solver converged | | not converged (max_iter) |
+| RMS normalised residual of a type, against its *stated* sigma (priors) or its estimated sigma (free) | > RESIDUAL_SUSPECT | > RESIDUAL_FAILED, or > RESIDUAL_SUSPECT for TYPES_FAILED types at once |
+| fraction of measurements flagged as outliers | > OUTLIER_SUSPECT | > OUTLIER_FAILED or removal cap hit |
+| an array inconsistent with the others (dropped, its pose refitted alone) | named | |
+| the other arrays/sources move by more than MOVE_SIGMA σ when it is dropped | yes | |
+"""
+from __future__ import annotations
+
+import numpy as np
+
+RESIDUAL_SUSPECT = 3.0   # RMS residual 3× its sigma: the weights (or the model) are wrong
+RESIDUAL_FAILED = 10.0   # 10×: the data contradict the model (e.g. wrong emission times)
+OUTLIER_SUSPECT = 0.15   # fraction of measurements removed as outliers
+OUTLIER_FAILED = 0.30
+TYPES_FAILED = 2         # residuals of this many types above RESIDUAL_SUSPECT at once: the model is wrong
+CONCENTRATED_MIN = 4         # an array holding at least this many outlier rows,
+CONCENTRATED_SHARE = 0.5     # at least this share of all of them,
+CONCENTRATED_OWN = 0.1       # and at least this fraction of its own rows is named (kept, not dropped)
+MOVE_SIGMA = 3.0         # a dropped array moved the rest by more than this many σ
+STATUS_RANK = {"ok": 0, "suspect": 1, "failed": 2}
+TYPE_LABEL = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "odometry", "cone": "cone (pair axis)"}
+
+
+def residual_ratios(variance_factors, scales, bounds):
+    """RMS normalised residual per type against the sigma that counts.
+
+    variance_factors : {kind: Σ r² / redundancy at the solution, with the sigmas used}.
+    scales : {kind: sigma used / sigma stated} (variance components; 1 when not estimated).
+    bounds : {kind: the largest factor allowed}; a type whose bound is the prior's (small) is judged
+        against its stated sigma, a free type against its estimated sigma (so a bound hit still shows).
+    """
+    out = {}
+    for kind, vf in variance_factors.items():
+        r = float(np.sqrt(max(vf, 0.0)))
+        s = float(scales.get(kind, 1.0))
+        b = float(bounds.get(kind, np.inf))
+        prior = b < 10.0
+        out[kind] = r * s if prior else r * (s if s >= b * (1 - 1e-9) else 1.0)
+    return out
+
+
+def concentrated_outliers(outliers, rows_per_array):
+    """Arrays holding most of the outlier rows: {array: (its outliers, its rows)} (see CONCENTRATED_*)."""
+    total = len(outliers)
+    out = {}
+    for a, n_rows in rows_per_array.items():
+        k = sum(1 for o in outliers if o.get("array") == a)
+        if k >= CONCENTRATED_MIN and k >= CONCENTRATED_SHARE * total and k >= CONCENTRATED_OWN * n_rows:
+            out[a] = (k, n_rows)
+    return out
+
+
+def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, capped, arrays, odometry_yaw=None,
+                 concentrated=None):
+    """The verdict dict from the estimator's diagnostics.
+
+    ratios : {kind: RMS normalised residual} (:func:`residual_ratios`); arrays: the consistency records
+    of ``calibrate.consistency_stage`` (``array``, ``inconsistent``, ``moves_sigma``); odometry_yaw: the
+    yaw test ({yaw_deg, std_deg, kept}) — a kept yaw means the odometry is not in the frame it was said to be.
+    """
+    status, reasons = "ok", []
+
+    def worse(s, text):
+        nonlocal status
+        reasons.append(text)
+        if STATUS_RANK[s] > STATUS_RANK[status]:
+            status = s
+
+    if not converged:
+        worse("failed", f"not converged ({reason})")
+    high = [k for k, r in ratios.items() if r > RESIDUAL_SUSPECT]
+    for kind, r in ratios.items():
+        label = TYPE_LABEL.get(kind, kind)
+        if r > RESIDUAL_FAILED or (r > RESIDUAL_SUSPECT and len(high) >= TYPES_FAILED):
+            why = f"> {RESIDUAL_FAILED:g}" if r > RESIDUAL_FAILED else \
+                f"> {RESIDUAL_SUSPECT:g} for {len(high)} measurement types at once"
+            worse("failed", f"{label} residuals {r:.1f}× their sigma ({why}: the data contradict the model)")
+        elif r > RESIDUAL_SUSPECT:
+            worse("suspect", f"{label} residuals {r:.1f}× their sigma (> {RESIDUAL_SUSPECT:g})")
+    frac = n_outliers / max(n_measurements, 1)
+    if capped or frac > OUTLIER_FAILED:
+        worse("failed", f"{n_outliers} of {n_measurements} measurements ({100 * frac:.0f} %) are outliers "
+                        f"(> {100 * OUTLIER_FAILED:.0f} %{' or removal stopped at its cap' if capped else ''})")
+    elif frac > OUTLIER_SUSPECT:
+        worse("suspect", f"{n_outliers} of {n_measurements} measurements ({100 * frac:.0f} %) are outliers "
+                         f"(> {100 * OUTLIER_SUSPECT:.0f} %)")
+    flagged = []
+    for a in arrays:
+        if not a.get("inconsistent"):
+            continue
+        flagged.append(a["array"])
+        worse("suspect", f"array {a['array']} is inconsistent with the others (χ² drop {a['drop_chi2']:.0f} on "
+                         f"{a['drop_dof']} dof): solved without it, its own pose refitted alone is unreliable")
+        if a.get("moves_sigma", 0.0) > MOVE_SIGMA:
+            worse("suspect", f"dropping array {a['array']} moves the solution by {a['moves_sigma']:.1f} σ "
+                             f"(> {MOVE_SIGMA:g})")
+    for a, (k, n_rows) in (concentrated or {}).items():
+        if a not in flagged:
+            flagged.append(a)
+            worse("suspect", f"array {a} holds {k} of the {n_outliers} outliers ({k} of its {n_rows} rows): its "
+                             "data may be biased as a whole (reflections, occlusion)")
+    if odometry_yaw and odometry_yaw.get("kept"):
+        worse("suspect", f"the odometry frame is rotated by {odometry_yaw['yaw_deg']:.1f} ± {odometry_yaw['std_deg']:.1f}° "
+                         "about the vertical relative to the reference array (estimated; check the odometry's axes)")
+    return {"status": status, "reasons": reasons, "flagged_arrays": flagged}

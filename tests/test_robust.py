@@ -1,0 +1,194 @@
+"""Robust estimation (issue 10): outliers of every type, inconsistent arrays, the verdict, bounded noise
+re-estimation, the odometry frame's yaw and option validation — against simulated ground truth."""
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from calib.estimator import calibrate, validate_options
+from calib.estimator.factors import FACTORS
+from calib.estimator.problem import build_problem, make_layout, retract
+from calib.estimator.robust import measurement_stats
+from calib.pipeline.evaluate import evaluate
+from calib.pipeline.featsim import simulate_features
+
+_spec = importlib.util.spec_from_file_location("bench_faults", Path(__file__).parents[1] / "benchmarks" / "bench_faults.py")
+bench = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bench)
+
+
+def test_normalised_statistics_have_their_chi2_mean_on_clean_data():
+    """q = rᵀ(I − H)⁻¹r is χ²(dof): its mean over clean scenes is the dof (hat-matrix correction included)."""
+    q = {"tdoa_s": [], "tdoa_m": [], "doa": [], "odometry": []}
+    for seed in range(8):
+        feats, truth = simulate_features(3, 1e-4, 5.0, seed=40 + seed)
+        cal = calibrate(feats, noise="meta")
+        p, st = cal["problem"], cal["state"]
+        stats = measurement_stats(p, st, make_layout(p), ["tdoa_s", "tdoa_m", "doa", "odometry"], {})
+        for k in q:
+            q[k].append(stats.q[stats.kind == k] / stats.dof[stats.kind == k])
+    for k in q:   # 8 scenes: the mean of q/dof has a std of ~0.03 (TDOA, DOA) to ~0.07 (odometry)
+        assert 0.75 < np.mean(np.concatenate(q[k])) < 1.3, k
+
+
+def test_outliers_of_every_type_are_flagged_and_good_rows_kept():
+    feats, truth = simulate_features(3, 1e-4, 5.0, seed=11)
+    clean = evaluate(calibrate(feats), truth)
+    tm, ts, doa, ev = (feats[k].copy() for k in ("tdoa_m", "tdoa_s", "doa", "events"))
+    tm.loc[[5, 20], "tdoa"] += [0.004, -0.0008]                 # 40 σ and 8 σ
+    ts.loc[3, "tdoa"] += 0.02
+    u = doa.loc[30, ["ux", "uy", "uz"]].to_numpy(float).copy()
+    doa.loc[30, ["ux", "uy", "uz"]] = u2 = Rotation.from_rotvec([0, 0, np.deg2rad(60)]).apply(u)
+    moved = np.rad2deg(np.arccos(np.clip(u @ u2, -1, 1)))
+    doa.loc[44, ["ux", "uy", "uz"]] = -doa.loc[44, ["ux", "uy", "uz"]].to_numpy(float)
+    ev.loc[7:, "odom_x"] += 0.6                                 # one slipped odometry step (20 σ)
+    cal = calibrate({**feats, "tdoa_m": tm, "tdoa_s": ts, "doa": doa, "events": ev})
+    rep = cal["report"]
+    flagged = {(o["type"], o["line"]) for o in rep["outliers"]}
+    injected = {("tdoa_m", 7), ("tdoa_m", 22), ("tdoa_s", 5), ("doa", 32), ("doa", 46), ("odometry", 7)}
+    assert injected <= flagged
+    assert len(flagged - injected) <= 1                         # good rows are not condemned
+    rec = next(o for o in rep["outliers"] if o["type"] == "doa" and o["line"] == 32)
+    assert rec["array"] == feats["doa"].loc[30, "array"] and rec["event"] == feats["doa"].loc[30, "event"]
+    assert abs(rec["residual"] - moved) < 10 and rec["unit"] == "deg"   # its error, up to the noise
+    m = evaluate(cal, truth)
+    assert m["position_rmse_m"] < clean["position_rmse_m"] + 0.01
+    assert rep["verdict"]["status"] in ("ok", "suspect")
+
+
+@pytest.mark.parametrize("seed", [0, 4])
+def test_an_array_biased_as_a_whole_is_named_and_dropped(seed):
+    feats, truth = simulate_features(1 + seed % 3, 1e-4, 5.0, 0.03, seed=1000 + seed)
+    f2, bad = bench.fault_array(feats, truth, np.random.default_rng(seed))
+    clean = calibrate(feats)
+    cal = calibrate(f2)
+    v = cal["report"]["verdict"]
+    assert v["flagged_arrays"] == [bad] and v["status"] != "ok"
+    assert cal["report"]["unreliable_arrays"] == [bad]
+    loc, _ = bench.errors(cal, truth, skip=bad)
+    loc0, _ = bench.errors(clean, truth, skip=bad)
+    assert loc < 1.5 * loc0 + 0.01
+    assert calibrate(feats)["report"]["verdict"]["flagged_arrays"] == []
+
+
+def test_wrong_emission_times_end_failed():
+    feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
+    f2, _ = bench.fault_t_emit(feats, truth, None)
+    v = calibrate(f2)["report"]["verdict"]
+    assert v["status"] == "failed" and v["reasons"]
+    assert calibrate(feats)["report"]["verdict"] == {"status": "ok", "reasons": [], "flagged_arrays": []}
+
+
+def test_stated_odometry_prior_is_not_inflated_beyond_its_bound():
+    """Odometry 10× worse than stated, TDOA sigma a frontend figure: the odometry σ moves ≤ 3×, verdict says so."""
+    feats, truth = simulate_features(3, 1e-4, 5.0, sigma_odo=0.3, seed=3)
+    feats["meta"].update(sigma_odo=0.03, sigmas_estimated=["sigma_tdoa"])
+    rep = calibrate(feats)["report"]
+    assert rep["sigmas"]["source"] == "estimate"
+    assert rep["sigmas"]["odometry_m"] <= 3 * 0.03 + 1e-12
+    assert rep["verdict"]["status"] != "ok"
+    assert any("odometry" in r for r in rep["verdict"]["reasons"])
+
+
+def test_odometry_yaw_is_estimated():
+    feats, truth = simulate_features(3, 1e-4, 5.0, 0.03, seed=1002)
+    aligned = calibrate(feats)
+    assert not aligned["report"]["odometry_frame"]["estimated"]      # insignificant: fixed at 0
+    f2, _ = bench.fault_odo_rot(feats, truth, None)
+    cal = calibrate(f2)
+    fr = cal["report"]["odometry_frame"]
+    assert fr["estimated"] and abs(fr["yaw_deg"] + bench.ODO_YAW_DEG) < max(3 * fr["yaw_std_deg"], 1.0)
+    loc, _ = bench.errors(cal, truth)
+    loc0, _ = bench.errors(aligned, truth)
+    assert loc < 1.5 * loc0 + 0.01
+    off = calibrate(f2, odometry_yaw=False)
+    assert bench.errors(off, truth)[0] > 3 * loc0                    # without it the rotation is not absorbed
+
+
+def test_odometry_frame_jacobian_with_yaw():
+    feats, _ = simulate_features(3, seed=1)
+    p = build_problem(feats, odometry_yaw=True)
+    rng = np.random.default_rng(0)
+    st = {"x": rng.normal(0, 2, (p["N"], 3)), "R": Rotation.random(p["N"], random_state=1).as_matrix(),
+          "offset": np.zeros(p["N"]), "drift": np.zeros(p["N"]), "s": rng.normal(0, 2, (p["K"], 3)),
+          "e": np.zeros(p["K"]), "odo_yaw": np.array([0.7])}
+    lay = make_layout(p)
+    assert lay["odo_yaw"][0] >= 0
+    f = FACTORS["odometry"](p, st, lay)
+    num = np.zeros_like(f["J"])
+    for k in range(lay["n"]):
+        h = np.zeros(lay["n"])
+        h[k] = 1e-6
+        num[:, k] = (FACTORS["odometry"](p, retract(st, lay, h), lay)["r"]
+                     - FACTORS["odometry"](p, retract(st, lay, -h), lay)["r"]) / 2e-6
+    np.testing.assert_allclose(f["J"], num, atol=1e-4 * np.abs(num).max())
+
+
+@pytest.mark.parametrize("opt,value", [("outlier_threshold", float("nan")), ("outlier_threshold", -1.0),
+                                       ("emission_sigma", float("inf")), ("robust_k", 0.0), ("max_iter", 0),
+                                       ("noise", "magic"), ("loss", "l1")])
+def test_bad_options_are_refused(opt, value):
+    with pytest.raises(ValueError, match=opt):
+        validate_options(**{opt: value})
+    feats, _ = simulate_features(1, seed=0)
+    with pytest.raises(ValueError, match=opt):
+        calibrate(feats, **{opt: value})
+
+
+def _as_pairs(feats, names, axis=(1.0, 0.0, 0.0)):
+    """The DOAs of ``names`` reduced to what a mic pair along ``axis`` (x) measures: a unit vector on the cone."""
+    d = feats["doa"].copy()
+    m = d.array.isin(names).to_numpy()
+    ux = d.loc[m, "ux"].to_numpy()
+    d.loc[m, "uy"], d.loc[m, "uz"] = np.sqrt(1 - ux ** 2), 0.0
+    return {**feats, "doa": d, "meta": {**feats["meta"], "doa_axes": {n: list(axis) for n in names}}}
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_mic_pairs_calibrated_from_cones(noise):
+    """Three 2-mic pairs + two full arrays: pair positions and axes recovered, roll reported undetermined."""
+    feats, truth = simulate_features(3, 1e-4, 5.0, 0.03, seed=2, noise=noise)
+    cal = calibrate(_as_pairs(feats, ["A2", "A3", "A4"]))
+    a, t = cal["arrays"].set_index("array"), truth["arrays"].set_index("array")
+    pos = np.linalg.norm((a[["x", "y", "z"]] - t[["x", "y", "z"]]).to_numpy(float), axis=1)
+    q = ["qw", "qx", "qy", "qz"]
+    ea = Rotation.from_quat(a[q].to_numpy(float), scalar_first=True).apply([1, 0, 0])
+    ta = Rotation.from_quat(t[q].to_numpy(float), scalar_first=True).apply([1, 0, 0])
+    axis_deg = np.rad2deg(np.arccos(np.clip(np.sum(ea * ta, axis=1), -1, 1)))
+    tol_pos, tol_ax = (1e-6, 1e-4) if not noise else (0.06, 4.0)
+    assert np.all(pos < tol_pos) and np.all(axis_deg < tol_ax), (pos, axis_deg)
+    assert np.isnan(a.loc["A2", "rx_std"]) and np.isfinite(a.loc["A2", "ry_std"])     # roll about x
+    assert {u["array"] for u in cal["report"]["undetermined"] if u["parameter"] == "roll"} == {"A2", "A3", "A4"}
+
+
+def test_cli_exit_codes_for_failed_verdict_and_bad_options(tmp_path):
+    """`calib estimate`: verdict printed last, exit 3 on failed (calibration still written), 2 on NaN options."""
+    from typer.testing import CliRunner
+
+    from calib.cli.main import app
+    from calib.pipeline.io import write_features
+
+    feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
+    bad, _ = bench.fault_t_emit(feats, truth, None)
+    write_features(tmp_path / "f", bad)
+    runner = CliRunner()
+    r = runner.invoke(app, ["estimate", str(tmp_path / "f"), "-o", str(tmp_path / "c")])
+    assert r.exit_code == 3, (r.stdout, r.stderr)
+    assert r.stderr.rfind("verdict: FAILED") > r.stderr.rfind("converged:") >= 0   # the verdict comes last
+    assert (tmp_path / "c" / "report.json").is_file()
+    r = runner.invoke(app, ["estimate", str(tmp_path / "f"), "-o", str(tmp_path / "c2"), "--outlier-threshold", "nan"])
+    assert r.exit_code == 2 and "--outlier-threshold" in r.stderr and not (tmp_path / "c2").exists()
+
+
+def test_report_first_line_states_the_verdict(tmp_path):
+    from calib.pipeline.io import read_calibration, write_calibration
+    from calib.pipeline.report import make_report
+
+    feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
+    for f, status in ((feats, "OK"), (bench.fault_t_emit(feats, truth, None)[0], "FAILED")):
+        write_calibration(tmp_path / status / "cal", calibrate(f))
+        make_report(tmp_path / status / "rep", f, read_calibration(tmp_path / status / "cal"))
+        first = (tmp_path / status / "rep" / "summary.md").read_text().splitlines()[0]
+        assert first.endswith(f"verdict: {status}"), first
