@@ -9,6 +9,8 @@ import time
 import numpy as np
 import pandas as pd
 import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
@@ -197,7 +199,7 @@ def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
     """Keep the odometry yaw free only when significant (``odoframe.YAW_SIGNIFICANCE``); else fix it at 0
     (sets ``p["odo_yaw_free"] = False``) and re-solve. Returns (state, layout, {yaw_deg, std_deg, kept})."""
     _, J, w, _, _ = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
-    test = _yaw_decision(p, st, J * np.sqrt(w)[:, None], int(lay["odo_yaw"][0]))
+    test = _yaw_decision(p, st, whiten(J, w), int(lay["odo_yaw"][0]))
     if not test["kept"]:
         lay = make_layout(p)
         st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
@@ -215,8 +217,24 @@ def _yaw_decision(p, st, Jw, k):
     return test
 
 
+def whiten(J, w):
+    """Rows of J scaled by sqrt(w) (IRLS weights), dense or sparse alike."""
+    if scipy.sparse.issparse(J):
+        return (scipy.sparse.diags(np.sqrt(w)) @ J).tocsr()
+    return J * np.sqrt(w)[:, None]
+
+
 def _param_std(J, k):
-    """1-σ of parameter k from whitened J: sqrt((JᵀJ)⁻¹_kk) by one Cholesky solve (pinv if singular)."""
+    """1-σ of parameter k from whitened J: sqrt((JᵀJ)⁻¹_kk) by one Cholesky solve (pinv if singular);
+    a sparse J by one sparse LU solve."""
+    if scipy.sparse.issparse(J):
+        d = np.sqrt(np.asarray(J.multiply(J).sum(axis=0)).ravel())
+        d = np.where(d > 0, d, 1.0)
+        Js = (J @ scipy.sparse.diags(1.0 / d)).tocsc()
+        e = np.zeros(J.shape[1])
+        e[k] = 1.0
+        x = scipy.sparse.linalg.splu((Js.T @ Js).tocsc()).solve(e)
+        return float(np.sqrt(max(x[k], 0.0)) / d[k])
     d = np.linalg.norm(J, axis=0)
     d = np.where(d > 0, d, 1.0)
     Js = J / d
@@ -263,7 +281,7 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
 def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
     """Largest move of any free array position or source between two states, in 1-σ of state b."""
     _, J, w, _, _ = linearise(p, st_b, lay, kinds, mask=mask)
-    std = std_from_cov(p, lay, covariance(J[w > 0], lay["n"]))
+    std = std_from_cov(p, lay, covariance(J[w > 0], lay["n"], lay))
     z = []
     for key in ("x", "s"):
         free = lay[key] >= 0
@@ -308,7 +326,9 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None):
     keep = w > 0
     Jk = J[keep]
     h = np.zeros(len(r))
-    if cov is None:
+    if scipy.sparse.issparse(J):
+        pass  # large problems: leverage neglected (mean n / rows ≈ 0.02 there; see robust.measurement_stats)
+    elif cov is None or not isinstance(cov, np.ndarray):
         d = np.linalg.norm(Jk, axis=0)
         d = np.where(d > 0, d, 1.0)
         A = sym_inverse((Jk / d).T @ (Jk / d))
@@ -408,7 +428,7 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
             # joint pass starts in the right parameter set
             _, J_ive, w_ive, _, _ = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
                                               k=robust_k)
-            p["odo_yaw_test"] = _yaw_decision(p, st, J_ive * np.sqrt(w_ive)[:, None], int(lay_ive["odo_yaw"][0]))
+            p["odo_yaw_test"] = _yaw_decision(p, st, whiten(J_ive, w_ive), int(lay_ive["odo_yaw"][0]))
         stage_states["ive"] = copy_state(st)
         stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
         times["ive"] = time.perf_counter() - t1
@@ -446,6 +466,14 @@ def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, lo
         raise ValueError(f"use_tdoa_s must be True or False, not {use_tdoa_s!r}")
 
 
+def _yaw_std_deg(cov, yaw_i, p, st, lay, kinds, mask):
+    """1-σ of the odometry yaw in degrees: from the dense covariance, or one sparse solve (large problems)."""
+    if isinstance(cov, np.ndarray):
+        return float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0))))
+    _, J, w, _, _ = linearise(p, st, lay, kinds, mask=mask)
+    return float(np.rad2deg(_param_std(whiten(J, w), yaw_i)))
+
+
 def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
     """Residual ratios, odometry frame and verdict at the final state.
 
@@ -468,7 +496,7 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
     yaw_i = int(lay["odo_yaw"][0])
     odo_frame = {
         "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),
-        "yaw_std_deg": float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0)))) if yaw_i >= 0 else None,
+        "yaw_std_deg": _yaw_std_deg(cov, yaw_i, p, st, lay, kinds, mask) if yaw_i >= 0 else None,
         "estimated": yaw_i >= 0,
         "test": info.get("yaw_test"),
         "convention": "odometry z = reference z; a step Δo (odometry frame) is Rz(yaw) Δo in the reference frame"}
