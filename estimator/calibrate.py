@@ -569,7 +569,31 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     t2 = time.perf_counter()
     if noise == "auto":
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
-    bounds = sigma_bounds(features["meta"], noise)
+    st, p, info, scales, bounds = _joint_solve(p, st, kinds, stages, features["meta"], noise=noise, loss=loss,
+                                               robust_k=robust_k, outlier_threshold=outlier_threshold,
+                                               max_iter=max_iter)
+    times["joint"] = time.perf_counter() - t2
+    lay = make_layout(p)
+    r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])
+    t_cov = time.perf_counter()
+    cov = covariance(J[w > 0], lay["n"], lay)
+    times["uncertainty"] = time.perf_counter() - t_cov
+    arrays, sources = to_frames(p, st, std_from_cov(p, lay, cov))
+    times["total"] = time.perf_counter() - t0
+    judged = _judge(p, st, info, lay, cov, w, cost, scales=scales, bounds=bounds, noise=noise, kinds=kinds)
+    report = _report(p, st, info, stages, judged, fs, method=method, noise=noise, emission_sigma=emission_sigma,
+                     times=times)
+    return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,
+            "stage_states": stage_states}
+
+
+def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_threshold, max_iter):
+    """Robust joint solve with outlier and array tests, then (noise="estimate") bounded variance components.
+
+    Returns (state, problem with the final sigmas, solve info, {kind: final / stated sigma}, sigma bounds);
+    ``stages`` gets the noise step's record.
+    """
+    bounds = sigma_bounds(meta, noise)
     stated = {k: p[v] for k, v in SIGMA_KEY.items()}
     st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
                           max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None)
@@ -579,19 +603,13 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
         stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds}
     scales = {k: p[v] / stated[k] for k, v in SIGMA_KEY.items()}
-    times["joint"] = time.perf_counter() - t2
-    lay = make_layout(p)
-    mask = info["mask"]
-    r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=mask)
-    t_cov = time.perf_counter()
-    cov = covariance(J[w > 0], lay["n"], lay)
-    times["uncertainty"] = time.perf_counter() - t_cov
-    std = std_from_cov(p, lay, cov)
-    arrays, sources = to_frames(p, st, std)
-    times["total"] = time.perf_counter() - t0
-    verdict, ratios, odo_frame, cost_s, n_res = _judge(p, st, info, lay, cov, w, cost, scales=scales, bounds=bounds,
-                                                       noise=noise, kinds=kinds)
-    lay_s = info["layout"]
+    return st, p, info, scales, bounds
+
+
+def _report(p, st, info, stages, judged, fs, *, method, noise, emission_sigma, times):
+    """report.json of a calibration (docs/method.md): verdict first, then convergence, costs, residuals,
+    outliers, array tests, undetermined parameters, sigmas, odometry frame, timings."""
+    verdict, ratios, odo_frame, cost_s, n_res = judged
     report = {
         "verdict": verdict,
         "software": {"name": "calib", "version": __version__},
@@ -602,9 +620,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         "cost": {**{k: v["cost"] for k, v in stages.items() if "cost" in v}, "joint_robust": info["robust"]["cost"],
                  "final": cost_s},
         "stages": stages,
-        "chi2_per_dof": float(2 * cost_s / max(n_res - lay_s["n"], 1)),
+        "chi2_per_dof": float(2 * cost_s / max(n_res - info["layout"]["n"], 1)),
         "residual_ratio": ratios,
-        "residuals": residual_table(fs, mask),
+        "residuals": residual_table(fs, info["mask"]),
         "outliers": info["outliers"],
         "array_consistency": info["arrays"],
         "unreliable_arrays": [str(p["names"][i]) for i in info["dropped"]],
@@ -616,13 +634,12 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                    "odometry_m": p["sigma_odo"], "cone_rad": p["sigma_cone"], "emission_s": emission_sigma,
                    "source": noise},
         "timings_s": times,
+        "odometry_frame": odo_frame,
+        "odometry_yaw_deg": odo_frame["yaw_deg"],
     }
-    report["odometry_frame"] = odo_frame
-    report["odometry_yaw_deg"] = odo_frame["yaw_deg"]
     if emission_sigma > 0:
         report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p["events"], st["e"])}
-    return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,
-            "stage_states": stage_states}
+    return report
 
 
 def _jsonable(d):
