@@ -15,7 +15,7 @@ from .tables import print_arrays
 
 @user_errors
 def estimate(
-    features: Path = typer.Argument(..., help="features/ directory (FORMATS.md section 2)"),
+    features: Path = typer.Argument(..., help="features/ directory (docs/formats.md section 2)"),
     out: Path = typer.Option(..., "-o", "--out", help="calibration/ directory to write (replaced atomically)"),
     method: Method = "hybrid",
     no_tdoa_s: NoTdoaS = False,

@@ -1,4 +1,4 @@
-"""`calib evaluate CALIB TRUTH`: the metrics of FORMATS.md section 4 as a table, or one JSON line."""
+"""`calib evaluate CALIB TRUTH`: the metrics of docs/formats.md section 4 as a table, or one JSON line."""
 from __future__ import annotations
 
 from pathlib import Path

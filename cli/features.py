@@ -1,4 +1,4 @@
-"""`calib features RECORDINGS -o FEATURES`: recordings → features/ (FORMATS.md section 2) + diagnostics."""
+"""`calib features RECORDINGS -o FEATURES`: recordings → features/ (docs/formats.md section 2) + diagnostics."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,4 @@
-"""`calib simulate -o OUT_DIR`: a simulated recording session (FORMATS.md section 1) + truth/ (section 4)."""
+"""`calib simulate -o OUT_DIR`: a simulated recording session (docs/formats.md section 1) + truth/ (section 4)."""
 from __future__ import annotations
 
 import sys

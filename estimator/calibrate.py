@@ -91,7 +91,7 @@ def residual_table(fs, mask=None):
 
 
 def to_frames(p, st, std=None):
-    """State (+ std) → arrays and sources DataFrames of FORMATS.md section 3."""
+    """State (+ std) → arrays and sources DataFrames of docs/formats.md section 3."""
     q = Rotation.from_matrix(st["R"]).as_quat(scalar_first=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
     arrays = pd.DataFrame({"array": list(p["names"]), "x": st["x"][:, 0], "y": st["x"][:, 1], "z": st["x"][:, 2],

@@ -1,4 +1,4 @@
-"""``extract_features``: a recording session (FORMATS.md section 1) → features (section 2) + diagnostics.
+"""``extract_features``: a recording session (docs/formats.md section 1) → features (section 2) + diagnostics.
 
 Per array (each at its own sample rate, all times in seconds on its own clock):
 1. matched-filter envelope of the whole recording (read block-wise), peaks → detections (:mod:`frontend.detect`);

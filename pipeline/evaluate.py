@@ -1,4 +1,4 @@
-"""Calibration vs ground truth: the metrics of FORMATS.md section 4 (the paper's, Zhang et al. 2025)."""
+"""Calibration vs ground truth: the metrics of docs/formats.md section 4 (the paper's, Zhang et al. 2025)."""
 from __future__ import annotations
 
 import numpy as np
@@ -30,7 +30,7 @@ def _rms(v):
 def array_errors(est, truth, reference=None):
     """Per-array errors of a calibration against truth.
 
-    est, truth : arrays DataFrames (FORMATS.md sections 3/4). ``reference``: name of the reference array
+    est, truth : arrays DataFrames (docs/formats.md sections 3/4). ``reference``: name of the reference array
     (default: the truth row at the origin with identity rotation, else the first row).
 
     Returns a dict of (n,) arrays over the non-reference arrays present in both: ``array``,

@@ -1,4 +1,4 @@
-"""Readers and writers for the directories of ``FORMATS.md`` (features/, calibration/, truth/).
+"""Readers and writers for the directories of ``docs/formats.md`` (features/, calibration/, truth/).
 
 Every reader validates what it reads and raises :class:`InputError` with a one-line message that names
 the file, the row (1-based line number in the file, header = line 1) and the problem. Every writer is
@@ -197,7 +197,7 @@ def _read_json(path):
 
 # ----------------------------------------------------------------------------------------------- events
 def read_events(path):
-    """Read and validate an ``events.csv`` (FORMATS.md section 1/2). Sorted by event."""
+    """Read and validate an ``events.csv`` (docs/formats.md section 1/2). Sorted by event."""
     pos = (-V.MAX_ABS_POSITION, V.MAX_ABS_POSITION)
     ev = read_table(path, EVENTS_COLS, int_cols=("event",), max_rows=V.MAX_EVENTS,
                     bounds={"odom_x": pos, "odom_y": pos, "odom_z": pos})
@@ -324,7 +324,7 @@ def validate_features(feats):
 
 
 def read_features(directory):
-    """Read and validate a ``features/`` directory (FORMATS.md section 2).
+    """Read and validate a ``features/`` directory (docs/formats.md section 2).
 
     ``tdoa_s.csv``, ``tdoa_m.csv`` and ``doa.csv`` are optional (absent = no such measurements).
     """

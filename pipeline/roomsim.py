@@ -15,7 +15,7 @@ shifts every RIR by ``frac_delay_length // 2`` samples. This module adds what is
   fractional-delay filter (81-tap Hann-windowed sinc); the builder's global delay is measured once
   (``builder_delay``) and removed.
 
-The scenario is a plain dict (see :func:`make_scenario`); :func:`simulate` writes FORMATS.md section 1
+The scenario is a plain dict (see :func:`make_scenario`); :func:`simulate` writes docs/formats.md section 1
 (``session.toml``, one float32/PCM WAV per array, ``events.csv``, ``chirp.wav``) plus ``truth/``
 (section 4, in the reference array's frame) and ``truth/manifest.json`` (the room-frame scenario and
 everything derived from it).

@@ -1,6 +1,6 @@
 """``calib run``: recordings → features → calibration → report, with content-hash stage caching.
 
-Layout of an output folder ``OUT`` (every sub-folder is written atomically, FORMATS.md formats)::
+Layout of an output folder ``OUT`` (every sub-folder is written atomically, docs/formats.md formats)::
 
     OUT/features/      features (section 2) + .calib-stage.json     ← stage "features"
     OUT/diagnostics/   detection diagnostics of the frontend         (same stage)
@@ -219,7 +219,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
 
     Parameters
     ----------
-    recordings : session folder (FORMATS.md section 1); ``recordings/truth`` is used for evaluation if present.
+    recordings : session folder (docs/formats.md section 1); ``recordings/truth`` is used for evaluation if present.
     out : output folder (created); its sub-folders features/, diagnostics/, calibration/, report/ belong
         to this function and are replaced atomically.
     force : recompute every stage.

@@ -451,7 +451,7 @@ def _normalise_light(scenario):
 
 
 def scenario_truth(scenario):
-    """Truth in the reference array's frame: ``{"arrays": df, "sources": df}`` (FORMATS.md section 4).
+    """Truth in the reference array's frame: ``{"arrays": df, "sources": df}`` (docs/formats.md section 4).
 
     ``x_i' = R_refᵀ(x_i − x_ref)``, ``R_i' = R_refᵀ R_i``, ``s_j' = R_refᵀ(s_j − x_ref)``,
     ``offset_i = τ_i − τ_ref``, ``drift_i = δ_i``.

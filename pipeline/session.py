@@ -1,4 +1,4 @@
-"""Recording sessions (FORMATS.md section 1): ``session.toml`` + one WAV per array + ``events.csv``.
+"""Recording sessions (docs/formats.md section 1): ``session.toml`` + one WAV per array + ``events.csv``.
 
 A session in memory is a plain dict::
 
