@@ -81,7 +81,10 @@ def main():
         shutil.rmtree(args.out)
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
-    res = run_study(args.out, runs=args.runs, jobs=args.jobs, progress=True,
+    def progress(done, total, msg):
+        print(f"\r{done}/{total} calibrations ({msg})", end="", file=sys.stderr, flush=True)
+
+    res = run_study(args.out, runs=args.runs, jobs=args.jobs, progress=progress,
                     check_convergence=not args.no_check_convergence, with_crlb=not args.no_crlb)
     wall = time.perf_counter() - t0
     runs, s = res["runs"], res["summary"]

@@ -1,6 +1,8 @@
 """`calib montecarlo -o OUT`: the paper's Monte-Carlo study (or any grid), every method, resumable."""
 from __future__ import annotations
 
+import contextlib
+
 import math
 from pathlib import Path
 from typing import Optional
@@ -8,7 +10,7 @@ from typing import Optional
 import typer
 
 from calib.pipeline.io import InputError
-from .common import user_errors, waiting
+from .common import console, user_errors, waiting
 from .signals import interrupted
 
 
@@ -85,15 +87,29 @@ def montecarlo(
     if seed is not None:
         g["base_seed"] = seed
     try:
-        with output_lock(out, on_wait=waiting):  # a resumable study folder: locked, appended to, never replaced
+        with output_lock(out, on_wait=waiting), _bar(quiet) as progress:  # locked, appended to, never replaced
             res = run_study(out, g["cells"], g["trajectories"], g["runs"], g["methods"], jobs=jobs, scheduler=scheduler,
-                            progress=not quiet, base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
+                            progress=progress, base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
                             check_convergence=check_convergence, with_crlb=crlb)
     except KeyboardInterrupt as exc:
         raise typer.Exit(interrupted(exc, f"the finished runs are kept in {out}; run the same command again to "
                                           "resume")) from None
     if not quiet:
         _print_summary(res)
+
+
+@contextlib.contextmanager
+def _bar(quiet):
+    """A rich progress bar on stderr, as the ``progress(done, total, message)`` callback (None when quiet)."""
+    if quiet:
+        yield None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("montecarlo ({task.fields[msg]})"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TimeRemainingColumn(), console=console) as bar:
+        task = bar.add_task("calibrations", total=None, msg="")
+        yield lambda done, total, msg: bar.update(task, completed=done, total=total, msg=msg)
 
 
 def _print_summary(res):

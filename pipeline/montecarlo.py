@@ -364,7 +364,7 @@ def _execute(chunks, settings, jobs, client):
 
 
 def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS, jobs=-1, scheduler=None,
-              progress=True, *, base_seed=0, sigma_odo=SIGMA_ODO, check_convergence=True, with_crlb=True,
+              progress=None, *, base_seed=0, sigma_odo=SIGMA_ODO, check_convergence=True, with_crlb=True,
               chunk_size=None, figure=True):
     """Run (or resume) a Monte-Carlo study and write runs.csv, summary.csv and fig3.png into ``out_dir``.
 
@@ -376,7 +376,8 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     methods : estimator methods ("hybrid", "wang").
     jobs : local worker processes (joblib; -1 = all cores, 1 = in this process).
     scheduler : address of a Dask distributed scheduler (or a ``distributed.Client``): run there instead.
-    progress : show a rich progress bar (stderr).
+    progress : optional callable ``progress(done, total, message)``, called as chunks finish (the CLI draws
+        a bar with it; the library prints nothing).
     base_seed, sigma_odo : scene generation (``run_seed``, odometry noise m); check_convergence: also solve
         from ground truth (``converged`` column); with_crlb: score one CRLB draw per run. These four must
         match the ones of a study being resumed (``study.json``).
@@ -426,11 +427,15 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
         (out / "parts").mkdir(exist_ok=True)
         stamp = f"{time.time_ns():x}"
         try:
-            with _progress(progress, skipped) as bar:
-                task_id = bar.add_task("calibrations", total=total)
-                for k, rows in enumerate(_execute(chunks, settings, jobs, client)):
-                    atomic_write_text(out / "parts" / f"part-{stamp}-{k:05d}.csv", _rows_to_csv(rows))
-                    bar.advance(task_id, sum(r["stage"] == "final" for r in rows))
+            done_runs = 0
+            message = f"{skipped} already done"
+            if progress is not None:
+                progress(0, total, message)
+            for k, rows in enumerate(_execute(chunks, settings, jobs, client)):
+                atomic_write_text(out / "parts" / f"part-{stamp}-{k:05d}.csv", _rows_to_csv(rows))
+                done_runs += sum(r["stage"] == "final" for r in rows)
+                if progress is not None:
+                    progress(done_runs, total, message)
         finally:
             if client is not None and client is not scheduler:
                 client.close()
@@ -442,15 +447,6 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     sel = _select(all_runs, grid)
     return {"runs": sel, "summary": pd.read_csv(paths["summary"]), "computed": total, "skipped": skipped,
             "wall_s": wall, "paths": paths}
-
-
-def _progress(enabled, skipped):
-    from rich.console import Console
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
-
-    return Progress(TextColumn(f"montecarlo ({skipped} already done)"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), disable=not enabled)
 
 
 def _select(df, grid):

@@ -11,7 +11,7 @@ from calib.cli.main import app
 from calib.pipeline.io import InputError
 
 CELL = [(1e-4, 10.0)]
-TINY = dict(cells=CELL, trajectories=[1, 3], methods=("hybrid", "wang"), progress=False)
+TINY = dict(cells=CELL, trajectories=[1, 3], methods=("hybrid", "wang"), progress=None)
 
 
 def without_time(path):
