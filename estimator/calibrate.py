@@ -16,7 +16,7 @@ from threadpoolctl import ThreadpoolController
 
 from calib import __version__
 
-from .factors import ALL_KINDS, UNITS
+from .factors import ALL_KINDS, KINDS, UNITS
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .observability import check_observability
 from .geometry import init_cone_axes
@@ -290,10 +290,8 @@ def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
     return float(z.max()) if z.size else 0.0
 
 
-SIGMA_KEY = {"tdoa_s": "sigma_tdoa_s", "tdoa_m": "sigma_tdoa_m", "doa": "sigma_doa", "odometry": "sigma_odo",
-             "cone": "sigma_cone"}
-META_KEY = {"tdoa_s": "sigma_tdoa", "tdoa_m": "sigma_tdoa", "doa": "sigma_doa_deg", "odometry": "sigma_odo",
-            "cone": "sigma_doa_deg"}
+SIGMA_KEY = {k.name: k.sigma_key for k in KINDS.values() if k.sigma_key}
+META_KEY = {k.name: k.meta_key for k in KINDS.values() if k.sigma_key}
 # A sigma the user states as measured (meta.json/session.toml, not listed in ``sigmas_estimated``) is a
 # prior: variance components may move it by at most this factor either way (the data can say "a bit
 # worse than stated", never replace a 3 cm odometry prior with 3 m and so hide a failure).
@@ -389,6 +387,16 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
     return st, p, {"scale": scales, "at_bound": at_bound, "bounds": bounds, **info}
 
 
+def _wang_initialise(p):
+    from .wang import wang_initialise  # (wang builds on this module's solver: imported when chosen)
+
+    return wang_initialise(p)
+
+
+# Initialisation methods by name (``calibrate(method=...)``): a new method is one entry here.
+INIT_METHODS = {"hybrid": initialise, "wang": _wang_initialise}
+
+
 def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
     """Initialisation (hybrid or Wang et al.'s) in the odometry frame's start yaw, the observability check,
     then the IVE (hybrid with TDOA-S), where the odometry yaw is kept or fixed. Returns (state, stages,
@@ -399,12 +407,7 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
     # the odometry frame's yaw: a start value from the reference DOAs, the initialisation in that frame
     yaw0 = initial_yaw(p) if p["odo_yaw_free"] else 0.0
     p_init = {**p, "odom": rotate_odometry(p["odom"], yaw0), "odo_yaw_free": False}
-    if method == "wang":
-        from .wang import wang_initialise
-
-        st, init_info = wang_initialise(p_init)
-    else:
-        st, init_info = initialise(p_init)
+    st, init_info = INIT_METHODS[method](p_init)
     st["odo_yaw"] = np.array([yaw0])
     st = init_cone_axes(p, st)
     times["init"] = time.perf_counter() - t0
@@ -442,7 +445,7 @@ def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, lo
     The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
     any data): NaN, infinities and negative values are refused, never silently used.
     """
-    choices = {"method": (method, ("hybrid", "wang")), "loss": (loss, ("cauchy", "huber", "linear", None)),
+    choices = {"method": (method, tuple(INIT_METHODS)), "loss": (loss, ("cauchy", "huber", "linear", None)),
                "noise": (noise, ("auto", "meta", "estimate"))}
     for name, (value, allowed) in choices.items():
         if value not in allowed:

@@ -12,12 +12,11 @@ Clock model (docs/architecture.md): arrival a_ij = (1+δ_i)(t_j + e_j + |s_j −
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import numpy as np
 
-ALL_KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry", "emission", "cone"]
-# report unit of each kind and the factor from SI: µs, degrees, cm (cone: cosine difference ≈ rad · sin θ)
-UNITS = {"tdoa_s": ("us", 1e6), "tdoa_m": ("us", 1e6), "doa": ("deg", np.rad2deg(1.0)), "odometry": ("cm", 100.0),
-         "emission": ("us", 1e6), "cone": ("deg", np.rad2deg(1.0))}
 
 
 class Jacobian:
@@ -249,8 +248,44 @@ def cone(p, st, lay):
     return _out("cone", r, J, p["cone_row"], 1, True, sig)
 
 
-FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission,
-           "cone": cone}
+@dataclass(frozen=True)
+class MeasurementKind:
+    """Everything calib knows about one kind of measurement, in one place (a new kind = one entry here).
+
+    factor : ``f(p, st, lay) -> factor dict`` (residual, Jacobian, rows, whitening sigma).
+    unit, scale : report unit and the factor from SI (µs, deg, cm). label, title : plot/report texts.
+    sigma_key : the problem key of its sigma (variance components re-estimate it; None: a fixed prior).
+    meta_key : the meta.json key that states that sigma. dof : degrees of freedom of one measurement in the
+    outlier tests (None: not tested).
+    """
+    name: str
+    factor: Callable
+    unit: str
+    scale: float
+    label: str
+    title: str
+    sigma_key: str | None = None
+    meta_key: str | None = None
+    dof: int | None = None
+
+
+_DEG = float(np.rad2deg(1.0))
+KINDS = {k.name: k for k in (
+    MeasurementKind("tdoa_s", tdoa_s, "us", 1e6, "TDOA-S residual (µs)", "TDOA-S", "sigma_tdoa_s", "sigma_tdoa", 1),
+    MeasurementKind("tdoa_m", tdoa_m, "us", 1e6, "TDOA-M residual (µs)", "TDOA-M", "sigma_tdoa_m", "sigma_tdoa", 1),
+    # a unit-vector residual has no noise along the direction itself: 2 degrees of freedom
+    MeasurementKind("doa", doa, "deg", _DEG, "DOA angular error (deg)", "DOA", "sigma_doa", "sigma_doa_deg", 2),
+    MeasurementKind("odometry", odometry_frame, "cm", 100.0, "odometry residual per axis (cm)", "Odometry",
+                    "sigma_odo", "sigma_odo", 3),
+    MeasurementKind("emission", emission, "us", 1e6, "emission-interval correction (µs)", "Emission"),
+    # cone: cosine difference ≈ rad · sin θ, shown in degrees
+    MeasurementKind("cone", cone, "deg", _DEG, "cone (axis angle) residual, cos × 57.3 (≈ deg)", "Cone",
+                    "sigma_cone", "sigma_doa_deg", 1),
+)}
+# Derived views (kept for the call sites that need only one attribute)
+ALL_KINDS = list(KINDS)
+UNITS = {k.name: (k.unit, k.scale) for k in KINDS.values()}
+FACTORS = {k.name: k.factor for k in KINDS.values()}
 
 
 def evaluate(p, st, lay, kinds=None):

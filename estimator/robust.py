@@ -23,12 +23,12 @@ import scipy.linalg
 import scipy.sparse
 from scipy.special import gammaincc, gammainccinv, gammaln, ndtri
 
-from .factors import UNITS
+from .factors import KINDS, UNITS
 from .problem import make_layout
 from .solver import levenberg_marquardt, linearise, use_dense
 
-TESTED_KINDS = ("tdoa_s", "tdoa_m", "doa", "odometry", "cone")
-DOF = {"tdoa_s": 1, "tdoa_m": 1, "doa": 2, "odometry": 3, "cone": 1}
+DOF = {k.name: k.dof for k in KINDS.values() if k.dof is not None}   # measurement kinds the tests cover
+TESTED_KINDS = tuple(DOF)
 FAMILY_ALPHA = 0.01          # family-wise false-alarm rate of the outlier test (Bonferroni over measurements)
 MAX_OUTLIER_FRACTION = 0.3   # the row-wise removal stops after this fraction of the measurements
 UNTESTABLE = 1e-6            # 1 − h below this: the row is fitted exactly by its own parameters

@@ -23,16 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.estimator import position_covariances, rebuild, residuals
+from calib.estimator import KINDS, position_covariances, rebuild, residuals
 
 from .evaluate import METRIC_ROWS
 from .io import atomic_dir, dumps_json
 
-UNIT_LABEL = {"tdoa_s": "TDOA-S residual (µs)", "tdoa_m": "TDOA-M residual (µs)",
-              "doa": "DOA angular error (deg)", "odometry": "odometry residual per axis (cm)",
-              "emission": "emission-interval correction (µs)", "cone": "cone (axis angle) residual, cos × 57.3 (≈ deg)"}
-TITLE = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "Odometry", "emission": "Emission",
-         "cone": "Cone"}
+UNIT_LABEL = {k.name: k.label for k in KINDS.values()}
+TITLE = {k.name: k.title for k in KINDS.values()}
 
 
 def _plt():
