@@ -24,6 +24,7 @@ Library use (a notebook)::
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import time
 from pathlib import Path
@@ -69,8 +70,31 @@ def file_sha256(path, chunk=1 << 20):
     return h.hexdigest()
 
 
+_DIGESTS = {}  # (modules, source fingerprint) → digest: a process re-running the pipeline parses once
+CALIB_PACKAGES = ("calib", "calib.frontend", "calib.estimator", "calib.pipeline", "calib.cli")
+
+
+def _source_fingerprint():
+    """(path, mtime, size) of every calib source file: changes whenever any source file is edited."""
+    out = []
+    for pkg in CALIB_PACKAGES:
+        spec = importlib.util.find_spec(pkg)
+        for folder in (spec.submodule_search_locations or []) if spec else []:
+            for f in sorted(Path(folder).glob("*.py")):
+                st = f.stat()
+                out.append((str(f), st.st_mtime_ns, st.st_size))
+    return tuple(out)
+
+
 def code_digest(modules):
     """sha256 over the source of ``modules`` and every calib module they import, transitively."""
+    key = (tuple(modules), _source_fingerprint())
+    if key not in _DIGESTS:
+        _DIGESTS[key] = _code_digest(modules)
+    return _DIGESTS[key]
+
+
+def _code_digest(modules):
     h = hashlib.sha256()
     for name, path in sorted(module_closure(modules).items()):
         h.update(name.encode() + b"\0" + Path(path).read_bytes() + b"\0")

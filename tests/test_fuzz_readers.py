@@ -173,3 +173,43 @@ def test_readers_on_random_bytes(data):
         p = Path(tmp) / "grid.toml"
         p.write_bytes(data)
         only_input_errors(read_grid, p)
+
+
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=6)
+    | st.sampled_from([1e300, -1e300, 343, "343", "A1", "A2", "sigma_tdoa", 10**400, [0, 0, 1], [0, 0, 0]]),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6) | st.sampled_from(["A1", "A2"]),
+                                                                inner, max_size=3),
+    max_leaves=8)
+
+
+@FUZZ
+@given(st.data())
+def test_meta_json_typed_values(valid, data):
+    """meta.json stays valid JSON but its values are replaced by any JSON value (typed fuzzing reaches the
+    validation that text edits rarely get past: 1e300, true, "343", nested lists, huge integers, NaN)."""
+    meta = json.loads((valid / "feats" / "meta.json").read_text())
+    for _ in range(data.draw(st.integers(1, 3))):
+        key = data.draw(st.sampled_from(sorted(meta) + ["speed_of_sond", "sigma_doa_deg", "doa_mirror_normals"]))
+        if data.draw(st.booleans()) or key not in meta:
+            meta[key] = data.draw(JSON_VALUES)
+        else:
+            meta.pop(key)
+    _fuzz_file(valid, "feats", "meta.json", read_features, json.dumps(meta))
+
+
+TOML_VALUES = ["1e300", "-1e300", "nan", "inf", "-inf", "true", "false", '"343"', '""', "0", "-1", "0.0", "1e-300",
+               "9223372036854775807", "[]", "[1, 2]", "[[1, 2, 3]]", "[[true, 0.0, 0.0]]", "[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]",
+               '["A1"]', "{ a = 1 }", '"A2.wav"', '"A1.wav"', '"../x.wav"', '"A1"', '"A9"', '"exponential"', "1979-05-27"]
+
+
+@FUZZ
+@given(st.data())
+def test_session_toml_typed_values(valid, data):
+    """session.toml stays valid TOML but values are replaced by any TOML literal (typed fuzzing)."""
+    lines = (valid / "rec" / "session.toml").read_text().splitlines()
+    assigns = [k for k, line in enumerate(lines) if " = " in line]
+    for _ in range(data.draw(st.integers(1, 3))):
+        k = data.draw(st.sampled_from(assigns))
+        lines[k] = lines[k].split(" = ")[0] + " = " + data.draw(st.sampled_from(TOML_VALUES))
+    _fuzz_file(valid, "rec", "session.toml", read_session, "\n".join(lines) + "\n")
