@@ -8,7 +8,8 @@ from .assess import array_covariance, position_covariances, rebuild, residuals
 from .calibrate import calibrate, to_frames, validate_options
 from .factors import KINDS, MeasurementKind
 from .init import ObservabilityError
+from .problem import LINE_COLUMN
 from .uncertainty import crlb, draw_from_crlb, state_from_frames
 
-__all__ = ["KINDS", "MeasurementKind", "array_covariance", "calibrate", "crlb", "draw_from_crlb", "ObservabilityError", "position_covariances",
+__all__ = ["KINDS", "LINE_COLUMN", "MeasurementKind", "array_covariance", "calibrate", "crlb", "draw_from_crlb", "ObservabilityError", "position_covariances",
            "rebuild", "residuals", "state_from_frames", "to_frames", "validate_options"]

@@ -30,6 +30,10 @@ DEFAULT_SIGMA_TDOA = 1e-4      # s
 DEFAULT_SIGMA_DOA_DEG = 5.0    # deg per tangent axis
 DEFAULT_SIGMA_ODO = 0.01       # m per axis per step
 
+# The readers (calib.pipeline.io) add each row's line in its CSV file (header = 1) under this column, so
+# outliers can be reported by file line; it lives in memory only and is never written.
+LINE_COLUMN = "csv_line"
+
 
 def sigma_doa_per_axis(sigma_deg):
     """meta ``sigma_doa_deg`` → std per tangent axis of the DOA direction error (rad).
@@ -156,7 +160,7 @@ def odometry_yaw_observable(p):
 
 def _lines(df):
     """Line numbers of the rows in their CSV file (header = line 1), or data-row positions + 2 in memory."""
-    return df["_line"].to_numpy(int) if "_line" in df else df.index.to_numpy(int) + 2
+    return df[LINE_COLUMN].to_numpy(int) if LINE_COLUMN in df else df.index.to_numpy(int) + 2
 
 
 def empty_state(p):

@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from calib.estimator import LINE_COLUMN
+
 
 from calib.errors import InputError  # noqa: F401  (re-exported: readers raise it)
 from calib.jsonutil import dumps_json  # noqa: F401
@@ -115,7 +117,7 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bou
     for c in extra:
         conv = pd.to_numeric(raw[c].replace("", np.nan), errors="coerce")
         df[c] = conv if conv.notna().sum() == (raw[c] != "").sum() else raw[c]
-    df["_line"] = np.arange(len(df)) + 2  # line in the file (header = 1), kept for error and outlier reports
+    df[LINE_COLUMN] = np.arange(len(df)) + 2  # line in the file (header = 1), for error and outlier reports
     df.attrs["path"] = str(path)
     return df
 
@@ -178,7 +180,8 @@ def _check_member(df, col, allowed, path, what):
 
 def write_table(df, path, columns=None, float_format="%.10g"):
     """Write a DataFrame as CSV (atomic). ``columns`` fixes the leading column order."""
-    df = df[[c for c in df.columns if not str(c).startswith("_")]]  # private bookkeeping columns stay in memory
+    # bookkeeping columns (the readers' csv_line, any private "_" column) stay in memory
+    df = df[[c for c in df.columns if c != LINE_COLUMN and not str(c).startswith("_")]]
     if columns is not None:
         rest = [c for c in df.columns if c not in columns]
         df = df[[c for c in columns if c in df.columns] + rest]
@@ -383,7 +386,7 @@ def _read_arrays(path, *, known=None, truth=False):
         raise InputError(f"{path}: line {k + 2}: quaternion is not unit norm (norm {n[k]:.4g})")
     q[have] /= n[have, None]
     df[["qw", "qx", "qy", "qz"]] = q
-    return df.drop(columns="_line").reset_index(drop=True)  # no private column in what the API returns
+    return df.drop(columns=LINE_COLUMN).reset_index(drop=True)  # calibration/truth rows: no line needed
 
 
 def _read_sources(path, truth=False):
@@ -391,7 +394,7 @@ def _read_sources(path, truth=False):
     df = read_table(path, SOURCES_COLS, int_cols=("event",), optional_cols=("x", "y", "z") if truth else (),
                     max_rows=V.MAX_EVENTS, bounds={"x": pos, "y": pos, "z": pos})
     _check_unique(df, ["event"], path)
-    return df.drop(columns="_line").sort_values("event", kind="stable").reset_index(drop=True)
+    return df.drop(columns=LINE_COLUMN).sort_values("event", kind="stable").reset_index(drop=True)
 
 
 def read_calibration(directory):

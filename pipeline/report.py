@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.estimator import KINDS, position_covariances, rebuild, residuals
+from calib.estimator import KINDS, LINE_COLUMN, position_covariances, rebuild, residuals
 
 from .evaluate import METRIC_ROWS
 from .io import atomic_dir, dumps_json
@@ -323,7 +323,7 @@ def _outlier_lines(features, outliers):
         line = int(o["line"])
         what = f"event {o['event']}, array {o['array']}" if o.get("array") else \
             (f"step to event {o['event']}" if o.get("event") is not None else "")
-        hit = None if df is None else (df[df["_line"] == line] if "_line" in df else df.iloc[line - 2:line - 1])
+        hit = None if df is None else (df[df[LINE_COLUMN] == line] if LINE_COLUMN in df else df.iloc[line - 2:line - 1])
         if hit is not None and len(hit):
             r = hit.iloc[0]
             if o["type"] == "tdoa_m":

@@ -116,3 +116,22 @@ def test_outputs_are_readable_by_others(tmp_path):
     os.umask(mask)
     assert stat.S_IMODE((tmp_path / "features").stat().st_mode) == 0o777 & ~mask
     assert stat.S_IMODE((tmp_path / "features" / "doa.csv").stat().st_mode) == 0o666 & ~mask
+
+
+def test_read_features_rows_carry_their_csv_line_and_no_private_columns(tmp_path):
+    """Rows keep their file line (header = 1) even after sorting; the column is never written back."""
+    feats, _ = simulate_features(1, seed=3)
+    write_features(tmp_path / "f", feats)
+    path = tmp_path / "f" / "tdoa_m.csv"
+    lines = path.read_text().splitlines()
+    header, rows = lines[0], lines[1:]
+    path.write_text("\n".join([header] + rows[::-1]) + "\n")   # reversed on disk: readers sort
+    back = read_features(tmp_path / "f")
+    tm = back["tdoa_m"]
+    assert not any(str(c).startswith("_") for k in ("events", "tdoa_m", "tdoa_s", "doa") for c in back[k].columns)
+    for _, r in tm.iterrows():
+        on_disk = lines[0:1] + rows[::-1]
+        fields = on_disk[int(r["csv_line"]) - 1].split(",")
+        assert int(fields[0]) == r["event"] and fields[1] == r["array"]
+    write_features(tmp_path / "g", back)
+    assert "csv_line" not in (tmp_path / "g" / "tdoa_m.csv").read_text().splitlines()[0]
