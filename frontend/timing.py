@@ -174,7 +174,7 @@ def pulse_envelope(setup, n, plain=False):
     return np.maximum.accumulate(p[::-1])[::-1]
 
 
-def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0):
+def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, floor=None, peak=None):
     """Direct path in a (J, T) array-averaged envelope: the earliest genuine onset above the noise floor.
 
     The strongest peak may be a reflection, arbitrarily later and stronger than the direct path (a
@@ -185,19 +185,25 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
       put there (``pulse_env`` (L,), :func:`pulse_envelope`; so a direct path 15 dB below a reflection
       0.6 ms later still counts, while the pulse's own sidelobes do not). Earlier peaks are taken first,
       so sidelobes trailing a genuine arrival never matter.
-    Returns (J,) int lags, (J,) ratio direct / strongest peak, (J,) ratio direct / noise floor.
+    floor, peak : (J,) noise floor and strongest peak to use instead of this envelope's (after a reflection
+    has been subtracted from it).
+    Returns (J,) int lags, (J,) ratio direct / strongest peak, (J,) ratio direct / noise floor, (J,) bool
+    "shadowed": a candidate before the chosen lag was rejected only as a possible sidelobe.
     """
     j, t = env.shape
     kmax = np.argmax(env, axis=1)
     out = kmax.copy()
-    peak = env[np.arange(j), kmax]
+    peak = env[np.arange(j), kmax] if peak is None else peak
     is_max = np.zeros_like(env, bool)
     is_max[:, 1:-1] = (env[:, 1:-1] >= env[:, :-2]) & (env[:, 1:-1] > env[:, 2:])
-    floor = np.empty(j)
+    own_floor = floor is None
+    floor = np.empty(j) if own_floor else floor
+    shadowed = np.zeros(j, bool)
     n_pulse = len(pulse_env)
     for i in range(j):
-        before = env[i, : kmax[i]]
-        floor[i] = np.median(before) if before.size >= 16 else np.median(env[i])
+        if own_floor:
+            before = env[i, : kmax[i]]
+            floor[i] = np.median(before) if before.size >= 16 else np.median(env[i])
         thr = max(snr_factor * floor[i], min_ratio * peak[i])
         cand = np.flatnonzero(is_max[i, : kmax[i]] & (env[i, : kmax[i]] >= thr))
         if not cand.size:
@@ -207,12 +213,31 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
             later = strong[(strong > k) & (env[i, strong] > env[i, k])]
             d = np.minimum(later - k, n_pulse - 1)
             if later.size and env[i, k] <= sidelobe_margin * np.max(env[i, later] * pulse_env[d]):
-                continue  # explained by a later, stronger peak's sidelobe
+                shadowed[i] = True
+                continue  # may be a later, stronger peak's sidelobe
             out[i] = k
             break
     ratio = env[np.arange(j), out] / np.maximum(peak, 1e-300)
     snr = env[np.arange(j), out] / np.maximum(floor, 1e-300)
-    return out, ratio, snr
+    return out, ratio, snr, shadowed
+
+
+def subtract_path(c, setup, shape, lag, half_width):
+    """Remove one path per mic from spectra (one step of CLEAN, exact in the frequency domain).
+
+    c : (J, M, Fb) spectra whose single-path response is ``a · shape_f e^{−j2πfτ} / Σ shape``. lag : (J,)
+    int lag of the path (samples); per mic its envelope peak within ± ``half_width`` is refined (Newton on
+    the exact correlation), its complex amplitude read there, and that pulse subtracted. Returns a copy.
+    """
+    fs, freqs = setup["fs"], setup["freqs"]
+    lo = max(0, int(np.min(lag)) - half_width - 2)
+    r = np.abs(lag_grid(c, setup, lo, int(np.max(lag)) + half_width + 3))
+    k = np.arange(lo, lo + r.shape[-1])
+    allowed = (np.abs(k[None, :] - np.asarray(lag)[:, None]) <= half_width)[:, None, :]
+    kk = np.argmax(np.where(allowed, r, -1.0), axis=-1)
+    tau, a = newton_envelope(c, freqs, (refine_peak_along(r, kk) + lo) / fs, iters=2)
+    pulse = shape / shape.sum() * np.exp(-2j * np.pi * freqs * tau[..., None])
+    return c - a[..., None] * pulse
 
 
 def refine_peak_along(y, k):
@@ -252,10 +277,15 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     pulse_env = pulse_envelope(setup, hi - lo + pad)
     onset_env = mean_env[:, lo - r_lo : hi - r_lo] if c_onset is None else \
         np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
-    dp, ratio, snr = direct_path_lag(onset_env, pulse_env if c_onset is None else
-                                     pulse_envelope(setup, hi - lo, plain=True), snr_factor, min_ratio,
-                                     sidelobe_margin)
+    onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
+    dp, ratio, snr, shadowed = direct_path_lag(onset_env, onset_pulse, snr_factor, min_ratio, sidelobe_margin)
     strongest = lo + np.argmax(onset_env, axis=1)
+    if np.any(shadowed):
+        # a weak peak just before a strong one, at its sidelobe level: subtract the strong path from every
+        # mic (both spectra) and look again (a direct path 15 dB below a reflection 0.6 ms later)
+        c, c_onset, r, env, mean_env, dp, ratio, snr = _clean_strongest(
+            c, c_onset, setup, shadowed, strongest, half_width, lo, hi, r_lo, r, onset_env, onset_pulse,
+            (snr_factor, min_ratio, sidelobe_margin), dp, ratio, snr)
     dp = lo + dp
     reflection = first_reflection(mean_env, dp - r_lo, half_width, pulse_env, reflection_ratio,
                                   sidelobe_margin)
@@ -278,6 +308,37 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), phase)
     return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
             "snr": snr, "strongest": strongest, "reflection": reflection}
+
+
+def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi, r_lo, r, onset_env,
+                     onset_pulse, onset_args, dp, ratio, snr):
+    """:func:`locate`'s second look at events with a shadowed candidate: the strongest path subtracted
+    (:func:`subtract_path`) from the timing spectra and the onset spectra, the onset searched again with
+    the first look's noise floor and strongest peak. Returns updated copies."""
+    sel = np.flatnonzero(shadowed)
+    floor = onset_env[sel, dp[sel]] / snr[sel]
+    peak = onset_env[sel, dp[sel]] / ratio[sel]
+    c_sub = subtract_path(c[sel], setup, setup["weights"], strongest[sel], half_width)
+    on_sub = None
+    if c_onset is not None:
+        plain_shape = setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2
+        on_sub = subtract_path(c_onset[sel], setup, plain_shape, strongest[sel], half_width)
+    env2 = np.abs(lag_grid(c_sub if on_sub is None else on_sub, setup, lo, hi)).mean(axis=1)
+    d2, q2, s2, _ = direct_path_lag(env2, onset_pulse, *onset_args, floor=floor, peak=peak)
+    # keep the second look only where it found an arrival clearly before the subtracted path
+    better = (d2 < strongest[sel] - lo - half_width) & (q2 >= onset_args[1]) & (s2 >= onset_args[0])
+    dp, ratio, snr = dp.copy(), ratio.copy(), snr.copy()
+    keep = sel[better]
+    dp[keep], ratio[keep], snr[keep] = d2[better], q2[better], s2[better]
+    c, r = c.copy(), r.copy()
+    c[keep] = c_sub[better]
+    if c_onset is not None:
+        c_onset = c_onset.copy()
+        c_onset[keep] = on_sub[better]
+    if keep.size:
+        r[keep] = lag_grid(c[keep], setup, r_lo, r_lo + r.shape[-1])
+    env = np.abs(r)
+    return c, c_onset, r, env, env.mean(axis=1), dp, ratio, snr
 
 
 def first_reflection(env, dp, half_width, pulse_env, ratio=0.5, sidelobe_margin=2.0):
