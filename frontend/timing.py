@@ -159,6 +159,22 @@ def newton_envelope(c, freqs, tau, iters=1):
     return tau, corr_at(c, freqs, tau)
 
 
+def pulse_near(setup, n, spread, plain=False, over=4):
+    """Largest single-path pulse magnitude within ± ``spread`` samples of each lag 0..n−1: (n,) in [0, 1].
+
+    Like :func:`pulse_envelope` but not made monotone: the exact sidelobe level a peak puts ``d`` samples
+    away when its position is known to ± ``spread`` (sub-sample position, mics across the aperture).
+    """
+    nf = setup["nfft"] * over
+    full = np.zeros(nf, complex)
+    full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
+    full /= full.sum()
+    p = np.abs(sfft.ifft(full) * nf)
+    p = np.r_[p[-(spread + 1) * over :], p[: (n + spread + 1) * over]]  # lags −spread−1 .. n+spread
+    p = maximum_filter1d(p, 2 * spread * over + 1)
+    return p[(spread + 1) * over :: over][:n]
+
+
 def pulse_envelope(setup, n, plain=False):
     """Monotone envelope of a single path's correlation pulse at lags 0..n−1 samples: (n,) in [0, 1].
 
@@ -174,7 +190,11 @@ def pulse_envelope(setup, n, plain=False):
     return np.maximum.accumulate(p[::-1])[::-1]
 
 
-def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, floor=None, peak=None):
+SHADOW_MARGIN = 1.2  # a peak this much above a stronger later peak's exact sidelobe may be a path of its own
+
+
+def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, floor=None, peak=None,
+                    near=None):
     """Direct path in a (J, T) array-averaged envelope: the earliest genuine onset above the noise floor.
 
     The strongest peak may be a reflection, arbitrarily later and stronger than the direct path (a
@@ -186,7 +206,8 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
       0.6 ms later still counts, while the pulse's own sidelobes do not). Earlier peaks are taken first,
       so sidelobes trailing a genuine arrival never matter.
     floor, peak : (J,) noise floor and strongest peak to use instead of this envelope's (after a reflection
-    has been subtracted from it).
+    has been subtracted from it). near : (L,) :func:`pulse_near`; a rejected candidate above 1.2 × that
+    exact sidelobe level is "shadowed" (worth a second look); None = every rejected candidate.
     Returns (J,) int lags, (J,) ratio direct / strongest peak, (J,) ratio direct / noise floor, (J,) bool
     "shadowed": a candidate before the chosen lag was rejected only as a possible sidelobe.
     """
@@ -213,7 +234,9 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
             later = strong[(strong > k) & (env[i, strong] > env[i, k])]
             d = np.minimum(later - k, n_pulse - 1)
             if later.size and env[i, k] <= sidelobe_margin * np.max(env[i, later] * pulse_env[d]):
-                shadowed[i] = True
+                dn = np.minimum(later - k, len(near) - 1) if near is not None else None
+                if near is None or env[i, k] > SHADOW_MARGIN * np.max(env[i, later] * near[dn]):
+                    shadowed[i] = True
                 continue  # may be a later, stronger peak's sidelobe
             out[i] = k
             break
@@ -230,12 +253,11 @@ def subtract_path(c, setup, shape, lag, half_width):
     the exact correlation), its complex amplitude read there, and that pulse subtracted. Returns a copy.
     """
     fs, freqs = setup["fs"], setup["freqs"]
-    lo = max(0, int(np.min(lag)) - half_width - 2)
-    r = np.abs(lag_grid(c, setup, lo, int(np.max(lag)) + half_width + 3))
-    k = np.arange(lo, lo + r.shape[-1])
-    allowed = (np.abs(k[None, :] - np.asarray(lag)[:, None]) <= half_width)[:, None, :]
-    kk = np.argmax(np.where(allowed, r, -1.0), axis=-1)
-    tau, a = newton_envelope(c, freqs, (refine_peak_along(r, kk) + lo) / fs, iters=2)
+    off = np.arange(-half_width - 1, half_width + 2)  # lags around each path, evaluated exactly
+    lags = np.asarray(lag)[:, None] + off[None, :]  # (J, L)
+    r = np.abs(np.einsum("jmf,jlf->jml", c, phasors(setup["freqs"], lags / fs)))  # (J, M, L)
+    kk = np.argmax(r[..., 1:-1], axis=-1) + 1
+    tau, a = newton_envelope(c, freqs, (refine_peak_along(r, kk) + lags[:, :1]) / fs, iters=2)
     pulse = shape / shape.sum() * np.exp(-2j * np.pi * freqs * tau[..., None])
     return c - a[..., None] * pulse
 
@@ -278,7 +300,9 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     onset_env = mean_env[:, lo - r_lo : hi - r_lo] if c_onset is None else \
         np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
     onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
-    dp, ratio, snr, shadowed = direct_path_lag(onset_env, onset_pulse, snr_factor, min_ratio, sidelobe_margin)
+    near = pulse_near(setup, hi - lo, 2, plain=c_onset is not None)
+    dp, ratio, snr, shadowed = direct_path_lag(onset_env, onset_pulse, snr_factor, min_ratio, sidelobe_margin,
+                                               near=near)
     strongest = lo + np.argmax(onset_env, axis=1)
     if np.any(shadowed):
         # a weak peak just before a strong one, at its sidelobe level: subtract the strong path from every
