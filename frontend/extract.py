@@ -171,6 +171,7 @@ def process_array(a, session, t_emit, c, opt):
     good = val >= opt["min_mic_quality"] * np.max(val, axis=1, keepdims=True)
     t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
     arrival, spread = fuse_times(t_org)
+    mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
     doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, normal) if len(mics) >= 3 else np.full(len(u), np.nan)
     reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, gap < half, fs, opt)
@@ -184,6 +185,7 @@ def process_array(a, session, t_emit, c, opt):
         "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
         "template": template, "phase": phase, "env": env, "env_rate": env_rate, "det_t": det_t,
         "det_score": score, "assoc": asc, "ev_idx": ev_idx, "arrival": arrival, "spread": spread,
+        "mic_sd": mic_sd,
         "quality": quality, "flags": reasons, "u": u, "doa_power": power, "doa_spread": doa_sd,
         "mic_times": t_mic, "redetected": redetected,
         "ambiguous_plane": normal if a.get("doa_hemisphere") is None else None, "has_doa": len(mics) >= 3,
@@ -347,9 +349,10 @@ def _tables(session, results, ev_ids, beta):
         for k, j in enumerate(r["ev_idx"] if r["has_doa"] else []):
             doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k], _flag_text(r["flags"][k], doa=True)))
     est = noise_estimates(results)
+    est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
             **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta}
-    # which sigmas are the frontend's own (spread-based, optimistic) figures rather than the user's priors:
+    # which sigmas are the frontend's own (spread-based) figures rather than the user's priors:
     # the estimator's noise="auto" then re-estimates the weights from the residuals
     meta["sigmas_estimated"] = sorted(k for k, v in est.items() if v is not None and k not in session["noise"])
     planes = {n: [float(v) for v in results[n]["ambiguous_plane"]] for n in names
@@ -384,16 +387,24 @@ def _join(a, b):
 
 
 def noise_estimates(results):
-    """Measurement noise from the spread between mics (lower bounds, see docs/frontend.md).
+    """Measurement noise of the features, from the spread between each array's mics (docs/frontend.md).
 
-    sigma_tdoa: √2 × the median standard error of an arrival time (a TDOA is a difference of two);
-    sigma_doa_deg: the median of :func:`doa_spread`. None where there is nothing to estimate from.
+    sigma_tdoa: √2 × the RMS over arrivals of one mic's timing spread about the fused arrival (a TDOA
+    is a difference of two arrivals; RMS, not median: the errors are heavy-tailed and the estimator takes
+    sigma as a standard deviation). Not the standard error of the fused mean (÷ √M): the errors that
+    reflections put on a few-cm array's mics are largely common to all of them, so averaging the mics
+    does not shrink them; that smaller figure is kept as ``sigma_tdoa_lower`` (diagnostics only).
+    sigma_doa_deg: the RMS of :func:`doa_spread` (plane-wave fit covariance, per tangent axis; planar arrays
+    with the elevation Jacobian). None where there is nothing to estimate from.
     """
-    spread = np.concatenate([r["spread"] for r in results.values()])
-    dsd = np.concatenate([r["doa_spread"] for r in results.values()])
-    spread, dsd = spread[np.isfinite(spread) & (spread > 0)], dsd[np.isfinite(dsd) & (dsd > 0)]
-    return {"sigma_tdoa": float(np.sqrt(2) * np.median(spread)) if spread.size else None,
-            "sigma_doa_deg": float(np.degrees(np.median(dsd))) if dsd.size else None}
+    def rms(key, scale=1.0):
+        v = np.concatenate([r[key] for r in results.values()])
+        v = v[np.isfinite(v) & (v > 0)]
+        return float(scale * np.sqrt(np.mean(v**2))) if v.size else None
+
+    dsd = rms("doa_spread")
+    return {"sigma_tdoa": rms("mic_sd", np.sqrt(2)), "sigma_doa_deg": None if dsd is None else float(np.degrees(dsd)),
+            "sigma_tdoa_lower": rms("spread", np.sqrt(2))}
 
 
 def _diagnostics(session, results, ev_ids, beta, elapsed):
@@ -419,7 +430,8 @@ def _diagnostics(session, results, ev_ids, beta, elapsed):
                             "residual_rms_s": float(asc["residual_rms"]), "ambiguous": bool(asc["ambiguous"])},
             "arrival_spread_median_s": float(np.nanmedian(r["spread"])),
             "arrivals": [{"event": int(ev_ids[j]), "time": float(r["arrival"][k]),
-                          "quality": float(r["quality"][k]), "flag": "+".join(r["flags"][k])}
+                          "quality": float(r["quality"][k]), "flag": "+".join(r["flags"][k]),
+                          "mic_sd_s": float(r["mic_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k]))}
                          for k, j in enumerate(r["ev_idx"])],
             "doubtful": {int(ev_ids[j]): r["flags"][k] for k, j in enumerate(r["ev_idx"]) if r["flags"][k]},
             "redetected_events": [int(ev_ids[j]) for j in np.flatnonzero(r["redetected"])],
