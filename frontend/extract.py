@@ -33,7 +33,7 @@ DEFAULTS = {
     "search_after": 0.003,   # ... or follow the detection by this much (s)
     "onset_snr": 6.0,        # direct path = earliest peak ≥ this × the noise floor (median before the peak)
     "onset_min_ratio": 0.05,  # ... and ≥ this × the strongest peak (−26 dB), and not a sidelobe of a later one
-    "track_tol": 0.005,      # s: an arrival this far off its neighbours' clock-track residuals is doubtful
+    "track_tol": 0.010,      # s: an arrival this far off its neighbours' clock-track residuals is doubtful
     "whiten_hz": 500.0,      # GCC whitening: magnitude smoothed over this band (Hz); 0 = plain matched filter
     "grid_deg": 3.0,         # SRP grid spacing (deg), refined locally to 0.02°
     "gate_pulses": 3.0,      # DOA gate: flat over the aperture ± this many pulse widths (1 / bandwidth)
@@ -175,6 +175,14 @@ def process_array(a, session, t_emit, c, opt):
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
     doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, normal) if len(mics) >= 3 else np.full(len(u), np.nan)
     reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, gap < half, fs, opt)
+    n_weak = sum("weak_direct" in r for r in reasons)
+    if n_weak >= OCCLUDED_FRACTION * len(reasons):
+        # an array in line of sight sees its direct path as the strongest peak in most events; here a
+        # reflection dominates often, so the arrivals where no weak direct path was found are suspect too
+        warnings.append(f"direct path weaker than a reflection in {n_weak} of {len(reasons)} events: line of "
+                        "sight probably blocked (occluded array); its arrivals and DOAs are unreliable")
+        for r in reasons:
+            r.append("occluded")
     quality = arrival_quality(gcc_quality, reasons)
 
     if normal is not None and a.get("doa_hemisphere") is None:
@@ -200,6 +208,7 @@ EARLY_ONSET_S = 0.030    # direct path more than this before the strongest peak:
 LOW_SNR = 2.0            # direct path below this × the onset threshold: flagged "low_snr"
 SPREAD_FACTOR = 5.0      # arrival standard error above this × the array's median: flagged "mic_spread"
 DOUBT_PENALTY = 0.5      # each doubt halves an arrival's quality
+OCCLUDED_FRACTION = 0.3  # "weak_direct" in at least this fraction of an array's events: flagged "occluded"
 
 
 def _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt):
@@ -370,8 +379,8 @@ def _tables(session, results, ev_ids, beta):
     }
 
 
-TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track")
-DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "mic_spread")
+TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded")
+DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "mic_spread", "occluded")
 
 
 def _flag_text(reasons, doa):

@@ -190,7 +190,7 @@ def pulse_envelope(setup, n, plain=False):
     return np.maximum.accumulate(p[::-1])[::-1]
 
 
-SHADOW_MARGIN = 1.2  # a peak this much above a stronger later peak's exact sidelobe may be a path of its own
+SHADOW_MARGIN = 1.2  # a rejected peak above this × a later peak's exact sidelobe level gets a second look (CLEAN)
 
 
 def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, floor=None, peak=None,
@@ -272,7 +272,7 @@ def refine_peak_along(y, k):
 
 
 def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, gate=0,
-           phase=None, reflection_ratio=0.5, c_onset=None):
+           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True):
     """Direct path and sub-sample chirp start at every mic, for all events of one array.
 
     c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path
@@ -283,12 +283,16 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     measurements. reflection_ratio : a later peak at least this × the direct path's (and not its sidelobe)
     is a strong reflection (it ends the DOA gate). c_onset : (J, M, Fb) spectra for the onset search
     (the plain matched filter of :func:`segment_spectra`, whose response is causal); None = ``c``.
+    separate_pulses : a strong reflection within this many pulse widths (1 / bandwidth) of the direct path
+    is modelled and subtracted before timing (:func:`separate_reflection`; 0 = never); separate_plain :
+    do it on the plain matched filter (exact two-pulse model) rather than the whitened one.
 
     Returns a dict: ``dp`` (J,) int direct-path lag; ``tau`` (J, M) start lags (s since segment start);
     ``value`` (J, M) normalised carrier peak (1 = one clean path); ``phase``; ``r`` (J, M, T) analytic
     correlation on lags ``r_lo`` .. ``r_lo + T − 1``; ``ratio`` (J,) direct path / strongest peak;
     ``snr`` (J,) direct path / noise floor; ``strongest`` (J,) lag of the strongest peak;
-    ``reflection`` (J,) lag of the first strong reflection after the direct path (−1: none seen).
+    ``reflection`` (J,) lag of the first strong reflection after the direct path (−1: none seen);
+    ``separated`` (J,) bool: that reflection was subtracted before timing.
     """
     fs, freqs = setup["fs"], setup["freqs"]
     pad = gate + half_width + 2
@@ -314,6 +318,21 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     reflection = first_reflection(mean_env, dp - r_lo, half_width, pulse_env, reflection_ratio,
                                   sidelobe_margin)
     reflection = np.where(reflection >= 0, reflection + r_lo, -1)
+    separated = np.zeros(len(dp), bool)
+    if separate_pulses > 0:
+        n_pulse = setup["fs"] / max(freqs.max() - freqs.min(), 1.0)
+        separated = (reflection >= 0) & (reflection - dp <= separate_pulses * n_pulse)
+    if np.any(separated):
+        # a strong reflection within a few pulse widths biases the direct path's peak (a wall just behind
+        # the array: ~25 µs): model both paths, subtract the reflection, time the direct path alone
+        sel = np.flatnonzero(separated)
+        src, shape = (c, setup["weights"]) if c_onset is None or not separate_plain else \
+            (c_onset, setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2)
+        c = c.copy()
+        c[sel] = separate_reflection(src[sel], setup, shape, dp[sel], reflection[sel], half_width)
+        r = r.copy()
+        r[sel] = lag_grid(c[sel], setup, r_lo, r_lo + r.shape[-1])
+        env = np.abs(r)
     # per mic: the envelope peak within the lags the aperture allows around the array's direct path (a
     # local maximum if there is one: the rising flank of a strong reflection just outside does not count)
     k = np.arange(r_lo, r_lo + r.shape[-1])
@@ -331,7 +350,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     dphi = np.angle(z * np.exp(-1j * phase))
     tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), phase)
     return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
-            "snr": snr, "strongest": strongest, "reflection": reflection}
+            "snr": snr, "strongest": strongest, "reflection": reflection, "separated": separated}
 
 
 def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi, r_lo, r, onset_env,
@@ -363,6 +382,37 @@ def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi,
         r[keep] = lag_grid(c[keep], setup, r_lo, r_lo + r.shape[-1])
     env = np.abs(r)
     return c, c_onset, r, env, env.mean(axis=1), dp, ratio, snr
+
+
+def _path_peaks(c, setup, lag, half_width):
+    """Per mic, the envelope peak within ± ``half_width`` samples of ``lag`` (J,), refined: (tau, amp) (J, M)."""
+    fs = setup["fs"]
+    off = np.arange(-half_width - 1, half_width + 2)
+    lags = np.asarray(lag)[:, None] + off[None, :]  # (J, L)
+    r = np.abs(np.einsum("jmf,jlf->jml", c, phasors(setup["freqs"], lags / fs)))
+    kk = np.argmax(r[..., 1:-1], axis=-1) + 1
+    return newton_envelope(c, setup["freqs"], (refine_peak_along(r, kk) + lags[:, :1]) / fs, iters=2)
+
+
+def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
+    """Remove a reflection that overlaps the direct path's pulse (SAGE-style alternating two-path fit).
+
+    c : (J, M, Fb) spectra whose single path of amplitude ``a`` at ``τ`` is ``a · shape_f e^{−j2πfτ} / Σ
+    shape`` (exact for the plain matched filter). dp, refl : (J,) lags of the direct path and of the
+    reflection. Each path is re-estimated per mic (envelope peak, Newton) with the other's current model
+    subtracted, ``iters`` times. Returns c with the reflection's model subtracted.
+    """
+    freqs = setup["freqs"]
+    unit = shape / shape.sum()
+
+    def model(tau, a):
+        return a[..., None] * unit * np.exp(-2j * np.pi * freqs * tau[..., None])
+
+    t1, a1 = _path_peaks(c, setup, dp, half_width)
+    for _ in range(iters):
+        t2, a2 = _path_peaks(c - model(t1, a1), setup, refl, half_width)
+        t1, a1 = _path_peaks(c - model(t2, a2), setup, dp, half_width)
+    return c - model(t2, a2)
 
 
 def first_reflection(env, dp, half_width, pulse_env, ratio=0.5, sidelobe_margin=2.0):
