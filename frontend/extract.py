@@ -172,6 +172,7 @@ def process_array(a, session, t_emit, c, opt):
     t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
     arrival, spread = fuse_times(t_org)
     mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
+    arrival_sd = np.hypot(mic_sd, loc["interference"])  # + what later paths put on the direct path
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
     doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, normal) if len(mics) >= 3 else np.full(len(u), np.nan)
     reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, gap < half, fs, opt)
@@ -193,7 +194,7 @@ def process_array(a, session, t_emit, c, opt):
         "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
         "template": template, "phase": phase, "env": env, "env_rate": env_rate, "det_t": det_t,
         "det_score": score, "assoc": asc, "ev_idx": ev_idx, "arrival": arrival, "spread": spread,
-        "mic_sd": mic_sd,
+        "mic_sd": mic_sd, "arrival_sd": arrival_sd,
         "quality": quality, "flags": reasons, "u": u, "doa_power": power, "doa_spread": doa_sd,
         "mic_times": t_mic, "redetected": redetected,
         "ambiguous_plane": normal if a.get("doa_hemisphere") is None else None, "has_doa": len(mics) >= 3,
@@ -398,22 +399,28 @@ def _join(a, b):
 def noise_estimates(results):
     """Measurement noise of the features, from the spread between each array's mics (docs/frontend.md).
 
-    sigma_tdoa: √2 × the RMS over arrivals of one mic's timing spread about the fused arrival (a TDOA
-    is a difference of two arrivals; RMS, not median: the errors are heavy-tailed and the estimator takes
-    sigma as a standard deviation). Not the standard error of the fused mean (÷ √M): the errors that
-    reflections put on a few-cm array's mics are largely common to all of them, so averaging the mics
-    does not shrink them; that smaller figure is kept as ``sigma_tdoa_lower`` (diagnostics only).
+    sigma_tdoa: √2 × the RMS over arrivals of ``arrival_sd`` (a TDOA is a difference of two arrivals; RMS,
+    not median: the errors are heavy-tailed and the estimator takes sigma as a standard deviation):
+    one mic's timing spread about the fused arrival, not the standard error of the fused mean (÷ √M),
+    because the errors reflections put on a few-cm array's mics are largely common to all of them, and
+    in quadrature the error later paths' sidelobes put on the direct path, which no spread between mics
+    shows (:func:`calib.frontend.timing.interference_sd`). The standard error of the mean is kept as
+    ``sigma_tdoa_lower`` (diagnostics only). Only arrivals without doubts (``flag`` empty) count: the
+    sigmas describe the unflagged rows; flagged ones are doubtful by definition (all, if none is clean).
     sigma_doa_deg: the RMS of :func:`doa_spread` (plane-wave fit covariance, per tangent axis; planar arrays
     with the elevation Jacobian). None where there is nothing to estimate from.
     """
-    def rms(key, scale=1.0):
+    def rms(key, doubts, scale=1.0):
         v = np.concatenate([r[key] for r in results.values()])
-        v = v[np.isfinite(v) & (v > 0)]
+        clean = np.concatenate([[not any(x in doubts for x in f) for f in r["flags"]] for r in results.values()])
+        ok = np.isfinite(v) & (v > 0)
+        v = v[ok & clean] if np.any(ok & clean) else v[ok]
         return float(scale * np.sqrt(np.mean(v**2))) if v.size else None
 
-    dsd = rms("doa_spread")
-    return {"sigma_tdoa": rms("mic_sd", np.sqrt(2)), "sigma_doa_deg": None if dsd is None else float(np.degrees(dsd)),
-            "sigma_tdoa_lower": rms("spread", np.sqrt(2))}
+    dsd = rms("doa_spread", DOA_DOUBTS)
+    return {"sigma_tdoa": rms("arrival_sd", TIMING_DOUBTS, np.sqrt(2)),
+            "sigma_doa_deg": None if dsd is None else float(np.degrees(dsd)),
+            "sigma_tdoa_lower": rms("spread", TIMING_DOUBTS, np.sqrt(2))}
 
 
 def _diagnostics(session, results, ev_ids, beta, elapsed):
@@ -440,7 +447,7 @@ def _diagnostics(session, results, ev_ids, beta, elapsed):
             "arrival_spread_median_s": float(np.nanmedian(r["spread"])),
             "arrivals": [{"event": int(ev_ids[j]), "time": float(r["arrival"][k]),
                           "quality": float(r["quality"][k]), "flag": "+".join(r["flags"][k]),
-                          "mic_sd_s": float(r["mic_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k]))}
+                          "mic_sd_s": float(r["mic_sd"][k]), "sd_s": float(r["arrival_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k]))}
                          for k, j in enumerate(r["ev_idx"])],
             "doubtful": {int(ev_ids[j]): r["flags"][k] for k, j in enumerate(r["ev_idx"]) if r["flags"][k]},
             "redetected_events": [int(ev_ids[j]) for j in np.flatnonzero(r["redetected"])],

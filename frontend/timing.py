@@ -292,7 +292,8 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     correlation on lags ``r_lo`` .. ``r_lo + T − 1``; ``ratio`` (J,) direct path / strongest peak;
     ``snr`` (J,) direct path / noise floor; ``strongest`` (J,) lag of the strongest peak;
     ``reflection`` (J,) lag of the first strong reflection after the direct path (−1: none seen);
-    ``separated`` (J,) bool: that reflection was subtracted before timing.
+    ``separated`` (J,) bool: that reflection was subtracted before timing; ``interference`` (J,) s
+    (:func:`interference_sd`).
     """
     fs, freqs = setup["fs"], setup["freqs"]
     pad = gate + half_width + 2
@@ -349,7 +350,9 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     fc = np.sum(setup["weights"] * freqs) / np.sum(setup["weights"])
     dphi = np.angle(z * np.exp(-1j * phase))
     tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), phase)
+    interference = interference_sd(env.mean(axis=1), dp - r_lo, half_width, pulse_near(setup, r.shape[-1], 0), fc)
     return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
+            "interference": interference,
             "snr": snr, "strongest": strongest, "reflection": reflection, "separated": separated}
 
 
@@ -413,6 +416,28 @@ def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
         t2, a2 = _path_peaks(c - model(t1, a1), setup, refl, half_width)
         t1, a1 = _path_peaks(c - model(t2, a2), setup, dp, half_width)
     return c - model(t2, a2)
+
+
+def interference_sd(env, dp, half_width, pulse, fc):
+    """Timing error (s, RMS) that the later paths' sidelobes put on the direct path's carrier peak.
+
+    A path ``ρ`` times the direct path's height, ``Δ`` samples later, adds ``ρ |p(Δ)|`` (``pulse`` (L,),
+    the exact single-path pulse magnitude) at the direct path; its carrier slope shifts the peak by
+    ``ρ |p(Δ)| sin ψ / (2π f_c)`` with an unknown phase ψ: RMS ``/ √2``, paths adding in power. Common to
+    all mics of a small array, so the spread between mics does not see it. env : (J, T) mic-averaged
+    envelope, dp : (J,) lags into it. Returns (J,).
+    """
+    j, t = env.shape
+    out = np.zeros(j)
+    is_max = np.zeros_like(env, bool)
+    is_max[:, 1:-1] = (env[:, 1:-1] >= env[:, :-2]) & (env[:, 1:-1] > env[:, 2:])
+    for i in range(j):
+        q = np.flatnonzero(is_max[i, dp[i] + half_width + 1 :]) + dp[i] + half_width + 1
+        d = np.minimum(q - dp[i], len(pulse) - 1)
+        # a path's height above the direct path's own sidelobe there (its sidelobes are no other path)
+        rho = np.maximum(env[i, q] / max(env[i, dp[i]], 1e-300) - pulse[d], 0.0)
+        out[i] = np.sqrt(np.sum((rho * pulse[d]) ** 2)) / (2 * np.pi * fc * np.sqrt(2))
+    return out
 
 
 def first_reflection(env, dp, half_width, pulse_env, ratio=0.5, sidelobe_margin=2.0):
