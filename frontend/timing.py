@@ -272,7 +272,7 @@ def refine_peak_along(y, k):
 
 
 def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, gate=0,
-           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True):
+           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=0):
     """Direct path and sub-sample chirp start at every mic, for all events of one array.
 
     c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path
@@ -285,7 +285,8 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     (the plain matched filter of :func:`segment_spectra`, whose response is causal); None = ``c``.
     separate_pulses : a strong reflection within this many pulse widths (1 / bandwidth) of the direct path
     is modelled and subtracted before timing (:func:`separate_reflection`; 0 = never); separate_plain :
-    do it on the plain matched filter (exact two-pulse model) rather than the whitened one.
+    do it on the plain matched filter (exact two-pulse model) rather than the whitened one. smear :
+    samples by which the array's clock drift spreads the pulse (the sidelobe model is widened by it).
 
     Returns a dict: ``dp`` (J,) int direct-path lag; ``tau`` (J, M) start lags (s since segment start);
     ``value`` (J, M) normalised carrier peak (1 = one clean path); ``phase``; ``r`` (J, M, T) analytic
@@ -305,7 +306,9 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     onset_env = mean_env[:, lo - r_lo : hi - r_lo] if c_onset is None else \
         np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
     onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
-    near = pulse_near(setup, hi - lo, 2, plain=c_onset is not None)
+    if smear > 0:  # a drifting clock stretches the chirp: its correlation pulse spreads by ~smear samples
+        onset_pulse = np.r_[np.ones(smear), onset_pulse][: len(onset_pulse)]
+    near = pulse_near(setup, hi - lo, 2 + smear, plain=c_onset is not None)
     dp, ratio, snr, shadowed = direct_path_lag(onset_env, onset_pulse, snr_factor, min_ratio, sidelobe_margin,
                                                near=near)
     strongest = lo + np.argmax(onset_env, axis=1)
