@@ -145,10 +145,7 @@ def process_array(a, session, t_emit, c, opt):
     C, C_plain = segment_spectra(x, starts, setup, plain=True)  # (J, M, Fb) each
     del x
 
-    # the fitted clock line's scale is 1 + drift (± 1e-5): a stretched chirp's pulse spreads by about
-    # |δ| T f1 / B (the sweep's delay–Doppler coupling), which the sidelobe test must allow for
-    smear = int(np.ceil(abs(asc["scale"] - 1.0) * dur * fs * band[1] / (band[1] - band[0])))
-    loc = locate(C, setup, **locate_kw, c_onset=C_plain, smear=smear)
+    loc = locate(C, setup, **locate_kw, c_onset=C_plain)
     tau, val, phase = loc["tau"], loc["value"], loc["phase"]
     timings["timing"] = time.perf_counter() - t0
 

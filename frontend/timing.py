@@ -272,7 +272,7 @@ def refine_peak_along(y, k):
 
 
 def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, gate=0,
-           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=0):
+           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=None):
     """Direct path and sub-sample chirp start at every mic, for all events of one array.
 
     c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path
@@ -286,7 +286,9 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     separate_pulses : a strong reflection within this many pulse widths (1 / bandwidth) of the direct path
     is modelled and subtracted before timing (:func:`separate_reflection`; 0 = never); separate_plain :
     do it on the plain matched filter (exact two-pulse model) rather than the whitened one. smear :
-    samples by which the array's clock drift spreads the pulse (the sidelobe model is widened by it).
+    samples by which the pulse is wider than the single-path model (a clock drift δ disperses a linear
+    sweep's group delay by 2|δ|T: at 1e-3 and 0.5 s, 1 ms ≫ the pulse); the sidelobe model is widened by
+    it. None = measured (:func:`excess_width`).
 
     Returns a dict: ``dp`` (J,) int direct-path lag; ``tau`` (J, M) start lags (s since segment start);
     ``value`` (J, M) normalised carrier peak (1 = one clean path); ``phase``; ``r`` (J, M, T) analytic
@@ -306,6 +308,8 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     onset_env = mean_env[:, lo - r_lo : hi - r_lo] if c_onset is None else \
         np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
     onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
+    if smear is None:
+        smear = excess_width(onset_env, onset_pulse)
     if smear > 0:  # a drifting clock stretches the chirp: its correlation pulse spreads by ~smear samples
         onset_pulse = np.r_[np.ones(smear), onset_pulse][: len(onset_pulse)]
     near = pulse_near(setup, hi - lo, 2 + smear, plain=c_onset is not None)
@@ -419,6 +423,29 @@ def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
         t2, a2 = _path_peaks(c - model(t1, a1), setup, refl, half_width)
         t1, a1 = _path_peaks(c - model(t2, a2), setup, dp, half_width)
     return c - model(t2, a2)
+
+
+SKIRT_LEVEL = 0.1  # excess_width compares the leading skirt of the strongest peak down to this height
+SKIRT_RISE = 0.02  # ... as long as it keeps falling (within this relative ripple)
+
+
+def excess_width(env, pulse_env, level=SKIRT_LEVEL):
+    """How much further (samples) the strongest peak's leading skirt reaches down to ``level`` × its height
+    than a single path's: the median over events (J, T) of the excess, ≥ 0. A drifting clock's dispersion
+    gives every event's pulse a long leading ramp (at δ = 8e-4, 0.5 s: 0.06 of the peak 18 samples ahead,
+    where the model pulse is below 0.04); only the leading side is used, reverberation widens the other,
+    and only as long as it keeps falling: a weak direct path ahead of a reflection is a peak of its own.
+    """
+    model = int(np.sum(pulse_env >= level)) - 1
+    out = []
+    for e in env:
+        k = int(np.argmax(e))
+        i = k  # walk down the leading side while it keeps falling (a separate earlier peak ends the skirt)
+        while i > 0 and e[i - 1] >= level * e[k] and e[i - 1] <= e[i] * (1 + SKIRT_RISE):
+            i -= 1
+        out.append(k - i - model)
+    excess = int(np.median(out)) if out else 0
+    return excess if excess > 1 else 0  # ± 1 sample: the measure's own resolution
 
 
 def interference_sd(env, dp, half_width, pulse, fc):
