@@ -145,7 +145,11 @@ def process_array(a, session, t_emit, c, opt):
     C, C_plain = segment_spectra(x, starts, setup, plain=True)  # (J, M, Fb) each
     del x
 
-    loc = locate(C, setup, **locate_kw, c_onset=C_plain)
+    # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
+    # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
+    # propagation delays, so only as an upper bound on the measured broadening)
+    smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * dur - pulse) * fs))
+    loc = locate(C, setup, **locate_kw, c_onset=C_plain, smear_max=smear_max)
     tau, val, phase = loc["tau"], loc["value"], loc["phase"]
     timings["timing"] = time.perf_counter() - t0
 

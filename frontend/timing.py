@@ -272,7 +272,7 @@ def refine_peak_along(y, k):
 
 
 def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, gate=0,
-           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=None):
+           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=None, smear_max=None):
     """Direct path and sub-sample chirp start at every mic, for all events of one array.
 
     c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path
@@ -288,7 +288,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     do it on the plain matched filter (exact two-pulse model) rather than the whitened one. smear :
     samples by which the pulse is wider than the single-path model (a clock drift δ disperses a linear
     sweep's group delay by 2|δ|T: at 1e-3 and 0.5 s, 1 ms ≫ the pulse); the sidelobe model is widened by
-    it. None = measured (:func:`excess_width`).
+    it. None = measured (:func:`excess_width`), at most ``smear_max`` samples if given.
 
     Returns a dict: ``dp`` (J,) int direct-path lag; ``tau`` (J, M) start lags (s since segment start);
     ``value`` (J, M) normalised carrier peak (1 = one clean path); ``phase``; ``r`` (J, M, T) analytic
@@ -310,6 +310,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
     if smear is None:
         smear = excess_width(onset_env, onset_pulse)
+        smear = smear if smear_max is None else min(smear, smear_max)
     if smear > 0:  # a drifting clock stretches the chirp: its correlation pulse spreads by ~smear samples
         onset_pulse = np.r_[np.ones(smear), onset_pulse][: len(onset_pulse)]
     near = pulse_near(setup, hi - lo, 2 + smear, plain=c_onset is not None)
@@ -425,15 +426,15 @@ def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
     return c - model(t2, a2)
 
 
-SKIRT_LEVEL = 0.1  # excess_width compares the leading skirt of the strongest peak down to this height
+SKIRT_LEVEL = 0.2  # excess_width compares the leading skirt of the strongest peak down to this height
 SKIRT_RISE = 0.02  # ... as long as it keeps falling (within this relative ripple)
 
 
 def excess_width(env, pulse_env, level=SKIRT_LEVEL):
     """How much further (samples) the strongest peak's leading skirt reaches down to ``level`` × its height
     than a single path's: the median over events (J, T) of the excess, ≥ 0. A drifting clock's dispersion
-    gives every event's pulse a long leading ramp (at δ = 8e-4, 0.5 s: 0.06 of the peak 18 samples ahead,
-    where the model pulse is below 0.04); only the leading side is used, reverberation widens the other,
+    gives every event's pulse a long leading ramp (at δ = 8e-4, 0.5 s: 0.2 of the peak 9 samples ahead,
+    where the model pulse is below 0.2 after 4); only the leading side is used, reverberation widens the other,
     and only as long as it keeps falling: a weak direct path ahead of a reflection is a peak of its own.
     """
     model = int(np.sum(pulse_env >= level)) - 1
