@@ -116,3 +116,32 @@ def refine_peak(y, k):
     den = a - 2 * b + c
     off = np.where(den < 0, 0.5 * (a - c) / np.where(den < 0, den, -1.0), 0.0)
     return k + np.clip(off, -0.5, 0.5)
+
+
+def redetect(env, env_rate, times, half_window, threshold, block_s=0.25):
+    """Look for chirps the global detection missed, near times where they must be.
+
+    The association's clock line predicts when each missed event arrives; within that narrow window a
+    weaker peak is unlikely to be noise (the maximum of ``2 · half_window · env_rate`` noise samples is ~3×
+    the background), so a lower threshold is safe there. Reverberation lowers a chirp's score (its tail
+    raises the local background) without making it any less a chirp.
+
+    env : (N,) envelope at ``env_rate``. times : (K,) predicted arrival times (s). half_window : s.
+    threshold : peak / local background needed. Returns idx (K,) int envelope samples (−1: nothing) and
+    score (K,) (nan where nothing).
+    """
+    floor = local_floor(env, max(1, int(block_s * env_rate)))
+    idx = np.full(len(times), -1)
+    score = np.full(len(times), np.nan)
+    h = max(1, int(round(half_window * env_rate)))
+    for k, t in enumerate(np.asarray(times, float)):
+        c = int(round(t * env_rate))
+        lo, hi = max(1, c - h), min(len(env) - 1, c + h + 1)
+        if hi - lo < 3:
+            continue
+        q = lo + int(np.argmax(env[lo:hi]))
+        if q in (lo, hi - 1):  # the window's edge: the rising flank of something outside
+            continue
+        if env[q] >= threshold * floor[q]:
+            idx[k], score[k] = q, env[q] / floor[q]
+    return idx, score

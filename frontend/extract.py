@@ -15,12 +15,11 @@ import time
 
 import numpy as np
 import pandas as pd
-from scipy.signal.windows import tukey
 
 from calib.errors import InputError
 
 from . import associate as assoc_mod
-from .detect import matched_envelope, pick_peaks, refine_peak
+from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .doa import srp_doa, srp_setup
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
@@ -29,9 +28,12 @@ DEFAULTS = {
     "threshold": 8.0,        # detection: peak / local background of the matched-filter envelope
     "max_drift": 1e-3,       # association: bound on |clock drift|
     "tolerance": None,       # association: max |arrival − predicted| (s); None = min(0.1, spacing / 4)
-    "search_before": 0.030,  # direct path may precede the strongest envelope peak by this much (s)
+    "redetect_threshold": 5.0,  # missed events: re-detected near their predicted time above this score
+    "max_distance": 30.0,    # m: the direct path may precede the detected (strongest) peak by this / c
     "search_after": 0.003,   # ... or follow the detection by this much (s)
-    "first_peak": 0.35,      # direct path = earliest envelope peak ≥ this × the strongest one
+    "onset_snr": 6.0,        # direct path = earliest peak ≥ this × the noise floor (median before the peak)
+    "onset_min_ratio": 0.05,  # ... and ≥ this × the strongest peak (−26 dB), and not a sidelobe of a later one
+    "track_tol": 0.010,      # s: an arrival this far off its neighbours' clock-track residuals is doubtful
     "whiten_hz": 500.0,      # GCC whitening: magnitude smoothed over this band (Hz); 0 = plain matched filter
     "grid_deg": 3.0,         # SRP grid spacing (deg), refined locally to 0.02°
     "gate_pulses": 3.0,      # DOA gate: flat over the aperture ± this many pulse widths (1 / bandwidth)
@@ -120,6 +122,7 @@ def process_array(a, session, t_emit, c, opt):
     if asc["n_matched"] < 2:
         raise InputError(f"{a['wav']}: found {asc['n_matched']} chirp(s) matching the events in events.csv "
                          f"({len(det_t)} detection(s)); need at least 2")
+    det_t, score, redetected = _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt)
     timings["associate"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -129,24 +132,36 @@ def process_array(a, session, t_emit, c, opt):
     pulse = 1.0 / (band[1] - band[0])
     half = int(np.ceil((aperture + 0.5 * pulse) * fs))  # a mic's lag vs the array's: aperture + half a pulse
     flat, taper = half + int(np.ceil(opt["gate_pulses"] * pulse * fs)), int(np.ceil(2 * pulse * fs))
-    pre = int(round((opt["search_before"] + 0.002) * fs))  # segment starts this long before the detection
+    lo = flat + taper + half + 2  # first lag searched: the DOA gate still fits in the segment before it
+    # the direct path may precede the detection (the strongest peak, maybe a reflection) by max_distance / c;
+    # a little more for the noise floor
+    pre = lo + int(round((opt["max_distance"] / c + NOISE_LEAD_S) * fs))
     after = int(round(opt["search_after"] * fs))
-    locate_kw = {"lo": pre - int(round(opt["search_before"] * fs)), "hi": pre + after, "half_width": half,
-                 "alpha": opt["first_peak"], "dominance": int(np.ceil(2.5 * pulse * fs)), "gate": flat + taper}
+    locate_kw = {"lo": lo, "hi": pre + after, "half_width": half, "snr_factor": opt["onset_snr"],
+                 "min_ratio": opt["onset_min_ratio"], "gate": flat + taper}
     max_lag = pre + after + flat + taper + half + 4  # largest lag locate() looks at
     seg_len = max_lag + len(template) + int(np.ceil(opt["max_drift"] * len(template))) + 4
     starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - pre
     setup = spectra_setup(template, fs, band, seg_len, opt["whiten_hz"])
-    loc = locate_events(x, starts, setup, locate_kw)  # event segments read and processed in chunks
+    # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
+    # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
+    # propagation delays, so only as an upper bound on the measured broadening)
+    smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * dur - pulse) * fs))
+    # event segments read and processed in chunks (memory bounded however long the recording)
+    loc = locate_events(x, starts, setup, {**locate_kw, "smear_max": smear_max})
     x.close()
     tau, val, phase = loc["tau"], loc["value"], loc["phase"]
     timings["timing"] = time.perf_counter() - t0
 
-    # DOA from the gated direct path (needs 3 mics or more: 2 give a cone, 1 nothing)
+    # DOA from the gated direct path, ended before the first strong reflection (needs 3 mics or more)
     t0 = time.perf_counter()
     warnings = []
+    n_pulse = int(np.ceil(pulse * fs))
+    gap = np.where(loc["reflection"] >= 0, loc["reflection"] - loc["dp"] - n_pulse - taper, flat)
+    right = np.clip(gap, half, flat)
     if len(mics) >= 3:
-        g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], flat, taper, phase)
+        g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], flat, taper, phase,
+                                             right)
         sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], a.get("doa_hemisphere"))
         u, power = srp_doa(g_spec, sset, g_w)
         normal = sset["planar_normal"]
@@ -160,8 +175,20 @@ def process_array(a, session, t_emit, c, opt):
     good = val >= opt["min_mic_quality"] * np.max(val, axis=1, keepdims=True)
     t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
     arrival, spread = fuse_times(t_org)
-    quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
-    doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c) if len(mics) >= 3 else np.full(len(u), np.nan)
+    mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
+    arrival_sd = np.hypot(mic_sd, loc["interference"])  # + what later paths put on the direct path
+    gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
+    doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, normal) if len(mics) >= 3 else np.full(len(u), np.nan)
+    reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, gap < half, fs, opt)
+    n_weak = sum("weak_direct" in r for r in reasons)
+    if n_weak >= OCCLUDED_FRACTION * len(reasons):
+        # an array in line of sight sees its direct path as the strongest peak in most events; here a
+        # reflection dominates often, so the arrivals where no weak direct path was found are suspect too
+        warnings.append(f"direct path weaker than a reflection in {n_weak} of {len(reasons)} events: line of "
+                        "sight probably blocked (occluded array); its arrivals and DOAs are unreliable")
+        for r in reasons:
+            r.append("occluded")
+    quality = arrival_quality(gcc_quality, reasons)
 
     if normal is not None and a.get("doa_hemisphere") is None:
         warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
@@ -171,7 +198,9 @@ def process_array(a, session, t_emit, c, opt):
         "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
         "template": template, "phase": phase, "env": env, "env_rate": env_rate, "det_t": det_t,
         "det_score": score, "assoc": asc, "ev_idx": ev_idx, "arrival": arrival, "spread": spread,
-        "quality": quality, "u": u, "doa_power": power, "doa_spread": doa_sd, "mic_times": t_mic,
+        "mic_sd": mic_sd, "arrival_sd": arrival_sd,
+        "quality": quality, "flags": reasons, "u": u, "doa_power": power, "doa_spread": doa_sd,
+        "mic_times": t_mic, "redetected": redetected,
         "ambiguous_plane": normal if a.get("doa_hemisphere") is None else None, "has_doa": len(mics) >= 3,
         "mic_quality": val, "warnings": warnings, "timings": timings,
         "beta_args": {"locate_kw": locate_kw, "pre": pre, "seg_len": seg_len, "whiten_hz": opt["whiten_hz"]},
@@ -185,31 +214,115 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
     """:func:`timing.locate` on all events, a chunk of events at a time (memory bounded by ``chunk_bytes``).
 
     x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
-    The carrier phase is estimated on the first chunk (all events when they fit in one, as before) and
-    used for every chunk, so all of the array's events share it. Returns locate's dict with the per-event
-    arrays concatenated over chunks.
+    Each chunk's whitened and plain (onset) spectra come from :func:`timing.segment_spectra`. The carrier
+    phase is estimated on the first chunk (all events when they fit in one) and used for every chunk, so
+    all of the array's events share it. Returns locate's dict with the per-event arrays concatenated.
     """
     m = x.shape[0]
-    per_event = 16 * m * setup["nfft"]  # bound on a segment + its FFT + band spectra, per event
+    per_event = 32 * m * setup["nfft"]  # bound on a segment + its FFT + both band spectra, per event
     n = max(1, int(chunk_bytes // per_event))
-    parts, phase = [], locate_kw.get("phase")
+    parts, sizes, phase = [], [], locate_kw.get("phase")
     for j0 in range(0, max(len(starts), 1), n):
-        c = segment_spectra(x, starts[j0 : j0 + n], setup)  # (J_c, M, Fb)
-        res = locate(c, setup, **{**locate_kw, "phase": phase})
+        chunk = starts[j0 : j0 + n]
+        c, c_plain = segment_spectra(x, chunk, setup, plain=True)  # (J_c, M, Fb) each
+        res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
         res["r"] = np.array(res["r"])  # keep only its lags, never a view of a chunk-sized transform
         parts.append(res)
+        sizes.append(len(chunk))
         phase = parts[0]["phase"]
-    out = {k: np.concatenate([p[k] for p in parts]) for k in ("dp", "tau", "value", "r")}
-    return {**out, "phase": phase, "r_lo": parts[0]["r_lo"]}
+    out = dict(parts[0])
+    for key, v in parts[0].items():
+        if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == sizes[0] and key != "phase":
+            out[key] = np.concatenate([p[key] for p in parts])
+    return out
 
 
-def doa_spread(res, u, mics, c):
+NOISE_LEAD_S = 0.010     # the timing segment starts this much before the earliest possible direct path
+WEAK_DIRECT = 0.35       # direct path below this × the strongest peak: flagged "weak_direct"
+EARLY_ONSET_S = 0.030    # direct path more than this before the strongest peak: flagged "early_onset"
+LOW_SNR = 2.0            # direct path below this × the onset threshold: flagged "low_snr"
+SPREAD_FACTOR = 5.0      # arrival standard error above this × the array's median: flagged "mic_spread"
+DOUBT_PENALTY = 0.5      # each doubt halves an arrival's quality
+OCCLUDED_FRACTION = 0.3  # "weak_direct" in at least this fraction of an array's events: flagged "occluded"
+
+
+def _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt):
+    """Events the association left without a detection: look again near their predicted arrival time at
+    ``redetect_threshold`` (the window: the matched arrivals' largest deviation from the clock line, plus
+    5 ms, at most ``max_distance`` / c and the association tolerance). Updates ``asc`` in place.
+    Returns (det_t, score, redetected (K,) bool per event)."""
+    e = t_emit - t_emit[0]
+    pred = asc["offset"] + asc["scale"] * e
+    redetected = np.zeros(len(t_emit), bool)
+    missed = np.flatnonzero(asc["det_of"] < 0)
+    if not missed.size or opt["redetect_threshold"] >= opt["threshold"]:
+        return det_t, score, redetected
+    got = np.flatnonzero(asc["det_of"] >= 0)
+    dev = np.max(np.abs(det_t[asc["det_of"][got]] - pred[got]))
+    half = min(dev + 0.005, opt["max_distance"] / c, asc["tolerance"])
+    idx, sc = redetect(env, env_rate, pred[missed], half, opt["redetect_threshold"])
+    taken = det_t[asc["det_of"][got]]
+    for j, q, s in zip(missed, idx, sc):
+        t = refine_peak(env, q) / env_rate if q >= 0 else np.nan
+        if q < 0 or np.any(np.abs(taken - t) < 0.5 * np.min(np.abs(np.diff(t_emit)), initial=np.inf)):
+            continue
+        det_t, score = np.r_[det_t, t], np.r_[score, s]
+        asc["event_of"] = np.r_[asc["event_of"], j]
+        asc["det_of"][j] = len(det_t) - 1
+        asc["n_matched"] += 1
+        redetected[j] = True
+    return det_t, score, redetected
+
+
+def arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, doa_reflection, fs, opt):
+    """Why each arrival is doubtful: (J,) lists of reason strings (empty = no doubt). See docs/frontend.md.
+
+    Clock-track check: ``arrival − (offset + scale·(t_emit − t_emit[0]))`` is the propagation delay up to a
+    constant; an arrival whose residual differs from the median of its (up to 4) nearest matched
+    neighbours' by more than ``track_tol`` disagrees with the array's clock track ("track").
+    """
+    j = len(ev_idx)
+    reasons = [[] for _ in range(j)]
+    lead = (loc["strongest"] - loc["dp"]) / fs
+    res = arrival - (asc["offset"] + asc["scale"] * (t_emit[ev_idx] - t_emit[0]))
+    med_spread = np.nanmedian(spread) if np.any(np.isfinite(spread)) else np.nan
+    for k in range(j):
+        r = reasons[k]
+        if redetected[ev_idx[k]]:
+            r.append("redetected")
+        if loc["ratio"][k] < WEAK_DIRECT:
+            r.append("weak_direct")
+        if lead[k] > EARLY_ONSET_S:
+            r.append("early_onset")
+        if loc["snr"][k] < LOW_SNR * opt["onset_snr"]:
+            r.append("low_snr")
+        if np.isfinite(spread[k]) and spread[k] > max(SPREAD_FACTOR * med_spread, 2e-6):
+            r.append("mic_spread")
+        if doa_reflection[k]:
+            r.append("doa_reflection")
+        nb = np.argsort(np.abs(np.arange(j) - k))[1:5]
+        if nb.size >= 2 and abs(res[k] - np.median(res[nb])) > opt["track_tol"]:
+            r.append("track")
+    return reasons
+
+
+def arrival_quality(gcc_quality, reasons):
+    """Per-arrival quality in [0, 1]: the median normalised GCC carrier peak over the mics (~1 for one
+    clean path) × ``DOUBT_PENALTY`` per doubt (:func:`arrival_flags`; "doa_reflection" concerns the DOA
+    only)."""
+    n = np.array([sum(x != "doa_reflection" for x in r) for r in reasons])
+    return np.clip(gcc_quality, 0.0, 1.0) * DOUBT_PENALTY ** n
+
+
+def doa_spread(res, u, mics, c, normal=None):
     """Internal-consistency standard deviation (rad, per tangent axis) of each DOA.
 
     res : (J, M) residuals of the mic times referred to the origin (s, NaN = unused). For the plane-wave
     fit ``t_m = t_0 − u·m/c`` the covariance of ``u`` is ``c² σ² P S⁺ P`` (S the scatter of the mic
-    positions, P the projector orthogonal to u, σ the residual spread). A lower bound: biases common to
-    all mics are invisible here. Returns (J,).
+    positions, P the projector orthogonal to u, σ the residual spread). A planar array (unit ``normal``)
+    measures only the in-plane part ``v`` of ``u``; the normal part ``√(1 − |v|²)`` follows with the
+    Jacobian ``I − n vᵀ / |u·n|``, which grows as the source nears the array's plane (``|u·n|`` floored at
+    ``√σ_v``, where the linearisation ends). Biases common to all mics are invisible here. Returns (J,).
     """
     ok = np.isfinite(res)
     n = ok.sum(axis=1)
@@ -217,17 +330,25 @@ def doa_spread(res, u, mics, c):
     sig2 = sig2.sum(axis=1) / np.maximum(n - 3, 1)  # 3 dof of the fit (t_0 and two angles)
     d = mics - mics.mean(axis=0)
     s_pinv = np.linalg.pinv(d.T @ d)
-    p = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
-    tr = np.einsum("jab,bc,jca->j", p, s_pinv, p)
+    if normal is None:
+        p = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
+    else:
+        nrm = np.asarray(normal, float)
+        v = u - (u @ nrm)[:, None] * nrm
+        sig_v = c * np.sqrt(sig2 * np.trace(s_pinv) / 2)
+        w = np.maximum(np.abs(u @ nrm), np.sqrt(sig_v))
+        p = np.eye(3)[None] - nrm[None, :, None] * v[:, None, :] / w[:, None, None]
+    tr = np.einsum("jab,bc,jac->j", p, s_pinv, p)
     return c * np.sqrt(sig2 * tr / 2)
 
 
-def gated_spectra(r, r_lo, fs, setup, center, flat, taper, phase):
+def gated_spectra(r, r_lo, fs, setup, center, flat, taper, phase, right=None):
     """Spectra of each mic's response gated around the direct path, PHAT-normalised.
 
-    The gate is flat over ``center ± flat`` samples (wide enough for every mic's pulse, so the gate does
-    not pull the pulses toward its centre, which would compress the inter-mic delays and bias the DOA) and
-    rolls off over ``taper`` samples on each side.
+    The gate is flat from ``center − flat`` to ``center + right`` samples (wide enough for every mic's
+    pulse, so the gate does not pull the pulses toward its centre, which would compress the inter-mic
+    delays and bias the DOA) and rolls off over ``taper`` samples on each side. ``right`` (J,) ≤ ``flat``
+    ends it before the first strong reflection (default ``flat``: symmetric).
 
     r : (J, M, T) analytic correlation on lags r_lo... center : (J,) int lags.
     Returns g (J, M, F'), freqs (F',), weights (F',).
@@ -237,7 +358,12 @@ def gated_spectra(r, r_lo, fs, setup, center, flat, taper, phase):
     nfft = int(2 ** np.ceil(np.log2(4 * width)))  # dense frequency sampling: per-bin PHAT is then accurate
     idx = (np.asarray(center) - half_width - r_lo)[:, None] + np.arange(width)  # (J, W)
     seg = np.real(np.take_along_axis(r, idx[:, None, :], axis=-1) * np.exp(-1j * phase))
-    seg *= tukey(width, 2 * taper / width)
+    right = np.full(len(idx), flat) if right is None else np.asarray(right)
+    o = np.arange(width) - half_width  # offset from the centre
+    edge = np.where(o[None, :] < 0, flat, right[:, None])  # (J, W) end of the flat part on each side
+    past = np.abs(o)[None, :] - edge
+    gate = np.where(past <= 0, 1.0, np.where(past < taper, 0.5 + 0.5 * np.cos(np.pi * past / taper), 0.0))
+    seg *= gate[:, None, :]
     spec = np.fft.rfft(seg, nfft, axis=-1)
     freqs = np.fft.rfftfreq(nfft, 1 / fs)
     w = np.interp(freqs, setup["freqs"], setup["weights"] / setup["weights"].max(), left=0.0, right=0.0)
@@ -251,25 +377,26 @@ def _tables(session, results, ev_ids, beta):
     names = [a["name"] for a in session["arrays"]]
     arr = {}
     for name, r in results.items():
-        arr[name] = {int(ev_ids[j]): (r["arrival"][k], r["quality"][k], r["spread"][k])
+        arr[name] = {int(ev_ids[j]): (r["arrival"][k], r["quality"][k], _flag_text(r["flags"][k], doa=False))
                      for k, j in enumerate(r["ev_idx"])}
     tm, ts, doa = [], [], []
     for name in names:
-        for e, (t, q, _) in arr[name].items():
+        for e, (t, q, f) in arr[name].items():
             if name != ref and e in arr[ref]:
-                tr, qr, _ = arr[ref][e]
-                tm.append((e, name, t - tr, min(q, qr)))
+                tr, qr, fr = arr[ref][e]
+                tm.append((e, name, t - tr, min(q, qr), _join(fr, f)))
         evs = sorted(arr[name])
         for e1, e2 in zip(evs[:-1], evs[1:]):
-            (t1, q1, _), (t2, q2, _) = arr[name][e1], arr[name][e2]
-            ts.append((name, e1, e2, t2 - t1, min(q1, q2)))
+            (t1, q1, f1), (t2, q2, f2) = arr[name][e1], arr[name][e2]
+            ts.append((name, e1, e2, t2 - t1, min(q1, q2), _join(f1, f2)))
         r = results[name]
         for k, j in enumerate(r["ev_idx"] if r["has_doa"] else []):
-            doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k]))
+            doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k], _flag_text(r["flags"][k], doa=True)))
     est = noise_estimates(results)
+    est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
             **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta}
-    # which sigmas are the frontend's own (spread-based, optimistic) figures rather than the user's priors:
+    # which sigmas are the frontend's own (spread-based) figures rather than the user's priors:
     # the estimator's noise="auto" then re-estimates the weights from the residuals
     meta["sigmas_estimated"] = sorted(k for k, v in est.items() if v is not None and k not in session["noise"])
     planes = {n: [float(v) for v in results[n]["ambiguous_plane"]] for n in names
@@ -279,24 +406,55 @@ def _tables(session, results, ev_ids, beta):
     return {
         "meta": meta,
         "events": session["events"].copy(),
-        "tdoa_m": pd.DataFrame(tm, columns=["event", "array", "tdoa", "quality"]).astype({"event": int}),
-        "tdoa_s": pd.DataFrame(ts, columns=["array", "from_event", "to_event", "tdoa", "quality"])
+        "tdoa_m": pd.DataFrame(tm, columns=["event", "array", "tdoa", "quality", "flag"]).astype({"event": int}),
+        "tdoa_s": pd.DataFrame(ts, columns=["array", "from_event", "to_event", "tdoa", "quality", "flag"])
         .astype({"from_event": int, "to_event": int}),
-        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality"]).astype({"event": int}),
+        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality", "flag"])
+        .astype({"event": int}),
     }
 
 
-def noise_estimates(results):
-    """Measurement noise from the spread between mics (lower bounds, see docs/frontend.md).
+TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded")
+DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "mic_spread", "occluded")
 
-    sigma_tdoa: √2 × the median standard error of an arrival time (a TDOA is a difference of two);
-    sigma_doa_deg: the median of :func:`doa_spread`. None where there is nothing to estimate from.
+
+def _flag_text(reasons, doa):
+    """The ``flag`` column: the doubts that concern a timing (or a DOA) row, joined by '+'; '' = none."""
+    keep = DOA_DOUBTS if doa else TIMING_DOUBTS
+    return "+".join(x for x in reasons if x in keep)
+
+
+def _join(a, b):
+    """Flags of a row built from two arrivals (union, order kept)."""
+    parts = [x for x in (a.split("+") if a else []) + (b.split("+") if b else [])]
+    return "+".join(dict.fromkeys(parts))
+
+
+def noise_estimates(results):
+    """Measurement noise of the features, from the spread between each array's mics (docs/frontend.md).
+
+    sigma_tdoa: √2 × the RMS over arrivals of ``arrival_sd`` (a TDOA is a difference of two arrivals; RMS,
+    not median: the errors are heavy-tailed and the estimator takes sigma as a standard deviation):
+    one mic's timing spread about the fused arrival, not the standard error of the fused mean (÷ √M),
+    because the errors reflections put on a few-cm array's mics are largely common to all of them, and
+    in quadrature the error later paths' sidelobes put on the direct path, which no spread between mics
+    shows (:func:`calib.frontend.timing.interference_sd`). The standard error of the mean is kept as
+    ``sigma_tdoa_lower`` (diagnostics only). Only arrivals without doubts (``flag`` empty) count: the
+    sigmas describe the unflagged rows; flagged ones are doubtful by definition (all, if none is clean).
+    sigma_doa_deg: the RMS of :func:`doa_spread` (plane-wave fit covariance, per tangent axis; planar arrays
+    with the elevation Jacobian). None where there is nothing to estimate from.
     """
-    spread = np.concatenate([r["spread"] for r in results.values()])
-    dsd = np.concatenate([r["doa_spread"] for r in results.values()])
-    spread, dsd = spread[np.isfinite(spread) & (spread > 0)], dsd[np.isfinite(dsd) & (dsd > 0)]
-    return {"sigma_tdoa": float(np.sqrt(2) * np.median(spread)) if spread.size else None,
-            "sigma_doa_deg": float(np.degrees(np.median(dsd))) if dsd.size else None}
+    def rms(key, doubts, scale=1.0):
+        v = np.concatenate([r[key] for r in results.values()])
+        clean = np.concatenate([[not any(x in doubts for x in f) for f in r["flags"]] for r in results.values()])
+        ok = np.isfinite(v) & (v > 0)
+        v = v[ok & clean] if np.any(ok & clean) else v[ok]
+        return float(scale * np.sqrt(np.mean(v**2))) if v.size else None
+
+    dsd = rms("doa_spread", DOA_DOUBTS)
+    return {"sigma_tdoa": rms("arrival_sd", TIMING_DOUBTS, np.sqrt(2)),
+            "sigma_doa_deg": None if dsd is None else float(np.degrees(dsd)),
+            "sigma_tdoa_lower": rms("spread", TIMING_DOUBTS, np.sqrt(2))}
 
 
 def _diagnostics(session, results, ev_ids, beta, elapsed):
@@ -321,6 +479,12 @@ def _diagnostics(session, results, ev_ids, beta, elapsed):
                             "n_matched": int(asc["n_matched"]), "tolerance_s": asc["tolerance"],
                             "residual_rms_s": float(asc["residual_rms"]), "ambiguous": bool(asc["ambiguous"])},
             "arrival_spread_median_s": float(np.nanmedian(r["spread"])),
+            "arrivals": [{"event": int(ev_ids[j]), "time": float(r["arrival"][k]),
+                          "quality": float(r["quality"][k]), "flag": "+".join(r["flags"][k]),
+                          "mic_sd_s": float(r["mic_sd"][k]), "sd_s": float(r["arrival_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k]))}
+                         for k, j in enumerate(r["ev_idx"])],
+            "doubtful": {int(ev_ids[j]): r["flags"][k] for k, j in enumerate(r["ev_idx"]) if r["flags"][k]},
+            "redetected_events": [int(ev_ids[j]) for j in np.flatnonzero(r["redetected"])],
             "chirp_phase_rad": float(r["phase"]),
             "warnings": r["warnings"],
             "timings_s": r["timings"],

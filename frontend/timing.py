@@ -49,12 +49,14 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
             "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
 
 
-def segment_spectra(x, starts, setup):
+def segment_spectra(x, starts, setup, plain=False):
     """Whitened, band-limited cross-spectra of event segments with the template (a GCC against the chirp).
 
     x : (M, N) recording. starts : (J,) int, first sample of each segment (may run off either end of the
     recording; the missing part is zero). Returns C : (J, M, Fb) complex128, scaled so that a perfect
-    single-path match has a correlation peak of 1.
+    single-path match has a correlation peak of 1. plain : also return the band-limited matched filter
+    without whitening (same scaling), whose response is causal: the whitening filter is two-sided and puts
+    reflection energy ahead of the direct path, where the onset search would take it for an arrival.
     """
     m, n = x.shape
     seg_len, nfft = setup["seg_len"], setup["nfft"]
@@ -66,6 +68,12 @@ def segment_spectra(x, starts, setup):
             seg[i, :, a - s0 : b - s0] = x[:, a:b]  # x may be a transposed (sample-major) view
     spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)[..., setup["kb"]].astype(np.complex128)
     c = spec * setup["tmpl_conj"]
+    c_plain = None
+    if plain:
+        w = setup["weights"] / setup["weights"].sum()
+        p = np.sum(np.abs(setup["tmpl_conj"]) ** 2 * w)  # a single path of unit gain peaks at 1
+        c_plain = c * (w / np.maximum(p * np.sqrt(np.mean(np.abs(spec) ** 2, axis=-1, keepdims=True)
+                                                  / np.mean(np.abs(setup["tmpl_conj"]) ** 2)), 1e-300))
     if setup["whiten_bins"]:
         # divide by the locally smoothed magnitude: removes the spectral colour of speaker, room and noise
         # (as PHAT does) but not the fine structure of the reverberation, whose full whitening would smear
@@ -74,7 +82,8 @@ def segment_spectra(x, starts, setup):
         c = c / np.sqrt(np.maximum(p, 1e-30 * max(float(p.max(initial=0.0)), 1e-300)))
     else:
         c = c / np.sqrt(np.maximum(np.mean(np.abs(c) ** 2, axis=-1, keepdims=True), 1e-300))
-    return c * (setup["weights"] / setup["weights"].sum())
+    c = c * (setup["weights"] / setup["weights"].sum())
+    return (c, c_plain) if plain else c
 
 
 def lag_grid(c, setup, lo, hi):
@@ -157,27 +166,107 @@ def newton_envelope(c, freqs, tau, iters=1):
     return tau, corr_at(c, freqs, tau)
 
 
-def direct_path_lag(env, guard, alpha=0.35, dominance=0):
-    """Index of the direct path in a (J, T) array-averaged envelope.
+def pulse_near(setup, n, spread, plain=False, over=4):
+    """Largest single-path pulse magnitude within ± ``spread`` samples of each lag 0..n−1: (n,) in [0, 1].
 
-    The envelope's maximum may be a reflection: take the earliest peak within ``guard`` samples before it
-    that reaches ``alpha`` × the maximum and is the highest within ``± dominance`` samples (so the
-    sidelobes of a stronger arrival just after it do not count). Returns (J,) int.
+    Like :func:`pulse_envelope` but not made monotone: the exact sidelobe level a peak puts ``d`` samples
+    away when its position is known to ± ``spread`` (sub-sample position, mics across the aperture).
+    """
+    nf = setup["nfft"] * over
+    full = np.zeros(nf, complex)
+    full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
+    full /= full.sum()
+    p = np.abs(sfft.ifft(full) * nf)
+    p = np.r_[p[-(spread + 1) * over :], p[: (n + spread + 1) * over]]  # lags −spread−1 .. n+spread
+    p = maximum_filter1d(p, 2 * spread * over + 1)
+    return p[(spread + 1) * over :: over][:n]
+
+
+def pulse_envelope(setup, n, plain=False):
+    """Monotone envelope of a single path's correlation pulse at lags 0..n−1 samples: (n,) in [0, 1].
+
+    A single path gives ``r(τ) = Σ_f w_f e^{j2πfτ} / Σ_f w_f`` (the band weights, after whitening); its
+    magnitude, made non-increasing with |τ| (the running maximum from the far end), bounds how high a
+    peak's sidelobes can reach ``n`` samples away. plain : the pulse of the unwhitened matched filter
+    (weights × |S(f)|²).
+    """
+    full = np.zeros(setup["nfft"], complex)
+    full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
+    full /= full.sum()
+    p = np.abs(sfft.ifft(full) * setup["nfft"])[: min(n, setup["nfft"])]
+    return np.maximum.accumulate(p[::-1])[::-1]
+
+
+SHADOW_MARGIN = 1.2  # a rejected peak above this × a later peak's exact sidelobe level gets a second look (CLEAN)
+
+
+def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, floor=None, peak=None,
+                    near=None):
+    """Direct path in a (J, T) array-averaged envelope: the earliest genuine onset above the noise floor.
+
+    The strongest peak may be a reflection, arbitrarily later and stronger than the direct path (a
+    reflection never precedes it). A peak at lag ``k`` counts as an arrival if it is a local maximum and
+    - it exceeds ``snr_factor`` × the noise floor (median of the envelope before the strongest peak: the
+      searched window starts well before any arrival) and ``min_ratio`` × the strongest peak;
+    - it is not a sidelobe: it exceeds ``sidelobe_margin`` × what any later, stronger peak's pulse can
+      put there (``pulse_env`` (L,), :func:`pulse_envelope`; so a direct path 15 dB below a reflection
+      0.6 ms later still counts, while the pulse's own sidelobes do not). Earlier peaks are taken first,
+      so sidelobes trailing a genuine arrival never matter.
+    floor, peak : (J,) noise floor and strongest peak to use instead of this envelope's (after a reflection
+    has been subtracted from it). near : (L,) :func:`pulse_near`; a rejected candidate above 1.2 × that
+    exact sidelobe level is "shadowed" (worth a second look); None = every rejected candidate.
+    Returns (J,) int lags, (J,) ratio direct / strongest peak, (J,) ratio direct / noise floor, (J,) bool
+    "shadowed": a candidate before the chosen lag was rejected only as a possible sidelobe.
     """
     j, t = env.shape
     kmax = np.argmax(env, axis=1)
     out = kmax.copy()
-    peak = env[np.arange(j), kmax]
-    local = maximum_filter1d(env, 2 * dominance + 1, axis=1, mode="nearest") if dominance else env
+    peak = env[np.arange(j), kmax] if peak is None else peak
     is_max = np.zeros_like(env, bool)
     is_max[:, 1:-1] = (env[:, 1:-1] >= env[:, :-2]) & (env[:, 1:-1] > env[:, 2:])
-    is_max &= env >= local
+    own_floor = floor is None
+    floor = np.empty(j) if own_floor else floor
+    shadowed = np.zeros(j, bool)
+    n_pulse = len(pulse_env)
     for i in range(j):
-        lo = max(0, kmax[i] - guard)
-        cand = np.flatnonzero(is_max[i, lo : kmax[i]] & (env[i, lo : kmax[i]] >= alpha * peak[i]))
-        if cand.size:
-            out[i] = lo + cand[0]
-    return out
+        if own_floor:
+            before = env[i, : kmax[i]]
+            floor[i] = np.median(before) if before.size >= 16 else np.median(env[i])
+        thr = max(snr_factor * floor[i], min_ratio * peak[i])
+        cand = np.flatnonzero(is_max[i, : kmax[i]] & (env[i, : kmax[i]] >= thr))
+        if not cand.size:
+            continue
+        strong = np.r_[cand, kmax[i]]  # candidates and the maximum, earliest first
+        for k in cand:
+            later = strong[(strong > k) & (env[i, strong] > env[i, k])]
+            d = np.minimum(later - k, n_pulse - 1)
+            if later.size and env[i, k] <= sidelobe_margin * np.max(env[i, later] * pulse_env[d]):
+                dn = np.minimum(later - k, len(near) - 1) if near is not None else None
+                if near is None or env[i, k] > SHADOW_MARGIN * np.max(env[i, later] * near[dn]):
+                    shadowed[i] = True
+                continue  # may be a later, stronger peak's sidelobe
+            out[i] = k
+            break
+    ratio = env[np.arange(j), out] / np.maximum(peak, 1e-300)
+    snr = env[np.arange(j), out] / np.maximum(floor, 1e-300)
+    return out, ratio, snr, shadowed
+
+
+def subtract_path(c, setup, shape, lag, half_width):
+    """Remove one path per mic from spectra (one step of CLEAN, exact in the frequency domain).
+
+    c : (J, M, Fb) spectra whose single-path response is ``a · shape_f e^{−j2πfτ} / Σ shape``. lag : (J,)
+    int lag of the path (samples); per mic its envelope peak within ± ``half_width`` is refined (Newton on
+    the exact correlation), its complex amplitude read there, and that pulse subtracted. Returns a copy.
+    """
+    fs, freqs = setup["fs"], setup["freqs"]
+    off = np.arange(-half_width - 1, half_width + 2)  # lags around each path, evaluated exactly
+    lags = np.asarray(lag)[:, None] + off[None, :]  # (J, L)
+    r = np.abs(np.einsum("jmf,jlf->jml", c, phasors(setup["freqs"], lags / fs)))  # (J, M, L)
+    kk = np.argmax(r[..., 1:-1], axis=-1) + 1
+    tau, a = newton_envelope(c, freqs, (refine_peak_along(r, kk) + lags[:, :1]) / fs, iters=2)
+    pulse = shape / shape.sum() * np.exp(-2j * np.pi * freqs * tau[..., None])
+    return c - a[..., None] * pulse
 
 
 def refine_peak_along(y, k):
@@ -189,28 +278,86 @@ def refine_peak_along(y, k):
     return k[..., 0] + np.clip(off, -0.5, 0.5)
 
 
-def locate(c, setup, lo, hi, half_width, alpha=0.35, dominance=0, gate=0, phase=None):
+def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, gate=0,
+           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=None, smear_max=None):
     """Direct path and sub-sample chirp start at every mic, for all events of one array.
 
-    c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path.
+    c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path
+    (the window should start before any possible arrival: its early part gives the noise floor).
     half_width : samples a mic's arrival may differ from the array's (aperture / c plus half a pulse).
-    alpha, dominance : :func:`direct_path_lag`. gate : extra lags kept around the window for the DOA.
-    phase : carrier phase at the envelope peak (rad); None = estimate it from these measurements.
+    snr_factor, min_ratio, sidelobe_margin : :func:`direct_path_lag`. gate : extra lags kept around the
+    window for the DOA. phase : carrier phase at the envelope peak (rad); None = estimate it from these
+    measurements. reflection_ratio : a later peak at least this × the direct path's (and not its sidelobe)
+    is a strong reflection (it ends the DOA gate). c_onset : (J, M, Fb) spectra for the onset search
+    (the plain matched filter of :func:`segment_spectra`, whose response is causal); None = ``c``.
+    separate_pulses : a strong reflection within this many pulse widths (1 / bandwidth) of the direct path
+    is modelled and subtracted before timing (:func:`separate_reflection`; 0 = never); separate_plain :
+    do it on the plain matched filter (exact two-pulse model) rather than the whitened one. smear :
+    samples by which the pulse is wider than the single-path model (a clock drift δ disperses a linear
+    sweep's group delay by 2|δ|T: at 1e-3 and 0.5 s, 1 ms ≫ the pulse); the sidelobe model is widened by
+    it. None = measured (:func:`excess_width`), at most ``smear_max`` samples if given.
 
     Returns a dict: ``dp`` (J,) int direct-path lag; ``tau`` (J, M) start lags (s since segment start);
     ``value`` (J, M) normalised carrier peak (1 = one clean path); ``phase``; ``r`` (J, M, T) analytic
-    correlation on lags ``r_lo`` .. ``r_lo + T − 1``.
+    correlation on lags ``r_lo`` .. ``r_lo + T − 1``; ``ratio`` (J,) direct path / strongest peak;
+    ``snr`` (J,) direct path / noise floor; ``strongest`` (J,) lag of the strongest peak;
+    ``reflection`` (J,) lag of the first strong reflection after the direct path (−1: none seen);
+    ``separated`` (J,) bool: that reflection was subtracted before timing; ``interference`` (J,) s
+    (:func:`interference_sd`).
     """
     fs, freqs = setup["fs"], setup["freqs"]
     pad = gate + half_width + 2
     r_lo = max(0, lo - pad)
     r = lag_grid(c, setup, r_lo, min(setup["nfft"], hi + pad))  # (J, M, T)
     env = np.abs(r)
-    dp = lo + direct_path_lag(env[:, :, lo - r_lo : hi - r_lo].mean(axis=1), hi - lo, alpha, dominance)
-    # per mic: envelope peak within the lags the aperture allows around the array's direct path
+    mean_env = env.mean(axis=1)
+    pulse_env = pulse_envelope(setup, hi - lo + pad)
+    onset_env = mean_env[:, lo - r_lo : hi - r_lo] if c_onset is None else \
+        np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
+    onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
+    if smear is None:
+        smear = excess_width(onset_env, onset_pulse)
+        smear = smear if smear_max is None else min(smear, smear_max)
+    if smear > 0:  # a drifting clock stretches the chirp: its correlation pulse spreads by ~smear samples
+        onset_pulse = np.r_[np.ones(smear), onset_pulse][: len(onset_pulse)]
+    near = pulse_near(setup, hi - lo, 2 + smear, plain=c_onset is not None)
+    dp, ratio, snr, shadowed = direct_path_lag(onset_env, onset_pulse, snr_factor, min_ratio, sidelobe_margin,
+                                               near=near)
+    strongest = lo + np.argmax(onset_env, axis=1)
+    if np.any(shadowed):
+        # a weak peak just before a strong one, at its sidelobe level: subtract the strong path from every
+        # mic (both spectra) and look again (a direct path 15 dB below a reflection 0.6 ms later)
+        c, c_onset, r, env, mean_env, dp, ratio, snr = _clean_strongest(
+            c, c_onset, setup, shadowed, strongest, half_width, lo, hi, r_lo, r, onset_env, onset_pulse,
+            (snr_factor, min_ratio, sidelobe_margin), dp, ratio, snr)
+    dp = lo + dp
+    reflection = first_reflection(mean_env, dp - r_lo, half_width, pulse_env, reflection_ratio,
+                                  sidelobe_margin)
+    reflection = np.where(reflection >= 0, reflection + r_lo, -1)
+    separated = np.zeros(len(dp), bool)
+    if separate_pulses > 0:
+        n_pulse = setup["fs"] / max(freqs.max() - freqs.min(), 1.0)
+        separated = (reflection >= 0) & (reflection - dp <= separate_pulses * n_pulse)
+    if np.any(separated):
+        # a strong reflection within a few pulse widths biases the direct path's peak (a wall just behind
+        # the array: ~25 µs): model both paths, subtract the reflection, time the direct path alone
+        sel = np.flatnonzero(separated)
+        src, shape = (c, setup["weights"]) if c_onset is None or not separate_plain else \
+            (c_onset, setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2)
+        c = c.copy()
+        c[sel] = separate_reflection(src[sel], setup, shape, dp[sel], reflection[sel], half_width)
+        r = r.copy()
+        r[sel] = lag_grid(c[sel], setup, r_lo, r_lo + r.shape[-1])
+        env = np.abs(r)
+    # per mic: the envelope peak within the lags the aperture allows around the array's direct path (a
+    # local maximum if there is one: the rising flank of a strong reflection just outside does not count)
     k = np.arange(r_lo, r_lo + r.shape[-1])
-    allowed = np.abs(k[None, :] - dp[:, None]) <= half_width  # (J, T)
-    kk = np.argmax(np.where(allowed[:, None, :], env, -1.0), axis=-1)  # (J, M)
+    allowed = (np.abs(k[None, :] - dp[:, None]) <= half_width)[:, None, :]  # (J, 1, T)
+    local = np.zeros_like(env, bool)
+    local[..., 1:-1] = (env[..., 1:-1] >= env[..., :-2]) & (env[..., 1:-1] > env[..., 2:])
+    use_local = np.any(allowed & local, axis=-1, keepdims=True)
+    mask = allowed & (local | ~use_local)
+    kk = np.argmax(np.where(mask, env, -1.0), axis=-1)  # (J, M)
     env_tau, z = newton_envelope(c, freqs, (refine_peak_along(env, kk) + r_lo) / fs)
     if phase is None:
         phase = estimate_phase(z)
@@ -218,7 +365,137 @@ def locate(c, setup, lo, hi, half_width, alpha=0.35, dominance=0, gate=0, phase=
     fc = np.sum(setup["weights"] * freqs) / np.sum(setup["weights"])
     dphi = np.angle(z * np.exp(-1j * phase))
     tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), phase)
-    return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo}
+    interference = interference_sd(env.mean(axis=1), dp - r_lo, half_width, pulse_near(setup, r.shape[-1], 0), fc)
+    return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
+            "interference": interference,
+            "snr": snr, "strongest": strongest, "reflection": reflection, "separated": separated}
+
+
+def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi, r_lo, r, onset_env,
+                     onset_pulse, onset_args, dp, ratio, snr):
+    """:func:`locate`'s second look at events with a shadowed candidate: the strongest path subtracted
+    (:func:`subtract_path`) from the timing spectra and the onset spectra, the onset searched again with
+    the first look's noise floor and strongest peak. Returns updated copies."""
+    sel = np.flatnonzero(shadowed)
+    floor = onset_env[sel, dp[sel]] / snr[sel]
+    peak = onset_env[sel, dp[sel]] / ratio[sel]
+    c_sub = subtract_path(c[sel], setup, setup["weights"], strongest[sel], half_width)
+    on_sub = None
+    if c_onset is not None:
+        plain_shape = setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2
+        on_sub = subtract_path(c_onset[sel], setup, plain_shape, strongest[sel], half_width)
+    env2 = np.abs(lag_grid(c_sub if on_sub is None else on_sub, setup, lo, hi)).mean(axis=1)
+    d2, q2, s2, _ = direct_path_lag(env2, onset_pulse, *onset_args, floor=floor, peak=peak)
+    # keep the second look only where it found an arrival clearly before the subtracted path
+    better = (d2 < strongest[sel] - lo - half_width) & (q2 >= onset_args[1]) & (s2 >= onset_args[0])
+    dp, ratio, snr = dp.copy(), ratio.copy(), snr.copy()
+    keep = sel[better]
+    dp[keep], ratio[keep], snr[keep] = d2[better], q2[better], s2[better]
+    c, r = c.copy(), r.copy()
+    c[keep] = c_sub[better]
+    if c_onset is not None:
+        c_onset = c_onset.copy()
+        c_onset[keep] = on_sub[better]
+    if keep.size:
+        r[keep] = lag_grid(c[keep], setup, r_lo, r_lo + r.shape[-1])
+    env = np.abs(r)
+    return c, c_onset, r, env, env.mean(axis=1), dp, ratio, snr
+
+
+def _path_peaks(c, setup, lag, half_width):
+    """Per mic, the envelope peak within ± ``half_width`` samples of ``lag`` (J,), refined: (tau, amp) (J, M)."""
+    fs = setup["fs"]
+    off = np.arange(-half_width - 1, half_width + 2)
+    lags = np.asarray(lag)[:, None] + off[None, :]  # (J, L)
+    r = np.abs(np.einsum("jmf,jlf->jml", c, phasors(setup["freqs"], lags / fs)))
+    kk = np.argmax(r[..., 1:-1], axis=-1) + 1
+    return newton_envelope(c, setup["freqs"], (refine_peak_along(r, kk) + lags[:, :1]) / fs, iters=2)
+
+
+def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
+    """Remove a reflection that overlaps the direct path's pulse (SAGE-style alternating two-path fit).
+
+    c : (J, M, Fb) spectra whose single path of amplitude ``a`` at ``τ`` is ``a · shape_f e^{−j2πfτ} / Σ
+    shape`` (exact for the plain matched filter). dp, refl : (J,) lags of the direct path and of the
+    reflection. Each path is re-estimated per mic (envelope peak, Newton) with the other's current model
+    subtracted, ``iters`` times. Returns c with the reflection's model subtracted.
+    """
+    freqs = setup["freqs"]
+    unit = shape / shape.sum()
+
+    def model(tau, a):
+        return a[..., None] * unit * np.exp(-2j * np.pi * freqs * tau[..., None])
+
+    t1, a1 = _path_peaks(c, setup, dp, half_width)
+    for _ in range(iters):
+        t2, a2 = _path_peaks(c - model(t1, a1), setup, refl, half_width)
+        t1, a1 = _path_peaks(c - model(t2, a2), setup, dp, half_width)
+    return c - model(t2, a2)
+
+
+SKIRT_LEVEL = 0.2  # excess_width compares the leading skirt of the strongest peak down to this height
+SKIRT_RISE = 0.02  # ... as long as it keeps falling (within this relative ripple)
+
+
+def excess_width(env, pulse_env, level=SKIRT_LEVEL):
+    """How much further (samples) the strongest peak's leading skirt reaches down to ``level`` × its height
+    than a single path's: the median over events (J, T) of the excess, ≥ 0. A drifting clock's dispersion
+    gives every event's pulse a long leading ramp (at δ = 8e-4, 0.5 s: 0.2 of the peak 9 samples ahead,
+    where the model pulse is below 0.2 after 4); only the leading side is used, reverberation widens the other,
+    and only as long as it keeps falling: a weak direct path ahead of a reflection is a peak of its own.
+    """
+    model = int(np.sum(pulse_env >= level)) - 1
+    out = []
+    for e in env:
+        k = int(np.argmax(e))
+        i = k  # walk down the leading side while it keeps falling (a separate earlier peak ends the skirt)
+        while i > 0 and e[i - 1] >= level * e[k] and e[i - 1] <= e[i] * (1 + SKIRT_RISE):
+            i -= 1
+        out.append(k - i - model)
+    excess = int(np.median(out)) if out else 0
+    return excess if excess > 1 else 0  # ± 1 sample: the measure's own resolution
+
+
+def interference_sd(env, dp, half_width, pulse, fc):
+    """Timing error (s, RMS) that the later paths' sidelobes put on the direct path's carrier peak.
+
+    A path ``ρ`` times the direct path's height, ``Δ`` samples later, adds ``ρ |p(Δ)|`` (``pulse`` (L,),
+    the exact single-path pulse magnitude) at the direct path; its carrier slope shifts the peak by
+    ``ρ |p(Δ)| sin ψ / (2π f_c)`` with an unknown phase ψ: RMS ``/ √2``, paths adding in power. Common to
+    all mics of a small array, so the spread between mics does not see it. env : (J, T) mic-averaged
+    envelope, dp : (J,) lags into it. Returns (J,).
+    """
+    j, t = env.shape
+    out = np.zeros(j)
+    is_max = np.zeros_like(env, bool)
+    is_max[:, 1:-1] = (env[:, 1:-1] >= env[:, :-2]) & (env[:, 1:-1] > env[:, 2:])
+    for i in range(j):
+        q = np.flatnonzero(is_max[i, dp[i] + half_width + 1 :]) + dp[i] + half_width + 1
+        d = np.minimum(q - dp[i], len(pulse) - 1)
+        # a path's height above the direct path's own sidelobe there (its sidelobes are no other path)
+        rho = np.maximum(env[i, q] / max(env[i, dp[i]], 1e-300) - pulse[d], 0.0)
+        out[i] = np.sqrt(np.sum((rho * pulse[d]) ** 2)) / (2 * np.pi * fc * np.sqrt(2))
+    return out
+
+
+def first_reflection(env, dp, half_width, pulse_env, ratio=0.5, sidelobe_margin=2.0):
+    """First strong reflection after the direct path in a (J, T) envelope: the earliest local maximum
+    more than ``half_width`` samples after ``dp`` (J,) that reaches ``ratio`` × the direct path's height and
+    is not the direct path's sidelobe. Returns (J,) int lags (−1: none)."""
+    j, t = env.shape
+    out = np.full(j, -1)
+    is_max = np.zeros_like(env, bool)
+    is_max[:, 1:-1] = (env[:, 1:-1] >= env[:, :-2]) & (env[:, 1:-1] > env[:, 2:])
+    for i in range(j):
+        d0 = env[i, dp[i]]
+        ks = np.arange(dp[i] + half_width + 1, t)
+        if not ks.size:
+            continue
+        side = sidelobe_margin * d0 * pulse_env[np.minimum(ks - dp[i], len(pulse_env) - 1)]
+        hit = np.flatnonzero(is_max[i, ks] & (env[i, ks] >= ratio * d0) & (env[i, ks] > side))
+        if hit.size:
+            out[i] = ks[hit[0]]
+    return out
 
 
 def estimate_phase(z):
@@ -246,22 +523,26 @@ def fuse_times(t_origin, spread_floor=2e-6):
     return t, sd / np.sqrt(np.maximum(n, 1))
 
 
-def drift_bias(template, fs, band, locate_kw, pre, seg_len, whiten_hz=500.0, delta=1e-3):
+def drift_bias(template, fs, band, locate_kw, pre, seg_len, whiten_hz=500.0, delta=2e-5):
     """``β``: how far (s per unit drift) a chirp recorded on a clock running ``1 + δ`` fast moves this
     estimator's arrival time: ``measured = true_start + β δ``.
 
-    A clock running fast records the chirp stretched in time (``s(t / (1 + δ))``), and an LFM matched
+    A clock running fast records the chirp stretched in time (``s(t / (1 + δ))``), and a chirp's matched
     filter trades that stretch for delay (range–Doppler coupling). Measured on the template itself,
     stretched exactly (band-limited FFT resampling) by ``±δ``, through :func:`locate` with the settings of
     the real measurement (``locate_kw``; ``pre`` = lag of the expected start in a segment of ``seg_len``
-    samples); the central difference removes any constant offset of the estimator.
+    samples); the central difference removes any constant offset of the estimator. ``δ`` must stay in the
+    linear range: the delay–Doppler coupling of a wide-band sweep bends beyond a stretch of ~1e-4 (a
+    500–10000 Hz, 0.5 s sweep gave 0.657 s at 1e-3 instead of 0.526 s), so the default is 2e-5, realised
+    exactly by zero-padding the buffer to ≥ 1/δ samples (one sample of stretch). For any sweep β equals the
+    band-weighted mean of ``d(f τ_g(f))/df`` (``τ_g`` the template's group delay; tests check both).
     """
     n = len(template)
-    pad = seg_len + 2 * pre
+    pad = sfft.next_fast_len(max(seg_len + 2 * pre, int(np.ceil(1.0 / delta))))
     setup = spectra_setup(template, fs, band, seg_len, whiten_hz)
     out = []
     for d in (delta, -delta):
-        k = int(round(d * pad))
+        k = int(round(d * pad)) or (1 if d > 0 else -1)
         dd = k / pad  # stretch realisable exactly by resampling pad → pad + k samples
         buf = np.zeros(pad)
         buf[pre : pre + n] = template

@@ -179,7 +179,7 @@ def test_gcc_timing_of_fractional_delays(echo, snr_db, tol_abs, tol_rel):
     x = np.stack([chirp(n - s) + echo * chirp(n - s - 1e-3) for s in starts])
     x += rng.normal(0, np.sqrt(np.mean(x**2) / 10 ** (snr_db / 10)), x.shape)
     c = segment_spectra(x, np.zeros(1, int), setup)
-    err = locate(c, setup, lo=100, hi=300, half_width=30, dominance=12)["tau"][0] - starts
+    err = locate(c, setup, lo=100, hi=300, half_width=30)["tau"][0] - starts
     assert np.abs(err).max() < tol_abs
     assert np.abs(err - err.mean()).max() < tol_rel
 

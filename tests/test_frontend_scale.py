@@ -208,13 +208,15 @@ def test_timing_in_chunks_equals_timing_at_once():
         starts = peaks * dec - 200
         setup = spectra_setup(tmpl, x.fs, (500.0, 4000.0), len(tmpl) + 600)
         kw = {"lo": 100, "hi": 300, "half_width": 10}
-        whole = locate(segment_spectra(x, starts, setup), setup, **kw)
+        c, c_plain = segment_spectra(x, starts, setup, plain=True)
+        whole = locate(c, setup, **kw, c_onset=c_plain)
         fixed = locate_events(x, starts, setup, {**kw, "phase": whole["phase"]}, chunk_bytes=1)  # 1 per chunk
         np.testing.assert_allclose(fixed["tau"], whole["tau"], rtol=0, atol=1e-12)
         np.testing.assert_array_equal(fixed["dp"], whole["dp"])
         np.testing.assert_allclose(fixed["r"], whole["r"], rtol=1e-6, atol=1e-6 * np.abs(whole["r"]).max())
         first = locate_events(x, starts, setup, kw, chunk_bytes=1)
-        assert first["phase"] == locate(segment_spectra(x, starts[:1], setup), setup, **kw)["phase"]
+        c1, c1_plain = segment_spectra(x, starts[:1], setup, plain=True)
+        assert first["phase"] == locate(c1, setup, **kw, c_onset=c1_plain)["phase"]
     assert len(starts) >= 10
 
 
