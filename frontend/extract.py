@@ -128,6 +128,46 @@ def process_array(a, session, t_emit, c, opt):
     t0 = time.perf_counter()
     ev_idx = np.flatnonzero(asc["det_of"] >= 0)
     mics = np.asarray(a["mics"], float)
+    g = _timing_layout(mics, band, fs, c, len(template), opt)
+    starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - g["pre"]
+    setup = spectra_setup(template, fs, band, g["seg_len"], opt["whiten_hz"])
+    # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
+    # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
+    # propagation delays, so only as an upper bound on the measured broadening)
+    smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * dur - g["pulse"]) * fs))
+    # event segments read and processed in chunks (memory bounded however long the recording)
+    loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max})
+    x.close()
+    timings["timing"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    doa = _direct_path_doa(loc, mics, fs, setup, g, c, opt, a.get("doa_hemisphere"))
+    timings["doa"] = time.perf_counter() - t0
+    fused = _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, c, opt, g["half"])
+    warnings = doa["warnings"] + fused["warnings"]
+    if doa["normal"] is not None and a.get("doa_hemisphere") is None:
+        warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
+    if asc["ambiguous"]:
+        warnings.append("association ambiguous: another alignment of the events explains as many detections")
+    return {
+        "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
+        "template": template, "phase": loc["phase"], "env": env, "env_rate": env_rate, "det_t": det_t,
+        "det_score": score, "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
+        "u": doa["u"], "doa_power": doa["power"], "redetected": redetected,
+        "ambiguous_plane": doa["normal"] if a.get("doa_hemisphere") is None else None, "has_doa": len(mics) >= 3,
+        "mic_quality": loc["value"], "warnings": warnings, "timings": timings,
+        "beta_args": {"locate_kw": g["locate_kw"], "pre": g["pre"], "seg_len": g["seg_len"],
+                      "whiten_hz": opt["whiten_hz"]},
+    }
+
+
+FUSED_KEYS = ("arrival", "spread", "mic_sd", "arrival_sd", "quality", "flags", "doa_spread", "mic_times")
+
+
+def _timing_layout(mics, band, fs, c, n_template, opt):
+    """Segment and lag layout of the timing stage (samples): the DOA gate (``flat`` + ``taper``), the mic
+    lag half-width ``half``, the first lag searched ``lo``, the lead ``pre`` before the detection, the
+    segment length, and :func:`timing.locate`'s keyword arguments."""
     aperture = np.max(np.linalg.norm(mics - mics.mean(axis=0), axis=1)) / c
     pulse = 1.0 / (band[1] - band[0])
     half = int(np.ceil((aperture + 0.5 * pulse) * fs))  # a mic's lag vs the array's: aperture + half a pulse
@@ -140,46 +180,47 @@ def process_array(a, session, t_emit, c, opt):
     locate_kw = {"lo": lo, "hi": pre + after, "half_width": half, "snr_factor": opt["onset_snr"],
                  "min_ratio": opt["onset_min_ratio"], "gate": flat + taper}
     max_lag = pre + after + flat + taper + half + 4  # largest lag locate() looks at
-    seg_len = max_lag + len(template) + int(np.ceil(opt["max_drift"] * len(template))) + 4
-    starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - pre
-    setup = spectra_setup(template, fs, band, seg_len, opt["whiten_hz"])
-    # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
-    # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
-    # propagation delays, so only as an upper bound on the measured broadening)
-    smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * dur - pulse) * fs))
-    # event segments read and processed in chunks (memory bounded however long the recording)
-    loc = locate_events(x, starts, setup, {**locate_kw, "smear_max": smear_max})
-    x.close()
-    tau, val, phase = loc["tau"], loc["value"], loc["phase"]
-    timings["timing"] = time.perf_counter() - t0
+    seg_len = max_lag + n_template + int(np.ceil(opt["max_drift"] * n_template)) + 4
+    return {"pulse": pulse, "half": half, "flat": flat, "taper": taper, "pre": pre, "seg_len": seg_len,
+            "locate_kw": locate_kw}
 
-    # DOA from the gated direct path, ended before the first strong reflection (needs 3 mics or more)
-    t0 = time.perf_counter()
-    warnings = []
-    n_pulse = int(np.ceil(pulse * fs))
-    gap = np.where(loc["reflection"] >= 0, loc["reflection"] - loc["dp"] - n_pulse - taper, flat)
-    right = np.clip(gap, half, flat)
-    if len(mics) >= 3:
-        g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], flat, taper, phase,
-                                             right)
-        sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], a.get("doa_hemisphere"))
-        u, power = srp_doa(g_spec, sset, g_w)
-        normal = sset["planar_normal"]
-    else:
-        u, power, normal = np.zeros((len(ev_idx), 3)), np.full(len(ev_idx), np.nan), None
-        warnings.append(f"{len(mics)} mic(s): no DOA; arrival times are taken at the mics, not referred to the origin")
-    timings["doa"] = time.perf_counter() - t0
 
-    # refer mic times to the origin and fuse
-    t_mic = starts[:, None] / fs + tau  # (J, M) local seconds
+def _direct_path_doa(loc, mics, fs, setup, g, c, opt, hemisphere):
+    """SRP-PHAT DOA from the gated direct path, the gate ended before the first strong reflection (needs
+    3 mics or more). Returns u (J, 3), power (J,), the planar normal or None, the gate's right edge gap
+    (J,) samples, and warnings."""
+    n_pulse = int(np.ceil(g["pulse"] * fs))
+    gap = np.where(loc["reflection"] >= 0, loc["reflection"] - loc["dp"] - n_pulse - g["taper"], g["flat"])
+    right = np.clip(gap, g["half"], g["flat"])
+    n = len(loc["dp"])
+    if len(mics) < 3:
+        return {"u": np.zeros((n, 3)), "power": np.full(n, np.nan), "normal": None, "gap": gap,
+                "warnings": [f"{len(mics)} mic(s): no DOA; arrival times are taken at the mics, not referred "
+                             "to the origin"]}
+    g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], g["flat"], g["taper"],
+                                         loc["phase"], right)
+    sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], hemisphere)
+    u, power = srp_doa(g_spec, sset, g_w)
+    return {"u": u, "power": power, "normal": sset["planar_normal"], "gap": gap, "warnings": []}
+
+
+def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, c, opt, half):
+    """Mic times referred to the array origin and fused into one arrival per event, with their spreads,
+    doubts (flags), quality and DOA spread; an array whose direct path is often weaker than a reflection is
+    flagged occluded. Returns a dict with FUSED_KEYS and ``warnings``."""
+    u, val = doa["u"], loc["value"]
+    t_mic = starts[:, None] / fs + loc["tau"]  # (J, M) local seconds
     good = val >= opt["min_mic_quality"] * np.max(val, axis=1, keepdims=True)
     t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
     arrival, spread = fuse_times(t_org)
     mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
     arrival_sd = np.hypot(mic_sd, loc["interference"])  # + what later paths put on the direct path
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
-    doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, normal) if len(mics) >= 3 else np.full(len(u), np.nan)
-    reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, gap < half, fs, opt)
+    doa_sd = (doa_spread(t_org - arrival[:, None], u, mics, c, doa["normal"]) if len(mics) >= 3
+              else np.full(len(u), np.nan))
+    reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, doa["gap"] < half,
+                            fs, opt)
+    warnings = []
     n_weak = sum("weak_direct" in r for r in reasons)
     if n_weak >= OCCLUDED_FRACTION * len(reasons):
         # an array in line of sight sees its direct path as the strongest peak in most events; here a
@@ -188,23 +229,9 @@ def process_array(a, session, t_emit, c, opt):
                         "sight probably blocked (occluded array); its arrivals and DOAs are unreliable")
         for r in reasons:
             r.append("occluded")
-    quality = arrival_quality(gcc_quality, reasons)
-
-    if normal is not None and a.get("doa_hemisphere") is None:
-        warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
-    if asc["ambiguous"]:
-        warnings.append("association ambiguous: another alignment of the events explains as many detections")
-    return {
-        "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
-        "template": template, "phase": phase, "env": env, "env_rate": env_rate, "det_t": det_t,
-        "det_score": score, "assoc": asc, "ev_idx": ev_idx, "arrival": arrival, "spread": spread,
-        "mic_sd": mic_sd, "arrival_sd": arrival_sd,
-        "quality": quality, "flags": reasons, "u": u, "doa_power": power, "doa_spread": doa_sd,
-        "mic_times": t_mic, "redetected": redetected,
-        "ambiguous_plane": normal if a.get("doa_hemisphere") is None else None, "has_doa": len(mics) >= 3,
-        "mic_quality": val, "warnings": warnings, "timings": timings,
-        "beta_args": {"locate_kw": locate_kw, "pre": pre, "seg_len": seg_len, "whiten_hz": opt["whiten_hz"]},
-    }
+    return {"arrival": arrival, "spread": spread, "mic_sd": mic_sd, "arrival_sd": arrival_sd,
+            "quality": arrival_quality(gcc_quality, reasons), "flags": reasons, "doa_spread": doa_sd,
+            "mic_times": t_mic, "warnings": warnings}
 
 
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)

@@ -334,30 +334,9 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     reflection = first_reflection(mean_env, dp - r_lo, half_width, pulse_env, reflection_ratio,
                                   sidelobe_margin)
     reflection = np.where(reflection >= 0, reflection + r_lo, -1)
-    separated = np.zeros(len(dp), bool)
-    if separate_pulses > 0:
-        n_pulse = setup["fs"] / max(freqs.max() - freqs.min(), 1.0)
-        separated = (reflection >= 0) & (reflection - dp <= separate_pulses * n_pulse)
-    if np.any(separated):
-        # a strong reflection within a few pulse widths biases the direct path's peak (a wall just behind
-        # the array: ~25 µs): model both paths, subtract the reflection, time the direct path alone
-        sel = np.flatnonzero(separated)
-        src, shape = (c, setup["weights"]) if c_onset is None or not separate_plain else \
-            (c_onset, setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2)
-        c = c.copy()
-        c[sel] = separate_reflection(src[sel], setup, shape, dp[sel], reflection[sel], half_width)
-        r = r.copy()
-        r[sel] = lag_grid(c[sel], setup, r_lo, r_lo + r.shape[-1])
-        env = np.abs(r)
-    # per mic: the envelope peak within the lags the aperture allows around the array's direct path (a
-    # local maximum if there is one: the rising flank of a strong reflection just outside does not count)
-    k = np.arange(r_lo, r_lo + r.shape[-1])
-    allowed = (np.abs(k[None, :] - dp[:, None]) <= half_width)[:, None, :]  # (J, 1, T)
-    local = np.zeros_like(env, bool)
-    local[..., 1:-1] = (env[..., 1:-1] >= env[..., :-2]) & (env[..., 1:-1] > env[..., 2:])
-    use_local = np.any(allowed & local, axis=-1, keepdims=True)
-    mask = allowed & (local | ~use_local)
-    kk = np.argmax(np.where(mask, env, -1.0), axis=-1)  # (J, M)
+    c, r, env, separated = _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_width, r_lo,
+                                                      separate_pulses, separate_plain)
+    kk = _mic_peaks(env, dp, r_lo, half_width)  # (J, M)
     env_tau, z = newton_envelope(c, freqs, (refine_peak_along(env, kk) + r_lo) / fs)
     if phase is None:
         phase = estimate_phase(z)
@@ -369,6 +348,41 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
             "interference": interference,
             "snr": snr, "strongest": strongest, "reflection": reflection, "separated": separated}
+
+
+def _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_width, r_lo, separate_pulses,
+                               separate_plain):
+    """A strong reflection within ``separate_pulses`` pulse widths biases the direct path's peak (a wall just
+    behind the array: ~25 µs): model both paths, subtract the reflection, time the direct path alone.
+    Returns (c, r, env, separated (J,) bool) with the affected events' spectra and correlations updated."""
+    freqs = setup["freqs"]
+    separated = np.zeros(len(dp), bool)
+    if separate_pulses > 0:
+        n_pulse = setup["fs"] / max(freqs.max() - freqs.min(), 1.0)
+        separated = (reflection >= 0) & (reflection - dp <= separate_pulses * n_pulse)
+    if not np.any(separated):
+        return c, r, env, separated
+    sel = np.flatnonzero(separated)
+    src, shape = (c, setup["weights"]) if c_onset is None or not separate_plain else \
+        (c_onset, setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2)
+    c = c.copy()
+    c[sel] = separate_reflection(src[sel], setup, shape, dp[sel], reflection[sel], half_width)
+    r = r.copy()
+    r[sel] = lag_grid(c[sel], setup, r_lo, r_lo + r.shape[-1])
+    return c, r, np.abs(r), separated
+
+
+def _mic_peaks(env, dp, r_lo, half_width):
+    """Per mic, the envelope peak (lag index (J, M) into ``env``) within the lags the aperture allows
+    around the array's direct path ``dp``: a local maximum if there is one (the rising flank of a strong
+    reflection just outside does not count)."""
+    k = np.arange(r_lo, r_lo + env.shape[-1])
+    allowed = (np.abs(k[None, :] - dp[:, None]) <= half_width)[:, None, :]  # (J, 1, T)
+    local = np.zeros_like(env, bool)
+    local[..., 1:-1] = (env[..., 1:-1] >= env[..., :-2]) & (env[..., 1:-1] > env[..., 2:])
+    use_local = np.any(allowed & local, axis=-1, keepdims=True)
+    mask = allowed & (local | ~use_local)
+    return np.argmax(np.where(mask, env, -1.0), axis=-1)
 
 
 def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi, r_lo, r, onset_env,

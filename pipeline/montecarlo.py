@@ -401,16 +401,7 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
                 "check_convergence": bool(check_convergence), "with_crlb": bool(with_crlb)}
     if out.is_dir():
         _check_settings(out, settings)
-    done = _existing(out) if out.is_dir() else pd.DataFrame(columns=RUN_COLUMNS)
-    done_keys = set(zip(done["sigma_tdoa"].astype(float), done["sigma_doa_deg"].astype(float),
-                        done["trajectory"].astype(int), done["run"].astype(int), done["method"]))
-    done_keys = {_key(*k) for k in done_keys}
-    tasks, skipped = [], 0
-    for (st, sd), traj, r in itertools.product(grid["cells"], grid["trajectories"], range(grid["runs"])):
-        todo = [m for m in grid["methods"] if _key(st, sd, traj, r, m) not in done_keys]
-        skipped += len(grid["methods"]) - len(todo)
-        if todo:
-            tasks.append((st, sd, traj, r, todo))
+    tasks, skipped = _pending_tasks(out, grid)
     client = _connect(scheduler) if scheduler is not None and tasks else None  # before writing anything
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "study.json", dumps_json({**settings, "grid": grid}, indent=2) + "\n")
@@ -447,6 +438,21 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     sel = _select(all_runs, grid)
     return {"runs": sel, "summary": pd.read_csv(paths["summary"]), "computed": total, "skipped": skipped,
             "wall_s": wall, "paths": paths}
+
+
+def _pending_tasks(out, grid):
+    """The (sigma_tdoa, sigma_doa_deg, trajectory, run, methods to do) of ``grid`` not yet in ``out``'s
+    part files, and how many runs × methods are already done."""
+    done = _existing(out) if out.is_dir() else pd.DataFrame(columns=RUN_COLUMNS)
+    done_keys = {_key(*k) for k in zip(done["sigma_tdoa"].astype(float), done["sigma_doa_deg"].astype(float),
+                                       done["trajectory"].astype(int), done["run"].astype(int), done["method"])}
+    tasks, skipped = [], 0
+    for (st, sd), traj, r in itertools.product(grid["cells"], grid["trajectories"], range(grid["runs"])):
+        todo = [m for m in grid["methods"] if _key(st, sd, traj, r, m) not in done_keys]
+        skipped += len(grid["methods"]) - len(todo)
+        if todo:
+            tasks.append((st, sd, traj, r, todo))
+    return tasks, skipped
 
 
 def _select(df, grid):

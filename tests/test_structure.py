@@ -60,3 +60,18 @@ def test_closure_follows_imports():
     assert "calib.estimator.solver" in mods          # report → estimator (package) → assess → solver
     assert "calib.frontend.diagnostics" in mods      # report → frontend (package) → diagnostics
     assert "calib.cli.tables" not in mods            # nothing in the report imports the CLI
+
+
+MAX_FUNCTION_LINES = 80  # the project's style rule (developer guide): split longer functions
+
+
+def test_no_function_over_80_lines():
+    long = []
+    for layer in LAYERS:
+        for f in sorted((ROOT / layer).glob("*.py")):
+            for node in ast.walk(ast.parse(f.read_text())):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    n = node.end_lineno - node.lineno + 1
+                    if n > MAX_FUNCTION_LINES:
+                        long.append(f"{f.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long, long
