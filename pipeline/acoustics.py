@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.integrate import trapezoid
 from scipy.signal import butter, sosfiltfilt
 
 # Octave bands of pyroomacoustics' material tables (Hz); every material below is given on them.
@@ -149,7 +150,7 @@ def mean_power_gain(pattern, floor_db=REAR_FLOOR_DB):
     p² + (1 − p)²/3 without the floor; integrated numerically over cos θ with it."""
     x = np.linspace(-1.0, 1.0, 20001)
     g = directivity_gain(pattern, np.array([0.0, 0.0, 1.0]), np.stack([0 * x, 0 * x, x], axis=1), floor_db)
-    return float(np.trapezoid(g ** 2, x) / 2)
+    return float(trapezoid(g ** 2, x) / 2)  # scipy: numpy < 2 has no np.trapezoid
 
 
 # ----------------------------------------------------------------------------------------------- bands, tail
