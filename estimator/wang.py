@@ -26,6 +26,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+from calib.robust import mad_std
 
 from .init import ObservabilityError, init_sources, kabsch
 from .problem import empty_state
@@ -106,7 +107,7 @@ def robust_mean(v):
     if v.size < 3:
         return float(np.mean(v))
     med = np.median(v)
-    mad = 1.4826 * np.median(np.abs(v - med))
+    mad = mad_std(v, center=med)
     keep = np.abs(v - med) <= 3.0 * max(mad, 1e-9)
     return float(np.mean(v[keep]))
 

@@ -28,6 +28,7 @@ import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
 from scipy.signal import CZT, resample
+from calib.robust import mad_std
 
 from .signals import band_weights
 
@@ -528,7 +529,7 @@ def fuse_times(t_origin, spread_floor=2e-6):
     """
     med = np.nanmedian(t_origin, axis=1)
     dev = np.abs(t_origin - med[:, None])
-    mad = 1.4826 * np.nanmedian(dev, axis=1)
+    mad = mad_std(t_origin, axis=1, center=med[:, None])
     keep = dev <= 3 * np.maximum(mad, spread_floor)[:, None]
     n = keep.sum(axis=1)
     t = np.where(keep, t_origin, 0.0).sum(axis=1) / np.maximum(n, 1)

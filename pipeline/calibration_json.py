@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from calib import __version__
 from calib.errors import InputError
+from calib.robust import mad_std
 
 FORMAT_NAME = "calib-calibration"
 FORMAT_VERSION = 1
@@ -66,7 +67,7 @@ def reference_offset(meta, arrays, sources, events):
     beta = float(meta.get("chirp_drift_bias") or 0.0)
     tau = d - (1.0 + drift) * (t + rng) - beta * drift
     center = float(np.median(tau))
-    mad_sigma = 1.4826 * float(np.median(np.abs(tau - center)))  # robust std of one detection
+    mad_sigma = float(mad_std(tau, center=center))  # robust std of one detection
     return center, mad_sigma / np.sqrt(len(tau)), len(tau)
 
 

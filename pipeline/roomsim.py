@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
+from calib.jsonutil import jsonable  # inf (no noise) and NaN ↔ null
 
 from . import acoustics as ac
 from . import scenes, simrender
@@ -485,11 +486,11 @@ def _write_session(tmp, sc, derived, flat, scenario):
         "frame": "room (origin at a room corner, axes along the walls); truth/*.csv are in the reference "
                  "array's frame",
         "clock_model": "L_i(t) = (1 + drift_i) (t - t_emit[0]) + tau_i; WAV sample n at L_i = n / fs",
-        "scenario": _jsonable(_public(scenario, sc)),
+        "scenario": jsonable(_public(scenario, sc)),
         "derived": _derived(sc, derived, flat),
     }
     write_truth(tmp / "truth", scenario_truth(sc),
-                extra_files={"manifest.json": json.dumps(_jsonable(manifest), indent=1, allow_nan=False) + "\n"})
+                extra_files={"manifest.json": json.dumps(jsonable(manifest), indent=1, allow_nan=False) + "\n"})
 
 
 def _pra_version():
@@ -586,20 +587,6 @@ def _same(a, b):
         return a == b or (a is None and b is None)
     except ValueError:
         return False
-
-
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    if isinstance(o, (np.floating, float)):
-        return None if math.isinf(float(o)) else float(o)  # inf (no noise) ↔ null
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    return o
 
 
 __all__ = ["make_scenario", "load_scenario", "validate_scenario", "simulate", "arrival_times", "scenario_truth",
