@@ -122,7 +122,7 @@ def dense_check(cases=((3, 14), (5, 14), (5, 50), (10, 50)), seed=0):
         st = copy_state(state_from_frames(p, truth["arrays"], truth["sources"]))
         lay = make_layout(p)
         res = {d: levenberg_marquardt(p, copy_state(st), lay, kinds, dense=d) for d in (True, False)}
-        _, J, *_ = linearise(p, res[True][0], lay, kinds, dense=True)
+        J = linearise(p, res[True][0], lay, kinds, dense=True).J
         sd = std_from_cov(p, lay, covariance(J, lay["n"]))
         dx = max(np.nanmax(np.abs(res[True][0][k] - res[False][0][k]) / sd[k]) for k in ("x", "s", "offset"))
         c1, c2 = res[True][1]["cost"], res[False][1]["cost"]

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .factors import ALL_KINDS, UNITS
+from .factors import ALL_KINDS, KINDS, UNITS
 from .factors import evaluate as factors
 from .problem import build_problem, make_layout
 from .solver import linearise
@@ -31,14 +31,13 @@ def rebuild(features, calib):
     frame = rep.get("odometry_frame") or {}
     p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e, odometry_yaw=bool(frame.get("estimated")))
     # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
-    for key, name in (("tdoa_s", "sigma_tdoa_s"), ("tdoa_m", "sigma_tdoa_m"), ("doa_rad_per_axis", "sigma_doa"),
-                      ("odometry_m", "sigma_odo"), ("cone_rad", "sigma_cone")):
-        v = (rep.get("sigmas") or {}).get(key)
-        if isinstance(v, (int, float)) and v > 0:
-            p[name] = float(v)
+    for kind in KINDS.values():
+        v = (rep.get("sigmas") or {}).get(kind.report_sigma)
+        if kind.reweight and isinstance(v, (int, float)) and v > 0:
+            p.sigma[kind.name] = float(v)
     st = state_from_frames(p, calib["arrays"], src)
     corr = rep.get("emission_corrections_s") or {}
-    st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p["events"]])
+    st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])
     st["odo_yaw"] = np.array([np.deg2rad(float(frame.get("yaw_deg") or 0.0))])
     kinds = [k for k in ALL_KINDS if k != "emission" or sig_e > 0]
     lay = make_layout(p)
@@ -80,7 +79,8 @@ def residuals(model):
 def position_covariances(model):
     """1-σ position covariances at the estimate: arrays (N, 3, 3) and sources (K, 3, 3), m² (NaN where fixed)."""
     p, lay = model["problem"], model["layout"]
-    _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
+    lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
+    J, w = lin.J, lin.w
     cov = covariance(J[w > 0], lay["n"], lay)
 
     def blocks(idx):
@@ -104,10 +104,11 @@ def array_covariance(model):
     in the problem's order, each array's parameters in that order; the reference array's fixed ones are absent.
     """
     p, lay = model["problem"], model["layout"]
-    _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
+    lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
+    J, w = lin.J, lin.w
     cov = covariance(J[w > 0], lay["n"])
     labels, idx = [], []
-    for i, name in enumerate(p["names"]):
+    for i, name in enumerate(p.names):
         for key, names in ARRAY_PARAMS:
             cols = np.atleast_1d(lay[key][i])
             for col, label in zip(cols, names):

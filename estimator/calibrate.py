@@ -43,14 +43,14 @@ def undetermined_parameters(p):
     without usable DOAs) are not estimated — kept at identity with NaN std — while their positions and
     clocks come from the TDOAs. Returns a list of {"parameter", "array", "reason"}."""
     out = []
-    for i in range(p["N"]):
-        if i != p["ref"] and p["rot_free"][i] and p["rot_fixed_axis"][i] >= 0:
-            out.append({"parameter": "roll", "array": str(p["names"][i]),
+    for i in range(p.N):
+        if i != p.ref and p.rot_free[i] and p.rot_fixed_axis[i] >= 0:
+            out.append({"parameter": "roll", "array": str(p.names[i]),
                         "reason": "linear array / mic pair: the rotation about its axis is not observable (not "
                                   "estimated, NaN std); the axis direction is"})
-        if i != p["ref"] and not p["rot_free"][i]:
-            nd = int(p["n_doa_events"][i])
-            out.append({"parameter": "orientation", "array": str(p["names"][i]),
+        if i != p.ref and not p.rot_free[i]:
+            nd = int(p.n_doa_events[i])
+            out.append({"parameter": "orientation", "array": str(p.names[i]),
                         "reason": f"DOAs for {nd} event(s) (>= 2 needed): not estimated, reported as identity "
                                   "with NaN std; position and clock from the TDOAs"})
     return out
@@ -58,15 +58,15 @@ def undetermined_parameters(p):
 
 def rotations_by_kabsch(p, st):
     """Each non-reference array's rotation by SVD alignment of DOA-scaled points (the paper's IVE step)."""
-    for i in range(p["N"]):
-        m = p["doa_arr"] == i
-        if i == p["ref"] or m.sum() < 2:
+    for i in range(p.N):
+        m = p.doa.arr == i
+        if i == p.ref or m.sum() < 2:
             continue
-        j = p["doa_ev"][m]
+        j = p.doa.ev[m]
         w = st["s"][j] - st["x"][i]
         d = np.linalg.norm(w, axis=1, keepdims=True)
-        u = p["doa_u"][m]
-        n = p["fold"][i]
+        u = p.doa.u[m]
+        n = p.fold[i]
         if np.any(n):
             # mirror-ambiguous DOAs: decide which events lie behind the mic plane afresh from the IVE's
             # positions and sources, which no longer depend on this array's DOAs
@@ -94,10 +94,10 @@ def to_frames(p, st, std=None):
     """State (+ std) → arrays and sources DataFrames of docs/formats.md section 3."""
     q = Rotation.from_matrix(st["R"]).as_quat(scalar_first=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    arrays = pd.DataFrame({"array": list(p["names"]), "x": st["x"][:, 0], "y": st["x"][:, 1], "z": st["x"][:, 2],
+    arrays = pd.DataFrame({"array": list(p.names), "x": st["x"][:, 0], "y": st["x"][:, 1], "z": st["x"][:, 2],
                            "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
                            "offset": st["offset"], "drift": st["drift"]})
-    sources = pd.DataFrame({"event": p["events"], "x": st["s"][:, 0], "y": st["s"][:, 1], "z": st["s"][:, 2]})
+    sources = pd.DataFrame({"event": p.events, "x": st["s"][:, 0], "y": st["s"][:, 1], "z": st["s"][:, 2]})
     if std is not None:
         for k, c in enumerate("xyz"):
             arrays[f"{c}_std"] = std["x"][:, k]
@@ -126,9 +126,9 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     # the robust pass only has to find the basin and the outliers; the final pass converges tightly
     st, info["robust"] = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter,
                                              rtol=1e-6)
-    info["yaw_test"] = p.get("odo_yaw_test")
+    info["yaw_test"] = p.odo_yaw_test
     if noise_bounds is not None and loss:
-        stated = {k: p[v] for k, v in SIGMA_KEY.items()}
+        stated = {k: p.sigma[k] for k in REWEIGHTED}
         st = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
                                 robust_k=robust_k, max_iter=max_iter)
     if lay["odo_yaw"][0] >= 0 and info["yaw_test"] is None:
@@ -173,15 +173,15 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
     for _ in range(steps):
         stats = measurement_stats(p, st, lay, kinds, {})
         changed = False
-        for kind in SIGMA_KEY:
+        for kind in REWEIGHTED:
             m = stats.kept & (stats.kind == kind)
             if m.sum() < 5:
                 continue
             f = float(np.sqrt(np.median(stats.q[m]) / chi2_median(DOF[kind])))
             b = bounds.get(kind, FREE_MAX_FACTOR)
-            new = float(np.clip(p[SIGMA_KEY[kind]] * f, stated[kind] / b, stated[kind] * b))
-            changed |= abs(new / p[SIGMA_KEY[kind]] - 1.0) > 0.05
-            p[SIGMA_KEY[kind]] = new
+            new = float(np.clip(p.sigma[kind] * f, stated[kind] / b, stated[kind] * b))
+            changed |= abs(new / p.sigma[kind] - 1.0) > 0.05
+            p.sigma[kind] = new
         if not changed:
             break
         st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
@@ -190,15 +190,16 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
 
 def _rows_per_array(p):
     """{array name: number of its measurement rows (TDOA-S, TDOA-M, DOA, cone)}."""
-    cols = [p[c] for c in ("ts_arr", "tm_arr", "doa_arr", "cone_arr") if c in p]
-    counts = np.bincount(np.concatenate(cols).astype(int), minlength=p["N"]) if cols else np.zeros(p["N"], int)
-    return {str(n): int(k) for n, k in zip(p["names"], counts)}
+    cols = [p.tdoa_s.arr, p.tdoa_m.arr, p.doa.arr, p.cone.arr]
+    counts = np.bincount(np.concatenate(cols).astype(int), minlength=p.N)
+    return {str(n): int(k) for n, k in zip(p.names, counts)}
 
 
 def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
     """Keep the odometry yaw free only when significant (``odoframe.YAW_SIGNIFICANCE``); else fix it at 0
-    (sets ``p["odo_yaw_free"] = False``) and re-solve. Returns (state, layout, {yaw_deg, std_deg, kept})."""
-    _, J, w, _, _ = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
+    (sets ``p.odo_yaw_free = False``) and re-solve. Returns (state, layout, {yaw_deg, std_deg, kept})."""
+    lin = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
+    J, w = lin.J, lin.w
     test = _yaw_decision(p, st, whiten(J, w), int(lay["odo_yaw"][0]))
     if not test["kept"]:
         lay = make_layout(p)
@@ -208,11 +209,11 @@ def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
 
 def _yaw_decision(p, st, Jw, k):
     """Test the odometry yaw (column k of the whitened Jacobian Jw); when not significant fix it: sets
-    ``p["odo_yaw_free"] = False`` and ``st["odo_yaw"] = 0`` in place. Returns {yaw_deg, std_deg, kept}."""
+    ``p.odo_yaw_free = False`` and ``st["odo_yaw"] = 0`` in place. Returns {yaw_deg, std_deg, kept}."""
     yaw, sd = float(st["odo_yaw"][0]), _param_std(Jw, k)
     test = {"yaw_deg": float(np.rad2deg(yaw)), "std_deg": float(np.rad2deg(sd)), "kept": yaw_is_significant(yaw, sd)}
     if not test["kept"]:
-        p["odo_yaw_free"] = False
+        p.odo_yaw_free = False
         st["odo_yaw"] = np.zeros(1)
     return test
 
@@ -258,16 +259,16 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
     stats = measurement_stats(p, st, lay, kinds, mask)
     records, dropped = [], []
     for i, ratios in array_candidates(p, stats):
-        if len(dropped) + 2 >= p["N"]:
+        if len(dropped) + 2 >= p.N:
             break                      # keep the reference and at least one other array
-        keep_arr = [a for a in range(p["N"]) if a != i and a not in dropped]
+        keep_arr = [a for a in range(p.N) if a != i and a not in dropped]
         lay_w = make_layout(p, arrays=keep_arr)
         mask_w = array_mask(p, mask, sizes, i)
         st_w, _ = levenberg_marquardt(p, st, lay_w, kinds, loss=loss, k=robust_k, mask=mask_w, max_iter=max_iter,
                                       rtol=1e-6)
         T, dof, logp = drop_test(p, st, st_w, lay, lay_w, kinds, mask, mask_w, 1.0)
-        inconsistent = bool(logp < np.log(FAMILY_ALPHA / p["N"]))
-        rec = {"array": str(p["names"][i]), "median_ratio": {k: float(v) for k, v in ratios.items()},
+        inconsistent = bool(logp < np.log(FAMILY_ALPHA / p.N))
+        rec = {"array": str(p.names[i]), "median_ratio": {k: float(v) for k, v in ratios.items()},
                "drop_chi2": T, "drop_dof": dof, "inconsistent": inconsistent}
         if inconsistent:
             rec["moves_sigma"] = _moves_sigma(p, st, st_w, lay_w, kinds, mask_w)
@@ -280,7 +281,8 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
 
 def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
     """Largest move of any free array position or source between two states, in 1-σ of state b."""
-    _, J, w, _, _ = linearise(p, st_b, lay, kinds, mask=mask)
+    lin = linearise(p, st_b, lay, kinds, mask=mask)
+    J, w = lin.J, lin.w
     std = std_from_cov(p, lay, covariance(J[w > 0], lay["n"], lay))
     z = []
     for key in ("x", "s"):
@@ -290,8 +292,8 @@ def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
     return float(z.max()) if z.size else 0.0
 
 
-SIGMA_KEY = {k.name: k.sigma_key for k in KINDS.values() if k.sigma_key}
-META_KEY = {k.name: k.meta_key for k in KINDS.values() if k.sigma_key}
+REWEIGHTED = tuple(k.name for k in KINDS.values() if k.reweight)   # kinds whose sigma the data may re-weight
+META_KEY = {k.name: k.meta_key for k in KINDS.values() if k.reweight}
 # A sigma the user states as measured (meta.json/session.toml, not listed in ``sigmas_estimated``) is a
 # prior: variance components may move it by at most this factor either way (the data can say "a bit
 # worse than stated", never replace a 3 cm odometry prior with 3 m and so hide a failure).
@@ -320,7 +322,8 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None):
 
     ``cov``: (JᵀJ)⁻¹ at (st, lay, mask) when already computed.
     """
-    r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
+    lin = linearise(p, st, lay, kinds, mask=mask)
+    r, J, w, fs = lin.r, lin.J, lin.w, lin.factors
     keep = w > 0
     Jk = J[keep]
     h = np.zeros(len(r))
@@ -338,7 +341,7 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None):
         n = len(f["r"])
         sl = slice(start, start + n)
         start += n
-        if f["kind"] not in SIGMA_KEY or n == 0:
+        if f["kind"] not in REWEIGHTED or n == 0:
             continue
         red = float(np.sum((1.0 - h[sl])[keep[sl]]))
         if f["kind"] == "doa":
@@ -359,11 +362,11 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
     reverses direction (a type the parameters can absorb would otherwise shrink without bound).
     Returns (state, p with new sigmas, info with the total scales and which types hit their bound).
     """
-    p = dict(p)
+    p = p.copy()
     lay = lay or make_layout(p)
-    bounds = bounds or {k: FREE_MAX_FACTOR for k in SIGMA_KEY}
-    base = stated or {k: p[v] for k, v in SIGMA_KEY.items()}
-    scales = {k: p[v] / base[k] for k, v in SIGMA_KEY.items()}
+    bounds = bounds or {k: FREE_MAX_FACTOR for k in REWEIGHTED}
+    base = stated or {k: p.sigma[k] for k in REWEIGHTED}
+    scales = {k: p.sigma[k] / base[k] for k in REWEIGHTED}
     last_dir = {}
     info, at_bound = {}, {}
     for _ in range(iterations):
@@ -379,7 +382,7 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
             reversed_ |= bool(d and last_dir.get(kind, d) != d)
             last_dir[kind] = d
             scales[kind] = total
-            p[SIGMA_KEY[kind]] = base[kind] * total
+            p.sigma[kind] = base[kind] * total
             changed |= abs(step - 1.0) > 0.01
         st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
         if not changed or reversed_:
@@ -405,8 +408,8 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
     t0 = time.perf_counter()
     stages, stage_states = {}, {}
     # the odometry frame's yaw: a start value from the reference DOAs, the initialisation in that frame
-    yaw0 = initial_yaw(p) if p["odo_yaw_free"] else 0.0
-    p_init = {**p, "odom": rotate_odometry(p["odom"], yaw0), "odo_yaw_free": False}
+    yaw0 = initial_yaw(p) if p.odo_yaw_free else 0.0
+    p_init = p.replace(odom=rotate_odometry(p.odom, yaw0), odo_yaw_free=False)
     st, init_info = INIT_METHODS[method](p_init)
     st["odo_yaw"] = np.array([yaw0])
     st = init_cone_axes(p, st)
@@ -417,11 +420,11 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
     times["observability"] = time.perf_counter() - t_obs
     stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
     stage_states["init"] = copy_state(st)
-    if method == "hybrid" and len(p["ts_val"]) > 0:
+    if method == "hybrid" and len(p.tdoa_s.val) > 0:
         # Stage 1 (IVE): positions, clocks and sources from hybrid TDOA, odometry and the reference
         # array's DOAs; then rotations by SVD alignment of DOA-scaled points.
         t1 = time.perf_counter()
-        q = subproblem(p, np.arange(p["N"]), doa_arrays=[p["ref"]])
+        q = subproblem(p, np.arange(p.N), doa_arrays=[p.ref])
         lay_ive = make_layout(q, rotations=False)
         st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
                                       k=robust_k, max_iter=max_iter, rtol=1e-6)
@@ -429,9 +432,10 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
         if lay_ive["odo_yaw"][0] >= 0:
             # decide on the odometry yaw here (its σ from the IVE's data is a conservative one), so the
             # joint pass starts in the right parameter set
-            _, J_ive, w_ive, _, _ = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+            lin = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
                                               k=robust_k)
-            p["odo_yaw_test"] = _yaw_decision(p, st, whiten(J_ive, w_ive), int(lay_ive["odo_yaw"][0]))
+            J_ive, w_ive = lin.J, lin.w
+            p.odo_yaw_test = _yaw_decision(p, st, whiten(J_ive, w_ive), int(lay_ive["odo_yaw"][0]))
         stage_states["ive"] = copy_state(st)
         stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
         times["ive"] = time.perf_counter() - t1
@@ -473,7 +477,8 @@ def _yaw_std_deg(cov, yaw_i, p, st, lay, kinds, mask):
     """1-σ of the odometry yaw in degrees: from the dense covariance, or one sparse solve (large problems)."""
     if isinstance(cov, np.ndarray):
         return float(np.rad2deg(np.sqrt(max(cov[yaw_i, yaw_i], 0.0))))
-    _, J, w, _, _ = linearise(p, st, lay, kinds, mask=mask)
+    lin = linearise(p, st, lay, kinds, mask=mask)
+    J, w = lin.J, lin.w
     return float(np.rad2deg(_param_std(whiten(J, w), yaw_i)))
 
 
@@ -489,7 +494,8 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
     same = not info["dropped"]   # then lay_s is lay and cov is the one the factors need
     n_res = int((w > 0).sum())
     if not same:
-        _, _, w_s, cost, _ = linearise(p, st, lay_s, kinds, mask=mask)
+        lin = linearise(p, st, lay_s, kinds, mask=mask)
+        w_s, cost = lin.w, lin.cost
         n_res = int((w_s > 0).sum())
     if info["stats"] is not None and noise != "estimate":
         vf = variance_factors(info["stats"])
@@ -559,8 +565,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     if method == "wang":
         use_tdoa_s = False
     p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
-    if p["K"] < 3:
-        raise ObservabilityError(f"only {p['K']} event(s): at least 3 are needed to calibrate")
+    if p.K < 3:
+        raise ObservabilityError(f"only {p.K} event(s): at least 3 are needed to calibrate")
     kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
     if init_state is None:
         st, stages, stage_states = initial_state(p, kinds, method=method, loss=loss, robust_k=robust_k,
@@ -577,7 +583,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                                                max_iter=max_iter)
     times["joint"] = time.perf_counter() - t2
     lay = make_layout(p)
-    r, J, w, cost, fs = linearise(p, st, lay, kinds, mask=info["mask"])
+    lin = linearise(p, st, lay, kinds, mask=info["mask"])
+    r, J, w, cost, fs = lin.r, lin.J, lin.w, lin.cost, lin.factors
     t_cov = time.perf_counter()
     cov = covariance(J[w > 0], lay["n"], lay)
     times["uncertainty"] = time.perf_counter() - t_cov
@@ -597,7 +604,7 @@ def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_t
     ``stages`` gets the noise step's record.
     """
     bounds = sigma_bounds(meta, noise)
-    stated = {k: p[v] for k, v in SIGMA_KEY.items()}
+    stated = {k: p.sigma[k] for k in REWEIGHTED}
     st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
                           max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None)
     if noise == "estimate":
@@ -605,7 +612,7 @@ def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_t
                                     lay=info["layout"], stated=stated)
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
         stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds}
-    scales = {k: p[v] / stated[k] for k, v in SIGMA_KEY.items()}
+    scales = {k: p.sigma[k] / stated[k] for k in REWEIGHTED}
     return st, p, info, scales, bounds
 
 
@@ -628,20 +635,18 @@ def _report(p, st, info, stages, judged, fs, *, method, noise, emission_sigma, t
         "residuals": residual_table(fs, info["mask"]),
         "outliers": info["outliers"],
         "array_consistency": info["arrays"],
-        "unreliable_arrays": [str(p["names"][i]) for i in info["dropped"]],
+        "unreliable_arrays": [str(p.names[i]) for i in info["dropped"]],
         "undetermined": undetermined_parameters(p),
-        "used": {"tdoa_s": bool(len(p["ts_val"])), "tdoa_m": bool(len(p["tm_val"])), "doa": bool(len(p["doa_u"])),
+        "used": {"tdoa_s": bool(len(p.tdoa_s.val)), "tdoa_m": bool(len(p.tdoa_m.val)), "doa": bool(len(p.doa.u)),
                  "emission_correction": emission_sigma > 0},
-        "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",
-        "sigmas": {"tdoa_s": p["sigma_tdoa_s"], "tdoa_m": p["sigma_tdoa_m"], "doa_rad_per_axis": p["sigma_doa"],
-                   "odometry_m": p["sigma_odo"], "cone_rad": p["sigma_cone"], "emission_s": emission_sigma,
-                   "source": noise},
+        "drift_reference": "emitter clock" if len(p.tdoa_s.val) else "reference array (no TDOA-S: its drift fixed to 0)",
+        "sigmas": {**{k.report_sigma: p.sigma[k.name] for k in KINDS.values()}, "source": noise},
         "timings_s": times,
         "odometry_frame": odo_frame,
         "odometry_yaw_deg": odo_frame["yaw_deg"],
     }
     if emission_sigma > 0:
-        report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p["events"], st["e"])}
+        report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p.events, st["e"])}
     return report
 
 

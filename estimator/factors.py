@@ -94,34 +94,34 @@ def _out(kind, r, J, row, dim, robust, sigma):
 
 def tdoa_s(p, st, lay):
     """TDOA-S: a_{i,b} − a_{i,a} = (1+δ_i)(t_b − t_a + e_b − e_a + (d_ib − d_ia)/c)."""
-    i, a, b, z = p["ts_arr"], p["ts_a"], p["ts_b"], p["ts_val"]
-    m, c, sig = len(z), p["c"], p["sigma_tdoa_s"]
+    i, a, b, z = p.tdoa_s.arr, p.tdoa_s.a, p.tdoa_s.b, p.tdoa_s.val
+    m, c, sig = len(z), p.c, p.sigma["tdoa_s"]
     J = jacobian(m, lay)
     if m == 0:
-        return _out("tdoa_s", np.zeros(0), J, p["ts_row"], 1, True, sig)
+        return _out("tdoa_s", np.zeros(0), J, p.tdoa_s.row, 1, True, sig)
     da, na = _dist(st, i, a)
     db, nb = _dist(st, i, b)
-    h = p["t"][b] - p["t"][a] + st["e"][b] - st["e"][a] + (db - da) / c
+    h = p.t[b] - p.t[a] + st["e"][b] - st["e"][a] + (db - da) / c
     g = 1.0 + st["drift"][i]
     r = (g * h - z) / sig
     gc = (g / (c * sig))[:, None]
     _put(J, np.arange(m),
          np.column_stack([lay["drift"][i], lay["x"][i], lay["s"][b], lay["s"][a], lay["e"][b], lay["e"][a]]),
          np.column_stack([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
-    return _out("tdoa_s", r, J, p["ts_row"], 1, True, sig)
+    return _out("tdoa_s", r, J, p.tdoa_s.row, 1, True, sig)
 
 
 def tdoa_m(p, st, lay):
     """TDOA-M: a_ij − a_{ref,j}."""
-    i, j, z = p["tm_arr"], p["tm_ev"], p["tm_val"]
-    ref, m, c, sig, beta = p["ref"], len(z), p["c"], p["sigma_tdoa_m"], p["beta"]
+    i, j, z = p.tdoa_m.arr, p.tdoa_m.ev, p.tdoa_m.val
+    ref, m, c, sig, beta = p.ref, len(z), p.c, p.sigma["tdoa_m"], p.beta
     J = jacobian(m, lay)
     if m == 0:
-        return _out("tdoa_m", np.zeros(0), J, p["tm_row"], 1, True, sig)
+        return _out("tdoa_m", np.zeros(0), J, p.tdoa_m.row, 1, True, sig)
     r0 = np.full(m, ref)
     di, ni = _dist(st, i, j)
     d0, n0 = _dist(st, r0, j)
-    te = p["t"][j] + st["e"][j]
+    te = p.t[j] + st["e"][j]
     gi, g0 = 1.0 + st["drift"][i], 1.0 + st["drift"][ref]
     model = (gi * (te + di / c) + st["offset"][i] + beta * st["drift"][i]
              - g0 * (te + d0 / c) - st["offset"][ref] - beta * st["drift"][ref])
@@ -133,22 +133,22 @@ def tdoa_m(p, st, lay):
          np.column_stack([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
                           -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig)) * n0,
                           (gi[:, None] * ni - g0 * n0) / (c * sig), (gi - g0) / sig]))
-    return _out("tdoa_m", r, J, p["tm_row"], 1, True, sig)
+    return _out("tdoa_m", r, J, p.tdoa_m.row, 1, True, sig)
 
 
 def doa(p, st, lay):
     """DOA: R_iᵀ (s_j − x_i)/|s_j − x_i| − u_ij, three components per measurement."""
-    i, j, u = p["doa_arr"], p["doa_ev"], p["doa_u"]
-    m, sig = len(i), p["sigma_doa"]
+    i, j, u = p.doa.arr, p.doa.ev, p.doa.u
+    m, sig = len(i), p.sigma["doa"]
     J = jacobian(3 * m, lay)
     if m == 0:
-        return _out("doa", np.zeros(0), J, p["doa_row"], 3, True, sig)
+        return _out("doa", np.zeros(0), J, p.doa.row, 3, True, sig)
     d, n = _dist(st, i, j)
     Rt = np.transpose(st["R"][i], (0, 2, 1))
     v = np.einsum("kab,kb->ka", Rt, n)
     # Mirror-ambiguous (planar) arrays: compare the prediction folded to the measured side, v → H v with
     # the reflection H = I − 2 n nᵀ where n·v < 0 (so the Jacobians are multiplied by H there too).
-    nf = p["fold"][i]
+    nf = p.fold[i]
     flip = np.einsum("ka,ka->k", nf, v) < 0
     H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
     Rt = H @ Rt
@@ -165,16 +165,16 @@ def doa(p, st, lay):
     cols = np.repeat(np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]), 3, axis=0)
     vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig
     _put(J, np.arange(3 * m), cols, vals)
-    return _out("doa", r, J, np.repeat(p["doa_row"], 3), 3, True, sig)
+    return _out("doa", r, J, np.repeat(p.doa.row, 3), 3, True, sig)
 
 
 def odometry(p, st, lay):
     """Odometry: (s_{j+1} − s_j) − (o_{j+1} − o_j), three components per step."""
-    K, sig = p["K"], p["sigma_odo"]
+    K, sig = p.K, p.sigma["odometry"]
     J = jacobian(3 * (K - 1), lay)
     if K < 2:
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
-    r = ((np.diff(st["s"], axis=0) - np.diff(p["odom"], axis=0)) / sig).ravel()
+    r = ((np.diff(st["s"], axis=0) - np.diff(p.odom, axis=0)) / sig).ravel()
     k = np.arange(3 * (K - 1))
     _put(J, k, lay["s"][1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
     _put(J, k, lay["s"][:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
@@ -183,7 +183,7 @@ def odometry(p, st, lay):
 
 def emission(p, st, lay):
     """Prior on the per-interval emission-time corrections: (e_{j+1} − e_j) ~ N(0, sigma_emit²)."""
-    K, sig = p["K"], p["sigma_emit"]
+    K, sig = p.K, p.sigma["emission"]
     if sig <= 0 or K < 2 or not (lay["e"] >= 0).any():
         return _out("emission", np.zeros(0), jacobian(0, lay), np.zeros(0, int), 1, False, max(sig, 1.0))
     r = np.diff(st["e"]) / sig
@@ -201,13 +201,13 @@ def odometry_frame(p, st, lay):
     (taken as the vertical: the odometry's z is the reference array's z). ψ = 0 (or no ``odo_yaw`` in the
     state/layout) is the plain :func:`odometry` factor.
     """
-    K, sig = p["K"], p["sigma_odo"]
+    K, sig = p.K, p.sigma["odometry"]
     J = np.zeros((3 * max(K - 1, 0), lay["n"]))
     if K < 2:
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
     psi = float(st["odo_yaw"][0]) if "odo_yaw" in st else 0.0
     yaw_col = int(lay.get("odo_yaw", -np.ones(1, int))[0])
-    do = np.diff(p["odom"], axis=0)
+    do = np.diff(p.odom, axis=0)
     if psi != 0.0:
         c, s = np.cos(psi), np.sin(psi)
         do = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
@@ -226,17 +226,17 @@ def cone(p, st, lay):
     """Cone (linear arrays, 2-mic pairs): aᵀ R_iᵀ (s_j − x_i)/|s_j − x_i| − cos θ_ij, one per measurement.
 
     ``a`` (array frame) is the array's axis, θ the measured angle between it and the source direction
-    (``p["cone_*"]``; ``problem.build_problem`` reads them from meta ``doa_axes``). The roll about the
+    (``p.cone``; ``problem.build_problem`` reads them from meta ``doa_axes``). The roll about the
     axis does not enter (its rotation component is fixed in the layout). Whitened by ``sigma_cone``
     (rad): the cosine error is sin θ · δθ ≤ δθ.
     """
-    i, j, c0 = p.get("cone_arr", np.zeros(0, int)), p.get("cone_ev", np.zeros(0, int)), p.get("cone_cos", np.zeros(0))
-    m, sig = len(i), p.get("sigma_cone", p["sigma_doa"])
+    i, j, c0 = p.cone.arr, p.cone.ev, p.cone.cos
+    m, sig = len(i), p.sigma["cone"]
     J = np.zeros((m, lay["n"]))
     if m == 0:
         return _out("cone", np.zeros(0), J, np.zeros(0, int), 1, True, sig)
     d, n = _dist(st, i, j)
-    a = p["cone_axis"][i]                                    # (m, 3) array frame
+    a = p.cone_axis[i]                                    # (m, 3) array frame
     w = np.einsum("kba,kb->ka", st["R"][i], n)               # Rᵀ n
     r = (np.einsum("ka,ka->k", a, w) - c0) / sig
     # R → R Exp(φ): w → w + w × φ, so d(aᵀw)/dφ = (a × w)ᵀ; d(aᵀw)/ds = (R a)ᵀ (I − n nᵀ)/d = −d/dx
@@ -245,7 +245,7 @@ def cone(p, st, lay):
     ds = (b - np.einsum("ka,ka->k", b, n)[:, None] * n) / d[:, None]
     _put(J, np.arange(m), np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]),
          np.column_stack([dphi, ds, -ds]) / sig)
-    return _out("cone", r, J, p["cone_row"], 1, True, sig)
+    return _out("cone", r, J, p.cone.row, 1, True, sig)
 
 
 @dataclass(frozen=True)
@@ -254,9 +254,10 @@ class MeasurementKind:
 
     factor : ``f(p, st, lay) -> factor dict`` (residual, Jacobian, rows, whitening sigma).
     unit, scale : report unit and the factor from SI (µs, deg, cm). label, title : plot/report texts.
-    sigma_key : the problem key of its sigma (variance components re-estimate it; None: a fixed prior).
-    meta_key : the meta.json key that states that sigma. dof : degrees of freedom of one measurement in the
-    outlier tests (None: not tested).
+    Its sigma is ``Problem.sigma[name]``; meta_key : the meta.json key that states it (None: an option);
+    report_sigma : its key in report.json ``sigmas``; reweight : variance components may re-estimate it
+    (False: a fixed prior). dof : degrees of freedom of one measurement in the outlier tests (None: not
+    tested).
     """
     name: str
     factor: Callable
@@ -264,23 +265,28 @@ class MeasurementKind:
     scale: float
     label: str
     title: str
-    sigma_key: str | None = None
     meta_key: str | None = None
+    report_sigma: str | None = None
+    reweight: bool = False
     dof: int | None = None
 
 
 _DEG = float(np.rad2deg(1.0))
 KINDS = {k.name: k for k in (
-    MeasurementKind("tdoa_s", tdoa_s, "us", 1e6, "TDOA-S residual (µs)", "TDOA-S", "sigma_tdoa_s", "sigma_tdoa", 1),
-    MeasurementKind("tdoa_m", tdoa_m, "us", 1e6, "TDOA-M residual (µs)", "TDOA-M", "sigma_tdoa_m", "sigma_tdoa", 1),
+    MeasurementKind("tdoa_s", tdoa_s, "us", 1e6, "TDOA-S residual (µs)", "TDOA-S", meta_key="sigma_tdoa",
+                    report_sigma="tdoa_s", reweight=True, dof=1),
+    MeasurementKind("tdoa_m", tdoa_m, "us", 1e6, "TDOA-M residual (µs)", "TDOA-M", meta_key="sigma_tdoa",
+                    report_sigma="tdoa_m", reweight=True, dof=1),
     # a unit-vector residual has no noise along the direction itself: 2 degrees of freedom
-    MeasurementKind("doa", doa, "deg", _DEG, "DOA angular error (deg)", "DOA", "sigma_doa", "sigma_doa_deg", 2),
+    MeasurementKind("doa", doa, "deg", _DEG, "DOA angular error (deg)", "DOA", meta_key="sigma_doa_deg",
+                    report_sigma="doa_rad_per_axis", reweight=True, dof=2),
     MeasurementKind("odometry", odometry_frame, "cm", 100.0, "odometry residual per axis (cm)", "Odometry",
-                    "sigma_odo", "sigma_odo", 3),
-    MeasurementKind("emission", emission, "us", 1e6, "emission-interval correction (µs)", "Emission"),
+                    meta_key="sigma_odo", report_sigma="odometry_m", reweight=True, dof=3),
+    MeasurementKind("emission", emission, "us", 1e6, "emission-interval correction (µs)", "Emission",
+                    report_sigma="emission_s"),
     # cone: cosine difference ≈ rad · sin θ, shown in degrees
     MeasurementKind("cone", cone, "deg", _DEG, "cone (axis angle) residual, cos × 57.3 (≈ deg)", "Cone",
-                    "sigma_cone", "sigma_doa_deg", 1),
+                    meta_key="sigma_doa_deg", report_sigma="cone_rad", reweight=True, dof=1),
 )}
 # Derived views (kept for the call sites that need only one attribute)
 ALL_KINDS = list(KINDS)

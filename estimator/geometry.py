@@ -24,15 +24,15 @@ def axis_from_cones(n, cos_theta):
 
 def init_cone_axes(p, st):
     """Rotate each cone array so its axis points along the world axis its cone rows imply (in place)."""
-    for i in np.flatnonzero(p["rot_fixed_axis"] >= 0):
-        if i == p["ref"]:
+    for i in np.flatnonzero(p.rot_fixed_axis >= 0):
+        if i == p.ref:
             continue
-        m = p["cone_arr"] == i
-        w = st["s"][p["cone_ev"][m]] - st["x"][i]
-        b = axis_from_cones(w / np.linalg.norm(w, axis=1, keepdims=True), p["cone_cos"][m])
+        m = p.cone.arr == i
+        w = st["s"][p.cone.ev[m]] - st["x"][i]
+        b = axis_from_cones(w / np.linalg.norm(w, axis=1, keepdims=True), p.cone.cos[m])
         if b is None:
             continue
-        a = p["cone_axis"][i]
+        a = p.cone_axis[i]
         rot, _ = Rotation.align_vectors(b[None], a[None])
         st["R"][i] = rot.as_matrix()
     return st

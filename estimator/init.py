@@ -35,12 +35,9 @@ def subproblem(p, arrays, *, doa_arrays=None):
     """
     arrays = np.asarray(arrays)
     doa_arrays = arrays if doa_arrays is None else np.asarray(doa_arrays)
-    q = dict(p)
-    for prefix, col, keep in (("tm", "tm_arr", arrays), ("ts", "ts_arr", arrays), ("doa", "doa_arr", doa_arrays)):
-        m = np.isin(p[col], keep)
-        for key in [k for k in p if k.startswith(prefix + "_")]:
-            q[key] = p[key][m]
-    return q
+    return p.replace(tdoa_m=p.tdoa_m.select(np.isin(p.tdoa_m.arr, arrays)),
+                     tdoa_s=p.tdoa_s.select(np.isin(p.tdoa_s.arr, arrays)),
+                     doa=p.doa.select(np.isin(p.doa.arr, doa_arrays)))
 
 
 def kabsch(u, v, w=None):
@@ -63,24 +60,24 @@ def init_sources(p):
     Returns a list of (K, 3) arrays: one, or for a mirror-ambiguous (planar) reference array one per
     self-consistent choice of the events behind its plane (the caller keeps the best after refinement).
     """
-    ref = p["ref"]
-    m = p["doa_arr"] == ref
+    ref = p.ref
+    m = p.doa.arr == ref
     if m.sum() < 2:
         raise ObservabilityError(
-            f"the reference array {p['names'][ref]} has DOAs for {int(m.sum())} event(s); at least 2 are needed "
+            f"the reference array {p.names[ref]} has DOAs for {int(m.sum())} event(s); at least 2 are needed "
             "to place the sources in its frame")
-    u, j = p["doa_u"][m], p["doa_ev"][m]
-    o = p["odom"] - p["odom"][0]
+    u, j = p.doa.u[m], p.doa.ev[m]
+    o = p.odom - p.odom[0]
 
     def solve(u):
         P = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
         A = P.sum(0)
         if np.linalg.cond(A) > 1e8:
-            raise ObservabilityError(f"the reference array {p['names'][ref]}'s DOAs are all parallel: "
+            raise ObservabilityError(f"the reference array {p.names[ref]}'s DOAs are all parallel: "
                                      "the source start point is undetermined")
         return np.linalg.solve(A, -np.einsum("kab,kb->a", P, o[j]))
 
-    n = p["fold"][ref]
+    n = p.fold[ref]
     if not np.any(n):
         return [solve(u) + o]
     return [s0 + o for s0 in _folded_start_points(u, o[j], n)]
@@ -120,7 +117,7 @@ def _folded_start_points(u, oj, n, n_keep=3, zoom_levels=6):
 
 def refine_reference(p, st):
     """NLS on the reference array's own measurements: sources and (with TDOA-S) its drift."""
-    ref = p["ref"]
+    ref = p.ref
     q = subproblem(p, [ref])  # TDOA-M rows never name the reference, so this keeps none of them
     lay = make_layout(q, arrays=[ref], emission=False)
     st, info = levenberg_marquardt(q, st, lay, ["tdoa_s", "doa", "odometry"], loss="cauchy", k=3.0, max_iter=50,
@@ -133,7 +130,7 @@ def source_spread(q, st, lay):
     from .solver import linearise
     from .uncertainty import cov_diagonal, covariance
 
-    _, J, _, _, _ = linearise(q, st, lay, ["tdoa_s", "doa", "odometry"])
+    J = linearise(q, st, lay, ["tdoa_s", "doa", "odometry"]).J
     cols = lay["s"].ravel()
     try:
         var = cov_diagonal(covariance(J, lay["n"], lay))[cols]
@@ -163,11 +160,11 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     coarse grid; see :func:`coarse_grid`).
     Returns cost (G,), drift (G,), offset (G,).
     """
-    c, beta, ref, s, t = p["c"], p["beta"], p["ref"], st["s"], p["t"]
+    c, beta, ref, s, t = p.c, p.beta, p.ref, st["s"], p.t
     G = len(pts)
-    ms, mm, md = p["ts_arr"] == i, p["tm_arr"] == i, p["doa_arr"] == i
-    a, b, zs = p["ts_a"][ms], p["ts_b"][ms], p["ts_val"][ms]
-    j, zm = p["tm_ev"][mm], p["tm_val"][mm]
+    ms, mm, md = p.tdoa_s.arr == i, p.tdoa_m.arr == i, p.doa.arr == i
+    a, b, zs = p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms]
+    j, zm = p.tdoa_m.ev[mm], p.tdoa_m.val[mm]
     if geom is None:
         need = np.unique(np.concatenate([a, b, j]))                    # the events these rows name
         col = np.zeros(len(s), int)
@@ -203,11 +200,11 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
         w = 1.0 / (1.0 + r2)
     cost = np.log1p(r2).sum(1)
     if md.sum() >= 2:
-        ev = p["doa_ev"][md]
-        u, v = p["doa_u"][md], (_directions(s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
-        if np.any(p["fold"][i]):
+        ev = p.doa.ev[md]
+        u, v = p.doa.u[md], (_directions(s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
+        if np.any(p.fold[i]):
             normals = _NORMALS_COARSE if G > 500 else _NORMALS
-            kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p["fold"][i], v, normals)])
+            kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p.fold[i], v, normals)])
         else:
             kc = kabsch_cost(u, v)
         cost = cost + kc / (2.0 * sigma_d ** 2)
@@ -287,13 +284,13 @@ def unfold_candidates(u, n_a, v, normals=_NORMALS):
 
 def doa_rotation(p, st, i, x):
     """Kabsch rotation of array ``i`` placed at ``x`` (identity if it has < 2 DOAs)."""
-    md = p["doa_arr"] == i
+    md = p.doa.arr == i
     if md.sum() < 2:
         return np.eye(3)
-    u, v = p["doa_u"][md], _directions(st["s"][p["doa_ev"][md]], x[None])
-    if not np.any(p["fold"][i]):
+    u, v = p.doa.u[md], _directions(st["s"][p.doa.ev[md]], x[None])
+    if not np.any(p.fold[i]):
         return kabsch(u, v[0])[0]
-    fits = [kabsch(uu[0], v[0]) for uu in unfold_candidates(u, p["fold"][i], v)]
+    fits = [kabsch(uu[0], v[0]) for uu in unfold_candidates(u, p.fold[i], v)]
     return min(fits, key=lambda f: f[1])[0]
 
 
@@ -308,8 +305,8 @@ def _subsample_mask(K, max_events):
 
 def grid_events(p, max_events=GRID_MAX_EVENTS):
     """Indices of the events the subsampled grid search names (its events and their TDOA-S partners)."""
-    keep = _subsample_mask(p["K"], max_events)
-    return np.union1d(np.flatnonzero(keep), p["ts_b"][keep[p["ts_a"]]])
+    keep = _subsample_mask(p.K, max_events)
+    return np.union1d(np.flatnonzero(keep), p.tdoa_s.b[keep[p.tdoa_s.a]])
 
 
 def event_subsample(p, i, max_events=GRID_MAX_EVENTS):
@@ -317,17 +314,14 @@ def event_subsample(p, i, max_events=GRID_MAX_EVENTS):
 
     The grid search's cost is (grid points) × (measurements); on a subsample of events it is bounded and
     the initialisation stays linear in the number of events. TDOA-S rows are kept by their ``from`` event
-    (their other source is known as well). Returns a problem dict (``p`` itself if nothing is dropped).
+    (their other source is known as well). Returns a :class:`Problem` (``p`` itself if nothing is dropped).
     """
-    keep = _subsample_mask(p["K"], max_events)
+    keep = _subsample_mask(p.K, max_events)
     if keep.all():
         return p
-    q = dict(p)
-    for prefix, col in (("tm", "tm_ev"), ("ts", "ts_a"), ("doa", "doa_ev")):
-        m = keep[p[col]] & (p[col.split("_")[0] + "_arr"] == i)
-        for key in [k for k in p if k.startswith(prefix + "_")]:
-            q[key] = p[key][m]
-    return q
+    return p.replace(tdoa_m=p.tdoa_m.select(keep[p.tdoa_m.ev] & (p.tdoa_m.arr == i)),
+                     tdoa_s=p.tdoa_s.select(keep[p.tdoa_s.a] & (p.tdoa_s.arr == i)),
+                     doa=p.doa.select(keep[p.doa.ev] & (p.doa.arr == i)))
 
 
 def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=None):
@@ -381,14 +375,14 @@ def initialise(p):
     st, info_ref, q, lay = best
     sig_src = source_spread(q, st, lay)
     dist = np.median(np.linalg.norm(st["s"], axis=1))
-    kappa = max(3.0 * p["sigma_tdoa"], 2.0 * sig_src / p["c"])
-    sigma_d = float(np.hypot(p["sigma_doa"], sig_src / max(dist, 0.1)))
+    kappa = max(3.0 * p.sigma["tdoa_m"], 2.0 * sig_src / p.c)
+    sigma_d = float(np.hypot(p.sigma["doa"], sig_src / max(dist, 0.1)))
     costs = {}
     grid = coarse_grid(st["s"], grid_events(p))  # the sources stay fixed while the arrays are placed
-    for i in range(p["N"]):
-        if i == p["ref"]:
+    for i in range(p.N):
+        if i == p.ref:
             continue
-        trial, costs[p["names"][i]] = init_array(p, st, i, kappa, sigma_d, grid=grid)
+        trial, costs[p.names[i]] = init_array(p, st, i, kappa, sigma_d, grid=grid)
         for key in ("x", "R", "drift", "offset"):
             st[key][i] = trial[key][i]
     return st, {"source_sigma": sig_src, "array_costs": costs, "reference_iterations": info_ref["iterations"]}

@@ -29,7 +29,7 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
     ``dense`` as in :func:`calib.estimator.solver.linearise` (None: by problem size).
     """
     _check_counts(p)
-    _, J, _, _, _ = linearise(p, st, lay, kinds, dense=dense)
+    J = linearise(p, st, lay, kinds, dense=dense).J
     sparse = scipy.sparse.issparse(J)
     norms = np.sqrt(np.asarray(J.multiply(J).sum(axis=0)).ravel()) if sparse else np.linalg.norm(J, axis=0)
     if np.any(norms == 0):
@@ -53,18 +53,18 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
 
 def _check_counts(p):
     """Per-array DOA / TDOA-M counts and the spread of the source path (cheap, named errors)."""
-    K = p["K"]
+    K = p.K
     # arrays with DOAs for fewer than 2 events are not refused: their orientation is left out of the
     # estimate and reported as undetermined (calibrate.undetermined_parameters)
-    nt = np.bincount(p["tm_arr"], minlength=p["N"])
-    for i in range(p["N"]):
-        if i == p["ref"]:
+    nt = np.bincount(p.tdoa_m.arr, minlength=p.N)
+    for i in range(p.N):
+        if i == p.ref:
             continue
         if nt[i] < 1:
-            raise ObservabilityError(f"array {p['names'][i]} has no TDOA-M: its clock offset is undetermined")
-    o = p["odom"] - p["odom"].mean(0)
+            raise ObservabilityError(f"array {p.names[i]} has no TDOA-M: its clock offset is undetermined")
+    o = p.odom - p.odom.mean(0)
     sv = np.linalg.svd(o, compute_uv=False)
-    if sv[1] / np.sqrt(K) < max(2.0 * p["sigma_odo"], 1e-3 * sv[0] / np.sqrt(K)):
+    if sv[1] / np.sqrt(K) < max(2.0 * p.sigma["odometry"], 1e-3 * sv[0] / np.sqrt(K)):
         raise ObservabilityError(
             "all sources are (nearly) collinear (odometry spread across the path "
             f"{100 * sv[1] / np.sqrt(K):.1f} cm): each array's rotation about that line is unobservable")
@@ -119,13 +119,13 @@ def _weakest_event(sch, lay):
 def describe_param(p, lay, k):
     """Words for parameter column ``k`` of layout ``lay`` (e.g. "the orientation of array A3")."""
     for key, label in (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift")):
-        hit = np.argwhere(lay[key].reshape(p["N"], -1) == k)
+        hit = np.argwhere(lay[key].reshape(p.N, -1) == k)
         if hit.size:
-            return f"the {label} of array {p['names'][hit[0, 0]]}"
+            return f"the {label} of array {p.names[hit[0, 0]]}"
     hit = np.argwhere(lay["s"] == k)
     if hit.size:
-        return f"the position of source (event {p['events'][hit[0, 0]]})"
+        return f"the position of source (event {p.events[hit[0, 0]]})"
     hit = np.argwhere(lay["e"] == k)
     if hit.size:
-        return f"the emission time of event {p['events'][hit[0, 0]]}"
+        return f"the emission time of event {p.events[hit[0, 0]]}"
     return f"parameter {k}"

@@ -27,9 +27,9 @@ def ray_misfit(p, yaws):
     The chain's start point is the linear least-squares point of ``init.init_sources`` (rays vs.
     ``s_0 + Rz(ψ) o_j``); its normal matrix does not depend on ψ, so all yaws are solved at once.
     """
-    m = p["doa_arr"] == p["ref"]
-    u, j = p["doa_u"][m], p["doa_ev"][m]
-    o = (p["odom"] - p["odom"][0])[j]                                   # (n, 3)
+    m = p.doa.arr == p.ref
+    u, j = p.doa.u[m], p.doa.ev[m]
+    o = (p.odom - p.odom[0])[j]                                   # (n, 3)
     P = np.eye(3)[None] - u[:, :, None] * u[:, None, :]                 # (n, 3, 3)
     A = P.sum(0)
     if np.linalg.cond(A) > 1e8:
@@ -46,8 +46,8 @@ def ray_misfit(p, yaws):
 def initial_yaw(p):
     """Start value of the odometry yaw (rad) from the reference array's DOAs; 0 when they cannot tell
     (mirror-ambiguous reference DOAs, fewer than 3)."""
-    m = p["doa_arr"] == p["ref"]
-    if m.sum() < 3 or np.any(p["fold"][p["ref"]]):
+    m = p.doa.arr == p.ref
+    if m.sum() < 3 or np.any(p.fold[p.ref]):
         return 0.0
     coarse = np.deg2rad(np.arange(-180.0, 180.0, COARSE_STEP_DEG))
     best = coarse[int(np.argmin(ray_misfit(p, coarse)))]

@@ -1,26 +1,20 @@
-"""The numeric problem: features dict → index arrays, and the state ↔ parameter-vector layout.
+"""The numeric problem: features dict → a typed :class:`Problem`, and the state ↔ parameter-vector layout.
 
-A *problem* is a dict of numpy arrays (built once per data set)::
-
-    names (N,) array names, ref (int) index of the reference array, c (m/s), beta (s per unit drift),
-    t (K,) emission times minus t_0 (s), events (K,) event ids, odom (K, 3) cumulative odometry (m),
-    tm_ev, tm_arr, tm_val (n_m,)         TDOA-M rows: event index, array index, value (s)
-    ts_arr, ts_a, ts_b, ts_val (n_s,)    TDOA-S rows: array index, from/to event index, value (s)
-    doa_ev, doa_arr (n_d,), doa_u (n_d, 3)   DOA rows: event index, array index, unit vector (array frame)
-    sigma_tdoa (s), sigma_doa (rad, per tangent axis), sigma_odo (m), sigma_emit (s or 0 = off);
-    sigma_tdoa_s, sigma_tdoa_m: the TDOA sigma per type (both sigma_tdoa unless re-estimated)
-    fold (N, 3) mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere)
-    *_row (n,) the line of each measurement in its CSV file, header = line 1 (for outlier reports)
+A :class:`Problem` (built once per data set) holds the arrays' names and reference, the events (emission
+times, cumulative odometry), one block of rows per measurement kind (:class:`TdoaMRows`, :class:`TdoaSRows`,
+:class:`DoaRows`, :class:`ConeRows`), the sigmas by measurement kind (``sigma``: the names of
+``factors.KINDS``) and per-array facts (mirror folds, cone axes, which orientations are estimated).
 
 A *state* is a dict: ``x`` (N, 3), ``R`` (N, 3, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3),
 ``e`` (K,) emission-time corrections (s; e[0] = 0), ``odo_yaw`` (1,) the odometry frame's rotation about
 the vertical (rad; see ``factors.odometry_frame``).
 
-``odo_yaw_free`` (bool, problem) says whether that yaw is estimated (``build_problem(odometry_yaw=...)``).
-
 A *layout* says which of them are free in a solve and where they sit in the parameter vector.
 """
 from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -35,6 +29,110 @@ DEFAULT_SIGMA_ODO = 0.01       # m per axis per step
 LINE_COLUMN = "csv_line"
 
 
+@dataclass
+class Rows:
+    """The rows of one measurement kind: every field is an array with one entry (or row) per measurement;
+    ``row`` is the measurement's line in its CSV file (header = line 1), for reports."""
+
+    def __len__(self):
+        return len(self.row)
+
+    def select(self, keep):
+        """The rows where the boolean (n,) ``keep`` is True (or at the integer indices ``keep``)."""
+        return dataclasses.replace(self, **{f.name: getattr(self, f.name)[keep] for f in dataclasses.fields(self)})
+
+
+@dataclass
+class TdoaMRows(Rows):
+    """TDOA-M: array ``arr`` vs the reference at event ``ev`` (indices), value ``val`` (s)."""
+    ev: np.ndarray
+    arr: np.ndarray
+    val: np.ndarray
+    row: np.ndarray
+
+
+@dataclass
+class TdoaSRows(Rows):
+    """TDOA-S: array ``arr`` between events ``a`` and ``b`` (indices), value ``val`` (s)."""
+    arr: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    val: np.ndarray
+    row: np.ndarray
+
+
+@dataclass
+class DoaRows(Rows):
+    """DOA: unit vector ``u`` (n, 3) in array ``arr``'s frame toward the source of event ``ev``."""
+    ev: np.ndarray
+    arr: np.ndarray
+    u: np.ndarray
+    row: np.ndarray
+
+
+@dataclass
+class ConeRows(Rows):
+    """Cone DOA of a linear array / 2-mic pair: cos of the angle between its axis and the source."""
+    ev: np.ndarray
+    arr: np.ndarray
+    cos: np.ndarray
+    row: np.ndarray
+
+
+@dataclass
+class Problem:
+    """One calibration problem. Shapes: N arrays, K events; SI units (s, m, rad).
+
+    names (N,), ref the reference array's index, c (m/s), beta (s per unit drift: the matched filter's
+    drift bias), t (K,) emission times minus t_0, events (K,) event ids, odom (K, 3) cumulative odometry.
+    sigma: {kind: sigma} for ``tdoa_s``, ``tdoa_m`` (s), ``doa``, ``cone`` (rad per tangent axis),
+    ``odometry`` (m per axis per step), ``emission`` (s; 0 = emission times not estimated).
+    fold (N, 3): mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere);
+    cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
+    (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
+    odo_yaw_free: the odometry frame's yaw is estimated; odo_yaw_test: the test that decided it.
+    """
+    names: np.ndarray
+    ref: int
+    c: float
+    beta: float
+    t: np.ndarray
+    events: np.ndarray
+    odom: np.ndarray
+    tdoa_m: TdoaMRows
+    tdoa_s: TdoaSRows
+    doa: DoaRows
+    cone: ConeRows
+    sigma: dict
+    fold: np.ndarray
+    cone_axis: np.ndarray
+    rot_fixed_axis: np.ndarray
+    rot_free: np.ndarray
+    n_doa_events: np.ndarray
+    odo_yaw_free: bool = False
+    odo_yaw_test: dict | None = None
+
+    @property
+    def N(self):
+        return len(self.names)
+
+    @property
+    def K(self):
+        return len(self.events)
+
+    def rows(self, kind):
+        """The measurement rows of ``kind`` (tdoa_m, tdoa_s, doa, cone)."""
+        return getattr(self, kind)
+
+    def replace(self, **changes):
+        """A shallow copy with ``changes`` (the sigma dict copied, so re-weighting never leaks back)."""
+        changes.setdefault("sigma", dict(self.sigma))
+        return dataclasses.replace(self, **changes)
+
+    def copy(self):
+        return self.replace()
+
+
 def sigma_doa_per_axis(sigma_deg):
     """meta ``sigma_doa_deg`` → std per tangent axis of the DOA direction error (rad).
 
@@ -47,7 +145,7 @@ def sigma_doa_per_axis(sigma_deg):
 
 
 def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0, odometry_yaw=False):
-    """Index the measurements of a (validated) features dict. See module docstring for the keys."""
+    """Index the measurements of a (validated) features dict → :class:`Problem`."""
     meta = features["meta"]
     names = np.asarray(meta["arrays"], dtype=object)
     idx = {n: k for k, n in enumerate(names)}
@@ -55,69 +153,58 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     events = ev["event"].to_numpy(int)
     eidx = {e: k for k, e in enumerate(events)}
     t_emit = ev["t_emit"].to_numpy(float)
-    odom = ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
 
     def rows(df, use):
         return df if use else df.iloc[:0]
 
+    def index(values, table):
+        return np.array([table[v] for v in values], dtype=int)
+
     tm = rows(features["tdoa_m"], use_tdoa_m)
     ts = rows(features["tdoa_s"], use_tdoa_s)
     doa = rows(features["doa"], use_doa)
-    p = {
-        "names": names,
-        "ref": idx[meta["reference_array"]],
-        "c": float(meta["speed_of_sound"]),
-        "beta": float(meta.get("chirp_drift_bias", 0.0) or 0.0),
-        "t": t_emit - t_emit[0],
-        "events": events,
-        "odom": odom,
-        "tm_ev": np.array([eidx[e] for e in tm["event"]], dtype=int),
-        "tm_arr": np.array([idx[a] for a in tm["array"]], dtype=int),
-        "tm_val": tm["tdoa"].to_numpy(float),
-        "tm_row": _lines(tm),
-        "ts_arr": np.array([idx[a] for a in ts["array"]], dtype=int),
-        "ts_a": np.array([eidx[e] for e in ts["from_event"]], dtype=int),
-        "ts_b": np.array([eidx[e] for e in ts["to_event"]], dtype=int),
-        "ts_val": ts["tdoa"].to_numpy(float),
-        "ts_row": _lines(ts),
-        "doa_ev": np.array([eidx[e] for e in doa["event"]], dtype=int),
-        "doa_arr": np.array([idx[a] for a in doa["array"]], dtype=int),
-        "doa_u": doa[["ux", "uy", "uz"]].to_numpy(float).reshape(-1, 3),
-        "doa_row": _lines(doa),
-        "sigma_tdoa": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
-        "sigma_tdoa_s": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
-        "sigma_tdoa_m": float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA)),
-        "sigma_doa": float(sigma_doa_per_axis(meta.get("sigma_doa_deg", DEFAULT_SIGMA_DOA_DEG))),
-        "sigma_odo": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)),
-        "sigma_emit": float(sigma_emit),
-    }
-    # Planar arrays without a stated hemisphere (meta doa_mirror_normals): their DOAs are known up to the
-    # mirror image across the mic plane (normal n, array frame).
-    p["fold"] = np.zeros((len(names), 3))
-    for name, n in (meta.get("doa_mirror_normals") or {}).items():
-        p["fold"][idx[name]] = np.asarray(n, float) / np.linalg.norm(n)
-    # fold the measured DOAs of those arrays to n·u >= 0 whatever side a frontend reported
-    nf = p["fold"][p["doa_arr"]]
-    dots = np.einsum("ka,ka->k", nf, p["doa_u"])
-    p["doa_u"] = np.where((dots < 0)[:, None], p["doa_u"] - 2.0 * dots[:, None] * nf, p["doa_u"])
-    p["N"], p["K"] = len(names), len(events)
+    sigma_tdoa = float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA))
+    sigma_doa = float(sigma_doa_per_axis(meta.get("sigma_doa_deg", DEFAULT_SIGMA_DOA_DEG)))
+    N = len(names)
+    p = Problem(
+        names=names, ref=idx[meta["reference_array"]], c=float(meta["speed_of_sound"]),
+        beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events,
+        odom=ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float),
+        tdoa_m=TdoaMRows(index(tm["event"], eidx), index(tm["array"], idx), tm["tdoa"].to_numpy(float), _lines(tm)),
+        tdoa_s=TdoaSRows(index(ts["array"], idx), index(ts["from_event"], eidx), index(ts["to_event"], eidx),
+                         ts["tdoa"].to_numpy(float), _lines(ts)),
+        doa=DoaRows(index(doa["event"], eidx), index(doa["array"], idx),
+                    doa[["ux", "uy", "uz"]].to_numpy(float).reshape(-1, 3), _lines(doa)),
+        cone=ConeRows(np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0, int)),
+        sigma={"tdoa_s": sigma_tdoa, "tdoa_m": sigma_tdoa, "doa": sigma_doa, "cone": sigma_doa,
+               "odometry": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)), "emission": float(sigma_emit)},
+        fold=np.zeros((N, 3)), cone_axis=np.zeros((N, 3)), rot_fixed_axis=-np.ones(N, int),
+        rot_free=np.ones(N, bool), n_doa_events=np.zeros(N, int))
+    _fold_mirror_ambiguous(p, meta, idx)
     _split_cones(p, meta, idx)
     # orientation estimated only for arrays with DOAs for >= MIN_DOA_EVENTS events (single microphones and
     # arrays without usable DOAs: position and clock from the TDOAs, orientation reported undetermined)
-    n_doa = np.bincount(p["doa_arr"], minlength=len(names)) if len(p["doa_arr"]) else np.zeros(len(names), int)
-    n_cone = np.bincount(p["cone_arr"], minlength=len(names)) if len(p["cone_arr"]) else np.zeros(len(names), int)
-    p["rot_free"] = (n_doa >= MIN_DOA_EVENTS) | (n_cone >= MIN_DOA_EVENTS)
-    p["n_doa_events"] = n_doa
+    n_doa = np.bincount(p.doa.arr, minlength=N)
+    p.rot_free = (n_doa >= MIN_DOA_EVENTS) | (np.bincount(p.cone.arr, minlength=N) >= MIN_DOA_EVENTS)
+    p.n_doa_events = n_doa
     # a lone DOA of an array whose orientation is not estimated says nothing: leave it out
-    useless = ~p["rot_free"][p["doa_arr"]] & (p["doa_arr"] != p["ref"])
-    if useless.any():
-        for key in ("doa_ev", "doa_arr", "doa_u", "doa_row"):
-            p[key] = p[key][~useless]
-    p["odo_yaw_free"] = bool(odometry_yaw) and odometry_yaw_observable(p)
+    p.doa = p.doa.select(p.rot_free[p.doa.arr] | (p.doa.arr == p.ref))
+    p.odo_yaw_free = bool(odometry_yaw) and odometry_yaw_observable(p)
     return p
 
 
 MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
+
+
+def _fold_mirror_ambiguous(p, meta, idx):
+    """Planar arrays without a stated hemisphere (meta ``doa_mirror_normals``): their DOAs are known up to
+    the mirror image across the mic plane (normal n, array frame); fold them to n·u >= 0 whatever side a
+    frontend reported, and keep n in ``p.fold``."""
+    for name, n in (meta.get("doa_mirror_normals") or {}).items():
+        p.fold[idx[name]] = np.asarray(n, float) / np.linalg.norm(n)
+    nf = p.fold[p.doa.arr]
+    dots = np.einsum("ka,ka->k", nf, p.doa.u)
+    p.doa.u = np.where((dots < 0)[:, None], p.doa.u - 2.0 * dots[:, None] * nf, p.doa.u)
 
 
 def _split_cones(p, meta, idx):
@@ -125,26 +212,20 @@ def _split_cones(p, meta, idx):
 
     ``doa_axes``: {array: axis} with the axis one of the array frame's coordinate axes (x, y or z, sign
     free). Such an array measures only the angle θ between its axis and the source direction; its doa.csv
-    rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Adds ``cone_ev``,
-    ``cone_arr``, ``cone_cos``, ``cone_row`` (n_c,), ``cone_axis`` (N, 3), ``rot_fixed_axis`` (N,) (the
-    rotation component about the axis, not observable: -1 for other arrays) and ``sigma_cone`` (rad).
+    rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Sets ``p.cone``,
+    ``p.cone_axis`` and ``p.rot_fixed_axis`` (the rotation component about the axis, not observable).
     """
-    N = len(p["names"])
-    p["cone_axis"] = np.zeros((N, 3))
-    p["rot_fixed_axis"] = -np.ones(N, int)
     for name, ax in (meta.get("doa_axes") or {}).items():
         a = np.asarray(ax, float) / np.linalg.norm(ax)
         k = int(np.argmax(np.abs(a)))
         if not np.isclose(abs(a[k]), 1.0):
             raise ValueError(f"meta.json: doa_axes[{name!r}] must be a coordinate axis of the array frame")
-        p["cone_axis"][idx[name]] = a
-        p["rot_fixed_axis"][idx[name]] = k
-    is_cone = p["rot_fixed_axis"][p["doa_arr"]] >= 0
-    p["cone_ev"], p["cone_arr"], p["cone_row"] = p["doa_ev"][is_cone], p["doa_arr"][is_cone], p["doa_row"][is_cone]
-    p["cone_cos"] = np.clip(np.einsum("ka,ka->k", p["cone_axis"][p["cone_arr"]], p["doa_u"][is_cone]), -1.0, 1.0)
-    for key in ("doa_ev", "doa_arr", "doa_u", "doa_row"):
-        p[key] = p[key][~is_cone]
-    p["sigma_cone"] = p["sigma_doa"]
+        p.cone_axis[idx[name]] = a
+        p.rot_fixed_axis[idx[name]] = k
+    is_cone = p.rot_fixed_axis[p.doa.arr] >= 0
+    d = p.doa.select(is_cone)
+    p.cone = ConeRows(d.ev, d.arr, np.clip(np.einsum("ka,ka->k", p.cone_axis[d.arr], d.u), -1.0, 1.0), d.row)
+    p.doa = p.doa.select(~is_cone)
 
 
 # The yaw of the odometry frame needs horizontal motion: a spread of the odometry across the vertical
@@ -154,8 +235,8 @@ MIN_HORIZONTAL_SPREAD = 0.05
 
 def odometry_yaw_observable(p):
     """True when the odometry moves horizontally enough (and there are DOAs) to fix its yaw."""
-    o = p["odom"][:, :2] - p["odom"][:, :2].mean(0)
-    return bool(len(p["doa_u"]) > 0 and p["K"] >= 3 and np.sqrt(np.mean(np.sum(o * o, axis=1))) > MIN_HORIZONTAL_SPREAD)
+    o = p.odom[:, :2] - p.odom[:, :2].mean(0)
+    return bool(len(p.doa.u) > 0 and p.K >= 3 and np.sqrt(np.mean(np.sum(o * o, axis=1))) > MIN_HORIZONTAL_SPREAD)
 
 
 def _lines(df):
@@ -165,7 +246,7 @@ def _lines(df):
 
 def empty_state(p):
     """A state with every array at the origin, identity rotations, zero clocks and sources."""
-    N, K = p["N"], p["K"]
+    N, K = p.N, p.K
     return {"x": np.zeros((N, 3)), "R": np.tile(np.eye(3), (N, 1, 1)), "offset": np.zeros(N),
             "drift": np.zeros(N), "s": np.zeros((K, 3)), "e": np.zeros(K), "odo_yaw": np.zeros(1)}
 
@@ -185,11 +266,11 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     ``odo_yaw`` (1,): the odometry frame's yaw, free when the problem says so (``odo_yaw_free``) and the
     sources are free (``odo_yaw=None``), or as forced.
     """
-    N, K, ref = p["N"], p["K"], p["ref"]
+    N, K, ref = p.N, p.K, p.ref
     if ref_drift is None:
-        ref_drift = len(p["ts_val"]) > 0
+        ref_drift = len(p.tdoa_s.val) > 0
     if emission is None:
-        emission = p["sigma_emit"] > 0
+        emission = p.sigma["emission"] > 0
     free_arr = np.zeros(N, bool)
     free_arr[np.arange(N) if arrays is None else np.asarray(arrays, int)] = True
     lay = {"x": -np.ones((N, 3), int), "rot": -np.ones((N, 3), int), "offset": -np.ones(N, int),
@@ -207,8 +288,8 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
             continue
         if i != ref:
             lay["x"][i] = take(3)
-            if rotations and p.get("rot_free", np.ones(N, bool))[i]:
-                k_fix = p.get("rot_fixed_axis", -np.ones(N, int))[i]
+            if rotations and p.rot_free[i]:
+                k_fix = p.rot_fixed_axis[i]
                 if k_fix >= 0:   # roll about a linear array's axis: not observable, not estimated
                     lay["rot"][i, [c for c in range(3) if c != k_fix]] = take(2)
                 else:
@@ -221,7 +302,7 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     if emission and K > 1:
         lay["e"][1:] = take(K - 1)
     if odo_yaw is None:
-        odo_yaw = bool(p.get("odo_yaw_free", False)) and sources
+        odo_yaw = bool(p.odo_yaw_free) and sources
     lay["odo_yaw"] = take(1) if odo_yaw else -np.ones(1, int)
     lay["n"] = n
     return lay

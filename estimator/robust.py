@@ -64,15 +64,15 @@ class MeasurementStats:
 def measurement_arrays(p, kind):
     """(array index (m,), event index (m,)) of each measurement of ``kind`` (-1 array for odometry)."""
     if kind == "tdoa_s":
-        return p["ts_arr"], p["ts_b"]
+        return p.tdoa_s.arr, p.tdoa_s.b
     if kind == "tdoa_m":
-        return p["tm_arr"], p["tm_ev"]
+        return p.tdoa_m.arr, p.tdoa_m.ev
     if kind == "doa":
-        return p["doa_arr"], p["doa_ev"]
+        return p.doa.arr, p.doa.ev
     if kind == "odometry":
-        return np.full(max(p["K"] - 1, 0), -1), np.arange(1, p["K"])
+        return np.full(max(p.K - 1, 0), -1), np.arange(1, p.K)
     if kind == "cone":
-        return p["cone_arr"], p["cone_ev"]
+        return p.cone.arr, p.cone.ev
     raise KeyError(kind)
 
 
@@ -96,7 +96,8 @@ def sym_inverse(H):
 
 def measurement_stats(p, st, lay, kinds, mask):
     """Test statistics of every measurement at ``st`` with the outlier ``mask`` (kind → keep per residual)."""
-    r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
+    lin = linearise(p, st, lay, kinds, mask=mask)
+    r, J, w, fs = lin.r, lin.J, lin.w, lin.factors
     keep_rows = w > 0
     # residuals of excluded rows too (linearise zeroes them): the restore test needs them
     r = np.concatenate([f["r"] for f in fs]) if fs else r
@@ -228,8 +229,8 @@ def flag_record(p, stats, k, reason="normalised residual"):
     """One ``report.json: outliers`` entry for measurement k of ``stats``."""
     kind = str(stats.kind[k])
     a = int(stats.array[k])
-    rec = {"type": kind, "line": int(stats.line[k]), "array": str(p["names"][a]) if a >= 0 else None,
-           "event": int(p["events"][stats.event[k]]),
+    rec = {"type": kind, "line": int(stats.line[k]), "array": str(p.names[a]) if a >= 0 else None,
+           "event": int(p.events[stats.event[k]]),
            "residual_sigma": float(np.sign(stats.natural[k]) * min(stats.z[k], 1e6)),
            "residual": float(stats.natural[k]), "unit": UNITS[kind][0].replace("us", "µs"), "reason": reason}
     if kind in ("tdoa_s", "tdoa_m"):
@@ -239,15 +240,15 @@ def flag_record(p, stats, k, reason="normalised residual"):
 
 def factor_sizes(p):
     """{kind: (number of residuals, residuals per measurement)} of the tested factors, from the problem."""
-    return {"tdoa_s": (len(p["ts_val"]), 1), "tdoa_m": (len(p["tm_val"]), 1), "doa": (3 * len(p["doa_u"]), 3),
-            "odometry": (3 * max(p["K"] - 1, 0), 3), "cone": (len(p.get("cone_cos", ())), 1)}
+    return {"tdoa_s": (len(p.tdoa_s.val), 1), "tdoa_m": (len(p.tdoa_m.val), 1), "doa": (3 * len(p.doa.u), 3),
+            "odometry": (3 * max(p.K - 1, 0), 3), "cone": (len(p.cone.cos), 1)}
 
 
 def count_measurements(p, exclude_arrays=()):
     """Number of tested measurements (TDOA rows, DOAs, odometry steps), leaving out ``exclude_arrays``."""
-    n = max(p["K"] - 1, 0)
-    for col in ("ts_arr", "tm_arr", "doa_arr", "cone_arr"):
-        n += int(np.sum(~np.isin(p.get(col, np.zeros(0, int)), list(exclude_arrays))))
+    n = max(p.K - 1, 0)
+    for rows in (p.tdoa_s, p.tdoa_m, p.doa, p.cone):
+        n += int(np.sum(~np.isin(rows.arr, list(exclude_arrays))))
     return n
 
 
@@ -324,12 +325,11 @@ def restore_inliers(p, st, lay, kinds, mask, flagged, *, threshold, max_iter):
 def array_mask(p, mask, sizes, i):
     """``mask`` with every measurement of array i excluded (its TDOA-S, TDOA-M and DOA rows)."""
     out = {kk: v.copy() for kk, v in mask.items()}
-    for kind, col, dim in (("tdoa_s", "ts_arr", 1), ("tdoa_m", "tm_arr", 1), ("doa", "doa_arr", 3),
-                           ("cone", "cone_arr", 1)):
+    for kind, dim in (("tdoa_s", 1), ("tdoa_m", 1), ("doa", 3), ("cone", 1)):
         if kind not in sizes:
             continue
         keep = out.get(kind, np.ones(sizes[kind][0], bool)).copy()
-        keep &= np.repeat(p[col] != i, dim)
+        keep &= np.repeat(p.rows(kind).arr != i, dim)
         out[kind] = keep
     return out
 
@@ -351,7 +351,7 @@ def array_candidates(p, stats, ratio=ARRAY_RATIO, min_rows=ARRAY_MIN_ROWS):
         pooled = max(float(np.median(qn)), 1.0)
         arr = stats.array[m]
         for i in np.unique(arr):
-            if i == p["ref"] and kind == "tdoa_m":
+            if i == p.ref and kind == "tdoa_m":
                 continue
             qi = qn[arr == i]
             if len(qi) < min_rows:
@@ -367,8 +367,10 @@ def drop_test(p, st_all, st_without, lay, lay_without, kinds, mask, mask_without
 
     Returns (statistic, dof, log p-value).
     """
-    r_a, _, w_a, _, _ = linearise(p, st_all, lay, kinds, mask=mask)
-    r_w, _, w_w, _, _ = linearise(p, st_without, lay_without, kinds, mask=mask_without)
+    lin = linearise(p, st_all, lay, kinds, mask=mask)
+    r_a, w_a = lin.r, lin.w
+    lin = linearise(p, st_without, lay_without, kinds, mask=mask_without)
+    r_w, w_w = lin.r, lin.w
     T = float(np.sum(r_a[w_a > 0] ** 2) - np.sum(r_w[w_w > 0] ** 2))
     m_rows = int((w_a > 0).sum() - (w_w > 0).sum())
     dof = max(m_rows - (lay["n"] - lay_without["n"]), 1)

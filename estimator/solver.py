@@ -7,6 +7,8 @@ Small problems solve them dense; large ones with a sparse Jacobian and a Schur c
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.linalg
 import scipy.sparse
@@ -67,7 +69,17 @@ def stack_jacobians(Js, n, dense):
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
+class Linearised(NamedTuple):
+    """The stacked factors at one state: whitened residuals r (M,), Jacobian J (M, n; dense or CSR), IRLS
+    weights w (M,), cost ½ Σ ρ(r) and the factor dicts in stacking order."""
+    r: np.ndarray
+    J: object
+    w: np.ndarray
+    cost: float
+    factors: list
+
+
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Linearised:
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
@@ -86,7 +98,7 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
         r_all.append(r)
         w_all.append(w)
     J = stack_jacobians([f["J"] for f in fs], lay["n"], use_dense(lay) if dense is None else dense)
-    return np.concatenate(r_all), J, np.concatenate(w_all), cost, fs
+    return Linearised(np.concatenate(r_all), J, np.concatenate(w_all), cost, fs)
 
 
 def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
@@ -252,7 +264,8 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                     "reason": "no free parameters"}
     dense = use_dense(lay) if dense is None else dense
     lam, nu = lam0, 2.0
-    r, J, w, cost, _ = linearise(p, st, lay, kinds, loss, k, mask, dense=dense)
+    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense)
+    r, J, w, cost = lin.r, lin.J, lin.w, lin.cost
     reason, it = "max_iter", 0
     for it in range(1, max_iter + 1):
         H, g = normal_equations(J, w, r)
@@ -265,7 +278,8 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         for _ in range(30):
             step = _solve_damped(H, g, lam) if dense else system.factor(lam).solve(-g)
             cand = retract(st, lay, step)
-            r2, J2, w2, cost2, _ = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense)
+            lin = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense)
+            r2, J2, w2, cost2 = lin.r, lin.J, lin.w, lin.cost
             pred = -(step @ g) - 0.5 * step @ (H @ step)
             ratio = (cost - cost2) / pred if pred > 0 else -1.0
             if cost2 < cost and np.isfinite(cost2):

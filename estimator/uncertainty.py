@@ -162,13 +162,13 @@ def state_from_frames(p, arrays, sources=None):
     Unknown (NaN) offsets or drifts become 0.
     """
     st = empty_state(p)
-    a = arrays.set_index("array").loc[list(p["names"])]
+    a = arrays.set_index("array").loc[list(p.names)]
     st["x"] = a[["x", "y", "z"]].to_numpy(float)
     st["R"] = Rotation.from_quat(a[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).as_matrix()
     st["offset"] = np.nan_to_num(a["offset"].to_numpy(float))
     st["drift"] = np.nan_to_num(a["drift"].to_numpy(float))
     if sources is not None:
-        s = sources.set_index("event").loc[list(p["events"])]
+        s = sources.set_index("event").loc[list(p.events)]
         st["s"] = s[["x", "y", "z"]].to_numpy(float)
     return st
 
@@ -176,8 +176,8 @@ def state_from_frames(p, arrays, sources=None):
 def fisher(p, st, kinds=None):
     """Fisher information JᵀJ of the whitened residuals at ``st`` and its layout."""
     lay = make_layout(p)
-    kinds = kinds or [k for k in ALL_KINDS if k != "emission" or p["sigma_emit"] > 0]
-    _, J, _, _, _ = linearise(p, st, lay, kinds)
+    kinds = kinds or [k for k in ALL_KINDS if k != "emission" or p.sigma["emission"] > 0]
+    J = linearise(p, st, lay, kinds).J
     return J, lay
 
 

@@ -48,8 +48,8 @@ def wang_sources(p, fuse=True):
     if isinstance(s, list):  # hypotheses: several only for mirror-ambiguous reference DOAs (refused upstream)
         s = s[0]
     if fuse:
-        m = p["doa_arr"] == p["ref"]
-        j, u = p["doa_ev"][m], p["doa_u"][m]
+        m = p.doa.arr == p.ref
+        j, u = p.doa.ev[m], p.doa.u[m]
         s = s.copy()
         s[j] = 0.5 * (s[j] + np.linalg.norm(s[j], axis=1, keepdims=True) * u)
     return s
@@ -192,24 +192,24 @@ def wang_initialise(p, *, fuse=True):
     Returns (state, info): state as in ``estimator.problem`` (reference drift 0: drifts relative to the
     reference array); info holds per-array diagnostics (law-of-cosines RMS residual, rejected TDOA-M).
     """
-    folded = [str(p["names"][i]) for i in range(p["N"]) if np.any(p["fold"][i])]
+    folded = [str(p.names[i]) for i in range(p.N) if np.any(p.fold[i])]
     if folded:
         # The ranges come from angles between an array's DOAs, which a mirror-ambiguous DOA does not give.
         raise ObservabilityError(f"array {folded[0]} has mirror-ambiguous (planar-array) DOAs: Wang et al.'s "
                                  "initialisation needs 3-D DOAs; use the hybrid method")
     st = empty_state(p)
     st["s"] = s = wang_sources(p, fuse=fuse)
-    c, beta, t = p["c"], p["beta"], p["t"]
-    d_ref = np.linalg.norm(s - st["x"][p["ref"]], axis=1)
-    arrays = [i for i in range(p["N"]) if i != p["ref"]]
+    c, beta, t = p.c, p.beta, p.t
+    d_ref = np.linalg.norm(s - st["x"][p.ref], axis=1)
+    arrays = [i for i in range(p.N) if i != p.ref]
     doas = []
     for i in arrays:
-        md = p["doa_arr"] == i
+        md = p.doa.arr == i
         if md.sum() < WINDOW:
-            raise ObservabilityError(f"array {p['names'][i]} has DOAs for {int(md.sum())} event(s); Wang et al.'s "
+            raise ObservabilityError(f"array {p.names[i]} has DOAs for {int(md.sum())} event(s); Wang et al.'s "
                                      f"initialisation needs >= {WINDOW}")
-        order = np.argsort(p["doa_ev"][md], kind="stable")
-        doas.append((p["doa_ev"][md][order], p["doa_u"][md][order]))
+        order = np.argsort(p.doa.ev[md], kind="stable")
+        doas.append((p.doa.ev[md][order], p.doa.u[md][order]))
     ranges, res = wang_ranges([u for _, u in doas], [s[j] for j, _ in doas])
     rejected = {}
     for i, (j, u), b in zip(arrays, doas, ranges):
@@ -217,10 +217,10 @@ def wang_initialise(p, *, fuse=True):
         # Clocks from the ranges where the array has a DOA for the event, else from the aligned pose.
         dist = np.linalg.norm(s - st["x"][i], axis=1)
         dist[j] = b
-        mm = p["tm_arr"] == i
-        jm = p["tm_ev"][mm]
-        y = p["tm_val"][mm] - (dist[jm] - d_ref[jm]) / c
+        mm = p.tdoa_m.arr == i
+        jm = p.tdoa_m.ev[mm]
+        y = p.tdoa_m.val[mm] - (dist[jm] - d_ref[jm]) / c
         x_fit = t[jm] + dist[jm] / c + beta
-        st["offset"][i], st["drift"][i], rejected[str(p["names"][i])] = clock_line_fit(x_fit, y)
-    range_res = {str(p["names"][i]): r for i, r in zip(arrays, res)}
+        st["offset"][i], st["drift"][i], rejected[str(p.names[i])] = clock_line_fit(x_fit, y)
+    range_res = {str(p.names[i]): r for i, r in zip(arrays, res)}
     return st, {"range_rms_residual_m2": range_res, "clock_points_rejected": rejected}

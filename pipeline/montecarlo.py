@@ -78,8 +78,8 @@ def truth_state(p, truth):
     is expressed the same way; otherwise a truth start would solve a different model.
     """
     st = state_from_frames(p, truth["arrays"], truth["sources"])
-    if len(p["ts_val"]) == 0:
-        st["drift"] = (1.0 + st["drift"]) / (1.0 + st["drift"][p["ref"]]) - 1.0
+    if len(p.tdoa_s.val) == 0:
+        st["drift"] = (1.0 + st["drift"]) / (1.0 + st["drift"][p.ref]) - 1.0
     return st
 
 
@@ -127,7 +127,7 @@ def run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, *, methods=("hybrid"
         if with_crlb:
             rng = np.random.default_rng(seed + 1)
             with _BLAS.limit(limits=1, user_api="blas"):
-                bound = crlb(feats, truth, use_tdoa_s=bool(len(p["ts_val"])))
+                bound = crlb(feats, truth, use_tdoa_s=bool(len(p.tdoa_s.val)))
                 row.update({f"crlb_{k}": v for k, v in _scores(bound["problem"], draw_from_crlb(bound, rng),
                                                                 truth).items()})
         rows.append(row)

@@ -9,7 +9,7 @@ from calib.pipeline.simulate.featsim import simulate_features
 
 
 def random_state(p, rng):
-    N, K = p["N"], p["K"]
+    N, K = p.N, p.K
     return {"x": rng.normal(0, 2, (N, 3)), "R": Rotation.random(N, random_state=rng).as_matrix(),
             "offset": rng.normal(0, 0.05, N), "drift": rng.normal(0, 1e-4, N),
             "s": rng.normal(0, 2, (K, 3)), "e": rng.normal(0, 1e-3, K)}

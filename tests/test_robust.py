@@ -111,9 +111,9 @@ def test_odometry_frame_jacobian_with_yaw():
     feats, _ = simulate_features(3, seed=1)
     p = build_problem(feats, odometry_yaw=True)
     rng = np.random.default_rng(0)
-    st = {"x": rng.normal(0, 2, (p["N"], 3)), "R": Rotation.random(p["N"], random_state=1).as_matrix(),
-          "offset": np.zeros(p["N"]), "drift": np.zeros(p["N"]), "s": rng.normal(0, 2, (p["K"], 3)),
-          "e": np.zeros(p["K"]), "odo_yaw": np.array([0.7])}
+    st = {"x": rng.normal(0, 2, (p.N, 3)), "R": Rotation.random(p.N, random_state=1).as_matrix(),
+          "offset": np.zeros(p.N), "drift": np.zeros(p.N), "s": rng.normal(0, 2, (p.K, 3)),
+          "e": np.zeros(p.K), "odo_yaw": np.array([0.7])}
     lay = make_layout(p)
     assert lay["odo_yaw"][0] >= 0
     f = FACTORS["odometry"](p, st, lay)

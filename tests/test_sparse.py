@@ -50,7 +50,7 @@ def test_sparse_and_dense_solvers_reach_the_same_minimum(seed, trajectory, emiss
     (sd_, id_), (ss, is_) = out[True], out[False]
     assert id_["converged"] and is_["converged"]
     assert abs(id_["cost"] - is_["cost"]) <= 1e-9 * id_["cost"]
-    _, J, *_ = linearise(p, sd_, lay, kinds, dense=True)
+    J = linearise(p, sd_, lay, kinds, dense=True).J
     sd = std_from_cov(p, lay, covariance(J, lay["n"]))
     for key in ("x", "s", "offset", "drift") + (("e",) if emission else ()):
         free = np.isfinite(sd[key])
@@ -62,8 +62,10 @@ def test_sparse_and_dense_solvers_reach_the_same_minimum(seed, trajectory, emiss
 def test_sparse_jacobian_equals_dense_and_factors_accept_dense_arrays():
     p, st, _ = perturbed_problem(4)
     lay = make_layout(p, emission=True)
-    r1, Jd, w1, c1, _ = linearise(p, st, lay, KINDS, dense=True)
-    r2, Js, w2, c2, _ = linearise(p, st, lay, KINDS, dense=False)
+    lin = linearise(p, st, lay, KINDS, dense=True)
+    r1, Jd, w1, c1 = lin.r, lin.J, lin.w, lin.cost
+    lin = linearise(p, st, lay, KINDS, dense=False)
+    r2, Js, w2, c2 = lin.r, lin.J, lin.w, lin.cost
     assert scipy.sparse.issparse(Js) and not scipy.sparse.issparse(Jd)
     np.testing.assert_array_equal(Jd, Js.toarray())
     assert c1 == c2 and np.array_equal(r1, r2)
@@ -76,8 +78,8 @@ def test_block_covariance_matches_the_dense_inverse():
     p, st, _ = perturbed_problem(5, emission=1e-3)
     lay = make_layout(p)
     kinds = KINDS + ["emission"]
-    _, Jd, *_ = linearise(p, st, lay, kinds, dense=True)
-    _, Js, *_ = linearise(p, st, lay, kinds, dense=False)
+    Jd = linearise(p, st, lay, kinds, dense=True).J
+    Js = linearise(p, st, lay, kinds, dense=False).J
     C = covariance(Jd, lay["n"])
     B = covariance(Js, lay["n"], lay)
     np.testing.assert_allclose(B.diagonal(), np.diag(C), rtol=1e-9)
