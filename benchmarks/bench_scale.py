@@ -96,15 +96,15 @@ def run_case(n_arrays, n_events, seed=0, with_crlb=True):
         b = crlb(feats, truth)
         row["crlb_s"] = time.perf_counter() - t1
         lay, st, est = b["layout"], b["state"], cal["state"]
-        arr = [i for i in range(n_arrays) if np.all(lay["x"][i] >= 0)]
-        ca = np.array([cov_block(b["cov"], lay["x"][i]) for i in arr])
-        row["pos_vs_crlb"] = _rms_ratio(est["x"][arr] - st["x"][arr], ca)
-        rot_err = (Rotation.from_matrix(st["R"][arr]).inv() * Rotation.from_matrix(est["R"][arr])).as_rotvec()
-        cr = np.array([cov_block(b["cov"], lay["rot"][i]) for i in arr])
+        arr = [i for i in range(n_arrays) if np.all(lay.x[i] >= 0)]
+        ca = np.array([cov_block(b["cov"], lay.x[i]) for i in arr])
+        row["pos_vs_crlb"] = _rms_ratio(est["x"][arr] - st.x[arr], ca)
+        rot_err = (Rotation.from_matrix(st.R[arr]).inv() * Rotation.from_matrix(est["R"][arr])).as_rotvec()
+        cr = np.array([cov_block(b["cov"], lay.rot[i]) for i in arr])
         row["rot_vs_crlb"] = _rms_ratio(rot_err, cr)
-        cs = np.array([cov_block(b["cov"], lay["s"][j]) for j in range(n_events)])
-        row["src_vs_crlb"] = _rms_ratio(est["s"] - st["s"], cs)
-        row["pos_err_cm"] = 100 * float(np.sqrt(np.mean(np.sum((est["x"][arr] - st["x"][arr]) ** 2, axis=1))))
+        cs = np.array([cov_block(b["cov"], lay.s[j]) for j in range(n_events)])
+        row["src_vs_crlb"] = _rms_ratio(est["s"] - st.s, cs)
+        row["pos_err_cm"] = 100 * float(np.sqrt(np.mean(np.sum((est["x"][arr] - st.x[arr]) ** 2, axis=1))))
     row["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return row
 
@@ -123,10 +123,10 @@ def dense_check(cases=((3, 14), (5, 14), (5, 50), (10, 50)), seed=0):
         lay = make_layout(p)
         res = {d: levenberg_marquardt(p, copy_state(st), lay, kinds, dense=d) for d in (True, False)}
         J = linearise(p, res[True][0], lay, kinds, dense=True).J
-        sd = std_from_cov(p, lay, covariance(J, lay["n"]))
+        sd = std_from_cov(p, lay, covariance(J, lay.n))
         dx = max(np.nanmax(np.abs(res[True][0][k] - res[False][0][k]) / sd[k]) for k in ("x", "s", "offset"))
         c1, c2 = res[True][1]["cost"], res[False][1]["cost"]
-        print(f"{n_arrays:3d} x {n_events:4d}: n={lay['n']:5d} cost rel diff {abs(c1 - c2) / c1:.1e}, "
+        print(f"{n_arrays:3d} x {n_events:4d}: n={lay.n:5d} cost rel diff {abs(c1 - c2) / c1:.1e}, "
               f"max param diff {dx:.1e} sigma")
 
 

@@ -37,15 +37,15 @@ def rebuild(features, calib):
             p.sigma[kind.name] = float(v)
     st = state_from_frames(p, calib["arrays"], src)
     corr = rep.get("emission_corrections_s") or {}
-    st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])
-    st["odo_yaw"] = np.array([np.deg2rad(float(frame.get("yaw_deg") or 0.0))])
+    st.e = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])
+    st.odo_yaw = np.array([np.deg2rad(float(frame.get("yaw_deg") or 0.0))])
     kinds = [k for k in ALL_KINDS if k != "emission" or sig_e > 0]
     lay = make_layout(p)
     flagged = {}
     for o in rep.get("outliers") or []:
         flagged.setdefault(o["type"], set()).add(int(o["line"]))
-    mask = {f["kind"]: ~np.isin(f["row"], list(flagged[f["kind"]]))
-            for f in factors(p, st, lay, kinds) if f["kind"] in flagged}
+    mask = {f.kind: ~np.isin(f.row, list(flagged[f.kind]))
+            for f in factors(p, st, lay, kinds) if f.kind in flagged}
     return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask}
 
 
@@ -58,20 +58,20 @@ def residuals(model):
     """
     out = {}
     for f in factors(model["problem"], model["state"], model["layout"], model["kinds"]):
-        if len(f["r"]) == 0:
+        if len(f.r) == 0:
             continue
-        unit, scale = UNITS[f["kind"]]
-        keep = model["mask"].get(f["kind"], np.ones(len(f["r"]), bool))
-        r = f["r"] * f["sigma"]
-        if f["kind"] == "doa":
+        unit, scale = UNITS[f.kind]
+        keep = model["mask"].get(f.kind, np.ones(len(f.r), bool))
+        r = f.r * f.sigma
+        if f.kind == "doa":
             d = np.linalg.norm(r.reshape(-1, 3), axis=1)  # |v − u| = 2 sin(θ/2)
             vals = np.rad2deg(2 * np.arcsin(np.clip(d / 2, 0, 1)))
             keep = keep.reshape(-1, 3).all(axis=1)
             # per tangent axis σ → the angle is Rayleigh(σ); shown with its scale
-            out["doa"] = {"values": vals, "outlier": ~keep, "sigma": np.rad2deg(f["sigma"]), "dist": "rayleigh",
+            out["doa"] = {"values": vals, "outlier": ~keep, "sigma": np.rad2deg(f.sigma), "dist": "rayleigh",
                           "unit": "deg"}
             continue
-        out[f["kind"]] = {"values": r * scale, "outlier": ~keep, "sigma": f["sigma"] * scale, "dist": "normal",
+        out[f.kind] = {"values": r * scale, "outlier": ~keep, "sigma": f.sigma * scale, "dist": "normal",
                           "unit": unit.replace("us", "µs")}
     return out
 
@@ -81,7 +81,7 @@ def position_covariances(model):
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     J, w = lin.J, lin.w
-    cov = covariance(J[w > 0], lay["n"], lay)
+    cov = covariance(J[w > 0], lay.n, lay)
 
     def blocks(idx):
         out = np.full((len(idx), 3, 3), np.nan)
@@ -90,7 +90,7 @@ def position_covariances(model):
                 out[k] = cov_block(cov, ix)
         return out
 
-    return blocks(lay["x"]), blocks(lay["s"])
+    return blocks(lay.x), blocks(lay.s)
 
 
 ARRAY_PARAMS = (("x", ("x", "y", "z")), ("rot", ("rx", "ry", "rz")), ("offset", ("offset",)), ("drift", ("drift",)))
@@ -106,11 +106,11 @@ def array_covariance(model):
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     J, w = lin.J, lin.w
-    cov = covariance(J[w > 0], lay["n"])
+    cov = covariance(J[w > 0], lay.n)
     labels, idx = [], []
     for i, name in enumerate(p.names):
         for key, names in ARRAY_PARAMS:
-            cols = np.atleast_1d(lay[key][i])
+            cols = np.atleast_1d(getattr(lay, key)[i])
             for col, label in zip(cols, names):
                 if col >= 0:
                     labels.append(f"{name}.{label}")

@@ -21,7 +21,7 @@ from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect,
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
-from .problem import build_problem, copy_state, make_layout
+from .problem import State, build_problem, copy_state, make_layout, state_from_dict
 from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
                      count_measurements, factor_sizes, variance_factors, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
@@ -63,15 +63,15 @@ def rotations_by_kabsch(p, st):
         if i == p.ref or m.sum() < 2:
             continue
         j = p.doa.ev[m]
-        w = st["s"][j] - st["x"][i]
+        w = st.s[j] - st.x[i]
         d = np.linalg.norm(w, axis=1, keepdims=True)
         u = p.doa.u[m]
         n = p.fold[i]
         if np.any(n):
             # mirror-ambiguous DOAs: decide which events lie behind the mic plane afresh from the IVE's
             # positions and sources, which no longer depend on this array's DOAs
-            u = np.where(((w @ doa_rotation(p, st, i, st["x"][i])) @ n < 0)[:, None], reflect(u, n), u)
-        st["R"][i], _ = kabsch(u * d, w)
+            u = np.where(((w @ doa_rotation(p, st, i, st.x[i])) @ n < 0)[:, None], reflect(u, n), u)
+        st.R[i], _ = kabsch(u * d, w)
     return st
 
 
@@ -79,25 +79,25 @@ def residual_table(fs, mask=None):
     """Per measurement type: count, RMS in natural units (µs, deg, cm)."""
     out = {}
     for f in fs:
-        if len(f["r"]) == 0:
+        if len(f.r) == 0:
             continue
-        keep = mask[f["kind"]] if mask and f["kind"] in mask else np.ones(len(f["r"]), bool)
-        r = f["r"][keep] * f["sigma"]
-        if f["dim"] == 3:
+        keep = mask[f.kind] if mask and f.kind in mask else np.ones(len(f.r), bool)
+        r = f.r[keep] * f.sigma
+        if f.dim == 3:
             r = np.linalg.norm(r.reshape(-1, 3), axis=1)
-        unit, scale = UNITS[f["kind"]]
-        out[f["kind"]] = {"n": int(len(r)), f"rms_{unit}": float(np.sqrt(np.mean(r * r)) * scale) if len(r) else 0.0}
+        unit, scale = UNITS[f.kind]
+        out[f.kind] = {"n": int(len(r)), f"rms_{unit}": float(np.sqrt(np.mean(r * r)) * scale) if len(r) else 0.0}
     return out
 
 
 def to_frames(p, st, std=None):
     """State (+ std) → arrays and sources DataFrames of docs/formats.md section 3."""
-    q = Rotation.from_matrix(st["R"]).as_quat(scalar_first=True)
+    q = Rotation.from_matrix(st.R).as_quat(scalar_first=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    arrays = pd.DataFrame({"array": list(p.names), "x": st["x"][:, 0], "y": st["x"][:, 1], "z": st["x"][:, 2],
+    arrays = pd.DataFrame({"array": list(p.names), "x": st.x[:, 0], "y": st.x[:, 1], "z": st.x[:, 2],
                            "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
-                           "offset": st["offset"], "drift": st["drift"]})
-    sources = pd.DataFrame({"event": p.events, "x": st["s"][:, 0], "y": st["s"][:, 1], "z": st["s"][:, 2]})
+                           "offset": st.offset, "drift": st.drift})
+    sources = pd.DataFrame({"event": p.events, "x": st.s[:, 0], "y": st.s[:, 1], "z": st.s[:, 2]})
     if std is not None:
         for k, c in enumerate("xyz"):
             arrays[f"{c}_std"] = std["x"][:, k]
@@ -131,7 +131,7 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
         stated = {k: p.sigma[k] for k in REWEIGHTED}
         st = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
                                 robust_k=robust_k, max_iter=max_iter)
-    if lay["odo_yaw"][0] >= 0 and info["yaw_test"] is None:
+    if lay.odo_yaw[0] >= 0 and info["yaw_test"] is None:
         st, lay, info["yaw_test"] = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k,
                                                        max_iter=max_iter)
     mask, flagged, dropped = {}, [], []
@@ -200,7 +200,7 @@ def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
     (sets ``p.odo_yaw_free = False``) and re-solve. Returns (state, layout, {yaw_deg, std_deg, kept})."""
     lin = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
     J, w = lin.J, lin.w
-    test = _yaw_decision(p, st, whiten(J, w), int(lay["odo_yaw"][0]))
+    test = _yaw_decision(p, st, whiten(J, w), int(lay.odo_yaw[0]))
     if not test["kept"]:
         lay = make_layout(p)
         st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
@@ -209,12 +209,12 @@ def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
 
 def _yaw_decision(p, st, Jw, k):
     """Test the odometry yaw (column k of the whitened Jacobian Jw); when not significant fix it: sets
-    ``p.odo_yaw_free = False`` and ``st["odo_yaw"] = 0`` in place. Returns {yaw_deg, std_deg, kept}."""
-    yaw, sd = float(st["odo_yaw"][0]), _param_std(Jw, k)
+    ``p.odo_yaw_free = False`` and ``st.odo_yaw = 0`` in place. Returns {yaw_deg, std_deg, kept}."""
+    yaw, sd = float(st.odo_yaw[0]), _param_std(Jw, k)
     test = {"yaw_deg": float(np.rad2deg(yaw)), "std_deg": float(np.rad2deg(sd)), "kept": yaw_is_significant(yaw, sd)}
     if not test["kept"]:
         p.odo_yaw_free = False
-        st["odo_yaw"] = np.zeros(1)
+        st.odo_yaw = np.zeros(1)
     return test
 
 
@@ -272,7 +272,7 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
                "drop_chi2": T, "drop_dof": dof, "inconsistent": inconsistent}
         if inconsistent:
             rec["moves_sigma"] = _moves_sigma(p, st, st_w, lay_w, kinds, mask_w)
-            rec["with_array"] = {"x": st["x"].tolist()}
+            rec["with_array"] = {"x": st.x.tolist()}
             st, lay, mask = st_w, lay_w, mask_w
             dropped.append(i)
         records.append(rec)
@@ -283,11 +283,11 @@ def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
     """Largest move of any free array position or source between two states, in 1-σ of state b."""
     lin = linearise(p, st_b, lay, kinds, mask=mask)
     J, w = lin.J, lin.w
-    std = std_from_cov(p, lay, covariance(J[w > 0], lay["n"], lay))
+    std = std_from_cov(p, lay, covariance(J[w > 0], lay.n, lay))
     z = []
     for key in ("x", "s"):
-        free = lay[key] >= 0
-        z.append(np.abs(st_a[key] - st_b[key])[free] / np.maximum(std[key][free], 1e-12))
+        free = getattr(lay, key) >= 0
+        z.append(np.abs(getattr(st_a, key) - getattr(st_b, key))[free] / np.maximum(std[key][free], 1e-12))
     z = np.concatenate(z)
     return float(z.max()) if z.size else 0.0
 
@@ -338,16 +338,16 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None):
         h[keep] = np.einsum("ij,jk,ik->i", Jk, cov, Jk)
     out, start = {}, 0
     for f in fs:
-        n = len(f["r"])
+        n = len(f.r)
         sl = slice(start, start + n)
         start += n
-        if f["kind"] not in REWEIGHTED or n == 0:
+        if f.kind not in REWEIGHTED or n == 0:
             continue
         red = float(np.sum((1.0 - h[sl])[keep[sl]]))
-        if f["kind"] == "doa":
+        if f.kind == "doa":
             red -= float(keep[sl].sum()) / 3.0  # a unit-vector residual has no noise along the direction itself
         if red >= min_redundancy:
-            out[f["kind"]] = float(np.sum(r[sl][keep[sl]] ** 2)) / red
+            out[f.kind] = float(np.sum(r[sl][keep[sl]] ** 2)) / red
     return out
 
 
@@ -411,7 +411,7 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
     yaw0 = initial_yaw(p) if p.odo_yaw_free else 0.0
     p_init = p.replace(odom=rotate_odometry(p.odom, yaw0), odo_yaw_free=False)
     st, init_info = INIT_METHODS[method](p_init)
-    st["odo_yaw"] = np.array([yaw0])
+    st.odo_yaw = np.array([yaw0])
     st = init_cone_axes(p, st)
     times["init"] = time.perf_counter() - t0
     lay_full = make_layout(p)
@@ -429,13 +429,13 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
         st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
                                       k=robust_k, max_iter=max_iter, rtol=1e-6)
         st = init_cone_axes(p, rotations_by_kabsch(p, st))
-        if lay_ive["odo_yaw"][0] >= 0:
+        if lay_ive.odo_yaw[0] >= 0:
             # decide on the odometry yaw here (its σ from the IVE's data is a conservative one), so the
             # joint pass starts in the right parameter set
             lin = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
                                               k=robust_k)
             J_ive, w_ive = lin.J, lin.w
-            p.odo_yaw_test = _yaw_decision(p, st, whiten(J_ive, w_ive), int(lay_ive["odo_yaw"][0]))
+            p.odo_yaw_test = _yaw_decision(p, st, whiten(J_ive, w_ive), int(lay_ive.odo_yaw[0]))
         stage_states["ive"] = copy_state(st)
         stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
         times["ive"] = time.perf_counter() - t1
@@ -502,9 +502,9 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
     else:
         vf = _vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None)
     ratios = residual_ratios(vf, scales, bounds)
-    yaw_i = int(lay["odo_yaw"][0])
+    yaw_i = int(lay.odo_yaw[0])
     odo_frame = {
-        "yaw_deg": float(np.rad2deg(st["odo_yaw"][0])),
+        "yaw_deg": float(np.rad2deg(st.odo_yaw[0])),
         "yaw_std_deg": _yaw_std_deg(cov, yaw_i, p, st, lay, kinds, mask) if yaw_i >= 0 else None,
         "estimated": yaw_i >= 0,
         "test": info.get("yaw_test"),
@@ -554,7 +554,10 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     Returns
     -------
     dict with ``arrays`` and ``sources`` DataFrames (with ``*_std`` columns: 1-σ from (JᵀWJ)⁻¹, rotation
-    std per axis of the array frame in rad) and ``report`` (dict with ``verdict`` first, see docs/method.md).
+    std per axis of the array frame in rad), ``report`` (dict with ``verdict`` first, see docs/method.md;
+    written as report.json), and for programs that go on from the solution: ``state`` (the final
+    :class:`~calib.estimator.problem.State`), ``problem`` (the :class:`~calib.estimator.problem.Problem`
+    with the final sigmas) and ``stage_states`` ({"init", "ive"}: the State after each stage, when run).
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
                      robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise)
@@ -573,8 +576,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                                                  max_iter=max_iter, times=times)
     else:
         stages, stage_states = {}, {}
-        st = {k: np.array(v, dtype=float, copy=True) for k, v in init_state.items()}
-        st.setdefault("odo_yaw", np.zeros(1))
+        st = init_state.copy() if isinstance(init_state, State) else state_from_dict(init_state)
     t2 = time.perf_counter()
     if noise == "auto":
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
@@ -586,7 +588,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     lin = linearise(p, st, lay, kinds, mask=info["mask"])
     r, J, w, cost, fs = lin.r, lin.J, lin.w, lin.cost, lin.factors
     t_cov = time.perf_counter()
-    cov = covariance(J[w > 0], lay["n"], lay)
+    cov = covariance(J[w > 0], lay.n, lay)
     times["uncertainty"] = time.perf_counter() - t_cov
     arrays, sources = to_frames(p, st, std_from_cov(p, lay, cov))
     times["total"] = time.perf_counter() - t0
@@ -630,7 +632,7 @@ def _report(p, st, info, stages, judged, fs, *, method, noise, emission_sigma, t
         "cost": {**{k: v["cost"] for k, v in stages.items() if "cost" in v}, "joint_robust": info["robust"]["cost"],
                  "final": cost_s},
         "stages": stages,
-        "chi2_per_dof": float(2 * cost_s / max(n_res - info["layout"]["n"], 1)),
+        "chi2_per_dof": float(2 * cost_s / max(n_res - info["layout"].n, 1)),
         "residual_ratio": ratios,
         "residuals": residual_table(fs, info["mask"]),
         "outliers": info["outliers"],
@@ -646,7 +648,7 @@ def _report(p, st, info, stages, judged, fs, *, method, noise, emission_sigma, t
         "odometry_yaw_deg": odo_frame["yaw_deg"],
     }
     if emission_sigma > 0:
-        report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p.events, st["e"])}
+        report["emission_corrections_s"] = {int(e): float(v) for e, v in zip(p.events, st.e)}
     return report
 
 

@@ -1,13 +1,14 @@
 """Measurement factors: each one residual (whitened by its sigma) and its analytic Jacobian, in one place.
 
-Every factor is a function ``f(p, st, lay) -> dict`` with
+Every factor is a function ``f(p, st, lay) -> Factor`` (a :class:`~calib.estimator.problem.Problem`, a
+``State`` and a ``Layout``): ``kind`` (str), ``r`` (m,) whitened residuals, ``J`` (m, n) Jacobian w.r.t.
+the free parameters of ``lay`` (a sparse :class:`Jacobian` from :func:`jacobian`, filled by :func:`_put`;
+a dense array works too), ``row`` (m,) the measurement's row in its CSV (for reports), ``dim`` residuals
+per measurement, ``robust`` (bool) whether the robust loss applies, ``sigma`` the whitening scale (SI).
 
-``kind`` (str), ``r`` (m,) whitened residuals, ``J`` (m, n) Jacobian w.r.t. the free parameters of
-``lay`` (a sparse :class:`Jacobian` from :func:`jacobian`, filled by :func:`_put`; a dense array works too),
-``row`` (m,) the measurement's row in its CSV (for reports), ``dim`` residuals per measurement,
-``robust`` (bool) whether the robust loss applies, ``sigma`` the whitening scale (SI units).
-
-Adding a measurement type = adding one function here and listing it in ``FACTORS``.
+Adding a measurement type = adding its factor function and one ``MeasurementKind`` entry in ``KINDS``
+here (units, labels, sigma names and test degrees of freedom come from that entry); its rows are a
+``Rows`` block of ``problem.Problem``.
 Clock model (docs/architecture.md): arrival a_ij = (1+δ_i)(t_j + e_j + |s_j − x_i|/c) + τ_i + β δ_i.
 """
 from __future__ import annotations
@@ -55,7 +56,7 @@ class Jacobian:
 
 def jacobian(m, lay):
     """An empty (m, n free parameters) Jacobian for a factor to ``_put`` into."""
-    return Jacobian(m, lay["n"])
+    return Jacobian(m, lay.n)
 
 
 def _put(J, rows, cols, vals):
@@ -83,13 +84,27 @@ def _put(J, rows, cols, vals):
 
 def _dist(st, arr, ev):
     """Distances (m,) and unit vectors (m, 3) from arrays ``arr`` to sources ``ev``."""
-    w = st["s"][ev] - st["x"][arr]
+    w = st.s[ev] - st.x[arr]
     d = np.linalg.norm(w, axis=1)
     return d, w / d[:, None]
 
 
+@dataclass
+class Factor:
+    """One kind's factor evaluated at a state: whitened residuals r (m,), their Jacobian J (m, n) (a
+    :class:`Jacobian`, or dense), the CSV line of each measurement ``row``, ``dim`` residuals per
+    measurement, whether the robust loss applies, and the whitening sigma (SI units)."""
+    kind: str
+    r: np.ndarray
+    J: object
+    row: np.ndarray
+    dim: int
+    robust: bool
+    sigma: float
+
+
 def _out(kind, r, J, row, dim, robust, sigma):
-    return {"kind": kind, "r": r, "J": J, "row": row, "dim": dim, "robust": robust, "sigma": sigma}
+    return Factor(kind, r, J, row, dim, robust, sigma)
 
 
 def tdoa_s(p, st, lay):
@@ -101,12 +116,12 @@ def tdoa_s(p, st, lay):
         return _out("tdoa_s", np.zeros(0), J, p.tdoa_s.row, 1, True, sig)
     da, na = _dist(st, i, a)
     db, nb = _dist(st, i, b)
-    h = p.t[b] - p.t[a] + st["e"][b] - st["e"][a] + (db - da) / c
-    g = 1.0 + st["drift"][i]
+    h = p.t[b] - p.t[a] + st.e[b] - st.e[a] + (db - da) / c
+    g = 1.0 + st.drift[i]
     r = (g * h - z) / sig
     gc = (g / (c * sig))[:, None]
     _put(J, np.arange(m),
-         np.column_stack([lay["drift"][i], lay["x"][i], lay["s"][b], lay["s"][a], lay["e"][b], lay["e"][a]]),
+         np.column_stack([lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]]),
          np.column_stack([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
     return _out("tdoa_s", r, J, p.tdoa_s.row, 1, True, sig)
 
@@ -121,15 +136,15 @@ def tdoa_m(p, st, lay):
     r0 = np.full(m, ref)
     di, ni = _dist(st, i, j)
     d0, n0 = _dist(st, r0, j)
-    te = p.t[j] + st["e"][j]
-    gi, g0 = 1.0 + st["drift"][i], 1.0 + st["drift"][ref]
-    model = (gi * (te + di / c) + st["offset"][i] + beta * st["drift"][i]
-             - g0 * (te + d0 / c) - st["offset"][ref] - beta * st["drift"][ref])
+    te = p.t[j] + st.e[j]
+    gi, g0 = 1.0 + st.drift[i], 1.0 + st.drift[ref]
+    model = (gi * (te + di / c) + st.offset[i] + beta * st.drift[i]
+             - g0 * (te + d0 / c) - st.offset[ref] - beta * st.drift[ref])
     r = (model - z) / sig
     one = np.full(m, 1.0 / sig)
     _put(J, np.arange(m),
-         np.column_stack([lay["drift"][i], lay["drift"][r0], lay["offset"][i], lay["offset"][r0], lay["x"][i],
-                          lay["x"][r0], lay["s"][j], lay["e"][j]]),
+         np.column_stack([lay.drift[i], lay.drift[r0], lay.offset[i], lay.offset[r0], lay.x[i],
+                          lay.x[r0], lay.s[j], lay.e[j]]),
          np.column_stack([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
                           -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig)) * n0,
                           (gi[:, None] * ni - g0 * n0) / (c * sig), (gi - g0) / sig]))
@@ -144,7 +159,7 @@ def doa(p, st, lay):
     if m == 0:
         return _out("doa", np.zeros(0), J, p.doa.row, 3, True, sig)
     d, n = _dist(st, i, j)
-    Rt = np.transpose(st["R"][i], (0, 2, 1))
+    Rt = np.transpose(st.R[i], (0, 2, 1))
     v = np.einsum("kab,kb->ka", Rt, n)
     # Mirror-ambiguous (planar) arrays: compare the prediction folded to the measured side, v → H v with
     # the reflection H = I − 2 n nᵀ where n·v < 0 (so the Jacobians are multiplied by H there too).
@@ -162,7 +177,7 @@ def doa(p, st, lay):
     vx = H @ wx
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = Rt @ P
-    cols = np.repeat(np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]), 3, axis=0)
+    cols = np.repeat(np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]), 3, axis=0)
     vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig
     _put(J, np.arange(3 * m), cols, vals)
     return _out("doa", r, J, np.repeat(p.doa.row, 3), 3, True, sig)
@@ -174,47 +189,47 @@ def odometry(p, st, lay):
     J = jacobian(3 * (K - 1), lay)
     if K < 2:
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
-    r = ((np.diff(st["s"], axis=0) - np.diff(p.odom, axis=0)) / sig).ravel()
+    r = ((np.diff(st.s, axis=0) - np.diff(p.odom, axis=0)) / sig).ravel()
     k = np.arange(3 * (K - 1))
-    _put(J, k, lay["s"][1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
-    _put(J, k, lay["s"][:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
+    _put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
+    _put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
     return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
 
 
 def emission(p, st, lay):
     """Prior on the per-interval emission-time corrections: (e_{j+1} − e_j) ~ N(0, sigma_emit²)."""
     K, sig = p.K, p.sigma["emission"]
-    if sig <= 0 or K < 2 or not (lay["e"] >= 0).any():
+    if sig <= 0 or K < 2 or not (lay.e >= 0).any():
         return _out("emission", np.zeros(0), jacobian(0, lay), np.zeros(0, int), 1, False, max(sig, 1.0))
-    r = np.diff(st["e"]) / sig
+    r = np.diff(st.e) / sig
     J = jacobian(K - 1, lay)
     k = np.arange(K - 1)
-    _put(J, k, lay["e"][1:], np.full(K - 1, 1.0 / sig))
-    _put(J, k, lay["e"][:-1], np.full(K - 1, -1.0 / sig))
+    _put(J, k, lay.e[1:], np.full(K - 1, 1.0 / sig))
+    _put(J, k, lay.e[:-1], np.full(K - 1, -1.0 / sig))
     return _out("emission", r, J, np.arange(1, K), 1, False, sig)
 
 
 def odometry_frame(p, st, lay):
     """Odometry in its own frame: (s_{j+1} − s_j) − Rz(ψ)(o_{j+1} − o_j), three components per step.
 
-    ψ (``st["odo_yaw"]``, rad) is the odometry frame's rotation about the reference frame's z axis
+    ψ (``st.odo_yaw``, rad) is the odometry frame's rotation about the reference frame's z axis
     (taken as the vertical: the odometry's z is the reference array's z). ψ = 0 (or no ``odo_yaw`` in the
     state/layout) is the plain :func:`odometry` factor.
     """
     K, sig = p.K, p.sigma["odometry"]
-    J = np.zeros((3 * max(K - 1, 0), lay["n"]))
+    J = np.zeros((3 * max(K - 1, 0), lay.n))
     if K < 2:
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
-    psi = float(st["odo_yaw"][0]) if "odo_yaw" in st else 0.0
-    yaw_col = int(lay.get("odo_yaw", -np.ones(1, int))[0])
+    psi = float(st.odo_yaw[0])
+    yaw_col = int(lay.odo_yaw[0])
     do = np.diff(p.odom, axis=0)
     if psi != 0.0:
         c, s = np.cos(psi), np.sin(psi)
         do = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
-    r = ((np.diff(st["s"], axis=0) - do) / sig).ravel()
+    r = ((np.diff(st.s, axis=0) - do) / sig).ravel()
     k = np.arange(3 * (K - 1))
-    _put(J, k, lay["s"][1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
-    _put(J, k, lay["s"][:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
+    _put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
+    _put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
     if yaw_col >= 0:
         # d(Rz(ψ) Δo)/dψ = (−y', x', 0) of the rotated step (x', y', z') = Rz(ψ) Δo
         drot = np.column_stack([-do[:, 1], do[:, 0], np.zeros(K - 1)])
@@ -232,18 +247,18 @@ def cone(p, st, lay):
     """
     i, j, c0 = p.cone.arr, p.cone.ev, p.cone.cos
     m, sig = len(i), p.sigma["cone"]
-    J = np.zeros((m, lay["n"]))
+    J = np.zeros((m, lay.n))
     if m == 0:
         return _out("cone", np.zeros(0), J, np.zeros(0, int), 1, True, sig)
     d, n = _dist(st, i, j)
     a = p.cone_axis[i]                                    # (m, 3) array frame
-    w = np.einsum("kba,kb->ka", st["R"][i], n)               # Rᵀ n
+    w = np.einsum("kba,kb->ka", st.R[i], n)               # Rᵀ n
     r = (np.einsum("ka,ka->k", a, w) - c0) / sig
     # R → R Exp(φ): w → w + w × φ, so d(aᵀw)/dφ = (a × w)ᵀ; d(aᵀw)/ds = (R a)ᵀ (I − n nᵀ)/d = −d/dx
     dphi = np.cross(a, w)
-    b = np.einsum("kab,kb->ka", st["R"][i], a)
+    b = np.einsum("kab,kb->ka", st.R[i], a)
     ds = (b - np.einsum("ka,ka->k", b, n)[:, None] * n) / d[:, None]
-    _put(J, np.arange(m), np.column_stack([lay["rot"][i], lay["s"][j], lay["x"][i]]),
+    _put(J, np.arange(m), np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]),
          np.column_stack([dphi, ds, -ds]) / sig)
     return _out("cone", r, J, p.cone.row, 1, True, sig)
 
@@ -252,7 +267,7 @@ def cone(p, st, lay):
 class MeasurementKind:
     """Everything calib knows about one kind of measurement, in one place (a new kind = one entry here).
 
-    factor : ``f(p, st, lay) -> factor dict`` (residual, Jacobian, rows, whitening sigma).
+    factor : ``f(p, st, lay) -> Factor`` (residual, Jacobian, rows, whitening sigma).
     unit, scale : report unit and the factor from SI (µs, deg, cm). label, title : plot/report texts.
     Its sigma is ``Problem.sigma[name]``; meta_key : the meta.json key that states it (None: an option);
     report_sigma : its key in report.json ``sigmas``; reweight : variance components may re-estimate it
@@ -295,5 +310,5 @@ FACTORS = {k.name: k.factor for k in KINDS.values()}
 
 
 def evaluate(p, st, lay, kinds=None):
-    """Evaluate the listed factors (default all) → list of factor dicts."""
+    """Evaluate the listed factors (default all) → list of :class:`Factor`."""
     return [FACTORS[k](p, st, lay) for k in (kinds or FACTORS)]

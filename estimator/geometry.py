@@ -28,11 +28,11 @@ def init_cone_axes(p, st):
         if i == p.ref:
             continue
         m = p.cone.arr == i
-        w = st["s"][p.cone.ev[m]] - st["x"][i]
+        w = st.s[p.cone.ev[m]] - st.x[i]
         b = axis_from_cones(w / np.linalg.norm(w, axis=1, keepdims=True), p.cone.cos[m])
         if b is None:
             continue
         a = p.cone_axis[i]
         rot, _ = Rotation.align_vectors(b[None], a[None])
-        st["R"][i] = rot.as_matrix()
+        st.R[i] = rot.as_matrix()
     return st

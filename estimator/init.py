@@ -131,9 +131,9 @@ def source_spread(q, st, lay):
     from .uncertainty import cov_diagonal, covariance
 
     J = linearise(q, st, lay, ["tdoa_s", "doa", "odometry"]).J
-    cols = lay["s"].ravel()
+    cols = lay.s.ravel()
     try:
-        var = cov_diagonal(covariance(J, lay["n"], lay))[cols]
+        var = cov_diagonal(covariance(J, lay.n, lay))[cols]
         return max(float(np.sqrt(np.mean(var) * 3)), 0.02)
     except (np.linalg.LinAlgError, RuntimeError):
         return 0.3
@@ -160,7 +160,7 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     coarse grid; see :func:`coarse_grid`).
     Returns cost (G,), drift (G,), offset (G,).
     """
-    c, beta, ref, s, t = p.c, p.beta, p.ref, st["s"], p.t
+    c, beta, ref, s, t = p.c, p.beta, p.ref, st.s, p.t
     G = len(pts)
     ms, mm, md = p.tdoa_s.arr == i, p.tdoa_m.arr == i, p.doa.arr == i
     a, b, zs = p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms]
@@ -174,12 +174,12 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
         col, d = geom["col"], geom["d"]
     ns = len(zs)
     # TDOA-S and TDOA-M stacked: model δ·X + off·[TDOA-M] = Y, columns (G, ns + nm)
-    dr = np.linalg.norm(s[j] - st["x"][ref], axis=1)
-    g0 = 1.0 + st["drift"][ref]
+    dr = np.linalg.norm(s[j] - st.x[ref], axis=1)
+    g0 = 1.0 + st.drift[ref]
     h = (t[b] - t[a])[None] + (d[:, col[b]] - d[:, col[a]]) / c
     dj = t[j][None] + d[:, col[j]] / c
     X = np.concatenate([h, dj + beta], axis=1)
-    Y = np.concatenate([zs[None] - h, zm[None] - dj + (g0 * (t[j] + dr / c) + beta * st["drift"][ref])[None]], axis=1)
+    Y = np.concatenate([zs[None] - h, zm[None] - dj + (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None]], axis=1)
     w = np.ones_like(X)
     use_off = mm.sum() >= 2
     drift, off = np.zeros(G), np.zeros(G)
@@ -287,7 +287,7 @@ def doa_rotation(p, st, i, x):
     md = p.doa.arr == i
     if md.sum() < 2:
         return np.eye(3)
-    u, v = p.doa.u[md], _directions(st["s"][p.doa.ev[md]], x[None])
+    u, v = p.doa.u[md], _directions(st.s[p.doa.ev[md]], x[None])
     if not np.any(p.fold[i]):
         return kabsch(u, v[0])[0]
     fits = [kabsch(uu[0], v[0]) for uu in unfold_candidates(u, p.fold[i], v)]
@@ -332,7 +332,7 @@ def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=Non
     search uses an evenly spaced subsample of them (the joint solve refines with all of them).
     ``grid``: :func:`coarse_grid` of the current sources (computed if None).
     """
-    grid = coarse_grid(st["s"], grid_events(p)) if grid is None else grid
+    grid = coarse_grid(st.s, grid_events(p)) if grid is None else grid
     p = event_subsample(p, i)
     shape, step, pts = grid["shape"], grid["step"], grid["pts"]
     cost = profile_cost(p, st, i, pts, kappa, sigma_d, geom=grid)[0]
@@ -359,7 +359,7 @@ def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=Non
     best_cost = float(c_end[g])
     best = (centres[g], doa_rotation(p, st, i, centres[g]), d_sub[g, k[g]], o_sub[g, k[g]])
     out = copy_state(st)
-    out["x"][i], out["R"][i], out["drift"][i], out["offset"][i] = best
+    out.x[i], out.R[i], out.drift[i], out.offset[i] = best
     return out, best_cost
 
 
@@ -368,21 +368,21 @@ def initialise(p):
     best = None
     for sources in init_sources(p):
         st = empty_state(p)
-        st["s"] = sources
+        st.s = sources
         st, info_ref, q, lay = refine_reference(p, st)
         if best is None or info_ref["cost"] < best[1]["cost"]:
             best = (st, info_ref, q, lay)
     st, info_ref, q, lay = best
     sig_src = source_spread(q, st, lay)
-    dist = np.median(np.linalg.norm(st["s"], axis=1))
+    dist = np.median(np.linalg.norm(st.s, axis=1))
     kappa = max(3.0 * p.sigma["tdoa_m"], 2.0 * sig_src / p.c)
     sigma_d = float(np.hypot(p.sigma["doa"], sig_src / max(dist, 0.1)))
     costs = {}
-    grid = coarse_grid(st["s"], grid_events(p))  # the sources stay fixed while the arrays are placed
+    grid = coarse_grid(st.s, grid_events(p))  # the sources stay fixed while the arrays are placed
     for i in range(p.N):
         if i == p.ref:
             continue
         trial, costs[p.names[i]] = init_array(p, st, i, kappa, sigma_d, grid=grid)
         for key in ("x", "R", "drift", "offset"):
-            st[key][i] = trial[key][i]
+            getattr(st, key)[i] = getattr(trial, key)[i]
     return st, {"source_sigma": sig_src, "array_costs": costs, "reference_iterations": info_ref["iterations"]}

@@ -45,7 +45,7 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
         v = np.abs(v)
         worst = np.argsort(v)[::-1][:3]
         what = ", ".join(describe_param(p, lay, int(k)) for k in worst if v[k] > 0.1 * v.max())
-        s = st["s"] - st["s"].mean(0)
+        s = st.s - st.s.mean(0)
         sv = np.linalg.svd(s, compute_uv=False)
         hint = " (all sources are nearly collinear)" if sv[1] < 1e-3 * max(sv[0], 1e-12) else ""
         raise ObservabilityError(f"the data cannot determine {what}{hint}")
@@ -102,16 +102,16 @@ def _weakest_direction_sparse(J, lay):
 def _weakest_event(sch, lay):
     """Direction (n,) of the weakest source: smallest eigenvector of its 3 × 3 block of the scaled H_EE."""
     nA = sch.nA
-    pos = np.full(lay["n"], -1)
+    pos = np.full(lay.n, -1)
     pos[sch.perm[nA:]] = np.arange(sch.Hee.shape[0])
-    best, out = np.inf, np.zeros(lay["n"])
-    for cols in lay["s"]:
+    best, out = np.inf, np.zeros(lay.n)
+    for cols in lay.s:
         if np.any(cols < 0):
             continue
         e = pos[cols]
         w, V = np.linalg.eigh(sch.Hee[e][:, e].toarray())
         if w[0] < best:
-            best, out = w[0], np.zeros(lay["n"])
+            best, out = w[0], np.zeros(lay.n)
             out[cols] = V[:, 0]
     return out
 
@@ -119,13 +119,13 @@ def _weakest_event(sch, lay):
 def describe_param(p, lay, k):
     """Words for parameter column ``k`` of layout ``lay`` (e.g. "the orientation of array A3")."""
     for key, label in (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift")):
-        hit = np.argwhere(lay[key].reshape(p.N, -1) == k)
+        hit = np.argwhere(getattr(lay, key).reshape(p.N, -1) == k)
         if hit.size:
             return f"the {label} of array {p.names[hit[0, 0]]}"
-    hit = np.argwhere(lay["s"] == k)
+    hit = np.argwhere(lay.s == k)
     if hit.size:
         return f"the position of source (event {p.events[hit[0, 0]]})"
-    hit = np.argwhere(lay["e"] == k)
+    hit = np.argwhere(lay.e == k)
     if hit.size:
         return f"the emission time of event {p.events[hit[0, 0]]}"
     return f"parameter {k}"

@@ -5,11 +5,9 @@ times, cumulative odometry), one block of rows per measurement kind (:class:`Tdo
 :class:`DoaRows`, :class:`ConeRows`), the sigmas by measurement kind (``sigma``: the names of
 ``factors.KINDS``) and per-array facts (mirror folds, cone axes, which orientations are estimated).
 
-A *state* is a dict: ``x`` (N, 3), ``R`` (N, 3, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3),
-``e`` (K,) emission-time corrections (s; e[0] = 0), ``odo_yaw`` (1,) the odometry frame's rotation about
-the vertical (rad; see ``factors.odometry_frame``).
-
-A *layout* says which of them are free in a solve and where they sit in the parameter vector.
+A :class:`State` holds the unknowns (positions, rotations, clocks, sources, emission corrections, the
+odometry frame's yaw); a :class:`Layout` says which of them are free in a solve and where they sit in the
+parameter vector.
 """
 from __future__ import annotations
 
@@ -244,22 +242,63 @@ def _lines(df):
     return df[LINE_COLUMN].to_numpy(int) if LINE_COLUMN in df else df.index.to_numpy(int) + 2
 
 
+@dataclass
+class State:
+    """The unknowns. x (N, 3) array positions (m), R (N, 3, 3) array rotations (array → reference frame),
+    offset (N,) clock offsets (s), drift (N,) clock drifts, s (K, 3) source positions (m), e (K,)
+    emission-time corrections (s; e[0] = 0), odo_yaw (1,) the odometry frame's yaw (rad)."""
+    x: np.ndarray
+    R: np.ndarray
+    offset: np.ndarray
+    drift: np.ndarray
+    s: np.ndarray
+    e: np.ndarray
+    odo_yaw: np.ndarray
+
+    def copy(self):
+        return State(*(np.array(getattr(self, f.name), dtype=float, copy=True) for f in dataclasses.fields(self)))
+
+
+# State fields moved by a parameter step, and the layout field that places each of them
+ADDITIVE = ("x", "s", "offset", "drift", "e", "odo_yaw")
+
+
 def empty_state(p):
     """A state with every array at the origin, identity rotations, zero clocks and sources."""
     N, K = p.N, p.K
-    return {"x": np.zeros((N, 3)), "R": np.tile(np.eye(3), (N, 1, 1)), "offset": np.zeros(N),
-            "drift": np.zeros(N), "s": np.zeros((K, 3)), "e": np.zeros(K), "odo_yaw": np.zeros(1)}
+    return State(x=np.zeros((N, 3)), R=np.tile(np.eye(3), (N, 1, 1)), offset=np.zeros(N), drift=np.zeros(N),
+                 s=np.zeros((K, 3)), e=np.zeros(K), odo_yaw=np.zeros(1))
 
 
 def copy_state(st):
-    return {k: v.copy() for k, v in st.items()}
+    return st.copy()
+
+
+def state_from_dict(d):
+    """A :class:`State` from a dict of its fields (array-like; ``odo_yaw`` may be missing: 0)."""
+    d = {"odo_yaw": np.zeros(1), **d}
+    return State(**{f.name: np.array(d[f.name], dtype=float, copy=True) for f in dataclasses.fields(State)})
+
+
+@dataclass
+class Layout:
+    """Where each free parameter sits in the parameter vector: index arrays shaped like the state's
+    fields (-1 where a parameter is fixed): x (N, 3), rot (N, 3) (tangent-space rotation components),
+    offset (N,), drift (N,), s (K, 3), e (K,), odo_yaw (1,); n the number of free parameters."""
+    x: np.ndarray
+    rot: np.ndarray
+    offset: np.ndarray
+    drift: np.ndarray
+    s: np.ndarray
+    e: np.ndarray
+    odo_yaw: np.ndarray
+    n: int = 0
 
 
 def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=True, arrays=None, odo_yaw=None):
     """Positions of the free parameters in the vector.
 
-    Returns a dict of index arrays (-1 where a parameter is fixed):
-    ``x`` (N, 3), ``rot`` (N, 3), ``offset`` (N,), ``drift`` (N,), ``s`` (K, 3), ``e`` (K,), and ``n``.
+    Returns a :class:`Layout` (index arrays, -1 where a parameter is fixed).
     The reference array's position, rotation and offset are always fixed (they define the frame and the
     time origin). Its drift is free when TDOA-S is present (``ref_drift=None`` decides that).
     ``arrays`` restricts the free array parameters to these indices (others are fixed).
@@ -273,8 +312,8 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
         emission = p.sigma["emission"] > 0
     free_arr = np.zeros(N, bool)
     free_arr[np.arange(N) if arrays is None else np.asarray(arrays, int)] = True
-    lay = {"x": -np.ones((N, 3), int), "rot": -np.ones((N, 3), int), "offset": -np.ones(N, int),
-           "drift": -np.ones(N, int), "s": -np.ones((K, 3), int), "e": -np.ones(K, int)}
+    lay = Layout(x=-np.ones((N, 3), int), rot=-np.ones((N, 3), int), offset=-np.ones(N, int),
+                 drift=-np.ones(N, int), s=-np.ones((K, 3), int), e=-np.ones(K, int), odo_yaw=-np.ones(1, int))
     n = 0
 
     def take(k):
@@ -287,50 +326,44 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
         if not free_arr[i]:
             continue
         if i != ref:
-            lay["x"][i] = take(3)
+            lay.x[i] = take(3)
             if rotations and p.rot_free[i]:
                 k_fix = p.rot_fixed_axis[i]
                 if k_fix >= 0:   # roll about a linear array's axis: not observable, not estimated
-                    lay["rot"][i, [c for c in range(3) if c != k_fix]] = take(2)
+                    lay.rot[i, [c for c in range(3) if c != k_fix]] = take(2)
                 else:
-                    lay["rot"][i] = take(3)
-            lay["offset"][i] = take(1)[0]
+                    lay.rot[i] = take(3)
+            lay.offset[i] = take(1)[0]
         if i != ref or ref_drift:
-            lay["drift"][i] = take(1)[0]
+            lay.drift[i] = take(1)[0]
     if sources:
-        lay["s"][:] = take(3 * K).reshape(K, 3)
+        lay.s[:] = take(3 * K).reshape(K, 3)
     if emission and K > 1:
-        lay["e"][1:] = take(K - 1)
+        lay.e[1:] = take(K - 1)
     if odo_yaw is None:
         odo_yaw = bool(p.odo_yaw_free) and sources
-    lay["odo_yaw"] = take(1) if odo_yaw else -np.ones(1, int)
-    lay["n"] = n
+    lay.odo_yaw = take(1) if odo_yaw else -np.ones(1, int)
+    lay.n = n
     return lay
 
 
 def retract(st, lay, delta):
     """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ)."""
-    out = copy_state(st)
-    for key in ("x", "s"):
-        m = lay[key] >= 0
-        out[key][m] += delta[lay[key][m]]
-    for key in ("offset", "drift", "e", "odo_yaw"):
-        if key not in lay:
-            continue
-        if key not in out:
-            out[key] = np.zeros(len(lay[key]))
-        m = lay[key] >= 0
-        out[key][m] += delta[lay[key][m]]
-    rows = np.flatnonzero(np.any(lay["rot"] >= 0, axis=1))
+    out = st.copy()
+    for key in ADDITIVE:
+        cols = getattr(lay, key)
+        m = cols >= 0
+        getattr(out, key)[m] += delta[cols[m]]
+    rows = np.flatnonzero(np.any(lay.rot >= 0, axis=1))
     if rows.size:
-        idx = lay["rot"][rows]
+        idx = lay.rot[rows]
         phi = np.where(idx >= 0, delta[np.maximum(idx, 0)], 0.0)
-        out["R"][rows] = st["R"][rows] @ Rotation.from_rotvec(phi).as_matrix()
+        out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
     return out
 
 
 def state_to_frames(p, st):
     """State → (arrays DataFrame columns as dict of arrays, sources (K, 3))."""
-    q = Rotation.from_matrix(st["R"]).as_quat(scalar_first=True)
+    q = Rotation.from_matrix(st.R).as_quat(scalar_first=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)  # canonical sign: qw >= 0
     return q

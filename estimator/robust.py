@@ -100,17 +100,16 @@ def measurement_stats(p, st, lay, kinds, mask):
     r, J, w, fs = lin.r, lin.J, lin.w, lin.factors
     keep_rows = w > 0
     # residuals of excluded rows too (linearise zeroes them): the restore test needs them
-    r = np.concatenate([f["r"] for f in fs]) if fs else r
-    fs = [{**f, "r": f["r"]} for f in fs]
+    r = np.concatenate([f.r for f in fs]) if fs else r
     out = {k: [] for k in ("kind", "index", "line", "array", "event", "q", "dof", "kept", "natural")}
     start = 0
     blocks = []
     for f in fs:
-        n = len(f["r"])
+        n = len(f.r)
         sl0, start = start, start + n
-        if f["kind"] not in TESTED_KINDS or n == 0:
+        if f.kind not in TESTED_KINDS or n == 0:
             continue
-        dim = f["dim"]
+        dim = f.dim
         m = n // dim
         groups = sl0 + np.arange(n).reshape(m, dim)
         blocks.append((f, groups, dim, m))
@@ -121,7 +120,7 @@ def measurement_stats(p, st, lay, kinds, mask):
     B, Js = _hat_factor(J, keep_rows) if blocks and not large else (None, None)
     for f, groups, dim, m in blocks:
         H = np.zeros((m, dim, dim)) if large else np.einsum("gin,gjn->gij", B[groups], Js[groups])
-        rg = f["r"].reshape(m, dim)
+        rg = f.r.reshape(m, dim)
         kept = keep_rows[groups[:, 0]]
         # kept rows: residual variance I − H; excluded rows: prediction variance I + H (deletion residual)
         I_H = np.eye(dim)[None] + np.where(kept, -1.0, 1.0)[:, None, None] * H
@@ -131,18 +130,18 @@ def measurement_stats(p, st, lay, kinds, mask):
         else:
             # DOA: along the predicted direction H ≈ 0 and r ≈ 0, so I − H stays regular there
             q = _block_quadratic(I_H, rg)
-        arr, ev = measurement_arrays(p, f["kind"])
-        unit_scale = UNITS[f["kind"]][1]
+        arr, ev = measurement_arrays(p, f.kind)
+        unit_scale = UNITS[f.kind][1]
         nat = rg[:, 0] if dim == 1 else np.linalg.norm(rg, axis=1)   # signed for scalar measurements
-        out["kind"].append(np.full(m, f["kind"], dtype=object))
+        out["kind"].append(np.full(m, f.kind, dtype=object))
         out["index"].append(np.arange(m))
-        out["line"].append(np.asarray(f["row"]).reshape(m, dim)[:, 0] if len(f["row"]) else np.zeros(m, int))
+        out["line"].append(np.asarray(f.row).reshape(m, dim)[:, 0] if len(f.row) else np.zeros(m, int))
         out["array"].append(np.asarray(arr, int))
         out["event"].append(np.asarray(ev, int))
         out["q"].append(q)
-        out["dof"].append(np.full(m, DOF[f["kind"]]))
+        out["dof"].append(np.full(m, DOF[f.kind]))
         out["kept"].append(kept)
-        out["natural"].append(nat * f["sigma"] * unit_scale)
+        out["natural"].append(nat * f.sigma * unit_scale)
     if not out["q"]:
         e = np.zeros(0)
         return MeasurementStats(e.astype(object), e.astype(int), e.astype(int), e.astype(int), e.astype(int), e, e,
@@ -373,7 +372,7 @@ def drop_test(p, st_all, st_without, lay, lay_without, kinds, mask, mask_without
     r_w, w_w = lin.r, lin.w
     T = float(np.sum(r_a[w_a > 0] ** 2) - np.sum(r_w[w_w > 0] ** 2))
     m_rows = int((w_a > 0).sum() - (w_w > 0).sum())
-    dof = max(m_rows - (lay["n"] - lay_without["n"]), 1)
+    dof = max(m_rows - (lay.n - lay_without.n), 1)
     T /= max(scale, 1.0)
     return T, dof, float(chi2_logsf(max(T, 0.0), dof))
 

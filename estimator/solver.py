@@ -40,7 +40,7 @@ DENSE_MAX_PARAMS = 300
 
 def use_dense(lay):
     """Whether a problem with layout ``lay`` takes the dense path (see ``DENSE_MAX_PARAMS``)."""
-    return lay["n"] <= DENSE_MAX_PARAMS
+    return lay.n <= DENSE_MAX_PARAMS
 
 
 def stack_jacobians(Js, n, dense):
@@ -89,15 +89,15 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Lin
     fs = evaluate(p, st, lay, kinds)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
-        r = f["r"]
-        c, w = rho(r, loss if f["robust"] else None, k)
-        if mask is not None and f["kind"] in mask:  # excluded residuals: zero residual, weight and cost
-            keep = mask[f["kind"]]
+        r = f.r
+        c, w = rho(r, loss if f.robust else None, k)
+        if mask is not None and f.kind in mask:  # excluded residuals: zero residual, weight and cost
+            keep = mask[f.kind]
             r, c, w = np.where(keep, r, 0.0), np.where(keep, c, 0.0), np.where(keep, w, 0.0)
         cost += 0.5 * float(np.sum(c))
         r_all.append(r)
         w_all.append(w)
-    J = stack_jacobians([f["J"] for f in fs], lay["n"], use_dense(lay) if dense is None else dense)
+    J = stack_jacobians([f.J for f in fs], lay.n, use_dense(lay) if dense is None else dense)
     return Linearised(np.concatenate(r_all), J, np.concatenate(w_all), cost, fs)
 
 
@@ -105,8 +105,8 @@ def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
     """½ Σ ρ(r) at ``st`` (residuals only: no Jacobian is stacked)."""
     cost = 0.0
     for f in evaluate(p, st, lay, kinds):
-        keep = np.ones(len(f["r"]), bool) if mask is None or f["kind"] not in mask else mask[f["kind"]]
-        c, _ = rho(np.where(keep, f["r"], 0.0), loss if f["robust"] else None, k)
+        keep = np.ones(len(f.r), bool) if mask is None or f.kind not in mask else mask[f.kind]
+        c, _ = rho(np.where(keep, f.r, 0.0), loss if f.robust else None, k)
         cost += 0.5 * float(np.sum(np.where(keep, c, 0.0)))
     return cost
 
@@ -140,7 +140,7 @@ def event_columns(lay):
     In this order the event block of JᵀJ is banded: events couple only to their neighbours in time
     (odometry, TDOA-S between consecutive events, the emission prior).
     """
-    cols = np.column_stack([lay["s"], lay["e"][:, None]]).ravel()
+    cols = np.column_stack([lay.s, lay.e[:, None]]).ravel()
     return cols[cols >= 0]
 
 
@@ -259,7 +259,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
     ``dense`` chooses the linear algebra (True: dense Cholesky; False: sparse Jacobian and Schur
     complement on the event blocks; None: by size, :func:`use_dense`); both take the same steps.
     """
-    if lay["n"] == 0:
+    if lay.n == 0:
         return st, {"iterations": 0, "cost": cost_of(p, st, lay, kinds, loss, k, mask), "converged": True,
                     "reason": "no free parameters"}
     dense = use_dense(lay) if dense is None else dense

@@ -48,7 +48,7 @@ class BlockCovariance:
 
     def __init__(self, J, lay):
         J = scipy.sparse.csr_matrix(J)
-        n = lay["n"]
+        n = lay.n
         self.shape, self.J, self.lay = (n, n), J, lay
         H = (J.T @ J).tocsr()
         dead = H.diagonal() <= 0
@@ -74,9 +74,9 @@ class BlockCovariance:
     def _event_inverse_blocks(sch, lay):
         """Diagonal of H_EE⁻¹ (scaled, event order) and each source's 3 × 3 block of it."""
         nE, nA = sch.Hee.shape[0], sch.nA
-        pos = np.full(lay["n"], -1)
+        pos = np.full(lay.n, -1)
         pos[sch.perm[nA:]] = np.arange(nE)
-        src = np.where(lay["s"] >= 0, pos[np.maximum(lay["s"], 0)], -1)  # (K, 3) positions in E
+        src = np.where(lay.s >= 0, pos[np.maximum(lay.s, 0)], -1)  # (K, 3) positions in E
         diag, blocks = np.zeros(nE), np.full((len(src), 3, 3), np.nan)
         covered = np.zeros(nE, bool)
         has = np.flatnonzero((src >= 0).all(axis=1))
@@ -108,9 +108,9 @@ class BlockCovariance:
             return out
         e = src[has]
         blk = Einv["blocks"][has] + np.einsum("kia,kja->kij", XS[e], sch.X[e])
-        dd = sch.d[lay["s"][has]]
+        dd = sch.d[lay.s[has]]
         blk = blk / dd[:, :, None] / dd[:, None, :]
-        blk[dead[lay["s"][has]].any(axis=1)] = np.nan
+        blk[dead[lay.s[has]].any(axis=1)] = np.nan
         out[has] = blk
         return out
 
@@ -124,7 +124,7 @@ class BlockCovariance:
         if all(int(c) in where for c in ix):
             k = np.array([where[int(c)] for c in ix])
             return self.arr[np.ix_(k, k)]
-        hit = np.flatnonzero((self.lay["s"] == ix[None, :]).all(axis=1)) if len(ix) == 3 else []
+        hit = np.flatnonzero((self.lay.s == ix[None, :]).all(axis=1)) if len(ix) == 3 else []
         if len(hit):
             return self.src_blocks[hit[0]]
         raise ValueError("only array-parameter blocks and single-source 3x3 blocks are kept for large problems")
@@ -152,8 +152,8 @@ def std_from_cov(p, lay, cov):
     def pick(idx):
         return np.where(idx >= 0, sd[np.maximum(idx, 0)], np.nan)
 
-    return {"x": pick(lay["x"]), "rot": pick(lay["rot"]), "offset": pick(lay["offset"]),
-            "drift": pick(lay["drift"]), "s": pick(lay["s"]), "e": pick(lay["e"])}
+    return {"x": pick(lay.x), "rot": pick(lay.rot), "offset": pick(lay.offset),
+            "drift": pick(lay.drift), "s": pick(lay.s), "e": pick(lay.e)}
 
 
 def state_from_frames(p, arrays, sources=None):
@@ -163,13 +163,13 @@ def state_from_frames(p, arrays, sources=None):
     """
     st = empty_state(p)
     a = arrays.set_index("array").loc[list(p.names)]
-    st["x"] = a[["x", "y", "z"]].to_numpy(float)
-    st["R"] = Rotation.from_quat(a[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).as_matrix()
-    st["offset"] = np.nan_to_num(a["offset"].to_numpy(float))
-    st["drift"] = np.nan_to_num(a["drift"].to_numpy(float))
+    st.x = a[["x", "y", "z"]].to_numpy(float)
+    st.R = Rotation.from_quat(a[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).as_matrix()
+    st.offset = np.nan_to_num(a["offset"].to_numpy(float))
+    st.drift = np.nan_to_num(a["drift"].to_numpy(float))
     if sources is not None:
         s = sources.set_index("event").loc[list(p.events)]
-        st["s"] = s[["x", "y", "z"]].to_numpy(float)
+        st.s = s[["x", "y", "z"]].to_numpy(float)
     return st
 
 
@@ -191,7 +191,7 @@ def crlb(features, truth, *, use_tdoa_s=True, emission_sigma=0.0):
     p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma)
     st = state_from_frames(p, truth["arrays"], truth.get("sources"))
     J, lay = fisher(p, st)
-    cov = covariance(J, lay["n"], lay)
+    cov = covariance(J, lay.n, lay)
     return {"cov": cov, "layout": lay, "std": std_from_cov(p, lay, cov), "problem": p, "state": st}
 
 

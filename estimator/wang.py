@@ -198,9 +198,9 @@ def wang_initialise(p, *, fuse=True):
         raise ObservabilityError(f"array {folded[0]} has mirror-ambiguous (planar-array) DOAs: Wang et al.'s "
                                  "initialisation needs 3-D DOAs; use the hybrid method")
     st = empty_state(p)
-    st["s"] = s = wang_sources(p, fuse=fuse)
+    st.s = s = wang_sources(p, fuse=fuse)
     c, beta, t = p.c, p.beta, p.t
-    d_ref = np.linalg.norm(s - st["x"][p.ref], axis=1)
+    d_ref = np.linalg.norm(s - st.x[p.ref], axis=1)
     arrays = [i for i in range(p.N) if i != p.ref]
     doas = []
     for i in arrays:
@@ -213,14 +213,14 @@ def wang_initialise(p, *, fuse=True):
     ranges, res = wang_ranges([u for _, u in doas], [s[j] for j, _ in doas])
     rejected = {}
     for i, (j, u), b in zip(arrays, doas, ranges):
-        st["R"][i], st["x"][i] = pose_by_alignment(u, b, s[j])
+        st.R[i], st.x[i] = pose_by_alignment(u, b, s[j])
         # Clocks from the ranges where the array has a DOA for the event, else from the aligned pose.
-        dist = np.linalg.norm(s - st["x"][i], axis=1)
+        dist = np.linalg.norm(s - st.x[i], axis=1)
         dist[j] = b
         mm = p.tdoa_m.arr == i
         jm = p.tdoa_m.ev[mm]
         y = p.tdoa_m.val[mm] - (dist[jm] - d_ref[jm]) / c
         x_fit = t[jm] + dist[jm] / c + beta
-        st["offset"][i], st["drift"][i], rejected[str(p.names[i])] = clock_line_fit(x_fit, y)
+        st.offset[i], st.drift[i], rejected[str(p.names[i])] = clock_line_fit(x_fit, y)
     range_res = {str(p.names[i]): r for i, r in zip(arrays, res)}
     return st, {"range_rms_residual_m2": range_res, "clock_points_rejected": rejected}

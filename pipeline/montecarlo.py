@@ -79,7 +79,7 @@ def truth_state(p, truth):
     """
     st = state_from_frames(p, truth["arrays"], truth["sources"])
     if len(p.tdoa_s.val) == 0:
-        st["drift"] = (1.0 + st["drift"]) / (1.0 + st["drift"][p.ref]) - 1.0
+        st.drift = (1.0 + st.drift) / (1.0 + st.drift[p.ref]) - 1.0
     return st
 
 

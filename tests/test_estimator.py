@@ -132,11 +132,11 @@ def _fisher_by_finite_differences(p, st, lay, kinds, h=1e-6):
     """Fisher information of the whitened residuals from central differences of the residuals alone
     (no analytic Jacobian, no covariance code of the estimator)."""
     def r(delta):
-        return np.concatenate([f["r"] for f in factor_eval(p, retract(st, lay, delta), lay, kinds)])
+        return np.concatenate([f.r for f in factor_eval(p, retract(st, lay, delta), lay, kinds)])
 
     cols = []
-    for k in range(lay["n"]):
-        d = np.zeros(lay["n"])
+    for k in range(lay.n):
+        d = np.zeros(lay.n)
         d[k] = h
         cols.append((r(d) - r(-d)) / (2 * h))
     J = np.column_stack(cols)
@@ -154,7 +154,7 @@ def test_crlb_matches_an_independent_fisher_inverse(traj, seed):
     cov = np.linalg.inv(F)
     sd = np.sqrt(np.diag(cov))
     for key in ("x", "rot", "offset", "drift", "s"):
-        idx = lay[key]
+        idx = getattr(lay, key)
         free = idx >= 0
         np.testing.assert_allclose(bound["std"][key][free], sd[idx[free]], rtol=1e-4)
 

@@ -4,15 +4,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calib.estimator.factors import FACTORS
-from calib.estimator.problem import build_problem, make_layout, retract
+from calib.estimator.problem import build_problem, make_layout, retract, state_from_dict
 from calib.pipeline.simulate.featsim import simulate_features
 
 
 def random_state(p, rng):
     N, K = p.N, p.K
-    return {"x": rng.normal(0, 2, (N, 3)), "R": Rotation.random(N, random_state=rng).as_matrix(),
-            "offset": rng.normal(0, 0.05, N), "drift": rng.normal(0, 1e-4, N),
-            "s": rng.normal(0, 2, (K, 3)), "e": rng.normal(0, 1e-3, K)}
+    return state_from_dict({"x": rng.normal(0, 2, (N, 3)), "R": Rotation.random(N, random_state=rng).as_matrix(),
+                            "offset": rng.normal(0, 0.05, N), "drift": rng.normal(0, 1e-4, N),
+                            "s": rng.normal(0, 2, (K, 3)), "e": rng.normal(0, 1e-3, K)})
 
 
 @pytest.mark.parametrize("kind,planar", [(k, None) for k in FACTORS] + [("doa", (0.3, -0.2, 0.9))])
@@ -26,16 +26,16 @@ def test_jacobian_matches_central_differences(kind, planar):
     st = random_state(p, rng)
     lay = make_layout(p, emission=True, ref_drift=True)
     f = FACTORS[kind](p, st, lay)
-    assert f["J"].shape == (len(f["r"]), lay["n"]) and len(f["r"]) > 0
-    num = np.zeros_like(f["J"])
-    clock_cols = {int(c) for key in ("drift", "offset", "e") for c in lay[key].ravel() if c >= 0}
-    for k in range(lay["n"]):
-        h = np.zeros(lay["n"])
+    assert f.J.shape == (len(f.r), lay.n) and len(f.r) > 0
+    num = np.zeros_like(f.J)
+    clock_cols = {int(c) for key in ("drift", "offset", "e") for c in getattr(lay, key).ravel() if c >= 0}
+    for k in range(lay.n):
+        h = np.zeros(lay.n)
         # steps scaled to each parameter's natural size; residuals are affine in clocks, so large steps
         # there only avoid cancellation (residuals reach ~1e6 with t ~ 100 s and sigma 1e-4 s)
         h[k] = 1e-4 if k in clock_cols else 1e-6
-        num[:, k] = (FACTORS[kind](p, retract(st, lay, h), lay)["r"]
-                     - FACTORS[kind](p, retract(st, lay, -h), lay)["r"]) / (2 * h[k])
+        num[:, k] = (FACTORS[kind](p, retract(st, lay, h), lay).r
+                     - FACTORS[kind](p, retract(st, lay, -h), lay).r) / (2 * h[k])
     scale = np.maximum(np.abs(num).max(axis=0), 1e-6)
-    np.testing.assert_allclose(f["J"] / scale, num / scale, atol=2e-5)
-    assert np.abs(f["J"]).sum() > 0
+    np.testing.assert_allclose(f.J / scale, num / scale, atol=2e-5)
+    assert np.abs(f.J).sum() > 0

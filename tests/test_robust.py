@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.estimator import calibrate, validate_options
 from calib.estimator.factors import FACTORS
-from calib.estimator.problem import build_problem, make_layout, retract
+from calib.estimator.problem import build_problem, make_layout, retract, state_from_dict
 from calib.estimator.robust import measurement_stats
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.simulate.featsim import simulate_features
@@ -111,19 +111,19 @@ def test_odometry_frame_jacobian_with_yaw():
     feats, _ = simulate_features(3, seed=1)
     p = build_problem(feats, odometry_yaw=True)
     rng = np.random.default_rng(0)
-    st = {"x": rng.normal(0, 2, (p.N, 3)), "R": Rotation.random(p.N, random_state=1).as_matrix(),
-          "offset": np.zeros(p.N), "drift": np.zeros(p.N), "s": rng.normal(0, 2, (p.K, 3)),
-          "e": np.zeros(p.K), "odo_yaw": np.array([0.7])}
+    st = state_from_dict({"x": rng.normal(0, 2, (p.N, 3)), "R": Rotation.random(p.N, random_state=1).as_matrix(),
+                          "offset": np.zeros(p.N), "drift": np.zeros(p.N), "s": rng.normal(0, 2, (p.K, 3)),
+                          "e": np.zeros(p.K), "odo_yaw": np.array([0.7])})
     lay = make_layout(p)
-    assert lay["odo_yaw"][0] >= 0
+    assert lay.odo_yaw[0] >= 0
     f = FACTORS["odometry"](p, st, lay)
-    num = np.zeros_like(f["J"])
-    for k in range(lay["n"]):
-        h = np.zeros(lay["n"])
+    num = np.zeros_like(f.J)
+    for k in range(lay.n):
+        h = np.zeros(lay.n)
         h[k] = 1e-6
-        num[:, k] = (FACTORS["odometry"](p, retract(st, lay, h), lay)["r"]
-                     - FACTORS["odometry"](p, retract(st, lay, -h), lay)["r"]) / 2e-6
-    np.testing.assert_allclose(f["J"], num, atol=1e-4 * np.abs(num).max())
+        num[:, k] = (FACTORS["odometry"](p, retract(st, lay, h), lay).r
+                     - FACTORS["odometry"](p, retract(st, lay, -h), lay).r) / 2e-6
+    np.testing.assert_allclose(f.J, num, atol=1e-4 * np.abs(num).max())
 
 
 @pytest.mark.parametrize("opt,value", [("outlier_threshold", float("nan")), ("outlier_threshold", -1.0),

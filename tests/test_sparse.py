@@ -27,8 +27,8 @@ def perturbed_problem(seed, n_arrays=6, trajectory=3, emission=0.0, spread=0.2):
     p = build_problem(feats, sigma_emit=emission)
     st = copy_state(state_from_frames(p, truth["arrays"], truth["sources"]))
     rng = np.random.default_rng(seed + 100)
-    st["x"][1:] += rng.normal(0, spread, st["x"][1:].shape)
-    st["s"] += rng.normal(0, spread, st["s"].shape)
+    st.x[1:] += rng.normal(0, spread, st.x[1:].shape)
+    st.s += rng.normal(0, spread, st.s.shape)
     return p, st, truth
 
 
@@ -51,11 +51,11 @@ def test_sparse_and_dense_solvers_reach_the_same_minimum(seed, trajectory, emiss
     assert id_["converged"] and is_["converged"]
     assert abs(id_["cost"] - is_["cost"]) <= 1e-9 * id_["cost"]
     J = linearise(p, sd_, lay, kinds, dense=True).J
-    sd = std_from_cov(p, lay, covariance(J, lay["n"]))
+    sd = std_from_cov(p, lay, covariance(J, lay.n))
     for key in ("x", "s", "offset", "drift") + (("e",) if emission else ()):
         free = np.isfinite(sd[key])
-        assert np.all(np.abs(sd_[key] - ss[key])[free] <= tol * sd[key][free]), key
-    ang = (Rotation.from_matrix(sd_["R"]).inv() * Rotation.from_matrix(ss["R"])).magnitude()
+        assert np.all(np.abs(getattr(sd_, key) - getattr(ss, key))[free] <= tol * sd[key][free]), key
+    ang = (Rotation.from_matrix(sd_.R).inv() * Rotation.from_matrix(ss.R)).magnitude()
     assert np.all(ang[1:] <= tol * np.linalg.norm(sd["rot"][1:], axis=1))
 
 
@@ -71,7 +71,7 @@ def test_sparse_jacobian_equals_dense_and_factors_accept_dense_arrays():
     assert c1 == c2 and np.array_equal(r1, r2)
     # a factor written against a dense J (np.zeros + _put) stacks the same way
     f = FACTORS["doa"](p, st, lay)
-    assert np.array_equal(np.asarray(f["J"]), f["J"].toarray()) and f["J"].shape == (len(f["r"]), lay["n"])
+    assert np.array_equal(np.asarray(f.J), f.J.toarray()) and f.J.shape == (len(f.r), lay.n)
 
 
 def test_block_covariance_matches_the_dense_inverse():
@@ -80,12 +80,12 @@ def test_block_covariance_matches_the_dense_inverse():
     kinds = KINDS + ["emission"]
     Jd = linearise(p, st, lay, kinds, dense=True).J
     Js = linearise(p, st, lay, kinds, dense=False).J
-    C = covariance(Jd, lay["n"])
-    B = covariance(Js, lay["n"], lay)
+    C = covariance(Jd, lay.n)
+    B = covariance(Js, lay.n, lay)
     np.testing.assert_allclose(B.diagonal(), np.diag(C), rtol=1e-9)
-    for ix in list(lay["x"][1:]) + list(lay["rot"][1:]) + list(lay["s"]):
+    for ix in list(lay.x[1:]) + list(lay.rot[1:]) + list(lay.s):
         np.testing.assert_allclose(cov_block(B, ix), C[np.ix_(ix, ix)], rtol=1e-8, atol=1e-12 * np.abs(C).max())
-    full = np.concatenate([lay["x"][1:].ravel(), lay["offset"][1:], lay["drift"]])
+    full = np.concatenate([lay.x[1:].ravel(), lay.offset[1:], lay.drift])
     np.testing.assert_allclose(cov_block(B, full), C[np.ix_(full, full)], rtol=1e-8,
                                atol=1e-10 * np.abs(C[np.ix_(full, full)]).max())
     # draws H⁻¹ Jᵀ z have exactly the covariance: sample variance within 4 standard errors

@@ -71,7 +71,7 @@ def test_initialisation_is_exact_on_noise_free_scenes(traj):
         assert m["orientation_geodesic_deg"] < 1e-5
         # the reference's drift is unknown without TDOA-S: the clock model then leaves O(δ_ref·d/c) terms
         assert m["offset_rmse_s"] < 2e-6 and m["relative_drift_rmse"] < 1e-7
-        assert st["drift"][p.ref] == 0.0 and max(info["range_rms_residual_m2"].values()) < 1e-6
+        assert st.drift[p.ref] == 0.0 and max(info["range_rms_residual_m2"].values()) < 1e-6
 
 
 def test_initialisation_is_close_on_noisy_scenes():

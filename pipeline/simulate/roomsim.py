@@ -40,7 +40,7 @@ from calib.pipeline.simulate.render import EARLY, FDL, FDL_LATE, builder_delay, 
 from calib.pipeline.simulate.scenario import (  # noqa: F401  (PRESETS, REALISTIC, _PAPER_TRAJ, _room_acoustics: public/test names)
     _LAB_HEIGHTS, _LAB_LOOP, _PAPER_TRAJ, ALL_KEYS, GEN_DEFAULTS, NEW_GEN_DEFAULTS,
     NEW_SCENE_DEFAULTS, PRESETS, REALISTIC, SCENE_DEFAULTS, _float, _int, _materials, _matrix, _merge,
-    _room_acoustics, _rng, _vector, arrival_times, odometry, scenario_truth, validate_scenario)
+    _room_acoustics, _rng, _vector, Scenario, arrival_times, odometry, scenario_truth, validate_scenario)
 from calib.pipeline.formats.session import write_session_toml
 from calib.pipeline.formats.validate import read_text
 from calib.pipeline.simulate.simrender import direct_amplitudes, noise_levels, render_session
@@ -450,7 +450,7 @@ def impulse_response(scenario, event, array):
     """The simulator's impulse response (M, L) from chirp ``event`` to array number ``array`` on that
     array's sample grid (unit emission; index ``n`` is ``n − builder_delay()`` samples after the emission)
     and the grid's true-time rate fs' (Hz): ``(h, fs')``."""
-    sc = validate_scenario(scenario) if not isinstance(scenario.get("room_dim"), np.ndarray) else scenario
+    sc = scenario if isinstance(scenario, Scenario) else validate_scenario(scenario)
     flat = _room_acoustics(sc) if sc["model"] == "flat" else (None, None)
     return simrender.impulse_response(sc, event, array, flat)
 

@@ -187,6 +187,11 @@ def _materials(sc):
 
 
 # ----------------------------------------------------------------------------------------------- validation
+class Scenario(dict):
+    """A validated scenario (what :func:`validate_scenario` returns): numpy arrays, defaults filled in.
+    A plain dict is a raw scenario (JSON-like, as written in scenario.json or by ``make_scenario``)."""
+
+
 def validate_scenario(scenario):
     """Check a scenario; return a normalised copy with numpy arrays (raises InputError, one line).
 
@@ -234,7 +239,7 @@ def validate_scenario(scenario):
         _check_bands(sc)
     elif sc["rt60"] > 0 and sc.get("max_order") is None:
         _room_acoustics(sc)  # raises if the RT60 is not reachable in this room
-    return sc
+    return Scenario(sc)
 
 
 def _check_scalars(sc):
@@ -429,7 +434,7 @@ def arrival_times(scenario, mics=False):
     ``a_ij = L_i(t_emit[j] + |s_j − x_i| / c)`` at the array ORIGIN: returns (n_arrays, n_events).
     With ``mics=True``: a list (one per array) of (n_events, n_mics) times at the individual mics.
     """
-    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
+    sc = scenario if isinstance(scenario, Scenario) else _normalise_light(scenario)
     t0 = sc["t_emit"][0]
     if mics:
         return [local_time(sc["t_emit"][:, None] + np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None],
@@ -456,7 +461,7 @@ def scenario_truth(scenario):
     ``x_i' = R_refᵀ(x_i − x_ref)``, ``R_i' = R_refᵀ R_i``, ``s_j' = R_refᵀ(s_j − x_ref)``,
     ``offset_i = τ_i − τ_ref``, ``drift_i = δ_i``.
     """
-    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
+    sc = scenario if isinstance(scenario, Scenario) else _normalise_light(scenario)
     ref = next(a for a in sc["arrays"] if a["name"] == scenario.get("reference_array", sc["arrays"][0]["name"]))
     Rr, xr = ref["R"], ref["position"]
     rows = []
@@ -474,7 +479,7 @@ def scenario_truth(scenario):
 
 def odometry(scenario):
     """(K, 3) odometry in the reference frame: ``R_refᵀ(s_j − s_0)`` + cumulative N(0, σ_odo²) steps."""
-    sc = scenario if isinstance(scenario.get("room_dim"), np.ndarray) else _normalise_light(scenario)
+    sc = scenario if isinstance(scenario, Scenario) else _normalise_light(scenario)
     ref = next(a for a in sc["arrays"] if a["name"] == scenario.get("reference_array", sc["arrays"][0]["name"]))
     s = sc["sources"]
     steps = _rng(int(scenario.get("seed", 0)), 10).normal(0.0, float(scenario.get("sigma_odo", 0.0)), s.shape)
