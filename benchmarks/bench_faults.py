@@ -29,7 +29,10 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.estimator import calibrate
+from calib.estimator.problem import build_problem, make_layout
+from calib.estimator.uncertainty import covariance, fisher, std_from_cov
 from calib.pipeline.featsim import simulate_features
+from calib.pipeline.montecarlo import truth_state
 
 SIGMA_TDOA, SIGMA_DOA_DEG, SIGMA_ODO = 1e-4, 5.0, 0.03
 LATE_FRACTION, LATE_RANGE_S = 0.05, (0.3e-3, 40e-3)
@@ -145,6 +148,24 @@ def errors(cal, truth, skip=None):
     return loc, ang
 
 
+def yaw_crlb(feats, truth):
+    """What estimating the odometry yaw costs, by the CRLB at ground truth: (yaw 1-σ in deg, mean 3-D
+    position bound of the non-reference arrays with the yaw free, the same with the yaw known) in m.
+    The yaw's only information is the reference array's DOAs against the odometry's directions."""
+    p = build_problem(feats, odometry_yaw=True)
+    st = truth_state(p, truth)
+    out = []
+    for free in (True, False):
+        p["odo_yaw_free"] = free
+        J, lay = fisher(p, st)
+        cov = covariance(J, lay["n"], lay)
+        sd = std_from_cov(p, lay, cov)["x"][1:]
+        out.append(float(np.mean(np.linalg.norm(sd, axis=1))))
+        if free:
+            yaw_sd = float(np.rad2deg(np.sqrt(cov[lay["odo_yaw"][0], lay["odo_yaw"][0]])))
+    return yaw_sd, out[0], out[1]
+
+
 def _verdict(cal):
     """The calibration's verdict (a version without one — the baseline — counts as "ok" with exit 0)."""
     return cal["report"].get("verdict") or {"status": "ok (no verdict)", "reasons": [], "flagged_arrays": []}
@@ -180,6 +201,10 @@ def one(seed, faults):
                "clean_ang_deg": ca_o, "reasons": "; ".join(v["reasons"])}
         if "odometry_yaw_deg" in rep:
             row["yaw_deg"] = rep["odometry_yaw_deg"]
+            row["yaw_std_deg"] = rep.get("odometry_frame", {}).get("yaw_std_deg")
+        if name == "odo_rot":
+            row["crlb_yaw_deg"], row["crlb_loc_free_cm"], row["crlb_loc_fixed_cm"] = (
+                v * f for v, f in zip(yaw_crlb(feats, truth), (1, 100, 100)))
         rows.append(row)
     return rows
 
@@ -203,6 +228,8 @@ def acceptance(df):
         yaw = (np.abs(g["yaw_deg"] + ODO_YAW_DEG) <= 1.0).sum() if "yaw_deg" in g else 0
         out.append(f"odometry rotated {ODO_YAW_DEG:g} deg: within 1.2x aligned in {ok.sum()}/{len(g)} runs; "
                    f"yaw within 1 deg in {yaw}/{len(g)}")
+        if "crlb_yaw_deg" in g:
+            out.extend(_yaw_bound_lines(g))
     g = df[df.fault == "t_emit"]
     if len(g):
         out.append(f"t_emit x{T_EMIT_SCALE:g}: ends failed (or refused) in "
@@ -211,6 +238,21 @@ def acceptance(df):
     out.append(f"runs with location error > 2x clean + 2 cm: {len(bad)}, of which ending ok: "
                f"{bad.status.astype(str).str.startswith('ok').sum()} (target 0)")
     return out
+
+
+def _yaw_bound_lines(g):
+    """The odometry-yaw runs against the CRLB: how many 'within 1 deg' an efficient estimator would give,
+    the bound's cost of a free yaw on the array positions, and the yaw errors in units of the reported σ."""
+    from scipy.stats import norm
+    expect = float(np.sum(2 * norm.cdf(1.0 / g.crlb_yaw_deg) - 1))
+    ratio = g.crlb_loc_free_cm / g.crlb_loc_fixed_cm
+    z = (g.yaw_deg + ODO_YAW_DEG) / g.yaw_std_deg
+    return [f"  CRLB of the yaw {g.crlb_yaw_deg.min():.2f}-{g.crlb_yaw_deg.max():.2f} deg: an efficient estimator "
+            f"is within 1 deg in {expect:.1f}/{len(g)} runs on average",
+            f"  CRLB of the array positions, yaw free / yaw known: {g.crlb_loc_free_cm.mean():.2f} / "
+            f"{g.crlb_loc_fixed_cm.mean():.2f} cm (ratio {ratio.min():.2f}-{ratio.max():.2f}, mean {ratio.mean():.2f})",
+            f"  yaw error / reported sigma: RMS {np.sqrt(np.mean(z ** 2)):.2f} (1 if the sigma is right), "
+            f"max |z| {np.abs(z).max():.2f}"]
 
 
 def main():
@@ -226,7 +268,8 @@ def main():
         df.to_csv(args.csv, index=False)
     pd.set_option("display.width", 220)
     pd.set_option("display.max_colwidth", 60)
-    cols = [c for c in ("seed", "traj", "fault", "loc_cm", "clean_loc_cm", "ang_deg", "clean_ang_deg", "yaw_deg",
+    cols = [c for c in ("seed", "traj", "fault", "loc_cm", "clean_loc_cm", "ang_deg", "clean_ang_deg", "yaw_deg", "yaw_std_deg",
+                        "crlb_yaw_deg",
                         "status", "outliers", "bad", "flagged", "seconds") if c in df]
     print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     print()
