@@ -376,14 +376,14 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
     scales = {k: p[v] / base[k] for k, v in SIGMA_KEY.items()}
     last_dir = {}
     info, at_bound = {}, {}
-    if p.get("array_scale"):
-        iterations = max(iterations, VCE_ITERATIONS_ARRAYS)
-    for _ in range(iterations):
+    steps = max(iterations, VCE_ITERATIONS_ARRAYS) if p.get("array_scale") else iterations
+    for it in range(steps):
         per_array = {}
         fac = _vce_factors(p, st, lay, kinds, mask, min_redundancy, arrays=per_array)
         changed, reversed_ = False, False
         for kind, f2 in fac.items():
-            if kind in per_array:
+            own = kind in per_array and bool(np.any(arraynoise.own_components(p, kind, per_array[kind])))
+            if own:
                 f2 = arraynoise.type_factor(p, kind, per_array[kind], f2, min_redundancy)
             step = float(np.sqrt(np.clip(f2, 1e-8, 1e8)))
             b = bounds.get(kind, FREE_MAX_FACTOR)
@@ -394,14 +394,15 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
             scales[kind] = total
             p[SIGMA_KEY[kind]] = base[kind] * total
             changed |= abs(step - 1.0) > 0.01
-            if kind in per_array and np.any(p["array_own"][kind]):
+            if own:
                 a_steps = arraynoise.update_scales(p, kind, per_array[kind], step, total, b)
                 changed |= bool(np.any(np.abs(a_steps - 1.0) > 0.01))
-                d = 0.0   # the type's factor may reverse while its arrays' move (see VCE_ITERATIONS_ARRAYS)
+                continue   # the type's factor may reverse while its arrays' move (see VCE_ITERATIONS_ARRAYS)
             reversed_ |= bool(d and last_dir.get(kind, d) != d)
-            last_dir[kind] = d or last_dir.get(kind, 0.0)
+            last_dir[kind] = d
         st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
-        if not changed or reversed_:
+        own = any(np.any(v) for v in p.get("array_own", {}).values())
+        if not changed or reversed_ or (it + 1 >= iterations and not own):
             break
     return st, p, {"scale": scales, "at_bound": at_bound, "bounds": bounds, **info}
 
@@ -458,7 +459,7 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
 
 
 def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", array_noise=True):
+                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", array_noise=False):
     """Raise ValueError with a clear message for any option of :func:`calibrate_features` out of range.
 
     The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
@@ -543,7 +544,7 @@ def calibrate(features, **options):
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
               outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True,
-              array_noise=True):
+              array_noise=False):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters

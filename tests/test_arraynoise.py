@@ -91,3 +91,9 @@ def test_a_much_noisier_array_gets_its_own_sigma(seed):
     if bad not in rep["unreliable_arrays"]:
         assert 1.5 < fac["doa"].get(bad, 0.0) <= ARRAY_MAX_FACTOR
     assert all(set(d) <= {bad} for d in fac.values())
+
+
+def test_array_noise_option_is_validated():
+    from calib.estimator import validate_options
+    with pytest.raises(ValueError, match="array_noise"):
+        validate_options(array_noise="yes")
