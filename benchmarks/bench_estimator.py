@@ -23,8 +23,8 @@ from joblib import Parallel, delayed
 
 import calib.pipeline.montecarlo as montecarlo
 from calib.estimator import calibrate
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.io import read_features, read_truth
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.formats.io import read_features, read_truth
 from calib.pipeline.montecarlo import (PAPER_FINAL, SIGMA_DOA_DEG, SIGMA_TDOA, TRAJECTORIES, iqr_mean,
                                  run_one)
 

@@ -3,7 +3,7 @@
     python benchmarks/bench_faults.py                 # 10 seeds, all faults
     python benchmarks/bench_faults.py --seeds 3       # quick look
 
-Scenes come from ``calib.pipeline.featsim.simulate_features`` (trajectories 1–3 by seed, σ_TDOA 0.1 ms,
+Scenes come from ``calib.pipeline.simulate.featsim.simulate_features`` (trajectories 1–3 by seed, σ_TDOA 0.1 ms,
 σ_DOA 5°, σ_odo 3 cm). Faults, each injected into the same scene as the clean run:
 
 - ``late``: 5 % of the arrivals (array, event) late by U(0.3, 40) ms (their TDOA-M and TDOA-S rows move)
@@ -33,10 +33,10 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.estimator import calibrate
-from calib.estimator.problem import build_problem, make_layout
+from calib.estimator.problem import build_problem
 from calib.estimator.uncertainty import covariance, fisher, std_from_cov
-from calib.pipeline.featsim import simulate_features
 from calib.pipeline.montecarlo import truth_state
+from calib.pipeline.simulate.featsim import simulate_features
 
 SIGMA_TDOA, SIGMA_DOA_DEG, SIGMA_ODO = 1e-4, 5.0, 0.03
 LATE_FRACTION, LATE_RANGE_S = 0.05, (0.3e-3, 40e-3)

@@ -549,7 +549,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
 
     Parameters
     ----------
-    features : dict from ``pipeline.io.read_features`` (or a simulator).
+    features : dict from ``pipeline.formats.io.read_features`` (or a simulator).
     method : "hybrid" (this project's estimator, Zhang et al. structure) or "wang" (the baseline; see
         ``estimator.wang``).
     use_tdoa_s : use TDOA-S measurements (False gives Wang et al.'s setting with our solver).

@@ -10,7 +10,7 @@ from calib.estimator import calibrate
 from calib.estimator.arraynoise import ARRAY_MAX_FACTOR, update_scales
 from calib.estimator.factors import evaluate
 from calib.estimator.problem import build_problem, make_layout, retract
-from calib.pipeline.featsim import simulate_features
+from calib.pipeline.simulate.featsim import simulate_features
 
 _spec = importlib.util.spec_from_file_location("bench_faults", Path(__file__).parents[1] / "benchmarks" / "bench_faults.py")
 bench = importlib.util.module_from_spec(_spec)
