@@ -107,6 +107,19 @@ def test_odometry_yaw_is_estimated():
     assert bench.errors(off, truth)[0] > 3 * loc0                    # without it the rotation is not absorbed
 
 
+@pytest.mark.parametrize("yaw_deg", [20.0, 180.0])
+def test_odometry_yaw_with_a_planar_reference_array(yaw_deg):
+    """Mirror-ambiguous reference DOAs: the start yaw is found anyway (unfolded), so any rotation of the
+    odometry gives the solve of the 20° one (the problem is equivariant in the yaw), within 3σ of the truth."""
+    feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001, planar=(0.0, 0.0, 1.0))
+    ev = feats["events"].copy()
+    o = ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float).copy()
+    ev[["odom_x", "odom_y", "odom_z"]] = Rotation.from_euler("z", yaw_deg, degrees=True).apply(o)
+    fr = calibrate({**feats, "events": ev})["report"]["odometry_frame"]
+    err = (fr["yaw_deg"] + yaw_deg + 180.0) % 360.0 - 180.0
+    assert fr["estimated"] and abs(err) < 3 * fr["yaw_std_deg"]
+
+
 def test_odometry_frame_jacobian_with_yaw():
     feats, _ = simulate_features(3, seed=1)
     p = build_problem(feats, odometry_yaw=True)
