@@ -186,13 +186,13 @@ def yaw_crlb(feats, truth):
     st = truth_state(p, truth)
     out = []
     for free in (True, False):
-        p["odo_yaw_free"] = free
+        p.odo_yaw_free = free
         J, lay = fisher(p, st)
-        cov = covariance(J, lay["n"], lay)
+        cov = covariance(J, lay.n, lay)
         sd = std_from_cov(p, lay, cov)["x"][1:]
         out.append(float(np.mean(np.linalg.norm(sd, axis=1))))
         if free:
-            yaw_sd = float(np.rad2deg(np.sqrt(cov[lay["odo_yaw"][0], lay["odo_yaw"][0]])))
+            yaw_sd = float(np.rad2deg(np.sqrt(cov[lay.odo_yaw[0], lay.odo_yaw[0]])))
     return yaw_sd, out[0], out[1]
 
 

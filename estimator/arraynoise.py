@@ -2,7 +2,7 @@
 
 Model (docs/method.md, "Weights from the data"): a row of type k measured by array i has the sigma
 σ_k · a_{k,i}. σ_k is the type's component (``calibrate.robust_noise_steps`` / ``estimate_noise``);
-a_{k,i} (``p["array_scale"][k][i]``, 1 to start) is the array's, for the types measured per array
+a_{k,i} (``p.array_scale[k][i]``, 1 to start) is the array's, for the types measured per array
 (TDOA-S, TDOA-M — attributed to the non-reference array of the pair —, DOA, cone). ``factors.evaluate``
 divides those rows' residuals and Jacobians by a_{k,i}.
 
@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
-from .factors import ARRAY_KEY
+from .factors import ARRAY_KINDS
 
 ARRAY_MIN_REDUNDANCY = 5.0    # Σ(1 − h) of an array's rows of one type for its own component
 # either way, relative to the type's sigma: covers one array several times noisier than the others, and
@@ -35,8 +35,8 @@ ARRAY_ALPHA = 0.01            # family level of the tests "this array's noise is
 
 
 def start_scales(p, kinds):
-    """``p["array_scale"]``: a = 1 for every array of each per-array type with rows in ``kinds``."""
-    p["array_scale"] = {k: np.ones(p["N"]) for k in ARRAY_KEY if k in kinds and len(p.get(ARRAY_KEY[k], ()))}
+    """``p.array_scale``: a = 1 for every array of each per-array type with rows in ``kinds``."""
+    p.array_scale = {k: np.ones(p.N) for k in ARRAY_KINDS if k in kinds and len(p.rows(k).arr)}
     return p
 
 
@@ -45,10 +45,10 @@ def vce_groups(p, f, r, h, keep):
     redundancy Σ(1 − h), and whether its σ² factor Σ r² / Σ(1 − h) is significantly above the type's
     pooled one: χ²(redundancy) upper tail below ARRAY_ALPHA / (arrays tested), redundancy ≥
     ARRAY_MIN_REDUNDANCY."""
-    arr = np.repeat(p[ARRAY_KEY[f["kind"]]], f["dim"])[keep]
-    red_rows = (1.0 - h[keep]) - (1.0 / 3.0 if f["kind"] == "doa" else 0.0)   # DOA: 2 dof of 3 components
-    red = np.bincount(arr, weights=red_rows, minlength=p["N"])
-    ss = np.bincount(arr, weights=r[keep] ** 2, minlength=p["N"])
+    arr = np.repeat(p.rows(f.kind).arr, f.dim)[keep]
+    red_rows = (1.0 - h[keep]) - (1.0 / 3.0 if f.kind == "doa" else 0.0)   # DOA: 2 dof of 3 components
+    red = np.bincount(arr, weights=red_rows, minlength=p.N)
+    ss = np.bincount(arr, weights=r[keep] ** 2, minlength=p.N)
     pooled = ss.sum() / max(red.sum(), 1e-12)
     testable = red >= ARRAY_MIN_REDUNDANCY
     tail = chi2.sf(ss / max(pooled, 1e-300), np.maximum(red, 1e-9))   # χ²(red) when its noise is the type's
@@ -57,9 +57,9 @@ def vce_groups(p, f, r, h, keep):
 
 def own_components(p, kind, groups):
     """Arrays of ``kind`` with their own component: those that had one, plus the newly significant ones
-    (``p["array_own"]``, updated). An array keeps its own component once it has one."""
-    own = p.setdefault("array_own", {}).get(kind, np.zeros(p["N"], bool)) | groups["significant"]
-    p["array_own"][kind] = own
+    (``p.array_own``, updated). An array keeps its own component once it has one."""
+    own = p.array_own.get(kind, np.zeros(p.N, bool)) | groups["significant"]
+    p.array_own[kind] = own
     return own
 
 
@@ -75,19 +75,19 @@ def update_scales(p, kind, groups, type_step, total, bound):
     """After the type's sigma moved by ``type_step``: each array with its own component gets the sigma its
     rows ask for (σ² × Σ r² / Σ(1 − h)), the others keep the type's (a unchanged). ``total``: the type's
     sigma / stated, ``bound`` its allowed factor either way. Returns the arrays' total steps (N,)."""
-    a = p["array_scale"][kind]
-    own = p["array_own"][kind] & (groups["red"] > 0)
+    a = p.array_scale[kind]
+    own = p.array_own[kind] & (groups["red"] > 0)
     new = a.copy()
     f2 = groups["ss"][own] / groups["red"][own]
     new[own] = a[own] * np.sqrt(np.clip(f2, 1e-8, 1e8)) / type_step
     lo = 1.0
     hi = min(ARRAY_MAX_FACTOR, bound / total)
     new = np.clip(new, lo, hi)
-    p["array_scale"][kind] = new
+    p.array_scale[kind] = new
     return new / a * type_step
 
 
 def report_scales(p):
     """{kind: {array name: a}} for the report (only arrays whose component moved)."""
-    return {k: {str(n): float(v) for n, v in zip(p["names"], a) if abs(v - 1.0) > 1e-9}
-            for k, a in (p.get("array_scale") or {}).items()}
+    return {k: {str(n): float(v) for n, v in zip(p.names, a) if abs(v - 1.0) > 1e-9}
+            for k, a in (p.array_scale or {}).items()}

@@ -82,9 +82,9 @@ def residual_table(fs, mask=None):
     for f in fs:
         if len(f.r) == 0:
             continue
-        keep = mask[f["kind"]] if mask and f["kind"] in mask else np.ones(len(f["r"]), bool)
+        keep = mask[f.kind] if mask and f.kind in mask else np.ones(len(f.r), bool)
         r = natural(f)[keep]
-        if f["dim"] == 3:
+        if f.dim == 3:
             r = np.linalg.norm(r.reshape(-1, 3), axis=1)
         unit, scale = UNITS[f.kind]
         out[f.kind] = {"n": int(len(r)), f"rms_{unit}": float(np.sqrt(np.mean(r * r)) * scale) if len(r) else 0.0}
@@ -348,8 +348,8 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None)
         start += n
         if f.kind not in REWEIGHTED or n == 0:
             continue
-        if arrays is not None and f["kind"] in (p.get("array_scale") or {}):
-            arrays[f["kind"]] = arraynoise.vce_groups(p, f, r[sl], h[sl], keep[sl])
+        if arrays is not None and f.kind in (p.array_scale or {}):
+            arrays[f.kind] = arraynoise.vce_groups(p, f, r[sl], h[sl], keep[sl])
         red = float(np.sum((1.0 - h[sl])[keep[sl]]))
         if f.kind == "doa":
             red -= float(keep[sl].sum()) / 3.0  # a unit-vector residual has no noise along the direction itself
@@ -369,17 +369,17 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
     reverses direction (a type the parameters can absorb would otherwise shrink without bound).
     Returns (state, p with new sigmas, info with the total scales and which types hit their bound).
     """
-    p = dict(p)
-    if p.get("array_scale"):
-        p["array_scale"] = {k: a.copy() for k, a in p["array_scale"].items()}
-        p["array_own"] = {}
+    p = p.copy()
+    if p.array_scale:
+        p.array_scale = {k: a.copy() for k, a in p.array_scale.items()}
+        p.array_own = {}
     lay = lay or make_layout(p)
     bounds = bounds or {k: FREE_MAX_FACTOR for k in REWEIGHTED}
     base = stated or {k: p.sigma[k] for k in REWEIGHTED}
     scales = {k: p.sigma[k] / base[k] for k in REWEIGHTED}
     last_dir = {}
     info, at_bound = {}, {}
-    steps = max(iterations, VCE_ITERATIONS_ARRAYS) if p.get("array_scale") else iterations
+    steps = max(iterations, VCE_ITERATIONS_ARRAYS) if p.array_scale else iterations
     for it in range(steps):
         per_array = {}
         fac = _vce_factors(p, st, lay, kinds, mask, min_redundancy, arrays=per_array)
@@ -404,7 +404,7 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
             reversed_ |= bool(d and last_dir.get(kind, d) != d)
             last_dir[kind] = d
         st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
-        own = any(np.any(v) for v in p.get("array_own", {}).values())
+        own = any(np.any(v) for v in p.array_own.values())
         if not changed or reversed_ or (it + 1 >= iterations and not own):
             break
     return st, p, {"scale": scales, "at_bound": at_bound, "bounds": bounds, **info}
@@ -613,7 +613,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     times["joint"] = time.perf_counter() - t2
     lay = make_layout(p)
     lin = linearise(p, st, lay, kinds, mask=info["mask"])
-    r, J, w, cost, fs = lin.r, lin.J, lin.w, lin.cost, lin.factors
+    J, w, cost, fs = lin.J, lin.w, lin.cost, lin.factors
     t_cov = time.perf_counter()
     cov = covariance(J[w > 0], lay.n, lay)
     times["uncertainty"] = time.perf_counter() - t_cov
@@ -642,7 +642,7 @@ def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_t
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
         stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds,
                            "array_scale": arraynoise.report_scales(p)}
-    scales = {k: p[v] / stated[k] for k, v in SIGMA_KEY.items()}
+    scales = {k: p.sigma[k] / stated[k] for k in REWEIGHTED}
     return st, p, info, scales, bounds
 
 
@@ -669,9 +669,9 @@ def _report(p, st, info, stages, judged, fs, *, method, noise, emission_sigma, t
         "undetermined": undetermined_parameters(p),
         "used": {"tdoa_s": bool(len(p.tdoa_s.val)), "tdoa_m": bool(len(p.tdoa_m.val)), "doa": bool(len(p.doa.u)),
                  "emission_correction": emission_sigma > 0},
-        "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",
-        "sigmas": {"tdoa_s": p["sigma_tdoa_s"], "tdoa_m": p["sigma_tdoa_m"], "doa_rad_per_axis": p["sigma_doa"],
-                   "odometry_m": p["sigma_odo"], "cone_rad": p["sigma_cone"], "emission_s": emission_sigma,
+        "drift_reference": "emitter clock" if len(p.tdoa_s.val) else "reference array (no TDOA-S: its drift fixed to 0)",
+        "sigmas": {"tdoa_s": p.sigma["tdoa_s"], "tdoa_m": p.sigma["tdoa_m"], "doa_rad_per_axis": p.sigma["doa"],
+                   "odometry_m": p.sigma["odometry"], "cone_rad": p.sigma["cone"], "emission_s": emission_sigma,
                    "source": noise, "per_array_factor": arraynoise.report_scales(p)},
         "timings_s": times,
         "odometry_frame": odo_frame,

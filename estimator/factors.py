@@ -13,6 +13,7 @@ Clock model (docs/architecture.md): arrival a_ij = (1+δ_i)(t_j + e_j + |s_j −
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -101,6 +102,12 @@ class Factor:
     dim: int
     robust: bool
     sigma: float
+    sigma_rows: np.ndarray | None = None   # per-residual sigma when per-array components apply
+
+    @property
+    def row_sigma(self):
+        """The sigma of each residual: ``sigma_rows`` or ``sigma`` for all."""
+        return self.sigma if self.sigma_rows is None else self.sigma_rows
 
 
 def _out(kind, r, J, row, dim, robust, sigma):
@@ -309,35 +316,34 @@ UNITS = {k.name: (k.unit, k.scale) for k in KINDS.values()}
 FACTORS = {k.name: k.factor for k in KINDS.values()}
 
 
-# The problem key of each measurement kind's array index: the kinds that can carry a per-array
-# variance component (``p["array_scale"]``, estimator/arraynoise.py).
-ARRAY_KEY = {"tdoa_s": "ts_arr", "tdoa_m": "tm_arr", "doa": "doa_arr", "cone": "cone_arr"}
+# The kinds that can carry a per-array variance component (``p.array_scale``, estimator/arraynoise.py).
+ARRAY_KINDS = ("tdoa_s", "tdoa_m", "doa", "cone")  # the kinds measured per array (rows with ``arr``)
 
 
 def per_array(p, f):
     """A factor with per-array variance components applied: residual rows of array i divided by
-    ``p["array_scale"][kind][i]`` (its sigma relative to the type's), Jacobian rows alike; the per-residual
+    ``p.array_scale[kind][i]`` (its sigma relative to the type's), Jacobian rows alike; the per-residual
     sigma goes to ``sigma_rows``. Unchanged when the problem has no component for the factor's kind."""
-    scale = (p.get("array_scale") or {}).get(f["kind"])
-    if scale is None or len(f["r"]) == 0:
+    scale = (p.array_scale or {}).get(f.kind)
+    if scale is None or len(f.r) == 0:
         return f
-    s = np.repeat(np.asarray(scale, float)[p[ARRAY_KEY[f["kind"]]]], f["dim"])
-    J = f["J"]
+    s = np.repeat(np.asarray(scale, float)[p.rows(f.kind).arr], f.dim)
+    J = f.J
     if isinstance(J, Jacobian):
         out = Jacobian(*J.shape)
         out.chunks = [(rr, cc, vv / s[rr]) for rr, cc, vv in J.chunks]
     else:
         out = np.asarray(J) / s[:, None]
-    return {**f, "r": f["r"] / s, "J": out, "sigma_rows": f["sigma"] * s}
+    return dataclasses.replace(f, r=f.r / s, J=out, sigma_rows=f.sigma * s)
 
 
 def natural(f):
     """A factor's residuals in SI units (whitened residual × its row's sigma)."""
-    return f["r"] * f.get("sigma_rows", f["sigma"])
+    return f.r * f.row_sigma
 
 
 def evaluate(p, st, lay, kinds=None):
     """Evaluate the listed factors (default all) → list of factor dicts (per-array components applied)."""
-    if p.get("array_scale"):
+    if p.array_scale:
         return [per_array(p, FACTORS[k](p, st, lay)) for k in (kinds or FACTORS)]
     return [FACTORS[k](p, st, lay) for k in (kinds or FACTORS)]

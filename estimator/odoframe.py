@@ -34,10 +34,10 @@ def ray_misfit(p, yaws):
     side of the mic plane where the chain fitted so far lies, alternating with the chain fit
     (``UNFOLD_PASSES``), still for all yaws at once.
     """
-    m = p["doa_arr"] == p["ref"]
-    u, j = p["doa_u"][m], p["doa_ev"][m]
-    n = p["fold"][p["ref"]]
-    o = (p["odom"] - p["odom"][0])[j]                                   # (n, 3)
+    m = p.doa.arr == p.ref
+    u, j = p.doa.u[m], p.doa.ev[m]
+    n = p.fold[p.ref]
+    o = (p.odom - p.odom[0])[j]                                   # (n, 3)
     c, sn = np.cos(np.atleast_1d(yaws))[:, None], np.sin(np.atleast_1d(yaws))[:, None]
     oy = np.stack([c * o[:, 0] - sn * o[:, 1], sn * o[:, 0] + c * o[:, 1],
                    np.broadcast_to(o[:, 2], c.shape[:1] + o[:, 2].shape)], axis=2)   # (Y, n, 3) = Rz(ψ) o
@@ -58,7 +58,7 @@ def ray_misfit(p, yaws):
 def initial_yaw(p):
     """Start value of the odometry yaw (rad) from the reference array's DOAs (mirror-ambiguous ones
     unfolded by :func:`ray_misfit`); 0 when they cannot tell (fewer than 3)."""
-    m = p["doa_arr"] == p["ref"]
+    m = p.doa.arr == p.ref
     if m.sum() < 3:
         return 0.0
     coarse = np.deg2rad(np.arange(-180.0, 180.0, COARSE_STEP_DEG))

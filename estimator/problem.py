@@ -88,7 +88,8 @@ class Problem:
     fold (N, 3): mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere);
     cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
     (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
-    odo_yaw_free: the odometry frame's yaw is estimated; odo_yaw_test: the test that decided it.
+    odo_yaw_free: the odometry frame's yaw is estimated; odo_yaw_test: the test that decided it;
+    array_scale, array_own: per-array variance components (opt-in).
     """
     names: np.ndarray
     ref: int
@@ -109,6 +110,10 @@ class Problem:
     n_doa_events: np.ndarray
     odo_yaw_free: bool = False
     odo_yaw_test: dict | None = None
+    # per-array variance components (estimator/arraynoise.py): {kind: (N,) sigma factor of each array},
+    # {kind: (N,) bool, the array has its own component}
+    array_scale: dict = dataclasses.field(default_factory=dict)
+    array_own: dict = dataclasses.field(default_factory=dict)
 
     @property
     def N(self):

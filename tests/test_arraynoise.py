@@ -1,6 +1,7 @@
 """Per-array variance components (issue 10, item 2): against simulated ground truth and finite differences."""
 import importlib.util
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from calib.estimator import calibrate
 from calib.estimator.arraynoise import ARRAY_MAX_FACTOR, update_scales
 from calib.estimator.factors import evaluate
-from calib.estimator.problem import build_problem, make_layout, retract
+from calib.estimator.problem import build_problem, make_layout, retract, state_from_dict
 from calib.pipeline.simulate.featsim import simulate_features
 
 _spec = importlib.util.spec_from_file_location("bench_faults", Path(__file__).parents[1] / "benchmarks" / "bench_faults.py")
@@ -32,38 +33,38 @@ def test_per_array_scaling_keeps_the_jacobian_exact():
     feats, _ = simulate_features(3, seed=1)
     p = build_problem(feats)
     rng = np.random.default_rng(0)
-    p["array_scale"] = {k: rng.uniform(1.0, 3.0, p["N"]) for k in ("tdoa_s", "tdoa_m", "doa")}
-    st = {"x": rng.normal(0, 2, (p["N"], 3)), "R": Rotation.random(p["N"], random_state=1).as_matrix(),
-          "offset": rng.normal(0, 1e-3, p["N"]), "drift": np.zeros(p["N"]), "s": rng.normal(0, 2, (p["K"], 3)),
-          "e": np.zeros(p["K"]), "odo_yaw": np.zeros(1)}
+    p.array_scale = {k: rng.uniform(1.0, 3.0, p.N) for k in ("tdoa_s", "tdoa_m", "doa")}
+    st = state_from_dict({"x": rng.normal(0, 2, (p.N, 3)), "R": Rotation.random(p.N, random_state=1).as_matrix(),
+                          "offset": rng.normal(0, 1e-3, p.N), "drift": np.zeros(p.N), "s": rng.normal(0, 2, (p.K, 3)),
+                          "e": np.zeros(p.K), "odo_yaw": np.zeros(1)})
     lay = make_layout(p)
     kinds = ["tdoa_s", "tdoa_m", "doa"]
     fs = evaluate(p, st, lay, kinds)
-    plain = evaluate({k: v for k, v in p.items() if k != "array_scale"}, st, lay, kinds)
+    plain = evaluate(p.replace(array_scale={}), st, lay, kinds)
     for f, g in zip(fs, plain):
-        arr = np.repeat(p[{"tdoa_s": "ts_arr", "tdoa_m": "tm_arr", "doa": "doa_arr"}[f["kind"]]], f["dim"])
-        np.testing.assert_allclose(f["r"] * p["array_scale"][f["kind"]][arr], g["r"])
-        np.testing.assert_allclose(f["sigma_rows"], g["sigma"] * p["array_scale"][f["kind"]][arr])
-        J = np.asarray(f["J"])
+        arr = np.repeat(p.rows(f.kind).arr, f.dim)
+        np.testing.assert_allclose(f.r * p.array_scale[f.kind][arr], g.r)
+        np.testing.assert_allclose(f.sigma_rows, g.sigma * p.array_scale[f.kind][arr])
+        J = np.asarray(f.J)
         num = np.zeros_like(J)
-        for k in range(lay["n"]):
-            h = np.zeros(lay["n"])
+        for k in range(lay.n):
+            h = np.zeros(lay.n)
             h[k] = 1e-6
-            rp = [x["r"] for x in evaluate(p, retract(st, lay, h), lay, [f["kind"]])][0]
-            rm = [x["r"] for x in evaluate(p, retract(st, lay, -h), lay, [f["kind"]])][0]
+            rp = [x.r for x in evaluate(p, retract(st, lay, h), lay, [f.kind])][0]
+            rm = [x.r for x in evaluate(p, retract(st, lay, -h), lay, [f.kind])][0]
             num[:, k] = (rp - rm) / 2e-6
         np.testing.assert_allclose(J, num, atol=1e-4 * np.abs(num).max())
 
 
 def test_array_components_are_bounded():
-    p = {"array_scale": {"doa": np.ones(3)}, "array_own": {"doa": np.array([True, True, False])}}
+    p = SimpleNamespace(array_scale={"doa": np.ones(3)}, array_own={"doa": np.array([True, True, False])})
     groups = {"ss": np.array([1e4, 1.0, 1e4]), "red": np.array([10.0, 10.0, 10.0])}
     update_scales(p, "doa", groups, type_step=1.0, total=1.0, bound=100.0)
     # own and far noisier: at ARRAY_MAX_FACTOR; own and quieter than its type: not below it; not own: unchanged
-    np.testing.assert_allclose(p["array_scale"]["doa"], [ARRAY_MAX_FACTOR, 1.0, 1.0])
-    p["array_scale"]["doa"] = np.ones(3)
+    np.testing.assert_allclose(p.array_scale["doa"], [ARRAY_MAX_FACTOR, 1.0, 1.0])
+    p.array_scale["doa"] = np.ones(3)
     update_scales(p, "doa", groups, type_step=1.0, total=2.5, bound=3.0)   # a stated prior: 3x in total
-    assert p["array_scale"]["doa"][0] * 2.5 <= 3.0 + 1e-12
+    assert p.array_scale["doa"][0] * 2.5 <= 3.0 + 1e-12
 
 
 def test_clean_scenes_get_no_array_component():

@@ -63,9 +63,9 @@ def test_sparse_jacobian_equals_dense_and_factors_accept_dense_arrays():
     p, st, _ = perturbed_problem(4)
     lay = make_layout(p, emission=True)
     lin = linearise(p, st, lay, KINDS, dense=True)
-    r1, Jd, w1, c1 = lin.r, lin.J, lin.w, lin.cost
+    r1, Jd, c1 = lin.r, lin.J, lin.cost
     lin = linearise(p, st, lay, KINDS, dense=False)
-    r2, Js, w2, c2 = lin.r, lin.J, lin.w, lin.cost
+    r2, Js, c2 = lin.r, lin.J, lin.cost
     assert scipy.sparse.issparse(Js) and not scipy.sparse.issparse(Jd)
     np.testing.assert_array_equal(Jd, Js.toarray())
     assert c1 == c2 and np.array_equal(r1, r2)
