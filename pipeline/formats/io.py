@@ -24,7 +24,9 @@ import io
 import json
 import os
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -40,9 +42,6 @@ from calib.pipeline.formats.outputs import publish, publish_mode
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
-TDOA_M_COLS = ["event", "array", "tdoa"]
-TDOA_S_COLS = ["array", "from_event", "to_event", "tdoa"]
-DOA_COLS = ["event", "array", "ux", "uy", "uz"]
 ARRAYS_COLS = ["array", "x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
 SOURCES_COLS = ["event", "x", "y", "z"]
 SIGMA_KEYS = ("sigma_tdoa", "sigma_doa_deg", "sigma_odo")
@@ -272,6 +271,58 @@ def validate_meta(meta, path="meta.json"):
     return out
 
 
+@dataclass(frozen=True)
+class Table:
+    """One measurement table of a features/ folder (docs/formats.md section 2), described once: the
+    reader, the validation and the writer are derived from it. Columns beyond ``columns`` are kept."""
+    name: str                 # <name>.csv, and the key in the features dict
+    columns: tuple
+    int_cols: tuple           # integer columns (event ids)
+    event_cols: tuple         # columns of event ids, each must be in events.csv
+    keys: tuple               # unique together, and the sort order
+    float_format: str = "%.12g"
+    check: Callable | None = None   # table-specific check and cleaning: (df, path, meta) -> df
+    str_cols: tuple = ("array",)
+
+    def empty(self):
+        return pd.DataFrame({c: np.zeros(0, int if c in self.int_cols else str if c in self.str_cols else float)
+                             for c in self.columns})
+
+
+def _not_reference(df, path, meta):
+    """TDOA-M of the reference against itself is 0 by definition: dropped."""
+    return df[df["array"] != meta["reference_array"]]
+
+
+def _ordered_events(df, path, meta):
+    bad = (df["to_event"] <= df["from_event"]).to_numpy()
+    if bad.any():
+        raise InputError(f"{path}: line {int(np.flatnonzero(bad)[0]) + 2}: to_event must be after from_event")
+    return df
+
+
+def _unit_vectors(df, path, meta):
+    u = df[["ux", "uy", "uz"]].to_numpy(float)
+    n = np.linalg.norm(u, axis=1)
+    bad = np.abs(n - 1.0) > DOA_NORM_TOL
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{path}: line {k + 2}: DOA is not a unit vector (norm {n[k]:.4g})")
+    df = df.copy()
+    df[["ux", "uy", "uz"]] = u / n[:, None] if len(n) else u
+    return df
+
+
+FEATURE_TABLES = (
+    Table("tdoa_m", ("event", "array", "tdoa"), ("event",), ("event",), ("event", "array"), check=_not_reference),
+    Table("tdoa_s", ("array", "from_event", "to_event", "tdoa"), ("from_event", "to_event"),
+          ("from_event", "to_event"), ("array", "from_event", "to_event"), check=_ordered_events),
+    Table("doa", ("event", "array", "ux", "uy", "uz"), ("event",), ("event",), ("event", "array"),
+          float_format="%.10g", check=_unit_vectors),
+)
+ROWS_PER_MEASUREMENT = {"tdoa_m": 1, "tdoa_s": 1, "doa": 3}   # residuals per row, for the size check
+
+
 def validate_features(feats):
     """Validate an in-memory features dict (as produced by a reader or a simulator). Returns it cleaned."""
     meta = validate_meta(feats["meta"], feats["meta"].get("_path", "meta.json"))
@@ -279,57 +330,27 @@ def validate_features(feats):
     ev = feats["events"]
     events = set(ev["event"].tolist())
     out = {"meta": meta, "events": ev}
-
-    tm = feats.get("tdoa_m")
-    if tm is None:
-        tm = pd.DataFrame({"event": np.zeros(0, int), "array": np.zeros(0, str), "tdoa": np.zeros(0)})
-    p = tm.attrs.get("path", "tdoa_m.csv")
-    _check_member(tm, "array", arrays, p, "array")
-    _check_member(tm, "event", events, p, "event id")
-    _check_unique(tm, ["event", "array"], p)
-    tm = tm[tm["array"] != meta["reference_array"]]
-    out["tdoa_m"] = tm.sort_values(["event", "array"], kind="stable").reset_index(drop=True)
-
-    ts = feats.get("tdoa_s")
-    if ts is None:
-        ts = pd.DataFrame({"array": np.zeros(0, str), "from_event": np.zeros(0, int),
-                           "to_event": np.zeros(0, int), "tdoa": np.zeros(0)})
-    p = ts.attrs.get("path", "tdoa_s.csv")
-    _check_member(ts, "array", arrays, p, "array")
-    _check_member(ts, "from_event", events, p, "event id")
-    _check_member(ts, "to_event", events, p, "event id")
-    _check_unique(ts, ["array", "from_event", "to_event"], p)
-    bad = (ts["to_event"] <= ts["from_event"]).to_numpy()
-    if bad.any():
-        k = int(np.flatnonzero(bad)[0])
-        raise InputError(f"{p}: line {k + 2}: to_event must be after from_event")
-    out["tdoa_s"] = ts.sort_values(["array", "from_event", "to_event"], kind="stable").reset_index(drop=True)
-
-    doa = feats.get("doa")
-    if doa is None:
-        doa = pd.DataFrame({c: np.zeros(0) for c in DOA_COLS}).astype({"event": int, "array": str})
-    p = doa.attrs.get("path", "doa.csv")
-    _check_member(doa, "array", arrays, p, "array")
-    _check_member(doa, "event", events, p, "event id")
-    _check_unique(doa, ["event", "array"], p)
-    u = doa[["ux", "uy", "uz"]].to_numpy(float)
-    n = np.linalg.norm(u, axis=1)
-    bad = np.abs(n - 1.0) > DOA_NORM_TOL
-    if bad.any():
-        k = int(np.flatnonzero(bad)[0])
-        raise InputError(f"{p}: line {k + 2}: DOA is not a unit vector (norm {n[k]:.4g})")
-    doa = doa.copy()
-    doa[["ux", "uy", "uz"]] = u / n[:, None] if len(n) else u
-    out["doa"] = doa.sort_values(["event", "array"], kind="stable").reset_index(drop=True)
+    for t in FEATURE_TABLES:
+        df = feats.get(t.name)
+        df = t.empty() if df is None else df
+        p = df.attrs.get("path", f"{t.name}.csv")
+        _check_member(df, "array", arrays, p, "array")
+        for col in t.event_cols:
+            _check_member(df, col, events, p, "event id")
+        _check_unique(df, list(t.keys), p)
+        df = t.check(df, p, meta) if t.check else df
+        out[t.name] = df.sort_values(list(t.keys), kind="stable").reset_index(drop=True)
     where = Path(feats["meta"].get("_path", "features/meta.json")).parent
-    V.check_problem_size(len(ev), len(arrays), len(out["tdoa_m"]) + len(out["tdoa_s"]) + 3 * len(out["doa"]), where)
+    V.check_problem_size(len(ev), len(arrays), sum(ROWS_PER_MEASUREMENT[t.name] * len(out[t.name])
+                                                   for t in FEATURE_TABLES), where)
     return out
 
 
 def read_features(directory):
     """Read and validate a ``features/`` directory (docs/formats.md section 2).
 
-    ``tdoa_s.csv``, ``tdoa_m.csv`` and ``doa.csv`` are optional (absent = no such measurements).
+    The measurement tables (``FEATURE_TABLES``: tdoa_m.csv, tdoa_s.csv, doa.csv) are optional (absent = no
+    such measurements).
     """
     d = Path(directory)
     if not d.is_dir():
@@ -337,14 +358,10 @@ def read_features(directory):
     meta = _read_json(d / "meta.json")
     meta = validate_meta(meta, d / "meta.json")
     feats = {"meta": meta, "events": read_events(d / "events.csv")}
-    specs = {
-        "tdoa_m": (TDOA_M_COLS, ("event",), ("array",)),
-        "tdoa_s": (TDOA_S_COLS, ("from_event", "to_event"), ("array",)),
-        "doa": (DOA_COLS, ("event",), ("array",)),
-    }
-    for name, (cols, ints, strs) in specs.items():
-        p = d / f"{name}.csv"
-        feats[name] = read_table(p, cols, int_cols=ints, str_cols=strs) if p.exists() else None
+    for t in FEATURE_TABLES:
+        p = d / f"{t.name}.csv"
+        feats[t.name] = read_table(p, list(t.columns), int_cols=t.int_cols, str_cols=t.str_cols) if p.exists() \
+            else None
     feats["meta"]["_path"] = str(d / "meta.json")
     out = validate_features(feats)
     out["meta"].pop("_path", None)
@@ -363,9 +380,8 @@ def write_features_files(folder, feats):
     meta = {k: v for k, v in feats["meta"].items() if not k.startswith("_")}
     (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     write_table(feats["events"], folder / "events.csv", EVENTS_COLS, float_format="%.9f")
-    write_table(feats["tdoa_m"], folder / "tdoa_m.csv", TDOA_M_COLS, float_format="%.12g")
-    write_table(feats["tdoa_s"], folder / "tdoa_s.csv", TDOA_S_COLS, float_format="%.12g")
-    write_table(feats["doa"], folder / "doa.csv", DOA_COLS, float_format="%.10g")
+    for t in FEATURE_TABLES:
+        write_table(feats[t.name], folder / f"{t.name}.csv", list(t.columns), float_format=t.float_format)
 
 
 # ----------------------------------------------------------------------------------------------- calibration / truth
