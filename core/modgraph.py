@@ -23,10 +23,22 @@ def _source(name):
     return spec.origin if spec is not None and spec.origin and spec.origin.endswith(".py") else None
 
 
+def lazy_exports_of(package):
+    """{name: submodule} of a package that loads its names lazily (``EXPORTS`` in its ``__init__``,
+    see ``calib.lazy``), else {}."""
+    path = _source(package)
+    if path is None or not path.endswith("__init__.py"):
+        return {}
+    for node in ast.parse(Path(path).read_text()).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "EXPORTS" for t in node.targets):
+            return ast.literal_eval(node.value)
+    return {}
+
+
 def imported_modules(name, path):
     """The calib modules named by the import statements of ``name`` (source at ``path``), anywhere in
     the file (function-level imports included). ``from pkg import sub`` counts ``pkg.sub`` when that
-    is a module, else ``pkg``."""
+    is a module, the submodule behind ``sub`` when ``pkg`` loads it lazily, else ``pkg``."""
     tree = ast.parse(Path(path).read_text(), filename=str(path))
     package = name if Path(path).name == "__init__.py" else name.rpartition(".")[0]
     found = set()
@@ -38,8 +50,11 @@ def imported_modules(name, path):
             if node.level:
                 parts = package.split(".")
                 base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+            lazy = lazy_exports_of(base)
             for a in node.names:
                 sub = f"{base}.{a.name}"
+                if a.name in lazy:
+                    sub = f"{base}.{lazy[a.name]}"
                 found.add(sub if _source(sub) else base)
     return {m for m in found if _source(m)}
 

@@ -4,7 +4,9 @@
 session (``calib.pipeline.formats.session.read_session``); ``plot_detections(path, diagnostics)`` draws the
 detection timeline. Reading folders and writing files is the pipeline's job (``calib.pipeline.features``).
 """
-from .diagnostics import plot_detections
-from .extract import DEFAULTS, extract_features
+from calib.lazy import lazy_exports
 
-__all__ = ["extract_features", "plot_detections", "DEFAULTS"]
+EXPORTS = {"extract_features": "extract", "DEFAULTS": "extract", "plot_detections": "diagnostics"}
+__getattr__, __dir__ = lazy_exports(__name__, EXPORTS)
+
+__all__ = sorted(EXPORTS)

@@ -11,7 +11,6 @@ from fractions import Fraction
 
 import numpy as np
 import scipy.fft as sfft
-import scipy.signal as ss
 import soundfile as sf
 
 from calib.errors import InputError
@@ -197,6 +196,8 @@ def resample(x, fs_from, fs_to):
     """Band-limited rational resampling of a 1-D signal (polyphase)."""
     if fs_from == fs_to:
         return np.asarray(x, float)
+    import scipy.signal as ss  # (scipy.signal takes ~0.7 s to import: only when resampling)
+
     r = Fraction(fs_to / fs_from).limit_denominator(1000)
     return ss.resample_poly(np.asarray(x, float), r.numerator, r.denominator)
 

@@ -96,3 +96,15 @@ def test_pipeline_parts_import_one_way(name, path):
         bits = dep.split(".")
         if bits[:2] == ["calib", "pipeline"] and len(bits) > 2:
             assert bits[2] in PIPELINE_PARTS[part] | {part}, f"{name} ({part}) imports {dep}"
+
+
+def test_cli_startup_does_not_load_the_heavy_libraries():
+    """`calib --help` must not wait for the simulator's or the frontend's libraries (they load on use)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, calib.cli.main; heavy = ('pyroomacoustics', 'matplotlib', 'scipy.signal', 'scipy.stats', "
+            "'calib.estimator.calibrate', 'calib.frontend.extract'); "
+            "print(','.join(m for m in heavy if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "", f"loaded at startup: {out}"

@@ -21,7 +21,6 @@ import math
 
 import numpy as np
 from scipy.integrate import trapezoid
-from scipy.signal import butter, sosfiltfilt
 
 # Octave bands of pyroomacoustics' material tables (Hz); every material below is given on them.
 BAND_CENTERS = (125.0, 250.0, 500.0, 1000.0, 2000.0, 4000.0, 8000.0)
@@ -202,6 +201,8 @@ def schroeder_rt60(h, fs, band=RT60_BAND, fit=(-5.0, -25.0)):
     """RT60 (s) of an impulse response ``h`` (n,) in the octave around ``band`` Hz: Schroeder backward
     integration of the band-filtered energy, line fit between the ``fit`` levels (dB, T20 by default,
     (-5, -35) for T30), extrapolated to −60 dB."""
+    from scipy.signal import butter, sosfiltfilt  # (a measurement tool: scipy.signal loads only here)
+
     sos = butter(4, [band / math.sqrt(2), band * math.sqrt(2)], btype="band", fs=fs, output="sos")
     e = sosfiltfilt(sos, np.asarray(h, float)) ** 2
     edc = np.cumsum(e[::-1])[::-1]

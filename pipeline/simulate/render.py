@@ -18,7 +18,6 @@ import math
 import numpy as np
 import soundfile as sf
 from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
-from scipy.signal import fftconvolve
 
 from calib.pipeline.simulate import acoustics as ac
 
@@ -173,6 +172,8 @@ def segment(wave, t_start, dur, rir, a, fs, t0, delay, level, local_time):
 
     ``rir`` is a function of the array's true-time sample rate ``fsp`` returning (M, L) taps.
     """
+    from scipy.signal import fftconvolve  # (scipy.signal is slow to import: loaded when rendering)
+
     fsp = fs * (1.0 + a["drift"])                    # true-time rate of this array's samples
     nu = fs * local_time(t_start, a["tau"], a["drift"], t0)   # emission instant in this array's samples
     n0 = int(math.floor(nu))
