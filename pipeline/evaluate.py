@@ -166,7 +166,7 @@ def feature_errors(feats, scenario):
     for k, mics in enumerate(np.asarray(x["mics"], float) for x in arrays):
         _, sv, vt = np.linalg.svd(mics - mics.mean(axis=0))
         rows = i3 == k
-        if sv[2] < 1e-6 and rows.any():
+        if len(sv) == 3 and sv[1] >= 1e-6 > sv[2] and rows.any():   # planar (not linear: those are cones)
             n = vt[2]
             um = ut[rows] - 2.0 * (ut[rows] @ n)[:, None] * n
             alt = np.degrees(np.arccos(np.clip(np.sum(u[rows] * um, axis=1), -1.0, 1.0)))
