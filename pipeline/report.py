@@ -361,6 +361,13 @@ def summary_markdown(features, calib, res, metrics, diag, images):
           "axis, clock offset at the first event and drift relative to the emitter's clock; ± columns are "
           "1-σ from the estimator's covariance (position: norm over x, y, z).", "",
           arrays_markdown(calib["arrays"]), ""]
+    und = rep.get("undetermined") or []
+    if und:   # what the data do not determine (not estimated, NaN std): one line per array
+        by = {}
+        for u in und:
+            by.setdefault(u["array"], []).append(u["parameter"])
+        L += ["Not determined by the data (not estimated, no σ; the rest is): "
+              + "; ".join(f"{a}: {', '.join(v)}" for a, v in by.items()) + ".", ""]
     if metrics is not None:
         L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
     L += ["## Scene", "", f"![scene]({images['scene']})", ""]

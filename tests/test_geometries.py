@@ -14,6 +14,7 @@ from calib.frontend.doa import cone_vectors, fibonacci_sphere, mic_geometry, srp
 from calib.pipeline import roomsim as rs
 from calib.pipeline.evaluate import evaluate
 from calib.pipeline.featsim import simulate_features
+from calib.pipeline.io import write_calibration
 from calib.pipeline.scenes import named_mics
 
 C = 343.0
@@ -120,7 +121,7 @@ def _keep_events(feats, name, events):
 
 
 @pytest.mark.parametrize("seed", [5, 6])
-def test_undetermined_parameters_are_reported_and_the_rest_calibrated(seed):
+def test_undetermined_parameters_are_reported_and_the_rest_calibrated(seed, tmp_path):
     """One array with too few measurements no longer stops the calibration: what it leaves undetermined is
     named per parameter (NaN std, not scored), every other array is calibrated as well as without it."""
     feats, truth = simulate_features(3, 1e-4, 5.0, 0.03, seed=seed)
@@ -147,6 +148,16 @@ def test_undetermined_parameters_are_reported_and_the_rest_calibrated(seed):
         for name in ("A2", "A3", "A5"):
             assert per[name]["position_m"] < 1.5 * clean[name]["position_m"] + 0.01, (name, per[name])
             assert np.all(np.isfinite(a.loc[name, ["x_std", "rx_std", "offset_std", "drift_std"]].to_numpy(float)))
+        # calibration.json marks them too, and its covariance (rebuilt from disk) leaves them out
+        out = tmp_path / "_".join(sorted(expect))
+        write_calibration(out, cal, features=f)
+        doc = json.loads((out / "calibration.json").read_text())
+        entry = {e["name"]: e for e in doc["arrays"]}
+        assert set(entry["A4"]["undetermined"]) == und and entry["A2"]["undetermined"] == []
+        labels = doc["covariance"]["parameters"]
+        key = {"offset": "offset", "position": "x", "drift": "drift", "orientation": "rx"}
+        assert "A2.offset" in labels and not any(f"A4.{key[u]}" in labels for u in und)
+        assert np.all(np.isfinite(doc["covariance"]["matrix"]))
 
 
 # ----------------------------------------------------------------------------------------------- end to end
