@@ -4,7 +4,7 @@
     python benchmarks/bench_geometries.py --seeds 3    # quick look
     python benchmarks/bench_geometries.py --session pairs --preset lab   # realistic lab acoustics
 
-Sessions (``calib.pipeline.roomsim`` scenario keys; paper-traj3: 14 stops in a 4 × 4 × 2 m box, room RT60
+Sessions (``calib.pipeline.simulate.roomsim`` scenario keys; paper-traj3: 14 stops in a 4 × 4 × 2 m box, room RT60
 0.3 s, SNR 30 dB, rotations uniform on SO(3)):
 
 - ``pairs``: A1 a 6-mic octahedron (the reference) and A2–A4 2-mic pairs 6 cm apart
@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.pipeline.evaluate import feature_errors
-from calib.pipeline.io import read_features
-from calib.pipeline.roomsim import REALISTIC, make_scenario, simulate
+from calib.pipeline.report.evaluate import feature_errors
+from calib.pipeline.formats.io import read_features
+from calib.pipeline.simulate.roomsim import REALISTIC, make_scenario, simulate
 from calib.pipeline.run import run
 
 SESSIONS = {

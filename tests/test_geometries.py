@@ -11,11 +11,11 @@ from scipy.spatial.transform import Rotation
 from calib.errors import InputError
 from calib.estimator import calibrate
 from calib.frontend.doa import cone_vectors, fibonacci_sphere, mic_geometry, srp_cone
-from calib.pipeline import roomsim as rs
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.featsim import simulate_features
-from calib.pipeline.io import write_calibration
-from calib.pipeline.scenes import named_mics
+from calib.pipeline.simulate import roomsim as rs
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline.formats.io import write_calibration
+from calib.pipeline.simulate.scenes import named_mics
 
 C = 343.0
 
@@ -169,8 +169,8 @@ def test_mic_pairs_from_simulated_recordings_cli(tmp_path):
     from typer.testing import CliRunner
 
     from calib.cli.main import app
-    from calib.pipeline.evaluate import feature_errors
-    from calib.pipeline.io import read_calibration, read_features
+    from calib.pipeline.report.evaluate import feature_errors
+    from calib.pipeline.formats.io import read_calibration, read_features
 
     rec, out = tmp_path / "rec", tmp_path / "out"
     runner = CliRunner()
@@ -200,8 +200,8 @@ def test_mic_pairs_from_simulated_recordings_cli(tmp_path):
 def test_single_mic_and_linear_array_from_simulated_recordings(tmp_path):
     """A single microphone gets no DOA rows (position and clock from the TDOAs, orientation reported
     undetermined); a 4-mic linear array gets cone rows; the 3-D reference full DOAs."""
-    from calib.pipeline.evaluate import feature_errors
-    from calib.pipeline.io import read_features
+    from calib.pipeline.report.evaluate import feature_errors
+    from calib.pipeline.formats.io import read_features
     from calib.pipeline.run import run
 
     sc = rs.make_scenario("paper-traj1", seed=1, n_arrays=4, geometries=["octahedron", "single", "linear", "pair"],
