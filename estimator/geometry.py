@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .init import subproblem
 from .problem import copy_state, make_layout
 from .solver import levenberg_marquardt
 
@@ -53,7 +54,8 @@ def reseat(p, st, i):
     and other arrays fixed), the lower cost kept. Returns the state (a copy when it changed)."""
     s = st["s"] - st["s"].mean(axis=0)
     n = np.linalg.svd(s, full_matrices=False)[2][-1]
-    lay = make_layout(p, arrays=[i], sources=False, ref_drift=False, odo_yaw=False)
+    q = subproblem(p, [i])   # its own TDOA rows (other arrays' rows do not move with it)
+    lay = make_layout(q, arrays=[i], sources=False, ref_drift=False, odo_yaw=False)
     kinds = list(RESEAT_KINDS)
     best, best_cost = st, None
     for x0 in (st["x"][i], st["x"][i] - 2.0 * ((st["x"][i] - st["s"].mean(axis=0)) @ n) * n):
@@ -61,7 +63,7 @@ def reseat(p, st, i):
         trial["x"][i] = x0
         if p["rot_fixed_axis"][i] >= 0:
             trial = _align_axis(p, trial, i)
-        trial, info = levenberg_marquardt(p, trial, lay, kinds, loss="cauchy", k=3.0, max_iter=RESEAT_ITER)
+        trial, info = levenberg_marquardt(q, trial, lay, kinds, loss="cauchy", k=3.0, max_iter=RESEAT_ITER)
         if best_cost is None or info["cost"] < best_cost:
             best, best_cost = trial, info["cost"]
     return best
