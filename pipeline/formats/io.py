@@ -220,7 +220,7 @@ def read_events(path):
 # ----------------------------------------------------------------------------------------------- features
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", *SIGMA_KEYS, "chirp_drift_bias", "sigmas_estimated",
-             "doa_mirror_normals", "mics", "reference_detections_s")
+             "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s")
 
 
 def validate_meta(meta, path="meta.json"):
@@ -257,70 +257,26 @@ def validate_meta(meta, path="meta.json"):
     est = meta.get("sigmas_estimated")
     if est is not None and (not isinstance(est, list) or not all(k in SIGMA_KEYS for k in est)):
         raise InputError(f"{path}: 'sigmas_estimated' must be a list of {', '.join(SIGMA_KEYS)}")
-    folds = meta.get("doa_mirror_normals")
-    if folds is not None:
-        if not isinstance(folds, dict):
-            raise InputError(f"{path}: 'doa_mirror_normals' must map array names to [x, y, z]")
-        clean = {}
-        for name, n in folds.items():
-            if name not in arrays:
-                raise InputError(f"{path}: 'doa_mirror_normals' names unknown array {name!r}")
-            v = np.asarray(V.vector3(n, f"{path}: 'doa_mirror_normals' of {name!r}", nonzero=True))
-            clean[name] = (v / np.linalg.norm(v)).tolist()
-        out["doa_mirror_normals"] = clean
+    for key in ("doa_mirror_normals", "doa_axes"):
+        if meta.get(key) is not None:
+            out[key] = _array_vectors(meta[key], key, arrays, path)
+    both = set(out.get("doa_mirror_normals") or {}) & set(out.get("doa_axes") or {})
+    if both:
+        raise InputError(f"{path}: array {sorted(both)[0]!r} is in both 'doa_mirror_normals' and 'doa_axes'")
     return out
 
 
-@dataclass(frozen=True)
-class Table:
-    """One measurement table of a features/ folder (docs/formats.md section 2), described once: the
-    reader, the validation and the writer are derived from it. Columns beyond ``columns`` are kept."""
-    name: str                 # <name>.csv, and the key in the features dict
-    columns: tuple
-    int_cols: tuple           # integer columns (event ids)
-    event_cols: tuple         # columns of event ids, each must be in events.csv
-    keys: tuple               # unique together, and the sort order
-    float_format: str = "%.12g"
-    check: Callable | None = None   # table-specific check and cleaning: (df, path, meta) -> df
-    str_cols: tuple = ("array",)
-
-    def empty(self):
-        return pd.DataFrame({c: np.zeros(0, int if c in self.int_cols else str if c in self.str_cols else float)
-                             for c in self.columns})
-
-
-def _not_reference(df, path, meta):
-    """TDOA-M of the reference against itself is 0 by definition: dropped."""
-    return df[df["array"] != meta["reference_array"]]
-
-
-def _ordered_events(df, path, meta):
-    bad = (df["to_event"] <= df["from_event"]).to_numpy()
-    if bad.any():
-        raise InputError(f"{path}: line {int(np.flatnonzero(bad)[0]) + 2}: to_event must be after from_event")
-    return df
-
-
-def _unit_vectors(df, path, meta):
-    u = df[["ux", "uy", "uz"]].to_numpy(float)
-    n = np.linalg.norm(u, axis=1)
-    bad = np.abs(n - 1.0) > DOA_NORM_TOL
-    if bad.any():
-        k = int(np.flatnonzero(bad)[0])
-        raise InputError(f"{path}: line {k + 2}: DOA is not a unit vector (norm {n[k]:.4g})")
-    df = df.copy()
-    df[["ux", "uy", "uz"]] = u / n[:, None] if len(n) else u
-    return df
-
-
-FEATURE_TABLES = (
-    Table("tdoa_m", ("event", "array", "tdoa"), ("event",), ("event",), ("event", "array"), check=_not_reference),
-    Table("tdoa_s", ("array", "from_event", "to_event", "tdoa"), ("from_event", "to_event"),
-          ("from_event", "to_event"), ("array", "from_event", "to_event"), check=_ordered_events),
-    Table("doa", ("event", "array", "ux", "uy", "uz"), ("event",), ("event",), ("event", "array"),
-          float_format="%.10g", check=_unit_vectors),
-)
-ROWS_PER_MEASUREMENT = {"tdoa_m": 1, "tdoa_s": 1, "doa": 3}   # residuals per row, for the size check
+def _array_vectors(value, key, arrays, path):
+    """meta ``{array: [x, y, z]}`` (known arrays, non-zero vectors) → {array: unit vector as a list}."""
+    if not isinstance(value, dict):
+        raise InputError(f"{path}: '{key}' must map array names to [x, y, z]")
+    clean = {}
+    for name, n in value.items():
+        if name not in arrays:
+            raise InputError(f"{path}: '{key}' names unknown array {name!r}")
+        v = np.asarray(V.vector3(n, f"{path}: '{key}' of {name!r}", nonzero=True))
+        clean[name] = (v / np.linalg.norm(v)).tolist()
+    return clean
 
 
 def validate_features(feats):
