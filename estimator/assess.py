@@ -56,21 +56,21 @@ def rebuild(features, calib):
 def _rank_deficient(p, undetermined):
     """True when report.json ``undetermined`` names parameters found by the rank check (not the roll of a
     linear array, not the orientation of an array without DOAs for 2 events)."""
-    index = {str(n): i for i, n in enumerate(p["names"])}
+    index = {str(n): i for i, n in enumerate(p.names)}
     for u in undetermined:
         i = index.get(u.get("array"))
         if i is None or u.get("parameter") == "roll":
             continue
-        if u.get("parameter") != "orientation" or p["rot_free"][i]:
+        if u.get("parameter") != "orientation" or p.rot_free[i]:
             return True
     return False
 
 
 def _undetermined(p):
-    """{(array index, layout key)} of the parameters the rank check left out (``p["unobservable"]``)."""
+    """{(array index, layout key)} of the parameters the rank check left out (``p.unobservable``)."""
     key = {"position": "x", "orientation": "rot", "offset": "offset", "drift": "drift"}
-    index = {str(n): i for i, n in enumerate(p["names"])}
-    return {(index[u["array"]], key[u["parameter"]]) for u in p.get("unobservable", ())}
+    index = {str(n): i for i, n in enumerate(p.names)}
+    return {(index[u["array"]], key[u["parameter"]]) for u in p.unobservable}
 
 
 def residuals(model):
@@ -114,7 +114,7 @@ def position_covariances(model):
                 out[k] = cov_block(cov, ix)
         return out
 
-    return blocks(lay["x"], {i for i, key in _undetermined(p) if key == "x"}), blocks(lay["s"])
+    return blocks(lay.x, {i for i, key in _undetermined(p) if key == "x"}), blocks(lay.s)
 
 
 ARRAY_PARAMS = (("x", ("x", "y", "z")), ("rot", ("rx", "ry", "rz")), ("offset", ("offset",)), ("drift", ("drift",)))
@@ -134,11 +134,11 @@ def array_covariance(model):
     cov = covariance(J[w > 0], lay.n)
     labels, idx = [], []
     skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
-    for i, name in enumerate(p["names"]):
+    for i, name in enumerate(p.names):
         for key, names in ARRAY_PARAMS:
             if (i, key) in skip:
                 continue
-            cols = np.atleast_1d(lay[key][i])
+            cols = np.atleast_1d(getattr(lay, key)[i])
             for col, label in zip(cols, names):
                 if col >= 0:
                     labels.append(f"{name}.{label}")

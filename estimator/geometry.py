@@ -33,12 +33,12 @@ def axis_from_cones(n, cos_theta):
 def init_cone_axes(p, st):
     """Rotate each cone array so its axis points along the world axis its cone rows imply (in place);
     then every array without full DOAs is :func:`reseat`-ed."""
-    for i in np.flatnonzero(p["rot_fixed_axis"] >= 0):
-        if i == p["ref"]:
+    for i in np.flatnonzero(p.rot_fixed_axis >= 0):
+        if i == p.ref:
             continue
         st = _align_axis(p, st, i)
-    for i in np.flatnonzero((p["rot_fixed_axis"] >= 0) | ~p["rot_free"]):
-        if i != p["ref"]:
+    for i in np.flatnonzero((p.rot_fixed_axis >= 0) | ~p.rot_free):
+        if i != p.ref:
             st = reseat(p, st, i)
     return st
 
@@ -52,16 +52,16 @@ def reseat(p, st, i):
     """Array i (no full DOA) at the better of its current place and its mirror image across the sources'
     best-fit plane: each start refined by a robust fit of the array alone (position, axis, clock; sources
     and other arrays fixed), the lower cost kept. Returns the state (a copy when it changed)."""
-    s = st["s"] - st["s"].mean(axis=0)
+    s = st.s - st.s.mean(axis=0)
     n = np.linalg.svd(s, full_matrices=False)[2][-1]
     q = subproblem(p, [i])   # its own TDOA rows (other arrays' rows do not move with it)
     lay = make_layout(q, arrays=[i], sources=False, ref_drift=False, odo_yaw=False)
     kinds = list(RESEAT_KINDS)
     best, best_cost = st, None
-    for x0 in (st["x"][i], st["x"][i] - 2.0 * ((st["x"][i] - st["s"].mean(axis=0)) @ n) * n):
+    for x0 in (st.x[i], st.x[i] - 2.0 * ((st.x[i] - st.s.mean(axis=0)) @ n) * n):
         trial = copy_state(st)
-        trial["x"][i] = x0
-        if p["rot_fixed_axis"][i] >= 0:
+        trial.x[i] = x0
+        if p.rot_fixed_axis[i] >= 0:
             trial = _align_axis(p, trial, i)
         trial, info = levenberg_marquardt(q, trial, lay, kinds, loss="cauchy", k=3.0, max_iter=RESEAT_ITER)
         if best_cost is None or info["cost"] < best_cost:
@@ -71,10 +71,10 @@ def reseat(p, st, i):
 
 def _align_axis(p, st, i):
     """Array i's rotation turned so its axis points along the world axis its cone rows imply."""
-    m = p["cone_arr"] == i
-    w = st["s"][p["cone_ev"][m]] - st["x"][i]
-    b = axis_from_cones(w / np.linalg.norm(w, axis=1, keepdims=True), p["cone_cos"][m])
+    m = p.cone.arr == i
+    w = st.s[p.cone.ev[m]] - st.x[i]
+    b = axis_from_cones(w / np.linalg.norm(w, axis=1, keepdims=True), p.cone.cos[m])
     if b is not None:
-        rot, _ = Rotation.align_vectors(b[None], p["cone_axis"][i][None])
-        st["R"][i] = rot.as_matrix()
+        rot, _ = Rotation.align_vectors(b[None], p.cone_axis[i][None])
+        st.R[i] = rot.as_matrix()
     return st

@@ -37,9 +37,9 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
 
     Each null direction of the column-normalised Jacobian (the weakest one, found again after each fix)
     names the parameters it moves (weight >= NULL_SUPPORT of its largest): they are undetermined. An array
-    parameter among them (the largest) is then left out of the solve (``p["fixed_cols"]``, kept at its
+    parameter among them (the largest) is then left out of the solve (``p.fixed_cols``, kept at its
     initial value, NaN std) and the check repeated, so everything else is calibrated: parameters outside
-    every null direction are determined whatever the fixed values. ``p["unobservable"]`` gets one entry
+    every null direction are determined whatever the fixed values. ``p.unobservable`` gets one entry
     per (array, parameter): {"parameter", "array", "reason"} (report.json ``undetermined``). Raises
     ObservabilityError when a null direction moves no non-reference array parameter (e.g. sources only),
     or on the counting checks (collinear source path). ``lay`` is the full layout (recomputed here).
@@ -49,7 +49,7 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
 
     _check_counts(p)
     found = {}
-    for _ in range(4 * p["N"] * 8):  # each pass fixes at least one column
+    for _ in range(4 * p.N * 8):  # each pass fixes at least one column
         lay = make_layout(p)
         cols, untouched = _null_direction(p, lay, kinds, st, rel_tol, dense)
         if cols is None:
@@ -57,27 +57,27 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
         support = _support_blocks(p, lay, cols)
         if not support or (untouched and len(support) < len(cols)):
             raise ObservabilityError(f"the data cannot determine {_what(p, lay, cols, st)}")
-        fixed = p.setdefault("fixed_cols", {})
+        fixed = p.fixed_cols
         for i, key, label, k in support:
             found[(i, label)] = True
         # untouched columns all at once, else the array column the null direction moves most
         for i, key, _, k in (support if untouched else support[:1]):
-            mask = fixed.setdefault(key, np.zeros(lay[key].shape, bool))
+            mask = fixed.setdefault(key, np.zeros(getattr(lay, key).shape, bool))
             mask[(i, k) if mask.ndim == 2 else i] = True
     else:
         raise ObservabilityError("the data leave too many parameters undetermined")
-    p["unobservable"] = [{"parameter": label, "array": str(p["names"][i]),
-                          "reason": "the data do not determine it (rank-deficient Fisher information: too few "
-                                    "measurements of this array); not estimated (kept at its initial value, NaN "
-                                    "std), the other parameters are"}
-                         for (i, label) in sorted(found)]
-    return p["unobservable"]
+    p.unobservable = [{"parameter": label, "array": str(p.names[i]),
+                       "reason": "the data do not determine it (rank-deficient Fisher information: too few "
+                                 "measurements of this array); not estimated (kept at its initial value, NaN "
+                                 "std), the other parameters are"}
+                      for (i, label) in sorted(found)]
+    return p.unobservable
 
 
 def _null_direction(p, lay, kinds, st, rel_tol, dense):
     """The weakest direction of Jn if it is (numerically) null: ({column: |weight|}, untouched), else
     (None, False). Untouched columns (zero norm) come first, all at once (``untouched`` True)."""
-    _, J, _, _, _ = linearise(p, st, lay, kinds, dense=dense)
+    J = linearise(p, st, lay, kinds, dense=dense).J
     sparse = scipy.sparse.issparse(J)
     norms = np.sqrt(np.asarray(J.multiply(J).sum(axis=0)).ravel()) if sparse else np.linalg.norm(J, axis=0)
     if np.any(norms == 0):
@@ -100,10 +100,10 @@ def _support_blocks(p, lay, cols):
     (array, layout key, label, component)."""
     out = []
     for key, label in ARRAY_BLOCKS:
-        idx = lay[key].reshape(p["N"], -1)
+        idx = getattr(lay, key).reshape(p.N, -1)
         for i, k in np.argwhere(idx >= 0):
             c = int(idx[i, k])
-            if c in cols and i != p["ref"]:
+            if c in cols and i != p.ref:
                 out.append((cols[c], int(i), key, label, int(k)))
     return [b[1:] for b in sorted(out, key=lambda b: -b[0])]
 
@@ -112,7 +112,7 @@ def _what(p, lay, cols, st):
     """Words for the parameters of a null direction no array parameter can absorb."""
     worst = sorted(cols, key=lambda k: -cols[k])[:3]
     what = ", ".join(dict.fromkeys(describe_param(p, lay, k) for k in worst))
-    s = st["s"] - st["s"].mean(0)
+    s = st.s - st.s.mean(0)
     sv = np.linalg.svd(s, compute_uv=False)
     return what + (" (all sources are nearly collinear)" if sv[1] < 1e-3 * max(sv[0], 1e-12) else "")
 
@@ -121,8 +121,8 @@ def _check_counts(p):
     """The spread of the source path (cheap, named error). Arrays without DOAs for 2 events keep their
     orientation out of the estimate (``build_problem``); arrays without TDOA-M leave their offset to the
     rank check (undetermined, the rest calibrated)."""
-    K = p["K"]
-    o = p["odom"] - p["odom"].mean(0)
+    K = p.K
+    o = p.odom - p.odom.mean(0)
     sv = np.linalg.svd(o, compute_uv=False)
     if sv[1] / np.sqrt(K) < max(2.0 * p.sigma["odometry"], 1e-3 * sv[0] / np.sqrt(K)):
         raise ObservabilityError(

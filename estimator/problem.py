@@ -89,7 +89,8 @@ class Problem:
     cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
     (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
     odo_yaw_free: the odometry frame's yaw is estimated; odo_yaw_test: the test that decided it;
-    array_scale, array_own: per-array variance components (opt-in).
+    array_scale, array_own: per-array variance components (opt-in); fixed_cols, unobservable: the
+    parameters the data leave undetermined (left out of the solve, reported).
     """
     names: np.ndarray
     ref: int
@@ -114,6 +115,10 @@ class Problem:
     # {kind: (N,) bool, the array has its own component}
     array_scale: dict = dataclasses.field(default_factory=dict)
     array_own: dict = dataclasses.field(default_factory=dict)
+    # parameters the data leave undetermined (estimator/observability.py): {layout field: bool mask} of the
+    # columns left out of the solve, and one report entry per (array, parameter)
+    fixed_cols: dict = dataclasses.field(default_factory=dict)
+    unobservable: list = dataclasses.field(default_factory=list)
 
     @property
     def N(self):
@@ -128,8 +133,13 @@ class Problem:
         return getattr(self, kind)
 
     def replace(self, **changes):
-        """A shallow copy with ``changes`` (the sigma dict copied, so re-weighting never leaks back)."""
+        """A copy with ``changes``: measurement arrays shared, the per-solve state (sigmas, per-array
+        components, undetermined columns) copied, so a stage that changes it never leaks into another."""
         changes.setdefault("sigma", dict(self.sigma))
+        changes.setdefault("array_scale", {k: v.copy() for k, v in self.array_scale.items()})
+        changes.setdefault("array_own", {k: v.copy() for k, v in self.array_own.items()})
+        changes.setdefault("fixed_cols", {k: v.copy() for k, v in self.fixed_cols.items()})
+        changes.setdefault("unobservable", list(self.unobservable))
         return dataclasses.replace(self, **changes)
 
     def copy(self):
@@ -215,9 +225,9 @@ def _split_cones(p, meta, idx):
 
     ``doa_axes``: {array: axis}, the axis a unit vector in the array frame (sign free; usually a
     coordinate axis). Such an array measures only the angle θ between its axis and the source direction;
-    its doa.csv rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Adds
-    ``cone_ev``, ``cone_arr``, ``cone_cos``, ``cone_row`` (n_c,), ``cone_axis`` (N, 3), ``rot_fixed_axis``
-    (N,) and ``sigma_cone`` (rad). ``rot_fixed_axis`` is the array-frame coordinate axis k nearest the
+    its doa.csv rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Sets
+    ``p.cone`` (its rows), ``p.cone_axis`` (N, 3), ``p.rot_fixed_axis`` (N,) and ``p.sigma["cone"]`` (rad).
+    ``rot_fixed_axis`` is the array-frame coordinate axis k nearest the
     array's axis (-1 for other arrays): the rotation component about e_k is not estimated. The roll about
     the axis is not observable; the two components about the other coordinate axes move the axis in every
     direction (φ × a spans the plane ⟂ a when a_k ≠ 0), so they estimate it and fix that gauge.
@@ -225,14 +235,13 @@ def _split_cones(p, meta, idx):
     for name, ax in (meta.get("doa_axes") or {}).items():
         a = np.asarray(ax, float) / np.linalg.norm(ax)
         k = int(np.argmax(np.abs(a)))
-        p["cone_axis"][idx[name]] = a
-        p["rot_fixed_axis"][idx[name]] = k
-    is_cone = p["rot_fixed_axis"][p["doa_arr"]] >= 0
-    p["cone_ev"], p["cone_arr"], p["cone_row"] = p["doa_ev"][is_cone], p["doa_arr"][is_cone], p["doa_row"][is_cone]
-    p["cone_cos"] = np.clip(np.einsum("ka,ka->k", p["cone_axis"][p["cone_arr"]], p["doa_u"][is_cone]), -1.0, 1.0)
-    for key in ("doa_ev", "doa_arr", "doa_u", "doa_row"):
-        p[key] = p[key][~is_cone]
-    p["sigma_cone"] = p["sigma_doa"]
+        p.cone_axis[idx[name]] = a
+        p.rot_fixed_axis[idx[name]] = k
+    is_cone = p.rot_fixed_axis[p.doa.arr] >= 0
+    d = p.doa.select(is_cone)
+    p.cone = ConeRows(d.ev, d.arr, np.clip(np.einsum("ka,ka->k", p.cone_axis[d.arr], d.u), -1.0, 1.0), d.row)
+    p.doa = p.doa.select(~is_cone)
+    p.sigma["cone"] = p.sigma["doa"]
 
 
 # The yaw of the odometry frame needs horizontal motion: a spread of the odometry across the vertical
@@ -350,27 +359,30 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     if emission and K > 1:
         lay.e[1:] = take(K - 1)
     if odo_yaw is None:
-        odo_yaw = bool(p.get("odo_yaw_free", False)) and sources
-    lay["odo_yaw"] = take(1) if odo_yaw else -np.ones(1, int)
-    lay["n"] = n
-    return _without_fixed(lay, p.get("fixed_cols"))
+        odo_yaw = bool(p.odo_yaw_free) and sources
+    lay.odo_yaw = take(1) if odo_yaw else -np.ones(1, int)
+    lay.n = n
+    return _without_fixed(lay, p.fixed_cols)
 
 
 def _without_fixed(lay, fixed):
-    """Drop the columns the data leave undetermined (``p["fixed_cols"]``: {key: bool mask shaped like
-    lay[key]}, set by :func:`calib.estimator.observability.check_observability`) and renumber the rest in order."""
+    """Drop the columns the data leave undetermined (``p.fixed_cols``: {key: bool mask shaped like that
+    layout field}, set by :func:`calib.estimator.observability.check_observability`) and renumber the rest
+    in order."""
     if not fixed:
         return lay
     for key, mask in fixed.items():
-        lay[key] = np.where(mask, -1, lay[key])
-    keys = [k for k in lay if k != "n"]
-    used = np.zeros(lay["n"], bool)
+        setattr(lay, key, np.where(mask, -1, getattr(lay, key)))
+    keys = [f.name for f in dataclasses.fields(lay) if f.name != "n"]
+    used = np.zeros(lay.n, bool)
     for k in keys:
-        used[lay[k][lay[k] >= 0]] = True
+        cols = getattr(lay, k)
+        used[cols[cols >= 0]] = True
     new = np.cumsum(used) - 1
     for k in keys:
-        lay[k] = np.where(lay[k] >= 0, new[np.maximum(lay[k], 0)], -1)
-    lay["n"] = int(used.sum())
+        cols = getattr(lay, k)
+        setattr(lay, k, np.where(cols >= 0, new[np.maximum(cols, 0)], -1))
+    lay.n = int(used.sum())
     return lay
 
 

@@ -279,6 +279,58 @@ def _array_vectors(value, key, arrays, path):
     return clean
 
 
+@dataclass(frozen=True)
+class Table:
+    """One measurement table of a features/ folder (docs/formats.md section 2), described once: the
+    reader, the validation and the writer are derived from it. Columns beyond ``columns`` are kept."""
+    name: str                 # <name>.csv, and the key in the features dict
+    columns: tuple
+    int_cols: tuple           # integer columns (event ids)
+    event_cols: tuple         # columns of event ids, each must be in events.csv
+    keys: tuple               # unique together, and the sort order
+    float_format: str = "%.12g"
+    check: Callable | None = None   # table-specific check and cleaning: (df, path, meta) -> df
+    str_cols: tuple = ("array",)
+
+    def empty(self):
+        return pd.DataFrame({c: np.zeros(0, int if c in self.int_cols else str if c in self.str_cols else float)
+                             for c in self.columns})
+
+
+def _not_reference(df, path, meta):
+    """TDOA-M of the reference against itself is 0 by definition: dropped."""
+    return df[df["array"] != meta["reference_array"]]
+
+
+def _ordered_events(df, path, meta):
+    bad = (df["to_event"] <= df["from_event"]).to_numpy()
+    if bad.any():
+        raise InputError(f"{path}: line {int(np.flatnonzero(bad)[0]) + 2}: to_event must be after from_event")
+    return df
+
+
+def _unit_vectors(df, path, meta):
+    u = df[["ux", "uy", "uz"]].to_numpy(float)
+    n = np.linalg.norm(u, axis=1)
+    bad = np.abs(n - 1.0) > DOA_NORM_TOL
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{path}: line {k + 2}: DOA is not a unit vector (norm {n[k]:.4g})")
+    df = df.copy()
+    df[["ux", "uy", "uz"]] = u / n[:, None] if len(n) else u
+    return df
+
+
+FEATURE_TABLES = (
+    Table("tdoa_m", ("event", "array", "tdoa"), ("event",), ("event",), ("event", "array"), check=_not_reference),
+    Table("tdoa_s", ("array", "from_event", "to_event", "tdoa"), ("from_event", "to_event"),
+          ("from_event", "to_event"), ("array", "from_event", "to_event"), check=_ordered_events),
+    Table("doa", ("event", "array", "ux", "uy", "uz"), ("event",), ("event",), ("event", "array"),
+          float_format="%.10g", check=_unit_vectors),
+)
+ROWS_PER_MEASUREMENT = {"tdoa_m": 1, "tdoa_s": 1, "doa": 3}   # residuals per row, for the size check
+
+
 def validate_features(feats):
     """Validate an in-memory features dict (as produced by a reader or a simulator). Returns it cleaned."""
     meta = validate_meta(feats["meta"], feats["meta"].get("_path", "meta.json"))
