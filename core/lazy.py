@@ -1,5 +1,8 @@
-"""Packages whose public names load on first use (PEP 562), so ``import calib.estimator`` or
-``calib --help`` does not pay for scipy/pandas/matplotlib imports it does not need.
+"""Packages whose public names load on first use (PEP 562), so ``calib --help`` does not pay for
+imports it does not need (``calib.frontend``: scipy.signal, matplotlib).
+
+Not for a name that equals one of the package's submodules (``calib.estimator.calibrate``): importing that
+submodule rebinds the package attribute to the module, which a lazy name cannot undo.
 
 A package lists ``EXPORTS = {name: submodule}`` as a literal dict in its ``__init__``; ``calib.modgraph``
 reads that dict, so a stage's code digest still covers the submodule behind every name it imports.

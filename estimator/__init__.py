@@ -4,12 +4,15 @@ Public API: :func:`calibrate` (features → calibration), :func:`crlb` and :func
 Cramér–Rao bound at a ground truth), :func:`rebuild`, :func:`residuals`, :func:`position_covariances`,
 :func:`array_covariance` (a calibration evaluated against its features), :func:`to_frames` / :func:`state_from_frames`.
 """
-from calib.lazy import lazy_exports
+# Imported eagerly: ``calibrate`` is both a submodule and the function it exports, so a lazy package would
+# hand out the module once anything imported the submodule first.
+from .assess import array_covariance, position_covariances, rebuild, residuals
+from .calibrate import calibrate, to_frames, validate_options
+from .factors import KINDS, MeasurementKind
+from .init import ObservabilityError
+from .problem import LINE_COLUMN
+from .uncertainty import crlb, draw_from_crlb, state_from_frames
 
-EXPORTS = {"array_covariance": "assess", "position_covariances": "assess", "rebuild": "assess",
-           "residuals": "assess", "calibrate": "calibrate", "to_frames": "calibrate",
-           "validate_options": "calibrate", "KINDS": "factors", "MeasurementKind": "factors",
-           "ObservabilityError": "init", "LINE_COLUMN": "problem", "crlb": "uncertainty",
-           "draw_from_crlb": "uncertainty", "state_from_frames": "uncertainty"}
-__getattr__, __dir__ = lazy_exports(__name__, EXPORTS)
-__all__ = sorted(EXPORTS)
+__all__ = ["KINDS", "LINE_COLUMN", "MeasurementKind", "array_covariance", "calibrate", "crlb", "draw_from_crlb",
+           "ObservabilityError", "position_covariances", "rebuild", "residuals", "state_from_frames", "to_frames",
+           "validate_options"]
