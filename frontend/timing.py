@@ -24,6 +24,8 @@ cycle slips, and the timing follows the envelope's drift bias, which is linear i
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
@@ -87,6 +89,12 @@ def segment_spectra(x, starts, setup, plain=False):
     return (c, c_plain) if plain else c
 
 
+@lru_cache(maxsize=32)
+def _czt(n_q, n_t, w_cycles, a_cycles):
+    """A chirp z-transform plan (its set-up costs about as much as a transform): reused across calls."""
+    return CZT(n_q, n_t, w=np.exp(2j * np.pi * w_cycles), a=np.exp(-2j * np.pi * a_cycles))
+
+
 def lag_grid(c, setup, lo, hi, step=1.0):
     """Analytic correlation on the native lag grid: (J, M, hi − lo) complex64 for lag samples lo..hi-1
     (for peak search and gating; precise values come from :func:`corr_at`). ``step`` < 1: ``(hi − lo) /
@@ -99,7 +107,7 @@ def lag_grid(c, setup, lo, hi, step=1.0):
     k0, n_q, n_t = int(kb[0]), int(kb[-1] - kb[0] + 1), int(round((hi - lo) / step))
     d = np.zeros(c.shape[:-1] + (n_q,), np.complex64)
     d[..., kb - k0] = c
-    czt = CZT(n_q, n_t, w=np.exp(2j * np.pi * step / nfft), a=np.exp(-2j * np.pi * lo / nfft))
+    czt = _czt(n_q, n_t, float(step) / nfft, float(lo) / nfft)
     shift = np.exp(2j * np.pi * k0 * (lo + step * np.arange(n_t)) / nfft)  # the band's first bin back to its place
     return (czt(d, axis=-1) * shift).astype(np.complex64)
 
@@ -462,10 +470,11 @@ CLOSE_MAX_OVERLAP = 0.8  # ... if its pulse overlaps the direct one's less than 
 GRID_OVER = 4            # sub-sample steps per sample of the two-path fit's grid
 
 
-def pulse_response(setup, shape, lags):
-    """Correlation ``p(Δ) = Σ_f u_f e^{j2πfΔ}`` (u = shape / Σ shape) of one unit path at lags (samples)."""
-    unit = shape / shape.sum()
-    return np.exp(2j * np.pi * np.outer(np.asarray(lags, float) / setup["fs"], setup["freqs"])) @ unit
+def pulse_response(setup, shape, n, over):
+    """Correlation ``p(Δ) = Σ_f u_f e^{j2πfΔ}`` (u = shape / Σ shape) of one unit path at lags
+    ``Δ = 1/over .. n/over`` samples: (n,) complex."""
+    unit = (shape / shape.sum())[None, None, :]
+    return lag_grid(unit, setup, 1.0 / over, (n + 1.0) / over, 1.0 / over)[0, 0].astype(np.complex128)
 
 
 def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
@@ -483,17 +492,15 @@ def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
     energy the second path explains beyond the best single path (refined off the grid) relative to it.
     """
     fs = setup["fs"]
-    d_all = np.arange(1, int(max_sep * over) + 1)
-    p_all = pulse_response(setup, shape, d_all / over)
-    d = d_all[np.abs(p_all) < CLOSE_MAX_OVERLAP]
-    if not d.size:
-        d = d_all[-1:]
-    pd = pulse_response(setup, shape, d / over)  # p(Δ); p(−Δ) = conj
+    p_all = pulse_response(setup, shape, int(max_sep * over), over)   # p(Δ); p(−Δ) = conj
+    d = np.flatnonzero(np.abs(p_all) < CLOSE_MAX_OVERLAP) + 1
+    d = d if d.size else np.array([len(p_all)])
+    pd = p_all[d - 1]
     n1 = (2 * half_width + 1) * over
     lo = np.asarray(dp) - half_width
-    b = np.stack([lag_grid(c[j : j + 1], setup, lo[j], lo[j] + (n1 + d[-1]) / over, 1.0 / over)[0]
-                  for j in range(len(dp))])                                     # (J, M, n1 + d_max)
-    b = b.astype(np.complex128)
+    # every event's lags from its own lo: shift the spectra, then one transform for all
+    c_lo = c * phasors(setup["freqs"], lo / fs)[:, None, :]
+    b = lag_grid(c_lo, setup, 0, (n1 + d[-1]) / over, 1.0 / over).astype(np.complex128)  # (J, M, n1 + d_max)
     b1 = b[..., :n1, None]
     b2 = b[..., np.arange(n1)[:, None] + d[None, :]]                           # (J, M, n1, D)
     det = 1.0 - np.abs(pd) ** 2
@@ -515,11 +522,10 @@ def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
 
 def path_model(setup, shape, tau, a):
     """Spectra (..., Fb) of paths of complex amplitudes ``a`` (...) at ``tau`` (...) s: ``a u_f e^{−j2πfτ}``."""
-    unit = shape / shape.sum()
-    return a[..., None] * unit * np.exp(-2j * np.pi * setup["freqs"] * tau[..., None])
+    return a[..., None] * (shape / shape.sum()) * phasors(setup["freqs"], -tau)
 
 
-def refine_two_paths(c, setup, shape, t1, a1, t2, a2, iters=4):
+def refine_two_paths(c, setup, shape, t1, a1, t2, a2, iters=2):
     """Refine a two-path fit (:func:`two_path_fit`, on a grid) by alternating Newton steps on each path's
     envelope with the other's model subtracted (exact at the fixed point for two paths; a single path
     drives the second amplitude to ~0). Returns t1, a1, t2, a2 refined."""
