@@ -9,8 +9,9 @@ A session spec is ``PRESET:SEEDS[:KEY=VALUE,...]`` (seeds ``0-4`` or ``0,2``; th
 simulate --set` items). Sessions are written under ``--work`` (default a temporary folder) and reused
 when present there. Columns: position RMSE (cm) and geodesic orientation RMS (deg) over the non-reference
 arrays; the worst array (cm / deg); the verdict (report.json) with its flagged arrays; the frontend's CPU
-seconds (process time of the features stage, all threads: the machine may be loaded, wall time is not
-the cost) as a percentage of the recording duration. Then per group the medians and the worst seed.
+seconds (process time of `session_features` inside the run, all threads: the machine may be loaded, wall
+time is not the cost; the stage's plots and files are not counted) as a percentage of the recording
+duration. Then per group the medians and the worst seed.
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.pipeline import features
 from calib.pipeline.run import run
 
 DEFAULT = ["lab:0-4", "lab:0-4:chirp.kind=exponential", "lab:0-4:directivity=omni", "hard:0-2"]
@@ -52,18 +54,26 @@ def simulate(d, preset, seed, sets):
     cmd = [sys.executable, "-m", "calib", "simulate", "-o", str(d), "--preset", preset, "--seed", str(seed)]
     for s in sets:
         cmd += ["--set", s]
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def one(d, out):
     """calib run on session ``d``; errors, verdict and the features stage's CPU seconds."""
     cpu = {}
+    inner = features.session_features
 
-    def log(stage, status, detail):
-        if stage == "features" and status in ("run", "done"):
-            cpu[status] = time.process_time()
+    def timed(*args, **kw):  # the frontend alone (not the stage's plots and file writing)
+        t0 = time.process_time()
+        try:
+            return inner(*args, **kw)
+        finally:
+            cpu["s"] = time.process_time() - t0
 
-    res = run(d, out, force=True, log=log)
+    features.session_features = timed
+    try:
+        res = run(d, out, force=True)
+    finally:
+        features.session_features = inner
     m = res["metrics"]
     rep = json.loads((out / "calibration" / "report.json").read_text())
     verdict = rep.get("verdict") or {}
@@ -74,7 +84,7 @@ def one(d, out):
             "worst": f"{worst['array']} {100 * worst['position_m']:.1f} / {worst['geodesic_deg']:.1f}",
             "worst_cm": 100 * worst["position_m"], "status": verdict.get("status", "?"),
             "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-",
-            "cpu_pct": 100 * (cpu["done"] - cpu["run"]) / diag["recording_duration_s"]}
+            "cpu_pct": 100 * cpu["s"] / diag["recording_duration_s"]}
 
 
 def main():
