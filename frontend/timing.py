@@ -515,7 +515,7 @@ def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
     pick = lambda x: np.take_along_axis(x.reshape(flat.shape), k[..., None], axis=-1)[..., 0]  # noqa: E731
     # the best single path, refined off the grid: the second path must explain energy it cannot
     k1 = np.argmax(np.abs(b[..., :n1]), axis=-1)
-    _, z1 = newton_envelope(c, setup["freqs"], (lo[:, None] + k1 / over) / fs, iters=2)
+    _, z1 = newton_envelope(c, setup["freqs"], (lo[:, None] + k1 / over) / fs, iters=1)
     gain = (pick(energy) - np.abs(z1) ** 2) / np.maximum(np.abs(z1) ** 2, 1e-300)
     return t1, pick(a1 + 0 * b2), t2, pick(a2), gain
 
@@ -525,14 +525,14 @@ def path_model(setup, shape, tau, a):
     return a[..., None] * (shape / shape.sum()) * phasors(setup["freqs"], -tau)
 
 
-def refine_two_paths(c, setup, shape, t1, a1, t2, a2, iters=2):
+def refine_two_paths(c, setup, shape, t1, a1, t2, a2, iters=3):
     """Refine a two-path fit (:func:`two_path_fit`, on a grid) by alternating Newton steps on each path's
     envelope with the other's model subtracted (exact at the fixed point for two paths; a single path
     drives the second amplitude to ~0). Returns t1, a1, t2, a2 refined."""
     freqs = setup["freqs"]
     for _ in range(iters):
-        t2, a2 = newton_envelope(c - path_model(setup, shape, t1, a1), freqs, t2, iters=2)
-        t1, a1 = newton_envelope(c - path_model(setup, shape, t2, a2), freqs, t1, iters=2)
+        t2, a2 = newton_envelope(c - path_model(setup, shape, t1, a1), freqs, t2, iters=1)
+        t1, a1 = newton_envelope(c - path_model(setup, shape, t2, a2), freqs, t1, iters=1)
     return t1, a1, t2, a2
 
 
