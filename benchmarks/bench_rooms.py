@@ -8,7 +8,8 @@ per session the calibration's errors against truth, the verdict, and the fronten
 A session spec is ``PRESET:SEEDS[:KEY=VALUE,...]`` (seeds ``0-4`` or ``0,2``; the settings are `calib
 simulate --set` items). Sessions are written under ``--work`` (default a temporary folder) and reused
 when present there. Columns: position RMSE (cm) and geodesic orientation RMS (deg) over the non-reference
-arrays; the worst array (cm / deg); the verdict (report.json) with its flagged arrays; the frontend's CPU
+arrays; the worst array (cm / deg); the verdict (report.json) with its flagged arrays, and the worst of
+the arrays it did not flag (when it flagged any); the frontend's CPU
 seconds (process time of `session_features` inside the run, all threads: the machine may be loaded, wall
 time is not the cost; the stage's plots and files are not counted) as a percentage of the recording
 duration. Then per group the medians and the worst seed.
@@ -80,9 +81,14 @@ def one(d, out):
     diag = json.loads((out / "diagnostics" / "diagnostics.json").read_text())
     per = m["per_array"]
     worst = max(per, key=lambda a: a["position_m"])
+    named = set(verdict.get("flagged_arrays") or [])
+    rest = [a for a in per if a["array"] not in named]
+    rest_worst = max(rest, key=lambda a: a["position_m"]) if rest else None
     return {"loc_cm": 100 * m["position_rmse_m"], "geo_deg": m["orientation_geodesic_deg"],
             "worst": f"{worst['array']} {100 * worst['position_m']:.1f} / {worst['geodesic_deg']:.1f}",
             "worst_cm": 100 * worst["position_m"], "status": verdict.get("status", "?"),
+            "rest": "-" if rest_worst is None or not named else
+            f"{rest_worst['array']} {100 * rest_worst['position_m']:.1f} / {rest_worst['geodesic_deg']:.1f}",
             "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-",
             "cpu_pct": 100 * cpu["s"] / diag["recording_duration_s"]}
 
@@ -97,8 +103,8 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         print("| session | position RMSE (cm) | orientation (deg) | worst array (cm / deg) | verdict | flagged "
-              "| frontend CPU (% of audio) |")
-        print("|---|---|---|---|---|---|---|")
+              "| worst unflagged (cm / deg) | frontend CPU (% of audio) |")
+        print("|---|---|---|---|---|---|---|---|")
         groups = {}
         for spec in specs:
             preset, seeds, sets = parse_spec(spec)
@@ -109,7 +115,7 @@ def main():
                 r = one(d, Path(tmp) / "out" / d.name)
                 groups.setdefault(name, []).append(r)
                 print(f"| {name}, seed {seed} | {r['loc_cm']:.2f} | {r['geo_deg']:.2f} | {r['worst']} "
-                      f"| {r['status']} | {r['flagged']} | {r['cpu_pct']:.2f} |", flush=True)
+                      f"| {r['status']} | {r['flagged']} | {r['rest']} | {r['cpu_pct']:.2f} |", flush=True)
         print()
         print("| group | sessions | median position (cm) | median orientation (deg) | worst seed (cm) "
               "| verdicts | median frontend CPU (%) |")
