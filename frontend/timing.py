@@ -345,7 +345,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
                                   sidelobe_margin)
     reflection = np.where(reflection >= 0, reflection + r_lo, -1)
     c, r, env, separated = _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_width, r_lo,
-                                                      separate_pulses, separate_plain)
+                                                      separate_pulses, separate_plain, smear)
     kk = _mic_peaks(env, dp, r_lo, half_width)  # (J, M)
     env_tau, z = newton_envelope(c, freqs, (refine_peak_along(env, kk) + r_lo) / fs)
     if phase is None:
@@ -361,9 +361,11 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
 
 
 def _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_width, r_lo, separate_pulses,
-                               separate_plain):
-    """A strong reflection within ``separate_pulses`` pulse widths biases the direct path's peak (a wall just
-    behind the array: ~25 µs): model both paths, subtract the reflection, time the direct path alone.
+                               separate_plain, smear=0):
+    """A reflection within ``separate_pulses`` pulse widths biases the direct path's peak (a wall just
+    behind the array: 10-25 µs): model both paths, subtract the reflection, time the direct path alone.
+    A pulse dispersed by clock drift (``smear`` > 0) is no single-path pulse, so the two-path fit would
+    split it: then only a strong reflection with a peak of its own (``reflection``) is separated.
     Returns (c, r, env, separated (J,) bool) with the affected events' spectra and correlations updated."""
     freqs = setup["freqs"]
     separated = np.zeros(len(dp), bool)
@@ -372,6 +374,16 @@ def _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_w
     n_pulse = setup["fs"] / max(freqs.max() - freqs.min(), 1.0)
     src, shape = (c, setup["weights"]) if c_onset is None or not separate_plain else \
         (c_onset, setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2)
+    if smear > 0:
+        separated = (reflection >= 0) & (reflection - dp <= separate_pulses * n_pulse)
+        if not np.any(separated):
+            return c, r, env, separated
+        sel = np.flatnonzero(separated)
+        c = c.copy()
+        c[sel] = separate_reflection(src[sel], setup, shape, dp[sel], reflection[sel], half_width)
+        r = r.copy()
+        r[sel] = lag_grid(c[sel], setup, r_lo, r_lo + r.shape[-1])
+        return c, r, np.abs(r), separated
     *fit, gain = two_path_fit(src, setup, shape, dp, half_width, separate_pulses * n_pulse)
     separated = np.median(gain, axis=1) >= CLOSE_RATIO ** 2
     if not np.any(separated):
