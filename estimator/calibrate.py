@@ -355,9 +355,9 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None,
         if f.kind == "doa":
             red -= float(keep[sl].sum()) / 3.0  # a unit-vector residual has no noise along the direction itself
         if red >= min_redundancy:
-            out[f["kind"]] = float(np.sum(r[sl][keep[sl]] ** 2)) / red
+            out[f.kind] = float(np.sum(r[sl][keep[sl]] ** 2)) / red
             if redundancy is not None:
-                redundancy[f["kind"]] = red
+                redundancy[f.kind] = red
     return out
 
 
