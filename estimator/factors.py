@@ -202,7 +202,7 @@ def odometry_frame(p, st, lay):
     state/layout) is the plain :func:`odometry` factor.
     """
     K, sig = p["K"], p["sigma_odo"]
-    J = np.zeros((3 * max(K - 1, 0), lay["n"]))
+    J = jacobian(3 * max(K - 1, 0), lay)
     if K < 2:
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
     psi = float(st["odo_yaw"][0]) if "odo_yaw" in st else 0.0
@@ -232,7 +232,7 @@ def cone(p, st, lay):
     """
     i, j, c0 = p.get("cone_arr", np.zeros(0, int)), p.get("cone_ev", np.zeros(0, int)), p.get("cone_cos", np.zeros(0))
     m, sig = len(i), p.get("sigma_cone", p["sigma_doa"])
-    J = np.zeros((m, lay["n"]))
+    J = jacobian(m, lay)
     if m == 0:
         return _out("cone", np.zeros(0), J, np.zeros(0, int), 1, True, sig)
     d, n = _dist(st, i, j)

@@ -67,14 +67,80 @@ def stack_jacobians(Js, n, dense):
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
 
 
+class _LineariseCache:
+    """The last few factor evaluations (and stacked Jacobians), keyed by everything they depend on.
+
+    The estimator's stages often linearise again where the previous one stopped (each LM call starts
+    where the last ended; the outlier statistics, drop tests and covariances look at the state an LM call
+    just returned), so the factors are evaluated once per (problem, state, layout, kinds) and the identical
+    arrays reused. The key holds the state and layout by value and the problem's entries by identity
+    (the entry objects are kept alive here, so an id cannot be reused) and scalar value; problems are never
+    modified in place (a new sigma is a new entry), and the cached arrays are made read-only to enforce it.
+    """
+
+    SIZE = 4
+
+    def __init__(self):
+        self.entries = []   # [(key, problem values, fs, {dense: J})], most recent last
+
+    @staticmethod
+    def key(p, st, lay, kinds):
+        parts = [tuple(kinds), tuple(p)]
+        for d in (st, lay):
+            for name in sorted(d):
+                v = np.asarray(d[name])
+                parts.append((name, v.dtype.str, v.shape, v.tobytes()))
+        return tuple(parts)
+
+    @staticmethod
+    def same_problem(p, vals):
+        return len(p) == len(vals) and all(
+            a is b or (isinstance(a, (int, float, str, bool, np.number, type(None))) and type(a) is type(b) and a == b)
+            for a, b in zip(p.values(), vals))
+
+    def lookup(self, p, st, lay, kinds):
+        key = self.key(p, st, lay, kinds)
+        for e in reversed(self.entries):
+            if e[0] == key and self.same_problem(p, e[1]):
+                return key, e
+        return key, None
+
+    def store(self, key, p, fs):
+        for f in fs:
+            for name in ("r", "row"):
+                if isinstance(f[name], np.ndarray):
+                    f[name].setflags(write=False)
+        e = (key, list(p.values()), fs, {})
+        self.entries = self.entries[-(self.SIZE - 1):] + [e]
+        return e
+
+
+_CACHE = _LineariseCache()
+
+
+def factors_at(p, st, lay, kinds, dense=None):
+    """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input."""
+    key, e = _CACHE.lookup(p, st, lay, kinds)
+    if e is None:
+        e = _CACHE.store(key, p, evaluate(p, st, lay, kinds))
+    if dense is None:
+        return e[2], None
+    if dense not in e[3]:
+        J = stack_jacobians([f["J"] for f in e[2]], lay["n"], dense)
+        (J if dense else J.data).setflags(write=False)
+        e[3][dense] = J
+    return e[2], e[3][dense]
+
+
 def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
     ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
-    (None, see :func:`use_dense`).
+    (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
+    inputs (read-only).
     """
-    fs = evaluate(p, st, lay, kinds)
+    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f["r"]
@@ -85,14 +151,13 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
         cost += 0.5 * float(np.sum(c))
         r_all.append(r)
         w_all.append(w)
-    J = stack_jacobians([f["J"] for f in fs], lay["n"], use_dense(lay) if dense is None else dense)
     return np.concatenate(r_all), J, np.concatenate(w_all), cost, fs
 
 
 def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
     """½ Σ ρ(r) at ``st`` (residuals only: no Jacobian is stacked)."""
     cost = 0.0
-    for f in evaluate(p, st, lay, kinds):
+    for f in factors_at(p, st, lay, kinds)[0]:
         keep = np.ones(len(f["r"]), bool) if mask is None or f["kind"] not in mask else mask[f["kind"]]
         c, _ = rho(np.where(keep, f["r"], 0.0), loss if f["robust"] else None, k)
         cost += 0.5 * float(np.sum(np.where(keep, c, 0.0)))
