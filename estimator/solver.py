@@ -171,13 +171,6 @@ def scale_rows(J, w):
     return out
 
 
-def scale_sym(H, d):
-    """diag(d) @ H @ diag(d) for a CSR matrix, by scaling its stored values."""
-    out = H.copy()
-    out.data *= np.repeat(d, np.diff(H.indptr)) * d[H.indices]
-    return out
-
-
 def normal_equations(J, w, r):
     """H = Jᵀ W J and g = Jᵀ W r (dense arrays, or H sparse CSR when J is sparse)."""
     if scipy.sparse.issparse(J):
@@ -246,18 +239,31 @@ class Schur:
 
     def __init__(self, H, lay):
         H = scipy.sparse.csr_matrix(H)
+        H.sum_duplicates()
         n = H.shape[0]
         ev = event_columns(lay)
         ar = np.setdiff1d(np.arange(n), ev)
         self.perm, self.nA = np.concatenate([ar, ev]), len(ar)
         self.d = np.sqrt(np.maximum(H.diagonal(), 1e-300))
-        P = scale_sym(H, 1.0 / self.d)
-        if not np.array_equal(self.perm, np.arange(n)):
-            P = P[self.perm][:, self.perm]
-        nA = self.nA
-        self.Haa = P[:nA, :nA].toarray()
-        self.Hea = P[nA:, :nA].toarray()
-        self.Hee = P[nA:, nA:].tocsc()
+        # scale (as scale_sym) and split the stored entries straight into the three blocks: one pass over
+        # the entries instead of permuting the whole sparse matrix
+        inv_d = 1.0 / self.d
+        rows = np.repeat(np.arange(n), np.diff(H.indptr))
+        cols = H.indices
+        vals = H.data * (inv_d[rows] * inv_d[cols])
+        pos = np.empty(n, int)
+        pos[self.perm] = np.arange(n)
+        nA, nE = self.nA, n - self.nA
+        pr, pc = pos[rows], pos[cols]
+        ra, ca = pr < nA, pc < nA
+        self.Haa = np.zeros((nA, nA))
+        m = ra & ca
+        self.Haa[pr[m], pc[m]] = vals[m]
+        self.Hea = np.zeros((nE, nA))
+        m = ~ra & ca
+        self.Hea[pr[m] - nA, pc[m]] = vals[m]
+        m = ~ra & ~ca
+        self.Hee = scipy.sparse.csc_matrix((vals[m], (pr[m] - nA, pc[m] - nA)), shape=(nE, nE))
 
     def factor(self, lam=0.0):
         """Factorise Hs + lam I (Hs the scaled H). Raises RuntimeError if the event block is singular."""
