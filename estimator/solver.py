@@ -245,25 +245,16 @@ class Schur:
         ar = np.setdiff1d(np.arange(n), ev)
         self.perm, self.nA = np.concatenate([ar, ev]), len(ar)
         self.d = np.sqrt(np.maximum(H.diagonal(), 1e-300))
-        # scale (as scale_sym) and split the stored entries straight into the three blocks: one pass over
-        # the entries instead of permuting the whole sparse matrix
+        # the three blocks by scipy's row/column selection (C loops), scaled afterwards: the dense blocks by
+        # the outer product of 1/d, the banded event block entry-wise (the same products as scaling first)
         inv_d = 1.0 / self.d
-        rows = np.repeat(np.arange(n), np.diff(H.indptr))
-        cols = H.indices
-        vals = H.data * (inv_d[rows] * inv_d[cols])
-        pos = np.empty(n, int)
-        pos[self.perm] = np.arange(n)
-        nA, nE = self.nA, n - self.nA
-        pr, pc = pos[rows], pos[cols]
-        ra, ca = pr < nA, pc < nA
-        self.Haa = np.zeros((nA, nA))
-        m = ra & ca
-        self.Haa[pr[m], pc[m]] = vals[m]
-        self.Hea = np.zeros((nE, nA))
-        m = ~ra & ca
-        self.Hea[pr[m] - nA, pc[m]] = vals[m]
-        m = ~ra & ~ca
-        self.Hee = scipy.sparse.csc_matrix((vals[m], (pr[m] - nA, pc[m] - nA)), shape=(nE, nE))
+        inv_a, inv_e = inv_d[ar], inv_d[ev]
+        HA = H[:, ar]
+        self.Haa = HA[ar].toarray() * np.outer(inv_a, inv_a)
+        self.Hea = HA[ev].toarray() * np.outer(inv_e, inv_a)
+        Hee = H[ev][:, ev]
+        Hee.data *= np.repeat(inv_e, np.diff(Hee.indptr)) * inv_e[Hee.indices]
+        self.Hee = Hee.tocsc()
 
     def factor(self, lam=0.0):
         """Factorise Hs + lam I (Hs the scaled H). Raises RuntimeError if the event block is singular."""
