@@ -85,12 +85,10 @@ class _LineariseCache:
 
     @staticmethod
     def key(p, st, lay, kinds):
-        parts = [tuple(kinds), tuple(p)]
-        for d in (st, lay):
-            for name in sorted(d):
-                v = np.asarray(d[name])
-                parts.append((name, v.dtype.str, v.shape, v.tobytes()))
-        return tuple(parts)
+        names = (tuple(sorted(st)), tuple(sorted(lay)))
+        vals = [np.asarray(d[k]) for d, ks in zip((st, lay), names) for k in ks]
+        return (tuple(kinds), tuple(p), names, tuple((v.dtype.char, v.shape) for v in vals),
+                b"".join([v.tobytes() for v in vals]))
 
     @staticmethod
     def same_problem(p, vals):
