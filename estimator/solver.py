@@ -124,7 +124,13 @@ def factors_at(p, st, lay, kinds, dense=None):
     if dense is None:
         return e[2], None
     if dense not in e[3]:
-        J = stack_jacobians([f["J"] for f in e[2]], lay["n"], dense)
+        if dense and False in e[3]:   # the factors' chunks are gone: the same entries, from the sparse form
+            J = e[3][False].toarray()
+        else:
+            J = stack_jacobians([f["J"] for f in e[2]], lay["n"], dense)
+            if not dense:
+                for f in e[2]:
+                    f["J"] = None   # large problems: the stacked J replaces the per-factor chunks (memory)
         (J if dense else J.data).setflags(write=False)
         e[3][dense] = J
     return e[2], e[3][dense]
@@ -136,7 +142,8 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
     ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
     (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
-    inputs (read-only).
+    inputs (read-only); once a sparse J is stacked, the factor dicts carry no per-factor ``J`` (use
+    ``factors.evaluate`` for those).
     """
     fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense)
     r_all, w_all, cost = [], [], 0.0
