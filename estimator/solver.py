@@ -7,6 +7,8 @@ Small problems solve them dense; large ones with a sparse Jacobian and a Schur c
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import scipy.linalg
 import scipy.sparse
@@ -81,7 +83,8 @@ class _LineariseCache:
     SIZE = 4
 
     def __init__(self):
-        self.entries = []   # [(key, problem values, fs, {dense: J})], most recent last
+        self.entries = []   # [_Entry], most recent last
+        self.lock = threading.Lock()
 
     @staticmethod
     def key(p, st, lay, kinds):
@@ -98,42 +101,60 @@ class _LineariseCache:
 
     def lookup(self, p, st, lay, kinds):
         key = self.key(p, st, lay, kinds)
-        for e in reversed(self.entries):
-            if e[0] == key and self.same_problem(p, e[1]):
-                return key, e
+        with self.lock:
+            for e in reversed(self.entries):
+                if e.key == key and self.same_problem(p, e.vals):
+                    return key, e
         return key, None
 
     def store(self, key, p, fs):
+        chunks = [f["J"] for f in fs]
+        fs = [{**f, "J": None} for f in fs]   # the Jacobian lives in the entry (chunks, then stacked forms)
         for f in fs:
             for name in ("r", "row"):
                 if isinstance(f[name], np.ndarray):
                     f[name].setflags(write=False)
-        e = (key, list(p.values()), fs, {})
-        self.entries = self.entries[-(self.SIZE - 1):] + [e]
+        e = _Entry(key, list(p.values()), fs, chunks)
+        with self.lock:
+            self.entries = self.entries[-(self.SIZE - 1):] + [e]
         return e
+
+
+class _Entry:
+    """One cached evaluation: key, the problem's values (kept alive), factor dicts (``J`` None), the factors'
+    Jacobian chunks (dropped once a sparse J is stacked) and the stacked forms {dense: J}."""
+
+    __slots__ = ("key", "vals", "fs", "chunks", "forms")
+
+    def __init__(self, key, vals, fs, chunks):
+        self.key, self.vals, self.fs, self.chunks, self.forms = key, vals, fs, chunks, {}
 
 
 _CACHE = _LineariseCache()
 
 
 def factors_at(p, st, lay, kinds, dense=None):
-    """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input."""
+    """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input.
+
+    Thread-safe: concurrent calls at the same input may both compute it (the results are equal).
+    """
     key, e = _CACHE.lookup(p, st, lay, kinds)
     if e is None:
         e = _CACHE.store(key, p, evaluate(p, st, lay, kinds))
     if dense is None:
-        return e[2], None
-    if dense not in e[3]:
-        if dense and False in e[3]:   # the factors' chunks are gone: the same entries, from the sparse form
-            J = e[3][False].toarray()
+        return e.fs, None
+    J = e.forms.get(dense)
+    if J is None:
+        chunks, sparse = e.chunks, e.forms.get(False)   # (this order: chunks are dropped after the sparse J is in)
+        if sparse is not None:   # the chunks may be gone: the same entries from the sparse form
+            J = sparse if not dense else sparse.toarray()
         else:
-            J = stack_jacobians([f["J"] for f in e[2]], lay["n"], dense)
-            if not dense:
-                for f in e[2]:
-                    f["J"] = None   # large problems: the stacked J replaces the per-factor chunks (memory)
+            J = stack_jacobians(chunks, lay["n"], dense)
         (J if dense else J.data).setflags(write=False)
-        e[3][dense] = J
-    return e[2], e[3][dense]
+        e.forms[dense] = J
+        if not dense:
+            e.chunks = None   # large problems: the stacked J replaces the per-factor chunks (memory)
+    return e.fs, J
 
 
 def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
@@ -142,8 +163,7 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
     ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
     (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
-    inputs (read-only); once a sparse J is stacked, the factor dicts carry no per-factor ``J`` (use
-    ``factors.evaluate`` for those).
+    inputs (read-only); the factor dicts carry no per-factor ``J`` (``factors.evaluate`` has those).
     """
     fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense)
     r_all, w_all, cost = [], [], 0.0

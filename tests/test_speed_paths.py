@@ -93,3 +93,16 @@ def test_evaluation_lookups_follow_names_not_row_order(scene):
     assert np.isclose(m["position_rmse_m"], 0.1) and m["source_rmse_m"] < 1e-9
     back = state_from_frames(p, shuffled["arrays"], pd.concat([sources.iloc[:2], shuffled["sources"]]))
     assert np.allclose(back["x"][1:] - st["x"][1:], [0.1, 0, 0]) and np.allclose(back["s"], st["s"])
+
+
+def test_calibrations_in_threads_match_a_sequential_one(scene):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from calib.estimator import calibrate
+
+    feats = scene[0]
+    ref = calibrate(feats)["state"]
+    with ThreadPoolExecutor(3) as pool:
+        states = [c["state"] for c in pool.map(lambda _: calibrate(feats), range(3))]
+    for st in states:
+        assert all(np.array_equal(st[k], ref[k]) for k in ref)
