@@ -2,6 +2,7 @@
 
     python benchmarks/bench_estimator.py                # 200 runs per cell, 2 jobs, + real data
     python benchmarks/bench_estimator.py --runs 20      # quick look
+    python benchmarks/bench_estimator.py --runs 12 --jobs 1 --noise estimate --array-noise   # other weights
 
 Prints, per noise cell: convergence rate (final cost within 1e-6 of the solve started from ground truth),
 IQR-means of location / orientation (paper metric and geodesic) / offset / drift errors, the same for one
@@ -10,6 +11,7 @@ CRLB draw per run, and the paper's published values; then timings and the per-se
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 from pathlib import Path
@@ -19,9 +21,10 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 
+import calib.pipeline.montecarlo as montecarlo
 from calib.estimator import calibrate
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.io import read_features, read_truth
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.formats.io import read_features, read_truth
 from calib.pipeline.montecarlo import (PAPER_FINAL, SIGMA_DOA_DEG, SIGMA_TDOA, TRAJECTORIES, iqr_mean,
                                  run_one)
 
@@ -63,12 +66,12 @@ def table(df):
     return pd.DataFrame(out)
 
 
-def real(emission_sigma=0.0):
+def real(emission_sigma=0.0, options=None):
     rows = []
     for d in sorted(REAL.glob("zhang_real_*")):
         feats, truth = read_features(d / "features"), read_truth(d / "truth")
         t0 = time.perf_counter()
-        cal = calibrate(feats, emission_sigma=emission_sigma)
+        cal = calibrate(feats, emission_sigma=emission_sigma, **(options or {}))
         dt = time.perf_counter() - t0
         m = evaluate(cal, truth)
         pos = np.array([a["position_m"] for a in m["per_array"]])
@@ -89,7 +92,14 @@ def main():
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--no-sim", action="store_true")
     ap.add_argument("--csv", type=Path, help="write the per-run rows here")
+    ap.add_argument("--noise", default="auto", choices=("auto", "meta", "estimate"), help="calibrate(noise=...)")
+    ap.add_argument("--array-noise", action="store_true", help="per-array variance components (--noise estimate)")
     args = ap.parse_args()
+    options = {"noise": args.noise, "array_noise": args.array_noise}
+    if options != {"noise": "auto", "array_noise": False}:
+        if args.jobs != 1 and not args.no_sim:
+            ap.error("--noise/--array-noise apply in this process only: use --jobs 1")
+        montecarlo.calibrate = functools.partial(calibrate, **options)   # the study's calibrations (in process)
     pd.set_option("display.width", 200)
     pd.set_option("display.max_columns", 30)
     if not args.no_sim:
@@ -111,7 +121,7 @@ def main():
               f"whole study (incl. truth-start solves and CRLB) {wall:.0f} s on {args.jobs} jobs")
     if REAL.exists():
         for es in (0.0, 1e-3):
-            r = real(es)
+            r = real(es, options)
             print(f"\nreal data (../shared/real_world), emission correction sigma = {es * 1e3:g} ms")
             print(r.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
             print(f"over the sets: mean of the per-set mean over arrays {r['loc_cm'].mean():.2f} cm / "

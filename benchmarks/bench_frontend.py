@@ -19,7 +19,7 @@ the mics alternately 2 cm above and below the plane ("3D"); the "planar" rows re
 that mirror ambiguity.
 
 Columns: recall = correctly matched detections / events present in the audio; spurious = detections
-reported and discarded; wrong = detections matched to the wrong event (false measurements); TDOA errors vs `pipeline.roomsim.arrival_times` (µs): TDOA-M raw and
+reported and discarded; wrong = detections matched to the wrong event (false measurements); TDOA errors vs `pipeline.simulate.roomsim.arrival_times` (µs): TDOA-M raw and
 after removing the drift bias β(δ_i − δ_ref) that the estimator models (architecture.md); DOA angular
 error (deg) vs the true direction in the array frame; runtime = wall time of extract_features / the
 longest recording (fastest of --repeat runs: other jobs on a shared machine only slow it down).
@@ -38,8 +38,8 @@ from scipy.spatial.transform import Rotation
 
 
 from calib.pipeline.features import session_features as extract_features
-from calib.pipeline import roomsim
-from calib.pipeline.evaluate import feature_errors
+from calib.pipeline.simulate import roomsim
+from calib.pipeline.report.evaluate import feature_errors
 
 MICS_3D = np.c_[0.0354 * np.cos(np.arange(6) * np.pi / 3), 0.0354 * np.sin(np.arange(6) * np.pi / 3),
                 0.02 * (-1.0) ** np.arange(6)]

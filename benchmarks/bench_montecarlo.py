@@ -24,8 +24,8 @@ import pandas as pd
 
 
 from calib.estimator import calibrate
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.io import read_features, read_truth
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.formats.io import read_features, read_truth
 from calib.pipeline.montecarlo import _run_chunk, run_study
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"

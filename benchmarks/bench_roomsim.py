@@ -28,7 +28,7 @@ import soundfile as sf
 from scipy.optimize import minimize_scalar
 
 
-from calib.pipeline import roomsim as rs
+from calib.pipeline.simulate import roomsim as rs
 
 INF = float("inf")
 
@@ -171,7 +171,7 @@ def main():
             cells.append(f"{v:.3g}" if isinstance(v, float) else str(v))
         print("| " + " | ".join(cells) + " |")
     import os
-    print(f"\n{os.cpu_count()} CPUs; wall_s = pipeline.roomsim.simulate() including writing the session.")
+    print(f"\n{os.cpu_count()} CPUs; wall_s = pipeline.simulate.roomsim.simulate() including writing the session.")
 
 
 if __name__ == "__main__":

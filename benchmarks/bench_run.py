@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 
-from calib.pipeline.roomsim import make_scenario, simulate
+from calib.pipeline.simulate.roomsim import make_scenario, simulate
 from calib.pipeline.run import run
 
 BOUNDS = {"loc_cm": 5.0, "geo_deg": 3.0, "offset_us": 50.0, "drift_ppm": 5.0}

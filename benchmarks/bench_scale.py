@@ -5,7 +5,7 @@
     python benchmarks/bench_scale.py --arrays 40 --events 1000
     python benchmarks/bench_scale.py --dense-check   # sparse vs dense solver on small scenes
 
-Scenes (feature level, ``pipeline.featsim``): arrays on a grid in a room whose side grows with the number
+Scenes (feature level, ``pipeline.simulate.featsim``): arrays on a grid in a room whose side grows with the number
 of arrays (6 m for 3 arrays to 20 m for 40), at 1–2.5 m height, random orientations; a robot drives a
 random smooth path inside the room and chirps every 0–4 s; noise 0.1 ms (TDOA), 5° (DOA), 3 cm (odometry
 per step). Every case runs in its own subprocess (one calibration at a time, BLAS single-threaded as the
@@ -62,8 +62,8 @@ def scene(n_arrays, n_events, seed=0):
 
 
 def features(n_arrays, n_events, seed=0):
-    """(features, truth) of a scale scene, via ``pipeline.featsim.simulate_features``."""
-    from calib.pipeline.featsim import simulate_features
+    """(features, truth) of a scale scene, via ``pipeline.simulate.featsim.simulate_features``."""
+    from calib.pipeline.simulate.featsim import simulate_features
 
     x, stops = scene(n_arrays, n_events, seed)
     return simulate_features(stops, SIGMA_TDOA, SIGMA_DOA_DEG, SIGMA_ODO, seed=seed + 1, positions=x,

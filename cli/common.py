@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime
 import functools
+import inspect
 import os
 import sys
 import tempfile
@@ -19,8 +20,8 @@ import typer
 from rich.console import Console
 
 from calib.errors import InputError, InputWarning
-from calib.pipeline import validate as V
-from calib.pipeline.outputs import ENVIRONMENT_ERRNOS
+from calib.pipeline.formats import validate as V
+from calib.pipeline.formats.outputs import ENVIRONMENT_ERRNOS
 
 from . import signals
 from .signals import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL  # noqa: F401  (re-exported)
@@ -135,10 +136,40 @@ Noise = Annotated[str, typer.Option(help="weights: auto (re-estimate the fronten
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="print nothing but errors")]
 
 
+# (name, declaration, default) of the estimator options, in the order --help shows them
+ESTIMATE_OPTIONS = (("method", Method, "hybrid"), ("no_tdoa_s", NoTdoaS, False), ("emission_sigma", EmissionSigma, 0.0),
+                    ("loss", Loss, "cauchy"), ("outlier_threshold", OutlierThreshold, 5.0), ("noise", Noise, "auto"))
+
+
 def estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise):
     """Validated keyword arguments of ``estimator.calibrate`` from the shared CLI options (InputError)."""
     return V.estimate_options({"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma,
                                "loss": loss, "outlier_threshold": outlier_threshold, "noise": noise})
+
+
+def with_estimate_options(func):
+    """Give a command the estimator options (one declaration for `calib estimate` and `calib run`).
+
+    ``func`` declares a parameter ``est_opts``; the command shows the options of ``ESTIMATE_OPTIONS`` in its
+    place and ``func`` receives them validated (:func:`estimate_options`; put it under ``user_errors``).
+    """
+    sig = inspect.signature(func, eval_str=True)  # (typer does not evaluate a __signature__'s strings)
+    names = [n for n, _, _ in ESTIMATE_OPTIONS]
+    params = []
+    for p in sig.parameters.values():
+        if p.name != "est_opts":
+            params.append(p)
+            continue
+        params += [inspect.Parameter(n, inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=a, default=d)
+                   for n, a, d in ESTIMATE_OPTIONS]
+
+    @functools.wraps(func)
+    def wrapper(**kwargs):
+        values = [kwargs.pop(n) for n in names]
+        return func(**kwargs, est_opts=estimate_options(*values))
+
+    wrapper.__signature__ = sig.replace(parameters=params)
+    return wrapper
 
 
 def print_verdict(report, console):

@@ -5,24 +5,20 @@ from pathlib import Path
 
 import typer
 
-from calib.pipeline.io import write_calibration
-from calib.pipeline.outputs import owned_output
+from calib.pipeline.formats.io import write_calibration
+from calib.pipeline.formats.outputs import owned_output
 from calib.pipeline.run import estimate_features
-from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
-                     estimate_options, exit_on_failed, print_verdict, user_errors, waiting)
+from .common import (Quiet, console, exit_on_failed, print_verdict, user_errors, waiting,
+                     with_estimate_options)
 from .tables import print_arrays
 
 
 @user_errors
+@with_estimate_options
 def estimate(
     features: Path = typer.Argument(..., help="features/ directory (docs/formats.md section 2)"),
     out: Path = typer.Option(..., "-o", "--out", help="calibration/ directory to write (replaced atomically)"),
-    method: Method = "hybrid",
-    no_tdoa_s: NoTdoaS = False,
-    emission_sigma: EmissionSigma = 0.0,
-    loss: Loss = "cauchy",
-    outlier_threshold: OutlierThreshold = 5.0,
-    noise: Noise = "auto",
+    est_opts: dict = None,
     quiet: Quiet = False,
 ):
     """Estimate array poses, clock offsets/drifts and source positions from features.
@@ -30,9 +26,8 @@ def estimate(
     Exit code 0 when the verdict is ok or suspect, 3 when it is failed (the calibration is still written),
     2 on bad input.
     """
-    opts = estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise)
     with owned_output([out], [features], command="calib estimate", on_wait=waiting):
-        calib, feats = estimate_features(features, opts)
+        calib, feats = estimate_features(features, est_opts)
         write_calibration(out, calib, features=feats, command="calib estimate")  # + calibration.json
     if not quiet:
         print_arrays(calib)

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import typer
 
-from calib.pipeline.evaluate import evaluate as evaluate_metrics
-from calib.pipeline.io import dumps_json, read_calibration, read_truth
+from calib.pipeline.report.evaluate import evaluate as evaluate_metrics
+from calib.pipeline.formats.io import dumps_json, read_calibration, read_truth
 from .common import user_errors
 from .tables import print_metrics
 

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import typer
 
-from calib.pipeline.export import FORMATS, export as export_calibration
-from calib.pipeline.results import load_calibration
+from calib.pipeline.formats.export import FORMATS, export as export_calibration
+from calib.pipeline.formats.results import load_calibration
 from .common import Quiet, console, user_errors
 from calib.errors import InputError
 

@@ -24,9 +24,9 @@ def features(
 ):
     """Detect the chirps, match them to the robot's events, measure TDOA-M, TDOA-S and DOA."""
     from calib.pipeline.features import write_feature_outputs
-    from calib.pipeline.outputs import check_separate, owned_output
-    from calib.pipeline.session import read_session
-    from calib.pipeline.validate import features_options
+    from calib.pipeline.formats.outputs import check_separate, owned_output
+    from calib.pipeline.formats.session import read_session
+    from calib.pipeline.formats.validate import features_options
 
     diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
     opts = features_options({"threshold": detect_threshold, "max_drift": max_drift})

@@ -6,7 +6,7 @@ from typing import List, Optional
 
 import typer
 
-from calib.pipeline.io import InputError, atomic_write_text
+from calib.pipeline.formats.io import InputError, atomic_write_text
 from calib.pipeline.sessiontools import MODELS, init_session
 from .common import Quiet, console, user_errors
 

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from calib.pipeline.io import InputError
+from calib.pipeline.formats.io import InputError
 from .common import console, user_errors, waiting
 from .signals import interrupted
 
@@ -67,8 +67,8 @@ def montecarlo(
     """
     from calib.pipeline.montecarlo import paper_grid, read_grid, run_study
 
-    from calib.pipeline import validate as V
-    from calib.pipeline.outputs import output_lock
+    from calib.pipeline.formats import validate as V
+    from calib.pipeline.formats.outputs import output_lock
 
     V.option(runs, "runs", lo=1, hi=10**6, integer=True)
     if jobs != -1:

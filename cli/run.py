@@ -6,9 +6,8 @@ from typing import Optional
 
 import typer
 
-from calib.pipeline.io import dumps_json
-from .common import (EmissionSigma, Loss, Method, Noise, NoTdoaS, OutlierThreshold, Quiet, console,
-                     estimate_options, exit_on_failed, print_verdict, user_errors, waiting)
+from calib.pipeline.formats.io import dumps_json
+from .common import Quiet, console, exit_on_failed, print_verdict, user_errors, waiting, with_estimate_options
 from .signals import interrupted
 from .tables import out as stdout, print_arrays, print_metrics
 
@@ -58,18 +57,14 @@ class _Display:
 
 
 @user_errors
+@with_estimate_options
 def run(
     recordings: Path = typer.Argument(..., help="recording session folder (session.toml, WAVs, events.csv, "
                                                 "optional truth/)"),
     out: Optional[Path] = typer.Option(None, "-o", "--out",
                                        help="output folder (default: ./<session folder name>-calib)"),
     force: bool = typer.Option(False, "--force", help="recompute every stage even if its inputs are unchanged"),
-    method: Method = "hybrid",
-    no_tdoa_s: NoTdoaS = False,
-    emission_sigma: EmissionSigma = 0.0,
-    loss: Loss = "cauchy",
-    outlier_threshold: OutlierThreshold = 5.0,
-    noise: Noise = "auto",
+    est_opts: dict = None,
     detect_threshold: Optional[float] = typer.Option(
         None, show_default=False,
         help="chirp detection threshold: matched-filter peak over local background [default: 8]"),
@@ -91,7 +86,6 @@ def run(
 
     out = out if out is not None else Path(f"{recordings.resolve().name}-calib")
     feat_opts = {k: v for k, v in {"threshold": detect_threshold, "max_drift": max_drift}.items() if v is not None}
-    est_opts = estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise)
     show = not quiet and not json_out
     try:
         with _Display(show) as disp:

@@ -7,10 +7,10 @@ from typing import Optional
 
 import typer
 
-from calib.pipeline import validate as V
-from calib.pipeline.io import InputError
-from calib.pipeline.outputs import owned_output
-from calib.pipeline.roomsim import PRESETS, load_scenario, make_scenario, simulate as run_simulation, validate_scenario
+from calib.pipeline.formats import validate as V
+from calib.pipeline.formats.io import InputError
+from calib.pipeline.formats.outputs import owned_output
+from calib.pipeline.simulate.roomsim import PRESETS, load_scenario, make_scenario, simulate as run_simulation, validate_scenario
 from .common import console, user_errors, waiting
 
 

@@ -8,7 +8,7 @@ from rich.console import Console
 from rich.table import Table
 from scipy.spatial.transform import Rotation
 
-from calib.pipeline.evaluate import METRIC_ROWS
+from calib.pipeline.report.evaluate import METRIC_ROWS
 
 out = Console()
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .factors import ALL_KINDS, UNITS
+from .factors import ALL_KINDS, UNITS, natural
 from .factors import evaluate as factors
 from .problem import build_problem, make_layout
 from .solver import linearise
@@ -63,7 +63,7 @@ def residuals(model):
             continue
         unit, scale = UNITS[f["kind"]]
         keep = model["mask"].get(f["kind"], np.ones(len(f["r"]), bool))
-        r = f["r"] * f["sigma"]
+        r = natural(f)
         if f["kind"] == "doa":
             d = np.linalg.norm(r.reshape(-1, 3), axis=1)  # |v − u| = 2 sin(θ/2)
             vals = np.rad2deg(2 * np.arcsin(np.clip(d / 2, 0, 1)))

@@ -16,7 +16,8 @@ from threadpoolctl import ThreadpoolController
 
 from calib import __version__
 
-from .factors import ALL_KINDS, KINDS, UNITS
+from . import arraynoise
+from .factors import ALL_KINDS, KINDS, UNITS, natural
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .observability import check_observability
 from .geometry import init_cone_axes
@@ -82,7 +83,7 @@ def residual_table(fs, mask=None):
         if len(f["r"]) == 0:
             continue
         keep = mask[f["kind"]] if mask and f["kind"] in mask else np.ones(len(f["r"]), bool)
-        r = f["r"][keep] * f["sigma"]
+        r = natural(f)[keep]
         if f["dim"] == 3:
             r = np.linalg.norm(r.reshape(-1, 3), axis=1)
         unit, scale = UNITS[f["kind"]]
@@ -298,6 +299,9 @@ META_KEY = {k.name: k.meta_key for k in KINDS.values() if k.sigma_key}
 PRIOR_MAX_FACTOR = 3.0
 FREE_MAX_FACTOR = 100.0   # a frontend's own figure (or noise="estimate" for TDOA/DOA): bounded, not fixed
 VCE_ITERATIONS = 4        # variance-component steps at most; stopped early when a factor reverses or settles
+# with per-array components: more steps (the type's factor first takes up a noisy array's excess, then
+# gives it back when that array gets its own: a reversal that is not a sign of instability)
+VCE_ITERATIONS_ARRAYS = 10
 
 
 def sigma_bounds(meta, noise):
@@ -315,10 +319,11 @@ def sigma_bounds(meta, noise):
     return out
 
 
-def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None):
+def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None):
     """One variance-component step: {kind: Σ_k r² / Σ_k (1 − h_ii)} for types with enough redundancy.
 
-    ``cov``: (JᵀJ)⁻¹ at (st, lay, mask) when already computed.
+    ``cov``: (JᵀJ)⁻¹ at (st, lay, mask) when already computed. ``arrays`` (dict): filled with the
+    per-array factors {kind: (N,)} of the types with per-array components (``arraynoise.vce_groups``).
     """
     r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
     keep = w > 0
@@ -340,6 +345,8 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None):
         start += n
         if f["kind"] not in SIGMA_KEY or n == 0:
             continue
+        if arrays is not None and f["kind"] in (p.get("array_scale") or {}):
+            arrays[f["kind"]] = arraynoise.vce_groups(p, f, r[sl], h[sl], keep[sl])
         red = float(np.sum((1.0 - h[sl])[keep[sl]]))
         if f["kind"] == "doa":
             red -= float(keep[sl].sum()) / 3.0  # a unit-vector residual has no noise along the direction itself
@@ -360,29 +367,42 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
     Returns (state, p with new sigmas, info with the total scales and which types hit their bound).
     """
     p = dict(p)
+    if p.get("array_scale"):
+        p["array_scale"] = {k: a.copy() for k, a in p["array_scale"].items()}
+        p["array_own"] = {}
     lay = lay or make_layout(p)
     bounds = bounds or {k: FREE_MAX_FACTOR for k in SIGMA_KEY}
     base = stated or {k: p[v] for k, v in SIGMA_KEY.items()}
     scales = {k: p[v] / base[k] for k, v in SIGMA_KEY.items()}
     last_dir = {}
     info, at_bound = {}, {}
-    for _ in range(iterations):
-        fac = _vce_factors(p, st, lay, kinds, mask, min_redundancy)
+    steps = max(iterations, VCE_ITERATIONS_ARRAYS) if p.get("array_scale") else iterations
+    for it in range(steps):
+        per_array = {}
+        fac = _vce_factors(p, st, lay, kinds, mask, min_redundancy, arrays=per_array)
         changed, reversed_ = False, False
         for kind, f2 in fac.items():
+            own = kind in per_array and bool(np.any(arraynoise.own_components(p, kind, per_array[kind])))
+            if own:
+                f2 = arraynoise.type_factor(p, kind, per_array[kind], f2, min_redundancy)
             step = float(np.sqrt(np.clip(f2, 1e-8, 1e8)))
             b = bounds.get(kind, FREE_MAX_FACTOR)
             total = float(np.clip(scales[kind] * step, 1.0 / b, b))
             at_bound[kind] = bool(scales[kind] * step > b * (1 + 1e-9) or scales[kind] * step < (1 - 1e-9) / b)
             step = total / scales[kind]
             d = np.sign(step - 1.0) if abs(step - 1.0) > 0.01 else 0.0
-            reversed_ |= bool(d and last_dir.get(kind, d) != d)
-            last_dir[kind] = d
             scales[kind] = total
             p[SIGMA_KEY[kind]] = base[kind] * total
             changed |= abs(step - 1.0) > 0.01
+            if own:
+                a_steps = arraynoise.update_scales(p, kind, per_array[kind], step, total, b)
+                changed |= bool(np.any(np.abs(a_steps - 1.0) > 0.01))
+                continue   # the type's factor may reverse while its arrays' move (see VCE_ITERATIONS_ARRAYS)
+            reversed_ |= bool(d and last_dir.get(kind, d) != d)
+            last_dir[kind] = d
         st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
-        if not changed or reversed_:
+        own = any(np.any(v) for v in p.get("array_own", {}).values())
+        if not changed or reversed_ or (it + 1 >= iterations and not own):
             break
     return st, p, {"scale": scales, "at_bound": at_bound, "bounds": bounds, **info}
 
@@ -439,7 +459,7 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
 
 
 def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto"):
+                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", array_noise=False):
     """Raise ValueError with a clear message for any option of :func:`calibrate_features` out of range.
 
     The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
@@ -465,8 +485,9 @@ def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, lo
     number("outlier_threshold", outlier_threshold, 0.0, True)
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
         raise ValueError(f"max_iter must be an integer >= 1, not {max_iter!r}")
-    if not isinstance(use_tdoa_s, (bool, np.bool_)):
-        raise ValueError(f"use_tdoa_s must be True or False, not {use_tdoa_s!r}")
+    for name, v in (("use_tdoa_s", use_tdoa_s), ("array_noise", array_noise)):
+        if not isinstance(v, (bool, np.bool_)):
+            raise ValueError(f"{name} must be True or False, not {v!r}")
 
 
 def _yaw_std_deg(cov, yaw_i, p, st, lay, kinds, mask):
@@ -522,12 +543,13 @@ def calibrate(features, **options):
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True):
+              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True,
+              array_noise=False):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters
     ----------
-    features : dict from ``pipeline.io.read_features`` (or a simulator).
+    features : dict from ``pipeline.formats.io.read_features`` (or a simulator).
     method : "hybrid" (this project's estimator, Zhang et al. structure) or "wang" (the baseline; see
         ``estimator.wang``).
     use_tdoa_s : use TDOA-S measurements (False gives Wang et al.'s setting with our solver).
@@ -543,6 +565,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         re-solves, so weights and error bars follow the data's actual noise; "auto" (default) estimates
         when meta.json says its sigmas are a frontend's own figures (``sigmas_estimated``), else "meta".
         User-stated sigmas move at most PRIOR_MAX_FACTOR (3×) either way.
+    array_noise : with noise="estimate", also one sigma factor per (type, array) where the redundancy
+        allows (``estimator.arraynoise``); no effect with noise="meta".
     odometry_yaw : estimate the odometry frame's yaw (kept only when significant; docs/method.md).
 
     Returns
@@ -551,7 +575,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     std per axis of the array frame in rad) and ``report`` (dict with ``verdict`` first, see docs/method.md).
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
-                     robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise)
+                     robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise,
+                     array_noise=array_noise)
     if loss == "linear":
         loss = None
     times = {}
@@ -572,6 +597,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     t2 = time.perf_counter()
     if noise == "auto":
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
+    if noise == "estimate" and array_noise:
+        arraynoise.start_scales(p, kinds)
     st, p, info, scales, bounds = _joint_solve(p, st, kinds, stages, features["meta"], noise=noise, loss=loss,
                                                robust_k=robust_k, outlier_threshold=outlier_threshold,
                                                max_iter=max_iter)
@@ -604,7 +631,8 @@ def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_t
         st, p, vce = estimate_noise(p, st, kinds, info["mask"], bounds=bounds, max_iter=max_iter,
                                     lay=info["layout"], stated=stated)
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
-        stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds}
+        stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds,
+                           "array_scale": arraynoise.report_scales(p)}
     scales = {k: p[v] / stated[k] for k, v in SIGMA_KEY.items()}
     return st, p, info, scales, bounds
 
@@ -635,7 +663,7 @@ def _report(p, st, info, stages, judged, fs, *, method, noise, emission_sigma, t
         "drift_reference": "emitter clock" if len(p["ts_val"]) else "reference array (no TDOA-S: its drift fixed to 0)",
         "sigmas": {"tdoa_s": p["sigma_tdoa_s"], "tdoa_m": p["sigma_tdoa_m"], "doa_rad_per_axis": p["sigma_doa"],
                    "odometry_m": p["sigma_odo"], "cone_rad": p["sigma_cone"], "emission_s": emission_sigma,
-                   "source": noise},
+                   "source": noise, "per_array_factor": arraynoise.report_scales(p)},
         "timings_s": times,
         "odometry_frame": odo_frame,
         "odometry_yaw_deg": odo_frame["yaw_deg"],

@@ -288,6 +288,35 @@ UNITS = {k.name: (k.unit, k.scale) for k in KINDS.values()}
 FACTORS = {k.name: k.factor for k in KINDS.values()}
 
 
+# The problem key of each measurement kind's array index: the kinds that can carry a per-array
+# variance component (``p["array_scale"]``, estimator/arraynoise.py).
+ARRAY_KEY = {"tdoa_s": "ts_arr", "tdoa_m": "tm_arr", "doa": "doa_arr", "cone": "cone_arr"}
+
+
+def per_array(p, f):
+    """A factor with per-array variance components applied: residual rows of array i divided by
+    ``p["array_scale"][kind][i]`` (its sigma relative to the type's), Jacobian rows alike; the per-residual
+    sigma goes to ``sigma_rows``. Unchanged when the problem has no component for the factor's kind."""
+    scale = (p.get("array_scale") or {}).get(f["kind"])
+    if scale is None or len(f["r"]) == 0:
+        return f
+    s = np.repeat(np.asarray(scale, float)[p[ARRAY_KEY[f["kind"]]]], f["dim"])
+    J = f["J"]
+    if isinstance(J, Jacobian):
+        out = Jacobian(*J.shape)
+        out.chunks = [(rr, cc, vv / s[rr]) for rr, cc, vv in J.chunks]
+    else:
+        out = np.asarray(J) / s[:, None]
+    return {**f, "r": f["r"] / s, "J": out, "sigma_rows": f["sigma"] * s}
+
+
+def natural(f):
+    """A factor's residuals in SI units (whitened residual × its row's sigma)."""
+    return f["r"] * f.get("sigma_rows", f["sigma"])
+
+
 def evaluate(p, st, lay, kinds=None):
-    """Evaluate the listed factors (default all) → list of factor dicts."""
+    """Evaluate the listed factors (default all) → list of factor dicts (per-array components applied)."""
+    if p.get("array_scale"):
+        return [per_array(p, FACTORS[k](p, st, lay)) for k in (kinds or FACTORS)]
     return [FACTORS[k](p, st, lay) for k in (kinds or FACTORS)]

@@ -4,7 +4,8 @@ Convention (docs/method.md, "Odometry frame"): the odometry's z axis is the refe
 the odometry's x-y axes are rotated by the yaw ψ about it, so a step measured as Δo in the odometry frame
 is ``Rz(ψ) Δo`` in the reference frame (``factors.odometry_frame``). ψ is estimated with the rest when the
 odometry moves horizontally (``problem.odometry_yaw_observable``); its start value comes from the
-reference array's DOAs here, by a grid over ψ of the angular misfit of the source chain on their rays.
+reference array's DOAs here, by a grid over ψ of the angular misfit of the source chain on their rays
+(mirror-ambiguous DOAs of a planar reference array unfolded on the way).
 """
 from __future__ import annotations
 
@@ -21,33 +22,44 @@ def rotate_odometry(odom, yaw):
     return Rotation.from_euler("z", yaw).apply(np.array(odom, float))
 
 
+UNFOLD_PASSES = 3   # mirror-ambiguous reference DOAs: alternations of (chain fit, side choice per DOA)
+
+
 def ray_misfit(p, yaws):
     """Σ sin²(angle) between the reference DOAs and the source chain fitted to them, per yaw (Y,) → (Y,).
 
     The chain's start point is the linear least-squares point of ``init.init_sources`` (rays vs.
-    ``s_0 + Rz(ψ) o_j``); its normal matrix does not depend on ψ, so all yaws are solved at once.
+    ``s_0 + Rz(ψ) o_j``). Full DOAs: its normal matrix does not depend on ψ, so all yaws are solved at
+    once. Mirror-ambiguous reference DOAs (planar reference array, fold normal n): each DOA is used on the
+    side of the mic plane where the chain fitted so far lies, alternating with the chain fit
+    (``UNFOLD_PASSES``), still for all yaws at once.
     """
     m = p["doa_arr"] == p["ref"]
     u, j = p["doa_u"][m], p["doa_ev"][m]
+    n = p["fold"][p["ref"]]
     o = (p["odom"] - p["odom"][0])[j]                                   # (n, 3)
-    P = np.eye(3)[None] - u[:, :, None] * u[:, None, :]                 # (n, 3, 3)
-    A = P.sum(0)
-    if np.linalg.cond(A) > 1e8:
-        return np.full(len(yaws), np.inf)
     c, sn = np.cos(np.atleast_1d(yaws))[:, None], np.sin(np.atleast_1d(yaws))[:, None]
     oy = np.stack([c * o[:, 0] - sn * o[:, 1], sn * o[:, 0] + c * o[:, 1],
                    np.broadcast_to(o[:, 2], c.shape[:1] + o[:, 2].shape)], axis=2)   # (Y, n, 3) = Rz(ψ) o
-    s0 = -np.linalg.solve(A, np.einsum("nab,ynb->ay", P, oy)).T          # (Y, 3)
-    v = s0[:, None, :] + oy
-    v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-12)
-    return np.sum(1.0 - np.einsum("yna,na->yn", v, u) ** 2, axis=1)
+    U = np.broadcast_to(u, oy.shape)
+    for _ in range(UNFOLD_PASSES if np.any(n) else 1):
+        P = np.eye(3) - U[..., :, None] * U[..., None, :]                # (Y, n, 3, 3)
+        A = P.sum(1)
+        if np.any(np.linalg.cond(A) > 1e8):
+            return np.full(len(yaws), np.inf)
+        s0 = -np.linalg.solve(A, np.einsum("ynab,ynb->ya", P, oy)[..., None])[..., 0]   # (Y, 3)
+        v = s0[:, None, :] + oy
+        v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-12)
+        if np.any(n):
+            U = np.where(((v @ n) * (U @ n) < 0)[..., None], U - 2.0 * (U @ n)[..., None] * n, U)
+    return np.sum(1.0 - np.einsum("yna,yna->yn", v, U) ** 2, axis=1)
 
 
 def initial_yaw(p):
-    """Start value of the odometry yaw (rad) from the reference array's DOAs; 0 when they cannot tell
-    (mirror-ambiguous reference DOAs, fewer than 3)."""
+    """Start value of the odometry yaw (rad) from the reference array's DOAs (mirror-ambiguous ones
+    unfolded by :func:`ray_misfit`); 0 when they cannot tell (fewer than 3)."""
     m = p["doa_arr"] == p["ref"]
-    if m.sum() < 3 or np.any(p["fold"][p["ref"]]):
+    if m.sum() < 3:
         return 0.0
     coarse = np.deg2rad(np.arange(-180.0, 180.0, COARSE_STEP_DEG))
     best = coarse[int(np.argmin(ray_misfit(p, coarse)))]

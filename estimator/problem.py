@@ -30,7 +30,7 @@ DEFAULT_SIGMA_TDOA = 1e-4      # s
 DEFAULT_SIGMA_DOA_DEG = 5.0    # deg per tangent axis
 DEFAULT_SIGMA_ODO = 0.01       # m per axis per step
 
-# The readers (calib.pipeline.io) add each row's line in its CSV file (header = 1) under this column, so
+# The readers (calib.pipeline.formats.io) add each row's line in its CSV file (header = 1) under this column, so
 # outliers can be reported by file line; it lives in memory only and is never written.
 LINE_COLUMN = "csv_line"
 
@@ -41,7 +41,7 @@ def sigma_doa_per_axis(sigma_deg):
     ``sigma_doa_deg`` is the standard deviation of the DOA error along each of the two axes
     perpendicular to the true direction (the weighting of the paper's code, where each component of the
     unit-vector residual has std 2·sin(σ/2) ≈ σ). The paper's simulation draws a rotation about an isotropic
-    random axis by N(0, σ²); that is σ/√3 per axis (``pipeline.featsim`` writes it so).
+    random axis by N(0, σ²); that is σ/√3 per axis (``pipeline.simulate.featsim`` writes it so).
     """
     return float(np.deg2rad(sigma_deg))
 

@@ -141,7 +141,7 @@ def measurement_stats(p, st, lay, kinds, mask):
         out["q"].append(q)
         out["dof"].append(np.full(m, DOF[f["kind"]]))
         out["kept"].append(kept)
-        out["natural"].append(nat * f["sigma"] * unit_scale)
+        out["natural"].append(nat * np.broadcast_to(f.get("sigma_rows", f["sigma"]), rg.size)[::dim] * unit_scale)
     if not out["q"]:
         e = np.zeros(0)
         return MeasurementStats(e.astype(object), e.astype(int), e.astype(int), e.astype(int), e.astype(int), e, e,

@@ -52,14 +52,14 @@ def extract_features(session, progress=None, **options):
 
     Parameters
     ----------
-    session : the in-memory session (``calib.pipeline.session.read_session`` of a folder with
+    session : the in-memory session (``calib.pipeline.formats.session.read_session`` of a folder with
         session.toml, the WAVs and events.csv): speed_of_sound, reference_array, events, arrays.
     progress : optional callable ``progress(done, total, message)``, called as arrays are processed.
     options : overrides of :data:`DEFAULTS`.
 
     Returns
     -------
-    features : dict as ``pipeline.io.read_features`` returns (meta, events, tdoa_m, tdoa_s, doa), with
+    features : dict as ``pipeline.formats.io.read_features`` returns (meta, events, tdoa_m, tdoa_s, doa), with
         a ``quality`` column in tdoa_m, tdoa_s and doa (docs/frontend.md).
     diagnostics : dict (JSON-able except keys starting with ``_``): per-array detections, matches,
         missed events, spurious detections, association fit, warnings, timings.

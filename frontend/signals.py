@@ -20,7 +20,7 @@ from calib.errors import InputError
 def read_header(array):
     """Check one array's audio file against the session without reading the samples.
 
-    array : dict from ``pipeline.session.read_session`` (``name``, ``wav``, ``mics`` (M, 3)).
+    array : dict from ``pipeline.formats.session.read_session`` (``name``, ``wav``, ``mics`` (M, 3)).
     Returns the ``soundfile.info`` of the file. Raises :class:`InputError` naming the file for an
     unreadable file, a channel count that is not the number of mics, or an empty file.
     """
@@ -63,7 +63,7 @@ class ArrayAudio:
     :func:`calib.frontend.detect.matched_envelope` use. Non-finite samples raise :class:`InputError`
     naming the file when they are read. Use as a context manager (or call :meth:`close`).
 
-    array : dict from ``pipeline.session.read_session`` (``name``, ``wav``, ``mics``); checked with
+    array : dict from ``pipeline.formats.session.read_session`` (``name``, ``wav``, ``mics``); checked with
     :func:`read_header` on opening.
     """
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 from calib.frontend import extract_features, plot_detections
 from calib.jsonutil import dumps_json
 
-from .io import atomic_dir, write_features_files
-from .outputs import publish
-from .session import read_session
+from calib.pipeline.formats.io import atomic_dir, write_features_files
+from calib.pipeline.formats.outputs import publish
+from calib.pipeline.formats.session import read_session
 
 
 def session_features(recordings, progress=None, **options):
@@ -48,7 +48,7 @@ def write_diagnostics_files(folder, diag):
 
 
 def write_feature_outputs(features_dir, diagnostics_dir, feats, diag, command="calib features"):
-    """Features and diagnostics, published together: both are written, or neither (pipeline/outputs.py)."""
+    """Features and diagnostics, published together: both are written, or neither (pipeline/formats/outputs.py)."""
     with publish([features_dir, diagnostics_dir], command=command) as (f_tmp, d_tmp):
         write_features_files(f_tmp, feats)
         write_diagnostics_files(d_tmp, diag)

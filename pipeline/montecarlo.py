@@ -1,6 +1,6 @@
 """Monte-Carlo study of the paper's protocol (Zhang et al. 2025, Sec. IV-A, Fig. 3): ``calib montecarlo``.
 
-One *run* = one scene from ``pipeline.featsim`` (a cell ``(sigma_tdoa, sigma_doa_deg)``, a trajectory, a
+One *run* = one scene from ``pipeline.simulate.featsim`` (a cell ``(sigma_tdoa, sigma_doa_deg)``, a trajectory, a
 run number → a seed) calibrated by one method, scored against truth, next to the same solve started from
 ground truth (the convergence check) and to one draw from the CRLB.
 
@@ -33,10 +33,10 @@ from threadpoolctl import ThreadpoolController
 
 from calib.estimator import calibrate, crlb, draw_from_crlb, state_from_frames, to_frames
 
-from .evaluate import evaluate
-from .featsim import simulate_features
-from .io import InputError, atomic_write_text, dumps_json
-from .validate import read_text
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline.formats.io import InputError, atomic_write_text, dumps_json
+from calib.pipeline.formats.validate import read_text
 
 SIGMA_TDOA = (5e-5, 1e-4, 5e-4)
 SIGMA_DOA_DEG = (5.0, 10.0, 15.0)

@@ -32,9 +32,9 @@ from pathlib import Path
 from calib import __version__
 from calib.modgraph import module_closure
 
-from . import validate as V
-from .io import InputError, atomic_write_text, dumps_json, read_calibration, read_features, read_truth
-from .outputs import check_replaceable, check_separate, owned_output
+from calib.pipeline.formats import validate as V
+from calib.pipeline.formats.io import InputError, atomic_write_text, dumps_json, read_calibration, read_features, read_truth
+from calib.pipeline.formats.outputs import check_replaceable, check_separate, owned_output
 
 STAMP = ".calib-stage.json"
 STAGES = ("features", "estimate", "report")
@@ -52,8 +52,8 @@ ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0
 # them invalidates the stage even when the version number does not change.
 CODE = {
     "features": ("calib.pipeline.features",),
-    "estimate": ("calib.estimator", "calib.pipeline.io"),
-    "report": ("calib.pipeline.report",),
+    "estimate": ("calib.estimator", "calib.pipeline.formats.io"),
+    "report": ("calib.pipeline.report.summary",),
 }
 
 
@@ -180,7 +180,7 @@ def features_inputs(out):
 # ----------------------------------------------------------------------------------------------- stages
 def features_stage(recordings, out, options, progress=None):
     """Frontend: recordings → OUT/features/ and OUT/diagnostics/ (published together). Returns the diagnostics."""
-    from .features import session_features, write_feature_outputs
+    from calib.pipeline.features import session_features, write_feature_outputs
 
     cb = None if progress is None else (lambda done, total, msg: progress("features", done, total, msg))
     feats, diag = session_features(recordings, progress=cb, **options)
@@ -190,7 +190,7 @@ def features_stage(recordings, out, options, progress=None):
 
 def estimate_stage(out, options):
     """Estimator: OUT/features/ → OUT/calibration/ (atomic). Returns the calibration dict."""
-    from .io import write_calibration
+    from calib.pipeline.formats.io import write_calibration
 
     calib, feats = estimate_features(Path(out) / "features", options)
     write_calibration(Path(out) / "calibration", calib, features=feats)  # + calibration.json
@@ -216,7 +216,7 @@ def estimate_features(features_dir, options):
 
 def report_stage(out, truth_dir=None, progress=None):
     """Report: OUT/features + calibration (+ truth, diagnostics) → OUT/report/ (atomic). Returns metrics."""
-    from .report import make_report
+    from calib.pipeline.report.summary import make_report
 
     out = Path(out)
     feats = read_features(out / "features")
@@ -256,17 +256,17 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
         is skipped ("skipped", reason) or ends ("done", seconds).
     on_wait : optional ``on_wait(message)``, called if another process is writing ``out`` (this run waits).
 
-    Output policy (pipeline/outputs.py): ``out`` must not equal, contain or lie inside an input; one run
+    Output policy (pipeline/formats/outputs.py): ``out`` must not equal, contain or lie inside an input; one run
     at a time per ``out`` (a lock); a sub-folder is replaced only if calib wrote it and no file in it was
     added or edited since (else InputError naming the file, before the stage runs).
 
     Returns
     -------
     dict: ``out`` (Path), ``stages`` {name: {"status": "run" | "skipped", "reason", "seconds", "output"}},
-    ``calibration`` (dict as ``pipeline.io.read_calibration``), ``metrics`` (dict or None, the metrics of
-    ``pipeline.evaluate.evaluate``), ``report`` (Path of summary.md), ``seconds`` (total).
+    ``calibration`` (dict as ``pipeline.formats.io.read_calibration``), ``metrics`` (dict or None, the metrics of
+    ``pipeline.report.evaluate.evaluate``), ``report`` (Path of summary.md), ``seconds`` (total).
     """
-    from .session import read_session
+    from calib.pipeline.formats.session import read_session
 
     t_start = time.perf_counter()
     out = Path(out)
@@ -336,7 +336,7 @@ def _run_stages(recordings, out, session, truth_dir, force, feat_opts, est_opts,
                     lambda: report_stage(out, truth_dir, progress))
     calib = read_calibration(out / "calibration")
     if metrics is None and truth_dir is not None:  # report skipped: same metrics as `calib evaluate`
-        from .evaluate import evaluate
+        from calib.pipeline.report.evaluate import evaluate
 
         metrics = evaluate(calib, read_truth(truth_dir))
 

@@ -17,8 +17,8 @@ import soundfile as sf
 from calib.errors import InputError
 from calib.frontend.signals import sweep
 
-from .io import atomic_write_text
-from .session import session_toml
+from calib.pipeline.formats.io import atomic_write_text
+from calib.pipeline.formats.session import session_toml
 
 
 def _circle(n, radius, start_deg=0.0, ccw=True, z=0.0):
@@ -225,7 +225,7 @@ def _check_detections(session, options):
 def check_session(folder, *, detect=True, **options):
     """Validate a recording session without estimating. Returns a DataFrame (what, check, status, detail) with
     status ok, warn or FAIL. detect: also run the frontend (is the chirp audible in each array?)."""
-    from .session import read_session
+    from calib.pipeline.formats.session import read_session
 
     try:
         session = read_session(folder, check_audio=False)  # audio problems: listed below, one row each

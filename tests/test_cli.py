@@ -9,10 +9,10 @@ from typer.testing import CliRunner
 
 from calib.cli.main import app
 from calib.estimator import calibrate
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.featsim import simulate_features
-from calib.pipeline.io import read_calibration, read_features, write_features, write_truth
-from calib.pipeline.roomsim import make_scenario, simulate
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline.formats.io import read_calibration, read_features, write_features, write_truth
+from .sessions import small_lab3_session
 
 runner = CliRunner()
 
@@ -81,9 +81,7 @@ def test_estimate_then_evaluate_json(featdir, tmp_path):
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    d = tmp_path_factory.mktemp("rec") / "s"
-    simulate(make_scenario("lab3", 5, n_events=6, interval=0.8, chirp={"duration": 0.2}, rt60=0.15, snr=30), d)
-    return d
+    return small_lab3_session(tmp_path_factory.mktemp("rec") / "s", seed=5, n_events=6, rt60=0.15)
 
 
 def test_run_bad_inputs_write_nothing(session, tmp_path):

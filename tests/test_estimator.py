@@ -8,8 +8,8 @@ from calib.estimator.factors import ALL_KINDS
 from calib.estimator.factors import evaluate as factor_eval
 from calib.estimator.problem import retract
 from calib.estimator.uncertainty import crlb
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.featsim import simulate_features
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.simulate.featsim import simulate_features
 
 
 def arrays_close(cal, truth, tol):

@@ -13,11 +13,11 @@ from typer.testing import CliRunner
 
 from calib.cli.main import app
 from calib.estimator import calibrate
-from calib.pipeline.calibration_json import calibration_document, reference_offset
-from calib.pipeline.export import FORMATS, export
-from calib.pipeline.featsim import arrival_times, simulate_features
-from calib.pipeline.io import read_calibration, write_calibration
-from calib.pipeline.results import from_document, load_calibration
+from calib.pipeline.formats.calibration_json import calibration_document, reference_offset
+from calib.pipeline.formats.export import FORMATS, export
+from calib.pipeline.simulate.featsim import arrival_times, simulate_features
+from calib.pipeline.formats.io import read_calibration, write_calibration
+from calib.pipeline.formats.results import from_document, load_calibration
 
 TOL = 1e-9  # m: the acceptance tolerance of mics_reference and the pyroomacoustics export
 
@@ -193,7 +193,7 @@ def test_typed_views_have_public_columns_only(calibrated):
     a = cal.arrays[1]
     assert np.abs(cal.mics(a.name, array=a.name) - a.mics).max() < 1e-12
     # the same typed object straight from the estimator's in-memory result
-    from calib.pipeline.results import to_calibration
+    from calib.pipeline.formats.results import to_calibration
 
     feats = calibrated[1]
     mem = to_calibration(calibrate(feats), feats)
@@ -229,7 +229,7 @@ def test_version_help_and_python_m():
 
 
 def test_estimate_cli_writes_calibration_json_and_old_features_still_work(tmp_path):
-    from calib.pipeline.io import write_features
+    from calib.pipeline.formats.io import write_features
 
     feats, _ = simulate_features(1, seed=4)  # features written before meta.json carried mics
     write_features(tmp_path / "features", feats)
@@ -246,7 +246,7 @@ def test_estimate_cli_writes_calibration_json_and_old_features_still_work(tmp_pa
 
 
 def test_malformed_meta_mics_is_one_clear_error_and_nothing_written(tmp_path):
-    from calib.pipeline.io import write_features
+    from calib.pipeline.formats.io import write_features
 
     feats, _ = simulate_features(1, seed=4)
     feats["meta"]["mics"] = {feats["meta"]["arrays"][0]: [[0.0, 0.1]]}

@@ -5,7 +5,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.estimator.factors import FACTORS
 from calib.estimator.problem import build_problem, make_layout, retract
-from calib.pipeline.featsim import simulate_features
+from calib.pipeline.simulate.featsim import simulate_features
 
 
 def random_state(p, rng):

@@ -18,9 +18,9 @@ from calib.frontend.associate import associate
 from calib.frontend.doa import fibonacci_sphere, srp_doa, srp_setup
 from calib.frontend.signals import chirp_template, sweep
 from calib.frontend.timing import locate, segment_spectra, spectra_setup
-from calib.pipeline import roomsim
-from calib.pipeline.evaluate import feature_errors
-from calib.pipeline.io import InputError, read_features
+from calib.pipeline.simulate import roomsim
+from calib.pipeline.report.evaluate import feature_errors
+from calib.pipeline.formats.io import InputError, read_features
 
 C = 343.0
 # 6 mics on a 3.54 cm circle, alternately 2 cm above and below its plane: a 3D array has no mirror ambiguity
@@ -36,7 +36,7 @@ def small_scene(seed=0, **over):
 
 
 def errors(feats, sc):
-    """Per-row feature errors against the simulated truth (pipeline.evaluate.feature_errors)."""
+    """Per-row feature errors against the simulated truth (pipeline.report.evaluate.feature_errors)."""
     e = feature_errors(feats, sc)
     return {**e, "raw": e["tdoa_m_raw"]}
 

@@ -13,7 +13,7 @@ import soundfile as sf
 from calib.frontend.detect import redetect
 from calib.frontend.signals import band_weights, sweep
 from calib.frontend.timing import drift_bias, locate, segment_spectra, spectra_setup
-from calib.pipeline import roomsim
+from calib.pipeline.simulate import roomsim
 from calib.pipeline.features import session_features as extract_features
 
 C = 343.0

@@ -23,11 +23,11 @@ import soundfile as sf
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from calib.errors import InputError
-from calib.pipeline.featsim import simulate_features
-from calib.pipeline.io import read_calibration, read_events, read_features, read_truth, write_features, write_truth
+from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline.formats.io import read_calibration, read_events, read_features, read_truth, write_features, write_truth
 from calib.pipeline.montecarlo import read_grid
-from calib.pipeline.roomsim import load_scenario
-from calib.pipeline.session import read_session
+from calib.pipeline.simulate.roomsim import load_scenario
+from calib.pipeline.formats.session import read_session
 
 EXAMPLES = int(os.environ.get("CALIB_FUZZ_EXAMPLES", "40"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None,

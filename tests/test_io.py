@@ -6,8 +6,8 @@ import sys
 import numpy as np
 import pytest
 
-from calib.pipeline.featsim import simulate_features
-from calib.pipeline.io import InputError, read_features, write_calibration, write_features, read_calibration
+from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline.formats.io import InputError, read_features, write_calibration, write_features, read_calibration
 
 
 @pytest.fixture

@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from calib.pipeline import montecarlo as mc
 from calib.cli.main import app
-from calib.pipeline.io import InputError
+from calib.pipeline.formats.io import InputError
 
 CELL = [(1e-4, 10.0)]
 TINY = dict(cells=CELL, trajectories=[1, 3], methods=("hybrid", "wang"), progress=None)

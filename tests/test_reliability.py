@@ -22,11 +22,11 @@ from typer.testing import CliRunner
 
 from calib.cli.main import app
 from calib.errors import InputWarning
-from calib.pipeline.featsim import simulate_features
-from calib.pipeline.io import write_calibration, write_features, write_truth
-from calib.pipeline.outputs import MARKER
-from calib.pipeline.roomsim import make_scenario, simulate
-from calib.pipeline.session import read_session
+from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline.formats.io import write_calibration, write_features, write_truth
+from calib.pipeline.formats.outputs import MARKER
+from calib.pipeline.simulate.roomsim import make_scenario, simulate
+from calib.pipeline.formats.session import read_session
 
 runner = CliRunner()
 CALIB = [sys.executable, "-m", "calib"]
@@ -105,6 +105,18 @@ def _noop(t):
     pass
 
 
+# the commands of the cases (the placeholders are filled in per test)
+FEATURES = ["features", "{rec}", "-o", "{out}"]
+ESTIMATE = ["estimate", "{feats}", "-o", "{out}"]
+RUN = ["run", "{rec}", "-o", "{out}"]
+EVALUATE = ["evaluate", "{cal}", "{truth}"]
+
+
+def toml_case(name, argv, old, new, fragments):
+    """A case that edits session.toml (``old`` → ``new``) and expects an error naming it and ``fragments``."""
+    return name, argv, lambda t: edit(t / "rec/session.toml", old, new), ["session.toml", *fragments]
+
+
 CASES = [
     # --- data loss: an output that is, contains or lies inside an input
     ("features-out-is-input", ["features", "{rec}", "-o", "{rec}"], _noop, ["is the input"]),
@@ -128,102 +140,95 @@ CASES = [
     ("estimate-out-is-a-file", ["estimate", "{feats}", "-o", "{tmp}/file"],
      lambda t: (t / "file").write_text("mine"), ["file"]),
     # --- values that used to raise a traceback
-    ("toml-array-name-not-string", ["features", "{rec}", "-o", "{out}"],
-     lambda t: edit(t / "rec/session.toml", 'name = "A1"', "name = 5"), ["session.toml", "name"]),
-    ("toml-noise-is-list", ["features", "{rec}", "-o", "{out}"],
-     lambda t: edit(t / "rec/session.toml", "[chirp]", "noise = [1, 2]\n[chirp]"), ["session.toml", "noise"]),
-    ("toml-speed-1e300", ["features", "{rec}", "-o", "{out}"],
+    toml_case("toml-array-name-not-string", FEATURES, 'name = "A1"', "name = 5", ["name"]),
+    toml_case("toml-noise-is-list", FEATURES, "[chirp]", "noise = [1, 2]\n[chirp]", ["noise"]),
+    ("toml-speed-1e300", FEATURES,
      lambda t: edit(t / "rec/session.toml", "speed_of_sound = 343.0", "speed_of_sound = 1e300"),
      ["session.toml", "speed_of_sound"]),
-    ("events-t-emit-1e300", ["features", "{rec}", "-o", "{out}"],
+    ("events-t-emit-1e300", FEATURES,
      lambda t: set_cell(t / "rec/events.csv", 3, "t_emit", "1e300"), ["events.csv", "line 3", "t_emit"]),
-    ("events-id-1e300", ["features", "{rec}", "-o", "{out}"],
+    ("events-id-1e300", FEATURES,
      lambda t: set_cell(t / "rec/events.csv", 2, "event", "1e300"), ["events.csv", "line 2", "event"]),
-    ("events-200k", ["features", "{rec}", "-o", "{out}"],
+    ("events-200k", FEATURES,
      lambda t: many_events(t / "rec/events.csv", 200_000), ["events.csv", "rows"]),
-    ("features-events-200k", ["estimate", "{feats}", "-o", "{out}"],
+    ("features-events-200k", ESTIMATE,
      lambda t: many_events(t / "feats/events.csv", 200_000), ["events.csv", "rows"]),
-    ("meta-speed-1e300", ["estimate", "{feats}", "-o", "{out}"],
+    ("meta-speed-1e300", ESTIMATE,
      lambda t: set_meta(t / "feats/meta.json", speed_of_sound=1e300), ["meta.json", "speed_of_sound"]),
-    ("tdoa-m-1e300", ["estimate", "{feats}", "-o", "{out}"],
+    ("tdoa-m-1e300", ESTIMATE,
      lambda t: set_cell(t / "feats/tdoa_m.csv", 2, "tdoa", "1e300"), ["tdoa_m.csv", "line 2"]),
-    ("truth-x-1e300", ["evaluate", "{cal}", "{truth}"],
+    ("truth-x-1e300", EVALUATE,
      lambda t: set_cell(t / "truth/arrays.csv", 2, "x", "1e300"), ["truth/arrays.csv", "line 2", "'x'"]),
     ("overlong-output-name", ["estimate", "{feats}", "-o", "{tmp}/" + "x" * 300], _noop, ["x" * 20]),
     ("simulate-rt60-1e300", ["simulate", "{out}", "--rt60", "1e300"], _noop, ["--rt60"]),
     ("simulate-fs-zero", ["simulate", "{out}", "--fs", "0"], _noop, ["--fs"]),
-    ("diagnostics-under-a-file", ["features", "{rec}", "-o", "{out}", "--diagnostics", "{tmp}/f/diag"],
+    ("diagnostics-under-a-file", FEATURES + ["--diagnostics", "{tmp}/f/diag"],
      lambda t: (t / "f").write_text("a file"), ["f"]),
     # --- wrong results that used to exit 0
-    ("meta-speed-true", ["estimate", "{feats}", "-o", "{out}"],
+    ("meta-speed-true", ESTIMATE,
      lambda t: set_meta(t / "feats/meta.json", speed_of_sound=True), ["meta.json", "speed_of_sound"]),
-    ("meta-speed-string", ["estimate", "{feats}", "-o", "{out}"],
+    ("meta-speed-string", ESTIMATE,
      lambda t: set_meta(t / "feats/meta.json", speed_of_sound="343"), ["meta.json", "speed_of_sound"]),
-    ("toml-speed-string", ["features", "{rec}", "-o", "{out}"],
+    ("toml-speed-string", FEATURES,
      lambda t: edit(t / "rec/session.toml", "speed_of_sound = 343.0", 'speed_of_sound = "343"'),
      ["session.toml", "speed_of_sound"]),
-    ("two-arrays-one-wav", ["features", "{rec}", "-o", "{out}"],
-     lambda t: edit(t / "rec/session.toml", 'wav = "A2.wav"', 'wav = "A1.wav"'), ["session.toml", "share"]),
-    ("boolean-mic-coordinate", ["features", "{rec}", "-o", "{out}"],
-     lambda t: edit(t / "rec/session.toml", "mics = [[", "mics = [[true, "), ["session.toml", "mics"]),
-    ("chirp-above-nyquist", ["features", "{rec}", "-o", "{out}"],
-     lambda t: edit(t / "rec/session.toml", "f1 = ", "f1 = 9000.0\nf1_old = "), ["session.toml", "Nyquist"]),
-    ("estimate-outlier-threshold-nan", ["estimate", "{feats}", "-o", "{out}", "--outlier-threshold", "nan"], _noop,
+    toml_case("two-arrays-one-wav", FEATURES, 'wav = "A2.wav"', 'wav = "A1.wav"', ["share"]),
+    toml_case("boolean-mic-coordinate", FEATURES, "mics = [[", "mics = [[true, ", ["mics"]),
+    toml_case("chirp-above-nyquist", FEATURES, "f1 = ", "f1 = 9000.0\nf1_old = ", ["Nyquist"]),
+    ("estimate-outlier-threshold-nan", ESTIMATE + ["--outlier-threshold", "nan"], _noop,
      ["--outlier-threshold"]),
-    ("estimate-outlier-threshold-negative", ["estimate", "{feats}", "-o", "{out}", "--outlier-threshold", "-1"],
+    ("estimate-outlier-threshold-negative", ESTIMATE + ["--outlier-threshold", "-1"],
      _noop, ["--outlier-threshold"]),
-    ("estimate-emission-sigma-nan", ["estimate", "{feats}", "-o", "{out}", "--emission-sigma", "nan"], _noop,
+    ("estimate-emission-sigma-nan", ESTIMATE + ["--emission-sigma", "nan"], _noop,
      ["--emission-sigma"]),
-    ("estimate-emission-sigma-negative", ["estimate", "{feats}", "-o", "{out}", "--emission-sigma", "-1"], _noop,
+    ("estimate-emission-sigma-negative", ESTIMATE + ["--emission-sigma", "-1"], _noop,
      ["--emission-sigma"]),
-    ("features-max-drift-nan", ["features", "{rec}", "-o", "{out}", "--max-drift", "nan"], _noop, ["--max-drift"]),
-    ("run-detect-threshold-inf", ["run", "{rec}", "-o", "{out}", "--detect-threshold", "inf"], _noop,
+    ("features-max-drift-nan", FEATURES + ["--max-drift", "nan"], _noop, ["--max-drift"]),
+    ("run-detect-threshold-inf", RUN + ["--detect-threshold", "inf"], _noop,
      ["--detect-threshold"]),
-    ("estimate-method-unknown", ["estimate", "{feats}", "-o", "{out}", "--method", "magic"], _noop, ["--method"]),
+    ("estimate-method-unknown", ESTIMATE + ["--method", "magic"], _noop, ["--method"]),
     ("montecarlo-runs-zero", ["montecarlo", "-o", "{out}", "--runs", "0"], _noop, ["--runs"]),
     # --- messages naming the right file and array
-    ("coincident-mics", ["features", "{rec}", "-o", "{out}"],
+    ("coincident-mics", FEATURES,
      lambda t: set_mics(t / "rec", "A1", "[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.05, 0.0]]"),
      ["session.toml", "'A1'", "same place"]),
-    ("mic-count-vs-wav-channels", ["features", "{rec}", "-o", "{out}"],
+    ("mic-count-vs-wav-channels", FEATURES,
      lambda t: set_mics(t / "rec", "A2", "[[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]"), ["A2.wav", "channels"]),
     # --- other readers and values
-    ("toml-invalid", ["run", "{rec}", "-o", "{out}"],
-     lambda t: edit(t / "rec/session.toml", "[chirp]", "[chirp"), ["session.toml", "invalid TOML"]),
-    ("toml-no-chirp", ["run", "{rec}", "-o", "{out}"],
-     lambda t: edit(t / "rec/session.toml", "[chirp]", "[chirpy]"), ["session.toml", "chirp"]),
-    ("toml-sigma-out-of-range", ["features", "{rec}", "-o", "{out}"],
+    toml_case("toml-invalid", RUN, "[chirp]", "[chirp", ["invalid TOML"]),
+    toml_case("toml-no-chirp", RUN, "[chirp]", "[chirpy]", ["chirp"]),
+    ("toml-sigma-out-of-range", FEATURES,
      lambda t: edit(t / "rec/session.toml", "sigma_odo = 0.01", "sigma_odo = 0.01\nsigma_tdoa = 5.0"),
      ["session.toml", "sigma_tdoa"]),
-    ("toml-hemisphere-zero", ["features", "{rec}", "-o", "{out}"],
+    ("toml-hemisphere-zero", FEATURES,
      lambda t: edit(t / "rec/session.toml", "doa_hemisphere = [0.0, 0.0, 1.0]", "doa_hemisphere = [0, 0, 0]"),
      ["session.toml", "doa_hemisphere"]),
-    ("wav-missing", ["run", "{rec}", "-o", "{out}"], lambda t: (t / "rec/A3.wav").unlink(), ["A3.wav", "not found"]),
-    ("wav-garbage", ["features", "{rec}", "-o", "{out}"],
+    ("wav-missing", RUN, lambda t: (t / "rec/A3.wav").unlink(), ["A3.wav", "not found"]),
+    ("wav-garbage", FEATURES,
      lambda t: (t / "rec/A3.wav").write_bytes(b"RIFF1234WAVEjunk"), ["A3.wav", "cannot read audio"]),
-    ("events-nan", ["features", "{rec}", "-o", "{out}"],
+    ("events-nan", FEATURES,
      lambda t: set_cell(t / "rec/events.csv", 2, "odom_x", "nan"), ["events.csv", "line 2", "not finite"]),
-    ("events-missing-column", ["estimate", "{feats}", "-o", "{out}"],
+    ("events-missing-column", ESTIMATE,
      lambda t: edit(t / "feats/events.csv", "odom_z", "odom_q"), ["events.csv", "odom_z"]),
-    ("events-not-increasing", ["estimate", "{feats}", "-o", "{out}"],
+    ("events-not-increasing", ESTIMATE,
      lambda t: set_cell(t / "feats/events.csv", 3, "t_emit", "0"), ["events.csv", "t_emit"]),
-    ("meta-invalid-json", ["estimate", "{feats}", "-o", "{out}"],
+    ("meta-invalid-json", ESTIMATE,
      lambda t: (t / "feats/meta.json").write_text("{nope"), ["meta.json", "invalid JSON"]),
-    ("meta-reference-unknown", ["estimate", "{feats}", "-o", "{out}"],
+    ("meta-reference-unknown", ESTIMATE,
      lambda t: set_meta(t / "feats/meta.json", reference_array="Z9"), ["meta.json", "reference_array"]),
-    ("meta-sigma-negative", ["estimate", "{feats}", "-o", "{out}"],
+    ("meta-sigma-negative", ESTIMATE,
      lambda t: set_meta(t / "feats/meta.json", sigma_tdoa=-1e-4), ["meta.json", "sigma_tdoa"]),
-    ("tdoa-m-unknown-array", ["estimate", "{feats}", "-o", "{out}"],
+    ("tdoa-m-unknown-array", ESTIMATE,
      lambda t: set_cell(t / "feats/tdoa_m.csv", 2, "array", "Z9"), ["tdoa_m.csv", "line 2", "Z9"]),
-    ("doa-not-unit", ["estimate", "{feats}", "-o", "{out}"],
+    ("doa-not-unit", ESTIMATE,
      lambda t: set_cell(t / "feats/doa.csv", 2, "ux", "3"), ["doa.csv", "line 2", "unit"]),
-    ("calibration-quaternion", ["evaluate", "{cal}", "{truth}"],
+    ("calibration-quaternion", EVALUATE,
      lambda t: set_cell(t / "cal/arrays.csv", 2, "qw", "7"), ["cal/arrays.csv", "line 2", "quaternion"]),
-    ("calibration-missing", ["evaluate", "{cal}", "{truth}"],
+    ("calibration-missing", EVALUATE,
      lambda t: (t / "cal/arrays.csv").unlink(), ["cal/arrays.csv", "not found"]),
-    ("calibration-report-not-object", ["evaluate", "{cal}", "{truth}"],
+    ("calibration-report-not-object", EVALUATE,
      lambda t: (t / "cal/report.json").write_text("[1, 2]"), ["report.json", "object"]),
-    ("too-few-events", ["estimate", "{feats}", "-o", "{out}"],
+    ("too-few-events", ESTIMATE,
      lambda t: many_events(t / "feats/events.csv", 2), ["feats"]),
 ]
 
@@ -325,7 +330,7 @@ def test_unknown_keys_warn_with_did_you_mean(base, tmp_path):
 
 def test_bom_and_crlf_accepted_everywhere(base, tmp_path):
     """One convention: a UTF-8 BOM and CRLF line ends are accepted in CSV, JSON and TOML alike."""
-    from calib.pipeline.io import read_features
+    from calib.pipeline.formats.io import read_features
 
     for d in ("rec", "feats"):
         shutil.copytree(base / d, tmp_path / d)

@@ -1,4 +1,4 @@
-"""`pipeline.report`: residuals in natural units against the injected noise, outlier masks and
+"""`pipeline.report.summary`: residuals in natural units against the injected noise, outlier masks and
 covariances rebuilt from files, the report folder (atomic), and a real data set with a known outlier."""
 import json
 from pathlib import Path
@@ -7,11 +7,11 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from calib.pipeline import report as report
+from calib.pipeline.report import summary as report
 from calib.estimator import calibrate
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.featsim import simulate_features
-from calib.pipeline.io import read_calibration, read_features, read_truth, write_calibration
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline.formats.io import read_calibration, read_features, read_truth, write_calibration
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"
 

@@ -11,8 +11,8 @@ from calib.estimator import calibrate, validate_options
 from calib.estimator.factors import FACTORS
 from calib.estimator.problem import build_problem, make_layout, retract
 from calib.estimator.robust import measurement_stats
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.featsim import simulate_features
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.simulate.featsim import simulate_features
 
 _spec = importlib.util.spec_from_file_location("bench_faults", Path(__file__).parents[1] / "benchmarks" / "bench_faults.py")
 bench = importlib.util.module_from_spec(_spec)
@@ -107,6 +107,19 @@ def test_odometry_yaw_is_estimated():
     assert bench.errors(off, truth)[0] > 3 * loc0                    # without it the rotation is not absorbed
 
 
+@pytest.mark.parametrize("yaw_deg", [20.0, 180.0])
+def test_odometry_yaw_with_a_planar_reference_array(yaw_deg):
+    """Mirror-ambiguous reference DOAs: the start yaw is found anyway (unfolded), so any rotation of the
+    odometry gives the solve of the 20° one (the problem is equivariant in the yaw), within 3σ of the truth."""
+    feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001, planar=(0.0, 0.0, 1.0))
+    ev = feats["events"].copy()
+    o = ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float).copy()
+    ev[["odom_x", "odom_y", "odom_z"]] = Rotation.from_euler("z", yaw_deg, degrees=True).apply(o)
+    fr = calibrate({**feats, "events": ev})["report"]["odometry_frame"]
+    err = (fr["yaw_deg"] + yaw_deg + 180.0) % 360.0 - 180.0
+    assert fr["estimated"] and abs(err) < 3 * fr["yaw_std_deg"]
+
+
 def test_odometry_frame_jacobian_with_yaw():
     feats, _ = simulate_features(3, seed=1)
     p = build_problem(feats, odometry_yaw=True)
@@ -168,7 +181,7 @@ def test_cli_exit_codes_for_failed_verdict_and_bad_options(tmp_path):
     from typer.testing import CliRunner
 
     from calib.cli.main import app
-    from calib.pipeline.io import write_features
+    from calib.pipeline.formats.io import write_features
 
     feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
     bad, _ = bench.fault_t_emit(feats, truth, None)
@@ -183,8 +196,8 @@ def test_cli_exit_codes_for_failed_verdict_and_bad_options(tmp_path):
 
 
 def test_report_first_line_states_the_verdict(tmp_path):
-    from calib.pipeline.io import read_calibration, write_calibration
-    from calib.pipeline.report import make_report
+    from calib.pipeline.formats.io import read_calibration, write_calibration
+    from calib.pipeline.report.summary import make_report
 
     feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
     for f, status in ((feats, "OK"), (bench.fault_t_emit(feats, truth, None)[0], "FAILED")):

@@ -1,4 +1,4 @@
-"""Room simulator (pipeline.roomsim, `calib simulate`) against independent truth.
+"""Room simulator (pipeline.simulate.roomsim, `calib simulate`) against independent truth.
 
 The analytic model used here is rebuilt from the written files (truth/, session.toml, events.csv and the
 reference clock from the manifest), and the chirp from its published formula, so that a bug in the
@@ -19,9 +19,9 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from calib.cli.main import app
-from calib.pipeline import roomsim as rs
-from calib.pipeline.io import InputError, read_events, read_truth
-from calib.pipeline.session import read_session
+from calib.pipeline.simulate import roomsim as rs
+from calib.pipeline.formats.io import InputError, read_events, read_truth
+from calib.pipeline.formats.session import read_session
 
 INF = float("inf")
 
@@ -472,7 +472,7 @@ def test_attenuated_direct_path(tmp_path):
 def test_hard_preset_occluded_array_hears_a_stronger_wall_reflection():
     """In 'hard', one array's direct path is ~15 dB below the first-order reflection of its wall, which
     arrives 0.4-0.7 ms later (reflection time from the mirror image computed here)."""
-    from calib.pipeline.render import builder_delay
+    from calib.pipeline.simulate.render import builder_delay
 
     sc = rs.validate_scenario(rs.make_scenario("hard", seed=0, n_events=6))
     occ = [i for i, a in enumerate(sc["arrays"]) if a["direct_db"] < 0]
@@ -565,7 +565,7 @@ def test_realistic_preset_is_deterministic_and_streams_short_sessions(tmp_path):
     b = rs.simulate(rs.load_scenario(a / "truth" / "manifest.json"), tmp_path / "b")
     for f in sorted(p.name for p in a.iterdir() if p.is_file()):
         assert (a / f).read_bytes() == (b / f).read_bytes(), f
-    from calib.pipeline.outputs import BOOKKEEPING  # the ownership marker is the only hidden file allowed
+    from calib.pipeline.formats.outputs import BOOKKEEPING  # the ownership marker is the only hidden file allowed
 
     assert not any(p.name.startswith(".") and p.name not in BOOKKEEPING for p in a.iterdir())
     man = json.loads((a / "truth" / "manifest.json").read_text())
@@ -591,7 +591,7 @@ def test_late_tail_continues_the_image_source_energy():
     energy as the image sources just before it (median over arrays and events within 2 dB)."""
     from scipy.signal import butter, sosfiltfilt
 
-    from calib.pipeline.render import builder_delay
+    from calib.pipeline.simulate.render import builder_delay
 
     sc = rs.validate_scenario(rs.make_scenario("lab", seed=4, directivity="omni"))
     res = []

@@ -10,9 +10,9 @@ import pytest
 
 from calib import estimator
 from calib.pipeline import features as pfeatures
-from calib.pipeline import io as pio
-from calib.pipeline.io import InputError, read_calibration
-from calib.pipeline.roomsim import make_scenario, simulate
+from calib.pipeline.formats import io as pio
+from calib.pipeline.formats.io import InputError, read_calibration
+from calib.pipeline.simulate.roomsim import make_scenario, simulate
 from calib.pipeline.run import STAMP, run
 
 

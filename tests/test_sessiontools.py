@@ -9,8 +9,8 @@ import soundfile as sf
 from typer.testing import CliRunner
 
 from calib.cli.main import app
-from calib.pipeline.roomsim import make_scenario, simulate
-from calib.pipeline.session import read_session
+from .sessions import small_lab3_session
+from calib.pipeline.formats.session import read_session
 from calib.pipeline.sessiontools import ARRAY_MODELS, check_session, emission_schedule
 
 
@@ -81,9 +81,7 @@ def read_session_mics(path):
 
 @pytest.fixture(scope="module")
 def small_session(tmp_path_factory):
-    d = tmp_path_factory.mktemp("chk") / "rec"
-    simulate(make_scenario("lab3", 2, n_events=5, interval=0.8, chirp={"duration": 0.2}, rt60=0.0, snr=30), d)
-    return d
+    return small_lab3_session(tmp_path_factory.mktemp("chk") / "rec", seed=2, n_events=5, rt60=0.0)
 
 
 def test_check_passes_a_good_session_and_lists_every_problem(small_session, tmp_path):

@@ -16,7 +16,7 @@ from calib.estimator.observability import check_observability
 from calib.estimator.problem import build_problem, copy_state, make_layout
 from calib.estimator.solver import levenberg_marquardt, linearise
 from calib.estimator.uncertainty import cov_block, covariance, state_from_frames, std_from_cov
-from calib.pipeline.featsim import simulate_features
+from calib.pipeline.simulate.featsim import simulate_features
 
 KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry"]
 

@@ -25,11 +25,17 @@ def layer_of(module):
     raise AssertionError(module)
 
 
+def sources(folder):
+    """The Python files of a top-level folder, subpackages included."""
+    return sorted(f for f in (ROOT / folder).rglob("*.py") if "__pycache__" not in f.parts)
+
+
 def all_modules():
     for layer, pkg in LAYERS.items():
-        for f in sorted((ROOT / layer).glob("*.py")):
-            name = pkg if f.stem == "__init__" else f"{pkg}.{f.stem}"
-            yield name, f
+        for f in sources(layer):
+            parts = f.relative_to(ROOT / layer).with_suffix("").parts
+            parts = parts[:-1] if parts[-1] == "__init__" else parts
+            yield ".".join((pkg, *parts)), f
 
 
 @pytest.mark.parametrize("name,path", list(all_modules()), ids=lambda v: str(v))
@@ -46,7 +52,7 @@ def test_no_bare_top_level_imports():
     """Every project import goes through ``calib.``: no module imports ``pipeline`` etc. as top level."""
     bad = []
     for folder in ("core", "frontend", "estimator", "pipeline", "cli", "tests", "benchmarks"):
-        for f in (ROOT / folder).glob("*.py"):
+        for f in sources(folder):
             for node in ast.walk(ast.parse(f.read_text())):
                 names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                     [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
@@ -56,7 +62,7 @@ def test_no_bare_top_level_imports():
 
 def test_closure_follows_imports():
     """The code digest of a stage covers modules reached only through other modules' imports."""
-    mods = module_closure(["calib.pipeline.report"])
+    mods = module_closure(["calib.pipeline.report.summary"])
     assert "calib.estimator.solver" in mods          # report → estimator (package) → assess → solver
     assert "calib.frontend.diagnostics" in mods      # report → frontend (package) → diagnostics
     assert "calib.cli.tables" not in mods            # nothing in the report imports the CLI
@@ -68,10 +74,25 @@ MAX_FUNCTION_LINES = 80  # the project's style rule (developer guide): split lon
 def test_no_function_over_80_lines():
     long = []
     for layer in LAYERS:
-        for f in sorted((ROOT / layer).glob("*.py")):
+        for f in sources(layer):
             for node in ast.walk(ast.parse(f.read_text())):
                 if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                     n = node.end_lineno - node.lineno + 1
                     if n > MAX_FUNCTION_LINES:
                         long.append(f"{f.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
     assert not long, long
+
+
+# pipeline/ by concern: what each part may import from the rest of pipeline (besides itself); the
+# orchestration modules at the top (run, features, sessiontools, montecarlo) may use every part.
+PIPELINE_PARTS = {"formats": set(), "simulate": {"formats"}, "report": {"formats", "simulate"}}
+
+
+@pytest.mark.parametrize("name,path", [m for m in all_modules() if m[0].split(".")[2:3] and
+                                       m[0].split(".")[2] in PIPELINE_PARTS], ids=lambda v: str(v))
+def test_pipeline_parts_import_one_way(name, path):
+    part = name.split(".")[2]
+    for dep in imported_modules(name, path):
+        bits = dep.split(".")
+        if bits[:2] == ["calib", "pipeline"] and len(bits) > 2:
+            assert bits[2] in PIPELINE_PARTS[part] | {part}, f"{name} ({part}) imports {dep}"

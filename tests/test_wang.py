@@ -8,8 +8,8 @@ from calib.estimator import ObservabilityError, calibrate
 from calib.estimator.calibrate import to_frames
 from calib.estimator.problem import build_problem
 from calib.estimator.wang import clock_line_fit, pose_by_alignment, range_windows, wang_initialise, wang_ranges
-from calib.pipeline.evaluate import evaluate
-from calib.pipeline.featsim import simulate_features
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.simulate.featsim import simulate_features
 
 
 def scene(rng, n=9):

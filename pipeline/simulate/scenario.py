@@ -15,10 +15,10 @@ from scipy.spatial.transform import Rotation
 
 from calib.frontend.signals import SWEEP_KINDS
 
-from . import acoustics as ac
-from . import scenes
-from .io import ARRAYS_COLS, InputError
-from .render import local_time
+from calib.pipeline.simulate import acoustics as ac
+from calib.pipeline.simulate import scenes
+from calib.pipeline.formats.io import ARRAYS_COLS, InputError
+from calib.pipeline.simulate.render import local_time
 
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
 MODELS = ("flat", "bands")

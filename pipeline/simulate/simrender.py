@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import acoustics as ac
-from . import render as rd
-from .sounds import (BlockWhite, CoherentPink, RowMajorWhite, burst_params, burst_signal, chirp_power,
+from calib.pipeline.simulate import acoustics as ac
+from calib.pipeline.simulate import render as rd
+from calib.pipeline.simulate.sounds import (BlockWhite, CoherentPink, RowMajorWhite, burst_params, burst_signal, chirp_power,
                      chirp_signal, hum, speech_params, speech_signal)
 
 IMAGE_CACHE = 2_000_000  # flat model: image sources kept between the two passes up to this many (~64 MB)

@@ -12,7 +12,7 @@ import numpy as np
 
 from calib.frontend.signals import sweep
 
-from .acoustics import diffuse_coherence_mix
+from calib.pipeline.simulate.acoustics import diffuse_coherence_mix
 
 NOISE_BLOCK = 1 << 16       # samples per independently seeded block of white noise
 PINK_PERIODS = (1 << 15) + 1, (1 << 15) - 1   # co-prime periods of the two summed pink-noise loops (samples)

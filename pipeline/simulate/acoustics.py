@@ -1,4 +1,4 @@
-"""Room acoustics beyond the flat image-source model, for the room simulator (``pipeline.roomsim``).
+"""Room acoustics beyond the flat image-source model, for the room simulator (``pipeline.simulate.roomsim``).
 
 Everything here works on one array's sample grid (rate ``fs' = fs (1 + δ)``), in the room frame, SI units:
 

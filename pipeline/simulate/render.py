@@ -6,7 +6,7 @@ Two acoustic models (scenario key ``model``):
 * ``flat`` — pyroomacoustics' image sources with one frequency-flat absorption (Sabine inversion), omni
   speaker, no air absorption; images kept up to RT60 after the direct path (the original simulator; its
   bytes are unchanged).
-* ``bands`` — :mod:`calib.pipeline.acoustics`: octave-band wall materials and air absorption on the image
+* ``bands`` — :mod:`calib.pipeline.simulate.acoustics`: octave-band wall materials and air absorption on the image
   sources up to ``mixing_time`` after the direct path, a stochastic late tail per band decaying at the
   band's Sabine RT60 and spatially coherent across the array (diffuse field), speaker directivity by
   emission direction, an optional per-array direct-path attenuation.
@@ -20,7 +20,7 @@ import soundfile as sf
 from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
 from scipy.signal import fftconvolve
 
-from . import acoustics as ac
+from calib.pipeline.simulate import acoustics as ac
 
 FDL = 81           # fractional-delay filter length (pyroomacoustics default)
 LUT_GRAN = 512     # sinc look-up granularity of the RIR builder (pra default 20; finer = more exact delays)

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
 
-from .calibration_json import FORMAT_NAME, FORMAT_VERSION
+from calib.pipeline.formats.calibration_json import FORMAT_NAME, FORMAT_VERSION
 
 REFERENCE = "reference"
 
@@ -186,7 +186,7 @@ def from_document(doc, path="calibration.json"):
 
 def to_calibration(calib, features) -> Calibration:
     """A :class:`Calibration` from an in-memory result of ``estimator.calibrate(features)`` (no files)."""
-    from .calibration_json import calibration_document
+    from calib.pipeline.formats.calibration_json import calibration_document
 
     return from_document(calibration_document(calib, features), "calibration")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .io import InputError
+from calib.pipeline.formats.io import InputError
 
 P_PAPER = np.ones(3) / np.sqrt(3.0)
 
@@ -87,7 +87,7 @@ def _source_differences(se, stt):
 
 
 def evaluate(calib, truth):
-    """Metrics of a calibration dict against a truth dict (both as in ``pipeline.io``).
+    """Metrics of a calibration dict against a truth dict (both as in ``pipeline.formats.io``).
 
     Returns a dict: ``position_rmse_m``, ``orientation_geodesic_deg`` (RMS over arrays),
     ``orientation_paper_deg`` (RMS of the angle between R_gt·p and R_est·p, p = [1,1,1]/√3),
@@ -114,14 +114,14 @@ def evaluate(calib, truth):
 
 
 def feature_errors(feats, scenario):
-    """Errors of features against a simulated scenario (``pipeline.roomsim``), per measurement row.
+    """Errors of features against a simulated scenario (``pipeline.simulate.roomsim``), per measurement row.
 
     Returns a dict of arrays: ``tdoa_m_raw`` (s, measured − true arrival difference), ``tdoa_m`` (s, after
     removing the matched-filter drift bias β(δ_i − δ_ref) the estimator models), ``tdoa_s`` (s), ``doa``
     (deg, angle to the true direction in the array frame) and ``doa_folded`` (deg, the smaller of the angles
     to the true direction and to its mirror image across the mic plane, for planar arrays).
     """
-    from .roomsim import arrival_times  # the room simulator is only needed here
+    from calib.pipeline.simulate.roomsim import arrival_times  # the room simulator is only needed here
 
     a = arrival_times(scenario)
     arrays = scenario["arrays"]

@@ -4,7 +4,7 @@ Written beside arrays.csv, sources.csv and report.json by ``calib estimate`` and
 "calibration.json"): format version, reference array, frame / quaternion / clock conventions and units, and per
 array its pose, its microphones in its own frame and in the reference frame (one row per WAV channel), its
 clock (every term that maps its local time to the emitter's and the reference array's time), 1-σ, and the full
-covariance of the array parameters. :mod:`calib.pipeline.results` reads it back into typed objects.
+covariance of the array parameters. :mod:`calib.pipeline.formats.results` reads it back into typed objects.
 """
 from __future__ import annotations
 

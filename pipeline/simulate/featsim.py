@@ -2,7 +2,7 @@
 
 It draws a scene (array poses, clocks, source trajectory, emission intervals), computes the exact
 measurements of ``docs/architecture.md`` and adds noise, returning the same dicts the readers of
-``pipeline.io`` return, so a simulated data set exercises exactly the code paths of real data.
+``pipeline.formats.io`` return, so a simulated data set exercises exactly the code paths of real data.
 """
 from __future__ import annotations
 
@@ -103,7 +103,7 @@ def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_od
 
     Returns
     -------
-    features, truth : dicts as returned by ``calib.pipeline.io.read_features`` / ``read_truth``.
+    features, truth : dicts as returned by ``calib.pipeline.formats.io.read_features`` / ``read_truth``.
     """
     spec = SceneSpec(**scene)
     if spec.positions is not None:

@@ -35,8 +35,8 @@ from calib.estimator import LINE_COLUMN
 from calib.errors import InputError  # noqa: F401  (re-exported: readers raise it)
 from calib.jsonutil import dumps_json  # noqa: F401
 
-from . import validate as V
-from .outputs import publish, publish_mode
+from calib.pipeline.formats import validate as V
+from calib.pipeline.formats.outputs import publish, publish_mode
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
@@ -54,7 +54,7 @@ DOA_NORM_TOL = 1e-3
 def atomic_dir(path, command="calib"):
     """Yield a temporary directory that replaces ``path`` only if the ``with`` block succeeds.
 
-    The output policy applies (pipeline/outputs.py): ``path`` is replaced only if calib owns it (marker
+    The output policy applies (pipeline/formats/outputs.py): ``path`` is replaced only if calib owns it (marker
     ``.calib-output``, every file unedited); the published folder gets a marker.
     """
     with publish([path], command=command) as (tmp,):
@@ -412,14 +412,14 @@ def read_calibration(directory):
 
 def write_calibration(directory, calib, features=None, command="calib"):
     """Write a calibration dict atomically: arrays.csv, sources.csv, report.json (+ calibration.json when the
-    ``features`` it was estimated from are given: :mod:`calib.pipeline.calibration_json`)."""
+    ``features`` it was estimated from are given: :mod:`calib.pipeline.formats.calibration_json`)."""
     with atomic_dir(directory, command=command) as tmp:
         write_table(calib["arrays"], tmp / "arrays.csv", ARRAYS_COLS, float_format="%.12g")
         if calib.get("sources") is not None:
             write_table(calib["sources"], tmp / "sources.csv", SOURCES_COLS, float_format="%.9g")
         (tmp / "report.json").write_text(dumps_json(calib.get("report", {}), indent=2) + "\n")
         if features is not None:
-            from .calibration_json import calibration_document  # (imports the estimator: only when asked)
+            from calib.pipeline.formats.calibration_json import calibration_document  # (imports the estimator: only when asked)
 
             (tmp / "calibration.json").write_text(dumps_json(calibration_document(calib, features), indent=2) + "\n")
 

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_write_text
-from .results import REFERENCE, Calibration
+from calib.pipeline.formats.io import atomic_write_text
+from calib.pipeline.formats.results import REFERENCE, Calibration
 from calib.errors import InputError
 
 FORMATS = ("json", "yaml", "pyroomacoustics", "odas", "urdf", "tf")

@@ -25,8 +25,8 @@ from calib.frontend.signals import SWEEP_KINDS
 
 from calib.errors import InputWarning
 
-from . import validate as V
-from .io import InputError, atomic_write_text, read_events, SIGMA_KEYS
+from calib.pipeline.formats import validate as V
+from calib.pipeline.formats.io import InputError, atomic_write_text, read_events, SIGMA_KEYS
 
 DEFAULT_SPEED_OF_SOUND = 343.0  # m/s, air at 20 °C
 MAX_MIC_RADIUS = 10.0           # m: mic coordinates are relative to their array's centre
@@ -44,7 +44,7 @@ def read_session(directory, check_audio=True):
     every audio problem itself instead of stopping at the first).
 
     Every value is typed (numbers are TOML numbers, not strings or booleans) and within the ranges of
-    ``pipeline/validate.py``; unknown keys warn with a did-you-mean (:class:`calib.errors.InputWarning`).
+    ``pipeline/formats/validate.py``; unknown keys warn with a did-you-mean (:class:`calib.errors.InputWarning`).
     """
     d = Path(directory)
     if not d.is_dir():

@@ -8,7 +8,7 @@
   estimator weighted it with marked and the Gaussian (Rayleigh for DOA angles) the model expects;
 - ``detections.png``: the frontend's detection timeline (copied from diagnostics/ when present);
 - ``summary.md``: arrays table, metrics vs truth, residuals, outliers, convergence, timings, links;
-- ``metrics.json`` (only with truth): ``pipeline.evaluate.evaluate`` of the calibration.
+- ``metrics.json`` (only with truth): ``pipeline.report.evaluate.evaluate`` of the calibration.
 
 Everything is computed from the files' contents (features + calibration), so a report made after a
 skipped estimate is the same as one made right after it. Residuals and covariances come from the
@@ -25,8 +25,8 @@ import numpy as np
 
 from calib.estimator import KINDS, LINE_COLUMN, position_covariances, rebuild, residuals
 
-from .evaluate import METRIC_ROWS
-from .io import atomic_dir, dumps_json
+from calib.pipeline.report.evaluate import METRIC_ROWS
+from calib.pipeline.formats.io import atomic_dir, dumps_json
 
 UNIT_LABEL = {k.name: k.label for k in KINDS.values()}
 TITLE = {k.name: k.title for k in KINDS.values()}
@@ -407,7 +407,7 @@ def make_report(directory, features, calib, truth=None, diagnostics_dir=None, pr
     step = (lambda k, msg: progress(k, 5, msg)) if progress else (lambda k, msg: None)
     metrics = None
     if truth is not None:
-        from .evaluate import evaluate
+        from calib.pipeline.report.evaluate import evaluate
 
         metrics = evaluate(calib, truth)
     step(0, "residuals")

@@ -33,18 +33,18 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 from calib.jsonutil import jsonable  # inf (no noise) and NaN ↔ null
 
-from . import acoustics as ac
-from . import scenes, simrender
-from .io import EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
-from .render import EARLY, FDL, FDL_LATE, builder_delay, local_time  # noqa: F401  (public names)
-from .scenario import (  # noqa: F401  (PRESETS, REALISTIC, _PAPER_TRAJ, _room_acoustics: public/test names)
+from calib.pipeline.simulate import acoustics as ac
+from calib.pipeline.simulate import scenes, simrender
+from calib.pipeline.formats.io import EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
+from calib.pipeline.simulate.render import EARLY, FDL, FDL_LATE, builder_delay, local_time  # noqa: F401  (public names)
+from calib.pipeline.simulate.scenario import (  # noqa: F401  (PRESETS, REALISTIC, _PAPER_TRAJ, _room_acoustics: public/test names)
     _LAB_HEIGHTS, _LAB_LOOP, _PAPER_TRAJ, ALL_KEYS, GEN_DEFAULTS, NEW_GEN_DEFAULTS,
     NEW_SCENE_DEFAULTS, PRESETS, REALISTIC, SCENE_DEFAULTS, _float, _int, _materials, _matrix, _merge,
     _room_acoustics, _rng, _vector, arrival_times, odometry, scenario_truth, validate_scenario)
-from .session import write_session_toml
-from .validate import read_text
-from .simrender import direct_amplitudes, noise_levels, render_session
-from .sounds import burst_signal, chirp_power, chirp_signal  # noqa: F401  (public names of the simulator)
+from calib.pipeline.formats.session import write_session_toml
+from calib.pipeline.formats.validate import read_text
+from calib.pipeline.simulate.simrender import direct_amplitudes, noise_levels, render_session
+from calib.pipeline.simulate.sounds import burst_signal, chirp_power, chirp_signal  # noqa: F401  (public names of the simulator)
 
 
 # ----------------------------------------------------------------------------------------------- signals
@@ -481,7 +481,7 @@ def _write_session(tmp, sc, derived, flat, scenario):
                  "doa_hemisphere": a["doa_hemisphere"]} for a in sc["arrays"]],
         noise={k: priors[k] for k in ("sigma_tdoa", "sigma_doa_deg", "sigma_odo") if k in priors})
     manifest = {
-        "generator": "calib simulate (pipeline.roomsim)",
+        "generator": "calib simulate (pipeline.simulate.roomsim)",
         "versions": {"numpy": np.__version__, "pyroomacoustics": _pra_version()},
         "frame": "room (origin at a room corner, axes along the walls); truth/*.csv are in the reference "
                  "array's frame",

@@ -1,0 +1,93 @@
+"""Variance components per array: one sigma multiplier per (measurement type, array) where redundancy allows.
+
+Model (docs/method.md, "Weights from the data"): a row of type k measured by array i has the sigma
+σ_k · a_{k,i}. σ_k is the type's component (``calibrate.robust_noise_steps`` / ``estimate_noise``);
+a_{k,i} (``p["array_scale"][k][i]``, 1 to start) is the array's, for the types measured per array
+(TDOA-S, TDOA-M — attributed to the non-reference array of the pair —, DOA, cone). ``factors.evaluate``
+divides those rows' residuals and Jacobians by a_{k,i}.
+
+Rule: the components are estimated with the types' in the variance-component steps after the outlier
+and array tests (``calibrate.estimate_noise``, kept rows only). An array gets its own component for a
+type only when its rows of that type carry enough redundancy, Σ(1 − h_ii) ≥ ARRAY_MIN_REDUNDANCY (h the
+hat matrix's diagonal, as for the types), and when its factor is significantly above the type's pooled
+one (χ²(redundancy) upper tail at ARRAY_ALPHA, Bonferroni-corrected over the arrays tested), so an array
+is not re-weighted by the scatter of a dozen residuals: unconditional per-array factors made the positions of clean scenes worse, and a
+median-based per-array step before the outlier tests (n ≈ 8–14 rows) gave false factors of 1.5–2 in 6 of
+10 clean scenes. Otherwise the array's rows keep their current factor (1 to start). Components only
+raise an array's sigma (a ≥ 1): they are for an array worse than the rest; a component below the type's
+ran away to its bound (as its weight grows, its own parameters absorb its residuals). Each a stays
+within [1, ARRAY_MAX_FACTOR], and σ_k · a_{k,i} within the type's bound around the stated
+sigma (``calibrate.sigma_bounds``: a measured prior is never inflated beyond PRIOR_MAX_FACTOR per array
+either).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import chi2
+
+from .factors import ARRAY_KEY
+
+ARRAY_MIN_REDUNDANCY = 5.0    # Σ(1 − h) of an array's rows of one type for its own component
+# either way, relative to the type's sigma: covers one array several times noisier than the others, and
+# keeps an array whose data are wrong as a whole from being silenced instead of flagged
+ARRAY_MAX_FACTOR = 4.0
+ARRAY_ALPHA = 0.01            # family level of the tests "this array's noise is above the others'"
+
+
+def start_scales(p, kinds):
+    """``p["array_scale"]``: a = 1 for every array of each per-array type with rows in ``kinds``."""
+    p["array_scale"] = {k: np.ones(p["N"]) for k in ARRAY_KEY if k in kinds and len(p.get(ARRAY_KEY[k], ()))}
+    return p
+
+
+def vce_groups(p, f, r, h, keep):
+    """Per array (N,) of factor ``f``'s kept rows (whitened residuals r, leverages h): Σ r² and the
+    redundancy Σ(1 − h), and whether its σ² factor Σ r² / Σ(1 − h) is significantly above the type's
+    pooled one: χ²(redundancy) upper tail below ARRAY_ALPHA / (arrays tested), redundancy ≥
+    ARRAY_MIN_REDUNDANCY."""
+    arr = np.repeat(p[ARRAY_KEY[f["kind"]]], f["dim"])[keep]
+    red_rows = (1.0 - h[keep]) - (1.0 / 3.0 if f["kind"] == "doa" else 0.0)   # DOA: 2 dof of 3 components
+    red = np.bincount(arr, weights=red_rows, minlength=p["N"])
+    ss = np.bincount(arr, weights=r[keep] ** 2, minlength=p["N"])
+    pooled = ss.sum() / max(red.sum(), 1e-12)
+    testable = red >= ARRAY_MIN_REDUNDANCY
+    tail = chi2.sf(ss / max(pooled, 1e-300), np.maximum(red, 1e-9))   # χ²(red) when its noise is the type's
+    return {"ss": ss, "red": red, "significant": testable & (tail < ARRAY_ALPHA / max(int(testable.sum()), 1))}
+
+
+def own_components(p, kind, groups):
+    """Arrays of ``kind`` with their own component: those that had one, plus the newly significant ones
+    (``p["array_own"]``, updated). An array keeps its own component once it has one."""
+    own = p.setdefault("array_own", {}).get(kind, np.zeros(p["N"], bool)) | groups["significant"]
+    p["array_own"][kind] = own
+    return own
+
+
+def type_factor(p, kind, groups, pooled, min_redundancy):
+    """The type's σ² factor from the arrays without their own component (``pooled``, the factor over all
+    rows, when those carry less than ``min_redundancy``)."""
+    rest = ~own_components(p, kind, groups)
+    red = float(groups["red"][rest].sum())
+    return float(groups["ss"][rest].sum()) / red if red >= min_redundancy else pooled
+
+
+def update_scales(p, kind, groups, type_step, total, bound):
+    """After the type's sigma moved by ``type_step``: each array with its own component gets the sigma its
+    rows ask for (σ² × Σ r² / Σ(1 − h)), the others keep the type's (a unchanged). ``total``: the type's
+    sigma / stated, ``bound`` its allowed factor either way. Returns the arrays' total steps (N,)."""
+    a = p["array_scale"][kind]
+    own = p["array_own"][kind] & (groups["red"] > 0)
+    new = a.copy()
+    f2 = groups["ss"][own] / groups["red"][own]
+    new[own] = a[own] * np.sqrt(np.clip(f2, 1e-8, 1e8)) / type_step
+    lo = 1.0
+    hi = min(ARRAY_MAX_FACTOR, bound / total)
+    new = np.clip(new, lo, hi)
+    p["array_scale"][kind] = new
+    return new / a * type_step
+
+
+def report_scales(p):
+    """{kind: {array name: a}} for the report (only arrays whose component moved)."""
+    return {k: {str(n): float(v) for n, v in zip(p["names"], a) if abs(v - 1.0) > 1e-9}
+            for k, a in (p.get("array_scale") or {}).items()}

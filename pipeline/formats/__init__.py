@@ -1,0 +1,1 @@
+"""File formats: readers, writers, validation, output folders, exports."""

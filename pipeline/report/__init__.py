@@ -1,0 +1,1 @@
+"""Reports: metrics against truth, plots and the summary."""

@@ -1,0 +1,1 @@
+"""Simulators: feature-level scenes and recorded sessions in rooms."""

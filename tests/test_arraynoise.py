@@ -1,0 +1,99 @@
+"""Per-array variance components (issue 10, item 2): against simulated ground truth and finite differences."""
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from calib.estimator import calibrate
+from calib.estimator.arraynoise import ARRAY_MAX_FACTOR, update_scales
+from calib.estimator.factors import evaluate
+from calib.estimator.problem import build_problem, make_layout, retract
+from calib.pipeline.simulate.featsim import simulate_features
+
+_spec = importlib.util.spec_from_file_location("bench_faults", Path(__file__).parents[1] / "benchmarks" / "bench_faults.py")
+bench = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bench)
+
+
+def _noisy_doas(feats, array, factor, rng):
+    """The DOAs of ``array`` with ``factor`` × the scene's noise (extra rotations of the featsim model)."""
+    doa = feats["doa"].copy()
+    m = (doa.array == array).to_numpy()
+    axis = rng.normal(size=(m.sum(), 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    ang = np.deg2rad(rng.normal(0.0, np.sqrt(factor ** 2 - 1) * bench.SIGMA_DOA_DEG, (m.sum(), 1)))
+    doa.loc[m, ["ux", "uy", "uz"]] = Rotation.from_rotvec(axis * ang).apply(doa.loc[m, ["ux", "uy", "uz"]].to_numpy(float).copy())
+    return {**feats, "doa": doa}
+
+
+def test_per_array_scaling_keeps_the_jacobian_exact():
+    feats, _ = simulate_features(3, seed=1)
+    p = build_problem(feats)
+    rng = np.random.default_rng(0)
+    p["array_scale"] = {k: rng.uniform(1.0, 3.0, p["N"]) for k in ("tdoa_s", "tdoa_m", "doa")}
+    st = {"x": rng.normal(0, 2, (p["N"], 3)), "R": Rotation.random(p["N"], random_state=1).as_matrix(),
+          "offset": rng.normal(0, 1e-3, p["N"]), "drift": np.zeros(p["N"]), "s": rng.normal(0, 2, (p["K"], 3)),
+          "e": np.zeros(p["K"]), "odo_yaw": np.zeros(1)}
+    lay = make_layout(p)
+    kinds = ["tdoa_s", "tdoa_m", "doa"]
+    fs = evaluate(p, st, lay, kinds)
+    plain = evaluate({k: v for k, v in p.items() if k != "array_scale"}, st, lay, kinds)
+    for f, g in zip(fs, plain):
+        arr = np.repeat(p[{"tdoa_s": "ts_arr", "tdoa_m": "tm_arr", "doa": "doa_arr"}[f["kind"]]], f["dim"])
+        np.testing.assert_allclose(f["r"] * p["array_scale"][f["kind"]][arr], g["r"])
+        np.testing.assert_allclose(f["sigma_rows"], g["sigma"] * p["array_scale"][f["kind"]][arr])
+        J = np.asarray(f["J"])
+        num = np.zeros_like(J)
+        for k in range(lay["n"]):
+            h = np.zeros(lay["n"])
+            h[k] = 1e-6
+            rp = [x["r"] for x in evaluate(p, retract(st, lay, h), lay, [f["kind"]])][0]
+            rm = [x["r"] for x in evaluate(p, retract(st, lay, -h), lay, [f["kind"]])][0]
+            num[:, k] = (rp - rm) / 2e-6
+        np.testing.assert_allclose(J, num, atol=1e-4 * np.abs(num).max())
+
+
+def test_array_components_are_bounded():
+    p = {"array_scale": {"doa": np.ones(3)}, "array_own": {"doa": np.array([True, True, False])}}
+    groups = {"ss": np.array([1e4, 1.0, 1e4]), "red": np.array([10.0, 10.0, 10.0])}
+    update_scales(p, "doa", groups, type_step=1.0, total=1.0, bound=100.0)
+    # own and far noisier: at ARRAY_MAX_FACTOR; own and quieter than its type: not below it; not own: unchanged
+    np.testing.assert_allclose(p["array_scale"]["doa"], [ARRAY_MAX_FACTOR, 1.0, 1.0])
+    p["array_scale"]["doa"] = np.ones(3)
+    update_scales(p, "doa", groups, type_step=1.0, total=2.5, bound=3.0)   # a stated prior: 3x in total
+    assert p["array_scale"]["doa"][0] * 2.5 <= 3.0 + 1e-12
+
+
+def test_clean_scenes_get_no_array_component():
+    """Same noise on every array: no array gets its own sigma, the solution is the per-type one."""
+    for seed in range(3):
+        feats, _ = simulate_features(1 + seed, 1e-4, 5.0, 0.03, seed=1000 + seed)
+        a = calibrate(feats, noise="estimate")
+        b = calibrate(feats, noise="estimate", array_noise=True)
+        assert not any(b["report"]["sigmas"]["per_array_factor"].values())
+        np.testing.assert_allclose(b["arrays"][["x", "y", "z"]].to_numpy(float),
+                                   a["arrays"][["x", "y", "z"]].to_numpy(float), atol=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_much_noisier_array_gets_its_own_sigma(seed):
+    """One array with 5x the DOA noise: unless the array test already dropped it, that array (only) gets a
+    DOA factor above 1.5 (the outlier tests trim its tails first: about 2 for a true 5), at most the bound. (At 3x the tests
+    find it in only part of the runs with 14 events: docs/results.md.)"""
+    feats, truth = simulate_features(3, 1e-4, 5.0, 0.03, seed=2000 + seed)
+    bad = feats["meta"]["arrays"][1 + seed]
+    f2 = _noisy_doas(feats, bad, 5.0, np.random.default_rng(seed))
+    rep = calibrate(f2, noise="estimate", array_noise=True)["report"]
+    fac = rep["sigmas"]["per_array_factor"]
+    if bad not in rep["unreliable_arrays"]:
+        assert 1.5 < fac["doa"].get(bad, 0.0) <= ARRAY_MAX_FACTOR
+    assert all(set(d) <= {bad} for d in fac.values())
+
+
+def test_array_noise_option_is_validated():
+    from calib.estimator import validate_options
+    with pytest.raises(ValueError, match="array_noise"):
+        validate_options(array_noise="yes")
