@@ -69,15 +69,32 @@ def stack_jacobians(Js, n, dense):
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
 
 
+def _snapshot(v, refs):
+    """A comparable picture of a problem entry: arrays by identity (kept alive in ``refs``, so an id is
+    never reused while cached), scalars by type and repr, dicts/lists/tuples recursively by content (an
+    entry such as ``p["array_scale"]`` is a dict updated in place)."""
+    if isinstance(v, np.ndarray):
+        refs.append(v)
+        return ("a", id(v))
+    if isinstance(v, dict):
+        return ("d", tuple((k, _snapshot(x, refs)) for k, x in v.items()))
+    if isinstance(v, (list, tuple)):
+        return ("s", tuple(_snapshot(x, refs) for x in v))
+    if isinstance(v, (int, float, str, bool, np.number, type(None))):
+        return (type(v).__name__, repr(v))
+    refs.append(v)
+    return ("o", id(v))
+
+
 class _LineariseCache:
     """The last few factor evaluations (and stacked Jacobians), keyed by everything they depend on.
 
     The estimator's stages often linearise again where the previous one stopped (each LM call starts
     where the last ended; the outlier statistics, drop tests and covariances look at the state an LM call
     just returned), so the factors are evaluated once per (problem, state, layout, kinds) and the identical
-    arrays reused. The key holds the state and layout by value and the problem's entries by identity
-    (the entry objects are kept alive here, so an id cannot be reused) and scalar value; problems are never
-    modified in place (a new sigma is a new entry), and the cached arrays are made read-only to enforce it.
+    arrays reused. The key holds the state and layout by value and the problem by :func:`_snapshot`: its
+    arrays are replaced, never modified in place (a new sigma, a new per-array scale is a new object), and
+    the cached arrays are made read-only.
     """
 
     SIZE = 4
@@ -88,41 +105,36 @@ class _LineariseCache:
 
     @staticmethod
     def key(p, st, lay, kinds):
+        refs = []
         names = (tuple(sorted(st)), tuple(sorted(lay)))
         vals = [np.asarray(d[k]) for d, ks in zip((st, lay), names) for k in ks]
-        return (tuple(kinds), tuple(p), names, tuple((v.dtype.char, v.shape) for v in vals),
-                b"".join([v.tobytes() for v in vals]))
-
-    @staticmethod
-    def same_problem(p, vals):
-        return len(p) == len(vals) and all(
-            a is b or (isinstance(a, (int, float, str, bool, np.number, type(None))) and type(a) is type(b) and a == b)
-            for a, b in zip(p.values(), vals))
+        return (tuple(kinds), _snapshot(p, refs), names, tuple((v.dtype.char, v.shape) for v in vals),
+                b"".join([v.tobytes() for v in vals])), refs
 
     def lookup(self, p, st, lay, kinds):
-        key = self.key(p, st, lay, kinds)
+        key, refs = self.key(p, st, lay, kinds)
         with self.lock:
             for e in reversed(self.entries):
-                if e.key == key and self.same_problem(p, e.vals):
-                    return key, e
-        return key, None
+                if e.key == key:
+                    return (key, refs), e
+        return (key, refs), None
 
-    def store(self, key, p, fs):
+    def store(self, key, fs):
         chunks = [f["J"] for f in fs]
         fs = [{**f, "J": None} for f in fs]   # the Jacobian lives in the entry (chunks, then stacked forms)
         for f in fs:
             for name in ("r", "row"):
                 if isinstance(f[name], np.ndarray):
                     f[name].setflags(write=False)
-        e = _Entry(key, list(p.values()), fs, chunks)
+        e = _Entry(key[0], key[1], fs, chunks)
         with self.lock:
             self.entries = self.entries[-(self.SIZE - 1):] + [e]
         return e
 
 
 class _Entry:
-    """One cached evaluation: key, the problem's values (kept alive), factor dicts (``J`` None), the factors'
-    Jacobian chunks (dropped once a sparse J is stacked) and the stacked forms {dense: J}."""
+    """One cached evaluation: key, the objects its problem snapshot names (kept alive), factor dicts (``J``
+    None), the factors' Jacobian chunks (dropped once a sparse J is stacked) and the stacked forms."""
 
     __slots__ = ("key", "vals", "fs", "chunks", "forms")
 
@@ -140,7 +152,7 @@ def factors_at(p, st, lay, kinds, dense=None):
     """
     key, e = _CACHE.lookup(p, st, lay, kinds)
     if e is None:
-        e = _CACHE.store(key, p, evaluate(p, st, lay, kinds))
+        e = _CACHE.store(key, evaluate(p, st, lay, kinds))
     if dense is None:
         return e.fs, None
     J = e.forms.get(dense)

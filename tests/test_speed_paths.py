@@ -10,8 +10,8 @@ from calib.estimator.init import kabsch_cost, sym3_eigvals
 from calib.estimator.problem import build_problem, make_layout, retract
 from calib.estimator.solver import Schur, event_columns, linearise, normal_equations, stack_jacobians
 from calib.estimator.uncertainty import state_from_frames
-from calib.pipeline.evaluate import evaluate as evaluate_calibration
-from calib.pipeline.featsim import simulate_features
+from calib.pipeline.report.evaluate import evaluate as evaluate_calibration
+from calib.pipeline.simulate.featsim import simulate_features
 
 KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry"]
 
