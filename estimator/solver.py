@@ -73,16 +73,16 @@ def _snapshot(v, refs):
     """A comparable picture of a problem entry: arrays by identity (kept alive in ``refs``, so an id is
     never reused while cached), scalars by type and repr, dicts/lists/tuples recursively by content (an
     entry such as ``p["array_scale"]`` is a dict updated in place)."""
-    if isinstance(v, np.ndarray):
+    if type(v) is np.ndarray:   # the common case first (a problem is mostly arrays)
         refs.append(v)
-        return ("a", id(v))
+        return id(v)
     if isinstance(v, dict):
         return ("d", tuple((k, _snapshot(x, refs)) for k, x in v.items()))
     if isinstance(v, (list, tuple)):
         return ("s", tuple(_snapshot(x, refs) for x in v))
     if isinstance(v, (int, float, str, bool, np.number, type(None))):
         return (type(v).__name__, repr(v))
-    refs.append(v)
+    refs.append(v)   # any other object (ndarray subclasses included) by identity
     return ("o", id(v))
 
 
