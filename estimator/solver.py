@@ -86,6 +86,18 @@ def _snapshot(v, refs):
     return ("o", id(v))
 
 
+def _snapshot_problem(p, refs):
+    """:func:`_snapshot` of a problem dict, its arrays (nearly every entry) inline."""
+    out = []
+    for k, v in p.items():
+        if type(v) is np.ndarray:
+            refs.append(v)
+            out.append((k, id(v)))
+        else:
+            out.append((k, _snapshot(v, refs)))
+    return tuple(out)
+
+
 class _LineariseCache:
     """The last few factor evaluations (and stacked Jacobians), keyed by everything they depend on.
 
@@ -108,7 +120,7 @@ class _LineariseCache:
         refs = []
         names = (tuple(sorted(st)), tuple(sorted(lay)))
         vals = [np.asarray(d[k]) for d, ks in zip((st, lay), names) for k in ks]
-        return (tuple(kinds), _snapshot(p, refs), names, tuple((v.dtype.char, v.shape) for v in vals),
+        return (tuple(kinds), _snapshot_problem(p, refs), names, tuple((v.dtype.char, v.shape) for v in vals),
                 b"".join([v.tobytes() for v in vals])), refs
 
     def lookup(self, p, st, lay, kinds):
