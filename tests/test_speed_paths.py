@@ -100,9 +100,24 @@ def test_calibrations_in_threads_match_a_sequential_one(scene):
 
     from calib.estimator import calibrate
 
+    from threadpoolctl import threadpool_limits
+
     feats = scene[0]
-    ref = calibrate(feats)["state"]
-    with ThreadPoolExecutor(3) as pool:
-        states = [c["state"] for c in pool.map(lambda _: calibrate(feats), range(3))]
+    # BLAS single-threaded throughout: calibrate's own limit is process-wide, and threads leaving it in
+    # another order would let BLAS round differently (not the cache's doing)
+    with threadpool_limits(limits=1, user_api="blas"):
+        ref = calibrate(feats)["state"]
+        with ThreadPoolExecutor(3) as pool:
+            states = [c["state"] for c in pool.map(lambda _: calibrate(feats), range(3))]
     for st in states:
         assert all(np.array_equal(st[k], ref[k]) for k in ref)
+
+
+def test_linearise_reuse_sees_entries_updated_in_place(scene):
+    _, _, p, st = scene
+    q = dict(p)
+    lay = make_layout(q)
+    q["array_scale"] = {"tdoa_m": np.ones(q["N"])}
+    c1 = linearise(q, st, lay, ["tdoa_m"])[3]
+    q["array_scale"]["tdoa_m"] = np.full(q["N"], 2.0)          # the dict is updated in place
+    assert np.isclose(linearise(q, st, lay, ["tdoa_m"])[3], c1 / 4.0)
