@@ -46,9 +46,13 @@ def print_metrics(metrics, console=None):
         t.add_row(label, _f(v * scale if v is not None else v, ".3f"), unit)
     (console or out).print(t)
     pa = Table(title="Per array")
-    for col in ("array", "position [cm]", "geodesic [deg]", "paper [deg]", "offset [µs]", "drift [ppm]"):
+    rows = metrics.get("per_array", [])
+    axis = any(np.isfinite(r.get("axis_deg", np.nan)) for r in rows)  # linear arrays / pairs: axis error
+    for col in ("array", "position [cm]", "geodesic [deg]", "paper [deg]", *(("axis [deg]",) if axis else ()),
+                "offset [µs]", "drift [ppm]"):
         pa.add_column(col, justify="right")
-    for r in metrics.get("per_array", []):
+    for r in rows:
         pa.add_row(r["array"], _f(100 * r["position_m"], ".2f"), _f(r["geodesic_deg"], ".2f"),
-                   _f(r["paper_deg"], ".2f"), _f(1e6 * r["offset_s"], ".1f"), _f(1e6 * r["drift"], ".2f"))
+                   _f(r["paper_deg"], ".2f"), *((_f(r.get("axis_deg", np.nan), ".2f"),) if axis else ()),
+                   _f(1e6 * r["offset_s"], ".1f"), _f(1e6 * r["drift"], ".2f"))
     (console or out).print(pa)

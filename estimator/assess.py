@@ -9,6 +9,7 @@ import numpy as np
 
 from .factors import ALL_KINDS, UNITS, natural
 from .factors import evaluate as factors
+from .observability import check_observability
 from .problem import build_problem, make_layout
 from .solver import linearise
 from .uncertainty import cov_block, covariance, state_from_frames
@@ -41,6 +42,9 @@ def rebuild(features, calib):
     st["e"] = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p["events"]])
     st["odo_yaw"] = np.array([np.deg2rad(float(frame.get("yaw_deg") or 0.0))])
     kinds = [k for k in ALL_KINDS if k != "emission" or sig_e > 0]
+    if _rank_deficient(p, rep.get("undetermined") or []):
+        # the estimator left out what the data do not determine: the same rank check at the estimate
+        check_observability(p, make_layout(p), kinds, st)
     lay = make_layout(p)
     flagged = {}
     for o in rep.get("outliers") or []:
@@ -48,6 +52,26 @@ def rebuild(features, calib):
     mask = {f["kind"]: ~np.isin(f["row"], list(flagged[f["kind"]]))
             for f in factors(p, st, lay, kinds) if f["kind"] in flagged}
     return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask}
+
+
+def _rank_deficient(p, undetermined):
+    """True when report.json ``undetermined`` names parameters found by the rank check (not the roll of a
+    linear array, not the orientation of an array without DOAs for 2 events)."""
+    index = {str(n): i for i, n in enumerate(p["names"])}
+    for u in undetermined:
+        i = index.get(u.get("array"))
+        if i is None or u.get("parameter") == "roll":
+            continue
+        if u.get("parameter") != "orientation" or p["rot_free"][i]:
+            return True
+    return False
+
+
+def _undetermined(p):
+    """{(array index, layout key)} of the parameters the rank check left out (``p["unobservable"]``)."""
+    key = {"position": "x", "orientation": "rot", "offset": "offset", "drift": "drift"}
+    index = {str(n): i for i, n in enumerate(p["names"])}
+    return {(index[u["array"]], key[u["parameter"]]) for u in p.get("unobservable", ())}
 
 
 def residuals(model):
@@ -83,14 +107,14 @@ def position_covariances(model):
     _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     cov = covariance(J[w > 0], lay["n"], lay)
 
-    def blocks(idx):
+    def blocks(idx, skip=()):
         out = np.full((len(idx), 3, 3), np.nan)
         for k, ix in enumerate(idx):
-            if np.all(ix >= 0):
+            if np.all(ix >= 0) and k not in skip:
                 out[k] = cov_block(cov, ix)
         return out
 
-    return blocks(lay["x"]), blocks(lay["s"])
+    return blocks(lay["x"], {i for i, key in _undetermined(p) if key == "x"}), blocks(lay["s"])
 
 
 ARRAY_PARAMS = (("x", ("x", "y", "z")), ("rot", ("rx", "ry", "rz")), ("offset", ("offset",)), ("drift", ("drift",)))
@@ -101,14 +125,18 @@ def array_covariance(model):
 
     Returns (labels, cov): labels (n,) ``"<array>.<param>"`` with param in x, y, z (m), rx, ry, rz (rad,
     rotation about the array's own axes: φ in R Exp(φ)), offset (s), drift; cov (n, n) in those units. Arrays
-    in the problem's order, each array's parameters in that order; the reference array's fixed ones are absent.
+    in the problem's order, each array's parameters in that order; the reference array's fixed ones and
+    those the data leave undetermined (report.json ``undetermined``) are absent.
     """
     p, lay = model["problem"], model["layout"]
     _, J, w, _, _ = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     cov = covariance(J[w > 0], lay["n"])
     labels, idx = [], []
+    skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
     for i, name in enumerate(p["names"]):
         for key, names in ARRAY_PARAMS:
+            if (i, key) in skip:
+                continue
             cols = np.atleast_1d(lay[key][i])
             for col, label in zip(cols, names):
                 if col >= 0:

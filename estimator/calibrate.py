@@ -46,7 +46,7 @@ def undetermined_parameters(p):
     out = []
     for i in range(p["N"]):
         if i != p["ref"] and p["rot_free"][i] and p["rot_fixed_axis"][i] >= 0:
-            out.append({"parameter": "roll", "array": str(p["names"][i]),
+            out.append({"parameter": "roll", "array": str(p["names"][i]), "axis": p["cone_axis"][i].tolist(),
                         "reason": "linear array / mic pair: the rotation about its axis is not observable (not "
                                   "estimated, NaN std); the axis direction is"})
         if i != p["ref"] and not p["rot_free"][i]:
@@ -54,7 +54,7 @@ def undetermined_parameters(p):
             out.append({"parameter": "orientation", "array": str(p["names"][i]),
                         "reason": f"DOAs for {nd} event(s) (>= 2 needed): not estimated, reported as identity "
                                   "with NaN std; position and clock from the TDOAs"})
-    return out
+    return out + list(p.get("unobservable", []))   # found by the rank check (observability.py)
 
 
 def rotations_by_kabsch(p, st):

@@ -1,11 +1,12 @@
-"""Observability: can the data determine every free parameter? (Rank of the Fisher information.)
+"""Observability: what can the data determine? (Rank of the Fisher information, per parameter.)
 
-Counting checks first (DOAs and TDOA-Ms per array, the spread of the path), then the smallest singular value
+A counting check first (the spread of the path), then the smallest singular value
 of the column-normalised Jacobian Jn = J D⁻¹ (σ² = eigenvalues of Hn = JnᵀJn; with unit columns the test
 σ_min < 1e-6 is far above the ~1e-8 that double precision resolves through Hn). Small problems take the
 eigen-decomposition of the dense Hn; large ones never form it: the event block of Hn is factorised sparse,
 the array block reduced by the Schur complement S, and the smallest eigenvalue of Hn found by Lanczos
-iteration on Hn⁻¹ (solves with those factors).
+iteration on Hn⁻¹ (solves with those factors). Array parameters moved by a null direction are reported
+undetermined and left out of the solve (:func:`check_observability`); the rest is calibrated.
 """
 from __future__ import annotations
 
@@ -23,18 +24,64 @@ ABS_SINGULAR = 1e-6
 LANCZOS_TOL = 1e-3
 
 
-def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
-    """Raise ObservabilityError naming what the data cannot determine (rank of the Fisher information).
+# A column whose weight in a null direction of Jn is at least this fraction of the largest weight is
+# part of what the data do not determine (null vectors of a missing measurement are confined to the
+# columns it would have touched; other columns get only round-off).
+NULL_SUPPORT = 0.02
+# the array parameters that can be left out of a solve when the data do not determine them
+ARRAY_BLOCKS = (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift"))
 
+
+def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
+    """Determine what the data determine (rank of the Fisher information), per parameter.
+
+    Each null direction of the column-normalised Jacobian (the weakest one, found again after each fix)
+    names the parameters it moves (weight >= NULL_SUPPORT of its largest): they are undetermined. An array
+    parameter among them (the largest) is then left out of the solve (``p["fixed_cols"]``, kept at its
+    initial value, NaN std) and the check repeated, so everything else is calibrated: parameters outside
+    every null direction are determined whatever the fixed values. ``p["unobservable"]`` gets one entry
+    per (array, parameter): {"parameter", "array", "reason"} (report.json ``undetermined``). Raises
+    ObservabilityError when a null direction moves no non-reference array parameter (e.g. sources only),
+    or on the counting checks (collinear source path). ``lay`` is the full layout (recomputed here).
     ``dense`` as in :func:`calib.estimator.solver.linearise` (None: by problem size).
     """
+    from .problem import make_layout  # (problem ↔ observability: layout after each fix)
+
     _check_counts(p)
+    found = {}
+    for _ in range(4 * p["N"] * 8):  # each pass fixes at least one column
+        lay = make_layout(p)
+        cols, untouched = _null_direction(p, lay, kinds, st, rel_tol, dense)
+        if cols is None:
+            break
+        support = _support_blocks(p, lay, cols)
+        if not support or (untouched and len(support) < len(cols)):
+            raise ObservabilityError(f"the data cannot determine {_what(p, lay, cols, st)}")
+        fixed = p.setdefault("fixed_cols", {})
+        for i, key, label, k in support:
+            found[(i, label)] = True
+        # untouched columns all at once, else the array column the null direction moves most
+        for i, key, _, k in (support if untouched else support[:1]):
+            mask = fixed.setdefault(key, np.zeros(lay[key].shape, bool))
+            mask[(i, k) if mask.ndim == 2 else i] = True
+    else:
+        raise ObservabilityError("the data leave too many parameters undetermined")
+    p["unobservable"] = [{"parameter": label, "array": str(p["names"][i]),
+                          "reason": "the data do not determine it (rank-deficient Fisher information: too few "
+                                    "measurements of this array); not estimated (kept at its initial value, NaN "
+                                    "std), the other parameters are"}
+                         for (i, label) in sorted(found)]
+    return p["unobservable"]
+
+
+def _null_direction(p, lay, kinds, st, rel_tol, dense):
+    """The weakest direction of Jn if it is (numerically) null: ({column: |weight|}, untouched), else
+    (None, False). Untouched columns (zero norm) come first, all at once (``untouched`` True)."""
     _, J, _, _, _ = linearise(p, st, lay, kinds, dense=dense)
     sparse = scipy.sparse.issparse(J)
     norms = np.sqrt(np.asarray(J.multiply(J).sum(axis=0)).ravel()) if sparse else np.linalg.norm(J, axis=0)
     if np.any(norms == 0):
-        k = int(np.flatnonzero(norms == 0)[0])
-        raise ObservabilityError(f"{describe_param(p, lay, k)} is not touched by any measurement")
+        return {int(k): 1.0 for k in np.flatnonzero(norms == 0)}, True
     if sparse:
         s_min, s_max, v = _weakest_direction_sparse(J, lay)
     else:  # eigen-decomposition of the small n × n matrix JnᵀJn: σ² = its eigenvalues (resolves σ ≥ 1e-7)
@@ -43,25 +90,38 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
         s_min, s_max, v = np.sqrt(max(lam[0], 0.0)), np.sqrt(lam[-1]), V[:, 0]
     if s_min < rel_tol * s_max * np.sqrt(J.shape[1]) or s_min < ABS_SINGULAR:
         v = np.abs(v)
-        worst = np.argsort(v)[::-1][:3]
-        what = ", ".join(describe_param(p, lay, int(k)) for k in worst if v[k] > 0.1 * v.max())
-        s = st["s"] - st["s"].mean(0)
-        sv = np.linalg.svd(s, compute_uv=False)
-        hint = " (all sources are nearly collinear)" if sv[1] < 1e-3 * max(sv[0], 1e-12) else ""
-        raise ObservabilityError(f"the data cannot determine {what}{hint}")
+        keep = np.flatnonzero(v >= NULL_SUPPORT * v.max())
+        return {int(k): float(v[k]) for k in keep}, False
+    return None, False
+
+
+def _support_blocks(p, lay, cols):
+    """Non-reference array parameters among ``cols`` ({column: weight}), largest weight first:
+    (array, layout key, label, component)."""
+    out = []
+    for key, label in ARRAY_BLOCKS:
+        idx = lay[key].reshape(p["N"], -1)
+        for i, k in np.argwhere(idx >= 0):
+            c = int(idx[i, k])
+            if c in cols and i != p["ref"]:
+                out.append((cols[c], int(i), key, label, int(k)))
+    return [b[1:] for b in sorted(out, key=lambda b: -b[0])]
+
+
+def _what(p, lay, cols, st):
+    """Words for the parameters of a null direction no array parameter can absorb."""
+    worst = sorted(cols, key=lambda k: -cols[k])[:3]
+    what = ", ".join(dict.fromkeys(describe_param(p, lay, k) for k in worst))
+    s = st["s"] - st["s"].mean(0)
+    sv = np.linalg.svd(s, compute_uv=False)
+    return what + (" (all sources are nearly collinear)" if sv[1] < 1e-3 * max(sv[0], 1e-12) else "")
 
 
 def _check_counts(p):
-    """Per-array DOA / TDOA-M counts and the spread of the source path (cheap, named errors)."""
+    """The spread of the source path (cheap, named error). Arrays without DOAs for 2 events keep their
+    orientation out of the estimate (``build_problem``); arrays without TDOA-M leave their offset to the
+    rank check (undetermined, the rest calibrated)."""
     K = p["K"]
-    # arrays with DOAs for fewer than 2 events are not refused: their orientation is left out of the
-    # estimate and reported as undetermined (calibrate.undetermined_parameters)
-    nt = np.bincount(p["tm_arr"], minlength=p["N"])
-    for i in range(p["N"]):
-        if i == p["ref"]:
-            continue
-        if nt[i] < 1:
-            raise ObservabilityError(f"array {p['names'][i]} has no TDOA-M: its clock offset is undetermined")
     o = p["odom"] - p["odom"].mean(0)
     sv = np.linalg.svd(o, compute_uv=False)
     if sv[1] / np.sqrt(K) < max(2.0 * p["sigma_odo"], 1e-3 * sv[0] / np.sqrt(K)):

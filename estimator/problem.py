@@ -123,11 +123,14 @@ MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
 def _split_cones(p, meta, idx):
     """Move the DOA rows of arrays listed in meta ``doa_axes`` (linear arrays, 2-mic pairs) to cone rows.
 
-    ``doa_axes``: {array: axis} with the axis one of the array frame's coordinate axes (x, y or z, sign
-    free). Such an array measures only the angle θ between its axis and the source direction; its doa.csv
-    rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Adds ``cone_ev``,
-    ``cone_arr``, ``cone_cos``, ``cone_row`` (n_c,), ``cone_axis`` (N, 3), ``rot_fixed_axis`` (N,) (the
-    rotation component about the axis, not observable: -1 for other arrays) and ``sigma_cone`` (rad).
+    ``doa_axes``: {array: axis}, the axis a unit vector in the array frame (sign free; usually a
+    coordinate axis). Such an array measures only the angle θ between its axis and the source direction;
+    its doa.csv rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Adds
+    ``cone_ev``, ``cone_arr``, ``cone_cos``, ``cone_row`` (n_c,), ``cone_axis`` (N, 3), ``rot_fixed_axis``
+    (N,) and ``sigma_cone`` (rad). ``rot_fixed_axis`` is the array-frame coordinate axis k nearest the
+    array's axis (-1 for other arrays): the rotation component about e_k is not estimated. The roll about
+    the axis is not observable; the two components about the other coordinate axes move the axis in every
+    direction (φ × a spans the plane ⟂ a when a_k ≠ 0), so they estimate it and fix that gauge.
     """
     N = len(p["names"])
     p["cone_axis"] = np.zeros((N, 3))
@@ -135,8 +138,6 @@ def _split_cones(p, meta, idx):
     for name, ax in (meta.get("doa_axes") or {}).items():
         a = np.asarray(ax, float) / np.linalg.norm(ax)
         k = int(np.argmax(np.abs(a)))
-        if not np.isclose(abs(a[k]), 1.0):
-            raise ValueError(f"meta.json: doa_axes[{name!r}] must be a coordinate axis of the array frame")
         p["cone_axis"][idx[name]] = a
         p["rot_fixed_axis"][idx[name]] = k
     is_cone = p["rot_fixed_axis"][p["doa_arr"]] >= 0
@@ -224,6 +225,24 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
         odo_yaw = bool(p.get("odo_yaw_free", False)) and sources
     lay["odo_yaw"] = take(1) if odo_yaw else -np.ones(1, int)
     lay["n"] = n
+    return _without_fixed(lay, p.get("fixed_cols"))
+
+
+def _without_fixed(lay, fixed):
+    """Drop the columns the data leave undetermined (``p["fixed_cols"]``: {key: bool mask shaped like
+    lay[key]}, set by :func:`calib.estimator.observability.check_observability`) and renumber the rest in order."""
+    if not fixed:
+        return lay
+    for key, mask in fixed.items():
+        lay[key] = np.where(mask, -1, lay[key])
+    keys = [k for k in lay if k != "n"]
+    used = np.zeros(lay["n"], bool)
+    for k in keys:
+        used[lay[k][lay[k] >= 0]] = True
+    new = np.cumsum(used) - 1
+    for k in keys:
+        lay[k] = np.where(lay[k] >= 0, new[np.maximum(lay[k], 0)], -1)
+    lay["n"] = int(used.sum())
     return lay
 
 

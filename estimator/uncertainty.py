@@ -152,8 +152,15 @@ def std_from_cov(p, lay, cov):
     def pick(idx):
         return np.where(idx >= 0, sd[np.maximum(idx, 0)], np.nan)
 
-    return {"x": pick(lay["x"]), "rot": pick(lay["rot"]), "offset": pick(lay["offset"]),
-            "drift": pick(lay["drift"]), "s": pick(lay["s"]), "e": pick(lay["e"])}
+    out = {"x": pick(lay["x"]), "rot": pick(lay["rot"]), "offset": pick(lay["offset"]),
+           "drift": pick(lay["drift"]), "s": pick(lay["s"]), "e": pick(lay["e"])}
+    # a parameter the data leave undetermined (observability.check_observability) has no std, although
+    # the gauge fixes only some of its components
+    key = {"position": "x", "orientation": "rot", "offset": "offset", "drift": "drift"}
+    index = {str(n): i for i, n in enumerate(p["names"])}
+    for u in p.get("unobservable", ()):
+        out[key[u["parameter"]]][index[u["array"]]] = np.nan
+    return out
 
 
 def state_from_frames(p, arrays, sources=None):

@@ -14,6 +14,12 @@ quadratic fit on a shrinking tangent-plane stencil, to well below the grid step.
 
 Normalised power ``(P / Σ_f w_f − M) / (M (M − 1))`` is 1 for one clean plane wave and near 0 for
 diffuse noise: it is the ``quality`` column of doa.csv.
+
+What an array can measure depends on its geometry (:func:`mic_geometry`): a 3-D array the full direction,
+a planar one the direction up to its mirror image across the mic plane (unless a hemisphere is stated), a
+linear array or a 2-mic pair only the angle θ between its axis ``a`` and the source (``u·m`` is then
+``u·c₀ + d_m cos θ`` for mics ``c₀ + d_m a``, the first term common to all mics: ``P`` depends on θ alone,
+searched on a 1-D grid by :func:`srp_cone`), a single microphone nothing.
 """
 from __future__ import annotations
 
@@ -40,6 +46,76 @@ def is_planar(mics, tol=1e-3):
     d = mics - mics.mean(axis=0)
     _, sv, vt = np.linalg.svd(d)
     return vt[2] if sv[2] / np.sqrt(len(mics)) < tol else None
+
+
+# mics whose RMS distance from their best-fit line (plane) is below this (m) form a linear (planar) array
+GEOMETRY_TOL = 1e-3
+
+
+def mic_geometry(mics, tol=GEOMETRY_TOL):
+    """What the array's geometry lets it measure: (kind, vector).
+
+    kind: "single" (1 mic: no direction), "linear" (collinear mics, 2-mic pairs: the angle to the axis;
+    vector = the unit axis in the array frame, sign such that its largest component is positive, snapped
+    to a coordinate axis when within 1e-9), "planar" (vector = the unit normal of the mic plane) or
+    "volume" (full direction; vector None).
+    """
+    mics = np.asarray(mics, float)
+    if len(mics) < 2:
+        return "single", None
+    d = mics - mics.mean(axis=0)
+    _, sv, vt = np.linalg.svd(d, full_matrices=True)
+    sv = np.r_[sv, np.zeros(3 - len(sv))] / np.sqrt(len(mics))
+    if sv[1] < tol:
+        a = vt[0] * np.sign(vt[0][np.argmax(np.abs(vt[0]))])
+        k = int(np.argmax(np.abs(a)))
+        if a[k] > 1 - 1e-9:
+            a = np.eye(3)[k]
+        return "linear", a
+    if sv[2] < tol:
+        return "planar", vt[2]
+    return "volume", None
+
+
+def cone_vectors(axis, cos_theta):
+    """Unit vectors (J, 3) at angle arccos(cos_theta) (J,) from ``axis``: the doa.csv rows of a linear
+    array (any vector on the cone; this one lies in the plane of the axis and a fixed perpendicular)."""
+    a = np.asarray(axis, float)
+    e = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
+    e /= np.linalg.norm(e)
+    c = np.clip(np.asarray(cos_theta, float), -1.0, 1.0)
+    return c[:, None] * a + np.sqrt(1.0 - c * c)[:, None] * e
+
+
+def srp_cone(g, mics, axis, freqs, c, weights=None, step_deg=1.0, refine_to_deg=0.01):
+    """Angle to the axis of a linear array (2-mic pair) by SRP-PHAT over θ ∈ [0°, 180°].
+
+    g : (J, M, F) PHAT-normalised gated spectra. A grid of ``step_deg`` (finer than the main lobe of any
+    array a few wavelengths long), then parabolic refinement on a shrinking 3-point stencil.
+    Returns cos θ (J,) and the normalised power at θ (J,).
+    """
+    w = np.ones(len(freqs)) if weights is None else weights
+    j = g.shape[0]
+    theta = np.linspace(0.0, np.pi, int(np.ceil(180.0 / step_deg)) + 1)
+
+    def power(t):  # t (J, K) angles → (J, K) normalised power
+        u = cone_vectors(axis, np.cos(t).ravel()).reshape(*t.shape, 3)
+        return srp_power(g, mics, freqs, c, u, w)
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        p = power(np.broadcast_to(theta, (j, len(theta))))
+    t = theta[np.argmax(p, axis=1)]
+    h = theta[1] - theta[0]
+    while h > np.deg2rad(refine_to_deg):
+        pts = np.clip(t[:, None] + h * np.array([-1.0, 0.0, 1.0]), 0.0, np.pi)
+        v = power(pts)
+        curv = v[:, 0] - 2 * v[:, 1] + v[:, 2]
+        step = np.where(curv < 0, 0.5 * (v[:, 0] - v[:, 2]) / np.where(curv < 0, curv, -1.0), 0.0)
+        best = np.argmax(v, axis=1) - 1.0   # not a maximum inside: move to the best stencil point
+        step = np.where((curv < 0) & (np.abs(step) <= 1.0), step, best)
+        t = np.clip(t + h * step, 0.0, np.pi)
+        h *= 0.5
+    return np.cos(t), power(t[:, None])[:, 0]
 
 
 _SETUP_CACHE = {}

@@ -20,7 +20,7 @@ from calib.errors import InputError
 
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
-from .doa import srp_doa, srp_setup
+from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
 
@@ -154,7 +154,8 @@ def process_array(a, session, t_emit, c, opt):
         "template": template, "phase": loc["phase"], "env": env, "env_rate": env_rate, "det_t": det_t,
         "det_score": score, "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
         "u": doa["u"], "doa_power": doa["power"], "redetected": redetected,
-        "ambiguous_plane": doa["normal"] if a.get("doa_hemisphere") is None else None, "has_doa": len(mics) >= 3,
+        "ambiguous_plane": doa["normal"] if a.get("doa_hemisphere") is None else None,
+        "has_doa": doa["kind"] != "single", "doa_axis": doa["axis"],
         "mic_quality": loc["value"], "warnings": warnings, "timings": timings,
         "beta_args": {"locate_kw": g["locate_kw"], "pre": g["pre"], "seg_len": g["seg_len"],
                       "whiten_hz": opt["whiten_hz"]},
@@ -186,22 +187,29 @@ def _timing_layout(mics, band, fs, c, n_template, opt):
 
 
 def _direct_path_doa(loc, mics, fs, setup, g, c, opt, hemisphere):
-    """SRP-PHAT DOA from the gated direct path, the gate ended before the first strong reflection (needs
-    3 mics or more). Returns u (J, 3), power (J,), the planar normal or None, the gate's right edge gap
-    (J,) samples, and warnings."""
+    """SRP-PHAT DOA from the gated direct path, the gate ended before the first strong reflection: what
+    the array's geometry can measure (:func:`calib.frontend.doa.mic_geometry`): the full direction (3-D),
+    up to the mirror image across the mic plane (planar without a hemisphere), a unit vector on the cone
+    of the measured angle to the axis (linear arrays, 2-mic pairs; ``axis`` set), nothing (single mic).
+    Returns u (J, 3), power (J,), the planar normal or None, the axis or None, the geometry kind, the
+    gate's right edge gap (J,) samples, and warnings."""
     n_pulse = int(np.ceil(g["pulse"] * fs))
     gap = np.where(loc["reflection"] >= 0, loc["reflection"] - loc["dp"] - n_pulse - g["taper"], g["flat"])
     right = np.clip(gap, g["half"], g["flat"])
     n = len(loc["dp"])
-    if len(mics) < 3:
-        return {"u": np.zeros((n, 3)), "power": np.full(n, np.nan), "normal": None, "gap": gap,
-                "warnings": [f"{len(mics)} mic(s): no DOA; arrival times are taken at the mics, not referred "
-                             "to the origin"]}
+    kind, vec = mic_geometry(mics)
+    out = {"normal": None, "axis": None, "kind": kind, "gap": gap, "warnings": []}
+    if kind == "single":
+        return {**out, "u": np.zeros((n, 3)), "power": np.full(n, np.nan),
+                "warnings": ["1 mic: no DOA; position and clock from the TDOAs only"]}
     g_spec, g_freqs, g_w = gated_spectra(loc["r"], loc["r_lo"], fs, setup, loc["dp"], g["flat"], g["taper"],
                                          loc["phase"], right)
+    if kind == "linear":
+        cos_t, power = srp_cone(g_spec, mics, vec, g_freqs, c, g_w)
+        return {**out, "u": cone_vectors(vec, cos_t), "power": power, "axis": vec}
     sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], hemisphere)
     u, power = srp_doa(g_spec, sset, g_w)
-    return {"u": u, "power": power, "normal": sset["planar_normal"], "gap": gap, "warnings": []}
+    return {**out, "u": u, "power": power, "normal": sset["planar_normal"]}
 
 
 def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, c, opt, half):
@@ -216,8 +224,7 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
     mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
     arrival_sd = np.hypot(mic_sd, loc["interference"])  # + what later paths put on the direct path
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
-    doa_sd = (doa_spread(t_org - arrival[:, None], u, mics, c, doa["normal"]) if len(mics) >= 3
-              else np.full(len(u), np.nan))
+    doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, doa["normal"], doa["axis"])
     reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, doa["gap"] < half,
                             fs, opt)
     warnings = []
@@ -341,7 +348,7 @@ def arrival_quality(gcc_quality, reasons):
     return np.clip(gcc_quality, 0.0, 1.0) * DOUBT_PENALTY ** n
 
 
-def doa_spread(res, u, mics, c, normal=None):
+def doa_spread(res, u, mics, c, normal=None, axis=None):
     """Internal-consistency standard deviation (rad, per tangent axis) of each DOA.
 
     res : (J, M) residuals of the mic times referred to the origin (s, NaN = unused). For the plane-wave
@@ -349,13 +356,21 @@ def doa_spread(res, u, mics, c, normal=None):
     positions, P the projector orthogonal to u, σ the residual spread). A planar array (unit ``normal``)
     measures only the in-plane part ``v`` of ``u``; the normal part ``√(1 − |v|²)`` follows with the
     Jacobian ``I − n vᵀ / |u·n|``, which grows as the source nears the array's plane (``|u·n|`` floored at
-    ``√σ_v``, where the linearisation ends). Biases common to all mics are invisible here. Returns (J,).
+    ``√σ_v``, where the linearisation ends). A linear array (unit ``axis``) measures cos θ = u·axis with
+    std ``c σ / √(Σ_m d_m²)`` (d_m the mics' coordinates along the axis; 2 dof of the fit: NaN for a pair),
+    in the cone factor's units. Biases common to all mics are invisible here. Returns (J,); NaN for
+    fewer than 3 mics.
     """
     ok = np.isfinite(res)
     n = ok.sum(axis=1)
+    if len(mics) < 3:
+        return np.full(len(u), np.nan)
+    d = mics - mics.mean(axis=0)
+    if axis is not None:
+        sig2 = (np.where(ok, res, 0.0) ** 2).sum(axis=1) / np.maximum(n - 2, 1)  # t_0 and θ
+        return c * np.sqrt(sig2 / np.sum((d @ np.asarray(axis, float)) ** 2))
     sig2 = np.where(ok, res, 0.0) ** 2
     sig2 = sig2.sum(axis=1) / np.maximum(n - 3, 1)  # 3 dof of the fit (t_0 and two angles)
-    d = mics - mics.mean(axis=0)
     s_pinv = np.linalg.pinv(d.T @ d)
     if normal is None:
         p = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
@@ -430,6 +445,9 @@ def _tables(session, results, ev_ids, beta):
               if results[n]["ambiguous_plane"] is not None}
     if planes:
         meta["doa_mirror_normals"] = planes
+    axes = {n: [float(v) for v in results[n]["doa_axis"]] for n in names if results[n].get("doa_axis") is not None}
+    if axes:  # linear arrays and 2-mic pairs: their doa.csv rows are on the cone about this axis
+        meta["doa_axes"] = axes
     return {
         "meta": meta,
         "events": session["events"].copy(),

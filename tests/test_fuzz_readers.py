@@ -190,7 +190,7 @@ def test_meta_json_typed_values(valid, data):
     validation that text edits rarely get past: 1e300, true, "343", nested lists, huge integers, NaN)."""
     meta = json.loads((valid / "feats" / "meta.json").read_text())
     for _ in range(data.draw(st.integers(1, 3))):
-        key = data.draw(st.sampled_from(sorted(meta) + ["speed_of_sond", "sigma_doa_deg", "doa_mirror_normals"]))
+        key = data.draw(st.sampled_from(sorted(meta) + ["speed_of_sond", "sigma_doa_deg", "doa_mirror_normals", "doa_axes"]))
         if data.draw(st.booleans()) or key not in meta:
             meta[key] = data.draw(JSON_VALUES)
         else:

@@ -98,13 +98,15 @@ def _std(row, cols):
                                                                          for v in vals]
 
 
-def _array_entry(row, mics, tau_ref):
-    """One array's entry: pose, mics (own and reference frame), clock, 1-σ."""
+def _array_entry(row, mics, tau_ref, undetermined=()):
+    """One array's entry: pose, mics (own and reference frame), clock, 1-σ, and what the data left
+    undetermined (report.json ``undetermined`` of this array: parameter names, the axis of a linear array)."""
     pos = row[["x", "y", "z"]].to_numpy(float)
     quat = row[["qw", "qx", "qy", "qz"]].to_numpy(float)
     R = Rotation.from_quat(quat, scalar_first=True).as_matrix()
     offset, drift = float(row["offset"]), float(row["drift"])
     off_std, drift_std = row.get("offset_std", np.nan), row.get("drift_std", np.nan)
+    axis = next((list(u["axis"]) for u in undetermined if u.get("axis") is not None), None)
     return {
         "name": str(row["array"]),
         "position": pos.tolist(),
@@ -118,6 +120,8 @@ def _array_entry(row, mics, tau_ref):
                 "rotation": _std(row, ("rx_std", "ry_std", "rz_std")),
                 "offset": float(off_std) if np.isfinite(off_std) else None,
                 "drift": float(drift_std) if np.isfinite(drift_std) else None},
+        "undetermined": [u["parameter"] for u in undetermined],
+        "axis": axis,   # linear arrays / mic pairs: the axis (own frame) whose direction is calibrated
     }
 
 
@@ -158,7 +162,9 @@ def calibration_document(calib, features):
             "chirp_drift_bias": float(meta.get("chirp_drift_bias") or 0.0),
             "drift_reference": report.get("drift_reference"),
         },
-        "arrays": [_array_entry(r, mics.get(r["array"]), tau) for r in rows],
+        "arrays": [_array_entry(r, mics.get(r["array"]), tau,
+                                [u for u in report.get("undetermined") or [] if u.get("array") == r["array"]])
+                   for r in rows],
         "covariance": None if labels is None else {"parameters": labels, "matrix": cov.tolist()},
         # the odometry-frame rotation when the estimator estimated it (report.json always says whether)
         "odometry_frame": (report.get("odometry_frame") if (report.get("odometry_frame") or {}).get("estimated")

@@ -221,7 +221,7 @@ def read_events(path):
 # ----------------------------------------------------------------------------------------------- features
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", *SIGMA_KEYS, "chirp_drift_bias", "sigmas_estimated",
-             "doa_mirror_normals", "mics", "reference_detections_s")
+             "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s")
 
 
 def validate_meta(meta, path="meta.json"):
@@ -258,18 +258,26 @@ def validate_meta(meta, path="meta.json"):
     est = meta.get("sigmas_estimated")
     if est is not None and (not isinstance(est, list) or not all(k in SIGMA_KEYS for k in est)):
         raise InputError(f"{path}: 'sigmas_estimated' must be a list of {', '.join(SIGMA_KEYS)}")
-    folds = meta.get("doa_mirror_normals")
-    if folds is not None:
-        if not isinstance(folds, dict):
-            raise InputError(f"{path}: 'doa_mirror_normals' must map array names to [x, y, z]")
-        clean = {}
-        for name, n in folds.items():
-            if name not in arrays:
-                raise InputError(f"{path}: 'doa_mirror_normals' names unknown array {name!r}")
-            v = np.asarray(V.vector3(n, f"{path}: 'doa_mirror_normals' of {name!r}", nonzero=True))
-            clean[name] = (v / np.linalg.norm(v)).tolist()
-        out["doa_mirror_normals"] = clean
+    for key in ("doa_mirror_normals", "doa_axes"):
+        if meta.get(key) is not None:
+            out[key] = _array_vectors(meta[key], key, arrays, path)
+    both = set(out.get("doa_mirror_normals") or {}) & set(out.get("doa_axes") or {})
+    if both:
+        raise InputError(f"{path}: array {sorted(both)[0]!r} is in both 'doa_mirror_normals' and 'doa_axes'")
     return out
+
+
+def _array_vectors(value, key, arrays, path):
+    """meta ``{array: [x, y, z]}`` (known arrays, non-zero vectors) → {array: unit vector as a list}."""
+    if not isinstance(value, dict):
+        raise InputError(f"{path}: '{key}' must map array names to [x, y, z]")
+    clean = {}
+    for name, n in value.items():
+        if name not in arrays:
+            raise InputError(f"{path}: '{key}' names unknown array {name!r}")
+        v = np.asarray(V.vector3(n, f"{path}: '{key}' of {name!r}", nonzero=True))
+        clean[name] = (v / np.linalg.norm(v)).tolist()
+    return clean
 
 
 def validate_features(feats):

@@ -31,7 +31,9 @@ REFERENCE = "reference"
 @dataclass(frozen=True)
 class ArrayCalibration:
     """One calibrated array. position (3,) m and quaternion (4,) scalar-first map its frame into the reference
-    frame; mics (M, 3) its own frame (None when unknown); offset (s, relative to the reference array) and drift."""
+    frame; mics (M, 3) its own frame (None when unknown); offset (s, relative to the reference array) and drift.
+    undetermined: the parameters the data left undetermined (e.g. "roll" of a mic pair, "orientation" of a
+    single microphone); axis (3,) a linear array's / mic pair's axis in its own frame (None otherwise)."""
 
     name: str
     position: np.ndarray
@@ -40,6 +42,8 @@ class ArrayCalibration:
     offset: float
     drift: float
     std: dict = field(default_factory=dict)
+    undetermined: tuple = ()
+    axis: np.ndarray | None = None
 
     @property
     def rotation(self) -> Rotation:
@@ -155,7 +159,9 @@ def _array(entry):
                             quaternion=np.asarray(entry["quaternion"], float),
                             mics=None if mics is None else np.asarray(mics, float).reshape(-1, 3),
                             offset=float(entry["clock"]["offset"]), drift=float(entry["clock"]["drift"]),
-                            std=dict(entry.get("std") or {}))
+                            std=dict(entry.get("std") or {}),
+                            undetermined=tuple(str(u) for u in entry.get("undetermined") or ()),
+                            axis=None if entry.get("axis") is None else np.asarray(entry["axis"], float))
 
 
 def from_document(doc, path="calibration.json"):

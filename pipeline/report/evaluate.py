@@ -14,6 +14,7 @@ METRIC_ROWS = (
     ("position_rmse_m", "array position RMSE", 100.0, "cm"),
     ("orientation_geodesic_deg", "orientation RMS (geodesic)", 1.0, "deg"),
     ("orientation_paper_deg", "orientation RMS (paper metric)", 1.0, "deg"),
+    ("axis_rms_deg", "axis direction RMS (linear arrays, mic pairs)", 1.0, "deg"),
     ("offset_rmse_s", "offset RMSE", 1e6, "µs"),
     ("drift_rmse", "drift RMSE", 1e6, "ppm"),
     ("relative_drift_rmse", "drift RMSE relative to reference", 1e6, "ppm"),
@@ -27,15 +28,18 @@ def _rms(v):
     return float(np.sqrt(np.mean(v * v))) if v.size else float("nan")
 
 
-def array_errors(est, truth, reference=None):
+def array_errors(est, truth, reference=None, undetermined=()):
     """Per-array errors of a calibration against truth.
 
     est, truth : arrays DataFrames (docs/formats.md sections 3/4). ``reference``: name of the reference array
-    (default: the truth row at the origin with identity rotation, else the first row).
+    (default: the truth row at the origin with identity rotation, else the first row). ``undetermined``:
+    report.json's list of what the data left undetermined; those errors are NaN (not scored), and for a
+    linear array / mic pair (``roll``, with its ``axis``) the orientation is scored by ``axis_deg``, the
+    angle between the estimated and true axis directions, instead of the full rotation.
 
     Returns a dict of (n,) arrays over the non-reference arrays present in both: ``array``,
-    ``position_m``, ``geodesic_deg``, ``paper_deg``, ``offset_s``, ``drift``, ``relative_drift`` (NaN where
-    truth is unknown).
+    ``position_m``, ``geodesic_deg``, ``paper_deg``, ``axis_deg``, ``offset_s``, ``drift``, ``relative_drift``
+    (NaN where truth is unknown or the calibration says undetermined).
     """
     # positional lookups on plain arrays (pandas indexing costs more than the metrics at the paper's size;
     # the Monte-Carlo study scores every run and stage)
@@ -69,8 +73,32 @@ def array_errors(est, truth, reference=None):
     dr = e_dr[ie] - t_dr[it]
     t_ref = t_names.index(reference)
     ref_dr = float(e_dr[e_row[reference]]) - float(t_dr[t_ref]) if reference in e_row else np.nan
-    return {"array": names, "position_m": pos, "geodesic_deg": geo, "paper_deg": paper, "offset_s": off,
-            "drift": dr, "relative_drift": dr - ref_dr}
+    out = {"array": names, "position_m": pos, "geodesic_deg": geo, "paper_deg": paper,
+           "axis_deg": np.full(len(names), np.nan), "offset_s": off, "drift": dr, "relative_drift": dr - ref_dr}
+    _unscored(out, qe, qt, undetermined)
+    return out
+
+
+# report.json ``undetermined`` parameter → the error keys it leaves unscored
+_UNSCORED = {"position": ("position_m",), "orientation": ("geodesic_deg", "paper_deg"),
+             "roll": ("geodesic_deg", "paper_deg"), "offset": ("offset_s",),
+             "drift": ("drift", "relative_drift")}
+
+
+def _unscored(out, qe, qt, undetermined):
+    """NaN the errors of undetermined parameters (in place); a linear array's axis error instead of roll."""
+    row = {a: k for k, a in enumerate(out["array"])}
+    for u in undetermined or ():
+        k = row.get(u.get("array"))
+        if k is None:
+            continue
+        for key in _UNSCORED.get(u.get("parameter"), ()):
+            out[key][k] = np.nan
+        if u.get("parameter") == "roll" and u.get("axis") is not None and np.all(np.isfinite(qt[k])):
+            a = np.asarray(u["axis"], float)
+            be = Rotation.from_quat(qe[k], scalar_first=True).apply(a)
+            bt = Rotation.from_quat(qt[k], scalar_first=True).apply(a)
+            out["axis_deg"][k] = np.rad2deg(np.arccos(np.clip(be @ bt / np.linalg.norm(a) ** 2, -1.0, 1.0)))
 
 
 def _source_differences(se, stt):
@@ -91,14 +119,18 @@ def evaluate(calib, truth):
 
     Returns a dict: ``position_rmse_m``, ``orientation_geodesic_deg`` (RMS over arrays),
     ``orientation_paper_deg`` (RMS of the angle between R_gt·p and R_est·p, p = [1,1,1]/√3),
+    ``axis_rms_deg`` (linear arrays / mic pairs: RMS axis direction error; their full rotation is not
+    scored, the roll about the axis being unobservable; undetermined parameters are not scored),
     ``offset_rmse_s``, ``drift_rmse`` (absolute drifts), ``relative_drift_rmse`` (δ_i − δ_ref, the paper's),
     ``source_rmse_m`` (when both have sources) and ``per_array`` (list of dicts). NaN where truth is unknown.
     """
-    errs = array_errors(calib["arrays"], truth["arrays"])
+    errs = array_errors(calib["arrays"], truth["arrays"],
+                        undetermined=(calib.get("report") or {}).get("undetermined", ()))
     out = {
         "position_rmse_m": _rms(errs["position_m"]),
         "orientation_geodesic_deg": _rms(errs["geodesic_deg"]),
         "orientation_paper_deg": _rms(errs["paper_deg"]),
+        "axis_rms_deg": _rms(errs["axis_deg"]),
         "offset_rmse_s": _rms(errs["offset_s"]),
         "drift_rmse": _rms(errs["drift"]),
         "relative_drift_rmse": _rms(errs["relative_drift"]),
@@ -118,8 +150,9 @@ def feature_errors(feats, scenario):
 
     Returns a dict of arrays: ``tdoa_m_raw`` (s, measured − true arrival difference), ``tdoa_m`` (s, after
     removing the matched-filter drift bias β(δ_i − δ_ref) the estimator models), ``tdoa_s`` (s), ``doa``
-    (deg, angle to the true direction in the array frame) and ``doa_folded`` (deg, the smaller of the angles
-    to the true direction and to its mirror image across the mic plane, for planar arrays).
+    (deg, angle to the true direction in the array frame), ``doa_folded`` (deg, the smaller of the angles
+    to the true direction and to its mirror image across the mic plane, for planar arrays) and ``cone``
+    (deg, rows of the linear arrays in meta ``doa_axes``: error of the angle to the axis; NaN elsewhere).
     """
     from calib.pipeline.simulate.roomsim import arrival_times  # the room simulator is only needed here
 
@@ -151,10 +184,16 @@ def feature_errors(feats, scenario):
     for k, mics in enumerate(np.asarray(x["mics"], float) for x in arrays):
         _, sv, vt = np.linalg.svd(mics - mics.mean(axis=0))
         rows = i3 == k
-        if sv[2] < 1e-6 and rows.any():
+        if len(sv) == 3 and sv[1] >= 1e-6 > sv[2] and rows.any():   # planar (not linear: those are cones)
             n = vt[2]
             um = ut[rows] - 2.0 * (ut[rows] @ n)[:, None] * n
             alt = np.degrees(np.arccos(np.clip(np.sum(u[rows] * um, axis=1), -1.0, 1.0)))
             folded[rows] = np.minimum(ang[rows], alt)
+    axes = np.zeros((len(names), 3))
+    for name, ax in (feats["meta"].get("doa_axes") or {}).items():
+        axes[index[name]] = np.asarray(ax, float) / np.linalg.norm(ax)
+    ax = axes[i3]
+    cone = np.degrees(np.abs(np.arccos(np.clip(np.sum(u * ax, axis=1), -1, 1))
+                             - np.arccos(np.clip(np.sum(ut * ax, axis=1), -1, 1))))
     return {"tdoa_m_raw": raw, "tdoa_m": raw - beta * (delta[i] - delta[ref]), "tdoa_s": es, "doa": ang,
-            "doa_folded": folded, "dd": delta[i] - delta[ref]}
+            "doa_folded": folded, "cone": np.where(np.any(ax != 0, axis=1), cone, np.nan), "dd": delta[i] - delta[ref]}

@@ -307,12 +307,12 @@ def metrics_markdown(metrics):
     lines = ["| metric | value | unit |", "|---|---:|---|"]
     for key, label, scale, unit in METRIC_ROWS:
         lines.append(f"| {label} | {_fmt(metrics.get(key), '.3f', scale)} | {unit} |")
-    lines += ["", "| array | position (cm) | geodesic (deg) | paper metric (deg) | offset (µs) | drift (ppm) |",
-              "|---|---:|---:|---:|---:|---:|"]
+    lines += ["", "| array | position (cm) | geodesic (deg) | paper metric (deg) | axis (deg) | offset (µs) | "
+              "drift (ppm) |", "|---|---:|---:|---:|---:|---:|---:|"]
     for r in metrics.get("per_array", []):
         lines.append(f"| {r['array']} | {_fmt(r['position_m'], '.2f', 100)} | {_fmt(r['geodesic_deg'], '.2f')} | "
-                     f"{_fmt(r['paper_deg'], '.2f')} | {_fmt(r['offset_s'], '.1f', 1e6)} | "
-                     f"{_fmt(r['drift'], '.3f', 1e6)} |")
+                     f"{_fmt(r['paper_deg'], '.2f')} | {_fmt(r.get('axis_deg'), '.2f')} | "
+                     f"{_fmt(r['offset_s'], '.1f', 1e6)} | {_fmt(r['drift'], '.3f', 1e6)} |")
     return "\n".join(lines)
 
 
@@ -361,6 +361,13 @@ def summary_markdown(features, calib, res, metrics, diag, images):
           "axis, clock offset at the first event and drift relative to the emitter's clock; ± columns are "
           "1-σ from the estimator's covariance (position: norm over x, y, z).", "",
           arrays_markdown(calib["arrays"]), ""]
+    und = rep.get("undetermined") or []
+    if und:   # what the data do not determine (not estimated, NaN std): one line per array
+        by = {}
+        for u in und:
+            by.setdefault(u["array"], []).append(u["parameter"])
+        L += ["Not determined by the data (not estimated, no σ; the rest is): "
+              + "; ".join(f"{a}: {', '.join(v)}" for a, v in by.items()) + ".", ""]
     if metrics is not None:
         L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
     L += ["## Scene", "", f"![scene]({images['scene']})", ""]

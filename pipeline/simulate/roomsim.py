@@ -50,8 +50,7 @@ from calib.pipeline.simulate.sounds import burst_signal, chirp_power, chirp_sign
 # ----------------------------------------------------------------------------------------------- signals
 def circular_array(n_mics=6, radius=0.0354):
     """Mic positions (n_mics, 3) of a uniform circular array in the x-y plane, centred on the origin (m)."""
-    a = 2 * np.pi * np.arange(n_mics) / n_mics
-    return np.round(np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(n_mics)], axis=1), 12) + 0.0
+    return scenes.named_mics("circle", None, n_mics, radius, 0.0)
 
 
 # ----------------------------------------------------------------------------------------------- scenario
@@ -191,6 +190,7 @@ def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock, sc):
         positions, rots = _legacy_poses(preset, g, sources, room, n, rng_pose)
         extra = [{"doa_hemisphere": [0.0, 0.0, 1.0]} if g["tilt_deg"] is not None else {} for _ in range(n)]
         mics = _default_mics(g)
+    mics = _geometries(g, n, mics)
     offmax, drmax = float(g["offset_max"]), float(g["drift_max"])
     off = rng_clock.uniform(-offmax, offmax, n)
     off[0] = 0.0
@@ -201,8 +201,25 @@ def _make_arrays(preset, g, sources, room, n, rng_pose, rng_clock, sc):
         q = rots[i].as_quat(scalar_first=True)
         q = q if q[0] >= 0 else -q
         out.append({"name": f"A{i + 1}", "position": np.asarray(positions[i], float).tolist(), "quat": q.tolist(),
-                    "mics": mics.tolist(), "tau": float(tau[i]), "drift": float(drift[i]), **extra[i]})
+                    "mics": mics[i].tolist(), "tau": float(tau[i]), "drift": float(drift[i]), **extra[i]})
     return out
+
+
+def _geometries(g, n, default):
+    """Each generated array's (M, 3) mics: scenario key ``geometries`` (names of scenes.GEOMETRIES, one per
+    array from A1; missing entries = the preset's default geometry)."""
+    names = g.get("geometries")
+    if names is None:
+        return [default] * n
+    if isinstance(names, str) or not isinstance(names, (list, tuple)) or len(names) > n:
+        raise InputError(f"scenario: geometries must be a list of at most n_arrays = {n} names")
+    bad = [x for x in names if x not in scenes.GEOMETRIES]
+    if bad:
+        raise InputError(f"scenario: unknown geometry {bad[0]!r} (choose from {', '.join(scenes.GEOMETRIES)})")
+    spacing = _float(g["mic_spacing"], "mic_spacing", 0, strict=True)
+    n_mics = _int(g["n_mics"], "n_mics", 1)
+    kinds = list(names) + ["default"] * (n - len(names))
+    return [scenes.named_mics(k, default, n_mics, float(g["mic_radius"]), spacing) for k in kinds]
 
 
 def _legacy_poses(preset, g, sources, room, n, rng_pose):

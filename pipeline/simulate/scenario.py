@@ -69,6 +69,8 @@ GEN_DEFAULTS = {
     "n_mics": 6,               # default mic geometry: circular array of n_mics ...
     "mic_radius": 0.0354,      # ... with this radius (m), in the array's x-y plane, origin at the centre
     "mics": None,              # or one (M, 3) geometry (m, array frame) for every generated array
+    "geometries": None,        # or per generated array (A1 first; missing = default) one of GEOMETRIES
+    "mic_spacing": 0.06,       # m between neighbouring mics of "pair" and "linear" arrays (along their x axis)
     "tilt_deg": None,          # None: rotations uniform on SO(3); else upright, random yaw, tilt N(0, tilt_deg)
     "room_margin": 1.5,        # paper presets: room = trajectory box + this margin on each side, m
     "wall_margin": 0.3,        # generated arrays keep at least this distance from the walls, m

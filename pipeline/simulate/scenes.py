@@ -66,6 +66,32 @@ def octahedron_mics(radius=OCTAHEDRON_RADIUS):
     return np.concatenate([np.eye(3), -np.eye(3)]) * radius
 
 
+# Mic geometries a generated array may have (scenario key ``geometries``): "default" is the preset's
+# (circle of n_mics, the hall's octahedron, or the ``mics`` key); "linear" is n_mics on the x axis.
+GEOMETRIES = ("default", "circle", "octahedron", "linear", "pair", "single")
+
+
+def named_mics(kind, default, n_mics, radius, spacing):
+    """(M, 3) mic positions of a named geometry, centred on the array origin (m, array frame).
+
+    default : the preset's geometry. circle : n_mics on a circle of ``radius`` in the x-y plane.
+    octahedron : 6 mics on ±x, ±y, ±z at OCTAHEDRON_RADIUS. linear / pair : n_mics / 2 mics on the x axis,
+    ``spacing`` apart (a linear array and a 2-mic pair measure only the angle to that axis). single : 1 mic.
+    """
+    if kind == "default":
+        return np.asarray(default, float)
+    if kind == "circle":
+        a = 2 * np.pi * np.arange(n_mics) / n_mics
+        return np.round(np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros(n_mics)], axis=1), 12) + 0.0
+    if kind == "octahedron":
+        return octahedron_mics()
+    if kind == "single":
+        return np.zeros((1, 3))
+    m = 2 if kind == "pair" else n_mics
+    x = spacing * (np.arange(m) - (m - 1) / 2)
+    return np.column_stack([x, np.zeros(m), np.zeros(m)])
+
+
 def far_enough(p, sources, placed, dmin_src, dmin_pair):
     return (np.min(np.linalg.norm(sources - p, axis=1)) >= dmin_src
             and all(np.linalg.norm(p - q) >= dmin_pair for q in placed))
