@@ -27,7 +27,7 @@ from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mas
                      count_measurements, factor_sizes, variance_factors, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
-from .verdict import concentrated_outliers, make_verdict, residual_ratios
+from .verdict import concentrated_outliers, make_verdict, residual_ratios, stated_sigma_excess
 
 
 
@@ -319,11 +319,12 @@ def sigma_bounds(meta, noise):
     return out
 
 
-def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None):
+def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None, redundancy=None):
     """One variance-component step: {kind: Σ_k r² / Σ_k (1 − h_ii)} for types with enough redundancy.
 
     ``cov``: (JᵀJ)⁻¹ at (st, lay, mask) when already computed. ``arrays`` (dict): filled with the
     per-array factors {kind: (N,)} of the types with per-array components (``arraynoise.vce_groups``).
+    ``redundancy`` (dict): filled with each type's Σ_k (1 − h_ii) if given.
     """
     r, J, w, _, fs = linearise(p, st, lay, kinds, mask=mask)
     keep = w > 0
@@ -352,6 +353,8 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None)
             red -= float(keep[sl].sum()) / 3.0  # a unit-vector residual has no noise along the direction itself
         if red >= min_redundancy:
             out[f["kind"]] = float(np.sum(r[sl][keep[sl]] ** 2)) / red
+            if redundancy is not None:
+                redundancy[f["kind"]] = red
     return out
 
 
@@ -512,10 +515,13 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
     if not same:
         _, _, w_s, cost, _ = linearise(p, st, lay_s, kinds, mask=mask)
         n_res = int((w_s > 0).sum())
+    counts = {}   # residual values (or the redundancy) per type, for the stated-sigma test
     if info["stats"] is not None and noise != "estimate":
         vf = variance_factors(info["stats"])
+        st_ = info["stats"]
+        counts = {str(k): int(np.sum(st_.dof[st_.kept & (st_.kind == k)])) for k in np.unique(st_.kind)}
     else:
-        vf = _vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None)
+        vf = _vce_factors(p, st, lay_s, kinds, mask, 1.0, cov=cov if same else None, redundancy=counts)
     ratios = residual_ratios(vf, scales, bounds)
     yaw_i = int(lay["odo_yaw"][0])
     odo_frame = {
@@ -529,7 +535,8 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
                            capped=info["capped"], arrays=info["arrays"],
                            odometry_yaw={"kept": odo_frame["estimated"], "yaw_deg": odo_frame["yaw_deg"],
                                          "std_deg": odo_frame["yaw_std_deg"]},
-                           concentrated=concentrated_outliers(info["outliers"], _rows_per_array(p)))
+                           concentrated=concentrated_outliers(info["outliers"], _rows_per_array(p)),
+                           excess=stated_sigma_excess(ratios, counts, bounds))
     return verdict, ratios, odo_frame, cost, n_res
 
 

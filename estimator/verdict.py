@@ -10,6 +10,7 @@ Every reason is a measured quantity against a documented level (docs/method.md, 
 | fraction of measurements flagged as outliers | > OUTLIER_SUSPECT | > OUTLIER_FAILED or removal cap hit |
 | an array inconsistent with the others (dropped, its pose refitted alone) | named | |
 | the other arrays/sources move by more than MOVE_SIGMA σ when it is dropped | yes | |
+| RMS residual of a type judged against its stated sigma > SIGMA_TOLERANCE, P(χ²) < SIGNIFICANCE | yes | |
 """
 from __future__ import annotations
 
@@ -24,6 +25,9 @@ CONCENTRATED_MIN = 4         # an array holding at least this many outlier rows,
 CONCENTRATED_SHARE = 0.5     # at least this share of all of them,
 CONCENTRATED_OWN = 0.1       # and at least this fraction of its own rows is named (kept, not dropped)
 MOVE_SIGMA = 3.0         # a dropped array moved the rest by more than this many σ
+PRIOR_BOUND = 10.0       # a type whose sigma may grow less than this is judged against its stated sigma
+SIGMA_TOLERANCE = 1.5    # a stated sigma may be off by this factor (the frontend's honest-sigma bound) ...
+SIGNIFICANCE = 1e-3      # ... an excess beyond it this improbable under the stated sigma is reported
 STATUS_RANK = {"ok": 0, "suspect": 1, "failed": 2}
 TYPE_LABEL = {"tdoa_s": "TDOA-S", "tdoa_m": "TDOA-M", "doa": "DOA", "odometry": "odometry", "cone": "cone (pair axis)"}
 
@@ -41,8 +45,26 @@ def residual_ratios(variance_factors, scales, bounds):
         r = float(np.sqrt(max(vf, 0.0)))
         s = float(scales.get(kind, 1.0))
         b = float(bounds.get(kind, np.inf))
-        prior = b < 10.0
+        prior = b < PRIOR_BOUND
         out[kind] = r * s if prior else r * (s if s >= b * (1 - 1e-9) else 1.0)
+    return out
+
+
+def stated_sigma_excess(ratios, counts, bounds):
+    """Types judged against their stated sigma (bound < PRIOR_BOUND, e.g. odometry) whose RMS residual
+    exceeds it by more than SIGMA_TOLERANCE with ``P(χ²(n) > n·ratio²) < SIGNIFICANCE`` (n residual values:
+    more than the redundancy, so the test is conservative). Such an excess is what biased measurements of
+    another type leave when the solution absorbs them (arrivals biased with the geometry move the sources;
+    the odometry then disagrees): {kind: (ratio, n)}."""
+    from scipy.stats import chi2
+
+    out = {}
+    for kind, r in ratios.items():
+        n = int(counts.get(kind, 0))
+        if n < 1 or float(bounds.get(kind, np.inf)) >= PRIOR_BOUND:
+            continue
+        if r > SIGMA_TOLERANCE and chi2.sf(n * r * r, n) < SIGNIFICANCE:
+            out[kind] = (float(r), n)
     return out
 
 
@@ -58,12 +80,13 @@ def concentrated_outliers(outliers, rows_per_array):
 
 
 def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, capped, arrays, odometry_yaw=None,
-                 concentrated=None):
+                 concentrated=None, excess=None):
     """The verdict dict from the estimator's diagnostics.
 
     ratios : {kind: RMS normalised residual} (:func:`residual_ratios`); arrays: the consistency records
     of ``calibrate.consistency_stage`` (``array``, ``inconsistent``, ``moves_sigma``); odometry_yaw: the
     yaw test ({yaw_deg, std_deg, kept}) — a kept yaw means the odometry is not in the frame it was said to be.
+    excess: :func:`stated_sigma_excess`.
     """
     status, reasons = "ok", []
 
@@ -84,6 +107,11 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
             worse("failed", f"{label} residuals {r:.1f}× their sigma ({why}: the data contradict the model)")
         elif r > RESIDUAL_SUSPECT:
             worse("suspect", f"{label} residuals {r:.1f}× their sigma (> {RESIDUAL_SUSPECT:g})")
+        elif kind in (excess or {}):
+            n = excess[kind][1]
+            worse("suspect", f"{label} residuals {r:.2f}× their stated sigma over {n} values (> {SIGMA_TOLERANCE:g}, "
+                             f"P < {SIGNIFICANCE:g} under it): other measurements pull the solution away from it "
+                             "(e.g. arrival times biased with the geometry, absorbed by the source positions)")
     frac = n_outliers / max(n_measurements, 1)
     if capped or frac > OUTLIER_FAILED:
         worse("failed", f"{n_outliers} of {n_measurements} measurements ({100 * frac:.0f} %) are outliers "

@@ -24,6 +24,8 @@ cycle slips, and the timing follows the envelope's drift bias, which is linear i
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
@@ -87,19 +89,26 @@ def segment_spectra(x, starts, setup, plain=False):
     return (c, c_plain) if plain else c
 
 
-def lag_grid(c, setup, lo, hi):
+@lru_cache(maxsize=32)
+def _czt(n_q, n_t, w_cycles, a_cycles):
+    """A chirp z-transform plan (its set-up costs about as much as a transform): reused across calls."""
+    return CZT(n_q, n_t, w=np.exp(2j * np.pi * w_cycles), a=np.exp(-2j * np.pi * a_cycles))
+
+
+def lag_grid(c, setup, lo, hi, step=1.0):
     """Analytic correlation on the native lag grid: (J, M, hi − lo) complex64 for lag samples lo..hi-1
-    (for peak search and gating; precise values come from :func:`corr_at`).
+    (for peak search and gating; precise values come from :func:`corr_at`). ``step`` < 1: ``(hi − lo) /
+    step`` lags ``lo, lo + step, ...`` instead (a finer grid).
 
     ``r[n] = Σ_k c_k e^{j2πkn/nfft}`` over the band's bins only, evaluated at the wanted lags alone by a
     chirp z-transform (FFTs of about Fb + (hi − lo) points instead of a full-length inverse FFT per mic).
     """
     nfft, kb = setup["nfft"], setup["kb"]
-    k0, n_q, n_t = int(kb[0]), int(kb[-1] - kb[0] + 1), hi - lo
+    k0, n_q, n_t = int(kb[0]), int(kb[-1] - kb[0] + 1), int(round((hi - lo) / step))
     d = np.zeros(c.shape[:-1] + (n_q,), np.complex64)
     d[..., kb - k0] = c
-    czt = CZT(n_q, n_t, w=np.exp(2j * np.pi / nfft), a=np.exp(-2j * np.pi * lo / nfft))
-    shift = np.exp(2j * np.pi * k0 * (lo + np.arange(n_t)) / nfft)  # the band's first bin back to its place
+    czt = _czt(n_q, n_t, float(step) / nfft, float(lo) / nfft)
+    shift = np.exp(2j * np.pi * k0 * (lo + step * np.arange(n_t)) / nfft)  # the band's first bin back to its place
     return (czt(d, axis=-1) * shift).astype(np.complex64)
 
 
@@ -336,7 +345,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
                                   sidelobe_margin)
     reflection = np.where(reflection >= 0, reflection + r_lo, -1)
     c, r, env, separated = _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_width, r_lo,
-                                                      separate_pulses, separate_plain)
+                                                      separate_pulses, separate_plain, smear)
     kk = _mic_peaks(env, dp, r_lo, half_width)  # (J, M)
     env_tau, z = newton_envelope(c, freqs, (refine_peak_along(env, kk) + r_lo) / fs)
     if phase is None:
@@ -352,22 +361,42 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
 
 
 def _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_width, r_lo, separate_pulses,
-                               separate_plain):
-    """A strong reflection within ``separate_pulses`` pulse widths biases the direct path's peak (a wall just
-    behind the array: ~25 µs): model both paths, subtract the reflection, time the direct path alone.
+                               separate_plain, smear=0):
+    """A reflection within ``separate_pulses`` pulse widths biases the direct path's peak (a wall just
+    behind the array: 10-25 µs): model both paths, subtract the reflection, time the direct path alone.
+    A pulse dispersed by clock drift (``smear`` > 0) is no single-path pulse, so the two-path fit would
+    split it: then only a strong reflection with a peak of its own (``reflection``) is separated.
     Returns (c, r, env, separated (J,) bool) with the affected events' spectra and correlations updated."""
     freqs = setup["freqs"]
     separated = np.zeros(len(dp), bool)
-    if separate_pulses > 0:
-        n_pulse = setup["fs"] / max(freqs.max() - freqs.min(), 1.0)
-        separated = (reflection >= 0) & (reflection - dp <= separate_pulses * n_pulse)
-    if not np.any(separated):
+    if separate_pulses <= 0 or not len(dp):
         return c, r, env, separated
-    sel = np.flatnonzero(separated)
+    n_pulse = setup["fs"] / max(freqs.max() - freqs.min(), 1.0)
     src, shape = (c, setup["weights"]) if c_onset is None or not separate_plain else \
         (c_onset, setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2)
+    if smear > 0:
+        separated = (reflection >= 0) & (reflection - dp <= separate_pulses * n_pulse)
+        if not np.any(separated):
+            return c, r, env, separated
+        sel = np.flatnonzero(separated)
+        c = c.copy()
+        c[sel] = separate_reflection(src[sel], setup, shape, dp[sel], reflection[sel], half_width)
+        r = r.copy()
+        r[sel] = lag_grid(c[sel], setup, r_lo, r_lo + r.shape[-1])
+        return c, r, np.abs(r), separated
+    *fit, gain = two_path_fit(src, setup, shape, dp, half_width, separate_pulses * n_pulse)
+    separated = np.median(gain, axis=1) >= CLOSE_RATIO ** 2
+    if not np.any(separated):
+        return c, r, env, separated
+    cand = np.flatnonzero(separated)
+    t1, a1, t2, a2 = refine_two_paths(src[cand], setup, shape, *(x[cand] for x in fit))
+    ok = np.median(np.abs(a2) / np.maximum(np.abs(a1), 1e-300), axis=1) >= CLOSE_RATIO
+    separated[cand] = ok
+    if not np.any(ok):
+        return c, r, env, separated
+    sel = cand[ok]
     c = c.copy()
-    c[sel] = separate_reflection(src[sel], setup, shape, dp[sel], reflection[sel], half_width)
+    c[sel] = src[sel] - path_model(setup, shape, t2[ok], a2[ok])
     r = r.copy()
     r[sel] = lag_grid(c[sel], setup, r_lo, r_lo + r.shape[-1])
     return c, r, np.abs(r), separated
@@ -446,6 +475,77 @@ def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
         t2, a2 = _path_peaks(c - model(t1, a1), setup, refl, half_width)
         t1, a1 = _path_peaks(c - model(t2, a2), setup, dp, half_width)
     return c - model(t2, a2)
+
+
+CLOSE_RATIO = 0.15       # a second path fitted at ≥ this × the direct path's amplitude (median over mics) is removed
+CLOSE_MAX_OVERLAP = 0.8  # ... if its pulse overlaps the direct one's less than this (|p(Δ)|; closer: inseparable)
+GRID_OVER = 4            # sub-sample steps per sample of the two-path fit's grid
+
+
+def pulse_response(setup, shape, n, over):
+    """Correlation ``p(Δ) = Σ_f u_f e^{j2πfΔ}`` (u = shape / Σ shape) of one unit path at lags
+    ``Δ = 1/over .. n/over`` samples: (n,) complex."""
+    unit = (shape / shape.sum())[None, None, :]
+    return lag_grid(unit, setup, 1.0 / over, (n + 1.0) / over, 1.0 / over)[0, 0].astype(np.complex128)
+
+
+def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
+    """Direct path plus the strongest later path within ``max_sep`` samples, per mic, by a grid search.
+
+    c : (J, M, Fb) spectra whose single path of amplitude ``a`` at ``τ`` is ``a · u_f e^{−j2πfτ}``
+    (u = shape / Σ shape; exact for the plain matched filter). With the correlation ``b(τ) = Σ_f c_f
+    e^{j2πfτ}`` and the pulse ``p``, the least-squares amplitudes of paths at ``τ1 < τ2`` (in the metric
+    weighted by 1/u) solve ``[[1, p(−Δ)], [p(Δ), 1]] a = [b(τ1), b(τ2)]``, ``Δ = τ2 − τ1``, and explain the
+    energy ``Re(b^H a)``; the pair explaining the most over ``τ1`` within ``dp ± half_width`` and ``Δ``
+    from where the pulses overlap less than ``CLOSE_MAX_OVERLAP`` up to ``max_sep`` wins (variable projection:
+    no iteration, no starting values). A reflection overlapping the direct path's pulse (a wall a few
+    cm to 20 cm behind the array) shows as no separate peak, yet moves the direct path's peak and phase.
+    Returns t1, a1, t2, a2 (J, M): times (s since the segment start) and complex amplitudes, and the
+    energy the second path explains beyond the best single path (refined off the grid) relative to it.
+    """
+    fs = setup["fs"]
+    p_all = pulse_response(setup, shape, int(max_sep * over), over)   # p(Δ); p(−Δ) = conj
+    d = np.flatnonzero(np.abs(p_all) < CLOSE_MAX_OVERLAP) + 1
+    d = d if d.size else np.array([len(p_all)])
+    pd = p_all[d - 1]
+    n1 = (2 * half_width + 1) * over
+    lo = np.asarray(dp) - half_width
+    # every event's lags from its own lo: shift the spectra, then one transform for all
+    c_lo = c * phasors(setup["freqs"], lo / fs)[:, None, :]
+    b = lag_grid(c_lo, setup, 0, (n1 + d[-1]) / over, 1.0 / over).astype(np.complex128)  # (J, M, n1 + d_max)
+    b1 = b[..., :n1, None]
+    b2 = b[..., np.arange(n1)[:, None] + d[None, :]]                           # (J, M, n1, D)
+    det = 1.0 - np.abs(pd) ** 2
+    a1 = (b1 - np.conj(pd) * b2) / det
+    a2 = (b2 - pd * b1) / det
+    energy = np.real(np.conj(b1) * a1 + np.conj(b2) * a2)
+    flat = energy.reshape(energy.shape[:2] + (-1,))
+    k = np.argmax(flat, axis=-1)
+    i1, i2 = np.unravel_index(k, energy.shape[2:])
+    t1 = (lo[:, None] + i1 / over) / fs
+    t2 = t1 + d[i2] / over / fs
+    pick = lambda x: np.take_along_axis(x.reshape(flat.shape), k[..., None], axis=-1)[..., 0]  # noqa: E731
+    # the best single path, refined off the grid: the second path must explain energy it cannot
+    k1 = np.argmax(np.abs(b[..., :n1]), axis=-1)
+    _, z1 = newton_envelope(c, setup["freqs"], (lo[:, None] + k1 / over) / fs, iters=1)
+    gain = (pick(energy) - np.abs(z1) ** 2) / np.maximum(np.abs(z1) ** 2, 1e-300)
+    return t1, pick(a1 + 0 * b2), t2, pick(a2), gain
+
+
+def path_model(setup, shape, tau, a):
+    """Spectra (..., Fb) of paths of complex amplitudes ``a`` (...) at ``tau`` (...) s: ``a u_f e^{−j2πfτ}``."""
+    return a[..., None] * (shape / shape.sum()) * phasors(setup["freqs"], -tau)
+
+
+def refine_two_paths(c, setup, shape, t1, a1, t2, a2, iters=3):
+    """Refine a two-path fit (:func:`two_path_fit`, on a grid) by alternating Newton steps on each path's
+    envelope with the other's model subtracted (exact at the fixed point for two paths; a single path
+    drives the second amplitude to ~0). Returns t1, a1, t2, a2 refined."""
+    freqs = setup["freqs"]
+    for _ in range(iters):
+        t2, a2 = newton_envelope(c - path_model(setup, shape, t1, a1), freqs, t2, iters=1)
+        t1, a1 = newton_envelope(c - path_model(setup, shape, t2, a2), freqs, t1, iters=1)
+    return t1, a1, t2, a2
 
 
 SKIRT_LEVEL = 0.2  # excess_width compares the leading skirt of the strongest peak down to this height

@@ -92,6 +92,33 @@ def test_stated_odometry_prior_is_not_inflated_beyond_its_bound():
     assert any("odometry" in r for r in rep["verdict"]["reasons"])
 
 
+def test_stated_sigma_excess_is_a_chi2_test():
+    """Flagged only beyond the 1.5x tolerance AND improbable under the stated sigma (χ² tail), and only for
+    types judged against their stated sigma (bound < 10)."""
+    from scipy.stats import chi2
+
+    from calib.estimator.verdict import stated_sigma_excess
+
+    bounds = {"odometry": 3.0, "doa": 100.0}
+    assert "odometry" in stated_sigma_excess({"odometry": 2.05}, {"odometry": 37}, bounds)   # lab seed 3, old frontend
+    assert not stated_sigma_excess({"odometry": 1.3}, {"odometry": 37}, bounds)              # within the tolerance
+    assert chi2.sf(3 * 1.6 ** 2, 3) > 1e-3                                                   # 3 values: not significant
+    assert not stated_sigma_excess({"odometry": 1.6}, {"odometry": 3}, bounds)
+    assert not stated_sigma_excess({"doa": 2.0}, {"doa": 100}, bounds)                       # free type: own sigma
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_odometry_worse_than_stated_is_suspect(seed):
+    """Odometry noise 2.5x its stated sigma (within the 3x bound the prior may grow): suspect, said why;
+    as stated: no such reason."""
+    for true_odo, expect in ((0.01, False), (0.025, True)):
+        feats, truth = simulate_features(3, 1e-5, 1.0, sigma_odo=true_odo, seed=seed)
+        feats["meta"].update(sigma_odo=0.01, sigmas_estimated=["sigma_tdoa", "sigma_doa_deg"])
+        verdict = calibrate(feats)["report"]["verdict"]
+        said = any("stated sigma" in r for r in verdict["reasons"])
+        assert said == expect and (verdict["status"] != "ok") == expect, (true_odo, verdict)
+
+
 def test_odometry_yaw_is_estimated():
     feats, truth = simulate_features(3, 1e-4, 5.0, 0.03, seed=1002)
     aligned = calibrate(feats)

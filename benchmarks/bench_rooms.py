@@ -1,0 +1,134 @@
+"""Realistic rooms end to end (issue 9): `calib simulate --preset P --seed S [--set ...]` then `calib run`,
+per session the calibration's errors against truth, the verdict, and the frontend's CPU cost.
+
+    python benchmarks/bench_rooms.py                       # lab 0-4, lab exp 0-4, lab omni 0-4, hard 0-2
+    python benchmarks/bench_rooms.py --hall                # ... plus hall 0-2 (48 kHz: ~4x the cost)
+    python benchmarks/bench_rooms.py --only lab:0-4 hall:0 "lab:3:chirp.kind=exponential"
+
+A session spec is ``PRESET:SEEDS[:KEY=VALUE,...]`` (seeds ``0-4`` or ``0,2``; the settings are `calib
+simulate --set` items). Sessions are written under ``--work`` (default a temporary folder) and reused
+when present there. Columns: position RMSE (cm) and geodesic orientation RMS (deg) over the non-reference
+arrays; the worst array (cm / deg); the verdict (report.json) with its flagged arrays, and the worst of
+the arrays it did not flag (when it flagged any); the frontend's CPU
+seconds (process time of `session_features` inside the run, all threads: the machine may be loaded, wall
+time is not the cost; the stage's plots and files are not counted) as a percentage of the recording
+duration. Then per group the medians and the worst seed.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calib.pipeline import features
+from calib.pipeline.run import run
+
+DEFAULT = ["lab:0-4", "lab:0-4:chirp.kind=exponential", "lab:0-4:directivity=omni", "hard:0-2"]
+HALL = ["hall:0-2"]
+
+
+def parse_spec(spec):
+    """``PRESET:SEEDS[:K=V,...]`` → (preset, [seeds], [K=V, ...])."""
+    parts = spec.split(":", 2)
+    seeds = []
+    for chunk in parts[1].split(",") if len(parts) > 1 else ["0"]:
+        lo, _, hi = chunk.partition("-")
+        seeds += list(range(int(lo), int(hi or lo) + 1))
+    sets = [s for s in parts[2].split(",") if s] if len(parts) > 2 else []
+    return parts[0], seeds, sets
+
+
+def session_dir(work, preset, seed, sets):
+    tag = "".join(f"_{s.split('=')[-1][:4]}" for s in sets)
+    return Path(work) / f"{preset}{tag}_{seed}"
+
+
+def simulate(d, preset, seed, sets):
+    if (d / "truth" / "manifest.json").is_file():
+        return
+    cmd = [sys.executable, "-m", "calib", "simulate", "-o", str(d), "--preset", preset, "--seed", str(seed)]
+    for s in sets:
+        cmd += ["--set", s]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def one(d, out):
+    """calib run on session ``d``; errors, verdict and the features stage's CPU seconds."""
+    cpu = {}
+    inner = features.session_features
+
+    def timed(*args, **kw):  # the frontend alone (not the stage's plots and file writing)
+        t0 = time.process_time()
+        try:
+            return inner(*args, **kw)
+        finally:
+            cpu["s"] = time.process_time() - t0
+
+    features.session_features = timed
+    try:
+        res = run(d, out, force=True)
+    finally:
+        features.session_features = inner
+    m = res["metrics"]
+    rep = json.loads((out / "calibration" / "report.json").read_text())
+    verdict = rep.get("verdict") or {}
+    diag = json.loads((out / "diagnostics" / "diagnostics.json").read_text())
+    per = m["per_array"]
+    worst = max(per, key=lambda a: a["position_m"])
+    named = set(verdict.get("flagged_arrays") or [])
+    rest = [a for a in per if a["array"] not in named]
+    rest_worst = max(rest, key=lambda a: a["position_m"]) if rest else None
+    return {"loc_cm": 100 * m["position_rmse_m"], "geo_deg": m["orientation_geodesic_deg"],
+            "worst": f"{worst['array']} {100 * worst['position_m']:.1f} / {worst['geodesic_deg']:.1f}",
+            "worst_cm": 100 * worst["position_m"], "status": verdict.get("status", "?"),
+            "rest": "-" if rest_worst is None or not named else
+            f"{rest_worst['array']} {100 * rest_worst['position_m']:.1f} / {rest_worst['geodesic_deg']:.1f}",
+            "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-",
+            "cpu_pct": 100 * cpu["s"] / diag["recording_duration_s"]}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", nargs="+", help="session specs instead of the default set (see above)")
+    ap.add_argument("--hall", action="store_true", help="add hall seeds 0-2 to the default set")
+    ap.add_argument("--work", type=Path, help="keep (and reuse) the simulated sessions here")
+    args = ap.parse_args()
+    specs = args.only or DEFAULT + (HALL if args.hall else [])
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.work or Path(tmp)
+        print("| session | position RMSE (cm) | orientation (deg) | worst array (cm / deg) | verdict | flagged "
+              "| worst unflagged (cm / deg) | frontend CPU (% of audio) |")
+        print("|---|---|---|---|---|---|---|---|")
+        groups = {}
+        for spec in specs:
+            preset, seeds, sets = parse_spec(spec)
+            name = preset + "".join(f" {s}" for s in sets)
+            for seed in seeds:
+                d = session_dir(work, preset, seed, sets)
+                simulate(d, preset, seed, sets)
+                r = one(d, Path(tmp) / "out" / d.name)
+                groups.setdefault(name, []).append(r)
+                print(f"| {name}, seed {seed} | {r['loc_cm']:.2f} | {r['geo_deg']:.2f} | {r['worst']} "
+                      f"| {r['status']} | {r['flagged']} | {r['rest']} | {r['cpu_pct']:.2f} |", flush=True)
+        print()
+        print("| group | sessions | median position (cm) | median orientation (deg) | worst seed (cm) "
+              "| verdicts | median frontend CPU (%) |")
+        print("|---|---|---|---|---|---|---|")
+        for name, rows in groups.items():
+            st = {}
+            for r in rows:
+                st[r["status"]] = st.get(r["status"], 0) + 1
+            print(f"| {name} | {len(rows)} | {np.median([r['loc_cm'] for r in rows]):.2f} "
+                  f"| {np.median([r['geo_deg'] for r in rows]):.2f} | {max(r['loc_cm'] for r in rows):.2f} "
+                  f"| {', '.join(f'{k} {v}' for k, v in sorted(st.items()))} "
+                  f"| {np.median([r['cpu_pct'] for r in rows]):.2f} |")
+
+
+if __name__ == "__main__":
+    main()
