@@ -166,7 +166,7 @@ def _normal_scores(kind, q, dof, kept):
     """Equivalent two-sided normal z of each q after its type's robust variance factor; the factors."""
     z = np.zeros(len(q))
     scale = {}
-    for k in np.unique(kind):
+    for k in _kinds(kind):
         m = (kind == k) & kept
         if not m.any():
             continue
@@ -178,6 +178,11 @@ def _normal_scores(kind, q, dof, kept):
     return z, scale
 
 
+def _kinds(kind):
+    """The distinct values of a kind label array, sorted (as np.unique, without sorting every row)."""
+    return np.array(sorted(set(kind.tolist())), dtype=kind.dtype)
+
+
 def chi2_median(dof):
     """Median of χ²(dof)."""
     return float(2.0 * gammainccinv(dof / 2.0, 0.5))
@@ -187,8 +192,13 @@ def chi2_logsf(q, dof):
     """log P(χ²(dof) > q), finite far into the tail (asymptotic form where the survival underflows)."""
     q = np.maximum(np.asarray(q, float), 0.0)
     sf = gammaincc(dof / 2.0, q / 2.0)
-    tail = (dof / 2.0 - 1.0) * np.log(np.maximum(q / 2.0, 1e-300)) - q / 2.0 - gammaln(dof / 2.0)
-    return np.where(sf > 1e-300, np.log(np.maximum(sf, 1e-300)), tail)
+    out = np.log(np.maximum(sf, 1e-300))
+    far = ~(sf > 1e-300)
+    if np.any(far):   # the asymptotic tail only where the survival underflows
+        qf, df = (np.broadcast_to(v, np.shape(sf))[far] for v in (q, np.asarray(dof, float)))
+        out = np.array(out, float)
+        out[far] = (df / 2.0 - 1.0) * np.log(np.maximum(qf / 2.0, 1e-300)) - qf / 2.0 - gammaln(df / 2.0)
+    return out[()] if np.ndim(out) == 0 else out
 
 
 def _z_from_logp(logp):
@@ -202,7 +212,7 @@ def _z_from_logp(logp):
 def variance_factors(stats):
     """{kind: Σ q / Σ dof over the kept rows}: each type's residual variance in units of its sigma²."""
     out = {}
-    for k in np.unique(stats.kind):
+    for k in _kinds(stats.kind):
         m = stats.kept & (stats.kind == k)
         if m.any():
             out[str(k)] = float(np.sum(stats.q[m]) / np.sum(stats.dof[m]))

@@ -7,7 +7,7 @@ Small problems solve them dense; large ones with a sparse Jacobian and a Schur c
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+import threading
 
 import numpy as np
 import scipy.linalg
@@ -69,24 +69,127 @@ def stack_jacobians(Js, n, dense):
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
 
 
-class Linearised(NamedTuple):
-    """The stacked factors at one state: whitened residuals r (M,), Jacobian J (M, n; dense or CSR), IRLS
-    weights w (M,), cost ½ Σ ρ(r) and the factor dicts in stacking order."""
-    r: np.ndarray
-    J: object
-    w: np.ndarray
-    cost: float
-    factors: list
+def _snapshot(v, refs):
+    """A comparable picture of a problem entry: arrays by identity (kept alive in ``refs``, so an id is
+    never reused while cached), scalars by type and repr, dicts/lists/tuples recursively by content (an
+    entry such as ``p["array_scale"]`` is a dict updated in place)."""
+    if type(v) is np.ndarray:   # the common case first (a problem is mostly arrays)
+        refs.append(v)
+        return id(v)
+    if isinstance(v, dict):
+        return ("d", tuple((k, _snapshot(x, refs)) for k, x in v.items()))
+    if isinstance(v, (list, tuple)):
+        return ("s", tuple(_snapshot(x, refs) for x in v))
+    if isinstance(v, (int, float, str, bool, np.number, type(None))):
+        return (type(v).__name__, repr(v))
+    refs.append(v)   # any other object (ndarray subclasses included) by identity
+    return ("o", id(v))
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Linearised:
+def _snapshot_problem(p, refs):
+    """:func:`_snapshot` of a problem dict, its arrays (nearly every entry) inline."""
+    out = []
+    for k, v in p.items():
+        if type(v) is np.ndarray:
+            refs.append(v)
+            out.append((k, id(v)))
+        else:
+            out.append((k, _snapshot(v, refs)))
+    return tuple(out)
+
+
+class _LineariseCache:
+    """The last few factor evaluations (and stacked Jacobians), keyed by everything they depend on.
+
+    The estimator's stages often linearise again where the previous one stopped (each LM call starts
+    where the last ended; the outlier statistics, drop tests and covariances look at the state an LM call
+    just returned), so the factors are evaluated once per (problem, state, layout, kinds) and the identical
+    arrays reused. The key holds the state and layout by value and the problem by :func:`_snapshot`: its
+    arrays are replaced, never modified in place (a new sigma, a new per-array scale is a new object), and
+    the cached arrays are made read-only.
+    """
+
+    SIZE = 4
+
+    def __init__(self):
+        self.entries = []   # [_Entry], most recent last
+        self.lock = threading.Lock()
+
+    @staticmethod
+    def key(p, st, lay, kinds):
+        refs = []
+        names = (tuple(sorted(st)), tuple(sorted(lay)))
+        vals = [np.asarray(d[k]) for d, ks in zip((st, lay), names) for k in ks]
+        return (tuple(kinds), _snapshot_problem(p, refs), names, tuple((v.dtype.char, v.shape) for v in vals),
+                b"".join([v.tobytes() for v in vals])), refs
+
+    def lookup(self, p, st, lay, kinds):
+        key, refs = self.key(p, st, lay, kinds)
+        with self.lock:
+            for e in reversed(self.entries):
+                if e.key == key:
+                    return (key, refs), e
+        return (key, refs), None
+
+    def store(self, key, fs):
+        chunks = [f["J"] for f in fs]
+        fs = [{**f, "J": None} for f in fs]   # the Jacobian lives in the entry (chunks, then stacked forms)
+        for f in fs:
+            for name in ("r", "row"):
+                if isinstance(f[name], np.ndarray):
+                    f[name].setflags(write=False)
+        e = _Entry(key[0], key[1], fs, chunks)
+        with self.lock:
+            self.entries = self.entries[-(self.SIZE - 1):] + [e]
+        return e
+
+
+class _Entry:
+    """One cached evaluation: key, the objects its problem snapshot names (kept alive), factor dicts (``J``
+    None), the factors' Jacobian chunks (dropped once a sparse J is stacked) and the stacked forms."""
+
+    __slots__ = ("key", "vals", "fs", "chunks", "forms")
+
+    def __init__(self, key, vals, fs, chunks):
+        self.key, self.vals, self.fs, self.chunks, self.forms = key, vals, fs, chunks, {}
+
+
+_CACHE = _LineariseCache()
+
+
+def factors_at(p, st, lay, kinds, dense=None):
+    """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input.
+
+    Thread-safe: concurrent calls at the same input may both compute it (the results are equal).
+    """
+    key, e = _CACHE.lookup(p, st, lay, kinds)
+    if e is None:
+        e = _CACHE.store(key, evaluate(p, st, lay, kinds))
+    if dense is None:
+        return e.fs, None
+    J = e.forms.get(dense)
+    if J is None:
+        chunks, sparse = e.chunks, e.forms.get(False)   # (this order: chunks are dropped after the sparse J is in)
+        if sparse is not None:   # the chunks may be gone: the same entries from the sparse form
+            J = sparse if not dense else sparse.toarray()
+        else:
+            J = stack_jacobians(chunks, lay["n"], dense)
+        (J if dense else J.data).setflags(write=False)
+        e.forms[dense] = J
+        if not dense:
+            e.chunks = None   # large problems: the stacked J replaces the per-factor chunks (memory)
+    return e.fs, J
+
+
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
     ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
-    (None, see :func:`use_dense`).
+    (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
+    inputs (read-only); the factor dicts carry no per-factor ``J`` (``factors.evaluate`` has those).
     """
-    fs = evaluate(p, st, lay, kinds)
+    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f.r
@@ -97,16 +200,15 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Lin
         cost += 0.5 * float(np.sum(c))
         r_all.append(r)
         w_all.append(w)
-    J = stack_jacobians([f.J for f in fs], lay.n, use_dense(lay) if dense is None else dense)
-    return Linearised(np.concatenate(r_all), J, np.concatenate(w_all), cost, fs)
+    return np.concatenate(r_all), J, np.concatenate(w_all), cost, fs
 
 
 def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
     """½ Σ ρ(r) at ``st`` (residuals only: no Jacobian is stacked)."""
     cost = 0.0
-    for f in evaluate(p, st, lay, kinds):
-        keep = np.ones(len(f.r), bool) if mask is None or f.kind not in mask else mask[f.kind]
-        c, _ = rho(np.where(keep, f.r, 0.0), loss if f.robust else None, k)
+    for f in factors_at(p, st, lay, kinds)[0]:
+        keep = np.ones(len(f["r"]), bool) if mask is None or f["kind"] not in mask else mask[f["kind"]]
+        c, _ = rho(np.where(keep, f["r"], 0.0), loss if f["robust"] else None, k)
         cost += 0.5 * float(np.sum(np.where(keep, c, 0.0)))
     return cost
 
@@ -115,13 +217,6 @@ def scale_rows(J, w):
     """diag(w) @ J for a CSR matrix, by scaling its stored values (no sparse product)."""
     out = J.copy()
     out.data *= np.repeat(w, np.diff(J.indptr))
-    return out
-
-
-def scale_sym(H, d):
-    """diag(d) @ H @ diag(d) for a CSR matrix, by scaling its stored values."""
-    out = H.copy()
-    out.data *= np.repeat(d, np.diff(H.indptr)) * d[H.indices]
     return out
 
 
@@ -193,18 +288,22 @@ class Schur:
 
     def __init__(self, H, lay):
         H = scipy.sparse.csr_matrix(H)
+        H.sum_duplicates()
         n = H.shape[0]
         ev = event_columns(lay)
         ar = np.setdiff1d(np.arange(n), ev)
         self.perm, self.nA = np.concatenate([ar, ev]), len(ar)
         self.d = np.sqrt(np.maximum(H.diagonal(), 1e-300))
-        P = scale_sym(H, 1.0 / self.d)
-        if not np.array_equal(self.perm, np.arange(n)):
-            P = P[self.perm][:, self.perm]
-        nA = self.nA
-        self.Haa = P[:nA, :nA].toarray()
-        self.Hea = P[nA:, :nA].toarray()
-        self.Hee = P[nA:, nA:].tocsc()
+        # the three blocks by scipy's row/column selection (C loops), scaled afterwards: the dense blocks by
+        # the outer product of 1/d, the banded event block entry-wise (the same products as scaling first)
+        inv_d = 1.0 / self.d
+        inv_a, inv_e = inv_d[ar], inv_d[ev]
+        HA = H[:, ar]
+        self.Haa = HA[ar].toarray() * np.outer(inv_a, inv_a)
+        self.Hea = HA[ev].toarray() * np.outer(inv_e, inv_a)
+        Hee = H[ev][:, ev]
+        Hee.data *= np.repeat(inv_e, np.diff(Hee.indptr)) * inv_e[Hee.indices]
+        self.Hee = Hee.tocsc()
 
     def factor(self, lam=0.0):
         """Factorise Hs + lam I (Hs the scaled H). Raises RuntimeError if the event block is singular."""

@@ -169,15 +169,26 @@ def state_from_frames(p, arrays, sources=None):
     Unknown (NaN) offsets or drifts become 0.
     """
     st = empty_state(p)
-    a = arrays.set_index("array").loc[list(p.names)]
-    st.x = a[["x", "y", "z"]].to_numpy(float)
-    st.R = Rotation.from_quat(a[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).as_matrix()
-    st.offset = np.nan_to_num(a["offset"].to_numpy(float))
-    st.drift = np.nan_to_num(a["drift"].to_numpy(float))
+    ia = _rows_of(arrays["array"], p["names"], "array")
+    st["x"] = arrays[["x", "y", "z"]].to_numpy(float)[ia]
+    st["R"] = Rotation.from_quat(arrays[["qw", "qx", "qy", "qz"]].to_numpy(float)[ia], scalar_first=True).as_matrix()
+    st["offset"] = np.nan_to_num(arrays["offset"].to_numpy(float)[ia])
+    st["drift"] = np.nan_to_num(arrays["drift"].to_numpy(float)[ia])
     if sources is not None:
-        s = sources.set_index("event").loc[list(p.events)]
-        st.s = s[["x", "y", "z"]].to_numpy(float)
+        st["s"] = sources[["x", "y", "z"]].to_numpy(float)[_rows_of(sources["event"], p["events"], "event")]
     return st
+
+
+def _rows_of(column, keys, what):
+    """Row of each key in a frame's column (as ``set_index(column).loc[keys]`` for unique keys; KeyError
+    naming the first missing one). Plain lookups: the Monte-Carlo study calls this for every run."""
+    row = {}
+    for k, v in enumerate(column.tolist()):
+        row.setdefault(v, k)
+    try:
+        return np.array([row[k] for k in np.asarray(keys).tolist()], int)
+    except KeyError as exc:
+        raise KeyError(f"{what} {exc.args[0]!r} not in the frame") from None
 
 
 def fisher(p, st, kinds=None):

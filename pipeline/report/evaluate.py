@@ -41,19 +41,23 @@ def array_errors(est, truth, reference=None, undetermined=()):
     ``position_m``, ``geodesic_deg``, ``paper_deg``, ``axis_deg``, ``offset_s``, ``drift``, ``relative_drift``
     (NaN where truth is unknown or the calibration says undetermined).
     """
-    e = est.set_index("array")
-    t = truth.set_index("array")
-    missing = [a for a in t.index if a not in e.index]
+    # positional lookups on plain arrays (pandas indexing costs more than the metrics at the paper's size;
+    # the Monte-Carlo study scores every run and stage)
+    e_row = {a: k for k, a in enumerate(est["array"].tolist())}
+    t_names = truth["array"].tolist()
+    missing = [a for a in t_names if a not in e_row]
     if missing:
         raise InputError(f"calibration has no array {missing[0]!r} that truth has")
+    t_xyz = truth[["x", "y", "z"]].to_numpy(float)
     if reference is None:
-        at_origin = (np.linalg.norm(t[["x", "y", "z"]].to_numpy(float), axis=1) < 1e-12)
-        reference = t.index[int(np.argmax(at_origin))] if at_origin.any() else t.index[0]
-    names = [a for a in t.index if a != reference]
-    e_, t_ = e.loc[names], t.loc[names]
-    pos = np.linalg.norm(e_[["x", "y", "z"]].to_numpy(float) - t_[["x", "y", "z"]].to_numpy(float), axis=1)
-    qe = e_[["qw", "qx", "qy", "qz"]].to_numpy(float)
-    qt = t_[["qw", "qx", "qy", "qz"]].to_numpy(float)
+        at_origin = (np.linalg.norm(t_xyz, axis=1) < 1e-12)
+        reference = t_names[int(np.argmax(at_origin))] if at_origin.any() else t_names[0]
+    it = np.array([k for k, a in enumerate(t_names) if a != reference], int)
+    names = [t_names[k] for k in it]
+    ie = np.array([e_row[a] for a in names], int)
+    pos = np.linalg.norm(est[["x", "y", "z"]].to_numpy(float)[ie] - t_xyz[it], axis=1)
+    qe = est[["qw", "qx", "qy", "qz"]].to_numpy(float)[ie]
+    qt = truth[["qw", "qx", "qy", "qz"]].to_numpy(float)[it]
     geo = np.full(len(names), np.nan)
     paper = np.full(len(names), np.nan)
     ok = np.all(np.isfinite(qt), axis=1)
@@ -63,9 +67,12 @@ def array_errors(est, truth, reference=None, undetermined=()):
         geo[ok] = np.rad2deg((Rt.inv() * Re).magnitude())
         cosang = np.clip(np.sum(Rt.apply(P_PAPER) * Re.apply(P_PAPER), axis=1), -1.0, 1.0)
         paper[ok] = np.rad2deg(np.arccos(cosang))
-    off = e_["offset"].to_numpy(float) - t_["offset"].to_numpy(float)
-    dr = e_["drift"].to_numpy(float) - t_["drift"].to_numpy(float)
-    ref_dr = float(e.loc[reference, "drift"]) - float(t.loc[reference, "drift"]) if reference in e.index else np.nan
+    e_off, t_off = est["offset"].to_numpy(float), truth["offset"].to_numpy(float)
+    e_dr, t_dr = est["drift"].to_numpy(float), truth["drift"].to_numpy(float)
+    off = e_off[ie] - t_off[it]
+    dr = e_dr[ie] - t_dr[it]
+    t_ref = t_names.index(reference)
+    ref_dr = float(e_dr[e_row[reference]]) - float(t_dr[t_ref]) if reference in e_row else np.nan
     out = {"array": names, "position_m": pos, "geodesic_deg": geo, "paper_deg": paper,
            "axis_deg": np.full(len(names), np.nan), "offset_s": off, "drift": dr, "relative_drift": dr - ref_dr}
     _unscored(out, qe, qt, undetermined)
@@ -94,6 +101,19 @@ def _unscored(out, qe, qt, undetermined):
             out["axis_deg"][k] = np.rad2deg(np.arccos(np.clip(be @ bt / np.linalg.norm(a) ** 2, -1.0, 1.0)))
 
 
+def _source_differences(se, stt):
+    """Estimated − true source positions (m, 3) of the events in both, in the truth's row order (as an
+    inner merge on ``event``; duplicate event numbers are left to pandas' merge)."""
+    ev_e = se["event"].to_numpy()
+    if len(np.unique(ev_e)) < len(ev_e):
+        m = stt.merge(se, on="event", suffixes=("_t", "_e"))
+        return m[["x_e", "y_e", "z_e"]].to_numpy(float) - m[["x_t", "y_t", "z_t"]].to_numpy(float)
+    row = {v: k for k, v in enumerate(ev_e.tolist())}
+    pairs = [(k, row[v]) for k, v in enumerate(stt["event"].tolist()) if v in row]
+    it, ie = (np.array(z, int) for z in zip(*pairs)) if pairs else (np.zeros(0, int), np.zeros(0, int))
+    return se[["x", "y", "z"]].to_numpy(float)[ie] - stt[["x", "y", "z"]].to_numpy(float)[it]
+
+
 def evaluate(calib, truth):
     """Metrics of a calibration dict against a truth dict (both as in ``pipeline.formats.io``).
 
@@ -118,9 +138,7 @@ def evaluate(calib, truth):
     }
     se, stt = calib.get("sources"), truth.get("sources")
     if se is not None and stt is not None and len(stt):
-        m = stt.merge(se, on="event", suffixes=("_t", "_e"))
-        d = m[["x_e", "y_e", "z_e"]].to_numpy(float) - m[["x_t", "y_t", "z_t"]].to_numpy(float)
-        out["source_rmse_m"] = _rms(np.linalg.norm(d, axis=1))
+        out["source_rmse_m"] = _rms(np.linalg.norm(_source_differences(se, stt), axis=1))
     out["per_array"] = [
         {"array": a, **{k: float(errs[k][n]) for k in errs if k != "array"}} for n, a in enumerate(errs["array"])
     ]

@@ -1,0 +1,123 @@
+"""The estimator's speed paths agree with the plain computations they replace (issue #12)."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from calib.estimator.factors import evaluate
+from calib.estimator.init import kabsch_cost, sym3_eigvals
+from calib.estimator.problem import build_problem, make_layout, retract
+from calib.estimator.solver import Schur, event_columns, linearise, normal_equations, stack_jacobians
+from calib.estimator.uncertainty import state_from_frames
+from calib.pipeline.report.evaluate import evaluate as evaluate_calibration
+from calib.pipeline.simulate.featsim import simulate_features
+
+KINDS = ["tdoa_s", "tdoa_m", "doa", "odometry"]
+
+
+def test_sym3_eigvals_match_lapack():
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((500, 3, 3))
+    A = A @ A.transpose(0, 2, 1)                                   # symmetric PSD
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    special = np.stack([np.eye(3), np.zeros((3, 3)), np.diag([2.0, 2.0, 5.0]), np.diag([0.0, 0.0, 1.0]),
+                        Q @ np.diag([1.0, 1.0 + 1e-9, 3.0]) @ Q.T])  # repeated, zero and rank-1 spectra
+    # well separated spectra to ~1e-12 of the largest eigenvalue; (nearly) repeated ones to ~sqrt(eps)
+    for M, tol in ((A, 1e-12), (special, 1e-7)):
+        ref = np.linalg.eigvalsh(M)
+        scale = np.maximum(np.max(np.abs(ref), axis=1, keepdims=True), 1.0)
+        assert np.all(np.abs(sym3_eigvals(M) - ref) <= tol * scale)
+
+
+def test_closed_form_kabsch_cost_matches_lapack():
+    rng = np.random.default_rng(4)
+    u = rng.standard_normal((9, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = rng.standard_normal((200, 9, 3))
+    v /= np.linalg.norm(v, axis=2, keepdims=True)
+    assert np.allclose(kabsch_cost(u, v, closed_form=True), kabsch_cost(u, v), rtol=1e-9, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    feats, truth = simulate_features(3, 1e-4, 10.0, 0.03, seed=11)
+    p = build_problem(feats)
+    st = state_from_frames(p, truth["arrays"], truth["sources"])
+    return feats, truth, p, st
+
+
+def test_linearise_reuse_is_exact_and_follows_changes(scene):
+    _, _, p, st = scene
+    lay = make_layout(p)
+    fresh = stack_jacobians([f["J"] for f in evaluate(p, st, lay, KINDS)], lay["n"], True)
+    r1, J1, _, c1, _ = linearise(p, st, lay, KINDS)
+    r2, J2, _, c2, _ = linearise(p, {k: v.copy() for k, v in st.items()}, lay, KINDS)   # equal state, new arrays
+    assert np.array_equal(J1, fresh) and np.array_equal(J1, J2) and c1 == c2 and np.array_equal(r1, r2)
+    with pytest.raises(ValueError):
+        J1[0, 0] = 1.0                                           # shared: read-only
+    # a changed sigma (the problem is updated by replacing the value), a new problem dict, a moved state
+    q = dict(p)
+    q["sigma_tdoa_s"] = 2.0 * p["sigma_tdoa_s"]
+    assert np.isclose(linearise(q, st, lay, ["tdoa_s"])[3], linearise(p, st, lay, ["tdoa_s"])[3] / 4.0)
+    moved = retract(st, lay, np.full(lay["n"], 1e-3))
+    assert linearise(p, moved, lay, KINDS)[3] != c1
+    assert linearise(p, st, lay, KINDS)[3] == c1
+
+
+def test_schur_blocks_are_the_scaled_permuted_normal_matrix(scene):
+    _, _, p, st = scene
+    lay = make_layout(p)
+    r, J, w, _, _ = linearise(p, st, lay, KINDS, dense=False)
+    H, _ = normal_equations(J, w, r)
+    sch = Schur(H, lay)
+    Hd = H.toarray()
+    d = np.sqrt(np.diag(Hd))
+    P = (Hd / np.outer(d, d))[np.ix_(sch.perm, sch.perm)]
+    nA = sch.nA
+    assert nA == lay["n"] - len(event_columns(lay))
+    assert np.allclose(sch.Haa, P[:nA, :nA], rtol=1e-14, atol=0)
+    assert np.allclose(sch.Hea, P[nA:, :nA], rtol=1e-14, atol=0)
+    assert np.allclose(sch.Hee.toarray(), P[nA:, nA:], rtol=1e-14, atol=0)
+
+
+def test_evaluation_lookups_follow_names_not_row_order(scene):
+    feats, truth, p, st = scene
+    from calib.estimator import to_frames
+
+    arrays, sources = to_frames(p, st)
+    arrays.loc[1:, "x"] += 0.1                                    # 10 cm error on every non-reference array
+    shuffled = {"arrays": arrays.iloc[::-1].reset_index(drop=True),
+                "sources": sources.iloc[2:].sample(frac=1.0, random_state=0)}
+    m = evaluate_calibration(shuffled, truth)
+    assert np.isclose(m["position_rmse_m"], 0.1) and m["source_rmse_m"] < 1e-9
+    back = state_from_frames(p, shuffled["arrays"], pd.concat([sources.iloc[:2], shuffled["sources"]]))
+    assert np.allclose(back["x"][1:] - st["x"][1:], [0.1, 0, 0]) and np.allclose(back["s"], st["s"])
+
+
+def test_calibrations_in_threads_match_a_sequential_one(scene):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from calib.estimator import calibrate
+
+    from threadpoolctl import threadpool_limits
+
+    feats = scene[0]
+    # BLAS single-threaded throughout: calibrate's own limit is process-wide, and threads leaving it in
+    # another order would let BLAS round differently (not the cache's doing)
+    with threadpool_limits(limits=1, user_api="blas"):
+        ref = calibrate(feats)["state"]
+        with ThreadPoolExecutor(3) as pool:
+            states = [c["state"] for c in pool.map(lambda _: calibrate(feats), range(3))]
+    for st in states:
+        assert all(np.array_equal(st[k], ref[k]) for k in ref)
+
+
+def test_linearise_reuse_sees_entries_updated_in_place(scene):
+    _, _, p, st = scene
+    q = dict(p)
+    lay = make_layout(q)
+    q["array_scale"] = {"tdoa_m": np.ones(q["N"])}
+    c1 = linearise(q, st, lay, ["tdoa_m"])[3]
+    q["array_scale"]["tdoa_m"] = np.full(q["N"], 2.0)          # the dict is updated in place
+    assert np.isclose(linearise(q, st, lay, ["tdoa_m"])[3], c1 / 4.0)
