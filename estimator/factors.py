@@ -223,7 +223,7 @@ def odometry_frame(p, st, lay):
     (taken as the vertical: the odometry's z is the reference array's z). ψ = 0 (or no ``odo_yaw`` in the
     state/layout) is the plain :func:`odometry` factor.
     """
-    K, sig = p["K"], p["sigma_odo"]
+    K, sig = p.K, p.sigma["odometry"]
     J = jacobian(3 * max(K - 1, 0), lay)
     if K < 2:
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
@@ -252,8 +252,8 @@ def cone(p, st, lay):
     axis does not enter (its rotation component is fixed in the layout). Whitened by ``sigma_cone``
     (rad): the cosine error is sin θ · δθ ≤ δθ.
     """
-    i, j, c0 = p.get("cone_arr", np.zeros(0, int)), p.get("cone_ev", np.zeros(0, int)), p.get("cone_cos", np.zeros(0))
-    m, sig = len(i), p.get("sigma_cone", p["sigma_doa"])
+    i, j, c0 = p.cone.arr, p.cone.ev, p.cone.cos
+    m, sig = len(i), p.sigma["cone"]
     J = jacobian(m, lay)
     if m == 0:
         return _out("cone", np.zeros(0), J, np.zeros(0, int), 1, True, sig)

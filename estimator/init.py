@@ -179,16 +179,16 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     h = (t[b] - t[a])[None] + (d[:, col[b]] - d[:, col[a]]) / c
     dj = t[j][None] + d[:, col[j]] / c
     X = np.concatenate([h, dj + beta], axis=1)
-    Y = np.concatenate([zs[None] - h, zm[None] - dj + (g0 * (t[j] + dr / c) + beta * st["drift"][ref])[None]], axis=1)
+    Y = np.concatenate([zs[None] - h, zm[None] - dj + (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None]], axis=1)
     drift, off, r2 = _clock_irls(X, Y, ns, kappa, mm.sum() >= 2, n_irls)
     cost = np.log1p(r2).sum(1)
     if md.sum() >= 2:
         coarse = geom is not None   # the shared coarse grid only ranks candidates (see kabsch_cost)
-        ev = p["doa_ev"][md]
-        u, v = p["doa_u"][md], (_directions(s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
-        if np.any(p["fold"][i]):
+        ev = p.doa.ev[md]
+        u, v = p.doa.u[md], (_directions(s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
+        if np.any(p.fold[i]):
             normals = _NORMALS_COARSE if G > 500 else _NORMALS
-            kc = np.minimum(*[kabsch_cost(uu, v, coarse) for uu in unfold_candidates(u, p["fold"][i], v, normals)])
+            kc = np.minimum(*[kabsch_cost(uu, v, coarse) for uu in unfold_candidates(u, p.fold[i], v, normals)])
         else:
             kc = kabsch_cost(u, v, coarse)
         cost = cost + kc / (2.0 * sigma_d ** 2)

@@ -7,7 +7,9 @@ Small problems solve them dense; large ones with a sparse Jacobian and a Schur c
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -72,10 +74,13 @@ def stack_jacobians(Js, n, dense):
 def _snapshot(v, refs):
     """A comparable picture of a problem entry: arrays by identity (kept alive in ``refs``, so an id is
     never reused while cached), scalars by type and repr, dicts/lists/tuples recursively by content (an
-    entry such as ``p["array_scale"]`` is a dict updated in place)."""
+    entry such as ``p.array_scale`` is a dict updated in place)."""
     if type(v) is np.ndarray:   # the common case first (a problem is mostly arrays)
         refs.append(v)
         return id(v)
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):   # the Problem and its Rows blocks
+        return ("c", type(v).__name__, tuple((f.name, _snapshot(getattr(v, f.name), refs))
+                                             for f in dataclasses.fields(v)))
     if isinstance(v, dict):
         return ("d", tuple((k, _snapshot(x, refs)) for k, x in v.items()))
     if isinstance(v, (list, tuple)):
@@ -84,18 +89,6 @@ def _snapshot(v, refs):
         return (type(v).__name__, repr(v))
     refs.append(v)   # any other object (ndarray subclasses included) by identity
     return ("o", id(v))
-
-
-def _snapshot_problem(p, refs):
-    """:func:`_snapshot` of a problem dict, its arrays (nearly every entry) inline."""
-    out = []
-    for k, v in p.items():
-        if type(v) is np.ndarray:
-            refs.append(v)
-            out.append((k, id(v)))
-        else:
-            out.append((k, _snapshot(v, refs)))
-    return tuple(out)
 
 
 class _LineariseCache:
@@ -118,9 +111,8 @@ class _LineariseCache:
     @staticmethod
     def key(p, st, lay, kinds):
         refs = []
-        names = (tuple(sorted(st)), tuple(sorted(lay)))
-        vals = [np.asarray(d[k]) for d, ks in zip((st, lay), names) for k in ks]
-        return (tuple(kinds), _snapshot_problem(p, refs), names, tuple((v.dtype.char, v.shape) for v in vals),
+        vals = [np.asarray(getattr(d, f.name)) for d in (st, lay) for f in dataclasses.fields(d)]
+        return (tuple(kinds), _snapshot(p, refs), tuple((v.dtype.char, v.shape) for v in vals),
                 b"".join([v.tobytes() for v in vals])), refs
 
     def lookup(self, p, st, lay, kinds):
@@ -132,12 +124,12 @@ class _LineariseCache:
         return (key, refs), None
 
     def store(self, key, fs):
-        chunks = [f["J"] for f in fs]
-        fs = [{**f, "J": None} for f in fs]   # the Jacobian lives in the entry (chunks, then stacked forms)
+        chunks = [f.J for f in fs]
+        fs = [dataclasses.replace(f, J=None) for f in fs]   # the Jacobian lives in the entry (chunks, then stacked forms)
         for f in fs:
             for name in ("r", "row"):
-                if isinstance(f[name], np.ndarray):
-                    f[name].setflags(write=False)
+                if isinstance(getattr(f, name), np.ndarray):
+                    getattr(f, name).setflags(write=False)
         e = _Entry(key[0], key[1], fs, chunks)
         with self.lock:
             self.entries = self.entries[-(self.SIZE - 1):] + [e]
@@ -173,7 +165,7 @@ def factors_at(p, st, lay, kinds, dense=None):
         if sparse is not None:   # the chunks may be gone: the same entries from the sparse form
             J = sparse if not dense else sparse.toarray()
         else:
-            J = stack_jacobians(chunks, lay["n"], dense)
+            J = stack_jacobians(chunks, lay.n, dense)
         (J if dense else J.data).setflags(write=False)
         e.forms[dense] = J
         if not dense:
@@ -181,7 +173,17 @@ def factors_at(p, st, lay, kinds, dense=None):
     return e.fs, J
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
+class Linearised(NamedTuple):
+    """The stacked factors at one state: whitened residuals r (M,), Jacobian J (M, n; dense or CSR), IRLS
+    weights w (M,), cost ½ Σ ρ(r) and the factors in stacking order."""
+    r: np.ndarray
+    J: object
+    w: np.ndarray
+    cost: float
+    factors: list
+
+
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Linearised:
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
@@ -200,15 +202,15 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None):
         cost += 0.5 * float(np.sum(c))
         r_all.append(r)
         w_all.append(w)
-    return np.concatenate(r_all), J, np.concatenate(w_all), cost, fs
+    return Linearised(np.concatenate(r_all), J, np.concatenate(w_all), cost, fs)
 
 
 def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
     """½ Σ ρ(r) at ``st`` (residuals only: no Jacobian is stacked)."""
     cost = 0.0
     for f in factors_at(p, st, lay, kinds)[0]:
-        keep = np.ones(len(f["r"]), bool) if mask is None or f["kind"] not in mask else mask[f["kind"]]
-        c, _ = rho(np.where(keep, f["r"], 0.0), loss if f["robust"] else None, k)
+        keep = np.ones(len(f.r), bool) if mask is None or f.kind not in mask else mask[f.kind]
+        c, _ = rho(np.where(keep, f.r, 0.0), loss if f.robust else None, k)
         cost += 0.5 * float(np.sum(np.where(keep, c, 0.0)))
     return cost
 

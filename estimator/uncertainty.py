@@ -169,13 +169,13 @@ def state_from_frames(p, arrays, sources=None):
     Unknown (NaN) offsets or drifts become 0.
     """
     st = empty_state(p)
-    ia = _rows_of(arrays["array"], p["names"], "array")
-    st["x"] = arrays[["x", "y", "z"]].to_numpy(float)[ia]
-    st["R"] = Rotation.from_quat(arrays[["qw", "qx", "qy", "qz"]].to_numpy(float)[ia], scalar_first=True).as_matrix()
-    st["offset"] = np.nan_to_num(arrays["offset"].to_numpy(float)[ia])
-    st["drift"] = np.nan_to_num(arrays["drift"].to_numpy(float)[ia])
+    ia = _rows_of(arrays["array"], p.names, "array")
+    st.x = arrays[["x", "y", "z"]].to_numpy(float)[ia]
+    st.R = Rotation.from_quat(arrays[["qw", "qx", "qy", "qz"]].to_numpy(float)[ia], scalar_first=True).as_matrix()
+    st.offset = np.nan_to_num(arrays["offset"].to_numpy(float)[ia])
+    st.drift = np.nan_to_num(arrays["drift"].to_numpy(float)[ia])
     if sources is not None:
-        st["s"] = sources[["x", "y", "z"]].to_numpy(float)[_rows_of(sources["event"], p["events"], "event")]
+        st.s = sources[["x", "y", "z"]].to_numpy(float)[_rows_of(sources["event"], p.events, "event")]
     return st
 
 

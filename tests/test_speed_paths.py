@@ -1,6 +1,8 @@
 """The estimator's speed paths agree with the plain computations they replace (issue #12)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -50,32 +52,35 @@ def scene():
 def test_linearise_reuse_is_exact_and_follows_changes(scene):
     _, _, p, st = scene
     lay = make_layout(p)
-    fresh = stack_jacobians([f["J"] for f in evaluate(p, st, lay, KINDS)], lay["n"], True)
-    r1, J1, _, c1, _ = linearise(p, st, lay, KINDS)
-    r2, J2, _, c2, _ = linearise(p, {k: v.copy() for k, v in st.items()}, lay, KINDS)   # equal state, new arrays
+    fresh = stack_jacobians([f.J for f in evaluate(p, st, lay, KINDS)], lay.n, True)
+    lin = linearise(p, st, lay, KINDS)
+    r1, J1, c1 = lin.r, lin.J, lin.cost
+    lin = linearise(p, st.copy(), lay, KINDS)
+    r2, J2, c2 = lin.r, lin.J, lin.cost   # equal state, new arrays
     assert np.array_equal(J1, fresh) and np.array_equal(J1, J2) and c1 == c2 and np.array_equal(r1, r2)
     with pytest.raises(ValueError):
         J1[0, 0] = 1.0                                           # shared: read-only
-    # a changed sigma (the problem is updated by replacing the value), a new problem dict, a moved state
-    q = dict(p)
-    q["sigma_tdoa_s"] = 2.0 * p["sigma_tdoa_s"]
-    assert np.isclose(linearise(q, st, lay, ["tdoa_s"])[3], linearise(p, st, lay, ["tdoa_s"])[3] / 4.0)
-    moved = retract(st, lay, np.full(lay["n"], 1e-3))
-    assert linearise(p, moved, lay, KINDS)[3] != c1
-    assert linearise(p, st, lay, KINDS)[3] == c1
+    # a changed sigma (the problem's sigma dict updated), a new problem, a moved state
+    q = p.replace()
+    q.sigma["tdoa_s"] = 2.0 * p.sigma["tdoa_s"]
+    assert np.isclose(linearise(q, st, lay, ["tdoa_s"]).cost, linearise(p, st, lay, ["tdoa_s"]).cost / 4.0)
+    moved = retract(st, lay, np.full(lay.n, 1e-3))
+    assert linearise(p, moved, lay, KINDS).cost != c1
+    assert linearise(p, st, lay, KINDS).cost == c1
 
 
 def test_schur_blocks_are_the_scaled_permuted_normal_matrix(scene):
     _, _, p, st = scene
     lay = make_layout(p)
-    r, J, w, _, _ = linearise(p, st, lay, KINDS, dense=False)
+    lin = linearise(p, st, lay, KINDS, dense=False)
+    r, J, w = lin.r, lin.J, lin.w
     H, _ = normal_equations(J, w, r)
     sch = Schur(H, lay)
     Hd = H.toarray()
     d = np.sqrt(np.diag(Hd))
     P = (Hd / np.outer(d, d))[np.ix_(sch.perm, sch.perm)]
     nA = sch.nA
-    assert nA == lay["n"] - len(event_columns(lay))
+    assert nA == lay.n - len(event_columns(lay))
     assert np.allclose(sch.Haa, P[:nA, :nA], rtol=1e-14, atol=0)
     assert np.allclose(sch.Hea, P[nA:, :nA], rtol=1e-14, atol=0)
     assert np.allclose(sch.Hee.toarray(), P[nA:, nA:], rtol=1e-14, atol=0)
@@ -92,7 +97,7 @@ def test_evaluation_lookups_follow_names_not_row_order(scene):
     m = evaluate_calibration(shuffled, truth)
     assert np.isclose(m["position_rmse_m"], 0.1) and m["source_rmse_m"] < 1e-9
     back = state_from_frames(p, shuffled["arrays"], pd.concat([sources.iloc[:2], shuffled["sources"]]))
-    assert np.allclose(back["x"][1:] - st["x"][1:], [0.1, 0, 0]) and np.allclose(back["s"], st["s"])
+    assert np.allclose(back.x[1:] - st.x[1:], [0.1, 0, 0]) and np.allclose(back.s, st.s)
 
 
 def test_calibrations_in_threads_match_a_sequential_one(scene):
@@ -110,14 +115,14 @@ def test_calibrations_in_threads_match_a_sequential_one(scene):
         with ThreadPoolExecutor(3) as pool:
             states = [c["state"] for c in pool.map(lambda _: calibrate(feats), range(3))]
     for st in states:
-        assert all(np.array_equal(st[k], ref[k]) for k in ref)
+        assert all(np.array_equal(getattr(st, f.name), getattr(ref, f.name)) for f in dataclasses.fields(ref))
 
 
 def test_linearise_reuse_sees_entries_updated_in_place(scene):
     _, _, p, st = scene
-    q = dict(p)
+    q = p.replace()
     lay = make_layout(q)
-    q["array_scale"] = {"tdoa_m": np.ones(q["N"])}
-    c1 = linearise(q, st, lay, ["tdoa_m"])[3]
-    q["array_scale"]["tdoa_m"] = np.full(q["N"], 2.0)          # the dict is updated in place
-    assert np.isclose(linearise(q, st, lay, ["tdoa_m"])[3], c1 / 4.0)
+    q.array_scale = {"tdoa_m": np.ones(q.N)}
+    c1 = linearise(q, st, lay, ["tdoa_m"]).cost
+    q.array_scale["tdoa_m"] = np.full(q.N, 2.0)          # the dict is updated in place
+    assert np.isclose(linearise(q, st, lay, ["tdoa_m"]).cost, c1 / 4.0)
