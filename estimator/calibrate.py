@@ -112,11 +112,12 @@ def to_frames(p, st, std=None):
 
 
 def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200,
-               check_arrays=True, noise_bounds=None):
+               check_arrays=True, noise_bounds=None, noise_floors=None):
     """Joint NLS from a given state: robust pass → inconsistent arrays → outlier rows → plain least squares.
 
     ``noise_bounds`` ({kind: factor}, noise="estimate"): first move the sigmas by the medians of the
-    residual statistics (:func:`robust_noise_steps`). ``p`` is updated in place (sigmas, ``odo_yaw_free``).
+    residual statistics (:func:`robust_noise_steps`; ``noise_floors``: {kind: the largest factor a sigma may
+    be lowered by}, default the bound). ``p`` is updated in place (sigmas, ``odo_yaw_free``).
 
     Returns (state, info); info holds ``robust``/``final`` solver infos, ``mask`` (kind → keep per
     residual), ``outliers`` (flag records), ``layout``, ``arrays`` (per-array consistency results),
@@ -131,7 +132,7 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     if noise_bounds is not None and loss:
         stated = {k: p.sigma[k] for k in REWEIGHTED}
         st = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
-                                robust_k=robust_k, max_iter=max_iter)
+                                robust_k=robust_k, max_iter=max_iter, floors=noise_floors)
     if lay.odo_yaw[0] >= 0 and info["yaw_test"] is None:
         st, lay, info["yaw_test"] = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k,
                                                        max_iter=max_iter)
@@ -168,7 +169,8 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
 ROBUST_VCE_STEPS = 2   # median-based sigma steps before the outlier tests (noise="estimate")
 
 
-def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max_iter, steps=ROBUST_VCE_STEPS):
+def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max_iter, steps=ROBUST_VCE_STEPS,
+                       floors=None):
     """Sigmas from the median of each type's normalised statistics (outliers do not move a median), so
     the outlier tests and the robust loss work in the data's own noise units. Updates p in place."""
     for _ in range(steps):
@@ -180,7 +182,8 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
                 continue
             f = float(np.sqrt(np.median(stats.q[m]) / chi2_median(DOF[kind])))
             b = bounds.get(kind, FREE_MAX_FACTOR)
-            new = float(np.clip(p.sigma[kind] * f, stated[kind] / b, stated[kind] * b))
+            lo = (floors or bounds).get(kind, b)
+            new = float(np.clip(p.sigma[kind] * f, stated[kind] / lo, stated[kind] * b))
             changed |= abs(new / p.sigma[kind] - 1.0) > 0.05
             p.sigma[kind] = new
         if not changed:
@@ -300,6 +303,11 @@ META_KEY = {k.name: k.meta_key for k in KINDS.values() if k.reweight}
 # worse than stated", never replace a 3 cm odometry prior with 3 m and so hide a failure).
 PRIOR_MAX_FACTOR = 3.0
 FREE_MAX_FACTOR = 100.0   # a frontend's own figure (or noise="estimate" for TDOA/DOA): bounded, not fixed
+# ... but a frontend's own figure is lowered at most this much: its spread across mics does not see a room's
+# systematic errors, and with few redundant rows a type's residuals shrink with its weight, so re-estimation
+# otherwise runs to the bound (every recorded session: TDOA 0.8 µs → 8 ns, the fit then bends the sources to
+# biased TDOAs)
+FRONTEND_MIN_FACTOR = 3.0
 VCE_ITERATIONS = 4        # variance-component steps at most; stopped early when a factor reverses or settles
 # with per-array components: more steps (the type's factor first takes up a noisy array's excess, then
 # gives it back when that array gets its own: a reversal that is not a sign of instability)
@@ -319,6 +327,14 @@ def sigma_bounds(meta, noise):
         free = key in est or (noise == "estimate" and kind != "odometry")
         out[kind] = FREE_MAX_FACTOR if free else PRIOR_MAX_FACTOR
     return out
+
+
+def sigma_floors(meta, bounds):
+    """Per type, the largest factor variance components may LOWER its sigma by: FRONTEND_MIN_FACTOR for a
+    frontend's own figure (meta ``sigmas_estimated``), else its bound (:func:`sigma_bounds`)."""
+    est = set(meta.get("sigmas_estimated") or [])
+    return {kind: min(bounds[kind], FRONTEND_MIN_FACTOR) if key in est else bounds[kind]
+            for kind, key in META_KEY.items()}
 
 
 def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None, redundancy=None):
@@ -361,13 +377,13 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None,
     return out
 
 
-def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS, min_redundancy=5.0,
+def estimate_noise(p, st, kinds, mask, *, bounds=None, floors=None, iterations=VCE_ITERATIONS, min_redundancy=5.0,
                    max_iter=200, lay=None, stated=None):
     """Re-estimate each measurement type's sigma from its residuals (variance-component estimation).
 
     σ_k² ← σ_k² · Σ_k r² / Σ_k (1 − h_ii), h the hat matrix of the whitened Jacobian, then re-solve (warm);
     types with redundancy below ``min_redundancy`` keep their sigma. The total factor of type k stays
-    within [1/bounds[k], bounds[k]] of ``stated`` (default: p's sigmas; see :func:`sigma_bounds`). Iterated while stable: at most
+    within [1/floors[k], bounds[k]] of ``stated`` (floors default to the bounds) (default: p's sigmas; see :func:`sigma_bounds`). Iterated while stable: at most
     ``iterations`` steps, stopping when every step factor is within 1 % of 1, or when a type's factor
     reverses direction (a type the parameters can absorb would otherwise shrink without bound).
     Returns (state, p with new sigmas, info with the total scales and which types hit their bound).
@@ -393,8 +409,9 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, iterations=VCE_ITERATIONS
                 f2 = arraynoise.type_factor(p, kind, per_array[kind], f2, min_redundancy)
             step = float(np.sqrt(np.clip(f2, 1e-8, 1e8)))
             b = bounds.get(kind, FREE_MAX_FACTOR)
-            total = float(np.clip(scales[kind] * step, 1.0 / b, b))
-            at_bound[kind] = bool(scales[kind] * step > b * (1 + 1e-9) or scales[kind] * step < (1 - 1e-9) / b)
+            lo = (floors or bounds).get(kind, b)
+            total = float(np.clip(scales[kind] * step, 1.0 / lo, b))
+            at_bound[kind] = bool(scales[kind] * step > b * (1 + 1e-9) or scales[kind] * step < (1 - 1e-9) / lo)
             step = total / scales[kind]
             d = np.sign(step - 1.0) if abs(step - 1.0) > 0.01 else 0.0
             scales[kind] = total
@@ -640,14 +657,16 @@ def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_t
     ``stages`` gets the noise step's record.
     """
     bounds = sigma_bounds(meta, noise)
+    floors = sigma_floors(meta, bounds)
     stated = {k: p.sigma[k] for k in REWEIGHTED}
     st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
-                          max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None)
+                          max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None,
+                          noise_floors=floors)
     if noise == "estimate":
-        st, p, vce = estimate_noise(p, st, kinds, info["mask"], bounds=bounds, max_iter=max_iter,
+        st, p, vce = estimate_noise(p, st, kinds, info["mask"], bounds=bounds, floors=floors, max_iter=max_iter,
                                     lay=info["layout"], stated=stated)
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
-        stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds,
+        stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds, "floors": floors,
                            "array_scale": arraynoise.report_scales(p)}
     scales = {k: p.sigma[k] / stated[k] for k in REWEIGHTED}
     return st, p, info, scales, bounds

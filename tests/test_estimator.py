@@ -176,3 +176,18 @@ def test_noise_estimation_recovers_wrong_sigmas():
     assert calibrate(feats)["report"]["sigmas"]["source"] == "estimate"
     feats["meta"].pop("sigmas_estimated")
     assert calibrate(feats)["report"]["sigmas"]["source"] == "meta"
+
+
+def test_a_frontends_own_sigma_is_lowered_at_most_the_documented_factor():
+    """The same 10×-too-large TDOA sigma: stated by the user it is re-estimated toward the truth; as the
+    frontend's own figure (meta sigmas_estimated) it stops at stated / FRONTEND_MIN_FACTOR."""
+    from calib.estimator.calibrate import FRONTEND_MIN_FACTOR
+
+    feats, _ = simulate_features(3, 1e-4, 5.0, seed=21)
+    feats["meta"].update(sigma_tdoa=1e-3)
+    user = calibrate(feats, noise="estimate")["report"]
+    feats["meta"]["sigmas_estimated"] = ["sigma_tdoa"]
+    own = calibrate(feats)["report"]
+    assert user["sigmas"]["tdoa_s"] < 0.9e-3 / FRONTEND_MIN_FACTOR          # free: well past the floor
+    assert np.isclose(own["sigmas"]["tdoa_s"], 1e-3 / FRONTEND_MIN_FACTOR)  # the frontend's: at the floor
+    assert own["stages"]["noise"]["at_bound"]["tdoa_s"]
