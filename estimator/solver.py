@@ -8,6 +8,7 @@ Small problems solve them dense; large ones with a sparse Jacobian and a Schur c
 from __future__ import annotations
 
 import dataclasses
+import functools
 import threading
 from typing import NamedTuple
 
@@ -71,22 +72,33 @@ def stack_jacobians(Js, n, dense):
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
 
 
+@functools.cache
+def _field_names(cls):
+    """The field names of dataclass ``cls`` (cached: ``dataclasses.fields`` costs more than the lookup)."""
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
+_SCALARS = frozenset((int, float, str, bool, type(None)))
+
+
 def _snapshot(v, refs):
     """A comparable picture of a problem entry: arrays by identity (kept alive in ``refs``, so an id is
     never reused while cached), scalars by type and repr, dicts/lists/tuples recursively by content (an
     entry such as ``p.array_scale`` is a dict updated in place)."""
-    if type(v) is np.ndarray:   # the common case first (a problem is mostly arrays)
+    t = type(v)
+    if t is np.ndarray:   # the common case first (a problem is mostly arrays)
         refs.append(v)
         return id(v)
-    if dataclasses.is_dataclass(v) and not isinstance(v, type):   # the Problem and its Rows blocks
-        return ("c", type(v).__name__, tuple((f.name, _snapshot(getattr(v, f.name), refs))
-                                             for f in dataclasses.fields(v)))
+    if t in _SCALARS:
+        return (t.__name__, repr(v))
+    if hasattr(t, "__dataclass_fields__"):   # the Problem and its Rows blocks
+        return ("c", t.__name__, tuple([(name, _snapshot(getattr(v, name), refs)) for name in _field_names(t)]))
     if isinstance(v, dict):
-        return ("d", tuple((k, _snapshot(x, refs)) for k, x in v.items()))
+        return ("d", tuple([(k, _snapshot(x, refs)) for k, x in v.items()]))
     if isinstance(v, (list, tuple)):
-        return ("s", tuple(_snapshot(x, refs) for x in v))
-    if isinstance(v, (int, float, str, bool, np.number, type(None))):
-        return (type(v).__name__, repr(v))
+        return ("s", tuple([_snapshot(x, refs) for x in v]))
+    if isinstance(v, (int, float, str, bool, np.number)):
+        return (t.__name__, repr(v))
     refs.append(v)   # any other object (ndarray subclasses included) by identity
     return ("o", id(v))
 
@@ -111,7 +123,7 @@ class _LineariseCache:
     @staticmethod
     def key(p, st, lay, kinds):
         refs = []
-        vals = [np.asarray(getattr(d, f.name)) for d in (st, lay) for f in dataclasses.fields(d)]
+        vals = [np.asarray(getattr(d, name)) for d in (st, lay) for name in _field_names(type(d))]
         return (tuple(kinds), _snapshot(p, refs), tuple((v.dtype.char, v.shape) for v in vals),
                 b"".join([v.tobytes() for v in vals])), refs
 
