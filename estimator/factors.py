@@ -166,22 +166,24 @@ def doa(p, st, lay):
     if m == 0:
         return _out("doa", np.zeros(0), J, p.doa.row, 3, True, sig)
     d, n = _dist(st, i, j)
-    Rt = np.transpose(st.R[i], (0, 2, 1))
+    Rt = np.ascontiguousarray(np.transpose(st.R[i], (0, 2, 1)))   # (the memory order H @ Rt would have)
     v = np.einsum("kab,kb->ka", Rt, n)
     # Mirror-ambiguous (planar) arrays: compare the prediction folded to the measured side, v → H v with
     # the reflection H = I − 2 n nᵀ where n·v < 0 (so the Jacobians are multiplied by H there too).
     nf = p.fold[i]
     flip = np.einsum("ka,ka->k", nf, v) < 0
-    H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
-    Rt = H @ Rt
-    v = np.einsum("kab,kb->ka", Rt, n)
+    folded = bool(flip.any())   # else H = I: skip its products (exactly the same values, fewer numpy calls)
+    if folded:
+        H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
+        Rt = H @ Rt
+        v = np.einsum("kab,kb->ka", Rt, n)
     r = ((v - u) / sig).ravel()
     # dv/dφ = H [w]x with w = Rᵀn (unfolded) for R → R Exp(φ); dv/ds = H Rᵀ (I − n nᵀ)/d = −dv/dx
-    w = np.einsum("kab,kb->ka", H, v)  # H is its own inverse
+    w = np.einsum("kab,kb->ka", H, v) if folded else v  # H is its own inverse
     wx = np.zeros((m, 3, 3))
     wx[:, 0, 1], wx[:, 0, 2], wx[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
     wx[:, 1, 0], wx[:, 2, 0], wx[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    vx = H @ wx
+    vx = H @ wx if folded else wx
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = Rt @ P
     cols = np.repeat(np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]), 3, axis=0)
