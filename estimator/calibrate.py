@@ -95,20 +95,15 @@ def to_frames(p, st, std=None):
     """State (+ std) → arrays and sources DataFrames of docs/formats.md section 3."""
     q = Rotation.from_matrix(st.R).as_quat(scalar_first=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    arrays = pd.DataFrame({"array": list(p.names), "x": st.x[:, 0], "y": st.x[:, 1], "z": st.x[:, 2],
-                           "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
-                           "offset": st.offset, "drift": st.drift})
-    sources = pd.DataFrame({"event": p.events, "x": st.s[:, 0], "y": st.s[:, 1], "z": st.s[:, 2]})
-    if std is not None:
-        for k, c in enumerate("xyz"):
-            arrays[f"{c}_std"] = std["x"][:, k]
-        for k, c in enumerate("xyz"):
-            arrays[f"r{c}_std"] = std["rot"][:, k]
-        arrays["offset_std"] = std["offset"]
-        arrays["drift_std"] = std["drift"]
-        for k, c in enumerate("xyz"):
-            sources[f"{c}_std"] = std["s"][:, k]
-    return arrays, sources
+    arrays = {"array": list(p.names), "x": st.x[:, 0], "y": st.x[:, 1], "z": st.x[:, 2],
+              "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3], "offset": st.offset, "drift": st.drift}
+    sources = {"event": p.events, "x": st.s[:, 0], "y": st.s[:, 1], "z": st.s[:, 2]}
+    if std is not None:   # the columns collected first: one DataFrame each (a column insert costs ~0.1 ms)
+        arrays.update({f"{c}_std": std["x"][:, k] for k, c in enumerate("xyz")})
+        arrays.update({f"r{c}_std": std["rot"][:, k] for k, c in enumerate("xyz")})
+        arrays.update({"offset_std": std["offset"], "drift_std": std["drift"]})
+        sources.update({f"{c}_std": std["s"][:, k] for k, c in enumerate("xyz")})
+    return pd.DataFrame(arrays), pd.DataFrame(sources)
 
 
 def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200,
