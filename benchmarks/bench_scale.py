@@ -124,7 +124,8 @@ def dense_check(cases=((3, 14), (5, 14), (5, 50), (10, 50)), seed=0):
         res = {d: levenberg_marquardt(p, copy_state(st), lay, kinds, dense=d) for d in (True, False)}
         J = linearise(p, res[True][0], lay, kinds, dense=True).J
         sd = std_from_cov(p, lay, covariance(J, lay.n))
-        dx = max(np.nanmax(np.abs(res[True][0][k] - res[False][0][k]) / sd[k]) for k in ("x", "s", "offset"))
+        st_d, st_s = res[True][0], res[False][0]   # (State objects: fields by attribute)
+        dx = max(np.nanmax(np.abs(getattr(st_d, k) - getattr(st_s, k)) / sd[k]) for k in ("x", "s", "offset"))
         c1, c2 = res[True][1]["cost"], res[False][1]["cost"]
         print(f"{n_arrays:3d} x {n_events:4d}: n={lay.n:5d} cost rel diff {abs(c1 - c2) / c1:.1e}, "
               f"max param diff {dx:.1e} sigma")
