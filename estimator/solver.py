@@ -353,16 +353,22 @@ class Schur:
         return x / self.d
 
 
+_POTRF, _POTRS = scipy.linalg.lapack.get_lapack_funcs(("potrf", "potrs"), (np.zeros(1),))
+
+
 def _solve_damped(H, g, lam):
     """Dense LM step: −(H + lam diag H)⁻¹ g via Cholesky of the Jacobi-scaled matrix (lstsq if singular)."""
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
     Hs = H / d[:, None] / d[None, :]
     A = Hs + lam * np.eye(len(d))
-    try:
-        step = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(A, check_finite=False), g / d, check_finite=False)
-    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
-        step = -np.linalg.lstsq(A, g / d, rcond=None)[0]
-    return step / d
+    # LAPACK's potrf/potrs called directly: what cho_factor/cho_solve call, without their per-call checks
+    # (~30 us of a ~60 us solve on the paper's 75 parameters)
+    c, info = _POTRF(A, lower=0, clean=0)
+    if info == 0:
+        x, info = _POTRS(c, g / d, lower=0)
+    if info != 0:   # not positive definite (or a LAPACK argument error): least squares
+        x = np.linalg.lstsq(A, g / d, rcond=None)[0]
+    return -x / d
 
 
 def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_iter=200, rtol=1e-12,
