@@ -160,9 +160,28 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     coarse grid; see :func:`coarse_grid`).
     Returns cost (G,), drift (G,), offset (G,).
     """
-    c, beta, ref, s, t = p.c, p.beta, p.ref, st.s, p.t
     G = len(pts)
-    ms, mm, md = p.tdoa_s.arr == i, p.tdoa_m.arr == i, p.doa.arr == i
+    X, Y, ns, use_off = _clock_columns(p, st, i, pts, geom)
+    drift, off, r2 = _clock_irls(X, Y, ns, kappa, use_off, n_irls)
+    cost = np.log1p(r2).sum(1)
+    md = p.doa.arr == i
+    if md.sum() >= 2:
+        coarse = geom is not None   # the shared coarse grid only ranks candidates (see kabsch_cost)
+        u, v = _doa_columns(p, st, i, pts, geom)
+        if np.any(p.fold[i]):
+            normals = _NORMALS_COARSE if G > 500 else _NORMALS
+            kc = np.minimum(*[kabsch_cost(uu, v, coarse) for uu in unfold_candidates(u, p.fold[i], v, normals)])
+        else:
+            kc = kabsch_cost(u, v, coarse)
+        cost = cost + kc / (2.0 * sigma_d ** 2)
+    return cost, drift, off
+
+
+def _clock_columns(p, st, i, pts, geom=None):
+    """The clock model of array ``i`` at points ``pts``: δ·X + off·[columns ns:] = Y, X and Y (G, ns + nm)
+    with the TDOA-S columns first. Returns X, Y, ns, whether the offset is solved (>= 2 TDOA-M rows)."""
+    c, beta, ref, s, t = p.c, p.beta, p.ref, st.s, p.t
+    ms, mm = p.tdoa_s.arr == i, p.tdoa_m.arr == i
     a, b, zs = p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms]
     j, zm = p.tdoa_m.ev[mm], p.tdoa_m.val[mm]
     if geom is None:
@@ -172,27 +191,82 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
         d = np.linalg.norm(s[need][None, :, :] - pts[:, None, :], axis=2)  # (G, events named)
     else:
         col, d = geom["col"], geom["d"]
-    ns = len(zs)
-    # TDOA-S and TDOA-M stacked: model δ·X + off·[TDOA-M] = Y, columns (G, ns + nm)
     dr = np.linalg.norm(s[j] - st.x[ref], axis=1)
     g0 = 1.0 + st.drift[ref]
     h = (t[b] - t[a])[None] + (d[:, col[b]] - d[:, col[a]]) / c
     dj = t[j][None] + d[:, col[j]] / c
     X = np.concatenate([h, dj + beta], axis=1)
     Y = np.concatenate([zs[None] - h, zm[None] - dj + (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None]], axis=1)
-    drift, off, r2 = _clock_irls(X, Y, ns, kappa, mm.sum() >= 2, n_irls)
-    cost = np.log1p(r2).sum(1)
-    if md.sum() >= 2:
-        coarse = geom is not None   # the shared coarse grid only ranks candidates (see kabsch_cost)
-        ev = p.doa.ev[md]
-        u, v = p.doa.u[md], (_directions(s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
-        if np.any(p.fold[i]):
-            normals = _NORMALS_COARSE if G > 500 else _NORMALS
-            kc = np.minimum(*[kabsch_cost(uu, v, coarse) for uu in unfold_candidates(u, p.fold[i], v, normals)])
-        else:
-            kc = kabsch_cost(u, v, coarse)
-        cost = cost + kc / (2.0 * sigma_d ** 2)
+    return X, Y, len(zs), bool(mm.sum() >= 2)
+
+
+def _doa_columns(p, st, i, pts, geom=None):
+    """Array ``i``'s measured DOAs u (n, 3) and the unit directions v (G, n, 3) from ``pts`` to their sources."""
+    md = p.doa.arr == i
+    ev = p.doa.ev[md]
+    return p.doa.u[md], (_directions(st.s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
+
+
+def profile_cost_many(items, st, kappa, sigma_d, n_irls=6):
+    """:func:`profile_cost` (no shared grid) of several arrays, each at its own points, in one evaluation.
+
+    ``items``: [(problem, array index, points (G_k, 3))]. The zoom evaluates ~125 points per array, where
+    numpy's per-call overhead dominates; stacking the arrays' rows (columns padded with zero weight, DOAs
+    with zero vectors, which add nothing to the Kabsch matrix) makes one evaluation of all of them (the
+    same values up to rounding). Mirror-folded arrays take :func:`profile_cost` one by one.
+    Returns cost, drift, offset, each concatenated over the items in order.
+    """
+    if len(items) == 1 or any(np.any(p.fold[i]) for p, i, _ in items):
+        out = [profile_cost(p, st, i, pts, kappa, sigma_d, n_irls) for p, i, pts in items]
+        return tuple(np.concatenate(z) for z in zip(*out))
+    clock = [_clock_columns(p, st, i, pts) for p, i, pts in items]
+    S = max(q[2] for q in clock)
+    M = max(q[0].shape[1] - q[2] for q in clock)
+    G = sum(len(q[0]) for q in clock)
+    X, Y, mask, use_off = np.zeros((G, S + M)), np.zeros((G, S + M)), np.zeros((G, S + M)), np.zeros(G, bool)
+    doa = [_doa_columns(p, st, i, pts) if (p.doa.arr == i).sum() >= 2 else None for p, i, pts in items]
+    D = max([len(q[0]) for q in doa if q is not None], default=0)
+    U, V, nd = np.zeros((G, D, 3)), np.zeros((G, D, 3)), np.zeros(G)
+    g0 = 0
+    for (x, y, ns, uo), dq in zip(clock, doa):
+        g1, nm = g0 + len(x), x.shape[1] - ns
+        for dst, src in ((X, x), (Y, y), (mask, np.ones_like(x))):
+            dst[g0:g1, :ns], dst[g0:g1, S:S + nm] = src[:, :ns], src[:, ns:]
+        use_off[g0:g1] = uo
+        if dq is not None:
+            U[g0:g1, :len(dq[0])], V[g0:g1, :len(dq[0])], nd[g0:g1] = dq[0], dq[1], len(dq[0])
+        g0 = g1
+    drift, off, r2 = _clock_irls_masked(X, Y, mask, S, kappa, use_off, n_irls)
+    cost = (np.log1p(r2) * mask).sum(1)
+    if D:
+        cost = cost + kabsch_cost(U, V, n=nd) / (2.0 * sigma_d ** 2)   # nd = 0 rows: exactly 0 added
     return cost, drift, off
+
+
+def _clock_irls_masked(X, Y, mask, ns, kappa, use_off, n_irls):
+    """:func:`_clock_irls` with a weight mask (G, n) (0 = padding column) and ``use_off`` per row (G,)."""
+    G = len(X)
+    w = mask.copy()
+    drift, off = np.zeros(G), np.zeros(G)
+    wX, r = np.empty_like(X), np.empty_like(X)
+    for _ in range(n_irls):
+        np.multiply(w, X, out=wX)
+        a11, b1 = np.einsum("gk,gk->g", wX, X), np.einsum("gk,gk->g", wX, Y)
+        a12, a22, b2 = wX[:, ns:].sum(1), w[:, ns:].sum(1), np.einsum("gk,gk->g", w[:, ns:], Y[:, ns:])
+        det = a11 * a22 - a12 * a12
+        ok = use_off & (np.abs(det) > 1e-300)
+        only = ~use_off & (a11 > 0)
+        drift_only = np.where(only, b1 / np.where(only, a11, 1), 0.0)   # rows without an offset
+        drift = np.where(ok, (b1 * a22 - a12 * b2) / np.where(ok, det, 1), drift_only)
+        off = np.where(ok, (a11 * b2 - a12 * b1) / np.where(ok, det, 1), 0.0)
+        np.multiply(drift[:, None], X, out=r)
+        np.subtract(Y, r, out=r)
+        r[:, ns:] -= off[:, None]
+        np.divide(r, kappa, out=r)
+        np.square(r, out=r)          # r now holds r2 = (r / kappa)²
+        np.add(r, 1.0, out=w)
+        np.divide(mask, w, out=w)
+    return drift, off, r
 
 
 def _clock_irls(X, Y, ns, kappa, use_off, n_irls):
@@ -253,7 +327,7 @@ def _directions(src, pts):
     return v / np.linalg.norm(v, axis=2, keepdims=True)
 
 
-def kabsch_cost(u, v, closed_form=False):
+def kabsch_cost(u, v, closed_form=False, n=None):
     """min_R Σ |R u_k − v_k|² for u (n, 3) or (G, n, 3) and a batch v (G, n, 3), without forming R.
 
     With M = Σ v uᵀ, the optimum is 2n − 2(σ1 + σ2 + sign(det M) σ3); the singular values are the square
@@ -265,7 +339,8 @@ def kabsch_cost(u, v, closed_form=False):
     MtM = np.matmul(M.transpose(0, 2, 1), M)
     ev = np.sqrt(np.maximum(sym3_eigvals(MtM) if closed_form else np.linalg.eigvalsh(MtM), 0.0))  # ascending
     sgn = np.where((_det3(M) if closed_form else np.linalg.det(M)) < 0, -1.0, 1.0)
-    return np.maximum(2.0 * u.shape[-2] - 2.0 * (ev[:, 2] + ev[:, 1] + sgn * ev[:, 0]), 0.0)
+    n = u.shape[-2] if n is None else n   # (G,) when rows are padded with zero vectors
+    return np.maximum(2.0 * n - 2.0 * (ev[:, 2] + ev[:, 1] + sgn * ev[:, 0]), 0.0)
 
 
 def _det3(M):
@@ -377,37 +452,54 @@ def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=Non
     Coarse grid → the best local minima → each zoomed in by successively halved 5×5×5 grids (vectorised,
     no iterative solver) → the lowest concentrated cost wins. With more than ``GRID_MAX_EVENTS`` events the
     search uses an evenly spaced subsample of them (the joint solve refines with all of them).
-    ``grid``: :func:`coarse_grid` of the current sources (computed if None).
+    ``grid``: :func:`coarse_grid` of the current sources (computed if None). :func:`initialise` runs the
+    same steps for all arrays at once (:func:`place_arrays`).
     """
-    grid = coarse_grid(st.s, grid_events(p)) if grid is None else grid
-    p = event_subsample(p, i)
-    shape, step, pts = grid["shape"], grid["step"], grid["pts"]
+    st, costs = place_arrays(p, st, [i], kappa, sigma_d, n_candidates, zoom_levels, grid)
+    return st, costs[0]
+
+
+def coarse_candidates(p, st, i, kappa, sigma_d, grid, n_candidates=4):
+    """The coarse grid's best local minima for array ``i`` (``p`` its event subsample): points (nc, 3)."""
+    step, pts = grid["step"], grid["pts"]
     cost = profile_cost(p, st, i, pts, kappa, sigma_d, geom=grid)[0]
     # Too close to a source the model is singular; keep candidates at least half a step away.
     cost = np.where(grid["dmin"] > 0.5 * step, cost, np.inf)
-    C = cost.reshape(shape)
+    C = cost.reshape(grid["shape"])
     is_min = (C == minimum_filter(C, size=3, mode="nearest")) & np.isfinite(C)
     cand = np.flatnonzero(is_min.ravel())
     cand = cand[np.argsort(cost[cand])][:n_candidates]
     # Zoom only into minima whose concentrated cost is comparable to the best one: in simulations of the
     # paper's protocol a minimum 350+ cost units worse never won, while near-ties do occur.
     cand = cand[cost[cand] <= cost[cand[0]] + max(50.0, 0.5 * abs(cost[cand[0]]))]
+    return pts[cand]
+
+
+def place_arrays(p, st, arrays, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=None):
+    """:func:`init_array` for each of ``arrays``: coarse grids one by one, then every array's candidates
+    zoomed in together (one batched evaluation per level, :func:`profile_cost_many`). Returns (state with
+    those arrays placed, their concentrated costs)."""
+    grid = coarse_grid(st.s, grid_events(p)) if grid is None else grid
+    subs = [event_subsample(p, i) for i in arrays]
+    centres = [coarse_candidates(q, st, i, kappa, sigma_d, grid, n_candidates) for q, i in zip(subs, arrays)]
     offsets = np.stack(np.meshgrid(*[np.arange(-2, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    # every candidate zooms in at once: one batched evaluation per level (points are independent)
-    centres, h, nc = pts[cand], step, len(cand)
+    h, no = grid["step"], len(offsets)
     for _ in range(zoom_levels):
         h *= 0.5
-        sub = (centres[:, None, :] + h * offsets[None]).reshape(-1, 3)
-        c_sub, d_sub, o_sub = (z.reshape(nc, len(offsets)) for z in profile_cost(p, st, i, sub, kappa, sigma_d))
-        k = np.argmin(c_sub, axis=1)
-        centres = sub.reshape(nc, len(offsets), 3)[np.arange(nc), k]
-    c_end = c_sub[np.arange(nc), k]
-    g = int(np.argmin(c_end))  # the first of equal minima, as a sequential search would keep
-    best_cost = float(c_end[g])
-    best = (centres[g], doa_rotation(p, st, i, centres[g]), d_sub[g, k[g]], o_sub[g, k[g]])
-    out = copy_state(st)
-    out.x[i], out.R[i], out.drift[i], out.offset[i] = best
-    return out, best_cost
+        pts = [(c[:, None, :] + h * offsets[None]).reshape(-1, 3) for c in centres]
+        out = profile_cost_many([(q, i, x) for q, i, x in zip(subs, arrays, pts)], st, kappa, sigma_d)
+        ends = np.cumsum([len(x) for x in pts])[:-1]
+        res = [[z.reshape(-1, no) for z in zs] for zs in zip(*(np.split(o, ends) for o in out))]
+        ks = [np.argmin(c_sub, axis=1) for c_sub, _, _ in res]
+        centres = [x.reshape(-1, no, 3)[np.arange(len(k)), k] for x, k in zip(pts, ks)]
+    out, costs = copy_state(st), []
+    for q, i, c, (c_sub, d_sub, o_sub), k in zip(subs, arrays, centres, res, ks):
+        c_end = c_sub[np.arange(len(k)), k]
+        g = int(np.argmin(c_end))  # the first of equal minima, as a sequential search would keep
+        costs.append(float(c_end[g]))
+        out.x[i], out.R[i] = c[g], doa_rotation(q, st, i, c[g])
+        out.drift[i], out.offset[i] = d_sub[g, k[g]], o_sub[g, k[g]]
+    return out, costs
 
 
 def initialise(p):
@@ -424,12 +516,8 @@ def initialise(p):
     dist = np.median(np.linalg.norm(st.s, axis=1))
     kappa = max(3.0 * p.sigma["tdoa_m"], 2.0 * sig_src / p.c)
     sigma_d = float(np.hypot(p.sigma["doa"], sig_src / max(dist, 0.1)))
-    costs = {}
     grid = coarse_grid(st.s, grid_events(p))  # the sources stay fixed while the arrays are placed
-    for i in range(p.N):
-        if i == p.ref:
-            continue
-        trial, costs[p.names[i]] = init_array(p, st, i, kappa, sigma_d, grid=grid)
-        for key in ("x", "R", "drift", "offset"):
-            getattr(st, key)[i] = getattr(trial, key)[i]
+    arrays = [i for i in range(p.N) if i != p.ref]
+    st, placed = place_arrays(p, st, arrays, kappa, sigma_d, grid=grid)
+    costs = {p.names[i]: c for i, c in zip(arrays, placed)}
     return st, {"source_sigma": sig_src, "array_costs": costs, "reference_iterations": info_ref["iterations"]}
