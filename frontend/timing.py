@@ -575,24 +575,30 @@ def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
     lo = np.asarray(dp) - half_width
     # every event's lags from its own lo: shift the spectra, then one transform for all
     c_lo = c * phasors(setup["freqs"], lo / fs)[:, None, :]
-    b = lag_grid(c_lo, setup, 0, (n1 + d[-1]) / over, 1.0 / over).astype(np.complex128)  # (J, M, n1 + d_max)
-    b1 = b[..., :n1, None]
-    b2 = b[..., np.arange(n1)[:, None] + d[None, :]]                           # (J, M, n1, D)
-    det = 1.0 - np.abs(pd) ** 2
-    a1 = (b1 - np.conj(pd) * b2) / det
-    a2 = (b2 - pd * b1) / det
-    energy = np.real(np.conj(b1) * a1 + np.conj(b2) * a2)
-    flat = energy.reshape(energy.shape[:2] + (-1,))
-    k = np.argmax(flat, axis=-1)
+    b = lag_grid(c_lo, setup, 0, (n1 + d[-1]) / over, 1.0 / over)  # (J, M, n1 + d_max) complex64
+    # explained energy Re(b^H a) = (|b1|² + |b2|² − 2 Re(p b1 conj(b2))) / (1 − |p|²): searched in single
+    # precision without forming the amplitudes on the (n1, D) grid; the winner is recomputed exactly
+    det = (1.0 - np.abs(pd) ** 2).astype(np.float32)
+    pw = (b.real ** 2 + b.imag ** 2)
+    idx2 = np.arange(n1)[:, None] + d[None, :]                                  # (n1, D)
+    cross = b[..., :n1, None] * np.conj(b[..., idx2])                           # (J, M, n1, D)
+    pd32 = pd.astype(np.complex64)
+    energy = (pw[..., :n1, None] + pw[..., idx2]
+              - 2 * (pd32.real * cross.real - pd32.imag * cross.imag)) / det
+    k = np.argmax(energy.reshape(energy.shape[:2] + (-1,)), axis=-1)
     i1, i2 = np.unravel_index(k, energy.shape[2:])
     t1 = (lo[:, None] + i1 / over) / fs
     t2 = t1 + d[i2] / over / fs
-    pick = lambda x: np.take_along_axis(x.reshape(flat.shape), k[..., None], axis=-1)[..., 0]  # noqa: E731
+    b1 = np.take_along_axis(b, i1[..., None], axis=-1)[..., 0].astype(np.complex128)
+    b2 = np.take_along_axis(b, (i1 + d[i2])[..., None], axis=-1)[..., 0].astype(np.complex128)
+    p, dt = pd[i2], 1.0 - np.abs(pd[i2]) ** 2
+    a1, a2 = (b1 - np.conj(p) * b2) / dt, (b2 - p * b1) / dt
+    best = np.real(np.conj(b1) * a1 + np.conj(b2) * a2)
     # the best single path, refined off the grid: the second path must explain energy it cannot
     k1 = np.argmax(np.abs(b[..., :n1]), axis=-1)
     _, z1 = newton_envelope(c, setup["freqs"], (lo[:, None] + k1 / over) / fs, iters=1)
-    gain = (pick(energy) - np.abs(z1) ** 2) / np.maximum(np.abs(z1) ** 2, 1e-300)
-    return t1, pick(a1 + 0 * b2), t2, pick(a2), gain
+    gain = (best - np.abs(z1) ** 2) / np.maximum(np.abs(z1) ** 2, 1e-300)
+    return t1, a1, t2, a2, gain
 
 
 def path_model(setup, shape, tau, a):
