@@ -552,6 +552,25 @@ def pulse_response(setup, shape, n, over):
     return lag_grid(unit, setup, 1.0 / over, (n + 1.0) / over, 1.0 / over)[0, 0].astype(np.complex128)
 
 
+def _two_path_search(b, pd, d, n1):
+    """Grid index (J, M) into (n1, D) of the pair explaining the most energy, ``(|b1|² + |b2|² −
+    2 Re(p b1 conj(b2))) / (1 − |p|²)`` with ``b1 = b[i]``, ``b2 = b[i + d]``, ``p = pd``: single
+    precision, one event at a time (its (M, n1, D) grid stays in cache), amplitudes never formed."""
+    pw = b.real ** 2 + b.imag ** 2
+    idx2 = np.arange(n1)[:, None] + d[None, :]                                  # (n1, D)
+    inv_det = (1.0 / (1.0 - np.abs(pd) ** 2)).astype(np.float32)
+    pr, pi = (2 * pd.real).astype(np.float32), (2 * pd.imag).astype(np.float32)
+    k = np.zeros(b.shape[:2], int)
+    for j in range(b.shape[0]):
+        cross = b[j, :, :n1, None] * np.conj(b[j][:, idx2])                     # (M, n1, D)
+        e = pw[j, :, :n1, None] + pw[j][:, idx2]
+        e -= cross.real * pr
+        e += cross.imag * pi
+        e *= inv_det
+        k[j] = np.argmax(e.reshape(len(e), -1), axis=-1)
+    return k
+
+
 def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
     """Direct path plus the strongest later path within ``max_sep`` samples, per mic, by a grid search.
 
@@ -578,15 +597,8 @@ def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
     b = lag_grid(c_lo, setup, 0, (n1 + d[-1]) / over, 1.0 / over)  # (J, M, n1 + d_max) complex64
     # explained energy Re(b^H a) = (|b1|² + |b2|² − 2 Re(p b1 conj(b2))) / (1 − |p|²): searched in single
     # precision without forming the amplitudes on the (n1, D) grid; the winner is recomputed exactly
-    det = (1.0 - np.abs(pd) ** 2).astype(np.float32)
-    pw = (b.real ** 2 + b.imag ** 2)
-    idx2 = np.arange(n1)[:, None] + d[None, :]                                  # (n1, D)
-    cross = b[..., :n1, None] * np.conj(b[..., idx2])                           # (J, M, n1, D)
-    pd32 = pd.astype(np.complex64)
-    energy = (pw[..., :n1, None] + pw[..., idx2]
-              - 2 * (pd32.real * cross.real - pd32.imag * cross.imag)) / det
-    k = np.argmax(energy.reshape(energy.shape[:2] + (-1,)), axis=-1)
-    i1, i2 = np.unravel_index(k, energy.shape[2:])
+    k = _two_path_search(b, pd, d, n1)
+    i1, i2 = np.unravel_index(k, (n1, len(d)))
     t1 = (lo[:, None] + i1 / over) / fs
     t2 = t1 + d[i2] / over / fs
     b1 = np.take_along_axis(b, i1[..., None], axis=-1)[..., 0].astype(np.complex128)
