@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pandas as pd
+from threadpoolctl import threadpool_limits
 
 from calib.errors import InputError
 
@@ -68,6 +69,14 @@ def extract_features(session, progress=None, **options):
     unknown = set(options) - set(DEFAULTS)
     if unknown:
         raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
+    # single-threaded BLAS: the frontend's products are small (mics × grid, events × taps), and OpenBLAS
+    # threads spin on them: ~40 % more CPU for no wall-clock gain (docs/results.md, issue 12)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _extract(session, progress, opt)
+
+
+def _extract(session, progress, opt):
+    """:func:`extract_features` with validated options ``opt``."""
     t_start = time.perf_counter()
     _check_audio(session)
     c = session["speed_of_sound"]

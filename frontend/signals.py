@@ -107,15 +107,17 @@ class ArrayAudio:
         start, stop = int(start), int(stop)
         n = max(stop - start, 0)
         a, b = max(start, 0), min(stop, self.frames)
-        raw = channel_sum and self._int is not None
+        raw = self._int is not None
         out = np.zeros((n, self.channels), self._int[0] if raw else np.float32)
         if b > a:
             self._read_into(a, out[a - start : b - start])
-        if raw:
+        if raw and channel_sum:
             acc = out[:, 0].astype(np.float32)
             for ch in range(1, self.channels):
                 acc += out[:, ch]
             return acc * np.float32(1.0 / self._int[1])
+        if raw:  # integer PCM read as such and scaled here: half the bytes, ~3x cheaper than libsndfile's floats
+            return np.multiply(out.T, np.float32(1.0 / self._int[1]), dtype=np.float32)
         if channel_sum:
             return out @ np.ones(self.channels, np.float32)
         return out.T

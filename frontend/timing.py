@@ -29,7 +29,7 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
-from scipy.signal import CZT, resample
+from scipy.signal import resample
 from calib.robust import mad_std
 
 from .signals import band_weights
@@ -90,9 +90,24 @@ def segment_spectra(x, starts, setup, plain=False):
 
 
 @lru_cache(maxsize=32)
-def _czt(n_q, n_t, w_cycles, a_cycles):
-    """A chirp z-transform plan (its set-up costs about as much as a transform): reused across calls."""
-    return CZT(n_q, n_t, w=np.exp(2j * np.pi * w_cycles), a=np.exp(-2j * np.pi * a_cycles))
+def _lag_plan(nfft, k0, n_q, n_t, lo, step):
+    """Bluestein plan of :func:`lag_grid` in single precision (its set-up costs about as much as a
+    transform, so it is reused across calls): with ``α = 2π step / nfft``, ``q t = (q² + t² − (t − q)²) / 2``
+    turns ``Σ_q d_q e^{j2π q (lo + step t) / nfft}`` into a convolution with the chirp ``e^{−jα k² / 2}``.
+    Returns (FFT length, pre-chirp (n_q,), kernel spectrum, post-chirp (n_t,) with the band's first bin
+    ``k0`` put back), complex64; the phases are reduced modulo a cycle in float64 first."""
+    n_fft = sfft.next_fast_len(n_q + n_t - 1)
+    q, t = np.arange(n_q), np.arange(n_t)
+    k = np.arange(-(n_q - 1), n_t)
+
+    def cis(cycles):  # e^{j2π cycles}, reduced to [0, 1) cycles while still exact in float64
+        return np.exp(2j * np.pi * np.mod(cycles, 1.0)).astype(np.complex64)
+
+    half = 0.5 * step / nfft
+    pre = cis(q * (lo / nfft) + half * q * q)
+    kernel = sfft.fft(cis(-half * k * k), n_fft)
+    post = cis(half * t * t + k0 * (lo + step * t) / nfft)
+    return n_fft, pre, kernel, post
 
 
 def lag_grid(c, setup, lo, hi, step=1.0):
@@ -101,38 +116,93 @@ def lag_grid(c, setup, lo, hi, step=1.0):
     step`` lags ``lo, lo + step, ...`` instead (a finer grid).
 
     ``r[n] = Σ_k c_k e^{j2πkn/nfft}`` over the band's bins only, evaluated at the wanted lags alone by a
-    chirp z-transform (FFTs of about Fb + (hi − lo) points instead of a full-length inverse FFT per mic).
+    chirp z-transform (FFTs of about Fb + (hi − lo) points instead of a full-length inverse FFT per mic),
+    in single precision (the result is complex64 anyway; its rounding, ~1e-6 of the peak, is far below
+    any noise floor).
     """
     nfft, kb = setup["nfft"], setup["kb"]
     k0, n_q, n_t = int(kb[0]), int(kb[-1] - kb[0] + 1), int(round((hi - lo) / step))
-    d = np.zeros(c.shape[:-1] + (n_q,), np.complex64)
-    d[..., kb - k0] = c
-    czt = _czt(n_q, n_t, float(step) / nfft, float(lo) / nfft)
-    shift = np.exp(2j * np.pi * k0 * (lo + step * np.arange(n_t)) / nfft)  # the band's first bin back to its place
-    return (czt(d, axis=-1) * shift).astype(np.complex64)
+    n_fft, pre, kernel, post = _lag_plan(nfft, k0, n_q, n_t, float(lo), float(step))
+    d = np.zeros(c.shape[:-1] + (n_fft,), np.complex64)
+    d[..., kb - k0] = c * pre[kb - k0]
+    y = sfft.ifft(sfft.fft(d, axis=-1, overwrite_x=True) * kernel, axis=-1, overwrite_x=True)
+    return y[..., n_q - 1 : n_q - 1 + n_t] * post
 
 
 def phasors(freqs, tau):
     """``exp(j 2π f τ)`` for every f: (...,) lags (s) → (..., F) complex.
 
-    The band's frequencies are uniformly spaced, so the phasors are a geometric sequence: one complex
-    multiply per element (cumulative product) instead of a complex exponential, ~6x faster.
+    The band's frequencies are uniformly spaced, ``f_k = f_0 + k Δf``; with ``k = a B + b`` (B ≈ √F) the
+    phasor factors into ``e^{j2π(f_0 + aBΔf)τ} · e^{j2πbΔfτ}``: 2√F complex exponentials and one
+    vectorised complex multiply per element (2.3x faster than a cumulative product, and as exact as
+    direct exponentials, no error accumulated along the band).
     """
     tau = np.asarray(tau, float)
+    n_f = len(freqs)
     df = np.diff(freqs)
-    if len(freqs) < 3 or np.ptp(df) > 1e-9 * abs(df[0]):
+    if n_f < 3 or np.ptp(df) > 1e-9 * abs(df[0]):
         return np.exp(2j * np.pi * freqs * tau[..., None])
-    out = np.empty(tau.shape + (len(freqs),), np.complex128)
-    out[..., 0] = 1.0
-    out[..., 1:] = np.exp(2j * np.pi * df[0] * tau)[..., None]
-    np.cumprod(out, axis=-1, out=out)
-    out *= np.exp(2j * np.pi * freqs[0] * tau)[..., None]
+    b = int(np.ceil(np.sqrt(n_f)))
+    n_a = -(-n_f // b)
+    wt = 2j * np.pi * tau[..., None]
+    inner = np.exp(wt * (df[0] * np.arange(b)))                  # (..., B)
+    outer = np.exp(wt * (freqs[0] + df[0] * b * np.arange(n_a)))  # (..., A)
+    out = np.empty(tau.shape + (n_f,), np.complex128)
+    full = (n_a - 1) * b
+    np.multiply(outer[..., :-1, None], inner[..., None, :], out=out[..., :full].reshape(tau.shape + (n_a - 1, b)))
+    out[..., full:] = outer[..., -1:] * inner[..., : n_f - full]
     return out
+
+
+class BandSums:
+    """``Σ_f a_f c_f e^{j2πfτ}`` of fixed spectra at changing lags without forming the (…, F) phasors.
+
+    c : (..., F) spectra; factors : S weightings ``a_f`` (scalars or (F,)), giving S sums per lag. With uniformly spaced frequencies the
+    band is folded into (A, B) blocks, ``f = f_0 + (aB + b)Δf``: a sum over ``b`` against ``B`` inner
+    phasors, then over ``a`` against ``A`` outer ones (one multiply-add per element, as an einsum with
+    the phasors, but no phasor array written and read back: ~2x faster).
+    """
+
+    def __init__(self, c, freqs, factors=(1.0,)):
+        self.freqs = freqs
+        n_f = len(freqs)
+        df = np.diff(freqs)
+        self.uniform = n_f >= 3 and np.ptp(df) <= 1e-9 * abs(df[0])
+        self.b = int(np.ceil(np.sqrt(n_f))) if self.uniform else n_f
+        self.n_a = -(-n_f // self.b)
+        self.df = df[0] if self.uniform else 0.0
+        cp = np.zeros((len(factors),) + c.shape[:-1] + (self.n_a * self.b,), np.result_type(c, np.complex64))
+        for k, fac in enumerate(factors):  # written in place: no stacked or padded copies
+            np.multiply(c, fac, out=cp[k, ..., :n_f])
+        self.cs = cp if not self.uniform else cp.reshape(cp.shape[:-1] + (self.n_a, self.b))
+
+    def __call__(self, tau):
+        """tau : (...) lags (s), broadcastable with the spectra's middle axes → (S, ...) complex."""
+        tau = np.asarray(tau, float)
+        if not self.uniform:
+            return np.einsum("s...f,...f->s...", self.cs, phasors(self.freqs, tau))
+        wt = 2j * np.pi * tau[..., None]
+        inner = np.exp(wt * (self.df * np.arange(self.b)))                                  # (..., B)
+        outer = np.exp(wt * (self.freqs[0] + self.df * self.b * np.arange(self.n_a)))      # (..., A)
+        y = np.einsum("s...ab,...b->s...a", self.cs, inner)                                  # (S, ..., A)
+        return np.einsum("s...a,...a->s...", y, outer)
 
 
 def corr_at(c, freqs, tau):
     """Analytic correlation at arbitrary lags: c (..., Fb), tau (...) seconds → (...) complex."""
-    return np.einsum("...f,...f->...", c, phasors(freqs, tau))
+    return BandSums(np.asarray(c), freqs)(tau)[0]
+
+
+def corr_around(c, freqs, fs, lag, off):
+    """Analytic correlation at lags ``lag[j] + off[l]`` samples: c (J, M, F), lag (J,), off (L,) → (J, M, L).
+
+    The event's shift ``e^{j2πf lag/fs}`` is applied to its spectra, then all events share one (F, L)
+    phasor table: one matrix product instead of an einsum against (J, L, F) phasors.
+    """
+    j, m, n_f = c.shape
+    shifted = c * phasors(freqs, np.asarray(lag, float) / fs)[:, None, :]
+    table = phasors(freqs, np.asarray(off, float) / fs)  # (L, F)
+    return (shifted.reshape(j * m, n_f) @ table.T).reshape(j, m, len(off))
 
 
 def newton_peak(c, freqs, tau, phase=0.0, iters=2, max_step=None):
@@ -142,17 +212,16 @@ def newton_peak(c, freqs, tau, phase=0.0, iters=2, max_step=None):
     Returns (tau, value) refined, same shapes.
     """
     w = 2 * np.pi * freqs
-    cw, cww = c * w, c * (w * w)
+    sums = BandSums(c, freqs, (w, w * w, 1.0))
     tau = np.array(tau, float)
     max_step = max_step if max_step is not None else 0.25 / freqs.max()
     rot = np.exp(-1j * phase)
     for _ in range(iters):
-        p = phasors(freqs, tau) * rot
-        d1 = -np.imag(np.einsum("...f,...f->...", cw, p))
-        d2 = -np.real(np.einsum("...f,...f->...", cww, p))
+        z1, z2, _ = sums(tau) * rot
+        d1, d2 = -np.imag(z1), -np.real(z2)
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
         tau = tau + np.clip(step, -max_step, max_step)
-    val = np.real(corr_at(c, freqs, tau) * rot)
+    val = np.real(sums(tau)[2] * rot)
     return tau, val
 
 
@@ -161,19 +230,16 @@ def newton_envelope(c, freqs, tau, iters=1):
     (the parabola through three samples is biased by a fraction of a sample, which would bias the
     carrier phase read at the peak). Returns (tau, r(tau))."""
     w = 2 * np.pi * freqs
-    cw, cww = c * (1j * w), c * (-(w * w))
+    sums = BandSums(c, freqs, (1.0, 1j * w, -(w * w)))
     tau = np.array(tau, float)
     max_step = 0.25 / freqs.max()
     for _ in range(iters):
-        p = phasors(freqs, tau)
-        z = np.einsum("...f,...f->...", c, p)
-        z1 = np.einsum("...f,...f->...", cw, p)
-        z2 = np.einsum("...f,...f->...", cww, p)
+        z, z1, z2 = sums(tau)
         d1 = 2 * np.real(np.conj(z) * z1)
         d2 = 2 * np.real(np.conj(z1) * z1 + np.conj(z) * z2)
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
         tau = tau + np.clip(step, -max_step, max_step)
-    return tau, corr_at(c, freqs, tau)
+    return tau, sums(tau)[0]
 
 
 def pulse_near(setup, n, spread, plain=False, over=4):
@@ -272,7 +338,7 @@ def subtract_path(c, setup, shape, lag, half_width):
     fs, freqs = setup["fs"], setup["freqs"]
     off = np.arange(-half_width - 1, half_width + 2)  # lags around each path, evaluated exactly
     lags = np.asarray(lag)[:, None] + off[None, :]  # (J, L)
-    r = np.abs(np.einsum("jmf,jlf->jml", c, phasors(setup["freqs"], lags / fs)))  # (J, M, L)
+    r = np.abs(corr_around(c, freqs, fs, lag, off))  # (J, M, L)
     kk = np.argmax(r[..., 1:-1], axis=-1) + 1
     tau, a = newton_envelope(c, freqs, (refine_peak_along(r, kk) + lags[:, :1]) / fs, iters=2)
     pulse = shape / shape.sum() * np.exp(-2j * np.pi * freqs * tau[..., None])
@@ -451,7 +517,7 @@ def _path_peaks(c, setup, lag, half_width):
     fs = setup["fs"]
     off = np.arange(-half_width - 1, half_width + 2)
     lags = np.asarray(lag)[:, None] + off[None, :]  # (J, L)
-    r = np.abs(np.einsum("jmf,jlf->jml", c, phasors(setup["freqs"], lags / fs)))
+    r = np.abs(corr_around(c, setup["freqs"], fs, lag, off))
     kk = np.argmax(r[..., 1:-1], axis=-1) + 1
     return newton_envelope(c, setup["freqs"], (refine_peak_along(r, kk) + lags[:, :1]) / fs, iters=2)
 
@@ -464,11 +530,8 @@ def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
     reflection. Each path is re-estimated per mic (envelope peak, Newton) with the other's current model
     subtracted, ``iters`` times. Returns c with the reflection's model subtracted.
     """
-    freqs = setup["freqs"]
-    unit = shape / shape.sum()
-
     def model(tau, a):
-        return a[..., None] * unit * np.exp(-2j * np.pi * freqs * tau[..., None])
+        return path_model(setup, shape, tau, a)
 
     t1, a1 = _path_peaks(c, setup, dp, half_width)
     for _ in range(iters):
@@ -487,6 +550,25 @@ def pulse_response(setup, shape, n, over):
     ``Δ = 1/over .. n/over`` samples: (n,) complex."""
     unit = (shape / shape.sum())[None, None, :]
     return lag_grid(unit, setup, 1.0 / over, (n + 1.0) / over, 1.0 / over)[0, 0].astype(np.complex128)
+
+
+def _two_path_search(b, pd, d, n1):
+    """Grid index (J, M) into (n1, D) of the pair explaining the most energy, ``(|b1|² + |b2|² −
+    2 Re(p b1 conj(b2))) / (1 − |p|²)`` with ``b1 = b[i]``, ``b2 = b[i + d]``, ``p = pd``: single
+    precision, one event at a time (its (M, n1, D) grid stays in cache), amplitudes never formed."""
+    pw = b.real ** 2 + b.imag ** 2
+    idx2 = np.arange(n1)[:, None] + d[None, :]                                  # (n1, D)
+    inv_det = (1.0 / (1.0 - np.abs(pd) ** 2)).astype(np.float32)
+    pr, pi = (2 * pd.real).astype(np.float32), (2 * pd.imag).astype(np.float32)
+    k = np.zeros(b.shape[:2], int)
+    for j in range(b.shape[0]):
+        cross = b[j, :, :n1, None] * np.conj(b[j][:, idx2])                     # (M, n1, D)
+        e = pw[j, :, :n1, None] + pw[j][:, idx2]
+        e -= cross.real * pr
+        e += cross.imag * pi
+        e *= inv_det
+        k[j] = np.argmax(e.reshape(len(e), -1), axis=-1)
+    return k
 
 
 def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
@@ -512,24 +594,23 @@ def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
     lo = np.asarray(dp) - half_width
     # every event's lags from its own lo: shift the spectra, then one transform for all
     c_lo = c * phasors(setup["freqs"], lo / fs)[:, None, :]
-    b = lag_grid(c_lo, setup, 0, (n1 + d[-1]) / over, 1.0 / over).astype(np.complex128)  # (J, M, n1 + d_max)
-    b1 = b[..., :n1, None]
-    b2 = b[..., np.arange(n1)[:, None] + d[None, :]]                           # (J, M, n1, D)
-    det = 1.0 - np.abs(pd) ** 2
-    a1 = (b1 - np.conj(pd) * b2) / det
-    a2 = (b2 - pd * b1) / det
-    energy = np.real(np.conj(b1) * a1 + np.conj(b2) * a2)
-    flat = energy.reshape(energy.shape[:2] + (-1,))
-    k = np.argmax(flat, axis=-1)
-    i1, i2 = np.unravel_index(k, energy.shape[2:])
+    b = lag_grid(c_lo, setup, 0, (n1 + d[-1]) / over, 1.0 / over)  # (J, M, n1 + d_max) complex64
+    # explained energy Re(b^H a) = (|b1|² + |b2|² − 2 Re(p b1 conj(b2))) / (1 − |p|²): searched in single
+    # precision without forming the amplitudes on the (n1, D) grid; the winner is recomputed exactly
+    k = _two_path_search(b, pd, d, n1)
+    i1, i2 = np.unravel_index(k, (n1, len(d)))
     t1 = (lo[:, None] + i1 / over) / fs
     t2 = t1 + d[i2] / over / fs
-    pick = lambda x: np.take_along_axis(x.reshape(flat.shape), k[..., None], axis=-1)[..., 0]  # noqa: E731
+    b1 = np.take_along_axis(b, i1[..., None], axis=-1)[..., 0].astype(np.complex128)
+    b2 = np.take_along_axis(b, (i1 + d[i2])[..., None], axis=-1)[..., 0].astype(np.complex128)
+    p, dt = pd[i2], 1.0 - np.abs(pd[i2]) ** 2
+    a1, a2 = (b1 - np.conj(p) * b2) / dt, (b2 - p * b1) / dt
+    best = np.real(np.conj(b1) * a1 + np.conj(b2) * a2)
     # the best single path, refined off the grid: the second path must explain energy it cannot
     k1 = np.argmax(np.abs(b[..., :n1]), axis=-1)
     _, z1 = newton_envelope(c, setup["freqs"], (lo[:, None] + k1 / over) / fs, iters=1)
-    gain = (pick(energy) - np.abs(z1) ** 2) / np.maximum(np.abs(z1) ** 2, 1e-300)
-    return t1, pick(a1 + 0 * b2), t2, pick(a2), gain
+    gain = (best - np.abs(z1) ** 2) / np.maximum(np.abs(z1) ** 2, 1e-300)
+    return t1, a1, t2, a2, gain
 
 
 def path_model(setup, shape, tau, a):
