@@ -273,32 +273,10 @@ def _clock_irls(X, Y, ns, kappa, use_off, n_irls):
     """Drift (and offset) per row of the model δ·X + off·[columns ns:] = Y by Cauchy IRLS (scale kappa).
 
     X, Y (G, n): the first ``ns`` columns are TDOA-S (no offset), the rest TDOA-M. Returns drift (G,),
-    offset (G,) and the last squared normalised residuals (G, n). Temporaries are reused in place: this
-    runs on every grid point of every array.
+    offset (G,) and the last squared normalised residuals (G, n): :func:`_clock_irls_masked` with every
+    column weighted and the same ``use_off`` for every row.
     """
-    G = len(X)
-    w = np.ones_like(X)
-    drift, off = np.zeros(G), np.zeros(G)
-    wX, r = np.empty_like(X), np.empty_like(X)
-    for _ in range(n_irls):
-        np.multiply(w, X, out=wX)
-        a11, b1 = np.einsum("gk,gk->g", wX, X), np.einsum("gk,gk->g", wX, Y)
-        if use_off:
-            a12, a22, b2 = wX[:, ns:].sum(1), w[:, ns:].sum(1), np.einsum("gk,gk->g", w[:, ns:], Y[:, ns:])
-            det = a11 * a22 - a12 * a12
-            ok = np.abs(det) > 1e-300
-            drift = np.where(ok, (b1 * a22 - a12 * b2) / np.where(ok, det, 1), 0.0)
-            off = np.where(ok, (a11 * b2 - a12 * b1) / np.where(ok, det, 1), 0.0)
-        else:
-            drift = np.where(a11 > 0, b1 / np.where(a11 > 0, a11, 1), 0.0)
-        np.multiply(drift[:, None], X, out=r)
-        np.subtract(Y, r, out=r)
-        r[:, ns:] -= off[:, None]
-        np.divide(r, kappa, out=r)
-        np.square(r, out=r)          # r now holds r2 = (r / kappa)²
-        np.add(r, 1.0, out=w)
-        np.divide(1.0, w, out=w)
-    return drift, off, r
+    return _clock_irls_masked(X, Y, np.ones_like(X), ns, kappa, np.full(len(X), bool(use_off)), n_irls)
 
 
 def coarse_grid(s, events=None):
