@@ -111,7 +111,7 @@ def run_case(n_arrays, n_events, seed=0, with_crlb=True):
 
 def dense_check(cases=((3, 14), (5, 14), (5, 50), (10, 50)), seed=0):
     """Sparse vs dense solver from the same start: cost and parameter differences (in σ)."""
-    from calib.estimator.problem import build_problem, copy_state, make_layout
+    from calib.estimator.problem import build_problem, make_layout
     from calib.estimator.solver import levenberg_marquardt, linearise
     from calib.estimator.uncertainty import covariance, std_from_cov, state_from_frames
 
@@ -119,9 +119,9 @@ def dense_check(cases=((3, 14), (5, 14), (5, 50), (10, 50)), seed=0):
     for n_arrays, n_events in cases:
         feats, truth = features(n_arrays, n_events, seed)
         p = build_problem(feats)
-        st = copy_state(state_from_frames(p, truth["arrays"], truth["sources"]))
+        st = state_from_frames(p, truth["arrays"], truth["sources"]).copy()
         lay = make_layout(p)
-        res = {d: levenberg_marquardt(p, copy_state(st), lay, kinds, dense=d) for d in (True, False)}
+        res = {d: levenberg_marquardt(p, st.copy(), lay, kinds, dense=d) for d in (True, False)}
         J = linearise(p, res[True][0], lay, kinds, dense=True).J
         sd = std_from_cov(p, lay, covariance(J, lay.n))
         st_d, st_s = res[True][0], res[False][0]   # (State objects: fields by attribute)

@@ -22,7 +22,7 @@ from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect,
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
-from .problem import State, build_problem, copy_state, make_layout, state_from_dict
+from .problem import State, build_problem, make_layout, state_from_dict
 from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
                      count_measurements, factor_sizes, variance_factors, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
@@ -383,9 +383,8 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, floors=None, iterations=V
     reverses direction (a type the parameters can absorb would otherwise shrink without bound).
     Returns (state, p with new sigmas, info with the total scales and which types hit their bound).
     """
-    p = p.copy()
+    p = p.copy()   # (copies the sigmas and per-array components: the caller's problem is not changed)
     if p.array_scale:
-        p.array_scale = {k: a.copy() for k, a in p.array_scale.items()}
         p.array_own = {}
     lay = lay or make_layout(p)
     bounds = bounds or {k: FREE_MAX_FACTOR for k in REWEIGHTED}
@@ -454,7 +453,7 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
     check_observability(p, lay_full, kinds, st)
     times["observability"] = time.perf_counter() - t_obs
     stages["init"] = {"cost": float(linearise(p, st, lay_full, kinds)[3]), **_jsonable(init_info)}
-    stage_states["init"] = copy_state(st)
+    stage_states["init"] = st.copy()
     if method == "hybrid" and len(p.tdoa_s.val) > 0:
         # Stage 1 (IVE): positions, clocks and sources from hybrid TDOA, odometry and the reference
         # array's DOAs; then rotations by SVD alignment of DOA-scaled points.
@@ -471,7 +470,7 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
                                               k=robust_k)
             J_ive, w_ive = lin.J, lin.w
             p.odo_yaw_test = _yaw_decision(p, st, whiten(J_ive, w_ive), int(lay_ive.odo_yaw[0]))
-        stage_states["ive"] = copy_state(st)
+        stage_states["ive"] = st.copy()
         stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
         times["ive"] = time.perf_counter() - t1
     return st, stages, stage_states

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .init import subproblem
-from .problem import copy_state, make_layout
+from .problem import make_layout
 from .solver import levenberg_marquardt
 
 MIN_CONE_ROWS = 3   # a world axis from fewer cone rows is left where it is
@@ -59,7 +59,7 @@ def reseat(p, st, i):
     kinds = list(RESEAT_KINDS)
     best, best_cost = st, None
     for x0 in (st.x[i], st.x[i] - 2.0 * ((st.x[i] - st.s.mean(axis=0)) @ n) * n):
-        trial = copy_state(st)
+        trial = st.copy()
         trial.x[i] = x0
         if p.rot_fixed_axis[i] >= 0:
             trial = _align_axis(p, trial, i)

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from calib.errors import InputError
 
-from .problem import copy_state, empty_state, make_layout
+from .problem import empty_state, make_layout
 from .solver import levenberg_marquardt
 
 
@@ -470,7 +470,7 @@ def place_arrays(p, st, arrays, kappa, sigma_d, n_candidates=4, zoom_levels=4, g
         res = [[z.reshape(-1, no) for z in zs] for zs in zip(*(np.split(o, ends) for o in out))]
         ks = [np.argmin(c_sub, axis=1) for c_sub, _, _ in res]
         centres = [x.reshape(-1, no, 3)[np.arange(len(k)), k] for x, k in zip(pts, ks)]
-    out, costs = copy_state(st), []
+    out, costs = st.copy(), []
     for q, i, c, (c_sub, d_sub, o_sub), k in zip(subs, arrays, centres, res, ks):
         c_end = c_sub[np.arange(len(k)), k]
         g = int(np.argmin(c_end))  # the first of equal minima, as a sequential search would keep

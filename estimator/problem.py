@@ -288,10 +288,6 @@ def empty_state(p):
                  s=np.zeros((K, 3)), e=np.zeros(K), odo_yaw=np.zeros(1))
 
 
-def copy_state(st):
-    return st.copy()
-
-
 def state_from_dict(d):
     """A :class:`State` from a dict of its fields (array-like; ``odo_yaw`` may be missing: 0)."""
     d = {"odo_yaw": np.zeros(1), **d}

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from calib.estimator import ObservabilityError
 from calib.estimator.factors import FACTORS
 from calib.estimator.observability import check_observability
-from calib.estimator.problem import build_problem, copy_state, make_layout
+from calib.estimator.problem import build_problem, make_layout
 from calib.estimator.solver import levenberg_marquardt, linearise
 from calib.estimator.uncertainty import cov_block, covariance, state_from_frames, std_from_cov
 from calib.pipeline.simulate.featsim import simulate_features
@@ -25,7 +25,7 @@ def perturbed_problem(seed, n_arrays=6, trajectory=3, emission=0.0, spread=0.2):
     """A noisy scene and a start state = truth perturbed by ``spread`` m (arrays, sources)."""
     feats, truth = simulate_features(trajectory=trajectory, seed=seed, n_arrays=n_arrays)
     p = build_problem(feats, sigma_emit=emission)
-    st = copy_state(state_from_frames(p, truth["arrays"], truth["sources"]))
+    st = state_from_frames(p, truth["arrays"], truth["sources"]).copy()
     rng = np.random.default_rng(seed + 100)
     st.x[1:] += rng.normal(0, spread, st.x[1:].shape)
     st.s += rng.normal(0, spread, st.s.shape)
@@ -46,7 +46,7 @@ def test_sparse_and_dense_solvers_reach_the_same_minimum(seed, trajectory, emiss
     p, st, _ = perturbed_problem(seed, trajectory=trajectory, emission=emission)
     kinds = KINDS + (["emission"] if emission else [])
     lay = make_layout(p)
-    out = {d: levenberg_marquardt(p, copy_state(st), lay, kinds, loss=loss, dense=d) for d in (True, False)}
+    out = {d: levenberg_marquardt(p, st.copy(), lay, kinds, loss=loss, dense=d) for d in (True, False)}
     (sd_, id_), (ss, is_) = out[True], out[False]
     assert id_["converged"] and is_["converged"]
     assert abs(id_["cost"] - is_["cost"]) <= 1e-9 * id_["cost"]

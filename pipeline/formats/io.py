@@ -291,6 +291,7 @@ class Table:
     float_format: str = "%.12g"
     check: Callable | None = None   # table-specific check and cleaning: (df, path, meta) -> df
     str_cols: tuple = ("array",)
+    residuals: int = 1        # residuals per row (for the problem-size check)
 
     def empty(self):
         return pd.DataFrame({c: np.zeros(0, int if c in self.int_cols else str if c in self.str_cols else float)
@@ -326,9 +327,8 @@ FEATURE_TABLES = (
     Table("tdoa_s", ("array", "from_event", "to_event", "tdoa"), ("from_event", "to_event"),
           ("from_event", "to_event"), ("array", "from_event", "to_event"), check=_ordered_events),
     Table("doa", ("event", "array", "ux", "uy", "uz"), ("event",), ("event",), ("event", "array"),
-          float_format="%.10g", check=_unit_vectors),
+          float_format="%.10g", check=_unit_vectors, residuals=3),
 )
-ROWS_PER_MEASUREMENT = {"tdoa_m": 1, "tdoa_s": 1, "doa": 3}   # residuals per row, for the size check
 
 
 def validate_features(feats):
@@ -349,7 +349,7 @@ def validate_features(feats):
         df = t.check(df, p, meta) if t.check else df
         out[t.name] = df.sort_values(list(t.keys), kind="stable").reset_index(drop=True)
     where = Path(feats["meta"].get("_path", "features/meta.json")).parent
-    V.check_problem_size(len(ev), len(arrays), sum(ROWS_PER_MEASUREMENT[t.name] * len(out[t.name])
+    V.check_problem_size(len(ev), len(arrays), sum(t.residuals * len(out[t.name])
                                                    for t in FEATURE_TABLES), where)
     return out
 
