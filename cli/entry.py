@@ -4,8 +4,6 @@ An interrupt during the imports (the first seconds) exits quietly with 130/143 i
 """
 from __future__ import annotations
 
-import sys
-
 from . import signals
 
 
@@ -14,11 +12,14 @@ def main():
     try:
         from calib.cli.main import app
     except KeyboardInterrupt as exc:
-        sys.exit(signals.interrupted(exc, "interrupted while starting; nothing was written"))
+        signals.leave(signals.interrupted(exc, "interrupted while starting; nothing was written"))
     try:
         app()
     except KeyboardInterrupt as exc:  # outside a command (argument parsing): nothing to clean up
-        sys.exit(signals.interrupted(exc, "interrupted; nothing was written"))
+        signals.leave(signals.interrupted(exc, "interrupted; nothing was written"))
+    except SystemExit as exc:
+        signals.leave(exc.code)
+    signals.leave(0)
 
 
 if __name__ == "__main__":

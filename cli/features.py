@@ -7,6 +7,7 @@ from typing import Optional
 import typer
 
 from .common import console, user_errors, waiting
+from .signals import checked
 
 
 @user_errors
@@ -45,7 +46,7 @@ def _extract(recordings, opts, quiet):
     from calib.pipeline.features import session_features
 
     if quiet:
-        feats, diag = session_features(recordings, **opts)
+        feats, diag = session_features(recordings, progress=checked(), **opts)
     else:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -56,7 +57,7 @@ def _extract(recordings, opts, quiet):
             def progress(done, total, msg):
                 bar.update(task, total=total, completed=done, msg=msg)
 
-            feats, diag = session_features(recordings, progress=progress, **opts)
+            feats, diag = session_features(recordings, progress=checked(progress), **opts)
     return feats, diag
 
 

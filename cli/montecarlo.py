@@ -11,7 +11,7 @@ import typer
 
 from calib.pipeline.formats.io import InputError
 from .common import console, user_errors, waiting
-from .signals import interrupted
+from .signals import checked, interrupted
 
 
 def _floats(text, what):
@@ -89,7 +89,7 @@ def montecarlo(
     try:
         with output_lock(out, on_wait=waiting), _bar(quiet) as progress:  # locked, appended to, never replaced
             res = run_study(out, g["cells"], g["trajectories"], g["runs"], g["methods"], jobs=jobs, scheduler=scheduler,
-                            progress=progress, base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
+                            progress=checked(progress), base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
                             check_convergence=check_convergence, with_crlb=crlb)
     except KeyboardInterrupt as exc:
         raise typer.Exit(interrupted(exc, f"the finished runs are kept in {out}; run the same command again to "

@@ -8,7 +8,7 @@ import typer
 
 from calib.pipeline.formats.io import dumps_json
 from .common import Quiet, console, exit_on_failed, print_verdict, user_errors, waiting, with_estimate_options
-from .signals import interrupted
+from .signals import checked, interrupted
 from .tables import out as stdout, print_arrays, print_metrics
 
 
@@ -90,7 +90,7 @@ def run(
     try:
         with _Display(show) as disp:
             res = run_pipeline(recordings, out, force=force, features_options=feat_opts, estimate_options=est_opts,
-                               progress=disp.update, log=disp.log, on_wait=waiting)
+                               progress=checked(disp.update), log=checked(disp.log), on_wait=waiting)
     except KeyboardInterrupt as exc:
         raise typer.Exit(interrupted(exc, "the stage in progress kept no output; re-run to resume")) from None
 

@@ -6,6 +6,7 @@ folders removed, locks released, worker pools stopped), then the command exits w
 """
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -22,8 +23,27 @@ class Terminated(KeyboardInterrupt):
     """Raised in the main thread when the process receives SIGTERM."""
 
 
-def _on_sigterm(signum, frame):
-    raise Terminated()
+# The signal whose interrupt has not reached one of our handlers yet. Python swallows an exception raised
+# inside a finaliser or weakref callback ("Exception ignored in ..."), so an interrupt that lands there
+# would be lost and the command would run on; :func:`check` raises it again at the next progress point.
+_pending = None
+
+
+def _exception(signum):
+    return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _on_signal(signum, frame):
+    global _pending
+    _pending = signum
+    raise _exception(signum)
+
+
+def _unraisable(info):
+    """``sys.unraisablehook``: an interrupt swallowed in a finaliser is re-raised by :func:`check`, silently."""
+    if _pending is not None and isinstance(info.exc_value, KeyboardInterrupt):
+        return
+    sys.__unraisablehook__(info)
 
 
 def install():
@@ -33,7 +53,24 @@ def install():
     """
     if threading.current_thread() is not threading.main_thread():
         return None
-    return (signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler))
+    sys.unraisablehook = _unraisable
+    return (signal.signal(signal.SIGTERM, _on_signal), signal.signal(signal.SIGINT, _on_signal))
+
+
+def check():
+    """Raise again an interrupt that Python swallowed in a finaliser (called at every progress point)."""
+    if _pending is not None:
+        raise _exception(_pending)
+
+
+def checked(callback=None):
+    """``callback`` (a progress callback, or None) that first calls :func:`check`."""
+
+    def call(*args, **kwargs):
+        check()
+        return None if callback is None else callback(*args, **kwargs)
+
+    return call
 
 
 def restore(previous):
@@ -48,7 +85,29 @@ def interrupt_code(exc):
 
 
 def interrupted(exc, message="interrupted; nothing partial was kept"):
-    """Print the one-line interrupt message and return the exit code."""
+    """Print the one-line interrupt message and return the exit code (the interrupt is handled)."""
+    global _pending
+    _pending = None
     what = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted (SIGINT)"
     print(f"{what}: {message.removeprefix('interrupted; ').removeprefix('interrupted: ')}", file=sys.stderr)
     return interrupt_code(exc)
+
+
+def leave(code):
+    """Exit the process with ``code`` (from ``SystemExit.code``), keeping the interrupt exit codes exact.
+
+    A command that finished although an interrupt was swallowed on the way (see :func:`check`) exits as
+    interrupted: the user asked it to stop. After an interrupt every clean-up has already run, so the
+    process ends with ``os._exit``: CPython may otherwise turn a KeyboardInterrupt it saw during the run,
+    even a handled one, into death by SIGINT at shutdown (exit -2 instead of 130).
+    """
+    if code in (None, EXIT_OK) and _pending is not None:
+        code = interrupted(_exception(_pending), "interrupted as the command finished; its outputs are complete")
+    if code in (EXIT_SIGINT, EXIT_SIGTERM):
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    sys.exit(code)

@@ -12,6 +12,7 @@ from calib.pipeline.formats.io import InputError
 from calib.pipeline.formats.outputs import owned_output
 from calib.pipeline.simulate.roomsim import PRESETS, load_scenario, make_scenario, simulate as run_simulation, validate_scenario
 from .common import console, user_errors, waiting
+from .signals import checked
 
 
 def _out_dir(positional, option):
@@ -72,7 +73,7 @@ def simulate(
         validate_scenario(sc)
     with owned_output([out_dir], [scenario], command="calib simulate", on_wait=waiting):
         if quiet:
-            path = run_simulation(sc, out_dir, overwrite=True)
+            path = run_simulation(sc, out_dir, progress=checked(), overwrite=True)
         else:
             path = _simulate_with_bar(sc, out_dir)
     if out_pos is not None:  # after success only: a bad input stays one line
@@ -114,7 +115,7 @@ def _simulate_with_bar(sc, out_dir):
         def progress(done, total, msg):
             bar.update(task, total=total, completed=done, msg=msg)
 
-        return run_simulation(sc, out_dir, progress=progress, overwrite=True)
+        return run_simulation(sc, out_dir, progress=checked(progress), overwrite=True)
 
 
 def _set(over, item):

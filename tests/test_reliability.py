@@ -434,3 +434,40 @@ def test_concurrent_runs_into_one_folder(base, tmp_path):
         check_consistent(out)
         assert not _litter(tmp_path)
         print(f"trial {trial + 1}/{CONCURRENCY_TRIALS}: consistent", flush=True)  # visible with -s (long run)
+
+
+_SWALLOWED = """
+import gc, os, signal, sys
+from calib.cli import signals
+signals.install()
+
+class Finalised:
+    def __del__(self):  # Python swallows what a finaliser raises ("Exception ignored in ...")
+        os.kill(os.getpid(), signal.SIG{name})
+        for _ in range(1000):
+            pass
+
+Finalised()
+gc.collect()
+print("ran on", flush=True)
+if sys.argv[1] == "check":
+    try:
+        signals.check()
+    except KeyboardInterrupt as exc:
+        signals.leave(signals.interrupted(exc, "re-raised"))
+signals.leave(0)
+"""
+
+
+@pytest.mark.parametrize("name, code", [("INT", 130), ("TERM", 143)])
+@pytest.mark.parametrize("where", ["check", "exit"])
+def test_interrupt_swallowed_in_a_finaliser_is_not_lost(tmp_path, name, code, where):
+    """An interrupt landing in a finaliser is swallowed by Python; the next progress point (check) raises it
+    again, and a command that finishes anyway still exits as interrupted, without 'Exception ignored'."""
+    script = tmp_path / "swallow.py"
+    script.write_text(_SWALLOWED.replace("{name}", name))
+    r = subprocess.run([sys.executable, str(script), where], capture_output=True, text=True, timeout=60)
+    assert r.returncode == code, (r.returncode, r.stderr)
+    assert r.stdout == "ran on\n"  # the interrupt did not stop the finaliser's caller: Python swallowed it
+    assert "Exception ignored" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert ("re-raised" in r.stderr) == (where == "check"), r.stderr
