@@ -248,7 +248,7 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
     e = t_emit[ev_idx] - t_emit[0]
     lag = c * (arrival - (asc["offset"] + asc["scale"] * e))
     clean = np.array([not any(x in TIMING_DOUBTS for x in r) for r in reasons], bool)
-    arrival_sd, _ = claimed_sd(t_org - arrival[:, None], u, mics, c, lag, e, clean)
+    arrival_sd, _ = claimed_sd(t_org - arrival[:, None], u, mics, c, lag, e, clean, loc["interference"])
     return {"arrival": arrival, "spread": spread, "mic_sd": mic_sd, "arrival_sd": arrival_sd,
             "quality": arrival_quality(gcc_quality, reasons), "flags": reasons, "doa_spread": doa_sd,
             "mic_times": t_mic, "warnings": warnings}

@@ -23,6 +23,7 @@ RESOLVED_SIGMAS = 3.0     # an event's curvature counts for the range track when
 TRACK_MIN_EVENTS = 4      # ... and at least this many events do (2 parameters of the track)
 TRACK_MAX_SCATTER = 2.0   # robust normalised scatter of the resolved κ̂ about the track; above: no track
 TRACK_ITERATIONS = 3      # reweighting passes (events beyond 3 robust sd dropped)
+MIN_RANGE_SD = 1e-6       # m: floor of a range's standard error in the track's weights (noise-free fits)
 
 
 def near_field_fit(res, u, mics, c):
@@ -54,16 +55,17 @@ def near_field_fit(res, u, mics, c):
 def range_track(kappa, kappa_sd, lag, e):
     """Source range per event (m) from the array's clock track, or None where the data do not support one.
 
-    ``lag`` (J,) = c × (arrival − the association's clock line): the range up to ``A + B e`` (``e`` (J,) the
-    emission times: the line's offset and the propagation trend its slope absorbed). Fitted to the events whose curvature is resolved (``1/κ̂`` with std
-    ``σ_κ / κ̂²``), iteratively reweighted; rejected when the resolved events scatter about it by more than
-    ``TRACK_MAX_SCATTER`` of their own errors or when a range comes out ≤ 0.
+    ``lag`` (J,) = c × (arrival − the association's clock line) is the range up to ``A + B e`` (``e`` (J,)
+    the emission times: the line's offset, and the propagation trend its slope absorbed). ``A``, ``B`` are
+    fitted to the events whose curvature is resolved (``1/κ̂`` with std ``σ_κ / κ̂²``), iteratively
+    reweighted; no track when those events scatter about it by more than ``TRACK_MAX_SCATTER`` of their own
+    errors or when a range comes out ≤ 0.
     """
-    use = np.isfinite(kappa) & (kappa > RESOLVED_SIGMAS * kappa_sd)
+    use = np.isfinite(kappa) & np.isfinite(lag) & (kappa > RESOLVED_SIGMAS * kappa_sd)
     if use.sum() < TRACK_MIN_EVENTS:
         return None
     y = np.where(use, 1.0 / np.where(use, kappa, 1.0), 0.0)
-    sy = np.where(use, kappa_sd / np.where(use, kappa, 1.0) ** 2, 1.0)
+    sy = np.maximum(np.where(use, kappa_sd / np.where(use, kappa, 1.0) ** 2, 1.0), MIN_RANGE_SD)
     for _ in range(TRACK_ITERATIONS):
         x = np.c_[np.ones(use.sum()), e[use]] / sy[use, None]
         beta = np.linalg.lstsq(x, (y[use] - lag[use]) / sy[use], rcond=None)[0]
@@ -73,20 +75,23 @@ def range_track(kappa, kappa_sd, lag, e):
         if use.sum() < TRACK_MIN_EVENTS:
             return None
     d = lag + beta[0] + beta[1] * e
-    return d if scatter <= TRACK_MAX_SCATTER and np.all(d > 0) else None
+    return d if scatter <= TRACK_MAX_SCATTER and not np.any(d <= 0) else None
 
 
-def arrival_sd(res, u, mics, c, lag, e, clean):
+def arrival_sd(res, u, mics, c, lag, e, clean, single=None):
     """Claimed standard deviation (s) of each fused arrival (module docstring).
 
     res : (J, M) mic times referred to the origin minus the fused arrival (NaN = unused); u : (J, 3) DOAs;
     lag : (J,) c × (arrival − clock line) (m); e : (J,) emission times (s); clean : (J,) bool arrivals
-    without doubts (the near-field bias's mean is taken over them). Returns (sd (J,), details dict).
+    without doubts (the near-field bias's mean is taken over them); single : (J,) the claim where a fit has
+    no residual (one mic), e.g. :func:`calib.frontend.timing.interference_sd`. Returns (sd (J,), details).
     """
     kappa, kappa_sd, s, qbar, n = near_field_fit(res, u, mics, c)
     d = range_track(kappa, kappa_sd, lag, e)
     bias = np.zeros(len(s)) if d is None else qbar / d
     ref = clean if np.sum(clean) >= 2 else np.ones(len(s), bool)
-    near = bias - np.mean(bias[ref]) if len(s) else bias
+    near = bias - np.nanmean(bias[ref]) if np.any(np.isfinite(bias[ref])) else bias
     sd = np.sqrt(s**2 * (1 + 1 / np.maximum(n, 1)) + near**2)
+    if single is not None:
+        sd = np.where(np.isfinite(sd), sd, single)
     return sd, {"kappa": kappa, "kappa_sd": kappa_sd, "fit_sd": s, "range": d, "near_field": near}
