@@ -22,8 +22,8 @@ from calib.errors import InputError
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
-from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .noise import arrival_sd as claimed_sd
+from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
 
 DEFAULTS = {
