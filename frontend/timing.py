@@ -706,7 +706,7 @@ def fuse_times(t_origin, spread_floor=2e-6):
 
     t_origin : (J, M) seconds (NaN = unusable). The median, then the mean of the mics within 3 robust
     standard deviations of it (efficient for Gaussian errors, immune to a mic locked on a wrong peak).
-    Returns (J,) fused times and (J,) standard error estimates (s).
+    Returns (J,) fused times, (J,) standard error estimates (s) and the (J, M) mask of the mics fused.
     """
     med = np.nanmedian(t_origin, axis=1)
     dev = np.abs(t_origin - med[:, None])
@@ -716,7 +716,7 @@ def fuse_times(t_origin, spread_floor=2e-6):
     t = np.where(keep, t_origin, 0.0).sum(axis=1) / np.maximum(n, 1)
     res = np.where(keep, t_origin - t[:, None], 0.0)
     sd = np.sqrt((res**2).sum(axis=1) / np.maximum(n - 1, 1))
-    return t, sd / np.sqrt(np.maximum(n, 1))
+    return t, sd / np.sqrt(np.maximum(n, 1)), keep
 
 
 def drift_bias(template, fs, band, locate_kw, pre, seg_len, whiten_hz=500.0, delta=2e-5):

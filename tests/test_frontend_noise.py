@@ -97,3 +97,36 @@ def test_claimed_sigma_tdoa_matches_the_measured_error(tmp_path, mics, seed):
     claimed = feats["meta"]["sigma_tdoa"]
     for err in (dm, e["tdoa_s"][keep_s]):
         assert 1 / 1.5 < np.sqrt(np.mean(err**2)) / claimed < 1.5
+
+
+@pytest.mark.parametrize("mics", [OCTAHEDRON, CIRCLE_3D])
+def test_doa_spread_counts_the_mic_noise_not_the_wavefront_curvature(mics):
+    """A near source's curvature is symmetric about the array and leaves the direction alone: the DOA sd
+    claimed from the residuals is the one the mic noise alone gives (c σ √(tr P S⁺ P / 2)), not 2× more."""
+    from calib.frontend.extract import doa_spread
+
+    rng = np.random.default_rng(11)
+    n_ev, noise = 400, 0.1e-6
+    u, d = random_directions(rng, n_ev), rng.uniform(0.8, 2.0, n_ev)
+    got = doa_spread(spherical_residuals(mics, u, d, noise, rng), u, mics, C)
+    far = doa_spread(spherical_residuals(mics, u, np.full(n_ev, 1e6), noise, rng), u, mics, C)  # plane waves
+    ratio = np.sqrt(np.mean(got**2) / np.mean(far**2))
+    assert 0.85 < ratio < 1.15, ratio
+
+
+def test_a_mic_left_out_of_the_fusion_does_not_inflate_the_claim():
+    """One mic locked on a peak 50 µs late: the fusion leaves it out (its mask), and so does the claim."""
+    from calib.frontend.timing import fuse_times
+
+    rng = np.random.default_rng(2)
+    n_ev, noise = 30, 0.2e-6
+    u, d = random_directions(rng, n_ev), rng.uniform(1.0, 4.0, n_ev)
+    t_org = spherical_residuals(OCTAHEDRON, u, d, noise, rng)
+    t_org[::3, 4] += 50e-6
+    arrival, _, fused = fuse_times(t_org)
+    assert not fused[::3, 4].any() and fused[1::3].all()
+    lag, e = np.full(n_ev, np.nan), np.arange(n_ev, dtype=float)
+    kept, _ = arrival_sd(np.where(fused, t_org - arrival[:, None], np.nan), u, OCTAHEDRON, C, lag, e,
+                         np.ones(n_ev, bool))
+    every, _ = arrival_sd(t_org - arrival[:, None], u, OCTAHEDRON, C, lag, e, np.ones(n_ev, bool))
+    assert np.sqrt(np.mean(kept**2)) < 2 * noise < np.sqrt(np.mean(every[::3] ** 2)) / 10
