@@ -17,7 +17,7 @@ import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
 
-from .factors import Jacobian, evaluate
+from .factors import Factor, Jacobian, evaluate
 from .problem import retract
 
 
@@ -121,14 +121,20 @@ class _LineariseCache:
         self.lock = threading.Lock()
 
     @staticmethod
-    def key(p, st, lay, kinds):
+    def problem_key(p, kinds):
+        """The part of the key that names the problem and kinds (one LM call computes it once: its
+        problem does not change between iterations): (key part, objects it names by identity)."""
         refs = []
-        vals = [np.asarray(getattr(d, name)) for d in (st, lay) for name in _field_names(type(d))]
-        return (tuple(kinds), _snapshot(p, refs), tuple((v.dtype.char, v.shape) for v in vals),
-                b"".join([v.tobytes() for v in vals])), refs
+        return (tuple(kinds), _snapshot(p, refs)), refs
 
-    def lookup(self, p, st, lay, kinds):
-        key, refs = self.key(p, st, lay, kinds)
+    @staticmethod
+    def key(p, st, lay, kinds, pkey=None):
+        head, refs = _LineariseCache.problem_key(p, kinds) if pkey is None else pkey
+        vals = [np.asarray(getattr(d, name)) for d in (st, lay) for name in _field_names(type(d))]
+        return head + (tuple((v.dtype.char, v.shape) for v in vals), b"".join([v.tobytes() for v in vals])), refs
+
+    def lookup(self, p, st, lay, kinds, pkey=None):
+        key, refs = self.key(p, st, lay, kinds, pkey)
         with self.lock:
             for e in reversed(self.entries):
                 if e.key == key:
@@ -137,7 +143,9 @@ class _LineariseCache:
 
     def store(self, key, fs):
         chunks = [f.J for f in fs]
-        fs = [dataclasses.replace(f, J=None) for f in fs]   # the Jacobian lives in the entry (chunks, then stacked forms)
+        # the Jacobian lives in the entry (chunks, then stacked forms); a shallow copy without it (the
+        # constructor directly: dataclasses.replace costs ~12 us per factor)
+        fs = [Factor(f.kind, f.r, None, f.row, f.dim, f.robust, f.sigma, f.sigma_rows) for f in fs]
         for f in fs:
             for name in ("r", "row"):
                 if isinstance(getattr(f, name), np.ndarray):
@@ -161,12 +169,13 @@ class _Entry:
 _CACHE = _LineariseCache()
 
 
-def factors_at(p, st, lay, kinds, dense=None):
+def factors_at(p, st, lay, kinds, dense=None, pkey=None):
     """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input.
 
+    ``pkey``: ``_LineariseCache.problem_key(p, kinds)`` when the caller already has it (an LM call).
     Thread-safe: concurrent calls at the same input may both compute it (the results are equal).
     """
-    key, e = _CACHE.lookup(p, st, lay, kinds)
+    key, e = _CACHE.lookup(p, st, lay, kinds, pkey)
     if e is None:
         e = _CACHE.store(key, evaluate(p, st, lay, kinds))
     if dense is None:
@@ -195,15 +204,16 @@ class Linearised(NamedTuple):
     factors: list
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Linearised:
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=None) -> Linearised:
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
     ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
     (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
     inputs (read-only); the factor dicts carry no per-factor ``J`` (``factors.evaluate`` has those).
+    ``pkey``: the problem's cache key part, :func:`factors_at`.
     """
-    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense)
+    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense, pkey)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f.r
@@ -371,6 +381,11 @@ def _solve_damped(H, g, lam):
     return -x / d
 
 
+def _same_state(a, b):
+    """Whether states ``a`` and ``b`` are equal bit for bit (every field)."""
+    return all(np.array_equal(getattr(a, name), getattr(b, name)) for name in _field_names(type(a)))
+
+
 def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_iter=200, rtol=1e-12,
                         lam0=1e-4, dense=None):
     """Minimise ½ Σ ρ(r) over the free parameters of ``lay``. Returns (state, info).
@@ -383,7 +398,8 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                     "reason": "no free parameters"}
     dense = use_dense(lay) if dense is None else dense
     lam, nu = lam0, 2.0
-    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense)
+    pkey = _CACHE.problem_key(p, kinds)   # p is not modified during the solve
+    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense, pkey=pkey)
     r, J, w, cost = lin.r, lin.J, lin.w, lin.cost
     reason, it = "max_iter", 0
     for it in range(1, max_iter + 1):
@@ -397,7 +413,11 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         for _ in range(30):
             step = _solve_damped(H, g, lam) if dense else system.factor(lam).solve(-g)
             cand = retract(st, lay, step)
-            lin = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense)
+            if _same_state(cand, st):
+                # the damped step no longer moves the state (it is below the parameters' rounding): it
+                # cannot lower the cost, and more damping only shrinks it further
+                break
+            lin = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense, pkey=pkey)
             r2, J2, w2, cost2 = lin.r, lin.J, lin.w, lin.cost
             pred = -(step @ g) - 0.5 * step @ (H @ step)
             ratio = (cost - cost2) / pred if pred > 0 else -1.0
