@@ -46,12 +46,24 @@ def use_dense(lay):
     return lay.n <= DENSE_MAX_PARAMS
 
 
-def stack_jacobians(Js, n, dense):
+def stack_jacobians(Js, n, dense, memo=None):
     """Stack the factors' Jacobians (each a ``factors.Jacobian``, a dense array or scipy.sparse matrix).
 
     Returns the (M, n) Jacobian: a dense array if ``dense`` else a ``scipy.sparse.csr_matrix``.
+    ``memo`` (a dict kept for one problem and layout, as in ``factors.evaluate``): the dense path's flat
+    entry indices are computed once and reused while the chunks' sizes are the same.
     """
     M = sum(J.shape[0] for J in Js)
+    if memo is not None and dense and all(isinstance(J, Jacobian) for J in Js):
+        sizes = (M, n) + tuple(len(c[0]) for J in Js for c in J.chunks)
+        known = memo.get("_stack")
+        if known is None or known[0] != sizes:
+            flat = [r + off for r, off in zip(*_chunk_rows(Js))]
+            cols = [c for J in Js for _, c, _ in J.chunks]
+            known = memo["_stack"] = (sizes, np.concatenate(flat) * n + np.concatenate(cols) if flat else None)
+        if known[1] is not None:
+            vals = np.concatenate([v for J in Js for _, _, v in J.chunks])
+            return np.bincount(known[1], weights=vals, minlength=M * n).reshape(M, n)
     rows, cols, vals, off = [], [], [], 0
     for J in Js:
         if isinstance(J, Jacobian):
@@ -70,6 +82,17 @@ def stack_jacobians(Js, n, dense):
     if dense:  # one pass over all entries; bincount sums any duplicates
         return np.bincount(rows * n + cols, weights=vals, minlength=M * n).reshape(M, n)
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
+
+
+def _chunk_rows(Js):
+    """The row arrays of the factors' Jacobian chunks and each one's row offset in the stacked matrix."""
+    rows, offs, off = [], [], 0
+    for J in Js:
+        for r, _, _ in J.chunks:
+            rows.append(r)
+            offs.append(off)
+        off += J.shape[0]
+    return rows, offs
 
 
 @functools.cache
@@ -169,15 +192,16 @@ class _Entry:
 _CACHE = _LineariseCache()
 
 
-def factors_at(p, st, lay, kinds, dense=None, pkey=None):
+def factors_at(p, st, lay, kinds, dense=None, pkey=None, memo=None):
     """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input.
 
-    ``pkey``: ``_LineariseCache.problem_key(p, kinds)`` when the caller already has it (an LM call).
+    ``pkey``: ``_LineariseCache.problem_key(p, kinds)`` when the caller already has it (an LM call);
+    ``memo``: the index bookkeeping kept for this problem and layout (``factors.evaluate``).
     Thread-safe: concurrent calls at the same input may both compute it (the results are equal).
     """
     key, e = _CACHE.lookup(p, st, lay, kinds, pkey)
     if e is None:
-        e = _CACHE.store(key, evaluate(p, st, lay, kinds))
+        e = _CACHE.store(key, evaluate(p, st, lay, kinds, memo))
     if dense is None:
         return e.fs, None
     J = e.forms.get(dense)
@@ -186,7 +210,7 @@ def factors_at(p, st, lay, kinds, dense=None, pkey=None):
         if sparse is not None:   # the chunks may be gone: the same entries from the sparse form
             J = sparse if not dense else sparse.toarray()
         else:
-            J = stack_jacobians(chunks, lay.n, dense)
+            J = stack_jacobians(chunks, lay.n, dense, memo)
         (J if dense else J.data).setflags(write=False)
         e.forms[dense] = J
         if not dense:
@@ -204,16 +228,16 @@ class Linearised(NamedTuple):
     factors: list
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=None) -> Linearised:
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=None, memo=None) -> Linearised:
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
     ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
     (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
     inputs (read-only); the factor dicts carry no per-factor ``J`` (``factors.evaluate`` has those).
-    ``pkey``: the problem's cache key part, :func:`factors_at`.
+    ``pkey``, ``memo``: what one LM solve keeps between its linearisations, :func:`factors_at`.
     """
-    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense, pkey)
+    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense, pkey, memo)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f.r
@@ -398,8 +422,10 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                     "reason": "no free parameters"}
     dense = use_dense(lay) if dense is None else dense
     lam, nu = lam0, 2.0
-    pkey = _CACHE.problem_key(p, kinds)   # p is not modified during the solve
-    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense, pkey=pkey)
+    # p and lay do not change during the solve: the cache key's problem part and the factors' index
+    # bookkeeping (memo) are computed once
+    pkey, memo = _CACHE.problem_key(p, kinds), {}
+    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense, pkey=pkey, memo=memo)
     r, J, w, cost = lin.r, lin.J, lin.w, lin.cost
     reason, it = "max_iter", 0
     for it in range(1, max_iter + 1):
@@ -417,7 +443,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                 # the damped step no longer moves the state (it is below the parameters' rounding): it
                 # cannot lower the cost, and more damping only shrinks it further
                 break
-            lin = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense, pkey=pkey)
+            lin = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense, pkey=pkey, memo=memo)
             r2, J2, w2, cost2 = lin.r, lin.J, lin.w, lin.cost
             pred = -(step @ g) - 0.5 * step @ (H @ step)
             ratio = (cost - cost2) / pred if pred > 0 else -1.0
