@@ -177,27 +177,46 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     return cost, drift, off
 
 
-def _clock_columns(p, st, i, pts, geom=None):
-    """The clock model of array ``i`` at points ``pts``: δ·X + off·[columns ns:] = Y, X and Y (G, ns + nm)
-    with the TDOA-S columns first. Returns X, Y, ns, whether the offset is solved (>= 2 TDOA-M rows)."""
+def _clock_rows(p, st, i):
+    """Array ``i``'s TDOA rows in the clock model, the parts that do not depend on the candidate points
+    (computed once for all zoom levels): the rows' events, values and reference-array terms, and the
+    events they name (``need``) with each event's column among them (``col``)."""
     c, beta, ref, s, t = p.c, p.beta, p.ref, st.s, p.t
     ms, mm = p.tdoa_s.arr == i, p.tdoa_m.arr == i
     a, b, zs = p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms]
     j, zm = p.tdoa_m.ev[mm], p.tdoa_m.val[mm]
-    if geom is None:
-        need = np.unique(np.concatenate([a, b, j]))                    # the events these rows name
-        col = np.zeros(len(s), int)
-        col[need] = np.arange(len(need))
-        d = np.linalg.norm(s[need][None, :, :] - pts[:, None, :], axis=2)  # (G, events named)
-    else:
-        col, d = geom["col"], geom["d"]
+    need = np.unique(np.concatenate([a, b, j]))                    # the events these rows name
+    col = np.zeros(len(s), int)
+    col[need] = np.arange(len(need))
     dr = np.linalg.norm(s[j] - st.x[ref], axis=1)
     g0 = 1.0 + st.drift[ref]
-    h = (t[b] - t[a])[None] + (d[:, col[b]] - d[:, col[a]]) / c
-    dj = t[j][None] + d[:, col[j]] / c
-    X = np.concatenate([h, dj + beta], axis=1)
-    Y = np.concatenate([zs[None] - h, zm[None] - dj + (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None]], axis=1)
-    return X, Y, len(zs), bool(mm.sum() >= 2)
+    return {"a": a, "b": b, "j": j, "zs": zs[None], "zm": zm[None], "dt": (t[b] - t[a])[None], "tj": t[j][None],
+            "yref": (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None], "src": s[need][None, :, :],
+            "col": col, "use_off": bool(mm.sum() >= 2)}
+
+
+def _clock_columns(p, st, i, pts, geom=None, rows=None):
+    """The clock model of array ``i`` at points ``pts``: δ·X + off·[columns ns:] = Y, X and Y (G, ns + nm)
+    with the TDOA-S columns first. ``rows``: :func:`_clock_rows` (computed if None). Returns X, Y, ns,
+    whether the offset is solved (>= 2 TDOA-M rows)."""
+    q = _clock_rows(p, st, i) if rows is None else rows
+    c, a, b, j = p.c, q["a"], q["b"], q["j"]
+    if geom is None:
+        col = q["col"]
+        d = np.linalg.norm(q["src"] - pts[:, None, :], axis=2)  # (G, events named)
+    else:
+        col, d = geom["col"], geom["d"]
+    h = q["dt"] + (d[:, col[b]] - d[:, col[a]]) / c
+    dj = q["tj"] + d[:, col[j]] / c
+    X = np.concatenate([h, dj + p.beta], axis=1)
+    Y = np.concatenate([q["zs"] - h, q["zm"] - dj + q["yref"]], axis=1)
+    return X, Y, len(a), q["use_off"]
+
+
+def _doa_rows(p, st, i):
+    """Array ``i``'s measured DOAs u (n, 3) and their sources (n, 3), or None with fewer than 2 DOAs."""
+    md = p.doa.arr == i
+    return (p.doa.u[md], st.s[p.doa.ev[md]]) if md.sum() >= 2 else None
 
 
 def _doa_columns(p, st, i, pts, geom=None):
@@ -207,24 +226,26 @@ def _doa_columns(p, st, i, pts, geom=None):
     return p.doa.u[md], (_directions(st.s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
 
 
-def profile_cost_many(items, st, kappa, sigma_d, n_irls=6):
+def profile_cost_many(items, st, kappa, sigma_d, n_irls=6, rows=None):
     """:func:`profile_cost` (no shared grid) of several arrays, each at its own points, in one evaluation.
 
     ``items``: [(problem, array index, points (G_k, 3))]. The zoom evaluates ~125 points per array, where
     numpy's per-call overhead dominates; stacking the arrays' rows (columns padded with zero weight, DOAs
     with zero vectors, which add nothing to the Kabsch matrix) makes one evaluation of all of them (the
-    same values up to rounding). Mirror-folded arrays take :func:`profile_cost` one by one.
-    Returns cost, drift, offset, each concatenated over the items in order.
+    same values up to rounding). Mirror-folded arrays take :func:`profile_cost` one by one. ``rows``:
+    each item's (:func:`_clock_rows`, :func:`_doa_rows`), kept by the caller across zoom levels (None:
+    computed here). Returns cost, drift, offset, each concatenated over the items in order.
     """
     if len(items) == 1 or any(np.any(p.fold[i]) for p, i, _ in items):
         out = [profile_cost(p, st, i, pts, kappa, sigma_d, n_irls) for p, i, pts in items]
         return tuple(np.concatenate(z) for z in zip(*out))
-    clock = [_clock_columns(p, st, i, pts) for p, i, pts in items]
+    rows = [(_clock_rows(p, st, i), _doa_rows(p, st, i)) for p, i, _ in items] if rows is None else rows
+    clock = [_clock_columns(p, st, i, pts, rows=r[0]) for (p, i, pts), r in zip(items, rows)]
     S = max(q[2] for q in clock)
     M = max(q[0].shape[1] - q[2] for q in clock)
     G = sum(len(q[0]) for q in clock)
     X, Y, mask, use_off = np.zeros((G, S + M)), np.zeros((G, S + M)), np.zeros((G, S + M)), np.zeros(G, bool)
-    doa = [_doa_columns(p, st, i, pts) if (p.doa.arr == i).sum() >= 2 else None for p, i, pts in items]
+    doa = [None if r[1] is None else (r[1][0], _directions(r[1][1], pts)) for (_, _, pts), r in zip(items, rows)]
     D = max([len(q[0]) for q in doa if q is not None], default=0)
     U, V, nd = np.zeros((G, D, 3)), np.zeros((G, D, 3)), np.zeros(G)
     g0 = 0
@@ -249,7 +270,7 @@ def _clock_irls_masked(X, Y, mask, ns, kappa, use_off, n_irls):
     w = mask.copy()
     drift, off = np.zeros(G), np.zeros(G)
     wX, r = np.empty_like(X), np.empty_like(X)
-    for _ in range(n_irls):
+    for it in range(n_irls):
         np.multiply(w, X, out=wX)
         a11, b1 = np.einsum("gk,gk->g", wX, X), np.einsum("gk,gk->g", wX, Y)
         a12, a22, b2 = wX[:, ns:].sum(1), w[:, ns:].sum(1), np.einsum("gk,gk->g", w[:, ns:], Y[:, ns:])
@@ -264,8 +285,9 @@ def _clock_irls_masked(X, Y, mask, ns, kappa, use_off, n_irls):
         r[:, ns:] -= off[:, None]
         np.divide(r, kappa, out=r)
         np.square(r, out=r)          # r now holds r2 = (r / kappa)²
-        np.add(r, 1.0, out=w)
-        np.divide(mask, w, out=w)
+        if it + 1 < n_irls:          # (the last weights would not be used)
+            np.add(r, 1.0, out=w)
+            np.divide(mask, w, out=w)
     return drift, off, r
 
 
@@ -462,10 +484,11 @@ def place_arrays(p, st, arrays, kappa, sigma_d, n_candidates=4, zoom_levels=4, g
     centres = [coarse_candidates(q, st, i, kappa, sigma_d, grid, n_candidates) for q, i in zip(subs, arrays)]
     offsets = np.stack(np.meshgrid(*[np.arange(-2, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     h, no = grid["step"], len(offsets)
+    rows = [(_clock_rows(q, st, i), _doa_rows(q, st, i)) for q, i in zip(subs, arrays)]
     for _ in range(zoom_levels):
         h *= 0.5
         pts = [(c[:, None, :] + h * offsets[None]).reshape(-1, 3) for c in centres]
-        out = profile_cost_many([(q, i, x) for q, i, x in zip(subs, arrays, pts)], st, kappa, sigma_d)
+        out = profile_cost_many([(q, i, x) for q, i, x in zip(subs, arrays, pts)], st, kappa, sigma_d, rows=rows)
         ends = np.cumsum([len(x) for x in pts])[:-1]
         res = [[z.reshape(-1, no) for z in zs] for zs in zip(*(np.split(o, ends) for o in out))]
         ks = [np.argmin(c_sub, axis=1) for c_sub, _, _ in res]
