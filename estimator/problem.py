@@ -382,19 +382,35 @@ def _without_fixed(lay, fixed):
     return lay
 
 
-def retract(st, lay, delta):
-    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ)."""
+def retract(st, lay, delta, memo=None):
+    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ).
+
+    ``memo``: a dict kept by the caller for one layout (an LM solve): the index bookkeeping, which
+    depends on the layout only, is computed once (:func:`_retract_index`)."""
+    index = _retract_index(lay) if memo is None else memo.get("_retract")
+    if index is None:
+        index = memo["_retract"] = _retract_index(lay)
+    additive, rows, idx, free = index
     out = st.copy()
+    for key, m, cols in additive:
+        getattr(out, key)[m] += delta[cols]
+    if rows.size:
+        phi = np.where(free, delta[idx], 0.0)
+        out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
+    return out
+
+
+def _retract_index(lay):
+    """Where a step lands (layout only): [(state field, its free entries, their columns)], the rows of
+    rotated arrays, their rotation columns (0 where fixed) and which of those are free."""
+    additive = []
     for key in ADDITIVE:
         cols = getattr(lay, key)
         m = cols >= 0
-        getattr(out, key)[m] += delta[cols[m]]
+        additive.append((key, m, cols[m]))
     rows = np.flatnonzero(np.any(lay.rot >= 0, axis=1))
-    if rows.size:
-        idx = lay.rot[rows]
-        phi = np.where(idx >= 0, delta[np.maximum(idx, 0)], 0.0)
-        out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
-    return out
+    idx = lay.rot[rows]
+    return additive, rows, np.maximum(idx, 0), idx >= 0
 
 
 def state_to_frames(p, st):

@@ -438,7 +438,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         accepted = False
         for _ in range(30):
             step = _solve_damped(H, g, lam) if dense else system.factor(lam).solve(-g)
-            cand = retract(st, lay, step)
+            cand = retract(st, lay, step, memo)
             if _same_state(cand, st):
                 # the damped step no longer moves the state (it is below the parameters' rounding): it
                 # cannot lower the cost, and more damping only shrinks it further
