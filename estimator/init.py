@@ -167,6 +167,11 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
     md = p.doa.arr == i
     if md.sum() >= 2:
         coarse = geom is not None   # the shared coarse grid only ranks candidates (see kabsch_cost)
+        if coarse and not np.any(p.fold[i]):
+            # every point's Kabsch matrix Σ v uᵀ in one matrix product: (G·3, n) directions @ (n, 3) DOAs
+            u, ev = p.doa.u[md], p.doa.ev[md]
+            M = (geom["uT"][:, :, geom["col"][ev]].reshape(-1, len(ev)) @ u).reshape(G, 3, 3)
+            return cost + kabsch_cost(u, None, coarse, M=M) / (2.0 * sigma_d ** 2), drift, off
         u, v = _doa_columns(p, st, i, pts, geom)
         if np.any(p.fold[i]):
             normals = _NORMALS_COARSE if G > 500 else _NORMALS
@@ -306,7 +311,8 @@ def coarse_grid(s, events=None):
 
     ``events`` (E,) restricts the geometry to those events (default all), so its memory stays bounded
     (G × E) however many events there are. Returns dict: ``pts`` (G, 3), ``shape`` (3,), ``step`` (m),
-    ``d`` (G, E) distances and ``u`` (G, E, 3) unit directions from each point to each of those sources,
+    ``d`` (G, E) distances and ``u`` (G, E, 3) unit directions from each point to each of those sources
+    (``uT`` (G, 3, E) the same, transposed for the Kabsch matrices' one matrix product),
     ``col`` (K,) the column of each event (-1 if not included), ``dmin`` (G,) distance to the nearest
     source of all K.
     """
@@ -317,8 +323,9 @@ def coarse_grid(s, events=None):
     d = np.linalg.norm(w, axis=2)
     col = np.full(len(s), -1)
     col[events] = np.arange(len(events))
-    return {"pts": pts, "shape": grid.shape[:3], "step": step, "d": d, "u": w / d[..., None], "col": col,
-            "dmin": cKDTree(s).query(pts)[0]}
+    u = w / d[..., None]
+    return {"pts": pts, "shape": grid.shape[:3], "step": step, "d": d, "u": u, "col": col,
+            "uT": np.ascontiguousarray(u.transpose(0, 2, 1)), "dmin": cKDTree(s).query(pts)[0]}
 
 
 def _directions(src, pts):
@@ -327,15 +334,17 @@ def _directions(src, pts):
     return v / np.linalg.norm(v, axis=2, keepdims=True)
 
 
-def kabsch_cost(u, v, closed_form=False, n=None):
+def kabsch_cost(u, v, closed_form=False, n=None, M=None):
     """min_R Σ |R u_k − v_k|² for u (n, 3) or (G, n, 3) and a batch v (G, n, 3), without forming R.
 
     With M = Σ v uᵀ, the optimum is 2n − 2(σ1 + σ2 + sign(det M) σ3); the singular values are the square
     roots of the eigenvalues of the symmetric MᵀM (LAPACK, or with ``closed_form`` :func:`sym3_eigvals`:
     ~10× cheaper on thousands of matrices, slightly less accurate; the coarse grid, which only ranks
-    candidates, uses it; the zoom that sets the result keeps LAPACK's values).
+    candidates, uses it; the zoom that sets the result keeps LAPACK's values). ``M``: the matrices Σ v uᵀ
+    (G, 3, 3) when the caller has them (``v`` is then not used).
     """
-    M = np.matmul(v.transpose(0, 2, 1), u)  # (G, 3, 3) = Σ_n v_n u_nᵀ (batched matmul beats einsum here)
+    if M is None:
+        M = np.matmul(v.transpose(0, 2, 1), u)  # (G, 3, 3) = Σ_n v_n u_nᵀ (batched matmul beats einsum here)
     MtM = np.matmul(M.transpose(0, 2, 1), M)
     ev = np.sqrt(np.maximum(sym3_eigvals(MtM) if closed_form else np.linalg.eigvalsh(MtM), 0.0))  # ascending
     sgn = np.where((_det3(M) if closed_form else np.linalg.det(M)) < 0, -1.0, 1.0)
