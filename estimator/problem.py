@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib.tables import columns
+
 # Documented defaults when meta.json gives no sigmas (the paper's real-data settings).
 DEFAULT_SIGMA_TDOA = 1e-4      # s
 DEFAULT_SIGMA_DOA_DEG = 5.0    # deg per tangent axis
@@ -182,12 +184,12 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     p = Problem(
         names=names, ref=idx[meta["reference_array"]], c=float(meta["speed_of_sound"]),
         beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events,
-        odom=ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float),
+        odom=columns(ev, ("odom_x", "odom_y", "odom_z")),
         tdoa_m=TdoaMRows(index(tm["event"], eidx), index(tm["array"], idx), tm["tdoa"].to_numpy(float), _lines(tm)),
         tdoa_s=TdoaSRows(index(ts["array"], idx), index(ts["from_event"], eidx), index(ts["to_event"], eidx),
                          ts["tdoa"].to_numpy(float), _lines(ts)),
         doa=DoaRows(index(doa["event"], eidx), index(doa["array"], idx),
-                    doa[["ux", "uy", "uz"]].to_numpy(float).reshape(-1, 3), _lines(doa)),
+                    columns(doa, ("ux", "uy", "uz")).reshape(-1, 3), _lines(doa)),
         cone=ConeRows(np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0, int)),
         sigma={"tdoa_s": sigma_tdoa, "tdoa_m": sigma_tdoa, "doa": sigma_doa, "cone": sigma_doa,
                "odometry": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)), "emission": float(sigma_emit)},
