@@ -177,7 +177,7 @@ def coarse_cost(p, st, i, kappa, sigma_d, grid, n_irls=6):
     """:func:`profile_cost` of array ``i`` at every point of the shared coarse grid (:func:`coarse_grid`),
     which only ranks candidates for the zoom, so it is computed for speed, the same values up to rounding:
     in the grid's transposed layout (measurements × points, :func:`_clock_irls_t`), the Kabsch matrices by
-    one matrix product and their eigenvalues in closed form (see :func:`kabsch_cost`). Returns cost (G,).
+    matrix products and their eigenvalues in closed form (see :func:`kabsch_cost`). Returns cost (G,).
     """
     G = len(grid["pts"])
     XT, YT, ns, use_off = _clock_columns_t(p, st, i, grid)
@@ -190,9 +190,14 @@ def coarse_cost(p, st, i, kappa, sigma_d, grid, n_irls=6):
         v = grid["u"][:, grid["col"][ev]]
         normals = _NORMALS_COARSE if G > 500 else _NORMALS
         kc = np.minimum(*[kabsch_cost(uu, v, True) for uu in unfold_candidates(u, p.fold[i], v, normals)])
-    else:   # every point's Kabsch matrix Σ v uᵀ in one matrix product: (G·3, n) directions @ (n, 3) DOAs
-        M = (grid["uT"][:, :, grid["col"][ev]].reshape(-1, len(ev)) @ u).reshape(G, 3, 3)
-        kc = kabsch_cost(u, None, True, M=M)
+    else:
+        # every point's Kabsch matrix M = Σ v uᵀ and MᵀM, entry by entry as vectors over the G points:
+        # R[a, b] = M[:, a, b] from three (3, n) @ (n, G) matrix products
+        R = u.T @ grid["vT"][:, grid["col"][ev], :]
+        MtM = np.empty((3, 3, G))
+        for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+            MtM[a, b] = MtM[b, a] = R[0, a] * R[0, b] + R[1, a] * R[1, b] + R[2, a] * R[2, b]
+        kc = _kabsch_value(R.transpose(2, 0, 1), MtM.transpose(2, 0, 1), True, len(ev))
     return cost + kc / (2.0 * sigma_d ** 2)
 
 
@@ -362,8 +367,8 @@ def coarse_grid(s, events=None):
     ``events`` (E,) restricts the geometry to those events (default all), so its memory stays bounded
     (G × E) however many events there are. Returns dict: ``pts`` (G, 3), ``shape`` (3,), ``step`` (m),
     ``dT`` (E, G) distances (transposed: :func:`coarse_cost`'s layout) and ``u`` (G, E, 3) unit directions
-    from each point to each of those sources (``uT`` (G, 3, E) the same, transposed for the Kabsch
-    matrices' one matrix product),
+    from each point to each of those sources (``vT`` (3, E, G) the same, transposed for the Kabsch
+    matrices' matrix products),
     ``col`` (K,) the column of each event (-1 if not included), ``dmin`` (G,) distance to the nearest
     source of all K.
     """
@@ -376,7 +381,7 @@ def coarse_grid(s, events=None):
     col[events] = np.arange(len(events))
     u = w / d[..., None]
     return {"pts": pts, "shape": grid.shape[:3], "step": step, "dT": np.ascontiguousarray(d.T), "u": u, "col": col,
-            "uT": np.ascontiguousarray(u.transpose(0, 2, 1)), "dmin": cKDTree(s).query(pts)[0]}
+            "vT": np.ascontiguousarray(u.transpose(2, 1, 0)), "dmin": cKDTree(s).query(pts)[0]}
 
 
 def _directions(src, pts):
@@ -385,21 +390,23 @@ def _directions(src, pts):
     return v / np.linalg.norm(v, axis=2, keepdims=True)
 
 
-def kabsch_cost(u, v, closed_form=False, n=None, M=None):
+def kabsch_cost(u, v, closed_form=False, n=None):
     """min_R Σ |R u_k − v_k|² for u (n, 3) or (G, n, 3) and a batch v (G, n, 3), without forming R.
 
     With M = Σ v uᵀ, the optimum is 2n − 2(σ1 + σ2 + sign(det M) σ3); the singular values are the square
     roots of the eigenvalues of the symmetric MᵀM (LAPACK, or with ``closed_form`` :func:`sym3_eigvals`:
     ~10× cheaper on thousands of matrices, slightly less accurate; the coarse grid, which only ranks
-    candidates, uses it; the zoom that sets the result keeps LAPACK's values). ``M``: the matrices Σ v uᵀ
-    (G, 3, 3) when the caller has them (``v`` is then not used).
+    candidates, uses it; the zoom that sets the result keeps LAPACK's values).
     """
-    if M is None:
-        M = np.matmul(v.transpose(0, 2, 1), u)  # (G, 3, 3) = Σ_n v_n u_nᵀ (batched matmul beats einsum here)
+    M = np.matmul(v.transpose(0, 2, 1), u)  # (G, 3, 3) = Σ_n v_n u_nᵀ (batched matmul beats einsum here)
     MtM = np.matmul(M.transpose(0, 2, 1), M)
+    return _kabsch_value(M, MtM, closed_form, u.shape[-2] if n is None else n)
+
+
+def _kabsch_value(M, MtM, closed_form, n):
+    """:func:`kabsch_cost` from the matrices M (G, 3, 3), MᵀM and n (scalar or (G,), the pairs per row)."""
     ev = np.sqrt(np.maximum(sym3_eigvals(MtM) if closed_form else np.linalg.eigvalsh(MtM), 0.0))  # ascending
     sgn = np.where((_det3(M) if closed_form else np.linalg.det(M)) < 0, -1.0, 1.0)
-    n = u.shape[-2] if n is None else n   # (G,) when rows are padded with zero vectors
     return np.maximum(2.0 * n - 2.0 * (ev[:, 2] + ev[:, 1] + sgn * ev[:, 0]), 0.0)
 
 
