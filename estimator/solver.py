@@ -17,7 +17,7 @@ import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
 
-from .factors import Factor, Jacobian, evaluate
+from .factors import Jacobian, evaluate
 from .problem import retract
 
 
@@ -166,9 +166,7 @@ class _LineariseCache:
 
     def store(self, key, fs):
         chunks = [f.J for f in fs]
-        # the Jacobian lives in the entry (chunks, then stacked forms); a shallow copy without it (the
-        # constructor directly: dataclasses.replace costs ~12 us per factor)
-        fs = [Factor(f.kind, f.r, None, f.row, f.dim, f.robust, f.sigma, f.sigma_rows) for f in fs]
+        fs = [dataclasses.replace(f, J=None) for f in fs]   # the Jacobian lives in the entry (chunks, then stacked forms)
         for f in fs:
             for name in ("r", "row"):
                 if isinstance(getattr(f, name), np.ndarray):
