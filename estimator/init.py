@@ -150,81 +150,133 @@ def grid_points(s, n_per_axis=12, margin=None):
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1), step
 
 
-def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6, geom=None):
+def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6):
     """Concentrated cost of array ``i`` at candidate positions ``pts`` (G, 3), sources fixed.
 
     Drift and offset are solved in closed form per point (robust Cauchy IRLS, scale ``kappa`` s) from
     TDOA-S and TDOA-M; the rotation by Kabsch on the DOAs (per-axis scale ``sigma_d`` rad).
-    ``geom`` optionally holds the distances ``d`` (G, E) and unit directions ``u`` (G, E, 3) from ``pts``
-    to the sources of E events, ``col`` (K,) mapping an event to its column (shared by all arrays on the
-    coarse grid; see :func:`coarse_grid`).
-    Returns cost (G,), drift (G,), offset (G,).
+    Returns cost (G,), drift (G,), offset (G,). (The shared coarse grid: :func:`coarse_cost`.)
     """
     G = len(pts)
-    X, Y, ns, use_off = _clock_columns(p, st, i, pts, geom)
+    X, Y, ns, use_off = _clock_columns(p, st, i, pts)
     drift, off, r2 = _clock_irls(X, Y, ns, kappa, use_off, n_irls)
     cost = np.log1p(r2).sum(1)
     md = p.doa.arr == i
     if md.sum() >= 2:
-        coarse = geom is not None   # the shared coarse grid only ranks candidates (see kabsch_cost)
-        u, v = _doa_columns(p, st, i, pts, geom)
+        u, v = _doa_columns(p, st, i, pts)
         if np.any(p.fold[i]):
             normals = _NORMALS_COARSE if G > 500 else _NORMALS
-            kc = np.minimum(*[kabsch_cost(uu, v, coarse) for uu in unfold_candidates(u, p.fold[i], v, normals)])
+            kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p.fold[i], v, normals)])
         else:
-            kc = kabsch_cost(u, v, coarse)
+            kc = kabsch_cost(u, v)
         cost = cost + kc / (2.0 * sigma_d ** 2)
     return cost, drift, off
 
 
-def _clock_columns(p, st, i, pts, geom=None):
-    """The clock model of array ``i`` at points ``pts``: δ·X + off·[columns ns:] = Y, X and Y (G, ns + nm)
-    with the TDOA-S columns first. Returns X, Y, ns, whether the offset is solved (>= 2 TDOA-M rows)."""
+def coarse_cost(p, st, i, kappa, sigma_d, grid, n_irls=6):
+    """:func:`profile_cost` of array ``i`` at every point of the shared coarse grid (:func:`coarse_grid`),
+    which only ranks candidates for the zoom, so it is computed for speed, the same values up to rounding:
+    in the grid's transposed layout (measurements × points, :func:`_clock_irls_t`), the Kabsch matrices by
+    matrix products and their eigenvalues in closed form (see :func:`kabsch_cost`). Returns cost (G,).
+    """
+    G = len(grid["pts"])
+    XT, YT, ns, use_off = _clock_columns_t(p, st, i, grid)
+    cost = np.log1p(_clock_irls_t(XT, YT, ns, kappa, use_off, n_irls)).sum(0)
+    md = p.doa.arr == i
+    if md.sum() < 2:
+        return cost
+    u, ev = p.doa.u[md], p.doa.ev[md]
+    if np.any(p.fold[i]):
+        v = grid["u"][:, grid["col"][ev]]
+        normals = _NORMALS_COARSE if G > 500 else _NORMALS
+        kc = np.minimum(*[kabsch_cost(uu, v, True) for uu in unfold_candidates(u, p.fold[i], v, normals)])
+    else:
+        # every point's Kabsch matrix M = Σ v uᵀ and MᵀM, entry by entry as vectors over the G points:
+        # R[a, b] = M[:, a, b] from three (3, n) @ (n, G) matrix products
+        R = u.T @ grid["vT"][:, grid["col"][ev], :]
+        MtM = np.empty((3, 3, G))
+        for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+            MtM[a, b] = MtM[b, a] = R[0, a] * R[0, b] + R[1, a] * R[1, b] + R[2, a] * R[2, b]
+        kc = _kabsch_value(R.transpose(2, 0, 1), MtM.transpose(2, 0, 1), True, len(ev))
+    return cost + kc / (2.0 * sigma_d ** 2)
+
+
+def _clock_rows(p, st, i):
+    """Array ``i``'s TDOA rows in the clock model, the parts that do not depend on the candidate points
+    (computed once for all zoom levels): the rows' events, values and reference-array terms, and the
+    events they name (``need``) with each event's column among them (``col``)."""
     c, beta, ref, s, t = p.c, p.beta, p.ref, st.s, p.t
     ms, mm = p.tdoa_s.arr == i, p.tdoa_m.arr == i
     a, b, zs = p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms]
     j, zm = p.tdoa_m.ev[mm], p.tdoa_m.val[mm]
-    if geom is None:
-        need = np.unique(np.concatenate([a, b, j]))                    # the events these rows name
-        col = np.zeros(len(s), int)
-        col[need] = np.arange(len(need))
-        d = np.linalg.norm(s[need][None, :, :] - pts[:, None, :], axis=2)  # (G, events named)
-    else:
-        col, d = geom["col"], geom["d"]
+    need = np.unique(np.concatenate([a, b, j]))                    # the events these rows name
+    col = np.zeros(len(s), int)
+    col[need] = np.arange(len(need))
     dr = np.linalg.norm(s[j] - st.x[ref], axis=1)
     g0 = 1.0 + st.drift[ref]
-    h = (t[b] - t[a])[None] + (d[:, col[b]] - d[:, col[a]]) / c
-    dj = t[j][None] + d[:, col[j]] / c
-    X = np.concatenate([h, dj + beta], axis=1)
-    Y = np.concatenate([zs[None] - h, zm[None] - dj + (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None]], axis=1)
-    return X, Y, len(zs), bool(mm.sum() >= 2)
+    return {"a": a, "b": b, "j": j, "zs": zs[None], "zm": zm[None], "dt": (t[b] - t[a])[None], "tj": t[j][None],
+            "yref": (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None], "src": s[need][None, :, :],
+            "col": col, "use_off": bool(mm.sum() >= 2)}
 
 
-def _doa_columns(p, st, i, pts, geom=None):
+def _clock_columns(p, st, i, pts, rows=None):
+    """The clock model of array ``i`` at points ``pts``: δ·X + off·[columns ns:] = Y, X and Y (G, ns + nm)
+    with the TDOA-S columns first. ``rows``: :func:`_clock_rows` (computed if None). Returns X, Y, ns,
+    whether the offset is solved (>= 2 TDOA-M rows)."""
+    q = _clock_rows(p, st, i) if rows is None else rows
+    c, a, b, j, col = p.c, q["a"], q["b"], q["j"], q["col"]
+    d = np.linalg.norm(q["src"] - pts[:, None, :], axis=2)  # (G, events named)
+    h = q["dt"] + (d[:, col[b]] - d[:, col[a]]) / c
+    dj = q["tj"] + d[:, col[j]] / c
+    X = np.concatenate([h, dj + p.beta], axis=1)
+    Y = np.concatenate([q["zs"] - h, q["zm"] - dj + q["yref"]], axis=1)
+    return X, Y, len(a), q["use_off"]
+
+
+def _clock_columns_t(p, st, i, grid):
+    """:func:`_clock_columns` at the points of the coarse grid, transposed: XT, YT (ns + nm, G) from the
+    grid's distances ``dT`` (E, G). Returns XT, YT, ns, whether the offset is solved."""
+    q = _clock_rows(p, st, i)
+    c, a, b, j, col, dT = p.c, q["a"], q["b"], q["j"], grid["col"], grid["dT"]
+    h = q["dt"].T + (dT[col[b]] - dT[col[a]]) / c
+    dj = q["tj"].T + dT[col[j]] / c
+    XT = np.concatenate([h, dj + p.beta], axis=0)
+    YT = np.concatenate([q["zs"].T - h, q["zm"].T - dj + q["yref"].T], axis=0)
+    return XT, YT, len(a), q["use_off"]
+
+
+def _doa_rows(p, st, i):
+    """Array ``i``'s measured DOAs u (n, 3) and their sources (n, 3), or None with fewer than 2 DOAs."""
+    md = p.doa.arr == i
+    return (p.doa.u[md], st.s[p.doa.ev[md]]) if md.sum() >= 2 else None
+
+
+def _doa_columns(p, st, i, pts):
     """Array ``i``'s measured DOAs u (n, 3) and the unit directions v (G, n, 3) from ``pts`` to their sources."""
     md = p.doa.arr == i
-    ev = p.doa.ev[md]
-    return p.doa.u[md], (_directions(st.s[ev], pts) if geom is None else geom["u"][:, geom["col"][ev]])
+    return p.doa.u[md], _directions(st.s[p.doa.ev[md]], pts)
 
 
-def profile_cost_many(items, st, kappa, sigma_d, n_irls=6):
+def profile_cost_many(items, st, kappa, sigma_d, n_irls=6, rows=None):
     """:func:`profile_cost` (no shared grid) of several arrays, each at its own points, in one evaluation.
 
     ``items``: [(problem, array index, points (G_k, 3))]. The zoom evaluates ~125 points per array, where
     numpy's per-call overhead dominates; stacking the arrays' rows (columns padded with zero weight, DOAs
     with zero vectors, which add nothing to the Kabsch matrix) makes one evaluation of all of them (the
-    same values up to rounding). Mirror-folded arrays take :func:`profile_cost` one by one.
-    Returns cost, drift, offset, each concatenated over the items in order.
+    same values up to rounding). Mirror-folded arrays take :func:`profile_cost` one by one. ``rows``:
+    each item's (:func:`_clock_rows`, :func:`_doa_rows`), kept by the caller across zoom levels (None:
+    computed here). Returns cost, drift, offset, each concatenated over the items in order.
     """
     if len(items) == 1 or any(np.any(p.fold[i]) for p, i, _ in items):
         out = [profile_cost(p, st, i, pts, kappa, sigma_d, n_irls) for p, i, pts in items]
         return tuple(np.concatenate(z) for z in zip(*out))
-    clock = [_clock_columns(p, st, i, pts) for p, i, pts in items]
+    rows = [(_clock_rows(p, st, i), _doa_rows(p, st, i)) for p, i, _ in items] if rows is None else rows
+    clock = [_clock_columns(p, st, i, pts, rows=r[0]) for (p, i, pts), r in zip(items, rows)]
     S = max(q[2] for q in clock)
     M = max(q[0].shape[1] - q[2] for q in clock)
     G = sum(len(q[0]) for q in clock)
     X, Y, mask, use_off = np.zeros((G, S + M)), np.zeros((G, S + M)), np.zeros((G, S + M)), np.zeros(G, bool)
-    doa = [_doa_columns(p, st, i, pts) if (p.doa.arr == i).sum() >= 2 else None for p, i, pts in items]
+    doa = [None if r[1] is None else (r[1][0], _directions(r[1][1], pts)) for (_, _, pts), r in zip(items, rows)]
     D = max([len(q[0]) for q in doa if q is not None], default=0)
     U, V, nd = np.zeros((G, D, 3)), np.zeros((G, D, 3)), np.zeros(G)
     g0 = 0
@@ -249,7 +301,7 @@ def _clock_irls_masked(X, Y, mask, ns, kappa, use_off, n_irls):
     w = mask.copy()
     drift, off = np.zeros(G), np.zeros(G)
     wX, r = np.empty_like(X), np.empty_like(X)
-    for _ in range(n_irls):
+    for it in range(n_irls):
         np.multiply(w, X, out=wX)
         a11, b1 = np.einsum("gk,gk->g", wX, X), np.einsum("gk,gk->g", wX, Y)
         a12, a22, b2 = wX[:, ns:].sum(1), w[:, ns:].sum(1), np.einsum("gk,gk->g", w[:, ns:], Y[:, ns:])
@@ -264,8 +316,9 @@ def _clock_irls_masked(X, Y, mask, ns, kappa, use_off, n_irls):
         r[:, ns:] -= off[:, None]
         np.divide(r, kappa, out=r)
         np.square(r, out=r)          # r now holds r2 = (r / kappa)²
-        np.add(r, 1.0, out=w)
-        np.divide(mask, w, out=w)
+        if it + 1 < n_irls:          # (the last weights would not be used)
+            np.add(r, 1.0, out=w)
+            np.divide(mask, w, out=w)
     return drift, off, r
 
 
@@ -279,12 +332,43 @@ def _clock_irls(X, Y, ns, kappa, use_off, n_irls):
     return _clock_irls_masked(X, Y, np.ones_like(X), ns, kappa, np.full(len(X), bool(use_off)), n_irls)
 
 
+def _clock_irls_t(XT, YT, ns, kappa, use_off, n_irls):
+    """:func:`_clock_irls` on transposed columns XT, YT (n, G) (the coarse grid's layout): the sums over
+    the n measurements run along contiguous rows of G points (about twice as fast as G short dot
+    products; the same values up to rounding). Returns the last squared normalised residuals (n, G)."""
+    w = np.ones_like(XT)
+    wX, r = np.empty_like(XT), np.empty_like(XT)
+    for it in range(n_irls):
+        np.multiply(w, XT, out=wX)
+        a11, b1 = np.einsum("kg,kg->g", wX, XT), np.einsum("kg,kg->g", wX, YT)
+        if use_off:
+            a12, a22, b2 = wX[ns:].sum(0), w[ns:].sum(0), np.einsum("kg,kg->g", w[ns:], YT[ns:])
+            det = a11 * a22 - a12 * a12
+            ok = np.abs(det) > 1e-300
+            drift = np.where(ok, (b1 * a22 - a12 * b2) / np.where(ok, det, 1), 0.0)
+            off = np.where(ok, (a11 * b2 - a12 * b1) / np.where(ok, det, 1), 0.0)
+        else:   # drift only
+            ok = a11 > 0
+            drift, off = np.where(ok, b1 / np.where(ok, a11, 1), 0.0), 0.0
+        np.multiply(drift, XT, out=r)
+        np.subtract(YT, r, out=r)
+        r[ns:] -= off
+        np.divide(r, kappa, out=r)
+        np.square(r, out=r)          # r now holds r2 = (r / kappa)²
+        if it + 1 < n_irls:          # (the last weights would not be used)
+            np.add(r, 1.0, out=w)
+            np.divide(1.0, w, out=w)
+    return r
+
+
 def coarse_grid(s, events=None):
     """The coarse search grid around sources ``s`` (K, 3) and its geometry, shared by every array.
 
     ``events`` (E,) restricts the geometry to those events (default all), so its memory stays bounded
     (G × E) however many events there are. Returns dict: ``pts`` (G, 3), ``shape`` (3,), ``step`` (m),
-    ``d`` (G, E) distances and ``u`` (G, E, 3) unit directions from each point to each of those sources,
+    ``dT`` (E, G) distances (transposed: :func:`coarse_cost`'s layout) and ``u`` (G, E, 3) unit directions
+    from each point to each of those sources (``vT`` (3, E, G) the same, transposed for the Kabsch
+    matrices' matrix products),
     ``col`` (K,) the column of each event (-1 if not included), ``dmin`` (G,) distance to the nearest
     source of all K.
     """
@@ -295,8 +379,9 @@ def coarse_grid(s, events=None):
     d = np.linalg.norm(w, axis=2)
     col = np.full(len(s), -1)
     col[events] = np.arange(len(events))
-    return {"pts": pts, "shape": grid.shape[:3], "step": step, "d": d, "u": w / d[..., None], "col": col,
-            "dmin": cKDTree(s).query(pts)[0]}
+    u = w / d[..., None]
+    return {"pts": pts, "shape": grid.shape[:3], "step": step, "dT": np.ascontiguousarray(d.T), "u": u, "col": col,
+            "vT": np.ascontiguousarray(u.transpose(2, 1, 0)), "dmin": cKDTree(s).query(pts)[0]}
 
 
 def _directions(src, pts):
@@ -315,9 +400,13 @@ def kabsch_cost(u, v, closed_form=False, n=None):
     """
     M = np.matmul(v.transpose(0, 2, 1), u)  # (G, 3, 3) = Σ_n v_n u_nᵀ (batched matmul beats einsum here)
     MtM = np.matmul(M.transpose(0, 2, 1), M)
+    return _kabsch_value(M, MtM, closed_form, u.shape[-2] if n is None else n)
+
+
+def _kabsch_value(M, MtM, closed_form, n):
+    """:func:`kabsch_cost` from the matrices M (G, 3, 3), MᵀM and n (scalar or (G,), the pairs per row)."""
     ev = np.sqrt(np.maximum(sym3_eigvals(MtM) if closed_form else np.linalg.eigvalsh(MtM), 0.0))  # ascending
     sgn = np.where((_det3(M) if closed_form else np.linalg.det(M)) < 0, -1.0, 1.0)
-    n = u.shape[-2] if n is None else n   # (G,) when rows are padded with zero vectors
     return np.maximum(2.0 * n - 2.0 * (ev[:, 2] + ev[:, 1] + sgn * ev[:, 0]), 0.0)
 
 
@@ -440,7 +529,7 @@ def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=Non
 def coarse_candidates(p, st, i, kappa, sigma_d, grid, n_candidates=4):
     """The coarse grid's best local minima for array ``i`` (``p`` its event subsample): points (nc, 3)."""
     step, pts = grid["step"], grid["pts"]
-    cost = profile_cost(p, st, i, pts, kappa, sigma_d, geom=grid)[0]
+    cost = coarse_cost(p, st, i, kappa, sigma_d, grid)
     # Too close to a source the model is singular; keep candidates at least half a step away.
     cost = np.where(grid["dmin"] > 0.5 * step, cost, np.inf)
     C = cost.reshape(grid["shape"])
@@ -462,10 +551,11 @@ def place_arrays(p, st, arrays, kappa, sigma_d, n_candidates=4, zoom_levels=4, g
     centres = [coarse_candidates(q, st, i, kappa, sigma_d, grid, n_candidates) for q, i in zip(subs, arrays)]
     offsets = np.stack(np.meshgrid(*[np.arange(-2, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     h, no = grid["step"], len(offsets)
+    rows = [(_clock_rows(q, st, i), _doa_rows(q, st, i)) for q, i in zip(subs, arrays)]
     for _ in range(zoom_levels):
         h *= 0.5
         pts = [(c[:, None, :] + h * offsets[None]).reshape(-1, 3) for c in centres]
-        out = profile_cost_many([(q, i, x) for q, i, x in zip(subs, arrays, pts)], st, kappa, sigma_d)
+        out = profile_cost_many([(q, i, x) for q, i, x in zip(subs, arrays, pts)], st, kappa, sigma_d, rows=rows)
         ends = np.cumsum([len(x) for x in pts])[:-1]
         res = [[z.reshape(-1, no) for z in zs] for zs in zip(*(np.split(o, ends) for o in out))]
         ks = [np.argmin(c_sub, axis=1) for c_sub, _, _ in res]

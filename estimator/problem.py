@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib.tables import columns
+
 # Documented defaults when meta.json gives no sigmas (the paper's real-data settings).
 DEFAULT_SIGMA_TDOA = 1e-4      # s
 DEFAULT_SIGMA_DOA_DEG = 5.0    # deg per tangent axis
@@ -182,12 +184,12 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     p = Problem(
         names=names, ref=idx[meta["reference_array"]], c=float(meta["speed_of_sound"]),
         beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events,
-        odom=ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float),
+        odom=columns(ev, ("odom_x", "odom_y", "odom_z")),
         tdoa_m=TdoaMRows(index(tm["event"], eidx), index(tm["array"], idx), tm["tdoa"].to_numpy(float), _lines(tm)),
         tdoa_s=TdoaSRows(index(ts["array"], idx), index(ts["from_event"], eidx), index(ts["to_event"], eidx),
                          ts["tdoa"].to_numpy(float), _lines(ts)),
         doa=DoaRows(index(doa["event"], eidx), index(doa["array"], idx),
-                    doa[["ux", "uy", "uz"]].to_numpy(float).reshape(-1, 3), _lines(doa)),
+                    columns(doa, ("ux", "uy", "uz")).reshape(-1, 3), _lines(doa)),
         cone=ConeRows(np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0, int)),
         sigma={"tdoa_s": sigma_tdoa, "tdoa_m": sigma_tdoa, "doa": sigma_doa, "cone": sigma_doa,
                "odometry": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)), "emission": float(sigma_emit)},
@@ -382,19 +384,35 @@ def _without_fixed(lay, fixed):
     return lay
 
 
-def retract(st, lay, delta):
-    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ)."""
+def retract(st, lay, delta, memo=None):
+    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ).
+
+    ``memo``: a dict kept by the caller for one layout (an LM solve): the index bookkeeping, which
+    depends on the layout only, is computed once (:func:`_retract_index`)."""
+    index = _retract_index(lay) if memo is None else memo.get("_retract")
+    if index is None:
+        index = memo["_retract"] = _retract_index(lay)
+    additive, rows, idx, free = index
     out = st.copy()
+    for key, m, cols in additive:
+        getattr(out, key)[m] += delta[cols]
+    if rows.size:
+        phi = np.where(free, delta[idx], 0.0)
+        out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
+    return out
+
+
+def _retract_index(lay):
+    """Where a step lands (layout only): [(state field, its free entries, their columns)], the rows of
+    rotated arrays, their rotation columns (0 where fixed) and which of those are free."""
+    additive = []
     for key in ADDITIVE:
         cols = getattr(lay, key)
         m = cols >= 0
-        getattr(out, key)[m] += delta[cols[m]]
+        additive.append((key, m, cols[m]))
     rows = np.flatnonzero(np.any(lay.rot >= 0, axis=1))
-    if rows.size:
-        idx = lay.rot[rows]
-        phi = np.where(idx >= 0, delta[np.maximum(idx, 0)], 0.0)
-        out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
-    return out
+    idx = lay.rot[rows]
+    return additive, rows, np.maximum(idx, 0), idx >= 0
 
 
 def state_to_frames(p, st):

@@ -46,12 +46,24 @@ def use_dense(lay):
     return lay.n <= DENSE_MAX_PARAMS
 
 
-def stack_jacobians(Js, n, dense):
+def stack_jacobians(Js, n, dense, memo=None):
     """Stack the factors' Jacobians (each a ``factors.Jacobian``, a dense array or scipy.sparse matrix).
 
     Returns the (M, n) Jacobian: a dense array if ``dense`` else a ``scipy.sparse.csr_matrix``.
+    ``memo`` (a dict kept for one problem and layout, as in ``factors.evaluate``): the dense path's flat
+    entry indices are computed once and reused while the chunks' sizes are the same.
     """
     M = sum(J.shape[0] for J in Js)
+    if memo is not None and dense and all(isinstance(J, Jacobian) for J in Js):
+        sizes = (M, n) + tuple(len(c[0]) for J in Js for c in J.chunks)
+        known = memo.get("_stack")
+        if known is None or known[0] != sizes:
+            flat = [r + off for r, off in zip(*_chunk_rows(Js))]
+            cols = [c for J in Js for _, c, _ in J.chunks]
+            known = memo["_stack"] = (sizes, np.concatenate(flat) * n + np.concatenate(cols) if flat else None)
+        if known[1] is not None:
+            vals = np.concatenate([v for J in Js for _, _, v in J.chunks])
+            return np.bincount(known[1], weights=vals, minlength=M * n).reshape(M, n)
     rows, cols, vals, off = [], [], [], 0
     for J in Js:
         if isinstance(J, Jacobian):
@@ -70,6 +82,17 @@ def stack_jacobians(Js, n, dense):
     if dense:  # one pass over all entries; bincount sums any duplicates
         return np.bincount(rows * n + cols, weights=vals, minlength=M * n).reshape(M, n)
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
+
+
+def _chunk_rows(Js):
+    """The row arrays of the factors' Jacobian chunks and each one's row offset in the stacked matrix."""
+    rows, offs, off = [], [], 0
+    for J in Js:
+        for r, _, _ in J.chunks:
+            rows.append(r)
+            offs.append(off)
+        off += J.shape[0]
+    return rows, offs
 
 
 @functools.cache
@@ -121,14 +144,20 @@ class _LineariseCache:
         self.lock = threading.Lock()
 
     @staticmethod
-    def key(p, st, lay, kinds):
+    def problem_key(p, kinds):
+        """The part of the key that names the problem and kinds (one LM call computes it once: its
+        problem does not change between iterations): (key part, objects it names by identity)."""
         refs = []
-        vals = [np.asarray(getattr(d, name)) for d in (st, lay) for name in _field_names(type(d))]
-        return (tuple(kinds), _snapshot(p, refs), tuple((v.dtype.char, v.shape) for v in vals),
-                b"".join([v.tobytes() for v in vals])), refs
+        return (tuple(kinds), _snapshot(p, refs)), refs
 
-    def lookup(self, p, st, lay, kinds):
-        key, refs = self.key(p, st, lay, kinds)
+    @staticmethod
+    def key(p, st, lay, kinds, pkey=None):
+        head, refs = _LineariseCache.problem_key(p, kinds) if pkey is None else pkey
+        vals = [np.asarray(getattr(d, name)) for d in (st, lay) for name in _field_names(type(d))]
+        return head + (tuple((v.dtype.char, v.shape) for v in vals), b"".join([v.tobytes() for v in vals])), refs
+
+    def lookup(self, p, st, lay, kinds, pkey=None):
+        key, refs = self.key(p, st, lay, kinds, pkey)
         with self.lock:
             for e in reversed(self.entries):
                 if e.key == key:
@@ -161,14 +190,16 @@ class _Entry:
 _CACHE = _LineariseCache()
 
 
-def factors_at(p, st, lay, kinds, dense=None):
+def factors_at(p, st, lay, kinds, dense=None, pkey=None, memo=None):
     """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input.
 
+    ``pkey``: ``_LineariseCache.problem_key(p, kinds)`` when the caller already has it (an LM call);
+    ``memo``: the index bookkeeping kept for this problem and layout (``factors.evaluate``).
     Thread-safe: concurrent calls at the same input may both compute it (the results are equal).
     """
-    key, e = _CACHE.lookup(p, st, lay, kinds)
+    key, e = _CACHE.lookup(p, st, lay, kinds, pkey)
     if e is None:
-        e = _CACHE.store(key, evaluate(p, st, lay, kinds))
+        e = _CACHE.store(key, evaluate(p, st, lay, kinds, memo))
     if dense is None:
         return e.fs, None
     J = e.forms.get(dense)
@@ -177,7 +208,7 @@ def factors_at(p, st, lay, kinds, dense=None):
         if sparse is not None:   # the chunks may be gone: the same entries from the sparse form
             J = sparse if not dense else sparse.toarray()
         else:
-            J = stack_jacobians(chunks, lay.n, dense)
+            J = stack_jacobians(chunks, lay.n, dense, memo)
         (J if dense else J.data).setflags(write=False)
         e.forms[dense] = J
         if not dense:
@@ -195,15 +226,16 @@ class Linearised(NamedTuple):
     factors: list
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Linearised:
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=None, memo=None) -> Linearised:
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
     ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
     (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
     inputs (read-only); the factor dicts carry no per-factor ``J`` (``factors.evaluate`` has those).
+    ``pkey``, ``memo``: what one LM solve keeps between its linearisations, :func:`factors_at`.
     """
-    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense)
+    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense, pkey, memo)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f.r
@@ -371,6 +403,11 @@ def _solve_damped(H, g, lam):
     return -x / d
 
 
+def _same_state(a, b):
+    """Whether states ``a`` and ``b`` are equal bit for bit (every field)."""
+    return all(np.array_equal(getattr(a, name), getattr(b, name)) for name in _field_names(type(a)))
+
+
 def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_iter=200, rtol=1e-12,
                         lam0=1e-4, dense=None):
     """Minimise ½ Σ ρ(r) over the free parameters of ``lay``. Returns (state, info).
@@ -383,7 +420,10 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                     "reason": "no free parameters"}
     dense = use_dense(lay) if dense is None else dense
     lam, nu = lam0, 2.0
-    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense)
+    # p and lay do not change during the solve: the cache key's problem part and the factors' index
+    # bookkeeping (memo) are computed once
+    pkey, memo = _CACHE.problem_key(p, kinds), {}
+    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense, pkey=pkey, memo=memo)
     r, J, w, cost = lin.r, lin.J, lin.w, lin.cost
     reason, it = "max_iter", 0
     for it in range(1, max_iter + 1):
@@ -396,8 +436,12 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         accepted = False
         for _ in range(30):
             step = _solve_damped(H, g, lam) if dense else system.factor(lam).solve(-g)
-            cand = retract(st, lay, step)
-            lin = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense)
+            cand = retract(st, lay, step, memo)
+            if _same_state(cand, st):
+                # the damped step no longer moves the state (it is below the parameters' rounding): it
+                # cannot lower the cost, and more damping only shrinks it further
+                break
+            lin = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense, pkey=pkey, memo=memo)
             r2, J2, w2, cost2 = lin.r, lin.J, lin.w, lin.cost
             pred = -(step @ g) - 0.5 * step @ (H @ step)
             ratio = (cost - cost2) / pred if pred > 0 else -1.0

@@ -9,6 +9,8 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial.transform import Rotation
 
+from calib.tables import columns
+
 from .factors import ALL_KINDS
 from .problem import build_problem, empty_state, make_layout, retract
 from .solver import Schur, linearise
@@ -170,12 +172,12 @@ def state_from_frames(p, arrays, sources=None):
     """
     st = empty_state(p)
     ia = _rows_of(arrays["array"], p.names, "array")
-    st.x = arrays[["x", "y", "z"]].to_numpy(float)[ia]
-    st.R = Rotation.from_quat(arrays[["qw", "qx", "qy", "qz"]].to_numpy(float)[ia], scalar_first=True).as_matrix()
+    st.x = columns(arrays, ("x", "y", "z"))[ia]
+    st.R = Rotation.from_quat(columns(arrays, ("qw", "qx", "qy", "qz"))[ia], scalar_first=True).as_matrix()
     st.offset = np.nan_to_num(arrays["offset"].to_numpy(float)[ia])
     st.drift = np.nan_to_num(arrays["drift"].to_numpy(float)[ia])
     if sources is not None:
-        st.s = sources[["x", "y", "z"]].to_numpy(float)[_rows_of(sources["event"], p.events, "event")]
+        st.s = columns(sources, ("x", "y", "z"))[_rows_of(sources["event"], p.events, "event")]
     return st
 
 

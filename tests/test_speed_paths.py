@@ -126,3 +126,42 @@ def test_linearise_reuse_sees_entries_updated_in_place(scene):
     c1 = linearise(q, st, lay, ["tdoa_m"]).cost
     q.array_scale["tdoa_m"] = np.full(q.N, 2.0)          # the dict is updated in place
     assert np.isclose(linearise(q, st, lay, ["tdoa_m"]).cost, c1 / 4.0)
+
+
+def test_memoised_factor_bookkeeping_is_exact(scene):
+    """Factors, the dense stack and retract with a per-solve memo give the same arrays as without, at
+    every state (the memo holds only what depends on the problem and layout), in both layouts."""
+    _, _, p, st = scene
+    kinds = KINDS + ["cone"]
+    rng = np.random.default_rng(5)
+    for lay in (make_layout(p), make_layout(p, rotations=False)):
+        memo, state = {}, st
+        for _ in range(3):
+            plain, memoised = evaluate(p, state, lay, kinds), evaluate(p, state, lay, kinds, memo)
+            for a, b in zip(plain, memoised):
+                assert np.array_equal(a.r, b.r) and np.array_equal(np.asarray(a.J), np.asarray(b.J))
+            for dense in (True, False):
+                Ja = stack_jacobians([f.J for f in plain], lay.n, dense)
+                Jb = stack_jacobians([f.J for f in memoised], lay.n, dense, memo)
+                assert np.array_equal(np.asarray(Ja.todense()) if not dense else Ja,
+                                      np.asarray(Jb.todense()) if not dense else Jb)
+            step = 1e-3 * rng.standard_normal(lay.n)
+            moved = retract(state, lay, step)
+            again = retract(state, lay, step, memo)
+            assert all(np.array_equal(getattr(moved, k), getattr(again, k)) for k in ("x", "R", "s", "drift"))
+            state = moved
+
+
+def test_coarse_cost_matches_the_zoom_cost(scene):
+    """The coarse grid's fast layout (transposed clock IRLS, Kabsch matrices as vectors over points,
+    closed-form eigenvalues) computes profile_cost's concentrated cost: equal up to rounding."""
+    from calib.estimator.init import coarse_cost, coarse_grid, profile_cost
+
+    _, _, p, st = scene
+    grid = coarse_grid(st.s)
+    for i in range(p.N):
+        if i == p.ref:
+            continue
+        fast = coarse_cost(p, st, i, 3e-4, 0.1, grid)
+        ref = profile_cost(p, st, i, grid["pts"], 3e-4, 0.1)[0]
+        assert np.allclose(fast, ref, rtol=1e-9, atol=1e-7)

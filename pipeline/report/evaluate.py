@@ -5,6 +5,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib.pipeline.formats.io import InputError
+from calib.tables import columns
 
 P_PAPER = np.ones(3) / np.sqrt(3.0)
 
@@ -48,16 +49,16 @@ def array_errors(est, truth, reference=None, undetermined=()):
     missing = [a for a in t_names if a not in e_row]
     if missing:
         raise InputError(f"calibration has no array {missing[0]!r} that truth has")
-    t_xyz = truth[["x", "y", "z"]].to_numpy(float)
+    t_xyz = columns(truth, ("x", "y", "z"))
     if reference is None:
         at_origin = (np.linalg.norm(t_xyz, axis=1) < 1e-12)
         reference = t_names[int(np.argmax(at_origin))] if at_origin.any() else t_names[0]
     it = np.array([k for k, a in enumerate(t_names) if a != reference], int)
     names = [t_names[k] for k in it]
     ie = np.array([e_row[a] for a in names], int)
-    pos = np.linalg.norm(est[["x", "y", "z"]].to_numpy(float)[ie] - t_xyz[it], axis=1)
-    qe = est[["qw", "qx", "qy", "qz"]].to_numpy(float)[ie]
-    qt = truth[["qw", "qx", "qy", "qz"]].to_numpy(float)[it]
+    pos = np.linalg.norm(columns(est, ("x", "y", "z"))[ie] - t_xyz[it], axis=1)
+    qe = columns(est, ("qw", "qx", "qy", "qz"))[ie]
+    qt = columns(truth, ("qw", "qx", "qy", "qz"))[it]
     geo = np.full(len(names), np.nan)
     paper = np.full(len(names), np.nan)
     ok = np.all(np.isfinite(qt), axis=1)
@@ -111,7 +112,7 @@ def _source_differences(se, stt):
     row = {v: k for k, v in enumerate(ev_e.tolist())}
     pairs = [(k, row[v]) for k, v in enumerate(stt["event"].tolist()) if v in row]
     it, ie = (np.array(z, int) for z in zip(*pairs)) if pairs else (np.zeros(0, int), np.zeros(0, int))
-    return se[["x", "y", "z"]].to_numpy(float)[ie] - stt[["x", "y", "z"]].to_numpy(float)[it]
+    return columns(se, ("x", "y", "z"))[ie] - columns(stt, ("x", "y", "z"))[it]
 
 
 def evaluate(calib, truth):
