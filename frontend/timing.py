@@ -72,21 +72,25 @@ def segment_spectra(x, starts, setup, plain=False):
     spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)[..., setup["kb"]].astype(np.complex128)
     c = spec * setup["tmpl_conj"]
     c_plain = None
+    w = setup["weights"] / setup["weights"].sum()
     if plain:
-        w = setup["weights"] / setup["weights"].sum()
         p = np.sum(np.abs(setup["tmpl_conj"]) ** 2 * w)  # a single path of unit gain peaks at 1
-        c_plain = c * (w / np.maximum(p * np.sqrt(np.mean(np.abs(spec) ** 2, axis=-1, keepdims=True)
+        c_plain = c * (w / np.maximum(p * np.sqrt(np.mean(_power(spec), axis=-1, keepdims=True)
                                                   / np.mean(np.abs(setup["tmpl_conj"]) ** 2)), 1e-300))
     if setup["whiten_bins"]:
         # divide by the locally smoothed magnitude: removes the spectral colour of speaker, room and noise
         # (as PHAT does) but not the fine structure of the reverberation, whose full whitening would smear
         # energy ahead of the direct path (a zero-phase inverse filter is two-sided)
-        p = uniform_filter1d(np.abs(c) ** 2, setup["whiten_bins"], axis=-1, mode="nearest")
-        c = c / np.sqrt(np.maximum(p, 1e-30 * max(float(p.max(initial=0.0)), 1e-300)))
+        p = uniform_filter1d(_power(c), setup["whiten_bins"], axis=-1, mode="nearest")
+        c *= w / np.sqrt(np.maximum(p, 1e-30 * max(float(p.max(initial=0.0)), 1e-300)))
     else:
-        c = c / np.sqrt(np.maximum(np.mean(np.abs(c) ** 2, axis=-1, keepdims=True), 1e-300))
-    c = c * (setup["weights"] / setup["weights"].sum())
+        c *= w / np.sqrt(np.maximum(np.mean(_power(c), axis=-1, keepdims=True), 1e-300))
     return (c, c_plain) if plain else c
+
+
+def _power(z):
+    """``|z|²`` of a complex array without the square root of ``np.abs``."""
+    return z.real * z.real + z.imag * z.imag
 
 
 @lru_cache(maxsize=32)
@@ -188,6 +192,54 @@ class BandSums:
         return np.einsum("s...a,...a->s...", y, outer)
 
 
+class BandMoments:
+    """``Σ_f c_f ω^k e^{jωτ}`` (ω = 2πf) for k = 0, 1, 2 at changing lags, reading the spectra once per
+    call and never copying them (what Newton steps on the correlation need: value, slope, curvature).
+
+    With uniformly spaced frequencies ``f = f_0 + (aB + b)Δf`` the band folds into (A, B) blocks
+    (a view of ``c``; the last, partial block apart) and ``ω = Ω_a + ω_b``: one pass over ``c``
+    against the ``B`` inner phasors times ``ω_b^k`` gives ``Y_k[a]``, and ``Σ_a`` of the outer phasors
+    times ``Y_0``, ``Ω_a Y_0 + Y_1``, ``Ω_a² Y_0 + 2 Ω_a Y_1 + Y_2`` gives the three moments (the same
+    sums as :class:`BandSums` with the factors ``1, ω, ω²``, up to rounding).
+    """
+
+    def __init__(self, c, freqs):
+        self.c, self.freqs = c, freqs
+        n_f = len(freqs)
+        df = np.diff(freqs)
+        self.uniform = n_f >= 3 and np.ptp(df) <= 1e-9 * abs(df[0])
+        if not self.uniform:
+            w = 2 * np.pi * freqs
+            self._sums = BandSums(c, freqs, (1.0, w, w * w))
+            return
+        self.df, self.b = df[0], int(np.ceil(np.sqrt(n_f)))
+        self.n_a = -(-n_f // self.b)
+        self.full = (self.n_a - 1) * self.b
+        self.head = c[..., : self.full].reshape(c.shape[:-1] + (self.n_a - 1, self.b))
+        self.tail = c[..., self.full :]
+
+    def __call__(self, tau):
+        """tau : (...) lags (s), broadcastable with the spectra's middle axes → (3, ...) complex."""
+        tau = np.asarray(tau, float)
+        if not self.uniform:
+            return self._sums(tau)
+        wt = 2j * np.pi * tau[..., None]
+        om = 2 * np.pi * self.df * np.arange(self.b)
+        big = 2 * np.pi * (self.freqs[0] + self.df * self.b * np.arange(self.n_a))         # Ω_a
+        inner = np.exp(wt * (self.df * np.arange(self.b)))                                  # (..., B)
+        ik = inner[..., None, :] * np.stack([np.ones_like(om), om, om * om])                # (..., 3, B)
+        y = np.empty(np.broadcast_shapes(self.c.shape[:-1], tau.shape) + (3, self.n_a), complex)
+        y[..., :-1] = np.matmul(ik, np.swapaxes(self.head, -1, -2))                        # (..., 3, A − 1)
+        y[..., -1] = np.einsum("...b,...kb->...k", self.tail, ik[..., : self.tail.shape[-1]])
+        outer = np.exp(wt * big / (2 * np.pi))[..., None, :]                                # (..., 1, A)
+        y *= outer
+        y0, y1, y2 = y[..., 0, :], y[..., 1, :], y[..., 2, :]
+        m0 = y0.sum(-1)
+        m1 = (big * y0).sum(-1) + y1.sum(-1)
+        m2 = (big * big * y0).sum(-1) + 2 * (big * y1).sum(-1) + y2.sum(-1)
+        return np.stack([m0, m1, m2])
+
+
 def corr_at(c, freqs, tau):
     """Analytic correlation at arbitrary lags: c (..., Fb), tau (...) seconds → (...) complex."""
     return BandSums(np.asarray(c), freqs)(tau)[0]
@@ -211,17 +263,16 @@ def newton_peak(c, freqs, tau, phase=0.0, iters=2, max_step=None):
     c : (..., Fb). tau : (...) start lags (s), within a fraction of a carrier period of the peak.
     Returns (tau, value) refined, same shapes.
     """
-    w = 2 * np.pi * freqs
-    sums = BandSums(c, freqs, (w, w * w, 1.0))
+    sums = BandMoments(c, freqs)
     tau = np.array(tau, float)
     max_step = max_step if max_step is not None else 0.25 / freqs.max()
     rot = np.exp(-1j * phase)
     for _ in range(iters):
-        z1, z2, _ = sums(tau) * rot
+        _, z1, z2 = sums(tau) * rot
         d1, d2 = -np.imag(z1), -np.real(z2)
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
         tau = tau + np.clip(step, -max_step, max_step)
-    val = np.real(sums(tau)[2] * rot)
+    val = np.real(sums(tau)[0] * rot)
     return tau, val
 
 
@@ -229,17 +280,31 @@ def newton_envelope(c, freqs, tau, iters=1):
     """Refine peaks of the envelope ``|r(τ)|²`` by Newton steps on the exact band-limited correlation
     (the parabola through three samples is biased by a fraction of a sample, which would bias the
     carrier phase read at the peak). Returns (tau, r(tau))."""
-    w = 2 * np.pi * freqs
-    sums = BandSums(c, freqs, (1.0, 1j * w, -(w * w)))
+    sums = BandMoments(c, freqs)
     tau = np.array(tau, float)
     max_step = 0.25 / freqs.max()
     for _ in range(iters):
-        z, z1, z2 = sums(tau)
+        m0, m1, m2 = sums(tau)
+        z, z1, z2 = m0, 1j * m1, -m2
         d1 = 2 * np.real(np.conj(z) * z1)
         d2 = 2 * np.real(np.conj(z1) * z1 + np.conj(z) * z2)
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
         tau = tau + np.clip(step, -max_step, max_step)
     return tau, sums(tau)[0]
+
+
+def _pulse_magnitude(setup, plain, over):
+    """``|p|`` of one unit path at lags ``k / over`` samples, k = 0 .. nfft·over − 1 (circular), cached in
+    ``setup`` (every chunk of an array's events, and both of :func:`locate`'s uses, share it)."""
+    cache = setup.setdefault("_pulse_cache", {})
+    key = (bool(plain), int(over))
+    if key not in cache:
+        nf = setup["nfft"] * over
+        full = np.zeros(nf, complex)
+        full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
+        full /= full.sum()
+        cache[key] = np.abs(sfft.ifft(full) * nf)
+    return cache[key]
 
 
 def pulse_near(setup, n, spread, plain=False, over=4):
@@ -248,11 +313,7 @@ def pulse_near(setup, n, spread, plain=False, over=4):
     Like :func:`pulse_envelope` but not made monotone: the exact sidelobe level a peak puts ``d`` samples
     away when its position is known to ± ``spread`` (sub-sample position, mics across the aperture).
     """
-    nf = setup["nfft"] * over
-    full = np.zeros(nf, complex)
-    full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
-    full /= full.sum()
-    p = np.abs(sfft.ifft(full) * nf)
+    p = _pulse_magnitude(setup, plain, over)
     p = np.r_[p[-(spread + 1) * over :], p[: (n + spread + 1) * over]]  # lags −spread−1 .. n+spread
     p = maximum_filter1d(p, 2 * spread * over + 1)
     return p[(spread + 1) * over :: over][:n]
@@ -266,10 +327,7 @@ def pulse_envelope(setup, n, plain=False):
     peak's sidelobes can reach ``n`` samples away. plain : the pulse of the unwhitened matched filter
     (weights × |S(f)|²).
     """
-    full = np.zeros(setup["nfft"], complex)
-    full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
-    full /= full.sum()
-    p = np.abs(sfft.ifft(full) * setup["nfft"])[: min(n, setup["nfft"])]
+    p = _pulse_magnitude(setup, plain, 1)[: min(n, setup["nfft"])]
     return np.maximum.accumulate(p[::-1])[::-1]
 
 
@@ -555,17 +613,26 @@ def pulse_response(setup, shape, n, over):
 def _two_path_search(b, pd, d, n1):
     """Grid index (J, M) into (n1, D) of the pair explaining the most energy, ``(|b1|² + |b2|² −
     2 Re(p b1 conj(b2))) / (1 − |p|²)`` with ``b1 = b[i]``, ``b2 = b[i + d]``, ``p = pd``: single
-    precision, one event at a time (its (M, n1, D) grid stays in cache), amplitudes never formed."""
+    precision, one event at a time (its (M, n1, D) grid stays in cache), amplitudes never formed; the
+    separations ``d`` are consecutive (where the pulses overlap less than a bound), so ``b[i + d]`` is a
+    strided window of ``b``, not a gathered copy."""
     pw = b.real ** 2 + b.imag ** 2
-    idx2 = np.arange(n1)[:, None] + d[None, :]                                  # (n1, D)
+    n_d = len(d)
+    consecutive = n_d and np.all(np.diff(d) == 1)
+    idx2 = None if consecutive else np.arange(n1)[:, None] + d[None, :]         # (n1, D)
     inv_det = (1.0 / (1.0 - np.abs(pd) ** 2)).astype(np.float32)
-    pr, pi = (2 * pd.real).astype(np.float32), (2 * pd.imag).astype(np.float32)
+    p2 = (2 * pd).astype(np.complex64)
     k = np.zeros(b.shape[:2], int)
     for j in range(b.shape[0]):
-        cross = b[j, :, :n1, None] * np.conj(b[j][:, idx2])                     # (M, n1, D)
-        e = pw[j, :, :n1, None] + pw[j][:, idx2]
-        e -= cross.real * pr
-        e += cross.imag * pi
+        if consecutive:
+            b2 = np.lib.stride_tricks.sliding_window_view(b[j, :, d[0] : d[0] + n1 + n_d - 1], n_d, axis=-1)
+            w2 = np.lib.stride_tricks.sliding_window_view(pw[j, :, d[0] : d[0] + n1 + n_d - 1], n_d, axis=-1)
+        else:
+            b2, w2 = b[j][:, idx2], pw[j][:, idx2]
+        cross = np.conj(b2) * p2                                                 # (M, n1, D): 2 p conj(b2)
+        cross *= b[j, :, :n1, None]
+        e = pw[j, :, :n1, None] + w2
+        e -= cross.real
         e *= inv_det
         k[j] = np.argmax(e.reshape(len(e), -1), axis=-1)
     return k
