@@ -72,6 +72,7 @@ class ArrayAudio:
         self.fs, self.channels, self.frames = int(info.samplerate), int(info.channels), int(info.frames)
         self._int = _INTEGER_READ.get(info.subtype)  # (dtype, full scale) for integer PCM, else None
         self._file = None
+        self._sum_buf = self._fill_buf = None
 
     @property
     def shape(self):
@@ -85,6 +86,7 @@ class ArrayAudio:
         self.close()
 
     def close(self):
+        self._sum_buf = self._fill_buf = None
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -108,7 +110,15 @@ class ArrayAudio:
         n = max(stop - start, 0)
         a, b = max(start, 0), min(stop, self.frames)
         raw = self._int is not None
-        out = np.zeros((n, self.channels), self._int[0] if raw else np.float32)
+        dtype = self._int[0] if raw else np.float32
+        if channel_sum:  # the frames are only summed: one buffer reused block after block (no page faults)
+            if self._sum_buf is None or self._sum_buf.shape[0] < n or self._sum_buf.dtype != dtype:
+                self._sum_buf = np.empty((n, self.channels), dtype)
+            out = self._sum_buf[:n]
+            out[: max(a - start, 0)] = 0
+            out[max(b - start, 0) :] = 0
+        else:
+            out = np.zeros((n, self.channels), dtype)
         if b > a:
             self._read_into(a, out[a - start : b - start])
         if raw and channel_sum:
@@ -121,6 +131,21 @@ class ArrayAudio:
         if channel_sum:
             return out @ np.ones(self.channels, np.float32)
         return out.T
+
+    def fill_segment(self, out, start):
+        """Write frames ``start .. start + n − 1`` (all inside the file) into ``out`` ((M, n) float32, e.g. a
+        slice of a larger array): the values of ``x[:, start:start + n]`` without an intermediate copy
+        (the sample-major frames go through one reused buffer)."""
+        n = out.shape[-1]
+        dtype = self._int[0] if self._int is not None else np.float32
+        if self._fill_buf is None or self._fill_buf.shape[0] < n or self._fill_buf.dtype != dtype:
+            self._fill_buf = np.empty((n, self.channels), dtype)
+        buf = self._fill_buf[:n]
+        self._read_into(int(start), buf)
+        if self._int is not None:
+            np.multiply(buf.T, np.float32(1.0 / self._int[1]), out=out, dtype=np.float32)
+        else:
+            out[...] = buf.T
 
     def _read_into(self, first, out):
         """Read ``len(out)`` frames from frame ``first`` into ``out`` ((n, M), C-contiguous)."""

@@ -65,9 +65,12 @@ def segment_spectra(x, starts, setup, plain=False):
     seg_len, nfft = setup["seg_len"], setup["nfft"]
     j = len(starts)
     seg = np.zeros((j, m, seg_len), np.float32)
+    fill = getattr(x, "fill_segment", None)  # signals.ArrayAudio: read straight into the segment array
     for i, s0 in enumerate(np.asarray(starts, int)):
         a, b = max(s0, 0), min(s0 + seg_len, n)
-        if b > a:
+        if b > a and fill is not None:
+            fill(seg[i, :, a - s0 : b - s0], a)
+        elif b > a:
             seg[i, :, a - s0 : b - s0] = x[:, a:b]  # x may be a transposed (sample-major) view
     spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)[..., setup["kb"]].astype(np.complex128)
     c = spec * setup["tmpl_conj"]
@@ -128,7 +131,10 @@ def lag_grid(c, setup, lo, hi, step=1.0):
     k0, n_q, n_t = int(kb[0]), int(kb[-1] - kb[0] + 1), int(round((hi - lo) / step))
     n_fft, pre, kernel, post = _lag_plan(nfft, k0, n_q, n_t, float(lo), float(step))
     d = np.zeros(c.shape[:-1] + (n_fft,), np.complex64)
-    d[..., kb - k0] = c * pre[kb - k0]
+    if len(kb) == n_q:  # contiguous band (always, from band weights): a slice, no scatter
+        np.multiply(c, pre, out=d[..., :n_q], casting="same_kind" if c.dtype == np.complex64 else "unsafe")
+    else:
+        d[..., kb - k0] = c * pre[kb - k0]
     y = sfft.ifft(sfft.fft(d, axis=-1, overwrite_x=True) * kernel, axis=-1, overwrite_x=True)
     return y[..., n_q - 1 : n_q - 1 + n_t] * post
 
@@ -441,13 +447,14 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     """
     fs, freqs = setup["fs"], setup["freqs"]
     pad = gate + half_width + 2
-    r_lo = max(0, lo - pad)
-    r = lag_grid(c, setup, r_lo, min(setup["nfft"], hi + pad))  # (J, M, T)
-    env = np.abs(r)
-    mean_env = env.mean(axis=1)
+    r_lo, r_hi = max(0, lo - pad), min(setup["nfft"], hi + pad)
+    if c_onset is None:
+        r, env, mean_env = _grid_envelopes(c, setup, r_lo, r_hi)  # (J, M, T)
+        onset_env = mean_env[:, lo - r_lo : hi - r_lo]
+    else:  # the whitened grid is needed only from the direct path on: computed once it is known
+        r = env = mean_env = None
+        onset_env = np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
     pulse_env = pulse_envelope(setup, hi - lo + pad)
-    onset_env = mean_env[:, lo - r_lo : hi - r_lo] if c_onset is None else \
-        np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
     onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
     if smear is None:
         smear = excess_width(onset_env, onset_pulse)
@@ -465,6 +472,9 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
             c, c_onset, setup, shadowed, strongest, half_width, lo, hi, r_lo, r, onset_env, onset_pulse,
             (snr_factor, min_ratio, sidelobe_margin), dp, ratio, snr)
     dp = lo + dp
+    if r is None:
+        r_lo = max(0, int(np.min(dp, initial=lo)) - pad)
+        r, env, mean_env = _grid_envelopes(c, setup, r_lo, r_hi)
     reflection = first_reflection(mean_env, dp - r_lo, half_width, pulse_env, reflection_ratio,
                                   sidelobe_margin)
     reflection = np.where(reflection >= 0, reflection + r_lo, -1)
@@ -543,7 +553,8 @@ def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi,
                      onset_pulse, onset_args, dp, ratio, snr):
     """:func:`locate`'s second look at events with a shadowed candidate: the strongest path subtracted
     (:func:`subtract_path`) from the timing spectra and the onset spectra, the onset searched again with
-    the first look's noise floor and strongest peak. Returns updated copies."""
+    the first look's noise floor and strongest peak. Returns updated copies (``r`` None: none, not computed
+    yet)."""
     sel = np.flatnonzero(shadowed)
     floor = onset_env[sel, dp[sel]] / snr[sel]
     peak = onset_env[sel, dp[sel]] / ratio[sel]
@@ -559,15 +570,25 @@ def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi,
     dp, ratio, snr = dp.copy(), ratio.copy(), snr.copy()
     keep = sel[better]
     dp[keep], ratio[keep], snr[keep] = d2[better], q2[better], s2[better]
-    c, r = c.copy(), r.copy()
+    c = c.copy()
     c[keep] = c_sub[better]
     if c_onset is not None:
         c_onset = c_onset.copy()
         c_onset[keep] = on_sub[better]
+    if r is None:  # the whitened grid is not computed yet
+        return c, c_onset, None, None, None, dp, ratio, snr
+    r = r.copy()
     if keep.size:
         r[keep] = lag_grid(c[keep], setup, r_lo, r_lo + r.shape[-1])
     env = np.abs(r)
     return c, c_onset, r, env, env.mean(axis=1), dp, ratio, snr
+
+
+def _grid_envelopes(c, setup, r_lo, r_hi):
+    """The correlation on lags ``r_lo .. r_hi − 1`` (:func:`lag_grid`), its magnitude and mic average."""
+    r = lag_grid(c, setup, r_lo, r_hi)
+    env = np.abs(r)
+    return r, env, env.mean(axis=1)
 
 
 def _path_peaks(c, setup, lag, half_width):
