@@ -621,7 +621,9 @@ def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
 
 CLOSE_RATIO = 0.15       # a second path fitted at ≥ this × the direct path's amplitude (median over mics) is removed
 CLOSE_MAX_OVERLAP = 0.8  # ... if its pulse overlaps the direct one's less than this (|p(Δ)|; closer: inseparable)
-GRID_OVER = 4            # sub-sample steps per sample of the two-path fit's grid
+GRID_OVER = 4            # at most this many sub-sample steps per sample in the two-path fit's grid, and
+GRID_PER_PULSE = 18      # about this many per pulse width (16 kHz, 3.5 kHz of band: 4 per sample, as
+                         # for 48 kHz and 9.5 kHz; 48 kHz and 3.5 kHz: 1 per sample, not 55 per pulse)
 
 
 def pulse_response(setup, shape, n, over):
@@ -659,7 +661,7 @@ def _two_path_search(b, pd, d, n1):
     return k
 
 
-def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
+def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=None):
     """Direct path plus the strongest later path within ``max_sep`` samples, per mic, by a grid search.
 
     c : (J, M, Fb) spectra whose single path of amplitude ``a`` at ``τ`` is ``a · u_f e^{−j2πfτ}``
@@ -672,8 +674,12 @@ def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
     cm to 20 cm behind the array) shows as no separate peak, yet moves the direct path's peak and phase.
     Returns t1, a1, t2, a2 (J, M): times (s since the segment start) and complex amplitudes, and the
     energy the second path explains beyond the best single path (refined off the grid) relative to it.
+    over : grid steps per sample (None: ``GRID_PER_PULSE`` per pulse width, at most ``GRID_OVER``).
     """
     fs = setup["fs"]
+    if over is None:  # grid steps per sample: GRID_PER_PULSE per pulse width, at most GRID_OVER per sample
+        pulse = fs / max(setup["freqs"].max() - setup["freqs"].min(), 1.0)
+        over = int(np.clip(round(GRID_PER_PULSE / pulse), 1, GRID_OVER))
     p_all = pulse_response(setup, shape, int(max_sep * over), over)   # p(Δ); p(−Δ) = conj
     d = np.flatnonzero(np.abs(p_all) < CLOSE_MAX_OVERLAP) + 1
     d = d if d.size else np.array([len(p_all)])
