@@ -72,13 +72,16 @@ def segment_spectra(x, starts, setup, plain=False):
             fill(seg[i, :, a - s0 : b - s0], a)
         elif b > a:
             seg[i, :, a - s0 : b - s0] = x[:, a:b]  # x may be a transposed (sample-major) view
-    spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)[..., setup["kb"]].astype(np.complex128)
-    c = spec * setup["tmpl_conj"]
+    kb = setup["kb"]
+    spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)  # complex64
+    spec = spec[..., kb[0] : kb[-1] + 1] if kb[-1] - kb[0] + 1 == len(kb) else spec[..., kb]  # (a view)
+    c = spec * setup["tmpl_conj"]  # complex128 (the single-precision bins are widened exactly)
     c_plain = None
     w = setup["weights"] / setup["weights"].sum()
     if plain:
         p = np.sum(np.abs(setup["tmpl_conj"]) ** 2 * w)  # a single path of unit gain peaks at 1
-        c_plain = c * (w / np.maximum(p * np.sqrt(np.mean(_power(spec), axis=-1, keepdims=True)
+        spec_pow = np.square(spec.real, dtype=np.float64) + np.square(spec.imag, dtype=np.float64)
+        c_plain = c * (w / np.maximum(p * np.sqrt(np.mean(spec_pow, axis=-1, keepdims=True)
                                                   / np.mean(np.abs(setup["tmpl_conj"]) ** 2)), 1e-300))
     if setup["whiten_bins"]:
         # divide by the locally smoothed magnitude: removes the spectral colour of speaker, room and noise
