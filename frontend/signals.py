@@ -7,6 +7,7 @@ sampled at the array's rate, starting at sample 0 (its time origin defines "the 
 from __future__ import annotations
 
 import math
+import mmap
 from fractions import Fraction
 
 import numpy as np
@@ -73,7 +74,7 @@ class ArrayAudio:
         self._int = _INTEGER_READ.get(info.subtype)  # (dtype, full scale) for integer PCM, else None
         self._file = None
         self._sum_buf = self._fill_buf = None
-        self._map = None  # the WAV's samples memory-mapped, when they lie plainly in its data chunk
+        self._map = None  # (open file, byte offset of the data chunk) once frames have been memory-mapped
         self._map_dtype = _MAPPABLE.get(info.subtype) if info.format in ("WAV", "WAVEX") else None
 
     @property
@@ -88,6 +89,8 @@ class ArrayAudio:
         self.close()
 
     def close(self):
+        if self._map is not None:
+            self._map[0].close()
         self._sum_buf = self._fill_buf = self._map = None
         if self._file is not None:
             self._file.close()
@@ -101,28 +104,38 @@ class ArrayAudio:
                 raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
         return self._file
 
-    def _mapped(self):
-        """The (N, M) samples memory-mapped (no read copy: half the CPU of reading a block), or None for
-        anything but a plain little-endian WAV of 16-bit PCM or 32-bit float (read with libsndfile)."""
-        if self._map is None and self._map_dtype is not None:
+    def _mapped(self, a, b):
+        """Frames ``a .. b − 1`` (inside the file) as an (b − a, M) view of a memory map of just that range
+        (no read copy: half the CPU of reading; unmapped when the view is dropped, so the resident memory
+        stays one block's), or None for anything but a plain little-endian WAV of 16-bit PCM or 32-bit
+        float (those are read with libsndfile)."""
+        if self._map_dtype is None:
+            return None
+        dt = np.dtype(self._map_dtype)
+        if self._map is None:
             where = wav_data_chunk(self.path)
-            dt = np.dtype(self._map_dtype)
             if where is None or where[1] < self.frames * self.channels * dt.itemsize:
                 self._map_dtype = None
                 return None
-            self._map = np.memmap(self.path, dtype=dt, mode="r", offset=where[0], shape=(self.frames, self.channels))
-        return self._map
+            self._map = (open(self.path, "rb"), where[0])
+        fh, data = self._map
+        frame = self.channels * dt.itemsize
+        first = data + a * frame
+        base = first - first % mmap.ALLOCATIONGRANULARITY
+        m = mmap.mmap(fh.fileno(), first - base + (b - a) * frame, access=mmap.ACCESS_READ, offset=base)
+        return np.frombuffer(m, dt, count=(b - a) * self.channels, offset=first - base).reshape(b - a, -1)
 
     def _mapped_sum(self, start, stop):
         """:meth:`segment` with ``channel_sum`` from the memory map (the same values), or None."""
-        mm = self._mapped()
-        if mm is None:
-            return None
         a, b = max(start, 0), min(stop, self.frames)
+        if self._map_dtype is None:
+            return None
         acc = np.zeros(max(stop - start, 0), np.float32)
         if b <= a:
             return acc
-        blk = mm[a:b]
+        blk = self._mapped(a, b)
+        if blk is None:
+            return None
         if self._int is not None:
             part = blk[:, 0].astype(np.float32)
             for ch in range(1, self.channels):
@@ -176,10 +189,8 @@ class ArrayAudio:
         slice of a larger array): the values of ``x[:, start:start + n]`` without an intermediate copy
         (the sample-major frames go through one reused buffer)."""
         n, start = out.shape[-1], int(start)
-        mm = self._mapped()
-        if mm is not None:
-            buf = mm[start : start + n]
-        else:
+        buf = self._mapped(start, start + n)
+        if buf is None:
             dtype = self._int[0] if self._int is not None else np.float32
             if self._fill_buf is None or self._fill_buf.shape[0] < n or self._fill_buf.dtype != dtype:
                 self._fill_buf = np.empty((n, self.channels), dtype)
@@ -189,7 +200,7 @@ class ArrayAudio:
             np.multiply(buf.T, np.float32(1.0 / self._int[1]), out=out, dtype=np.float32)
         else:
             out[...] = buf.T
-            if mm is not None and not np.all(np.isfinite(out)):
+            if self._map is not None and not np.all(np.isfinite(out)):
                 raise InputError(f"{self.path}: contains non-finite samples")
 
     def _read_into(self, first, out):
