@@ -148,6 +148,34 @@ def label(geom, rt, snr, extra):
     return s
 
 
+def claimed_vs_measured(feats, e):
+    """The sigmas the frontend wrote (meta.json) and the unflagged errors they describe: TDOA-M less each
+    array's mean (a constant per array is indistinguishable from a clock offset: the estimator absorbs it),
+    TDOA-S, DOA (mirror-folded). ``e``: :func:`feature_errors` of ``feats``."""
+    keep_m = ~feats["tdoa_m"]["flag"].astype(bool).to_numpy()
+    keep_s = ~feats["tdoa_s"]["flag"].astype(bool).to_numpy()
+    keep_d = ~feats["doa"]["flag"].astype(bool).to_numpy()
+    arr_m = feats["tdoa_m"]["array"].to_numpy()[keep_m]
+    dm = e["tdoa_m"][keep_m].copy()
+    for n in np.unique(arr_m):
+        dm[arr_m == n] -= np.mean(dm[arr_m == n])
+    return {"tdoa_m_dm": dm, "tdoa_m_ok": e["tdoa_m"][keep_m], "tdoa_s_ok": e["tdoa_s"][keep_s],
+            "doa_ok": e["doa_folded"][keep_d], "sig_tdoa": feats["meta"].get("sigma_tdoa", np.nan),
+            "sig_doa": feats["meta"].get("sigma_doa_deg", np.nan)}
+
+
+def claim_text(rows):
+    """'claimed TDOA (µs): TDOA-M − mean / TDOA-S ÷ claimed; claimed DOA (deg): per-axis ÷ claimed' of
+    :func:`claimed_vs_measured` results pooled over ``rows`` (claims: RMS over the sessions)."""
+    cat = lambda k: np.concatenate([r[k] for r in rows])  # noqa: E731
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
+    sig = rms([r["sig_tdoa"] for r in rows])
+    sdoa = rms([r["sig_doa"] for r in rows])
+    axis = rms(cat("doa_ok")) / np.sqrt(2)
+    return (f"{sig * 1e6:.2f}: {rms(cat('tdoa_m_dm')) / sig:.2f} / {rms(cat('tdoa_s_ok')) / sig:.2f} "
+            f"| {sdoa:.3f}: {axis / sdoa:.2f}")
+
+
 def session_row(d, repeat=1):
     """Errors of one simulated session folder ``d`` against its truth (see ``--sessions``)."""
     walls = []
@@ -166,18 +194,9 @@ def session_row(d, repeat=1):
             flagged.append(bool(v["flag"]))
     err, flagged = np.array(err), np.array(flagged, bool)
     gross = np.abs(err) > 2e-4
-    keep_m = ~feats["tdoa_m"]["flag"].astype(bool).to_numpy()
-    keep_s = ~feats["tdoa_s"]["flag"].astype(bool).to_numpy()
-    keep_d = ~feats["doa"]["flag"].astype(bool).to_numpy()
-    # a constant error per array is indistinguishable from a clock offset (the estimator absorbs it)
-    arr_m = feats["tdoa_m"]["array"].to_numpy()[keep_m]
-    dm = e["tdoa_m"][keep_m].copy()
-    for n in np.unique(arr_m):
-        dm[arr_m == n] -= np.mean(dm[arr_m == n])
-    return {"tdoa_m_dm": dm, "gross": int(gross.sum()), "gross_flagged": int((gross & flagged).sum()), "n_arr": len(err),
-            "flagged": int(flagged.sum()), "tdoa_m": e["tdoa_m"], "tdoa_s": e["tdoa_s"],
-            "tdoa_m_ok": e["tdoa_m"][keep_m], "tdoa_s_ok": e["tdoa_s"][keep_s], "doa": e["doa_folded"], "doa_ok": e["doa_folded"][keep_d],
-            "sig_tdoa": feats["meta"].get("sigma_tdoa", np.nan), "sig_doa": feats["meta"].get("sigma_doa_deg", np.nan),
+    sig = claimed_vs_measured(feats, e)
+    return {**sig, "gross": int(gross.sum()), "gross_flagged": int((gross & flagged).sum()), "n_arr": len(err),
+            "flagged": int(flagged.sum()), "tdoa_m": e["tdoa_m"], "tdoa_s": e["tdoa_s"], "doa": e["doa_folded"],
             "missed": sum(len(v["missed_events"]) for v in diag["arrays"].values()),
             "runtime": min(walls) / diag["recording_duration_s"]}
 
@@ -226,7 +245,7 @@ def main():
     table = []
     with tempfile.TemporaryDirectory() as tmp:
         for geom, rt, snr, extra in cases(args.quick):
-            acc = []
+            acc, sigs = [], []
             for seed in args.seeds:
                 ov = {"rt60": rt, "snr": snr, **{k: v for k, v in extra.items() if k != "edit"}}
                 if geom == "3D":
@@ -246,6 +265,7 @@ def main():
                     walls.append(time.perf_counter() - t)
                 diag["elapsed_s"] = min(walls)
                 acc.append(evaluate(feats, diag, sc, absent=absent))
+                sigs.append(claimed_vs_measured(feats, feature_errors(feats, sc)))
             cat = {k: np.concatenate([np.atleast_1d(a[k]) for a in acc]) for k in acc[0]}
             rms = lambda x: float(np.sqrt(np.mean(np.square(x)))) * 1e6  # noqa: E731
             row = {
@@ -259,7 +279,7 @@ def main():
                 "doa_fold_med": float(np.median(cat["doa_folded"])),
                 "doa_fold_p95": float(np.percentile(cat["doa_folded"], 95)),
                 "runtime_pct": float(np.median(cat["runtime"]) * 100),
-                "runtime_pct_max": float(np.max(cat["runtime"]) * 100),
+                "runtime_pct_max": float(np.max(cat["runtime"]) * 100), "claims": claim_text(sigs),
             }
             table.append(row)
             print(f"{row['case']}: done", file=sys.stderr, flush=True)
@@ -268,15 +288,16 @@ def main():
           f"spurious = detections reported and discarded; wrong = detections matched to the wrong event; "
           f"runtime: fastest of {args.repeat} runs per session, median / max over seeds\n")
     print("| case | recall | spurious | wrong | TDOA-M RMSE / max (µs) | TDOA-M raw RMSE (µs) "
-          "| TDOA-S RMSE / max (µs) | DOA median / p95 (deg) | runtime (% of audio) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| TDOA-S RMSE / max (µs) | DOA median / p95 (deg) | sigma_tdoa claimed (µs): unflagged TDOA-M − array "
+          "mean / TDOA-S ÷ claimed | sigma_doa claimed (deg): unflagged per-axis ÷ claimed | runtime (% of audio) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in table:
         doa = (f"{r['doa_med']:.2f} / {r['doa_p95']:.2f}" if not r["case"].startswith("planar") else
                f"{r['doa_fold_med']:.2f} / {r['doa_fold_p95']:.2f} (mirror-folded; raw {r['doa_med']:.0f} / "
                f"{r['doa_p95']:.0f})")
         print(f"| {r['case']} | {100 * r['recall']:.1f}% | {r['spurious']} | {r['wrong']} | {r['tdoa_m_rmse']:.2f} / "
               f"{r['tdoa_m_max']:.2f} | {r['tdoa_m_raw_rmse']:.1f} | {r['tdoa_s_rmse']:.2f} / {r['tdoa_s_max']:.2f} "
-              f"| {doa} | {r['runtime_pct']:.2f} / {r['runtime_pct_max']:.2f} |")
+              f"| {doa} | {r['claims']} | {r['runtime_pct']:.2f} / {r['runtime_pct_max']:.2f} |")
     s = srp_speed()
     print(f"\nSRP-PHAT per event, {s['grid_points']}-point grid (3°), ideal plane waves: ours (grid + refinement, "
           f"all events batched) {s['ours_ms']:.2f} ms (+ {s['ours_setup_ms']:.2f} ms of steering set-up, once per "

@@ -133,18 +133,24 @@ OutlierThreshold = Annotated[float, typer.Option(help="flag and drop measurement
                                                        "Bonferroni level, if larger)")]
 Noise = Annotated[str, typer.Option(help="weights: auto (re-estimate the frontend's own noise figures from the "
                                          "residuals), meta (meta.json's sigmas as they are) or estimate")]
+ArrayNoise = Annotated[bool, typer.Option("--array-noise", help="when noise figures are re-estimated: also one "
+                                          "figure per measurement type and array where the data allow it (an "
+                                          "array noisier than the rest is down-weighted instead of distorting "
+                                          "the others)")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="print nothing but errors")]
 
 
 # (name, declaration, default) of the estimator options, in the order --help shows them
 ESTIMATE_OPTIONS = (("method", Method, "hybrid"), ("no_tdoa_s", NoTdoaS, False), ("emission_sigma", EmissionSigma, 0.0),
-                    ("loss", Loss, "cauchy"), ("outlier_threshold", OutlierThreshold, 5.0), ("noise", Noise, "auto"))
+                    ("loss", Loss, "cauchy"), ("outlier_threshold", OutlierThreshold, 5.0), ("noise", Noise, "auto"),
+                    ("array_noise", ArrayNoise, False))
 
 
-def estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise):
+def estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise, array_noise):
     """Validated keyword arguments of ``estimator.calibrate`` from the shared CLI options (InputError)."""
     return V.estimate_options({"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma,
-                               "loss": loss, "outlier_threshold": outlier_threshold, "noise": noise})
+                               "loss": loss, "outlier_threshold": outlier_threshold, "noise": noise,
+                               "array_noise": array_noise})
 
 
 def with_estimate_options(func):

@@ -22,6 +22,7 @@ from calib.errors import InputError
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
+from .noise import arrival_sd as claimed_sd
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
 
@@ -231,7 +232,6 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
     t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
     arrival, spread = fuse_times(t_org)
     mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
-    arrival_sd = np.hypot(mic_sd, loc["interference"])  # + what later paths put on the direct path
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
     doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, doa["normal"], doa["axis"])
     reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, doa["gap"] < half,
@@ -245,6 +245,10 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
                         "sight probably blocked (occluded array); its arrivals and DOAs are unreliable")
         for r in reasons:
             r.append("occluded")
+    e = t_emit[ev_idx] - t_emit[0]
+    lag = c * (arrival - (asc["offset"] + asc["scale"] * e))
+    clean = np.array([not any(x in TIMING_DOUBTS for x in r) for r in reasons], bool)
+    arrival_sd, _ = claimed_sd(t_org - arrival[:, None], u, mics, c, lag, e, clean, loc["interference"])
     return {"arrival": arrival, "spread": spread, "mic_sd": mic_sd, "arrival_sd": arrival_sd,
             "quality": arrival_quality(gcc_quality, reasons), "flags": reasons, "doa_spread": doa_sd,
             "mic_times": t_mic, "warnings": warnings}
@@ -493,13 +497,11 @@ def noise_estimates(results):
     """Measurement noise of the features, from the spread between each array's mics (docs/frontend.md).
 
     sigma_tdoa: √2 × the RMS over arrivals of ``arrival_sd`` (a TDOA is a difference of two arrivals; RMS,
-    not median: the errors are heavy-tailed and the estimator takes sigma as a standard deviation):
-    one mic's timing spread about the fused arrival, not the standard error of the fused mean (÷ √M),
-    because the errors reflections put on a few-cm array's mics are largely common to all of them, and
-    in quadrature the error later paths' sidelobes put on the direct path, which no spread between mics
-    shows (:func:`calib.frontend.timing.interference_sd`). The standard error of the mean is kept as
-    ``sigma_tdoa_lower`` (diagnostics only). Only arrivals without doubts (``flag`` empty) count: the
-    sigmas describe the unflagged rows; flagged ones are doubtful by definition (all, if none is clean).
+    not median: the errors are heavy-tailed and the estimator takes sigma as a standard deviation): the
+    differential, later-path and near-field parts of :mod:`calib.frontend.noise`. The standard error of the
+    plane-wave mean is kept as ``sigma_tdoa_lower`` (diagnostics only). Only arrivals without doubts
+    (``flag`` empty) count: the sigmas describe the unflagged rows; flagged ones are doubtful by definition
+    (all, if none is clean).
     sigma_doa_deg: the RMS of :func:`doa_spread` (plane-wave fit covariance, per tangent axis; planar arrays
     with the elevation Jacobian). None where there is nothing to estimate from.
     """

@@ -46,7 +46,7 @@ TRUTH_FILES = ("arrays.csv", "sources.csv")
 REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostics.json",),
             "calibration": ("arrays.csv", "report.json", "calibration.json"), "report": ("summary.md",)}
 ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
-                     "outlier_threshold": 5.0, "noise": "auto"}
+                     "outlier_threshold": 5.0, "noise": "auto", "array_noise": False}
 # The modules each stage calls into. Their source, and that of every calib module they import
 # (transitively, found from the import statements), is hashed into the stage key, so editing any of
 # them invalidates the stage even when the version number does not change.
@@ -250,7 +250,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     features_options : options of ``frontend.extract_features`` (e.g. ``{"threshold": 8.0}``).
     estimate_options : method, use_tdoa_s, emission_sigma, noise ("auto", "meta", "estimate"),
         loss ("cauchy", "huber", "linear"),
-        outlier_threshold (see ``estimator.calibrate``).
+        outlier_threshold, array_noise (see ``estimator.calibrate``).
     progress : optional ``progress(stage, done, total, message)`` callback.
     log : optional ``log(stage, status, detail)`` callback, called when a stage starts ("run", reason),
         is skipped ("skipped", reason) or ends ("done", seconds).

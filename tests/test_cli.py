@@ -79,6 +79,18 @@ def test_estimate_then_evaluate_json(featdir, tmp_path):
     assert_user_error(invoke("evaluate", tmp_path / "cal", tmp_path / "nowhere"), "nowhere: not a directory")
 
 
+def test_estimate_array_noise_option_reaches_the_estimator(featdir, tmp_path):
+    """--array-noise: per-array noise components, as ``calibrate(array_noise=True)`` on the same files."""
+    d, _, _ = featdir
+    for flag, out in (([], "plain"), (["--array-noise"], "per-array")):
+        r = invoke("estimate", d / "features", "-o", tmp_path / out, "-q", "--noise", "estimate", *flag)
+        assert r.exit_code == 0, r.stderr
+    plain, per_array = (read_calibration(tmp_path / o)["report"]["sigmas"] for o in ("plain", "per-array"))
+    want = calibrate(read_features(d / "features"), noise="estimate", array_noise=True)["report"]["sigmas"]
+    assert plain["per_array_factor"] == {}
+    assert per_array["per_array_factor"] == want["per_array_factor"] and set(want["per_array_factor"])
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     return small_lab3_session(tmp_path_factory.mktemp("rec") / "s", seed=5, n_events=6, rt60=0.15)
