@@ -264,7 +264,8 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
     x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
     Each chunk's whitened and plain (onset) spectra come from :func:`timing.segment_spectra`. The carrier
     phase is estimated on the first chunk (all events when they fit in one) and used for every chunk, so
-    all of the array's events share it. Returns locate's dict with the per-event arrays concatenated.
+    all of the array's events share it. Returns locate's dict with the per-event arrays concatenated; its
+    ``r`` holds only the lags ``r_lo[j] .. r_lo[j] + 2 gate`` of event j (``r_lo`` (J,) = dp − gate).
     """
     m = x.shape[0]
     per_event = 32 * m * setup["nfft"]  # bound on a segment + its FFT + both band spectra, per event
@@ -274,7 +275,11 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
         chunk = starts[j0 : j0 + n]
         c, c_plain = segment_spectra(x, chunk, setup, plain=True)  # (J_c, M, Fb) each
         res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
-        res["r"] = np.array(res["r"])  # keep only its lags, never a view of a chunk-sized transform
+        # keep only the lags the DOA gate uses (± gate around the direct path), never a chunk-sized array
+        hw = locate_kw.get("gate", 0)
+        idx = (res["dp"] - hw - res["r_lo"])[:, None] + np.arange(2 * hw + 1)
+        res["r"] = np.take_along_axis(res["r"], idx[:, None, :], axis=-1)
+        res["r_lo"] = res["dp"] - hw
         parts.append(res)
         sizes.append(len(chunk))
         phase = parts[0]["phase"]

@@ -7,6 +7,7 @@ sampled at the array's rate, starting at sample 0 (its time origin defines "the 
 from __future__ import annotations
 
 import math
+import mmap
 from fractions import Fraction
 
 import numpy as np
@@ -72,6 +73,9 @@ class ArrayAudio:
         self.fs, self.channels, self.frames = int(info.samplerate), int(info.channels), int(info.frames)
         self._int = _INTEGER_READ.get(info.subtype)  # (dtype, full scale) for integer PCM, else None
         self._file = None
+        self._sum_buf = self._fill_buf = None
+        self._map = None  # (open file, byte offset of the data chunk) once frames have been memory-mapped
+        self._map_dtype = _MAPPABLE.get(info.subtype) if info.format in ("WAV", "WAVEX") else None
 
     @property
     def shape(self):
@@ -85,6 +89,9 @@ class ArrayAudio:
         self.close()
 
     def close(self):
+        if self._map is not None:
+            self._map[0].close()
+        self._sum_buf = self._fill_buf = self._map = None
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -97,6 +104,49 @@ class ArrayAudio:
                 raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
         return self._file
 
+    def _mapped(self, a, b):
+        """Frames ``a .. b − 1`` (inside the file) as an (b − a, M) view of a memory map of just that range
+        (no read copy: half the CPU of reading; unmapped when the view is dropped, so the resident memory
+        stays one block's), or None for anything but a plain little-endian WAV of 16-bit PCM or 32-bit
+        float (those are read with libsndfile)."""
+        if self._map_dtype is None:
+            return None
+        dt = np.dtype(self._map_dtype)
+        if self._map is None:
+            where = wav_data_chunk(self.path)
+            if where is None or where[1] < self.frames * self.channels * dt.itemsize:
+                self._map_dtype = None
+                return None
+            self._map = (open(self.path, "rb"), where[0])
+        fh, data = self._map
+        frame = self.channels * dt.itemsize
+        first = data + a * frame
+        base = first - first % mmap.ALLOCATIONGRANULARITY
+        m = mmap.mmap(fh.fileno(), first - base + (b - a) * frame, access=mmap.ACCESS_READ, offset=base)
+        return np.frombuffer(m, dt, count=(b - a) * self.channels, offset=first - base).reshape(b - a, -1)
+
+    def _mapped_sum(self, start, stop):
+        """:meth:`segment` with ``channel_sum`` from the memory map (the same values), or None."""
+        a, b = max(start, 0), min(stop, self.frames)
+        if self._map_dtype is None:
+            return None
+        acc = np.zeros(max(stop - start, 0), np.float32)
+        if b <= a:
+            return acc
+        blk = self._mapped(a, b)
+        if blk is None:
+            return None
+        if self._int is not None:
+            part = blk[:, 0].astype(np.float32)
+            for ch in range(1, self.channels):
+                part += blk[:, ch]
+            acc[a - start : b - start] = part * np.float32(1.0 / self._int[1])
+            return acc
+        acc[a - start : b - start] = blk @ np.ones(self.channels, np.float32)
+        if not np.all(np.isfinite(acc)) and not np.all(np.isfinite(blk)):
+            raise InputError(f"{self.path}: contains non-finite samples")
+        return acc
+
     def segment(self, start, stop, channel_sum=False):
         """Samples ``start .. stop − 1`` (zeros outside the file).
 
@@ -105,10 +155,22 @@ class ArrayAudio:
         a quarter of the memory traffic of reading floats; the same values up to float32 rounding).
         """
         start, stop = int(start), int(stop)
+        if channel_sum:
+            acc = self._mapped_sum(start, stop)
+            if acc is not None:
+                return acc
         n = max(stop - start, 0)
         a, b = max(start, 0), min(stop, self.frames)
         raw = self._int is not None
-        out = np.zeros((n, self.channels), self._int[0] if raw else np.float32)
+        dtype = self._int[0] if raw else np.float32
+        if channel_sum:  # the frames are only summed: one buffer reused block after block (no page faults)
+            if self._sum_buf is None or self._sum_buf.shape[0] < n or self._sum_buf.dtype != dtype:
+                self._sum_buf = np.empty((n, self.channels), dtype)
+            out = self._sum_buf[:n]
+            out[: max(a - start, 0)] = 0
+            out[max(b - start, 0) :] = 0
+        else:
+            out = np.zeros((n, self.channels), dtype)
         if b > a:
             self._read_into(a, out[a - start : b - start])
         if raw and channel_sum:
@@ -121,6 +183,25 @@ class ArrayAudio:
         if channel_sum:
             return out @ np.ones(self.channels, np.float32)
         return out.T
+
+    def fill_segment(self, out, start):
+        """Write frames ``start .. start + n − 1`` (all inside the file) into ``out`` ((M, n) float32, e.g. a
+        slice of a larger array): the values of ``x[:, start:start + n]`` without an intermediate copy
+        (the sample-major frames go through one reused buffer)."""
+        n, start = out.shape[-1], int(start)
+        buf = self._mapped(start, start + n)
+        if buf is None:
+            dtype = self._int[0] if self._int is not None else np.float32
+            if self._fill_buf is None or self._fill_buf.shape[0] < n or self._fill_buf.dtype != dtype:
+                self._fill_buf = np.empty((n, self.channels), dtype)
+            buf = self._fill_buf[:n]
+            self._read_into(start, buf)
+        if self._int is not None:
+            np.multiply(buf.T, np.float32(1.0 / self._int[1]), out=out, dtype=np.float32)
+        else:
+            out[...] = buf.T
+            if self._map is not None and not np.all(np.isfinite(out)):
+                raise InputError(f"{self.path}: contains non-finite samples")
 
     def _read_into(self, first, out):
         """Read ``len(out)`` frames from frame ``first`` into ``out`` ((n, M), C-contiguous)."""
@@ -159,6 +240,31 @@ class _ChannelSum:
     def __getitem__(self, key):
         a, b = key[1].start, key[1].stop
         return self.audio.segment(a, b, channel_sum=True)[None]
+
+
+# subtypes whose samples a WAV stores as plain little-endian arrays (memory-mapped by ArrayAudio)
+_MAPPABLE = {"PCM_16": "<i2", "FLOAT": "<f4"}
+
+
+def wav_data_chunk(path):
+    """(byte offset, size) of a RIFF/WAVE file's ``data`` chunk, or None (not such a file, or no chunk)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(12)
+            if len(head) < 12 or head[:4] != b"RIFF" or head[8:12] != b"WAVE":
+                return None
+            pos = 12
+            while True:
+                f.seek(pos)
+                h = f.read(8)
+                if len(h) < 8:
+                    return None
+                size = int.from_bytes(h[4:8], "little")
+                if h[:4] == b"data":
+                    return pos + 8, size
+                pos += 8 + size + (size & 1)
+    except OSError:
+        return None
 
 
 def _first_line(exc):

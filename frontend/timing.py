@@ -65,28 +65,38 @@ def segment_spectra(x, starts, setup, plain=False):
     seg_len, nfft = setup["seg_len"], setup["nfft"]
     j = len(starts)
     seg = np.zeros((j, m, seg_len), np.float32)
+    fill = getattr(x, "fill_segment", None)  # signals.ArrayAudio: read straight into the segment array
     for i, s0 in enumerate(np.asarray(starts, int)):
         a, b = max(s0, 0), min(s0 + seg_len, n)
-        if b > a:
+        if b > a and fill is not None:
+            fill(seg[i, :, a - s0 : b - s0], a)
+        elif b > a:
             seg[i, :, a - s0 : b - s0] = x[:, a:b]  # x may be a transposed (sample-major) view
-    spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)[..., setup["kb"]].astype(np.complex128)
-    c = spec * setup["tmpl_conj"]
+    kb = setup["kb"]
+    spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)  # complex64
+    spec = spec[..., kb[0] : kb[-1] + 1] if kb[-1] - kb[0] + 1 == len(kb) else spec[..., kb]  # (a view)
+    c = spec * setup["tmpl_conj"]  # complex128 (the single-precision bins are widened exactly)
     c_plain = None
+    w = setup["weights"] / setup["weights"].sum()
     if plain:
-        w = setup["weights"] / setup["weights"].sum()
         p = np.sum(np.abs(setup["tmpl_conj"]) ** 2 * w)  # a single path of unit gain peaks at 1
-        c_plain = c * (w / np.maximum(p * np.sqrt(np.mean(np.abs(spec) ** 2, axis=-1, keepdims=True)
+        spec_pow = np.square(spec.real, dtype=np.float64) + np.square(spec.imag, dtype=np.float64)
+        c_plain = c * (w / np.maximum(p * np.sqrt(np.mean(spec_pow, axis=-1, keepdims=True)
                                                   / np.mean(np.abs(setup["tmpl_conj"]) ** 2)), 1e-300))
     if setup["whiten_bins"]:
         # divide by the locally smoothed magnitude: removes the spectral colour of speaker, room and noise
         # (as PHAT does) but not the fine structure of the reverberation, whose full whitening would smear
         # energy ahead of the direct path (a zero-phase inverse filter is two-sided)
-        p = uniform_filter1d(np.abs(c) ** 2, setup["whiten_bins"], axis=-1, mode="nearest")
-        c = c / np.sqrt(np.maximum(p, 1e-30 * max(float(p.max(initial=0.0)), 1e-300)))
+        p = uniform_filter1d(_power(c), setup["whiten_bins"], axis=-1, mode="nearest")
+        c *= w / np.sqrt(np.maximum(p, 1e-30 * max(float(p.max(initial=0.0)), 1e-300)))
     else:
-        c = c / np.sqrt(np.maximum(np.mean(np.abs(c) ** 2, axis=-1, keepdims=True), 1e-300))
-    c = c * (setup["weights"] / setup["weights"].sum())
+        c *= w / np.sqrt(np.maximum(np.mean(_power(c), axis=-1, keepdims=True), 1e-300))
     return (c, c_plain) if plain else c
+
+
+def _power(z):
+    """``|z|²`` of a complex array without the square root of ``np.abs``."""
+    return z.real * z.real + z.imag * z.imag
 
 
 @lru_cache(maxsize=32)
@@ -124,7 +134,10 @@ def lag_grid(c, setup, lo, hi, step=1.0):
     k0, n_q, n_t = int(kb[0]), int(kb[-1] - kb[0] + 1), int(round((hi - lo) / step))
     n_fft, pre, kernel, post = _lag_plan(nfft, k0, n_q, n_t, float(lo), float(step))
     d = np.zeros(c.shape[:-1] + (n_fft,), np.complex64)
-    d[..., kb - k0] = c * pre[kb - k0]
+    if len(kb) == n_q:  # contiguous band (always, from band weights): a slice, no scatter
+        np.multiply(c, pre, out=d[..., :n_q], casting="same_kind" if c.dtype == np.complex64 else "unsafe")
+    else:
+        d[..., kb - k0] = c * pre[kb - k0]
     y = sfft.ifft(sfft.fft(d, axis=-1, overwrite_x=True) * kernel, axis=-1, overwrite_x=True)
     return y[..., n_q - 1 : n_q - 1 + n_t] * post
 
@@ -188,6 +201,57 @@ class BandSums:
         return np.einsum("s...a,...a->s...", y, outer)
 
 
+class BandMoments:
+    """``Σ_f c_f ω^k e^{jωτ}`` (ω = 2πf) for k = 0, 1, 2 at changing lags, reading the spectra once per
+    call and never copying them (what Newton steps on the correlation need: value, slope, curvature).
+
+    With uniformly spaced frequencies ``f = f_0 + (aB + b)Δf`` the band folds into (A, B) blocks
+    (a view of ``c``; the last, partial block apart) and ``ω = Ω_a + ω_b``: one pass over ``c``
+    against the ``B`` inner phasors times ``ω_b^k`` gives ``Y_k[a]``, and ``Σ_a`` of the outer phasors
+    times ``Y_0``, ``Ω_a Y_0 + Y_1``, ``Ω_a² Y_0 + 2 Ω_a Y_1 + Y_2`` gives the three moments (the same
+    sums as :class:`BandSums` with the factors ``1, ω, ω²``, up to rounding).
+    """
+
+    def __init__(self, c, freqs):
+        self.c, self.freqs = c, freqs
+        n_f = len(freqs)
+        df = np.diff(freqs)
+        self.uniform = n_f >= 3 and np.ptp(df) <= 1e-9 * abs(df[0])
+        if not self.uniform:
+            w = 2 * np.pi * freqs
+            self._sums = BandSums(c, freqs, (1.0, w, w * w))
+            return
+        self.df, self.b = df[0], int(np.ceil(np.sqrt(n_f)))
+        self.n_a = -(-n_f // self.b)
+        self.full = (self.n_a - 1) * self.b
+        self.head = c[..., : self.full].reshape(c.shape[:-1] + (self.n_a - 1, self.b))
+        self.tail = c[..., self.full :]
+
+    def __call__(self, tau, orders=3):
+        """tau : (...) lags (s), broadcastable with the spectra's middle axes → (orders, ...) complex:
+        the moments k = 0 .. orders − 1 (orders ≤ 3; 1 = the correlation alone, a third of the work)."""
+        tau = np.asarray(tau, float)
+        if not self.uniform:
+            return self._sums(tau)[:orders]
+        wt = 2j * np.pi * tau[..., None]
+        om = 2 * np.pi * self.df * np.arange(self.b)
+        big = 2 * np.pi * (self.freqs[0] + self.df * self.b * np.arange(self.n_a))         # Ω_a
+        inner = np.exp(wt * (self.df * np.arange(self.b)))                                  # (..., B)
+        ik = inner[..., None, :] * np.stack([np.ones_like(om), om, om * om][:orders])       # (..., K, B)
+        y = np.empty(np.broadcast_shapes(self.c.shape[:-1], tau.shape) + (orders, self.n_a), complex)
+        y[..., :-1] = np.matmul(ik, np.swapaxes(self.head, -1, -2))                        # (..., K, A − 1)
+        y[..., -1] = np.einsum("...b,...kb->...k", self.tail, ik[..., : self.tail.shape[-1]])
+        outer = np.exp(wt * big / (2 * np.pi))[..., None, :]                                # (..., 1, A)
+        y *= outer
+        y0 = y[..., 0, :]
+        out = [y0.sum(-1)]
+        if orders > 1:
+            out.append((big * y0).sum(-1) + y[..., 1, :].sum(-1))
+        if orders > 2:
+            out.append((big * big * y0).sum(-1) + 2 * (big * y[..., 1, :]).sum(-1) + y[..., 2, :].sum(-1))
+        return np.stack(out)
+
+
 def corr_at(c, freqs, tau):
     """Analytic correlation at arbitrary lags: c (..., Fb), tau (...) seconds → (...) complex."""
     return BandSums(np.asarray(c), freqs)(tau)[0]
@@ -211,17 +275,16 @@ def newton_peak(c, freqs, tau, phase=0.0, iters=2, max_step=None):
     c : (..., Fb). tau : (...) start lags (s), within a fraction of a carrier period of the peak.
     Returns (tau, value) refined, same shapes.
     """
-    w = 2 * np.pi * freqs
-    sums = BandSums(c, freqs, (w, w * w, 1.0))
+    sums = BandMoments(c, freqs)
     tau = np.array(tau, float)
     max_step = max_step if max_step is not None else 0.25 / freqs.max()
     rot = np.exp(-1j * phase)
     for _ in range(iters):
-        z1, z2, _ = sums(tau) * rot
+        _, z1, z2 = sums(tau) * rot
         d1, d2 = -np.imag(z1), -np.real(z2)
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
         tau = tau + np.clip(step, -max_step, max_step)
-    val = np.real(sums(tau)[2] * rot)
+    val = np.real(sums(tau, orders=1)[0] * rot)
     return tau, val
 
 
@@ -229,17 +292,31 @@ def newton_envelope(c, freqs, tau, iters=1):
     """Refine peaks of the envelope ``|r(τ)|²`` by Newton steps on the exact band-limited correlation
     (the parabola through three samples is biased by a fraction of a sample, which would bias the
     carrier phase read at the peak). Returns (tau, r(tau))."""
-    w = 2 * np.pi * freqs
-    sums = BandSums(c, freqs, (1.0, 1j * w, -(w * w)))
+    sums = BandMoments(c, freqs)
     tau = np.array(tau, float)
     max_step = 0.25 / freqs.max()
     for _ in range(iters):
-        z, z1, z2 = sums(tau)
+        m0, m1, m2 = sums(tau)
+        z, z1, z2 = m0, 1j * m1, -m2
         d1 = 2 * np.real(np.conj(z) * z1)
         d2 = 2 * np.real(np.conj(z1) * z1 + np.conj(z) * z2)
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
         tau = tau + np.clip(step, -max_step, max_step)
-    return tau, sums(tau)[0]
+    return tau, sums(tau, orders=1)[0]
+
+
+def _pulse_magnitude(setup, plain, over):
+    """``|p|`` of one unit path at lags ``k / over`` samples, k = 0 .. nfft·over − 1 (circular), cached in
+    ``setup`` (every chunk of an array's events, and both of :func:`locate`'s uses, share it)."""
+    cache = setup.setdefault("_pulse_cache", {})
+    key = (bool(plain), int(over))
+    if key not in cache:
+        nf = setup["nfft"] * over
+        full = np.zeros(nf, complex)
+        full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
+        full /= full.sum()
+        cache[key] = np.abs(sfft.ifft(full) * nf)
+    return cache[key]
 
 
 def pulse_near(setup, n, spread, plain=False, over=4):
@@ -248,11 +325,7 @@ def pulse_near(setup, n, spread, plain=False, over=4):
     Like :func:`pulse_envelope` but not made monotone: the exact sidelobe level a peak puts ``d`` samples
     away when its position is known to ± ``spread`` (sub-sample position, mics across the aperture).
     """
-    nf = setup["nfft"] * over
-    full = np.zeros(nf, complex)
-    full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
-    full /= full.sum()
-    p = np.abs(sfft.ifft(full) * nf)
+    p = _pulse_magnitude(setup, plain, over)
     p = np.r_[p[-(spread + 1) * over :], p[: (n + spread + 1) * over]]  # lags −spread−1 .. n+spread
     p = maximum_filter1d(p, 2 * spread * over + 1)
     return p[(spread + 1) * over :: over][:n]
@@ -266,10 +339,7 @@ def pulse_envelope(setup, n, plain=False):
     peak's sidelobes can reach ``n`` samples away. plain : the pulse of the unwhitened matched filter
     (weights × |S(f)|²).
     """
-    full = np.zeros(setup["nfft"], complex)
-    full[setup["kb"]] = setup["weights"] * (np.abs(setup["tmpl_conj"]) ** 2 if plain else 1.0)
-    full /= full.sum()
-    p = np.abs(sfft.ifft(full) * setup["nfft"])[: min(n, setup["nfft"])]
+    p = _pulse_magnitude(setup, plain, 1)[: min(n, setup["nfft"])]
     return np.maximum.accumulate(p[::-1])[::-1]
 
 
@@ -383,13 +453,14 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     """
     fs, freqs = setup["fs"], setup["freqs"]
     pad = gate + half_width + 2
-    r_lo = max(0, lo - pad)
-    r = lag_grid(c, setup, r_lo, min(setup["nfft"], hi + pad))  # (J, M, T)
-    env = np.abs(r)
-    mean_env = env.mean(axis=1)
+    r_lo, r_hi = max(0, lo - pad), min(setup["nfft"], hi + pad)
+    if c_onset is None:
+        r, env, mean_env = _grid_envelopes(c, setup, r_lo, r_hi)  # (J, M, T)
+        onset_env = mean_env[:, lo - r_lo : hi - r_lo]
+    else:  # the whitened grid is needed only from the direct path on: computed once it is known
+        r = env = mean_env = None
+        onset_env = np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
     pulse_env = pulse_envelope(setup, hi - lo + pad)
-    onset_env = mean_env[:, lo - r_lo : hi - r_lo] if c_onset is None else \
-        np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
     onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
     if smear is None:
         smear = excess_width(onset_env, onset_pulse)
@@ -407,6 +478,9 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
             c, c_onset, setup, shadowed, strongest, half_width, lo, hi, r_lo, r, onset_env, onset_pulse,
             (snr_factor, min_ratio, sidelobe_margin), dp, ratio, snr)
     dp = lo + dp
+    if r is None:
+        r_lo = max(0, int(np.min(dp, initial=lo)) - pad)
+        r, env, mean_env = _grid_envelopes(c, setup, r_lo, r_hi)
     reflection = first_reflection(mean_env, dp - r_lo, half_width, pulse_env, reflection_ratio,
                                   sidelobe_margin)
     reflection = np.where(reflection >= 0, reflection + r_lo, -1)
@@ -485,7 +559,8 @@ def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi,
                      onset_pulse, onset_args, dp, ratio, snr):
     """:func:`locate`'s second look at events with a shadowed candidate: the strongest path subtracted
     (:func:`subtract_path`) from the timing spectra and the onset spectra, the onset searched again with
-    the first look's noise floor and strongest peak. Returns updated copies."""
+    the first look's noise floor and strongest peak. Returns updated copies (``r`` None: none, not computed
+    yet)."""
     sel = np.flatnonzero(shadowed)
     floor = onset_env[sel, dp[sel]] / snr[sel]
     peak = onset_env[sel, dp[sel]] / ratio[sel]
@@ -501,15 +576,25 @@ def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi,
     dp, ratio, snr = dp.copy(), ratio.copy(), snr.copy()
     keep = sel[better]
     dp[keep], ratio[keep], snr[keep] = d2[better], q2[better], s2[better]
-    c, r = c.copy(), r.copy()
+    c = c.copy()
     c[keep] = c_sub[better]
     if c_onset is not None:
         c_onset = c_onset.copy()
         c_onset[keep] = on_sub[better]
+    if r is None:  # the whitened grid is not computed yet
+        return c, c_onset, None, None, None, dp, ratio, snr
+    r = r.copy()
     if keep.size:
         r[keep] = lag_grid(c[keep], setup, r_lo, r_lo + r.shape[-1])
     env = np.abs(r)
     return c, c_onset, r, env, env.mean(axis=1), dp, ratio, snr
+
+
+def _grid_envelopes(c, setup, r_lo, r_hi):
+    """The correlation on lags ``r_lo .. r_hi − 1`` (:func:`lag_grid`), its magnitude and mic average."""
+    r = lag_grid(c, setup, r_lo, r_hi)
+    env = np.abs(r)
+    return r, env, env.mean(axis=1)
 
 
 def _path_peaks(c, setup, lag, half_width):
@@ -542,7 +627,9 @@ def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
 
 CLOSE_RATIO = 0.15       # a second path fitted at ≥ this × the direct path's amplitude (median over mics) is removed
 CLOSE_MAX_OVERLAP = 0.8  # ... if its pulse overlaps the direct one's less than this (|p(Δ)|; closer: inseparable)
-GRID_OVER = 4            # sub-sample steps per sample of the two-path fit's grid
+GRID_OVER = 4            # at most this many sub-sample steps per sample in the two-path fit's grid, and
+GRID_PER_PULSE = 18      # about this many per pulse width (16 kHz, 3.5 kHz of band: 4 per sample, as
+                         # for 48 kHz and 9.5 kHz; 48 kHz and 3.5 kHz: 1 per sample, not 55 per pulse)
 
 
 def pulse_response(setup, shape, n, over):
@@ -555,23 +642,32 @@ def pulse_response(setup, shape, n, over):
 def _two_path_search(b, pd, d, n1):
     """Grid index (J, M) into (n1, D) of the pair explaining the most energy, ``(|b1|² + |b2|² −
     2 Re(p b1 conj(b2))) / (1 − |p|²)`` with ``b1 = b[i]``, ``b2 = b[i + d]``, ``p = pd``: single
-    precision, one event at a time (its (M, n1, D) grid stays in cache), amplitudes never formed."""
+    precision, one event at a time (its (M, n1, D) grid stays in cache), amplitudes never formed; the
+    separations ``d`` are consecutive (where the pulses overlap less than a bound), so ``b[i + d]`` is a
+    strided window of ``b``, not a gathered copy."""
     pw = b.real ** 2 + b.imag ** 2
-    idx2 = np.arange(n1)[:, None] + d[None, :]                                  # (n1, D)
+    n_d = len(d)
+    consecutive = n_d and np.all(np.diff(d) == 1)
+    idx2 = None if consecutive else np.arange(n1)[:, None] + d[None, :]         # (n1, D)
     inv_det = (1.0 / (1.0 - np.abs(pd) ** 2)).astype(np.float32)
-    pr, pi = (2 * pd.real).astype(np.float32), (2 * pd.imag).astype(np.float32)
+    p2 = (2 * pd).astype(np.complex64)
     k = np.zeros(b.shape[:2], int)
     for j in range(b.shape[0]):
-        cross = b[j, :, :n1, None] * np.conj(b[j][:, idx2])                     # (M, n1, D)
-        e = pw[j, :, :n1, None] + pw[j][:, idx2]
-        e -= cross.real * pr
-        e += cross.imag * pi
+        if consecutive:
+            b2 = np.lib.stride_tricks.sliding_window_view(b[j, :, d[0] : d[0] + n1 + n_d - 1], n_d, axis=-1)
+            w2 = np.lib.stride_tricks.sliding_window_view(pw[j, :, d[0] : d[0] + n1 + n_d - 1], n_d, axis=-1)
+        else:
+            b2, w2 = b[j][:, idx2], pw[j][:, idx2]
+        cross = np.conj(b2) * p2                                                 # (M, n1, D): 2 p conj(b2)
+        cross *= b[j, :, :n1, None]
+        e = pw[j, :, :n1, None] + w2
+        e -= cross.real
         e *= inv_det
         k[j] = np.argmax(e.reshape(len(e), -1), axis=-1)
     return k
 
 
-def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
+def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=None):
     """Direct path plus the strongest later path within ``max_sep`` samples, per mic, by a grid search.
 
     c : (J, M, Fb) spectra whose single path of amplitude ``a`` at ``τ`` is ``a · u_f e^{−j2πfτ}``
@@ -584,8 +680,12 @@ def two_path_fit(c, setup, shape, dp, half_width, max_sep, over=GRID_OVER):
     cm to 20 cm behind the array) shows as no separate peak, yet moves the direct path's peak and phase.
     Returns t1, a1, t2, a2 (J, M): times (s since the segment start) and complex amplitudes, and the
     energy the second path explains beyond the best single path (refined off the grid) relative to it.
+    over : grid steps per sample (None: ``GRID_PER_PULSE`` per pulse width, at most ``GRID_OVER``).
     """
     fs = setup["fs"]
+    if over is None:  # grid steps per sample: GRID_PER_PULSE per pulse width, at most GRID_OVER per sample
+        pulse = fs / max(setup["freqs"].max() - setup["freqs"].min(), 1.0)
+        over = int(np.clip(round(GRID_PER_PULSE / pulse), 1, GRID_OVER))
     p_all = pulse_response(setup, shape, int(max_sep * over), over)   # p(Δ); p(−Δ) = conj
     d = np.flatnonzero(np.abs(p_all) < CLOSE_MAX_OVERLAP) + 1
     d = d if d.size else np.array([len(p_all)])

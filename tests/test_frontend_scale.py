@@ -207,13 +207,17 @@ def test_timing_in_chunks_equals_timing_at_once():
         peaks = np.flatnonzero((env > 0.5 * env.max()) & (env >= np.maximum(np.roll(env, 1), np.roll(env, -1))))
         starts = peaks * dec - 200
         setup = spectra_setup(tmpl, x.fs, (500.0, 4000.0), len(tmpl) + 600)
-        kw = {"lo": 100, "hi": 300, "half_width": 10}
+        kw = {"lo": 100, "hi": 300, "half_width": 10, "gate": 20}
         c, c_plain = segment_spectra(x, starts, setup, plain=True)
         whole = locate(c, setup, **kw, c_onset=c_plain)
         fixed = locate_events(x, starts, setup, {**kw, "phase": whole["phase"]}, chunk_bytes=1)  # 1 per chunk
         np.testing.assert_allclose(fixed["tau"], whole["tau"], rtol=0, atol=1e-12)
         np.testing.assert_array_equal(fixed["dp"], whole["dp"])
-        np.testing.assert_allclose(fixed["r"], whole["r"], rtol=1e-6, atol=1e-6 * np.abs(whole["r"]).max())
+        # locate_events keeps only the DOA gate's lags around each direct path
+        idx = (whole["dp"] - 20 - whole["r_lo"])[:, None] + np.arange(41)
+        window = np.take_along_axis(whole["r"], idx[:, None, :], axis=-1)
+        np.testing.assert_array_equal(fixed["r_lo"], whole["dp"] - 20)
+        np.testing.assert_allclose(fixed["r"], window, rtol=1e-6, atol=1e-6 * np.abs(window).max())
         first = locate_events(x, starts, setup, kw, chunk_bytes=1)
         c1, c1_plain = segment_spectra(x, starts[:1], setup, plain=True)
         assert first["phase"] == locate(c1, setup, **kw, c_onset=c1_plain)["phase"]
@@ -243,3 +247,44 @@ def test_non_finite_sample_late_in_a_recording_is_one_clear_error(tmp_path):
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and "A2.wav" in lines[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("subtype", ["PCM_16", "FLOAT"])
+def test_memory_mapped_reads_equal_libsndfile_reads(tmp_path, subtype):
+    # plain WAVs are memory-mapped for the channel sums and the event segments: the same samples as
+    # libsndfile's reads, also across the file's ends and with a chunk before the data chunk
+    rng = np.random.default_rng(3)
+    ref = np.clip(0.3 * rng.standard_normal((5000, 3)), -1, 1)
+    p = tmp_path / "a.wav"
+    sf.write(p, ref, 16000, subtype=subtype)
+    raw = p.read_bytes()
+    extra = b"JUNK" + (10).to_bytes(4, "little") + bytes(10)  # a padding chunk readers skip
+    q = tmp_path / "b.wav"
+    at = raw.index(b"data")  # the extra chunk goes just before the data chunk
+    q.write_bytes(raw[:4] + (len(raw) + len(extra) - 8).to_bytes(4, "little") + raw[8:at] + extra + raw[at:])
+    for path in (p, q):
+        arr = {"name": "A", "wav": path, "mics": np.zeros((3, 3))}
+        with ArrayAudio(arr) as mapped, ArrayAudio(arr) as plain:
+            plain._map_dtype = None  # force libsndfile
+            for a, b in ((0, 5000), (-300, 700), (4000, 6000), (1234, 1235)):
+                np.testing.assert_array_equal(mapped.channel_sum()[:, a:b], plain.channel_sum()[:, a:b])
+            seg_m, seg_p = np.zeros((3, 800), np.float32), np.zeros((3, 800), np.float32)
+            mapped.fill_segment(seg_m, 4100)
+            plain.fill_segment(seg_p, 4100)
+            np.testing.assert_array_equal(seg_m, seg_p)
+            np.testing.assert_array_equal(seg_m, plain[:, 4100:4900])
+            assert mapped._map is not None and plain._map is None  # each path really taken
+
+
+def test_non_finite_samples_are_bad_input_in_mapped_reads(tmp_path):
+    p = tmp_path / "nan.wav"
+    data = np.zeros((4000, 2))
+    data[3000, 1] = np.inf
+    sf.write(p, data, 8000, subtype="FLOAT")
+    arr = {"name": "A", "wav": p, "mics": np.zeros((2, 3))}
+    with ArrayAudio(arr) as x:
+        assert np.all(x.channel_sum()[:, 0:2000] == 0)
+        with pytest.raises(InputError, match="nan.wav: contains non-finite samples"):
+            x.channel_sum()[:, 2000:4000]
+        with pytest.raises(InputError, match="nan.wav: contains non-finite samples"):
+            x.fill_segment(np.zeros((2, 100), np.float32), 2950)
