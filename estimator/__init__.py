@@ -2,12 +2,12 @@
 
 Public API: :func:`calibrate` (features → calibration), :func:`crlb` and :func:`draw_from_crlb` (the
 Cramér–Rao bound at a ground truth), :func:`rebuild`, :func:`residuals`, :func:`position_covariances`,
-:func:`array_covariance` (a calibration evaluated against its features), :func:`to_frames` / :func:`state_from_frames`.
+:func:`array_covariance` (a calibration evaluated against its features), :func:`to_frames` / :func:`to_tables` / :func:`state_from_frames`.
 """
 # Imported eagerly: ``calibrate`` is both a submodule and the function it exports, so a lazy package would
 # hand out the module once anything imported the submodule first.
 from .assess import array_covariance, position_covariances, rebuild, residuals
-from .calibrate import calibrate, to_frames, validate_options
+from .calibrate import calibrate, to_frames, to_tables, validate_options
 from .factors import KINDS, MeasurementKind
 from .init import ObservabilityError
 from .problem import LINE_COLUMN
@@ -15,4 +15,4 @@ from .uncertainty import crlb, draw_from_crlb, state_from_frames
 
 __all__ = ["KINDS", "LINE_COLUMN", "MeasurementKind", "array_covariance", "calibrate", "crlb", "draw_from_crlb",
            "ObservabilityError", "position_covariances", "rebuild", "residuals", "state_from_frames", "to_frames",
-           "validate_options"]
+           "to_tables", "validate_options"]

@@ -91,10 +91,25 @@ def residual_table(fs, mask=None):
     return out
 
 
+def _quaternions(R):
+    """(N, 4) scalar-first unit quaternions of rotation matrices (N, 3, 3), with qw >= 0."""
+    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q
+
+
+def to_tables(p, st):
+    """State → the plain tables scoring reads (``pipeline.report.evaluate.array_table`` / ``source_table``):
+    the values :func:`to_frames` would put in its DataFrames, without building them (the Monte-Carlo study
+    scores every run and stage)."""
+    arrays = {"names": list(p.names), "xyz": st.x, "quat": _quaternions(st.R), "offset": st.offset,
+              "drift": st.drift}
+    return arrays, {"event": np.asarray(p.events), "xyz": st.s}
+
+
 def to_frames(p, st, std=None):
     """State (+ std) → arrays and sources DataFrames of docs/formats.md section 3."""
-    q = Rotation.from_matrix(st.R).as_quat(scalar_first=True)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    q = _quaternions(st.R)
     arrays = {"array": list(p.names), "x": st.x[:, 0], "y": st.x[:, 1], "z": st.x[:, 2],
               "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3], "offset": st.offset, "drift": st.drift}
     sources = {"event": p.events, "x": st.s[:, 0], "y": st.s[:, 1], "z": st.s[:, 2]}
@@ -477,14 +492,15 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
 
 
 def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", array_noise=False):
+                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", array_noise=False,
+                     outputs="all"):
     """Raise ValueError with a clear message for any option of :func:`calibrate_features` out of range.
 
     The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
     any data): NaN, infinities and negative values are refused, never silently used.
     """
     choices = {"method": (method, tuple(INIT_METHODS)), "loss": (loss, ("cauchy", "huber", "linear", None)),
-               "noise": (noise, ("auto", "meta", "estimate"))}
+               "noise": (noise, ("auto", "meta", "estimate")), "outputs": (outputs, ("all", "solution"))}
     for name, (value, allowed) in choices.items():
         if value not in allowed:
             shown = [a for a in allowed if a is not None]
@@ -568,7 +584,7 @@ def calibrate(features, **options):
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
               outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True,
-              array_noise=False):
+              array_noise=False, outputs="all"):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters
@@ -592,6 +608,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     array_noise : with noise="estimate", also one sigma factor per (type, array) where the redundancy
         allows (``estimator.arraynoise``); no effect with noise="meta".
     odometry_yaw : estimate the odometry frame's yaw (kept only when significant; docs/method.md).
+    outputs : "all" (default, below) or "solution": the solve only, for programs that score many runs
+        (the Monte-Carlo study): no covariance, frames, verdict or report, so a few ms less per call.
 
     Returns
     -------
@@ -600,10 +618,12 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     written as report.json), and for programs that go on from the solution: ``state`` (the final
     :class:`~calib.estimator.problem.State`), ``problem`` (the :class:`~calib.estimator.problem.Problem`
     with the final sigmas) and ``stage_states`` ({"init", "ive"}: the State after each stage, when run).
+    With ``outputs="solution"``: ``state``, ``problem``, ``stage_states`` and, with the values the full
+    report would give, ``converged``, ``cost`` (report ``cost.final``), ``outliers`` and ``undetermined``.
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
                      robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise,
-                     array_noise=array_noise)
+                     array_noise=array_noise, outputs=outputs)
     if loss == "linear":
         loss = None
     times = {}
@@ -629,6 +649,15 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                                                robust_k=robust_k, outlier_threshold=outlier_threshold,
                                                max_iter=max_iter)
     times["joint"] = time.perf_counter() - t2
+    if outputs == "solution":
+        return _solution(p, st, info, kinds, stage_states)
+    return _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, method=method, noise=noise,
+                         emission_sigma=emission_sigma, times=times, t0=t0)
+
+
+def _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, *, method, noise, emission_sigma,
+                  times, t0):
+    """``calibrate``'s result at the final state: covariance, frames with std, verdict and report."""
     lay = make_layout(p)
     lin = linearise(p, st, lay, kinds, mask=info["mask"])
     J, w, cost, fs = lin.J, lin.w, lin.cost, lin.factors
@@ -642,6 +671,16 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                      times=times)
     return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,
             "stage_states": stage_states}
+
+
+def _solution(p, st, info, kinds, stage_states):
+    """``calibrate(outputs="solution")``: the state and the report's convergence, final cost (computed as
+    :func:`_judge` does: without a dropped array's rows), outliers and undetermined parameters."""
+    lay = info["layout"] if info["dropped"] else make_layout(p)
+    return {"state": st, "problem": p, "stage_states": stage_states,
+            "converged": bool(info["final"]["converged"]),
+            "cost": linearise(p, st, lay, kinds, mask=info["mask"]).cost,
+            "outliers": info["outliers"], "undetermined": undetermined_parameters(p)}
 
 
 def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_threshold, max_iter):

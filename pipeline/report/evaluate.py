@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.pipeline.formats.io import InputError
@@ -29,10 +30,24 @@ def _rms(v):
     return float(np.sqrt(np.mean(v * v))) if v.size else float("nan")
 
 
+def array_table(df):
+    """The columns of an arrays DataFrame that scoring reads, as plain values: ``names`` (list), ``xyz``
+    (n, 3), ``quat`` (n, 4, scalar first), ``offset`` (n,), ``drift`` (n,)."""
+    return {"names": df["array"].tolist(), "xyz": columns(df, ("x", "y", "z")),
+            "quat": columns(df, ("qw", "qx", "qy", "qz")), "offset": df["offset"].to_numpy(float),
+            "drift": df["drift"].to_numpy(float)}
+
+
+def source_table(df):
+    """The columns of a sources DataFrame that scoring reads: ``event`` (K,) and ``xyz`` (K, 3)."""
+    return {"event": df["event"].to_numpy(), "xyz": columns(df, ("x", "y", "z"))}
+
+
 def array_errors(est, truth, reference=None, undetermined=()):
     """Per-array errors of a calibration against truth.
 
-    est, truth : arrays DataFrames (docs/formats.md sections 3/4). ``reference``: name of the reference array
+    est, truth : arrays DataFrames (docs/formats.md sections 3/4), or their :func:`array_table`.
+    ``reference``: name of the reference array
     (default: the truth row at the origin with identity rotation, else the first row). ``undetermined``:
     report.json's list of what the data left undetermined; those errors are NaN (not scored), and for a
     linear array / mic pair (``roll``, with its ``axis``) the orientation is scored by ``axis_deg``, the
@@ -44,21 +59,23 @@ def array_errors(est, truth, reference=None, undetermined=()):
     """
     # positional lookups on plain arrays (pandas indexing costs more than the metrics at the paper's size;
     # the Monte-Carlo study scores every run and stage)
-    e_row = {a: k for k, a in enumerate(est["array"].tolist())}
-    t_names = truth["array"].tolist()
+    est = est if isinstance(est, dict) else array_table(est)
+    truth = truth if isinstance(truth, dict) else array_table(truth)
+    e_row = {a: k for k, a in enumerate(est["names"])}
+    t_names = truth["names"]
     missing = [a for a in t_names if a not in e_row]
     if missing:
         raise InputError(f"calibration has no array {missing[0]!r} that truth has")
-    t_xyz = columns(truth, ("x", "y", "z"))
+    t_xyz = truth["xyz"]
     if reference is None:
         at_origin = (np.linalg.norm(t_xyz, axis=1) < 1e-12)
         reference = t_names[int(np.argmax(at_origin))] if at_origin.any() else t_names[0]
     it = np.array([k for k, a in enumerate(t_names) if a != reference], int)
     names = [t_names[k] for k in it]
     ie = np.array([e_row[a] for a in names], int)
-    pos = np.linalg.norm(columns(est, ("x", "y", "z"))[ie] - t_xyz[it], axis=1)
-    qe = columns(est, ("qw", "qx", "qy", "qz"))[ie]
-    qt = columns(truth, ("qw", "qx", "qy", "qz"))[it]
+    pos = np.linalg.norm(est["xyz"][ie] - t_xyz[it], axis=1)
+    qe = est["quat"][ie]
+    qt = truth["quat"][it]
     geo = np.full(len(names), np.nan)
     paper = np.full(len(names), np.nan)
     ok = np.all(np.isfinite(qt), axis=1)
@@ -68,8 +85,8 @@ def array_errors(est, truth, reference=None, undetermined=()):
         geo[ok] = np.rad2deg((Rt.inv() * Re).magnitude())
         cosang = np.clip(np.sum(Rt.apply(P_PAPER) * Re.apply(P_PAPER), axis=1), -1.0, 1.0)
         paper[ok] = np.rad2deg(np.arccos(cosang))
-    e_off, t_off = est["offset"].to_numpy(float), truth["offset"].to_numpy(float)
-    e_dr, t_dr = est["drift"].to_numpy(float), truth["drift"].to_numpy(float)
+    e_off, t_off = est["offset"], truth["offset"]
+    e_dr, t_dr = est["drift"], truth["drift"]
     off = e_off[ie] - t_off[it]
     dr = e_dr[ie] - t_dr[it]
     t_ref = t_names.index(reference)
@@ -103,21 +120,32 @@ def _unscored(out, qe, qt, undetermined):
 
 
 def _source_differences(se, stt):
-    """Estimated − true source positions (m, 3) of the events in both, in the truth's row order (as an
-    inner merge on ``event``; duplicate event numbers are left to pandas' merge)."""
-    ev_e = se["event"].to_numpy()
+    """Estimated − true source positions (m, 3) of the events in both (:func:`source_table`s), in the
+    truth's row order (as an inner merge on ``event``; duplicate event numbers are left to pandas' merge)."""
+    ev_e = se["event"]
     if len(np.unique(ev_e)) < len(ev_e):
-        m = stt.merge(se, on="event", suffixes=("_t", "_e"))
+        frame = lambda t: pd.DataFrame({"event": t["event"], **{c: t["xyz"][:, k] for k, c in enumerate("xyz")}})  # noqa: E731
+        m = frame(stt).merge(frame(se), on="event", suffixes=("_t", "_e"))
         return m[["x_e", "y_e", "z_e"]].to_numpy(float) - m[["x_t", "y_t", "z_t"]].to_numpy(float)
     row = {v: k for k, v in enumerate(ev_e.tolist())}
     pairs = [(k, row[v]) for k, v in enumerate(stt["event"].tolist()) if v in row]
     it, ie = (np.array(z, int) for z in zip(*pairs)) if pairs else (np.zeros(0, int), np.zeros(0, int))
-    return columns(se, ("x", "y", "z"))[ie] - columns(stt, ("x", "y", "z"))[it]
+    return se["xyz"][ie] - stt["xyz"][it]
+
+
+def truth_tables(truth):
+    """A truth dict with its frames as :func:`array_table` / :func:`source_table` (score many estimates
+    against one truth without re-reading its DataFrames)."""
+    out = {"arrays": array_table(truth["arrays"])}
+    if truth.get("sources") is not None:
+        out["sources"] = source_table(truth["sources"])
+    return out
 
 
 def evaluate(calib, truth):
     """Metrics of a calibration dict against a truth dict (both as in ``pipeline.formats.io``).
 
+    The frames may also be given as tables (:func:`array_table`, :func:`source_table`, :func:`truth_tables`).
     Returns a dict: ``position_rmse_m``, ``orientation_geodesic_deg`` (RMS over arrays),
     ``orientation_paper_deg`` (RMS of the angle between R_gt·p and R_est·p, p = [1,1,1]/√3),
     ``axis_rms_deg`` (linear arrays / mic pairs: RMS axis direction error; their full rotation is not
@@ -138,7 +166,9 @@ def evaluate(calib, truth):
         "source_rmse_m": float("nan"),
     }
     se, stt = calib.get("sources"), truth.get("sources")
-    if se is not None and stt is not None and len(stt):
+    if se is not None and stt is not None and len(stt["event"]):
+        se = se if isinstance(se, dict) else source_table(se)
+        stt = stt if isinstance(stt, dict) else source_table(stt)
         out["source_rmse_m"] = _rms(np.linalg.norm(_source_differences(se, stt), axis=1))
     out["per_array"] = [
         {"array": a, **{k: float(errs[k][n]) for k in errs if k != "array"}} for n, a in enumerate(errs["array"])
