@@ -165,3 +165,56 @@ def test_coarse_cost_matches_the_zoom_cost(scene):
         fast = coarse_cost(p, st, i, 3e-4, 0.1, grid)
         ref = profile_cost(p, st, i, grid["pts"], 3e-4, 0.1)[0]
         assert np.allclose(fast, ref, rtol=1e-9, atol=1e-7)
+
+
+def _faulty_scenes():
+    """A clean scene, one with outliers (a TDOA-M row 40 σ off, a flipped DOA) and one whose array B is
+    biased as a whole (the array test drops it): ``outputs="solution"`` must agree on each."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("bench_faults", Path(__file__).parents[1] / "benchmarks" /
+                                                  "bench_faults.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    feats, truth = simulate_features(3, 1e-4, 5.0, 0.03, seed=11)
+    tm, doa = feats["tdoa_m"].copy(), feats["doa"].copy()
+    tm.loc[5, "tdoa"] += 0.004
+    doa.loc[44, ["ux", "uy", "uz"]] = -doa.loc[44, ["ux", "uy", "uz"]].to_numpy(float)
+    f_biased, truth_b = simulate_features(1, 1e-4, 5.0, 0.03, seed=1000)
+    f_biased, _ = bench.fault_array(f_biased, truth_b, np.random.default_rng(0))
+    return [(feats, truth), ({**feats, "tdoa_m": tm, "doa": doa}, truth), (f_biased, truth_b)]
+
+
+@pytest.mark.parametrize("method", ["hybrid", "wang"])
+def test_solution_outputs_are_the_full_calibrations_values(method):
+    """calibrate(outputs="solution") (the Monte-Carlo study's) gives exactly the state, final cost,
+    convergence, outliers and undetermined parameters of the full result, from its own start and from
+    ground truth; and scoring from the state's tables equals scoring the full result's DataFrames."""
+    from calib.estimator import calibrate, to_tables
+    from calib.pipeline.montecarlo import truth_state
+    from calib.pipeline.report.evaluate import truth_tables
+
+    kinds_seen = set()
+    for feats, truth in _faulty_scenes():
+        full = calibrate(feats, method=method)
+        starts = [None, truth_state(full["problem"], truth)]
+        for start in starts:
+            a = calibrate(feats, method=method, init_state=start)
+            b = calibrate(feats, method=method, init_state=start, outputs="solution")
+            rep = a["report"]
+            assert b["cost"] == rep["cost"]["final"] and b["converged"] == rep["converged"]
+            assert b["outliers"] == rep["outliers"] and b["undetermined"] == rep["undetermined"]
+            assert all(np.array_equal(getattr(a["state"], f.name), getattr(b["state"], f.name))
+                       for f in dataclasses.fields(a["state"]))
+            arrays, sources = to_tables(b["problem"], b["state"])
+            lean = evaluate_calibration({"arrays": arrays, "sources": sources,
+                                         "report": {"undetermined": b["undetermined"]}}, truth_tables(truth))
+            ref = evaluate_calibration(a, truth)
+            assert {k: v for k, v in lean.items() if k != "per_array"} == pytest.approx(
+                {k: v for k, v in ref.items() if k != "per_array"}, rel=0, abs=0, nan_ok=True)
+            kinds_seen |= {"outliers"} if rep["outliers"] else set()
+            kinds_seen |= {"dropped"} if rep["unreliable_arrays"] else set()
+    assert kinds_seen == {"outliers", "dropped"}   # the paths the light result must reproduce were taken
+    with pytest.raises(ValueError, match="outputs"):
+        calibrate(feats, outputs="frames")
