@@ -32,6 +32,7 @@ from scipy.ndimage import maximum_filter1d, uniform_filter1d
 from scipy.signal import resample
 from calib.robust import mad_std
 
+from .detect import median_last
 from .signals import band_weights
 
 
@@ -377,7 +378,7 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
     for i in range(j):
         if own_floor:
             before = env[i, : kmax[i]]
-            floor[i] = np.median(before) if before.size >= 16 else np.median(env[i])
+            floor[i] = median_last(before) if before.size >= 16 else median_last(env[i])
         thr = max(snr_factor * floor[i], min_ratio * peak[i])
         cand = np.flatnonzero(is_max[i, : kmax[i]] & (env[i, : kmax[i]] >= thr))
         if not cand.size:
