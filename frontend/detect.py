@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.fft as sfft
 import scipy.signal as ss
+from scipy.signal._peak_finding_utils import _select_by_peak_distance
 
 
 BLOCK_SAMPLES = 1 << 18  # envelope block (FFT) length: ~5 s at 48 kHz, bounded memory for any duration
@@ -138,8 +139,36 @@ def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
     """
     floor = local_floor(env, max(1, int(block_s * env_rate)))
     dist = max(1, int(min_separation * env_rate))
-    idx, _ = ss.find_peaks(env, height=threshold * floor, distance=dist)
+    idx = _peaks_above(env, threshold * floor, dist)
     return idx, env[idx] / floor[idx]
+
+
+PEAK_MARGIN = 64  # samples of context around the above-threshold runs in which local maxima are sought
+
+
+def _peaks_above(env, height, distance):
+    """``scipy.signal.find_peaks(env, height=height, distance=distance)[0]``, found only in the stretches
+    above ``height`` (a few per chirp) instead of among the millions of local maxima of the noise: the
+    windows around those stretches are widened while the envelope stays flat at their edges, so a
+    plateau's middle and its strictly lower neighbours are the ones find_peaks would see."""
+    above = np.flatnonzero(env >= height)
+    if not above.size:
+        return above
+    cut = np.flatnonzero(np.diff(above) > 2 * PEAK_MARGIN)
+    starts = np.maximum(above[np.r_[0, cut + 1]] - PEAK_MARGIN, 0)
+    stops = np.minimum(above[np.r_[cut, len(above) - 1]] + PEAK_MARGIN + 1, len(env))
+    found = []
+    for a, b in zip(starts, stops):
+        while a > 0 and env[a - 1] == env[a]:  # a plateau crossing the window's edge: take all of it
+            a -= 1
+        while b < len(env) and env[b] == env[b - 1]:
+            b += 1
+        p, _ = ss.find_peaks(env[a:b], height=height[a:b])
+        # a maximum at the window's edge is not one of the whole envelope's (its outer neighbour is unseen)
+        found.append(a + p[((p > 0) | (a == 0)) & ((p < b - a - 1) | (b == len(env)))])
+    peaks = np.unique(np.concatenate(found))
+    keep = _select_by_peak_distance(peaks, env[peaks].astype(np.float64), float(distance))
+    return peaks[keep]
 
 
 def refine_peak(y, k):
