@@ -480,8 +480,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
             (snr_factor, min_ratio, sidelobe_margin), dp, ratio, snr)
     dp = lo + dp
     if r is None:
-        r_lo = max(0, int(np.min(dp, initial=lo)) - pad)
-        r, env, mean_env = _grid_envelopes(c, setup, r_lo, r_hi)
+        r_lo, (r, env, mean_env) = _late_grid_envelopes(c, setup, np.maximum(dp - pad, 0), r_hi)
     reflection = first_reflection(mean_env, dp - r_lo, half_width, pulse_env, reflection_ratio,
                                   sidelobe_margin)
     reflection = np.where(reflection >= 0, reflection + r_lo, -1)
@@ -596,6 +595,28 @@ def _grid_envelopes(c, setup, r_lo, r_hi):
     r = lag_grid(c, setup, r_lo, r_hi)
     env = np.abs(r)
     return r, env, env.mean(axis=1)
+
+
+GRID_GROUP_SLACK = 64  # samples: events whose window starts this much before the median one's form a group
+
+
+def _late_grid_envelopes(c, setup, first, r_hi):
+    """:func:`_grid_envelopes` on lags ``min(first) .. r_hi − 1`` where only lags ``first[j] ..`` of event
+    j are needed (the timing reads nothing before its direct path's pad): the events whose window starts
+    near the median one's on their group's shortest common range, the earlier ones on theirs; the unneeded
+    lags stay 0. In rooms one early direct path in a chunk otherwise made every event's grid span the
+    whole search window (~30 × longer). Returns (r_lo, (r, env, mean_env))."""
+    first = np.asarray(first, int)
+    r_lo = int(np.min(first)) if first.size else 0
+    late = first >= np.median(first) - GRID_GROUP_SLACK if first.size else np.zeros(0, bool)
+    if np.all(late) or not np.any(late):
+        return r_lo, _grid_envelopes(c, setup, r_lo, r_hi)
+    r = np.zeros(c.shape[:-1] + (r_hi - r_lo,), np.complex64)
+    for group in (late, ~late):
+        g_lo = int(np.min(first[group]))
+        r[group, :, g_lo - r_lo :] = lag_grid(c[group], setup, g_lo, r_hi)
+    env = np.abs(r)
+    return r_lo, (r, env, env.mean(axis=1))
 
 
 def _path_peaks(c, setup, lag, half_width):
