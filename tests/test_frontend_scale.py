@@ -164,13 +164,17 @@ def test_array_audio_segments_equal_the_file(tmp_path):
         assert fs_read == fs
 
 
-def test_non_finite_samples_are_bad_input_when_read(tmp_path):
+def _float_wav_with(tmp_path, value):
+    """A 2-channel float WAV, silent but for ``value`` at frame 3000 of channel 1 (as a session array)."""
     p = tmp_path / "nan.wav"
     data = np.zeros((4000, 2))
-    data[3000, 1] = np.nan
+    data[3000, 1] = value
     sf.write(p, data, 8000, subtype="FLOAT")
-    arr = {"name": "A", "wav": p, "mics": np.zeros((2, 3))}
-    with ArrayAudio(arr) as x:
+    return {"name": "A", "wav": p, "mics": np.zeros((2, 3))}
+
+
+def test_non_finite_samples_are_bad_input_when_read(tmp_path):
+    with ArrayAudio(_float_wav_with(tmp_path, np.nan)) as x:
         assert np.all(x[:, 0:2000] == 0)
         with pytest.raises(InputError, match="nan.wav: contains non-finite samples"):
             x[:, 2000:4000]
@@ -277,12 +281,7 @@ def test_memory_mapped_reads_equal_libsndfile_reads(tmp_path, subtype):
 
 
 def test_non_finite_samples_are_bad_input_in_mapped_reads(tmp_path):
-    p = tmp_path / "nan.wav"
-    data = np.zeros((4000, 2))
-    data[3000, 1] = np.inf
-    sf.write(p, data, 8000, subtype="FLOAT")
-    arr = {"name": "A", "wav": p, "mics": np.zeros((2, 3))}
-    with ArrayAudio(arr) as x:
+    with ArrayAudio(_float_wav_with(tmp_path, np.inf)) as x:
         assert np.all(x.channel_sum()[:, 0:2000] == 0)
         with pytest.raises(InputError, match="nan.wav: contains non-finite samples"):
             x.channel_sum()[:, 2000:4000]
