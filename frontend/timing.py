@@ -44,13 +44,24 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
     whitens the cross-spectrum; 0 = plain matched filter. Returns a dict (nfft, kb (Fb,), freqs (Fb,),
     weights (Fb,), tmpl_conj (Fb,), fs, seg_len, whiten_bins).
     """
+    template = np.asarray(template)
+    key = (template.dtype.str, template.tobytes(), float(fs), tuple(float(b) for b in band), int(seg_len), float(whiten_hz))
+    if key in _SETUP_CACHE:  # arrays of one session share it (and its cached pulse shapes)
+        return _SETUP_CACHE[key]
     nfft = sfft.next_fast_len(seg_len)  # the lags we use keep the whole template inside the segment
     freqs_all = sfft.rfftfreq(nfft, 1 / fs)
     w = band_weights(freqs_all, band)
     kb = np.flatnonzero(w > 0)
     tmpl = sfft.rfft(template, nfft)[kb]
-    return {"nfft": nfft, "kb": kb, "freqs": freqs_all[kb], "weights": w[kb], "tmpl_conj": np.conj(tmpl),
-            "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
+    out = {"nfft": nfft, "kb": kb, "freqs": freqs_all[kb], "weights": w[kb], "tmpl_conj": np.conj(tmpl),
+           "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
+    if len(_SETUP_CACHE) >= 8:
+        _SETUP_CACHE.clear()
+    _SETUP_CACHE[key] = out
+    return out
+
+
+_SETUP_CACHE = {}
 
 
 def segment_spectra(x, starts, setup, plain=False):
