@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.fft as sfft
 import scipy.signal as ss
+from scipy.signal._peak_finding_utils import _select_by_peak_distance
 
 
 BLOCK_SAMPLES = 1 << 18  # envelope block (FFT) length: ~5 s at 48 kHz, bounded memory for any duration
@@ -102,12 +103,24 @@ def local_floor(env, block):
     """
     n = len(env)
     nb = max(1, n // block)
-    med = np.median(env[: nb * block].reshape(nb, -1), axis=1) if n >= block else np.array([np.median(env)])
+    med = median_last(env[: nb * block].reshape(nb, -1)) if n >= block else np.array([median_last(env)])
     med = np.r_[med, med[-1]] if nb * block < n and n >= block else med  # the partial last block
     neigh = np.maximum(med, np.maximum(np.r_[med[1:], med[-1]], np.r_[med[0], med[:-1]]))
     full = np.repeat(neigh, block)
     full = np.r_[full, np.full(max(0, n - len(full)), full[-1])][:n]
-    return np.maximum(full, np.median(env))
+    return np.maximum(full, median_last(env))
+
+
+def median_last(a):
+    """``np.median(a, axis=-1)`` of a NaN-free array, bit-identical and ~2–3× faster: one selection at the
+    upper middle, the lower middle (even length) as the maximum of the part below it, where numpy's
+    median runs a second selection."""
+    n = a.shape[-1]
+    h = n // 2
+    part = np.partition(a, h, axis=-1)
+    if n % 2:
+        return part[..., h]
+    return np.mean(np.stack([np.max(part[..., :h], axis=-1), part[..., h]], axis=-1), axis=-1)
 
 
 def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
@@ -126,8 +139,36 @@ def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
     """
     floor = local_floor(env, max(1, int(block_s * env_rate)))
     dist = max(1, int(min_separation * env_rate))
-    idx, _ = ss.find_peaks(env, height=threshold * floor, distance=dist)
+    idx = _peaks_above(env, threshold * floor, dist)
     return idx, env[idx] / floor[idx]
+
+
+PEAK_MARGIN = 64  # samples of context around the above-threshold runs in which local maxima are sought
+
+
+def _peaks_above(env, height, distance):
+    """``scipy.signal.find_peaks(env, height=height, distance=distance)[0]``, found only in the stretches
+    above ``height`` (a few per chirp) instead of among the millions of local maxima of the noise: the
+    windows around those stretches are widened while the envelope stays flat at their edges, so a
+    plateau's middle and its strictly lower neighbours are the ones find_peaks would see."""
+    above = np.flatnonzero(env >= height)
+    if not above.size:
+        return above
+    cut = np.flatnonzero(np.diff(above) > 2 * PEAK_MARGIN)
+    starts = np.maximum(above[np.r_[0, cut + 1]] - PEAK_MARGIN, 0)
+    stops = np.minimum(above[np.r_[cut, len(above) - 1]] + PEAK_MARGIN + 1, len(env))
+    found = []
+    for a, b in zip(starts, stops):
+        while a > 0 and env[a - 1] == env[a]:  # a plateau crossing the window's edge: take all of it
+            a -= 1
+        while b < len(env) and env[b] == env[b - 1]:
+            b += 1
+        p, _ = ss.find_peaks(env[a:b], height=height[a:b])
+        # a maximum at the window's edge is not one of the whole envelope's (its outer neighbour is unseen)
+        found.append(a + p[((p > 0) | (a == 0)) & ((p < b - a - 1) | (b == len(env)))])
+    peaks = np.unique(np.concatenate(found))
+    keep = _select_by_peak_distance(peaks, env[peaks].astype(np.float64), float(distance))
+    return peaks[keep]
 
 
 def refine_peak(y, k):

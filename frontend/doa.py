@@ -149,11 +149,59 @@ def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
     normal = is_planar(mics)
     mirror = hemi is not None and normal is not None and abs(normal @ hemi) > 0.5
     out = {"grid": grid, "steer": steer, "fidx": fidx, "mics": mics, "freqs": np.asarray(freqs, float),
-           "c": c, "hemisphere": hemi, "step": step, "mirror": mirror, "planar_normal": normal}
+           "c": c, "hemisphere": hemi, "step": step, "mirror": mirror, "planar_normal": normal,
+           **_coarse_setup(grid, mics, freqs[fidx], c, step, hemi)}
     if len(_SETUP_CACHE) > 8:
         _SETUP_CACHE.clear()
     _SETUP_CACHE[key] = out
     return out
+
+
+COARSE_FACTOR = 3     # the coarse grid's step / the fine grid's (3° → 9°: 9× fewer points)
+CAP_COARSE_STEPS = 2  # fine points searched within this many coarse steps of the best coarse point
+
+
+def _coarse_setup(grid, mics, freqs, c, step, hemi):
+    """Coarse-to-fine search of the fine grid: a grid ``COARSE_FACTOR`` times coarser, and per coarse
+    point the fine points within ``CAP_COARSE_STEPS`` coarse steps of it (ascending indices, padded by
+    repeating the last, so the first maximum is the exhaustive search's). The SRP's main lobe of a
+    few-cm array is tens of degrees wide, so the coarse maximum lies well inside it and the cap holds the
+    fine grid's maximum (the same grid point as the exhaustive search unless another lobe is within
+    rounding of the main one). Planar arrays also search the cap of the mirror image."""
+    coarse_step = COARSE_FACTOR * step
+    coarse = fibonacci_sphere(int(np.ceil(4 * np.pi / coarse_step**2)))
+    if hemi is not None:
+        coarse = coarse[coarse @ hemi >= -0.5 * coarse_step]
+    near = (coarse @ grid.T) >= np.cos(CAP_COARSE_STEPS * coarse_step)  # (Gc, G)
+    width = int(near.sum(axis=1).max())
+    cap = np.empty((len(coarse), width), int)
+    for i, row in enumerate(near):
+        idx = np.flatnonzero(row)
+        cap[i, : len(idx)], cap[i, len(idx):] = idx, idx[-1]
+    steer = np.exp(-2j * np.pi * freqs[:, None, None] * (coarse @ mics.T / c)[None]).astype(np.complex64)
+    normal = is_planar(mics)
+    if normal is not None:  # a planar array's mirror image has (nearly) the same power: search both caps
+        mirrored = coarse - 2 * (coarse @ normal)[:, None] * normal
+        cap = np.sort(np.c_[cap, cap[np.argmax(mirrored @ coarse.T, axis=1)]], axis=1)
+    return {"coarse_steer": steer, "cap": cap}
+
+
+def _grid_search(gt, setup, w, fidx):
+    """Index of the fine grid's SRP maximum per event, coarse to fine: (F', M, J) complex64 spectra →
+    (J,) int. Every product is single-threaded BLAS (these thin products are ~10× slower with OpenBLAS
+    threads on a busy machine)."""
+    j = gt.shape[-1]
+    with threadpool_limits(limits=1, user_api="blas"):
+        p = np.zeros((setup["coarse_steer"].shape[1], j))
+        for f in range(len(fidx)):  # one (Gc, M) @ (M, J) product per frequency
+            y = setup["coarse_steer"][f] @ gt[f]
+            p += w[fidx[f]] * (y.real**2 + y.imag**2)
+        cand = setup["cap"][np.argmax(p, axis=0)]  # (J, K) fine-grid indices
+        p = np.zeros(cand.shape)
+        for f in range(len(fidx)):  # each event against its own K fine points
+            y = np.matmul(setup["steer"][f][cand], gt[f].T[:, :, None])[..., 0]  # (J, K)
+            p += w[fidx[f]] * (y.real**2 + y.imag**2)
+    return cand[np.arange(j), np.argmax(p, axis=1)]
 
 
 def srp_power(g, mics, freqs, c, u, weights=None):
@@ -202,18 +250,10 @@ def srp_doa(g, setup, weights=None, refine_to_deg=0.02):
     j = g.shape[0]
     freqs, mics, c = setup["freqs"], setup["mics"], setup["c"]
     w = np.ones(len(freqs)) if weights is None else weights
-    # grid search, all events at once, one (G, M) @ (M, J) product per frequency (a loop over F beats
-    # numpy's batched matmul for these thin matrices)
+    # grid search, all events at once, coarse to fine
     fidx = setup["fidx"]
     gt = np.transpose(g[:, :, fidx], (2, 1, 0)).astype(np.complex64)  # (F', M, J)
-    p = np.zeros((len(setup["grid"]), j))
-    # single-threaded BLAS: these thin products are ~10x slower with OpenBLAS threads on a busy machine
-    with threadpool_limits(limits=1, user_api="blas"):
-        for f in range(len(fidx)):
-            y = setup["steer"][f] @ gt[f]
-            p += w[fidx[f]] * (y.real**2 + y.imag**2)
-    p = _normalise(p, w[fidx].sum(), len(mics))  # (G, J)
-    u = setup["grid"][np.argmax(p, axis=0)].copy()
+    u = setup["grid"][_grid_search(gt, setup, w, fidx)].copy()
 
     # local refinement: 3x3 stencil in the tangent plane, quadratic fit, shrink
     h = 0.5 * setup["step"]  # the grid's best point is within about half a step of the peak

@@ -32,6 +32,7 @@ from scipy.ndimage import maximum_filter1d, uniform_filter1d
 from scipy.signal import resample
 from calib.robust import mad_std
 
+from .detect import median_last
 from .signals import band_weights
 
 
@@ -43,13 +44,24 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
     whitens the cross-spectrum; 0 = plain matched filter. Returns a dict (nfft, kb (Fb,), freqs (Fb,),
     weights (Fb,), tmpl_conj (Fb,), fs, seg_len, whiten_bins).
     """
+    template = np.asarray(template)
+    key = (template.dtype.str, template.tobytes(), float(fs), tuple(float(b) for b in band), int(seg_len), float(whiten_hz))
+    if key in _SETUP_CACHE:  # arrays of one session share it (and its cached pulse shapes)
+        return _SETUP_CACHE[key]
     nfft = sfft.next_fast_len(seg_len)  # the lags we use keep the whole template inside the segment
     freqs_all = sfft.rfftfreq(nfft, 1 / fs)
     w = band_weights(freqs_all, band)
     kb = np.flatnonzero(w > 0)
     tmpl = sfft.rfft(template, nfft)[kb]
-    return {"nfft": nfft, "kb": kb, "freqs": freqs_all[kb], "weights": w[kb], "tmpl_conj": np.conj(tmpl),
-            "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
+    out = {"nfft": nfft, "kb": kb, "freqs": freqs_all[kb], "weights": w[kb], "tmpl_conj": np.conj(tmpl),
+           "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
+    if len(_SETUP_CACHE) >= 8:
+        _SETUP_CACHE.clear()
+    _SETUP_CACHE[key] = out
+    return out
+
+
+_SETUP_CACHE = {}
 
 
 def segment_spectra(x, starts, setup, plain=False):
@@ -377,7 +389,7 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
     for i in range(j):
         if own_floor:
             before = env[i, : kmax[i]]
-            floor[i] = np.median(before) if before.size >= 16 else np.median(env[i])
+            floor[i] = median_last(before) if before.size >= 16 else median_last(env[i])
         thr = max(snr_factor * floor[i], min_ratio * peak[i])
         cand = np.flatnonzero(is_max[i, : kmax[i]] & (env[i, : kmax[i]] >= thr))
         if not cand.size:
@@ -479,8 +491,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
             (snr_factor, min_ratio, sidelobe_margin), dp, ratio, snr)
     dp = lo + dp
     if r is None:
-        r_lo = max(0, int(np.min(dp, initial=lo)) - pad)
-        r, env, mean_env = _grid_envelopes(c, setup, r_lo, r_hi)
+        r_lo, (r, env, mean_env) = _late_grid_envelopes(c, setup, np.maximum(dp - pad, 0), r_hi)
     reflection = first_reflection(mean_env, dp - r_lo, half_width, pulse_env, reflection_ratio,
                                   sidelobe_margin)
     reflection = np.where(reflection >= 0, reflection + r_lo, -1)
@@ -595,6 +606,28 @@ def _grid_envelopes(c, setup, r_lo, r_hi):
     r = lag_grid(c, setup, r_lo, r_hi)
     env = np.abs(r)
     return r, env, env.mean(axis=1)
+
+
+GRID_GROUP_SLACK = 64  # samples: events whose window starts this much before the median one's form a group
+
+
+def _late_grid_envelopes(c, setup, first, r_hi):
+    """:func:`_grid_envelopes` on lags ``min(first) .. r_hi − 1`` where only lags ``first[j] ..`` of event
+    j are needed (the timing reads nothing before its direct path's pad): the events whose window starts
+    near the median one's on their group's shortest common range, the earlier ones on theirs; the unneeded
+    lags stay 0. In rooms one early direct path in a chunk otherwise made every event's grid span the
+    whole search window (~30 × longer). Returns (r_lo, (r, env, mean_env))."""
+    first = np.asarray(first, int)
+    r_lo = int(np.min(first)) if first.size else 0
+    late = first >= np.median(first) - GRID_GROUP_SLACK if first.size else np.zeros(0, bool)
+    if np.all(late) or not np.any(late):
+        return r_lo, _grid_envelopes(c, setup, r_lo, r_hi)
+    r = np.zeros(c.shape[:-1] + (r_hi - r_lo,), np.complex64)
+    for group in (late, ~late):
+        g_lo = int(np.min(first[group]))
+        r[group, :, g_lo - r_lo :] = lag_grid(c[group], setup, g_lo, r_hi)
+    env = np.abs(r)
+    return r_lo, (r, env, env.mean(axis=1))
 
 
 def _path_peaks(c, setup, lag, half_width):

@@ -1,0 +1,80 @@
+"""Fast paths of the frontend against the straightforward computations they replace: the coarse-to-fine
+DOA grid against the exhaustive grid, the one-selection median against ``np.median``, the detection's
+peak search around the above-threshold stretches against ``scipy.signal.find_peaks`` on the whole
+envelope, the int32 channel sum against float32 accumulation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.signal as ss
+
+from calib.frontend.detect import _peaks_above, median_last
+from calib.frontend.doa import _grid_search, fibonacci_sphere, srp_setup
+from calib.frontend.signals import _int_channel_sum
+
+C = 343.0
+MICS_3D = np.c_[0.0354 * np.cos(np.arange(6) * np.pi / 3), 0.0354 * np.sin(np.arange(6) * np.pi / 3),
+                0.02 * (-1.0) ** np.arange(6)]
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_coarse_to_fine_grid_finds_the_exhaustive_grid_point(planar):
+    # noisy, reverberant-looking gated spectra: a plane wave plus a weaker second one and noise
+    rng = np.random.default_rng(3)
+    mics = MICS_3D * [1, 1, 0] if planar else MICS_3D
+    freqs = np.linspace(500, 4000, 57)
+    u1, u2 = fibonacci_sphere(200), fibonacci_sphere(200)[rng.permutation(200)]
+    g = (np.exp(2j * np.pi * freqs * (u1 @ mics.T)[..., None] / C)
+         + 0.5 * np.exp(2j * np.pi * freqs * (u2 @ mics.T)[..., None] / C)
+         + 0.3 * (rng.standard_normal((200, 6, 57)) + 1j * rng.standard_normal((200, 6, 57))))
+    g /= np.abs(g)
+    setup = srp_setup(mics, freqs, C, 3.0)
+    fidx, w = setup["fidx"], np.ones(len(freqs))
+    gt = np.transpose(g[:, :, fidx], (2, 1, 0)).astype(np.complex64)
+    p = sum(w[fidx[f]] * np.abs(setup["steer"][f] @ gt[f]) ** 2 for f in range(len(fidx)))
+    exhaustive = np.argmax(p, axis=0)
+    fast = _grid_search(gt, setup, w, fidx)
+    same = fast == exhaustive
+    # where they differ, only by a tie at float32 rounding (planar: the mirror images' powers)
+    np.testing.assert_allclose(p[fast, np.arange(200)][~same], p[exhaustive, np.arange(200)][~same], rtol=1e-5)
+    assert same.mean() > 0.95
+
+
+def test_median_last_equals_numpy_median():
+    rng = np.random.default_rng(0)
+    for shape in [(1,), (2,), (7,), (1000,), (5, 8), (3, 4, 9), (40, 3000)]:
+        for dtype in (np.float32, np.float64):
+            a = rng.standard_normal(shape).astype(dtype)
+            got, want = median_last(a), np.median(a, axis=-1)
+            assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_peaks_above_equals_find_peaks():
+    rng = np.random.default_rng(1)
+    for trial in range(400):
+        n = int(rng.integers(5, 3000))
+        env = np.abs(rng.standard_normal(n)).astype(np.float32)
+        if trial % 3 == 0:
+            env = np.round(env * 4).astype(np.float32) / 4  # plateaus
+        if trial % 5 == 0:
+            env[: int(rng.integers(0, n))] = 0  # digital silence
+        for k in rng.integers(0, n, int(rng.integers(0, 6))):
+            env[k : k + int(rng.integers(1, 30))] += rng.uniform(1, 20)
+        height = rng.uniform(0, 3) * (1 + (np.arange(n) // int(rng.integers(5, 400))) % 3)
+        if trial % 7 == 0:
+            height = np.zeros(n)
+        d = int(rng.integers(1, 200))
+        np.testing.assert_array_equal(_peaks_above(env, height, d), ss.find_peaks(env, height=height, distance=d)[0])
+
+
+@pytest.mark.parametrize("dtype,m", [(np.int16, 6), (np.int16, 1), (np.int32, 4)])
+def test_int_channel_sum_equals_float_accumulation(dtype, m):
+    rng = np.random.default_rng(2)
+    info = np.iinfo(dtype)
+    f = rng.integers(info.min, info.max, (2000, m), dtype=dtype)
+    f[0], f[1] = info.min, info.max
+    want = f[:, 0].astype(np.float32)
+    for ch in range(1, m):
+        want += f[:, ch]
+    got = _int_channel_sum(f)
+    assert got.dtype == np.float32 and np.array_equal(got, want)
