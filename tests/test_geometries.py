@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
 from calib.estimator import calibrate
