@@ -26,6 +26,8 @@ from __future__ import annotations
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from calib.memo import SetupCache
+
 from .timing import phasors
 
 
@@ -118,7 +120,7 @@ def srp_cone(g, mics, axis, freqs, c, weights=None, step_deg=1.0, refine_to_deg=
     return np.cos(t), power(t[:, None])[:, 0]
 
 
-_SETUP_CACHE = {}
+_SETUPS = SetupCache(9)
 
 
 def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
@@ -137,8 +139,10 @@ def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
     hemi = None if hemisphere is None else np.asarray(hemisphere, float)
     key = (mics.tobytes(), np.asarray(freqs, float).tobytes(), float(c), float(step_deg),
            None if hemi is None else hemi.tobytes(), int(n_grid_freqs))
-    if key in _SETUP_CACHE:
-        return _SETUP_CACHE[key]
+    return _SETUPS.get(key, lambda: _srp_setup(mics, np.asarray(freqs, float), c, step_deg, hemi, n_grid_freqs))
+
+
+def _srp_setup(mics, freqs, c, step_deg, hemi, n_grid_freqs):
     step = np.deg2rad(step_deg)
     grid = fibonacci_sphere(int(np.ceil(4 * np.pi / step**2)))
     if hemi is not None:
@@ -148,13 +152,9 @@ def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
     steer = np.exp(-2j * np.pi * freqs[fidx, None, None] * delays[None]).astype(np.complex64)
     normal = is_planar(mics)
     mirror = hemi is not None and normal is not None and abs(normal @ hemi) > 0.5
-    out = {"grid": grid, "steer": steer, "fidx": fidx, "mics": mics, "freqs": np.asarray(freqs, float),
-           "c": c, "hemisphere": hemi, "step": step, "mirror": mirror, "planar_normal": normal,
-           **_coarse_setup(grid, mics, freqs[fidx], c, step, hemi)}
-    if len(_SETUP_CACHE) > 8:
-        _SETUP_CACHE.clear()
-    _SETUP_CACHE[key] = out
-    return out
+    return {"grid": grid, "steer": steer, "fidx": fidx, "mics": mics, "freqs": freqs, "c": c, "hemisphere": hemi,
+            "step": step, "mirror": mirror, "planar_normal": normal,
+            **_coarse_setup(grid, mics, freqs[fidx], c, step, hemi)}
 
 
 COARSE_FACTOR = 3     # the coarse grid's step / the fine grid's (3° → 9°: 9× fewer points)

@@ -30,6 +30,7 @@ import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
 from scipy.signal import resample
+from calib.memo import SetupCache
 from calib.robust import mad_std
 
 from .detect import median_last
@@ -46,22 +47,21 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
     """
     template = np.asarray(template)
     key = (template.dtype.str, template.tobytes(), float(fs), tuple(float(b) for b in band), int(seg_len), float(whiten_hz))
-    if key in _SETUP_CACHE:  # arrays of one session share it (and its cached pulse shapes)
-        return _SETUP_CACHE[key]
+    # the arrays of one session share it (and its cached pulse shapes)
+    return _SETUPS.get(key, lambda: _spectra_setup(template, fs, band, seg_len, whiten_hz))
+
+
+def _spectra_setup(template, fs, band, seg_len, whiten_hz):
     nfft = sfft.next_fast_len(seg_len)  # the lags we use keep the whole template inside the segment
     freqs_all = sfft.rfftfreq(nfft, 1 / fs)
     w = band_weights(freqs_all, band)
     kb = np.flatnonzero(w > 0)
     tmpl = sfft.rfft(template, nfft)[kb]
-    out = {"nfft": nfft, "kb": kb, "freqs": freqs_all[kb], "weights": w[kb], "tmpl_conj": np.conj(tmpl),
-           "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
-    if len(_SETUP_CACHE) >= 8:
-        _SETUP_CACHE.clear()
-    _SETUP_CACHE[key] = out
-    return out
+    return {"nfft": nfft, "kb": kb, "freqs": freqs_all[kb], "weights": w[kb], "tmpl_conj": np.conj(tmpl),
+            "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
 
 
-_SETUP_CACHE = {}
+_SETUPS = SetupCache(8)
 
 
 def segment_spectra(x, starts, setup, plain=False):
