@@ -151,8 +151,8 @@ class ArrayAudio:
             acc[a - start : b - start] = _int_channel_sum(blk) * np.float32(1.0 / self._int[1])
             return acc
         acc[a - start : b - start] = blk @ np.ones(self.channels, np.float32)
-        if not np.all(np.isfinite(acc)) and not np.all(np.isfinite(blk)):
-            raise InputError(f"{self.path}: contains non-finite samples")
+        if not np.all(np.isfinite(acc)):
+            self._check_finite(blk)
         return acc
 
     def segment(self, start, stop, channel_sum=False):
@@ -172,9 +172,7 @@ class ArrayAudio:
         raw = self._int is not None
         dtype = self._int[0] if raw else np.float32
         if channel_sum:  # the frames are only summed: one buffer reused block after block (no page faults)
-            if self._sum_buf is None or self._sum_buf.shape[0] < n or self._sum_buf.dtype != dtype:
-                self._sum_buf = np.empty((n, self.channels), dtype)
-            out = self._sum_buf[:n]
+            out = self._buffer("_sum_buf", n, dtype)
             out[: max(a - start, 0)] = 0
             out[max(b - start, 0) :] = 0
         else:
@@ -197,16 +195,14 @@ class ArrayAudio:
         buf = self._mapped(start, start + n)
         if buf is None:
             dtype = self._int[0] if self._int is not None else np.float32
-            if self._fill_buf is None or self._fill_buf.shape[0] < n or self._fill_buf.dtype != dtype:
-                self._fill_buf = np.empty((n, self.channels), dtype)
-            buf = self._fill_buf[:n]
+            buf = self._buffer("_fill_buf", n, dtype)
             self._read_into(start, buf)
         if self._int is not None:
             np.multiply(buf.T, np.float32(1.0 / self._int[1]), out=out, dtype=np.float32)
         else:
             out[...] = buf.T
-            if self._map is not None and not np.all(np.isfinite(out)):
-                raise InputError(f"{self.path}: contains non-finite samples")
+            if self._map is not None:
+                self._check_finite(out)
 
     def _read_into(self, first, out):
         """Read ``len(out)`` frames from frame ``first`` into ``out`` ((n, M), C-contiguous)."""
@@ -218,8 +214,20 @@ class ArrayAudio:
             raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
         if len(got) != len(out):
             raise InputError(f"{self.path}: file ends after {first + len(got)} of {self.frames} frames")
-        if out.dtype.kind == "f" and not np.all(np.isfinite(got)):
+        if out.dtype.kind == "f":
+            self._check_finite(got)
+
+    def _check_finite(self, samples):
+        if not np.all(np.isfinite(samples)):
             raise InputError(f"{self.path}: contains non-finite samples")
+
+    def _buffer(self, name, n, dtype):
+        """An (n, M) ``dtype`` view of a buffer kept in attribute ``name`` and reused read after read."""
+        buf = getattr(self, name)
+        if buf is None or buf.shape[0] < n or buf.dtype != dtype:
+            buf = np.empty((n, self.channels), dtype)
+            setattr(self, name, buf)
+        return buf[:n]
 
     def __getitem__(self, key):
         """``x[:, a:b]``: as :meth:`segment` (a view-like (M, b − a) float32 array)."""
