@@ -114,10 +114,16 @@ def _fill(J, memo, slot, index, vals):
     _apply(J, pattern, vals)
 
 
+def norm(v, axis=-1, keepdims=False):
+    """Euclidean norms along ``axis``: the values ``np.linalg.norm(v, axis=axis)`` gives for a real array
+    (the same operations), without its per-call checks (~3 µs, paid thousands of times per solve)."""
+    return np.sqrt(np.add.reduce(v * v, axis=axis, keepdims=keepdims))
+
+
 def _dist(st, arr, ev):
     """Distances (m,) and unit vectors (m, 3) from arrays ``arr`` to sources ``ev``."""
     w = st.s[ev] - st.x[arr]
-    d = np.linalg.norm(w, axis=1)
+    d = norm(w, axis=1)
     return d, w / d[:, None]
 
 

@@ -25,8 +25,8 @@ def rho(r, loss, k):
     """Robust cost ρ(r) (so that ρ(r) = r² near 0) and IRLS weight ρ'(r)/(2r), elementwise."""
     if loss is None or loss == "linear":
         return r * r, np.ones_like(r)
-    a = np.abs(r)
     if loss == "huber":
+        a = np.abs(r)
         small = a <= k
         return np.where(small, r * r, 2 * k * a - k * k), np.where(small, 1.0, k / np.maximum(a, 1e-300))
     if loss == "cauchy":
