@@ -475,10 +475,15 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
             if cost2 < cost and np.isfinite(cost2):
                 accepted = True
                 break
+            if pred <= rtol * max(cost, 1e-30):
+                # rejected, and the model predicted a decrease below the tolerance: a more damped step
+                # predicts even less (at a minimum, rounding decides whether one is accepted): converged
+                reason = "cost"
+                break
             lam *= nu
             nu *= 2.0
         if not accepted:
-            reason = "no decrease"
+            reason = "no decrease" if reason != "cost" else reason
             break
         lam *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3) if ratio > 0 else 2.0
         nu = 2.0
