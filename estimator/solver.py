@@ -463,6 +463,12 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         accepted = False
         for _ in range(30):
             step = _solve_damped(H, g, lam) if dense else system.factor(lam).solve(-g)
+            pred = -(step @ g) - 0.5 * step @ (H @ step)   # the decrease the quadratic model predicts
+            if 0 < pred <= rtol * max(cost, 1e-30) and it > 1:
+                # converged: after a first step, one predicted to lower the cost by less than the tolerance
+                # is not evaluated (it would move the state by ~sqrt(2 rtol cost) in whitened units)
+                reason = "cost"
+                break
             cand = retract(st, lay, step, memo)
             if _same_state(cand, st):
                 # the damped step no longer moves the state (it is below the parameters' rounding): it
@@ -470,7 +476,6 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                 break
             lin2 = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense, memo=memo, cache=False)
             r2, J2, w2, cost2 = lin2.r, lin2.J, lin2.w, lin2.cost
-            pred = -(step @ g) - 0.5 * step @ (H @ step)
             ratio = (cost - cost2) / pred if pred > 0 else -1.0
             if cost2 < cost and np.isfinite(cost2):
                 accepted = True
