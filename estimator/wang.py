@@ -26,7 +26,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from calib.robust import mad_std
+from calib.robust import MAD_TO_SIGMA, mad_std
 
 from .init import ObservabilityError, init_sources, kabsch
 from .problem import empty_state
@@ -107,7 +107,10 @@ def robust_mean(v):
     if v.size < 3:
         return float(np.mean(v))
     med = np.median(v)
-    mad = mad_std(v, center=med)
+    if np.isnan(med):
+        mad = mad_std(v, center=med)
+    else:   # no NaN: mad_std's value without its NaN-aware median (several times slower on ~20 values)
+        mad = MAD_TO_SIGMA * np.median(np.abs(v - med))
     keep = np.abs(v - med) <= 3.0 * max(mad, 1e-9)
     return float(np.mean(v[keep]))
 
