@@ -303,6 +303,7 @@ def _clock_irls_masked(XT, YT, mask, ns, kappa, use_off, n_irls):
     mask (n, G) (0 = padding) and ``use_off`` per point (G,). Returns drift (G,), offset (G,) and the
     last squared normalised residuals (n, G)."""
     G = XT.shape[1]
+    XT, YT = XT / kappa, YT / kappa   # residuals in units of kappa directly (the drift does not change)
     w = mask.copy()
     drift, off = np.zeros(G), np.zeros(G)
     wX, r = np.empty_like(XT), np.empty_like(XT)
@@ -319,12 +320,11 @@ def _clock_irls_masked(XT, YT, mask, ns, kappa, use_off, n_irls):
         np.multiply(drift, XT, out=r)
         np.subtract(YT, r, out=r)
         r[ns:] -= off
-        np.divide(r, kappa, out=r)
         np.square(r, out=r)          # r now holds r2 = (r / kappa)²
         if it + 1 < n_irls:          # (the last weights would not be used)
             np.add(r, 1.0, out=w)
             np.divide(mask, w, out=w)
-    return drift, off, r
+    return drift, off * kappa, r
 
 
 def _clock_irls(X, Y, ns, kappa, use_off, n_irls):
@@ -343,10 +343,11 @@ def _clock_irls_t(XT, YT, ns, kappa, use_off, n_irls):
     """:func:`_clock_irls` on transposed columns XT, YT (n, G) (the coarse grid's layout): the sums over
     the n measurements run along contiguous rows of G points (about twice as fast as G short dot
     products; the same values up to rounding). Returns the last squared normalised residuals (n, G)."""
+    XT, YT = XT / kappa, YT / kappa   # residuals in units of kappa directly (the drift does not change)
     w = np.ones_like(XT)
-    wX, r = np.empty_like(XT), np.empty_like(XT)
+    buf, r = np.empty_like(XT), np.empty_like(XT)
     for it in range(n_irls):
-        np.multiply(w, XT, out=wX)
+        wX = np.multiply(w, XT, out=buf) if it else XT   # (the first weights are all 1)
         a11, b1 = np.einsum("kg,kg->g", wX, XT), np.einsum("kg,kg->g", wX, YT)
         if use_off:
             a12, a22, b2 = wX[ns:].sum(0), w[ns:].sum(0), np.einsum("kg,kg->g", w[ns:], YT[ns:])
@@ -360,7 +361,6 @@ def _clock_irls_t(XT, YT, ns, kappa, use_off, n_irls):
         np.multiply(drift, XT, out=r)
         np.subtract(YT, r, out=r)
         r[ns:] -= off
-        np.divide(r, kappa, out=r)
         np.square(r, out=r)          # r now holds r2 = (r / kappa)²
         if it + 1 < n_irls:          # (the last weights would not be used)
             np.add(r, 1.0, out=w)
@@ -388,7 +388,9 @@ def coarse_grid(s, events=None):
     col[events] = np.arange(len(events))
     u = w / d[..., None]
     return {"pts": pts, "shape": grid.shape[:3], "step": step, "dT": np.ascontiguousarray(d.T), "u": u, "col": col,
-            "vT": np.ascontiguousarray(u.transpose(2, 1, 0)), "dmin": cKDTree(s).query(pts)[0]}
+            "vT": np.ascontiguousarray(u.transpose(2, 1, 0)),
+            # (with every event in the geometry its distances give it; a KD-tree only for a subsample)
+            "dmin": d.min(axis=1) if len(events) == len(s) else cKDTree(s).query(pts)[0]}
 
 
 def _directions(src, pts):
