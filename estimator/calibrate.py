@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
 from calib import __version__
+from calib.robust import median
 
 from . import arraynoise
 from .factors import ALL_KINDS, KINDS, UNITS, natural
@@ -191,7 +192,7 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
             m = stats.kept & (stats.kind == kind)
             if m.sum() < 5:
                 continue
-            f = float(np.sqrt(np.median(stats.q[m]) / chi2_median(DOF[kind])))
+            f = float(np.sqrt(median(stats.q[m]) / chi2_median(DOF[kind])))
             b = bounds.get(kind, FREE_MAX_FACTOR)
             lo = (floors or bounds).get(kind, b)
             new = float(np.clip(p.sigma[kind] * f, stated[kind] / lo, stated[kind] * b))
