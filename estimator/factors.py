@@ -120,6 +120,12 @@ def norm(v, axis=-1, keepdims=False):
     return np.sqrt(np.add.reduce(v * v, axis=axis, keepdims=keepdims))
 
 
+def _cols(pieces):
+    """``np.column_stack(pieces)`` for (m,) and (m, q) float pieces (the same array) without its per-piece
+    conversions: the factors stack their Jacobian values once per evaluation, thousands of times a solve."""
+    return np.concatenate([x[:, None] if x.ndim == 1 else x for x in pieces], axis=1)
+
+
 def _dist(st, arr, ev):
     """Distances (m,) and unit vectors (m, 3) from arrays ``arr`` to sources ``ev``."""
     w = st.s[ev] - st.x[arr]
@@ -166,7 +172,7 @@ def tdoa_s(p, st, lay, memo=None):
     gc = (g / (c * sig))[:, None]
     _fill(J, memo, 0,
           lambda: (np.arange(m), np.column_stack([lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]])),
-          np.column_stack([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
+          _cols([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
     return _out("tdoa_s", r, J, p.tdoa_s.row, 1, True, sig)
 
 
@@ -191,10 +197,14 @@ def tdoa_m(p, st, lay, memo=None):
           lambda: (np.arange(m), np.column_stack([lay.drift[i], np.full(m, lay.drift[ref]), lay.offset[i],
                                                   np.full(m, lay.offset[ref]), lay.x[i], np.tile(lay.x[ref], (m, 1)),
                                                   lay.s[j], lay.e[j]])),
-          np.column_stack([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
+          _cols([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
                            -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig)) * n0,
                            (gi[:, None] * ni - g0 * n0) / (c * sig), (gi - g0) / sig]))
     return _out("tdoa_m", r, J, p.tdoa_m.row, 1, True, sig)
+
+
+# [w]x = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]] as columns of (w0, w1, w2, −w0, −w1, −w2, 0)
+_SKEW = np.array([6, 5, 1, 2, 6, 3, 4, 0, 6])
 
 
 def doa(p, st, lay, memo=None):
@@ -209,9 +219,16 @@ def doa(p, st, lay, memo=None):
     v = np.einsum("kab,kb->ka", Rt, n)
     # Mirror-ambiguous (planar) arrays: compare the prediction folded to the measured side, v → H v with
     # the reflection H = I − 2 n nᵀ where n·v < 0 (so the Jacobians are multiplied by H there too).
-    nf = p.fold[i]
-    flip = np.einsum("ka,ka->k", nf, v) < 0
-    folded = bool(flip.any())   # else H = I: skip its products (exactly the same values, fewer numpy calls)
+    # no folded array (p.fold all zero, known per problem and layout in ``memo``): n·v = 0, nothing flips
+    foldable = None if memo is None else memo.get("foldable")
+    if foldable is None:
+        foldable = bool(p.fold.any())
+        if memo is not None:
+            memo["foldable"] = foldable
+    if foldable:
+        nf = p.fold[i]
+        flip = np.einsum("ka,ka->k", nf, v) < 0
+    folded = foldable and bool(flip.any())   # else H = I: skip its products (the same values, fewer calls)
     if folded:
         H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
         Rt = H @ Rt
@@ -219,9 +236,8 @@ def doa(p, st, lay, memo=None):
     r = ((v - u) / sig).ravel()
     # dv/dφ = H [w]x with w = Rᵀn (unfolded) for R → R Exp(φ); dv/ds = H Rᵀ (I − n nᵀ)/d = −dv/dx
     w = np.einsum("kab,kb->ka", H, v) if folded else v  # H is its own inverse
-    wx = np.zeros((m, 3, 3))
-    wx[:, 0, 1], wx[:, 0, 2], wx[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    wx[:, 1, 0], wx[:, 2, 0], wx[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    # [w]x gathered from (w, −w, 0) in one indexing (exact negations, +0.0 on the diagonal)
+    wx = np.concatenate([w, -w, np.zeros((m, 1))], axis=1)[:, _SKEW].reshape(m, 3, 3)
     vx = H @ wx if folded else wx
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = Rt @ P
@@ -312,7 +328,7 @@ def cone(p, st, lay, memo=None):
     b = np.einsum("kab,kb->ka", st.R[i], a)
     ds = (b - np.einsum("ka,ka->k", b, n)[:, None] * n) / d[:, None]
     _fill(J, memo, 0, lambda: (np.arange(m), np.column_stack([lay.rot[i], lay.s[j], lay.x[i]])),
-          np.column_stack([dphi, ds, -ds]) / sig)
+          _cols([dphi, ds, -ds]) / sig)
     return _out("cone", r, J, p.cone.row, 1, True, sig)
 
 
