@@ -586,7 +586,7 @@ def calibrate(features, **options):
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
               outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True,
-              array_noise=False, outputs="all"):
+              array_noise=False, outputs="all", problem=None):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters
@@ -612,6 +612,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     odometry_yaw : estimate the odometry frame's yaw (kept only when significant; docs/method.md).
     outputs : "all" (default, below) or "solution": the solve only, for programs that score many runs
         (the Monte-Carlo study): no covariance, frames, verdict or report, so a few ms less per call.
+    problem : optional :class:`~calib.estimator.problem.Problem` that ``build_problem(features,
+        use_tdoa_s=..., sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)`` gives for these options
+        (programs that calibrate the same features several times build it once); a copy is solved.
 
     Returns
     -------
@@ -632,7 +635,11 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     t0 = time.perf_counter()
     if method == "wang":
         use_tdoa_s = False
-    p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
+    if problem is None:
+        p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
+    else:
+        _check_given_problem(problem, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma)
+        p = problem.copy()   # the solve updates its problem in place (sigmas, odometry yaw, undetermined)
     if p.K < 3:
         raise ObservabilityError(f"only {p.K} event(s): at least 3 are needed to calibrate")
     kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
@@ -655,6 +662,13 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         return _solution(p, st, info, kinds, stage_states)
     return _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, method=method, noise=noise,
                          emission_sigma=emission_sigma, times=times, t0=t0)
+
+
+def _check_given_problem(p, *, use_tdoa_s, emission_sigma):
+    """A ``problem`` passed to :func:`calibrate_features` must be the one its options would build."""
+    if ((len(p.tdoa_s.val) and not use_tdoa_s) or p.sigma["emission"] != float(emission_sigma) or p.unobservable
+            or p.fixed_cols):
+        raise ValueError("problem: not the problem build_problem gives for these features and options")
 
 
 def _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, *, method, noise, emission_sigma,

@@ -201,15 +201,18 @@ def fisher(p, st, kinds=None):
     return J, lay
 
 
-def crlb(features, truth, *, use_tdoa_s=True, emission_sigma=0.0):
+def crlb(features, truth, *, use_tdoa_s=True, emission_sigma=0.0, problem=None, state=None):
     """Cramér–Rao bound at ground truth.
 
     Returns dict: ``cov`` (n, n) over the free parameters (a :class:`BlockCovariance` for large problems), ``layout``, ``std`` (per-parameter 1-σ keyed
     like the state: x (N,3) m, rot (N,3) rad, offset (N,) s, drift (N,), s (K,3) m, e (K,) s),
     ``problem`` and ``state`` (the truth state).
+    The caller may pass ``problem`` (what ``build_problem(features, use_tdoa_s=use_tdoa_s,
+    sigma_emit=emission_sigma)`` gives; not modified) and ``state`` (``state_from_frames`` of the truth for
+    a problem with the same arrays and events; copied) when it has them.
     """
-    p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma)
-    st = state_from_frames(p, truth["arrays"], truth.get("sources"))
+    p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma) if problem is None else problem
+    st = state_from_frames(p, truth["arrays"], truth.get("sources")) if state is None else state.copy()
     J, lay = fisher(p, st)
     cov = covariance(J, lay.n, lay)
     return {"cov": cov, "layout": lay, "std": std_from_cov(p, lay, cov), "problem": p, "state": st}

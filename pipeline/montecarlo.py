@@ -32,6 +32,7 @@ import pandas as pd
 from threadpoolctl import ThreadpoolController
 
 from calib.estimator import calibrate, crlb, draw_from_crlb, state_from_frames, to_tables
+from calib.estimator.problem import build_problem
 
 from calib.pipeline.report.evaluate import evaluate, truth_tables
 from calib.pipeline.simulate.featsim import simulate_features
@@ -71,13 +72,15 @@ def run_seed(sigma_tdoa, sigma_doa_deg, trajectory, run, base_seed=0):
     return zlib.crc32(key)
 
 
-def truth_state(p, truth):
+def truth_state(p, truth, frames_state=None):
     """Ground truth as a state of problem ``p``, in the parametrisation the estimator solves for.
 
     Without TDOA-S the reference array's drift is fixed to 0 (drifts relative to it), so the truth start
     is expressed the same way; otherwise a truth start would solve a different model.
+    ``frames_state``: ``state_from_frames`` of the truth for a problem with the same arrays and events,
+    when the caller has it (copied).
     """
-    st = state_from_frames(p, truth["arrays"], truth["sources"])
+    st = state_from_frames(p, truth["arrays"], truth["sources"]) if frames_state is None else frames_state.copy()
     if len(p.tdoa_s.val) == 0:
         st.drift = (1.0 + st.drift) / (1.0 + st.drift[p.ref]) - 1.0
     return st
@@ -97,18 +100,22 @@ def run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, *, methods=("hybrid"
     Per method: one ``final`` row, plus one row per intermediate stage when ``calibrate`` returns
     ``stage_states`` (dict stage → state). Failures (any exception of the estimator) give a row with
     ``ok=False`` and the message: counted, never hidden.
+    Each method's problem is built once (``calibrate``'s default options) and handed, as a copy, to its
+    solve, its truth-start solve and its CRLB; the truth's state is read from the frames once per scene.
     """
     seed = run_seed(sigma_tdoa, sigma_doa_deg, trajectory, run, base_seed)
     feats, truth = simulate_features(trajectory, sigma_tdoa, sigma_doa_deg, sigma_odo, seed=seed)
     truth_t = truth_tables(truth)   # scored up to 7 times per method: its DataFrames read once
     rows = []
+    truth_st = None   # the truth as a state (every method's problem has the same arrays and events)
     for method in methods:
         base = {"sigma_tdoa": sigma_tdoa, "sigma_doa_deg": sigma_doa_deg, "trajectory": trajectory, "run": run,
                 "method": method, "seed": seed}
         row = {**base, "stage": "final"}
         t0 = time.perf_counter()
         try:   # the solution only: the study reads no covariance, frames or report
-            cal = calibrate(feats, method=method, outputs="solution")
+            p0 = build_problem(feats, use_tdoa_s=method != "wang", odometry_yaw=True)  # calibrate's defaults
+            cal = calibrate(feats, method=method, outputs="solution", problem=p0)
         except Exception as exc:  # noqa: BLE001 - unobservable draw or estimator failure: a counted failure
             row.update({"ok": False, "error": f"{type(exc).__name__}: {exc}", "time_s": time.perf_counter() - t0})
             rows.append(row)
@@ -116,6 +123,8 @@ def run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, *, methods=("hybrid"
         row["time_s"] = time.perf_counter() - t0
         row["ok"] = True
         p = cal["problem"]
+        if truth_st is None:
+            truth_st = state_from_frames(p0, truth["arrays"], truth["sources"])
         for stage, st in (cal.get("stage_states") or {}).items():
             rows.append({**base, "stage": stage, "ok": True, **_scores(p, st, truth_t)})
         row["solver_converged"] = cal["converged"]
@@ -123,13 +132,17 @@ def run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, *, methods=("hybrid"
         row["n_outliers"] = len(cal["outliers"])
         row.update(_scores(p, cal["state"], truth_t, cal["undetermined"]))
         if check_convergence:
-            gt = calibrate(feats, method=method, init_state=truth_state(p, truth), outputs="solution")
+            gt = calibrate(feats, method=method, init_state=truth_state(p, truth, truth_st), outputs="solution",
+                           problem=p0)
             row["cost_truth_start"] = gt["cost"]
             row["converged"] = bool(row["cost"] <= row["cost_truth_start"] * (1 + 1e-6) + 1e-9)
         if with_crlb:
             rng = np.random.default_rng(seed + 1)
             with _BLAS.limit(limits=1, user_api="blas"):
-                bound = crlb(feats, truth, use_tdoa_s=bool(len(p.tdoa_s.val)))
+                use_ts = bool(len(p.tdoa_s.val))   # crlb's problem: p0 without the odometry yaw, when the same
+                same = use_ts == bool(len(p0.tdoa_s.val))
+                bound = crlb(feats, truth, use_tdoa_s=use_ts, problem=p0.replace(odo_yaw_free=False) if same else None,
+                             state=truth_st)
                 draw = _scores(bound["problem"], draw_from_crlb(bound, rng), truth_t)
             row.update({f"crlb_{k}": v for k, v in draw.items()})
         rows.append(row)
