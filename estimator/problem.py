@@ -398,24 +398,31 @@ def retract(st, lay, delta, memo=None):
     additive, rows, idx, free = index
     out = st.copy()
     for key, m, cols in additive:
-        getattr(out, key)[m] += delta[cols]
+        if m is None:   # every entry free: the whole field, in its own order (the same sums, no masking)
+            v = getattr(out, key)
+            v += delta[cols].reshape(v.shape)
+        else:
+            getattr(out, key)[m] += delta[cols]
     if rows.size:
-        phi = np.where(free, delta[idx], 0.0)
+        phi = delta[idx] if free is None else np.where(free, delta[idx], 0.0)
         out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
     return out
 
 
 def _retract_index(lay):
-    """Where a step lands (layout only): [(state field, its free entries, their columns)], the rows of
-    rotated arrays, their rotation columns (0 where fixed) and which of those are free."""
+    """Where a step lands (layout only): [(state field, its free entries (None: all), their columns)] for
+    the fields with a free entry, the rows of rotated arrays, their rotation columns (0 where fixed) and
+    which of those are free (None: all)."""
     additive = []
     for key in ADDITIVE:
         cols = getattr(lay, key)
         m = cols >= 0
-        additive.append((key, m, cols[m]))
+        if m.any():   # (fields without a free entry are left out; m None: all entries free)
+            additive.append((key, None if m.all() else m, cols[m]))
     rows = np.flatnonzero(np.any(lay.rot >= 0, axis=1))
     idx = lay.rot[rows]
-    return additive, rows, np.maximum(idx, 0), idx >= 0
+    free = idx >= 0
+    return additive, rows, np.maximum(idx, 0), None if free.all() else free
 
 
 def state_to_frames(p, st):
