@@ -190,6 +190,36 @@ class _Entry:
 _CACHE = _LineariseCache()
 
 
+class _MemoCache:
+    """The factors' index bookkeeping (``memo`` of :func:`factors.evaluate`, :func:`stack_jacobians`,
+    :func:`retract`) of the last few small (dense-path) problems, kinds and layouts: it depends on nothing
+    else, so the LM calls and single evaluations of one problem share it instead of rebuilding it. Keyed like
+    :class:`_LineariseCache` without the state (the problem by :func:`_snapshot`, its sigmas by value)."""
+
+    SIZE = 8
+
+    def __init__(self):
+        self.entries = []   # [(key, objects the key names by identity, memo)], most recent last
+        self.lock = threading.Lock()
+
+    def get(self, pkey, lay):
+        if not use_dense(lay):   # large problems: bookkeeping as large as J, kept for one LM call only
+            return {}
+        head, refs = pkey
+        vals = [np.asarray(getattr(lay, name)) for name in _field_names(type(lay))]
+        key = head + (tuple((v.dtype.char, v.shape) for v in vals), b"".join([v.tobytes() for v in vals]))
+        with self.lock:
+            for e in reversed(self.entries):
+                if e[0] == key:
+                    return e[2]
+            memo = {}
+            self.entries = self.entries[-(self.SIZE - 1):] + [(key, refs, memo)]
+        return memo
+
+
+_MEMOS = _MemoCache()
+
+
 def remember(p, st, lay, kinds, lin, dense, pkey=None):
     """Put a linearisation computed with ``cache=False`` (:func:`linearise`) into the cache, as if it
     had been computed through it: an LM solve evaluates each candidate state uncached (most are never
@@ -211,7 +241,11 @@ def factors_at(p, st, lay, kinds, dense=None, pkey=None, memo=None):
     ``memo``: the index bookkeeping kept for this problem and layout (``factors.evaluate``).
     Thread-safe: concurrent calls at the same input may both compute it (the results are equal).
     """
+    if pkey is None:
+        pkey = _CACHE.problem_key(p, kinds)
     key, e = _CACHE.lookup(p, st, lay, kinds, pkey)
+    if memo is None and (e is None or (dense is not None and dense not in e.forms)):
+        memo = _MEMOS.get(pkey, lay)
     if e is None:
         e = _CACHE.store(key, evaluate(p, st, lay, kinds, memo))
     if dense is None:
@@ -447,9 +481,10 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                     "reason": "no free parameters"}
     dense = use_dense(lay) if dense is None else dense
     lam, nu = lam0, 2.0
-    # p and lay do not change during the solve: the cache key's problem part and the factors' index
-    # bookkeeping (memo) are computed once
-    pkey, memo = _CACHE.problem_key(p, kinds), {}
+    # p and lay do not change during the solve: the cache key's problem part is computed once, and the
+    # factors' index bookkeeping (memo) is the one kept for this problem and layout (:class:`_MemoCache`)
+    pkey = _CACHE.problem_key(p, kinds)
+    memo = _MEMOS.get(pkey, lay)
     lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense, pkey=pkey, memo=memo)
     r, J, w, cost = lin.r, lin.J, lin.w, lin.cost
     reason, it, fresh = "max_iter", 0, False
