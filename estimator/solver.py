@@ -299,7 +299,7 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=N
         if mask is not None and f.kind in mask:  # excluded residuals: zero residual, weight and cost
             keep = mask[f.kind]
             r, c, w = np.where(keep, r, 0.0), np.where(keep, c, 0.0), np.where(keep, w, 0.0)
-        cost += 0.5 * float(np.sum(c))
+        cost += 0.5 * float(np.add.reduce(c))   # np.sum's value (the same pairwise sum), without its wrapper
         r_all.append(r)
         w_all.append(w)
     return Linearised(np.concatenate(r_all), J, np.concatenate(w_all), cost, fs)
