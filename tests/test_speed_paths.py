@@ -10,7 +10,7 @@ import pytest
 from calib.estimator.factors import evaluate
 from calib.estimator.init import kabsch_cost, sym3_eigvals
 from calib.estimator.problem import build_problem, make_layout, retract
-from calib.estimator.solver import Schur, event_columns, linearise, normal_equations, stack_jacobians
+from calib.estimator.solver import Schur, event_columns, levenberg_marquardt, linearise, normal_equations, stack_jacobians
 from calib.estimator.uncertainty import state_from_frames
 from calib.pipeline.report.evaluate import evaluate as evaluate_calibration
 from calib.pipeline.simulate.featsim import simulate_features
@@ -218,3 +218,67 @@ def test_solution_outputs_are_the_full_calibrations_values(method):
     assert kinds_seen == {"outliers", "dropped"}   # the paths the light result must reproduce were taken
     with pytest.raises(ValueError, match="outputs"):
         calibrate(feats, outputs="frames")
+
+
+@pytest.mark.parametrize("method", ["hybrid", "wang"])
+def test_prebuilt_problem_gives_the_same_calibration_and_crlb(method):
+    """calibrate(problem=...) (the Monte-Carlo study builds each method's problem once) solves a copy: the
+    same state and cost as building it inside, twice in a row (the first solve must not leak into the
+    given problem: outliers, a dropped array, sigmas); crlb(problem=, state=) equals crlb(); a problem
+    built with other options is refused."""
+    from calib.estimator import calibrate, crlb
+    from calib.pipeline.montecarlo import truth_state
+
+    use_ts = method != "wang"
+    for feats, truth in _faulty_scenes():
+        p0 = build_problem(feats, use_tdoa_s=use_ts, odometry_yaw=True)
+        ref = calibrate(feats, method=method, outputs="solution")
+        for _ in range(2):
+            got = calibrate(feats, method=method, outputs="solution", problem=p0)
+            assert got["cost"] == ref["cost"] and got["outliers"] == ref["outliers"]
+            assert all(np.array_equal(getattr(got["state"], f.name), getattr(ref["state"], f.name))
+                       for f in dataclasses.fields(ref["state"]))
+        fresh = build_problem(feats, use_tdoa_s=use_ts, odometry_yaw=True)
+        assert p0.sigma == fresh.sigma and not p0.unobservable and not p0.fixed_cols and p0.odo_yaw_free == fresh.odo_yaw_free
+        st0 = truth_state(ref["problem"], truth)
+        gt_ref = calibrate(feats, method=method, init_state=st0, outputs="solution")
+        gt = calibrate(feats, method=method, init_state=st0, outputs="solution", problem=p0)
+        assert gt["cost"] == gt_ref["cost"] and np.array_equal(gt["state"].x, gt_ref["state"].x)
+        frames = state_from_frames(p0, truth["arrays"], truth["sources"])
+        a = crlb(feats, truth, use_tdoa_s=use_ts)
+        b = crlb(feats, truth, use_tdoa_s=use_ts, problem=p0.replace(odo_yaw_free=False), state=frames)
+        assert np.array_equal(a["cov"], b["cov"])
+    if method == "wang":   # a problem with TDOA-S rows for the method that ignores them
+        with pytest.raises(ValueError):
+            calibrate(feats, method="wang", problem=build_problem(feats, use_tdoa_s=True))
+
+
+def test_shared_bookkeeping_follows_sigmas_changed_in_place(scene):
+    """The factors' bookkeeping kept per problem and layout (solver._MemoCache) holds sigma-dependent
+    constants (the odometry's whitened ±1/σ): a sigma updated in place must not reuse them."""
+    _, _, p, st = scene
+    q = p.replace()
+    lay = make_layout(q)
+    kinds = ["odometry", "doa"]
+    levenberg_marquardt(q, st, lay, kinds, max_iter=2)     # fills the shared bookkeeping for q
+    q.sigma["odometry"] *= 3.0
+    moved = retract(st, lay, np.full(lay.n, 1e-4))
+    got = linearise(q, moved, lay, kinds)
+    ref = evaluate(q, moved, lay, kinds)                      # no bookkeeping at all
+    assert np.array_equal(got.J, stack_jacobians([f.J for f in ref], lay.n, True))
+    assert np.array_equal(got.r, np.concatenate([f.r for f in ref]))
+
+
+def test_fast_median_is_numpys():
+    """calib.robust.median gives np.median's value: odd and even sizes, ties of ±0, NaN and ±inf."""
+    from calib.robust import median
+
+    rng = np.random.default_rng(3)
+    for t in range(3000):
+        x = rng.standard_normal(int(rng.integers(1, 40))) * 10.0 ** rng.uniform(-6, 3)
+        if t % 3 == 0:
+            x = np.round(x * 1e-3) * rng.choice([-1.0, 1.0], size=len(x))   # many ±0 ties
+        if t % 11 == 0:
+            x[rng.integers(len(x))] = rng.choice([np.nan, np.inf, -np.inf])
+        a, b = np.median(x), median(x)
+        assert (np.isnan(a) and np.isnan(b)) or (a == b and np.signbit(a) == np.signbit(b))
