@@ -94,21 +94,24 @@ def segment_spectra(x, starts, setup, plain=False):
     spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)  # complex64
     spec = spec[..., kb[0] : kb[-1] + 1] if kb[-1] - kb[0] + 1 == len(kb) else spec[..., kb]  # (a view)
     c = spec * setup["tmpl_conj64"]  # complex64 throughout (see above)
+    pow_spec = _power(spec)  # |X|², float32
     c_plain = None
     w = setup["weights"] / setup["weights"].sum()
     w32 = w.astype(np.float32)
     if plain:
         p = np.sum(np.abs(setup["tmpl_conj"]) ** 2 * w)  # a single path of unit gain peaks at 1
-        spec_pow = np.square(spec.real, dtype=np.float64) + np.square(spec.imag, dtype=np.float64)
-        scale = 1.0 / np.maximum(p * np.sqrt(np.mean(spec_pow, axis=-1, keepdims=True)
+        scale = 1.0 / np.maximum(p * np.sqrt(np.mean(pow_spec, axis=-1, keepdims=True, dtype=np.float64)
                                              / np.mean(np.abs(setup["tmpl_conj"]) ** 2)), 1e-300)
         c_plain = c * (w32 * scale.astype(np.float32))
     if setup["whiten_bins"]:
         # divide by the locally smoothed magnitude: removes the spectral colour of speaker, room and noise
         # (as PHAT does) but not the fine structure of the reverberation, whose full whitening would smear
         # energy ahead of the direct path (a zero-phase inverse filter is two-sided)
-        p = uniform_filter1d(_power(c), setup["whiten_bins"], axis=-1, mode="nearest")
-        c *= w32 / np.sqrt(np.maximum(p, np.float32(1e-30 * max(float(p.max(initial=0.0)), 1e-300))))
+        pow_spec *= np.abs(setup["tmpl_conj64"]) ** 2  # |c|² = |X|² |S|²
+        p = uniform_filter1d(pow_spec, setup["whiten_bins"], axis=-1, mode="nearest")
+        np.maximum(p, np.float32(1e-30 * max(float(p.max(initial=0.0)), 1e-300)), out=p)
+        np.sqrt(p, out=p)
+        c *= np.divide(w32, p, out=p)
     else:
         c *= w32 / np.sqrt(np.maximum(np.mean(_power(c), axis=-1, keepdims=True), np.finfo(np.float32).tiny))
     return (c, c_plain) if plain else c
