@@ -111,13 +111,45 @@ def local_floor(env, block):
 def median_last(a):
     """``np.median(a, axis=-1)`` of a NaN-free array, bit-identical and ~2–3× faster: one selection at the
     upper middle, the lower middle (even length) as the maximum of the part below it, where numpy's
-    median runs a second selection."""
+    median runs a second selection. A long 1-D array (a recording's envelope) selects among the few
+    values a sorted subsample brackets the middle with (:func:`_bracketed_middle`; ~4× faster again)."""
     n = a.shape[-1]
     h = n // 2
+    if a.ndim == 1 and n >= BRACKET_MIN:
+        middle = _bracketed_middle(a)
+        if middle is not None:
+            return middle if n % 2 else np.mean(np.stack(middle, axis=-1), axis=-1)
     part = np.partition(a, h, axis=-1)
     if n % 2:
         return part[..., h]
     return np.mean(np.stack([np.max(part[..., :h], axis=-1), part[..., h]], axis=-1), axis=-1)
+
+
+BRACKET_MIN = 1 << 15   # 1-D arrays at least this long: median via a bracket from a subsample
+BRACKET_SAMPLE = 4096   # about this many values in the subsample
+BRACKET_SD = 5.0        # bracket half-width: this many binomial standard deviations of the middle's rank
+
+
+def _bracketed_middle(a):
+    """The value at rank ``n // 2`` of a 1-D array (odd length), or the values at ranks ``n//2 − 1`` and
+    ``n//2`` (even), exactly: a sorted subsample gives values ``lo ≤ hi`` whose ranks bracket the middle
+    with a margin of ``BRACKET_SD`` standard deviations; one count of the values below ``lo`` and a
+    selection among the few in ``[lo, hi]`` give the exact order statistics. None when the bracket
+    missed (then the caller selects over everything)."""
+    n = len(a)
+    h = n // 2
+    sample = np.sort(a[:: max(1, n // BRACKET_SAMPLE)])
+    s = len(sample)
+    margin = int(BRACKET_SD * 0.5 * np.sqrt(s)) + 2
+    lo, hi = sample[max(s // 2 - margin, 0)], sample[min(s // 2 + margin, s - 1)]
+    below = int(np.count_nonzero(a < lo))
+    inside = a[(a >= lo) & (a <= hi)]
+    first = h - 1 if n % 2 == 0 else h  # the lowest rank needed
+    if not below <= first or not h < below + len(inside):
+        return None
+    ranks = [first - below, h - below] if n % 2 == 0 else [h - below]
+    vals = np.partition(inside, ranks)[ranks]
+    return vals[0] if n % 2 else (vals[0], vals[1])
 
 
 def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):

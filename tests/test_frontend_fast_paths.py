@@ -49,6 +49,24 @@ def test_median_last_equals_numpy_median():
             assert got.dtype == want.dtype and np.array_equal(got, want)
 
 
+def test_median_last_long_arrays_bracketed():
+    """Long 1-D arrays take the bracketed selection: still numpy's median exactly, with ties, digital
+    silence (a constant majority) and heavy tails, odd and even lengths."""
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        n = int(rng.integers(1 << 15, 1 << 17)) + trial % 2
+        a = rng.standard_normal(n)
+        if trial % 4 == 1:
+            a = np.abs(a) ** 3
+        if trial % 4 == 2:
+            a = np.round(a * 3) / 3
+        if trial % 4 == 3:
+            a[: n // 2 + int(rng.integers(-50, 50))] = 0.0
+        a = a.astype(np.float32 if trial % 3 else np.float64)
+        got, want = median_last(a), np.median(a)
+        assert np.asarray(got).dtype == np.asarray(want).dtype and got == want
+
+
 def test_peaks_above_equals_find_peaks():
     rng = np.random.default_rng(1)
     for trial in range(400):
