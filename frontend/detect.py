@@ -44,25 +44,28 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
     bw = band[1] - band[0]
     dec = max(1, int(fs / (1.25 * bw)))
     guard = -(-int(EDGE_GUARD * n_t) // dec)  # in decimated samples
-    nd = _fast_length(max(-(-block // dec), -(-(n_t - 1) // dec) + 2 * guard + 64))
-    nfft = nd * dec
-    step = nd - (-(-(n_t - 1) // dec)) - 2 * guard  # valid decimated outputs per block
-    k0 = int(np.floor(band[0] * nfft / fs))
-    k1 = min(int(np.ceil(band[1] * nfft / fs)) + 1, nfft // 2 + 1)
-    k1 = min(k1, k0 + nd)
-    s_conj = _template_band(template, nfft, k0, k1)
+    overlap = -(-(n_t - 1) // dec) + 2 * guard  # decimated samples of a block that give no output
+    nd = _fast_length(max(-(-block // dec), overlap + 64))
     scale = 2.0 / (float(np.dot(template, template)) * dec)
     n_valid = -(-n // dec)
     env = np.zeros(n_valid, np.float32)
-    buf = np.zeros(nd, np.complex64)
-    for q0 in range(0, n_valid, step):  # q0: first decimated output of this block
-        s0 = (q0 - guard) * dec          # first input sample of the block
+    q0, buf = 0, None  # first decimated output of the next block, the inverse transform's input
+    while q0 < n_valid:
+        # the last block only as long as what is left needs (a 28 s recording at 48 kHz: 7 blocks of 2^18
+        # samples, the seventh for 3 % of its outputs)
+        nd_b = min(nd, _fast_length(n_valid - q0 + overlap))
+        nfft, q1 = nd_b * dec, min(q0 + nd_b - overlap, n_valid)
+        k0 = int(np.floor(band[0] * nfft / fs))
+        k1 = min(int(np.ceil(band[1] * nfft / fs)) + 1, nfft // 2 + 1, k0 + nd_b)
+        s_conj = _template_band(template, nfft, k0, k1)
+        buf = buf if buf is not None and len(buf) == nd_b else np.zeros(nd_b, np.complex64)
+        s0 = (q0 - guard) * dec  # first input sample of the block
         seg = _columns(x, s0, s0 + nfft)
-        q1 = min(q0 + step, n_valid)
         for ch in range(m):  # one channel at a time
             spec = sfft.rfft(seg[ch], nfft)
             buf[: k1 - k0] = spec[k0:k1] * s_conj
             env[q0:q1] += np.abs(sfft.ifft(buf)[guard : guard + q1 - q0])
+        q0 = q1
     env *= np.float32(scale / m)
     return env, dec
 
@@ -73,7 +76,7 @@ def _fast_length(n):
     return min(k << max(0, int(np.ceil(np.log2(n / k)))) for k in (1, 3, 5))
 
 
-_TEMPLATE_BANDS = SetupCache(4)
+_TEMPLATE_BANDS = SetupCache(16)  # a full-length block per rate, a shorter last one per recording
 
 
 def _template_band(template, nfft, k0, k1):
