@@ -15,13 +15,12 @@ import time
 
 import numpy as np
 import pandas as pd
-from threadpoolctl import threadpool_limits
 
 from calib.errors import InputError
 
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
-from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
+from .doa import cone_vectors, mic_geometry, single_thread_blas, srp_cone, srp_doa, srp_setup
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
@@ -72,7 +71,7 @@ def extract_features(session, progress=None, **options):
         raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
     # single-threaded BLAS: the frontend's products are small (mics × grid, events × taps), and OpenBLAS
     # threads spin on them: ~40 % more CPU for no wall-clock gain (docs/results.md, issue 12)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with single_thread_blas():
         return _extract(session, progress, opt)
 
 
