@@ -97,6 +97,8 @@ def test_int_channel_sum_equals_float_accumulation(dtype, m):
         want += f[:, ch]
     got = _int_channel_sum(f)
     assert got.dtype == np.float32 and np.array_equal(got, want)
+    scaled = _int_channel_sum(f, 2.0**-15)  # the full scale folded in: still exact
+    assert scaled.dtype == np.float32 and np.array_equal(scaled, want * np.float32(2.0**-15))
 
 
 def test_cis_powers_equal_direct_exponentials():
