@@ -106,9 +106,12 @@ def local_floor(env, block):
     med = median_last(env[: nb * block].reshape(nb, -1)) if n >= block else np.array([median_last(env)])
     med = np.r_[med, med[-1]] if nb * block < n and n >= block else med  # the partial last block
     neigh = np.maximum(med, np.maximum(np.r_[med[1:], med[-1]], np.r_[med[0], med[:-1]]))
-    full = np.repeat(neigh, block)
-    full = np.r_[full, np.full(max(0, n - len(full)), full[-1])][:n]
-    return np.maximum(full, median_last(env))
+    level = np.maximum(neigh, median_last(env))  # per block: the max commutes with the repetition
+    out = np.empty(n, level.dtype)  # sample k gets level[min(k // block, last)], written block-wise
+    n_full = min(n // block, len(level))
+    out[: n_full * block].reshape(n_full, block)[...] = level[:n_full, None]
+    out[n_full * block :] = level[min(n_full, len(level) - 1)]
+    return out
 
 
 def median_last(a):

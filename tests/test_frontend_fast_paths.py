@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.signal as ss
 
-from calib.frontend.detect import _peaks_above, median_last
+from calib.frontend.detect import _peaks_above, local_floor, median_last
 from calib.frontend.timing import cis_powers
 from calib.frontend.doa import _grid_search, fibonacci_sphere, srp_setup
 from calib.frontend.signals import _int_channel_sum
@@ -111,3 +111,19 @@ def test_cis_powers_equal_direct_exponentials():
             want = np.exp(2j * np.pi * tau[..., None] * (f0 + df * np.arange(n)))
             got = cis_powers(tau, f0, df, n)
             assert got.shape == want.shape and np.max(np.abs(got - want)) < 1e-11
+
+
+def test_local_floor_blockwise():
+    """local_floor, written block by block, against its definition sample by sample: the max of the
+    block medians of a sample's block and its neighbours (a partial last block takes the last full
+    block's median) and of the global median."""
+    rng = np.random.default_rng(5)
+    for n, block in [(10007, 1000), (9000, 1000), (500, 1000), (1, 3)]:
+        env = np.abs(rng.standard_normal(n)).astype(np.float32)
+        nb = max(1, n // block)
+        med = [np.median(env[b * block:(b + 1) * block]) for b in range(nb)] if n >= block else [np.median(env)]
+        if n >= block and nb * block < n:
+            med.append(med[-1])
+        want = np.array([max(max(med[max(b - 1, 0)], med[b], med[min(b + 1, len(med) - 1)]), np.median(env))
+                         for b in np.minimum(np.arange(n) // block, len(med) - 1)], np.float32)
+        np.testing.assert_array_equal(local_floor(env, block), want)
