@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from calib.errors import InputError
 
+from .factors import norm
 from .problem import empty_state, make_layout
 from .solver import levenberg_marquardt
 
@@ -212,7 +213,7 @@ def _clock_rows(p, st, i):
     need = np.unique(np.concatenate([a, b, j]))                    # the events these rows name
     col = np.zeros(len(s), int)
     col[need] = np.arange(len(need))
-    dr = np.linalg.norm(s[j] - st.x[ref], axis=1)
+    dr = norm(s[j] - st.x[ref], axis=1)
     g0 = 1.0 + st.drift[ref]
     return {"a": a, "b": b, "j": j, "zs": zs[None], "zm": zm[None], "dt": (t[b] - t[a])[None], "tj": t[j][None],
             "yref": (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None], "src": s[need][None, :, :],
@@ -225,7 +226,7 @@ def _clock_columns(p, st, i, pts, rows=None):
     whether the offset is solved (>= 2 TDOA-M rows)."""
     q = _clock_rows(p, st, i) if rows is None else rows
     c, a, b, j, col = p.c, q["a"], q["b"], q["j"], q["col"]
-    d = np.linalg.norm(q["src"] - pts[:, None, :], axis=2)  # (G, events named)
+    d = norm(q["src"] - pts[:, None, :], axis=2)  # (G, events named)
     h = q["dt"] + (d[:, col[b]] - d[:, col[a]]) / c
     dj = q["tj"] + d[:, col[j]] / c
     X = np.concatenate([h, dj + p.beta], axis=1)
@@ -275,51 +276,55 @@ def profile_cost_many(items, st, kappa, sigma_d, n_irls=6, rows=None):
     S = max(q[2] for q in clock)
     M = max(q[0].shape[1] - q[2] for q in clock)
     G = sum(len(q[0]) for q in clock)
-    X, Y, mask, use_off = np.zeros((G, S + M)), np.zeros((G, S + M)), np.zeros((G, S + M)), np.zeros(G, bool)
+    # the clock columns transposed, (S + M, G): the IRLS sums run along contiguous rows of points
+    XT, YT, maskT, use_off = np.zeros((S + M, G)), np.zeros((S + M, G)), np.zeros((S + M, G)), np.zeros(G, bool)
     doa = [None if r[1] is None else (r[1][0], _directions(r[1][1], pts)) for (_, _, pts), r in zip(items, rows)]
     D = max([len(q[0]) for q in doa if q is not None], default=0)
     U, V, nd = np.zeros((G, D, 3)), np.zeros((G, D, 3)), np.zeros(G)
     g0 = 0
     for (x, y, ns, uo), dq in zip(clock, doa):
         g1, nm = g0 + len(x), x.shape[1] - ns
-        for dst, src in ((X, x), (Y, y), (mask, np.ones_like(x))):
-            dst[g0:g1, :ns], dst[g0:g1, S:S + nm] = src[:, :ns], src[:, ns:]
+        for dst, src in ((XT, x), (YT, y)):
+            dst[:ns, g0:g1], dst[S:S + nm, g0:g1] = src[:, :ns].T, src[:, ns:].T
+        maskT[:ns, g0:g1], maskT[S:S + nm, g0:g1] = 1.0, 1.0
         use_off[g0:g1] = uo
         if dq is not None:
             U[g0:g1, :len(dq[0])], V[g0:g1, :len(dq[0])], nd[g0:g1] = dq[0], dq[1], len(dq[0])
         g0 = g1
-    drift, off, r2 = _clock_irls_masked(X, Y, mask, S, kappa, use_off, n_irls)
-    cost = (np.log1p(r2) * mask).sum(1)
-    if D:
-        cost = cost + kabsch_cost(U, V, n=nd) / (2.0 * sigma_d ** 2)   # nd = 0 rows: exactly 0 added
+    drift, off, r2 = _clock_irls_masked(XT, YT, maskT, S, kappa, use_off, n_irls)
+    cost = (np.log1p(r2) * maskT).sum(0)
+    if D:   # nd = 0 rows: exactly 0 added
+        cost = cost + kabsch_cost(U, V, closed_form=True, n=nd) / (2.0 * sigma_d ** 2)
     return cost, drift, off
 
 
-def _clock_irls_masked(X, Y, mask, ns, kappa, use_off, n_irls):
-    """:func:`_clock_irls` with a weight mask (G, n) (0 = padding column) and ``use_off`` per row (G,)."""
-    G = len(X)
+def _clock_irls_masked(XT, YT, mask, ns, kappa, use_off, n_irls):
+    """:func:`_clock_irls` on transposed columns XT, YT (n, G) (as :func:`_clock_irls_t`) with a weight
+    mask (n, G) (0 = padding) and ``use_off`` per point (G,). Returns drift (G,), offset (G,) and the
+    last squared normalised residuals (n, G)."""
+    G = XT.shape[1]
+    XT, YT = XT / kappa, YT / kappa   # residuals in units of kappa directly (the drift does not change)
     w = mask.copy()
     drift, off = np.zeros(G), np.zeros(G)
-    wX, r = np.empty_like(X), np.empty_like(X)
+    wX, r = np.empty_like(XT), np.empty_like(XT)
     for it in range(n_irls):
-        np.multiply(w, X, out=wX)
-        a11, b1 = np.einsum("gk,gk->g", wX, X), np.einsum("gk,gk->g", wX, Y)
-        a12, a22, b2 = wX[:, ns:].sum(1), w[:, ns:].sum(1), np.einsum("gk,gk->g", w[:, ns:], Y[:, ns:])
+        np.multiply(w, XT, out=wX)
+        a11, b1 = np.einsum("kg,kg->g", wX, XT), np.einsum("kg,kg->g", wX, YT)
+        a12, a22, b2 = wX[ns:].sum(0), w[ns:].sum(0), np.einsum("kg,kg->g", w[ns:], YT[ns:])
         det = a11 * a22 - a12 * a12
         ok = use_off & (np.abs(det) > 1e-300)
         only = ~use_off & (a11 > 0)
-        drift_only = np.where(only, b1 / np.where(only, a11, 1), 0.0)   # rows without an offset
+        drift_only = np.where(only, b1 / np.where(only, a11, 1), 0.0)   # points without an offset
         drift = np.where(ok, (b1 * a22 - a12 * b2) / np.where(ok, det, 1), drift_only)
         off = np.where(ok, (a11 * b2 - a12 * b1) / np.where(ok, det, 1), 0.0)
-        np.multiply(drift[:, None], X, out=r)
-        np.subtract(Y, r, out=r)
-        r[:, ns:] -= off[:, None]
-        np.divide(r, kappa, out=r)
+        np.multiply(drift, XT, out=r)
+        np.subtract(YT, r, out=r)
+        r[ns:] -= off
         np.square(r, out=r)          # r now holds r2 = (r / kappa)²
         if it + 1 < n_irls:          # (the last weights would not be used)
             np.add(r, 1.0, out=w)
             np.divide(mask, w, out=w)
-    return drift, off, r
+    return drift, off * kappa, r
 
 
 def _clock_irls(X, Y, ns, kappa, use_off, n_irls):
@@ -329,17 +334,20 @@ def _clock_irls(X, Y, ns, kappa, use_off, n_irls):
     offset (G,) and the last squared normalised residuals (G, n): :func:`_clock_irls_masked` with every
     column weighted and the same ``use_off`` for every row.
     """
-    return _clock_irls_masked(X, Y, np.ones_like(X), ns, kappa, np.full(len(X), bool(use_off)), n_irls)
+    drift, off, r2 = _clock_irls_masked(np.ascontiguousarray(X.T), np.ascontiguousarray(Y.T), np.ones(X.shape[::-1]),
+                                        ns, kappa, np.full(len(X), bool(use_off)), n_irls)
+    return drift, off, r2.T
 
 
 def _clock_irls_t(XT, YT, ns, kappa, use_off, n_irls):
     """:func:`_clock_irls` on transposed columns XT, YT (n, G) (the coarse grid's layout): the sums over
     the n measurements run along contiguous rows of G points (about twice as fast as G short dot
     products; the same values up to rounding). Returns the last squared normalised residuals (n, G)."""
+    XT, YT = XT / kappa, YT / kappa   # residuals in units of kappa directly (the drift does not change)
     w = np.ones_like(XT)
-    wX, r = np.empty_like(XT), np.empty_like(XT)
+    buf, r = np.empty_like(XT), np.empty_like(XT)
     for it in range(n_irls):
-        np.multiply(w, XT, out=wX)
+        wX = np.multiply(w, XT, out=buf) if it else XT   # (the first weights are all 1)
         a11, b1 = np.einsum("kg,kg->g", wX, XT), np.einsum("kg,kg->g", wX, YT)
         if use_off:
             a12, a22, b2 = wX[ns:].sum(0), w[ns:].sum(0), np.einsum("kg,kg->g", w[ns:], YT[ns:])
@@ -353,7 +361,6 @@ def _clock_irls_t(XT, YT, ns, kappa, use_off, n_irls):
         np.multiply(drift, XT, out=r)
         np.subtract(YT, r, out=r)
         r[ns:] -= off
-        np.divide(r, kappa, out=r)
         np.square(r, out=r)          # r now holds r2 = (r / kappa)²
         if it + 1 < n_irls:          # (the last weights would not be used)
             np.add(r, 1.0, out=w)
@@ -376,18 +383,20 @@ def coarse_grid(s, events=None):
     grid, step = grid_points(s)
     pts = grid.reshape(-1, 3)
     w = s[events][None] - pts[:, None, :]
-    d = np.linalg.norm(w, axis=2)
+    d = norm(w, axis=2)
     col = np.full(len(s), -1)
     col[events] = np.arange(len(events))
     u = w / d[..., None]
     return {"pts": pts, "shape": grid.shape[:3], "step": step, "dT": np.ascontiguousarray(d.T), "u": u, "col": col,
-            "vT": np.ascontiguousarray(u.transpose(2, 1, 0)), "dmin": cKDTree(s).query(pts)[0]}
+            "vT": np.ascontiguousarray(u.transpose(2, 1, 0)),
+            # (with every event in the geometry its distances give it; a KD-tree only for a subsample)
+            "dmin": d.min(axis=1) if len(events) == len(s) else cKDTree(s).query(pts)[0]}
 
 
 def _directions(src, pts):
     """Unit vectors (G, n, 3) from points (G, 3) to sources (n, 3)."""
     v = src[None] - pts[:, None, :]
-    return v / np.linalg.norm(v, axis=2, keepdims=True)
+    return v / norm(v, axis=2, keepdims=True)
 
 
 def kabsch_cost(u, v, closed_form=False, n=None):
@@ -395,8 +404,10 @@ def kabsch_cost(u, v, closed_form=False, n=None):
 
     With M = Σ v uᵀ, the optimum is 2n − 2(σ1 + σ2 + sign(det M) σ3); the singular values are the square
     roots of the eigenvalues of the symmetric MᵀM (LAPACK, or with ``closed_form`` :func:`sym3_eigvals`:
-    ~10× cheaper on thousands of matrices, slightly less accurate; the coarse grid, which only ranks
-    candidates, uses it; the zoom that sets the result keeps LAPACK's values).
+    ~10× cheaper on thousands of matrices, slightly less accurate: ~1e-8 of n where two singular values
+    nearly coincide, far below the cost differences between grid points; the coarse grid and the batched
+    zoom (:func:`profile_cost_many`) use it, the one-array :func:`profile_cost` keeps LAPACK's values, the
+    reference the tests compare with). The zoom only starts the joint solve, which polishes it.
     """
     M = np.matmul(v.transpose(0, 2, 1), u)  # (G, 3, 3) = Σ_n v_n u_nᵀ (batched matmul beats einsum here)
     MtM = np.matmul(M.transpose(0, 2, 1), M)

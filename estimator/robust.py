@@ -85,13 +85,21 @@ def _hat_factor(J, keep):
     return Js @ sym_inverse(Js[keep].T @ Js[keep]), Js
 
 
+_POTRF, _POTRS = scipy.linalg.lapack.get_lapack_funcs(("potrf", "potrs"), (np.zeros(1),))
+
+
 def sym_inverse(H):
-    """Inverse of a symmetric positive semi-definite matrix: Cholesky when definite, else pseudo-inverse."""
-    try:
-        c = scipy.linalg.cho_factor(H, check_finite=False)
-        return scipy.linalg.cho_solve(c, np.eye(len(H)), check_finite=False)
-    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
-        return np.linalg.pinv(H, hermitian=True)
+    """Inverse of a symmetric positive semi-definite matrix: Cholesky when definite, else pseudo-inverse.
+
+    LAPACK's potrf/potrs called directly: what ``cho_factor``/``cho_solve`` call (the same values),
+    without their per-call checks."""
+    H = np.asarray(H, float)
+    c, info = _POTRF(H, lower=0, clean=0)
+    if info == 0:
+        x, info = _POTRS(c, np.eye(len(H)), lower=0)
+        if info == 0:
+            return x
+    return np.linalg.pinv(H, hermitian=True)
 
 
 def measurement_stats(p, st, lay, kinds, mask):

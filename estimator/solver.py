@@ -25,8 +25,8 @@ def rho(r, loss, k):
     """Robust cost ρ(r) (so that ρ(r) = r² near 0) and IRLS weight ρ'(r)/(2r), elementwise."""
     if loss is None or loss == "linear":
         return r * r, np.ones_like(r)
-    a = np.abs(r)
     if loss == "huber":
+        a = np.abs(r)
         small = a <= k
         return np.where(small, r * r, 2 * k * a - k * k), np.where(small, 1.0, k / np.maximum(a, 1e-300))
     if loss == "cauchy":
@@ -190,6 +190,20 @@ class _Entry:
 _CACHE = _LineariseCache()
 
 
+def remember(p, st, lay, kinds, lin, dense, pkey=None):
+    """Put a linearisation computed with ``cache=False`` (:func:`linearise`) into the cache, as if it
+    had been computed through it: an LM solve evaluates each candidate state uncached (most are never
+    seen again) and keeps only the state it returns, which the next stage reads first."""
+    key, e = _CACHE.lookup(p, st, lay, kinds, pkey)
+    if e is None:
+        e = _CACHE.store(key, lin.factors)
+        J = lin.J
+        (J if dense else J.data).setflags(write=False)
+        e.forms[dense] = J
+        if not dense:
+            e.chunks = None
+
+
 def factors_at(p, st, lay, kinds, dense=None, pkey=None, memo=None):
     """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input.
 
@@ -226,7 +240,8 @@ class Linearised(NamedTuple):
     factors: list
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=None, memo=None) -> Linearised:
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=None, memo=None,
+              cache=True) -> Linearised:
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
@@ -234,8 +249,15 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=N
     (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
     inputs (read-only); the factor dicts carry no per-factor ``J`` (``factors.evaluate`` has those).
     ``pkey``, ``memo``: what one LM solve keeps between its linearisations, :func:`factors_at`.
+    ``cache=False``: evaluated without looking up or storing in the cache (then the factors keep their
+    ``J`` and the arrays are the caller's; :func:`remember` stores them later).
     """
-    fs, J = factors_at(p, st, lay, kinds, use_dense(lay) if dense is None else dense, pkey, memo)
+    dense = use_dense(lay) if dense is None else dense
+    if cache:
+        fs, J = factors_at(p, st, lay, kinds, dense, pkey, memo)
+    else:
+        fs = evaluate(p, st, lay, kinds, memo)
+        J = stack_jacobians([f.J for f in fs], lay.n, dense, memo)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f.r
@@ -404,8 +426,13 @@ def _solve_damped(H, g, lam):
 
 
 def _same_state(a, b):
-    """Whether states ``a`` and ``b`` are equal bit for bit (every field)."""
-    return all(np.array_equal(getattr(a, name), getattr(b, name)) for name in _field_names(type(a)))
+    """Whether states ``a`` and ``b`` are equal (every field; ``np.array_equal``'s test, without its
+    per-call conversions)."""
+    for name in _field_names(type(a)):
+        x, y = getattr(a, name), getattr(b, name)
+        if x.shape != y.shape or not (x == y).all():
+            return False
+    return True
 
 
 def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_iter=200, rtol=1e-12,
@@ -425,7 +452,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
     pkey, memo = _CACHE.problem_key(p, kinds), {}
     lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense, pkey=pkey, memo=memo)
     r, J, w, cost = lin.r, lin.J, lin.w, lin.cost
-    reason, it = "max_iter", 0
+    reason, it, fresh = "max_iter", 0, False
     for it in range(1, max_iter + 1):
         H, g = normal_equations(J, w, r)
         diag = np.diag(H) if dense else H.diagonal()
@@ -436,29 +463,41 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         accepted = False
         for _ in range(30):
             step = _solve_damped(H, g, lam) if dense else system.factor(lam).solve(-g)
+            pred = -(step @ g) - 0.5 * step @ (H @ step)   # the decrease the quadratic model predicts
+            if 0 < pred <= rtol * max(cost, 1e-30) and it > 1:
+                # converged: after a first step, one predicted to lower the cost by less than the tolerance
+                # is not evaluated (it would move the state by ~sqrt(2 rtol cost) in whitened units)
+                reason = "cost"
+                break
             cand = retract(st, lay, step, memo)
             if _same_state(cand, st):
                 # the damped step no longer moves the state (it is below the parameters' rounding): it
                 # cannot lower the cost, and more damping only shrinks it further
                 break
-            lin = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense, pkey=pkey, memo=memo)
-            r2, J2, w2, cost2 = lin.r, lin.J, lin.w, lin.cost
-            pred = -(step @ g) - 0.5 * step @ (H @ step)
+            lin2 = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense, memo=memo, cache=False)
+            r2, J2, w2, cost2 = lin2.r, lin2.J, lin2.w, lin2.cost
             ratio = (cost - cost2) / pred if pred > 0 else -1.0
             if cost2 < cost and np.isfinite(cost2):
                 accepted = True
                 break
+            if pred <= rtol * max(cost, 1e-30):
+                # rejected, and the model predicted a decrease below the tolerance: a more damped step
+                # predicts even less (at a minimum, rounding decides whether one is accepted): converged
+                reason = "cost"
+                break
             lam *= nu
             nu *= 2.0
         if not accepted:
-            reason = "no decrease"
+            reason = "no decrease" if reason != "cost" else reason
             break
         lam *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3) if ratio > 0 else 2.0
         nu = 2.0
         dec = cost - cost2
-        st, r, J, w, cost = cand, r2, J2, w2, cost2
+        st, r, J, w, cost, lin, fresh = cand, r2, J2, w2, cost2, lin2, True
         if dec <= rtol * max(cost, 1e-30):
             reason = "cost"
             break
+    if fresh:   # the returned state was evaluated uncached: the next stage will read it
+        remember(p, st, lay, kinds, lin, dense, pkey)
     # "no decrease": no damped step lowers the cost any more, i.e. a numerical minimum.
     return st, {"iterations": it, "cost": cost, "converged": reason != "max_iter", "reason": reason}

@@ -26,7 +26,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from calib.robust import mad_std
+from calib.robust import MAD_TO_SIGMA, mad_std
 
 from .init import ObservabilityError, init_sources, kabsch
 from .problem import empty_state
@@ -61,42 +61,47 @@ def window_ranges(cosang, dist2, pairs, b0, max_iter=25):
     cosang, dist2 : (W, P) cos θ_ab between the array's DOAs and |s_a − s_b|² (m²) for the P pairs.
     pairs : (P, 2) indices of the pair members inside a window of w sources.
     b0 : (W, w) starting ranges (m).
+    Each window stops by its own test (a step accepted with a relative decrease <= 1e-8, or the damping
+    past 1e8), as a solve of that window alone would; the batch only iterates the windows still running.
     Returns ranges (W, w) and the final cost ½Σr² (W,).
     """
     W, w = b0.shape
     a, b_ = pairs[:, 0], pairs[:, 1]
     rows = np.arange(len(pairs))
 
-    def resid(b):
+    def resid(b, ca, d2):
         ba, bb = b[:, a], b[:, b_]
-        return ba * ba + bb * bb - 2.0 * ba * bb * cosang - dist2
+        return ba * ba + bb * bb - 2.0 * ba * bb * ca - d2
 
     b = np.clip(b0.astype(float), *RANGE_BOUNDS)
-    r = resid(b)
+    r = resid(b, cosang, dist2)
     cost = 0.5 * np.sum(r * r, axis=1)
     lam = np.full(W, 1e-3)
+    act = np.arange(W)   # the windows still iterating
     for _ in range(max_iter):
-        ba, bb = b[:, a], b[:, b_]
-        J = np.zeros((W, len(pairs), w))
-        J[:, rows, a] = 2.0 * ba - 2.0 * bb * cosang
-        J[:, rows, b_] = 2.0 * bb - 2.0 * ba * cosang
+        ca, d2, bk, rk, ck, lk = cosang[act], dist2[act], b[act], r[act], cost[act], lam[act]
+        ba, bb = bk[:, a], bk[:, b_]
+        J = np.zeros((len(act), len(pairs), w))
+        J[:, rows, a] = 2.0 * ba - 2.0 * bb * ca
+        J[:, rows, b_] = 2.0 * bb - 2.0 * ba * ca
         Jt = J.transpose(0, 2, 1)
         H = Jt @ J
-        g = (Jt @ r[..., None])[..., 0]
+        g = (Jt @ rk[..., None])[..., 0]
         dH = np.diagonal(H, axis1=1, axis2=2)
         floor = 1e-9 * dH.max(axis=1, keepdims=True) + 1e-12    # keeps A regular where a column vanishes
-        A = H + (lam[:, None] * np.maximum(dH, floor) + floor)[:, :, None] * np.eye(w)[None]
+        A = H + (lk[:, None] * np.maximum(dH, floor) + floor)[:, :, None] * np.eye(w)[None]
         step = -np.linalg.solve(A, g[..., None])[..., 0]
-        cand = np.clip(b + step, *RANGE_BOUNDS)
-        r2 = resid(cand)
+        cand = np.clip(bk + step, *RANGE_BOUNDS)
+        r2 = resid(cand, ca, d2)
         cost2 = 0.5 * np.sum(r2 * r2, axis=1)
-        ok = cost2 < cost
-        b = np.where(ok[:, None], cand, b)
-        r = np.where(ok[:, None], r2, r)
-        small = ok & (cost - cost2 <= 1e-8 * cost)
-        cost = np.where(ok, cost2, cost)
-        lam = np.where(ok, lam / 3.0, lam * 4.0)
-        if np.all(small | (lam > 1e8)):
+        ok = cost2 < ck
+        b[act] = np.where(ok[:, None], cand, bk)
+        r[act] = np.where(ok[:, None], r2, rk)
+        small = ok & (ck - cost2 <= 1e-8 * ck)
+        cost[act] = np.where(ok, cost2, ck)
+        lam[act] = lk = np.where(ok, lk / 3.0, lk * 4.0)
+        act = act[~(small | (lk > 1e8))]
+        if not len(act):
             break
     return b, cost
 
@@ -107,7 +112,10 @@ def robust_mean(v):
     if v.size < 3:
         return float(np.mean(v))
     med = np.median(v)
-    mad = mad_std(v, center=med)
+    if np.isnan(med):
+        mad = mad_std(v, center=med)
+    else:   # no NaN: mad_std's value without its NaN-aware median (several times slower on ~20 values)
+        mad = MAD_TO_SIGMA * np.median(np.abs(v - med))
     keep = np.abs(v - med) <= 3.0 * max(mad, 1e-9)
     return float(np.mean(v[keep]))
 
