@@ -3,6 +3,7 @@
     python benchmarks/bench_features_scale.py                       # 14, 60, 240, 960 events at 16 and 48 kHz
     python benchmarks/bench_features_scale.py --events 14 60 --rates 16000
     python benchmarks/bench_features_scale.py --plot docs/img/features_scale.png
+    python benchmarks/bench_features_scale.py --events 960 --rates 48000 --jobs 2   # 2 arrays at a time
     python benchmarks/bench_features_scale.py --association   # association alone, 240 … 16000 events
     python benchmarks/bench_features_scale.py --json r.json; ... --replot r.json --plot out.png
 
@@ -108,7 +109,7 @@ t0 = time.perf_counter()
 from calib.pipeline.features import session_features
 t1 = time.perf_counter()
 cpu0 = sum(resource.getrusage(resource.RUSAGE_SELF)[:2])
-feats, diag = session_features(sys.argv[1])
+feats, diag = session_features(sys.argv[1], jobs=int(sys.argv[3]))
 t2 = time.perf_counter()
 feats["tdoa_s"].to_csv(sys.argv[2], index=False)
 arr = diag["arrays"]
@@ -122,10 +123,12 @@ print(json.dumps({"import_s": t1 - t0, "features_s": t2 - t1, "peak_rss_mb": ru.
 """
 
 
-def run_case(folder, n_events, seed):
-    """session_features on ``folder`` in a child process. Returns a dict of measurements."""
+def run_case(folder, n_events, seed, jobs=1):
+    """session_features on ``folder`` in a child process (``jobs`` arrays at a time). Returns a dict of
+    measurements."""
     csv = folder / "tdoa_s.csv"
-    p = subprocess.run([sys.executable, "-c", CHILD, str(folder), str(csv)], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-c", CHILD, str(folder), str(csv), str(jobs)], capture_output=True,
+                       text=True)
     if p.returncode:
         raise RuntimeError(p.stderr)
     r = json.loads(p.stdout.strip().splitlines()[-1])
@@ -199,6 +202,7 @@ def main():
     ap.add_argument("--plot", type=Path, default=Path("docs/img/features_scale.png"))
     ap.add_argument("--json", type=Path, help="also write the raw numbers here")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--jobs", type=int, default=1, help="arrays at a time (session_features(jobs=...), threads)")
     ap.add_argument("--association", action="store_true", help="only the association timing table")
     ap.add_argument("--replot", type=Path, help="only redraw --plot from a --json file of an earlier run")
     args = ap.parse_args()
@@ -209,7 +213,8 @@ def main():
         association_table(seed=args.seed)
         return
     rows = []
-    print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f} (1/5/15 min)")
+    print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f} (1/5/15 min); "
+          f"jobs {args.jobs}")
     print("| events | fs | audio (s) | write (s) | features (s) | wall % of audio | CPU (s) | CPU % of audio | peak RSS (MB)"
           " | matched | spurious | TDOA-S RMS (µs) | detect / associate / timing / doa (s, wall) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -220,7 +225,7 @@ def main():
             if not (folder / "complete").exists():
                 write_session(folder, k, fs, args.seed)
             t_write = time.perf_counter() - t0
-            r = run_case(folder, k, args.seed)
+            r = run_case(folder, k, args.seed, args.jobs)
             r.update(events=k, fs=fs, write_s=t_write)
             rows.append(r)
             t = r["timings"]

@@ -138,6 +138,8 @@ ArrayNoise = Annotated[bool, typer.Option("--array-noise", help="when noise figu
                                           "array noisier than the rest is down-weighted instead of distorting "
                                           "the others)")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="print nothing but errors")]
+Jobs = Annotated[int, typer.Option("--jobs", "-j", help="arrays whose features are extracted at a time, in threads "
+                                   "(-1: one per core); the results do not depend on it")]
 
 
 # (name, declaration, default) of the estimator options, in the order --help shows them

@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from .common import console, user_errors, waiting
+from .common import Jobs, console, user_errors, waiting
 from .signals import checked
 
 
@@ -22,15 +22,16 @@ def features(
                                                      "background"),
     max_drift: float = typer.Option(1e-3, help="largest clock drift |δ| the association allows"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
+    jobs: Jobs = -1,
 ):
     """Detect the chirps, match them to the robot's events, measure TDOA-M, TDOA-S and DOA."""
     from calib.pipeline.features import write_feature_outputs
     from calib.pipeline.formats.outputs import check_separate, owned_output
     from calib.pipeline.formats.session import read_session
-    from calib.pipeline.formats.validate import features_options
+    from calib.pipeline.formats.validate import features_options, jobs_option
 
     diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
-    opts = features_options({"threshold": detect_threshold, "max_drift": max_drift})
+    opts = {**features_options({"threshold": detect_threshold, "max_drift": max_drift}), "jobs": jobs_option(jobs)}
     check_separate([out, diag_dir], [recordings])
     session = read_session(recordings)  # every input checked before any output is touched
     inputs = [recordings, *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]

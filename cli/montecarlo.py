@@ -71,8 +71,7 @@ def montecarlo(
     from calib.pipeline.formats.outputs import output_lock
 
     V.option(runs, "runs", lo=1, hi=10**6, integer=True)
-    if jobs != -1:
-        V.option(jobs, "jobs", lo=1, hi=1024, integer=True)
+    V.jobs_option(jobs)
     g = read_grid(grid) if grid is not None else paper_grid()
     if sigma_tdoa is not None or sigma_doa is not None:
         st = [v * 1e-3 for v in _floats(sigma_tdoa, "sigma-tdoa")] if sigma_tdoa else sorted({c[0] for c in g["cells"]})

@@ -7,7 +7,7 @@ from typing import Optional
 import typer
 
 from calib.pipeline.formats.io import dumps_json
-from .common import Quiet, console, exit_on_failed, print_verdict, user_errors, waiting, with_estimate_options
+from .common import Jobs, Quiet, console, exit_on_failed, print_verdict, user_errors, waiting, with_estimate_options
 from .signals import checked, interrupted
 from .tables import out as stdout, print_arrays, print_metrics
 
@@ -71,6 +71,7 @@ def run(
     max_drift: Optional[float] = typer.Option(None, show_default=False,
                                               help="largest clock drift |δ| the association allows [default: 1e-3]"),
     quiet: Quiet = False,
+    jobs: Jobs = -1,
     json_out: bool = typer.Option(False, "--json", help="print one JSON line (stages, timings, metrics, paths)"),
 ):
     """Calibrate from recordings: features → estimate → report (+ evaluation when RECORDINGS/truth exists).
@@ -90,7 +91,8 @@ def run(
     try:
         with _Display(show) as disp:
             res = run_pipeline(recordings, out, force=force, features_options=feat_opts, estimate_options=est_opts,
-                               progress=checked(disp.update), log=checked(disp.log), on_wait=waiting)
+                               progress=checked(disp.update), log=checked(disp.log), on_wait=waiting,
+                               jobs=jobs)
     except KeyboardInterrupt as exc:
         raise typer.Exit(interrupted(exc, "the stage in progress kept no output; re-run to resume")) from None
 

@@ -44,25 +44,28 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
     bw = band[1] - band[0]
     dec = max(1, int(fs / (1.25 * bw)))
     guard = -(-int(EDGE_GUARD * n_t) // dec)  # in decimated samples
-    nd = _fast_length(max(-(-block // dec), -(-(n_t - 1) // dec) + 2 * guard + 64))
-    nfft = nd * dec
-    step = nd - (-(-(n_t - 1) // dec)) - 2 * guard  # valid decimated outputs per block
-    k0 = int(np.floor(band[0] * nfft / fs))
-    k1 = min(int(np.ceil(band[1] * nfft / fs)) + 1, nfft // 2 + 1)
-    k1 = min(k1, k0 + nd)
-    s_conj = _template_band(template, nfft, k0, k1)
+    overlap = -(-(n_t - 1) // dec) + 2 * guard  # decimated samples of a block that give no output
+    nd = _fast_length(max(-(-block // dec), overlap + 64))
     scale = 2.0 / (float(np.dot(template, template)) * dec)
     n_valid = -(-n // dec)
     env = np.zeros(n_valid, np.float32)
-    buf = np.zeros(nd, np.complex64)
-    for q0 in range(0, n_valid, step):  # q0: first decimated output of this block
-        s0 = (q0 - guard) * dec          # first input sample of the block
+    q0, buf = 0, None  # first decimated output of the next block, the inverse transform's input
+    while q0 < n_valid:
+        # the last block only as long as what is left needs (a 28 s recording at 48 kHz: 7 blocks of 2^18
+        # samples, the seventh for 3 % of its outputs)
+        nd_b = min(nd, _fast_length(n_valid - q0 + overlap))
+        nfft, q1 = nd_b * dec, min(q0 + nd_b - overlap, n_valid)
+        k0 = int(np.floor(band[0] * nfft / fs))
+        k1 = min(int(np.ceil(band[1] * nfft / fs)) + 1, nfft // 2 + 1, k0 + nd_b)
+        s_conj = _template_band(template, nfft, k0, k1)
+        buf = buf if buf is not None and len(buf) == nd_b else np.zeros(nd_b, np.complex64)
+        s0 = (q0 - guard) * dec  # first input sample of the block
         seg = _columns(x, s0, s0 + nfft)
-        q1 = min(q0 + step, n_valid)
         for ch in range(m):  # one channel at a time
             spec = sfft.rfft(seg[ch], nfft)
             buf[: k1 - k0] = spec[k0:k1] * s_conj
             env[q0:q1] += np.abs(sfft.ifft(buf)[guard : guard + q1 - q0])
+        q0 = q1
     env *= np.float32(scale / m)
     return env, dec
 
@@ -73,7 +76,7 @@ def _fast_length(n):
     return min(k << max(0, int(np.ceil(np.log2(n / k)))) for k in (1, 3, 5))
 
 
-_TEMPLATE_BANDS = SetupCache(4)
+_TEMPLATE_BANDS = SetupCache(16)  # a full-length block per rate, a shorter last one per recording
 
 
 def _template_band(template, nfft, k0, k1):
@@ -103,21 +106,56 @@ def local_floor(env, block):
     med = median_last(env[: nb * block].reshape(nb, -1)) if n >= block else np.array([median_last(env)])
     med = np.r_[med, med[-1]] if nb * block < n and n >= block else med  # the partial last block
     neigh = np.maximum(med, np.maximum(np.r_[med[1:], med[-1]], np.r_[med[0], med[:-1]]))
-    full = np.repeat(neigh, block)
-    full = np.r_[full, np.full(max(0, n - len(full)), full[-1])][:n]
-    return np.maximum(full, median_last(env))
+    level = np.maximum(neigh, median_last(env))  # per block: the max commutes with the repetition
+    out = np.empty(n, level.dtype)  # sample k gets level[min(k // block, last)], written block-wise
+    n_full = min(n // block, len(level))
+    out[: n_full * block].reshape(n_full, block)[...] = level[:n_full, None]
+    out[n_full * block :] = level[min(n_full, len(level) - 1)]
+    return out
 
 
 def median_last(a):
     """``np.median(a, axis=-1)`` of a NaN-free array, bit-identical and ~2–3× faster: one selection at the
     upper middle, the lower middle (even length) as the maximum of the part below it, where numpy's
-    median runs a second selection."""
+    median runs a second selection. A long 1-D array (a recording's envelope) selects among the few
+    values a sorted subsample brackets the middle with (:func:`_bracketed_middle`; ~4× faster again)."""
     n = a.shape[-1]
     h = n // 2
+    if a.ndim == 1 and n >= BRACKET_MIN:
+        middle = _bracketed_middle(a)
+        if middle is not None:
+            return middle if n % 2 else np.mean(np.stack(middle, axis=-1), axis=-1)
     part = np.partition(a, h, axis=-1)
     if n % 2:
         return part[..., h]
     return np.mean(np.stack([np.max(part[..., :h], axis=-1), part[..., h]], axis=-1), axis=-1)
+
+
+BRACKET_MIN = 1 << 15   # 1-D arrays at least this long: median via a bracket from a subsample
+BRACKET_SAMPLE = 4096   # about this many values in the subsample
+BRACKET_SD = 5.0        # bracket half-width: this many binomial standard deviations of the middle's rank
+
+
+def _bracketed_middle(a):
+    """The value at rank ``n // 2`` of a 1-D array (odd length), or the values at ranks ``n//2 − 1`` and
+    ``n//2`` (even), exactly: a sorted subsample gives values ``lo ≤ hi`` whose ranks bracket the middle
+    with a margin of ``BRACKET_SD`` standard deviations; one count of the values below ``lo`` and a
+    selection among the few in ``[lo, hi]`` give the exact order statistics. None when the bracket
+    missed (then the caller selects over everything)."""
+    n = len(a)
+    h = n // 2
+    sample = np.sort(a[:: max(1, n // BRACKET_SAMPLE)])
+    s = len(sample)
+    margin = int(BRACKET_SD * 0.5 * np.sqrt(s)) + 2
+    lo, hi = sample[max(s // 2 - margin, 0)], sample[min(s // 2 + margin, s - 1)]
+    below = int(np.count_nonzero(a < lo))
+    inside = a[(a >= lo) & (a <= hi)]
+    first = h - 1 if n % 2 == 0 else h  # the lowest rank needed
+    if not below <= first or not h < below + len(inside):
+        return None
+    ranks = [first - below, h - below] if n % 2 == 0 else [h - below]
+    vals = np.partition(inside, ranks)[ranks]
+    return vals[0] if n % 2 else (vals[0], vals[1])
 
 
 def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):

@@ -9,14 +9,15 @@ from calib.pipeline.formats.outputs import publish
 from calib.pipeline.formats.session import read_session
 
 
-def session_features(recordings, progress=None, **options):
+def session_features(recordings, progress=None, jobs=1, **options):
     """Read the session folder ``recordings`` (or take an already read session dict) and run the frontend.
 
-    progress : optional ``progress(done, total, message)``. options : ``calib.frontend.DEFAULTS`` overrides.
+    progress : optional ``progress(done, total, message)``. jobs : arrays at a time (threads; −1: one per
+    core; the results do not depend on it). options : ``calib.frontend.DEFAULTS`` overrides.
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
     session = recordings if isinstance(recordings, dict) else read_session(recordings)
-    feats, diag = extract_features(session, progress=progress, **options)
+    feats, diag = extract_features(session, progress=progress, jobs=jobs, **options)
     return add_session_meta(feats, session, diag), diag
 
 

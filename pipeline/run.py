@@ -178,12 +178,12 @@ def features_inputs(out):
 
 
 # ----------------------------------------------------------------------------------------------- stages
-def features_stage(recordings, out, options, progress=None):
+def features_stage(recordings, out, options, progress=None, jobs=1):
     """Frontend: recordings → OUT/features/ and OUT/diagnostics/ (published together). Returns the diagnostics."""
     from calib.pipeline.features import session_features, write_feature_outputs
 
     cb = None if progress is None else (lambda done, total, msg: progress("features", done, total, msg))
-    feats, diag = session_features(recordings, progress=cb, **options)
+    feats, diag = session_features(recordings, progress=cb, jobs=jobs, **options)
     write_feature_outputs(Path(out) / "features", Path(out) / "diagnostics", feats, diag, command="calib run")
     return diag
 
@@ -238,7 +238,7 @@ def _check_options(estimate_options):
 
 
 def run(recordings, out, *, force=False, features_options=None, estimate_options=None, progress=None,
-        log=None, on_wait=None):
+        log=None, on_wait=None, jobs=1):
     """Run the pipeline on a recording session, skipping stages whose inputs and settings are unchanged.
 
     Parameters
@@ -255,6 +255,8 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     log : optional ``log(stage, status, detail)`` callback, called when a stage starts ("run", reason),
         is skipped ("skipped", reason) or ends ("done", seconds).
     on_wait : optional ``on_wait(message)``, called if another process is writing ``out`` (this run waits).
+    jobs : arrays the features stage processes at a time (threads; −1: one per core). Not a setting: the
+        results do not depend on it, so changing it does not make a stage stale.
 
     Output policy (pipeline/formats/outputs.py): ``out`` must not equal, contain or lie inside an input; one run
     at a time per ``out`` (a lock); a sub-folder is replaced only if calib wrote it and no file in it was
@@ -272,6 +274,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     out = Path(out)
     est_opts = _check_options(estimate_options)
     feat_opts = V.features_options(features_options or {})
+    jobs = V.jobs_option(jobs)
     # validate every input before any work, so bad input fails fast and writes nothing
     session = read_session(recordings)
     truth_dir = Path(recordings) / "truth"
@@ -285,12 +288,14 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     subdirs = [out / n for n in OUT_DIRS]
     with owned_output(subdirs, inputs, command="calib run", on_wait=on_wait, lock=out,
                       check=False):
-        res = _run_stages(recordings, out, session, truth_dir, force, feat_opts, est_opts, progress, log)
+        res = _run_stages(recordings, out, session, truth_dir, force, (feat_opts, jobs), est_opts, progress, log)
     return {**res, "seconds": time.perf_counter() - t_start}
 
 
-def _run_stages(recordings, out, session, truth_dir, force, feat_opts, est_opts, progress, log):
-    """The stages of :func:`run` (lock held, inputs validated). Returns run's dict without seconds."""
+def _run_stages(recordings, out, session, truth_dir, force, feat_run, est_opts, progress, log):
+    """The stages of :func:`run` (lock held, inputs validated; ``feat_run`` = (features options, jobs)).
+    Returns run's dict without seconds."""
+    feat_opts, jobs = feat_run
     log = log or (lambda stage, status, detail: None)
     stages = {}
     metrics = None
@@ -322,7 +327,7 @@ def _run_stages(recordings, out, session, truth_dir, force, feat_opts, est_opts,
 
     out.mkdir(parents=True, exist_ok=True)
     stage("features", [out / "features", out / "diagnostics"], session_inputs(session), feat_opts,
-          lambda: features_stage(recordings, out, feat_opts, progress))
+          lambda: features_stage(recordings, out, feat_opts, progress, jobs))
 
     stage("estimate", [out / "calibration"], features_inputs(out), est_opts,
           lambda: estimate_stage(out, est_opts))

@@ -7,6 +7,7 @@ import json
 import shutil
 
 import numpy as np
+import pandas as pd
 import pytest
 import soundfile as sf
 from scipy.signal import resample_poly
@@ -294,3 +295,42 @@ def test_inverted_speaker_polarity_changes_nothing(scene, extracted, tmp_path):
     np.testing.assert_allclose(feats["tdoa_s"]["tdoa"], ref["tdoa_s"]["tdoa"], atol=1e-9)
     np.testing.assert_allclose(feats["doa"][["ux", "uy", "uz"]], ref["doa"][["ux", "uy", "uz"]], atol=1e-6)
     assert all(abs(abs(a["chirp_phase_rad"]) - np.pi) < 0.5 for a in diag["arrays"].values())
+
+
+# ----------------------------------------------------------------------------------------------- arrays in threads
+def _tables_equal(a, b):
+    for k in ("events", "tdoa_m", "tdoa_s", "doa"):
+        pd.testing.assert_frame_equal(a[k], b[k], check_exact=True)
+    assert json.dumps(a["meta"], sort_keys=True, default=str) == json.dumps(b["meta"], sort_keys=True, default=str)
+
+
+def test_arrays_in_threads_give_the_serial_features_bit_for_bit(scene, extracted):
+    _, d = scene
+    calls = []
+    feats, diag = extract_features(d, progress=lambda *a: calls.append(a), jobs=2)
+    _tables_equal(feats, extracted[0])
+    names = list(diag["arrays"])
+    assert names == list(extracted[1]["arrays"])                     # same order of arrays
+    assert [c[0] for c in calls] == list(range(len(names) + 1))      # progress 0..N in order, then "done"
+    with pytest.raises(ValueError, match="jobs"):
+        extract_features(d, jobs=0)
+
+
+def _silence(path):
+    _edit_wav(path, lambda x, fs: np.zeros_like(x))
+
+
+def test_arrays_in_threads_report_the_first_bad_array_in_order(scene, tmp_path):
+    """Two arrays without a chirp: the error names the first in processing order (reference first, then
+    session order) whichever thread fails first, as the serial run does."""
+    _, src = scene
+    d = tmp_path / "rec"
+    shutil.copytree(src, d)
+    for name in ("A2", "A3"):
+        _silence(d / f"{name}.wav")
+    msgs = []
+    for jobs in (1, 2):
+        with pytest.raises(InputError) as err:
+            extract_features(d, jobs=jobs)
+        msgs.append(str(err.value))
+    assert msgs[0] == msgs[1] and "A2.wav" in msgs[0] and "need at least 2" in msgs[0]

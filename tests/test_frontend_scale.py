@@ -254,9 +254,10 @@ def test_non_finite_sample_late_in_a_recording_is_one_clear_error(tmp_path):
 
 
 @pytest.mark.parametrize("subtype", ["PCM_16", "FLOAT"])
-def test_memory_mapped_reads_equal_libsndfile_reads(tmp_path, subtype):
-    # plain WAVs are memory-mapped for the channel sums and the event segments: the same samples as
-    # libsndfile's reads, also across the file's ends and with a chunk before the data chunk
+def test_raw_reads_equal_libsndfile_reads(tmp_path, subtype):
+    # plain WAVs are read raw (positioned reads of the data chunk) for the channel sums and the event
+    # segments: the same samples as libsndfile's reads, also across the file's ends and with a chunk
+    # before the data chunk
     rng = np.random.default_rng(3)
     ref = np.clip(0.3 * rng.standard_normal((5000, 3)), -1, 1)
     p = tmp_path / "a.wav"
@@ -269,7 +270,7 @@ def test_memory_mapped_reads_equal_libsndfile_reads(tmp_path, subtype):
     for path in (p, q):
         arr = {"name": "A", "wav": path, "mics": np.zeros((3, 3))}
         with ArrayAudio(arr) as mapped, ArrayAudio(arr) as plain:
-            plain._map_dtype = None  # force libsndfile
+            plain._raw_dtype = None  # force libsndfile
             for a, b in ((0, 5000), (-300, 700), (4000, 6000), (1234, 1235)):
                 np.testing.assert_array_equal(mapped.channel_sum()[:, a:b], plain.channel_sum()[:, a:b])
             seg_m, seg_p = np.zeros((3, 800), np.float32), np.zeros((3, 800), np.float32)
@@ -277,10 +278,10 @@ def test_memory_mapped_reads_equal_libsndfile_reads(tmp_path, subtype):
             plain.fill_segment(seg_p, 4100)
             np.testing.assert_array_equal(seg_m, seg_p)
             np.testing.assert_array_equal(seg_m, plain[:, 4100:4900])
-            assert mapped._map is not None and plain._map is None  # each path really taken
+            assert mapped._raw is not None and plain._raw is None  # each path really taken
 
 
-def test_non_finite_samples_are_bad_input_in_mapped_reads(tmp_path):
+def test_non_finite_samples_are_bad_input_in_raw_reads(tmp_path):
     with ArrayAudio(_float_wav_with(tmp_path, np.inf)) as x:
         assert np.all(x.channel_sum()[:, 0:2000] == 0)
         with pytest.raises(InputError, match="nan.wav: contains non-finite samples"):

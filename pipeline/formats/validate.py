@@ -205,6 +205,13 @@ def estimate_options(opts):
     return out
 
 
+def jobs_option(jobs):
+    """``jobs`` (arrays processed at a time): a positive integer or −1 (one per core). Returns it."""
+    if jobs != -1:
+        option(jobs, "jobs", lo=1, hi=1024, integer=True)
+    return int(jobs)
+
+
 def features_options(opts):
     """Validate frontend options given on the command line (threshold, max_drift). Returns a cleaned copy."""
     out = dict(opts)
