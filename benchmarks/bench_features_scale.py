@@ -199,7 +199,8 @@ def main():
     ap.add_argument("--events", type=int, nargs="+", default=[14, 60, 240, 960])
     ap.add_argument("--rates", type=int, nargs="+", default=[16000, 48000])
     ap.add_argument("--dir", type=Path, default=Path("/tmp/calib-bench-features-scale"))
-    ap.add_argument("--plot", type=Path, default=Path("docs/img/features_scale.png"))
+    ap.add_argument("--plot", type=lambda s: Path(s) if s else None, default=Path("docs/img/features_scale.png"),
+                    help='the figure to write ("" for none)')
     ap.add_argument("--json", type=Path, help="also write the raw numbers here")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=1, help="arrays at a time (session_features(jobs=...), threads)")
