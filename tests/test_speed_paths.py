@@ -282,3 +282,62 @@ def test_fast_median_is_numpys():
             x[rng.integers(len(x))] = rng.choice([np.nan, np.inf, -np.inf])
         a, b = np.median(x), median(x)
         assert (np.isnan(a) and np.isnan(b)) or (a == b and np.signbit(a) == np.signbit(b))
+
+
+def test_rotation_kernels_are_scipys_rotation():
+    """rotvec_matrices / matrix_quaternions equal scipy's Rotation results exactly (random rotations,
+    small steps as in LM, non-contiguous input)."""
+    from scipy.spatial.transform import Rotation
+
+    from calib.estimator.problem import matrix_quaternions, rotvec_matrices
+
+    rng = np.random.default_rng(5)
+    for t in range(300):
+        n = int(rng.integers(1, 9))
+        phi = rng.standard_normal((n, 3)) * 10.0 ** rng.uniform(-9, 0.5)
+        if t % 7 == 0:
+            phi = np.asfortranarray(phi)
+        assert np.array_equal(rotvec_matrices(phi), Rotation.from_rotvec(phi).as_matrix())
+        R = Rotation.random(n, rng=rng).as_matrix()
+        for sf in (True, False):
+            assert np.array_equal(matrix_quaternions(R, sf), Rotation.from_matrix(R).as_quat(scalar_first=sf))
+
+
+def _snapshot_reference(v, refs):
+    """The problem snapshot by plain recursion over every field (what solver._snapshot computed before
+    its dataclass fields were inlined)."""
+    from calib.estimator.solver import _SCALARS
+
+    t = type(v)
+    if t is np.ndarray:
+        refs.append(v)
+        return id(v)
+    if t in _SCALARS:
+        return (t.__name__, repr(v))
+    if dataclasses.is_dataclass(v):
+        return ("c", t.__name__, tuple((f.name, _snapshot_reference(getattr(v, f.name), refs))
+                                       for f in dataclasses.fields(v)))
+    if isinstance(v, dict):
+        return ("d", tuple((k, _snapshot_reference(x, refs)) for k, x in v.items()))
+    if isinstance(v, (list, tuple)):
+        return ("s", tuple(_snapshot_reference(x, refs) for x in v))
+    if isinstance(v, (int, float, str, bool, np.number)):
+        return (t.__name__, repr(v))
+    refs.append(v)
+    return ("o", id(v))
+
+
+def test_problem_snapshot_matches_plain_recursion(scene):
+    """The cache key's problem snapshot equals the plain recursive one (same key, same objects kept alive),
+    and a cached factor copy without J equals dataclasses.replace's."""
+    from calib.estimator.solver import _LineariseCache, _without_jacobian
+
+    feats, truth, p, st = scene
+    for q in (p, p.replace(odo_yaw_free=False), dataclasses.replace(p, array_scale={"a1": {"tdoa_m": 2.0}})):
+        (head, refs) = _LineariseCache.problem_key(q, KINDS)
+        ref_refs = []
+        assert head == (tuple(KINDS), _snapshot_reference(q, ref_refs))
+        assert [id(x) for x in refs] == [id(x) for x in ref_refs]
+    for f in evaluate(p, st, make_layout(p), KINDS):
+        g = _without_jacobian(f)
+        assert g.J is None and f.J is not None and g == dataclasses.replace(f, J=None)
