@@ -341,3 +341,20 @@ def test_problem_snapshot_matches_plain_recursion(scene):
     for f in evaluate(p, st, make_layout(p), KINDS):
         g = _without_jacobian(f)
         assert g.J is None and f.J is not None and g == dataclasses.replace(f, J=None)
+
+
+def test_rotation_errors_are_scipys_rotation():
+    """evaluate.rotation_errors equals the Rotation-object computation exactly (unnormalised quaternions
+    of either sign, one or several rows)."""
+    from scipy.spatial.transform import Rotation
+
+    from calib.pipeline.report.evaluate import P_PAPER, rotation_errors
+
+    rng = np.random.default_rng(8)
+    for _ in range(300):
+        n = int(rng.integers(1, 7))
+        qe, qt = rng.standard_normal((n, 4)), rng.standard_normal((n, 4))
+        Re, Rt = Rotation.from_quat(qe, scalar_first=True), Rotation.from_quat(qt, scalar_first=True)
+        angle, cosang = rotation_errors(qe, qt)
+        assert np.array_equal(angle, (Rt.inv() * Re).magnitude())
+        assert np.array_equal(cosang, np.sum(Rt.apply(P_PAPER) * Re.apply(P_PAPER), axis=1))
