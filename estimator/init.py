@@ -344,7 +344,7 @@ def _clock_irls_t(XT, YT, ns, kappa, use_off, n_irls):
     the n measurements run along contiguous rows of G points (about twice as fast as G short dot
     products; the same values up to rounding). Returns the last squared normalised residuals (n, G)."""
     XT, YT = XT / kappa, YT / kappa   # residuals in units of kappa directly (the drift does not change)
-    w = np.ones_like(XT)
+    w = np.ones(XT.shape)   # (XT is a fresh float64 quotient; np.ones_like's value, cheaper)
     buf, r = np.empty_like(XT), np.empty_like(XT)
     for it in range(n_irls):
         wX = np.multiply(w, XT, out=buf) if it else XT   # (the first weights are all 1)

@@ -267,7 +267,8 @@ def count_measurements(p, exclude_arrays=()):
     """Number of tested measurements (TDOA rows, DOAs, odometry steps), leaving out ``exclude_arrays``."""
     n = max(p.K - 1, 0)
     for rows in (p.tdoa_s, p.tdoa_m, p.doa, p.cone):
-        n += int(np.sum(~np.isin(rows.arr, list(exclude_arrays))))
+        # nothing excluded (the common case): every row counts, without np.isin's set machinery
+        n += int(np.sum(~np.isin(rows.arr, list(exclude_arrays)))) if len(exclude_arrays) else int(np.size(rows.arr))
     return n
 
 

@@ -24,7 +24,7 @@ from .problem import retract
 def rho(r, loss, k):
     """Robust cost ρ(r) (so that ρ(r) = r² near 0) and IRLS weight ρ'(r)/(2r), elementwise."""
     if loss is None or loss == "linear":
-        return r * r, np.ones_like(r)
+        return r * r, np.ones(r.shape, r.dtype)   # (np.ones_like's value without its Python-level wrapper)
     if loss == "huber":
         a = np.abs(r)
         small = a <= k
@@ -514,7 +514,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
     for it in range(1, max_iter + 1):
         H, g = normal_equations(J, w, r)
         diag = np.diag(H) if dense else H.diagonal()
-        if np.max(np.abs(g) / np.sqrt(np.maximum(diag, 1e-300))) < 1e-10 * max(1.0, np.sqrt(cost)):
+        if (np.abs(g) / np.sqrt(np.maximum(diag, 1e-300))).max() < 1e-10 * max(1.0, np.sqrt(cost)):
             reason = "gradient"
             break
         system = None if dense else Schur(H, lay)
