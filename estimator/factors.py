@@ -296,7 +296,7 @@ def odometry_frame(p, st, lay, memo=None):
     if psi != 0.0:
         c, s = np.cos(psi), np.sin(psi)
         do = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
-    r = ((np.diff(st.s, axis=0) - do) / sig).ravel()
+    r = ((st.s[1:] - st.s[:-1] - do) / sig).ravel()   # (np.diff's subtraction, without its wrapper)
     _fill(J, memo, 0, lambda: (k, lay.s[1:].ravel()), plus)
     _fill(J, memo, 1, lambda: (k, lay.s[:-1].ravel()), minus)
     if yaw_col >= 0:

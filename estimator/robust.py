@@ -285,7 +285,7 @@ def remove_outliers(p, st, lay, kinds, mask, *, threshold, loss, k, max_iter, ex
     flagged, info, capped = [], None, False
     while True:
         stats = measurement_stats(p, st, lay, kinds, mask) if stats is None else stats
-        live = stats.kept & ~np.isin(stats.array, list(exclude_arrays))
+        live = stats.kept & ~np.isin(stats.array, list(exclude_arrays)) if len(exclude_arrays) else stats.kept.copy()
         n_tests = int(live.sum())
         if n_tests == 0:
             break
