@@ -215,7 +215,9 @@ def test_timing_in_chunks_equals_timing_at_once():
         c, c_plain = segment_spectra(x, starts, setup, plain=True)
         whole = locate(c, setup, **kw, c_onset=c_plain)
         fixed = locate_events(x, starts, setup, {**kw, "phase": whole["phase"]}, chunk_bytes=1)  # 1 per chunk
-        np.testing.assert_allclose(fixed["tau"], whole["tau"], rtol=0, atol=1e-12)
+        # the spectra are single precision: a different batch shape may round differently (numpy 1.26 and
+        # 2.x differ here by ~2e-12 s), far below the 1 µs scale of timing noise
+        np.testing.assert_allclose(fixed["tau"], whole["tau"], rtol=0, atol=1e-10)
         np.testing.assert_array_equal(fixed["dp"], whole["dp"])
         # locate_events keeps only the DOA gate's lags around each direct path
         idx = (whole["dp"] - 20 - whole["r_lo"])[:, None] + np.arange(41)
