@@ -317,14 +317,20 @@ def _clock_irls_masked(XT, YT, mask, ns, kappa, use_off, n_irls):
         drift_only = np.where(only, b1 / np.where(only, a11, 1), 0.0)   # points without an offset
         drift = np.where(ok, (b1 * a22 - a12 * b2) / np.where(ok, det, 1), drift_only)
         off = np.where(ok, (a11 * b2 - a12 * b1) / np.where(ok, det, 1), 0.0)
-        np.multiply(drift, XT, out=r)
-        np.subtract(YT, r, out=r)
-        r[ns:] -= off
-        np.square(r, out=r)          # r now holds r2 = (r / kappa)²
+        _squared_residuals(XT, YT, drift, off, ns, r)   # r2 = (r / kappa)²
         if it + 1 < n_irls:          # (the last weights would not be used)
             np.add(r, 1.0, out=w)
             np.divide(mask, w, out=w)
     return drift, off * kappa, r
+
+
+def _squared_residuals(XT, YT, drift, off, ns, out):
+    """(YT − drift·XT − off on rows ns:)² into ``out`` (n, G), in place: the clock IRLS's squared residuals."""
+    np.multiply(drift, XT, out=out)
+    np.subtract(YT, out, out=out)
+    out[ns:] -= off
+    np.square(out, out=out)
+    return out
 
 
 def _clock_irls(X, Y, ns, kappa, use_off, n_irls):
@@ -358,10 +364,7 @@ def _clock_irls_t(XT, YT, ns, kappa, use_off, n_irls):
         else:   # drift only
             ok = a11 > 0
             drift, off = np.where(ok, b1 / np.where(ok, a11, 1), 0.0), 0.0
-        np.multiply(drift, XT, out=r)
-        np.subtract(YT, r, out=r)
-        r[ns:] -= off
-        np.square(r, out=r)          # r now holds r2 = (r / kappa)²
+        _squared_residuals(XT, YT, drift, off, ns, r)   # r2 = (r / kappa)²
         if it + 1 < n_irls:          # (the last weights would not be used)
             np.add(r, 1.0, out=w)
             np.divide(1.0, w, out=w)
