@@ -74,10 +74,10 @@ def extract_features(session, progress=None, jobs=1, **options):
     unknown = set(options) - set(DEFAULTS)
     if unknown:
         raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
-    # single-threaded BLAS: the frontend's products are small (mics × grid, events × taps), and OpenBLAS
-    # threads spin on them: ~40 % more CPU for no wall-clock gain (docs/results.md, issue 12)
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs == 0 or jobs < -1:
         raise ValueError(f"jobs must be a positive integer or -1 (one per core), got {jobs!r}")
+    # single-threaded BLAS: the frontend's products are small (mics × grid, events × taps), and OpenBLAS
+    # threads spin on them: ~40 % more CPU for no wall-clock gain (docs/results.md, issue 12)
     with single_thread_blas():
         return _extract(session, progress, opt, jobs)
 
