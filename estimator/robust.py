@@ -27,7 +27,7 @@ from calib.robust import median
 
 from .factors import KINDS, UNITS
 from .problem import make_layout
-from .solver import levenberg_marquardt, linearise, use_dense
+from .solver import cholesky_solve, levenberg_marquardt, linearise, use_dense
 
 DOF = {k.name: k.dof for k in KINDS.values() if k.dof is not None}   # measurement kinds the tests cover
 TESTED_KINDS = tuple(DOF)
@@ -87,21 +87,12 @@ def _hat_factor(J, keep):
     return Js @ sym_inverse(Js[keep].T @ Js[keep]), Js
 
 
-_POTRF, _POTRS = scipy.linalg.lapack.get_lapack_funcs(("potrf", "potrs"), (np.zeros(1),))
-
-
 def sym_inverse(H):
-    """Inverse of a symmetric positive semi-definite matrix: Cholesky when definite, else pseudo-inverse.
-
-    LAPACK's potrf/potrs called directly: what ``cho_factor``/``cho_solve`` call (the same values),
-    without their per-call checks."""
+    """Inverse of a symmetric positive semi-definite matrix: Cholesky when definite (the same values as
+    ``cho_factor``/``cho_solve``), else pseudo-inverse."""
     H = np.asarray(H, float)
-    c, info = _POTRF(H, lower=0, clean=0)
-    if info == 0:
-        x, info = _POTRS(c, np.eye(len(H)), lower=0)
-        if info == 0:
-            return x
-    return np.linalg.pinv(H, hermitian=True)
+    x = cholesky_solve(H, np.eye(len(H)))
+    return x if x is not None else np.linalg.pinv(H, hermitian=True)
 
 
 def measurement_stats(p, st, lay, kinds, mask):

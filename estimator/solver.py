@@ -140,6 +140,12 @@ def _dataclass_items(v, names, refs):
     return out
 
 
+def _values_key(*objs):
+    """The fields of dataclasses ``objs`` (states, layouts: arrays) by value: (dtypes and shapes, bytes)."""
+    vals = [np.asarray(getattr(d, name)) for d in objs for name in _field_names(type(d))]
+    return (tuple((v.dtype.char, v.shape) for v in vals), b"".join([v.tobytes() for v in vals]))
+
+
 class _LineariseCache:
     """The last few factor evaluations (and stacked Jacobians), keyed by everything they depend on.
 
@@ -167,8 +173,7 @@ class _LineariseCache:
     @staticmethod
     def key(p, st, lay, kinds, pkey=None):
         head, refs = _LineariseCache.problem_key(p, kinds) if pkey is None else pkey
-        vals = [np.asarray(getattr(d, name)) for d in (st, lay) for name in _field_names(type(d))]
-        return head + (tuple((v.dtype.char, v.shape) for v in vals), b"".join([v.tobytes() for v in vals])), refs
+        return head + _values_key(st, lay), refs
 
     def lookup(self, p, st, lay, kinds, pkey=None):
         key, refs = self.key(p, st, lay, kinds, pkey)
@@ -209,6 +214,13 @@ class _Entry:
     def __init__(self, key, vals, fs, chunks):
         self.key, self.vals, self.fs, self.chunks, self.forms = key, vals, fs, chunks, {}
 
+    def put_form(self, J, dense):
+        """Keep the stacked J (read-only); a sparse one replaces the per-factor chunks (memory)."""
+        (J if dense else J.data).setflags(write=False)
+        self.forms[dense] = J
+        if not dense:
+            self.chunks = None
+
 
 _CACHE = _LineariseCache()
 
@@ -229,8 +241,7 @@ class _MemoCache:
         if not use_dense(lay):   # large problems: bookkeeping as large as J, kept for one LM call only
             return {}
         head, refs = pkey
-        vals = [np.asarray(getattr(lay, name)) for name in _field_names(type(lay))]
-        key = head + (tuple((v.dtype.char, v.shape) for v in vals), b"".join([v.tobytes() for v in vals]))
+        key = head + _values_key(lay)
         with self.lock:
             for e in reversed(self.entries):
                 if e[0] == key:
@@ -249,12 +260,7 @@ def remember(p, st, lay, kinds, lin, dense, pkey=None):
     seen again) and keeps only the state it returns, which the next stage reads first."""
     key, e = _CACHE.lookup(p, st, lay, kinds, pkey)
     if e is None:
-        e = _CACHE.store(key, lin.factors)
-        J = lin.J
-        (J if dense else J.data).setflags(write=False)
-        e.forms[dense] = J
-        if not dense:
-            e.chunks = None
+        _CACHE.store(key, lin.factors).put_form(lin.J, dense)
 
 
 def factors_at(p, st, lay, kinds, dense=None, pkey=None, memo=None):
@@ -280,10 +286,7 @@ def factors_at(p, st, lay, kinds, dense=None, pkey=None, memo=None):
             J = sparse if not dense else sparse.toarray()
         else:
             J = stack_jacobians(chunks, lay.n, dense, memo)
-        (J if dense else J.data).setflags(write=False)
-        e.forms[dense] = J
-        if not dense:
-            e.chunks = None   # large problems: the stacked J replaces the per-factor chunks (memory)
+        e.put_form(J, dense)
     return e.fs, J
 
 
@@ -467,17 +470,25 @@ class Schur:
 _POTRF, _POTRS = scipy.linalg.lapack.get_lapack_funcs(("potrf", "potrs"), (np.zeros(1),))
 
 
+def cholesky_solve(A, b):
+    """x solving A x = b for symmetric positive definite A by LAPACK's potrf/potrs, called directly (what
+    ``cho_factor``/``cho_solve`` call, without their per-call checks: ~30 us of a ~60 us solve at 75
+    parameters); None when A is not positive definite."""
+    c, info = _POTRF(A, lower=0, clean=0)
+    if info == 0:
+        x, info = _POTRS(c, b, lower=0)
+        if info == 0:
+            return x
+    return None
+
+
 def _solve_damped(H, g, lam):
     """Dense LM step: −(H + lam diag H)⁻¹ g via Cholesky of the Jacobi-scaled matrix (lstsq if singular)."""
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
     Hs = H / d[:, None] / d[None, :]
     A = Hs + lam * np.eye(len(d))
-    # LAPACK's potrf/potrs called directly: what cho_factor/cho_solve call, without their per-call checks
-    # (~30 us of a ~60 us solve on the paper's 75 parameters)
-    c, info = _POTRF(A, lower=0, clean=0)
-    if info == 0:
-        x, info = _POTRS(c, g / d, lower=0)
-    if info != 0:   # not positive definite (or a LAPACK argument error): least squares
+    x = cholesky_solve(A, g / d)
+    if x is None:   # not positive definite (or a LAPACK argument error): least squares
         x = np.linalg.lstsq(A, g / d, rcond=None)[0]
     return -x / d
 
