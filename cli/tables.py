@@ -6,7 +6,6 @@ import math
 import numpy as np
 from rich.console import Console
 from rich.table import Table
-from scipy.spatial.transform import Rotation
 
 from calib.pipeline.report.evaluate import METRIC_ROWS
 
@@ -19,6 +18,8 @@ def _f(v, fmt):
 
 def print_arrays(calib, console=None):
     """Table of calibrated arrays: position (m), orientation (rotation vector, deg), offset (ms), drift (ppm)."""
+    from scipy.spatial.transform import Rotation  # here: `calib features` and `calib --help` need no scipy.spatial
+
     a = calib["arrays"]
     t = Table(title="Calibrated arrays: position m, rotation angle deg, offset ms, drift ppm, 1-σ cm / deg",
               padding=(0, 1), collapse_padding=True)

@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
+# The readers (calib.pipeline.formats.io) add each row's line in its CSV file (header = 1) under this column, so
+# outliers can be reported by file line; it lives in memory only and is never written.
+LINE_COLUMN = "csv_line"
+
 
 def columns(df, names):
     """The float (n, k) matrix of the columns ``names`` of DataFrame ``df``, taken one column at a time.

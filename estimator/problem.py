@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib.tables import columns
+from calib.tables import LINE_COLUMN, columns
 
 try:   # scipy's compiled rotation kernels, which Rotation calls for numpy (N, 3) / (N, 3, 3) float64 input
     from scipy.spatial.transform import _rotation_cy as _ROT
@@ -29,9 +29,6 @@ DEFAULT_SIGMA_TDOA = 1e-4      # s
 DEFAULT_SIGMA_DOA_DEG = 5.0    # deg per tangent axis
 DEFAULT_SIGMA_ODO = 0.01       # m per axis per step
 
-# The readers (calib.pipeline.formats.io) add each row's line in its CSV file (header = 1) under this column, so
-# outliers can be reported by file line; it lives in memory only and is never written.
-LINE_COLUMN = "csv_line"
 
 
 @dataclass

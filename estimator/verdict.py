@@ -15,6 +15,7 @@ Every reason is a measured quantity against a documented level (docs/method.md, 
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import chdtrc  # χ² survival function: scipy.stats.chi2.sf(x, n) = chdtrc(n, x)
 
 RESIDUAL_SUSPECT = 3.0   # RMS residual 3× its sigma: the weights (or the model) are wrong
 RESIDUAL_FAILED = 10.0   # 10×: the data contradict the model (e.g. wrong emission times)
@@ -56,14 +57,12 @@ def stated_sigma_excess(ratios, counts, bounds):
     more than the redundancy, so the test is conservative). Such an excess is what biased measurements of
     another type leave when the solution absorbs them (arrivals biased with the geometry move the sources;
     the odometry then disagrees): {kind: (ratio, n)}."""
-    from scipy.stats import chi2
-
     out = {}
     for kind, r in ratios.items():
         n = int(counts.get(kind, 0))
         if n < 1 or float(bounds.get(kind, np.inf)) >= PRIOR_BOUND:
             continue
-        if r > SIGMA_TOLERANCE and chi2.sf(n * r * r, n) < SIGNIFICANCE:
+        if r > SIGMA_TOLERANCE and chdtrc(n, n * r * r) < SIGNIFICANCE:
             out[kind] = (float(r), n)
     return out
 

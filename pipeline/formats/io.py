@@ -31,7 +31,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from calib.estimator import LINE_COLUMN
+from calib.tables import LINE_COLUMN
 
 
 from calib.errors import InputError  # noqa: F401  (re-exported: readers raise it)
