@@ -94,10 +94,7 @@ def _extract(session, progress, opt, jobs=1):
     arrays = session["arrays"]
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
-    results = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
-    first = results[arrays[order[0]]["name"]]
-    # β: a property of the chirp and of this estimator, at the reference's rate
-    beta = drift_bias(first["template"], first["fs"], first["band"], **first["beta_args"])
+    results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
     if progress is not None:
         progress(len(arrays), len(arrays), "done")
 
@@ -107,7 +104,9 @@ def _extract(session, progress, opt, jobs=1):
 
 
 def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
-    """{array name: :func:`process_array` result}, in ``order``; ``jobs`` arrays at a time in threads.
+    """({array name: :func:`process_array` result} in ``order``, β of the reference ``order[0]``
+    (:func:`_reference_beta`)); ``jobs`` arrays at a time in threads, β as one more task (last: the
+    thread done first computes it while the other finishes its array).
 
     Progress and errors follow ``order`` whatever finishes first, so a bad file is reported the same way
     with any ``jobs``; an error or interrupt cancels the arrays not started (the running ones finish).
@@ -124,15 +123,16 @@ def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
         for n_done, k in enumerate(order):
             report(n_done, k)
             results[arrays[k]["name"]] = process_array(arrays[k], session, t_emit, c, opt)
-        return results
+        return results, _reference_beta(arrays[order[0]], session, c, opt)
     pool = ThreadPoolExecutor(jobs, thread_name_prefix="calib-array")
     try:
         futures = [pool.submit(process_array, arrays[k], session, t_emit, c, opt) for k in order]
+        beta = pool.submit(_reference_beta, arrays[order[0]], session, c, opt)
         results = {}
         for n_done, (k, fut) in enumerate(zip(order, futures)):
             report(n_done, k)
             results[arrays[k]["name"]] = fut.result()
-        return results
+        return results, beta.result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -193,15 +193,23 @@ def process_array(a, session, t_emit, c, opt):
         warnings.append("association ambiguous: another alignment of the events explains as many detections")
     return {
         "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
-        "template": template, "phase": loc["phase"], "env": env, "env_rate": env_rate, "det_t": det_t,
+        "phase": loc["phase"], "env": env, "env_rate": env_rate, "det_t": det_t,
         "det_score": score, "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
         "u": doa["u"], "doa_power": doa["power"], "redetected": redetected,
         "ambiguous_plane": doa["normal"] if a.get("doa_hemisphere") is None else None,
         "has_doa": doa["kind"] != "single", "doa_axis": doa["axis"],
         "mic_quality": loc["value"], "warnings": warnings, "timings": timings,
-        "beta_args": {"locate_kw": g["locate_kw"], "pre": g["pre"], "seg_len": g["seg_len"],
-                      "whiten_hz": opt["whiten_hz"]},
     }
+
+
+def _reference_beta(a, session, c, opt):
+    """β (:func:`timing.drift_bias`): a property of the chirp and of this estimator, at the rate and with
+    the timing settings of array ``a`` (the reference). Needs the session only, not the array's results."""
+    fs = int(read_header(a).samplerate)
+    template = chirp_template(session["chirp"], fs)
+    band = chirp_band(session["chirp"], template, fs)
+    g = _timing_layout(np.asarray(a["mics"], float), band, fs, c, len(template), opt)
+    return drift_bias(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"])
 
 
 FUSED_KEYS = ("arrival", "spread", "mic_sd", "arrival_sd", "quality", "flags", "doa_spread", "mic_times")
