@@ -71,7 +71,7 @@ def _int_channel_sum(frames, scale=1.0, out=None):
     return np.multiply(acc, np.float32(scale), out=out)
 
 
-RELEASE_BYTES = 16 << 20  # mapped pages are released once the ranges read span this many bytes
+RELEASE_BYTES = 16 << 20  # mapped pages are released once the ranges read span this many bytes (a madvise each)
 
 
 def _release(mm, start, stop):
