@@ -82,7 +82,7 @@ def segment_spectra(x, starts, setup, plain=False):
     m, n = x.shape
     seg_len, nfft = setup["seg_len"], setup["nfft"]
     j = len(starts)
-    seg = np.zeros((j, m, seg_len), np.float32)
+    seg = np.zeros((j, m, nfft), np.float32)  # zero-padded to the FFT length here: no padded copy in rfft
     fill = getattr(x, "fill_segment", None)  # signals.ArrayAudio: read straight into the segment array
     for i, s0 in enumerate(np.asarray(starts, int)):
         a, b = max(s0, 0), min(s0 + seg_len, n)
@@ -91,7 +91,7 @@ def segment_spectra(x, starts, setup, plain=False):
         elif b > a:
             seg[i, :, a - s0 : b - s0] = x[:, a:b]  # x may be a transposed (sample-major) view
     kb = setup["kb"]
-    spec = sfft.rfft(seg, nfft, axis=-1, workers=-1)  # complex64
+    spec = sfft.rfft(seg, axis=-1, workers=-1)  # complex64
     spec = spec[..., kb[0] : kb[-1] + 1] if kb[-1] - kb[0] + 1 == len(kb) else spec[..., kb]  # (a view)
     c = spec * setup["tmpl_conj64"]  # complex64 throughout (see above)
     pow_spec = _power(spec)  # |X|², float32
