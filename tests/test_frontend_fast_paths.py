@@ -127,3 +127,38 @@ def test_local_floor_blockwise():
         want = np.array([max(max(med[max(b - 1, 0)], med[b], med[min(b + 1, len(med) - 1)]), np.median(env))
                          for b in np.minimum(np.arange(n) // block, len(med) - 1)], np.float32)
         np.testing.assert_array_equal(local_floor(env, block), want)
+
+
+def test_setup_cache_computes_a_shared_key_once_across_threads():
+    import threading
+    import time
+
+    from calib.memo import SetupCache
+
+    cache, calls = SetupCache(4), []
+
+    def make():
+        calls.append(threading.get_ident())
+        time.sleep(0.2)  # long enough for the other thread to ask meanwhile
+        return object()
+
+    got = [None, None]
+    threads = [threading.Thread(target=lambda k=k: got.__setitem__(k, cache.get("key", make))) for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1 and got[0] is got[1]
+
+    def fails():  # a failed computation is not cached, and a waiting thread then computes the value itself
+        calls.append("fail")
+        time.sleep(0.2)
+        raise RuntimeError("boom")
+
+    errors, values = [], []
+    first = threading.Thread(target=lambda: errors.append(pytest.raises(RuntimeError, cache.get, "other", fails)))
+    first.start()
+    time.sleep(0.05)
+    values.append(cache.get("other", lambda: "made"))
+    first.join()
+    assert len(errors) == 1 and values == ["made"] and calls.count("fail") == 1
