@@ -46,3 +46,27 @@ def test_freed_blocks_are_reused_instead_of_faulted_in_again():
 def test_the_users_environment_settings_stand():
     ok, _ = _probe(True, env={"MALLOC_TRIM_THRESHOLD_": "131072"})
     assert ok == "False"
+
+
+FEATURES = """
+import pickle, sys
+from calib.alloc import keep_freed_memory
+from calib.pipeline.features import session_features
+if sys.argv[2] == "1":
+    keep_freed_memory()
+feats, _ = session_features(sys.argv[1], jobs=2)
+sys.stdout.buffer.write(pickle.dumps({k: feats[k] for k in ("events", "tdoa_m", "tdoa_s", "doa")}))
+"""
+
+
+def test_allocator_settings_do_not_change_the_features():
+    # the heap's reuse moves arrays to other addresses (and alignments): the features stay bit-identical
+    import pickle
+    from pathlib import Path
+
+    session = Path(__file__).resolve().parents[1] / "sample_data" / "lab3"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    out = [pickle.loads(subprocess.run([sys.executable, "-c", FEATURES, str(session), mode], capture_output=True,
+                                       env=env, check=True).stdout) for mode in ("1", "0")]
+    for key in out[0]:
+        assert out[0][key].equals(out[1][key]), key
