@@ -5,8 +5,9 @@ with a fresh ``mmap`` and returns it with ``munmap`` when freed, and returns hea
 threshold to the kernel. The frontend allocates arrays of megabytes per detection block and per chunk of
 events, over and over: every fresh mapping is zeroed page by page (a page fault per 4 KiB), and with the
 arrays processed in threads every ``munmap`` also stalls the other core (a TLB shoot-down). Keeping the
-freed blocks in the heap halves the page faults of ``calib features`` on a hall session and cuts ~10 %
-of its time (docs/results.md); the process holds up to ``trim_threshold`` of freed memory for reuse.
+freed blocks in the heap halves the page faults of ``calib features`` on a hall session (its CPU: 0–12 %
+less in paired fresh runs, docs/results.md); the process holds up to ``trim_threshold`` of freed memory
+for reuse.
 
 Only the CLI calls :func:`keep_freed_memory` (a library does not change its host process's allocator); in a
 long-lived process the same effect comes from the environment: ``MALLOC_MMAP_THRESHOLD_=67108864
