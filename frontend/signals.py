@@ -102,7 +102,8 @@ class ArrayAudio:
         self._int = _INTEGER_READ.get(info.subtype)  # (dtype, full scale) for integer PCM, else None
         self._file = None
         self._sum_buf = self._fill_buf = None
-        self._raw = None  # [mmap, (N, M) view of its data chunk, (first, last) byte read since the last release]
+        self._raw = None  # (mmap, (N, M) view of its data chunk, the chunk's byte offset) once frames are read raw
+        self._span = None  # (first, last) byte read through the map since its pages were last released
         self._raw_dtype = _RAW_SUBTYPES.get(info.subtype) if info.format in ("WAV", "WAVEX") else None
 
     @property
@@ -117,12 +118,11 @@ class ArrayAudio:
         self.close()
 
     def close(self):
-        raw, self._raw = self._raw, None
-        self._sum_buf = self._fill_buf = None
-        if raw is not None:
-            del raw[1]  # the view first: a map with exported buffers cannot close
+        mm = self._raw[0] if self._raw is not None else None
+        self._raw = self._span = self._sum_buf = self._fill_buf = None  # the view first: then the map can close
+        if mm is not None:
             with contextlib.suppress(BufferError):  # a caller still holds a view: unmapped when it goes
-                raw[0].close()
+                mm.close()
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -149,21 +149,21 @@ class ArrayAudio:
             if self._raw is None:
                 self._raw_dtype = None
                 return None
-        mm, frames, span = self._raw
+        mm, frames, offset = self._raw
         row = self.channels * frames.dtype.itemsize
-        lo, hi = self._data_offset + a * row, self._data_offset + b * row
-        if span is not None:
-            lo_s, hi_s = min(span[0], lo), max(span[1], hi)
+        lo, hi = offset + a * row, offset + b * row
+        if self._span is not None:
+            lo_s, hi_s = min(self._span[0], lo), max(self._span[1], hi)
             if hi_s - lo_s > RELEASE_BYTES:
-                _release(mm, *span)
+                _release(mm, *self._span)
             else:
                 lo, hi = lo_s, hi_s
-        self._raw[2] = (lo, hi)
+        self._span = (lo, hi)
         return frames[a:b]
 
     def _map(self):
-        """[mmap of the file, (N, M) view of its data chunk, None], or None if the data chunk is missing or
-        shorter than the header says."""
+        """(mmap of the file, (N, M) view of its data chunk, the chunk's byte offset), or None if the data
+        chunk is missing or shorter than the header says."""
         dt = np.dtype(self._raw_dtype)
         where = wav_data_chunk(self.path)
         if where is None or where[1] < self.frames * self.channels * dt.itemsize:
@@ -173,9 +173,8 @@ class ArrayAudio:
                 mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
         except (OSError, ValueError) as exc:
             raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
-        self._data_offset = where[0]
         frames = np.frombuffer(mm, dt, count=self.frames * self.channels, offset=where[0])
-        return [mm, frames.reshape(self.frames, self.channels), None]
+        return mm, frames.reshape(self.frames, self.channels), where[0]
 
     def _raw_sum(self, start, stop):
         """:meth:`segment` with ``channel_sum`` from the raw frames (the same values), or None."""
