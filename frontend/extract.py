@@ -126,7 +126,8 @@ def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
         return results, _reference_beta(arrays[order[0]], session, c, opt)
     pool = ThreadPoolExecutor(jobs, thread_name_prefix="calib-array")
     try:
-        futures = [pool.submit(process_array, arrays[k], session, t_emit, c, opt) for k in order]
+        # one array per thread: each array's FFTs then single-threaded
+        futures = [pool.submit(process_array, arrays[k], session, t_emit, c, opt, 1) for k in order]
         beta = pool.submit(_reference_beta, arrays[order[0]], session, c, opt)
         results = {}
         for n_done, (k, fut) in enumerate(zip(order, futures)):
@@ -137,8 +138,9 @@ def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def process_array(a, session, t_emit, c, opt):
-    """Detection, association, timing and DOA for one array."""
+def process_array(a, session, t_emit, c, opt, fft_workers=-1):
+    """Detection, association, timing and DOA for one array (``fft_workers``: threads of the segments'
+    FFTs, :func:`timing.segment_spectra`)."""
     timings = {}
     t0 = time.perf_counter()
     x = ArrayAudio(a)  # read on demand (blocks, event segments): memory bounded whatever the length
@@ -178,7 +180,7 @@ def process_array(a, session, t_emit, c, opt):
     # propagation delays, so only as an upper bound on the measured broadening)
     smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * dur - g["pulse"]) * fs))
     # event segments read and processed in chunks (memory bounded however long the recording)
-    loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max})
+    loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max}, workers=fft_workers)
     x.close()
     timings["timing"] = time.perf_counter() - t0
 
@@ -298,7 +300,7 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
 
 
-def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
+def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1):
     """:func:`timing.locate` on all events, a chunk of events at a time (memory bounded by ``chunk_bytes``).
 
     x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
@@ -306,6 +308,7 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
     phase is estimated on the first chunk (all events when they fit in one) and used for every chunk, so
     all of the array's events share it. Returns locate's dict with the per-event arrays concatenated; its
     ``r`` holds only the lags ``r_lo[j] .. r_lo[j] + 2 gate`` of event j (``r_lo`` (J,) = dp − gate).
+    workers : threads of the segments' FFTs (:func:`timing.segment_spectra`).
     """
     m = x.shape[0]
     per_event = 32 * m * setup["nfft"]  # bound on a segment + its FFT + both band spectra, per event
@@ -313,7 +316,7 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES):
     parts, sizes, phase = [], [], locate_kw.get("phase")
     for j0 in range(0, max(len(starts), 1), n):
         chunk = starts[j0 : j0 + n]
-        c, c_plain = segment_spectra(x, chunk, setup, plain=True)  # (J_c, M, Fb) each
+        c, c_plain = segment_spectra(x, chunk, setup, plain=True, workers=workers)  # (J_c, M, Fb) each
         res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
         # keep only the lags the DOA gate uses (± gate around the direct path), never a chunk-sized array
         hw = locate_kw.get("gate", 0)
