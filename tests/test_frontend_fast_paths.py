@@ -1,15 +1,17 @@
 """Fast paths of the frontend against the straightforward computations they replace: the coarse-to-fine
 DOA grid against the exhaustive grid, the one-selection median against ``np.median``, the detection's
 peak search around the above-threshold stretches against ``scipy.signal.find_peaks`` on the whole
-envelope, the 16-bit channel sum (a float32 matrix-vector product) against float32 accumulation."""
+envelope (and its own local maxima and distance rule, which replace scipy.signal's), the FFT resampling
+against ``scipy.signal.resample``, the 16-bit channel sum (a float32 matrix-vector product) against float32
+accumulation."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import scipy.signal as ss
 
-from calib.frontend.detect import _peaks_above, local_floor, median_last
-from calib.frontend.timing import cis_powers
+from calib.frontend.detect import _peaks_above, local_floor, local_maxima, median_last, select_by_distance
+from calib.frontend.timing import cis_powers, fft_resample
 from calib.frontend.doa import _grid_search, fibonacci_sphere, srp_setup
 from calib.frontend.signals import _int_channel_sum
 
@@ -84,6 +86,25 @@ def test_peaks_above_equals_find_peaks():
             height = np.zeros(n)
         d = int(rng.integers(1, 200))
         np.testing.assert_array_equal(_peaks_above(env, height, d), ss.find_peaks(env, height=height, distance=d)[0])
+
+
+def test_local_maxima_and_distance_rule_equal_find_peaks_with_plateaus_and_ties():
+    # few distinct levels: plateaus at the ends and inside, equal peak heights (the distance rule's ties)
+    rng = np.random.default_rng(4)
+    for trial in range(2000):
+        x = rng.integers(0, int(rng.integers(1, 6)), int(rng.integers(0, 60))).astype(np.float32)
+        d = float(rng.uniform(1, 9)) if trial % 2 else int(rng.integers(1, 9))
+        peaks = local_maxima(x)
+        np.testing.assert_array_equal(peaks, ss.find_peaks(x)[0])
+        np.testing.assert_array_equal(peaks[select_by_distance(peaks, x[peaks].astype(float), d)],
+                                      ss.find_peaks(x, distance=d)[0])
+
+
+@pytest.mark.parametrize("n,num", [(100, 130), (100, 70), (101, 130), (101, 70), (100, 101), (4096, 4097),
+                                   (4097, 4095), (64, 64), (1, 3)])
+def test_fft_resample_equals_scipy_resample(n, num):
+    x = np.random.default_rng(n + num).standard_normal(n)
+    np.testing.assert_allclose(fft_resample(x, num), ss.resample(x, num), rtol=0, atol=1e-13)
 
 
 @pytest.mark.parametrize("dtype,m", [(np.int16, 6), (np.int16, 1), (np.int16, 256), (np.int32, 4)])
