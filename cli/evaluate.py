@@ -5,7 +5,6 @@ from pathlib import Path
 
 import typer
 
-from calib.pipeline.report.evaluate import evaluate as evaluate_metrics
 from calib.pipeline.formats.io import dumps_json, read_calibration, read_truth
 from .common import user_errors
 from .tables import print_metrics
@@ -18,6 +17,9 @@ def evaluate(
     json_out: bool = typer.Option(False, "--json", help="print one JSON line instead of a table"),
 ):
     """Compare a calibration with ground truth."""
+    # imported here: scoring loads scipy.spatial (~0.1 s), which every other command would pay at start
+    from calib.pipeline.report.evaluate import evaluate as evaluate_metrics
+
     metrics = evaluate_metrics(read_calibration(calib), read_truth(truth))
     if json_out:
         print(dumps_json(metrics))

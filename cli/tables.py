@@ -7,7 +7,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from calib.pipeline.report.evaluate import METRIC_ROWS
+from calib.tables import METRIC_ROWS  # (not from report.evaluate: it loads scipy.spatial)
 
 out = Console()
 

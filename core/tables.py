@@ -1,4 +1,4 @@
-"""Plain-array views of DataFrame columns (one place)."""
+"""Plain-array views of DataFrame columns, and the names of the columns and metrics the tables show (one place)."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,6 +6,18 @@ import numpy as np
 # The readers (calib.pipeline.formats.io) add each row's line in its CSV file (header = 1) under this column, so
 # outliers can be reported by file line; it lives in memory only and is never written.
 LINE_COLUMN = "csv_line"
+
+# metric key, label, scale from SI, unit: one place for how metrics are named and shown
+METRIC_ROWS = (
+    ("position_rmse_m", "array position RMSE", 100.0, "cm"),
+    ("orientation_geodesic_deg", "orientation RMS (geodesic)", 1.0, "deg"),
+    ("orientation_paper_deg", "orientation RMS (paper metric)", 1.0, "deg"),
+    ("axis_rms_deg", "axis direction RMS (linear arrays, mic pairs)", 1.0, "deg"),
+    ("offset_rmse_s", "offset RMSE", 1e6, "µs"),
+    ("drift_rmse", "drift RMSE", 1e6, "ppm"),
+    ("relative_drift_rmse", "drift RMSE relative to reference", 1e6, "ppm"),
+    ("source_rmse_m", "source position RMSE", 100.0, "cm"),
+)
 
 
 def columns(df, names):

@@ -9,7 +9,6 @@ covariance of the array parameters. :mod:`calib.pipeline.formats.results` reads 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from calib import __version__
 from calib.errors import InputError
@@ -103,6 +102,8 @@ def _array_entry(row, mics, tau_ref, undetermined=()):
     undetermined (report.json ``undetermined`` of this array: parameter names, the axis of a linear array)."""
     pos = row[["x", "y", "z"]].to_numpy(float)
     quat = row[["qw", "qx", "qy", "qz"]].to_numpy(float)
+    from scipy.spatial.transform import Rotation  # (~0.1 s to load: not at every command's start)
+
     R = Rotation.from_quat(quat, scalar_first=True).as_matrix()
     offset, drift = float(row["offset"]), float(row["drift"])
     off_std, drift_std = row.get("offset_std", np.nan), row.get("drift_std", np.nan)

@@ -17,9 +17,13 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pandas as pd
-from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
 
@@ -47,6 +51,8 @@ class ArrayCalibration:
 
     @property
     def rotation(self) -> Rotation:
+        from scipy.spatial.transform import Rotation  # (~0.1 s to load: only when asked for)
+
         return Rotation.from_quat(self.quaternion, scalar_first=True)
 
     @property

@@ -16,19 +16,6 @@ except ImportError:   # pragma: no cover - another scipy layout: the public clas
 P_PAPER = np.ones(3) / np.sqrt(3.0)
 
 
-# metric key, label, scale from SI, unit: one place for how metrics are named and shown
-METRIC_ROWS = (
-    ("position_rmse_m", "array position RMSE", 100.0, "cm"),
-    ("orientation_geodesic_deg", "orientation RMS (geodesic)", 1.0, "deg"),
-    ("orientation_paper_deg", "orientation RMS (paper metric)", 1.0, "deg"),
-    ("axis_rms_deg", "axis direction RMS (linear arrays, mic pairs)", 1.0, "deg"),
-    ("offset_rmse_s", "offset RMSE", 1e6, "µs"),
-    ("drift_rmse", "drift RMSE", 1e6, "ppm"),
-    ("relative_drift_rmse", "drift RMSE relative to reference", 1e6, "ppm"),
-    ("source_rmse_m", "source position RMSE", 100.0, "cm"),
-)
-
-
 def _rms(v):
     v = np.asarray(v, float)
     v = v[np.isfinite(v)]

@@ -25,7 +25,7 @@ import numpy as np
 
 from calib.estimator import KINDS, LINE_COLUMN, position_covariances, rebuild, residuals
 
-from calib.pipeline.report.evaluate import METRIC_ROWS
+from calib.tables import METRIC_ROWS
 from calib.pipeline.formats.io import atomic_dir, dumps_json
 
 UNIT_LABEL = {k.name: k.label for k in KINDS.values()}
