@@ -10,7 +10,7 @@ import typer
 from calib.pipeline.formats import validate as V
 from calib.pipeline.formats.io import InputError
 from calib.pipeline.formats.outputs import owned_output
-from calib.pipeline.simulate.roomsim import PRESETS, load_scenario, make_scenario, simulate as run_simulation, validate_scenario
+from calib.pipeline.simulate.presets import PRESETS
 from .common import console, user_errors, waiting
 from .signals import checked
 
@@ -66,6 +66,9 @@ def simulate(
         _set(over, item)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not force:
         raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
+    # the simulator is loaded here: it needs scipy.spatial and more, which every other command would pay at start
+    from calib.pipeline.simulate.roomsim import load_scenario, make_scenario, validate_scenario
+
     if scenario is not None:
         sc = load_scenario(scenario, **over)
     else:
@@ -73,7 +76,7 @@ def simulate(
         validate_scenario(sc)
     with owned_output([out_dir], [scenario], command="calib simulate", on_wait=waiting):
         if quiet:
-            path = run_simulation(sc, out_dir, progress=checked(), overwrite=True)
+            path = _run(sc, out_dir, checked())
         else:
             path = _simulate_with_bar(sc, out_dir)
     if out_pos is not None:  # after success only: a bad input stays one line
@@ -115,7 +118,13 @@ def _simulate_with_bar(sc, out_dir):
         def progress(done, total, msg):
             bar.update(task, total=total, completed=done, msg=msg)
 
-        return run_simulation(sc, out_dir, progress=checked(progress), overwrite=True)
+        return _run(sc, out_dir, checked(progress))
+
+
+def _run(sc, out_dir, progress):
+    from calib.pipeline.simulate.roomsim import simulate as run_simulation
+
+    return run_simulation(sc, out_dir, progress=progress, overwrite=True)
 
 
 def _set(over, item):

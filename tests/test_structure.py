@@ -103,10 +103,24 @@ def test_cli_startup_does_not_load_the_heavy_libraries():
     import subprocess
     import sys
 
-    code = ("import sys, calib.cli.main; heavy = ('pyroomacoustics', 'matplotlib', 'scipy.signal', 'calib.frontend.extract'); "
+    code = ("import sys, calib.cli.main; heavy = ('pyroomacoustics', 'matplotlib', 'scipy.signal', 'scipy.spatial', "
+            "'calib.frontend.extract', 'calib.pipeline.simulate.roomsim'); "
             "print(','.join(m for m in heavy if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "", f"loaded at startup: {out}"
+
+
+def test_feature_extraction_does_not_load_what_it_does_not_use():
+    """`calib features` pays for its imports on every run: not scipy.signal and the scipy.stats it pulls
+    (~0.4 s), not the estimator."""
+    import subprocess
+    import sys
+
+    code = ("import sys, calib.cli.main, calib.cli.features, calib.pipeline.features, calib.frontend.extract; "
+            "heavy = ('scipy.signal', 'scipy.stats', 'calib.estimator'); "
+            "print(','.join(m for m in heavy if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "", f"loaded for feature extraction: {out}"
 
 
 @pytest.mark.parametrize("package", ["calib.frontend", "calib.estimator"])

@@ -18,6 +18,7 @@ from calib.frontend.signals import SWEEP_KINDS
 from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import scenes
 from calib.pipeline.formats.io import ARRAYS_COLS, InputError
+from calib.pipeline.simulate.presets import PRESETS, REALISTIC  # noqa: F401  (public names)
 from calib.pipeline.simulate.render import local_time
 
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
@@ -38,23 +39,6 @@ _LAB_LOOP = np.array([[0.87, 0.25], [0.87, -0.27], [0.37, -0.57], [-0.40, -0.57]
                       [-0.87, -0.03], [-0.44, 0.56], [0.36, 0.56]])
 _LAB_HEIGHTS = (1.12, 0.75)  # m above the floor: first loop high, second low (as in the real data)
 
-PRESETS = {
-    "paper-traj1": {"n_arrays": 5, "room_margin": 1.5},
-    "paper-traj2": {"n_arrays": 5, "room_margin": 1.5},
-    "paper-traj3": {"n_arrays": 5, "room_margin": 1.5},
-    "lab3": {"n_arrays": 3, "room_dim": [6.0, 5.0, 3.0], "tilt_deg": 3.0},
-}
-# Realistic presets (model "bands"): see docs/simulation.md "Realistic acoustics".
-_REAL = {"model": "bands", "directivity": "cardioid", "snr": 40.0, "diffuse_snr": 20.0, "hum_snr": 30.0,
-         "gain_mismatch_db": 2.0}
-PRESETS |= {
-    "lab": {**_REAL, "n_arrays": 4, "room_dim": [6.0, 5.0, 3.0], "rt60": 0.4, "fs": 16000, "interval": 1.5},
-    "hall": {**_REAL, "n_arrays": 6, "room_dim": [12.0, 8.0, 4.0], "rt60": 0.8, "fs": 48000, "interval": 2.0,
-             "chirp": {"f0": 500.0, "f1": 10000.0}},
-    "hard": {**_REAL, "n_arrays": 4, "room_dim": [6.0, 5.0, 3.0], "rt60": 0.4, "fs": 16000, "interval": 1.5,
-             "n_occluded": 1, "n_speech": 1, "n_quiet": 1},
-}
-REALISTIC = ("lab", "hall", "hard")
 DEFAULT_MATERIALS = {"walls": "plasterboard", "floor": "linoleum_on_concrete", "ceiling": "ceiling_plasterboard"}
 
 # Keys that only steer the random generation in make_scenario (kept in the scenario for the record).
