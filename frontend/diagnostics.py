@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .detect import median_last
+
 def _pool(env, rate, width=4000):
     """Max-pool an envelope to about ``width`` points (peaks stay visible). Returns (t, y)."""
     k = max(1, len(env) // width)
@@ -41,25 +43,28 @@ def plot_detections(path, diag):
     for ax, (name, a) in zip(axes[:, 0], arrays.items()):
         if "_env" in a:
             t, y = _pool(np.asarray(a["_env"]), a["_env_rate"])
-            ydb = 20 * np.log10(np.maximum(y, 1e-12) / max(np.median(a["_env"]), 1e-12))
+            ydb = 20 * np.log10(np.maximum(y, 1e-12) / max(median_last(np.asarray(a["_env"])), 1e-12))
             ax.plot(t, ydb, color="0.45", lw=0.6)
             top = max(float(ydb.max()), 20.0)
         else:
             top = 40.0
         det = a["detections"]
-        for d in det:
-            if d["event"] is not None:
-                ax.axvline(d["time"], color="tab:green", lw=1.2, alpha=0.8)
-                ax.text(d["time"], top * 1.02, str(d["event"]), color="tab:green", ha="center", va="bottom",
-                        fontsize=7)
-            else:
-                ax.plot(d["time"], 20 * np.log10(max(d["score"], 1.0)), "x", color="tab:red", ms=8, mew=2)
+        matched = [d for d in det if d["event"] is not None]
+        spurious = [d for d in det if d["event"] is None]
+        # one collection per kind, not an artist per line (each axvline is a Line2D with its own transform)
+        across = ax.get_xaxis_transform()  # x in data, y from the axes' bottom (0) to top (1)
+        ax.vlines([d["time"] for d in matched], 0, 1, transform=across, color="tab:green", lw=1.2, alpha=0.8)
+        for d in matched:
+            ax.text(d["time"], top * 1.02, str(d["event"]), color="tab:green", ha="center", va="bottom", fontsize=7)
+        if spurious:
+            ax.plot([d["time"] for d in spurious], [20 * np.log10(max(d["score"], 1.0)) for d in spurious], "x",
+                    color="tab:red", ms=8, mew=2)
         pred = a.get("_predicted")
-        for e in a["missed_events"]:
-            if pred is not None:
-                te = pred[diag["event_ids"].index(e)]
-                ax.axvline(te, color="0.3", ls="--", lw=1)
-                ax.text(te, top * 1.02, f"{e}?", color="0.3", ha="center", va="bottom", fontsize=7)
+        if pred is not None and a["missed_events"]:
+            te = [pred[diag["event_ids"].index(e)] for e in a["missed_events"]]
+            ax.vlines(te, 0, 1, transform=across, color="0.3", linestyles="--", lw=1)
+            for e, t_e in zip(a["missed_events"], te):
+                ax.text(t_e, top * 1.02, f"{e}?", color="0.3", ha="center", va="bottom", fontsize=7)
         n_m = sum(d["event"] is not None for d in det)
         warn = "  ⚠ " + "; ".join(a["warnings"]) if a["warnings"] else ""
         ax.set_title(f"{name}: {n_m} matched, {len(a['missed_events'])} missed "
