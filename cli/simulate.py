@@ -122,6 +122,7 @@ def _simulate_with_bar(sc, out_dir):
 
 
 def _run(sc, out_dir, progress):
+    """The simulation of scenario ``sc`` into ``out_dir`` (the simulator loaded only now)."""
     from calib.pipeline.simulate.roomsim import simulate as run_simulation
 
     return run_simulation(sc, out_dir, progress=progress, overwrite=True)

@@ -5,6 +5,7 @@ import numpy as np
 
 from .detect import median_last
 
+
 def _pool(env, rate, width=4000):
     """Max-pool an envelope to about ``width`` points (peaks stay visible). Returns (t, y)."""
     k = max(1, len(env) // width)

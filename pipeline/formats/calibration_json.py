@@ -100,10 +100,10 @@ def _std(row, cols):
 def _array_entry(row, mics, tau_ref, undetermined=()):
     """One array's entry: pose, mics (own and reference frame), clock, 1-σ, and what the data left
     undetermined (report.json ``undetermined`` of this array: parameter names, the axis of a linear array)."""
-    pos = row[["x", "y", "z"]].to_numpy(float)
-    quat = row[["qw", "qx", "qy", "qz"]].to_numpy(float)
     from scipy.spatial.transform import Rotation  # (~0.1 s to load: not at every command's start)
 
+    pos = row[["x", "y", "z"]].to_numpy(float)
+    quat = row[["qw", "qx", "qy", "qz"]].to_numpy(float)
     R = Rotation.from_quat(quat, scalar_first=True).as_matrix()
     offset, drift = float(row["offset"]), float(row["drift"])
     off_std, drift_std = row.get("offset_std", np.nan), row.get("drift_std", np.nan)
