@@ -26,7 +26,9 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import json
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from calib import __version__
@@ -163,14 +165,17 @@ def session_inputs(session):
     files = {d / "session.toml", d / "events.csv"} | {Path(a["wav"]) for a in session["arrays"]}
     if session["chirp"].get("reference") is not None:
         files.add(Path(session["chirp"]["reference"]))
-    out = {}
-    for f in sorted(files):
+    files = sorted(files)
+    labels = []
+    for f in files:
         try:
             rel = f.resolve().relative_to(d.resolve())
         except ValueError:  # a WAV outside the session folder: name it by its absolute path
             rel = f.resolve()
-        out[f"recordings/{rel.as_posix()}"] = file_sha256(f)
-    return out
+        labels.append(f"recordings/{rel.as_posix()}")
+    # hashlib releases the GIL on large blocks: the WAVs (~30 MB each on a hall session) hash in parallel
+    with ThreadPoolExecutor(min(len(files), os.cpu_count() or 1)) as pool:
+        return dict(zip(labels, pool.map(file_sha256, files)))
 
 
 def features_inputs(out):
