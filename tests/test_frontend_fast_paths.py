@@ -13,7 +13,7 @@ import scipy.signal as ss
 from calib.frontend.detect import _peaks_above, local_floor, local_maxima, median_last, select_by_distance
 from calib.frontend.timing import cis_powers, fft_resample
 from calib.frontend.doa import _grid_search, fibonacci_sphere, srp_setup
-from calib.frontend.signals import _int_channel_sum
+from calib.frontend.signals import SUM_BLOCK_FRAMES, _int_channel_sum
 
 C = 343.0
 MICS_3D = np.c_[0.0354 * np.cos(np.arange(6) * np.pi / 3), 0.0354 * np.sin(np.arange(6) * np.pi / 3),
@@ -111,15 +111,17 @@ def test_fft_resample_equals_scipy_resample(n, num):
 def test_int_channel_sum_equals_float_accumulation(dtype, m):
     rng = np.random.default_rng(2)
     info = np.iinfo(dtype)
-    f = rng.integers(info.min, info.max, (2000, m), dtype=dtype)
-    f[0], f[1] = info.min, info.max
+    n = 2 * SUM_BLOCK_FRAMES + 123 if m <= 6 else 2000  # several blocks and a partial one
+    f = rng.integers(info.min, info.max, (n, m), dtype=dtype)
+    f[0], f[-1] = info.min, info.max
     want = f[:, 0].astype(np.float32)
     for ch in range(1, m):
         want += f[:, ch]
     got = _int_channel_sum(f)
     assert got.dtype == np.float32 and np.array_equal(got, want)
-    scaled = _int_channel_sum(f, 2.0**-15)  # the full scale folded in: still exact
-    assert scaled.dtype == np.float32 and np.array_equal(scaled, want * np.float32(2.0**-15))
+    scaled = np.full(n + 2, np.nan, np.float32)
+    _int_channel_sum(f, 2.0**-15, out=scaled[1:-1])  # the full scale folded in: still exact
+    assert np.array_equal(scaled[1:-1], want * np.float32(2.0**-15)) and np.all(np.isnan(scaled[[0, -1]]))
 
 
 def test_cis_powers_equal_direct_exponentials():
