@@ -11,7 +11,7 @@ import pytest
 import scipy.signal as ss
 
 from calib.frontend.detect import _peaks_above, local_floor, local_maxima, median_last, select_by_distance
-from calib.frontend.timing import cis_powers, fft_resample
+from calib.frontend.timing import cis_powers, cis_tables, fft_resample
 from calib.frontend.doa import _grid_search, fibonacci_sphere, srp_setup
 from calib.frontend.signals import SUM_BLOCK_FRAMES, _int_channel_sum
 
@@ -134,6 +134,19 @@ def test_cis_powers_equal_direct_exponentials():
             want = np.exp(2j * np.pi * tau[..., None] * (f0 + df * np.arange(n)))
             got = cis_powers(tau, f0, df, n)
             assert got.shape == want.shape and np.max(np.abs(got - want)) < 1e-11
+
+
+def test_cis_tables_equal_two_cis_powers():
+    """The inner and outer tables stepped in one loop are the two separate tables, value for value and
+    layout for layout (so the sums over them round the same), above and below the loop's lag count."""
+    rng = np.random.default_rng(5)
+    for shape in [(3,), (14, 6), (2, 40, 6)]:
+        tau = rng.uniform(-0.6, 0.6, shape)
+        for f0, df, b, n_a in [(500.0, 1.6, 76, 76), (37.5, 2.5, 9, 7), (120.0, 0.8, 1, 1)]:
+            inner, outer = cis_tables(tau, f0, df, b, n_a)
+            want_in, want_out = cis_powers(tau, 0.0, df, b), cis_powers(tau, f0, df * b, n_a)
+            for got, want in ((inner, want_in), (outer, want_out)):
+                assert np.array_equal(got, want) and got.strides == want.strides
 
 
 def test_local_floor_blockwise():
