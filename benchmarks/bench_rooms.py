@@ -1,8 +1,8 @@
 """Realistic rooms end to end (issue 9): `calib simulate --preset P --seed S [--set ...]` then `calib run`,
 per session the calibration's errors against truth, the verdict, and the frontend's CPU cost.
 
-    python benchmarks/bench_rooms.py                       # lab 0-4, lab exp 0-4, lab omni 0-4, hard 0-2
-    python benchmarks/bench_rooms.py --hall                # ... plus hall 0-2 (48 kHz: ~4x the cost)
+    python benchmarks/bench_rooms.py                       # lab 0-4, lab exp 0-4, lab omni 0-4, hard 0-4
+    python benchmarks/bench_rooms.py --hall                # ... plus hall 0-4 (48 kHz: ~4x the cost)
     python benchmarks/bench_rooms.py --only lab:0-4 hall:0 "lab:3:chirp.kind=exponential"
 
 A session spec is ``PRESET:SEEDS[:KEY=VALUE,...]`` (seeds ``0-4`` or ``0,2``; the settings are `calib
@@ -29,8 +29,8 @@ import numpy as np
 from calib.pipeline import features
 from calib.pipeline.run import run
 
-DEFAULT = ["lab:0-4", "lab:0-4:chirp.kind=exponential", "lab:0-4:directivity=omni", "hard:0-2"]
-HALL = ["hall:0-2"]
+DEFAULT = ["lab:0-4", "lab:0-4:chirp.kind=exponential", "lab:0-4:directivity=omni", "hard:0-4"]  # issue 9: 5 seeds
+HALL = ["hall:0-4"]
 
 
 def parse_spec(spec):
@@ -96,7 +96,7 @@ def one(d, out):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="+", help="session specs instead of the default set (see above)")
-    ap.add_argument("--hall", action="store_true", help="add hall seeds 0-2 to the default set")
+    ap.add_argument("--hall", action="store_true", help="add hall seeds 0-4 to the default set")
     ap.add_argument("--work", type=Path, help="keep (and reuse) the simulated sessions here")
     args = ap.parse_args()
     specs = args.only or DEFAULT + (HALL if args.hall else [])

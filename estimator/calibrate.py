@@ -23,11 +23,12 @@ from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import State, build_problem, make_layout, matrix_quaternions, state_from_dict
-from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, drop_test, fit_array_alone, measurement_stats,
-                     count_measurements, factor_sizes, variance_factors, remove_outliers, restore_inliers, sym_inverse)
+from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
+                     fit_array_alone, measurement_stats, count_measurements, factor_sizes, variance_factors,
+                     remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
-from .verdict import concentrated_outliers, make_verdict, residual_ratios, stated_sigma_excess
+from .verdict import MOVE_SIGMA, concentrated_outliers, make_verdict, residual_ratios, stated_sigma_excess
 
 
 
@@ -151,7 +152,8 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     if loss:
         if check_arrays:
             st, lay, mask, dropped, info["arrays"], stats = consistency_stage(
-                p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter)
+                p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter,
+                threshold=outlier_threshold)
         st, mask, flagged, _, _, cap1 = remove_outliers(p, st, lay, kinds, mask, threshold=outlier_threshold,
                                                         loss=loss, k=robust_k, max_iter=max_iter,
                                                         stats=stats if check_arrays and not dropped else None)
@@ -263,9 +265,12 @@ def _param_std(J, k):
     return float(np.sqrt(max(x[k], 0.0)) / d[k])
 
 
-def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
-    """Per-array consistency: for each candidate array (``robust.array_candidates``), re-solve without it
-    and keep the drop when the χ² drop test rejects it at FAMILY_ALPHA / N.
+def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, threshold=5.0):
+    """Per-array consistency: for each candidate array (``robust.array_candidates``, then
+    ``robust.concentrated_candidates`` at the outlier ``threshold``), re-solve without it and keep the drop
+    when the χ² drop test rejects it at FAMILY_ALPHA / N (a concentrated candidate only when dropping it
+    also moves the rest by more than MOVE_SIGMA: its data bend the others' solution, as an occluded
+    array's reflections do; otherwise its outlier rows are removed one by one as any others).
 
     Returns (state, layout, mask, dropped array indices, per-candidate records for the report, the
     statistics at the input state).
@@ -273,7 +278,11 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
     sizes = factor_sizes(p)
     stats = measurement_stats(p, st, lay, kinds, mask)
     records, dropped = [], []
-    for i, ratios in array_candidates(p, stats):
+    cands = array_candidates(p, stats)
+    listed = {i for i, _ in cands}
+    cands += [(i, {"outlier_rows": k}) for i, k in concentrated_candidates(p, stats, threshold).items()
+              if i not in listed]
+    for i, ratios in cands:
         if len(dropped) + 2 >= p.N:
             break                      # keep the reference and at least one other array
         keep_arr = [a for a in range(p.N) if a != i and a not in dropped]
@@ -283,10 +292,16 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter):
                                       rtol=1e-6)
         T, dof, logp = drop_test(p, st, st_w, lay, lay_w, kinds, mask, mask_w, 1.0)
         inconsistent = bool(logp < np.log(FAMILY_ALPHA / p.N))
-        rec = {"array": str(p.names[i]), "median_ratio": {k: float(v) for k, v in ratios.items()},
+        rec = {"array": str(p.names[i]),
+               "median_ratio": {k: float(v) for k, v in ratios.items() if k != "outlier_rows"},
+               **({"outlier_rows": int(ratios["outlier_rows"])} if "outlier_rows" in ratios else {}),
                "drop_chi2": T, "drop_dof": dof, "inconsistent": inconsistent}
         if inconsistent:
             rec["moves_sigma"] = _moves_sigma(p, st, st_w, lay_w, kinds, mask_w)
+        if inconsistent and "outlier_rows" in ratios and rec["moves_sigma"] <= MOVE_SIGMA:
+            # its worst rows stand out but the rest hardly depends on it: kept (its outliers go row by row)
+            inconsistent = rec["inconsistent"] = False
+        if inconsistent:
             rec["with_array"] = {"x": st.x.tolist()}
             st, lay, mask = st_w, lay_w, mask_w
             dropped.append(i)

@@ -38,6 +38,14 @@ ARRAY_RATIO = 9.0            # an array whose median statistic of one type is 9Ã
 # large problems remove this share of the rows beyond the outlier level per re-solve (the worst first)
 LARGE_BATCH_SHARE = 0.5
 ARRAY_MIN_ROWS = 4           # ... over at least this many rows of that type is a candidate for the drop test
+# An array holding most of the rows beyond the outlier level (at least CONCENTRATED_MIN of them, a
+# CONCENTRATED_SHARE of all, CONCENTRATED_OWN of its own rows) may be biased as a whole (occluded: a
+# reflection for every direct path). It partly fits its biased rows by moving itself and the sources, so
+# its median statistic stays low and only its worst rows stand out; it gets the drop test too, and the
+# verdict names it.
+CONCENTRATED_MIN = 4
+CONCENTRATED_SHARE = 0.5
+CONCENTRATED_OWN = 0.1
 
 
 @dataclass
@@ -371,6 +379,24 @@ def array_candidates(p, stats, ratio=ARRAY_RATIO, min_rows=ARRAY_MIN_ROWS):
             if rr > ratio:
                 out.setdefault(int(i), {})[kind] = rr
     return sorted(out.items(), key=lambda t: -max(t[1].values()))
+
+
+def concentrated_candidates(p, stats, threshold):
+    """Arrays (not the reference) holding most of the rows beyond the outlier rejection level at ``stats``
+    (``critical_z(threshold, Â·)``; the CONCENTRATED_* rule, before any row is removed): {array index: rows}."""
+    live = stats.kept & (stats.array >= 0)
+    n_tests = int(stats.kept.sum())
+    if n_tests == 0:
+        return {}
+    beyond = live & (stats.z > critical_z(threshold, n_tests))
+    total = int(beyond.sum())
+    out = {}
+    for i in range(p.N):
+        k = int(np.sum(beyond & (stats.array == i)))
+        n_rows = int(np.sum(live & (stats.array == i)))
+        if i != p.ref and k >= CONCENTRATED_MIN and k >= CONCENTRATED_SHARE * total and k >= CONCENTRATED_OWN * n_rows:
+            out[i] = k
+    return out
 
 
 def drop_test(p, st_all, st_without, lay, lay_without, kinds, mask, mask_without, scale):

@@ -17,14 +17,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import chdtrc  # χ² survival function: scipy.stats.chi2.sf(x, n) = chdtrc(n, x)
 
+from .robust import CONCENTRATED_MIN, CONCENTRATED_OWN, CONCENTRATED_SHARE
+
 RESIDUAL_SUSPECT = 3.0   # RMS residual 3× its sigma: the weights (or the model) are wrong
 RESIDUAL_FAILED = 10.0   # 10×: the data contradict the model (e.g. wrong emission times)
 OUTLIER_SUSPECT = 0.15   # fraction of measurements removed as outliers
 OUTLIER_FAILED = 0.30
 TYPES_FAILED = 2         # residuals of this many types above RESIDUAL_SUSPECT at once: the model is wrong
-CONCENTRATED_MIN = 4         # an array holding at least this many outlier rows,
-CONCENTRATED_SHARE = 0.5     # at least this share of all of them,
-CONCENTRATED_OWN = 0.1       # and at least this fraction of its own rows is named (kept, not dropped)
 MOVE_SIGMA = 3.0         # a dropped array moved the rest by more than this many σ
 PRIOR_BOUND = 10.0       # a type whose sigma may grow less than this is judged against its stated sigma
 SIGMA_TOLERANCE = 1.5    # a stated sigma may be off by this factor (the frontend's honest-sigma bound) ...
