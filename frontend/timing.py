@@ -429,10 +429,12 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
     reflection never precedes it). A peak at lag ``k`` counts as an arrival if it is a local maximum and
     - it exceeds ``snr_factor`` × the noise floor (median of the envelope before the strongest peak: the
       searched window starts well before any arrival) and ``min_ratio`` × the strongest peak;
-    - it is not a sidelobe: it exceeds ``sidelobe_margin`` × what any later, stronger peak's pulse can
-      put there (``pulse_env`` (L,), :func:`pulse_envelope`; so a direct path 15 dB below a reflection
-      0.6 ms later still counts, while the pulse's own sidelobes do not). Earlier peaks are taken first,
-      so sidelobes trailing a genuine arrival never matter.
+    - it is not a sidelobe: it exceeds ``sidelobe_margin`` × what the later, stronger peaks' pulses can
+      put there together (``pulse_env`` (L,), :func:`pulse_envelope`; the envelope of a sum of pulses is at
+      most the sum of theirs: a cluster of strong paths raises ripples ahead of it that no single one of
+      them explains. So a direct path 15 dB below a reflection 0.6 ms later still counts, while the
+      pulses' own sidelobes do not). Earlier peaks are taken first, so sidelobes trailing a genuine
+      arrival never matter.
     floor, peak : (J,) noise floor and strongest peak to use instead of this envelope's (after a reflection
     has been subtracted from it). near : (L,) :func:`pulse_near`; a rejected candidate above 1.2 × that
     exact sidelobe level is "shadowed" (worth a second look); None = every rejected candidate.
@@ -461,7 +463,7 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
         for k in cand:
             later = strong[(strong > k) & (env[i, strong] > env[i, k])]
             d = np.minimum(later - k, n_pulse - 1)
-            if later.size and env[i, k] <= sidelobe_margin * np.max(env[i, later] * pulse_env[d]):
+            if later.size and env[i, k] <= sidelobe_margin * np.sum(env[i, later] * pulse_env[d]):
                 dn = np.minimum(later - k, len(near) - 1) if near is not None else None
                 if near is None or env[i, k] > SHADOW_MARGIN * np.max(env[i, later] * near[dn]):
                     shadowed[i] = True

@@ -12,7 +12,7 @@ import soundfile as sf
 
 from calib.frontend.detect import redetect
 from calib.frontend.signals import band_weights, sweep
-from calib.frontend.timing import drift_bias, locate, segment_spectra, spectra_setup
+from calib.frontend.timing import direct_path_lag, drift_bias, locate, pulse_envelope, segment_spectra, spectra_setup
 from calib.pipeline.simulate import roomsim
 from calib.pipeline.features import session_features as extract_features
 
@@ -115,6 +115,31 @@ def test_reflection_overlapping_the_direct_pulse_is_removed(kind, delay, gain):
     # the same with the separation switched off: the error this test guards against is real
     off = locate(c, setup, lo=40, hi=int(0.12 * fs), half_width=8, c_onset=c_plain, smear=0, separate_pulses=0)
     assert np.abs(off["tau"][0] - starts).max() > 3 * err
+
+
+def test_ripple_ahead_of_a_cluster_of_strong_paths_is_not_an_onset():
+    """Two strong paths 4 samples apart: a bump ahead of them above twice either one's sidelobe bound but
+    below twice their sum is their ripple, not a direct path (hall seed 4: such an onset 11 samples early
+    timed the reference 60 µs early on two events); a single later path leaves the same bump genuine."""
+    fs = 16000
+    tmpl = sweep(np.arange(int(0.25 * fs) + 1) / fs, 500.0, 4000.0, 0.25, 0.005, "linear")
+    pe = pulse_envelope(spectra_setup(tmpl, fs, (500.0, 4000.0), int(0.4 * fs)), 200, plain=True)
+    k1, k2, k0 = 100, 104, 100 - 6                              # k0 on a plateau of the pulse's bound
+
+    def envelope(paths, h):
+        env = np.full((1, 300), 1e-3)
+        for k, g in paths:
+            env[0, k - 1 : k + 2] = [0.5 * g, g, 0.5 * g]
+        env[0, k0 - 1 : k0 + 2] = [0.5 * h, h, 0.5 * h]
+        return env
+
+    a, b = 0.95 * pe[k1 - k0], 1.0 * pe[k2 - k0]
+    h = max(a, b) + a + b                                        # between 2·max and 2·sum
+    assert 2 * max(a, b) < h < 2 * (a + b) and h > 0.05
+    dp, *_ = direct_path_lag(envelope([(k1, 0.95), (k2, 1.0)], h), pe)
+    assert dp[0] == k1                                           # the first strong path, not the ripple
+    dp, ratio, *_ = direct_path_lag(envelope([(k2, 1.0)], 2.5 * b), pe)
+    assert dp[0] == k0 and ratio[0] < 0.35                       # one later path: a weak direct path
 
 
 def test_pure_noise_before_the_chirp_is_not_an_onset():
