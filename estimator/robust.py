@@ -381,22 +381,23 @@ def array_candidates(p, stats, ratio=ARRAY_RATIO, min_rows=ARRAY_MIN_ROWS):
     return sorted(out.items(), key=lambda t: -max(t[1].values()))
 
 
+def is_concentrated(k, total, n_rows):
+    """The CONCENTRATED_* rule: an array with ``k`` of ``total`` outlier rows and ``n_rows`` rows of its own."""
+    return k >= CONCENTRATED_MIN and k >= CONCENTRATED_SHARE * total and k >= CONCENTRATED_OWN * n_rows
+
+
 def concentrated_candidates(p, stats, threshold):
     """Arrays (not the reference) holding most of the rows beyond the outlier rejection level at ``stats``
-    (``critical_z(threshold, ·)``; the CONCENTRATED_* rule, before any row is removed): {array index: rows}."""
+    (``critical_z(threshold, ·)``; :func:`is_concentrated`, before any row is removed): {array index: rows}."""
     live = stats.kept & (stats.array >= 0)
     n_tests = int(stats.kept.sum())
     if n_tests == 0:
         return {}
     beyond = live & (stats.z > critical_z(threshold, n_tests))
-    total = int(beyond.sum())
-    out = {}
-    for i in range(p.N):
-        k = int(np.sum(beyond & (stats.array == i)))
-        n_rows = int(np.sum(live & (stats.array == i)))
-        if i != p.ref and k >= CONCENTRATED_MIN and k >= CONCENTRATED_SHARE * total and k >= CONCENTRATED_OWN * n_rows:
-            out[i] = k
-    return out
+    k = np.bincount(stats.array[beyond].astype(int), minlength=p.N)
+    n_rows = np.bincount(stats.array[live].astype(int), minlength=p.N)
+    total = int(k.sum())
+    return {i: int(k[i]) for i in range(p.N) if i != p.ref and is_concentrated(k[i], total, n_rows[i])}
 
 
 def drop_test(p, st_all, st_without, lay, lay_without, kinds, mask, mask_without, scale):

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import chdtrc  # χ² survival function: scipy.stats.chi2.sf(x, n) = chdtrc(n, x)
 
-from .robust import CONCENTRATED_MIN, CONCENTRATED_OWN, CONCENTRATED_SHARE
+from .robust import is_concentrated
 
 RESIDUAL_SUSPECT = 3.0   # RMS residual 3× its sigma: the weights (or the model) are wrong
 RESIDUAL_FAILED = 10.0   # 10×: the data contradict the model (e.g. wrong emission times)
@@ -67,12 +67,12 @@ def stated_sigma_excess(ratios, counts, bounds):
 
 
 def concentrated_outliers(outliers, rows_per_array):
-    """Arrays holding most of the outlier rows: {array: (its outliers, its rows)} (see CONCENTRATED_*)."""
+    """Arrays holding most of the outlier rows: {array: (its outliers, its rows)} (``robust.is_concentrated``)."""
     total = len(outliers)
     out = {}
     for a, n_rows in rows_per_array.items():
         k = sum(1 for o in outliers if o.get("array") == a)
-        if k >= CONCENTRATED_MIN and k >= CONCENTRATED_SHARE * total and k >= CONCENTRATED_OWN * n_rows:
+        if is_concentrated(k, total, n_rows):
             out[a] = (k, n_rows)
     return out
 
