@@ -694,7 +694,13 @@ def _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, *, m
     t_cov = time.perf_counter()
     cov = covariance(J[w > 0], lay.n, lay)
     times["uncertainty"] = time.perf_counter() - t_cov
-    arrays, sources = to_frames(p, st, std_from_cov(p, lay, cov))
+    std = std_from_cov(p, lay, cov)
+    for i in info.get("dropped", ()):
+        # an unreliable array's pose was refitted alone from data the rest contradict; the joint covariance
+        # holds no row of it (its std came out ~1e-8 m): no uncertainty is claimed (empty, as the reference's)
+        for key in ("x", "rot", "offset", "drift"):
+            std[key][i] = np.nan
+    arrays, sources = to_frames(p, st, std)
     times["total"] = time.perf_counter() - t0
     judged = _judge(p, st, info, lay, cov, w, cost, scales=scales, bounds=bounds, noise=noise, kinds=kinds)
     report = _report(p, st, info, stages, judged, fs, method=method, noise=noise, emission_sigma=emission_sigma,

@@ -67,6 +67,8 @@ def test_an_array_biased_as_a_whole_is_named_and_dropped(seed):
     v = cal["report"]["verdict"]
     assert v["flagged_arrays"] == [bad] and v["status"] != "ok"
     assert cal["report"]["unreliable_arrays"] == [bad]
+    stds = cal["arrays"].set_index("array").filter(like="_std")
+    assert stds.loc[bad].isna().all() and stds.drop(index=[bad, feats["meta"]["reference_array"]]).notna().all().all()
     loc, _ = bench.errors(cal, truth, skip=bad)
     loc0, _ = bench.errors(clean, truth, skip=bad)
     assert loc < 1.5 * loc0 + 0.01
