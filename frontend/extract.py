@@ -95,6 +95,7 @@ def _extract(session, progress, opt, jobs=1):
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
     results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
+    flag_doa_spread(results)
     if progress is not None:
         progress(len(arrays), len(arrays), "done")
 
@@ -404,10 +405,41 @@ def arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected,
 
 def arrival_quality(gcc_quality, reasons):
     """Per-arrival quality in [0, 1]: the median normalised GCC carrier peak over the mics (~1 for one
-    clean path) × ``DOUBT_PENALTY`` per doubt (:func:`arrival_flags`; "doa_reflection" concerns the DOA
+    clean path) × ``DOUBT_PENALTY`` per doubt (:func:`arrival_flags`; ``DOA_ONLY_DOUBTS`` concern the DOA
     only)."""
-    n = np.array([sum(x != "doa_reflection" for x in r) for r in reasons])
+    n = np.array([sum(x not in DOA_ONLY_DOUBTS for x in r) for r in reasons])
     return np.clip(gcc_quality, 0.0, 1.0) * DOUBT_PENALTY ** n
+
+
+DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's median is doubtful ("doa_spread"): in
+                          # the RMS that sets the session's DOA sigma it would weigh as much as 900 typical rows
+
+
+def flag_doa_spread(results):
+    """Add the doubt "doa_spread" to every arrival whose DOA spread (:func:`doa_spread`) exceeds
+    ``DOA_SPREAD_FACTOR`` × the median over the session's DOAs without doubts (in place; the median over
+    all of them if none is clean). The mics of such a DOA disagree with any one plane wave far beyond
+    the session's typical DOA: several paths of similar strength (an occluded array's DOAs reached
+    77–151° in one session while the others' median was 0.3°). The session's DOA sigma is an RMS over the
+    rows without doubts, which one such row (a thousand typical rows' worth) would otherwise decide.
+    The median is over all arrays: an array whose DOAs are all that poor does not set its own scale."""
+    spreads, clean = [], []
+    for r in results.values():
+        if r["has_doa"]:
+            spreads.append(np.asarray(r["doa_spread"], float))
+            clean.append([not any(x in DOA_DOUBTS for x in f) for f in r["flags"]])
+    if not spreads:
+        return
+    v, ok = np.concatenate(spreads), np.concatenate(clean).astype(bool)
+    pos = np.isfinite(v) & (v > 0)
+    ref = v[pos & ok] if np.any(pos & ok) else v[pos]
+    if not ref.size:
+        return
+    limit = DOA_SPREAD_FACTOR * float(np.median(ref))
+    for r in results.values():
+        if r["has_doa"]:
+            for k in np.flatnonzero(np.nan_to_num(np.asarray(r["doa_spread"], float)) > limit):
+                r["flags"][k].append("doa_spread")
 
 
 def doa_spread(res, u, mics, c, normal=None, axis=None):
@@ -538,7 +570,8 @@ def _tables(session, results, ev_ids, beta):
 
 
 TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded")
-DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "mic_spread", "occluded")
+DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "doa_spread", "mic_spread", "occluded")
+DOA_ONLY_DOUBTS = ("doa_reflection", "doa_spread")  # no bearing on the arrival time (nor its quality)
 
 
 def _flag_text(reasons, doa):

@@ -130,3 +130,26 @@ def test_a_mic_left_out_of_the_fusion_does_not_inflate_the_claim():
                          np.ones(n_ev, bool))
     every, _ = arrival_sd(t_org - arrival[:, None], u, OCTAHEDRON, C, lag, e, np.ones(n_ev, bool))
     assert np.sqrt(np.mean(kept**2)) < 2 * noise < np.sqrt(np.mean(every[::3] ** 2)) / 10
+
+
+def test_an_array_of_absurd_doa_spreads_does_not_set_the_session_doa_sigma():
+    """An occluded array whose DOA spreads are 1-2 rad (hard seed 9: 77-151°, unflagged) made the session's
+    DOA sigma 35° and the estimator's 12°, so every DOA counted for nothing. Its rows, and a typical
+    array's one row 100× its median, get the doubt "doa_spread"; the sigma is the RMS of the rest."""
+    from calib.frontend.extract import DOA_SPREAD_FACTOR, flag_doa_spread, noise_estimates
+
+    rng = np.random.default_rng(5)
+    good = rng.uniform(0.004, 0.006, 20)
+    good[7] = 100 * np.median(good)
+    bad = rng.uniform(1.0, 2.0, 6)
+    results = {name: {"has_doa": True, "doa_spread": sd, "flags": [[] for _ in sd],
+                      "arrival_sd": np.full(len(sd), 1e-6), "spread": np.full(len(sd), 1e-6)}
+               for name, sd in (("A1", good), ("A2", bad))}
+    results["A1"]["flags"][3].append("doa_reflection")  # already doubtful: not in the median, not flagged again
+    flag_doa_spread(results)
+    flagged = {n: [k for k, f in enumerate(r["flags"]) if "doa_spread" in f] for n, r in results.items()}
+    assert flagged == {"A1": [7], "A2": list(range(6))}
+    assert DOA_SPREAD_FACTOR * np.median(np.delete(good, 3)) < good[7]
+    typical = np.delete(good, [3, 7])
+    want = np.degrees(np.sqrt(np.mean(typical**2)))
+    assert noise_estimates(results)["sigma_doa_deg"] == pytest.approx(want, rel=1e-12)
