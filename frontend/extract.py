@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pandas as pd
@@ -24,6 +23,7 @@ from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .doa import cone_vectors, mic_geometry, single_thread_blas, srp_cone, srp_doa, srp_setup
 from .noise import arrival_sd as claimed_sd, near_field_fit
+from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
 
@@ -106,8 +106,8 @@ def _extract(session, progress, opt, jobs=1):
 
 def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
     """({array name: :func:`process_array` result} in ``order``, β of the reference ``order[0]``
-    (:func:`_reference_beta`)); ``jobs`` arrays at a time in threads, β as one more task (last: the
-    thread done first computes it while the other finishes its array).
+    (:func:`_reference_beta`)); ``jobs`` arrays at a time in threads, each array's detection and timing
+    staggered against the other threads' (:func:`calib.frontend.schedule.two_phase`), β as one more task.
 
     Progress and errors follow ``order`` whatever finishes first, so a bad file is reported the same way
     with any ``jobs``; an error or interrupt cancels the arrays not started (the running ones finish).
@@ -125,80 +125,94 @@ def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
             report(n_done, k)
             results[arrays[k]["name"]] = process_array(arrays[k], session, t_emit, c, opt)
         return results, _reference_beta(arrays[order[0]], session, c, opt)
-    pool = ThreadPoolExecutor(jobs, thread_name_prefix="calib-array")
-    try:
-        # one array per thread: each array's FFTs then single-threaded
-        futures = [pool.submit(process_array, arrays[k], session, t_emit, c, opt, 1) for k in order]
-        beta = pool.submit(_reference_beta, arrays[order[0]], session, c, opt)
-        results = {}
-        for n_done, (k, fut) in enumerate(zip(order, futures)):
-            report(n_done, k)
-            results[arrays[k]["name"]] = fut.result()
-        return results, beta.result()
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    # one array per thread (each array's FFTs then single-threaded), its detection and its timing staggered
+    # against the other threads' (calib.frontend.schedule); β as one more timing-like task
+    out = two_phase(lambda i: detect_array(arrays[order[i]], session, t_emit, c, opt),
+                    lambda i, st: time_array(st, session, t_emit, c, opt, 1), len(order), jobs,
+                    extra=lambda: _reference_beta(arrays[order[0]], session, c, opt),
+                    waiting=lambda i: report(i, order[i]))
+    return {arrays[k]["name"]: r for k, r in zip(order, out)}, out[-1]
 
 
 def process_array(a, session, t_emit, c, opt, fft_workers=-1):
     """Detection, association, timing and DOA for one array (``fft_workers``: threads of the segments'
     FFTs, :func:`timing.segment_spectra`)."""
+    return time_array(detect_array(a, session, t_emit, c, opt), session, t_emit, c, opt, fft_workers)
+
+
+def detect_array(a, session, t_emit, c, opt):
+    """:func:`process_array`'s first phase: the recording opened, its chirps detected and associated with
+    the events. Returns the state :func:`time_array` continues from (the recording still open)."""
     timings = {}
     t0 = time.perf_counter()
     x = ArrayAudio(a)  # read on demand (blocks, event segments): memory bounded whatever the length
     fs = x.fs
     timings["read"] = time.perf_counter() - t0
-    chirp = session["chirp"]
-    template = chirp_template(chirp, fs)
-    band = chirp_band(chirp, template, fs)
-    dur = len(template) / fs
+    try:
+        template = chirp_template(session["chirp"], fs)
+        band = chirp_band(session["chirp"], template, fs)
+        dur = len(template) / fs
+        t0 = time.perf_counter()
+        # detection on the sum of the channels: one FFT instead of M; a few-cm array sums the chirp's band
+        # nearly coherently (on simulated rooms the weakest chirp stood out as well as with 3 channels' envelopes)
+        env, dec = matched_envelope(x.channel_sum(), template, fs, band)  # (1, N): summed as read
+        env_rate = fs / dec
+        spacing = np.min(np.diff(t_emit)) if len(t_emit) > 1 else np.inf
+        idx, score = pick_peaks(env, env_rate, min(dur, 0.5 * spacing), opt["threshold"])
+        det_t = refine_peak(env, idx) / env_rate if len(idx) else np.zeros(0)
+        timings["detect"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    # detection on the sum of the channels: one FFT instead of M; a few-cm array sums the chirp's band
-    # nearly coherently (on simulated rooms the weakest chirp stood out as well as with 3 channels' envelopes)
-    env, dec = matched_envelope(x.channel_sum(), template, fs, band)  # (1, N): summed as read
-    env_rate = fs / dec
-    spacing = np.min(np.diff(t_emit)) if len(t_emit) > 1 else np.inf
-    idx, score = pick_peaks(env, env_rate, min(dur, 0.5 * spacing), opt["threshold"])
-    det_t = refine_peak(env, idx) / env_rate if len(idx) else np.zeros(0)
-    timings["detect"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        asc = assoc_mod.associate(det_t, score, t_emit, tol=opt["tolerance"], max_drift=opt["max_drift"])
+        if asc["n_matched"] < 2:
+            raise InputError(f"{a['wav']}: found {asc['n_matched']} chirp(s) matching the events in events.csv "
+                             f"({len(det_t)} detection(s)); need at least 2")
+        det_t, score, redetected = _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt)
+        timings["associate"] = time.perf_counter() - t0
+    except BaseException:
+        x.close()
+        raise
+    return {"a": a, "x": x, "fs": fs, "template": template, "band": band, "dur": dur, "env": env, "dec": dec,
+            "env_rate": env_rate, "det_t": det_t, "score": score, "asc": asc, "redetected": redetected,
+            "timings": timings}
 
-    t0 = time.perf_counter()
-    asc = assoc_mod.associate(det_t, score, t_emit, tol=opt["tolerance"], max_drift=opt["max_drift"])
-    if asc["n_matched"] < 2:
-        raise InputError(f"{a['wav']}: found {asc['n_matched']} chirp(s) matching the events in events.csv "
-                         f"({len(det_t)} detection(s)); need at least 2")
-    det_t, score, redetected = _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt)
-    timings["associate"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    ev_idx = np.flatnonzero(asc["det_of"] >= 0)
-    mics = np.asarray(a["mics"], float)
-    g = _timing_layout(mics, band, fs, c, len(template), opt)
-    starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - g["pre"]
-    setup = spectra_setup(template, fs, band, g["seg_len"], opt["whiten_hz"])
-    # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
-    # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
-    # propagation delays, so only as an upper bound on the measured broadening)
-    smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * dur - g["pulse"]) * fs))
-    # event segments read and processed in chunks (memory bounded however long the recording)
-    loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max}, workers=fft_workers)
-    x.close()
+def time_array(st, session, t_emit, c, opt, fft_workers=-1):
+    """:func:`process_array`'s second phase, from :func:`detect_array`'s state ``st``: timing and DOA of
+    the associated events, fused into arrivals; closes the recording. Returns the array's result dict."""
+    a, x, fs, band, asc, det_t = st["a"], st["x"], st["fs"], st["band"], st["asc"], st["det_t"]
+    timings = st["timings"]
+    try:
+        t0 = time.perf_counter()
+        ev_idx = np.flatnonzero(asc["det_of"] >= 0)
+        mics = np.asarray(a["mics"], float)
+        g = _timing_layout(mics, band, fs, c, len(st["template"]), opt)
+        starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - g["pre"]
+        setup = spectra_setup(st["template"], fs, band, g["seg_len"], opt["whiten_hz"])
+        # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
+        # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
+        # propagation delays, so only as an upper bound on the measured broadening)
+        smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * st["dur"] - g["pulse"]) * fs))
+        # event segments read and processed in chunks (memory bounded however long the recording)
+        loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max}, workers=fft_workers)
+    finally:
+        x.close()
     timings["timing"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     doa = _direct_path_doa(loc, mics, fs, setup, g, c, opt, a.get("doa_hemisphere"))
     timings["doa"] = time.perf_counter() - t0
-    fused = _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, c, opt, g["half"])
+    fused = _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, st["redetected"], fs, c, opt, g["half"])
     warnings = doa["warnings"] + fused["warnings"]
     if doa["normal"] is not None and a.get("doa_hemisphere") is None:
         warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
     if asc["ambiguous"]:
         warnings.append("association ambiguous: another alignment of the events explains as many detections")
     return {
-        "name": a["name"], "fs": fs, "n_samples": int(len(env) * dec), "channels": len(mics), "band": band,
-        "phase": loc["phase"], "env": env, "env_rate": env_rate, "det_t": det_t,
-        "det_score": score, "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
-        "u": doa["u"], "doa_power": doa["power"], "redetected": redetected,
+        "name": a["name"], "fs": fs, "n_samples": int(len(st["env"]) * st["dec"]), "channels": len(mics),
+        "band": band, "phase": loc["phase"], "env": st["env"], "env_rate": st["env_rate"], "det_t": det_t,
+        "det_score": st["score"], "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
+        "u": doa["u"], "doa_power": doa["power"], "redetected": st["redetected"],
         "ambiguous_plane": doa["normal"] if a.get("doa_hemisphere") is None else None,
         "has_doa": doa["kind"] != "single", "doa_axis": doa["axis"],
         "mic_quality": loc["value"], "warnings": warnings, "timings": timings,

@@ -225,7 +225,7 @@ class ArrayAudio:
         if self._int is not None:
             _int_channel_sum(blk, 1.0 / self._int[1], out=acc[a - start : b - start])
             return acc
-        acc[a - start : b - start] = blk @ np.ones(self.channels, np.float32)
+        np.matmul(blk, np.ones(self.channels, np.float32), out=acc[a - start : b - start])  # no temporary
         if not np.all(np.isfinite(acc)):
             self._check_finite(blk)
         return acc
