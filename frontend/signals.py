@@ -96,9 +96,9 @@ def _release(mm, base, start, stop):
     interpreter's lock: ~3 % of a two-thread hall extraction's time in it)."""
     page = mmap.PAGESIZE
     lo, hi = -(-start // page) * page, stop // page * page
-    madvise = _libc_madvise()
     if hi <= lo:
         return
+    madvise = _libc_madvise()
     if madvise is not None:
         madvise(base + lo, hi - lo, mmap.MADV_DONTNEED)  # a failure only leaves the pages mapped
     elif hasattr(mm, "madvise") and hasattr(mmap, "MADV_DONTNEED"):

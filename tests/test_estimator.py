@@ -178,16 +178,21 @@ def test_noise_estimation_recovers_wrong_sigmas():
     assert calibrate(feats)["report"]["sigmas"]["source"] == "meta"
 
 
-def test_a_frontends_own_sigma_is_lowered_at_most_the_documented_factor():
+def test_a_frontends_own_sigma_is_raised_by_the_residuals_but_never_lowered():
     """The same 10×-too-large TDOA sigma: stated by the user it is re-estimated toward the truth; as the
-    frontend's own figure (meta sigmas_estimated) it stops at stated / FRONTEND_MIN_FACTOR."""
+    frontend's own figure (meta sigmas_estimated) it stays (FRONTEND_MIN_FACTOR = 1). A 10×-too-small
+    frontend figure is raised toward the truth."""
     from calib.estimator.calibrate import FRONTEND_MIN_FACTOR
 
+    assert FRONTEND_MIN_FACTOR == 1.0
     feats, _ = simulate_features(3, 1e-4, 5.0, seed=21)
     feats["meta"].update(sigma_tdoa=1e-3)
     user = calibrate(feats, noise="estimate")["report"]
     feats["meta"]["sigmas_estimated"] = ["sigma_tdoa"]
     own = calibrate(feats)["report"]
-    assert user["sigmas"]["tdoa_s"] < 0.9e-3 / FRONTEND_MIN_FACTOR          # free: well past the floor
-    assert np.isclose(own["sigmas"]["tdoa_s"], 1e-3 / FRONTEND_MIN_FACTOR)  # the frontend's: at the floor
+    assert user["sigmas"]["tdoa_s"] < 0.3e-3                 # free: toward the simulated 1e-4
+    assert np.isclose(own["sigmas"]["tdoa_s"], 1e-3)          # the frontend's: kept
     assert own["stages"]["noise"]["at_bound"]["tdoa_s"]
+    feats["meta"].update(sigma_tdoa=1e-5)
+    low = calibrate(feats)["report"]
+    assert 0.5e-4 < low["sigmas"]["tdoa_s"] < 2e-4            # raised toward the simulated 1e-4
