@@ -9,7 +9,8 @@ A session spec is ``PRESET:SEEDS[:KEY=VALUE,...]`` (seeds ``0-4`` or ``0,2``; th
 simulate --set` items). Sessions are written under ``--work`` (default a temporary folder) and reused
 when present there. Columns: position RMSE (cm) and geodesic orientation RMS (deg) over the non-reference
 arrays; the worst array (cm / deg); the verdict (report.json) with its flagged arrays, and the worst of
-the arrays it did not flag (when it flagged any); the frontend's CPU
+the arrays it did not flag (when it flagged any); the error bars' honesty: the RMS over the unflagged
+arrays' position coordinates of error / stated std (1 when honest; > 1: the std claims too much); the frontend's CPU
 seconds (process time of `session_features` inside the run, all threads: the machine may be loaded, wall
 time is not the cost; the stage's plots and files are not counted) as a percentage of the recording
 duration. Then per group the medians and the worst seed.
@@ -25,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from calib.pipeline import features
 from calib.pipeline.run import run
@@ -84,13 +86,33 @@ def one(d, out):
     named = set(verdict.get("flagged_arrays") or [])
     rest = [a for a in per if a["array"] not in named]
     rest_worst = max(rest, key=lambda a: a["position_m"]) if rest else None
-    return {"loc_cm": 100 * m["position_rmse_m"], "geo_deg": m["orientation_geodesic_deg"],
+    z2 = position_z2(out / "calibration" / "arrays.csv", d / "truth" / "arrays.csv", named)
+    return {"z2": z2, "loc_cm": 100 * m["position_rmse_m"], "geo_deg": m["orientation_geodesic_deg"],
             "worst": f"{worst['array']} {100 * worst['position_m']:.1f} / {worst['geodesic_deg']:.1f}",
             "worst_cm": 100 * worst["position_m"], "status": verdict.get("status", "?"),
             "rest": "-" if rest_worst is None or not named else
             f"{rest_worst['array']} {100 * rest_worst['position_m']:.1f} / {rest_worst['geodesic_deg']:.1f}",
             "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-",
             "cpu_pct": 100 * cpu["s"] / diag["recording_duration_s"]}
+
+
+def position_z2(estimated, truth, named):
+    """Squared (error / stated std) of every position coordinate of the arrays with a std (not the reference,
+    not dropped) and not named by the verdict: (K,). RMS ≈ 1 when the error bars are honest."""
+    est = pd.read_csv(estimated).set_index("array")
+    tru = pd.read_csv(truth).set_index("array")
+    keep = [a for a in est.index if a not in named and np.all(np.isfinite(est.loc[a, list(STD)].to_numpy(float)))]
+    if not keep:
+        return np.zeros(0)
+    err = est.loc[keep, list("xyz")].to_numpy(float) - tru.loc[keep, list("xyz")].to_numpy(float)
+    return ((err / est.loc[keep, list(STD)].to_numpy(float)) ** 2).ravel()
+
+
+STD = ("x_std", "y_std", "z_std")
+
+
+def rms_z(z2):
+    return float(np.sqrt(np.mean(z2))) if len(z2) else float("nan")
 
 
 def main():
@@ -103,8 +125,8 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         print("| session | position RMSE (cm) | orientation (deg) | worst array (cm / deg) | verdict | flagged "
-              "| worst unflagged (cm / deg) | frontend CPU (% of audio) |")
-        print("|---|---|---|---|---|---|---|---|")
+              "| worst unflagged (cm / deg) | error / stated std (RMS) | frontend CPU (% of audio) |")
+        print("|---|---|---|---|---|---|---|---|---|")
         groups = {}
         for spec in specs:
             preset, seeds, sets = parse_spec(spec)
@@ -115,11 +137,12 @@ def main():
                 r = one(d, Path(tmp) / "out" / d.name)
                 groups.setdefault(name, []).append(r)
                 print(f"| {name}, seed {seed} | {r['loc_cm']:.2f} | {r['geo_deg']:.2f} | {r['worst']} "
-                      f"| {r['status']} | {r['flagged']} | {r['rest']} | {r['cpu_pct']:.2f} |", flush=True)
+                      f"| {r['status']} | {r['flagged']} | {r['rest']} | {rms_z(r['z2']):.2f} | {r['cpu_pct']:.2f} |",
+                      flush=True)
         print()
         print("| group | sessions | median position (cm) | median orientation (deg) | worst seed (cm) "
-              "| verdicts | median frontend CPU (%) |")
-        print("|---|---|---|---|---|---|---|")
+              "| verdicts | error / stated std (RMS, pooled) | median frontend CPU (%) |")
+        print("|---|---|---|---|---|---|---|---|")
         for name, rows in groups.items():
             st = {}
             for r in rows:
@@ -127,6 +150,7 @@ def main():
             print(f"| {name} | {len(rows)} | {np.median([r['loc_cm'] for r in rows]):.2f} "
                   f"| {np.median([r['geo_deg'] for r in rows]):.2f} | {max(r['loc_cm'] for r in rows):.2f} "
                   f"| {', '.join(f'{k} {v}' for k, v in sorted(st.items()))} "
+                  f"| {rms_z(np.concatenate([r['z2'] for r in rows])):.2f} "
                   f"| {np.median([r['cpu_pct'] for r in rows]):.2f} |")
 
 
