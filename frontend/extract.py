@@ -130,7 +130,7 @@ def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
     out = two_phase(lambda i: detect_array(arrays[order[i]], session, t_emit, c, opt),
                     lambda i, st: time_array(st, session, t_emit, c, opt, 1), len(order), jobs,
                     extra=lambda: _reference_beta(arrays[order[0]], session, c, opt),
-                    waiting=lambda i: report(i, order[i]))
+                    waiting=lambda i: report(i, order[i]), discard=lambda st: st["x"].close())
     return {arrays[k]["name"]: r for k, r in zip(order, out)}, out[-1]
 
 

@@ -71,13 +71,15 @@ def _worker(board, first, second):
             board.cond.notify_all()
 
 
-def two_phase(first, second, n, workers, extra=None, waiting=None):
+def two_phase(first, second, n, workers, extra=None, waiting=None, discard=None):
     """Results of ``second(k, first(k))`` for k = 0 .. n − 1 in that order, then ``extra()``'s if given,
     computed on ``workers`` threads (:class:`_Board` for the order of work; the results do not depend on it).
 
     An exception of item k (either phase) is raised when k's turn comes, after the results of the items
     before it; then no further task starts (the running ones finish) and the threads are joined.
     waiting : optional ``waiting(k)`` called before waiting for item k (progress).
+    discard : optional ``discard(state)`` for every first-phase result whose second phase never started
+    (after an error: e.g. close the file it holds open).
     Returns a list of n results (+ extra's).
     """
     board = _Board(n, extra)
@@ -104,3 +106,5 @@ def two_phase(first, second, n, workers, extra=None, waiting=None):
             board.cond.notify_all()
         for t in threads:
             t.join()
+        while discard is not None and board.second_todo:
+            discard(board.second_todo.popleft()[1])

@@ -45,9 +45,13 @@ def test_the_first_failing_item_in_order_is_raised_after_the_items_before_it(pha
         done.append(k)
         return k
 
+    discarded = []
     with pytest.raises(ValueError, match="bad file 3"):
-        two_phase(first, second, 8, 2)
+        two_phase(first, second, 8, 2, discard=discarded.append)
     assert {0, 1, 2} <= set(done) and 3 not in done
+    # every first phase that ran either reached its second phase or was handed to discard
+    finished = set(done) | set(discarded) | ({3, 5} if phase == "second" else set())
+    assert set(started) - ({3, 5} if phase == "first" else set()) <= finished
     assert not [t for t in threading.enumerate() if t.name.startswith("calib-array-")]
 
 
