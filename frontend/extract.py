@@ -169,6 +169,7 @@ def detect_array(a, session, t_emit, c, opt):
                              f"({len(det_t)} detection(s)); need at least 2")
         det_t, score, redetected = _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt)
         timings["associate"] = time.perf_counter() - t0
+        x.release()  # the detection's last pages: the timing may start much later (calib.frontend.schedule)
     except BaseException:
         x.close()
         raise

@@ -152,6 +152,15 @@ class ArrayAudio:
     def __exit__(self, *exc):
         self.close()
 
+    def release(self):
+        """Drop the pages read through the file's map so far from this process, and the reused read buffers
+        (the pages stay in the page cache; a later read maps them again): a recording waiting between two
+        phases of work holds none of its audio in memory."""
+        if self._raw is not None and self._span is not None:
+            mm, frames, offset = self._raw
+            _release(mm, frames.ctypes.data - offset, *self._span)
+        self._span = self._sum_buf = self._fill_buf = None
+
     def close(self):
         mm = self._raw[0] if self._raw is not None else None
         self._raw = self._span = self._sum_buf = self._fill_buf = None  # the view first: then the map can close
