@@ -159,6 +159,9 @@ def test_array_audio_segments_equal_the_file(tmp_path):
             np.testing.assert_array_equal(x[:, -50:3050], padded.T)
             np.testing.assert_array_equal(x[:, 1000:1001], ref[1000:1001].T)
             np.testing.assert_allclose(x.channel_sum()[:, -50:3050][0], padded.sum(axis=1), atol=1e-6)
+            x.release()  # pages and buffers dropped: the same samples are read again
+            np.testing.assert_array_equal(x[:, -50:3050], padded.T)
+            np.testing.assert_allclose(x.channel_sum()[:, -50:3050][0], padded.sum(axis=1), atol=1e-6)
         whole, fs_read = read_array_audio({"name": "A", "wav": p, "mics": np.zeros((3, 3))})
         np.testing.assert_array_equal(whole, ref.T)
         assert fs_read == fs
