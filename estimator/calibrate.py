@@ -278,11 +278,11 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, thre
     sizes = factor_sizes(p)
     stats = measurement_stats(p, st, lay, kinds, mask)
     records, dropped = [], []
-    cands = array_candidates(p, stats)
-    listed = {i for i, _ in cands}
-    cands += [(i, {"outlier_rows": k}) for i, k in concentrated_candidates(p, stats, threshold).items()
-              if i not in listed]
-    for i, ratios in cands:
+    # (array, median ratios, outlier rows if it is a candidate only for holding most of them)
+    cands = [(i, ratios, None) for i, ratios in array_candidates(p, stats)]
+    listed = {i for i, _, _ in cands}
+    cands += [(i, {}, k) for i, k in concentrated_candidates(p, stats, threshold).items() if i not in listed]
+    for i, ratios, rows in cands:
         if len(dropped) + 2 >= p.N:
             break                      # keep the reference and at least one other array
         keep_arr = [a for a in range(p.N) if a != i and a not in dropped]
@@ -292,13 +292,12 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, thre
                                       rtol=1e-6)
         T, dof, logp = drop_test(p, st, st_w, lay, lay_w, kinds, mask, mask_w, 1.0)
         inconsistent = bool(logp < np.log(FAMILY_ALPHA / p.N))
-        rec = {"array": str(p.names[i]),
-               "median_ratio": {k: float(v) for k, v in ratios.items() if k != "outlier_rows"},
-               **({"outlier_rows": int(ratios["outlier_rows"])} if "outlier_rows" in ratios else {}),
+        rec = {"array": str(p.names[i]), "median_ratio": {k: float(v) for k, v in ratios.items()},
+               **({"outlier_rows": int(rows)} if rows is not None else {}),
                "drop_chi2": T, "drop_dof": dof, "inconsistent": inconsistent}
         if inconsistent:
             rec["moves_sigma"] = _moves_sigma(p, st, st_w, lay_w, kinds, mask_w)
-        if inconsistent and "outlier_rows" in ratios and rec["moves_sigma"] <= MOVE_SIGMA:
+        if inconsistent and rows is not None and rec["moves_sigma"] <= MOVE_SIGMA:
             # its worst rows stand out but the rest hardly depends on it: kept (its outliers go row by row)
             inconsistent = rec["inconsistent"] = False
         if inconsistent:

@@ -26,7 +26,10 @@ class _Board:
         self.stop = False
 
     def pick(self):
-        """The next task (kind, k, state), or None if none is ready; the phase fewer threads run first."""
+        """The next task (kind, k, state), or None if none is ready (or the work stopped); the phase fewer
+        threads run first."""
+        if self.stop:
+            return None
         second_ready = bool(self.second_todo) or self.extra is not None
         if self.first_todo and (not second_ready or self.running["first"] <= self.running["second"]):
             return "first", self.first_todo.popleft(), None
@@ -47,12 +50,12 @@ class _Board:
 def _worker(board, first, second):
     while True:
         with board.cond:
-            task = board.pick() if not board.stop else None
+            task = board.pick()
             while task is None:
                 if board.idle_for_good():
                     return
                 board.cond.wait()
-                task = board.pick() if not board.stop else None
+                task = board.pick()
             kind, k, state = task
             board.running[kind] += 1
         try:

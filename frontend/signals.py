@@ -156,10 +156,14 @@ class ArrayAudio:
         """Drop the pages read through the file's map so far from this process, and the reused read buffers
         (the pages stay in the page cache; a later read maps them again): a recording waiting between two
         phases of work holds none of its audio in memory."""
+        self._release_span()
+        self._span = self._sum_buf = self._fill_buf = None
+
+    def _release_span(self):
+        """:func:`_release` of the bytes read through the map since the last release (``_span``)."""
         if self._raw is not None and self._span is not None:
             mm, frames, offset = self._raw
             _release(mm, frames.ctypes.data - offset, *self._span)
-        self._span = self._sum_buf = self._fill_buf = None
 
     def close(self):
         mm = self._raw[0] if self._raw is not None else None
@@ -193,13 +197,13 @@ class ArrayAudio:
             if self._raw is None:
                 self._raw_dtype = None
                 return None
-        mm, frames, offset = self._raw
+        _, frames, offset = self._raw
         row = self.channels * frames.dtype.itemsize
         lo, hi = offset + a * row, offset + b * row
         if self._span is not None:
             lo_s, hi_s = min(self._span[0], lo), max(self._span[1], hi)
             if hi_s - lo_s > RELEASE_BYTES:
-                _release(mm, frames.ctypes.data - offset, *self._span)
+                self._release_span()
             else:
                 lo, hi = lo_s, hi_s
         self._span = (lo, hi)
