@@ -210,10 +210,11 @@ _SKEW = np.array([6, 5, 1, 2, 6, 3, 4, 0, 6])
 def doa(p, st, lay, memo=None):
     """DOA: R_iᵀ (s_j − x_i)/|s_j − x_i| − u_ij, three components per measurement."""
     i, j, u = p.doa.arr, p.doa.ev, p.doa.u
-    m, sig = len(i), p.sigma["doa"]
+    m = len(i)
+    sig = p.sigma["doa"] * np.repeat(p.doa.scale, 3)  # per residual: the type's sigma × the row's scale
     J = jacobian(3 * m, lay)
     if m == 0:
-        return _out("doa", np.zeros(0), J, p.doa.row, 3, True, sig)
+        return _out("doa", np.zeros(0), J, p.doa.row, 3, True, p.sigma["doa"])
     d, n = _dist(st, i, j)
     Rt = np.ascontiguousarray(np.transpose(st.R[i], (0, 2, 1)))   # (the memory order H @ Rt would have)
     v = np.einsum("kab,kb->ka", Rt, n)
@@ -233,7 +234,7 @@ def doa(p, st, lay, memo=None):
         H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
         Rt = H @ Rt
         v = np.einsum("kab,kb->ka", Rt, n)
-    r = ((v - u) / sig).ravel()
+    r = (v - u).ravel() / sig
     # dv/dφ = H [w]x with w = Rᵀn (unfolded) for R → R Exp(φ); dv/ds = H Rᵀ (I − n nᵀ)/d = −dv/dx
     w = np.einsum("kab,kb->ka", H, v) if folded else v  # H is its own inverse
     # [w]x gathered from (w, −w, 0) in one indexing (exact negations, +0.0 on the diagonal)
@@ -241,10 +242,10 @@ def doa(p, st, lay, memo=None):
     vx = H @ wx if folded else wx
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = Rt @ P
-    vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig
+    vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig[:, None]
     _fill(J, memo, 0, lambda: (np.arange(3 * m), np.repeat(np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]), 3, axis=0)),
           vals)
-    return _out("doa", r, J, np.repeat(p.doa.row, 3), 3, True, sig)
+    return Factor("doa", r, J, np.repeat(p.doa.row, 3), 3, True, p.sigma["doa"], sig)
 
 
 def odometry(p, st, lay, memo=None):
@@ -396,7 +397,7 @@ def per_array(p, f):
         out.chunks = [(rr, cc, vv / s[rr]) for rr, cc, vv in J.chunks]
     else:
         out = np.asarray(J) / s[:, None]
-    return dataclasses.replace(f, r=f.r / s, J=out, sigma_rows=f.sigma * s)
+    return dataclasses.replace(f, r=f.r / s, J=out, sigma_rows=f.row_sigma * s)
 
 
 def natural(f):

@@ -15,6 +15,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.tables import LINE_COLUMN, columns
@@ -65,11 +66,13 @@ class TdoaSRows(Rows):
 
 @dataclass
 class DoaRows(Rows):
-    """DOA: unit vector ``u`` (n, 3) in array ``arr``'s frame toward the source of event ``ev``."""
+    """DOA: unit vector ``u`` (n, 3) in array ``arr``'s frame toward the source of event ``ev``; ``scale``
+    (n,): each row's sigma relative to the type's (:func:`doa_row_scales`)."""
     ev: np.ndarray
     arr: np.ndarray
     u: np.ndarray
     row: np.ndarray
+    scale: np.ndarray
 
 
 @dataclass
@@ -191,7 +194,7 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         tdoa_s=TdoaSRows(index(ts["array"], idx), index(ts["from_event"], eidx), index(ts["to_event"], eidx),
                          ts["tdoa"].to_numpy(float), _lines(ts)),
         doa=DoaRows(index(doa["event"], eidx), index(doa["array"], idx),
-                    columns(doa, ("ux", "uy", "uz")).reshape(-1, 3), _lines(doa)),
+                    columns(doa, ("ux", "uy", "uz")).reshape(-1, 3), _lines(doa), doa_row_scales(doa, meta)),
         cone=ConeRows(np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0, int)),
         sigma={"tdoa_s": sigma_tdoa, "tdoa_m": sigma_tdoa, "doa": sigma_doa, "cone": sigma_doa,
                "odometry": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)), "emission": float(sigma_emit)},
@@ -222,6 +225,26 @@ def _fold_mirror_ambiguous(p, meta, idx):
     nf = p.fold[p.doa.arr]
     dots = np.einsum("ka,ka->k", nf, p.doa.u)
     p.doa.u = np.where((dots < 0)[:, None], p.doa.u - 2.0 * dots[:, None] * nf, p.doa.u)
+
+
+# A row's own DOA sigma (doa.csv ``sigma_deg``) is shrunk this far toward the type's: scale² = (1 − w) +
+# w (σ_row / σ)². It is measured from a handful of mics, so it is itself noisy: taken raw (w = 1, clipped to
+# 0.3–30), the rows claiming least pulled the fit and the hall's error bars came out 1.4–1.5× too small;
+# halfway, the lab's worst array went 2.76 → 1.96 cm, the hard preset's 10.5 → 5.7 cm, error / std 0.84–1.11
+# (64 realistic sessions, docs/results.md, 24 Nov 2026 evening)
+DOA_ROW_WEIGHT = 0.5
+
+
+def doa_row_scales(doa, meta):
+    """Per doa.csv row, its sigma relative to the type's (``sigma_doa_deg``): from the optional per-row
+    column ``sigma_deg`` (docs/formats.md; calib's frontend writes its plane-wave-fit spread there), shrunk
+    toward 1 (``DOA_ROW_WEIGHT``). 1 for rows without a value and for files without the column."""
+    if "sigma_deg" not in doa.columns or not len(doa):
+        return np.ones(len(doa))
+    typical = float(meta.get("sigma_doa_deg", DEFAULT_SIGMA_DOA_DEG))
+    own = pd.to_numeric(doa["sigma_deg"], errors="coerce").to_numpy(float) / typical
+    scale2 = (1.0 - DOA_ROW_WEIGHT) + DOA_ROW_WEIGHT * own**2
+    return np.where(np.isfinite(scale2), np.sqrt(scale2), 1.0)
 
 
 def _split_cones(p, meta, idx):

@@ -558,7 +558,8 @@ def _tables(session, results, ev_ids, beta):
             ts.append((name, e1, e2, t2 - t1, min(q1, q2), _join(f1, f2)))
         r = results[name]
         for k, j in enumerate(r["ev_idx"] if r["has_doa"] else []):
-            doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k], _flag_text(r["flags"][k], doa=True)))
+            doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k], _flag_text(r["flags"][k], doa=True),
+                        _row_sigma_deg(r["doa_spread"][k]) if r["doa_axis"] is None else np.nan))
     est = noise_estimates(results)
     est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
@@ -579,9 +580,16 @@ def _tables(session, results, ev_ids, beta):
         "tdoa_m": pd.DataFrame(tm, columns=["event", "array", "tdoa", "quality", "flag"]).astype({"event": int}),
         "tdoa_s": pd.DataFrame(ts, columns=["array", "from_event", "to_event", "tdoa", "quality", "flag"])
         .astype({"from_event": int, "to_event": int}),
-        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality", "flag"])
+        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality", "flag", "sigma_deg"])
         .astype({"event": int}),
     }
+
+
+def _row_sigma_deg(sd):
+    """doa.csv's ``sigma_deg`` of a row from its spread (rad): empty (NaN) where there is none to give (fewer
+    than 4 mics leave the plane-wave fit no residual). Linear arrays' rows get none (their spread is the
+    std of cos θ, not an angle)."""
+    return float(np.degrees(sd)) if np.isfinite(sd) and sd > 0 else np.nan
 
 
 TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded")

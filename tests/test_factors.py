@@ -39,3 +39,26 @@ def test_jacobian_matches_central_differences(kind, planar):
     scale = np.maximum(np.abs(num).max(axis=0), 1e-6)
     np.testing.assert_allclose(f.J / scale, num / scale, atol=2e-5)
     assert np.abs(f.J).sum() > 0
+
+
+def test_a_doa_rows_own_sigma_scales_its_residuals_and_jacobian_rows():
+    """doa.csv's sigma_deg: each row's residuals and Jacobian rows divided by √(½ + ½ (σ_row / σ)²) (σ the
+    type's sigma_doa_deg), against the same problem without the column; rows without a value unchanged."""
+    from calib.estimator.problem import DOA_ROW_WEIGHT
+
+    assert DOA_ROW_WEIGHT == 0.5
+    rng = np.random.default_rng(4)
+    feats, _ = simulate_features(trajectory=3, seed=1)
+    p0 = build_problem(feats)
+    own = rng.uniform(0.1, 5.0, len(feats["doa"]))
+    own[::4] = np.nan
+    feats["doa"]["sigma_deg"] = own
+    p1 = build_problem(feats)
+    st = random_state(p0, rng)
+    lay = make_layout(p0)
+    f0, f1 = FACTORS["doa"](p0, st, lay), FACTORS["doa"](p1, st, lay)
+    want = np.sqrt(0.5 + 0.5 * (own / feats["meta"]["sigma_doa_deg"]) ** 2)
+    want = np.repeat(np.where(np.isnan(own), 1.0, want), 3)
+    np.testing.assert_allclose(f1.r * want, f0.r, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(f1.J) * want[:, None], np.asarray(f0.J), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(f1.row_sigma, f0.sigma * want, rtol=1e-12)

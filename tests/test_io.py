@@ -135,3 +135,29 @@ def test_read_features_rows_carry_their_csv_line_and_no_private_columns(tmp_path
         assert int(fields[0]) == r["event"] and fields[1] == r["array"]
     write_features(tmp_path / "g", back)
     assert "csv_line" not in (tmp_path / "g" / "tdoa_m.csv").read_text().splitlines()[0]
+
+
+def _with_row_sigmas(d, cells):
+    """doa.csv with a sigma_deg column: ``cells`` cycled over its rows."""
+    p = d / "doa.csv"
+    lines = p.read_text().splitlines()
+    lines[0] += ",sigma_deg"
+    lines[1:] = [f"{line},{cells[k % len(cells)]}" for k, line in enumerate(lines[1:])]
+    p.write_text("\n".join(lines) + "\n")
+    return p
+
+
+def test_doa_row_sigmas_are_read_as_numbers_and_empty_cells_as_nan(features_dir):
+    _with_row_sigmas(features_dir, ["0.25", "", "1.5e-1"])
+    s = read_features(features_dir)["doa"]["sigma_deg"].to_numpy()
+    assert s.dtype == float
+    np.testing.assert_array_equal(s[:3], [0.25, np.nan, 0.15])
+
+
+@pytest.mark.parametrize("bad", ["-0.1", "0", "inf", "abc"])
+def test_a_bad_doa_row_sigma_names_file_line_and_value(features_dir, bad):
+    p = _with_row_sigmas(features_dir, ["0.2", bad])
+    with pytest.raises(InputError) as err:
+        read_features(features_dir)
+    text = str(err.value)
+    assert str(p) in text and "line 3" in text and "sigma_deg" in text and bad in text.rsplit("(got ", 1)[1]

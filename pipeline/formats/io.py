@@ -319,6 +319,23 @@ def _unit_vectors(df, path, meta):
         raise InputError(f"{path}: line {k + 2}: DOA is not a unit vector (norm {n[k]:.4g})")
     df = df.copy()
     df[["ux", "uy", "uz"]] = u / n[:, None] if len(n) else u
+    return _row_sigmas(df, path, "sigma_deg")
+
+
+def _row_sigmas(df, path, col):
+    """The optional per-row sigma column ``col`` (docs/formats.md): each cell empty (NaN in memory) or a
+    positive finite number; returned as floats. Absent: ``df`` unchanged."""
+    if col not in df.columns:
+        return df
+    raw = df[col]
+    text = raw.astype(str).str.strip()
+    vals = pd.to_numeric(text.where(raw.notna() & (text != ""), "nan"), errors="coerce").to_numpy(float)
+    given = raw.notna().to_numpy() & (text != "").to_numpy() & (text.str.lower() != "nan").to_numpy()
+    bad = given & ~(np.isfinite(vals) & (vals > 0))
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{path}: line {k + 2}: {col} must be empty or a positive number (got {text.iloc[k]})")
+    df[col] = vals
     return df
 
 
