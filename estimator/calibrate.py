@@ -341,6 +341,16 @@ VCE_ITERATIONS = 4        # variance-component steps at most; stopped early when
 VCE_ITERATIONS_ARRAYS = 10
 
 
+
+def _row_scale_summary(scale):
+    """report.json ``sigmas.doa_row_scale``: how the DOA rows' own sigmas (doa.csv ``sigma_deg``) spread
+    their weights — rows weighted and the min / median / max of their scale — or None when none is."""
+    own = scale[scale != 1.0]
+    if not own.size:
+        return None
+    return {"rows": int(own.size), "min": float(own.min()), "median": float(np.median(own)), "max": float(own.max())}
+
+
 def sigma_bounds(meta, noise):
     """Per measurement type, the largest factor (either way) variance components may apply to its sigma.
 
@@ -768,7 +778,8 @@ def _report(p, st, info, stages, judged, fs, *, method, noise, emission_sigma, t
         "drift_reference": "emitter clock" if len(p.tdoa_s.val) else "reference array (no TDOA-S: its drift fixed to 0)",
         "sigmas": {"tdoa_s": p.sigma["tdoa_s"], "tdoa_m": p.sigma["tdoa_m"], "doa_rad_per_axis": p.sigma["doa"],
                    "odometry_m": p.sigma["odometry"], "cone_rad": p.sigma["cone"], "emission_s": emission_sigma,
-                   "source": noise, "per_array_factor": arraynoise.report_scales(p)},
+                   "source": noise, "per_array_factor": arraynoise.report_scales(p),
+                   "doa_row_scale": _row_scale_summary(p.doa.scale)},
         "timings_s": times,
         "odometry_frame": odo_frame,
         "odometry_yaw_deg": odo_frame["yaw_deg"],
