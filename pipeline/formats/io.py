@@ -319,7 +319,12 @@ def _unit_vectors(df, path, meta):
         raise InputError(f"{path}: line {k + 2}: DOA is not a unit vector (norm {n[k]:.4g})")
     df = df.copy()
     df[["ux", "uy", "uz"]] = u / n[:, None] if len(n) else u
-    return _row_sigmas(df, path, "sigma_deg")
+    return df
+
+
+def _doa_rows(df, path, meta):
+    """doa.csv's checks: unit vectors (renormalised) and the optional per-row ``sigma_deg``."""
+    return _row_sigmas(_unit_vectors(df, path, meta), path, "sigma_deg")
 
 
 def _row_sigmas(df, path, col):
@@ -344,7 +349,7 @@ FEATURE_TABLES = (
     Table("tdoa_s", ("array", "from_event", "to_event", "tdoa"), ("from_event", "to_event"),
           ("from_event", "to_event"), ("array", "from_event", "to_event"), check=_ordered_events),
     Table("doa", ("event", "array", "ux", "uy", "uz"), ("event",), ("event",), ("event", "array"),
-          float_format="%.10g", check=_unit_vectors, residuals=3),
+          float_format="%.10g", check=_doa_rows, residuals=3),
 )
 
 
