@@ -3,7 +3,8 @@ DOA grid against the exhaustive grid, the one-selection median against ``np.medi
 peak search around the above-threshold stretches against ``scipy.signal.find_peaks`` on the whole
 envelope (and its own local maxima and distance rule, which replace scipy.signal's), the FFT resampling
 against ``scipy.signal.resample``, the 16-bit channel sum (a float32 matrix-vector product) against float32
-accumulation."""
+accumulation, the timing's moments from grid samples (GridMoments) against its band sums and against the
+true delay of a path."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +12,8 @@ import pytest
 import scipy.signal as ss
 
 from calib.frontend.detect import _peaks_above, local_floor, local_maxima, median_last, select_by_distance
-from calib.frontend.timing import cis_powers, cis_tables, fft_resample
+from calib.frontend.timing import (BandMoments, GridMoments, cis_powers, cis_tables, fft_resample, lag_grid,
+                                   newton_envelope, newton_peak, spectra_setup)
 from calib.frontend.doa import _grid_search, fibonacci_sphere, srp_setup
 from calib.frontend.signals import SUM_BLOCK_FRAMES, _int_channel_sum
 
@@ -199,3 +201,51 @@ def test_setup_cache_computes_a_shared_key_once_across_threads():
     values.append(cache.get("other", lambda: "made"))
     first.join()
     assert len(errors) == 1 and values == ["made"] and calls.count("fail") == 1
+
+
+def _paths_setup(fs, band, rng, n_paths=5, shape=(3, 4)):
+    """A chirp's spectra set-up at ``fs`` and whitened-like spectra of a few paths with random delays
+    (200–400 samples) and gains: c_f = Σ_p a_p w_f e^{−j2πf t_p}, complex64 as the frontend's."""
+    n = int(0.2 * fs)
+    t = np.arange(n) / fs
+    template = np.sin(2 * np.pi * (band[0] * t + (band[1] - band[0]) / 0.4 * t * t))
+    setup = spectra_setup(template, fs, band, n + 3000)
+    f, w = setup["freqs"], setup["weights"]
+    delays = rng.uniform(200, 400, shape + (n_paths,)) / fs
+    gains = rng.normal(size=shape + (n_paths,))
+    c = np.einsum("...p,...pf->...f", gains, w * np.exp(-2j * np.pi * f * delays[..., None]))
+    return setup, (c / np.abs(c).max()).astype(np.complex64), delays, gains
+
+
+@pytest.mark.parametrize("fs, band", [(48000, (500, 10000)), (16000, (500, 6000)), (16000, (200, 7600)),
+                                      (44100, (300, 16000))])
+def test_grid_moments_equal_band_moments(fs, band):
+    """The kernel's value, slope and curvature from the lag grid's samples equal the band sums over all
+    bins, to single precision, at lags between the samples, for narrow and wide bands (small margins)."""
+    rng = np.random.default_rng(6)
+    setup, c, _, _ = _paths_setup(fs, band, rng)
+    lo, hi = 100, 600
+    grid = GridMoments(lag_grid(c, setup, lo, hi), lo, setup)
+    tau = rng.uniform(250, 350, c.shape[:-1]) / fs
+    assert grid.covers(tau) and not grid.covers(np.full(c.shape[:-1], (lo + 3) / fs))
+    got, want = grid(tau), BandMoments(c, setup["freqs"])(tau)
+    for k in range(3):
+        assert np.max(np.abs(got[k] - want[k])) < 1e-5 * np.max(np.abs(want[k]))
+    assert np.allclose(grid(tau, orders=1)[0], got[0])
+
+
+def test_newton_from_grid_samples_finds_a_single_path_delay():
+    """One path per mic at a known sub-sample delay: the envelope and carrier peaks refined from the lag
+    grid's samples are the path's delay (to ~1e-10 s), as with the band sums."""
+    rng = np.random.default_rng(7)
+    fs = 48000
+    setup, c, delays, _ = _paths_setup(fs, (500, 10000), rng, n_paths=1)
+    lo = 100
+    r = lag_grid(c, setup, lo, 600)
+    grid = GridMoments(r, lo, setup)
+    start = (np.argmax(np.abs(r), axis=-1) + lo) / fs  # the nearest grid lag
+    truth = delays[..., 0]  # r(τ) = Σ c_f e^{j2πfτ} = a Σ w_f e^{j2πf(τ − t_p)} peaks at τ = t_p
+    for sums in (grid, None):
+        env_tau, z = newton_envelope(c, setup["freqs"], start, iters=3, sums=sums)
+        tau, _ = newton_peak(c, setup["freqs"], env_tau, np.angle(z), iters=3, sums=sums)
+        assert np.max(np.abs(env_tau - truth)) < 1e-9 and np.max(np.abs(tau - truth)) < 1e-9
