@@ -175,8 +175,8 @@ POWERS_MIN_LAGS = 32  # cis_powers builds its tables by multiplication for at le
 
 def _fill_powers(z, step):
     """``z[:, k] = z[:, 0] · step^k`` along axis 1 of ``z`` (P, n, ...) for the P steps ``step`` (P, ...), by
-    doubling: ``z[:, m:2m] = z[:, :m] · step^m``, ``step^m`` squared up as it goes (⌈log₂ n⌉ vectorised
-    multiplies instead of n − 1: the one-step-per-call loop held the interpreter's lock ~0.1 ms per table).
+    doubling: ``z[:, m:2m] = z[:, :m] · step^m``, ``step^m`` squared up as it goes (⌈log₂ n⌉ products
+    and as many squarings instead of n − 1 products: the one-step-per-call loop held the interpreter's lock ~0.1 ms per table).
     The phase error grows with k as in the step-by-step product (~k × 1e-16 × the phase step)."""
     n = z.shape[1]
     m = 1
@@ -193,7 +193,7 @@ def _fill_powers(z, step):
 def cis_powers(tau, f0, df, n):
     """``e^{j2π (f_0 + k Δf) τ}`` for k = 0 .. n − 1: (...,) lags (s) → (..., n) complex (a strided view).
 
-    Two complex exponentials per lag and the rest by multiplication (:func:`_fill_powers`, ~log₂ n
+    Two complex exponentials per lag and the rest by multiplication (:func:`_fill_powers`, ~2 log₂ n
     vectorised multiplies over all lags): complex exponentials cost ~30 ns each, and the phasor tables of
     the Newton steps and of the SRP took most of their time in them. The error grows with k, ~k × 1e-16 ×
     the phase step: ~1e-12 of a unit phasor for 80 steps of a 0.1 s lag, ~3e-17 s of timing."""
