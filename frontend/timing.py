@@ -176,8 +176,9 @@ POWERS_MIN_LAGS = 32  # cis_powers builds its tables by multiplication for at le
 def _fill_powers(z, step):
     """``z[:, k] = z[:, 0] · step^k`` along axis 1 of ``z`` (P, n, ...) for the P steps ``step`` (P, ...), by
     doubling: ``z[:, m:2m] = z[:, :m] · step^m``, ``step^m`` squared up as it goes (⌈log₂ n⌉ products
-    and as many squarings instead of n − 1 products: the one-step-per-call loop held the interpreter's lock ~0.1 ms per table).
-    The phase error grows with k as in the step-by-step product (~k × 1e-16 × the phase step)."""
+    and as many squarings instead of n − 1 products: the one-step-per-call loop held the interpreter's
+    lock ~0.1 ms per table). The phase error grows with k as in the step-by-step product (~k × 1e-16 ×
+    the phase step)."""
     n = z.shape[1]
     m = 1
     power = step[:, None]
@@ -343,7 +344,8 @@ class GridMoments:
     ``h''`` give the slope and curvature. The values match the band sums to ~1e-7 of the nearby peak (the
     samples are single precision), which moves a timing by ~1e-11 s.
 
-    r : (..., T) complex samples; r_lo : lag of ``r[..., 0]`` (samples); setup : :func:`spectra_setup`'s dict. :meth:`covers` says whether the samples reach far enough.
+    r : (..., T) complex samples; r_lo : lag of ``r[..., 0]`` (samples); setup : :func:`spectra_setup`'s
+    dict. :meth:`covers` says whether the samples reach far enough.
     """
 
     def __init__(self, r, r_lo, setup, tol=KERNEL_TOL):
