@@ -392,15 +392,21 @@ def _interp_kernel(v, a, sigma, orders):
     pv = np.pi * v
     small = np.abs(v) < SINC_SERIES
     vs = np.where(small, 1.0, v)
-    s0 = np.where(small, 1 - pv**2 / 6, np.sin(pv) / np.where(small, 1.0, pv))
-    s1 = np.where(small, -np.pi * pv / 3, (np.cos(pv) - s0) / vs)
-    s2 = np.where(small, -np.pi**2 / 3 + np.pi**2 * pv**2 / 10, -np.pi**2 * s0 - 2 * s1 / vs)
+    s0 = np.where(small, 1 - pv**2 / 6, np.sin(pv) / (np.pi * vs))
     e0 = np.exp(-0.5 * (v / sigma) ** 2)
-    e1 = -v / sigma**2 * e0
-    e2 = (v**2 / sigma**4 - 1 / sigma**2) * e0
-    g0, g1, g2 = s0 * e0, s1 * e0 + s0 * e1, s2 * e0 + 2 * s1 * e1 + s0 * e2
     car = np.exp(1j * a * v)
-    return [car * g0, car * (g1 + 1j * a * g0), car * (g2 + 2j * a * g1 - a * a * g0)][:orders]
+    g0 = s0 * e0
+    out = [car * g0]
+    if orders > 1:
+        s1 = np.where(small, -np.pi * pv / 3, (np.cos(pv) - s0) / vs)
+        e1 = -v / sigma**2 * e0
+        g1 = s1 * e0 + s0 * e1
+        out.append(car * (g1 + 1j * a * g0))
+    if orders > 2:
+        s2 = np.where(small, -np.pi**2 / 3 + np.pi**2 * pv**2 / 10, -np.pi**2 * s0 - 2 * s1 / vs)
+        e2 = (v**2 / sigma**4 - 1 / sigma**2) * e0
+        out.append(car * (s2 * e0 + 2 * s1 * e1 + s0 * e2 + 2j * a * g1 - a * a * g0))
+    return out
 
 
 def corr_at(c, freqs, tau):
