@@ -1,5 +1,6 @@
 """Fast paths of the frontend against the straightforward computations they replace: the coarse-to-fine
-DOA grid against the exhaustive grid, the one-selection median against ``np.median``, the detection's
+DOA grid against the exhaustive grid (and its set-up: the caps and steering phasors against their
+definitions), the one-selection median against ``np.median``, the detection's
 peak search around the above-threshold stretches against ``scipy.signal.find_peaks`` on the whole
 envelope (and its own local maxima and distance rule, which replace scipy.signal's), the FFT resampling
 against ``scipy.signal.resample``, the 16-bit channel sum (a float32 matrix-vector product) against float32
@@ -14,7 +15,7 @@ import scipy.signal as ss
 from calib.frontend.detect import _peaks_above, local_floor, local_maxima, median_last, select_by_distance
 from calib.frontend.timing import (BandMoments, GridMoments, cis_powers, cis_tables, fft_resample, lag_grid,
                                    newton_envelope, newton_peak, spectra_setup)
-from calib.frontend.doa import _grid_search, fibonacci_sphere, srp_setup
+from calib.frontend.doa import _cap_indices, _grid_search, fibonacci_sphere, srp_setup, steering
 from calib.frontend.signals import SUM_BLOCK_FRAMES, _int_channel_sum
 
 C = 343.0
@@ -43,6 +44,26 @@ def test_coarse_to_fine_grid_finds_the_exhaustive_grid_point(planar):
     # where they differ, only by a tie at float32 rounding (planar: the mirror images' powers)
     np.testing.assert_allclose(p[fast, np.arange(200)][~same], p[exhaustive, np.arange(200)][~same], rtol=1e-5)
     assert same.mean() > 0.95
+
+
+@pytest.mark.parametrize("step_deg, hemisphere", [(3.0, None), (2.0, (0.0, 0.6, 0.8)), (5.0, (0.0, 0.0, -1.0))])
+def test_cap_indices_and_steering_match_their_definitions(step_deg, hemisphere):
+    step = np.deg2rad(step_deg)
+    grid, coarse = fibonacci_sphere(int(4 * np.pi / step**2)), fibonacci_sphere(int(4 * np.pi / (3 * step) ** 2))
+    if hemisphere is not None:
+        grid, coarse = grid[grid @ hemisphere >= -0.5 * step], coarse[coarse @ hemisphere >= -0.5 * 3 * step]
+    cos_max = np.cos(6 * step)
+    cap = _cap_indices(coarse, grid, cos_max)
+    near = coarse @ grid.T >= cos_max  # each row: its grid points ascending, then the last repeated
+    for row, want in zip(cap, near):
+        idx = np.flatnonzero(want)
+        assert np.array_equal(row[: len(idx)], idx) and np.all(row[len(idx):] == idx[-1])
+    assert cap.shape[1] == near.sum(axis=1).max()
+    freqs = np.linspace(500.0, 10000.0, 16)
+    want = np.exp(-2j * np.pi * freqs[:, None, None] * (grid @ MICS_3D.T)[None] / C)
+    got = steering(grid, MICS_3D, freqs, C)
+    assert got.dtype == np.complex64 and got.shape == want.shape
+    assert np.max(np.abs(got - want)) < 2e-6  # float32 phases of a few radians: rounding only
 
 
 def test_median_last_equals_numpy_median():
