@@ -76,9 +76,11 @@ def _undetermined(p):
 def residuals(model):
     """Residuals per measurement type in natural units.
 
-    Returns {kind: {"values": (m,) µs / deg / cm, "outlier": (m,) bool, "sigma": the 1-σ the estimator
-    weighted with (report.json "sigmas"), same unit, "dist": "normal" | "rayleigh", "unit": str}}.
-    DOA values are angles between the measured and the predicted direction; odometry values are per axis.
+    Returns {kind: {"values": (m,) µs / deg / cm, "outlier": (m,) bool, "sigma": the type's 1-σ
+    (report.json "sigmas"), same unit, "row_sigma": (m,) the 1-σ each value was weighted with (the type's
+    times its row's scale: doa.csv ``sigma_deg``, per-array variance components), "dist": "normal" |
+    "rayleigh", "unit": str}}. DOA values are angles between the measured and the predicted direction
+    (Rayleigh with the per-axis σ); odometry values are per axis.
     """
     out = {}
     for f in factors(model["problem"], model["state"], model["layout"], model["kinds"]):
@@ -92,11 +94,13 @@ def residuals(model):
             vals = np.rad2deg(2 * np.arcsin(np.clip(d / 2, 0, 1)))
             keep = keep.reshape(-1, 3).all(axis=1)
             # per tangent axis σ → the angle is Rayleigh(σ); shown with its scale
-            out["doa"] = {"values": vals, "outlier": ~keep, "sigma": np.rad2deg(f.sigma), "dist": "rayleigh",
-                          "unit": "deg"}
+            row_sigma = np.broadcast_to(f.row_sigma, len(f.r)).reshape(-1, 3)[:, 0]
+            out["doa"] = {"values": vals, "outlier": ~keep, "sigma": np.rad2deg(f.sigma),
+                          "row_sigma": np.rad2deg(row_sigma), "dist": "rayleigh", "unit": "deg"}
             continue
-        out[f.kind] = {"values": r * scale, "outlier": ~keep, "sigma": f.sigma * scale, "dist": "normal",
-                          "unit": unit.replace("us", "µs")}
+        out[f.kind] = {"values": r * scale, "outlier": ~keep, "sigma": f.sigma * scale,
+                       "row_sigma": np.broadcast_to(f.row_sigma, len(f.r)) * scale, "dist": "normal",
+                       "unit": unit.replace("us", "µs")}
     return out
 
 

@@ -128,3 +128,36 @@ def test_real_set_07_reports_its_known_outlier(tmp_path):
     line = [s for s in md.splitlines() if s.startswith("- tdoa_m (") and "array A3" in s]
     assert len(line) == 1 and 30000 < abs(float(line[0].split("residual ")[1].split(" µs")[0])) < 50000
     assert m["position_rmse_m"] < 0.15
+
+
+@pytest.mark.parametrize("dist", ["normal", "rayleigh"])
+def test_expected_density_is_the_rows_mixture(dist):
+    from scipy import stats
+
+    law = stats.norm if dist == "normal" else stats.rayleigh
+    x = np.linspace(-8.0 if dist == "normal" else 0.0, 8.0, 4001)
+    one = report.expected_density(x, np.full(7, 1.3), dist)
+    np.testing.assert_allclose(one, law.pdf(x, scale=1.3), rtol=1e-12, atol=1e-15)
+    rows = np.array([0.5, 0.5, 0.5, 2.0])  # three rows at 0.5, one at 2: weights 3/4 and 1/4
+    mix = report.expected_density(x, rows, dist)
+    np.testing.assert_allclose(mix, 0.75 * law.pdf(x, scale=0.5) + 0.25 * law.pdf(x, scale=2.0), rtol=1e-12,
+                               atol=1e-15)
+    assert np.sum(mix) * (x[1] - x[0]) == pytest.approx(1.0, abs=2e-3)  # a density (Riemann sum)
+
+
+def test_doa_rows_with_their_own_sigmas_in_residuals_and_summary(calibrated, tmp_path):
+    feats, truth, _, _, _ = calibrated
+    feats = {**feats, "doa": feats["doa"].copy()}
+    own = np.where(np.arange(len(feats["doa"])) % 3 == 0, 12.0, 3.0)  # deg per axis; the type's is 6
+    feats["doa"]["sigma_deg"] = own
+    calib = calibrate(feats)  # sigmas as stated (meta), so the type's DOA sigma stays 6°
+    res = report.residuals(report.rebuild(feats, calib))["doa"]
+    # the row's sigma: 6° × √(½ + ½ (own / 6)²) (docs/method.md), whatever rows the estimator kept
+    np.testing.assert_allclose(res["row_sigma"], 6.0 * np.sqrt(0.5 + 0.5 * (own / 6.0) ** 2), rtol=1e-9)
+    assert res["sigma"] == pytest.approx(6.0)
+    md = report.summary_markdown(feats, calib, {"doa": res}, None, None, {"scene": "s.png", "residuals": "r.png"})
+    lo, hi = 6.0 * np.sqrt(0.5 + 0.5 * 0.25), 6.0 * np.sqrt(0.5 + 0.5 * 4.0)
+    assert f"per row: median {lo:.3g}, {lo:.3g}–{hi:.3g} deg/axis" in md  # two thirds of the rows at 3°
+    assert f"{len(own)} rows at {lo / 6:.2f}–{hi / 6:.2f}× the type's σ" in md
+    report.plot_residuals(tmp_path / "r.png", {"doa": res})
+    assert matplotlib.image.imread(tmp_path / "r.png").shape[0] > 100

@@ -225,14 +225,16 @@ def _scene_title(calib, truth):
 
 
 def plot_residuals(path, res):
-    """One histogram per measurement type, natural units, the σ used marked, outliers counted."""
+    """One histogram per measurement type, natural units, the σ used marked, outliers counted; the curve
+    is the density the model expects, each row with its own σ (:func:`expected_density`)."""
     plt = _plt()
     kinds = list(res)
     fig, axes = plt.subplots(1, max(len(kinds), 1), figsize=(4.4 * max(len(kinds), 1), 4.6), squeeze=False)
     for ax, kind in zip(axes[0], kinds):
         d = res[kind]
-        v, o, sig = d["values"], d["outlier"], d["sigma"]
-        inl = v[~o]
+        v, o = d["values"], d["outlier"]
+        inl, row_sig = v[~o], _row_sigma(d)[~o]
+        sig = float(np.median(row_sig)) if row_sig.size else d["sigma"]
         data_hi = 1.15 * float(np.abs(inl).max()) if inl.size and np.abs(inl).max() > 0 else sig
         # show the σ's range unless it would squash the data into a bin or two
         show_sig = sig <= 1.5 * data_hi
@@ -243,20 +245,12 @@ def plot_residuals(path, res):
         if o.any():
             ax.hist(np.clip(v[o], lo_, hi), bins=bins, color="tab:red", alpha=0.85,
                     label=f"outliers ({int(o.sum())}, clipped)")
-        xs = np.linspace(lo_, hi, 300)
-        bw = bins[1] - bins[0]
-        if d["dist"] == "rayleigh":
-            pdf = xs / sig ** 2 * np.exp(-0.5 * (xs / sig) ** 2)
-            marks = (sig,)
-            lab = f"expected (Rayleigh, σ={sig:.3g} {d['unit']}/axis)"
-        else:
-            pdf = np.exp(-0.5 * (xs / sig) ** 2) / (sig * np.sqrt(2 * np.pi))
-            marks = (-sig, sig)
-            lab = f"expected N(0, σ), σ = {sig:.3g} {d['unit']}"
         if show_sig:
-            for m_ in marks:
+            xs = np.linspace(lo_, hi, 300)
+            for m_ in ((sig,) if d["dist"] == "rayleigh" else (-sig, sig)):
                 ax.axvline(m_, color="k", ls="--", lw=1)
-            ax.plot(xs, pdf * inl.size * bw, color="k", lw=1.2, label=lab)
+            ax.plot(xs, expected_density(xs, row_sig, d["dist"]) * inl.size * (bins[1] - bins[0]), color="k",
+                    lw=1.2, label=_expected_label(d, row_sig))
         else:
             rms_ = float(np.sqrt(np.mean(inl ** 2))) if inl.size else float("nan")
             ax.text(0.02, 0.97, f"σ used = {sig:.3g} {d['unit']} (off scale):\n"
@@ -267,13 +261,45 @@ def plot_residuals(path, res):
         ax.set_xlabel(UNIT_LABEL[kind])
         ax.set_ylabel("count")
         ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)
-    fig.suptitle("Residuals at the estimate (dashed: the σ the estimator weighted with)", fontsize=12)
+    fig.suptitle("Residuals at the estimate (dashed: the σ the estimator weighted with, median over rows)",
+                 fontsize=12)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-# ----------------------------------------------------------------------------------------------- summary
+def _row_sigma(d):
+    """(m,) the σ each of a type's values was weighted with (the type's σ for all when not given)."""
+    return np.broadcast_to(np.asarray(d.get("row_sigma", d["sigma"]), float), d["values"].shape)
+
+
+def expected_density(x, row_sigma, dist):
+    """The density of one residual drawn from a random row (rows of 1-σ ``row_sigma`` (m,), > 0): the mean
+    of their N(0, σ) — or, for ``dist == "rayleigh"`` (DOA angles, σ per tangent axis), Rayleigh(σ) —
+    densities at ``x`` (n,). Returns (n,); one σ for all rows gives the plain density."""
+    s = np.unique(np.asarray(row_sigma, float), return_counts=True)
+    sig, w = s[0][:, None], s[1][:, None] / max(s[1].sum(), 1)
+    z = np.asarray(x, float)[None, :] / sig
+    pdf = z / sig * np.exp(-0.5 * z * z) if dist == "rayleigh" else np.exp(-0.5 * z * z) / (sig * np.sqrt(2 * np.pi))
+    return (w * pdf).sum(axis=0)
+
+
+def _expected_label(d, row_sig):
+    """Legend text of the expected density: its σ, or the rows' median and range when they differ."""
+    sig = _sigma_text(d, row_sig)
+    sig = sig if sig.startswith("per row") else f"= {sig}"
+    return f"expected (Rayleigh, σ {sig})" if d["dist"] == "rayleigh" else f"expected N(0, σ), σ {sig}"
+
+
+def _sigma_text(d, row_sig):
+    """``1.2 µs``, or ``per row: median 1.2, 0.8–3.1 µs`` when the rows were weighted differently."""
+    unit = f" {d['unit']}" + ("/axis" if d["dist"] == "rayleigh" else "")
+    lo, med, hi = np.percentile(row_sig, [0, 50, 100]) if row_sig.size else (d["sigma"],) * 3
+    if np.isclose(lo, hi, rtol=1e-6):
+        return f"{med:.3g}{unit}"
+    return f"per row: median {med:.3g}, {lo:.3g}–{hi:.3g}{unit}"
+
+
 def _fmt(v, fmt, scale=1.0):
     try:
         v = float(v) * scale
@@ -350,6 +376,24 @@ def verdict_markdown(verdict):
     return L + ([""] if verdict.get("reasons") else [])
 
 
+def _row_weight_lines(rep):
+    """Notes under the residual table on why a type's rows have different σ: DOA rows weighted by their
+    own sigmas (report.json ``sigmas.doa_row_scale``), arrays by their own variance components
+    (``sigmas.per_array_factor``)."""
+    sig = rep.get("sigmas") or {}
+    out = []
+    rows = sig.get("doa_row_scale")
+    if rows:
+        out.append(f"- DOA rows weighted by their own sigmas (doa.csv `sigma_deg`, shrunk halfway to the type's): "
+                   f"{rows['rows']} rows at {rows['min']:.2f}–{rows['max']:.2f}× the type's σ "
+                   f"(median {rows['median']:.2f}).")
+    for kind, arrays in (sig.get("per_array_factor") or {}).items():
+        if arrays:
+            out.append(f"- {TITLE.get(kind, kind)}: arrays with a σ of their own (× the type's): "
+                       + ", ".join(f"{a} {v:.2f}" for a, v in arrays.items()) + ".")
+    return ["", *out] if out else []
+
+
 def summary_markdown(features, calib, res, metrics, diag, images):
     rep = calib.get("report") or {}
     L = verdict_markdown(rep.get("verdict"))
@@ -376,8 +420,8 @@ def summary_markdown(features, calib, res, metrics, diag, images):
     for kind, d in res.items():
         v = d["values"][~d["outlier"]]
         rms = float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
-        L.append(f"| {TITLE[kind]} | {v.size} | {rms:.3g} {d['unit']} | {d['sigma']:.3g} {d['unit']}"
-                 f"{' per axis' if d['dist'] == 'rayleigh' else ''} |")
+        L.append(f"| {TITLE[kind]} | {v.size} | {rms:.3g} {d['unit']} | {_sigma_text(d, _row_sigma(d)[~d['outlier']])} |")
+    L += _row_weight_lines(rep)
     if res:
         L += ["", f"![residuals]({images['residuals']})", ""]
     outl = rep.get("outliers") or []
