@@ -36,6 +36,10 @@ def rebuild(features, calib):
         v = (rep.get("sigmas") or {}).get(kind.report_sigma)
         if kind.reweight and isinstance(v, (int, float)) and v > 0:
             p.sigma[kind.name] = float(v)
+    # ... and the arrays' own components (array_noise=True: report.json lists the arrays whose one moved)
+    for kind, own in ((rep.get("sigmas") or {}).get("per_array_factor") or {}).items():
+        if own:
+            p.array_scale[kind] = np.array([float(own.get(str(n), 1.0)) for n in p.names])
     st = state_from_frames(p, calib["arrays"], src)
     corr = rep.get("emission_corrections_s") or {}
     st.e = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])

@@ -161,3 +161,43 @@ def test_doa_rows_with_their_own_sigmas_in_residuals_and_summary(calibrated, tmp
     assert f"{len(own)} rows at {lo / 6:.2f}–{hi / 6:.2f}× the type's σ" in md
     report.plot_residuals(tmp_path / "r.png", {"doa": res})
     assert matplotlib.image.imread(tmp_path / "r.png").shape[0] > 100
+
+
+def _calibration_with_an_array_component():
+    """A scene whose noisiest array (5x the DOA noise) got a sigma of its own, calibrated (the first of a
+    few seeds where the array tests did not drop it instead)."""
+    from scipy.spatial.transform import Rotation
+
+    for seed in range(6):
+        feats, _ = simulate_features(3, 1e-4, 5.0, 0.03, seed=2000 + seed)
+        bad = feats["meta"]["arrays"][1 + seed % 4]
+        rng = np.random.default_rng(seed)
+        doa = feats["doa"].copy()
+        m = (doa.array == bad).to_numpy()
+        axis = rng.normal(size=(m.sum(), 3))
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        ang = np.deg2rad(rng.normal(0.0, np.sqrt(24.0) * 5.0, (m.sum(), 1)))
+        doa.loc[m, ["ux", "uy", "uz"]] = Rotation.from_rotvec(axis * ang).apply(doa.loc[m, ["ux", "uy", "uz"]].to_numpy(float).copy())
+        feats = {**feats, "doa": doa}
+        calib = calibrate(feats, noise="estimate", array_noise=True)
+        if any(calib["report"]["sigmas"]["per_array_factor"].values()):
+            return feats, calib
+    pytest.fail("no array got a component of its own in 6 scenes with one array at 5x the DOA noise")
+
+
+def test_rebuilt_model_keeps_the_arrays_own_sigmas(tmp_path):
+    """With per-array components (array_noise=True), the report's covariances and row sigmas are the
+    estimator's."""
+    feats, calib = _calibration_with_an_array_component()
+    d = tmp_path / "calibration"
+    write_calibration(d, calib)
+    model = report.rebuild(feats, read_calibration(d))
+    cov_a, _ = report.position_covariances(model)
+    np.testing.assert_allclose(np.sqrt(np.diagonal(cov_a[1:], axis1=1, axis2=2)),
+                               calib["arrays"][["x_std", "y_std", "z_std"]].to_numpy()[1:], rtol=1e-4)
+    res = report.residuals(model)
+    sig = calib["report"]["sigmas"]
+    for kind, own in sig["per_array_factor"].items():
+        typ = np.rad2deg(sig["doa_rad_per_axis"]) if kind == "doa" else sig[kind] * 1e6
+        want = typ * np.array([own.get(a, 1.0) for a in feats[kind]["array"]])
+        np.testing.assert_allclose(res[kind]["row_sigma"], want, rtol=1e-9)

@@ -300,6 +300,7 @@ def _sigma_text(d, row_sig):
     return f"per row: median {med:.3g}, {lo:.3g}–{hi:.3g}{unit}"
 
 
+# ----------------------------------------------------------------------------------------------- summary
 def _fmt(v, fmt, scale=1.0):
     try:
         v = float(v) * scale
