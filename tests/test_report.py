@@ -166,19 +166,11 @@ def test_doa_rows_with_their_own_sigmas_in_residuals_and_summary(calibrated, tmp
 def _calibration_with_an_array_component():
     """A scene whose noisiest array (5x the DOA noise) got a sigma of its own, calibrated (the first of a
     few seeds where the array tests did not drop it instead)."""
-    from scipy.spatial.transform import Rotation
+    from .test_arraynoise import _noisy_doas
 
     for seed in range(6):
         feats, _ = simulate_features(3, 1e-4, 5.0, 0.03, seed=2000 + seed)
-        bad = feats["meta"]["arrays"][1 + seed % 4]
-        rng = np.random.default_rng(seed)
-        doa = feats["doa"].copy()
-        m = (doa.array == bad).to_numpy()
-        axis = rng.normal(size=(m.sum(), 3))
-        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-        ang = np.deg2rad(rng.normal(0.0, np.sqrt(24.0) * 5.0, (m.sum(), 1)))
-        doa.loc[m, ["ux", "uy", "uz"]] = Rotation.from_rotvec(axis * ang).apply(doa.loc[m, ["ux", "uy", "uz"]].to_numpy(float).copy())
-        feats = {**feats, "doa": doa}
+        feats = _noisy_doas(feats, feats["meta"]["arrays"][1 + seed % 4], 5.0, np.random.default_rng(seed))
         calib = calibrate(feats, noise="estimate", array_noise=True)
         if any(calib["report"]["sigmas"]["per_array_factor"].values()):
             return feats, calib

@@ -286,17 +286,17 @@ def expected_density(x, row_sigma, dist):
 
 def _expected_label(d, row_sig):
     """Legend text of the expected density: its σ, or the rows' median and range when they differ."""
-    sig = _sigma_text(d, row_sig)
-    sig = sig if sig.startswith("per row") else f"= {sig}"
+    sig = _sigma_text(d, row_sig, one="= ")
     return f"expected (Rayleigh, σ {sig})" if d["dist"] == "rayleigh" else f"expected N(0, σ), σ {sig}"
 
 
-def _sigma_text(d, row_sig):
-    """``1.2 µs``, or ``per row: median 1.2, 0.8–3.1 µs`` when the rows were weighted differently."""
+def _sigma_text(d, row_sig, one=""):
+    """``1.2 µs`` (after ``one``), or ``per row: median 1.2, 0.8–3.1 µs`` when the rows were weighted
+    differently."""
     unit = f" {d['unit']}" + ("/axis" if d["dist"] == "rayleigh" else "")
     lo, med, hi = np.percentile(row_sig, [0, 50, 100]) if row_sig.size else (d["sigma"],) * 3
     if np.isclose(lo, hi, rtol=1e-6):
-        return f"{med:.3g}{unit}"
+        return f"{one}{med:.3g}{unit}"
     return f"per row: median {med:.3g}, {lo:.3g}–{hi:.3g}{unit}"
 
 
