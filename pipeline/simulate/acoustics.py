@@ -175,7 +175,7 @@ def band_weights(freqs):
     w[0, f <= c[0]] = 1.0
     w[-1, f >= c[-1]] = 1.0
     for b in range(c.size - 1):
-        sel = (f > c[b]) & (f < c[b + 1])
+        sel = (f >= c[b]) & (f < c[b + 1])       # a bin exactly on a centre belongs to that band
         x = np.log(f[sel] / c[b]) / np.log(c[b + 1] / c[b])
         w[b, sel] = np.cos(0.5 * np.pi * x) ** 2
         w[b + 1, sel] = np.sin(0.5 * np.pi * x) ** 2
