@@ -71,6 +71,18 @@ NEW_GEN_DEFAULTS = {
     "speech_level_db": 0.0,    # their power re. the chirp's emitted power, dB
     "n_quiet": 0,              # quiet events: emitted so that one array's matched-filter SNR is ...
     "quiet_snr_db": 0.0,       # ... this (single mic, white self-noise + diffuse noise), dB
+    # deployment presets (pipeline/simulate/deploy.py)
+    "room_shape": "box",       # "box" (room_dim) or "L" (a random L-shaped floor plan)
+    "motion": "none",          # the robot: "none" (stops for each chirp), "constant" / "varying" speed, "any"
+    "n_stops": 16,             # events of a deployment preset (n_events overrides)
+    "heights": [1.3, 1.0],     # m: speaker height in the first and second half of the session
+    "boards": None,            # board names (deploy.BOARDS), cycled over the arrays (None: 6-mic circles)
+    "mounts": None,            # "wall" | "table" | "stand", cycled over the arrays (None: wall, table)
+    "n_obstacles": 0,          # panels across the line from the speaker to some arrays ...
+    "obstacle_loss_db": [6.0, 20.0],   # ... with a 1 kHz loss drawn from this range, dB
+    "n_noise": 0,              # broadband noise bursts (fans, trolleys) between chirps
+    "interferer_levels_db": [-10.0, 6.0],  # deployment presets: each interferer's level drawn from this range
+    "talker_overlap": False,   # deployment presets: the last interferer also spans a chirp
 }
 GEN_DEFAULTS |= NEW_GEN_DEFAULTS
 
@@ -107,6 +119,7 @@ NEW_SCENE_DEFAULTS = {
     "obstacles": None,         # bands: [{p0, p1 (2,) m, z (2,) m, loss_db, loss_slope_db}] attenuating panels
     "image_order": 3,          # bands, polygonal rooms / obstacles: reflections per image path
     "trajectory": None,        # {t (n,) s, pos (n, 3) m}: the speaker moves (cubic spline), also while chirping
+    "sigma_vel": 0.01,         # m/s per axis: noise of the velocity odometry reports (events.csv vel_*)
 }
 SCENE_DEFAULTS |= NEW_SCENE_DEFAULTS
 SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers"}
@@ -249,6 +262,7 @@ def _check_scalars(sc):
     for key in ("snr", "diffuse_snr", "hum_snr"):
         sc[key] = _float(sc.get(key, math.inf), key, allow_inf=True)
     sc["sigma_odo"] = _float(sc.get("sigma_odo", 0.0), "sigma_odo", 0)
+    sc["sigma_vel"] = _float(sc.get("sigma_vel", 0.01), "sigma_vel", 0)
     sc["tail"] = _float(sc.get("tail", 0.3), "tail", 0)
     sc["subtype"] = str(sc.get("subtype", "FLOAT")).upper()
     if sc["subtype"] not in SUBTYPES:
@@ -562,3 +576,26 @@ def odometry(scenario):
     steps = _rng(int(scenario.get("seed", 0)), 10).normal(0.0, float(scenario.get("sigma_odo", 0.0)), s.shape)
     steps[0] = 0.0
     return (s - s[0]) @ ref["R"] + np.cumsum(steps, axis=0)
+
+
+VEL_COLS = ["vel_x", "vel_y", "vel_z"]   # optional events.csv columns: the robot's velocity at the sweep start
+TRAJECTORY_STEP = 0.02                   # s between the rows of truth/trajectory.csv
+
+
+def odometry_velocity(scenario):
+    """(K, 3) the moving speaker's velocity at each sweep start in the reference frame (m/s), as odometry
+    reports it: ``R_refᵀ v(t_emit)`` + N(0, σ_vel²) per axis (``sigma_vel``)."""
+    sc = scenario if isinstance(scenario, Scenario) else validate_scenario(scenario)
+    ref = next(a for a in sc["arrays"] if a["name"] == sc["reference_array"])
+    v = sc["trajectory"].velocity(sc["t_emit"]) @ ref["R"]
+    return v + _rng(int(sc.get("seed", 0)), 12).normal(0.0, float(sc.get("sigma_vel", 0.0)), v.shape)
+
+
+def trajectory_truth(scenario):
+    """The moving speaker's true path in the reference frame: DataFrame ``t`` (emitter clock, s), ``x``,
+    ``y``, ``z`` (m) every TRAJECTORY_STEP from the first sweep start to the end of the last sweep."""
+    sc = scenario if isinstance(scenario, Scenario) else validate_scenario(scenario)
+    ref = next(a for a in sc["arrays"] if a["name"] == sc["reference_array"])
+    t = np.arange(sc["t_emit"][0], sc["t_emit"][-1] + sc["chirp"]["duration"] + 1e-9, TRAJECTORY_STEP)
+    p = (sc["trajectory"](t) - ref["position"]) @ ref["R"]
+    return pd.DataFrame({"t": t, "x": p[:, 0], "y": p[:, 1], "z": p[:, 2]})

@@ -282,3 +282,47 @@ def impulse_response(sc, event, array, flat=(None, None)):
     _attach_images(sc, em, flat, event, event + 1)
     fsp = a["fs"] * (1 + a["drift"])
     return _rir_function(sc, em[event], a, delay, {})(fsp), fsp
+
+
+# ----------------------------------------------------------------------------------------------- line of sight
+LOS_COLS = ["event", "array", "los", "direct_db", "direct_minus_reflection_db", "cause", "los_fraction"]
+
+
+def line_of_sight(sc):
+    """Truth of the direct path per event and array (``bands`` model): a DataFrame of ``LOS_COLS``.
+
+    At the array ORIGIN, the speaker at the sweep START (the event's truth position): ``los`` 1 when the
+    direct path arrives unobstructed (no wall, obstacle or mount attenuation), ``direct_db`` its gain re.
+    free field at 1 kHz (dB ≤ 0; empty when a wall blocks it), ``direct_minus_reflection_db`` the direct
+    path's 1 kHz amplitude over the strongest reflection arriving within ``mixing_time`` (dB; empty when
+    blocked: only reflections arrive), ``cause`` what attenuates or blocks it (``wall``, ``obstacle``,
+    ``mount``, joined by ``+``; empty when clear), ``los_fraction`` the share of the sweep (moving speaker:
+    ``motion.N_VIS_KNOTS`` instants) during which no wall blocks it.
+    """
+    import pandas as pd
+
+    geo, traj = sc.get("geometry"), sc.get("trajectory")
+    b1k = ac.BAND_CENTERS.index(ac.RT60_BAND)
+    em = [e for e in emitters(sc, {"gain": 1.0, "p_chirp": 1.0}) if e["kind"] == "chirp"]
+    rows = []
+    for j, e in enumerate(em):
+        e = {**e, "pos": sc["sources"][j]}
+        e.pop("trajectory", None)
+        _attach_images(sc, [e], None, 0, 1)
+        knots = sc["t_emit"][j] + sc["chirp"]["duration"] * np.linspace(0, 1, motion.N_VIS_KNOTS)
+        for a in sc["arrays"]:
+            o = np.asarray(a["position"], float)
+            g = polyroom.direct_gain(geo, sc["sources"][j], o[None])[0, b1k] if geo is not None else 1.0
+            at = [traj(t) for t in knots] if traj is not None else [sc["sources"][j]]
+            seen = [polyroom.direct_gain(geo, p, o[None])[0, b1k] > 0 if geo is not None else True for p in at]
+            cause = ["wall"] if g == 0 else ["obstacle"] if g < 1 else []
+            cause += ["mount"] if a["direct_db"] < 0 else []
+            paths = rd.band_paths(e, {**a, "mics_room": o[None]}, a["fs"], sc)
+            amp = paths["amp"][:, 0, b1k] / paths["dist"][:, 0]
+            refl = np.max(np.where(np.isfinite(paths["taps"][:, 0]) & ~e["images"]["direct"], amp, 0.0))
+            direct = float(amp[e["images"]["direct"]][0])
+            rows.append({"event": j, "array": a["name"], "los": int(not cause),
+                         "direct_db": 20 * np.log10(g) + a["direct_db"] if g > 0 else np.nan,
+                         "direct_minus_reflection_db": 20 * np.log10(direct / refl) if direct > 0 and refl > 0
+                         else np.nan, "cause": "+".join(cause), "los_fraction": float(np.mean(seen))})
+    return pd.DataFrame(rows, columns=LOS_COLS)
