@@ -32,6 +32,8 @@ MOVING_EARLY = 0.02   # s after the direct path: paths rendered with the exact t
 N_VIS_KNOTS = 5       # instants of the sweep at which a moving source's path visibility is evaluated
 GRID_STEP = 1e-3      # s: the spline is tabulated this finely for the retarded-time iterations
 N_ITER = 3            # fixed-point iterations of the retarded time (error shrinks by |v|/c each)
+COARSE = 16           # samples between exact retarded-time solutions (linear interpolation in between:
+                      # error ≈ (a/c) h² / 8 < 1e-9 s for h = 1 ms and any robot acceleration a < 10 m/s²)
 MARGIN = 8            # samples around the early part
 
 
@@ -88,13 +90,18 @@ def early_part(e, a, paths, sel, sc, t0, level, local_time, vis_gain=None):
     B = paths["amp"].shape[2]
     y = np.zeros((B, len(mics), n_out.size))
     m_ix = np.arange(len(mics))[:, None]
+    coarse = T[::COARSE]                    # the retarded time is smooth: solved every COARSE samples
+    if coarse[-1] != T[-1]:
+        coarse = np.r_[coarse, T[-1]]
     for j, k in enumerate(idx):
         pk, Mk = e["images"]["pos"][k], e["images"]["M"][k]
-        te = T[None, :] - np.linalg.norm(pk - mics, axis=1)[:, None] / c
+        te = coarse[None, :] - np.linalg.norm(pk - mics, axis=1)[:, None] / c
         for _ in range(N_ITER):
-            s = np.stack([np.interp(te, grid, table[:, q]) for q in range(3)], axis=-1)   # (M, n, 3)
-            dist = np.linalg.norm(pk + (s - s_mid) @ Mk.T - mics[:, None, :], axis=2)
-            te = T[None, :] - dist / c
+            s = np.stack([np.interp(te, grid, table[:, q]) for q in range(3)], axis=-1)   # (M, n', 3)
+            dist = np.sqrt(np.sum((pk + (s - s_mid) @ Mk.T - mics[:, None, :]) ** 2, axis=2))
+            te = coarse[None, :] - dist / c
+        dist = np.stack([np.interp(T, coarse, x) for x in dist])           # (M, n): smooth, interpolated
+        te = T[None, :] - dist / c
         base = level * e["wave"](te - t_s) / dist                          # (M, n)
         if g_knots is None:
             y += paths["amp"][k].T[:, :, None] * base[None]
