@@ -84,7 +84,7 @@ def closed_curve(way, step=0.02, cuts=5):
         p = np.stack([0.75 * p + 0.25 * q, 0.25 * p + 0.75 * q], axis=1).reshape(-1, 2)
     p = np.vstack([p, p[:1]])
     s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
-    u = np.arange(0, s[-1], step)
+    u = np.r_[np.arange(0, s[-1], step), s[-1]]          # closed: the last point is the first again
     pts = np.stack([np.interp(u, s, p[:, q]) for q in range(2)], axis=1)
     return pts, u
 
