@@ -195,7 +195,10 @@ def clocks(rng, n, offset_max=0.1, drift_max=1e-4, lead_in=0.3):
 
 
 def array_entry(name, board, pos, rot, tau, drift, mount):
-    mics, fs, planar = BOARDS[board]
+    """One array of the scenario; ``board`` a BOARDS name, optionally ``name@rate`` (another sample rate)."""
+    kind, _, rate = board.partition("@")
+    mics, fs, planar = BOARDS[kind]
+    fs = int(rate) if rate else fs
     q = rot.as_quat(scalar_first=True)
     q = q if q[0] >= 0 else -q
     a = {"name": name, "position": np.round(pos, 6).tolist(), "quat": q.tolist(), "mics": mics.tolist(),
