@@ -42,6 +42,8 @@ PRESETS |= {
                   "draws": {"rt60": [1.1, 1.3], "n_arrays": [10, 12]}},
     # one condition each
     "lshape": {**_LAB, "room_shape": "L", "mounts": ["wall", "table", "wall", "wall"], "draws": {"rt60": [0.4, 0.6]}},
+    "ushape": {**_LAB, "room_shape": "U", "n_arrays": 5, "mounts": ["wall", "table", "wall", "wall", "stand"],
+               "draws": {"rt60": [0.45, 0.65]}},
     "moving": {**_LAB, "room_dim": [8.0, 6.0, 3.0], "motion": "any", "n_stops": 20, "interval": 3.0},
     "mixed": {**_LAB, "room_dim": [7.0, 6.0, 3.0], "n_arrays": 5,
               "boards": ["circle7c", "circle6", "linear4", "tetra", "pair"],
@@ -52,9 +54,9 @@ PRESETS |= {
                 "n_stops": 16, "interval": 2.5, "heights": [1.5, 1.1], "boards": ["circle6", "circle6", "tetra@16000"],
                 "mounts": ["wall", "table", "wall", "stand"], "draws": {"rt60": [1.1, 1.3], "n_arrays": [10, 12]}},
     # everything at once
-    "deploy": {**_LAB, "room_shape": "L", "n_arrays": 5, "motion": "any", "n_stops": 30, "interval": 3.0,
+    "deploy": {**_LAB, "room_shape": "nonconvex", "n_arrays": 5, "motion": "any", "n_stops": 30, "interval": 3.0,
                "boards": ["circle7c", "circle6", "linear4", "tetra", "pair"],
                "mounts": ["wall", "table", "wall", "stand", "wall"], "n_speech": 1, "n_noise": 1, "n_obstacles": 1},
 }
-DEPLOY = ("office", "robot", "warehouse", "lshape", "moving", "mixed", "talkers", "occluded", "bighall", "deploy")
+DEPLOY = ("office", "robot", "warehouse", "lshape", "ushape", "moving", "mixed", "talkers", "occluded", "bighall", "deploy")
 ISSUE27_SCENES = ("occluded-lab", "office", "robot", "warehouse")
