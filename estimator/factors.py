@@ -8,18 +8,20 @@ w.r.t. the free parameters of ``lay`` (a sparse :class:`Jacobian` from :func:`ja
 reports), ``dim`` residuals per measurement, ``robust`` (bool) whether the robust loss applies, ``sigma``
 the whitening scale (SI).
 
-Adding a measurement type = adding its factor function and one ``MeasurementKind`` entry in ``KINDS``
-here (units, labels, sigma names and test degrees of freedom come from that entry); its rows are a
-``Rows`` block of ``problem.Problem``.
+Adding a measurement kind = its spec (``calib.kinds.KindSpec``), its factor function and (rows of its own)
+a rows builder, joined by :func:`register` (docs/architecture.md, "Adding a measurement kind").
 Clock model (docs/architecture.md): arrival a_ij = (1+δ_i)(t_j + e_j + |s_j − x_i|/c) + τ_i + β δ_i.
 """
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
-
 import numpy as np
+
+from calib import kinds as K
+from calib.kinds import KINDS
+
+from .problem import doa_rows, tdoa_m_rows, tdoa_s_rows
 
 
 
@@ -333,54 +335,36 @@ def cone(p, st, lay, memo=None):
     return _out("cone", r, J, p.cone.row, 1, True, sig)
 
 
-@dataclass(frozen=True)
-class MeasurementKind:
-    """Everything calib knows about one kind of measurement, in one place (a new kind = one entry here).
-
-    factor : ``f(p, st, lay) -> Factor`` (residual, Jacobian, rows, whitening sigma).
-    unit, scale : report unit and the factor from SI (µs, deg, cm). label, title : plot/report texts.
-    Its sigma is ``Problem.sigma[name]``; meta_key : the meta.json key that states it (None: an option);
-    report_sigma : its key in report.json ``sigmas``; reweight : variance components may re-estimate it
-    (False: a fixed prior). dof : degrees of freedom of one measurement in the outlier tests (None: not
-    tested).
-    """
-    name: str
-    factor: Callable
-    unit: str
-    scale: float
-    label: str
-    title: str
-    meta_key: str | None = None
-    report_sigma: str | None = None
-    reweight: bool = False
-    dof: int | None = None
+# The estimator's half of each measurement kind (its spec, ``calib.kinds.KINDS``, says the rest): the factor
+# function, and the rows builder ``build(df, index) -> Rows`` (``problem.RowIndex``) of the kinds with rows of
+# their own in a features table (``spec.source``); the others' rows are derived in ``problem.build_problem``.
+FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission,
+           "cone": cone}
+ROWS = {"tdoa_s": tdoa_s_rows, "tdoa_m": tdoa_m_rows, "doa": doa_rows}
 
 
-_DEG = float(np.rad2deg(1.0))
-KINDS = {k.name: k for k in (
-    MeasurementKind("tdoa_s", tdoa_s, "us", 1e6, "TDOA-S residual (µs)", "TDOA-S", meta_key="sigma_tdoa",
-                    report_sigma="tdoa_s", reweight=True, dof=1),
-    MeasurementKind("tdoa_m", tdoa_m, "us", 1e6, "TDOA-M residual (µs)", "TDOA-M", meta_key="sigma_tdoa",
-                    report_sigma="tdoa_m", reweight=True, dof=1),
-    # a unit-vector residual has no noise along the direction itself: 2 degrees of freedom
-    MeasurementKind("doa", doa, "deg", _DEG, "DOA angular error (deg)", "DOA", meta_key="sigma_doa_deg",
-                    report_sigma="doa_rad_per_axis", reweight=True, dof=2),
-    MeasurementKind("odometry", odometry_frame, "cm", 100.0, "odometry residual per axis (cm)", "Odometry",
-                    meta_key="sigma_odo", report_sigma="odometry_m", reweight=True, dof=3),
-    MeasurementKind("emission", emission, "us", 1e6, "emission-interval correction (µs)", "Emission",
-                    report_sigma="emission_s"),
-    # cone: cosine difference ≈ rad · sin θ, shown in degrees
-    MeasurementKind("cone", cone, "deg", _DEG, "cone (axis angle) residual, cos × 57.3 (≈ deg)", "Cone",
-                    meta_key="sigma_doa_deg", report_sigma="cone_rad", reweight=True, dof=1),
-)}
-# Derived views (kept for the call sites that need only one attribute)
-ALL_KINDS = list(KINDS)
-UNITS = {k.name: (k.unit, k.scale) for k in KINDS.values()}
-FACTORS = {k.name: k.factor for k in KINDS.values()}
+def register(spec, factor, rows=None):
+    """Add a measurement kind: its spec (``calib.kinds.KindSpec``), its factor function and, for a kind
+    with rows of its own, its rows builder. Everything else (reading, validation, robust statistics,
+    report, stage key) loops over the registry. Returns the spec."""
+    K.register(spec)
+    FACTORS[spec.name] = factor
+    if rows is not None:
+        ROWS[spec.name] = rows
+    return spec
 
 
-# The kinds that can carry a per-array variance component (``p.array_scale``, estimator/arraynoise.py).
-ARRAY_KINDS = ("tdoa_s", "tdoa_m", "doa", "cone")  # the kinds measured per array (rows with ``arr``)
+def unregister(name):
+    """Remove a kind added by :func:`register`."""
+    K.unregister(name)
+    FACTORS.pop(name, None)
+    ROWS.pop(name, None)
+
+
+def active_kinds(p, stage="joint"):
+    """The kinds a ``stage`` of the estimator uses on problem ``p``, in registry order: those whose spec
+    lists the stage; a kind whose sigma is an option (no meta key: the emission prior) only when it is > 0."""
+    return [k for k in FACTORS if stage in KINDS[k].stages and (KINDS[k].noise_key or p.sigma[k] > 0)]
 
 
 def per_array(p, f):
