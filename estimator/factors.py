@@ -4,7 +4,7 @@ Every factor is a function ``f(p, st, lay, memo=None) -> Factor`` (a :class:`~ca
 a ``State`` and a ``Layout``; ``memo`` keeps the Jacobian's index bookkeeping between evaluations of one
 problem and layout, :func:`_fill`): ``kind`` (str), ``r`` (m,) whitened residuals, ``J`` (m, n) Jacobian
 w.r.t. the free parameters of ``lay`` (a sparse :class:`Jacobian` from :func:`jacobian`, filled by
-:func:`_put` / :func:`_fill`; a dense array works too), ``row`` (m,) the measurement's row in its CSV (for
+:func:`put` / :func:`_fill`; a dense array works too), ``row`` (m,) the measurement's row in its CSV (for
 reports), ``dim`` residuals per measurement, ``robust`` (bool) whether the robust loss applies, ``sigma``
 the whitening scale (SI).
 
@@ -21,12 +21,12 @@ import numpy as np
 from calib import kinds as K
 from calib.kinds import KINDS
 
-from .problem import doa_rows, tdoa_m_rows, tdoa_s_rows
+from .problem import doa_rows, event_rows, tdoa_m_rows, tdoa_s_rows
 
 
 
 class Jacobian:
-    """A factor's Jacobian (m, n) as a sparse accumulator: ``_put`` appends (row, col, value) chunks.
+    """A factor's Jacobian (m, n) as a sparse accumulator: ``put`` appends (row, col, value) chunks.
 
     Each measurement row touches one or two arrays and one or two sources, so J is almost all zeros for
     large problems; :func:`calib.estimator.solver.linearise` stacks the chunks of all factors into one
@@ -60,11 +60,11 @@ class Jacobian:
 
 
 def jacobian(m, lay):
-    """An empty (m, n free parameters) Jacobian for a factor to ``_put`` into."""
+    """An empty (m, n free parameters) Jacobian for a factor to ``put`` into."""
     return Jacobian(m, lay.n)
 
 
-def _put(J, rows, cols, vals):
+def put(J, rows, cols, vals):
     """J[rows, cols] += vals for the free columns (cols >= 0). rows (m,), cols/vals (m, q).
 
     ``J`` is a :class:`Jacobian` (sparse accumulator) or a dense (m, n) array. Within one call the (row, col)
@@ -74,7 +74,7 @@ def _put(J, rows, cols, vals):
 
 
 def _pattern(rows, cols):
-    """The index bookkeeping of one :func:`_put`: (rows, cols of the free entries, which of the (m, q)
+    """The index bookkeeping of one :func:`put`: (rows, cols of the free entries, which of the (m, q)
     values they are (None: all), (m, q)). It depends on the problem and layout only, not the state."""
     cols = np.asarray(cols).reshape(len(rows), -1)
     rr, cc = np.repeat(rows, cols.shape[1]), cols.ravel()
@@ -105,7 +105,7 @@ def _apply(J, pattern, vals):
 
 
 def _fill(J, memo, slot, index, vals):
-    """:func:`_put` with ``index() -> (rows, cols)``, whose bookkeeping ``memo`` (a dict the caller keeps
+    """:func:`put` with ``index() -> (rows, cols)``, whose bookkeeping ``memo`` (a dict the caller keeps
     for one problem and layout, e.g. one LM solve; None: no reuse) holds under ``slot`` after the first
     evaluation: later evaluations compute the values only."""
     pattern = None if memo is None else memo.get(slot)
@@ -258,8 +258,8 @@ def odometry(p, st, lay, memo=None):
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
     r = ((np.diff(st.s, axis=0) - np.diff(p.odom, axis=0)) / sig).ravel()
     k = np.arange(3 * (K - 1))
-    _put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
-    _put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
+    put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
+    put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
     return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
 
 
@@ -344,13 +344,14 @@ ROWS = {"tdoa_s": tdoa_s_rows, "tdoa_m": tdoa_m_rows, "doa": doa_rows}
 
 
 def register(spec, factor, rows=None):
-    """Add a measurement kind: its spec (``calib.kinds.KindSpec``), its factor function and, for a kind
-    with rows of its own, its rows builder. Everything else (reading, validation, robust statistics,
-    report, stage key) loops over the registry. Returns the spec."""
+    """Add a measurement kind: its spec (``calib.kinds.KindSpec``) and its factor function. A kind with a
+    table of its own gets its rows from ``rows(df, problem.RowIndex) -> problem.Rows``, by default
+    :func:`~calib.estimator.problem.event_rows` (a table of event, array and value columns). Everything
+    else (reading, validation, robust statistics, report, stage key) loops over the registry. Returns the spec."""
     K.register(spec)
     FACTORS[spec.name] = factor
-    if rows is not None:
-        ROWS[spec.name] = rows
+    if spec.table is not None:
+        ROWS[spec.name] = rows or event_rows(spec)
     return spec
 
 

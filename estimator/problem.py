@@ -182,6 +182,26 @@ class RowIndex:
         return _lines(df)
 
 
+@dataclass
+class EventRows(Rows):
+    """The rows of a kind measured by array ``arr`` at event ``ev`` (indices): value ``val`` (m,) or (m, k),
+    the table's columns other than event and array (the default rows of a registered kind)."""
+    ev: np.ndarray
+    arr: np.ndarray
+    val: np.ndarray
+    row: np.ndarray
+
+
+def event_rows(spec):
+    """The default rows builder of a kind whose table is (event, array, value columns...): :class:`EventRows`."""
+    values = tuple(c for c in spec.table.columns if c not in ("event", "array"))
+
+    def build(df, ix):
+        val = columns(df, values)
+        return EventRows(ix.ev(df["event"]), ix.arr(df["array"]), val[:, 0] if len(values) == 1 else val, _lines(df))
+    return build
+
+
 def tdoa_m_rows(df, ix):
     return TdoaMRows(ix.ev(df["event"]), ix.arr(df["array"]), df["tdoa"].to_numpy(float), _lines(df))
 
