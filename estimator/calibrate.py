@@ -11,6 +11,7 @@ import pandas as pd
 import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
+from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
 from calib import __version__
@@ -22,7 +23,7 @@ from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect,
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
-from .problem import State, build_problem, make_layout, matrix_quaternions, state_from_dict
+from .problem import State, build_problem, make_layout, state_from_dict
 from .robust import (FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
                      fit_array_alone, measurement_stats, count_measurements, factor_sizes, per_array_kinds,
                      variance_factors, remove_outliers, restore_inliers, sym_inverse)
@@ -94,7 +95,7 @@ def residual_table(fs, mask=None):
 
 def _quaternions(R):
     """(N, 4) scalar-first unit quaternions of rotation matrices (N, 3, 3), with qw >= 0."""
-    q = matrix_quaternions(R)
+    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
     return q
 

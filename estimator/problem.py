@@ -21,10 +21,6 @@ from scipy.spatial.transform import Rotation
 from calib.kinds import KINDS
 from calib.tables import LINE_COLUMN, columns
 
-try:   # scipy's compiled rotation kernels, which Rotation calls for numpy (N, 3) / (N, 3, 3) float64 input
-    from scipy.spatial.transform import _rotation_cy as _ROT
-except ImportError:   # pragma: no cover - another scipy layout: the public class (the same values)
-    _ROT = None
 
 
 
@@ -459,15 +455,9 @@ def _without_fixed(lay, fixed):
     return lay
 
 
-def retract(st, lay, delta, memo=None):
-    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ).
-
-    ``memo``: a dict kept by the caller for one layout (an LM solve): the index bookkeeping, which
-    depends on the layout only, is computed once (:func:`_retract_index`)."""
-    index = _retract_index(lay) if memo is None else memo.get("_retract")
-    if index is None:
-        index = memo["_retract"] = _retract_index(lay)
-    additive, rows, idx, free = index
+def retract(st, lay, delta):
+    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ)."""
+    additive, rows, idx, free = _retract_index(lay)
     out = st.copy()
     for key, m, cols in additive:
         if m is None:   # every entry free: the whole field, in its own order (the same sums, no masking)
@@ -477,25 +467,8 @@ def retract(st, lay, delta, memo=None):
             getattr(out, key)[m] += delta[cols]
     if rows.size:
         phi = delta[idx] if free is None else np.where(free, delta[idx], 0.0)
-        out.R[rows] = st.R[rows] @ rotvec_matrices(phi)
+        out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
     return out
-
-
-def rotvec_matrices(phi):
-    """Rotation matrices (N, 3, 3) of rotation vectors ``phi`` (N, 3): ``Rotation.from_rotvec(phi).as_matrix()``
-    by the compiled kernels it calls, without its per-call array-API dispatch (~6 µs of ~9; every LM
-    candidate retracts)."""
-    if _ROT is None:
-        return Rotation.from_rotvec(phi).as_matrix()
-    return np.asarray(_ROT.as_matrix(_ROT.from_rotvec(np.ascontiguousarray(phi, dtype=float))))
-
-
-def matrix_quaternions(R, scalar_first=True):
-    """Unit quaternions (N, 4) of rotation matrices ``R`` (N, 3, 3):
-    ``Rotation.from_matrix(R).as_quat(scalar_first=...)`` by the compiled kernels it calls."""
-    if _ROT is None:
-        return Rotation.from_matrix(R).as_quat(scalar_first=scalar_first)
-    return np.asarray(_ROT.as_quat(_ROT.from_matrix(np.ascontiguousarray(R, dtype=float)), scalar_first=scalar_first))
 
 
 def _retract_index(lay):
@@ -512,10 +485,3 @@ def _retract_index(lay):
     idx = lay.rot[rows]
     free = idx >= 0
     return additive, rows, np.maximum(idx, 0), None if free.all() else free
-
-
-def state_to_frames(p, st):
-    """State → (arrays DataFrame columns as dict of arrays, sources (K, 3))."""
-    q = matrix_quaternions(st.R)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)  # canonical sign: qw >= 0
-    return q

@@ -34,7 +34,7 @@ RANGE = KindSpec("range", Table("range", ("event", "array", "range"), ("event",)
 
 
 # ... and one factor function
-def range_factor(p, st, lay, memo=None):
+def range_factor(p, st, lay):
     """Range: |s_j − x_i| − ρ_ij; d/ds_j = n, d/dx_i = −n (n the unit vector from the array to the source)."""
     rows, sig = p.rows("range"), p.sigma["range"]
     i, j, m = rows.arr, rows.ev, len(rows)
