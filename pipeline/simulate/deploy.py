@@ -265,7 +265,10 @@ def build(g, sc, rng, overrides):
     corners = np.asarray(sc["floor_plan"], float) if sc.get("floor_plan") is not None else box(room)
     sc["room_dim"] = room.tolist()
     geo = polyroom.make_geometry(corners, room[2])
-    curve, arclen = _robot_curve(geo, room, rng(2), way)
+    if "arrays" in overrides and "sources" in overrides:     # e.g. a manifest: everything is given
+        curve = arclen = None
+    else:
+        curve, arclen = _robot_curve(geo, room, rng(2), way)
     heights = g["heights"]
     n = int(g["n_arrays"])
     if "arrays" not in overrides:
