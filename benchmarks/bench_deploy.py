@@ -107,9 +107,9 @@ def assess(d, out, preset):
     ref = tru.index[np.all(tru[["x", "y", "z", "offset"]].to_numpy() == 0, axis=1)
                     & (tru["qw"].to_numpy() == 1)][0]
     clear = [a for a, f in los.groupby("array")["los"].mean().items() if f > 0.5 and a != ref]
-    per = {p["array"]: p for p in m["per_array"]}
+    per = {p["array"]: {**p, "rot_deg": _rot_deg(p)} for p in m["per_array"]}
     bound = WIDE.get(preset, BOUND)
-    off = {a for a, p in per.items() if p["position_m"] > bound[0] or p["geodesic_deg"] > bound[1]}
+    off = {a for a, p in per.items() if p["position_m"] > bound[0] or p["rot_deg"] > bound[1]}
     sig = {a: _sigmas(est, tru, a, per[a]) for a in per}
     over3 = sorted(a for a, s in sig.items() if s is not None and s > 3)
     no_std = sorted(a for a, s in sig.items() if s is None)
@@ -127,7 +127,7 @@ def assess(d, out, preset):
     return {"pos_cm": 100 * m["position_rmse_m"], "rot_deg": m["orientation_geodesic_deg"], "status": status,
             "named": ",".join(sorted(named)) or "-", "clear": f"{len(clear)}/{len(per)}",
             "worst_clear": "-" if worst is None else
-            f"{worst} {100 * per[worst]['position_m']:.1f} / {per[worst]['geodesic_deg']:.1f}",
+            f"{worst} {100 * per[worst]['position_m']:.1f} / {per[worst]['rot_deg']:.1f}",
             "over3": ",".join(f"{a} {sig[a]:.0f}σ" for a in over3) or "-", "no_std": ",".join(no_std) or "-",
             "accept": accept}
 
@@ -141,8 +141,16 @@ def _sigmas(est, tru, a, per):
     z = float(np.max(np.abs(err) / std))
     r = est.loc[a, ["rx_std", "ry_std", "rz_std"]].to_numpy(float)
     if np.all(np.isfinite(r)) and np.linalg.norm(r) > 0:
-        z = max(z, float(np.deg2rad(per["geodesic_deg"]) / np.linalg.norm(r)))
+        z = max(z, float(np.deg2rad(per["rot_deg"]) / np.linalg.norm(r)))
     return z
+
+
+def _rot_deg(p):
+    """Orientation error (deg): geodesic, or for a linear array / pair (roll undetermined) its axis error."""
+    for k in ("geodesic_deg", "axis_deg"):
+        if p.get(k) is not None:
+            return float(p[k])
+    return 0.0
 
 
 def main():
@@ -172,7 +180,12 @@ def main():
                     print(f"| {preset} | {seed} | exit {code} | | | | | | | | FAIL | | {sim_cpu:.1f} | {wall:.1f} |")
                     groups.setdefault(preset, []).append(None)
                     continue
-                r = assess(d, out, preset)
+                try:
+                    r = assess(d, out, preset)
+                except Exception as exc:       # a benchmark row, not a crash: say what broke
+                    print(f"| {preset} | {seed} | assessment failed: {type(exc).__name__}: {exc} |", flush=True)
+                    groups.setdefault(preset, []).append(None)
+                    continue
                 dur = json.loads((out / "diagnostics" / "diagnostics.json").read_text())["recording_duration_s"]
                 r["cpu_pct"] = 100 * cpu / dur
                 groups.setdefault(preset, []).append(r)
