@@ -58,5 +58,6 @@ PRESETS |= {
                "boards": ["circle7c", "circle6", "linear4", "tetra", "pair"],
                "mounts": ["wall", "table", "wall", "stand", "wall"], "n_speech": 1, "n_noise": 1, "n_obstacles": 1},
 }
-DEPLOY = ("office", "robot", "warehouse", "lshape", "ushape", "moving", "mixed", "talkers", "occluded", "bighall", "deploy")
+DEPLOY = ("office", "robot", "warehouse", "lshape", "ushape", "moving", "mixed", "talkers", "occluded", "bighall",
+          "deploy")
 ISSUE27_SCENES = ("occluded-lab", "office", "robot", "warehouse")

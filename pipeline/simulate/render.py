@@ -115,8 +115,8 @@ def band_paths(em, a, fsp, sc):
     delays in samples (NaN: later than ``mixing_time`` after the direct path, or blocked), ``dist`` (n, M)
     m, ``amp`` (n, M, B) band amplitudes without the 1/distance spreading (wall reflections, speaker
     directivity, air absorption, occlusion of the direct path, walls and obstacles of a polygonal room),
-    ``amp_open``, ``taps_open`` the same before walls and obstacles block or attenuate the paths, ``first`` (the geometric
-    direct path's delay, samples, blocked or not)."""
+    ``amp_open``, ``taps_open`` the same before walls and obstacles block or attenuate the paths, ``first``
+    (the geometric direct path's delay, samples, blocked or not)."""
     ab, c = sc["acoustic"], sc["speed_of_sound"]
     img, mics = em["images"], a["mics_room"]
     dist = np.linalg.norm(img["pos"][:, None, :] - mics[None], axis=2)          # (n, M)
