@@ -145,7 +145,7 @@ def _deploy_scenario(preset, g, sc, overrides):
         deploy.build(g, sc, lambda k: _rng(sc["seed"], 200 + k, stream), overrides)
     except ValueError as exc:
         raise InputError(f"scenario: {exc}") from None
-    sc["reference_array"] = overrides.get("reference_array", sc["arrays"][0]["name"])
+    sc["reference_array"] = overrides.get("reference_array", sc.get("reference_array", sc["arrays"][0]["name"]))
     sc.setdefault("interferers", [])
     sc["generator"] = {k: g[k] for k in GEN_DEFAULTS}
     return sc
