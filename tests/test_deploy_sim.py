@@ -182,6 +182,10 @@ def test_presets_hold_their_conditions():
     m = validate_scenario(make_scenario("office", 0))
     assert sorted({len(a["mics"]) for a in m["arrays"]}) == [2, 4, 6, 7]
     assert {a["fs"] for a in m["arrays"]} == {16000, 44100, 48000}
+    for seed in range(5):       # the reference is never a linear array or a pair (sources not placeable)
+        sc = make_scenario("office", seed)
+        ref = next(a for a in sc["arrays"] if a["name"] == sc["reference_array"])
+        assert np.linalg.matrix_rank(np.asarray(ref["mics"]) - np.mean(ref["mics"], axis=0), tol=1e-6) >= 2
     # the warehouse: size, reverberation, arrays, SNR, rate as the scene
     w = validate_scenario(make_scenario("warehouse", 3))
     assert w["room_dim"].tolist() == [20.0, 15.0, 6.0] and 1.1 <= w["rt60"] <= 1.3
