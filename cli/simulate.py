@@ -130,7 +130,7 @@ def _run(sc, out_dir, progress):
 
 def _set(over, item):
     """Apply one ``--set KEY=VALUE`` to the overrides (VALUE read as TOML, else as a string)."""
-    import tomllib
+    from calib.tomlcompat import tomllib
 
     key, sep, text = item.partition("=")
     key = key.strip()

@@ -35,7 +35,7 @@ def test_localisation_example_finds_the_held_back_source(tmp_path, monkeypatch, 
     # acceptance: calibration.json's mics_reference and the pyroomacoustics export are R·m + x of arrays.csv
     # (quaternion written out by hand) and session.toml's mics, to 1e-9 m
     import json
-    import tomllib
+    from calib.tomlcompat import tomllib
 
     import pandas as pd
     from tests.test_export import quat_matrix

@@ -74,7 +74,7 @@ def test_init_writes_a_session_for_each_model(tmp_path):
 
 
 def read_session_mics(path):
-    import tomllib
+    from calib.tomlcompat import tomllib
 
     return np.asarray(tomllib.loads(path.read_text())["arrays"][0]["mics"])
 

@@ -15,7 +15,7 @@ A session in memory is a plain dict::
 """
 from __future__ import annotations
 
-import tomllib
+from calib.tomlcompat import tomllib
 import warnings
 from pathlib import Path
 
