@@ -34,7 +34,7 @@ def features(
     opts = {**features_options({"threshold": detect_threshold, "max_drift": max_drift}), "jobs": jobs_option(jobs)}
     check_separate([out, diag_dir], [recordings])
     session = read_session(recordings)  # every input checked before any output is touched
-    inputs = [recordings, *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]
+    inputs = [recordings, *(f for a in session["arrays"] for f in a["files"]), session["chirp"].get("reference")]
     with owned_output([out, diag_dir], inputs, command="calib features", on_wait=waiting):
         feats, diag = _extract(session, opts, quiet)
         write_feature_outputs(out, diag_dir, feats, diag)

@@ -8,10 +8,15 @@ A session in memory is a plain dict::
       "reference_array": str,
       "chirp": {"f0": Hz, "f1": Hz, "duration": s, "reference": Path | None},
       "noise": {"sigma_tdoa": s, "sigma_doa_deg": deg, "sigma_odo": m},   # only the keys given
-      "arrays": [{"name": str, "wav": Path, "mics": (M, 3) ndarray,
-                  "doa_hemisphere": (3,) ndarray | None}, ...],
+      "arrays": [{"name": str, "wav": Path, "files": (Path, ...), "channels": (int, ...) | None,
+                  "mics": (M, 3) ndarray, "doa_hemisphere": (3,) ndarray | None}, ...],
       "events": DataFrame (event, t_emit, odom_x, odom_y, odom_z),
     }
+
+An array's audio is one multichannel WAV (``wav``; ``files == (wav,)``), optionally with a channel map
+(``channels``: the WAV channel of each mic, counted from 0, in the order of ``mics``: a raw board recording with
+playback or processed channels too), or one mono file per mic (``files``, in the order of ``mics``; ``wav`` is
+the first of them).
 """
 from __future__ import annotations
 
@@ -35,7 +40,7 @@ SPAN_WAVELENGTHS = 50.0         # an array wider than this many wavelengths is a
 
 TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays")
 CHIRP_KEYS = ("f0", "f1", "duration", "reference", "kind", "fade")
-ARRAY_KEYS = ("name", "wav", "mics", "doa_hemisphere")
+ARRAY_KEYS = ("name", "wav", "files", "channels", "mics", "doa_hemisphere")
 
 
 def read_session(directory, check_audio=True):
@@ -125,25 +130,60 @@ def _read_arrays(items, d, p):
         if not isinstance(name, str) or not name:
             raise InputError(f"{p}: arrays[{k}] needs a 'name' (a non-empty string), not {name!r}")
         V.check_keys(a, ARRAY_KEYS, f"{p}: array {name!r}")
-        if "wav" not in a:
-            raise InputError(f"{p}: array {name!r} has no 'wav'")
-        wav = d / V.string(a["wav"], f"{p}: array {name!r}: 'wav'")
-        if not wav.is_file():
-            raise InputError(f"{wav}: file not found (array {name!r} in {p.name})")
-        real = wav.resolve()
-        if real in wavs:
-            raise InputError(f"{p}: arrays {wavs[real]!r} and {name!r} share one recording {a['wav']!r}")
-        wavs[real] = name
         mics = _read_mics(a.get("mics"), f"{p}: array {name!r}: 'mics'")
+        files = _read_files(a, name, len(mics), d, p)
+        for f in files:
+            real = f.resolve()
+            if real in wavs:
+                raise InputError(f"{p}: arrays {wavs[real]!r} and {name!r} share one recording {f.name!r}")
+            wavs[real] = name
+        channels = _read_channels(a.get("channels"), len(mics), f"{p}: array {name!r}: 'channels'")
+        if channels is not None and len(files) > 1:
+            raise InputError(f"{p}: array {name!r}: 'channels' selects channels of one 'wav'; with one file per mic "
+                             "('files') leave it out")
         hemi = a.get("doa_hemisphere")
         if hemi is not None:
             hemi = np.asarray(V.vector3(hemi, f"{p}: array {name!r}: 'doa_hemisphere'", nonzero=True))
             hemi = hemi / np.linalg.norm(hemi)
-        arrays.append({"name": name, "wav": wav, "mics": mics, "doa_hemisphere": hemi})
+        arrays.append({"name": name, "wav": files[0], "files": files, "channels": channels, "mics": mics,
+                       "doa_hemisphere": hemi})
     names = [a["name"] for a in arrays]
     if len(set(names)) != len(names):
         raise InputError(f"{p}: duplicate array name")
     return arrays
+
+
+def _read_files(a, name, n_mics, d, p):
+    """The array's audio files: ``(wav,)``, or its ``files`` (one per mic, in the order of ``mics``); each exists."""
+    if ("wav" in a) == ("files" in a):
+        raise InputError(f"{p}: array {name!r} needs either 'wav' (one multichannel file) or 'files' (one file "
+                         "per mic)" + (", not both" if "wav" in a else ""))
+    if "wav" in a:
+        names = [V.string(a["wav"], f"{p}: array {name!r}: 'wav'")]
+    else:
+        where = f"{p}: array {name!r}: 'files'"
+        if not isinstance(a["files"], list) or not a["files"]:
+            raise InputError(f"{where} must be a non-empty list of file names (one per mic)")
+        names = [V.string(f, where) for f in a["files"]]
+        if len(names) != n_mics:
+            raise InputError(f"{where}: {len(names)} files for {n_mics} mics (one file per mic, in the order of 'mics')")
+    files = tuple(d / f for f in names)
+    for f in files:
+        if not f.is_file():
+            raise InputError(f"{f}: file not found (array {name!r} in {p.name})")
+    return files
+
+
+def _read_channels(value, n_mics, where):
+    """A channel map: one distinct WAV channel (an integer ≥ 0) per mic → tuple, or None when not given."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != n_mics:
+        raise InputError(f"{where} must list one WAV channel per mic ({n_mics}, counted from 0), not {value!r}")
+    chans = tuple(V.number(c, where, lo=0, hi=V.MAX_CHANNELS - 1, integer=True) for c in value)
+    if len(set(chans)) != len(chans):
+        raise InputError(f"{where}: channel {max(chans, key=chans.count)} is given for two mics")
+    return chans
 
 
 def _read_mics(value, where):
@@ -201,7 +241,8 @@ def session_toml(speed_of_sound, reference_array, chirp, arrays, noise=None):
     """Text of a ``session.toml``.
 
     chirp : dict with f0, f1, duration (and/or reference, a file name relative to the session).
-    arrays : list of dicts with name, wav (file name), mics ((M, 3) array-like), optional doa_hemisphere.
+    arrays : list of dicts with name, wav (file name) or files (file names, one per mic), optional channels (the
+        WAV channel of each mic, from 0), mics ((M, 3) array-like), optional doa_hemisphere.
     noise : optional dict of sigma_tdoa (s), sigma_doa_deg, sigma_odo (m).
     """
     lines = [f"speed_of_sound = {_toml_value(float(speed_of_sound))}",
@@ -210,7 +251,13 @@ def session_toml(speed_of_sound, reference_array, chirp, arrays, noise=None):
     if noise:
         lines += ["", "[noise]"] + [f"{k} = {_toml_value(float(v))}" for k, v in noise.items()]
     for a in arrays:
-        lines += ["", "[[arrays]]", f"name = {_toml_value(a['name'])}", f"wav = {_toml_value(str(a['wav']))}"]
+        lines += ["", "[[arrays]]", f"name = {_toml_value(a['name'])}"]
+        if a.get("files") is not None and len(a["files"]) > 1:
+            lines.append(f"files = {_toml_value([str(f) for f in a['files']])}")
+        else:
+            lines.append(f"wav = {_toml_value(str(a['wav']))}")
+        if a.get("channels") is not None:
+            lines.append(f"channels = {_toml_value([int(c) for c in a['channels']])}")
         lines.append(f"mics = {_toml_value(np.asarray(a['mics'], float).tolist())}")
         if a.get("doa_hemisphere") is not None:
             lines.append(f"doa_hemisphere = {_toml_value(np.asarray(a['doa_hemisphere'], float).tolist())}")
