@@ -10,7 +10,8 @@ A session in memory is a plain dict::
       "noise": {"sigma_tdoa": s, "sigma_doa_deg": deg, "sigma_odo": m},   # only the keys given
       "arrays": [{"name": str, "wav": Path, "files": (Path, ...), "channels": (int, ...) | None,
                   "mics": (M, 3) ndarray, "doa_hemisphere": (3,) ndarray | None}, ...],
-      "events": DataFrame (event, t_emit, odom_x, odom_y, odom_z),
+      "robot": {"speaker_offset": (3,) ndarray},   # only the keys given
+      "events": DataFrame (event, t_emit, odom_x, odom_y, odom_z): the speaker's positions (speaker_positions),
     }
 
 An array's audio is one multichannel WAV (``wav``; ``files == (wav,)``), optionally with a channel map
@@ -25,6 +26,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from calib.frontend.signals import SWEEP_KINDS
 
@@ -38,7 +40,9 @@ MAX_MIC_RADIUS = 10.0           # m: mic coordinates are relative to their array
 SPAN_WAVELENGTHS = 50.0         # an array wider than this many wavelengths is a unit mistake (mm for m)
 
 
-TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays")
+TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays", "robot")
+ROBOT_KEYS = ("speaker_offset",)
+MAX_LEVER_ARM = 5.0             # m: the speaker sits on the robot
 CHIRP_KEYS = ("f0", "f1", "duration", "reference", "kind", "fade")
 ARRAY_KEYS = ("name", "wav", "files", "channels", "mics", "doa_hemisphere")
 
@@ -72,6 +76,7 @@ def read_session(directory, check_audio=True):
     ref = cfg.get("reference_array", names[0])
     if not isinstance(ref, str) or ref not in names:
         raise InputError(f"{p}: reference_array {ref!r} is not one of the arrays")
+    robot = _read_robot(cfg.get("robot", {}), p)
     session = {
         "dir": d,
         "speed_of_sound": c,
@@ -79,11 +84,51 @@ def read_session(directory, check_audio=True):
         "chirp": chirp,
         "noise": noise,
         "arrays": arrays,
-        "events": read_events(d / "events.csv"),
+        "robot": robot,
+        "events": speaker_positions(read_events(d / "events.csv"), robot.get("speaker_offset"), p),
     }
     if check_audio:
         _check_audio(session, p)
     return session
+
+
+def _read_robot(cfg, p):
+    """The [robot] table → {"speaker_offset": (3,) ndarray} (only the keys given)."""
+    if not isinstance(cfg, dict):
+        raise InputError(f"{p}: [robot] must be a table (speaker_offset = [x, y, z])")
+    V.check_keys(cfg, ROBOT_KEYS, f"{p}: [robot]")
+    out = {}
+    if "speaker_offset" in cfg:
+        out["speaker_offset"] = np.asarray(V.vector3(cfg["speaker_offset"], f"{p}: 'robot.speaker_offset'",
+                                                     bound=MAX_LEVER_ARM))
+    return out
+
+
+def speaker_positions(events, speaker_offset, where):
+    """events.csv's odometry as the speaker's positions.
+
+    With an ``odom_yaw`` column (the robot's heading, rad; ``calib import-bag`` writes it) the odometry is the
+    robot base's pose, and the speaker is at ``odom + Rz(yaw) · speaker_offset`` (``[robot] speaker_offset``, m,
+    robot frame: x forward, z up; default 0); the column is consumed. Without it the odometry is the
+    speaker's position already, and a speaker_offset is an error (it cannot be rotated)."""
+    if "odom_yaw" not in events.columns:
+        if speaker_offset is not None:
+            raise InputError(f"{where}: [robot] speaker_offset needs the robot's heading: an odom_yaw column (rad) "
+                             "in events.csv (calib import-bag writes it)")
+        return events
+    yaw = pd.to_numeric(events["odom_yaw"], errors="coerce").to_numpy(float)
+    if not np.all(np.isfinite(yaw)):
+        k = int(np.flatnonzero(~np.isfinite(yaw))[0])
+        raise InputError(f"{events.attrs.get('path', 'events.csv')}: event {events['event'].iloc[k]}: odom_yaw must "
+                         "be a finite number (rad)")
+    off = np.zeros(3) if speaker_offset is None else np.asarray(speaker_offset, float)
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = events.drop(columns="odom_yaw")
+    out["odom_x"] = events["odom_x"] + c * off[0] - s * off[1]
+    out["odom_y"] = events["odom_y"] + s * off[0] + c * off[1]
+    out["odom_z"] = events["odom_z"] + off[2]
+    out.attrs = dict(events.attrs)
+    return out
 
 
 def _read_chirp(chirp_cfg, d, p):
