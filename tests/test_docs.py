@@ -76,3 +76,18 @@ def test_tutorial_examples_run(tmp_path):
                 continue  # the install step: already installed
             assert cmd[0] == "calib", cmd
             subprocess.run(calib + cmd[1:], cwd=tmp_path, check=True, env=env, stdout=subprocess.DEVNULL)
+
+
+def test_cli_md_is_the_clis_help():
+    """docs/cli.md's `--help` blocks are the CLI's own (docs/gen_cli.py writes them): every command has one."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("gen_cli", ROOT / "docs" / "gen_cli.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    text = (ROOT / "docs" / "cli.md").read_text()
+    assert gen.render(text) == text, "docs/cli.md is out of date: python docs/gen_cli.py"
+    from calib.cli.main import app
+
+    documented = {m.group(2) for m in gen.SECTION.finditer(text)}
+    assert documented == {c.name for c in app.registered_commands}
