@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from .common import Jobs, console, user_errors, waiting
+from .common import Jobs, console, progress_display, user_errors, waiting
 from .signals import checked
 
 
@@ -49,15 +49,7 @@ def _extract(recordings, opts, quiet):
     if quiet:
         feats, diag = session_features(recordings, progress=checked(), **opts)
     else:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-        with Progress(TextColumn("features"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[msg]}"),
-                      TimeElapsedColumn(), console=console) as bar:
-            task = bar.add_task("features", total=None, msg="")
-
-            def progress(done, total, msg):
-                bar.update(task, total=total, completed=done, msg=msg)
-
+        with progress_display("features") as progress:
             feats, diag = session_features(recordings, progress=checked(progress), **opts)
     return feats, diag
 
