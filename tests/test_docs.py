@@ -23,6 +23,8 @@ def blocks(path, lang):
 def test_localisation_example_finds_the_held_back_source(tmp_path, monkeypatch, capsys):
     (code,) = blocks("docs/localisation.md", "python")
     assert len(code.splitlines()) < MAX_LINES
+    lines = re.search(r"(\d+) lines, imports included", (ROOT / "docs/localisation.md").read_text())
+    assert lines and int(lines.group(1)) == len(code.splitlines())  # the page's own count is right
     monkeypatch.chdir(tmp_path)
     (tmp_path / "sample_data").symlink_to(ROOT / "sample_data")
     ns = {}
@@ -31,7 +33,14 @@ def test_localisation_example_finds_the_held_back_source(tmp_path, monkeypatch, 
     err_doa = np.linalg.norm(ns["s_doa"] - ns["truth"])
     assert err_tdoa < MAX_ERROR_M
     assert err_doa > err_tdoa  # the DOA-only result is reported beside it (and is the weaker one)
-    assert "TDOA + clocks" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "TDOA + clocks" in out
+    # the numbers the page states are the ones the block prints (to the page's rounding)
+    stated = re.search(r"\*\*TDOA \+ clocks ([0-9.]+) cm, DOA only ([0-9.]+) cm\*\*",
+                       (ROOT / "docs/localisation.md").read_text())
+    assert stated, "docs/localisation.md no longer states its result"
+    assert abs(float(stated.group(1)) - 100 * err_tdoa) <= 0.05 + 1e-9, (stated.group(0), out)
+    assert abs(float(stated.group(2)) - 100 * err_doa) <= 0.5 + 1e-9, (stated.group(0), out)  # stated to 1 cm
     # acceptance: calibration.json's mics_reference and the pyroomacoustics export are R·m + x of arrays.csv
     # (quaternion written out by hand) and session.toml's mics, to 1e-9 m
     import json
