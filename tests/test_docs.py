@@ -100,3 +100,36 @@ def test_cli_md_is_the_clis_help():
 
     documented = {m.group(2) for m in gen.SECTION.finditer(text)}
     assert documented == {c.name for c in app.registered_commands}
+
+
+def _doc_commands():
+    """(file, line) of every `calib ...` command in a plain fenced block of README.md and docs/*.md (docs/cli.md's
+    blocks are help texts, checked above)."""
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        if path.name == "cli.md":
+            continue
+        for lang, body in re.findall(r"```([a-z]*)\n(.*?)\n```", path.read_text(), re.S):
+            for line in body.splitlines() if not lang else ():
+                for part in line.split("#", 1)[0].split(";"):
+                    if re.match(r"calib\s", part.strip()):
+                        yield path.name, part.strip()
+
+
+def test_every_documented_command_parses():
+    """Every documented `calib` command names a command and options that exist, with values of their types
+    and every required one given (the click parser, no command run): a renamed option fails here."""
+    import typer
+
+    from calib.cli.main import app
+
+    group = typer.main.get_command(app)
+    found = list(_doc_commands())
+    assert len(found) > 30
+    for name, line in found:
+        args = shlex.split(line)[1:]
+        sub = group.get_command(None, args[0])
+        assert sub is not None, f"{name}: {line}: no command {args[0]!r}"
+        try:
+            sub.make_context(args[0], args[1:])
+        except Exception as exc:  # click's UsageError family (typer vendors click)
+            raise AssertionError(f"{name}: {line}: {exc}") from None
