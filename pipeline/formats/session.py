@@ -282,19 +282,22 @@ def _toml_value(v):
     raise TypeError(f"cannot write {type(v)} to TOML")
 
 
-def session_toml(speed_of_sound, reference_array, chirp, arrays, noise=None):
+def session_toml(speed_of_sound, reference_array, chirp, arrays, noise=None, robot=None):
     """Text of a ``session.toml``.
 
     chirp : dict with f0, f1, duration (and/or reference, a file name relative to the session).
     arrays : list of dicts with name, wav (file name) or files (file names, one per mic), optional channels (the
         WAV channel of each mic, from 0), mics ((M, 3) array-like), optional doa_hemisphere.
     noise : optional dict of sigma_tdoa (s), sigma_doa_deg, sigma_odo (m).
+    robot : optional dict of speaker_offset ((3,) m, robot frame).
     """
     lines = [f"speed_of_sound = {_toml_value(float(speed_of_sound))}",
              f"reference_array = {_toml_value(reference_array)}", "", "[chirp]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in chirp.items() if v is not None]
     if noise:
         lines += ["", "[noise]"] + [f"{k} = {_toml_value(float(v))}" for k, v in noise.items()]
+    if robot:
+        lines += ["", "[robot]"] + [f"{k} = {_toml_value(np.asarray(v, float).tolist())}" for k, v in robot.items()]
     for a in arrays:
         lines += ["", "[[arrays]]", f"name = {_toml_value(a['name'])}"]
         if a.get("files") is not None and len(a["files"]) > 1:
