@@ -117,3 +117,18 @@ def test_bad_bags_and_options_are_one_line_errors(tmp_path):
     out.write_text("mine\n")
     r = invoke("import-bag", bag, "-o", out, "--emit-topic", "/chirp")
     assert r.exit_code == 2 and "exists (use --force" in r.stderr and out.read_text() == "mine\n"
+
+
+def test_a_constant_playback_latency_leaves_the_calibration_unchanged():
+    """docs/formats.md: every emission time and the clock model's t_0 shift together, so a constant latency
+    changes no arrival time: the estimator's result is the same to rounding (it needs no latency parameter;
+    the latency matters only through the pose of a robot moving while it plays, which import-bag handles)."""
+    from calib.estimator import calibrate
+    from calib.pipeline.simulate.featsim import simulate_features
+
+    feats, _ = simulate_features(3, seed=5)
+    late = {**feats, "events": feats["events"].assign(t_emit=feats["events"]["t_emit"] + 0.025)}
+    a, b = calibrate(feats), calibrate(late)
+    cols = ["x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
+    assert np.allclose(a["arrays"][cols], b["arrays"][cols], atol=1e-9, rtol=0)
+    assert np.allclose(a["sources"][["x", "y", "z"]], b["sources"][["x", "y", "z"]], atol=1e-9, rtol=0)
