@@ -23,12 +23,13 @@ from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import State, build_problem, make_layout, matrix_quaternions, state_from_dict
+from .screen import distrusted, screen_rows
 from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
                      fit_array_alone, measurement_stats, count_measurements, factor_sizes, variance_factors,
                      remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
-from .verdict import MOVE_SIGMA, concentrated_outliers, make_verdict, residual_ratios, stated_sigma_excess
+from .verdict import MOVE_SIGMA, concentrated_outliers, make_verdict, name_distrusted, residual_ratios, stated_sigma_excess
 
 
 
@@ -660,7 +661,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     t0 = time.perf_counter()
     if method == "wang":
         use_tdoa_s = False
+    screened = None
     if problem is None:
+        features, screened = screen_rows(features)   # absurd and reflection-only rows out (estimator/screen.py)
         p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
     else:
         _check_given_problem(problem, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma)
@@ -685,8 +688,12 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     times["joint"] = time.perf_counter() - t2
     if outputs == "solution":
         return _solution(p, st, info, kinds, stage_states)
-    return _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, method=method, noise=noise,
-                         emission_sigma=emission_sigma, times=times, t0=t0)
+    out = _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, method=method, noise=noise,
+                        emission_sigma=emission_sigma, times=times, t0=t0)
+    if screened is not None:
+        out["report"]["screened"] = {"rows": screened["rows"], "arrays": distrusted(screened)}
+        name_distrusted(out["report"]["verdict"], screened)
+    return out
 
 
 def _check_given_problem(p, *, use_tdoa_s, emission_sigma):

@@ -136,3 +136,43 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
         worse("suspect", f"the odometry frame is rotated by {odometry_yaw['yaw_deg']:.1f} ± {odometry_yaw['std_deg']:.1f}° "
                          "about the vertical relative to the reference array (estimated; check the odometry's axes)")
     return {"status": status, "reasons": reasons, "flagged_arrays": flagged}
+
+
+REASON_TEXT = {"nlos": "reflection-only arrivals (late against the array's range track: line of sight blocked)",
+               "absurd": "TDOAs no room can produce (> 100 m of path off the array's clock line)"}
+
+
+def name_distrusted(verdict, screened):
+    """Name the arrays and events the estimator did not trust (``estimator.screen``), in place.
+
+    ``verdict["distrusted"]`` (only when there is any): one {array, reason, events} per array and reason, for the rows taken out
+    (their arrays were calibrated from the rest) and for arrays most of whose rows are in doubt (kept:
+    there is too little else; the array is then flagged and the status at least ``suspect``). Absurd rows
+    make the status ``suspect`` too: something upstream failed."""
+    groups = {}
+    for r in screened["rows"]:
+        groups.setdefault((r["array"], r["reason"]), set()).update(r["events"])
+    listed = [{"array": a, "reason": why, "events": sorted(ev), "taken_out": True}
+              for (a, why), ev in sorted(groups.items())]
+    worst = verdict["status"]
+    for a, n in sorted(screened["kept_doubted"].items()):
+        listed.append({"array": a, "reason": "nlos", "events": [], "taken_out": False})
+        if a not in verdict["flagged_arrays"]:
+            verdict["flagged_arrays"].append(a)
+        verdict["reasons"].append(f"array {a}: {n} of its rows are {REASON_TEXT['nlos']}, most of its data: kept, "
+                                  "its calibration is not trusted")
+        worst = max(worst, "suspect", key=STATUS_RANK.get)
+    absurd = sorted({a for (a, why) in groups if why == "absurd"})
+    if absurd:
+        verdict["reasons"].append(f"{sum(len(groups[(a, 'absurd')]) for a in absurd)} event(s) of array(s) "
+                                  f"{', '.join(absurd)} had {REASON_TEXT['absurd']}: taken out")
+        worst = max(worst, "suspect", key=STATUS_RANK.get)
+    nlos = [a for (a, why) in groups if why == "nlos"]
+    if nlos:
+        verdict["reasons"].append("not trusted, taken out: " + "; ".join(
+            f"{a} events {', '.join(map(str, sorted(groups[(a, 'nlos')])))}" for a in nlos)
+            + f" ({REASON_TEXT['nlos']})")
+    verdict["status"] = worst
+    if listed:
+        verdict["distrusted"] = listed
+    return verdict

@@ -22,6 +22,7 @@ from calib.errors import InputError
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .doa import cone_vectors, mic_geometry, single_thread_blas, srp_cone, srp_doa, srp_setup
+from .nlos import event_velocities, late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
@@ -95,6 +96,7 @@ def _extract(session, progress, opt, jobs=1):
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
     results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
+    flag_nlos(results, events, beta, c)
     flag_doa_spread(results)
     if progress is not None:
         progress(len(arrays), len(arrays), "done")
@@ -430,6 +432,31 @@ DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's
                           # the RMS that sets the session's DOA sigma it would weigh as much as 900 typical rows
 
 
+def flag_nlos(results, events, beta, c):
+    """Add the doubt "nlos" to every arrival late against its array's own range track along the odometry
+    (:func:`calib.frontend.nlos.late_arrivals`: a reflection-only arrival, the direct path blocked), halve its
+    quality, and keep each arrival's lateness as ``late`` (s; NaN: not judged). In place."""
+    t_emit = events["t_emit"].to_numpy(float)
+    odom = events[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+    vel = event_velocities(events)
+    for r in results.values():
+        j = r["ev_idx"]
+        ev = late_arrivals(np.asarray(r["arrival"], float), t_emit[j] - t_emit[0], odom[j], c, beta,
+                           None if vel is None else vel[j])
+        r["late"] = ev["late"]
+        for k in np.flatnonzero(ev["nlos"]):
+            r["flags"][k].append("nlos")
+            r["quality"][k] *= DOUBT_PENALTY
+        n = int(ev["nlos"].sum())
+        if n:
+            r["warnings"].append(f"{n} of {len(j)} arrivals are late against the array's range track along the "
+                                 "odometry by more than a direct path can be (reflection only: line of sight "
+                                 "blocked, flagged nlos)")
+        if ev["early"] >= max(3, 0.1 * len(j)):
+            r["warnings"].append(f"{ev['early']} arrivals are early against the array's range track: most of its "
+                                 "arrivals may be reflections (line of sight blocked)")
+
+
 def flag_doa_spread(results):
     """Add the doubt "doa_spread" to every arrival whose DOA spread (:func:`doa_spread`) exceeds
     ``DOA_SPREAD_FACTOR`` × the median over the session's DOAs without doubts (in place; the median over
@@ -544,22 +571,24 @@ def _tables(session, results, ev_ids, beta):
     names = [a["name"] for a in session["arrays"]]
     arr = {}
     for name, r in results.items():
-        arr[name] = {int(ev_ids[j]): (r["arrival"][k], r["quality"][k], _flag_text(r["flags"][k], doa=False))
+        late = r.get("late", np.full(len(r["ev_idx"]), np.nan))
+        arr[name] = {int(ev_ids[j]): (r["arrival"][k], r["quality"][k], _flag_text(r["flags"][k], doa=False), late[k])
                      for k, j in enumerate(r["ev_idx"])}
     tm, ts, doa = [], [], []
     for name in names:
-        for e, (t, q, f) in arr[name].items():
+        for e, (t, q, f, lt) in arr[name].items():
             if name != ref and e in arr[ref]:
-                tr, qr, fr = arr[ref][e]
-                tm.append((e, name, t - tr, min(q, qr), _join(fr, f)))
+                tr, qr, fr, lr = arr[ref][e]
+                tm.append((e, name, t - tr, min(q, qr), _join(fr, f), _later(lt, lr)))
         evs = sorted(arr[name])
         for e1, e2 in zip(evs[:-1], evs[1:]):
-            (t1, q1, f1), (t2, q2, f2) = arr[name][e1], arr[name][e2]
-            ts.append((name, e1, e2, t2 - t1, min(q1, q2), _join(f1, f2)))
+            (t1, q1, f1, l1), (t2, q2, f2, l2) = arr[name][e1], arr[name][e2]
+            ts.append((name, e1, e2, t2 - t1, min(q1, q2), _join(f1, f2), _later(l1, l2)))
         r = results[name]
         for k, j in enumerate(r["ev_idx"] if r["has_doa"] else []):
             doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k], _flag_text(r["flags"][k], doa=True),
-                        _row_sigma_deg(r["doa_spread"][k]) if r["doa_axis"] is None else np.nan))
+                        _row_sigma_deg(r["doa_spread"][k]) if r["doa_axis"] is None else np.nan,
+                        arr[name][int(ev_ids[j])][3]))
     est = noise_estimates(results)
     est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
@@ -577,11 +606,12 @@ def _tables(session, results, ev_ids, beta):
     return {
         "meta": meta,
         "events": session["events"].copy(),
-        "tdoa_m": pd.DataFrame(tm, columns=["event", "array", "tdoa", "quality", "flag"]).astype({"event": int}),
-        "tdoa_s": pd.DataFrame(ts, columns=["array", "from_event", "to_event", "tdoa", "quality", "flag"])
-        .astype({"from_event": int, "to_event": int}),
-        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality", "flag", "sigma_deg"])
+        "tdoa_m": pd.DataFrame(tm, columns=["event", "array", "tdoa", "quality", "flag", "late_s"])
         .astype({"event": int}),
+        "tdoa_s": pd.DataFrame(ts, columns=["array", "from_event", "to_event", "tdoa", "quality", "flag", "late_s"])
+        .astype({"from_event": int, "to_event": int}),
+        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality", "flag", "sigma_deg",
+                                          "late_s"]).astype({"event": int}),
     }
 
 
@@ -592,8 +622,8 @@ def _row_sigma_deg(sd):
     return float(np.degrees(sd)) if np.isfinite(sd) and sd > 0 else np.nan
 
 
-TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded")
-DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "doa_spread", "mic_spread", "occluded")
+TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded", "nlos")
+DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "doa_spread", "mic_spread", "occluded", "nlos")
 DOA_ONLY_DOUBTS = ("doa_reflection", "doa_spread")  # no bearing on the arrival time (nor its quality)
 
 
@@ -601,6 +631,11 @@ def _flag_text(reasons, doa):
     """The ``flag`` column: the doubts that concern a timing (or a DOA) row, joined by '+'; '' = none."""
     keep = DOA_DOUBTS if doa else TIMING_DOUBTS
     return "+".join(x for x in reasons if x in keep)
+
+
+def _later(a, b):
+    """``late_s`` of a row built from two arrivals: the later one's (NaN when neither was judged)."""
+    return float(np.nanmax([a, b])) if np.isfinite(a) or np.isfinite(b) else np.nan
 
 
 def _join(a, b):
@@ -658,7 +693,8 @@ def _diagnostics(session, results, ev_ids, beta, elapsed):
             "arrival_spread_median_s": float(np.nanmedian(r["spread"])),
             "arrivals": [{"event": int(ev_ids[j]), "time": float(r["arrival"][k]),
                           "quality": float(r["quality"][k]), "flag": "+".join(r["flags"][k]),
-                          "mic_sd_s": float(r["mic_sd"][k]), "sd_s": float(r["arrival_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k]))}
+                          "mic_sd_s": float(r["mic_sd"][k]), "sd_s": float(r["arrival_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k])),
+                          "late_s": float(r["late"][k]) if "late" in r else None}
                          for k, j in enumerate(r["ev_idx"])],
             "doubtful": {int(ev_ids[j]): r["flags"][k] for k, j in enumerate(r["ev_idx"]) if r["flags"][k]},
             "redetected_events": [int(ev_ids[j]) for j in np.flatnonzero(r["redetected"])],

@@ -1,0 +1,116 @@
+"""Rows the estimator does not trust, taken out before the solve — rows, never whole arrays.
+
+Two kinds (docs/method.md, "Screened rows"):
+
+* **absurd**: a TDOA no room can produce. Per array, TDOA-M follows its clock line ``offset + drift · t`` up
+  to the geometry (|Δd|/c), TDOA-S the emission interval ``(1 + drift) Δt`` up to the range change. A row off
+  its array's robust line by more than ``ABSURD_S`` (100 m of path) is a bookkeeping or detection failure
+  (one TDOA of −95 s reached the estimator, issue 27); it would otherwise decide the initialisation.
+* **nlos**: the frontend's evidence that an arrival is a reflection only (flag ``nlos``: late against the
+  array's own range track along the odometry, docs/frontend.md). Such a row is late by metres of path and
+  would pull the array that heard it — and through the shared sources every other array.
+
+An array whose rows are mostly doubted keeps them (dropping most of an array's data leaves it to a handful
+of rows): it is reported as distrusted instead, and the verdict names it (:func:`distrusted_arrays`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+ABSURD_S = 0.3              # s: 100 m of path, beyond any room's geometry; a row further off its clock line is absurd
+MAX_DOUBTED_FRACTION = 0.5  # an array with more of its rows flagged nlos keeps them (named as distrusted instead)
+DROP_FLAGS = ("nlos",)      # frontend doubts (the ``flag`` column) whose rows are taken out
+
+
+def _flags(df):
+    if "flag" not in df.columns:
+        return np.zeros(len(df), bool)
+    f = df["flag"].fillna("").astype(str)
+    return np.array([any(x in DROP_FLAGS for x in s.split("+")) for s in f], bool)
+
+
+def _robust_line_residuals(t, y):
+    """Residuals of y against a robust line in t (Theil–Sen slope from consecutive pairs, median intercept)."""
+    if len(y) < 2:
+        return y - np.median(y) if len(y) else y
+    order = np.argsort(t)
+    dt, dy = np.diff(t[order]), np.diff(y[order])
+    ok = dt > 0
+    slope = float(np.median(dy[ok] / dt[ok])) if ok.any() else 0.0
+    r = y - slope * t
+    return r - np.median(r)
+
+
+def absurd_rows(features):
+    """{table: (rows,) bool} TDOA rows off their array's clock line by more than ``ABSURD_S``."""
+    ev = features["events"]
+    t_of = dict(zip(ev["event"].to_numpy(int), ev["t_emit"].to_numpy(float)))
+    out = {}
+    tm = features["tdoa_m"]
+    bad = np.zeros(len(tm), bool)
+    for _, idx in tm.groupby("array").indices.items():
+        t = np.array([t_of[e] for e in tm["event"].to_numpy(int)[idx]])
+        y = tm["tdoa"].to_numpy(float)[idx]
+        bad[idx] = ~np.isfinite(y) | (np.abs(_robust_line_residuals(t, np.nan_to_num(y))) > ABSURD_S)
+    out["tdoa_m"] = bad
+    ts = features["tdoa_s"]
+    bad = np.zeros(len(ts), bool)
+    for _, idx in ts.groupby("array").indices.items():
+        dt = np.array([t_of[b] - t_of[a] for a, b in zip(ts["from_event"].to_numpy(int)[idx],
+                                                          ts["to_event"].to_numpy(int)[idx])])
+        y = ts["tdoa"].to_numpy(float)[idx]
+        yy = np.nan_to_num(y)
+        k = float(np.median(yy[dt > 0] / dt[dt > 0])) if np.any(dt > 0) else 1.0   # the array's (1 + drift)
+        r = yy - k * dt
+        bad[idx] = ~np.isfinite(y) | (np.abs(r - np.median(r)) > ABSURD_S)
+    out["tdoa_s"] = bad
+    for name, tab in (("tdoa_m", tm), ("tdoa_s", ts)):
+        # most of an array's rows off its line: the model (e.g. the emission times) is wrong, not the rows
+        for _, idx in tab.groupby("array").indices.items():
+            if out[name][idx].sum() > MAX_DOUBTED_FRACTION * len(idx):
+                out[name][idx] = ~np.isfinite(tab["tdoa"].to_numpy(float)[idx])
+    return out
+
+
+def screen_rows(features):
+    """Features without the rows not trusted, and the record of what was taken out and why.
+
+    Returns (features copy, record): record = {"rows": [{"type", "array", "events", "reason"}],
+    "kept_doubted": {array: number of its nlos rows kept because they are most of its rows}}.
+    """
+    absurd = absurd_rows(features)
+    out, rows, kept = dict(features), [], {}
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        df = features[name]
+        if not len(df):
+            continue
+        doubt = _flags(df)
+        arr = df["array"].astype(str).to_numpy()
+        for a in np.unique(arr[doubt]):
+            m = arr == a
+            if doubt[m].sum() > MAX_DOUBTED_FRACTION * m.sum():
+                kept[a] = kept.get(a, 0) + int(doubt[m].sum())
+                doubt[m] = False
+        bad = absurd.get(name, np.zeros(len(df), bool))
+        drop = bad | doubt
+        for k in np.flatnonzero(drop):
+            r = df.iloc[k]
+            evs = [int(r["event"])] if "event" in df.columns else [int(r["from_event"]), int(r["to_event"])]
+            rows.append({"type": name, "array": str(r["array"]), "events": evs,
+                         "reason": "absurd" if bad[k] else "nlos",
+                         **({"line": int(r["csv_line"])} if "csv_line" in df.columns else {})})
+        if drop.any():
+            out[name] = df[~drop]
+    return out, {"rows": rows, "kept_doubted": kept}
+
+
+def distrusted(record):
+    """Summary for the report: {array: {reason: number of rows}} of the screened rows, plus the arrays whose
+    doubted rows were kept (``"nlos_kept"``)."""
+    out = {}
+    for r in record["rows"]:
+        d = out.setdefault(r["array"], {})
+        d[r["reason"]] = d.get(r["reason"], 0) + 1
+    for a, n in record["kept_doubted"].items():
+        out.setdefault(a, {})["nlos_kept"] = n
+    return out
