@@ -23,6 +23,7 @@ from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import State, build_problem, make_layout, matrix_quaternions, state_from_dict
+from .motion import motion_solve
 from .screen import distrusted, screen_rows
 from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
                      fit_array_alone, measurement_stats, count_measurements, factor_sizes, variance_factors,
@@ -682,9 +683,17 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
     if noise == "estimate" and array_noise:
         arraynoise.start_scales(p, kinds)
-    st, p, info, scales, bounds = _joint_solve(p, st, kinds, stages, features["meta"], noise=noise, loss=loss,
-                                               robust_k=robust_k, outlier_threshold=outlier_threshold,
-                                               max_iter=max_iter)
+    p_raw = p.copy()
+
+    def joint(p_, st_):
+        return _joint_solve(p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
+                            outlier_threshold=outlier_threshold, max_iter=max_iter)
+
+    # a source moving during the sweep: its arrival shifts removed, re-solved (estimator/motion.py)
+    (st, p, info, scales, bounds), motion = motion_solve(p_raw, features["events"], joint(p, st), joint,
+                                                         kinds=kinds)
+    if motion["source"] is not None:
+        stages["motion"] = motion
     times["joint"] = time.perf_counter() - t2
     if outputs == "solution":
         return _solution(p, st, info, kinds, stage_states)

@@ -18,11 +18,12 @@ import numpy as np
 import pandas as pd
 
 from calib.errors import InputError
+from calib.tables import event_velocities
 
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .doa import cone_vectors, mic_geometry, single_thread_blas, srp_cone, srp_doa, srp_setup
-from .nlos import event_velocities, late_arrivals
+from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header

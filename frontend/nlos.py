@@ -79,13 +79,3 @@ def late_arrivals(arrival, t, s, c, beta=0.0, vel=None):
     out["scale"] = scale
     out["early"] = int(np.sum(res < -margin))
     return out
-
-
-def event_velocities(events):
-    """(K, 3) source velocity at each event (m/s, reference axes) from events.csv ``vel_x, vel_y, vel_z``
-    (docs/formats.md), or None when the events do not carry it (a robot that stops for every chirp)."""
-    cols = ("vel_x", "vel_y", "vel_z")
-    if not all(k in events.columns for k in cols):
-        return None
-    v = events[list(cols)].to_numpy(float)
-    return np.where(np.isfinite(v), v, 0.0)
