@@ -691,7 +691,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
 
     # a source moving during the sweep: its arrival shifts removed, re-solved (estimator/motion.py)
     (st, p, info, scales, bounds), motion = motion_solve(p_raw, features["events"], joint(p, st), joint,
-                                                         kinds=kinds)
+                                                         kinds=kinds,
+                                                         curve=features["meta"].get("chirp_stretch_shift"))
     if motion["source"] is not None:
         stages["motion"] = motion
     times["joint"] = time.perf_counter() - t2

@@ -60,17 +60,21 @@ def _yawed(v, yaw):
     return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
 
 
-def arrival_shifts(p, st, vel):
-    """(N, K) matched-filter arrival shift β ṙ_ij / c (s) of every array and event at state ``st``."""
+def arrival_shifts(p, st, vel, curve=None):
+    """(N, K) matched-filter arrival shift of every array and event at state ``st``: β ṙ_ij / c, or the
+    frontend's measured curve (meta ``chirp_stretch_shift``: {stretch, shift_s}) at ε = ṙ_ij / c."""
     v = _yawed(vel, float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0)
     w = st.s[None, :, :] - st.x[:, None, :]                   # (N, K, 3) array → source
     d = np.linalg.norm(w, axis=2)
-    return p.beta * np.einsum("kc,nkc->nk", v, w) / np.maximum(d, 1e-9) / p.c
+    eps = np.einsum("kc,nkc->nk", v, w) / np.maximum(d, 1e-9) / p.c
+    if curve:
+        return np.interp(eps, np.asarray(curve["stretch"], float), np.asarray(curve["shift_s"], float))
+    return p.beta * eps
 
 
-def corrected(p, st, vel):
+def corrected(p, st, vel, curve=None):
     """``p`` with its TDOAs freed of the motion's arrival shifts at ``st`` (a copy; measured rows as read)."""
-    sh = arrival_shifts(p, st, vel)
+    sh = arrival_shifts(p, st, vel, curve)
     tm, ts = p.tdoa_m, p.tdoa_s
     return p.replace(
         tdoa_m=dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
@@ -97,11 +101,12 @@ def motion_gain(p, st, info, vel, kinds):
     return float(-(sw * lin.r) @ g_perp / gg), float(1.0 / np.sqrt(gg))
 
 
-def motion_solve(p_raw, events, first, solve, *, kinds):
+def motion_solve(p_raw, events, first, solve, *, kinds, curve=None):
     """The joint solve with the moving source's arrival shifts removed, when the source moves.
 
     p_raw : the problem as built (before a solve changed its sigmas); first : ``solve``'s result
-    (state, problem, info, scales, bounds) on ``p_raw``; solve(problem, state) → the same tuple.
+    (state, problem, info, scales, bounds) on ``p_raw``; solve(problem, state) → the same tuple; curve: meta
+    ``chirp_stretch_shift`` (the frontend's measured shift for large stretches) or None (β ε).
     Odometry velocities are used only when the static solve's residuals hold the shift pattern
     (:func:`motion_gain` ≥ MIN_GAIN). Returns (the result kept, record for report.json ``motion``).
     """
@@ -116,5 +121,6 @@ def motion_solve(p_raw, events, first, solve, *, kinds):
             return first, {**rec, "applied": False}
     cur = first
     for _ in range(MOTION_ITERATIONS):
-        cur = solve(corrected(p_raw, cur[0], vel), cur[0])
-    return cur, {**rec, "applied": True, "max_shift_s": float(np.max(np.abs(arrival_shifts(p_raw, cur[0], vel))))}
+        cur = solve(corrected(p_raw, cur[0], vel, curve), cur[0])
+    return cur, {**rec, "applied": True, "curve": bool(curve),
+                 "max_shift_s": float(np.max(np.abs(arrival_shifts(p_raw, cur[0], vel, curve))))}

@@ -72,33 +72,45 @@ def absurd_rows(features):
     return out
 
 
+def _row_events(df):
+    """(rows,) lists of the events each row depends on."""
+    if "event" in df.columns:
+        return [[int(e)] for e in df["event"].to_numpy(int)]
+    return [[int(a), int(b)] for a, b in zip(df["from_event"].to_numpy(int), df["to_event"].to_numpy(int))]
+
+
+def mostly_doubted(features, doubt):
+    """Arrays whose doubted events (any row of theirs flagged) are more than MAX_DOUBTED_FRACTION of the
+    events they have rows for: {array: number of doubted events}."""
+    seen, bad = {}, {}
+    for name, d in doubt.items():
+        df = features[name]
+        for a, evs, flagged in zip(df["array"].astype(str), _row_events(df), d):
+            seen.setdefault(a, set()).update(evs)
+            if flagged:
+                bad.setdefault(a, set()).update(evs if name != "tdoa_s" else [])
+    return {a: len(e) for a, e in bad.items() if len(e) > MAX_DOUBTED_FRACTION * len(seen[a])}
+
+
 def screen_rows(features):
     """Features without the rows not trusted, and the record of what was taken out and why.
 
-    Returns (features copy, record): record = {"rows": [{"type", "array", "events", "reason"}],
-    "kept_doubted": {array: number of its nlos rows kept because they are most of its rows}}.
+    Returns (features copy, record): record = {"rows": [{"type", "array", "events", "reason"[, "line"]}],
+    "kept_doubted": {array: its doubted events, kept because they are most of its events}}.
     """
     absurd = absurd_rows(features)
-    out, rows, kept = dict(features), [], {}
-    for name in ("tdoa_m", "tdoa_s", "doa"):
+    names = [n for n in ("tdoa_m", "tdoa_s", "doa") if len(features[n])]
+    doubt = {n: _flags(features[n]) for n in names}
+    kept = mostly_doubted(features, doubt)
+    out, rows = dict(features), []
+    for name in names:
         df = features[name]
-        if not len(df):
-            continue
-        doubt = _flags(df)
         arr = df["array"].astype(str).to_numpy()
-        for a in np.unique(arr[doubt]):
-            m = arr == a
-            if doubt[m].sum() > MAX_DOUBTED_FRACTION * m.sum():
-                kept[a] = kept.get(a, 0) + int(doubt[m].sum())
-                doubt[m] = False
         bad = absurd.get(name, np.zeros(len(df), bool))
-        drop = bad | doubt
-        for k in np.flatnonzero(drop):
-            r = df.iloc[k]
-            evs = [int(r["event"])] if "event" in df.columns else [int(r["from_event"]), int(r["to_event"])]
-            rows.append({"type": name, "array": str(r["array"]), "events": evs,
-                         "reason": "absurd" if bad[k] else "nlos",
-                         **({"line": int(r["csv_line"])} if "csv_line" in df.columns else {})})
+        drop = bad | (doubt[name] & ~np.isin(arr, list(kept)))
+        for k, evs in zip(np.flatnonzero(drop), [e for e, d in zip(_row_events(df), drop) if d]):
+            rows.append({"type": name, "array": str(arr[k]), "events": evs, "reason": "absurd" if bad[k] else "nlos",
+                         **({"line": int(df["csv_line"].iloc[k])} if "csv_line" in df.columns else {})})
         if drop.any():
             out[name] = df[~drop]
     return out, {"rows": rows, "kept_doubted": kept}

@@ -149,9 +149,12 @@ def name_distrusted(verdict, screened):
     (their arrays were calibrated from the rest) and for arrays most of whose rows are in doubt (kept:
     there is too little else; the array is then flagged and the status at least ``suspect``). Absurd rows
     make the status ``suspect`` too: something upstream failed."""
-    groups = {}
+    groups, single = {}, {}
     for r in screened["rows"]:
-        groups.setdefault((r["array"], r["reason"]), set()).update(r["events"])
+        groups.setdefault((r["array"], r["reason"]), set())
+        # a TDOA-S row names two events, only one of them in doubt: the events of single-event rows when any
+        (single if len(r["events"]) == 1 else groups).setdefault((r["array"], r["reason"]), set()).update(r["events"])
+    groups.update({k: v for k, v in single.items() if v})
     listed = [{"array": a, "reason": why, "events": sorted(ev), "taken_out": True}
               for (a, why), ev in sorted(groups.items())]
     worst = verdict["status"]
@@ -159,7 +162,7 @@ def name_distrusted(verdict, screened):
         listed.append({"array": a, "reason": "nlos", "events": [], "taken_out": False})
         if a not in verdict["flagged_arrays"]:
             verdict["flagged_arrays"].append(a)
-        verdict["reasons"].append(f"array {a}: {n} of its rows are {REASON_TEXT['nlos']}, most of its data: kept, "
+        verdict["reasons"].append(f"array {a}: in {n} of its events its arrivals are {REASON_TEXT['nlos']}: most of its data, kept; "
                                   "its calibration is not trusted")
         worst = max(worst, "suspect", key=STATUS_RANK.get)
     absurd = sorted({a for (a, why) in groups if why == "absurd"})

@@ -28,6 +28,24 @@ def _fixed_margins(fig, n_rows):
                         bottom=m["bottom"] / h, hspace=m["between"] / row)
 
 
+NLOS_COLOR, DOUBT_COLOR = "tab:red", "tab:orange"
+STRONG_DOUBTS = ("nlos", "occluded", "weak_direct", "track", "redetected")   # marked on the timeline
+
+
+def _mark_doubted(ax, a, top):
+    """▼ above each arrival the estimator distrusts or may: red for NLOS (reflection-only: taken out by the
+    estimator), orange for the other strong doubts (docs/frontend.md)."""
+    for x in a.get("arrivals", []):
+        flags = (x.get("flag") or "").split("+")
+        if "nlos" in flags:
+            color = NLOS_COLOR
+        elif any(f in STRONG_DOUBTS for f in flags):
+            color = DOUBT_COLOR
+        else:
+            continue
+        ax.plot([x["time"]], [top * 1.1], "v", color=color, ms=6)
+
+
 def plot_detections(path, diag):
     """Detection timeline, one row per array on its own clock: matched-filter envelope (dB re. its median),
     matched detections (green, event id), spurious ones (red ×), missed events at their predicted time
@@ -66,6 +84,7 @@ def plot_detections(path, diag):
             ax.vlines(te, 0, 1, transform=across, color="0.3", linestyles="--", lw=1)
             for e, t_e in zip(a["missed_events"], te):
                 ax.text(t_e, top * 1.02, f"{e}?", color="0.3", ha="center", va="bottom", fontsize=7)
+        _mark_doubted(ax, a, top)
         n_m = sum(d["event"] is not None for d in det)
         warn = "  ⚠ " + "; ".join(a["warnings"]) if a["warnings"] else ""
         ax.set_title(f"{name}: {n_m} matched, {len(a['missed_events'])} missed "
@@ -77,7 +96,8 @@ def plot_detections(path, diag):
         ax.set_xlim(0, t_max)
     axes[-1, 0].set_xlabel("time on each array's own clock (s)")
     fig.suptitle("Chirp detections: matched-filter envelope; green = matched (event id), red × = spurious, "
-                 "dashed = missed event (predicted time)", fontsize=10)
+                 "dashed = missed event (predicted time); ▼ distrusted arrival: red = NLOS (reflection only), "
+                 "orange = other doubt", fontsize=10)
     _fixed_margins(fig, n)  # tight_layout measured every label: ~0.1 s of a ~0.5 s plot
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -27,7 +27,7 @@ from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
-from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
+from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup, stretch_shifts
 
 DEFAULTS = {
     "threshold": 8.0,        # detection: peak / local background of the matched-filter envelope
@@ -97,12 +97,15 @@ def _extract(session, progress, opt, jobs=1):
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
     results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
-    flag_nlos(results, events, beta, c)
+    curve = _stretch_curve(arrays[order[0]], session, c, opt)
+    flag_nlos(results, events, _shift_function(beta, curve), c)
     flag_doa_spread(results)
     if progress is not None:
         progress(len(arrays), len(arrays), "done")
 
     feats = _tables(session, results, ev_ids, beta)
+    if curve is not None:
+        feats["meta"]["chirp_stretch_shift"] = curve
     diag = _diagnostics(session, results, ev_ids, beta, time.perf_counter() - t_start)
     return feats, diag
 
@@ -196,7 +199,9 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
         # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
         # propagation delays, so only as an upper bound on the measured broadening)
-        smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * st["dur"] - g["pulse"]) * fs))
+        # a source moving during the sweep stretches it by 1 + ṙ/c alike (events.csv vel_x/y/z: |ṙ| ≤ |v|)
+        stretch = abs(asc["scale"] - 1.0) + _max_speed(session["events"]) / c
+        smear_max = int(round(max(0.0, 2 * stretch * st["dur"] - g["pulse"]) * fs))
         # event segments read and processed in chunks (memory bounded however long the recording)
         loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max}, workers=fft_workers)
     finally:
@@ -221,6 +226,42 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         "has_doa": doa["kind"] != "single", "doa_axis": doa["axis"],
         "mic_quality": loc["value"], "warnings": warnings, "timings": timings,
     }
+
+
+def _max_speed(events):
+    """The largest source speed during a sweep (m/s) from events.csv's optional velocity columns; 0 without."""
+    v = event_velocities(events)
+    return float(np.max(np.linalg.norm(v, axis=1))) if v is not None and len(v) else 0.0
+
+
+STRETCH_POINTS = 17     # points of the stretch → shift curve (odd: ε = 0 among them)
+STRETCH_MARGIN = 1.25   # the curve spans ± this × the largest |v|/c of the events
+
+
+def _stretch_curve(a, session, c, opt):
+    """meta ``chirp_stretch_shift`` for a source that moves during the sweep (events.csv velocities): this
+    estimator's arrival shift for the sweep received stretched by 1 + ε (ε = ṙ/c), measured as β is
+    (:func:`timing.stretch_shifts`) at the reference array's rate, on ± STRETCH_MARGIN × the largest
+    |v|/c. Beyond a stretch of ~1e-4 the shift is no longer β ε. None without velocities."""
+    vmax = _max_speed(session["events"])
+    if vmax <= 0:
+        return None
+    fs = int(read_header(a).samplerate)
+    template = chirp_template(session["chirp"], fs)
+    band = chirp_band(session["chirp"], template, fs)
+    g = _timing_layout(np.asarray(a["mics"], float), band, fs, c, len(template), opt)
+    eps = np.linspace(-1.0, 1.0, STRETCH_POINTS) * STRETCH_MARGIN * vmax / c
+    shift, real = stretch_shifts(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"], eps)
+    zero = float(np.interp(0.0, real, shift))
+    return {"stretch": [float(v) for v in real], "shift_s": [float(v - zero) for v in shift]}
+
+
+def _shift_function(beta, curve):
+    """ε → arrival shift (s): the measured curve when there is one, else β ε."""
+    if curve is None:
+        return lambda eps: beta * eps
+    x, y = np.asarray(curve["stretch"]), np.asarray(curve["shift_s"])
+    return lambda eps: np.interp(eps, x, y)
 
 
 def _reference_beta(a, session, c, opt):
@@ -433,7 +474,7 @@ DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's
                           # the RMS that sets the session's DOA sigma it would weigh as much as 900 typical rows
 
 
-def flag_nlos(results, events, beta, c):
+def flag_nlos(results, events, shift, c):
     """Add the doubt "nlos" to every arrival late against its array's own range track along the odometry
     (:func:`calib.frontend.nlos.late_arrivals`: a reflection-only arrival, the direct path blocked), halve its
     quality, and keep each arrival's lateness as ``late`` (s; NaN: not judged). In place."""
@@ -442,7 +483,7 @@ def flag_nlos(results, events, beta, c):
     vel = event_velocities(events)
     for r in results.values():
         j = r["ev_idx"]
-        ev = late_arrivals(np.asarray(r["arrival"], float), t_emit[j] - t_emit[0], odom[j], c, beta,
+        ev = late_arrivals(np.asarray(r["arrival"], float), t_emit[j] - t_emit[0], odom[j], c, shift,
                            None if vel is None else vel[j])
         r["late"] = ev["late"]
         for k in np.flatnonzero(ev["nlos"]):
