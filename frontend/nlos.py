@@ -27,7 +27,6 @@ NLOS_MIN_S = 0.5e-3     # late by at least this (17 cm of path) ... a direct pat
 NLOS_SIGMAS = 8.0       # ... and by this many robust residual stds (MAD) of the array's own fit
 Q_ABS = 0.3186          # quartile of |x| for x ~ N(0, 1)
 ROBUST_SCALE_S = 2e-4   # the robust loss's scale in the fit (s): direct-path noise is well inside it
-START_OFFSETS_M = np.array([[0, 0, 0], [4, 0, 0], [-4, 0, 0], [0, 4, 0], [0, -4, 0], [0, 0, 3], [0, 0, -3]], float)
 
 
 def range_model(params, t, s, c, shift=None, vel=None):
@@ -42,21 +41,42 @@ def range_model(params, t, s, c, shift=None, vel=None):
     return out
 
 
+def _jacobian(params, t, s, c):
+    """d(model)/d(params) (J, 5) of :func:`range_model` without the (tiny) motion term's derivative."""
+    w = s - params[:3]
+    d = np.maximum(np.sqrt(np.sum(w * w, axis=1)), 1e-9)
+    return np.column_stack([-w / (c * d[:, None]), np.ones(len(t)), t])
+
+
+def linear_start(arrival, t, s, c):
+    """Initial (x, τ, δ = 0) of the track from the squared ranges, linear in (x, τ, c²τ² − |x|²):
+    ``|s_j|² − c² b_j² = 2 s_j·x − 2 c² b_j τ + (c² τ² − |x|²)`` with ``b_j = a_j − t_j`` (least squares,
+    minimum norm: a planar trajectory leaves x's height to the refinement)."""
+    b = arrival - t
+    b0 = float(np.median(b))
+    bb = b - b0                       # conditioning: τ relative to the median arrival
+    A = np.column_stack([2 * s, -2 * c * c * bb, np.ones(len(t))])
+    y = np.sum(s * s, axis=1) - c * c * bb * bb
+    sol = np.linalg.lstsq(A, y, rcond=None)[0]
+    return np.r_[sol[:3], b0 + sol[3], 0.0]
+
+
 def fit_range_track(arrival, t, s, c, shift=None, vel=None):
-    """Robust fit of :func:`range_model` to one array's arrivals (multi-start: the array may be anywhere).
+    """Robust fit of :func:`range_model` to one array's arrivals, from the linear start and from the
+    trajectory's centre 4 m up (the array may be anywhere; the better fit is kept).
 
     arrival (J,) local s; t (J,) emission times − t_emit[0]; s (J, 3) odometry; vel (J, 3) or None.
     Returns (params (5,), residuals (J,) s: measured − model).
     """
-    centre = s.mean(axis=0)
+    centre = s.mean(axis=0) + [0.0, 0.0, 4.0]
+    tau_c = float(np.median(arrival - t - np.linalg.norm(s - centre, axis=1) / c))
     best = None
-    for off in START_OFFSETS_M:
-        x0 = centre + off
-        d0 = np.linalg.norm(s - x0, axis=1) / c
-        tau0 = float(np.median(arrival - t - d0))
-        res = least_squares(lambda q: (arrival - range_model(q, t, s, c, shift, vel)) / ROBUST_SCALE_S,
-                            np.r_[x0, tau0, 0.0], loss="cauchy", f_scale=1.0, x_scale=np.r_[1, 1, 1, 1e-3, 1e-5],
-                            max_nfev=200)
+    for q0 in (linear_start(arrival, t, s, c), np.r_[centre, tau_c, 0.0]):
+        if not np.all(np.isfinite(q0)):
+            continue
+        res = least_squares(lambda q: (arrival - range_model(q, t, s, c, shift, vel)) / ROBUST_SCALE_S, q0,
+                            jac=lambda q: -_jacobian(q, t, s, c) / ROBUST_SCALE_S, loss="cauchy", f_scale=1.0,
+                            x_scale=np.r_[1, 1, 1, 1e-3, 1e-5], max_nfev=100)
         if best is None or res.cost < best.cost:
             best = res
     return best.x, arrival - range_model(best.x, t, s, c, shift, vel)
