@@ -12,9 +12,9 @@ With a moving source (events.csv ``vel_x, vel_y, vel_z``) the matched filter shi
 ``shift(v·(s − x)/(c|s − x|))`` ≈ ``β ṙ/c`` (the range-Doppler coupling, estimator/motion.py); the fit models it, so a
 robot that keeps moving does not look like reflections.
 
-Limits: the fit describes the majority; when reflections are the majority the direct arrivals show as
-early, and the track is refitted to them if there are at least ``MIN_EARLY``; with fewer, ``early``
-counts them (a warning). With fewer than ``MIN_EVENTS`` arrivals nothing is judged.
+Limits: the track needs about SUBSET direct arrivals that a candidate subset catches (runs along the
+trajectory, or random draws); arrivals still early against it are counted (``early``, a warning). With
+fewer than ``MIN_EVENTS`` arrivals nothing is judged.
 """
 from __future__ import annotations
 
@@ -22,10 +22,14 @@ import numpy as np
 from scipy.optimize import least_squares
 
 MIN_EVENTS = 8          # arrivals needed to fit the 5 unknowns and still judge each one
-MIN_EARLY = 6           # early arrivals needed to refit the track to them alone (5 unknowns)
-NLOS_MIN_S = 0.5e-3     # late by at least this (17 cm of path) ... a direct path's timing error is ~10-100 µs
+NLOS_MIN_S = 2.0e-3     # late by at least this (69 cm of path): a direct path is within ~0.1 ms of its track, a
+                        # misfit track (few events, a degenerate trajectory) left 1.2 ms (hall seed 0); walls: 5-25 ms
 NLOS_SIGMAS = 8.0       # ... and by this many robust residual stds (MAD) of the array's own fit
 Q_ABS = 0.3186          # quartile of |x| for x ~ N(0, 1)
+SUBSET = 5              # arrivals per candidate track (5 unknowns)
+RANDOM_SUBSETS = 20     # random candidate subsets besides the windows (fixed seed: deterministic)
+INLIER_S = 3e-4         # s: an arrival this close to a candidate track supports it (10 cm of path)
+MIN_INLIERS = 6         # fewer: the refinement uses every arrival
 ROBUST_SCALE_S = 2e-4   # the robust loss's scale in the fit (s): direct-path noise is well inside it
 
 
@@ -61,25 +65,67 @@ def linear_start(arrival, t, s, c):
     return np.r_[sol[:3], b0 + sol[3], 0.0]
 
 
-def fit_range_track(arrival, t, s, c, shift=None, vel=None):
-    """Robust fit of :func:`range_model` to one array's arrivals, from the linear start and from the
-    trajectory's centre 4 m up (the array may be anywhere; the better fit is kept).
+def _candidates(j, rng):
+    """Index subsets to seed the track: windows of SUBSET consecutive events (line of sight is lost and
+    regained in runs along the trajectory) and RANDOM_SUBSETS random ones."""
+    win = [np.arange(k, k + SUBSET) for k in range(0, j - SUBSET + 1)]
+    rand = [np.sort(rng.choice(j, SUBSET, replace=False)) for _ in range(RANDOM_SUBSETS)]
+    return win + rand
 
+
+def _score(res):
+    """A candidate track's support: arrivals within INLIER_S of it, less twice those EARLY by more than
+    NLOS_MIN_S (a direct path is never early: a track with early arrivals follows reflections)."""
+    return int(np.sum(np.abs(res) < INLIER_S)) - 2 * int(np.sum(res < -NLOS_MIN_S))
+
+
+def _refine(q0, idx, arrival, t, s, c, shift, vel, loss="cauchy"):
+    """:func:`range_model`'s parameters fitted to the arrivals ``idx`` from ``q0`` (analytic Jacobian)."""
+    v = None if vel is None else vel[idx]
+    return least_squares(lambda q: (arrival[idx] - range_model(q, t[idx], s[idx], c, shift, v)) / ROBUST_SCALE_S,
+                         q0, jac=lambda q: -_jacobian(q, t[idx], s[idx], c) / ROBUST_SCALE_S, loss=loss, f_scale=1.0,
+                         x_scale=np.r_[1, 1, 1, 1e-3, 1e-5], max_nfev=60).x
+
+
+def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
+    """Fit of :func:`range_model` to one array's arrivals that follows its direct paths, not the majority.
+
+    First a robust (Cauchy) fit to all arrivals from the linear start (:func:`linear_start`) and from above
+    the trajectory's centre. When it leaves arrivals EARLY (a direct path is never early: the fit followed
+    reflections), RANSAC: tracks fitted to subsets (:func:`_candidates`, fixed seed) and then to their
+    inliers, each scored by its support (:func:`_score`); the best track is kept.
+    ``delta0``: a drift guess (the association's scale − 1).
     arrival (J,) local s; t (J,) emission times − t_emit[0]; s (J, 3) odometry; vel (J, 3) or None.
     Returns (params (5,), residuals (J,) s: measured − model).
     """
+    j, every = len(arrival), np.arange(len(arrival))
+    model = lambda q: range_model(q, t, s, c, shift, vel)
     centre = s.mean(axis=0) + [0.0, 0.0, 4.0]
-    tau_c = float(np.median(arrival - t - np.linalg.norm(s - centre, axis=1) / c))
-    best = None
-    for q0 in (linear_start(arrival, t, s, c), np.r_[centre, tau_c, 0.0]):
-        if not np.all(np.isfinite(q0)):
-            continue
-        res = least_squares(lambda q: (arrival - range_model(q, t, s, c, shift, vel)) / ROBUST_SCALE_S, q0,
-                            jac=lambda q: -_jacobian(q, t, s, c) / ROBUST_SCALE_S, loss="cauchy", f_scale=1.0,
-                            x_scale=np.r_[1, 1, 1, 1e-3, 1e-5], max_nfev=100)
-        if best is None or res.cost < best.cost:
-            best = res
-    return best.x, arrival - range_model(best.x, t, s, c, shift, vel)
+    starts = [linear_start(arrival - delta0 * t, t, s, c),
+              np.r_[centre, float(np.median(arrival - t - np.linalg.norm(s - centre, axis=1) / c)), 0.0]]
+    best, best_score = None, None
+    for q0 in starts:   # the second start only when the first leaves arrivals early
+        if best is not None and not np.any(arrival - model(best) < -NLOS_MIN_S):
+            break
+        if np.all(np.isfinite(q0)):
+            q0[4] = delta0
+            q = _refine(q0, every, arrival, t, s, c, shift, vel)
+            sc = _score(arrival - model(q))
+            if best_score is None or sc > best_score:
+                best, best_score = q, sc
+    early = np.flatnonzero(arrival - model(best) < -NLOS_MIN_S)
+    if not early.size:
+        return best, arrival - model(best)
+    # the early group itself (the direct paths when the fit followed the reflections), then the subsets
+    for idx in ([early] if early.size >= SUBSET else []) + _candidates(j, np.random.default_rng(0)):
+        q = _refine(best, idx, arrival, t, s, c, shift, vel, loss="linear")
+        inl = np.flatnonzero(np.abs(arrival - model(q)) < INLIER_S)
+        if len(inl) >= MIN_INLIERS:
+            q = _refine(q, inl, arrival, t, s, c, shift, vel)
+        sc = _score(arrival - model(q))
+        if sc > best_score:
+            best, best_score = q, sc
+    return best, arrival - model(best)
 
 
 def _judge(res):
@@ -90,13 +136,12 @@ def _judge(res):
     return scale, max(NLOS_MIN_S, NLOS_SIGMAS * scale)
 
 
-def late_arrivals(arrival, t, s, c, shift=None, vel=None):
+def late_arrivals(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
     """Per arrival, how late it is against the array's own range track and whether that makes it NLOS.
 
-    A direct path is never late by metres, and never early: when the robust fit to all arrivals leaves a
-    group EARLY by the margin (the reflections were the majority and the fit followed them: a reflection
-    off one wall follows an image of the array just as smoothly), the track is refitted to that group
-    alone and kept if it leaves fewer arrivals early (its own reflections are then late).
+    A direct path is never late by metres, and never early: the track (:func:`fit_range_track`) is the
+    one with the most support and no early arrivals, so reflections do not take it over even when they are
+    the majority (a reflection off one wall follows an image of the array just as smoothly).
 
     Returns dict: ``late`` (J,) residual (s; NaN when not judged), ``nlos`` (J,) bool, ``scale`` (robust
     std of the residuals, s), ``early`` (arrivals still early by the margin: the track is in doubt).
@@ -106,16 +151,8 @@ def late_arrivals(arrival, t, s, c, shift=None, vel=None):
     out = {"late": np.full(j, np.nan), "nlos": np.zeros(j, bool), "scale": np.nan, "early": 0}
     if ok.sum() < MIN_EVENTS:
         return out
-    a, tt, ss, vv = arrival[ok], t[ok], s[ok], None if vel is None else vel[ok]
-    _, res = fit_range_track(a, tt, ss, c, shift, vv)
+    _, res = fit_range_track(arrival[ok], t[ok], s[ok], c, shift, None if vel is None else vel[ok], delta0)
     scale, margin = _judge(res)
-    early = res < -margin
-    if early.sum() >= MIN_EARLY:
-        q, _ = fit_range_track(a[early], tt[early], ss[early], c, shift, None if vv is None else vv[early])
-        res2 = a - range_model(q, tt, ss, c, shift, vv)
-        scale2, margin2 = _judge(res2[early])
-        if np.sum(res2 < -margin2) < early.sum():
-            res, scale, margin = res2, scale2, margin2
     out["late"][ok] = res
     out["nlos"][ok] = res > margin
     out["scale"] = scale
