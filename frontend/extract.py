@@ -484,7 +484,7 @@ def flag_nlos(results, events, shift, c):
     for r in results.values():
         j = r["ev_idx"]
         ev = late_arrivals(np.asarray(r["arrival"], float), t_emit[j] - t_emit[0], odom[j], c, shift,
-                           None if vel is None else vel[j], delta0=float(r["assoc"]["scale"]) - 1.0)
+                           None if vel is None else vel[j])
         r["late"] = ev["late"]
         for k in np.flatnonzero(ev["nlos"]):
             r["flags"][k].append("nlos")
