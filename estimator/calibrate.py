@@ -692,7 +692,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     # a source moving during the sweep: its arrival shifts removed, re-solved (estimator/motion.py)
     (st, p, info, scales, bounds), motion = motion_solve(p_raw, features["events"], joint(p, st), joint,
                                                          kinds=kinds,
-                                                         curve=features["meta"].get("chirp_stretch_shift"))
+                                                         curve=features["meta"].get("chirp_stretch_shift"),
+                                                         t_doa=float(features["meta"].get("doa_time_s") or 0.0))
     if motion["source"] is not None:
         stages["motion"] = motion
     times["joint"] = time.perf_counter() - t2

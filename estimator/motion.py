@@ -72,13 +72,38 @@ def arrival_shifts(p, st, vel, curve=None):
     return p.beta * eps
 
 
-def corrected(p, st, vel, curve=None):
-    """``p`` with its TDOAs freed of the motion's arrival shifts at ``st`` (a copy; measured rows as read)."""
+def doa_moves(p, st, vel, t_doa, arr, ev, u):
+    """(m, 3) change of the direction (array frame) from the source at its DOA time ``t_doa`` after the
+    sweep start (``s + v t_doa``) to the source at the sweep start ``s``, at state ``st``, for DOA rows
+    (arr, ev, measured u). A mirror-ambiguous array's change is mirrored where its measurement is."""
+    v = _yawed(vel, float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0)
+    a = st.s[ev] - st.x[arr]
+    b = a + v[ev] * t_doa
+    d = a / np.linalg.norm(a, axis=1, keepdims=True) - b / np.linalg.norm(b, axis=1, keepdims=True)
+    R = st.R[arr]
+    d_arr = np.einsum("kba,kb->ka", R, d)                      # R_iᵀ d
+    pred = np.einsum("kba,kb->ka", R, a)
+    n = p.fold[arr]
+    flip = np.any(n != 0, axis=1) & (np.einsum("ka,ka->k", u, n) * np.einsum("ka,ka->k", pred, n) < 0)
+    d_arr[flip] -= 2 * np.einsum("ka,ka->k", d_arr[flip], n[flip])[:, None] * n[flip]
+    return d_arr
+
+
+def corrected(p, st, vel, curve=None, t_doa=0.0):
+    """``p`` with its TDOAs freed of the motion's arrival shifts at ``st`` and its DOAs turned from the
+    source at ``t_doa`` after the sweep start to the source at the start (a copy; measured rows as read)."""
     sh = arrival_shifts(p, st, vel, curve)
     tm, ts = p.tdoa_m, p.tdoa_s
-    return p.replace(
-        tdoa_m=dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
-        tdoa_s=dataclasses.replace(ts, val=ts.val - (sh[ts.arr, ts.b] - sh[ts.arr, ts.a])))
+    out = {"tdoa_m": dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
+           "tdoa_s": dataclasses.replace(ts, val=ts.val - (sh[ts.arr, ts.b] - sh[ts.arr, ts.a]))}
+    if t_doa and len(p.doa.u):
+        u = p.doa.u + doa_moves(p, st, vel, t_doa, p.doa.arr, p.doa.ev, p.doa.u)
+        out["doa"] = dataclasses.replace(p.doa, u=u / np.linalg.norm(u, axis=1, keepdims=True))
+    if t_doa and len(p.cone.cos):
+        k = p.cone
+        d = doa_moves(p, st, vel, t_doa, k.arr, k.ev, np.zeros((len(k.cos), 3)))
+        out["cone"] = dataclasses.replace(k, cos=np.clip(k.cos + np.einsum("ka,ka->k", p.cone_axis[k.arr], d), -1, 1))
+    return p.replace(**out)
 
 
 def motion_gain(p, st, info, vel, kinds):
@@ -101,12 +126,13 @@ def motion_gain(p, st, info, vel, kinds):
     return float(-(sw * lin.r) @ g_perp / gg), float(1.0 / np.sqrt(gg))
 
 
-def motion_solve(p_raw, events, first, solve, *, kinds, curve=None):
+def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0):
     """The joint solve with the moving source's arrival shifts removed, when the source moves.
 
     p_raw : the problem as built (before a solve changed its sigmas); first : ``solve``'s result
     (state, problem, info, scales, bounds) on ``p_raw``; solve(problem, state) → the same tuple; curve: meta
-    ``chirp_stretch_shift`` (the frontend's measured shift for large stretches) or None (β ε).
+    ``chirp_stretch_shift`` (the frontend's measured shift for large stretches) or None (β ε); t_doa: meta
+    ``doa_time_s``, when after the sweep start the DOAs look (0: not corrected).
     Odometry velocities are used only when the static solve's residuals hold the shift pattern
     (:func:`motion_gain` ≥ MIN_GAIN). Returns (the result kept, record for report.json ``motion``).
     """
@@ -121,6 +147,6 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None):
             return first, {**rec, "applied": False}
     cur = first
     for _ in range(MOTION_ITERATIONS):
-        cur = solve(corrected(p_raw, cur[0], vel, curve), cur[0])
+        cur = solve(corrected(p_raw, cur[0], vel, curve, t_doa), cur[0])
     return cur, {**rec, "applied": True, "curve": bool(curve),
                  "max_shift_s": float(np.max(np.abs(arrival_shifts(p_raw, cur[0], vel, curve))))}
