@@ -18,7 +18,7 @@ from calib.robust import median
 
 from . import arraynoise
 from .factors import ALL_KINDS, KINDS, UNITS, natural
-from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
+from .init import ObservabilityError, doa_rotation, fold_basins, initialise, kabsch, reflect, subproblem
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
@@ -30,7 +30,7 @@ from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mas
                      remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
-from .verdict import MOVE_SIGMA, concentrated_outliers, make_verdict, name_distrusted, residual_ratios, stated_sigma_excess
+from .verdict import MOVE_SIGMA, concentrated_outliers, fold_ambiguity, make_verdict, name_distrusted, residual_ratios, stated_sigma_excess
 
 
 
@@ -696,6 +696,10 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                                                          t_doa=float(features["meta"].get("doa_time_s") or 0.0))
     if motion["source"] is not None:
         stages["motion"] = motion
+    # planar arrays with every source near their mic plane: the other fold's basin (estimator/init.py)
+    st, basins = fold_basins(p, st, info["layout"], kinds, info["mask"], max_iter)
+    if basins:
+        stages["fold_basins"] = basins
     times["joint"] = time.perf_counter() - t2
     if outputs == "solution":
         return _solution(p, st, info, kinds, stage_states)
@@ -704,6 +708,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     if screened is not None:
         out["report"]["screened"] = {"rows": screened["rows"], "arrays": distrusted(screened)}
         name_distrusted(out["report"]["verdict"], screened)
+    fold_ambiguity(out, basins)
     return out
 
 

@@ -79,17 +79,36 @@ def _row_events(df):
     return [[int(a), int(b)] for a, b in zip(df["from_event"].to_numpy(int), df["to_event"].to_numpy(int))]
 
 
+def own_doubted_events(features, doubt, array):
+    """The events whose arrival at ``array`` itself is in doubt: a TDOA-M row carries the reference's doubts
+    too, so those come from its DOA rows (its own arrival), else from its TDOA-S rows (an event whose every
+    TDOA-S row is flagged)."""
+    d = features["doa"]
+    if "doa" in doubt and np.any(m := (d["array"].astype(str) == array).to_numpy()):
+        return set(d["event"].to_numpy(int)[m & doubt["doa"]].tolist())
+    ts = features["tdoa_s"]
+    if "tdoa_s" not in doubt:
+        return set()
+    m = (ts["array"].astype(str) == array).to_numpy()
+    rows = [(evs, f) for evs, f, k in zip(_row_events(ts), doubt["tdoa_s"], m) if k]
+    events = {e for evs, _ in rows for e in evs}
+    return {e for e in events if all(f for evs, f in rows if e in evs)}
+
+
 def mostly_doubted(features, doubt):
-    """Arrays whose doubted events (any row of theirs flagged) are more than MAX_DOUBTED_FRACTION of the
-    events they have rows for: {array: number of doubted events}."""
-    seen, bad = {}, {}
-    for name, d in doubt.items():
+    """Arrays whose own doubted events (:func:`own_doubted_events`) are more than MAX_DOUBTED_FRACTION of
+    the events they have rows for: {array: number of doubted events}."""
+    seen = {}
+    for name in doubt:
         df = features[name]
-        for a, evs, flagged in zip(df["array"].astype(str), _row_events(df), d):
+        for a, evs in zip(df["array"].astype(str), _row_events(df)):
             seen.setdefault(a, set()).update(evs)
-            if flagged:
-                bad.setdefault(a, set()).update(evs if name != "tdoa_s" else [])
-    return {a: len(e) for a, e in bad.items() if len(e) > MAX_DOUBTED_FRACTION * len(seen[a])}
+    out = {}
+    for a, evs in seen.items():
+        n = len(own_doubted_events(features, doubt, a))
+        if n > MAX_DOUBTED_FRACTION * len(evs):
+            out[a] = n
+    return out
 
 
 def screen_rows(features):
@@ -103,13 +122,17 @@ def screen_rows(features):
     doubt = {n: _flags(features[n]) for n in names}
     kept = mostly_doubted(features, doubt)
     out, rows = dict(features), []
+    ref = str(features["meta"].get("reference_array"))
+    ref_bad = own_doubted_events(features, doubt, ref) if doubt else set()
     for name in names:
         df = features[name]
         arr = df["array"].astype(str).to_numpy()
         bad = absurd.get(name, np.zeros(len(df), bool))
         drop = bad | (doubt[name] & ~np.isin(arr, list(kept)))
         for k, evs in zip(np.flatnonzero(drop), [e for e, d in zip(_row_events(df), drop) if d]):
+            via = name == "tdoa_m" and not bad[k] and evs[0] in ref_bad   # the reference's arrival, not its own
             rows.append({"type": name, "array": str(arr[k]), "events": evs, "reason": "absurd" if bad[k] else "nlos",
+                         **({"via_reference": True} if via else {}),
                          **({"line": int(df["csv_line"].iloc[k])} if "csv_line" in df.columns else {})})
         if drop.any():
             out[name] = df[~drop]

@@ -149,12 +149,20 @@ def name_distrusted(verdict, screened):
     (their arrays were calibrated from the rest) and for arrays most of whose rows are in doubt (kept:
     there is too little else; the array is then flagged and the status at least ``suspect``). Absurd rows
     make the status ``suspect`` too: something upstream failed."""
-    groups, single = {}, {}
+    # the events whose arrival AT the array is in doubt: its DOA rows' when it has any (a TDOA-S row names
+    # two events, a TDOA-M row carries the reference's doubts too), else its TDOA-M rows', else TDOA-S
+    rank = {"doa": 0, "tdoa_m": 1, "tdoa_s": 2}
+    best = {}
     for r in screened["rows"]:
-        groups.setdefault((r["array"], r["reason"]), set())
-        # a TDOA-S row names two events, only one of them in doubt: the events of single-event rows when any
-        (single if len(r["events"]) == 1 else groups).setdefault((r["array"], r["reason"]), set()).update(r["events"])
-    groups.update({k: v for k, v in single.items() if v})
+        if r.get("via_reference"):
+            continue   # a TDOA-M row out for the reference's arrival: named under the reference
+        key = (r["array"], r["reason"])
+        k = rank.get(r["type"], 2)
+        if key not in best or k < best[key][0]:
+            best[key] = (k, set())
+        if k == best[key][0]:
+            best[key][1].update(r["events"])
+    groups = {key: ev for key, (_, ev) in best.items()}
     listed = [{"array": a, "reason": why, "events": sorted(ev), "taken_out": True}
               for (a, why), ev in sorted(groups.items())]
     worst = verdict["status"]
@@ -179,3 +187,25 @@ def name_distrusted(verdict, screened):
     if listed:
         verdict["distrusted"] = listed
     return verdict
+
+
+def fold_ambiguity(out, basins):
+    """Arrays whose other fold basin (``init.fold_basins``) fits as well (``ambiguous``): their std is raised to
+    cover the other basin (rotation std per axis ≥ the angle between the basins, position std ≥ the
+    distance), and the verdict names them (``suspect``). In place on ``calibrate``'s output."""
+    arrays, verdict = out["arrays"], out["report"]["verdict"]
+    for b in basins:
+        if b["switched"] or not b["ambiguous"]:
+            continue
+        k = arrays.index[arrays["array"] == b["array"]]
+        for c in ("rx_std", "ry_std", "rz_std"):
+            arrays.loc[k, c] = np.maximum(arrays.loc[k, c], np.radians(b["rotation_deg"]))
+        for c in ("x_std", "y_std", "z_std"):
+            arrays.loc[k, c] = np.maximum(arrays.loc[k, c], b["position_m"])
+        if b["array"] not in verdict["flagged_arrays"]:
+            verdict["flagged_arrays"].append(b["array"])
+        verdict["reasons"].append(f"array {b['array']}: its sources all lie near its mic plane, where planar DOAs "
+                                  f"fold; another orientation {b['rotation_deg']:.0f}° away fits as well (cost "
+                                  f"+{b['dcost']:.1f}): its std covers both")
+        verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    return out
