@@ -136,3 +136,45 @@ def test_flagged_and_absurd_rows_do_not_pull():
     assert sorted(next(d for d in dis if d["reason"] == "nlos")["events"]) == sorted(int(e) for e in evs)
     screened, rec = screen_rows(bad)
     assert len(screened["tdoa_m"]) == len(f["tdoa_m"]) - len(evs) - 1
+
+
+def test_reference_nlos_rows_do_not_count_against_other_arrays():
+    """The reference's reflection-only arrivals flag every TDOA-M row of their events; they are taken out
+    but named under the reference, and do not make another array 'mostly doubted'."""
+    f, tr = simulate_features(2, 1e-4, 5.0, 0.01, seed=7)
+    ref = f["meta"]["reference_array"]
+    evs = [int(e) for e in f["events"]["event"][1:5]]
+    tm, doa = f["tdoa_m"].copy(), f["doa"].copy()
+    tm["flag"] = np.where(tm["event"].isin(evs), "nlos", "")
+    doa["flag"] = np.where(doa["event"].isin(evs) & (doa["array"] == ref), "nlos", "")
+    screened, rec = screen_rows({**f, "tdoa_m": tm, "doa": doa})
+    assert rec["kept_doubted"] == {}
+    assert len(screened["tdoa_m"]) == len(tm) - int(tm["event"].isin(evs).sum())
+    out = calibrate({**f, "tdoa_m": tm, "doa": doa})
+    named = {d["array"]: d["events"] for d in out["report"]["verdict"]["distrusted"]}
+    assert named == {ref: evs}
+
+
+def test_fold_candidates_mirror_the_mean_elevation():
+    """A planar array level with its sources (elevations 2-8°): the candidates tilt it by ∓2 × the mean
+    elevation about the in-plane axis across the sources, so the mean elevation becomes about −e."""
+    from calib.estimator.init import fold_candidates
+    from calib.estimator.problem import empty_state
+    f, tr = simulate_features(2, 1e-4, 5.0, 0.01, seed=1, planar=(0, 0, 1))
+    p = build_problem(f)
+    st = empty_state(p)
+    i = 1
+    st.R[i] = np.eye(3)
+    st.x[i] = [0.0, 0.0, 0.0]
+    rng = np.random.default_rng(0)
+    az = rng.uniform(-0.4, 0.4, p.K)
+    el = np.radians(rng.uniform(2, 8, p.K))
+    st.s = 5 * np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    cands = fold_candidates(p, st, i)
+    assert len(cands) == 2
+    w = st.s / np.linalg.norm(st.s, axis=1, keepdims=True)
+    means = sorted(float(np.mean(np.arcsin(w @ (R @ [0, 0, 1])))) for R in cands)
+    e = float(np.mean(el))
+    assert means[0] == pytest.approx(-e, abs=np.radians(1.0))
+    st.s[:, 2] += 5.0    # sources far above the plane: no candidate
+    assert fold_candidates(p, st, i) == []
