@@ -100,6 +100,7 @@ def _extract(session, progress, opt, jobs=1):
     curve = _stretch_curve(arrays[order[0]], session, c, opt)
     flag_nlos(results, events, _shift_function(beta, curve), c)
     flag_doa_spread(results)
+    warn_moving(results, events)
     if progress is not None:
         progress(len(arrays), len(arrays), "done")
 
@@ -515,6 +516,29 @@ def flag_nlos(results, events, shift, c):
         if ev["early"] >= max(3, 0.1 * len(j)):
             r["warnings"].append(f"{ev['early']} arrivals are early against the array's range track: most of its "
                                  "arrivals may be reflections (line of sight blocked)")
+
+
+MOVING_DOA_SPREAD_DEG = 10.0  # an array's median DOA spread above this: its mics disagree with any one plane wave
+                              # (0.3-2° in the controlled rooms; 17 and 76° for 2 of 4 arrays of a robot moving
+                              # at 0.5 m/s, preset moving seed 0, without velocities)
+
+
+def warn_moving(results, events):
+    """Warn (every array's warnings) when the DOA spreads say the source moved during the sweep — its
+    stretch smears every mic's pulse — and events.csv gives no velocities to correct for it: at least half
+    of the arrays with DOAs have a median spread above MOVING_DOA_SPREAD_DEG (one occluded array alone
+    does not make it)."""
+    if event_velocities(events) is not None:
+        return
+    med = [float(np.degrees(np.nanmedian(r["doa_spread"]))) for r in results.values()
+           if r["has_doa"] and np.any(np.isfinite(r["doa_spread"]))]
+    high = [m for m in med if m > MOVING_DOA_SPREAD_DEG]
+    if med and len(high) >= 0.5 * len(med):
+        text = (f"the DOAs of {len(high)} of {len(med)} arrays disagree with any plane wave (median spreads "
+                f"{', '.join(f'{m:.0f}' for m in high)}° > {MOVING_DOA_SPREAD_DEG:g}°): did the source move during "
+                "the sweeps? events.csv vel_x, vel_y, vel_z let calib correct for it")
+        for r in results.values():
+            r["warnings"].append(text)
 
 
 def flag_doa_spread(results):
