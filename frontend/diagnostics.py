@@ -16,7 +16,7 @@ def _pool(env, rate, width=4000):
 
 # margins of the detection plot, inches: tick labels + "dB" left, suptitle + first title on top, x label below,
 # each row's title between rows
-MARGIN_IN = {"left": 0.75, "right": 0.2, "top": 0.62, "bottom": 0.55, "between": 0.42}
+MARGIN_IN = {"left": 0.75, "right": 0.2, "top": 0.8, "bottom": 0.55, "between": 0.42}
 
 
 def _fixed_margins(fig, n_rows):
@@ -43,7 +43,7 @@ def _mark_doubted(ax, a, top):
             color = DOUBT_COLOR
         else:
             continue
-        ax.plot([x["time"]], [top * 1.1], "v", color=color, ms=6)
+        ax.plot([x["time"]], [top * 1.13], "v", color=color, ms=5)
 
 
 def plot_detections(path, diag):
@@ -90,14 +90,14 @@ def plot_detections(path, diag):
         ax.set_title(f"{name}: {n_m} matched, {len(a['missed_events'])} missed "
                      f"({', '.join(map(str, a['missed_events'])) or 'none'}), {len(a['spurious'])} spurious"
                      f"{warn}", fontsize=9, loc="left")
-        ax.set_ylim(-5, top * 1.18)
+        ax.set_ylim(-5, top * 1.2)
         ax.set_ylabel("dB", fontsize=8)
         ax.tick_params(labelsize=8)
         ax.set_xlim(0, t_max)
     axes[-1, 0].set_xlabel("time on each array's own clock (s)")
     fig.suptitle("Chirp detections: matched-filter envelope; green = matched (event id), red × = spurious, "
-                 "dashed = missed event (predicted time); ▼ distrusted arrival: red = NLOS (reflection only), "
-                 "orange = other doubt", fontsize=10)
+                 "dashed = missed event (predicted time)\n▼ distrusted arrival: red = NLOS (reflection only, taken "
+                 "out by the estimator), orange = another doubt", fontsize=10)
     _fixed_margins(fig, n)  # tight_layout measured every label: ~0.1 s of a ~0.5 s plot
     fig.savefig(path, dpi=100)
     plt.close(fig)
