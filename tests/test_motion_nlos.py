@@ -178,3 +178,16 @@ def test_fold_candidates_mirror_the_mean_elevation():
     assert means[0] == pytest.approx(-e, abs=np.radians(1.0))
     st.s[:, 2] += 5.0    # sources far above the plane: no candidate
     assert fold_candidates(p, st, i) == []
+
+
+def test_late_arrivals_when_reflections_are_the_majority():
+    """Reflections off one wall follow an image of the array as smoothly as the direct paths follow the
+    array: with 10 of 16 arrivals reflected (in two runs along the trajectory) the track must still be the
+    direct paths' (a direct path is never early), so exactly the reflections are flagged."""
+    rng = np.random.default_rng(11)
+    t, s, direct, reflected = _track(rng, n=16)
+    nlos = np.zeros(16, bool)
+    nlos[1:6] = nlos[9:14] = True
+    ev = late_arrivals(np.where(nlos, reflected, direct), t, s, 343.0)
+    assert np.array_equal(ev["nlos"], nlos)
+    assert ev["early"] == 0
