@@ -689,23 +689,10 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
     if noise == "estimate" and array_noise:
         arraynoise.start_scales(p, kinds)
-    p_raw = p.copy()
-
-    def joint(p_, st_):
-        return _joint_solve(p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
-                            outlier_threshold=outlier_threshold, max_iter=max_iter)
-
-    # a source moving during the sweep: its arrival shifts removed, re-solved (estimator/motion.py)
-    (st, p, info, scales, bounds), motion = motion_solve(p_raw, features["events"], joint(p, st), joint,
-                                                         kinds=kinds,
-                                                         curve=features["meta"].get("chirp_stretch_shift"),
-                                                         t_doa=float(features["meta"].get("doa_time_s") or 0.0))
-    if motion["source"] is not None:
-        stages["motion"] = motion
-    # planar arrays with every source near their mic plane: the other fold's basin (estimator/init.py)
-    st, basins = fold_basins(p, st, info["layout"], kinds, info["mask"], max_iter)
-    if basins:
-        stages["fold_basins"] = basins
+    st, p, info, scales, bounds, basins = _deployment_solve(
+        p, st, kinds, stages, features, lambda p_, st_: _joint_solve(
+            p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
+            outlier_threshold=outlier_threshold, max_iter=max_iter), max_iter)
     times["joint"] = time.perf_counter() - t2
     if outputs == "solution":
         return _solution(p, st, info, kinds, stage_states)
@@ -716,6 +703,24 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         name_distrusted(out["report"]["verdict"], screened)
     fold_ambiguity(out, basins)
     return out
+
+
+def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
+    """The joint solve (``joint(problem, state)``, :func:`_joint_solve`'s tuple), with a source moving during
+    the sweep corrected (``estimator/motion.py``), then the other fold basin of planar arrays whose sources
+    all lie near their mic plane tried (``init.fold_basins``). Records go to ``stages``. Returns
+    (state, problem, info, scales, bounds, fold basin records)."""
+    meta = features["meta"]
+    p_raw = p.copy()
+    (st, p, info, scales, bounds), motion = motion_solve(p_raw, features["events"], joint(p, st), joint, kinds=kinds,
+                                                         curve=meta.get("chirp_stretch_shift"),
+                                                         t_doa=float(meta.get("doa_time_s") or 0.0))
+    if motion["source"] is not None:
+        stages["motion"] = motion
+    st, basins = fold_basins(p, st, info["layout"], kinds, info["mask"], max_iter)
+    if basins:
+        stages["fold_basins"] = basins
+    return st, p, info, scales, bounds, basins
 
 
 def _check_given_problem(p, *, use_tdoa_s, emission_sigma):
