@@ -47,12 +47,41 @@ BOARDS = {
 
 # ----------------------------------------------------------------------------------------------- rooms
 def l_shape(rng):
-    """(corners (6, 2), room_dim (3,)): an L-shaped floor plan, two arms of random length and width."""
+    """An L-shaped floor plan, two arms of random length and width: (corners (6, 2), room_dim (3,), the
+    robot's loop through both arms (6, 2))."""
     A, B = rng.uniform(9.0, 11.0), rng.uniform(7.0, 9.0)
     w, b = rng.uniform(3.5, 4.5), rng.uniform(3.5, 4.5)
-    h = rng.uniform(2.8, 3.2)
-    corners = np.round(np.array([[0, 0], [A, 0], [A, b], [w, b], [w, B], [0, B]]), 3)
-    return corners, np.round(np.array([A, B, h]), 3)
+    corners = np.array([[0, 0], [A, 0], [A, b], [w, b], [w, B], [0, B]])
+    o = rng.uniform(0.5, 0.8)
+    way = [[A - 1.3, b / 2 - o], [A - 1.3, b / 2 + o], [w / 2 + o, b / 2 + o], [w / 2 + o, B - 1.3],
+           [w / 2 - o, B - 1.3], [w / 2 - o, b / 2 - o]]
+    return corners, np.array([A, B, rng.uniform(2.8, 3.2)]), np.array(way)
+
+
+def u_shape(rng):
+    """A U-shaped floor plan (two legs joined by a base: two corners hide each leg from the other): (corners
+    (8, 2), room_dim (3,), the robot's loop up one leg, along the base and up the other (8, 2))."""
+    A, B = rng.uniform(10.0, 12.0), rng.uniform(8.0, 10.0)
+    w, b = rng.uniform(3.5, 4.5), rng.uniform(3.5, 4.5)
+    corners = np.array([[0, 0], [A, 0], [A, B], [A - w, B], [A - w, b], [w, b], [w, B], [0, B]])
+    o, xl, xr = rng.uniform(0.5, 0.8), w / 2, A - w / 2
+    way = [[xl - o, B - 1.3], [xl - o, b / 2 - o], [xr + o, b / 2 - o], [xr + o, B - 1.3], [xr - o, B - 1.3],
+           [xr - o, b / 2 + o], [xl + o, b / 2 + o], [xl + o, B - 1.3]]
+    return corners, np.array([A, B, rng.uniform(2.8, 3.4)]), np.array(way)
+
+
+SHAPES = {"L": l_shape, "U": u_shape}   # room_shape "nonconvex": one of them, drawn from the seed
+
+
+def mirrored(corners, room, way, rng):
+    """The plan and loop mirrored in x and/or y at random (corners kept counter-clockwise)."""
+    flip = rng.integers(2, size=2).astype(bool)
+    c, w = corners.astype(float).copy(), way.astype(float).copy()
+    for ax in np.flatnonzero(flip):
+        c[:, ax], w[:, ax] = room[ax] - c[:, ax], room[ax] - w[:, ax]
+    if flip.sum() == 1:
+        c = c[::-1]
+    return np.round(c, 3), np.round(w, 3)
 
 
 def box(room):
@@ -60,15 +89,8 @@ def box(room):
 
 
 # ----------------------------------------------------------------------------------------------- paths
-def loop_waypoints(corners, room, rng, l_shaped):
-    """(n, 2) waypoints of a closed robot path: around the L (through both arms) or an irregular ellipse."""
-    if l_shaped:
-        A, B = corners[1, 0], corners[4, 1]
-        w, b = corners[3, 0], corners[2, 1]
-        o = rng.uniform(0.5, 0.8)
-        pts = [[A - 1.3, b / 2 - o], [A - 1.3, b / 2 + o], [w / 2 + o, b / 2 + o], [w / 2 + o, B - 1.3],
-               [w / 2 - o, B - 1.3], [w / 2 - o, b / 2 - o]]
-        return np.array(pts) + rng.normal(0, 0.1, (6, 2))
+def loop_waypoints(room, rng):
+    """(9, 2) waypoints of a closed robot path in a box room: an irregular ellipse."""
     n = 9
     a = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n) / n + rng.uniform(-0.15, 0.15, n)
     r = (np.asarray(room[:2]) / 2 - 1.4) * rng.uniform(0.8, 1.0, (n, 1))
@@ -84,7 +106,7 @@ def closed_curve(way, step=0.02, cuts=5):
         p = np.stack([0.75 * p + 0.25 * q, 0.25 * p + 0.75 * q], axis=1).reshape(-1, 2)
     p = np.vstack([p, p[:1]])
     s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
-    u = np.arange(0, s[-1], step)
+    u = np.r_[np.arange(0, s[-1], step), s[-1]]          # closed: the last point is the first again
     pts = np.stack([np.interp(u, s, p[:, q]) for q in range(2)], axis=1)
     return pts, u
 
@@ -195,7 +217,10 @@ def clocks(rng, n, offset_max=0.1, drift_max=1e-4, lead_in=0.3):
 
 
 def array_entry(name, board, pos, rot, tau, drift, mount):
-    mics, fs, planar = BOARDS[board]
+    """One array of the scenario; ``board`` a BOARDS name, optionally ``name@rate`` (another sample rate)."""
+    kind, _, rate = board.partition("@")
+    mics, fs, planar = BOARDS[kind]
+    fs = int(rate) if rate else fs
     q = rot.as_quat(scalar_first=True)
     q = q if q[0] >= 0 else -q
     a = {"name": name, "position": np.round(pos, 6).tolist(), "quat": q.tolist(), "mics": mics.tolist(),
@@ -227,13 +252,23 @@ def build(g, sc, rng, overrides):
     emission times, speaker stops or trajectory, obstacles, interferers. ``g``: generation keys;
     ``rng(k)``: the k-th independent random stream of the seed; keys in ``overrides`` are kept."""
     room = np.asarray(sc["room_dim"], float) if sc.get("room_dim") is not None else None
-    if g["room_shape"] == "L" and "floor_plan" not in overrides:
-        corners, room = l_shape(rng(1))
+    way = None
+    shape = g["room_shape"]
+    if shape != "box" and "floor_plan" not in overrides:
+        r = rng(1)
+        if shape == "nonconvex":
+            shape = ("L", "U")[int(r.integers(2))]
+        corners, room, way = SHAPES[shape](r)
+        corners, way = mirrored(corners, room, way, r)
+        room = np.round(room, 3)
         sc["floor_plan"] = corners.tolist()
     corners = np.asarray(sc["floor_plan"], float) if sc.get("floor_plan") is not None else box(room)
     sc["room_dim"] = room.tolist()
     geo = polyroom.make_geometry(corners, room[2])
-    curve, arclen = _robot_curve(geo, room, rng(2), g["room_shape"] == "L")
+    if "arrays" in overrides and "sources" in overrides:     # e.g. a manifest: everything is given
+        curve = arclen = None
+    else:
+        curve, arclen = _robot_curve(geo, room, rng(2), way)
     heights = g["heights"]
     n = int(g["n_arrays"])
     if "arrays" not in overrides:
@@ -254,12 +289,14 @@ def build(g, sc, rng, overrides):
     return sc
 
 
-def _robot_curve(geo, room, rng, l_shaped):
+def _robot_curve(geo, room, rng, way):
+    """The robot's closed path: the plan's loop (jittered) or an ellipse in a box, inside with 0.6 m to spare."""
     for _ in range(50):
-        curve, arclen = closed_curve(loop_waypoints(geo["corners"], room, rng, l_shaped))
+        w = way + rng.normal(0, 0.1, way.shape) if way is not None else loop_waypoints(room, rng)
+        curve, arclen = closed_curve(w)
         if np.all(polyroom.inside(geo, np.column_stack([curve, np.full(len(curve), 1.0)]), 0.6)):
             return curve, arclen
-    raise ValueError("deploy: no robot path fits this room")
+    raise ValueError("deploy: no robot path fits this room (give 'sources' for a floor plan of your own)")
 
 
 def _arrays(g, geo, path, n, rng_pose, rng_clock):

@@ -60,9 +60,10 @@ class Trajectory:
 
 
 def early_mask(paths, fsp):
-    """(n,) bool: images whose earliest arrival at the array is within MOVING_EARLY of the direct path."""
-    with np.errstate(invalid="ignore"):
-        rel = np.nanmin(np.where(np.isfinite(paths["taps"]), paths["taps"], np.inf), axis=1) - paths["first"]
+    """(n,) bool: images whose earliest geometric arrival at the array (blocked or not: the speaker moves,
+    visibility may change during the sweep) is within MOVING_EARLY of the direct path."""
+    taps = paths["taps_open"]
+    rel = np.min(np.where(np.isfinite(taps), taps, np.inf), axis=1) - paths["first"]
     return rel <= MOVING_EARLY * fsp
 
 
@@ -77,7 +78,7 @@ def early_part(e, a, paths, sel, sc, t0, level, local_time, vis_gain=None):
     fsp = fs * (1 + a["drift"])
     t_s, dur = e["t_start"], e["dur"]
     mics = a["mics_room"]
-    idx = np.flatnonzero(sel)
+    idx = np.flatnonzero(sel)               # never empty: the direct path is always selected
     d = paths["dist"][idx]
     lo = int(math.floor(fs * local_time(t_s + np.nanmin(d) / c - 0.01, a["tau"], a["drift"], t0))) - MARGIN
     hi = int(math.ceil(fs * local_time(t_s + dur + np.nanmax(d) / c + 0.01, a["tau"], a["drift"], t0))) + MARGIN

@@ -115,7 +115,7 @@ def band_paths(em, a, fsp, sc):
     delays in samples (NaN: later than ``mixing_time`` after the direct path, or blocked), ``dist`` (n, M)
     m, ``amp`` (n, M, B) band amplitudes without the 1/distance spreading (wall reflections, speaker
     directivity, air absorption, occlusion of the direct path, walls and obstacles of a polygonal room),
-    ``amp_open`` the same before walls and obstacles block or attenuate the paths, ``first`` (the geometric
+    ``amp_open``, ``taps_open`` the same before walls and obstacles block or attenuate the paths, ``first`` (the geometric
     direct path's delay, samples, blocked or not)."""
     ab, c = sc["acoustic"], sc["speed_of_sound"]
     img, mics = em["images"], a["mics_room"]
@@ -130,7 +130,7 @@ def band_paths(em, a, fsp, sc):
     gain[img["direct"]] *= 10 ** (a["direct_db"] / 20)
     amp = ac.image_band_amplitudes(img["hits"], ab["alpha"])[:, None, :] * gain[..., None] \
         * np.exp(-0.5 * ab["air"][None, None, :] * dist[..., None])                # (n, M, B)
-    out = {"dist": dist, "amp_open": amp, "first": first}
+    out = {"dist": dist, "amp_open": amp, "taps_open": taps, "first": first}
     if "tree" in img:                                  # polygonal room / obstacles: what actually arrives
         amp = amp * img["path_gain"](mics)
         taps = np.where(np.any(amp > 0, axis=2), taps, np.nan)

@@ -26,6 +26,7 @@ import copy
 import json
 import math
 import tomllib
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -140,7 +141,8 @@ def _deploy_scenario(preset, g, sc, overrides):
     """A deployment preset (pipeline/simulate/deploy.py): the layout drawn from the seed, overrides kept."""
     sc |= {k: copy.deepcopy(v) for k, v in overrides.items() if k in SCENE_KEYS}
     try:
-        deploy.build(g, sc, lambda k: _rng(sc["seed"], 200 + k), overrides)
+        stream = zlib.crc32(preset.encode())       # each preset its own draws: no two share a room by seed
+        deploy.build(g, sc, lambda k: _rng(sc["seed"], 200 + k, stream), overrides)
     except ValueError as exc:
         raise InputError(f"scenario: {exc}") from None
     sc["reference_array"] = overrides.get("reference_array", sc["arrays"][0]["name"])

@@ -72,7 +72,7 @@ NEW_GEN_DEFAULTS = {
     "n_quiet": 0,              # quiet events: emitted so that one array's matched-filter SNR is ...
     "quiet_snr_db": 0.0,       # ... this (single mic, white self-noise + diffuse noise), dB
     # deployment presets (pipeline/simulate/deploy.py)
-    "room_shape": "box",       # "box" (room_dim) or "L" (a random L-shaped floor plan)
+    "room_shape": "box",       # "box" (room_dim), "L" / "U" (random L- / U-shaped plan), "nonconvex" (L or U)
     "motion": "none",          # the robot: "none" (stops for each chirp), "constant" / "varying" speed, "any"
     "n_stops": 16,             # events of a deployment preset (n_events overrides)
     "heights": [1.3, 1.0],     # m: speaker height in the first and second half of the session
