@@ -664,13 +664,12 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                      array_noise=array_noise, outputs=outputs)
     if loss == "linear":
         loss = None
-    times = {}
-    t0 = time.perf_counter()
+    times, t0 = {}, time.perf_counter()
     if method == "wang":
         use_tdoa_s = False
     screened = None
-    if problem is None:
-        features, screened = screen_rows(features)   # absurd and reflection-only rows out (estimator/screen.py)
+    if problem is None:   # absurd and reflection-only rows out first (estimator/screen.py)
+        features, screened = screen_rows(features)
         p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
     else:
         _check_given_problem(problem, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma)
@@ -696,13 +695,16 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     times["joint"] = time.perf_counter() - t2
     if outputs == "solution":
         return _solution(p, st, info, kinds, stage_states)
-    out = _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, method=method, noise=noise,
-                        emission_sigma=emission_sigma, times=times, t0=t0)
+    return _name_untrusted(_full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, method=method,
+                                         noise=noise, emission_sigma=emission_sigma, times=times, t0=t0), screened, basins)
+
+
+def _name_untrusted(out, screened, basins):
+    """report.json ``screened`` and the verdict's naming of the rows and arrays not trusted (in place)."""
     if screened is not None:
         out["report"]["screened"] = {"rows": screened["rows"], "arrays": distrusted(screened)}
         name_distrusted(out["report"]["verdict"], screened)
-    fold_ambiguity(out, basins)
-    return out
+    return fold_ambiguity(out, basins)
 
 
 def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
