@@ -24,7 +24,7 @@ from scipy.optimize import least_squares
 MIN_EVENTS = 8          # arrivals needed to fit the 5 unknowns and still judge each one
 NLOS_MIN_S = 2.0e-3     # late by at least this (69 cm of path): a direct path is within ~0.1 ms of its track, a
                         # misfit track (few events, a degenerate trajectory) left 1.2 ms (hall seed 0); walls: 5-25 ms
-NLOS_SIGMAS = 8.0       # ... and by this many robust residual stds (MAD) of the array's own fit
+NLOS_SIGMAS = 8.0       # ... and by this many robust residual stds of the array's own fit (:func:`_judge`)
 Q_ABS = 0.3186          # quartile of |x| for x ~ N(0, 1)
 SUBSET = 5              # arrivals per candidate track (5 unknowns)
 RANDOM_SUBSETS = 20     # random candidate subsets besides the windows (fixed seed: deterministic)
