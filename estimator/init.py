@@ -647,9 +647,12 @@ def fold_basins(p, st, lay, kinds, mask, max_iter=200):
     kept. A cost within FOLD_DCOST (and FOLD_MIN_DEG away): the data cannot tell the basins apart. Returns
     (state, records): one {array, dcost, rotation_deg, position_m, switched, ambiguous} per candidate."""
     from .solver import linearise
+    cands = {i: fold_candidates(p, st, i) for i in range(p.N) if np.any(p.fold[i])}
+    if not any(cands.values()):
+        return st, []
     cost0 = linearise(p, st, lay, kinds, mask=mask).cost
     records = []
-    for i in range(p.N):
+    for i in cands:
         for R in fold_candidates(p, st, i):
             alt = st.copy()
             alt.R[i] = R

@@ -16,6 +16,7 @@ of rows): it is reported as distrusted instead, and the verdict names it (:func:
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
 ABSURD_S = 0.3              # s: 100 m of path, beyond any room's geometry; a row further off its clock line is absurd
 MAX_DOUBTED_FRACTION = 0.5  # an array with more of its rows flagged nlos keeps them (named as distrusted instead)
@@ -23,10 +24,11 @@ DROP_FLAGS = ("nlos",)      # frontend doubts (the ``flag`` column) whose rows a
 
 
 def _flags(df):
+    """(rows,) bool: the row's ``flag`` holds one of DROP_FLAGS."""
     if "flag" not in df.columns:
         return np.zeros(len(df), bool)
-    f = df["flag"].fillna("").astype(str)
-    return np.array([any(x in DROP_FLAGS for x in s.split("+")) for s in f], bool)
+    pattern = r"(?:^|\+)(?:" + "|".join(DROP_FLAGS) + r")(?:\+|$)"
+    return df["flag"].fillna("").astype(str).str.contains(pattern).to_numpy(bool)
 
 
 def _robust_line_residuals(t, y):
@@ -41,23 +43,29 @@ def _robust_line_residuals(t, y):
     return r - np.median(r)
 
 
+def _groups(df):
+    """Row indices of each array's rows of table ``df``."""
+    codes, uniq = pd.factorize(df["array"])
+    return [np.flatnonzero(codes == k) for k in range(len(uniq))]
+
+
 def absurd_rows(features):
     """{table: (rows,) bool} TDOA rows off their array's clock line by more than ``ABSURD_S``."""
     ev = features["events"]
-    t_of = dict(zip(ev["event"].to_numpy(int), ev["t_emit"].to_numpy(float)))
+    t_of = pd.Series(ev["t_emit"].to_numpy(float), index=ev["event"].to_numpy(int))
     out = {}
     tm = features["tdoa_m"]
     bad = np.zeros(len(tm), bool)
-    for _, idx in tm.groupby("array").indices.items():
-        t = np.array([t_of[e] for e in tm["event"].to_numpy(int)[idx]])
+    t_m = tm["event"].map(t_of).to_numpy(float)
+    for idx in _groups(tm):
         y = tm["tdoa"].to_numpy(float)[idx]
-        bad[idx] = ~np.isfinite(y) | (np.abs(_robust_line_residuals(t, np.nan_to_num(y))) > ABSURD_S)
+        bad[idx] = ~np.isfinite(y) | (np.abs(_robust_line_residuals(t_m[idx], np.nan_to_num(y))) > ABSURD_S)
     out["tdoa_m"] = bad
     ts = features["tdoa_s"]
     bad = np.zeros(len(ts), bool)
-    for _, idx in ts.groupby("array").indices.items():
-        dt = np.array([t_of[b] - t_of[a] for a, b in zip(ts["from_event"].to_numpy(int)[idx],
-                                                          ts["to_event"].to_numpy(int)[idx])])
+    dt_s = ts["to_event"].map(t_of).to_numpy(float) - ts["from_event"].map(t_of).to_numpy(float)
+    for idx in _groups(ts):
+        dt = dt_s[idx]
         y = ts["tdoa"].to_numpy(float)[idx]
         yy = np.nan_to_num(y)
         k = float(np.median(yy[dt > 0] / dt[dt > 0])) if np.any(dt > 0) else 1.0   # the array's (1 + drift)
@@ -66,7 +74,7 @@ def absurd_rows(features):
     out["tdoa_s"] = bad
     for name, tab in (("tdoa_m", tm), ("tdoa_s", ts)):
         # most of an array's rows off its line: the model (e.g. the emission times) is wrong, not the rows
-        for _, idx in tab.groupby("array").indices.items():
+        for idx in _groups(tab):
             if out[name][idx].sum() > MAX_DOUBTED_FRACTION * len(idx):
                 out[name][idx] = ~np.isfinite(tab["tdoa"].to_numpy(float)[idx])
     return out
@@ -120,10 +128,10 @@ def screen_rows(features):
     absurd = absurd_rows(features)
     names = [n for n in ("tdoa_m", "tdoa_s", "doa") if len(features[n])]
     doubt = {n: _flags(features[n]) for n in names}
-    kept = mostly_doubted(features, doubt)
+    kept = mostly_doubted(features, doubt) if any(d.any() for d in doubt.values()) else {}
     out, rows = dict(features), []
     ref = str(features["meta"].get("reference_array"))
-    ref_bad = own_doubted_events(features, doubt, ref) if doubt else set()
+    ref_bad = own_doubted_events(features, doubt, ref) if any(d.any() for d in doubt.values()) else set()
     for name in names:
         df = features[name]
         arr = df["array"].astype(str).to_numpy()
