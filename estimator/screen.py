@@ -28,7 +28,8 @@ def _flags(df):
     if "flag" not in df.columns:
         return np.zeros(len(df), bool)
     pattern = r"(?:^|\+)(?:" + "|".join(DROP_FLAGS) + r")(?:\+|$)"
-    return df["flag"].fillna("").astype(str).str.contains(pattern).to_numpy(bool)
+    f = df["flag"]
+    return f.astype(object).where(f.notna(), "").astype(str).str.contains(pattern).to_numpy(bool)
 
 
 def _robust_line_residuals(t, y):
