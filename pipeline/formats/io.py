@@ -220,7 +220,8 @@ def read_events(path):
 # ----------------------------------------------------------------------------------------------- features
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
-             "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s")   # + the kinds' noise keys
+             "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s", "chirp_stretch_shift",
+             "doa_time_s")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -255,6 +256,10 @@ def validate_meta(meta, path="meta.json"):
     if meta.get("chirp_drift_bias") is not None:
         out["chirp_drift_bias"] = V.number(meta["chirp_drift_bias"], f"{path}: 'chirp_drift_bias'",
                                            lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME)
+    if meta.get("doa_time_s") is not None:
+        out["doa_time_s"] = V.number(meta["doa_time_s"], f"{path}: 'doa_time_s'", lo=0.0, hi=V.MAX_ABS_TIME)
+    if meta.get("chirp_stretch_shift") is not None:
+        out["chirp_stretch_shift"] = _stretch_curve(meta["chirp_stretch_shift"], path)
     est = meta.get("sigmas_estimated")
     if est is not None and (not isinstance(est, list) or not all(k in sigma_keys for k in est)):
         raise InputError(f"{path}: 'sigmas_estimated' must be a list of {', '.join(sigma_keys)}")
@@ -265,6 +270,22 @@ def validate_meta(meta, path="meta.json"):
     if both:
         raise InputError(f"{path}: array {sorted(both)[0]!r} is in both 'doa_mirror_normals' and 'doa_axes'")
     return out
+
+
+def _stretch_curve(value, path):
+    """meta ``chirp_stretch_shift`` ({stretch: [...], shift_s: [...]}, stretches increasing, finite) → a clean copy."""
+    msg = f"{path}: 'chirp_stretch_shift' must be {{\"stretch\": [...], \"shift_s\": [...]}}: equal lengths ≥ 2, " \
+          "finite numbers, stretches increasing"
+    if not isinstance(value, dict) or set(value) != {"stretch", "shift_s"}:
+        raise InputError(msg)
+    try:
+        x, y = (np.asarray(value[k], float) for k in ("stretch", "shift_s"))
+    except (TypeError, ValueError):
+        raise InputError(msg) from None
+    if x.ndim != 1 or x.shape != y.shape or len(x) < 2 or not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))) \
+            or np.any(np.diff(x) <= 0) or np.any(np.abs(x) > V.MAX_ABS_DRIFT) or np.any(np.abs(y) > V.MAX_ABS_TIME):
+        raise InputError(msg)
+    return {"stretch": x.tolist(), "shift_s": y.tolist()}
 
 
 def _array_vectors(value, key, arrays, path):
