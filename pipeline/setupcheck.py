@@ -39,8 +39,12 @@ CLOCK_SUPPORT = 0.2       # ... found from at least this fraction of the emissio
 STANDARD_RATES = (8000, 11025, 16000, 22050, 24000, 32000, 44100, 48000, 88200, 96000, 176400, 192000)
 SOUND_TOL = 0.03          # relative: a declared speed of sound this far from the odometry's is wrong ...
 SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate
+ODO_SIGMA_DEFAULT = 0.02  # m: odometry noise per event when meta.json states none
+TYPICAL_RANGE_M = 2.0     # m: source distance that turns the odometry's noise into a direction's
+S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
 MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit
 ODO_RESIDUAL_S = 3e-3     # s: arrivals the odometry cannot explain to better than this (RMS): another session's log
+ODO_MISFIT = 12.0         # ... or arrivals and DOAs this many sigmas off (RMS; σ_odo included; real sets: ≤ 5)
 MATCHED_FAIL = 0.5        # fewer chirps than this fraction of the events matched: events.csv does not fit
 LINE_RATIO = 0.05         # odometry spread: second principal std below this × the first: sources on a line
 PLANE_RATIO = 0.05        # third below this × the second: sources in one plane ...
@@ -233,50 +237,107 @@ def _arrival_chain(tdoa_s, name):
     return np.array(ev, int), np.array(t), np.array(seg, int)
 
 
-def _fit_one_array(odo, e, y, seg, c0):
-    """Variable projection: for an array position ``x``, the model ``y = τ_seg + δ·e + k·|odo − x|`` is linear
-    in (τ, δ, k); ``x`` is searched from several starts. Returns (k, std of k, RMS residual)."""
+def _kabsch(u, d, w=None, proper=True):
+    """Rotation (3, 3) taking the unit vectors ``u`` (K, 3) closest to ``d`` (K, 3); ``proper=False``: the best
+    improper one (a rotation times a mirror)."""
+    h = (u * (1.0 if w is None else w[:, None])).T @ d
+    U, _, Vt = np.linalg.svd(h)
+    s = np.sign(np.linalg.det(Vt.T @ U.T)) * (1 if proper else -1)
+    return Vt.T @ np.diag([1.0, 1.0, s]) @ U.T
+
+
+def _one_array_residual(odo, e, y, seg, u, sig_t, sig_d, proper=True):
+    """Residual function of one array's quick fit: θ = (x (3), τ per segment, δ, k); arrivals
+    ``y = τ_seg + δ·e + k·|odo − x|`` (s, over ``sig_t``) and, where DOAs ``u`` (K, 3, NaN = none) are
+    given, ``R u`` against the direction to the odometry's position (the rotation profiled out by
+    :func:`_kabsch`, over ``sig_d`` rad)."""
+    nseg = seg.max() + 1
+    has_u = np.all(np.isfinite(u), axis=1)
+
+    def f(theta):
+        x, tau, delta, k = theta[:3], theta[3 : 3 + nseg], theta[3 + nseg], theta[4 + nseg]
+        diff = odo - x
+        r = np.linalg.norm(diff, axis=1)
+        out = [(y - tau[seg] - delta * e - k * r) / sig_t]
+        if has_u.sum() >= 3:
+            d = diff[has_u] / r[has_u, None]
+            R = _kabsch(u[has_u], d, proper=proper)
+            out.append(((u[has_u] @ R.T) - d).ravel() / sig_d)
+        return np.concatenate(out)
+    return f
+
+
+def _arrival_starts(odo, e, y, seg, n_best=3):
+    """Starting positions for :func:`_fit_one_array`: the arrivals alone fitted from starts around the
+    trajectory (the linear parameters projected out); the ``n_best`` best, (x, τ, δ, k) each."""
     from scipy.optimize import least_squares
 
     nseg = seg.max() + 1
 
-    def design(x):
-        r = np.linalg.norm(odo - x, axis=1)
-        return np.column_stack([np.eye(nseg)[seg], e, r])
-
-    def resid(x):
-        A = design(x)
+    def linear(x):
+        A = np.column_stack([np.eye(nseg)[seg], e, np.linalg.norm(odo - x, axis=1)])
         coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        return y - A @ coef
+        return coef, y - A @ coef
 
     centre, span = odo.mean(axis=0), max(float(np.ptp(odo, axis=0).max()), 0.5)
     dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
                      [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], float)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    sols = [least_squares(lambda x: linear(x)[1], centre + r0 * dv, method="lm", max_nfev=200)
+            for r0 in (1.0 * span, 2.5 * span) for dv in dirs]
+    sols.sort(key=lambda sol: sol.cost)
+    return [np.concatenate([sol.x, linear(sol.x)[0]]) for sol in sols[:n_best]]
+
+
+def _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper=True):
+    """One array's position, clock and k = 1 / c from its arrivals (and DOAs) against the metric odometry.
+    Returns (k, std of k, RMS arrival residual s, RMS normalised residual)."""
+    from scipy.optimize import least_squares
+
+    nseg = seg.max() + 1
+    f = _one_array_residual(odo, e, y, seg, u, sig_t, sig_d, proper)
     best = None
-    for r0 in (1.0 * span, 2.5 * span):
-        for dvec in dirs:
-            sol = least_squares(resid, centre + r0 * dvec, method="lm", max_nfev=200)
-            if best is None or sol.cost < best.cost:
-                best = sol
-    A = design(best.x)
-    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-    res = y - A @ coef
-    # the full Jacobian (the position's columns too: its height above a flat path trades with k)
-    diff = best.x - odo
-    J = np.column_stack([A, coef[-1] * diff / np.linalg.norm(diff, axis=1, keepdims=True)])
-    s2 = float(res @ res) / max(len(y) - J.shape[1], 1)
+    for th in _arrival_starts(odo, e, y, seg):
+        sol = least_squares(f, th, x_scale="jac", max_nfev=100)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    J, res = best.jac, best.fun
+    n_t = len(y)
+    s2 = max(float(res @ res) / max(len(res) - len(best.x), 1), S2_FLOOR)
     cov = np.linalg.pinv(J.T @ J) * s2
-    return float(coef[-1]), float(np.sqrt(max(cov[-4, -4], 0.0))), float(np.sqrt(np.mean(res**2)))
+    k = float(best.x[4 + nseg])
+    return k, float(np.sqrt(max(cov[4 + nseg, 4 + nseg], 0.0))), float(np.sqrt(np.mean((res[:n_t] * sig_t) ** 2))), \
+        float(np.sqrt(np.mean(res**2)))
 
 
-def speed_of_sound_fit(features):
+def _doa_rows(features, name, e_id):
+    """(K, 3) DOAs of array ``name`` at events ``e_id`` in its frame (NaN where none, or where the array's DOAs
+    are ambiguous: a planar array without hemisphere, a linear one)."""
+    meta = features["meta"]
+    u = np.full((len(e_id), 3), np.nan)
+    if name in (meta.get("doa_mirror_normals") or {}) or name in (meta.get("doa_axes") or {}):
+        return u
+    doa = features["doa"]
+    doa = doa[doa["array"] == name].drop_duplicates("event").set_index("event")
+    have = np.isin(e_id, doa.index)
+    u[have] = doa.loc[e_id[have], ["ux", "uy", "uz"]].to_numpy(float)
+    return u
+
+
+def speed_of_sound_fit(features, proper=True):
     """Speed of sound from the metric odometry: per array, its arrivals (TDOA-S chained, less the emission
-    times) against the ranges from an unknown position to the odometry's source positions. Returns
-    {array: (c, std of c, RMS residual s)} for the arrays with enough arrivals."""
+    times) against the ranges from an unknown position to the odometry's source positions, its DOAs against
+    the directions to them (the angles between sources fix the metric distance, whatever c). Returns
+    {array: (c, std of c, RMS arrival residual s, RMS normalised residual)} for the arrays with enough
+    arrivals; c is inf (std inf) where the best fit has no positive 1/c (no range explains the arrivals)."""
     ev = features["events"].set_index("event")
+    meta = features["meta"]
+    # the odometry's noise is the largest part here: ranges and directions to its positions carry it
+    c0, sig_o = float(meta["speed_of_sound"]), float(meta.get("sigma_odo") or ODO_SIGMA_DEFAULT)
+    sig_t = float(np.hypot(float(meta.get("sigma_tdoa") or 1e-5) / np.sqrt(2), sig_o / c0))
+    sig_d = float(np.hypot(np.radians(float(meta.get("sigma_doa_deg") or 1.0)), sig_o / TYPICAL_RANGE_M))
     out = {}
-    for name in features["meta"]["arrays"]:
+    for name in meta["arrays"]:
         e_id, t, seg = _arrival_chain(features["tdoa_s"], name)
         keep = np.isin(e_id, ev.index)
         if keep.sum() < MIN_SOUND_EVENTS:
@@ -285,9 +346,9 @@ def speed_of_sound_fit(features):
         te = ev.loc[e_id, "t_emit"].to_numpy(float)
         odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
         y = t - (te - te[0])
-        k, sk, rms = _fit_one_array(odo, te - te[0], y, seg, features["meta"]["speed_of_sound"])
-        if k > 0:
-            out[name] = (1.0 / k, sk / k**2, rms)
+        k, sk, rms, cost = _fit_one_array(odo, te - te[0], y, seg, _doa_rows(features, name, e_id), sig_t, sig_d,
+                                          proper)
+        out[name] = (1.0 / k, sk / k**2, rms, cost) if k > 0 else (np.inf, np.inf, rms, cost)
     return out
 
 
@@ -297,13 +358,13 @@ def sound_findings(features, fits=None):
     fits = speed_of_sound_fit(features) if fits is None else fits
     c0 = float(features["meta"]["speed_of_sound"])
     out = []
-    bad = {k: v for k, v in fits.items() if v[2] > ODO_RESIDUAL_S}
+    bad = {k: v for k, v in fits.items() if v[2] > ODO_RESIDUAL_S or v[3] > ODO_MISFIT or not np.isfinite(v[0])}
     if bad and len(bad) >= max(1, len(fits) // 2 + 1):
-        worst_ = max(v[2] for v in bad.values())
+        worst_ = max(v[3] for v in bad.values())
         return [Finding("failed", "events.csv", "odometry vs arrivals", f"events.csv: the odometry does not explain "
-                        f"the chirps' arrival times (residual up to {1e3 * worst_:.0f} ms RMS in "
+                        f"the chirps' arrival times and directions (residuals up to {worst_:.0f}× their sigma in "
                         f"{', '.join(sorted(bad))}): is events.csv from this session (times and odometry)?")]
-    good = {k: v for k, v in fits.items() if v[2] <= ODO_RESIDUAL_S and np.isfinite(v[1]) and v[1] > 0}
+    good = {k: v for k, v in fits.items() if k not in bad and np.isfinite(v[1]) and v[1] > 0}
     if not good:
         return out
     w = np.array([1 / v[1] ** 2 for v in good.values()])

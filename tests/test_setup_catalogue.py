@@ -21,7 +21,7 @@ from typer.testing import CliRunner
 
 from calib.cli.main import app
 from calib.pipeline.formats.session import read_session, session_toml
-from calib.pipeline.setupcheck import setup_findings, speed_of_sound_fit, trajectory_findings
+from calib.pipeline.setupcheck import setup_findings, sound_findings, speed_of_sound_fit, trajectory_findings
 from calib.pipeline.sessiontools import emission_schedule
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "lab3"
@@ -270,7 +270,8 @@ def test_check_and_run_name_the_mistake(case, tmp_path):
     want = CASES[case][1]
     chk = invoke("check", d)
     assert chk.exit_code == 2, chk.output
-    assert re.search(want, " ".join(chk.output.split())), chk.output
+    flat = " ".join(re.sub(r"[│┃┏┓┗┛━┳┻╇┡┩└┘─┴┬┐┌]", " ", chk.output).split())  # the table's text, unwrapped
+    assert re.search(want, flat), chk.output
     r = invoke("run", d, "-o", tmp_path / "out", "-q", "--jobs", 1)
     text = " ".join((r.output + str(r.stderr_bytes or b"")).split())
     assert r.exit_code in (2, 3), f"{case}: exit {r.exit_code}\n{text}"
@@ -279,3 +280,57 @@ def test_check_and_run_name_the_mistake(case, tmp_path):
         assert re.search(want, " ".join(rep.split())), rep[:2000]
     else:
         assert re.search(want, text), text
+
+
+# ----------------------------------------------------------------------------------------------- fast: features
+@pytest.fixture(scope="module")
+def sample_features():
+    """The sample's features, extracted once (the speed-of-sound and odometry checks work on them)."""
+    from calib.frontend import extract_features
+
+    return extract_features(read_session(SAMPLE))[0]
+
+
+def _with(feats, meta=None, events=None):
+    out = dict(feats)
+    out["meta"] = {**feats["meta"], **(meta or {})}
+    out["events"] = events if events is not None else feats["events"]
+    return out
+
+
+def test_speed_of_sound_agrees_with_the_odometry_on_the_sample(sample_features):
+    fits = speed_of_sound_fit(sample_features)
+    assert len(fits) == 3
+    for c, sd, rms, _ in fits.values():  # the simulation's 343 m/s, within 3 σ (each array alone)
+        assert abs(c - 343.0) < 3 * sd and sd < 15 and rms < 1e-3
+    assert sound_findings(sample_features, fits) == []
+
+
+@pytest.mark.parametrize("c", [300.0, 390.0])
+def test_wrong_speed_of_sound_is_named(sample_features, c):
+    found = sound_findings(_with(sample_features, {"speed_of_sound": c}))
+    assert found and found[0].status == "failed" and f"speed_of_sound = {c:g}" in found[0].text
+
+
+@pytest.mark.parametrize("case", ["odometry in cm", "odometry rows of another session"])
+def test_odometry_mistakes_are_named(sample_features, case):
+    ev = sample_features["events"].copy()
+    ev = {"odometry in cm": lambda e: _odo(e, lambda o: o * 100), "odometry rows of another session": _other_session}[
+        case](ev)
+    found = sound_findings(_with(sample_features, events=ev))
+    assert found and found[0].status == "failed", found
+    assert re.search(r"session\.toml|events\.csv", found[0].text)
+
+
+REAL = Path("/work/shared/real_world") if Path("/work/shared/real_world").is_dir() else \
+    Path(__file__).resolve().parents[2] / "shared" / "real_world"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not REAL.is_dir(), reason="the real feature sets are not here")
+@pytest.mark.parametrize("k", range(1, 9))
+def test_no_false_alarm_on_the_real_feature_sets(k):
+    from calib.pipeline.formats.io import read_features
+
+    feats = read_features(REAL / f"zhang_real_{k:02d}" / "features")
+    assert sound_findings(feats) == [] and trajectory_findings(feats["events"]) == []
