@@ -41,6 +41,8 @@ SOUND_TOL = 0.03          # relative: a declared speed of sound this far from th
 SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate
 ODO_SIGMA_DEFAULT = 0.02  # m: odometry noise per event when meta.json states none
 TYPICAL_RANGE_M = 2.0     # m: source distance that turns the odometry's noise into a direction's
+MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RMS) is also fitted mirrored ...
+MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
 S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
 MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit
 ODO_RESIDUAL_S = 3e-3     # s: arrivals the odometry cannot explain to better than this (RMS): another session's log
@@ -324,12 +326,13 @@ def _doa_rows(features, name, e_id):
     return u
 
 
-def speed_of_sound_fit(features, proper=True):
+def speed_of_sound_fit(features, proper=True, arrays=None):
     """Speed of sound from the metric odometry: per array, its arrivals (TDOA-S chained, less the emission
     times) against the ranges from an unknown position to the odometry's source positions, its DOAs against
     the directions to them (the angles between sources fix the metric distance, whatever c). Returns
     {array: (c, std of c, RMS arrival residual s, RMS normalised residual)} for the arrays with enough
-    arrivals; c is inf (std inf) where the best fit has no positive 1/c (no range explains the arrivals)."""
+    arrivals; c is inf (std inf) where the best fit has no positive 1/c (no range explains the arrivals).
+    proper=False: each array's DOAs are fitted with a mirror (an improper rotation) instead; arrays: only these."""
     ev = features["events"].set_index("event")
     meta = features["meta"]
     # the odometry's noise is the largest part here: ranges and directions to its positions carry it
@@ -337,7 +340,7 @@ def speed_of_sound_fit(features, proper=True):
     sig_t = float(np.hypot(float(meta.get("sigma_tdoa") or 1e-5) / np.sqrt(2), sig_o / c0))
     sig_d = float(np.hypot(np.radians(float(meta.get("sigma_doa_deg") or 1.0)), sig_o / TYPICAL_RANGE_M))
     out = {}
-    for name in meta["arrays"]:
+    for name in meta["arrays"] if arrays is None else arrays:
         e_id, t, seg = _arrival_chain(features["tdoa_s"], name)
         keep = np.isin(e_id, ev.index)
         if keep.sum() < MIN_SOUND_EVENTS:
@@ -357,7 +360,9 @@ def sound_findings(features, fits=None):
     explain (events.csv of another session)."""
     fits = speed_of_sound_fit(features) if fits is None else fits
     c0 = float(features["meta"]["speed_of_sound"])
-    out = []
+    out = mirror_findings(features, fits)
+    if out:
+        return out
     bad = {k: v for k, v in fits.items() if v[2] > ODO_RESIDUAL_S or v[3] > ODO_MISFIT or not np.isfinite(v[0])}
     if bad and len(bad) >= max(1, len(fits) // 2 + 1):
         worst_ = max(v[3] for v in bad.values())
@@ -380,6 +385,29 @@ def sound_findings(features, fits=None):
                            f"but the metric odometry says {c_hat:.0f} ± {sd:.0f} m/s ({100 * rel:+.0f} %): set it "
                            f"to the air's (343 m/s at 20 °C; 331.3 + 0.606·T °C){units}"))
     return out
+
+
+def mirror_findings(features, fits):
+    """Arrays whose DOAs fit the odometry only as a mirror image (an improper rotation): their mic geometry
+    is mirrored or their doa_hemisphere is on the wrong side; all of them: the odometry's axes are mirrored
+    (x and y swapped, or one negated). Observable only where the sources span 3-D: with a planar path the
+    array's mirror image across it fits as well (docs/reliability.md)."""
+    poor = [k for k, v in fits.items() if v[3] > MIRROR_MIN]
+    if not poor:
+        return []
+    mirrored = speed_of_sound_fit(features, proper=False, arrays=poor)
+    named = [k for k in poor if k in mirrored and mirrored[k][3] * MIRROR_RATIO < fits[k][3]]
+    if not named:
+        return []
+    if len(named) == len(fits) > 1:
+        return [Finding("failed", "events.csv", "odometry axes", "events.csv: every array's DOAs fit the odometry "
+                        "only mirrored (residuals " + ", ".join(f"{fits[k][3]:.0f}→{mirrored[k][3]:.1f}σ" for k in named)
+                        + "): the odometry's axes are mirrored against the reference array's (x and y swapped, or "
+                        "one axis negated); fix odom_x, odom_y, odom_z")]
+    return [Finding("failed", "session.toml", "mirrored geometry", f"session.toml: array {k}'s DOAs fit the "
+                    f"directions to the odometry's positions only mirrored (residuals {fits[k][3]:.0f}σ → "
+                    f"{mirrored[k][3]:.1f}σ): its mics are mirrored (e.g. y typed as −y) or its doa_hemisphere is "
+                    "on the wrong side; fix its mics or doa_hemisphere", k) for k in named]
 
 
 def trajectory_findings(events):

@@ -182,12 +182,19 @@ CASES = {
     "odometry in cm": ([events(lambda ev: _odo(ev, lambda o: o * 100))], r"session\.toml|events\.csv", "setup"),
     "odometry rows of another session": ([events(_other_session)], r"events\.csv", "setup"),
     "emission times of another session": ([events(_other_times)], r"events\.csv", "setup"),
+    # mirrors: seen in the DOAs against the odometry (the sources span 3-D here; the hemisphere is declared)
+    "A2 geometry mirrored y -> -y": ([mics("A2", lambda m: m * [1, -1, 1])], r"array A2.*mirrored", "setup"),
+    "A3 doa_hemisphere flipped": ([toml(lambda cfg: [a.__setitem__("doa_hemisphere", [0.0, 0.0, -1.0])
+                                                     for a in cfg["arrays"] if a["name"] == "A3"])],
+                                  r"array A3.*doa_hemisphere", "setup"),
+    "odometry x and y swapped": ([events(lambda ev: _odo(ev, lambda o: o[:, [1, 0, 2]]))], r"events\.csv.*axes",
+                                 "setup"),
+    "odometry y negated": ([events(lambda ev: _odo(ev, lambda o: o * [1, -1, 1]))], r"events\.csv.*axes", "setup"),
     # not observable: the stage must stay silent (docs/reliability.md says why)
     "A2 labels rotated by one (symmetric circle)": ([channels("A2.wav", lambda x: np.roll(x, 1, axis=1))], None,
                                                     "unobservable"),
     "A3 label order reversed (a mirror of the circle)": ([channels("A3.wav", lambda x: x[:, [0, 5, 4, 3, 2, 1]])],
                                                          None, "unobservable"),
-    "A2 geometry mirrored y -> -y": ([mics("A2", lambda m: m * [1, -1, 1])], None, "unobservable"),
     "A2 and A3 WAVs exchanged": ([toml(lambda cfg: [a.__setitem__("wav", {"A2": "A3.wav", "A3": "A2.wav"}[a["name"]])
                                                     for a in cfg["arrays"] if a["name"] in ("A2", "A3")])], None,
                                  "unobservable"),
@@ -228,7 +235,7 @@ def _stage(d):
 
 
 SIGNAL_CASES = [k for k in OBSERVABLE if CASES[k][2] == "setup" and not re.search(
-    r"speed of sound|odometry|another session|t_emit", k)]
+    r"speed of sound|odometry|another session|t_emit|mirrored|hemisphere", k)]
 
 
 @pytest.mark.parametrize("case", SIGNAL_CASES)
@@ -312,14 +319,23 @@ def test_wrong_speed_of_sound_is_named(sample_features, c):
     assert found and found[0].status == "failed" and f"speed_of_sound = {c:g}" in found[0].text
 
 
-@pytest.mark.parametrize("case", ["odometry in cm", "odometry rows of another session"])
+@pytest.mark.parametrize("case", ["odometry in cm", "odometry rows of another session", "odometry x and y swapped"])
 def test_odometry_mistakes_are_named(sample_features, case):
     ev = sample_features["events"].copy()
-    ev = {"odometry in cm": lambda e: _odo(e, lambda o: o * 100), "odometry rows of another session": _other_session}[
-        case](ev)
+    ev = {"odometry in cm": lambda e: _odo(e, lambda o: o * 100), "odometry rows of another session": _other_session,
+          "odometry x and y swapped": lambda e: _odo(e, lambda o: o[:, [1, 0, 2]])}[case](ev)
     found = sound_findings(_with(sample_features, events=ev))
     assert found and found[0].status == "failed", found
     assert re.search(r"session\.toml|events\.csv", found[0].text)
+    assert ("axes" in found[0].text) == ("swapped" in case)
+
+
+def test_mirrored_doas_of_one_array_are_named(sample_features):
+    """A2's DOAs mirrored (what a geometry typed with y → −y gives): A2 is named, not the odometry."""
+    doa = sample_features["doa"].copy()
+    doa.loc[doa["array"] == "A2", "uy"] *= -1
+    found = sound_findings({**sample_features, "doa": doa})
+    assert [(f.array, f.check) for f in found] == [("A2", "mirrored geometry")]
 
 
 REAL = Path("/work/shared/real_world") if Path("/work/shared/real_world").is_dir() else \
