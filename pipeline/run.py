@@ -197,13 +197,11 @@ def estimate_stage(out, options, setup=()):
     """Estimator: OUT/features/ → OUT/calibration/ (atomic). Returns the calibration dict.
 
     setup : the set-up findings (``calib.pipeline.setupcheck.stage_findings``), ranked first in the verdict."""
-    from calib.estimator.verdict import with_setup
     from calib.pipeline.formats.io import write_calibration
+    from calib.pipeline.setupcheck import apply_findings
 
     calib, feats = estimate_features(Path(out) / "features", options)
-    if setup:
-        rep = calib["report"]
-        calib["report"] = {**rep, "verdict": with_setup(rep.get("verdict", {}), setup), "setup": list(setup)}
+    calib = apply_findings(calib, setup)
     write_calibration(Path(out) / "calibration", calib, features=feats)  # + calibration.json
     return calib
 

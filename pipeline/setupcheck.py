@@ -41,6 +41,7 @@ SOUND_TOL = 0.03          # relative: a declared speed of sound this far from th
 SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate
 ODO_SIGMA_DEFAULT = 0.02  # m: odometry noise per event when meta.json states none
 TYPICAL_RANGE_M = 2.0     # m: source distance that turns the odometry's noise into a direction's
+DOA_TRUST = 2.5           # RMS normalised residual above which the DOAs do not help the speed of sound
 MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RMS) is also fitted mirrored ...
 MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
 S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
@@ -349,9 +350,13 @@ def speed_of_sound_fit(features, proper=True, arrays=None):
         te = ev.loc[e_id, "t_emit"].to_numpy(float)
         odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
         y = t - (te - te[0])
-        k, sk, rms, cost = _fit_one_array(odo, te - te[0], y, seg, _doa_rows(features, name, e_id), sig_t, sig_d,
-                                          proper)
-        out[name] = (1.0 / k, sk / k**2, rms, cost) if k > 0 else (np.inf, np.inf, rms, cost)
+        u = _doa_rows(features, name, e_id)
+        k, sk, rms, misfit = _fit_one_array(odo, te - te[0], y, seg, u, sig_t, sig_d, proper)
+        if misfit > DOA_TRUST and np.any(np.isfinite(u)):
+            # DOAs that do not fit (a wrong speed of sound also bends a planar array's elevations): c from
+            # the arrivals alone; the misfit kept for the mirror and the odometry tests
+            k, sk, rms, _ = _fit_one_array(odo, te - te[0], y, seg, np.full_like(u, np.nan), sig_t, sig_d)
+        out[name] = (1.0 / k, sk / k**2, rms, misfit) if k > 0 else (np.inf, np.inf, rms, misfit)
     return out
 
 
@@ -477,6 +482,26 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
     if features is not None and not any(f.check in ("events vs chirps", "emission clock") for f in out):
         out += sound_findings(features)
     return sorted(out, key=lambda f: -STATUS_RANK[f.status])
+
+
+def feature_findings(features):
+    """The set-up findings a features folder alone can show (``calib estimate``: no recordings): the speed of
+    sound and the odometry against the arrivals and DOAs, mirrored DOAs, the trajectory. Dicts, as
+    :func:`stage_findings`."""
+    found = sound_findings(features) + trajectory_findings(features["events"])
+    return [f.as_dict() for f in sorted(found, key=lambda f: -STATUS_RANK[f.status])]
+
+
+def apply_findings(calib, findings):
+    """The calibration dict with the set-up ``findings`` (dicts) in its report (``setup``) and ranked first
+    in its verdict (``calib.estimator.verdict.with_setup``); unchanged when there are none."""
+    from calib.estimator.verdict import with_setup
+
+    if not findings:
+        return calib
+    rep = calib["report"]
+    return {**calib, "report": {**rep, "verdict": with_setup(rep.get("verdict", {}), findings),
+                                "setup": list(findings)}}
 
 
 def stage_findings(session, out, threshold=8.0):
