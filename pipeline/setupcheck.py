@@ -41,6 +41,8 @@ SOUND_TOL = 0.03          # relative: a declared speed of sound this far from th
 SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate
 ODO_SIGMA_DEFAULT = 0.02  # m: odometry noise per event when meta.json states none
 TYPICAL_RANGE_M = 2.0     # m: source distance that turns the odometry's noise into a direction's
+SOUND_AT_0C, SOUND_PER_C = 331.3, 0.606  # m/s, m/s per °C: dry air
+TEMPERATURE_TOL = 0.015   # relative: humidity and the thermometer allow this much (±5 °C ≈ ±0.9 %)
 DOA_TRUST = 2.5           # RMS normalised residual above which the DOAs do not help the speed of sound
 MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RMS) is also fitted mirrored ...
 MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
@@ -415,6 +417,19 @@ def mirror_findings(features, fits):
                     "on the wrong side; fix its mics or doa_hemisphere", k) for k in named]
 
 
+def temperature_findings(session):
+    """session.toml's speed of sound against its (optional) air temperature: c = 331.3 + 0.606·T m/s."""
+    if session.get("temperature") is None:
+        return []
+    t, c0 = float(session["temperature"]), float(session["speed_of_sound"])
+    c_t = SOUND_AT_0C + SOUND_PER_C * t
+    if abs(c0 / c_t - 1) <= TEMPERATURE_TOL:
+        return []
+    return [Finding("failed", "session.toml", "speed of sound", f"session.toml: speed_of_sound = {c0:g} m/s, but "
+                    f"its temperature {t:g} °C gives {c_t:.1f} m/s in air ({100 * (c0 / c_t - 1):+.1f} %): correct "
+                    "one of them")]
+
+
 def trajectory_findings(events):
     """Sources on a line, or in one plane that is not horizontal in the reference frame: the arrays' mirror
     images across it (rotations about the line) explain the TDOAs as well."""
@@ -476,7 +491,7 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
         out += channel_findings(a, res, session["speed_of_sound"])
     out += clock_findings(session, results)
     out += identical_recordings(session)
-    out += trajectory_findings(session["events"])
+    out += trajectory_findings(session["events"]) + temperature_findings(session)
     if diagnostics is not None:
         out += matched_findings(session, diagnostics)
     if features is not None and not any(f.check in ("events vs chirps", "emission clock") for f in out):

@@ -33,7 +33,8 @@ MAX_MIC_RADIUS = 10.0           # m: mic coordinates are relative to their array
 SPAN_WAVELENGTHS = 50.0         # an array wider than this many wavelengths is a unit mistake (mm for m)
 
 
-TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays")
+TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays", "temperature")
+TEMPERATURE_C = (-50.0, 60.0)   # °C: the air of a room (optional key, checked against speed_of_sound)
 CHIRP_KEYS = ("f0", "f1", "duration", "reference", "kind", "fade")
 ARRAY_KEYS = ("name", "wav", "mics", "doa_hemisphere")
 
@@ -76,6 +77,9 @@ def read_session(directory, check_audio=True):
         "arrays": arrays,
         "events": read_events(d / "events.csv"),
     }
+    if "temperature" in cfg:
+        session["temperature"] = V.number(cfg["temperature"], f"{p}: 'temperature'", lo=TEMPERATURE_C[0],
+                                          hi=TEMPERATURE_C[1])
     if check_audio:
         _check_audio(session, p)
     return session
