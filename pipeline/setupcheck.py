@@ -18,6 +18,8 @@ What is checked, and from what:
 | wrong speed of sound / odometry units | ranges from the metric odometry vs the arrivals | :func:`speed_of_sound_fit` |
 | events.csv of another session | arrivals the odometry cannot explain; unmatched chirps | :func:`speed_of_sound_fit` |
 | sources on a line or in one non-horizontal plane | the odometry's spread | :func:`trajectory_findings` |
+| mirrored geometry, doa_hemisphere on the wrong side, odometry axes mirrored | DOAs that fit the odometry only with an improper rotation | :func:`mirror_findings` |
+| speed of sound against the air temperature | session.toml's optional ``temperature`` | :func:`temperature_findings` |
 
 Library use (a notebook)::
 
