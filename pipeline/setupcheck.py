@@ -325,7 +325,10 @@ def _doa_rows(features, name, e_id):
     if name in (meta.get("doa_mirror_normals") or {}) or name in (meta.get("doa_axes") or {}):
         return u
     doa = features["doa"]
-    doa = doa[doa["array"] == name].drop_duplicates("event").set_index("event")
+    doa = doa[doa["array"] == name]
+    if "flag" in doa:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
+        doa = doa[doa["flag"].fillna("").astype(str) == ""]
+    doa = doa.drop_duplicates("event").set_index("event")
     have = np.isin(e_id, doa.index)
     u[have] = doa.loc[e_id[have], ["ux", "uy", "uz"]].to_numpy(float)
     return u
