@@ -327,7 +327,7 @@ def _doa_rows(features, name, e_id):
     doa = features["doa"]
     doa = doa[doa["array"] == name]
     if "flag" in doa:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
-        doa = doa[doa["flag"].fillna("").astype(str) == ""]
+        doa = doa[doa["flag"].isna() | (doa["flag"].astype(str) == "")]
     doa = doa.drop_duplicates("event").set_index("event")
     have = np.isin(e_id, doa.index)
     u[have] = doa.loc[e_id[have], ["ux", "uy", "uz"]].to_numpy(float)

@@ -404,3 +404,24 @@ def test_verdict_ranks_set_up_findings_first():
     assert out["reasons"][1].endswith(SYMPTOM_NOTE) and out["flagged_arrays"] == ["A2"]
     assert with_setup(v, [{"status": "suspect", "text": "weak", "array": None}])["status"] == "suspect"
     assert with_setup({"status": "ok", "reasons": [], "flagged_arrays": []}, [])["status"] == "ok"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("shape", ["vertical plane", "line"])
+def test_degenerate_trajectory_ends_the_run_failed(tmp_path, shape):
+    """A recorded session whose speaker stops all lie in one vertical plane (or on a line): `calib run` ends
+    failed, naming events.csv (the arrays' mirror images across the plane fit as well)."""
+    from calib.pipeline.simulate.roomsim import make_scenario, simulate
+    from .sessions import EVENT_INTERVAL, SHORT_CHIRP
+
+    sc = make_scenario("lab3", 1, n_events=12, interval=EVENT_INTERVAL, chirp=SHORT_CHIRP)
+    src = np.asarray(sc["sources"], float)
+    src[:, 1] = src[:, 1].mean()  # every stop in the plane y = const (vertical); the arrays stay where they were
+    if shape == "line":
+        src[:, 2] = src[:, 2].mean()
+    d = simulate({**sc, "sources": src}, tmp_path / "rec")
+    r = invoke("run", d, "-o", tmp_path / "out", "-q", "--jobs", 1)
+    assert r.exit_code in (2, 3), r.output
+    if r.exit_code == 3:
+        rep = (tmp_path / "out" / "calibration" / "report.json").read_text()
+        assert "events.csv" in rep and ("one plane" in rep or "on a line" in rep)
