@@ -418,8 +418,8 @@ def mirror_findings(features, fits):
                         "one axis negated); fix odom_x, odom_y, odom_z")]
     return [Finding("failed", "session.toml", "mirrored geometry", f"session.toml: array {k}'s DOAs fit the "
                     f"directions to the odometry's positions only mirrored (residuals {fits[k][3]:.0f}σ → "
-                    f"{mirrored[k][3]:.1f}σ): its mics are mirrored (e.g. y typed as −y) or its doa_hemisphere is "
-                    "on the wrong side; fix its mics or doa_hemisphere", k) for k in named]
+                    f"{mirrored[k][3]:.1f}σ): its mics are mirrored (y typed as −y, or its channels in reversed order) "
+                    "or its doa_hemisphere is on the wrong side; fix its mics or doa_hemisphere", k) for k in named]
 
 
 def temperature_findings(session):

@@ -192,14 +192,14 @@ CASES = {
     "A3 doa_hemisphere flipped": ([toml(lambda cfg: [a.__setitem__("doa_hemisphere", [0.0, 0.0, -1.0])
                                                      for a in cfg["arrays"] if a["name"] == "A3"])],
                                   r"array A3.*doa_hemisphere", "setup"),
+    "A3 channel order reversed (mirrored circle)": ([channels("A3.wav", lambda x: x[:, [0, 5, 4, 3, 2, 1]])],
+                                                    r"array A3.*mirrored", "setup"),
     "odometry x and y swapped": ([events(lambda ev: _odo(ev, lambda o: o[:, [1, 0, 2]]))], r"events\.csv.*axes",
                                  "setup"),
     "odometry y negated": ([events(lambda ev: _odo(ev, lambda o: o * [1, -1, 1]))], r"events\.csv.*axes", "setup"),
     # not observable: the stage must stay silent (docs/reliability.md says why)
     "A2 labels rotated by one (symmetric circle)": ([channels("A2.wav", lambda x: np.roll(x, 1, axis=1))], None,
                                                     "unobservable"),
-    "A3 label order reversed (a mirror of the circle)": ([channels("A3.wav", lambda x: x[:, [0, 5, 4, 3, 2, 1]])],
-                                                         None, "unobservable"),
     "A2 and A3 WAVs exchanged": ([toml(lambda cfg: [a.__setitem__("wav", {"A2": "A3.wav", "A3": "A2.wav"}[a["name"]])
                                                     for a in cfg["arrays"] if a["name"] in ("A2", "A3")])], None,
                                  "unobservable"),
@@ -328,7 +328,9 @@ def test_wrong_speed_of_sound_is_named(sample_features, c):
 def test_odometry_mistakes_are_named(sample_features, case):
     ev = sample_features["events"].copy()
     ev = {"odometry in cm": lambda e: _odo(e, lambda o: o * 100), "odometry rows of another session": _other_session,
-          "odometry x and y swapped": lambda e: _odo(e, lambda o: o[:, [1, 0, 2]])}[case](ev)
+          "A3 channel order reversed (mirrored circle)": ([channels("A3.wav", lambda x: x[:, [0, 5, 4, 3, 2, 1]])],
+                                                    r"array A3.*mirrored", "setup"),
+    "odometry x and y swapped": lambda e: _odo(e, lambda o: o[:, [1, 0, 2]])}[case](ev)
     found = sound_findings(_with(sample_features, events=ev))
     assert found and found[0].status == "failed", found
     assert re.search(r"session\.toml|events\.csv", found[0].text)
