@@ -112,7 +112,13 @@ def channel_findings(a, res, c):
         out.append(Finding("failed", wav, "duplicated channel", f"{wav} channels {m + 1} and {n + 1} hold identical "
                            "samples: one mic recorded twice (a routing or channel-map mistake); fix the channel map"))
     bad = set(dead) | dup
-    for m, frac in C.inverted_channels(d, exclude=tuple(bad)).items():
+    inv = C.inverted_channels(d, exclude=tuple(bad))
+    if inv and 2 * len(inv) >= len(lev) - len(bad):  # no majority to call the right polarity (e.g. a pair)
+        names = " and ".join(str(m + 1) for m in inv)
+        out.append(Finding("failed", wav, "polarity", f"{wav} channels {names}: opposite polarities (their "
+                           "correlation peaks are negative): one side is inverted; rewire it, or multiply it by −1"))
+        inv = {}
+    for m, frac in inv.items():
         out.append(Finding("failed", wav, "polarity", f"{wav} channel {m + 1}: inverted polarity (its correlation "
                            f"with the other mics is negative in {100 * frac:.0f} % of the pairs): rewire it, or "
                            "multiply the channel by −1"))
