@@ -373,9 +373,10 @@ def speed_of_sound_fit(features, proper=True, arrays=None):
     return out
 
 
-def sound_findings(features, fits=None):
+def sound_findings(features, fits=None, source="session.toml"):
     """The declared speed of sound against the odometry's metric scale, and arrivals the odometry cannot
-    explain (events.csv of another session)."""
+    explain (events.csv of another session). source: the file that declares the speed of sound (a features
+    folder's meta.json for ``calib estimate``)."""
     fits = speed_of_sound_fit(features) if fits is None else fits
     c0 = float(features["meta"]["speed_of_sound"])
     out = mirror_findings(features, fits)
@@ -399,7 +400,7 @@ def sound_findings(features, fits=None):
         p10 = 10 ** np.round(np.log10(c_hat / c0))
         units = (f" — or the odometry is not in metres ({p10:g} × fits)" if p10 != 1 and
                  abs(np.log10(c_hat / c0 / p10)) < 0.1 else "")
-        out.append(Finding("failed", "session.toml", "speed of sound", f"session.toml: speed_of_sound = {c0:g} m/s, "
+        out.append(Finding("failed", source, "speed of sound", f"{source}: speed_of_sound = {c0:g} m/s, "
                            f"but the metric odometry says {c_hat:.0f} ± {sd:.0f} m/s ({100 * rel:+.0f} %): set it "
                            f"to the air's (343 m/s at 20 °C; 331.3 + 0.606·T °C){units}"))
     return out
@@ -514,7 +515,7 @@ def feature_findings(features):
     """The set-up findings a features folder alone can show (``calib estimate``: no recordings): the speed of
     sound and the odometry against the arrivals and DOAs, mirrored DOAs, the trajectory. Dicts, as
     :func:`stage_findings`."""
-    found = sound_findings(features) + trajectory_findings(features["events"])
+    found = sound_findings(features, source="meta.json") + trajectory_findings(features["events"])
     return [f.as_dict() for f in sorted(found, key=lambda f: -STATUS_RANK[f.status])]
 
 
