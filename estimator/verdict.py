@@ -134,7 +134,9 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
                              "data may be biased as a whole (reflections, occlusion)")
     if odometry_yaw and odometry_yaw.get("kept"):
         worse("suspect", f"the odometry frame is rotated by {odometry_yaw['yaw_deg']:.1f} ± {odometry_yaw['std_deg']:.1f}° "
-                         "about the vertical relative to the reference array (estimated; check the odometry's axes)")
+                         "about the vertical relative to the reference array (estimated; check the odometry's axes, and "
+                         "the arrays' mic geometry and doa_hemisphere: a mirrored or mis-ordered geometry turns the "
+                         "DOAs the same way)")
     return {"status": status, "reasons": reasons, "flagged_arrays": flagged}
 
 
@@ -209,3 +211,28 @@ def fold_ambiguity(out, basins):
                                   f"+{b['dcost']:.1f}): its std covers both")
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return out
+
+SETUP_PREFIX = "set-up: "
+# generic reasons that a set-up mistake produces as a symptom; named as such when set-up findings failed
+SYMPTOM_NOTE = " (probably a symptom of the set-up finding(s) above, not a cause of its own)"
+
+
+def with_setup(verdict, findings):
+    """The verdict with the set-up findings (``calib.pipeline.setupcheck``: dicts with status "failed",
+    "suspect" or "note", text, array) ranked above the estimator's own reasons: a mistake in the set-up is
+    the cause, the residuals and the odometry's apparent rotation its symptoms. A failed finding makes the
+    verdict failed (the result cannot be trusted, whatever the residuals say); a suspect one at least
+    suspect. The arrays named are added to ``flagged_arrays``. Returns a new dict."""
+    status = verdict.get("status", "ok")
+    setup, flagged = [], list(verdict.get("flagged_arrays", []))
+    for f in findings:
+        if f.get("status") not in STATUS_RANK:
+            continue
+        setup.append(SETUP_PREFIX + f["text"])
+        if STATUS_RANK[f["status"]] > STATUS_RANK[status]:
+            status = f["status"]
+        if f.get("array") and f["array"] not in flagged:
+            flagged.append(f["array"])
+    failed = any(f.get("status") == "failed" for f in findings)
+    generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])]
+    return {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
