@@ -133,3 +133,25 @@ def test_sparse_observability_names_an_unlocatable_source():
             check_observability(p, lay, kinds, st, dense=dense)
         msgs.append(str(e.value))
     assert named(msgs[0]) == named(msgs[1])
+
+
+def test_array_covariance_of_a_large_problem_is_the_dense_inverse_block():
+    # calibration.json's covariance (estimator.array_covariance) on a problem past the dense limit: the
+    # sparse block inverse, not a dense n x n pinv of the whole Jacobian (11 GB at 40 arrays x 1000 events)
+    from calib.estimator import array_covariance
+    from calib.estimator.solver import use_dense
+
+    rng = np.random.default_rng(7)
+    stops = np.cumsum(rng.normal(0, 0.4, (90, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
+    feats, truth = simulate_features(trajectory=stops, seed=7, n_arrays=5)
+    p = build_problem(feats)
+    st = state_from_frames(p, truth["arrays"], truth["sources"])
+    lay = make_layout(p)
+    assert not use_dense(lay)
+    labels, cov = array_covariance({"problem": p, "state": st, "layout": lay, "kinds": KINDS, "mask": {}})
+    J = linearise(p, st, lay, KINDS, dense=True).J
+    idx = np.concatenate([np.r_[lay.x[i], lay.rot[i], lay.offset[i], lay.drift[i]] for i in range(len(p.names))])
+    idx = idx[idx >= 0]
+    ref = covariance(J, lay.n)[np.ix_(idx, idx)]
+    assert len(labels) == len(idx)
+    np.testing.assert_allclose(cov, ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max())
