@@ -371,8 +371,8 @@ def validate_features(feats):
         df = t.check(df, p, meta) if t.check else df
         out[t.name] = df.sort_values(list(t.keys), kind="stable").reset_index(drop=True)
     where = Path(feats["meta"].get("_path", "features/meta.json")).parent
-    V.check_problem_size(len(ev), len(arrays), sum(t.residuals * len(out[t.name])
-                                                   for t in FEATURE_TABLES), where)
+    V.check_problem_size(len(ev), len(arrays), {t.name: t.residuals * len(out[t.name]) for t in FEATURE_TABLES},
+                         where)
     return out
 
 
