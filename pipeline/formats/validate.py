@@ -49,6 +49,7 @@ BYTES_PER_JACOBIAN_ENTRY = 200   # per entry, alive at the peak: the stacked CSR
 #                                  (~50 B), Jᵀ and W J of the normal equations (24 B), robust statistics (measured)
 DENSE_EVENT_ARRAY_BLOCKS = 3     # dense (event parameters × array parameters) blocks: H_EA, X = H_EE⁻¹ H_EA, X S⁻¹
 ESTIMATOR_BASE_BYTES = 150 * 2**20  # the interpreter, numpy/scipy/pandas and the calib modules (measured)
+ESTIMATOR_PER_ARRAY_BYTES = 2**20   # per array, whatever the events (measured: 40 × 200 peaks 38 MB above 10 × 200)
 
 
 def strip_bom(text):
@@ -174,13 +175,16 @@ def estimator_memory(n_events, n_arrays, rows):
     measurement kind → scalar residual rows; a DOA counts 3), for the sparse solver that runs above
     ``estimator.solver.DENSE_MAX_PARAMS`` (300) parameters.
 
-    ``BYTES_PER_JACOBIAN_ENTRY`` per non-zero of the Jacobian (``JACOBIAN_WIDTH`` per row), the Schur
-    complement's dense event × array blocks and a few copies of the dense array block. Parameters: 3 per
-    event (source), 10 per array (position, rotation, offset, drift). The dense path's problems (≤ 300
-    parameters: ≤ 100 events) take a few tens of MB, within ``ESTIMATOR_BASE_BYTES``.
+    A base and ``ESTIMATOR_PER_ARRAY_BYTES`` per array, ``BYTES_PER_JACOBIAN_ENTRY`` per non-zero of the
+    Jacobian (``JACOBIAN_WIDTH`` per row), the Schur complement's dense event × array blocks and a few copies
+    of the dense array block. Parameters: 3 per event (source), 10 per array (position, rotation, offset,
+    drift). The dense path's problems (≤ 300 parameters: ≤ 100 events) take a few tens of MB, within
+    ``ESTIMATOR_BASE_BYTES``. Within −2 … +15 % of the measured peak RSS of `calib estimate` from 5 × 100 to
+    40 × 1000 (benchmarks/bench_scale.py, column pred/peak).
     """
     n_ev, n_ar = 3 * n_events, 10 * n_arrays
-    return (ESTIMATOR_BASE_BYTES + BYTES_PER_JACOBIAN_ENTRY * jacobian_entries(n_events, rows)
+    return (ESTIMATOR_BASE_BYTES + ESTIMATOR_PER_ARRAY_BYTES * n_arrays
+            + BYTES_PER_JACOBIAN_ENTRY * jacobian_entries(n_events, rows)
             + 8.0 * (DENSE_EVENT_ARRAY_BLOCKS * n_ev * n_ar + 3 * n_ar * n_ar))
 
 
