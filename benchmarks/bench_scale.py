@@ -158,7 +158,7 @@ def cli_case(n_arrays, n_events, seed=0, with_crlb=True):
 
     from cliproc import calib_cmd, measure
 
-    from calib.pipeline.formats.io import FEATURE_TABLES, read_calibration, write_features_files
+    from calib.pipeline.formats.io import measurement_rows, read_calibration, write_features_files
     from calib.pipeline.formats.validate import estimator_memory
 
     feats, truth = features(n_arrays, n_events, seed)
@@ -169,8 +169,7 @@ def cli_case(n_arrays, n_events, seed=0, with_crlb=True):
         m = measure(calib_cmd("estimate", fdir, "-o", cdir, "-q"))
         row = {"arrays": n_arrays, "events": n_events, "rc": m["rc"], "wall_s": m["wall_s"], "cpu_s": m["cpu_s"],
                "peak_mb": m["peak_mb"],
-               "pred_mb": estimator_memory(n_events, n_arrays, {t.name: t.residuals * len(feats[t.name])
-                                                                for t in FEATURE_TABLES}) / 2**20}
+               "pred_mb": estimator_memory(n_events, n_arrays, measurement_rows(feats)) / 2**20}
         row["pred/peak"] = row["pred_mb"] / row["peak_mb"]
         if m["rc"] not in (0, 3):
             row["error"] = (m["stderr"].strip().splitlines() or ["?"])[-1]
