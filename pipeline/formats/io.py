@@ -24,6 +24,7 @@ import dataclasses
 import io
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -77,6 +78,9 @@ def atomic_write_text(path, text):
 
 
 # ----------------------------------------------------------------------------------------------- CSV
+_CELL_SPACE = re.compile(r"[ \t]*(,|\n)[ \t]*")   # spaces and tabs around a separator
+
+
 def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bounds=None, max_rows=None):
     """Read a CSV with validation.
 
@@ -95,6 +99,11 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bou
     """
     path = Path(path)
     text = V.read_text(path)
+    # spaces around cells are ignored: removed in one pass over the text (a strip of every cell costs ~1 s per
+    # million cells), or cell by cell when quotes may hold separators
+    quoted = '"' in text
+    if not quoted:
+        text = _CELL_SPACE.sub(r"\1", text).strip(" \t")
     try:
         raw = pd.read_csv(io.StringIO(text), dtype=str, keep_default_na=False, skipinitialspace=True)
     except Exception as exc:  # pandas raises many kinds on malformed files
@@ -109,8 +118,8 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bou
     if len(raw) > limit:
         raise InputError(f"{path}: {len(raw)} rows, more than the {limit} calib handles in one session")
     bounds = bounds or {}
-    out = {col: _column(raw[col].str.strip(), col, path, col in str_cols, col in int_cols, col in optional_cols,
-                        bounds.get(col)) for col in columns}
+    out = {col: _column(raw[col].str.strip() if quoted else raw[col], col, path, col in str_cols, col in int_cols,
+                        col in optional_cols, bounds.get(col)) for col in columns}
     df = pd.DataFrame(out, index=pd.RangeIndex(len(raw)))
     extra = [c for c in raw.columns if c not in columns]
     for c in extra:
@@ -356,6 +365,12 @@ def feature_tables():
     return [dataclasses.replace(t, check=TABLE_CHECKS.get(t.name, t.check)) for t in K.tables()]
 
 
+def measurement_rows(feats):
+    """Scalar residual rows per measurement kind of a features dict (a row of a kind of dimension d counts d)."""
+    return {t.name: K.KINDS[t.name].dim * len(feats[t.name]) for t in feature_tables()
+            if feats.get(t.name) is not None}
+
+
 def validate_features(feats):
     """Validate an in-memory features dict (as produced by a reader or a simulator). Returns it cleaned."""
     meta = validate_meta(feats["meta"], feats["meta"].get("_path", "meta.json"))
@@ -374,8 +389,7 @@ def validate_features(feats):
         df = t.check(df, p, meta) if t.check else df
         out[t.name] = df.sort_values(list(t.keys), kind="stable").reset_index(drop=True)
     where = Path(feats["meta"].get("_path", "features/meta.json")).parent
-    V.check_problem_size(len(ev), len(arrays), sum(K.KINDS[t.name].dim * len(out[t.name])
-                                                   for t in feature_tables()), where)
+    V.check_problem_size(len(ev), len(arrays), measurement_rows(out), where)
     return out
 
 
