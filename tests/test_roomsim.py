@@ -20,7 +20,6 @@ from typer.testing import CliRunner
 
 from calib.cli.main import app
 from calib.pipeline.simulate import roomsim as rs
-from calib.pipeline.simulate.presets import DEPLOY  # deployment presets: tests/test_deploy_sim.py
 from calib.pipeline.formats.io import InputError, read_events, read_truth
 from calib.pipeline.formats.session import read_session
 
@@ -278,7 +277,7 @@ def test_interferer_arrives_where_the_clock_model_says(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------- scenarios
-@pytest.mark.parametrize("preset", [p for p in rs.PRESETS if p not in rs.REALISTIC and p not in DEPLOY])
+@pytest.mark.parametrize("preset", [p for p in rs.PRESETS if p not in rs.REALISTIC + rs.DEPLOY])  # paper / lab3 layouts
 def test_presets_respect_layout_constraints(preset):
     for seed in range(3):
         sc = rs.make_scenario(preset, seed=seed)

@@ -25,8 +25,8 @@ from __future__ import annotations
 import copy
 import json
 import math
-import tomllib
 import zlib
+from calib.tomlcompat import tomllib
 from pathlib import Path
 
 import numpy as np
