@@ -23,6 +23,7 @@ from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect,
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
+from .options import validate_options
 from .problem import State, build_problem, make_layout, state_from_dict
 from .robust import (FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
                      fit_array_alone, measurement_stats, count_measurements, factor_sizes, per_array_kinds,
@@ -522,39 +523,6 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
         stages["ive"] = {"cost": ive["cost"], "iterations": ive["iterations"], "reason": ive["reason"]}
         times["ive"] = time.perf_counter() - t1
     return st, stages, stage_states
-
-
-def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", array_noise=False,
-                     outputs="all"):
-    """Raise ValueError with a clear message for any option of :func:`calibrate_features` out of range.
-
-    The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
-    any data): NaN, infinities and negative values are refused, never silently used.
-    """
-    choices = {"method": (method, tuple(INIT_METHODS)), "loss": (loss, ("cauchy", "huber", "linear", None)),
-               "noise": (noise, ("auto", "meta", "estimate")), "outputs": (outputs, ("all", "solution"))}
-    for name, (value, allowed) in choices.items():
-        if value not in allowed:
-            shown = [a for a in allowed if a is not None]
-            raise ValueError(f"{name} must be {', '.join(shown[:-1])} or {shown[-1]}, not {value!r}")
-
-    def number(name, v, lo, strict):
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name} must be a number, not {v!r}") from None
-        if not np.isfinite(f) or (f <= lo if strict else f < lo):
-            raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {lo:g}, not {v!r}")
-
-    number("emission_sigma", emission_sigma, 0.0, False)
-    number("robust_k", robust_k, 0.0, True)
-    number("outlier_threshold", outlier_threshold, 0.0, True)
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-        raise ValueError(f"max_iter must be an integer >= 1, not {max_iter!r}")
-    for name, v in (("use_tdoa_s", use_tdoa_s), ("array_noise", array_noise)):
-        if not isinstance(v, (bool, np.bool_)):
-            raise ValueError(f"{name} must be True or False, not {v!r}")
 
 
 def _yaw_std_deg(cov, yaw_i, p, st, lay, kinds, mask):

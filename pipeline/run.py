@@ -46,8 +46,6 @@ TRUTH_FILES = ("arrays.csv", "sources.csv")
 # files whose absence makes a stamped stage run again (a user deleted part of an output)
 REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostics.json",),
             "calibration": ("arrays.csv", "report.json", "calibration.json"), "report": ("summary.md",)}
-ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
-                     "outlier_threshold": 5.0, "noise": "auto", "array_noise": False}
 
 
 # ----------------------------------------------------------------------------------------------- hashing
@@ -194,7 +192,7 @@ def estimate_stage(out, options):
 
 
 def estimate_features(features_dir, options):
-    """Read a features folder and calibrate it (options as ``ESTIMATE_DEFAULTS``; loss "linear" = none).
+    """Read a features folder and calibrate it (options: ``estimate_defaults()``; loss "linear" = none).
     Returns (calibration, features).
 
     Data that cannot determine the calibration raises InputError naming the features folder.
@@ -225,9 +223,17 @@ def report_stage(out, truth_dir=None, progress=None):
 
 
 # ----------------------------------------------------------------------------------------------- driver
+def estimate_defaults():
+    """{name: default} of the estimator options `calib run` takes (``calib.estimator.options``, flagged ones)."""
+    from calib.estimator.options import cli_options
+
+    return {o.name: o.default for o in cli_options()}
+
+
 def _check_options(estimate_options):
-    opts = {**ESTIMATE_DEFAULTS, **(estimate_options or {})}
-    unknown = set(opts) - set(ESTIMATE_DEFAULTS)
+    defaults = estimate_defaults()
+    opts = {**defaults, **(estimate_options or {})}
+    unknown = set(opts) - set(defaults)
     if unknown:
         raise TypeError(f"unknown estimate option(s): {', '.join(sorted(unknown))}")
     return V.estimate_options(opts)
