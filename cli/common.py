@@ -130,7 +130,7 @@ Jobs = Annotated[int, typer.Option("--jobs", "-j", help="arrays whose features a
 
 def _estimate_params():
     """The typer parameters of the estimator options (``calib.estimator.options``: flag, help, default)."""
-    from calib.estimator.options import cli_options
+    from calib.options import cli_options
 
     params = []
     for o in cli_options():
@@ -144,7 +144,7 @@ def _estimate_params():
 
 def estimate_options(values):
     """Validated keyword arguments of ``estimator.calibrate`` from the shared CLI options (InputError)."""
-    from calib.estimator.options import cli_options
+    from calib.options import cli_options
 
     # a bool's switch, when given, flips the library default (--no-tdoa-s: use_tdoa_s=False)
     opts = {o.name: (o.default != v) if o.kind is bool else v for o, v in zip(cli_options(), values)}

@@ -15,15 +15,16 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
 from calib import __version__
+from calib.geometry import mirror
+from calib.options import DEFAULTS as D, validate_options
 from calib.robust import median
 
 from . import arraynoise
 from .factors import KINDS, active_kinds, natural
-from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
+from .init import ObservabilityError, doa_rotation, initialise, kabsch, subproblem
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
-from .options import validate_options
 from .problem import State, build_problem, make_layout, state_from_dict
 from .robust import (FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
                      fit_array_alone, measurement_stats, count_measurements, factor_sizes, per_array_kinds,
@@ -74,7 +75,7 @@ def rotations_by_kabsch(p, st):
         if np.any(n):
             # mirror-ambiguous DOAs: decide which events lie behind the mic plane afresh from the IVE's
             # positions and sources, which no longer depend on this array's DOAs
-            u = np.where(((w @ doa_rotation(p, st, i, st.x[i])) @ n < 0)[:, None], reflect(u, n), u)
+            u = np.where(((w @ doa_rotation(p, st, i, st.x[i])) @ n < 0)[:, None], mirror(u, n), u)
         st.R[i], _ = kabsch(u * d, w)
     return st
 
@@ -583,13 +584,15 @@ def calibrate(features, **options):
         return calibrate_features(features, **options)
 
 
-def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True,
-              array_noise=False, outputs="all", problem=None):
+def calibrate_features(features, *, method=D["method"], use_tdoa_s=D["use_tdoa_s"],
+                       emission_sigma=D["emission_sigma"], loss=D["loss"], robust_k=D["robust_k"],
+                       outlier_threshold=D["outlier_threshold"], max_iter=D["max_iter"], init_state=None,
+                       noise=D["noise"], odometry_yaw=D["odometry_yaw"], array_noise=D["array_noise"],
+                       outputs=D["outputs"], problem=None):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
-    Parameters
-    ----------
+    Parameters (defaults, allowed values and the CLI flags: ``calib.options.OPTIONS``)
+    ----------------------------------------------------------------------------------
     features : dict from ``pipeline.formats.io.read_features`` (or a simulator).
     method : "hybrid" (this project's estimator, Zhang et al. structure) or "wang" (the baseline; see
         ``estimator.wang``).
@@ -627,7 +630,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
                      robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise,
-                     array_noise=array_noise, outputs=outputs)
+                     array_noise=array_noise, outputs=outputs, odometry_yaw=odometry_yaw)
     if loss == "linear":
         loss = None
     times = {}

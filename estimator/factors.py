@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib import kinds as K
+from calib.geometry import yaw_rotate
 from calib.kinds import KINDS
 
 from .problem import doa_rows, event_rows, tdoa_m_rows, tdoa_s_rows
@@ -255,8 +256,7 @@ def odometry_frame(p, st, lay):
     yaw_col = int(lay.odo_yaw[0])
     do, k = np.diff(p.odom, axis=0), np.arange(3 * (K - 1))
     if psi != 0.0:
-        c, s = np.cos(psi), np.sin(psi)
-        do = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
+        do = yaw_rotate(do, psi)
     r = ((st.s[1:] - st.s[:-1] - do) / sig).ravel()   # (np.diff's subtraction, without its wrapper)
     put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
     put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))

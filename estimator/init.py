@@ -14,6 +14,7 @@ from scipy.ndimage import minimum_filter
 from scipy.spatial import cKDTree
 
 from calib.errors import InputError
+from calib.geometry import fold, mirror
 
 from .factors import norm
 from .problem import empty_state, make_layout
@@ -94,7 +95,7 @@ def _folded_start_points(u, oj, n, n_keep=3, zoom_levels=6):
     def misfit(s0):  # s0 (G, 3)
         v = s0[:, None, :] + oj[None]
         v = v / np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-9)
-        v = np.where((v @ n < 0)[..., None], reflect(v, n), v)
+        v = fold(v, n)
         return ((v - u[None]) ** 2).sum((1, 2))
 
     span = max(5.0, 2.0 * float(np.max(np.ptp(oj, axis=0))))
@@ -465,11 +466,6 @@ _NORMALS = hemisphere_normals()
 _NORMALS_COARSE = hemisphere_normals(64)  # ~20° apart: enough to rank a coarse position grid
 
 
-def reflect(u, n):
-    """Mirror image of directions u (..., 3) across the plane with unit normal n (3,)."""
-    return u - 2.0 * (u @ n)[..., None] * n
-
-
 def unfold_candidates(u, n_a, v, normals=_NORMALS):
     """The two sign patterns that unfold mirror-ambiguous DOAs, for world directions v (G, n, 3).
 
@@ -481,7 +477,7 @@ def unfold_candidates(u, n_a, v, normals=_NORMALS):
     proj = (v.reshape(-1, 3) @ normals.T).reshape(v.shape[0], v.shape[1], -1)  # BLAS, not einsum
     h = np.argmin(((np.abs(proj) - c[None, :, None]) ** 2).sum(1), axis=1)
     behind = (np.take_along_axis(proj, h[:, None, None], axis=2)[..., 0] < 0)[..., None]
-    ur = reflect(u, n_a)
+    ur = mirror(u, n_a)
     return np.where(behind, ur, u), np.where(behind, u, ur)
 
 

@@ -61,7 +61,7 @@ def file_sha256(path, chunk=1 << 20):
     return h.hexdigest()
 
 
-_DIGESTS = {}  # source fingerprint → digest: a process re-running the pipeline reads the sources once
+_DIGESTS: dict[tuple, str] = {}  # source fingerprint → digest: a process re-running the pipeline reads the sources once
 CALIB_PACKAGES = ("calib", "calib.frontend", "calib.estimator", "calib.pipeline", "calib.cli")
 
 
@@ -225,7 +225,7 @@ def report_stage(out, truth_dir=None, progress=None):
 # ----------------------------------------------------------------------------------------------- driver
 def estimate_defaults():
     """{name: default} of the estimator options `calib run` takes (``calib.estimator.options``, flagged ones)."""
-    from calib.estimator.options import cli_options
+    from calib.options import cli_options
 
     return {o.name: o.default for o in cli_options()}
 

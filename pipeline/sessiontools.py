@@ -21,11 +21,6 @@ from calib.pipeline.formats.io import atomic_write_text
 from calib.pipeline.formats.session import session_toml
 
 
-def _circle(n, radius, start_deg=0.0, ccw=True, z=0.0):
-    a = np.deg2rad(start_deg + (1 if ccw else -1) * 360.0 * np.arange(n) / n)
-    return np.column_stack([radius * np.cos(a), radius * np.sin(a), np.full(n, z)])
-
-
 # Mic geometries (m, the array's own frame, WAV channel order) of common arrays. Sources: the ODAS project's
 # configurations (introlab/odas config/odaslive: respeaker_6_mic_array, minidsp (UMA-8), matrix_voice).
 # respeaker-4-linear is NOMINAL (4 mics on x, 4 cm apart, centred): measure your board and edit session.toml.

@@ -11,20 +11,22 @@ from typer.testing import CliRunner
 from calib.cli.main import app
 from calib.errors import InputError
 from calib.estimator.calibrate import calibrate_features
-from calib.estimator.options import OPTIONS, cli_options, defaults, validate_options
+from calib.options import DEFAULTS, INPUTS, OPTIONS, cli_options, validate_options
 from calib.pipeline.formats.validate import estimate_options
 from calib.pipeline.run import estimate_defaults
 
+OPTION_NAMES = [o.name for o in OPTIONS]
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "cli.md"
 
 
-def test_every_option_is_a_keyword_of_calibrate_with_a_default_of_its_kind():
-    params = inspect.signature(calibrate_features).parameters
+def test_calibrate_takes_every_option_with_its_declared_default():
+    params = {n: p for n, p in inspect.signature(calibrate_features).parameters.items()
+              if p.kind is inspect.Parameter.KEYWORD_ONLY}
+    assert set(params) == set(OPTION_NAMES) | set(INPUTS)
     for o in OPTIONS:
-        assert params[o.name].kind is inspect.Parameter.KEYWORD_ONLY
-        assert isinstance(o.default, o.kind) and (not o.choices or o.default in o.choices)
+        assert params[o.name].default == o.default and isinstance(o.default, o.kind)
         o.check(o.default)
-    assert estimate_defaults() == {o.name: defaults()[o.name] for o in cli_options()}
+    assert estimate_defaults() == {o.name: DEFAULTS[o.name] for o in cli_options()}
 
 
 @pytest.mark.parametrize("o", OPTIONS, ids=lambda o: o.name)

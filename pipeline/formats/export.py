@@ -28,7 +28,6 @@ from calib.pipeline.formats.results import REFERENCE, Calibration
 from calib.errors import InputError
 
 FORMATS = ("json", "yaml", "pyroomacoustics", "odas", "urdf", "tf")
-SUFFIX = {"json": ".json", "yaml": ".yaml", "pyroomacoustics": ".npy", "odas": ".cfg", "urdf": ".urdf", "tf": ".sh"}
 # ODAS's default microphone pick-up cone (deg): full gain up to 80°, none beyond 90° off the array's z axis
 ODAS_ANGLE_DEG = (80.0, 90.0)
 
@@ -68,7 +67,7 @@ def odas_mic_blocks(cal: Calibration):
     for a in cal.arrays:
         R = a.rotation.as_matrix()
         rot_lab = [f"{a.name}.r{c}" for c in "xyz"]
-        if all(lab in labels for lab in rot_lab):
+        if cal.covariance is not None and all(lab in labels for lab in rot_lab):
             S_phi = cal.covariance.loc[rot_lab, rot_lab].to_numpy(float)
         else:
             S_phi = np.zeros((3, 3))  # the reference array: its rotation is the frame, known exactly

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
+from calib.geometry import local_time
 
 from calib.pipeline.formats.calibration_json import FORMAT_NAME, FORMAT_VERSION
 
@@ -150,7 +151,7 @@ class Calibration:
         """The array's local time(s) of emitter time(s): the inverse of :meth:`to_emitter_time`."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
-        return (1.0 + a.drift) * (np.asarray(emitter_time, float) - self.clock.t0) + self._tau(name) + bias
+        return local_time(emitter_time, self._tau(name), a.drift, self.clock.t0) + bias
 
     def to_reference_time(self, name, local_time, chirp=False):
         """The reference array's local time of the instant the array ``name`` reads as ``local_time``."""

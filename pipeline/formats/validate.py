@@ -182,7 +182,7 @@ def estimate_options(opts):
 
     Messages name the CLI option (``--outlier-threshold``). Returns a cleaned copy.
     """
-    from calib.estimator import options as O
+    from calib import options as O
 
     out = dict(opts)
     for o in O.cli_options():

@@ -6,6 +6,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.pipeline.formats.io import InputError
+from calib.geometry import mirror
 from calib.tables import columns
 
 try:   # scipy's compiled rotation kernels, which Rotation calls for numpy (N, 4) float64 quaternions
@@ -223,7 +224,7 @@ def feature_errors(feats, scenario):
         rows = i3 == k
         if len(sv) == 3 and sv[1] >= 1e-6 > sv[2] and rows.any():   # planar (not linear: those are cones)
             n = vt[2]
-            um = ut[rows] - 2.0 * (ut[rows] @ n)[:, None] * n
+            um = mirror(ut[rows], n)
             alt = np.degrees(np.arccos(np.clip(np.sum(u[rows] * um, axis=1), -1.0, 1.0)))
             folded[rows] = np.minimum(ang[rows], alt)
     axes = np.zeros((len(names), 3))

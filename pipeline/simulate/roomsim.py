@@ -36,7 +36,8 @@ from calib.jsonutil import jsonable  # inf (no noise) and NaN ↔ null
 from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import scenes, simrender
 from calib.pipeline.formats.io import EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
-from calib.pipeline.simulate.render import EARLY, FDL, FDL_LATE, builder_delay, local_time  # noqa: F401  (public names)
+from calib.geometry import local_time, yaw_matrix  # noqa: F401  (local_time: a public name)
+from calib.pipeline.simulate.render import EARLY, FDL, FDL_LATE, builder_delay  # noqa: F401  (public names)
 from calib.pipeline.simulate.scenario import (  # noqa: F401  (PRESETS, REALISTIC, _PAPER_TRAJ, _room_acoustics: public/test names)
     _LAB_HEIGHTS, _LAB_LOOP, _PAPER_TRAJ, ALL_KEYS, GEN_DEFAULTS, NEW_GEN_DEFAULTS,
     NEW_SCENE_DEFAULTS, PRESETS, REALISTIC, SCENE_DEFAULTS, _float, _int, _materials, _matrix, _merge,
@@ -172,7 +173,7 @@ def _make_sources(preset, g, room_dim, rng):
     # lab3: the real loop, rotated about z, jittered, centred near the middle of the room
     room = _vector(room_dim, "room_dim", 3)
     psi = rng.uniform(-np.pi, np.pi)
-    rot = np.array([[np.cos(psi), -np.sin(psi)], [np.sin(psi), np.cos(psi)]])
+    rot = yaw_matrix(psi)[:2, :2]
     centre = room[:2] / 2 + rng.uniform(-0.3, 0.3, 2)
     stops = []
     for h in _LAB_HEIGHTS:

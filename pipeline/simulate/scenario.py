@@ -19,21 +19,14 @@ from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import scenes
 from calib.pipeline.formats.io import ARRAYS_COLS, InputError
 from calib.pipeline.simulate.presets import PRESETS, REALISTIC  # noqa: F401  (public names)
-from calib.pipeline.simulate.render import local_time
+from calib.geometry import local_time
+from calib.pipeline.simulate.featsim import TRAJECTORIES
 
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
 MODELS = ("flat", "bands")
 
 # Speaker trajectories of Zhang et al. 2025 (simulation section; published with their code, gt_generation.m).
-_PAPER_TRAJ = {
-    "paper-traj1": 3.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
-                                   [0, 1, 1], [0, 0, 1], [1, 0, 1], [1, 1, 1]], float),
-    "paper-traj2": np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [2, 4, 0], [2, 6, 0],
-                             [2, 6, 2], [2, 4, 2], [2, 2, 2], [2, 0, 2], [0, 0, 2]], float),
-    "paper-traj3": 2.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 2, 0], [0, 2, 0], [-1, 2, 0], [-1, 1, 0],
-                                   [-1, 0, 0], [-1, 0, 1], [-1, 1, 1], [-1, 2, 1], [0, 2, 1], [1, 2, 1],
-                                   [1, 1, 1]], float),
-}
+_PAPER_TRAJ = {f"paper-traj{k}": v["stops"] for k, v in TRAJECTORIES.items()}
 # The real lab loop (zhang_real_01 truth, x/y in metres, centred): 7 stops, flown at two speaker heights.
 _LAB_LOOP = np.array([[0.87, 0.25], [0.87, -0.27], [0.37, -0.57], [-0.40, -0.57],
                       [-0.87, -0.03], [-0.44, 0.56], [0.36, 0.56]])

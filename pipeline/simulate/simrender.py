@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import math
 import os
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from calib.geometry import local_time
 from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import render as rd
 from calib.pipeline.simulate.sounds import (BlockWhite, CoherentPink, RowMajorWhite, burst_params, burst_signal, chirp_power,
@@ -76,13 +78,10 @@ def emitters(sc, lv):
         if it["kind"] == "speech":
             prm = speech_params(sc["seed"], k, it["duration"], it["f0"], sc["fs"])
 
-            def wave(u, dur=it["duration"], prm=prm):
-                return speech_signal(u, dur, prm)
+            wave = partial(speech_signal, duration=it["duration"], prm=prm)
         else:
             freqs, phases = burst_params(sc["seed"], k, it["f_lo"], it["f_hi"])
-
-            def wave(u, dur=it["duration"], freqs=freqs, phases=phases):
-                return burst_signal(u, dur, freqs, phases)
+            wave = partial(burst_signal, duration=it["duration"], freqs=freqs, phases=phases)
         out.append({"kind": "interferer", "index": k, "pos": it["position"], "t_start": it["t_start"],
                     "dur": it["duration"], "wave": wave, "axis": None,
                     "level": lv["gain"] * math.sqrt(lv["p_chirp"]) * 10 ** (it["level_db"] / 20)})
@@ -128,7 +127,7 @@ def recording_ends(sc, em, flat):
             reach = [np.linalg.norm(a["mics_room"] - e["pos"], axis=1).max() / c + sc["mixing_time"]
                      + _tail_length(sc) for a in sc["arrays"]]
         for i, a in enumerate(sc["arrays"]):
-            last[i] = max(last[i], rd.local_time(e["t_start"] + reach[i] + dur, a["tau"], a["drift"], t0))
+            last[i] = max(last[i], local_time(e["t_start"] + reach[i] + dur, a["tau"], a["drift"], t0))
     return [int(math.ceil((x + sc["tail"]) * fs)) + rd.FDL for x in last]
 
 
@@ -200,7 +199,7 @@ def render_session(sc, tmp, flat, progress=None, zero_peak=None):
         e = em[n]
         for a, tr in zip(arrays, tracks):
             start, seg = rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, cache),
-                                    a, fs, t0, delay, e["level"], rd.local_time)
+                                    a, fs, t0, delay, e["level"], local_time)
             tr.flush(max(start, 0))
             tr.add(start, seg)
         e.pop("images")

@@ -1,14 +1,13 @@
-"""The estimator's options, declared once (scikit-learn's declared parameters).
+"""The estimator's options, declared once (scikit-learn's declared parameters): default, allowed values,
+CLI flag and help text of each keyword of ``calib.estimator.calibrate``.
 
-Each option's default is the default of its keyword in :func:`calib.estimator.calibrate.calibrate_features`
-(the signature a reader of the maths sees); its allowed values, its CLI flag and its help text are declared
-here. ``validate_options`` (the library's check), the ``calib estimate`` / ``calib run`` options
-(``cli/common.py``), the CLI's input check (``pipeline/formats/validate.py``) and the stage key's settings
-(``pipeline/run.py``) are all loops over :data:`OPTIONS`.
+``calibrate_features``' signature takes its defaults from here (``DEFAULTS``); ``validate_options`` (the
+library's check), the ``calib estimate`` / ``calib run`` options (``cli/common.py``), the CLI's input check
+(``pipeline/formats/validate.py``), the stage key's settings (``pipeline/run.py``) and docs/cli.md (a test)
+are loops over :data:`OPTIONS`. In the core so that the CLI declares its flags without loading the estimator.
 """
 from __future__ import annotations
 
-import inspect
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -18,13 +17,14 @@ from typing import Any
 class Option:
     """One keyword option of ``calibrate``.
 
-    name : the keyword. kind : ``str`` (then ``choices``), ``float``, ``int`` or ``bool``.
+    name : the keyword. default : its value when not given. kind : ``str`` (then ``choices``), ``float``, ``int`` or ``bool``.
     choices : allowed values (``None`` among them is an alias the CLI does not show).
     lo, hi : allowed range of a number, ``lo < v`` when ``lo_open`` else ``lo <= v``, and ``v <= hi``.
     flag : the CLI spelling (``None``: library only); a bool's flag switches the default
         (``--no-tdoa-s`` sets ``use_tdoa_s`` False). help : the CLI / docs text.
     """
     name: str
+    default: Any
     kind: type
     help: str = ""
     choices: tuple = ()
@@ -32,11 +32,6 @@ class Option:
     hi: float = math.inf
     lo_open: bool = False
     flag: str | None = None
-
-    @property
-    def default(self) -> Any:
-        """The default of ``calibrate_features``' keyword."""
-        return defaults()[self.name]
 
     def check(self, value: Any) -> None:
         """Raise ValueError naming the option when ``value`` is not allowed (NaN, inf, wrong type)."""
@@ -72,34 +67,29 @@ def _is_int(v):
 
 
 OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
-    Option("method", str, "estimator: hybrid (ours) or wang (baseline, no TDOA-S)", choices=("hybrid", "wang"),
+    Option("method", "hybrid", str, "estimator: hybrid (ours) or wang (baseline, no TDOA-S)", choices=("hybrid", "wang"),
            flag="--method"),
-    Option("use_tdoa_s", bool, "ignore TDOA-S (Wang et al.'s measurement set)", flag="--no-tdoa-s"),
-    Option("emission_sigma", float, "prior std (s) of emission-interval errors to estimate; 0 = off", lo=0.0,
+    Option("use_tdoa_s", True, bool, "ignore TDOA-S (Wang et al.'s measurement set)", flag="--no-tdoa-s"),
+    Option("emission_sigma", 0.0, float, "prior std (s) of emission-interval errors to estimate; 0 = off", lo=0.0,
            hi=10.0, flag="--emission-sigma"),
-    Option("loss", str, "robust loss on TDOA residuals: cauchy, huber or linear",
+    Option("loss", "cauchy", str, "robust loss on TDOA residuals: cauchy, huber or linear",
            choices=("cauchy", "huber", "linear", None), flag="--loss"),
-    Option("outlier_threshold", float, "flag and drop measurements (TDOA, DOA, odometry) whose normalised residual "
+    Option("outlier_threshold", 5.0, float, "flag and drop measurements (TDOA, DOA, odometry) whose normalised residual "
            "exceeds this many sigmas (or the Bonferroni level, if larger)", lo=1.0, hi=1e3,
            flag="--outlier-threshold"),
-    Option("noise", str, "weights: auto (re-estimate the frontend's own noise figures from the residuals), meta "
+    Option("noise", "auto", str, "weights: auto (re-estimate the frontend's own noise figures from the residuals), meta "
            "(meta.json's sigmas as they are) or estimate", choices=("auto", "meta", "estimate"), flag="--noise"),
-    Option("array_noise", bool, "when noise figures are re-estimated: also one figure per measurement type and "
+    Option("array_noise", False, bool, "when noise figures are re-estimated: also one figure per measurement type and "
            "array where the data allow it (an array noisier than the rest is down-weighted instead of distorting "
            "the others)", flag="--array-noise"),
-    Option("robust_k", float, "robust scale, in units of each type's sigma", lo=0.0, lo_open=True),
-    Option("max_iter", int, "iterations of each Levenberg-Marquardt solve", lo=1),
-    Option("outputs", str, "all, or solution (the solve only)", choices=("all", "solution")),
+    Option("robust_k", 3.0, float, "robust scale, in units of each type's sigma", lo=0.0, lo_open=True),
+    Option("max_iter", 200, int, "iterations of each Levenberg-Marquardt solve", lo=1),
+    Option("odometry_yaw", True, bool, "estimate the odometry frame's yaw (kept only when significant)"),
+    Option("outputs", "all", str, "all, or solution (the solve only)", choices=("all", "solution")),
 )
 OPTION = {o.name: o for o in OPTIONS}
-
-
-def defaults() -> dict[str, Any]:
-    """{keyword: default} of ``calibrate_features`` (the declaration of the defaults)."""
-    from .calibrate import calibrate_features
-
-    return {n: p.default for n, p in inspect.signature(calibrate_features).parameters.items()
-            if p.kind is inspect.Parameter.KEYWORD_ONLY}
+DEFAULTS = {o.name: o.default for o in OPTIONS}
+INPUTS = ("init_state", "problem")  # keywords of calibrate that are data, not options (not checked here)
 
 
 def cli_options() -> tuple[Option, ...]:
@@ -112,11 +102,10 @@ def validate_options(**options: Any) -> None:
 
     The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
     any data): NaN, infinities and negative values are refused, never silently used. Unknown keywords
-    raise TypeError; keywords without declared constraints (``init_state``, ``problem``) pass.
+    raise TypeError; the data keywords (``INPUTS``) pass.
     """
-    known = defaults()
     for name, value in options.items():
-        if name not in known:
-            raise TypeError(f"unknown estimator option {name!r}")
         if name in OPTION:
             OPTION[name].check(value)
+        elif name not in INPUTS:
+            raise TypeError(f"unknown estimator option {name!r}")
