@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -575,7 +576,7 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
     return verdict, ratios, odo_frame, cost, n_res
 
 
-def calibrate(features, **options):
+def calibrate(features: dict[str, Any], **options: Any) -> dict[str, Any]:
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     See :func:`calibrate_features` for the options; this wrapper only pins BLAS to one thread.

@@ -13,6 +13,7 @@ Clock model (docs/architecture.md): arrival a_ij = (1+δ_i)(t_j + e_j + |s_j −
 """
 from __future__ import annotations
 
+from typing import Callable
 import dataclasses
 from dataclasses import dataclass
 import numpy as np
@@ -301,7 +302,7 @@ FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_
 ROWS = {"tdoa_s": tdoa_s_rows, "tdoa_m": tdoa_m_rows, "doa": doa_rows}
 
 
-def register(spec, factor, rows=None):
+def register(spec: K.KindSpec, factor: Callable[..., Factor], rows: Callable | None = None) -> K.KindSpec:
     """Add a measurement kind: its spec (``calib.kinds.KindSpec``) and its factor function. A kind with a
     table of its own gets its rows from ``rows(df, problem.RowIndex) -> problem.Rows``, by default
     :func:`~calib.estimator.problem.event_rows` (a table of event, array and value columns). Everything

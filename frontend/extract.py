@@ -11,6 +11,7 @@ TDOA-S and TDOA-M are differences of these arrival times.
 """
 from __future__ import annotations
 
+from typing import Any, Callable
 import os
 import time
 
@@ -50,7 +51,8 @@ def _check_audio(session):
         read_header(a)
 
 
-def extract_features(session, progress=None, jobs=1, **options):
+def extract_features(session: Any, progress: Callable[[int, int, str], Any] | None = None, jobs: int = 1,
+                     **options: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """Features of a recording session.
 
     Parameters

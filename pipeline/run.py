@@ -23,6 +23,7 @@ Library use (a notebook)::
 """
 from __future__ import annotations
 
+from typing import Any, Callable
 import hashlib
 import importlib.util
 import json
@@ -239,8 +240,9 @@ def _check_options(estimate_options):
     return V.estimate_options(opts)
 
 
-def run(recordings, out, *, force=False, features_options=None, estimate_options=None, progress=None,
-        log=None, on_wait=None, jobs=1):
+def run(recordings: str | Path, out: str | Path, *, force: bool = False, features_options: dict | None = None,
+        estimate_options: dict | None = None, progress: Callable | None = None, log: Callable | None = None,
+        on_wait: Callable | None = None, jobs: int = 1) -> dict[str, Any]:
     """Run the pipeline on a recording session, skipping stages whose inputs and settings are unchanged.
 
     Parameters
@@ -279,8 +281,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     jobs = V.jobs_option(jobs)
     # validate every input before any work, so bad input fails fast and writes nothing
     session = read_session(recordings)
-    truth_dir = Path(recordings) / "truth"
-    truth_dir = truth_dir if truth_dir.is_dir() else None
+    truth_dir: Path | None = Path(recordings) / "truth" if (Path(recordings) / "truth").is_dir() else None
     if truth_dir is not None:
         read_truth(truth_dir)
     if out.exists() and not out.is_dir():

@@ -1,6 +1,7 @@
 """Calibration vs ground truth: the metrics of docs/formats.md section 4 (the paper's, Zhang et al. 2025)."""
 from __future__ import annotations
 
+from typing import Any
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
@@ -149,7 +150,7 @@ def truth_tables(truth):
     return out
 
 
-def evaluate(calib, truth):
+def evaluate(calib: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     """Metrics of a calibration dict against a truth dict (both as in ``pipeline.formats.io``).
 
     The frames may also be given as tables (:func:`array_table`, :func:`source_table`, :func:`truth_tables`).

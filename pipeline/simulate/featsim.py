@@ -6,6 +6,7 @@ measurements of ``docs/architecture.md`` and adds noise, returning the same dict
 """
 from __future__ import annotations
 
+from typing import Any
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -82,11 +83,12 @@ class SceneSpec:
     names: tuple | None = None
     reference_drift: float | None = None
     planar: tuple | None = None
-    positions: object = None
+    positions: Any = None
 
 
-def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.03, seed=0, *,
-                      tdoa_s=True, tdoa_m=True, noise=True, **scene):
+def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4, sigma_doa_deg: float = 5.0,
+                      sigma_odo: float = 0.03, seed: int = 0, *, tdoa_s: bool = True, tdoa_m: bool = True,
+                      noise: bool = True, **scene: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """Draw one scene of the paper's protocol and its noisy features.
 
     Parameters

@@ -22,6 +22,7 @@ everything derived from it).
 """
 from __future__ import annotations
 
+from typing import Any, Callable
 import copy
 import json
 import math
@@ -55,7 +56,7 @@ def circular_array(n_mics=6, radius=0.0354):
 
 
 # ----------------------------------------------------------------------------------------------- scenario
-def make_scenario(preset="paper-traj3", seed=0, **overrides):
+def make_scenario(preset: str = "paper-traj3", seed: int = 0, **overrides: Any) -> dict[str, Any]:
     """A complete, deterministic scenario (plain dict) from a preset, a seed and overrides.
 
     Presets: ``paper-traj1`` (8 stops, 3×3×3 m cube), ``paper-traj2`` (10 stops, 2×6×2 m),
@@ -441,7 +442,8 @@ def load_scenario(path, **overrides):
     return sc
 
 # ----------------------------------------------------------------------------------------------- simulate
-def simulate(scenario, out_dir, progress=None, overwrite=False):
+def simulate(scenario: dict[str, Any], out_dir: str | Path, progress: Callable | None = None,
+             overwrite: bool = False) -> Path:
     """Simulate a scenario and write a recording session (+ truth/) to ``out_dir``; returns its Path.
 
     Written (atomically: a failure leaves nothing): ``session.toml``, ``<array>.wav`` (n_samples,
