@@ -18,7 +18,6 @@ from threadpoolctl import ThreadpoolController
 from calib import __version__
 from calib.geometry import mirror
 from calib.options import DEFAULTS as D, validate_options
-from calib.robust import median
 
 from . import arraynoise
 from .factors import KINDS, active_kinds, natural
@@ -197,7 +196,7 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
             m = stats.kept & (stats.kind == kind)
             if m.sum() < 5:
                 continue
-            f = float(np.sqrt(median(stats.q[m]) / chi2_median(KINDS[kind].dof)))
+            f = float(np.sqrt(np.median(stats.q[m]) / chi2_median(KINDS[kind].dof)))
             b = bounds.get(kind, FREE_MAX_FACTOR)
             lo = (floors or bounds).get(kind, b)
             new = float(np.clip(p.sigma[kind] * f, stated[kind] / lo, stated[kind] * b))

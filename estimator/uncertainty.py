@@ -6,6 +6,7 @@ Cramér–Rao lower bound for unbiased estimators under the stated Gaussian nois
 from __future__ import annotations
 
 from typing import Any
+
 import numpy as np
 import scipy.sparse
 from scipy.spatial.transform import Rotation

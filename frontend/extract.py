@@ -11,9 +11,9 @@ TDOA-S and TDOA-M are differences of these arrival times.
 """
 from __future__ import annotations
 
-from typing import Any, Callable
 import os
 import time
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd

@@ -23,7 +23,6 @@ Library use (a notebook)::
 """
 from __future__ import annotations
 
-from typing import Any, Callable
 import hashlib
 import importlib.util
 import json
@@ -31,6 +30,7 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any, Callable
 
 from calib import __version__
 from calib.kinds import tables

@@ -19,7 +19,6 @@ In-memory representation (plain dicts of pandas DataFrames, sorted, with clean d
 """
 from __future__ import annotations
 
-from typing import Any
 import contextlib
 import dataclasses
 import io
@@ -27,6 +26,7 @@ import json
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd

@@ -6,8 +6,8 @@ measurements of ``docs/architecture.md`` and adds noise, returning the same dict
 """
 from __future__ import annotations
 
-from typing import Any
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import pandas as pd

@@ -22,12 +22,12 @@ everything derived from it).
 """
 from __future__ import annotations
 
-from typing import Any, Callable
 import copy
 import json
 import math
 import tomllib
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
