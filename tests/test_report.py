@@ -96,6 +96,7 @@ def test_report_folder(calibrated, tmp_path):
     assert "Evaluation" not in (tmp_path / "r2" / "summary.md").read_text()
 
 
+@pytest.mark.slow
 def test_failed_report_leaves_previous_one(calibrated, tmp_path, monkeypatch):
     feats, _, _, from_disk, _ = calibrated
     out = tmp_path / "report"

@@ -321,6 +321,7 @@ def test_cli_exit_codes_for_failed_verdict_and_bad_options(tmp_path):
     assert r.exit_code == 2 and "--outlier-threshold" in r.stderr and not (tmp_path / "c2").exists()
 
 
+@pytest.mark.slow
 def test_report_first_line_states_the_verdict(tmp_path):
     from calib.pipeline.formats.io import read_calibration, write_calibration
     from calib.pipeline.report.summary import make_report

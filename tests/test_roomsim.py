@@ -557,6 +557,7 @@ def test_diffuse_noise_has_diffuse_field_coherence(tmp_path):
     assert np.median(err) < 0.04 and np.max(err) < 0.2          # estimation noise ~0.05 at 190 segments
 
 
+@pytest.mark.slow
 def test_realistic_preset_is_deterministic_and_streams_short_sessions(tmp_path):
     """Same seed → same bytes for the bands model (tail noise, speech, hum included), and the manifest
     reproduces the session; all files present, no temporary files left."""

@@ -141,6 +141,7 @@ def test_solution_outputs_are_the_full_calibrations_values(method):
         calibrate(feats, outputs="frames")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["hybrid", "wang"])
 def test_prebuilt_problem_gives_the_same_calibration_and_crlb(method):
     """calibrate(problem=...) (the Monte-Carlo study builds each method's problem once) solves a copy: the
