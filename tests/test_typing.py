@@ -7,10 +7,14 @@ pyproject.toml's package-dir maps them (core/ → calib, frontend/ → calib/fro
 import shutil
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 import pytest
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 
