@@ -1,8 +1,8 @@
 """The estimator's options, declared once (scikit-learn's declared parameters): default, allowed values,
 CLI flag and help text of each keyword of ``calib.estimator.calibrate``.
 
-``calibrate_features``' signature takes its defaults from here (``DEFAULTS``); ``validate_options`` (the
-library's check), the ``calib estimate`` / ``calib run`` options (``cli/common.py``), the CLI's input check
+``calibrate_features``' signature repeats the defaults for its readers (tests/test_options.py holds them
+equal); ``validate_options`` (the library's check), the ``calib estimate`` / ``calib run`` options (``cli/common.py``), the CLI's input check
 (``pipeline/formats/validate.py``), the stage key's settings (``pipeline/run.py``) and docs/cli.md (a test)
 are loops over :data:`OPTIONS`. In the core so that the CLI declares its flags without loading the estimator.
 """

@@ -17,7 +17,7 @@ from threadpoolctl import ThreadpoolController
 
 from calib import __version__
 from calib.geometry import mirror
-from calib.options import DEFAULTS as D, validate_options
+from calib.options import validate_options
 
 from . import arraynoise
 from .factors import KINDS, active_kinds, natural
@@ -586,15 +586,13 @@ def calibrate(features: dict[str, Any], **options: Any) -> dict[str, Any]:
         return calibrate_features(features, **options)
 
 
-def calibrate_features(features, *, method=D["method"], use_tdoa_s=D["use_tdoa_s"],
-                       emission_sigma=D["emission_sigma"], loss=D["loss"], robust_k=D["robust_k"],
-                       outlier_threshold=D["outlier_threshold"], max_iter=D["max_iter"], init_state=None,
-                       noise=D["noise"], odometry_yaw=D["odometry_yaw"], array_noise=D["array_noise"],
-                       outputs=D["outputs"], problem=None):
+def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
+              outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", odometry_yaw=True,
+              array_noise=False, outputs="all", problem=None):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
-    Parameters (defaults, allowed values and the CLI flags: ``calib.options.OPTIONS``)
-    ----------------------------------------------------------------------------------
+    Parameters (declared in ``calib.options.OPTIONS``, which tests/test_options.py holds these defaults to)
+    ----------
     features : dict from ``pipeline.formats.io.read_features`` (or a simulator).
     method : "hybrid" (this project's estimator, Zhang et al. structure) or "wang" (the baseline; see
         ``estimator.wang``).
