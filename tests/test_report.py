@@ -74,6 +74,7 @@ def test_rebuilt_model_matches_the_estimator(calibrated):
         assert np.sqrt(np.mean(v ** 2)) == pytest.approx(calib["report"]["residuals"][kind]["rms_us"], rel=1e-4)
 
 
+@pytest.mark.slow
 def test_report_folder(calibrated, tmp_path):
     feats, truth, _, from_disk, row = calibrated
     out = tmp_path / "report"

@@ -19,6 +19,7 @@ bench = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench)
 
 
+@pytest.mark.slow
 def test_normalised_statistics_have_their_chi2_mean_on_clean_data():
     """q = rᵀ(I − H)⁻¹r is χ²(dof): its mean over clean scenes is the dof (hat-matrix correction included)."""
     q = {"tdoa_s": [], "tdoa_m": [], "doa": [], "odometry": []}

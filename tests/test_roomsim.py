@@ -171,6 +171,7 @@ def _bytes(d):
     return {p.relative_to(d).as_posix(): p.read_bytes() for p in sorted(Path(d).rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes_different_seed_different_scene(tmp_path):
     a = rs.simulate(rs.make_scenario("lab3", seed=5, snr=20, **SMALL), tmp_path / "a")
     b = rs.simulate(rs.make_scenario("lab3", seed=5, snr=20, **SMALL), tmp_path / "b")

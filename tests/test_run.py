@@ -109,6 +109,7 @@ def test_edited_tdoa_reestimates_but_keeps_features(base, session, tmp_path):
     assert ("estimate", "run", res["stages"]["estimate"]["reason"]) in logs
 
 
+@pytest.mark.slow
 def test_changed_setting_reruns_only_downstream(base, session, tmp_path):
     out = copy_of(base, tmp_path)
     before = tree_digest(out / "calibration")
