@@ -1,10 +1,8 @@
-"""The documentation's examples run: docs/localisation.md (acceptance: the held-back source within 5 cm with
-TDOA + the calibrated clocks, in fewer than 40 lines) and every command and Python block of docs/tutorial.md."""
-import os
+"""The documentation's examples: docs/localisation.md (acceptance: the held-back source within 5 cm with TDOA + the
+calibrated clocks, in fewer than 40 lines), docs/cli.md is the CLI's --help, every documented command parses.
+tests/test_docs_run.py runs every other block of README.md and docs/*.md."""
 import re
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -60,31 +58,12 @@ def test_localisation_example_finds_the_held_back_source(tmp_path, monkeypatch, 
         assert entry["name"] == a["name"] and np.abs(np.asarray(entry["mics_reference"]) - ref).max() < 1e-9
         want.append(ref)
     assert np.abs(np.load(tmp_path / "mics.npy") - np.vstack(want).T).max() < 1e-9
+    # the page's command-line block, after the Python one in the same folder: "(3, 18)"
+    from tests.test_docs_run import page_blocks, run_page
 
-
-def _shell_commands(text):
-    for line in text.splitlines():
-        line = line.split("#", 1)[0].strip()
-        if line:
-            yield shlex.split(line)
-
-
-@pytest.mark.slow
-def test_tutorial_examples_run(tmp_path):
-    """Every `calib ...` line and Python block of the tutorial, in order, in one folder."""
-    calib = [sys.executable, "-m", "calib"]
-    env = {**os.environ, "COLUMNS": "100"}
-    text = (ROOT / "docs/tutorial.md").read_text()
-    for block in re.findall(r"```(python|)\n(.*?)\n```", text, re.S):
-        lang, body = block
-        if lang == "python":
-            subprocess.run([sys.executable, "-c", body], cwd=tmp_path, check=True, env=env)
-            continue
-        for cmd in _shell_commands(body):
-            if cmd[0] == "pip":
-                continue  # the install step: already installed
-            assert cmd[0] == "calib", cmd
-            subprocess.run(calib + cmd[1:], cwd=tmp_path, check=True, env=env, stdout=subprocess.DEVNULL)
+    run_page("docs/localisation.md", tmp_path, [b for b in page_blocks("docs/localisation.md") if b.lang != "python"])
+    assert np.load(tmp_path / "mics.npy").shape == (3, 18)
+    assert (tmp_path / "calib.yaml").exists()
 
 
 def test_cli_md_is_the_clis_help():
