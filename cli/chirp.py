@@ -7,12 +7,11 @@ import typer
 
 from calib.pipeline import sessiontools as st
 from .common import Quiet, console, user_errors
-from calib.errors import InputError
 
 
 @user_errors
 def chirp(
-    out: Path = typer.Option(..., "-o", "--out", help="folder to write chirp.wav, schedule.csv and chirp.toml into"),
+    out: Path = typer.Option(..., "-o", "--out", help="folder to write chirp.wav, schedule.csv and chirp.toml into (a file there that calib did not write is never replaced)"),
     fs: int = typer.Option(48000, help="sample rate of chirp.wav, Hz (any rate: the frontend resamples it)"),
     n_events: int = typer.Option(30, help="chirps in the schedule (≥ 3; 20-40 stops give a well-posed "
                                           "calibration)"),
@@ -36,8 +35,6 @@ def chirp(
     robot's clock with its odometry into events.csv. Copy chirp.wav into the session folder: the frontend then
     matches against the exact emitted signal.
     """
-    if kind not in ("linear", "exponential"):
-        raise InputError(f"--kind must be linear or exponential, not {kind!r}")
     paths = st.chirp_files(out, fs=fs, n_events=n_events, interval=interval, jitter=jitter, seed=seed, f0=f0, f1=f1,
                            duration=duration, fade=fade, kind=kind)
     if not quiet:

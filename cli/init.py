@@ -6,7 +6,8 @@ from typing import List, Optional
 
 import typer
 
-from calib.pipeline.formats.io import InputError, atomic_write_text
+from calib.errors import InputError
+from calib.pipeline.formats.outputs import check_file_replaceable, write_file
 from calib.pipeline.sessiontools import MODELS, init_session
 from .common import Quiet, console, user_errors
 
@@ -21,7 +22,7 @@ def init(
                                             help="reference array [default: the first WAV, by name]"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", show_default=False,
                                        help="file to write [default: FOLDER/session.toml]"),
-    force: bool = typer.Option(False, "--force", help="replace an existing session.toml"),
+    force: bool = typer.Option(False, "--force", help="replace a session.toml calib wrote (never a file you wrote or edited)"),
     quiet: Quiet = False,
 ):
     """Write a session.toml for the WAVs in FOLDER: each WAV one array, mics from the array model.
@@ -39,9 +40,9 @@ def init(
             raise InputError(f"--model must be one of {', '.join(MODELS)}, not {m!r}")
     spec = {**{p.stem: plain[0] if plain else "custom" for p in folder.glob("*.wav")}, **per} if per else plain[0]
     path = out if out is not None else folder / "session.toml"
-    if path.exists() and not force:
-        raise InputError(f"{path}: exists (use --force to replace it)")
+    inputs = [folder, *sorted(folder.glob("*.wav"))]
+    check_file_replaceable(path, inputs, replace=force)  # before the work: a user's file is never replaced
     text = init_session(folder, spec, reference=reference)
-    atomic_write_text(path, text)
+    write_file(path, text, command="calib init", inputs=inputs, replace=force)
     if not quiet:
         console.print(f"wrote {path}")

@@ -24,7 +24,7 @@ from calib.cli.main import app
 from calib.errors import InputWarning
 from calib.pipeline.simulate.featsim import simulate_features
 from calib.pipeline.formats.io import write_calibration, write_features, write_truth
-from calib.pipeline.formats.outputs import MARKER
+from calib.pipeline.formats.outputs import MARKER, make_temp_dir
 from calib.pipeline.simulate.roomsim import make_scenario, simulate
 from calib.pipeline.formats.session import read_session
 
@@ -267,9 +267,11 @@ def test_run_rerun_user_edit_and_user_files(base, tmp_path):
     assert r.exit_code == 0, r.stderr
     for sub in ("features", "diagnostics", "calibration", "report"):
         assert (out / sub / MARKER).is_file()
-    assert not list(tmp_path.glob(".*.lock")) and not list(out.glob(".*"))  # no lock file, no litter
-    (out / ".report.tmp-dead").mkdir()  # a killed run's temporary folder
-    (out / ".report.tmp-dead" / "summary.md").write_text("half")
+    assert not list(tmp_path.glob(".*lock")) and not list(out.glob(".*"))  # no lock file, no litter
+    dead = make_temp_dir(out / "report")  # a killed run's temporary folder
+    (dead / "summary.md").write_text("half")
+    (out / ".report.tmp-dead").mkdir()  # the user's folder that merely looks like one: never deleted
+    (out / ".report.tmp-dead" / "notes.md").write_text("mine")
     tm = out / "features" / "tdoa_m.csv"
     tm.write_text(tm.read_text().replace("\n", "\n", 1))  # unchanged content: fine
     edited = tm.read_text().splitlines()
@@ -278,7 +280,7 @@ def test_run_rerun_user_edit_and_user_files(base, tmp_path):
     r = runner.invoke(app, ["run", str(tmp_path / "rec"), "-o", str(out), "-q"])
     assert r.exit_code == 0, r.stderr  # the edit re-estimates; the features stage is skipped
     assert tm.read_text() == "\n".join(edited) + "\n"
-    assert not (out / ".report.tmp-dead").exists()
+    assert not dead.exists() and (out / ".report.tmp-dead" / "notes.md").read_text() == "mine"
     shutil.rmtree(out / "diagnostics")  # the features stage must run again: it would overwrite the edit
     before = tree_digest(out)
     r = runner.invoke(app, ["run", str(tmp_path / "rec"), "-o", str(out), "-q"])
@@ -350,7 +352,8 @@ def _start(args, cwd):
 
 
 def _litter(folder):
-    return [p for p in Path(folder).rglob(".*") if ".tmp-" in p.name or ".old-" in p.name or p.suffix == ".lock"]
+    return [p for p in Path(folder).rglob(".*") if ".calib-tmp-" in p.name or ".calib-old-" in p.name
+            or p.name.endswith(".calib-lock")]
 
 
 @pytest.mark.slow
@@ -362,7 +365,7 @@ def test_interrupted_run_exits_cleanly(base, tmp_path, sig, code):
     before = tree_digest(tmp_path / "rec")
     p = _start(["run", tmp_path / "rec", "-o", tmp_path / "out", "-q"], tmp_path)
     deadline = time.time() + 60
-    while not (tmp_path / ".out.lock").exists() and p.poll() is None and time.time() < deadline:
+    while not (tmp_path / ".out.calib-lock").exists() and p.poll() is None and time.time() < deadline:
         time.sleep(0.05)  # the lock file appears once inputs are validated and the run starts writing
     time.sleep(0.5)
     p.send_signal(sig)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.pipeline.formats.io import atomic_write_text
+from calib.pipeline.formats.outputs import check_file_replaceable, write_file
 from calib.pipeline.formats.results import REFERENCE, Calibration
 from calib.errors import InputError
 
@@ -141,8 +141,11 @@ def to_tf(cal: Calibration):
     return "\n".join(lines) + "\n"
 
 
-def export(cal: Calibration, fmt, path):
-    """Write ``cal`` in format ``fmt`` (one of :data:`FORMATS`) to ``path`` (atomic). Returns the path."""
+def export(cal: Calibration, fmt, path, inputs=()):
+    """Write ``cal`` in format ``fmt`` (one of :data:`FORMATS`) to ``path`` (atomic). Returns the path.
+
+    The output policy applies (pipeline/formats/outputs.py): ``path`` may not be one of ``inputs`` (the
+    calibration read), and an existing file is replaced only if calib wrote it (and it is unedited)."""
     path = Path(path)
     if fmt not in FORMATS:
         raise InputError(f"unknown export format {fmt!r}: one of {', '.join(FORMATS)}")
@@ -150,17 +153,14 @@ def export(cal: Calibration, fmt, path):
     if missing and fmt in ("pyroomacoustics", "odas", "urdf"):
         raise InputError(f"{fmt} export needs the mic geometry; none for {', '.join(missing)} "
                          "(features/meta.json without 'mics': re-run `calib features`)")
+    check_file_replaceable(path, inputs)  # before the work
     if fmt == "pyroomacoustics":
         import io as _io
 
         buf = _io.BytesIO()
         np.save(buf, cal.mics(REFERENCE).T)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_bytes(buf.getvalue())
-        tmp.replace(path)
-        return path
-    text = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml, "odas": to_odas,
-            "urdf": to_urdf, "tf": to_tf}[fmt](cal)
-    atomic_write_text(path, text)
-    return path
+        data = buf.getvalue()
+    else:
+        data = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml, "odas": to_odas,
+                "urdf": to_urdf, "tf": to_tf}[fmt](cal)
+    return write_file(path, data, command=f"calib export --format {fmt}", inputs=inputs)

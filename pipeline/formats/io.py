@@ -23,7 +23,6 @@ import contextlib
 import io
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -38,7 +37,7 @@ from calib.errors import InputError  # noqa: F401  (re-exported: readers raise i
 from calib.jsonutil import dumps_json  # noqa: F401
 
 from calib.pipeline.formats import validate as V
-from calib.pipeline.formats.outputs import publish, publish_mode
+from calib.pipeline.formats.outputs import publish, publish_mode, temp_path
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
@@ -61,10 +60,14 @@ def atomic_dir(path, command="calib"):
 
 
 def atomic_write_text(path, text):
-    """Write ``text`` to ``path`` through a temporary file and a rename."""
+    """Write ``text`` to ``path`` through a temporary file and a rename.
+
+    For files inside a folder calib is writing (a temporary of :func:`atomic_dir`, a stage's stamp); a file a
+    user names goes through ``outputs.write_file`` (the output policy)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    tmp = temp_path(path)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
