@@ -44,7 +44,7 @@ def base(tmp_path_factory):
     write_truth(root / "truth", truth)
     from calib.estimator import calibrate
 
-    write_calibration(root / "cal", calibrate(feats))
+    write_calibration(root / "cal", calibrate(feats), features=feats)  # + calibration.json (calib export)
     for d in ("rec", "feats", "truth", "cal"):  # inputs a user made or got from elsewhere: no calib marker
         for m in (root / d).rglob(MARKER):
             m.unlink()
@@ -474,3 +474,158 @@ def test_interrupt_swallowed_in_a_finaliser_is_not_lost(tmp_path, name, code, wh
     assert r.stdout == "ran on\n"  # the interrupt did not stop the finaliser's caller: Python swallowed it
     assert "Exception ignored" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert ("re-raised" in r.stderr) == (where == "check"), r.stderr
+
+
+# ----------------------------------------------------------------------------------------------- writer safety
+# Every writer (issue 29): never replace or delete a file or folder calib did not create, nor an input;
+# --force replaces only calib's own outputs; a user's files named like calib's temporaries and a user's
+# symlink inside an owned output survive. Each writer's command; {out} is its output, {force} its --force.
+MC_CHEAP = ["--runs", "1", "--sigma-tdoa", "0.1", "--sigma-doa", "5", "--trajectories", "1", "--methods", "hybrid",
+            "--no-check-convergence", "--no-crlb", "--jobs", "1", "-q"]
+WRITERS = {  # name: (argv, output is a folder, has --force)
+    "run": (["run", "{rec}", "-o", "{out}", "-q"], True, True),
+    "features": (["features", "{rec}", "-o", "{out}", "-q"], True, False),
+    "estimate": (["estimate", "{feats}", "-o", "{out}", "-q"], True, False),
+    "simulate": (["simulate", "-o", "{out}", "--preset", "lab3", "--n-events", "4", "--interval", "0.8",
+                  "--chirp-duration", "0.2", "--rt60", "0", "-q"], True, True),
+    "chirp": (["chirp", "-o", "{out}", "--fs", "16000", "--n-events", "3", "-q"], True, False),
+    "montecarlo": (["montecarlo", "-o", "{out}", *MC_CHEAP], True, False),
+    "export": (["export", "{cal}", "--format", "yaml", "-o", "{out}", "-q"], False, False),
+    "init": (["init", "{rec}", "-o", "{out}", "-q"], False, True),
+}
+
+
+def tree_state(folder):
+    """{relative path: sha256 | 'dir' | 'link -> target'} of everything under ``folder`` (symlinks not followed)."""
+    out = {}
+    for root, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            p = Path(root) / name
+            rel = p.relative_to(folder).as_posix()
+            out[rel] = (f"link -> {os.readlink(p)}" if p.is_symlink() else "dir" if p.is_dir()
+                        else hashlib.sha256(p.read_bytes()).hexdigest())
+    return out
+
+
+def plant_user_files(folder, name):
+    """A user's files at and around the output ``folder/name``: look-alikes of calib's temporaries beside it."""
+    (folder / f".{name}.tmp-mine").write_text("my draft")
+    (folder / f".{name}.old-v1").mkdir()
+    (folder / f".{name}.old-v1" / "notes.txt").write_text("my old version")
+    (folder / f".{name}.tmp-draft").mkdir()
+    (folder / f".{name}.tmp-draft" / "events.csv").write_text("event,t_emit\n")
+    (folder / "elsewhere.txt").write_text("linked to")
+
+
+def user_folder(base, folder):
+    """A folder holding what a user keeps: a recording, the robot's log, a summary, temporaries' look-alikes,
+    a symlink."""
+    folder.mkdir(parents=True)
+    shutil.copy(next((base / "rec").glob("*.wav")), folder / "A1.wav")
+    shutil.copy(base / "rec" / "events.csv", folder / "events.csv")
+    (folder / "summary.csv").write_text("cell,loc_cm\n1,0.5\n")
+    (folder / "chirp.wav").write_bytes((folder / "A1.wav").read_bytes())
+    (folder / "schedule.csv").write_text("event,t_emit\n0,1.0\n")
+    (folder / ".arrays.tmp-mine").write_text("mine")
+    (folder / "link.csv").symlink_to(folder.parent / "elsewhere.txt")
+
+
+def _invoke(argv, paths, force):
+    args = [a.format(**paths) for a in argv] + (["--force"] if force else [])
+    return runner.invoke(app, args)
+
+
+def _writer_case(base, tmp_path, writer, where):
+    """The tree and output path of one case: ``where`` = user-folder (the output is a user's folder or file),
+    input (the output is the command's input), beside (a fresh output among look-alikes)."""
+    argv, is_folder, _ = WRITERS[writer]
+    for d in ("rec", "feats", "cal"):
+        shutil.copytree(base / d, tmp_path / d, symlinks=True)
+    area = tmp_path / "area"
+    area.mkdir()
+    plant_user_files(area, "out")
+    user_folder(base, area / "mine")
+    if where == "user-folder":
+        out = area / "mine" if is_folder else area / "mine" / "A1.wav"
+    elif where == "user-log":
+        out = area / "mine" / ("summary.csv" if writer == "export" else "events.csv")
+    elif where == "user-symlink":
+        out = area / "mine" / "link.csv"
+    elif where == "input":
+        out = tmp_path / "cal" / "calibration.json" if writer == "export" else tmp_path / "rec" / "A1.wav"
+    else:
+        out = area / "out"
+    paths = {"rec": tmp_path / "rec", "feats": tmp_path / "feats", "cal": tmp_path / "cal", "out": out}
+    return argv, {k: str(v) for k, v in paths.items()}
+
+
+SAFETY_CASES = [(w, where, force) for w, (_, folder, has_force) in WRITERS.items()
+                for where in (["user-folder", "beside"] if folder else
+                              ["user-folder", "user-log", "user-symlink", "input", "beside"])
+                for force in ([False, True] if has_force else [False])]
+
+
+@pytest.mark.parametrize("writer, where, force", SAFETY_CASES, ids=[f"{w}-{p}{'-force' if f else ''}"
+                                                                    for w, p, f in SAFETY_CASES])
+def test_writer_never_touches_user_files(base, tmp_path, writer, where, force):
+    """Every writer, with and without --force: each file and folder that existed before is unchanged (a user's
+    WAV, events.csv, summary.csv, chirp.wav, look-alikes of calib's temporaries, a symlink); an output onto a
+    user's file or folder or an input is refused with one `error:` line (exit 2); a fresh output is written."""
+    argv, paths = _writer_case(base, tmp_path, writer, where)
+    before = tree_state(tmp_path)
+    r = _invoke(argv, paths, force)
+    after = tree_state(tmp_path)
+    assert "Traceback" not in r.stdout + r.stderr and "internal error" not in r.stderr, r.stderr
+    changed = [p for p, h in before.items() if after.get(p) != h]
+    assert not changed, (changed, r.stderr)
+    if where == "beside" or (writer, where) == ("run", "user-folder"):  # run writes OUT/<stage>/ beside them
+        assert r.exit_code in (0, 3), r.stderr
+        assert Path(paths["out"]).exists()
+        assert not [p for p in after if "calib-tmp" in p or "calib-old" in p or p.endswith("calib-lock")]
+    else:
+        assert r.exit_code == 2, (r.exit_code, r.stderr)
+        assert r.stderr.strip().splitlines()[-1].startswith("error: "), r.stderr
+        assert set(after) == set(before)  # nothing written, no litter
+
+
+def test_owned_output_with_a_user_symlink_and_look_alikes(base, tmp_path):
+    """A user's symlink and a file named like a temporary inside a folder calib wrote: a re-run stops
+    (exit 2) instead of deleting them; litter of a real killed run beside it is removed."""
+    out = tmp_path / "cal"
+    assert runner.invoke(app, ["estimate", str(base / "feats"), "-o", str(out), "-q"]).exit_code in (0, 3)
+    (tmp_path / "mine.txt").write_text("mine")
+    (out / "mine.csv").symlink_to(tmp_path / "mine.txt")
+    dead = make_temp_dir(out)
+    before = tree_state(tmp_path)
+    r = runner.invoke(app, ["estimate", str(base / "feats"), "-o", str(out), "-q"])
+    assert r.exit_code == 2 and "mine.csv" in r.stderr and "symbolic link" in r.stderr, r.stderr
+    assert (out / "mine.csv").is_symlink() and (tmp_path / "mine.txt").read_text() == "mine"
+    assert not dead.exists()  # calib's own temporary (its token inside) is litter
+    (out / "mine.csv").unlink()
+    (out / ".arrays.tmp-mine").write_text("mine")
+    r = runner.invoke(app, ["estimate", str(base / "feats"), "-o", str(out), "-q"])
+    assert r.exit_code == 2 and ".arrays.tmp-mine" in r.stderr, r.stderr
+    assert (out / ".arrays.tmp-mine").read_text() == "mine"
+    assert {p: h for p, h in tree_state(tmp_path).items() if p in before} == \
+        {p: h for p, h in before.items() if not p.startswith(dead.name) and p != "cal/mine.csv"}
+
+
+def test_single_file_outputs_replace_only_their_own(base, tmp_path):
+    """`calib export` replaces its own earlier export (manifest), not a hand-edited one; `calib init --force`
+    replaces the session.toml it wrote, never without --force."""
+    out = tmp_path / "x.yaml"
+    args = ["export", str(base / "cal"), "--format", "yaml", "-o", str(out), "-q"]
+    assert runner.invoke(app, args).exit_code == 0
+    first = out.read_text()
+    assert runner.invoke(app, args).exit_code == 0 and out.read_text() == first
+    out.write_text(first + "# my note\n")
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2 and "edited since calib wrote it" in r.stderr
+    assert out.read_text().endswith("# my note\n")
+    shutil.copytree(base / "rec", tmp_path / "rec")
+    (tmp_path / "rec" / "session.toml").unlink()
+    init = ["init", str(tmp_path / "rec"), "-q"]
+    assert runner.invoke(app, init).exit_code == 0
+    r = runner.invoke(app, init)
+    assert r.exit_code == 2 and "--force" in r.stderr
+    assert runner.invoke(app, init + ["--force"]).exit_code == 0
