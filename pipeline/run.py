@@ -211,12 +211,22 @@ def estimate_features(features_dir, options):
     from calib.estimator import ObservabilityError, calibrate
 
     feats = read_features(features_dir)
+    _check_something_to_place(feats, features_dir)
     opts = dict(options)
     loss = opts.pop("loss", "cauchy")
     try:
         return calibrate(feats, loss=None if loss == "linear" else loss, **opts), feats
     except ObservabilityError as exc:
         raise InputError(f"{features_dir}: {exc}") from None
+
+
+def _check_something_to_place(feats, where):
+    """InputError when no array but the reference has a measurement: there is nothing to calibrate."""
+    ref = feats["meta"].get("reference_array")
+    measured = {str(a) for k in ("tdoa_m", "tdoa_s", "doa") for a in feats[k]["array"]} - {ref}
+    if not measured:
+        raise InputError(f"{where}: no measurement of any array but the reference {ref}: calib places the other "
+                         "arrays relative to it (record with at least two arrays)")
 
 
 def report_stage(out, truth_dir=None, progress=None):
@@ -282,6 +292,9 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     jobs = V.jobs_option(jobs)
     # validate every input before any work, so bad input fails fast and writes nothing
     session = read_session(recordings)
+    if len(session["arrays"]) < 2:
+        raise InputError(f"{Path(recordings) / 'session.toml'}: only one array ({session['arrays'][0]['name']}): calib "
+                         "places arrays relative to the reference array; record with at least two")
     truth_dir = Path(recordings) / "truth"
     truth_dir = truth_dir if truth_dir.is_dir() else None
     if truth_dir is not None:

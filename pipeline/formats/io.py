@@ -452,6 +452,8 @@ def read_calibration(directory):
     if not d.is_dir():
         raise InputError(f"{d}: not a directory")
     arrays = _read_arrays(d / "arrays.csv")
+    if len(arrays) == 0:
+        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header)")
     sources = _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
     report = _read_json(d / "report.json") if (d / "report.json").exists() else {}
     if not isinstance(report, dict):
@@ -479,6 +481,8 @@ def read_truth(directory):
     if not d.is_dir():
         raise InputError(f"{d}: not a directory")
     arrays = _read_arrays(d / "arrays.csv", truth=True)
+    if len(arrays) == 0:
+        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header): nothing to compare with")
     sources = _read_sources(d / "sources.csv", truth=True) if (d / "sources.csv").exists() else None
     return {"arrays": arrays, "sources": sources}
 

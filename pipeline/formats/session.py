@@ -76,9 +76,22 @@ def read_session(directory, check_audio=True):
         "arrays": arrays,
         "events": read_events(d / "events.csv"),
     }
+    _check_event_spacing(session["events"], chirp["duration"] or V.CHIRP_DURATION[0])
     if check_audio:
         _check_audio(session, p)
     return session
+
+
+def _check_event_spacing(events, duration):
+    """One speaker plays one chirp at a time: emissions closer than the chirp's length are a logging mistake
+    (and would make the association's tolerance, a quarter of the smallest spacing, vanish)."""
+    t = events["t_emit"].to_numpy()
+    gaps = np.diff(t)
+    if len(gaps) and gaps.min() < duration:
+        k = int(np.argmin(gaps))
+        raise InputError(f"{events.attrs.get('path', 'events.csv')}: event {events['event'].iloc[k + 1]} is logged "
+                         f"{gaps[k]:.3g} s after event {events['event'].iloc[k]}, less than the chirp's "
+                         f"{duration:g} s: one chirp logged twice, or t_emit in the wrong unit?")
 
 
 def _read_chirp(chirp_cfg, d, p):
