@@ -75,6 +75,7 @@ def emission_schedule(n_events, interval=INTERVAL, jitter=JITTER, start=1.0, see
 
 
 MAX_INTERVAL = 3600.0   # s: one chirp an hour at most (beyond is a typo in the unit)
+MAX_CHIRP_SAMPLES = 1 << 24  # chirp.wav of at most 16.8 M samples (~134 MB in memory): 60 s at 192 kHz fits
 CHIRP_FILES = ("chirp.wav", "schedule.csv", "chirp.toml")
 
 
@@ -94,6 +95,9 @@ def check_chirp_options(*, fs, n_events, interval, jitter, seed, f0, f1, duratio
         raise InputError(f"--f1: {max(f0, f1)} Hz is not below the Nyquist frequency of --fs {fs} Hz")
     if f0 == f1:
         raise InputError(f"--f0 and --f1 are both {f0} Hz: a sweep needs two frequencies")
+    if duration * fs > MAX_CHIRP_SAMPLES:
+        raise InputError(f"--duration × --fs: {duration * fs:.3g} samples, more than the {MAX_CHIRP_SAMPLES} calib "
+                         "writes into chirp.wav (a shorter chirp or a lower rate)")
     if duration >= interval * (1 - jitter):
         raise InputError(f"--duration: the chirp ({duration} s) must be shorter than the shortest interval "
                          f"({interval * (1 - jitter):.3g} s)")
