@@ -98,6 +98,40 @@ def set_mics(rec, name, new):
     (rec / "session.toml").write_text(head + f'name = "{name}"' + block)
 
 
+def _second_event_at(path, dt):
+    """Log event 1 ``dt`` s after event 0."""
+    rows = Path(path).read_text().splitlines()
+    t0 = float(rows[1].split(",")[1])
+    set_cell(path, 3, "t_emit", repr(t0 + dt))
+
+
+def _keep_first_array(path):
+    text = Path(path).read_text()
+    Path(path).write_text(text[:text.index("[[arrays]]", text.index("[[arrays]]") + 1)])
+
+
+def _only_reference(feats):
+    ref = json.loads((feats / "meta.json").read_text())["reference_array"]
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        rows = (feats / f"{name}.csv").read_text().splitlines()
+        head = rows[0].split(",").index("array")
+        (feats / f"{name}.csv").write_text("\n".join([rows[0]] + [r for r in rows[1:] if r.split(",")[head] == ref]) + "\n")
+
+
+def _header_only(path):
+    Path(path).write_text(Path(path).read_text().splitlines()[0] + "\n")
+
+
+def _cal_json(t, quaternion=None, **top):
+    """Edit cal/calibration.json: top-level keys, or the second array's quaternion."""
+    p = t / "cal" / "calibration.json"
+    doc = json.loads(p.read_text())
+    doc.update(top)
+    if quaternion is not None:
+        doc["arrays"][1]["quaternion"] = quaternion
+    p.write_text(json.dumps(doc))
+
+
 # ----------------------------------------------------------------------------------------------- the table
 # (id, argv with {rec} {feats} {cal} {truth} {out} {tmp}, crafting function(tmp) or None, fragments of the
 # error line). Every case must exit 2 with one error line; {out} must not exist afterwards.
@@ -110,6 +144,7 @@ FEATURES = ["features", "{rec}", "-o", "{out}"]
 ESTIMATE = ["estimate", "{feats}", "-o", "{out}"]
 RUN = ["run", "{rec}", "-o", "{out}"]
 EVALUATE = ["evaluate", "{cal}", "{truth}"]
+EXPORT = ["export", "{cal}", "--format", "yaml", "-o", "{out}"]
 
 
 def toml_case(name, argv, old, new, fragments):
@@ -230,6 +265,24 @@ CASES = [
      lambda t: (t / "cal/report.json").write_text("[1, 2]"), ["report.json", "object"]),
     ("too-few-events", ESTIMATE,
      lambda t: many_events(t / "feats/events.csv", 2), ["feats"]),
+    # --- issue 29, class 3: crashes → one line
+    ("events-1e-7-apart", RUN, lambda t: _second_event_at(t / "rec/events.csv", 1e-7),
+     ["events.csv", "event 1", "1e-07 s after event 0"]),
+    ("session-one-array", RUN, lambda t: _keep_first_array(t / "rec/session.toml"), ["session.toml", "only one array"]),
+    ("features-only-reference", ESTIMATE, lambda t: _only_reference(t / "feats"), ["feats", "no measurement"]),
+    ("truth-header-only", EVALUATE, lambda t: _header_only(t / "truth/arrays.csv"), ["truth/arrays.csv", "no arrays"]),
+    ("calibration-header-only", EVALUATE, lambda t: _header_only(t / "cal/arrays.csv"), ["cal/arrays.csv", "no arrays"]),
+    ("calibration-json-format-version", EXPORT, lambda t: _cal_json(t, format_version="x"),
+     ["calibration.json", "format_version"]),
+    ("calibration-json-zero-quaternion", EXPORT, lambda t: _cal_json(t, quaternion=[0, 0, 0, 0]),
+     ["calibration.json", "quaternion", "not a unit quaternion"]),
+    ("calibration-json-arrays-object", EXPORT, lambda t: _cal_json(t, arrays={"A1": 1}),
+     ["calibration.json", "'arrays' must be a list"]),
+    ("features-diagnostics-is-out", ["features", "{rec}", "-o", "{out}", "--diagnostics", "{out}"], _noop,
+     ["out", "other output"]),
+    ("chirp-fs-1e9", ["chirp", "-o", "{out}", "--fs", "1e9"], _noop, ["--fs", "1e+06"]),
+    ("chirp-too-long", ["chirp", "-o", "{out}", "--fs", "1000000", "--duration", "60", "--interval", "100"], _noop,
+     ["--duration × --fs"]),
 ]
 
 
@@ -629,3 +682,85 @@ def test_single_file_outputs_replace_only_their_own(base, tmp_path):
     r = runner.invoke(app, init)
     assert r.exit_code == 2 and "--force" in r.stderr
     assert runner.invoke(app, init + ["--force"]).exit_code == 0
+
+
+# ----------------------------------------------------------------------------------------------- crashes and noise
+def _scale_wav(path, factor, nan=False):
+    """Rewrite a WAV as float32 times ``factor`` (1e-40: every sample a denormal); ``nan``: some NaN/inf."""
+    import soundfile as sf
+
+    x, fs = sf.read(path, dtype="float64", always_2d=True)
+    x = (x * factor).astype(np.float32)
+    if nan:
+        x[100:110] = np.nan
+        x[200] = np.inf
+    sf.write(path, x[:, 0] if x.shape[1] == 1 else x, fs, subtype="FLOAT")
+
+
+def _rename_arrays(t):
+    """Non-Latin array names (CJK, Cyrillic): the plots' fonts lack the glyphs."""
+    toml = t / "rec" / "session.toml"
+    toml.write_text(toml.read_text().replace('name = "A2"', 'name = "麦克风"').replace('name = "A3"', 'name = "Микрофон"'))
+    shutil.rmtree(t / "rec" / "truth")  # (named A2, A3)
+
+
+def _zero_odometry(path):
+    rows = Path(path).read_text().splitlines()
+    head = rows[0].split(",")
+    cols = [head.index(c) for c in ("odom_x", "odom_y", "odom_z")]
+    out = [rows[0]]
+    for r in rows[1:]:
+        cells = r.split(",")
+        for c in cols:
+            cells[c] = "0"
+        out.append(",".join(cells))
+    Path(path).write_text("\n".join(out) + "\n")
+
+
+def _negate_doas(path):
+    rows = Path(path).read_text().splitlines()
+    head = rows[0].split(",")
+    cols = [head.index(c) for c in ("ux", "uy", "uz")]
+    out = [rows[0]]
+    for r in rows[1:]:
+        cells = r.split(",")
+        for c in cols:
+            cells[c] = repr(-float(cells[c]))
+        out.append(",".join(cells))
+    Path(path).write_text("\n".join(out) + "\n")
+
+
+def _bom(path):
+    Path(path).write_bytes(b"\xef\xbb\xbf" + Path(path).read_bytes())
+
+
+NOISE_CASES = [  # (id, argv, craft, allowed exit codes, fragment of the error line or None)
+    ("denormal-float-wav", RUN, lambda t: _scale_wav(t / "rec/A2.wav", 1e-40), (0, 2, 3), None),
+    ("nan-inf-chirp-reference", RUN, lambda t: _scale_wav(t / "rec/chirp.wav", 1.0, nan=True), (2,),
+     "chirp.wav: contains non-finite samples"),
+    ("non-latin-array-names", RUN, _rename_arrays, (0, 3), None),
+    ("all-zero-odometry", ESTIMATE, lambda t: _zero_odometry(t / "feats/events.csv"), (0, 2, 3), None),
+    ("every-doa-negated", ESTIMATE, lambda t: _negate_doas(t / "feats/doa.csv"), (0, 3), None),
+    ("calibration-json-bom", EXPORT, lambda t: _bom(t / "cal/calibration.json"), (0,), None),
+]
+
+
+@pytest.mark.parametrize("case", NOISE_CASES, ids=[c[0] for c in NOISE_CASES])
+def test_no_crash_and_no_library_noise(base, tmp_path, case):
+    """Inputs that crashed or printed NumPy/matplotlib warnings (issue 29): an answer or one error line, never an
+    internal error, a traceback or a library's warning; inputs untouched."""
+    name, argv, craft, codes, fragment = case
+    for d in ("rec", "feats", "cal", "truth"):
+        shutil.copytree(base / d, tmp_path / d, symlinks=True)
+    craft(tmp_path)
+    before = tree_digest(tmp_path)
+    paths = {k: str(tmp_path / k) for k in ("rec", "feats", "cal", "truth", "out")}
+    r = runner.invoke(app, [a.format(tmp=tmp_path, **paths) for a in argv] + ["-q"])
+    text = r.stdout + r.stderr
+    assert r.exit_code in codes, (r.exit_code, text)
+    assert "Traceback" not in text and "internal error" not in text, text
+    assert "Warning" not in text and "warnings.warn" not in text, text  # RuntimeWarning, UserWarning (glyphs), …
+    if fragment is not None:
+        assert r.stderr.strip().splitlines()[-1].startswith("error: ") and fragment in r.stderr, r.stderr
+    written = ("out", MARKER)  # the output, and the manifest naming it calib's beside it (a single-file output)
+    assert {k: v for k, v in tree_digest(tmp_path).items() if not k.startswith(written)} == before
