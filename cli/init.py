@@ -41,7 +41,7 @@ def init(
     spec = {**{p.stem: plain[0] if plain else "custom" for p in folder.glob("*.wav")}, **per} if per else plain[0]
     path = out if out is not None else folder / "session.toml"
     inputs = [folder, *sorted(folder.glob("*.wav"))]
-    check_file_replaceable(path, inputs, replace=force)  # before the work: a user's file is never replaced
+    check_file_replaceable(path, inputs, replace=force, command="calib init")  # before the work: a user's file is never replaced
     text = init_session(folder, spec, reference=reference)
     write_file(path, text, command="calib init", inputs=inputs, replace=force)
     if not quiet:

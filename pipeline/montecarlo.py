@@ -307,7 +307,7 @@ def check_study_folder(out):
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
     for name in STUDY_FILES:
-        check_file_replaceable(out / name)
+        check_file_replaceable(out / name, command=COMMAND)
 
 
 def _existing(out):

@@ -117,7 +117,7 @@ def chirp_files(out_dir, *, fs=48000, n_events=30, interval=INTERVAL, jitter=JIT
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
     for name in CHIRP_FILES:
-        check_file_replaceable(out / name)
+        check_file_replaceable(out / name, command="calib chirp")
     x = amplitude * chirp_signal(fs, f0, f1, duration, fade, kind)
     t = emission_schedule(n_events, interval, jitter, seed=seed)
     with owned_output([], lock=out, check=None):

@@ -682,6 +682,12 @@ def test_single_file_outputs_replace_only_their_own(base, tmp_path):
     r = runner.invoke(app, init)
     assert r.exit_code == 2 and "--force" in r.stderr
     assert runner.invoke(app, init + ["--force"]).exit_code == 0
+    cal = tmp_path / "cal"  # a file another command wrote (estimate's arrays.csv) is not export's to replace
+    assert runner.invoke(app, ["estimate", str(base / "feats"), "-o", str(cal), "-q"]).exit_code in (0, 3)
+    before = tree_state(cal)
+    r = runner.invoke(app, ["export", str(cal), "--format", "yaml", "-o", str(cal / "arrays.csv")])
+    assert r.exit_code == 2 and "written by `calib estimate`" in r.stderr, r.stderr
+    assert tree_state(cal) == before
 
 
 # ----------------------------------------------------------------------------------------------- crashes and noise

@@ -153,7 +153,7 @@ def export(cal: Calibration, fmt, path, inputs=()):
     if missing and fmt in ("pyroomacoustics", "odas", "urdf"):
         raise InputError(f"{fmt} export needs the mic geometry; none for {', '.join(missing)} "
                          "(features/meta.json without 'mics': re-run `calib features`)")
-    check_file_replaceable(path, inputs)  # before the work
+    check_file_replaceable(path, inputs, command="calib export")  # before the work
     if fmt == "pyroomacoustics":
         import io as _io
 
@@ -163,4 +163,4 @@ def export(cal: Calibration, fmt, path, inputs=()):
     else:
         data = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml, "odas": to_odas,
                 "urdf": to_urdf, "tf": to_tf}[fmt](cal)
-    return write_file(path, data, command=f"calib export --format {fmt}", inputs=inputs)
+    return write_file(path, data, command="calib export", inputs=inputs)

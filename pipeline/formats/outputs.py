@@ -150,20 +150,53 @@ def _files(folder):
 
 def read_marker(folder):
     """{relative file: sha256} of the files calib wrote in ``folder``, or None when it has no valid manifest."""
+    data = _read_manifest(folder)
+    return None if data is None else {str(k): str(v) for k, v in data["files"].items()}
+
+
+def _read_manifest(folder):
+    """The manifest's dict (``files``, ``command``, ``writers``), or None when absent or not valid."""
     try:
         data = json.loads((Path(folder) / MARKER).read_text())
-        files = data["files"]
-        return {str(k): str(v) for k, v in files.items()} if isinstance(files, dict) else None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
+        if isinstance(data, dict) and isinstance(data.get("files"), dict):
+            return data
+    except (OSError, ValueError, RecursionError):
+        pass
+    return None
 
 
-def _write_manifest(folder, files, command):
+def _writer(folder, name):
+    """The command that wrote the file ``name`` of ``folder`` (its own entry, else the folder's), or None."""
+    data = _read_manifest(folder) or {}
+    writers = data.get("writers") if isinstance(data.get("writers"), dict) else {}
+    return str(writers.get(name) or data.get("command") or "") or None
+
+
+def _write_manifest(folder, files, command, writers=None):
+    data = {"written_by": "calib", "command": command, "files": dict(sorted(files.items()))}
+    if writers:
+        data["writers"] = dict(sorted(writers.items()))
     tmp = temp_path(Path(folder) / MARKER)
-    tmp.write_text(json.dumps({"written_by": "calib", "command": command, "files": dict(sorted(files.items()))},
-                              indent=1) + "\n")
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
     publish_mode(tmp)
     os.replace(tmp, Path(folder) / MARKER)
+
+
+def _update_manifest(folder, name, digest, command):
+    """Record (or, ``digest`` None, forget) the single file ``name`` calib wrote in ``folder`` (hold its lock)."""
+    data = _read_manifest(folder) or {"command": command, "files": {}}
+    files = {str(k): str(v) for k, v in data["files"].items()}
+    writers = data.get("writers") if isinstance(data.get("writers"), dict) else {}
+    if digest is None:
+        files.pop(name, None)
+        writers.pop(name, None)
+    else:
+        files[name] = digest
+        writers[name] = command
+    if files:
+        _write_manifest(folder, files, data.get("command") or command, writers)
+    else:
+        (Path(folder) / MARKER).unlink()
 
 
 def write_marker(folder, command):
@@ -204,11 +237,17 @@ def check_replaceable(folder, edits=True):
             raise InputError(f"{p}: edited since calib wrote it; move it away or rename it to keep your edit")
 
 
-def check_file_replaceable(path, inputs=(), replace=True):
+def _command_name(command):
+    return " ".join(str(command).split()[:2])  # "calib export --format yaml" → "calib export"
+
+
+def check_file_replaceable(path, inputs=(), replace=True, command=None):
     """Raise InputError unless calib may write the single file ``path``.
 
     It may when ``path`` is absent, or a plain file listed in its folder's manifest and unedited (and
-    ``replace``); never when it is an input (``inputs``, symlinks resolved), a folder or a symbolic link.
+    ``replace``), written by the same command (``command``, when given: `calib export` does not replace a
+    calibration's arrays.csv); never when it is an input (``inputs``, symlinks resolved), a folder or a
+    symbolic link.
     """
     path = Path(path)
     for inp in inputs:
@@ -224,6 +263,10 @@ def check_file_replaceable(path, inputs=(), replace=True):
                          "(calib never replaces your files)")
     if _sha256(path) != marker[path.name]:
         raise InputError(f"{path}: edited since calib wrote it; move it away or rename it to keep your edit")
+    writer = _writer(path.parent, path.name)
+    if command is not None and writer is not None and _command_name(writer) != _command_name(command):
+        raise InputError(f"{path}: written by `{_command_name(writer)}`, not by `{_command_name(command)}`; "
+                         "choose another output")
     if not replace:
         raise InputError(f"{path}: exists (use --force to replace it)")
 
@@ -471,39 +514,32 @@ def write_file(path, data, *, command="calib", inputs=(), replace=True):
 
     data : bytes, str (UTF-8) or a function ``data(tmp_path)`` that writes the file (give it an explicit format:
         the temporary's name has no usual suffix).
+    command : the command writing it (recorded; a file of another command is not replaced).
     inputs : the command's inputs; ``path`` may not be one of them.
     replace : whether an existing file calib wrote may be replaced (False: ``--force`` was not given).
     The file is written to a temporary beside it and renamed into place; its sha256 goes into the folder's
-    manifest ``.calib-output``, which is what makes it replaceable by calib later.
+    manifest ``.calib-output``, which is what makes it replaceable by calib later. A folder made for it is
+    removed again if the write fails.
     """
     path = Path(path)
-    check_file_replaceable(path, inputs, replace)
-    created = _missing(path.parent)
-    ok = False
+    check_file_replaceable(path, inputs, replace, command)
     try:
-        try:
-            with output_lock(path):
-                remove_litter(path)
-                tmp = _write_temp_file(path, data)
-                try:
-                    digest = _sha256(tmp)
-                    with _manifest_lock(path.parent):
-                        check_file_replaceable(path, inputs, replace)
-                        files = read_marker(path.parent) or {}
-                        os.replace(tmp, path)
-                        files[path.name] = digest
-                        _write_manifest(path.parent, files, command)
-                finally:
-                    if tmp.exists():
-                        remove_temp(tmp)
-        except OSError as exc:
-            if exc.errno not in ENVIRONMENT_ERRNOS:
-                raise
-            raise os_error(exc, path) from None
-        ok = True
-    finally:
-        if not ok:
-            remove_made(created)
+        with output_lock(path):
+            remove_litter(path)
+            tmp = _write_temp_file(path, data)
+            try:
+                digest = _sha256(tmp)
+                with _manifest_lock(path.parent):
+                    check_file_replaceable(path, inputs, replace, command)
+                    os.replace(tmp, path)
+                    _update_manifest(path.parent, path.name, digest, command)
+            finally:
+                if tmp.exists():
+                    remove_temp(tmp)
+    except OSError as exc:
+        if exc.errno not in ENVIRONMENT_ERRNOS:
+            raise
+        raise os_error(exc, path) from None
     return path
 
 
@@ -513,15 +549,10 @@ def remove_owned_file(path):
     if path.is_symlink() or not path.is_file():
         return False
     with _manifest_lock(path.parent):
-        files = read_marker(path.parent) or {}
-        if files.get(path.name) != _sha256(path):
+        if (read_marker(path.parent) or {}).get(path.name) != _sha256(path):
             return False
         path.unlink()
-        del files[path.name]
-        if files:
-            _write_manifest(path.parent, files, "calib")
-        else:
-            (path.parent / MARKER).unlink()
+        _update_manifest(path.parent, path.name, None, "calib")
     return True
 
 
