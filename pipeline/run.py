@@ -126,10 +126,13 @@ def hash_files(root, label, names):
 
 
 def read_stamp(directory):
+    """A stage's stamp, or None when absent or not one calib wrote (a damaged stamp: the stage runs again)."""
     try:
-        return json.loads((Path(directory) / STAMP).read_text())
-    except (OSError, ValueError):
+        stamp = json.loads((Path(directory) / STAMP).read_text())
+    except (OSError, ValueError, RecursionError):
         return None
+    ok = isinstance(stamp, dict) and all(isinstance(stamp.get(k), dict) for k in ("inputs", "settings"))
+    return stamp if ok else None
 
 
 def write_stamp(directory, stamp):
