@@ -443,15 +443,20 @@ def _catches_sigterm(pid):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")
-def test_sigterm_while_starting(tmp_path):
-    """SIGTERM in the first second (imports): exit 143, one line, no traceback."""
-    p = _start(["simulate", tmp_path / "s", "-q"], tmp_path)
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+@pytest.mark.parametrize("after", [0.0, 0.02, 0.1, 0.3])
+def test_sigterm_while_starting(tmp_path, sig, code, after):
+    """SIGTERM / SIGINT while calib starts (imports; issue 29: a traceback in the first 0.3 s, a silent death at
+    0.1 s): exit 143 / 130, one line, no traceback — from the moment the entry module has installed its
+    handlers (the interpreter's own start comes before)."""
+    p = _start(["simulate", "-o", tmp_path / "s", "-q"], tmp_path)
     deadline = time.time() + 30
     while not _catches_sigterm(p.pid) and p.poll() is None and time.time() < deadline:
-        time.sleep(0.005)  # until calib's handler is installed (before its slow imports)
-    p.send_signal(signal.SIGTERM)
+        time.sleep(0.002)  # until calib's handler is installed (before its slow imports)
+    time.sleep(after)
+    p.send_signal(sig)
     _, err = p.communicate(timeout=60)
-    assert p.returncode == 143 and "Traceback" not in err, (p.returncode, err)
+    assert p.returncode == code and "Traceback" not in err and len(err.strip().splitlines()) == 1, (p.returncode, err)
     assert not (tmp_path / "s").exists() and not _litter(tmp_path)
 
 
