@@ -715,30 +715,26 @@ def _rename_arrays(t):
     shutil.rmtree(t / "rec" / "truth")  # (named A2, A3)
 
 
-def _zero_odometry(path):
+def _map_columns(path, columns, f):
+    """Rewrite the CSV cells of ``columns`` as ``f(cell text)``."""
     rows = Path(path).read_text().splitlines()
     head = rows[0].split(",")
-    cols = [head.index(c) for c in ("odom_x", "odom_y", "odom_z")]
+    cols = [head.index(c) for c in columns]
     out = [rows[0]]
     for r in rows[1:]:
         cells = r.split(",")
         for c in cols:
-            cells[c] = "0"
+            cells[c] = f(cells[c])
         out.append(",".join(cells))
     Path(path).write_text("\n".join(out) + "\n")
+
+
+def _zero_odometry(path):
+    _map_columns(path, ("odom_x", "odom_y", "odom_z"), lambda v: "0")
 
 
 def _negate_doas(path):
-    rows = Path(path).read_text().splitlines()
-    head = rows[0].split(",")
-    cols = [head.index(c) for c in ("ux", "uy", "uz")]
-    out = [rows[0]]
-    for r in rows[1:]:
-        cells = r.split(",")
-        for c in cols:
-            cells[c] = repr(-float(cells[c]))
-        out.append(",".join(cells))
-    Path(path).write_text("\n".join(out) + "\n")
+    _map_columns(path, ("ux", "uy", "uz"), lambda v: repr(-float(v)))
 
 
 def _bom(path):

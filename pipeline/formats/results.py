@@ -170,7 +170,7 @@ def _obj(value, where, *, optional=False):
     if value is None and optional:
         return None
     if not isinstance(value, dict):
-        raise InputError(f"{where} must be an object, not {_show(value)}")
+        raise InputError(f"{where} must be an object, not {V.show(value)}")
     return value
 
 
@@ -178,25 +178,20 @@ def _list(value, where, *, optional=False, max_len=None):
     if value is None and optional:
         return None
     if not isinstance(value, list):
-        raise InputError(f"{where} must be a list, not {_show(value)}")
+        raise InputError(f"{where} must be a list, not {V.show(value)}")
     if max_len is not None and len(value) > max_len:
         raise InputError(f"{where}: {len(value)} entries, more than {max_len}")
     return value
 
 
-def _show(value):
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
 def _quaternion(value, where):
     """A unit quaternion [w, x, y, z] (renormalised within QUATERNION_NORM_TOL)."""
     if not isinstance(value, list) or len(value) != 4:
-        raise InputError(f"{where} must be [w, x, y, z], not {_show(value)}")
+        raise InputError(f"{where} must be [w, x, y, z], not {V.show(value)}")
     q = np.array([V.number(v, where, lo=-2.0, hi=2.0) for v in value])
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOL:
-        raise InputError(f"{where}: {_show(value)} is not a unit quaternion (norm {norm:.4g}): not a rotation")
+        raise InputError(f"{where}: {V.show(value)} is not a unit quaternion (norm {norm:.4g}): not a rotation")
     return q / norm
 
 
@@ -276,7 +271,7 @@ def _sources(value, where):
 def _format_version(doc, path):
     v = doc.get("format_version")
     if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-        raise InputError(f"{path}: 'format_version' must be an integer ≥ 1, not {_show(v)}")
+        raise InputError(f"{path}: 'format_version' must be an integer ≥ 1, not {V.show(v)}")
     if v > FORMAT_VERSION:
         raise InputError(f"{path}: format_version {v} is newer than this calib reads ({FORMAT_VERSION}): upgrade calib")
 
