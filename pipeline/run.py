@@ -217,7 +217,8 @@ def estimate_features(features_dir, options):
 def _check_something_to_place(feats, where):
     """InputError when no array but the reference has a measurement: there is nothing to calibrate."""
     ref = feats["meta"].get("reference_array")
-    measured = {str(a) for k in ("tdoa_m", "tdoa_s", "doa") for a in feats[k]["array"]} - {ref}
+    measured = {str(a) for t in tables() if "array" in t.columns and feats.get(t.name) is not None
+                for a in feats[t.name]["array"]} - {ref}
     if not measured:
         raise InputError(f"{where}: no measurement of any array but the reference {ref}: calib places the other "
                          "arrays relative to it (record with at least two arrays)")
