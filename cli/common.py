@@ -9,8 +9,8 @@ from __future__ import annotations
 import contextlib
 import datetime
 import functools
-import logging
 import inspect
+import logging
 import os
 import sys
 import tempfile
@@ -62,12 +62,10 @@ class _Warnings:
     def __init__(self):
         self.seen = []
         self.other = warnings.showwarning
-        self.library = 0
         self.debug = os.environ.get(SHOW_LIBRARY_WARNINGS) == "1"
 
     def show(self, message, category, filename, lineno, file=None, line=None):
         if not issubclass(category, InputWarning):
-            self.library += 1
             if self.debug:
                 self.other(message, category, filename, lineno, file, line)
             return
