@@ -801,3 +801,25 @@ def test_run_and_features_into_nested_folders(base, tmp_path):
         assert r.exit_code == 0, r.stderr
         check_consistent(out)
         check_markers(out)
+
+
+def _silence(t):
+    for wav in (t / "rec").glob("A*.wav"):
+        _scale_wav(wav, 0.0)
+
+
+@pytest.mark.parametrize("argv, craft", [
+    (["run", "{rec}", "-o", "{tmp}/new/deep/out", "-q"], _silence),            # fails in the features stage
+    (["features", "{rec}", "-o", "{tmp}/new/feats", "-q"], _silence),
+    (["estimate", "{feats}", "-o", "{tmp}/new/cal", "-q"], lambda t: _only_reference(t / "feats")),
+], ids=["run", "features", "estimate"])
+def test_failed_command_leaves_no_empty_folder(base, tmp_path, argv, craft):
+    """A command that fails after it started writing (issue 29: 23 failed runs left an empty output folder)
+    removes the folders it made for its output: nothing is left."""
+    for d in ("rec", "feats"):
+        shutil.copytree(base / d, tmp_path / d, symlinks=True)
+    craft(tmp_path)
+    paths = {k: str(tmp_path / k) for k in ("rec", "feats")}
+    r = runner.invoke(app, [a.format(tmp=tmp_path, **paths) for a in argv])
+    assert r.exit_code == 2 and r.stderr.startswith("error: "), r.stderr
+    assert not (tmp_path / "new").exists() and not _litter(tmp_path)
