@@ -11,7 +11,7 @@ from calib.pipeline.formats import validate as V
 from calib.pipeline.formats.io import InputError
 from calib.pipeline.formats.outputs import owned_output
 from calib.pipeline.simulate.presets import PRESETS
-from .common import console, user_errors, waiting
+from .common import console, progress_display, user_errors, waiting
 from .signals import checked
 
 
@@ -108,16 +108,8 @@ def _check_options(**values):
 
 
 def _simulate_with_bar(sc, out_dir):
-    """The simulation with a rich progress bar (the library reports progress through a callback)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    with Progress(TextColumn("simulate"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[msg]}"),
-                  TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task("simulate", total=None, msg="")
-
-        def progress(done, total, msg):
-            bar.update(task, total=total, completed=done, msg=msg)
-
+    """The simulation with progress (a bar on a terminal, timestamped lines in a log file)."""
+    with progress_display("simulate") as progress:
         return _run(sc, out_dir, checked(progress))
 
 
@@ -130,7 +122,7 @@ def _run(sc, out_dir, progress):
 
 def _set(over, item):
     """Apply one ``--set KEY=VALUE`` to the overrides (VALUE read as TOML, else as a string)."""
-    import tomllib
+    from calib.tomlcompat import tomllib
 
     key, sep, text = item.partition("=")
     key = key.strip()

@@ -24,7 +24,7 @@ import json
 import math
 import os
 import time
-import tomllib
+from calib.tomlcompat import tomllib
 import zlib
 from pathlib import Path
 

@@ -151,7 +151,7 @@ def why_stale(old, new):
 def session_inputs(session):
     """Hashes of the files a recording session's feature extraction reads (session.toml, events, WAVs)."""
     d = Path(session["dir"])
-    files = {d / "session.toml", d / "events.csv"} | {Path(a["wav"]) for a in session["arrays"]}
+    files = {d / "session.toml", d / "events.csv"} | {Path(f) for a in session["arrays"] for f in a["files"]}
     if session["chirp"].get("reference") is not None:
         files.add(Path(session["chirp"]["reference"]))
     files = sorted(files)
@@ -296,7 +296,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
         read_truth(truth_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
-    inputs = [Path(recordings), *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]
+    inputs = [Path(recordings), *(f for a in session["arrays"] for f in a["files"]), session["chirp"].get("reference")]
     check_separate([out], inputs)
     subdirs = [out / n for n in OUT_DIRS]
     with owned_output(subdirs, inputs, command="calib run", on_wait=on_wait, lock=out,

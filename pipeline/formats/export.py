@@ -8,9 +8,10 @@ format             what is written
                    the reference frame), ``quaternion_wxyz``, ``mics``, ``mics_reference``, ``clock``
 ``pyroomacoustics`` ``.npy`` of shape (3, all mics): the ``R`` argument of ``pyroomacoustics.MicrophoneArray``,
                    reference frame, arrays in calibration order, channels in WAV order
-``odas``           the ``mics = (...)`` block of an ODAS configuration per array: ``mu`` = R·m (array-centred, axes
-                   of the reference frame, so ODAS's directions come out in the reference frame), ``sigma2`` the
-                   mic-position covariance from the rotation's, ``direction`` the array's z axis
+``odas``           a folder with one complete ODAS configuration per array, ``<array>.cfg`` (``calib.pipeline.formats.
+                   odas``): ``mu`` = R·m (array-centred, axes of the reference frame, so ODAS's directions come out
+                   in the reference frame), ``sigma2`` the mic-position covariance from the rotation's,
+                   ``direction`` and the spatial filter the array's z axis
 ``urdf``           a URDF robot: a link per array and per mic, fixed joints (xyz, rpy)
 ``tf``             a shell script of ROS 2 ``static_transform_publisher`` commands, reference → each array
 =================  ==========================================================================================
@@ -23,14 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.pipeline.formats.odas import to_odas_configs
 from calib.pipeline.formats.outputs import check_file_replaceable, write_file
 from calib.pipeline.formats.results import REFERENCE, Calibration
 from calib.errors import InputError
 
+COMMAND = "calib export"  # the writer recorded in the output's manifest
 FORMATS = ("json", "yaml", "pyroomacoustics", "odas", "urdf", "tf")
-SUFFIX = {"json": ".json", "yaml": ".yaml", "pyroomacoustics": ".npy", "odas": ".cfg", "urdf": ".urdf", "tf": ".sh"}
-# ODAS's default microphone pick-up cone (deg): full gain up to 80°, none beyond 90° off the array's z axis
-ODAS_ANGLE_DEG = (80.0, 90.0)
+SUFFIX = {"json": ".json", "yaml": ".yaml", "pyroomacoustics": ".npy", "odas": "", "urdf": ".urdf", "tf": ".sh"}  # odas: a folder
 
 
 def _f(v):
@@ -55,47 +56,6 @@ def to_yaml(cal: Calibration):
     import yaml  # PyYAML: a dependency for this export (Kalibr's files are YAML)
 
     return yaml.safe_dump(to_yaml_dict(cal), sort_keys=False, default_flow_style=None, width=120)
-
-
-def _skew(v):
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
-def odas_mic_blocks(cal: Calibration):
-    """{array: [(mu (3,), sigma2 (3, 3), direction (3,)), ...]} for the ODAS export (see module docstring)."""
-    labels = [] if cal.covariance is None else list(cal.covariance.index)
-    out = {}
-    for a in cal.arrays:
-        R = a.rotation.as_matrix()
-        rot_lab = [f"{a.name}.r{c}" for c in "xyz"]
-        if all(lab in labels for lab in rot_lab):
-            S_phi = cal.covariance.loc[rot_lab, rot_lab].to_numpy(float)
-        else:
-            S_phi = np.zeros((3, 3))  # the reference array: its rotation is the frame, known exactly
-        rows = []
-        for m in a.mics:
-            J = -R @ _skew(m)  # d(R Exp(φ) m)/dφ at φ = 0
-            rows.append((R @ m, J @ S_phi @ J.T, R[:, 2]))
-        out[a.name] = rows
-    return out
-
-
-def to_odas(cal: Calibration):
-    lines = ["# ODAS mic blocks from calib (calibration.json): one `mics` block per array; paste the one of an",
-             "# array into its ODAS configuration. mu = R·m (m): array-centred, axes of the reference array's",
-             f"# frame ({cal.reference_array}), so ODAS's directions are in that frame. sigma2: mic-position",
-             "# covariance (m²) from the calibrated rotation's. direction: the array's z axis.", ""]
-    for name, rows in odas_mic_blocks(cal).items():
-        lines += [f"# array {name}", "mics = ("]
-        for k, (mu, s2, d) in enumerate(rows):
-            sep = "," if k < len(rows) - 1 else ""
-            lines += [f"    # microphone {k + 1} (WAV channel {k})", "    {",
-                      f"        mu = ( {', '.join(_f(v) for v in mu)} );",
-                      f"        sigma2 = ( {', '.join(_f(v) for v in s2.ravel())} );",
-                      f"        direction = ( {', '.join(_f(v) for v in d)} );",
-                      f"        angle = ( {ODAS_ANGLE_DEG[0]}, {ODAS_ANGLE_DEG[1]} );", "    }" + sep]
-        lines += [");", ""]
-    return "\n".join(lines)
 
 
 def _rpy(rot):
@@ -153,7 +113,9 @@ def export(cal: Calibration, fmt, path, inputs=()):
     if missing and fmt in ("pyroomacoustics", "odas", "urdf"):
         raise InputError(f"{fmt} export needs the mic geometry; none for {', '.join(missing)} "
                          "(features/meta.json without 'mics': re-run `calib features`)")
-    check_file_replaceable(path, inputs, command="calib export")  # before the work
+    if fmt == "odas":
+        return _export_odas(cal, path, inputs)
+    check_file_replaceable(path, inputs, command=COMMAND)  # before the work
     if fmt == "pyroomacoustics":
         import io as _io
 
@@ -161,6 +123,23 @@ def export(cal: Calibration, fmt, path, inputs=()):
         np.save(buf, cal.mics(REFERENCE).T)
         data = buf.getvalue()
     else:
-        data = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml, "odas": to_odas,
+        data = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml,
                 "urdf": to_urdf, "tf": to_tf}[fmt](cal)
-    return write_file(path, data, command="calib export", inputs=inputs)
+    return write_file(path, data, command=COMMAND, inputs=inputs)
+
+
+def _export_odas(cal, path, inputs):
+    """One ODAS configuration per array, ``path/<array>.cfg`` (ODAS runs one array per process); each file
+    under the output policy, all checked before any is written."""
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path}: exists and is not a folder (the odas export writes one <array>.cfg per array)")
+    configs = to_odas_configs(cal)
+    bad = [n for n in configs if Path(n).name != n or n in (".", "..")]
+    if bad:
+        raise InputError(f"odas export: array name {bad[0]!r} cannot name a file <array>.cfg")
+    configs = {path / f"{name}.cfg": text for name, text in configs.items()}
+    for p in configs:
+        check_file_replaceable(p, inputs, command=COMMAND)
+    for p, text in configs.items():
+        write_file(p, text, command=COMMAND, inputs=inputs)
+    return path

@@ -37,6 +37,7 @@ MAX_EVENT_ID = 10**9
 MAX_EVENTS = 10_000                   # events in one session (memory of the frontend and estimator)
 MAX_ARRAYS = 256
 MAX_MICS = 64                         # mics per array
+MAX_CHANNELS = 1024                   # channels of one WAV (a channel map's indices are below this)
 MIN_MIC_SPACING = 1e-3                # m: closer mics are the same mic (a typo)
 CHIRP_DURATION = (1e-3, 60.0)         # s
 MIN_DIRECTION_NORM = 1e-9             # a direction vector shorter than this has no direction

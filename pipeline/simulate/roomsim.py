@@ -25,7 +25,7 @@ from __future__ import annotations
 import copy
 import json
 import math
-import tomllib
+from calib.tomlcompat import tomllib
 from pathlib import Path
 
 import numpy as np
