@@ -82,9 +82,21 @@ def simulate(
     if out_pos is not None:  # after success only: a bad input stays one line
         print("note: `calib simulate OUT_DIR` is deprecated; use `calib simulate -o OUT_DIR`", file=sys.stderr)
     if not quiet:
-        t = sc["t_emit"]
-        console.print(f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "
-                      f"{t[-1] - t[0]:.1f} s, RT60 {sc['rt60']:g} s, SNR {sc['snr']:g} dB, fs {sc['fs']} Hz → {path}")
+        console.print(_summary(sc) + f" → {path}")
+
+
+def _summary(sc):
+    """One line: the scene's arrays, chirps, acoustics and deployment conditions."""
+    t = sc["t_emit"]
+    rates = sorted({int(a.get("fs", sc["fs"])) for a in sc["arrays"]})
+    fs = f"{rates[0]}" if len(rates) == 1 else f"{rates[0]}–{rates[-1]}"
+    n_obs = len(sc.get("obstacles") or [])
+    extra = [x for x, on in (("non-convex room", sc.get("floor_plan") is not None),
+                             (f"{n_obs} obstacle{'s' * (n_obs != 1)}", n_obs > 0),
+                             ("speaker moving while chirping", sc.get("trajectory") is not None)) if on]
+    return (f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "
+            f"{t[-1] - t[0]:.1f} s, RT60 {sc['rt60']:g} s, SNR {sc['snr']:g} dB, fs {fs} Hz"
+            + "".join(f", {x}" for x in extra))
 
 
 # ranges of the numeric options (docs/reliability.md): (lo, hi, lo open, integer)

@@ -274,9 +274,9 @@ def _check_detections(session, options):
     from calib.frontend import extract_features
 
     try:
-        _, diag = extract_features(session, **options)
+        feats, diag = extract_features(session, **options)
     except InputError as exc:
-        return [_row("frontend", "chirp audible", "FAIL", str(exc))]
+        return [_row("frontend", "chirp audible", "FAIL", str(exc))] + _check_setup(session, None, None, options)
     rows, n = [], len(session["events"])
     for name, a in diag["arrays"].items():
         matched = sum(d["event"] is not None for d in a["detections"])
@@ -286,7 +286,24 @@ def _check_detections(session, options):
                          (f"; missed {a['missed_events'][:8]}" if a["missed_events"] else "")))
         for w in a["warnings"]:
             rows.append(_row(name, "frontend", "warn", w))
-    return rows
+    return rows + _check_setup(session, diag, feats, options)
+
+
+SETUP_STATUS = {"failed": "FAIL", "suspect": "warn", "note": "ok"}
+
+
+def _check_setup(session, diag, feats, options):
+    """The set-up consistency stage (``calib.pipeline.setupcheck``): one row per finding, or one ok row."""
+    from calib.pipeline.setupcheck import setup_findings
+
+    try:
+        found = setup_findings(session, diag, feats, options.get("threshold", 8.0))
+    except InputError as exc:
+        return [_row("set-up", "consistency", "FAIL", str(exc))]
+    if not found:
+        return [_row("set-up", "consistency", "ok", "channels, mic geometry, clocks, recordings, speed of sound "
+                                                      "and trajectory consistent with the data")]
+    return [_row(f.what, f.check, SETUP_STATUS[f.status], f.text) for f in found]
 
 
 def check_session(folder, *, detect=True, **options):

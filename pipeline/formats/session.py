@@ -41,9 +41,10 @@ MAX_MIC_RADIUS = 10.0           # m: mic coordinates are relative to their array
 SPAN_WAVELENGTHS = 50.0         # an array wider than this many wavelengths is a unit mistake (mm for m)
 
 
-TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays", "robot")
+TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays", "robot", "temperature")
 ROBOT_KEYS = ("speaker_offset",)
 MAX_LEVER_ARM = 5.0             # m: the speaker sits on the robot
+TEMPERATURE_C = (-50.0, 60.0)   # °C: the air of a room (optional key, checked against speed_of_sound)
 CHIRP_KEYS = ("f0", "f1", "duration", "reference", "kind", "fade")
 ARRAY_KEYS = ("name", "wav", "files", "channels", "mics", "doa_hemisphere")
 
@@ -89,6 +90,9 @@ def read_session(directory, check_audio=True):
         "events": speaker_positions(read_events(d / "events.csv"), robot.get("speaker_offset"), p),
     }
     _check_event_spacing(session["events"], chirp["duration"] or V.CHIRP_DURATION[0])
+    if "temperature" in cfg:
+        session["temperature"] = V.number(cfg["temperature"], f"{p}: 'temperature'", lo=TEMPERATURE_C[0],
+                                          hi=TEMPERATURE_C[1])
     if check_audio:
         _check_audio(session, p)
     return session
