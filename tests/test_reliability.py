@@ -823,3 +823,15 @@ def test_failed_command_leaves_no_empty_folder(base, tmp_path, argv, craft):
     r = runner.invoke(app, [a.format(tmp=tmp_path, **paths) for a in argv])
     assert r.exit_code == 2 and r.stderr.startswith("error: "), r.stderr
     assert not (tmp_path / "new").exists() and not _litter(tmp_path)
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_import_bag_never_replaces_the_robots_log(base, tmp_path, force):
+    """`calib import-bag -o REC/events.csv [--force]` onto the session's own events.csv (the robot's log, not
+    written by calib): refused before the bag is read; nothing changes."""
+    shutil.copytree(base / "rec", tmp_path / "rec")
+    before = tree_state(tmp_path)
+    r = runner.invoke(app, ["import-bag", str(tmp_path / "robot.bag"), "-o", str(tmp_path / "rec" / "events.csv"),
+                            "--schedule", str(tmp_path / "schedule.csv")] + (["--force"] if force else []))
+    assert r.exit_code == 2 and "events.csv" in r.stderr and "calib did not write it" in r.stderr, r.stderr
+    assert tree_state(tmp_path) == before

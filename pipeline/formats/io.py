@@ -189,14 +189,19 @@ def _check_member(df, col, allowed, path, what):
         raise InputError(f"{path}: line {k + 2}: unknown {what} {v}")
 
 
-def write_table(df, path, columns=None, float_format="%.10g"):
-    """Write a DataFrame as CSV (atomic). ``columns`` fixes the leading column order."""
+def table_csv(df, columns=None, float_format="%.10g"):
+    """A DataFrame's CSV text as calib writes it. ``columns`` fixes the leading column order."""
     # bookkeeping columns (the readers' csv_line, any private "_" column) stay in memory
     df = df[[c for c in df.columns if c != LINE_COLUMN and not str(c).startswith("_")]]
     if columns is not None:
         rest = [c for c in df.columns if c not in columns]
         df = df[[c for c in columns if c in df.columns] + rest]
-    atomic_write_text(path, df.to_csv(index=False, float_format=float_format, lineterminator="\n"))
+    return df.to_csv(index=False, float_format=float_format, lineterminator="\n")
+
+
+def write_table(df, path, columns=None, float_format="%.10g"):
+    """Write a DataFrame as CSV (atomic; inside a folder calib is writing). See :func:`table_csv`."""
+    atomic_write_text(path, table_csv(df, columns, float_format))
 
 
 def _read_json(path):

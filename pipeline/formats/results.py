@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
+from calib.jsonutil import dumps_json
 
 from calib.pipeline.formats import validate as V
 from calib.pipeline.formats.calibration_json import FORMAT_NAME, FORMAT_VERSION
@@ -281,6 +282,7 @@ def from_document(doc, path="calibration.json"):
     the file and the field)."""
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
         raise InputError(f"{path}: not a calib calibration.json (format {FORMAT_NAME!r})")
+    doc = json.loads(dumps_json(doc))  # an in-memory document as the file holds it (lists, not arrays)
     _format_version(doc, path)
     items = _list(doc.get("arrays"), f"{path}: 'arrays'", max_len=V.MAX_ARRAYS)
     if not items:
