@@ -23,6 +23,7 @@ import soundfile as sf
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from calib.errors import InputError
+from calib.jsonutil import dumps_json
 from calib.pipeline.simulate.featsim import simulate_features
 from calib.pipeline.formats.io import read_calibration, read_events, read_features, read_truth, write_features, write_truth
 from calib.pipeline.formats.export import FORMATS, SUFFIX, export
@@ -123,8 +124,10 @@ def _calibration_json(folder, feats, truth):
     from calib.pipeline.formats.calibration_json import calibration_document
 
     folder.mkdir()
+    square = [[0.03, 0.0, 0.0], [0.0, 0.03, 0.0], [-0.03, 0.0, 0.0], [0.0, -0.03, 0.0]]  # every format needs mics
+    feats = {**feats, "meta": {**feats["meta"], "mics": {a: square for a in feats["meta"]["arrays"]}}}
     cal = {"arrays": truth["arrays"], "sources": truth["sources"], "report": {}}
-    (folder / "calibration.json").write_text(json.dumps(calibration_document(cal, feats), indent=1))
+    (folder / "calibration.json").write_text(dumps_json(calibration_document(cal, feats), indent=1))
 
 
 def export_every_format(folder):
