@@ -267,7 +267,7 @@ CASES = [
      lambda t: many_events(t / "feats/events.csv", 2), ["feats"]),
     # --- issue 29, class 3: crashes → one line
     ("events-1e-7-apart", RUN, lambda t: _second_event_at(t / "rec/events.csv", 1e-7),
-     ["events.csv", "event 1", "1e-07 s after event 0"]),
+     ["events.csv", "event 1", "1e-07 s after event 0", "logged twice"]),
     ("session-one-array", RUN, lambda t: _keep_first_array(t / "rec/session.toml"), ["session.toml", "only one array"]),
     ("features-only-reference", ESTIMATE, lambda t: _only_reference(t / "feats"), ["feats", "no measurement"]),
     ("truth-header-only", EVALUATE, lambda t: _header_only(t / "truth/arrays.csv"), ["truth/arrays.csv", "no arrays"]),

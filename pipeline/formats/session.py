@@ -99,15 +99,20 @@ def read_session(directory, check_audio=True):
 
 
 def _check_event_spacing(events, duration):
-    """One speaker plays one chirp at a time: emissions closer than the chirp's length are a logging mistake
-    (and would make the association's tolerance, a quarter of the smallest spacing, vanish)."""
-    t = events["t_emit"].to_numpy()
-    gaps = np.diff(t)
-    if len(gaps) and gaps.min() < duration:
-        k = int(np.argmin(gaps))
-        raise InputError(f"{events.attrs.get('path', 'events.csv')}: event {events['event'].iloc[k + 1]} is logged "
-                         f"{gaps[k]:.3g} s after event {events['event'].iloc[k]}, less than the chirp's "
-                         f"{duration:g} s: one chirp logged twice, or t_emit in the wrong unit?")
+    """One speaker plays one chirp at a time. Emissions closer than the shortest chirp calib accepts (1 ms) are a
+    logging mistake (one chirp logged twice, or t_emit in the wrong unit): an error (the association's
+    tolerance, a quarter of the smallest spacing, would vanish). Closer than this session's chirp: a warning
+    (their chirps overlap)."""
+    gaps = np.diff(events["t_emit"].to_numpy())
+    if not len(gaps) or gaps.min() >= duration:
+        return
+    k = int(np.argmin(gaps))
+    text = (f"{events.attrs.get('path', 'events.csv')}: event {events['event'].iloc[k + 1]} is logged {gaps[k]:.3g} s "
+            f"after event {events['event'].iloc[k]}")
+    if gaps[k] < V.CHIRP_DURATION[0]:
+        raise InputError(f"{text}, less than any chirp lasts ({V.CHIRP_DURATION[0]:g} s): one chirp logged twice, or "
+                         "t_emit in the wrong unit?")
+    warnings.warn(f"{text}, less than the chirp's {duration:g} s: their chirps overlap", InputWarning, stacklevel=3)
 
 
 def _read_robot(cfg, p):
