@@ -1,5 +1,4 @@
-"""The ``calib`` console script: signal handlers and allocator settings first, then the (slow) imports, then
-the command.
+"""The ``calib`` console script: signal handlers first, then the (slow) imports, then the command.
 
 The first lines install handlers that only remember a SIGINT/SIGTERM; ``main`` then reports it (exit 130/143,
 one line), so an interrupt while the command starts gives no traceback. Before Python has imported this
@@ -27,9 +26,6 @@ def main():
         signals.install()
         if _early:
             raise signals.exception_for(_early[0])
-        from calib.alloc import keep_freed_memory
-
-        keep_freed_memory()  # a short-lived process of large arrays: reuse freed blocks (calib.alloc)
         from calib.cli.main import app
     except KeyboardInterrupt as exc:
         signals.leave(signals.interrupted(exc, "interrupted while starting; nothing was written"))

@@ -141,6 +141,7 @@ def test_moving_source_matches_the_retarded_time_closed_form(tmp_path):
         assert abs(measured - expected) < 0.1 * abs(expected - f_emit / (1 + 4e-5))
 
 
+@pytest.mark.slow
 def test_events_carry_the_velocity_at_the_sweep_start(tmp_path):
     sc = make_scenario("moving", 2, n_events=3, rt60=0.3, sigma_vel=0.0, sigma_odo=0.0)
     out = simulate(sc, tmp_path / "m")
@@ -158,6 +159,7 @@ def test_events_carry_the_velocity_at_the_sweep_start(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------- presets
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", DEPLOY + ("occluded-lab",))
 def test_deploy_presets_validate_and_vary_by_seed(preset):
     a, b = make_scenario(preset, 0), make_scenario(preset, 1)

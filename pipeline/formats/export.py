@@ -31,7 +31,6 @@ from calib.errors import InputError
 
 COMMAND = "calib export"  # the writer recorded in the output's manifest
 FORMATS = ("json", "yaml", "pyroomacoustics", "odas", "urdf", "tf")
-SUFFIX = {"json": ".json", "yaml": ".yaml", "pyroomacoustics": ".npy", "odas": "", "urdf": ".urdf", "tf": ".sh"}  # odas: a folder
 
 
 def _f(v):

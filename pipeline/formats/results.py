@@ -20,11 +20,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
+from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
+from calib.geometry import local_time
 from calib.jsonutil import dumps_json
 
 from calib.pipeline.formats import validate as V
@@ -89,10 +91,10 @@ class Calibration:
 
     # ------------------------------------------------------------------ lookup and views
     @property
-    def names(self) -> list:
+    def names(self) -> list[str]:
         return [a.name for a in self.arrays]
 
-    def array(self, name) -> ArrayCalibration:
+    def array(self, name: str) -> ArrayCalibration:
         for a in self.arrays:
             if a.name == name:
                 return a
@@ -114,7 +116,7 @@ class Calibration:
         a = self.array(frame)
         return a.rotation.inv().apply(points_ref - a.position)
 
-    def mics(self, frame=REFERENCE, array=None) -> np.ndarray:
+    def mics(self, frame: str = REFERENCE, array: str | None = None) -> np.ndarray:
         """Mic positions (M, 3) m in ``frame`` ("reference" or an array name).
 
         array : one array's mics (WAV channel order); None = all arrays in calibration order, stacked.
@@ -126,8 +128,8 @@ class Calibration:
         ref = np.vstack([a.rotation.apply(a.mics) + a.position for a in arrays])
         return self._to_frame(ref, frame)
 
-    def transform(self, points, from_frame, to_frame=REFERENCE) -> np.ndarray:
-        """Points (n, 3) from one frame ("reference" or an array name) to another."""
+    def transform(self, points: ArrayLike, from_frame: str, to_frame: str = REFERENCE) -> np.ndarray:
+        """Points (n, 3) m from one frame ("reference" or an array name) to another."""
         p = np.atleast_2d(np.asarray(points, float))
         if from_frame != REFERENCE:
             a = self.array(from_frame)
@@ -141,20 +143,20 @@ class Calibration:
                              "array's detections): the emitter time is not known")
         return self.array(name).offset + self.clock.reference_offset
 
-    def to_emitter_time(self, name, local_time, chirp=False):
-        """Emitter time (events.csv clock) of the array's local time(s) (s). chirp: the arrival was measured by
+    def to_emitter_time(self, name: str, local_time: ArrayLike, chirp: bool = False) -> np.ndarray:
+        """Emitter time(s) (events.csv clock, s; the shape of ``local_time``) of the array's local time(s) (s). chirp: the arrival was measured by
         matched filtering the calibration chirp (subtract its bias β·δ)."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
         return self.clock.t0 + (np.asarray(local_time, float) - self._tau(name) - bias) / (1.0 + a.drift)
 
-    def to_local_time(self, name, emitter_time, chirp=False):
+    def to_local_time(self, name: str, emitter_time: ArrayLike, chirp: bool = False) -> np.ndarray:
         """The array's local time(s) of emitter time(s): the inverse of :meth:`to_emitter_time`."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
-        return (1.0 + a.drift) * (np.asarray(emitter_time, float) - self.clock.t0) + self._tau(name) + bias
+        return local_time(emitter_time, self._tau(name), a.drift, self.clock.t0) + bias
 
-    def to_reference_time(self, name, local_time, chirp=False):
+    def to_reference_time(self, name: str, local_time: ArrayLike, chirp: bool = False) -> np.ndarray:
         """The reference array's local time of the instant the array ``name`` reads as ``local_time``."""
         t = self.to_emitter_time(name, local_time, chirp)
         return self.to_local_time(self.reference_array, t, chirp)

@@ -5,7 +5,9 @@ over its defaults; docs/simulation.md describes them.
 """
 from __future__ import annotations
 
-PRESETS = {
+from typing import Any
+
+PRESETS: dict[str, dict[str, Any]] = {
     "paper-traj1": {"n_arrays": 5, "room_margin": 1.5},
     "paper-traj2": {"n_arrays": 5, "room_margin": 1.5},
     "paper-traj3": {"n_arrays": 5, "room_margin": 1.5},

@@ -31,11 +31,6 @@ TAIL_FADE = 0.002  # s, raised-cosine fade-in of the stochastic tail at the mixi
 WRAP_MARGIN = 0.02  # s of zero padding so the zero-phase band filters' pre-ringing never wraps around
 
 
-def local_time(t, tau, drift, t0):
-    """Array clock reading ``L(t) = (1 + δ)(t − t0) + τ`` at true (emitter) time ``t`` (s)."""
-    return (1.0 + drift) * (np.asarray(t, float) - t0) + tau
-
-
 # ----------------------------------------------------------------------------------------------- RIR builder
 def build_rirs(delays, amps, length, early=np.inf, horizon=np.inf):
     """RIRs (n_mics, length) from image delays in SAMPLES (n_img, n_mics) and amplitudes (n_img, n_mics).
