@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import signal as _signal
 
-_early = []  # signals received while the command starts (before the handlers of cli/signals.py are in place)
+_early: list[int] = []  # signals received while the command starts (before the handlers of cli/signals.py are in place)
 
 
 def _defer(signum, frame):
