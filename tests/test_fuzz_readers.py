@@ -26,7 +26,7 @@ from calib.errors import InputError
 from calib.jsonutil import dumps_json
 from calib.pipeline.simulate.featsim import simulate_features
 from calib.pipeline.formats.io import read_calibration, read_events, read_features, read_truth, write_features, write_truth
-from calib.pipeline.formats.export import FORMATS, SUFFIX, export
+from calib.pipeline.formats.export import FORMATS, export
 from calib.pipeline.formats.results import load_calibration
 from calib.pipeline.montecarlo import read_grid
 from calib.pipeline.simulate.roomsim import load_scenario
@@ -135,7 +135,7 @@ def export_every_format(folder):
     cal = load_calibration(folder)
     with tempfile.TemporaryDirectory() as tmp:
         for fmt in FORMATS:
-            export(cal, fmt, Path(tmp) / f"x{SUFFIX[fmt]}")
+            export(cal, fmt, Path(tmp) / f"x-{fmt}")  # (odas: a folder of <array>.cfg)
 
 
 def _fuzz_file(valid, folder, name, reader, text):
