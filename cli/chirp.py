@@ -6,14 +6,15 @@ from pathlib import Path
 import typer
 
 from calib.pipeline import sessiontools as st
+from calib.pipeline.formats import validate as V
 from .common import Quiet, console, user_errors
-from calib.errors import InputError
 
 
 @user_errors
 def chirp(
-    out: Path = typer.Option(..., "-o", "--out", help="folder to write chirp.wav, schedule.csv and chirp.toml into"),
-    fs: int = typer.Option(48000, help="sample rate of chirp.wav, Hz (any rate: the frontend resamples it)"),
+    out: Path = typer.Option(..., "-o", "--out", help="folder to write chirp.wav, schedule.csv and chirp.toml into (a file there that calib did not write is never replaced)"),
+    fs: float = typer.Option(48000, help="sample rate of chirp.wav, Hz, 1 kHz … 1 MHz (any rate: the frontend "
+                                         "resamples it)"),
     n_events: int = typer.Option(30, help="chirps in the schedule (≥ 3; 20-40 stops give a well-posed "
                                           "calibration)"),
     interval: float = typer.Option(st.INTERVAL, help="mean time between chirps, s: longer than the chirp + RT60 + "
@@ -36,10 +37,8 @@ def chirp(
     robot's clock with its odometry into events.csv. Copy chirp.wav into the session folder: the frontend then
     matches against the exact emitted signal.
     """
-    if kind not in ("linear", "exponential"):
-        raise InputError(f"--kind must be linear or exponential, not {kind!r}")
-    paths = st.chirp_files(out, fs=fs, n_events=n_events, interval=interval, jitter=jitter, seed=seed, f0=f0, f1=f1,
+    paths = st.chirp_files(out, fs=V.option(fs, "fs", lo=V.SAMPLE_RATE[0], hi=V.SAMPLE_RATE[1], integer=True), n_events=n_events, interval=interval, jitter=jitter, seed=seed, f0=f0, f1=f1,
                            duration=duration, fade=fade, kind=kind)
     if not quiet:
-        console.print(f"{kind} sweep {f0:g}-{f1:g} Hz, {duration:g} s at {fs} Hz; {n_events} chirps every "
+        console.print(f"{kind} sweep {f0:g}-{f1:g} Hz, {duration:g} s at {fs:g} Hz; {n_events} chirps every "
                       f"{interval:g} s ± {100 * jitter:.0f} % → {', '.join(str(p) for p in paths.values())}")

@@ -6,9 +6,11 @@ whose path is printed), 2 bad input (``error: <file>: <problem>``), 3 a calibrat
 """
 from __future__ import annotations
 
+import contextlib
 import datetime
 import functools
 import inspect
+import logging
 import os
 import sys
 import tempfile
@@ -47,16 +49,25 @@ def _report_bug(exc):
     return path
 
 
+SHOW_LIBRARY_WARNINGS = "CALIB_SHOW_LIBRARY_WARNINGS"  # =1: show NumPy/matplotlib/... warnings (debugging)
+
+
 class _Warnings:
-    """Show InputWarnings as ``warning: <file>: <problem>`` lines (at most MAX_WARNINGS, then a count)."""
+    """Show InputWarnings as ``warning: <file>: <problem>`` lines (at most MAX_WARNINGS, then a count).
+
+    A library's warning (a NumPy RuntimeWarning, a matplotlib glyph warning, ...) is not calib's word to the
+    user: it is dropped (what it means is checked and said by calib itself), unless CALIB_SHOW_LIBRARY_WARNINGS=1.
+    """
 
     def __init__(self):
         self.seen = []
-        self.other = warnings.showwarning  # warnings of other kinds are shown as Python shows them
+        self.other = warnings.showwarning
+        self.debug = os.environ.get(SHOW_LIBRARY_WARNINGS) == "1"
 
     def show(self, message, category, filename, lineno, file=None, line=None):
         if not issubclass(category, InputWarning):
-            self.other(message, category, filename, lineno, file, line)
+            if self.debug:
+                self.other(message, category, filename, lineno, file, line)
             return
         text = _one_line(message)
         if text in self.seen:
@@ -83,7 +94,7 @@ def user_errors(func):
         previous = signals.install()
         shown = _Warnings()
         try:
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), _quiet_libraries(shown.debug):
                 warnings.simplefilter("always", InputWarning)
                 warnings.showwarning = shown.show
                 result = func(*args, **kwargs)
@@ -108,6 +119,27 @@ def user_errors(func):
             signals.restore(previous)
 
     return wrapper
+
+
+@contextlib.contextmanager
+def _quiet_libraries(debug):
+    """No library's log records or worker processes' warnings on the user's terminal (see :class:`_Warnings`)."""
+    if debug:
+        yield
+        return
+    root = logging.getLogger()
+    handler = logging.NullHandler()  # (else Python's last-resort handler prints libraries' WARNING records)
+    root.addHandler(handler)
+    env = os.environ.get("PYTHONWARNINGS")
+    os.environ["PYTHONWARNINGS"] = "ignore"  # worker processes (calib montecarlo) start with it
+    try:
+        yield
+    finally:
+        root.removeHandler(handler)
+        if env is None:
+            os.environ.pop("PYTHONWARNINGS", None)
+        else:
+            os.environ["PYTHONWARNINGS"] = env
 
 
 def waiting(message):

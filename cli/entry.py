@@ -1,15 +1,31 @@
 """The ``calib`` console script: signal handlers first, then the (slow) imports, then the command.
 
-An interrupt during the imports (the first seconds) exits quietly with 130/143 instead of a traceback.
+The first lines install handlers that only remember a SIGINT/SIGTERM; ``main`` then reports it (exit 130/143,
+one line), so an interrupt while the command starts gives no traceback. Before Python has imported this
+module (the interpreter's own start, tens of milliseconds) the interpreter's defaults apply.
 """
 from __future__ import annotations
 
-from . import signals
+import signal as _signal
+
+_early: list[int] = []  # signals received while the command starts (before the handlers of cli/signals.py are in place)
+
+
+def _defer(signum, frame):
+    _early.append(signum)
+
+
+for _s in (_signal.SIGINT, _signal.SIGTERM):  # first of all: an interrupt while importing is kept for main()
+    _signal.signal(_s, _defer)
+
+from . import signals  # noqa: E402  (after the deferring handlers, on purpose)
 
 
 def main():
-    signals.install()
     try:
+        signals.install()
+        if _early:
+            raise signals.exception_for(_early[0])
         from calib.cli.main import app
     except KeyboardInterrupt as exc:
         signals.leave(signals.interrupted(exc, "interrupted while starting; nothing was written"))

@@ -16,7 +16,8 @@ def export(
     calibration: Path = typer.Argument(..., help="calibration/ folder (or its calibration.json)"),
     fmt: str = typer.Option(..., "--format", "-f", help=f"output format: {', '.join(FORMATS)}"),
     out: Path = typer.Option(..., "-o", "--out", help="file to write (usual suffixes: .json, .yaml, .npy, .urdf, "
-                                                      ".sh); odas: a folder of <array>.cfg"),
+                                                      ".sh); odas: a folder of <array>.cfg; an existing file is "
+                                                      "replaced only if calib wrote it"),
     quiet: Quiet = False,
 ):
     """Export a calibration: json, yaml (Kalibr-style), pyroomacoustics (.npy of mic positions, shape (3, all
@@ -25,6 +26,7 @@ def export(
     if fmt not in FORMATS:
         raise InputError(f"--format must be one of {', '.join(FORMATS)}, not {fmt!r}")
     cal = load_calibration(calibration)
-    path = export_calibration(cal, fmt, out)
+    source = calibration / "calibration.json" if calibration.is_dir() else calibration
+    path = export_calibration(cal, fmt, out, inputs=[calibration, source])
     if not quiet:
         console.print(f"{fmt}: {len(cal.arrays)} arrays → {path}")

@@ -26,12 +26,13 @@ def features(
 ):
     """Detect the chirps, match them to the robot's events, measure TDOA-M, TDOA-S and DOA."""
     from calib.pipeline.features import write_feature_outputs
-    from calib.pipeline.formats.outputs import check_separate, owned_output
+    from calib.pipeline.formats.outputs import check_distinct, check_separate, owned_output
     from calib.pipeline.formats.session import read_session
     from calib.pipeline.formats.validate import features_options, jobs_option
 
     diag_dir = diagnostics if diagnostics is not None else out.resolve().parent / "diagnostics"
     opts = {**features_options({"threshold": detect_threshold, "max_drift": max_drift}), "jobs": jobs_option(jobs)}
+    check_distinct([out, diag_dir])  # --diagnostics X with -o X would lose the features
     check_separate([out, diag_dir], [recordings])
     session = read_session(recordings)  # every input checked before any output is touched
     inputs = [recordings, *(f for a in session["arrays"] for f in a["files"]), session["chirp"].get("reference")]

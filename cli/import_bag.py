@@ -6,12 +6,13 @@ from typing import Optional
 
 import typer
 
-from calib.errors import InputError
 from calib.pipeline.formats import validate as V
-from calib.pipeline.formats.io import EVENTS_COLS, read_table, write_table
+from calib.pipeline.formats.io import EVENTS_COLS, read_table, table_csv
+from calib.pipeline.formats.outputs import check_file_replaceable, write_file
 from calib.pipeline.formats.rosbag import bag_events
 from .common import Quiet, console, user_errors
 
+COMMAND = "calib import-bag"
 MAX_LATENCY = 10.0  # s: a playback latency beyond this is a unit mistake (ms for s)
 
 
@@ -32,7 +33,7 @@ def import_bag(
     latency: float = typer.Option(0.0, "--latency",
                                   help="playback latency, s: the sound leaves the speaker this long after the logged "
                                        "time (emission time and pose are taken then)"),
-    force: bool = typer.Option(False, "--force", help="replace an existing events.csv"),
+    force: bool = typer.Option(False, "--force", help="replace an events.csv calib wrote (never the robot's own log or your edit)"),
     quiet: Quiet = False,
 ):
     """Write events.csv from a robot's bag: the emission times (a topic, or the chirp schedule and its start)
@@ -41,14 +42,15 @@ def import_bag(
     [x, y, z], m, robot frame): calib turns the base's pose into the speaker's position with it.
     """
     V.number(latency, "--latency", lo=-MAX_LATENCY, hi=MAX_LATENCY)
-    if out.exists() and not force:
-        raise InputError(f"{out}: exists (use --force to replace it)")
+    inputs = [bag, schedule]
+    # before the work: the robot's own events.csv (or any file calib did not write) is never replaced
+    check_file_replaceable(out, inputs, replace=force, command=COMMAND)
     sched = None
     if schedule is not None:
         sched = read_table(schedule, ["event", "t_emit"], int_cols=("event",)).sort_values("event")["t_emit"]
     ev = bag_events(bag, odom_topic, emit_topic=emit_topic, schedule=sched, start=start, start_topic=start_topic,
                     latency=latency)
-    write_table(ev, out, EVENTS_COLS, float_format="%.9f")
+    write_file(out, table_csv(ev, EVENTS_COLS, float_format="%.9f"), command=COMMAND, inputs=inputs, replace=force)
     if not quiet:
         dist = float(((ev[["odom_x", "odom_y"]].diff() ** 2).sum(axis=1) ** 0.5).sum())
         console.print(f"{len(ev)} emissions, {dist:.2f} m of odometry → {out}")

@@ -6,7 +6,8 @@ from typing import List, Optional
 
 import typer
 
-from calib.pipeline.formats.io import InputError, atomic_write_text
+from calib.errors import InputError
+from calib.pipeline.formats.outputs import check_file_replaceable, write_file
 from calib.pipeline.sessiontools import MODELS, PER_MIC_NAME, init_session
 from .common import Quiet, console, user_errors
 
@@ -24,7 +25,8 @@ def init(
     layout: str = typer.Option("array", "--layout",
                                help="array: each WAV one array (named after the file); per-mic: one mono WAV per "
                                     "mic, named ARRAY-MIC.wav (e.g. the seed paper's arr1-1.wav ... arr1-4.wav)"),
-    force: bool = typer.Option(False, "--force", help="replace an existing session.toml"),
+    force: bool = typer.Option(False, "--force", help="replace a session.toml calib wrote (never a file you wrote or "
+                                                      "edited)"),
     quiet: Quiet = False,
 ):
     """Write a session.toml for the WAVs in FOLDER: each WAV one array, mics from the array model.
@@ -43,10 +45,10 @@ def init(
             raise InputError(f"--model must be one of {', '.join(MODELS)}, not {m!r}")
     spec = {**dict.fromkeys(_array_names(folder, layout), plain[0] if plain else "custom"), **per} if per else plain[0]
     path = out if out is not None else folder / "session.toml"
-    if path.exists() and not force:
-        raise InputError(f"{path}: exists (use --force to replace it)")
+    inputs = [folder, *sorted(folder.glob("*.wav"))]
+    check_file_replaceable(path, inputs, replace=force, command="calib init")  # before the work: never a user's file
     text = init_session(folder, spec, reference=reference, layout=layout)
-    atomic_write_text(path, text)
+    write_file(path, text, command="calib init", inputs=inputs, replace=force)
     if not quiet:
         console.print(f"wrote {path}")
 

@@ -68,7 +68,8 @@ def montecarlo(
     from calib.pipeline.montecarlo import paper_grid, read_grid, run_study
 
     from calib.pipeline.formats import validate as V
-    from calib.pipeline.formats.outputs import output_lock
+    from calib.pipeline.formats.outputs import owned_output
+    from calib.pipeline.montecarlo import check_study_folder
 
     V.option(runs, "runs", lo=1, hi=10**6, integer=True)
     V.jobs_option(jobs)
@@ -85,8 +86,10 @@ def montecarlo(
         g["runs"] = runs
     if seed is not None:
         g["base_seed"] = seed
+    check_study_folder(out)  # a user's summary.csv (or any file calib did not write) stops it before the work
     try:
-        with output_lock(out, on_wait=waiting), _bar(quiet) as progress:  # locked, appended to, never replaced
+        # locked, appended to, never replaced as a folder; each file through the output policy
+        with owned_output([], [grid], lock=out, check=None, on_wait=waiting), _bar(quiet) as progress:
             res = run_study(out, g["cells"], g["trajectories"], g["runs"], g["methods"], jobs=jobs, scheduler=scheduler,
                             progress=checked(progress), base_seed=g["base_seed"], sigma_odo=g["sigma_odo"],
                             check_convergence=check_convergence, with_crlb=crlb)

@@ -29,14 +29,15 @@ class Terminated(KeyboardInterrupt):
 _pending = None
 
 
-def _exception(signum):
+def exception_for(signum):
+    """The exception an interrupt by ``signum`` raises: :class:`Terminated` (SIGTERM) or KeyboardInterrupt."""
     return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
 def _on_signal(signum, frame):
     global _pending
     _pending = signum
-    raise _exception(signum)
+    raise exception_for(signum)
 
 
 def _unraisable(info):
@@ -60,7 +61,7 @@ def install():
 def check():
     """Raise again an interrupt that Python swallowed in a finaliser (called at every progress point)."""
     if _pending is not None:
-        raise _exception(_pending)
+        raise exception_for(_pending)
 
 
 def checked(callback=None):
@@ -102,7 +103,7 @@ def leave(code):
     even a handled one, into death by SIGINT at shutdown (exit -2 instead of 130).
     """
     if code in (None, EXIT_OK) and _pending is not None:
-        code = interrupted(_exception(_pending), "interrupted as the command finished; its outputs are complete")
+        code = interrupted(exception_for(_pending), "interrupted as the command finished; its outputs are complete")
     if code in (EXIT_SIGINT, EXIT_SIGTERM):
         for stream in (sys.stdout, sys.stderr):
             try:

@@ -10,6 +10,14 @@ Package layout (one import package, folders at the top level of the repository):
 
 Imports run one way: cli → pipeline → {frontend, estimator} → core (docs/architecture.md).
 """
-from .version import __version__
-
 __all__ = ["__version__"]
+
+
+def __getattr__(name):
+    """``calib.__version__``, looked up on first use: importlib.metadata costs ~20 ms, and the ``calib`` command
+    installs its signal handlers only after this package is imported (cli/entry.py)."""
+    if name == "__version__":
+        from .version import __version__
+
+        return __version__
+    raise AttributeError(f"module 'calib' has no attribute {name!r}")

@@ -511,6 +511,8 @@ def chirp_template(chirp, fs):
             raise InputError(f"{ref}: cannot read audio ({_first_line(exc)})") from None
         if data.shape[1] != 1:
             raise InputError(f"{ref}: chirp reference must be mono, has {data.shape[1]} channels")
+        if not np.isfinite(data).all():
+            raise InputError(f"{ref}: contains non-finite samples (NaN or inf)")
         s = resample(data[:, 0], fs_ref, fs)
         if not np.any(s):
             raise InputError(f"{ref}: chirp reference is silent")

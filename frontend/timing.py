@@ -65,6 +65,8 @@ def _spectra_setup(template, fs, band, seg_len, whiten_hz):
 
 
 _SETUPS = SetupCache(8)
+# a float32 spectrum floor: the smallest normal float32 (a recording of denormal samples would divide by zero)
+F32_FLOOR = float(np.finfo(np.float32).tiny)
 
 
 def segment_spectra(x, starts, setup, plain=False, workers=-1):
@@ -102,7 +104,7 @@ def segment_spectra(x, starts, setup, plain=False, workers=-1):
     if plain:
         p = np.sum(np.abs(setup["tmpl_conj"]) ** 2 * w)  # a single path of unit gain peaks at 1
         scale = 1.0 / np.maximum(p * np.sqrt(np.mean(pow_spec, axis=-1, keepdims=True, dtype=np.float64)
-                                             / np.mean(np.abs(setup["tmpl_conj"]) ** 2)), 1e-300)
+                                             / np.mean(np.abs(setup["tmpl_conj"]) ** 2)), F32_FLOOR)
         c_plain = c * (w32 * scale.astype(np.float32))
     if setup["whiten_bins"]:
         # divide by the locally smoothed magnitude: removes the spectral colour of speaker, room and noise
@@ -110,7 +112,7 @@ def segment_spectra(x, starts, setup, plain=False, workers=-1):
         # energy ahead of the direct path (a zero-phase inverse filter is two-sided)
         pow_spec *= np.abs(setup["tmpl_conj64"]) ** 2  # |c|² = |X|² |S|²
         p = uniform_filter1d(pow_spec, setup["whiten_bins"], axis=-1, mode="nearest")
-        np.maximum(p, np.float32(1e-30 * max(float(p.max(initial=0.0)), 1e-300)), out=p)
+        np.maximum(p, np.float32(max(1e-30 * float(p.max(initial=0.0)), F32_FLOOR)), out=p)
         np.sqrt(p, out=p)
         c *= np.divide(w32, p, out=p)
     else:

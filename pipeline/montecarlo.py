@@ -18,6 +18,7 @@ A *study* (:func:`run_study`) runs a grid of runs for several methods and writes
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import math
@@ -36,7 +37,9 @@ from calib.estimator.problem import build_problem
 
 from calib.pipeline.report.evaluate import evaluate, truth_tables
 from calib.pipeline.simulate.featsim import simulate_features
-from calib.pipeline.formats.io import InputError, atomic_write_text, dumps_json
+from calib.pipeline.formats.io import InputError, dumps_json
+from calib.pipeline.formats.outputs import (check_file_replaceable, is_own_temp, remove_owned_file, remove_temp,
+                                            write_file)
 from calib.pipeline.formats.validate import read_text
 
 SIGMA_TDOA = (5e-5, 1e-4, 5e-4)
@@ -298,6 +301,19 @@ def _sorted_runs(df):
     return df.loc[idx].reset_index(drop=True)
 
 
+COMMAND = "calib montecarlo"
+STUDY_FILES = ("study.json", "runs.csv", "summary.csv", "fig3.png")  # written into the study folder
+
+
+def check_study_folder(out):
+    """InputError unless every file the study writes into ``out`` is absent or calib's own (before any work)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    for name in STUDY_FILES:
+        check_file_replaceable(out / name, command=COMMAND)
+
+
 def _existing(out):
     """Rows already computed in ``out`` (runs.csv and any part files), as a string table, deduplicated."""
     tables = []
@@ -425,8 +441,7 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs == 0 or jobs < -1:
         raise InputError(f"jobs must be a positive integer or -1 (all cores), got {jobs!r}")
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a directory")
+    check_study_folder(out)
     settings = {"base_seed": grid["base_seed"], "sigma_odo": grid["sigma_odo"],
                 "check_convergence": bool(check_convergence), "with_crlb": bool(with_crlb)}
     if out.is_dir():
@@ -434,7 +449,7 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     tasks, skipped = _pending_tasks(out, grid)
     client = _connect(scheduler) if scheduler is not None and tasks else None  # before writing anything
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "study.json", dumps_json({**settings, "grid": grid}, indent=2) + "\n")
+    write_file(out / "study.json", dumps_json({**settings, "grid": grid}, indent=2) + "\n", command=COMMAND)
     if client is not None:
         n_workers = sum(client.nthreads().values())
     else:
@@ -451,7 +466,7 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
             if progress is not None:
                 progress(0, total, message)
             for k, rows in enumerate(_execute(chunks, settings, jobs, client)):
-                atomic_write_text(out / "parts" / f"part-{stamp}-{k:05d}.csv", _rows_to_csv(rows))
+                write_file(out / "parts" / f"part-{stamp}-{k:05d}.csv", _rows_to_csv(rows), command=COMMAND)
                 done_runs += sum(r["stage"] == "final" for r in rows)
                 if progress is not None:
                     progress(done_runs, total, message)
@@ -500,17 +515,19 @@ def finish_study(out, grid, figure=True):
     for c in cols:
         if c not in merged:
             merged[c] = ""
-    atomic_write_text(out / "runs.csv", merged[cols].to_csv(index=False))
+    write_file(out / "runs.csv", merged[cols].to_csv(index=False), command=COMMAND)
     parts = out / "parts"
     if parts.is_dir():
-        for f in parts.glob("part-*.csv"):
-            f.unlink()
-        for f in parts.glob(".part-*"):  # leftovers of a write interrupted mid-way
-            f.unlink()
-        parts.rmdir()
+        for f in parts.iterdir():  # calib's part files (merged above) and temporaries of killed writes
+            if is_own_temp(f):
+                remove_temp(f)
+            elif f.name.startswith("part-"):
+                remove_owned_file(f)
+        with contextlib.suppress(OSError):
+            parts.rmdir()  # unless a file calib did not write is left there
     runs = _select(pd.read_csv(out / "runs.csv"), grid)
     summary = summarise(runs)
-    atomic_write_text(out / "summary.csv", summary.to_csv(index=False, float_format="%.6g"))
+    write_file(out / "summary.csv", summary.to_csv(index=False, float_format="%.6g"), command=COMMAND)
     paths = {"runs": out / "runs.csv", "summary": out / "summary.csv"}
     if figure and len(runs):
         paths["figure"] = plot_study(runs, summary, out / "fig3.png")
@@ -635,9 +652,7 @@ def plot_study(runs, summary, path):
     fig.legend(seen.values(), seen.keys(), loc="upper center", bbox_to_anchor=(0.5, 1 - 0.45 / H), ncol=4,
                fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.25 / H))  # (tight_layout already leaves room for the title)
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    try:
+        return write_file(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"), command=COMMAND)
+    finally:
+        plt.close(fig)

@@ -111,10 +111,13 @@ def hash_files(root, label, names):
 
 
 def read_stamp(directory):
+    """A stage's stamp, or None when absent or not one calib wrote (a damaged stamp: the stage runs again)."""
     try:
-        return json.loads((Path(directory) / STAMP).read_text())
-    except (OSError, ValueError):
+        stamp = json.loads((Path(directory) / STAMP).read_text())
+    except (OSError, ValueError, RecursionError):
         return None
+    ok = isinstance(stamp, dict) and all(isinstance(stamp.get(k), dict) for k in ("inputs", "settings"))
+    return stamp if ok else None
 
 
 def write_stamp(directory, stamp):
@@ -205,12 +208,23 @@ def estimate_features(features_dir, options):
     from calib.estimator import ObservabilityError, calibrate
 
     feats = read_features(features_dir)
+    _check_something_to_place(feats, features_dir)
     opts = dict(options)
     loss = opts.pop("loss", "cauchy")
     try:
         return calibrate(feats, loss=None if loss == "linear" else loss, **opts), feats
     except ObservabilityError as exc:
         raise InputError(f"{features_dir}: {exc}") from None
+
+
+def _check_something_to_place(feats, where):
+    """InputError when no array but the reference has a measurement: there is nothing to calibrate."""
+    ref = feats["meta"].get("reference_array")
+    measured = {str(a) for t in tables() if "array" in t.columns and feats.get(t.name) is not None
+                for a in feats[t.name]["array"]} - {ref}
+    if not measured:
+        raise InputError(f"{where}: no measurement of any array but the reference {ref}: calib places the other "
+                         "arrays relative to it (record with at least two arrays)")
 
 
 def report_stage(out, truth_dir=None, progress=None):
@@ -285,6 +299,9 @@ def run(recordings: str | Path, out: str | Path, *, force: bool = False, feature
     jobs = V.jobs_option(jobs)
     # validate every input before any work, so bad input fails fast and writes nothing
     session = read_session(recordings)
+    if len(session["arrays"]) < 2:
+        raise InputError(f"{Path(recordings) / 'session.toml'}: only one array ({session['arrays'][0]['name']}): calib "
+                         "places arrays relative to the reference array; record with at least two")
     truth_dir: Path | None = Path(recordings) / "truth" if (Path(recordings) / "truth").is_dir() else None
     if truth_dir is not None:
         read_truth(truth_dir)

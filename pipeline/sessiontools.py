@@ -19,8 +19,9 @@ import soundfile as sf
 from calib.errors import InputError
 from calib.frontend.signals import sweep
 
+from calib.pipeline.formats import validate as V
 from calib.pipeline.formats.boards import BOARDS
-from calib.pipeline.formats.io import atomic_write_text
+from calib.pipeline.formats.outputs import check_file_replaceable, owned_output, write_file
 from calib.pipeline.formats.session import session_toml
 
 
@@ -54,27 +55,61 @@ def emission_schedule(n_events, interval=INTERVAL, jitter=JITTER, start=1.0, see
     return start + np.concatenate([[0.0], np.cumsum(steps)])
 
 
+MAX_INTERVAL = 3600.0   # s: one chirp an hour at most (beyond is a typo in the unit)
+MAX_CHIRP_SAMPLES = 1 << 24  # chirp.wav of at most 16.8 M samples (~134 MB in memory): 60 s at 192 kHz fits
+CHIRP_FILES = ("chirp.wav", "schedule.csv", "chirp.toml")
+
+
+def check_chirp_options(*, fs, n_events, interval, jitter, seed, f0, f1, duration, fade, kind):
+    """InputError unless every option of :func:`chirp_files` is finite, typed and in range (docs/reliability.md)."""
+    V.option(fs, "fs", lo=V.SAMPLE_RATE[0], hi=V.SAMPLE_RATE[1], integer=True)
+    V.option(n_events, "n-events", lo=3, hi=V.MAX_EVENTS, integer=True)
+    V.option(interval, "interval", lo=0.0, hi=MAX_INTERVAL, lo_open=True)
+    V.option(jitter, "jitter", lo=0.0, hi=0.99)
+    V.option(seed, "seed", lo=0, hi=2**32 - 1, integer=True)
+    V.choice(kind, "kind", ("linear", "exponential"))
+    V.option(duration, "duration", lo=V.CHIRP_DURATION[0], hi=V.CHIRP_DURATION[1])
+    V.option(fade, "fade", lo=0.0, hi=duration / 2)
+    for name, f in (("f0", f0), ("f1", f1)):
+        V.option(f, name, lo=0.0, hi=0.5 * fs, lo_open=kind == "exponential")
+    if max(f0, f1) >= 0.5 * fs:
+        raise InputError(f"--f1: {max(f0, f1)} Hz is not below the Nyquist frequency of --fs {fs} Hz")
+    if f0 == f1:
+        raise InputError(f"--f0 and --f1 are both {f0} Hz: a sweep needs two frequencies")
+    if duration * fs > MAX_CHIRP_SAMPLES:
+        raise InputError(f"--duration × --fs: {duration * fs:.3g} samples, more than the {MAX_CHIRP_SAMPLES} calib "
+                         "writes into chirp.wav (a shorter chirp or a lower rate)")
+    if duration >= interval * (1 - jitter):
+        raise InputError(f"--duration: the chirp ({duration} s) must be shorter than the shortest interval "
+                         f"({interval * (1 - jitter):.3g} s)")
+
+
 def chirp_files(out_dir, *, fs=48000, n_events=30, interval=INTERVAL, jitter=JITTER, seed=0, f0=CHIRP_F0,
                 f1=CHIRP_F1, duration=CHIRP_DURATION, fade=CHIRP_FADE, kind="linear", amplitude=0.5):
     """Write ``chirp.wav`` (mono, PCM_24), ``schedule.csv`` (event,t_emit) and ``chirp.toml`` (the [chirp] table
-    for session.toml) into ``out_dir``. Returns {name: path}."""
-    if duration >= interval * (1 - jitter):
-        raise InputError(f"the chirp ({duration} s) must be shorter than the shortest interval "
-                         f"({interval * (1 - jitter):.3g} s)")
-    if max(f0, f1) >= 0.5 * fs:
-        raise InputError(f"f1 = {max(f0, f1)} Hz is not below the Nyquist frequency of fs = {fs} Hz")
+    for session.toml) into ``out_dir``. Returns {name: path}.
+
+    The output policy applies (pipeline/formats/outputs.py): each file is written only where it is absent or a
+    file calib wrote (a session's own chirp.wav or a user's schedule.csv is never replaced); all three are
+    checked before any is written."""
+    check_chirp_options(fs=fs, n_events=n_events, interval=interval, jitter=jitter, seed=seed, f0=f0, f1=f1,
+                        duration=duration, fade=fade, kind=kind)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    for name in CHIRP_FILES:
+        check_file_replaceable(out / name, command="calib chirp")
     x = amplitude * chirp_signal(fs, f0, f1, duration, fade, kind)
-    tmp = out / ".chirp.wav.tmp"
-    sf.write(str(tmp), x, int(fs), subtype="PCM_24", format="WAV")
-    tmp.replace(out / "chirp.wav")
     t = emission_schedule(n_events, interval, jitter, seed=seed)
-    atomic_write_text(out / "schedule.csv", pd.DataFrame({"event": np.arange(len(t)), "t_emit": t})
-                      .to_csv(index=False, float_format="%.6f", lineterminator="\n"))
-    atomic_write_text(out / "chirp.toml", "[chirp]\n" + "".join(
-        f"{k} = {v!r}\n" for k, v in (("f0", float(f0)), ("f1", float(f1)), ("duration", float(duration)),
-                                       ("fade", float(fade)), ("kind", kind), ("reference", "chirp.wav"))))
+    with owned_output([], lock=out, check=None):
+        write_file(out / "chirp.wav", lambda tmp: sf.write(str(tmp), x, int(fs), subtype="PCM_24", format="WAV"),
+                   command="calib chirp")
+        write_file(out / "schedule.csv", pd.DataFrame({"event": np.arange(len(t)), "t_emit": t})
+                   .to_csv(index=False, float_format="%.6f", lineterminator="\n"), command="calib chirp")
+        write_file(out / "chirp.toml", "[chirp]\n" + "".join(
+            f"{k} = {v!r}\n" for k, v in (("f0", float(f0)), ("f1", float(f1)), ("duration", float(duration)),
+                                           ("fade", float(fade)), ("kind", kind), ("reference", "chirp.wav"))),
+                   command="calib chirp")
     return {"chirp": out / "chirp.wav", "schedule": out / "schedule.csv", "toml": out / "chirp.toml"}
 
 

@@ -23,8 +23,11 @@ import soundfile as sf
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from calib.errors import InputError
+from calib.jsonutil import dumps_json
 from calib.pipeline.simulate.featsim import simulate_features
 from calib.pipeline.formats.io import read_calibration, read_events, read_features, read_truth, write_features, write_truth
+from calib.pipeline.formats.export import FORMATS, export
+from calib.pipeline.formats.results import load_calibration
 from calib.pipeline.montecarlo import read_grid
 from calib.pipeline.simulate.roomsim import load_scenario
 from calib.pipeline.formats.session import read_session
@@ -110,9 +113,29 @@ def valid(tmp_path_factory):
     _tiny_session(root / "rec")
     (root / "grid.toml").write_text('sigma_tdoa = [5e-5, 1e-4]\nsigma_doa_deg = [5, 10]\ntrajectories = [1, 3]\n'
                                     'runs = 2\nmethods = ["hybrid"]\nsigma_odo = 0.03\nbase_seed = 0\n')
+    _calibration_json(root / "caljson", feats, truth)
     (root / "scenario.toml").write_text('preset = "lab3"\nseed = 4\nrt60 = 0.2\nsnr = 30.0\nn_events = 4\n'
                                         '[chirp]\nduration = 0.2\n')
     return root
+
+
+def _calibration_json(folder, feats, truth):
+    """A valid calibration.json (the truth as a calibration of ``feats``: the format, not an estimate)."""
+    from calib.pipeline.formats.calibration_json import calibration_document
+
+    folder.mkdir()
+    square = [[0.03, 0.0, 0.0], [0.0, 0.03, 0.0], [-0.03, 0.0, 0.0], [0.0, -0.03, 0.0]]  # every format needs mics
+    feats = {**feats, "meta": {**feats["meta"], "mics": {a: square for a in feats["meta"]["arrays"]}}}
+    cal = {"arrays": truth["arrays"], "sources": truth["sources"], "report": {}}
+    (folder / "calibration.json").write_text(dumps_json(calibration_document(cal, feats), indent=1))
+
+
+def export_every_format(folder):
+    """What `calib export` does with a calibration.json, for every format (read, convert, write)."""
+    cal = load_calibration(folder)
+    with tempfile.TemporaryDirectory() as tmp:
+        for fmt in FORMATS:
+            export(cal, fmt, Path(tmp) / f"x-{fmt}")  # (odas: a folder of <array>.cfg)
 
 
 def _fuzz_file(valid, folder, name, reader, text):
@@ -143,6 +166,7 @@ READERS = {  # id → (folder of the valid tree, file to mutate, reader)
     "session/events.csv": ("rec", "events.csv", read_session),
     "grid.toml": ("", "grid.toml", read_grid),
     "scenario.toml": ("", "scenario.toml", load_scenario),
+    "calibration.json (calib export)": ("caljson", "calibration.json", export_every_format),
 }
 SOURCES = {"events.csv": ("feats", "events.csv"), "grid.toml": ("", "grid.toml"),
            "scenario.toml": ("", "scenario.toml")}
@@ -213,3 +237,74 @@ def test_session_toml_typed_values(valid, data):
         k = data.draw(st.sampled_from(assigns))
         lines[k] = lines[k].split(" = ")[0] + " = " + data.draw(st.sampled_from(TOML_VALUES))
     _fuzz_file(valid, "rec", "session.toml", read_session, "\n".join(lines) + "\n")
+
+
+def _draw_path(data, doc):
+    """A random path of keys/indices into ``doc``: descend into a random child, stopping at each level with
+    probability 1/3 (so a top-level key is as likely as a quaternion's component)."""
+    path, node = (), doc
+    while isinstance(node, (dict, list)) and node and (not path or data.draw(st.integers(0, 2)) > 0):
+        key = data.draw(st.sampled_from(sorted(node) if isinstance(node, dict) else range(len(node))))
+        path, node = path + (key,), node[key]
+    return path
+
+
+@FUZZ
+@given(st.data())
+def test_calibration_json_typed_values(valid, data):
+    """calibration.json stays valid JSON but any value anywhere (an array's quaternion, its clock, 'arrays'
+    itself, format_version, the covariance, ...) is replaced by any JSON value or removed; `calib export` of
+    every format returns or raises InputError."""
+    doc = json.loads((valid / "caljson" / "calibration.json").read_text())
+    for _ in range(data.draw(st.integers(1, 3))):
+        path = _draw_path(data, doc)
+        if not path:
+            continue
+        parent = doc
+        for k in path[:-1]:
+            parent = parent[k]
+        if data.draw(st.booleans()):
+            parent[path[-1]] = data.draw(JSON_VALUES | st.sampled_from([[0, 0, 0, 0], [1, 0, 0, 0], [0.5, 0.5, 0.5]]))
+        elif isinstance(parent, dict):
+            parent.pop(path[-1])
+    _fuzz_file(valid, "caljson", "calibration.json", export_every_format, json.dumps(doc))
+
+
+# `calib chirp`'s options: each given or not, from values that are fine, out of range, not numbers, huge
+CHIRP_VALUES = {
+    "--fs": ["16000", "48000", "1000", "999", "1000001", "1e9", "1000000000", "0", "-1", "nan", "inf", "16000.5",
+             "x", ""],
+    "--n-events": ["3", "30", "2", "0", "-5", "10000", "10001", "1e3", "x"],
+    "--interval": ["2", "0.5", "0", "-1", "nan", "inf", "3600", "3601", "1e-9", "1e300"],
+    "--jitter": ["0.25", "0", "0.99", "1", "-0.1", "nan", "2"],
+    "--seed": ["0", "7", "-1", "4294967295", "4294967296", "x"],
+    "--f0": ["500", "100", "0", "-1", "nan", "inf", "4000", "7999", "8000", "1e300"],
+    "--f1": ["4000", "500", "0", "-1", "nan", "inf", "7999", "8000", "24000", "1e300"],
+    "--duration": ["0.2", "0.05", "0", "-0.1", "nan", "inf", "1e300", "0.0009", "1", "x"],
+    "--fade": ["0.005", "0", "-1", "nan", "0.1", "1e300"],
+    "--kind": ["linear", "exponential", "log", ""],
+}
+
+
+@FUZZ
+@given(st.data())
+def test_chirp_options(tmp_path_factory, data):
+    """`calib chirp` with any combination of option values: exit 0 (files written) or exit 2 with an error,
+    never an internal error, a traceback or a library warning."""
+    from typer.testing import CliRunner
+
+    from calib.cli.main import app
+
+    args = []
+    for opt, values in CHIRP_VALUES.items():
+        if data.draw(st.booleans()):
+            args += [opt, data.draw(st.sampled_from(values))]
+    out = tmp_path_factory.mktemp("chirp") / "out"
+    r = CliRunner().invoke(app, ["chirp", "-o", str(out), "-q", *args])
+    text = r.stdout + r.stderr
+    assert r.exit_code in (0, 2), (args, r.exit_code, text)
+    assert "Traceback" not in text and "internal error" not in text and "Warning" not in text, (args, text)
+    if r.exit_code == 0:
+        assert {p.name for p in out.iterdir()} >= {"chirp.wav", "schedule.csv", "chirp.toml"}
+    else:
+        assert not out.exists(), args  # nothing written, not even the folder

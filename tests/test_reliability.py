@@ -24,7 +24,7 @@ from calib.cli.main import app
 from calib.errors import InputWarning
 from calib.pipeline.simulate.featsim import simulate_features
 from calib.pipeline.formats.io import write_calibration, write_features, write_truth
-from calib.pipeline.formats.outputs import MARKER
+from calib.pipeline.formats.outputs import MARKER, make_temp_dir
 from calib.pipeline.simulate.roomsim import make_scenario, simulate
 from calib.pipeline.formats.session import read_session
 
@@ -44,7 +44,7 @@ def base(tmp_path_factory):
     write_truth(root / "truth", truth)
     from calib.estimator import calibrate
 
-    write_calibration(root / "cal", calibrate(feats))
+    write_calibration(root / "cal", calibrate(feats), features=feats)  # + calibration.json (calib export)
     for d in ("rec", "feats", "truth", "cal"):  # inputs a user made or got from elsewhere: no calib marker
         for m in (root / d).rglob(MARKER):
             m.unlink()
@@ -98,6 +98,40 @@ def set_mics(rec, name, new):
     (rec / "session.toml").write_text(head + f'name = "{name}"' + block)
 
 
+def _second_event_at(path, dt):
+    """Log event 1 ``dt`` s after event 0."""
+    rows = Path(path).read_text().splitlines()
+    t0 = float(rows[1].split(",")[1])
+    set_cell(path, 3, "t_emit", repr(t0 + dt))
+
+
+def _keep_first_array(path):
+    text = Path(path).read_text()
+    Path(path).write_text(text[:text.index("[[arrays]]", text.index("[[arrays]]") + 1)])
+
+
+def _only_reference(feats):
+    ref = json.loads((feats / "meta.json").read_text())["reference_array"]
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        rows = (feats / f"{name}.csv").read_text().splitlines()
+        head = rows[0].split(",").index("array")
+        (feats / f"{name}.csv").write_text("\n".join([rows[0]] + [r for r in rows[1:] if r.split(",")[head] == ref]) + "\n")
+
+
+def _header_only(path):
+    Path(path).write_text(Path(path).read_text().splitlines()[0] + "\n")
+
+
+def _cal_json(t, quaternion=None, **top):
+    """Edit cal/calibration.json: top-level keys, or the second array's quaternion."""
+    p = t / "cal" / "calibration.json"
+    doc = json.loads(p.read_text())
+    doc.update(top)
+    if quaternion is not None:
+        doc["arrays"][1]["quaternion"] = quaternion
+    p.write_text(json.dumps(doc))
+
+
 # ----------------------------------------------------------------------------------------------- the table
 # (id, argv with {rec} {feats} {cal} {truth} {out} {tmp}, crafting function(tmp) or None, fragments of the
 # error line). Every case must exit 2 with one error line; {out} must not exist afterwards.
@@ -110,6 +144,7 @@ FEATURES = ["features", "{rec}", "-o", "{out}"]
 ESTIMATE = ["estimate", "{feats}", "-o", "{out}"]
 RUN = ["run", "{rec}", "-o", "{out}"]
 EVALUATE = ["evaluate", "{cal}", "{truth}"]
+EXPORT = ["export", "{cal}", "--format", "yaml", "-o", "{out}"]
 
 
 def toml_case(name, argv, old, new, fragments):
@@ -230,6 +265,24 @@ CASES = [
      lambda t: (t / "cal/report.json").write_text("[1, 2]"), ["report.json", "object"]),
     ("too-few-events", ESTIMATE,
      lambda t: many_events(t / "feats/events.csv", 2), ["feats"]),
+    # --- issue 29, class 3: crashes → one line
+    ("events-1e-7-apart", RUN, lambda t: _second_event_at(t / "rec/events.csv", 1e-7),
+     ["events.csv", "event 1", "1e-07 s after event 0", "logged twice"]),
+    ("session-one-array", RUN, lambda t: _keep_first_array(t / "rec/session.toml"), ["session.toml", "only one array"]),
+    ("features-only-reference", ESTIMATE, lambda t: _only_reference(t / "feats"), ["feats", "no measurement"]),
+    ("truth-header-only", EVALUATE, lambda t: _header_only(t / "truth/arrays.csv"), ["truth/arrays.csv", "no arrays"]),
+    ("calibration-header-only", EVALUATE, lambda t: _header_only(t / "cal/arrays.csv"), ["cal/arrays.csv", "no arrays"]),
+    ("calibration-json-format-version", EXPORT, lambda t: _cal_json(t, format_version="x"),
+     ["calibration.json", "format_version"]),
+    ("calibration-json-zero-quaternion", EXPORT, lambda t: _cal_json(t, quaternion=[0, 0, 0, 0]),
+     ["calibration.json", "quaternion", "not a unit quaternion"]),
+    ("calibration-json-arrays-object", EXPORT, lambda t: _cal_json(t, arrays={"A1": 1}),
+     ["calibration.json", "'arrays' must be a list"]),
+    ("features-diagnostics-is-out", ["features", "{rec}", "-o", "{out}", "--diagnostics", "{out}"], _noop,
+     ["out", "other output"]),
+    ("chirp-fs-1e9", ["chirp", "-o", "{out}", "--fs", "1e9"], _noop, ["--fs", "1e+06"]),
+    ("chirp-too-long", ["chirp", "-o", "{out}", "--fs", "1000000", "--duration", "60", "--interval", "100"], _noop,
+     ["--duration × --fs"]),
 ]
 
 
@@ -268,9 +321,11 @@ def test_run_rerun_user_edit_and_user_files(base, tmp_path):
     assert r.exit_code == 0, r.stderr
     for sub in ("features", "diagnostics", "calibration", "report"):
         assert (out / sub / MARKER).is_file()
-    assert not list(tmp_path.glob(".*.lock")) and not list(out.glob(".*"))  # no lock file, no litter
-    (out / ".report.tmp-dead").mkdir()  # a killed run's temporary folder
-    (out / ".report.tmp-dead" / "summary.md").write_text("half")
+    assert not list(tmp_path.glob(".*lock")) and not list(out.glob(".*"))  # no lock file, no litter
+    dead = make_temp_dir(out / "report")  # a killed run's temporary folder
+    (dead / "summary.md").write_text("half")
+    (out / ".report.tmp-dead").mkdir()  # the user's folder that merely looks like one: never deleted
+    (out / ".report.tmp-dead" / "notes.md").write_text("mine")
     tm = out / "features" / "tdoa_m.csv"
     tm.write_text(tm.read_text().replace("\n", "\n", 1))  # unchanged content: fine
     edited = tm.read_text().splitlines()
@@ -279,7 +334,7 @@ def test_run_rerun_user_edit_and_user_files(base, tmp_path):
     r = runner.invoke(app, ["run", str(tmp_path / "rec"), "-o", str(out), "-q"])
     assert r.exit_code == 0, r.stderr  # the edit re-estimates; the features stage is skipped
     assert tm.read_text() == "\n".join(edited) + "\n"
-    assert not (out / ".report.tmp-dead").exists()
+    assert not dead.exists() and (out / ".report.tmp-dead" / "notes.md").read_text() == "mine"
     shutil.rmtree(out / "diagnostics")  # the features stage must run again: it would overwrite the edit
     before = tree_digest(out)
     r = runner.invoke(app, ["run", str(tmp_path / "rec"), "-o", str(out), "-q"])
@@ -351,7 +406,8 @@ def _start(args, cwd):
 
 
 def _litter(folder):
-    return [p for p in Path(folder).rglob(".*") if ".tmp-" in p.name or ".old-" in p.name or p.suffix == ".lock"]
+    return [p for p in Path(folder).rglob(".*") if ".calib-tmp-" in p.name or ".calib-old-" in p.name
+            or p.name.endswith(".calib-lock")]
 
 
 @pytest.mark.slow
@@ -363,7 +419,7 @@ def test_interrupted_run_exits_cleanly(base, tmp_path, sig, code):
     before = tree_digest(tmp_path / "rec")
     p = _start(["run", tmp_path / "rec", "-o", tmp_path / "out", "-q"], tmp_path)
     deadline = time.time() + 60
-    while not (tmp_path / ".out.lock").exists() and p.poll() is None and time.time() < deadline:
+    while not (tmp_path / ".out.calib-lock").exists() and p.poll() is None and time.time() < deadline:
         time.sleep(0.05)  # the lock file appears once inputs are validated and the run starts writing
     time.sleep(0.5)
     p.send_signal(sig)
@@ -388,15 +444,20 @@ def _catches_sigterm(pid):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")
-def test_sigterm_while_starting(tmp_path):
-    """SIGTERM in the first second (imports): exit 143, one line, no traceback."""
-    p = _start(["simulate", tmp_path / "s", "-q"], tmp_path)
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+@pytest.mark.parametrize("after", [0.0, 0.02, 0.1, 0.3])
+def test_sigterm_while_starting(tmp_path, sig, code, after):
+    """SIGTERM / SIGINT while calib starts (imports; issue 29: a traceback in the first 0.3 s, a silent death at
+    0.1 s): exit 143 / 130, one line, no traceback — from the moment the entry module has installed its
+    handlers (the interpreter's own start comes before)."""
+    p = _start(["simulate", "-o", tmp_path / "s", "-q"], tmp_path)
     deadline = time.time() + 30
     while not _catches_sigterm(p.pid) and p.poll() is None and time.time() < deadline:
-        time.sleep(0.005)  # until calib's handler is installed (before its slow imports)
-    p.send_signal(signal.SIGTERM)
+        time.sleep(0.002)  # until calib's handler is installed (before its slow imports)
+    time.sleep(after)
+    p.send_signal(sig)
     _, err = p.communicate(timeout=60)
-    assert p.returncode == 143 and "Traceback" not in err, (p.returncode, err)
+    assert p.returncode == code and "Traceback" not in err and len(err.strip().splitlines()) == 1, (p.returncode, err)
     assert not (tmp_path / "s").exists() and not _litter(tmp_path)
 
 
@@ -472,3 +533,306 @@ def test_interrupt_swallowed_in_a_finaliser_is_not_lost(tmp_path, name, code, wh
     assert r.stdout == "ran on\n"  # the interrupt did not stop the finaliser's caller: Python swallowed it
     assert "Exception ignored" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert ("re-raised" in r.stderr) == (where == "check"), r.stderr
+
+
+# ----------------------------------------------------------------------------------------------- writer safety
+# Every writer (issue 29): never replace or delete a file or folder calib did not create, nor an input;
+# --force replaces only calib's own outputs; a user's files named like calib's temporaries and a user's
+# symlink inside an owned output survive. Each writer's command; {out} is its output, {force} its --force.
+MC_CHEAP = ["--runs", "1", "--sigma-tdoa", "0.1", "--sigma-doa", "5", "--trajectories", "1", "--methods", "hybrid",
+            "--no-check-convergence", "--no-crlb", "--jobs", "1", "-q"]
+WRITERS = {  # name: (argv, output is a folder, has --force)
+    "run": (["run", "{rec}", "-o", "{out}", "-q"], True, True),
+    "features": (["features", "{rec}", "-o", "{out}", "-q"], True, False),
+    "estimate": (["estimate", "{feats}", "-o", "{out}", "-q"], True, False),
+    "simulate": (["simulate", "-o", "{out}", "--preset", "lab3", "--n-events", "4", "--interval", "0.8",
+                  "--chirp-duration", "0.2", "--rt60", "0", "-q"], True, True),
+    "chirp": (["chirp", "-o", "{out}", "--fs", "16000", "--n-events", "3", "-q"], True, False),
+    "montecarlo": (["montecarlo", "-o", "{out}", *MC_CHEAP], True, False),
+    "export": (["export", "{cal}", "--format", "yaml", "-o", "{out}", "-q"], False, False),
+    "init": (["init", "{rec}", "-o", "{out}", "-q"], False, True),
+}
+
+
+def tree_state(folder):
+    """{relative path: sha256 | 'dir' | 'link -> target'} of everything under ``folder`` (symlinks not followed)."""
+    out = {}
+    for root, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            p = Path(root) / name
+            rel = p.relative_to(folder).as_posix()
+            out[rel] = (f"link -> {os.readlink(p)}" if p.is_symlink() else "dir" if p.is_dir()
+                        else hashlib.sha256(p.read_bytes()).hexdigest())
+    return out
+
+
+def plant_user_files(folder, name):
+    """A user's files at and around the output ``folder/name``: look-alikes of calib's temporaries beside it."""
+    (folder / f".{name}.tmp-mine").write_text("my draft")
+    (folder / f".{name}.old-v1").mkdir()
+    (folder / f".{name}.old-v1" / "notes.txt").write_text("my old version")
+    (folder / f".{name}.tmp-draft").mkdir()
+    (folder / f".{name}.tmp-draft" / "events.csv").write_text("event,t_emit\n")
+    (folder / "elsewhere.txt").write_text("linked to")
+
+
+def user_folder(base, folder):
+    """A folder holding what a user keeps: a recording, the robot's log, a summary, temporaries' look-alikes,
+    a symlink."""
+    folder.mkdir(parents=True)
+    shutil.copy(next((base / "rec").glob("*.wav")), folder / "A1.wav")
+    shutil.copy(base / "rec" / "events.csv", folder / "events.csv")
+    (folder / "summary.csv").write_text("cell,loc_cm\n1,0.5\n")
+    (folder / "chirp.wav").write_bytes((folder / "A1.wav").read_bytes())
+    (folder / "schedule.csv").write_text("event,t_emit\n0,1.0\n")
+    (folder / ".arrays.tmp-mine").write_text("mine")
+    (folder / "link.csv").symlink_to(folder.parent / "elsewhere.txt")
+
+
+def _invoke(argv, paths, force):
+    args = [a.format(**paths) for a in argv] + (["--force"] if force else [])
+    return runner.invoke(app, args)
+
+
+def _writer_case(base, tmp_path, writer, where):
+    """The tree and output path of one case: ``where`` = user-folder (the output is a user's folder or file),
+    input (the output is the command's input), beside (a fresh output among look-alikes)."""
+    argv, is_folder, _ = WRITERS[writer]
+    for d in ("rec", "feats", "cal"):
+        shutil.copytree(base / d, tmp_path / d, symlinks=True)
+    area = tmp_path / "area"
+    area.mkdir()
+    plant_user_files(area, "out")
+    user_folder(base, area / "mine")
+    if where == "user-folder":
+        out = area / "mine" if is_folder else area / "mine" / "A1.wav"
+    elif where == "user-log":
+        out = area / "mine" / ("summary.csv" if writer == "export" else "events.csv")
+    elif where == "user-symlink":
+        out = area / "mine" / "link.csv"
+    elif where == "input":
+        out = tmp_path / "cal" / "calibration.json" if writer == "export" else tmp_path / "rec" / "A1.wav"
+    else:
+        out = area / "out"
+    paths = {"rec": tmp_path / "rec", "feats": tmp_path / "feats", "cal": tmp_path / "cal", "out": out}
+    return argv, {k: str(v) for k, v in paths.items()}
+
+
+SAFETY_CASES = [(w, where, force) for w, (_, folder, has_force) in WRITERS.items()
+                for where in (["user-folder", "beside"] if folder else
+                              ["user-folder", "user-log", "user-symlink", "input", "beside"])
+                for force in ([False, True] if has_force else [False])]
+
+
+@pytest.mark.parametrize("writer, where, force", SAFETY_CASES, ids=[f"{w}-{p}{'-force' if f else ''}"
+                                                                    for w, p, f in SAFETY_CASES])
+def test_writer_never_touches_user_files(base, tmp_path, writer, where, force):
+    """Every writer, with and without --force: each file and folder that existed before is unchanged (a user's
+    WAV, events.csv, summary.csv, chirp.wav, look-alikes of calib's temporaries, a symlink); an output onto a
+    user's file or folder or an input is refused with one `error:` line (exit 2); a fresh output is written."""
+    argv, paths = _writer_case(base, tmp_path, writer, where)
+    before = tree_state(tmp_path)
+    r = _invoke(argv, paths, force)
+    after = tree_state(tmp_path)
+    assert "Traceback" not in r.stdout + r.stderr and "internal error" not in r.stderr, r.stderr
+    changed = [p for p, h in before.items() if after.get(p) != h]
+    assert not changed, (changed, r.stderr)
+    if where == "beside" or (writer, where) == ("run", "user-folder"):  # run writes OUT/<stage>/ beside them
+        assert r.exit_code in (0, 3), r.stderr
+        assert Path(paths["out"]).exists()
+        assert not [p for p in after if "calib-tmp" in p or "calib-old" in p or p.endswith("calib-lock")]
+    else:
+        assert r.exit_code == 2, (r.exit_code, r.stderr)
+        assert r.stderr.strip().splitlines()[-1].startswith("error: "), r.stderr
+        assert set(after) == set(before)  # nothing written, no litter
+
+
+def test_owned_output_with_a_user_symlink_and_look_alikes(base, tmp_path):
+    """A user's symlink and a file named like a temporary inside a folder calib wrote: a re-run stops
+    (exit 2) instead of deleting them; litter of a real killed run beside it is removed."""
+    out = tmp_path / "cal"
+    assert runner.invoke(app, ["estimate", str(base / "feats"), "-o", str(out), "-q"]).exit_code in (0, 3)
+    (tmp_path / "mine.txt").write_text("mine")
+    (out / "mine.csv").symlink_to(tmp_path / "mine.txt")
+    dead = make_temp_dir(out)
+    before = tree_state(tmp_path)
+    r = runner.invoke(app, ["estimate", str(base / "feats"), "-o", str(out), "-q"])
+    assert r.exit_code == 2 and "mine.csv" in r.stderr and "symbolic link" in r.stderr, r.stderr
+    assert (out / "mine.csv").is_symlink() and (tmp_path / "mine.txt").read_text() == "mine"
+    assert not dead.exists()  # calib's own temporary (its token inside) is litter
+    (out / "mine.csv").unlink()
+    (out / ".arrays.tmp-mine").write_text("mine")
+    r = runner.invoke(app, ["estimate", str(base / "feats"), "-o", str(out), "-q"])
+    assert r.exit_code == 2 and ".arrays.tmp-mine" in r.stderr, r.stderr
+    assert (out / ".arrays.tmp-mine").read_text() == "mine"
+    assert {p: h for p, h in tree_state(tmp_path).items() if p in before} == \
+        {p: h for p, h in before.items() if not p.startswith(dead.name) and p != "cal/mine.csv"}
+
+
+def test_single_file_outputs_replace_only_their_own(base, tmp_path):
+    """`calib export` replaces its own earlier export (manifest), not a hand-edited one; `calib init --force`
+    replaces the session.toml it wrote, never without --force."""
+    out = tmp_path / "x.yaml"
+    args = ["export", str(base / "cal"), "--format", "yaml", "-o", str(out), "-q"]
+    assert runner.invoke(app, args).exit_code == 0
+    first = out.read_text()
+    assert runner.invoke(app, args).exit_code == 0 and out.read_text() == first
+    out.write_text(first + "# my note\n")
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2 and "edited since calib wrote it" in r.stderr
+    assert out.read_text().endswith("# my note\n")
+    shutil.copytree(base / "rec", tmp_path / "rec")
+    (tmp_path / "rec" / "session.toml").unlink()
+    init = ["init", str(tmp_path / "rec"), "-q"]
+    assert runner.invoke(app, init).exit_code == 0
+    r = runner.invoke(app, init)
+    assert r.exit_code == 2 and "--force" in r.stderr
+    assert runner.invoke(app, init + ["--force"]).exit_code == 0
+    cal = tmp_path / "cal"  # a file another command wrote (estimate's arrays.csv) is not export's to replace
+    assert runner.invoke(app, ["estimate", str(base / "feats"), "-o", str(cal), "-q"]).exit_code in (0, 3)
+    before = tree_state(cal)
+    r = runner.invoke(app, ["export", str(cal), "--format", "yaml", "-o", str(cal / "arrays.csv")])
+    assert r.exit_code == 2 and "written by `calib estimate`" in r.stderr, r.stderr
+    assert tree_state(cal) == before
+
+
+# ----------------------------------------------------------------------------------------------- crashes and noise
+def _scale_wav(path, factor, nan=False):
+    """Rewrite a WAV as float32 times ``factor`` (1e-40: every sample a denormal); ``nan``: some NaN/inf."""
+    import soundfile as sf
+
+    x, fs = sf.read(path, dtype="float64", always_2d=True)
+    x = (x * factor).astype(np.float32)
+    if nan:
+        x[100:110] = np.nan
+        x[200] = np.inf
+    sf.write(path, x[:, 0] if x.shape[1] == 1 else x, fs, subtype="FLOAT")
+
+
+def _rename_arrays(t):
+    """Non-Latin array names (CJK, Cyrillic): the plots' fonts lack the glyphs."""
+    toml = t / "rec" / "session.toml"
+    toml.write_text(toml.read_text().replace('name = "A2"', 'name = "麦克风"').replace('name = "A3"', 'name = "Микрофон"'))
+    shutil.rmtree(t / "rec" / "truth")  # (named A2, A3)
+
+
+def _map_columns(path, columns, f):
+    """Rewrite the CSV cells of ``columns`` as ``f(cell text)``."""
+    rows = Path(path).read_text().splitlines()
+    head = rows[0].split(",")
+    cols = [head.index(c) for c in columns]
+    out = [rows[0]]
+    for r in rows[1:]:
+        cells = r.split(",")
+        for c in cols:
+            cells[c] = f(cells[c])
+        out.append(",".join(cells))
+    Path(path).write_text("\n".join(out) + "\n")
+
+
+def _zero_odometry(path):
+    _map_columns(path, ("odom_x", "odom_y", "odom_z"), lambda v: "0")
+
+
+def _negate_doas(path):
+    _map_columns(path, ("ux", "uy", "uz"), lambda v: repr(-float(v)))
+
+
+def _bom(path):
+    Path(path).write_bytes(b"\xef\xbb\xbf" + Path(path).read_bytes())
+
+
+NOISE_CASES = [  # (id, argv, craft, allowed exit codes, fragment of the error line or None)
+    ("denormal-float-wav", RUN, lambda t: _scale_wav(t / "rec/A2.wav", 1e-40), (0, 2, 3), None),
+    ("nan-inf-chirp-reference", RUN, lambda t: _scale_wav(t / "rec/chirp.wav", 1.0, nan=True), (2,),
+     "chirp.wav: contains non-finite samples"),
+    ("non-latin-array-names", RUN, _rename_arrays, (0, 3), None),
+    ("all-zero-odometry", ESTIMATE, lambda t: _zero_odometry(t / "feats/events.csv"), (0, 2, 3), None),
+    ("every-doa-negated", ESTIMATE, lambda t: _negate_doas(t / "feats/doa.csv"), (0, 3), None),
+    ("calibration-json-bom", EXPORT, lambda t: _bom(t / "cal/calibration.json"), (0,), None),
+]
+
+
+@pytest.mark.parametrize("case", NOISE_CASES, ids=[c[0] for c in NOISE_CASES])
+def test_no_crash_and_no_library_noise(base, tmp_path, case):
+    """Inputs that crashed or printed NumPy/matplotlib warnings (issue 29): an answer or one error line, never an
+    internal error, a traceback or a library's warning; inputs untouched."""
+    name, argv, craft, codes, fragment = case
+    for d in ("rec", "feats", "cal", "truth"):
+        shutil.copytree(base / d, tmp_path / d, symlinks=True)
+    craft(tmp_path)
+    before = tree_digest(tmp_path)
+    paths = {k: str(tmp_path / k) for k in ("rec", "feats", "cal", "truth", "out")}
+    r = runner.invoke(app, [a.format(tmp=tmp_path, **paths) for a in argv] + ["-q"])
+    text = r.stdout + r.stderr
+    assert r.exit_code in codes, (r.exit_code, text)
+    assert "Traceback" not in text and "internal error" not in text, text
+    assert "Warning" not in text and "warnings.warn" not in text, text  # RuntimeWarning, UserWarning (glyphs), …
+    if fragment is not None:
+        assert r.stderr.strip().splitlines()[-1].startswith("error: ") and fragment in r.stderr, r.stderr
+    written = ("out", MARKER)  # the output, and the manifest naming it calib's beside it (a single-file output)
+    assert {k: v for k, v in tree_digest(tmp_path).items() if not k.startswith(written)} == before
+
+
+def check_markers(out):
+    """Every owned folder under ``out`` holds exactly the files its marker lists, unedited."""
+    for marker in Path(out).rglob(MARKER):
+        folder = marker.parent
+        files = json.loads(marker.read_text())["files"]
+        present = {p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                   if p.is_file() and not p.name.startswith(".calib")}
+        assert present == set(files), (folder, present ^ set(files))
+        assert all(hashlib.sha256((folder / f).read_bytes()).hexdigest() == h for f, h in files.items())
+
+
+@pytest.mark.slow
+def test_run_and_features_into_nested_folders(base, tmp_path):
+    """`calib run -o OUT` beside `calib features -o OUT/features` (issue 29: OUT inconsistent in 6 of 10 trials):
+    the locks on OUT and its sub-folders serialise them; every folder matches its marker, and the next run
+    brings OUT back to one consistent run."""
+    for trial in range(CONCURRENCY_TRIALS):
+        out = tmp_path / f"out{trial}"
+        procs = [_start(["run", base / "rec", "-o", out, "-q"], tmp_path),
+                 _start(["features", base / "rec", "-o", out / "features", "-q"], tmp_path)]
+        errs = [p.communicate(timeout=300)[1] for p in procs]
+        assert [p.returncode for p in procs] == [0, 0], errs
+        check_markers(out)
+        assert not _litter(tmp_path)
+        r = runner.invoke(app, ["run", str(base / "rec"), "-o", str(out), "-q"])
+        assert r.exit_code == 0, r.stderr
+        check_consistent(out)
+        check_markers(out)
+
+
+def _silence(t):
+    for wav in (t / "rec").glob("A*.wav"):
+        _scale_wav(wav, 0.0)
+
+
+@pytest.mark.parametrize("argv, craft", [
+    (["run", "{rec}", "-o", "{tmp}/new/deep/out", "-q"], _silence),            # fails in the features stage
+    (["features", "{rec}", "-o", "{tmp}/new/feats", "-q"], _silence),
+    (["estimate", "{feats}", "-o", "{tmp}/new/cal", "-q"], lambda t: _only_reference(t / "feats")),
+], ids=["run", "features", "estimate"])
+def test_failed_command_leaves_no_empty_folder(base, tmp_path, argv, craft):
+    """A command that fails after it started writing (issue 29: 23 failed runs left an empty output folder)
+    removes the folders it made for its output: nothing is left."""
+    for d in ("rec", "feats"):
+        shutil.copytree(base / d, tmp_path / d, symlinks=True)
+    craft(tmp_path)
+    paths = {k: str(tmp_path / k) for k in ("rec", "feats")}
+    r = runner.invoke(app, [a.format(tmp=tmp_path, **paths) for a in argv])
+    assert r.exit_code == 2 and r.stderr.startswith("error: "), r.stderr
+    assert not (tmp_path / "new").exists() and not _litter(tmp_path)
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_import_bag_never_replaces_the_robots_log(base, tmp_path, force):
+    """`calib import-bag -o REC/events.csv [--force]` onto the session's own events.csv (the robot's log, not
+    written by calib): refused before the bag is read; nothing changes."""
+    shutil.copytree(base / "rec", tmp_path / "rec")
+    before = tree_state(tmp_path)
+    r = runner.invoke(app, ["import-bag", str(tmp_path / "robot.bag"), "-o", str(tmp_path / "rec" / "events.csv"),
+                            "--schedule", str(tmp_path / "schedule.csv")] + (["--force"] if force else []))
+    assert r.exit_code == 2 and "events.csv" in r.stderr and "calib did not write it" in r.stderr, r.stderr
+    assert tree_state(tmp_path) == before

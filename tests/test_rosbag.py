@@ -115,8 +115,14 @@ def test_bad_bags_and_options_are_one_line_errors(tmp_path):
     r = invoke("import-bag", tmp_path / "junk.bag", "-o", out, "--emit-topic", "/chirp")
     assert r.exit_code == 2 and "not a readable ROS 1 or ROS 2 bag" in r.stderr
     out.write_text("mine\n")
+    for force in ([], ["--force"]):  # a file calib did not write is never replaced (docs/reliability.md)
+        r = invoke("import-bag", bag, "-o", out, "--emit-topic", "/chirp", *force)
+        assert r.exit_code == 2 and "calib did not write it" in r.stderr and out.read_text() == "mine\n"
+    out.unlink()  # calib's own events.csv: replaced with --force only
+    assert invoke("import-bag", bag, "-o", out, "--emit-topic", "/chirp").exit_code == 0
     r = invoke("import-bag", bag, "-o", out, "--emit-topic", "/chirp")
-    assert r.exit_code == 2 and "exists (use --force" in r.stderr and out.read_text() == "mine\n"
+    assert r.exit_code == 2 and "exists (use --force" in r.stderr
+    assert invoke("import-bag", bag, "-o", out, "--emit-topic", "/chirp", "--force").exit_code == 0
 
 
 def test_a_constant_playback_latency_leaves_the_calibration_unchanged():

@@ -24,7 +24,7 @@ def tree_digest(root):
 
 
 def no_temporaries(root):
-    return not [p for p in Path(root).rglob("*") if ".tmp-" in p.name or ".old-" in p.name]
+    return not [p for p in Path(root).rglob("*") if ".calib-tmp-" in p.name or ".calib-old-" in p.name]
 
 
 @pytest.fixture(scope="module")

@@ -24,11 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.pipeline.formats.io import atomic_write_text
 from calib.pipeline.formats.odas import to_odas_configs
+from calib.pipeline.formats.outputs import check_file_replaceable, write_file
 from calib.pipeline.formats.results import REFERENCE, Calibration
 from calib.errors import InputError
 
+COMMAND = "calib export"  # the writer recorded in the output's manifest
 FORMATS = ("json", "yaml", "pyroomacoustics", "odas", "urdf", "tf")
 
 
@@ -99,8 +100,11 @@ def to_tf(cal: Calibration):
     return "\n".join(lines) + "\n"
 
 
-def export(cal: Calibration, fmt, path):
-    """Write ``cal`` in format ``fmt`` (one of :data:`FORMATS`) to ``path`` (atomic). Returns the path."""
+def export(cal: Calibration, fmt, path, inputs=()):
+    """Write ``cal`` in format ``fmt`` (one of :data:`FORMATS`) to ``path`` (atomic). Returns the path.
+
+    The output policy applies (pipeline/formats/outputs.py): ``path`` may not be one of ``inputs`` (the
+    calibration read), and an existing file is replaced only if calib wrote it (and it is unedited)."""
     path = Path(path)
     if fmt not in FORMATS:
         raise InputError(f"unknown export format {fmt!r}: one of {', '.join(FORMATS)}")
@@ -108,23 +112,33 @@ def export(cal: Calibration, fmt, path):
     if missing and fmt in ("pyroomacoustics", "odas", "urdf"):
         raise InputError(f"{fmt} export needs the mic geometry; none for {', '.join(missing)} "
                          "(features/meta.json without 'mics': re-run `calib features`)")
+    if fmt == "odas":
+        return _export_odas(cal, path, inputs)
+    check_file_replaceable(path, inputs, command=COMMAND)  # before the work
     if fmt == "pyroomacoustics":
         import io as _io
 
         buf = _io.BytesIO()
         np.save(buf, cal.mics(REFERENCE).T)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_bytes(buf.getvalue())
-        tmp.replace(path)
-        return path
-    if fmt == "odas":  # one configuration per array (ODAS runs one array per process)
-        if path.exists() and not path.is_dir():
-            raise InputError(f"{path}: exists and is not a folder (the odas export writes one <array>.cfg per array)")
-        for name, text in to_odas_configs(cal).items():
-            atomic_write_text(path / f"{name}.cfg", text)
-        return path
-    text = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml,
-            "urdf": to_urdf, "tf": to_tf}[fmt](cal)
-    atomic_write_text(path, text)
+        data = buf.getvalue()
+    else:
+        data = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml,
+                "urdf": to_urdf, "tf": to_tf}[fmt](cal)
+    return write_file(path, data, command=COMMAND, inputs=inputs)
+
+
+def _export_odas(cal, path, inputs):
+    """One ODAS configuration per array, ``path/<array>.cfg`` (ODAS runs one array per process); each file
+    under the output policy, all checked before any is written."""
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path}: exists and is not a folder (the odas export writes one <array>.cfg per array)")
+    configs = to_odas_configs(cal)
+    bad = [n for n in configs if Path(n).name != n or n in (".", "..")]
+    if bad:
+        raise InputError(f"odas export: array name {bad[0]!r} cannot name a file <array>.cfg")
+    configs = {path / f"{name}.cfg": text for name, text in configs.items()}
+    for p in configs:
+        check_file_replaceable(p, inputs, command=COMMAND)
+    for p, text in configs.items():
+        write_file(p, text, command=COMMAND, inputs=inputs)
     return path

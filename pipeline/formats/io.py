@@ -25,7 +25,6 @@ import io
 import json
 import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +40,7 @@ from calib.errors import InputError  # noqa: F401  (re-exported: readers raise i
 from calib.jsonutil import dumps_json  # noqa: F401
 
 from calib.pipeline.formats import validate as V
-from calib.pipeline.formats.outputs import publish, publish_mode
+from calib.pipeline.formats.outputs import publish, publish_mode, temp_path
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
@@ -63,10 +62,14 @@ def atomic_dir(path, command="calib"):
 
 
 def atomic_write_text(path, text):
-    """Write ``text`` to ``path`` through a temporary file and a rename."""
+    """Write ``text`` to ``path`` through a temporary file and a rename.
+
+    For files inside a folder calib is writing (a temporary of :func:`atomic_dir`, a stage's stamp); a file a
+    user names goes through ``outputs.write_file`` (the output policy)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    tmp = temp_path(path)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
@@ -187,14 +190,19 @@ def _check_member(df, col, allowed, path, what):
         raise InputError(f"{path}: line {k + 2}: unknown {what} {v}")
 
 
-def write_table(df, path, columns=None, float_format="%.10g"):
-    """Write a DataFrame as CSV (atomic). ``columns`` fixes the leading column order."""
+def table_csv(df, columns=None, float_format="%.10g"):
+    """A DataFrame's CSV text as calib writes it. ``columns`` fixes the leading column order."""
     # bookkeeping columns (the readers' csv_line, any private "_" column) stay in memory
     df = df[[c for c in df.columns if c != LINE_COLUMN and not str(c).startswith("_")]]
     if columns is not None:
         rest = [c for c in df.columns if c not in columns]
         df = df[[c for c in columns if c in df.columns] + rest]
-    atomic_write_text(path, df.to_csv(index=False, float_format=float_format, lineterminator="\n"))
+    return df.to_csv(index=False, float_format=float_format, lineterminator="\n")
+
+
+def write_table(df, path, columns=None, float_format="%.10g"):
+    """Write a DataFrame as CSV (atomic; inside a folder calib is writing). See :func:`table_csv`."""
+    atomic_write_text(path, table_csv(df, columns, float_format))
 
 
 def _read_json(path):
@@ -467,6 +475,8 @@ def read_calibration(directory):
     if not d.is_dir():
         raise InputError(f"{d}: not a directory")
     arrays = _read_arrays(d / "arrays.csv")
+    if len(arrays) == 0:
+        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header)")
     sources = _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
     report = _read_json(d / "report.json") if (d / "report.json").exists() else {}
     if not isinstance(report, dict):
@@ -494,6 +504,8 @@ def read_truth(directory: str | Path) -> dict[str, Any]:
     if not d.is_dir():
         raise InputError(f"{d}: not a directory")
     arrays = _read_arrays(d / "arrays.csv", truth=True)
+    if len(arrays) == 0:
+        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header): nothing to compare with")
     sources = _read_sources(d / "sources.csv", truth=True) if (d / "sources.csv").exists() else None
     return {"arrays": arrays, "sources": sources}
 

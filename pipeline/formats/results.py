@@ -27,7 +27,9 @@ if TYPE_CHECKING:
 
 from calib.errors import InputError
 from calib.geometry import local_time
+from calib.jsonutil import dumps_json
 
+from calib.pipeline.formats import validate as V
 from calib.pipeline.formats.calibration_json import FORMAT_NAME, FORMAT_VERSION
 
 REFERENCE = "reference"
@@ -160,41 +162,146 @@ class Calibration:
         return self.to_local_time(self.reference_array, t, chirp)
 
 
-def _array(entry):
+# ------------------------------------------------------------------ reading calibration.json (validated)
+QUATERNION_NORM_TOL = 1e-3  # a stored unit quaternion is renormalised within this; beyond, it is not a rotation
+MAX_ABS_CAL_DRIFT = 0.5     # |drift| of a stored calibration: 1 + drift must stay a positive clock rate
+MAX_ABS_MIC = 10.0          # m: mic coordinates in the array's frame (as session.toml)
+
+
+def _obj(value, where, *, optional=False):
+    """A JSON object (dict), or None when ``optional``."""
+    if value is None and optional:
+        return None
+    if not isinstance(value, dict):
+        raise InputError(f"{where} must be an object, not {V.show(value)}")
+    return value
+
+
+def _list(value, where, *, optional=False, max_len=None):
+    if value is None and optional:
+        return None
+    if not isinstance(value, list):
+        raise InputError(f"{where} must be a list, not {V.show(value)}")
+    if max_len is not None and len(value) > max_len:
+        raise InputError(f"{where}: {len(value)} entries, more than {max_len}")
+    return value
+
+
+def _quaternion(value, where):
+    """A unit quaternion [w, x, y, z] (renormalised within QUATERNION_NORM_TOL)."""
+    if not isinstance(value, list) or len(value) != 4:
+        raise InputError(f"{where} must be [w, x, y, z], not {V.show(value)}")
+    q = np.array([V.number(v, where, lo=-2.0, hi=2.0) for v in value])
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOL:
+        raise InputError(f"{where}: {V.show(value)} is not a unit quaternion (norm {norm:.4g}): not a rotation")
+    return q / norm
+
+
+def _points(value, where, bound):
+    rows = _list(value, where, max_len=V.MAX_MICS)
+    return np.array([V.vector3(r, f"{where}[{k}]", bound=bound) for k, r in enumerate(rows)], float).reshape(-1, 3)
+
+
+def _std_entry(value, where):
+    std = _obj(value, where, optional=True) or {}
+    for k, v in std.items():
+        if isinstance(v, list):
+            for x in v:
+                V.number(x, f"{where}.{k}", lo=0.0, allow_none=True)
+        else:
+            V.number(v, f"{where}.{k}", lo=0.0, allow_none=True)
+    return dict(std)
+
+
+def _array(entry, where):
+    entry = _obj(entry, where)
+    name = V.string(entry.get("name"), f"{where}.name")
+    where = f"{where} ({name})"
+    clock = _obj(entry.get("clock"), f"{where}.clock")
     mics = entry.get("mics")
-    return ArrayCalibration(name=str(entry["name"]), position=np.asarray(entry["position"], float),
-                            quaternion=np.asarray(entry["quaternion"], float),
-                            mics=None if mics is None else np.asarray(mics, float).reshape(-1, 3),
-                            offset=float(entry["clock"]["offset"]), drift=float(entry["clock"]["drift"]),
-                            std=dict(entry.get("std") or {}),
-                            undetermined=tuple(str(u) for u in entry.get("undetermined") or ()),
-                            axis=None if entry.get("axis") is None else np.asarray(entry["axis"], float))
+    und = _list(entry.get("undetermined"), f"{where}.undetermined", optional=True) or []
+    axis = entry.get("axis")
+    return ArrayCalibration(
+        name=name, position=np.array(V.vector3(entry.get("position"), f"{where}.position")),
+        quaternion=_quaternion(entry.get("quaternion"), f"{where}.quaternion"),
+        mics=None if mics is None else _points(mics, f"{where}.mics", MAX_ABS_MIC),
+        offset=V.number(clock.get("offset"), f"{where}.clock.offset", lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME),
+        drift=V.number(clock.get("drift"), f"{where}.clock.drift", lo=-MAX_ABS_CAL_DRIFT, hi=MAX_ABS_CAL_DRIFT),
+        std=_std_entry(entry.get("std"), f"{where}.std"),
+        undetermined=tuple(V.string(u, f"{where}.undetermined") for u in und),
+        axis=None if axis is None else np.array(V.vector3(axis, f"{where}.axis", nonzero=True)))
+
+
+def _clock(value, where):
+    ck = _obj(value, where)
+    t = (-V.MAX_ABS_TIME, V.MAX_ABS_TIME)
+    drift_ref = ck.get("drift_reference")
+    return ClockModel(t0=V.number(ck.get("t0"), f"{where}.t0", lo=t[0], hi=t[1]),
+                      reference_offset=V.number(ck.get("reference_offset"), f"{where}.reference_offset", lo=t[0],
+                                                hi=t[1], allow_none=True),
+                      chirp_drift_bias=V.number(ck.get("chirp_drift_bias") or 0.0, f"{where}.chirp_drift_bias",
+                                                lo=t[0], hi=t[1]),
+                      drift_reference=None if drift_ref is None else V.string(drift_ref, f"{where}.drift_reference"))
+
+
+def _covariance(value, where):
+    cov = _obj(value, where, optional=True)
+    if cov is None:
+        return None
+    labels = [V.string(x, f"{where}.parameters") for x in _list(cov.get("parameters"), f"{where}.parameters")]
+    if len(set(labels)) != len(labels):
+        raise InputError(f"{where}.parameters: a parameter is listed twice")
+    rows = _list(cov.get("matrix"), f"{where}.matrix")
+    if len(rows) != len(labels) or not all(isinstance(r, list) and len(r) == len(labels) for r in rows):
+        raise InputError(f"{where}.matrix must be {len(labels)} × {len(labels)} (one row and column per parameter)")
+    m = np.array([[V.number(x, f"{where}.matrix") for x in r] for r in rows], float).reshape(len(labels), -1)
+    return pd.DataFrame(m, index=labels, columns=labels)
+
+
+def _sources(value, where):
+    src = _list(value, where, optional=True, max_len=V.MAX_EVENTS)
+    if src is None:
+        return None
+    rows = []
+    for k, s in enumerate(src):
+        s = _obj(s, f"{where}[{k}]")
+        ev = V.number(s.get("event"), f"{where}[{k}].event", lo=0, hi=V.MAX_EVENT_ID, integer=True)
+        rows.append({"event": ev, **dict(zip("xyz", V.vector3(s.get("position"), f"{where}[{k}].position")))})
+    return pd.DataFrame(rows, columns=["event", "x", "y", "z"])
+
+
+def _format_version(doc, path):
+    v = doc.get("format_version")
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise InputError(f"{path}: 'format_version' must be an integer ≥ 1, not {V.show(v)}")
+    if v > FORMAT_VERSION:
+        raise InputError(f"{path}: format_version {v} is newer than this calib reads ({FORMAT_VERSION}): upgrade calib")
 
 
 def from_document(doc, path="calibration.json"):
-    """A :class:`Calibration` from a calibration.json dict. Raises InputError on a wrong format or version."""
+    """A :class:`Calibration` from a calibration.json dict; every field it uses is validated (InputError naming
+    the file and the field)."""
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
         raise InputError(f"{path}: not a calib calibration.json (format {FORMAT_NAME!r})")
-    if int(doc.get("format_version", 0)) > FORMAT_VERSION:
-        raise InputError(f"{path}: format_version {doc.get('format_version')} is newer than this calib reads "
-                         f"({FORMAT_VERSION}): upgrade calib")
-    try:
-        arrays = tuple(_array(e) for e in doc["arrays"])
-        ck = doc["clock"]
-        clock = ClockModel(t0=float(ck["t0"]), reference_offset=ck.get("reference_offset"),
-                           chirp_drift_bias=float(ck.get("chirp_drift_bias") or 0.0),
-                           drift_reference=ck.get("drift_reference"))
-        cov = doc.get("covariance")
-        cov = None if cov is None else pd.DataFrame(np.asarray(cov["matrix"], float), index=cov["parameters"],
-                                                    columns=cov["parameters"])
-        src = doc.get("sources")
-        src = None if src is None else pd.DataFrame(
-            [{"event": s["event"], **dict(zip("xyz", s["position"]))} for s in src])
-        return Calibration(reference_array=str(doc["reference_array"]), speed_of_sound=float(doc["speed_of_sound"]),
-                           arrays=arrays, clock=clock, covariance=cov, sources=src,
-                           odometry_frame=doc.get("odometry_frame"), document=doc)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"{path}: malformed calibration.json ({type(exc).__name__}: {exc})") from None
+    doc = json.loads(dumps_json(doc))  # an in-memory document as the file holds it (lists, not arrays)
+    _format_version(doc, path)
+    items = _list(doc.get("arrays"), f"{path}: 'arrays'", max_len=V.MAX_ARRAYS)
+    if not items:
+        raise InputError(f"{path}: 'arrays' is empty")
+    arrays = tuple(_array(e, f"{path}: arrays[{k}]") for k, e in enumerate(items))
+    names = [a.name for a in arrays]
+    if len(set(names)) != len(names):
+        raise InputError(f"{path}: 'arrays': two arrays are named {next(n for n in names if names.count(n) > 1)!r}")
+    ref = V.string(doc.get("reference_array"), f"{path}: 'reference_array'")
+    if ref not in names:
+        raise InputError(f"{path}: 'reference_array' {ref!r} is not one of the arrays ({', '.join(names)})")
+    odo = _obj(doc.get("odometry_frame"), f"{path}: 'odometry_frame'", optional=True)
+    return Calibration(reference_array=ref, speed_of_sound=V.speed_of_sound(doc.get("speed_of_sound"),
+                                                                             f"{path}: 'speed_of_sound'"),
+                       arrays=arrays, clock=_clock(doc.get("clock"), f"{path}: 'clock'"),
+                       covariance=_covariance(doc.get("covariance"), f"{path}: 'covariance'"),
+                       sources=_sources(doc.get("sources"), f"{path}: 'sources'"), odometry_frame=odo, document=doc)
 
 
 def to_calibration(calib, features) -> Calibration:
@@ -212,7 +319,7 @@ def load_calibration(path) -> Calibration:
     if not p.is_file():
         raise InputError(f"{p}: file not found (written by `calib estimate` / `calib run` since calib 0.2)")
     try:
-        doc = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: invalid JSON ({exc})") from None
+        doc = json.loads(V.read_text(p))  # (UTF-8; a byte-order mark is ignored, as in every reader)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"{p}: invalid JSON ({str(exc).splitlines()[0][:120]})") from None
     return from_document(doc, p)

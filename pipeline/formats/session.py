@@ -89,12 +89,30 @@ def read_session(directory, check_audio=True):
         "robot": robot,
         "events": speaker_positions(read_events(d / "events.csv"), robot.get("speaker_offset"), p),
     }
+    _check_event_spacing(session["events"], chirp["duration"] or V.CHIRP_DURATION[0])
     if "temperature" in cfg:
         session["temperature"] = V.number(cfg["temperature"], f"{p}: 'temperature'", lo=TEMPERATURE_C[0],
                                           hi=TEMPERATURE_C[1])
     if check_audio:
         _check_audio(session, p)
     return session
+
+
+def _check_event_spacing(events, duration):
+    """One speaker plays one chirp at a time. Emissions closer than the shortest chirp calib accepts (1 ms) are a
+    logging mistake (one chirp logged twice, or t_emit in the wrong unit): an error (the association's
+    tolerance, a quarter of the smallest spacing, would vanish). Closer than this session's chirp: a warning
+    (their chirps overlap)."""
+    gaps = np.diff(events["t_emit"].to_numpy())
+    if not len(gaps) or gaps.min() >= duration:
+        return
+    k = int(np.argmin(gaps))
+    text = (f"{events.attrs.get('path', 'events.csv')}: event {events['event'].iloc[k + 1]} is logged {gaps[k]:.3g} s "
+            f"after event {events['event'].iloc[k]}")
+    if gaps[k] < V.CHIRP_DURATION[0]:
+        raise InputError(f"{text}, less than any chirp lasts ({V.CHIRP_DURATION[0]:g} s): one chirp logged twice, or "
+                         "t_emit in the wrong unit?")
+    warnings.warn(f"{text}, less than the chirp's {duration:g} s: their chirps overlap", InputWarning, stacklevel=3)
 
 
 def _read_robot(cfg, p):

@@ -83,9 +83,9 @@ def number(value, where, *, lo=None, hi=None, lo_open=False, integer=False, allo
     if value is None and allow_none:
         return None
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise InputError(f"{where} must be a number, not {_show(value)}")
+        raise InputError(f"{where} must be a number, not {show(value)}")
     if isinstance(value, numbers.Integral) and abs(int(value)) > 1e300:
-        raise InputError(f"{where} is out of range: {_show(value)}")
+        raise InputError(f"{where} is out of range: {show(value)}")
     v = float(value)
     if not math.isfinite(v):
         raise InputError(f"{where} must be finite, not {v}")
@@ -106,14 +106,14 @@ def check_range(v, where, *, lo=None, hi=None, lo_open=False):
 def string(value, where, *, allow_empty=False):
     """A typed non-empty string."""
     if not isinstance(value, str) or (not value and not allow_empty):
-        raise InputError(f"{where} must be a {'' if allow_empty else 'non-empty '}string, not {_show(value)}")
+        raise InputError(f"{where} must be a {'' if allow_empty else 'non-empty '}string, not {show(value)}")
     return value
 
 
 def vector3(value, where, *, nonzero=False, bound=MAX_ABS_POSITION):
     """A list of three finite numbers (no booleans, no strings) → tuple of floats."""
     if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise InputError(f"{where} must be [x, y, z], not {_show(value)}")
+        raise InputError(f"{where} must be [x, y, z], not {show(value)}")
     v = tuple(number(x, where, lo=-bound, hi=bound) for x in value)
     if nonzero and not math.hypot(*v) > MIN_DIRECTION_NORM:
         raise InputError(f"{where} must be a non-zero direction")
@@ -216,7 +216,8 @@ def choice(value, name, allowed):
     return value
 
 
-def _show(value):
+def show(value):
+    """A value as a message shows it: its repr, cut to 40 characters."""
     text = repr(value)
     return text if len(text) <= 40 else text[:37] + "..."
 
