@@ -16,7 +16,7 @@ from threadpoolctl import ThreadpoolController
 from calib import __version__
 from calib.robust import median
 
-from . import arraynoise
+from . import arraynoise, clockmodel
 from .factors import ALL_KINDS, KINDS, UNITS, natural
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .observability import check_observability
@@ -603,10 +603,11 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
 def calibrate(features, **options):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
-    See :func:`calibrate_features` for the options; this wrapper only pins BLAS to one thread.
+    See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
+    array's clock model (``clock_model="auto"``, default, or "linear": ``estimator.clockmodel``).
     """
     with _BLAS.limit(limits=1, user_api="blas"):
-        return calibrate_features(features, **options)
+        return clockmodel.calibrate_clocks(calibrate_features, features, **options)
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
