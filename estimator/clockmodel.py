@@ -43,6 +43,7 @@ GN_ITERATIONS = 20
 MIN_EVENTS = 6          # fewer events: the linear clock only (nothing to test a change against)
 RATE_ERROR_MIN = 5e-3   # |drift| beyond any crystal's (±100 ppm typical): a wrong nominal rate
 RATE_MATCH_TOL = 5e-4   # a rate ratio this close to a ratio of two common rates names them
+EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term in every array's clock
 REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × its σ: solve once more
 
 
@@ -89,7 +90,9 @@ def correct_features(features, models):
     """A copy of ``features`` with the clock components taken out of the TDOAs.
 
     models : {array name: [Component]}. TDOA-M of array i at event j loses h_i(t_j) and gains h_ref(t_j);
-    TDOA-S of array i over (a, b) loses h_i(t_b) − h_i(t_a). Nothing else changes.
+    TDOA-S of array i over (a, b) loses h_i(t_b) − h_i(t_a). The key EMITTER: the emission times are late
+    by h(t) (every array's TDOA-S loses h(t_b) − h(t_a); the TDOA-M, a difference at one emission, keep
+    theirs). Nothing else changes.
     """
     models = {k: v for k, v in (models or {}).items() if v}
     if not models:
@@ -103,6 +106,8 @@ def correct_features(features, models):
     u = np.array([u_of[e] for e in tm["event"].to_numpy(int)])
     corr = np.zeros(len(tm))
     for name, comps in models.items():
+        if name == EMITTER:
+            continue   # the emission times' error is common to both arrays of a TDOA-M
         if name == ref:
             corr -= extra(comps, u)
         else:
@@ -113,7 +118,8 @@ def correct_features(features, models):
     ub = np.array([u_of[e] for e in ts["to_event"].to_numpy(int)])
     corr = np.zeros(len(ts))
     for name, comps in models.items():
-        corr += np.where(ts["array"].to_numpy() == name, extra(comps, ub) - extra(comps, ua), 0.0)
+        mine = np.ones(len(ts), bool) if name == EMITTER else ts["array"].to_numpy() == name
+        corr += np.where(mine, extra(comps, ub) - extra(comps, ua), 0.0)
     ts["tdoa"] = ts["tdoa"].to_numpy(float) - corr
     out["tdoa_m"], out["tdoa_s"] = tm, ts
     return out
@@ -300,8 +306,8 @@ def joint_scan(result, models):
     rw = r * sw
     rp = rw - Q @ (Q.T @ rw)
     out = {}
-    for i in range(p.N):
-        name = str(p.names[i])
+    for i in range(-1, p.N):   # -1: the emitter
+        name = EMITTER if i < 0 else str(p.names[i])
         have = zero.get(name, [])
         if len(have) >= MAX_COMPONENTS or len(np.unique(p.t)) < MIN_EVENTS:
             continue
@@ -312,14 +318,14 @@ def joint_scan(result, models):
         ok = den > 1e-12 * np.maximum(np.einsum("ij,ij->j", B, B), 1e-300)
         num = Bp.T @ rp
         drop = np.where(ok, num * num / np.where(ok, den, 1.0), 0.0) / scale ** 2
-        n = int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
+        n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
         best = None
         for kind in ("step", "quadratic", "hinge"):
             fam = np.flatnonzero([c.kind == kind for c in cands])
             if not fam.size:
                 continue
             k = fam[np.argmax(drop[fam])]
-            margin = float(drop[k]) - penalty(kind, n, p.N, fam.size)
+            margin = float(drop[k]) - penalty(kind, n, p.N + 1, fam.size)
             if best is None or margin > best[1]:
                 new = have + [cands[k].with_value(-num[k] / den[k] if ok[k] else 0.0)]
                 best = (new, margin, {"chi2_drop": float(drop[k]), "scale": scale, "kind": kind, "test": "joint"})
@@ -333,18 +339,19 @@ def detect(result, models, names):
     """One detection round at a solved ``result``: {array name: its components with the new one, as
     increments on the corrected data} for the array whose best new component beats its penalty by the
     largest margin (one per round: a fault bends the fit, and through it the other arrays' tests), and the
-    round's records."""
+    round's records. The emitter (:data:`EMITTER`, emission times off: the same term in every clock) is
+    one more candidate, tested jointly only."""
     p, st = result["problem"], result["state"]
     found, records = {}, []
     joint = joint_scan(result, models)
     suspects = _suspects(result)
-    for i in range(p.N):
-        name = str(p.names[i])
+    for i in range(-1, p.N):
+        name = EMITTER if i < 0 else str(p.names[i])
         zero = [c.with_value(0.0) for c in models.get(name, [])]
         got = None
-        if name in suspects:   # the fit may be bent around this array: its own robust fits, sources held
+        if i >= 0 and name in suspects:   # the fit may be bent around this array: its own robust fits, sources held
             D = array_data(p, st, i)
-            got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N)
+            got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1)
         if got is not None and got[0] is not None:
             got[2]["test"] = "array"
         if i in joint and (got is None or got[0] is None or joint[i][1] > got[1]):
@@ -423,7 +430,10 @@ def _outlier_mask(fs, outliers):
 
 
 def _columns(p, fs, i, comps):
-    """Whitened Jacobian columns (rows of the stacked factors ``fs``) of array i's components' coefficients."""
+    """Whitened Jacobian columns (rows of the stacked factors ``fs``) of array i's components' coefficients
+    (i = -1: the emitter's, every array's TDOA-S)."""
+    if i < 0:
+        return _emitter_columns(p, fs, comps)
     u = p.t
     B = np.zeros((sum(len(f.r) for f in fs), len(comps)))
     start = 0
@@ -442,10 +452,25 @@ def _columns(p, fs, i, comps):
     return B
 
 
+def _emitter_columns(p, fs, comps):
+    """The emitter's columns: every array's TDOA-S (each TDOA-M, a difference at one emission, cancels)."""
+    u = p.t
+    B = np.zeros((sum(len(f.r) for f in fs), len(comps)))
+    start = 0
+    for f in fs:
+        n = len(f.r)
+        if f.kind == "tdoa_s" and comps:
+            rows = p.tdoa_s
+            sig = np.broadcast_to(f.row_sigma, n)[:, None]
+            B[start:start + n] = np.column_stack([c.basis(u[rows.b]) - c.basis(u[rows.a]) for c in comps]) / sig
+        start += n
+    return B
+
+
 def component_columns(p, fs, models):
     """Whitened Jacobian columns of every component's coefficient (:func:`_columns`) and the (array name,
     component index) of each column."""
-    index = {str(n): i for i, n in enumerate(p.names)}
+    index = {**{str(n): i for i, n in enumerate(p.names)}, EMITTER: -1}
     keys = [(name, k) for name, comps in models.items() for k in range(len(comps))]
     cols = [_columns(p, fs, index[name], comps) for name, comps in models.items() if comps]
     return (np.hstack(cols) if cols else np.zeros((sum(len(f.r) for f in fs), 0))), keys
@@ -575,14 +600,15 @@ def array_clock_entry(comps, events, u, drift, drift_std):
 
 def models_from_report(report):
     """{array name: [Component]} from report.json ``clock`` (empty when absent: the linear clock)."""
-    arrays = ((report or {}).get("clock") or {}).get("arrays") or {}
+    clock = (report or {}).get("clock") or {}
+    entries = {**(clock.get("arrays") or {}), EMITTER: clock.get("emitter") or {}}
     return {name: [Component(c["kind"], float(c["time"]), float(c["value"]), c.get("std"))
-                   for c in e.get("components") or []] for name, e in arrays.items()}
+                   for c in e.get("components") or []] for name, e in entries.items() if e.get("components")}
 
 
 def clock_report(result, features, models, rounds):
-    """report.json ``clock``: per array its model (:func:`array_clock_entry`), the findings, the detection
-    rounds' records."""
+    """report.json ``clock``: per array its model (:func:`array_clock_entry`), the emitter's (emission times
+    off by a common term), the findings, the detection rounds' records."""
     events, u = _event_of(features)
     st = result["state"]
     std = result["arrays"]["drift_std"].to_numpy(float) if "arrays" in result else np.full(len(st.drift), np.nan)
@@ -598,8 +624,17 @@ def clock_report(result, features, models, rounds):
             findings.append(f"{name}: drift varies over the session (modelled as {e['drift_model']})")
         if e["nominal_rate"]:
             findings.append(_rate_text(name, e["nominal_rate"]))
-    return {"selection": "auto" if rounds else "linear", "arrays": arrays, "findings": findings,
-            "detection": rounds}
+    emitter = array_clock_entry(models.get(EMITTER, []), events, u, 0.0, None)
+    emitter.pop("nominal_rate")
+    for s in emitter["steps"]:
+        findings.append(f"emission times: the interval between events {s['after_event']} and {s['before_event']} is "
+                        f"{abs(s['size']) * 1e3:.3f} ms {'longer' if s['size'] > 0 else 'shorter'} than events.csv "
+                        f"says (every array sees it; modelled)")
+    if emitter["drift_model"] != "linear":
+        findings.append(f"emission times drift against events.csv (every array sees it; modelled as "
+                        f"{emitter['drift_model']})")
+    return {"selection": "auto" if rounds else "linear", "arrays": arrays, "emitter": emitter,
+            "findings": findings, "detection": rounds}
 
 
 def _attach_report(result, features, models, rounds):
