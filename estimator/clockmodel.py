@@ -59,7 +59,7 @@ class Component:
     def basis(self, u):
         """φ(u) at times u (s since t0): the component with a unit coefficient."""
         u = np.asarray(u, float)
-        if self.kind == "step":
+        if self.kind in ("step", "mshift"):
             return (u >= self.time).astype(float)
         if self.kind == "quadratic":
             return 0.5 * u * u
@@ -171,7 +171,8 @@ def _design(D, comps):
     """Basis columns of components on the TDOA-S rows (φ(u_b) − φ(u_a)) and TDOA-M rows (φ(u_j))."""
     if not comps:
         return np.zeros((len(D.zs), 0)), np.zeros((len(D.ym), 0))
-    S = np.column_stack([c.basis(D.u[D.b]) - c.basis(D.u[D.a]) for c in comps])
+    # an "mshift" (the reference's step seen from this array: its TDOA-M shift, no TDOA-S jump) has no TDOA-S part
+    S = np.column_stack([(c.kind != "mshift") * (c.basis(D.u[D.b]) - c.basis(D.u[D.a])) for c in comps])
     M = np.column_stack([c.basis(D.u[D.j]) for c in comps])
     return S, M
 
@@ -228,8 +229,15 @@ def candidates(u, comps):
     t = np.unique(u)
     have = {(c.kind, round(c.time, 9)) for c in comps}
     out = [Component("step", 0.5 * (t[k] + t[k + 1]), 0.0) for k in range(len(t) - 1)]
-    out += [Component("quadratic", 0.0, 0.0)] + [Component("hinge", float(v), 0.0) for v in t[1:-1]]
+    # (no hinge at the last interior event: it moves only the last event, as a step in the last interval)
+    out += [Component("quadratic", 0.0, 0.0)] + [Component("hinge", float(v), 0.0) for v in t[1:-2]]
     return [c for c in out if (c.kind, round(c.time, 9)) not in have]
+
+
+def family_sizes(u):
+    """{kind: number of candidates} of :func:`candidates` for event times u (the scans' multiplicity)."""
+    k = len(np.unique(u))
+    return {"step": max(k - 1, 1), "mshift": max(k - 1, 1), "quadratic": 1, "hinge": max(k - 3, 1)}
 
 
 def penalty(kind, n, n_arrays, n_candidates):
@@ -251,6 +259,8 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
     xb, gb, tb, cb, rb = fit_array(D, comps, x0, g0, tau0)
     base = [c.with_value(v) for c, v in zip(comps, cb)]
     cands = candidates(D.u, comps)
+    if not D.ref:   # the reference's step, seen from here
+        cands += [Component("mshift", c.time, 0.0) for c in cands if c.kind == "step"]
     fits = []
     for cand in cands:
         x, g, tau, coef, r = fit_array(D, base + [cand], xb, gb, tb)
@@ -259,7 +269,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
         return None, 0.0, None
     scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
     best = None
-    for kind in ("step", "quadratic", "hinge"):
+    for kind in ("step", "mshift", "quadratic", "hinge"):
         fam = [f for f in fits if f[1].kind == kind]
         if not fam:
             continue
@@ -349,7 +359,9 @@ def detect(result, models, names):
         name = EMITTER if i < 0 else str(p.names[i])
         zero = [c.with_value(0.0) for c in models.get(name, [])]
         got = None
-        if i >= 0 and name in suspects:   # the fit may be bent around this array: its own robust fits, sources held
+        # the fit may be bent around this array: its own robust fits, sources held (not the reference's: a
+        # step of its clock shows in every other array's TDOA-M, which its own fit does not see)
+        if i >= 0 and i != p.ref and name in suspects:
             D = array_data(p, st, i)
             got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1)
         if got is not None and got[0] is not None:
@@ -365,6 +377,12 @@ def detect(result, models, names):
     if found:   # the strongest evidence first: a large fault bends the fit and so the others' tests
         name = max(found, key=lambda n: found[n][1])
         found = {name: found[name]}
+    ref = str(p.names[p.ref])
+    for name in list(found):
+        new, margin = found[name]
+        if new[-1].kind == "mshift":   # the reference's clock stepped: its step (opposite sign), alone
+            step = Component("step", new[-1].time, -new[-1].value)
+            found = {ref: ([c.with_value(0.0) for c in models.get(ref, [])] + [step], margin)}
     out = {}
     for name, (new, _) in found.items():
         old = models.get(name, [])
@@ -407,14 +425,42 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
 
 
 def _refine_and_resolve(solve, features, result, models, options):
-    """The joint step for the components (:func:`refine`); solved once more when it moved one by more than
-    REFIT_SIGMA of its σ."""
-    moved, models, cov_info = refine(result, models)
-    if moved:
+    """The joint step for the components (:func:`refine`), then backward elimination: the component whose
+    joint χ² (value / σ)² falls furthest short of its penalty is removed and the session solved again (a
+    component taken while a larger fault still bent the fit may not be needed once that fault is modelled);
+    solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ."""
+    cov_info = None
+    for _ in range(2 * sum(len(c) for c in models.values()) + 2):
+        moved, models, cov_info = refine(result, models)
+        weak = _weakest(result["problem"], models)
+        if weak is not None:
+            name, k = weak
+            models = {**models, name: [c for j, c in enumerate(models[name]) if j != k]}
+            models = {n: c for n, c in models.items() if c}
+        elif not moved:
+            break
         result = solve(correct_features(features, models), **options)
-        _, models, cov_info = refine(result, models)
+        if not models:
+            return result, models
     _apply_std(result, cov_info)
     return result, models
+
+
+def _weakest(p, models):
+    """(array name, index) of the component with the most negative (value/σ)² − penalty, or None."""
+    sizes = family_sizes(p.t)
+    index = {str(n): i for i, n in enumerate(p.names)}
+    worst, where = 0.0, None
+    for name, comps in models.items():
+        i = index.get(name, -1)
+        n = len(p.tdoa_s.val) if i < 0 else int(np.sum(p.tdoa_s.arr == i)) + int(np.sum(p.tdoa_m.arr == i))
+        for k, c in enumerate(comps):
+            if not c.std:
+                continue
+            m = (c.value / c.std) ** 2 - penalty(c.kind, n, p.N + 1, sizes[c.kind])
+            if m < worst:
+                worst, where = m, (name, k)
+    return where
 
 
 # ----------------------------------------------------------------------------------------------- joint step
@@ -490,19 +536,23 @@ def refine(result, models):
     p, st = result["problem"], result["state"]
     kinds = [k for k in ALL_KINDS if k != "emission" or p.sigma["emission"] > 0]
     lay = make_layout(p)
-    fs0 = linearise(p, st, lay, kinds).factors
+    full = linearise(p, st, lay, kinds)
     outliers = result["outliers"] if "outliers" in result else result["report"]["outliers"]
-    lin = linearise(p, st, lay, kinds, mask=_outlier_mask(fs0, outliers))
+    lin = linearise(p, st, lay, kinds, mask=_outlier_mask(full.factors, outliers))
     B, keys = component_columns(p, lin.factors, models)
     keep = lin.w > 0
-    J = lin.J
-    if scipy.sparse.issparse(J):
-        if lay.n > DENSE_MAX:
-            return _conditional(lin, B, keep, keys, models)
-        J = J.toarray()
+    if lay.n > DENSE_MAX:
+        return _conditional(lin, B, keep, keys, models)
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    # the step: every row, Huber-weighted (rows flagged against a wrong component are evidence against it)
+    r = full.r
+    scale = max(1.0, 1.4826 * float(np.median(np.abs(r[keep])))) if keep.any() else 1.0
+    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    Ah = np.hstack([J, B]) * sw[:, None]
+    step = np.linalg.lstsq(Ah, -r * sw, rcond=None)[0]
+    # the covariance: the estimator's rows (outliers out), as its own error bars
     A = np.hstack([J, B])[keep] * np.sqrt(lin.w[keep])[:, None]
     cov = covariance(A, A.shape[1])
-    step = -cov @ (A.T @ (lin.r[keep] * np.sqrt(lin.w[keep])))
     dc, sd = step[lay.n:], np.sqrt(np.maximum(np.diag(cov)[lay.n:], 0.0))
     return _update(models, keys, dc, sd) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n]},)
 
@@ -587,7 +637,7 @@ def array_clock_entry(comps, events, u, drift, drift_std):
         before, after = u < c.time, u > c.time
         steps.append({"after_event": int(events[before][np.argmax(u[before])]) if before.any() else None,
                       "before_event": int(events[after][np.argmin(u[after])]) if after.any() else None,
-                      "time": c.time, "size": c.value, "std": c.std,
+                      "time": float(c.time), "size": float(c.value), "std": c.std,
                       "kind": "inserted" if c.value > 0 else "dropped"})
     terms = [c for c in comps if c.kind != "step"]
     kinds = sorted({"quadratic" if c.kind == "quadratic" else "piecewise_linear" for c in terms})

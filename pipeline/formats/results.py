@@ -47,6 +47,8 @@ class ArrayCalibration:
     std: dict = field(default_factory=dict)
     undetermined: tuple = ()
     axis: np.ndarray | None = None
+    # steps and drift terms beyond the linear clock (calib.clock.Clock with offset 0, drift 0, t0 0)
+    clock_extra: object = None
 
     @property
     def rotation(self) -> Rotation:
@@ -70,6 +72,8 @@ class ClockModel:
     reference_offset: float | None
     chirp_drift_bias: float
     drift_reference: str | None = None
+    # emission times off by a common term (calibration.json clock.emitter): events.csv = true − h_emitter
+    emitter: object = None
 
 
 @dataclass(frozen=True)
@@ -139,18 +143,33 @@ class Calibration:
                              "array's detections): the emitter time is not known")
         return self.array(name).offset + self.clock.reference_offset
 
+    def _clock(self, name):
+        """The array's :class:`calib.clock.Clock` (local time of true emitter time), steps and terms included."""
+        from calib.clock import Clock
+
+        a = self.array(name)
+        ex = a.clock_extra or Clock()
+        return Clock(self._tau(name), a.drift, self.clock.t0, ex.steps, ex.terms)
+
+    def _emitter_extra(self, t):
+        e = self.clock.emitter
+        return 0.0 if e is None else e.extra(np.asarray(t, float) - self.clock.t0)
+
     def to_emitter_time(self, name, local_time, chirp=False):
-        """Emitter time (events.csv clock) of the array's local time(s) (s). chirp: the arrival was measured by
-        matched filtering the calibration chirp (subtract its bias β·δ)."""
+        """Emitter time (events.csv clock) of the array's local time(s) (s), through its clock model (steps:
+        inside an inserted block, the step's time). chirp: the arrival was measured by matched filtering the
+        calibration chirp (subtract its bias β·δ)."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
-        return self.clock.t0 + (np.asarray(local_time, float) - self._tau(name) - bias) / (1.0 + a.drift)
+        t = self._clock(name).emitter(np.asarray(local_time, float) - bias)
+        return t - self._emitter_extra(t)
 
     def to_local_time(self, name, emitter_time, chirp=False):
         """The array's local time(s) of emitter time(s): the inverse of :meth:`to_emitter_time`."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
-        return (1.0 + a.drift) * (np.asarray(emitter_time, float) - self.clock.t0) + self._tau(name) + bias
+        t = np.asarray(emitter_time, float)
+        return self._clock(name).local(t + self._emitter_extra(t)) + bias
 
     def to_reference_time(self, name, local_time, chirp=False):
         """The reference array's local time of the instant the array ``name`` reads as ``local_time``."""
@@ -166,7 +185,20 @@ def _array(entry):
                             offset=float(entry["clock"]["offset"]), drift=float(entry["clock"]["drift"]),
                             std=dict(entry.get("std") or {}),
                             undetermined=tuple(str(u) for u in entry.get("undetermined") or ()),
-                            axis=None if entry.get("axis") is None else np.asarray(entry["axis"], float))
+                            axis=None if entry.get("axis") is None else np.asarray(entry["axis"], float),
+                            clock_extra=_clock_extra(entry["clock"]))
+
+
+def _clock_extra(ck):
+    """The steps and drift terms of a calibration.json clock entry as a :class:`calib.clock.Clock` (offset 0,
+    drift 0, t0 0), or None when it has none (the linear clock; files before these keys)."""
+    from calib.clock import Clock
+
+    if not ck or not (ck.get("steps") or ck.get("drift_terms")):
+        return None
+    return Clock.from_dict({"steps": ck.get("steps") or (),
+                            "terms": [{"kind": d["kind"], **{k: v for k, v in d.items() if k not in ("kind", "std")}}
+                                      for d in ck.get("drift_terms") or ()]})
 
 
 def from_document(doc, path="calibration.json"):
@@ -181,7 +213,7 @@ def from_document(doc, path="calibration.json"):
         ck = doc["clock"]
         clock = ClockModel(t0=float(ck["t0"]), reference_offset=ck.get("reference_offset"),
                            chirp_drift_bias=float(ck.get("chirp_drift_bias") or 0.0),
-                           drift_reference=ck.get("drift_reference"))
+                           drift_reference=ck.get("drift_reference"), emitter=_clock_extra(ck.get("emitter")))
         cov = doc.get("covariance")
         cov = None if cov is None else pd.DataFrame(np.asarray(cov["matrix"], float), index=cov["parameters"],
                                                     columns=cov["parameters"])
