@@ -41,6 +41,9 @@ MAX_ROUNDS = 6          # detection rounds (each adds at most one component)
 MAX_COMPONENTS = 4      # extra clock parameters per array at most
 GN_ITERATIONS = 20
 MIN_EVENTS = 6          # fewer events: the linear clock only (nothing to test a change against)
+# A clock's drift changes by a few ppm as a board warms up or the room's temperature drifts (CHiME-6: ~1-5 ppm);
+# a drift term implying a larger change over the session is a geometric error (reflections) in clock guise
+MAX_DRIFT_CHANGE = 20e-6
 RATE_ERROR_MIN = 5e-3   # |drift| beyond any crystal's (±100 ppm typical): a wrong nominal rate
 RATE_MATCH_TOL = 5e-4   # a rate ratio this close to a ratio of two common rates names them
 EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term in every array's clock
@@ -64,6 +67,14 @@ class Component:
         if self.kind == "quadratic":
             return 0.5 * u * u
         return np.maximum(u - self.time, 0.0)
+
+    def plausible(self, duration):
+        """A clock could do this: a drift term changes the drift by at most MAX_DRIFT_CHANGE over ``duration``."""
+        if self.kind == "quadratic":
+            return abs(self.value) * duration <= MAX_DRIFT_CHANGE
+        if self.kind == "hinge":
+            return abs(self.value) <= MAX_DRIFT_CHANGE
+        return True
 
     def with_value(self, value, std=None):
         return Component(self.kind, self.time, float(value), std)
@@ -262,9 +273,11 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
     if not D.ref:   # the reference's step, seen from here
         cands += [Component("mshift", c.time, 0.0) for c in cands if c.kind == "step"]
     fits = []
+    duration = float(np.ptp(D.u))
     for cand in cands:
         x, g, tau, coef, r = fit_array(D, base + [cand], xb, gb, tb)
-        fits.append((float(np.sum(huber_rho(r))), cand, coef, r))
+        if cand.with_value(coef[-1]).plausible(duration):
+            fits.append((float(np.sum(huber_rho(r))), cand, coef, r))
     if not fits:
         return None, 0.0, None
     scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
@@ -327,7 +340,9 @@ def joint_scan(result, models):
         den = np.einsum("ij,ij->j", Bp, Bp)
         ok = den > 1e-12 * np.maximum(np.einsum("ij,ij->j", B, B), 1e-300)
         num = Bp.T @ rp
-        drop = np.where(ok, num * num / np.where(ok, den, 1.0), 0.0) / scale ** 2
+        value = np.where(ok, -num / np.where(ok, den, 1.0), 0.0)
+        fine = np.array([c.with_value(v).plausible(float(np.ptp(p.t))) for c, v in zip(cands, value)], bool)
+        drop = np.where(ok & fine, num * num / np.where(ok, den, 1.0), 0.0) / scale ** 2
         n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
         best = None
         for kind in ("step", "quadratic", "hinge"):
@@ -337,7 +352,7 @@ def joint_scan(result, models):
             k = fam[np.argmax(drop[fam])]
             margin = float(drop[k]) - penalty(kind, n, p.N + 1, fam.size)
             if best is None or margin > best[1]:
-                new = have + [cands[k].with_value(-num[k] / den[k] if ok[k] else 0.0)]
+                new = have + [cands[k].with_value(value[k])]
                 best = (new, margin, {"chi2_drop": float(drop[k]), "scale": scale, "kind": kind, "test": "joint"})
         if best is not None:
             out[i] = best
@@ -410,7 +425,11 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     result = solve(features, **options)
     names = [str(n) for n in features["meta"]["arrays"]]
     models, rounds = {}, []
-    if clock_model == "auto" and len(result["problem"].tdoa_s.val):
+    p = result["problem"]
+    # the reference runs at a rate no crystal gives against the emission times: the session's time base
+    # (events.csv t_emit, or the reference's stated rate) is wrong; nothing to model (named in the report)
+    base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
+    if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
         for _ in range(MAX_ROUNDS):
             new, records = detect(result, models, names)
             rounds.append(records)
@@ -618,6 +637,13 @@ def nominal_rate(drift, std=None):
     return out
 
 
+def _base_text(name, nr):
+    return (f"time base: the reference array {name}'s clock runs at {nr['ratio']:.5f}× the emission times "
+            f"(events.csv t_emit): either those times are scaled or {name}'s stated sample rate is wrong"
+            + (f" (as a {nr['actual_hz']} Hz board written as {nr['header_hz']} Hz)" if nr["header_hz"] else "")
+            + "; no clock model was fitted")
+
+
 def _rate_text(name, nr):
     if nr["header_hz"]:
         return (f"{name}: wrong nominal sample rate: its clock runs at {nr['ratio']:.5f}× the stated rate, as a "
@@ -663,8 +689,14 @@ def clock_report(result, features, models, rounds):
     st = result["state"]
     std = result["arrays"]["drift_std"].to_numpy(float) if "arrays" in result else np.full(len(st.drift), np.nan)
     arrays, findings = {}, []
+    ref = int(result["problem"].ref)
+    g_ref = 1.0 + float(st.drift[ref])
     for i, name in enumerate(str(n) for n in features["meta"]["arrays"]):
-        e = array_clock_entry(models.get(name, []), events, u, float(st.drift[i]), std[i])
+        # a wrong header shows against the reference array (the emitter's time for the reference itself)
+        rel = float(st.drift[i]) if i == ref else (1.0 + float(st.drift[i])) / g_ref - 1.0
+        e = array_clock_entry(models.get(name, []), events, u, rel, std[i])
+        if e["nominal_rate"]:
+            e["nominal_rate"]["relative_to"] = "emitter (events.csv t_emit)" if i == ref else "reference array"
         arrays[name] = e
         for s in e["steps"]:
             sd = f", σ {s['std'] * 1e6:.1f} µs" if s["std"] is not None else ""
@@ -673,7 +705,7 @@ def clock_report(result, features, models, rounds):
         if e["drift_model"] != "linear":
             findings.append(f"{name}: drift varies over the session (modelled as {e['drift_model']})")
         if e["nominal_rate"]:
-            findings.append(_rate_text(name, e["nominal_rate"]))
+            findings.append(_rate_text(name, e["nominal_rate"]) if i != ref else _base_text(name, e["nominal_rate"]))
     emitter = array_clock_entry(models.get(EMITTER, []), events, u, 0.0, None)
     emitter.pop("nominal_rate")
     for s in emitter["steps"]:
@@ -696,7 +728,7 @@ def _attach_report(result, features, models, rounds):
         return
     rep = result["report"]
     rep["clock"] = block
-    rates = [_rate_text(n, e["nominal_rate"]) for n, e in block["arrays"].items() if e["nominal_rate"]]
+    rates = [f for f in block["findings"] if "wrong nominal sample rate" in f or f.startswith("time base")]
     if rates:
         v = rep["verdict"]
         v["reasons"] = list(v.get("reasons") or []) + rates
