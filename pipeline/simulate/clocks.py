@@ -104,3 +104,51 @@ def clock_record(clock, faults=None):
     faults = resolve(faults)
     return {**clock.to_dict(), "rate_ratio": rate_ratio(faults.get("rate"))}
 
+
+
+# ----------------------------------------------------------------------------------------------- room simulator
+def attach(sc, faults, seed):
+    """Give each array of a normalised room scenario ``sc`` with faults (``faults``: the scenario's
+    ``clock_faults``, {array name: preset name or fault dict}) its clock (``a["clock"]``) and that clock's
+    drift (a rate error included), in place. Raises InputError naming a bad entry."""
+    from calib.errors import InputError
+
+    faults = faults or {}
+    if not isinstance(faults, dict):
+        raise InputError("scenario: clock_faults must map array names to clock faults")
+    names = [a["name"] for a in sc["arrays"]]
+    for name in faults:
+        if name not in names:
+            raise InputError(f"scenario: clock_faults names unknown array {name!r} (arrays: {', '.join(names)})")
+    t = np.asarray(sc["t_emit"], float)
+    for k, a in enumerate(sc["arrays"]):
+        if a["name"] not in faults:
+            continue
+        try:
+            clk = fault_clock(a["tau"], a["drift"], faults[a["name"]], event_times=t - t[0],
+                              rng=np.random.default_rng([int(seed), 28, k]), t0=float(t[0]))
+        except (ValueError, KeyError, TypeError, IndexError) as exc:
+            raise InputError(f"scenario: clock_faults.{a['name']}: {exc}") from None
+        a["clock"], a["drift"] = clk, clk.drift
+    return sc
+
+
+def local(a, t, t0):
+    """Local time of array ``a`` (normalised scenario entry) at true time(s) t: its fault clock if it has
+    one, else ``(1 + δ)(t − t0) + τ``."""
+    clk = a.get("clock")
+    if clk is not None:
+        return clk.local(t)
+    return (1.0 + a["drift"]) * (np.asarray(t, float) - t0) + a["tau"]
+
+
+def rate(a, t):
+    """dL/dt of array ``a`` at true time t (1 + δ without faults): its samples' true-time rate is fs × this."""
+    clk = a.get("clock")
+    return float(clk.rate(t)) if clk is not None else 1.0 + a["drift"]
+
+
+def records(sc, faults):
+    """{array name: clock record} of a normalised scenario's faulty clocks (truth/clocks.json)."""
+    return {a["name"]: clock_record(a["clock"], (faults or {}).get(a["name"])) for a in sc["arrays"]
+            if a.get("clock") is not None}

@@ -19,7 +19,7 @@ from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import scenes
 from calib.pipeline.formats.io import ARRAYS_COLS, InputError
 from calib.pipeline.simulate.presets import PRESETS, REALISTIC  # noqa: F401  (public names)
-from calib.pipeline.simulate.render import local_time
+from calib.pipeline.simulate import clocks
 
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
 MODELS = ("flat", "bands")
@@ -104,7 +104,7 @@ NEW_SCENE_DEFAULTS = {
     "gain_mismatch_db": 0.0,   # per-mic gains drawn U(−x, x) dB (arrays may give mic_gain_db instead)
 }
 SCENE_DEFAULTS |= NEW_SCENE_DEFAULTS
-SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers"}
+SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers", "clock_faults"}
 META_KEYS = {"preset", "seed"}
 ALL_KEYS = SCENE_KEYS | set(GEN_DEFAULTS) | META_KEYS
 
@@ -220,6 +220,7 @@ def validate_scenario(scenario):
         raise InputError(f"scenario: reference_array {ref!r} is not one of the arrays {names}")
     sc["reference_array"] = ref
     sc["interferers"] = [_check_interferer(k, it, sc) for k, it in enumerate(sc.get("interferers") or [])]
+    clocks.attach(sc, sc.get("clock_faults"), sc["seed"])   # dropped/inserted blocks, drift changes, wrong rates
     _check_spacing(sc)
     if sc["model"] == "bands":
         _check_bands(sc)
@@ -406,7 +407,7 @@ def _arrivals(sc):
     out = []
     for a in sc["arrays"]:
         d = np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None], axis=2)  # (K, M)
-        out.append(local_time(sc["t_emit"][:, None] + d / sc["speed_of_sound"], a["tau"], a["drift"], t0))
+        out.append(clocks.local(a, sc["t_emit"][:, None] + d / sc["speed_of_sound"], t0))
     m = {x.shape[1] for x in out}
     if len(m) == 1:
         return np.stack(out)
@@ -423,11 +424,11 @@ def arrival_times(scenario, mics=False):
     sc = scenario if isinstance(scenario, Scenario) else _normalise_light(scenario)
     t0 = sc["t_emit"][0]
     if mics:
-        return [local_time(sc["t_emit"][:, None] + np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None],
-                                                                  axis=2) / sc["speed_of_sound"],
-                           a["tau"], a["drift"], t0) for a in sc["arrays"]]
-    return np.stack([local_time(sc["t_emit"] + np.linalg.norm(sc["sources"] - a["position"], axis=1)
-                                / sc["speed_of_sound"], a["tau"], a["drift"], t0) for a in sc["arrays"]])
+        return [clocks.local(a, sc["t_emit"][:, None] + np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None],
+                                                                       axis=2) / sc["speed_of_sound"], t0)
+                for a in sc["arrays"]]
+    return np.stack([clocks.local(a, sc["t_emit"] + np.linalg.norm(sc["sources"] - a["position"], axis=1)
+                                  / sc["speed_of_sound"], t0) for a in sc["arrays"]])
 
 
 def _normalise_light(scenario):
@@ -438,7 +439,7 @@ def _normalise_light(scenario):
         pos = np.asarray(a["position"], float)
         sc["arrays"].append({"name": a["name"], "position": pos, "R": R, "tau": float(a["tau"]),
                              "drift": float(a["drift"]), "mics_room": pos + np.asarray(a["mics"], float) @ R.T})
-    return sc
+    return clocks.attach(sc, scenario.get("clock_faults"), scenario.get("seed", 0))
 
 
 def scenario_truth(scenario):

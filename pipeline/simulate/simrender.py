@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.pipeline.simulate import acoustics as ac
+from calib.pipeline.simulate import clocks
 from calib.pipeline.simulate import render as rd
 from calib.pipeline.simulate.sounds import (BlockWhite, CoherentPink, RowMajorWhite, burst_params, burst_signal, chirp_power,
                      chirp_signal, hum, speech_params, speech_signal)
@@ -128,7 +129,7 @@ def recording_ends(sc, em, flat):
             reach = [np.linalg.norm(a["mics_room"] - e["pos"], axis=1).max() / c + sc["mixing_time"]
                      + _tail_length(sc) for a in sc["arrays"]]
         for i, a in enumerate(sc["arrays"]):
-            last[i] = max(last[i], rd.local_time(e["t_start"] + reach[i] + dur, a["tau"], a["drift"], t0))
+            last[i] = max(last[i], clocks.local(a, e["t_start"] + reach[i] + dur, t0))
     return [int(math.ceil((x + sc["tail"]) * fs)) + rd.FDL for x in last]
 
 
