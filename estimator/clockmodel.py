@@ -423,6 +423,8 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     if clock_model not in ("auto", "linear"):
         raise ValueError(f"clock_model must be 'auto' or 'linear', not {clock_model!r}")
     result = solve(features, **options)
+    # the corrected TDOAs make a new problem (a prebuilt one, ``problem=``, is of the uncorrected features)
+    options = {k: v for k, v in options.items() if k != "problem"}
     names = [str(n) for n in features["meta"]["arrays"]]
     models, rounds = {}, []
     p = result["problem"]
