@@ -728,7 +728,8 @@ def _solution(p, st, info, kinds, stage_states):
     return {"state": st, "problem": p, "stage_states": stage_states,
             "converged": bool(info["final"]["converged"]),
             "cost": linearise(p, st, lay, kinds, mask=info["mask"]).cost,
-            "outliers": info["outliers"], "undetermined": undetermined_parameters(p)}
+            "outliers": info["outliers"], "undetermined": undetermined_parameters(p),
+            "unreliable_arrays": [str(p.names[i]) for i in info["dropped"]]}
 
 
 def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_threshold, max_iter):

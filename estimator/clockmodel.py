@@ -408,7 +408,7 @@ def detect(result, models, names):
 def _suspects(result):
     """Arrays the fit may be bent around: dropped as inconsistent, or with TDOA rows flagged as outliers."""
     rep = result.get("report") or {}
-    out = set(rep.get("unreliable_arrays") or [])
+    out = set(rep.get("unreliable_arrays") or result.get("unreliable_arrays") or [])
     outliers = result["outliers"] if "outliers" in result else rep.get("outliers") or []
     return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
 

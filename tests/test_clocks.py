@@ -1,6 +1,7 @@
 """Clocks as they really are (issue 28): the clock function and its inverse, the fault simulator, and the
 estimator's per-array clock models (steps, drift terms, wrong nominal rates) against simulated truth."""
 import numpy as np
+import pandas as pd
 import pytest
 
 from calib.clock import Clock, Step, Term, header_ratio
@@ -155,3 +156,45 @@ def test_correct_features_takes_a_model_out_of_the_tdoas():
     for kind in ("tdoa_m", "tdoa_s"):
         np.testing.assert_allclose(g[kind]["tdoa"].to_numpy(), clean[kind]["tdoa"].to_numpy(), atol=1e-12)
     assert extra(models["A3"], np.array([0.0, 1e3])).tolist() == [0.0, 0.004]
+
+
+# ----------------------------------------------------------------------------------------------- the user's path
+@pytest.mark.slow
+def test_calib_run_on_a_rendered_session_with_a_dropped_block(tmp_path):
+    """`calib simulate --clock` renders the drop into A3's WAV; `calib run` finds it in its interval and the
+    calibration matches the fault-free session's."""
+    import json
+    import subprocess
+    import sys
+
+    from calib.pipeline.formats.io import read_truth
+
+    def calib(*args):
+        return subprocess.run([sys.executable, "-m", "calib", *args], capture_output=True, text=True, timeout=900)
+
+    errs = {}
+    for name, extra in (("clean", []), ("drop", ["--clock", "A3={steps=[{size=-0.02}]}"])):
+        sim = calib("simulate", "-o", str(tmp_path / name), "--preset", "paper-traj3", "--seed", "3", "--n-events", "10",
+                    "-q", *extra)
+        assert sim.returncode == 0, sim.stderr
+        run = calib("run", str(tmp_path / name), "-o", str(tmp_path / f"out_{name}"), "-q")
+        assert run.returncode == 0, run.stderr
+        cal = tmp_path / f"out_{name}" / "calibration"
+        rep = json.loads((cal / "report.json").read_text())
+        truth = read_truth(tmp_path / name / "truth")
+        from calib.pipeline.formats.io import read_calibration
+        from calib.pipeline.report.evaluate import evaluate
+
+        errs[name] = evaluate(read_calibration(cal), truth)["position_rmse_m"]
+        steps = rep["clock"]["arrays"]["A3"]["steps"]
+        if name == "clean":
+            assert rep["clock"]["findings"] == []
+            continue
+        (s,) = steps
+        t = truth["clocks"]["A3"]["steps"][0]["time"] + truth["clocks"]["A3"]["t0"]   # the true drop (emitter time)
+        ev = pd.read_csv(tmp_path / name / "events.csv")
+        assert (s["after_event"], s["before_event"]) == (int(ev.event[ev.t_emit < t].max()), int(ev.event[ev.t_emit > t].min()))
+        assert s["kind"] == "dropped" and abs(s["size"] + 0.02) < max(3 * s["std"], 1e-5)
+        doc = json.loads((cal / "calibration.json").read_text())
+        assert next(a for a in doc["arrays"] if a["name"] == "A3")["clock"]["steps"][0]["after_event"] == s["after_event"]
+    assert errs["drop"] < 1.5 * errs["clean"] + 0.002
