@@ -44,6 +44,7 @@ MIN_EVENTS = 6          # fewer events: the linear clock only (nothing to test a
 # A clock's drift changes by a few ppm as a board warms up or the room's temperature drifts (CHiME-6: ~1-5 ppm);
 # a drift term implying a larger change over the session is a geometric error (reflections) in clock guise
 MAX_DRIFT_CHANGE = 20e-6
+MAX_STEP = 0.5          # s: buffer under- and overruns lose or repeat ms (USB: 0.5-20 ms); larger is no clock step
 RATE_ERROR_MIN = 5e-3   # |drift| beyond any crystal's (±100 ppm typical): a wrong nominal rate
 RATE_MATCH_TOL = 5e-4   # a rate ratio this close to a ratio of two common rates names them
 EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term in every array's clock
@@ -69,12 +70,13 @@ class Component:
         return np.maximum(u - self.time, 0.0)
 
     def plausible(self, duration):
-        """A clock could do this: a drift term changes the drift by at most MAX_DRIFT_CHANGE over ``duration``."""
+        """A clock could do this: a drift term changes the drift by at most MAX_DRIFT_CHANGE over ``duration``,
+        a step is at most MAX_STEP."""
         if self.kind == "quadratic":
             return abs(self.value) * duration <= MAX_DRIFT_CHANGE
         if self.kind == "hinge":
             return abs(self.value) <= MAX_DRIFT_CHANGE
-        return True
+        return bool(np.isfinite(self.value)) and abs(self.value) <= MAX_STEP
 
     def with_value(self, value, std=None):
         return Component(self.kind, self.time, float(value), std)
@@ -235,11 +237,14 @@ def fit_array(D, comps, x0, g0, tau0):
 
 
 def candidates(u, comps):
-    """Components to test on this array: a step in every interval between consecutive event times, the
-    quadratic, a hinge at every interior event time (those already in ``comps`` left out)."""
+    """Components to test on this array: a step in every interval between consecutive event times (but those
+    next to a step it has), the quadratic, a hinge at every interior event time but the last (those already
+    in ``comps`` left out)."""
     t = np.unique(u)
     have = {(c.kind, round(c.time, 9)) for c in comps}
-    out = [Component("step", 0.5 * (t[k] + t[k + 1]), 0.0) for k in range(len(t) - 1)]
+    # no step next to one already there: two opposite steps around one event are that event's arrival off
+    near = {k + d for c in comps if c.kind == "step" for k in [int(np.searchsorted(t, c.time)) - 1] for d in (-1, 1)}
+    out = [Component("step", 0.5 * (t[k] + t[k + 1]), 0.0) for k in range(len(t) - 1) if k not in near]
     # (no hinge at the last interior event: it moves only the last event, as a step in the last interval)
     out += [Component("quadratic", 0.0, 0.0)] + [Component("hinge", float(v), 0.0) for v in t[1:-2]]
     return [c for c in out if (c.kind, round(c.time, 9)) not in have]
@@ -276,7 +281,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
     duration = float(np.ptp(D.u))
     for cand in cands:
         x, g, tau, coef, r = fit_array(D, base + [cand], xb, gb, tb)
-        if cand.with_value(coef[-1]).plausible(duration):
+        if np.all(np.isfinite(r)) and cand.with_value(coef[-1]).plausible(duration):
             fits.append((float(np.sum(huber_rho(r))), cand, coef, r))
     if not fits:
         return None, 0.0, None
@@ -397,7 +402,9 @@ def detect(result, models, names):
         new, margin = found[name]
         if new[-1].kind == "mshift":   # the reference's clock stepped: its step (opposite sign), alone
             step = Component("step", new[-1].time, -new[-1].value)
-            found = {ref: ([c.with_value(0.0) for c in models.get(ref, [])] + [step], margin)}
+            have = [c.with_value(0.0) for c in models.get(ref, [])]
+            allowed = {round(c.time, 9) for c in candidates(p.t, have) if c.kind == "step"}
+            found = {ref: (have + [step], margin)} if round(step.time, 9) in allowed else {}
     out = {}
     for name, (new, _) in found.items():
         old = models.get(name, [])
@@ -408,7 +415,7 @@ def detect(result, models, names):
 def _suspects(result):
     """Arrays the fit may be bent around: dropped as inconsistent, or with TDOA rows flagged as outliers."""
     rep = result.get("report") or {}
-    out = set(rep.get("unreliable_arrays") or result.get("unreliable_arrays") or [])
+    out = set(_unreliable(result))
     outliers = result["outliers"] if "outliers" in result else rep.get("outliers") or []
     return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
 
@@ -431,6 +438,7 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     # the reference runs at a rate no crystal gives against the emission times: the session's time base
     # (events.csv t_emit, or the reference's stated rate) is wrong; nothing to model (named in the report)
     base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
+    first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
         for _ in range(MAX_ROUNDS):
             new, records = detect(result, models, names)
@@ -441,8 +449,21 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
             result = solve(correct_features(features, models), **options)
         if models:
             result, models = _refine_and_resolve(solve, features, result, models, options)
+            if _worse(result, first):   # the models did not explain the data: the linear clock's result
+                result, models = first, {}
+                rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
     _attach_report(result, features, models, rounds)
     return result
+
+
+def _worse(result, first):
+    """The result with clock models is worse than the linear clock's: a worse verdict, or (solution outputs)
+    not converged where that one was, or more unreliable arrays."""
+    from .verdict import STATUS_RANK
+
+    rank = [STATUS_RANK.get(((r.get("report") or {}).get("verdict") or {}).get("status"), 0) for r in (result, first)]
+    conv = [bool(r["report"]["converged"] if "report" in r else r.get("converged", True)) for r in (result, first)]
+    return rank[0] > rank[1] or (conv[1] and not conv[0]) or len(_unreliable(result)) > len(_unreliable(first))
 
 
 def _refine_and_resolve(solve, features, result, models, options):
@@ -463,8 +484,19 @@ def _refine_and_resolve(solve, features, result, models, options):
         result = solve(correct_features(features, models), **options)
         if not models:
             return result, models
+    # an array the session still contradicts with its components (dropped as inconsistent): they did not
+    # explain it; it keeps the linear clock and the consistency tests name it as before
+    bad = [n for n in _unreliable(result) if n in models]
+    if bad:
+        models = {n: c for n, c in models.items() if n not in bad}
+        result = solve(correct_features(features, models), **options)
+        cov_info = refine(result, models)[2] if models else None
     _apply_std(result, cov_info)
     return result, models
+
+
+def _unreliable(result):
+    return list((result.get("report") or {}).get("unreliable_arrays") or result.get("unreliable_arrays") or [])
 
 
 def _weakest(p, models):
@@ -472,10 +504,13 @@ def _weakest(p, models):
     sizes = family_sizes(p.t)
     index = {str(n): i for i, n in enumerate(p.names)}
     worst, where = 0.0, None
+    duration = float(np.ptp(p.t))
     for name, comps in models.items():
         i = index.get(name, -1)
         n = len(p.tdoa_s.val) if i < 0 else int(np.sum(p.tdoa_s.arr == i)) + int(np.sum(p.tdoa_m.arr == i))
         for k, c in enumerate(comps):
+            if not c.plausible(duration):
+                return name, k
             if not c.std:
                 continue
             m = (c.value / c.std) ** 2 - penalty(c.kind, n, p.N + 1, sizes[c.kind])
