@@ -484,9 +484,11 @@ def _refine_and_resolve(solve, features, result, models, options):
         result = solve(correct_features(features, models), **options)
         if not models:
             return result, models
-    # an array the session still contradicts with its components (dropped as inconsistent): they did not
-    # explain it; it keeps the linear clock and the consistency tests name it as before
-    bad = [n for n in _unreliable(result) if n in models]
+    # an array the session still contradicts with its components (dropped as inconsistent, or named for
+    # holding the outliers: biased as a whole): they did not explain it, a reflection's bias is no clock's; it
+    # keeps the linear clock and the consistency tests name it as before
+    flagged = ((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or []
+    bad = [n for n in set(_unreliable(result)) | set(flagged) if n in models]
     if bad:
         models = {n: c for n, c in models.items() if n not in bad}
         result = solve(correct_features(features, models), **options)
