@@ -48,6 +48,8 @@ MAX_STEP = 0.5          # s: buffer under- and overruns lose or repeat ms (USB: 
 RATE_ERROR_MIN = 5e-3   # |drift| beyond any crystal's (±100 ppm typical): a wrong nominal rate
 RATE_MATCH_TOL = 5e-4   # a rate ratio this close to a ratio of two common rates names them
 EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term in every array's clock
+TIE_MARGIN = 10.0       # χ²: proposals this close to the best are decided by solving with each
+MAX_RIVALS = 3
 REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × its σ: solve once more
 
 
@@ -366,10 +368,10 @@ def joint_scan(result, models):
 
 # ----------------------------------------------------------------------------------------------- selection
 def detect(result, models, names):
-    """One detection round at a solved ``result``: {array name: its components with the new one, as
-    increments on the corrected data} for the array whose best new component beats its penalty by the
-    largest margin (one per round: a fault bends the fit, and through it the other arrays' tests), and the
-    round's records. The emitter (:data:`EMITTER`, emission times off: the same term in every clock) is
+    """One detection round at a solved ``result``: proposals {array name: its components with the new one}
+    of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
+    within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
+    arrays' tests) — and the round's records. The emitter (:data:`EMITTER`, emission times off: the same term in every clock) is
     one more candidate, tested jointly only."""
     p, st = result["problem"], result["state"]
     found, records = {}, []
@@ -394,22 +396,49 @@ def detect(result, models, names):
         records.append({"array": name, "margin_chi2": margin, **info})
         if margin > 0:
             found[name] = (new, margin)
-    if found:   # the strongest evidence first: a large fault bends the fit and so the others' tests
-        name = max(found, key=lambda n: found[n][1])
-        found = {name: found[name]}
     ref = str(p.names[p.ref])
-    for name in list(found):
-        new, margin = found[name]
-        if new[-1].kind == "mshift":   # the reference's clock stepped: its step (opposite sign), alone
+    proposals = []
+    for name, (new, margin) in found.items():
+        if new[-1].kind == "mshift":   # the reference's clock stepped: its step (opposite sign)
             step = Component("step", new[-1].time, -new[-1].value)
             have = [c.with_value(0.0) for c in models.get(ref, [])]
             allowed = {round(c.time, 9) for c in candidates(p.t, have) if c.kind == "step"}
-            found = {ref: (have + [step], margin)} if round(step.time, 9) in allowed else {}
-    out = {}
-    for name, (new, _) in found.items():
+            if round(step.time, 9) not in allowed:
+                continue
+            name, new = ref, have + [step]
         old = models.get(name, [])
-        out[name] = [c.with_value(c.value + (old[k].value if k < len(old) else 0.0)) for k, c in enumerate(new)]
-    return out, records
+        merged = [c.with_value(c.value + (old[k].value if k < len(old) else 0.0)) for k, c in enumerate(new)]
+        proposals.append((margin, {name: merged}))
+    # the strongest evidence first (a large fault bends the fit and so the others' tests); rivals within
+    # TIE_MARGIN of it are decided by solving with each (:func:`_decide`)
+    proposals.sort(key=lambda m: -m[0])
+    return [prop for m, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS], records
+
+
+def _decide(solve, features, models, proposals, options):
+    """(models, result) of the proposal whose solve leaves the smallest robust cost (one solve each)."""
+    best = None
+    for prop in proposals:
+        trial = {**models, **prop}
+        res = solve(correct_features(features, trial), **options)
+        cost, sig = _robust_cost(res, None if best is None else best[2])
+        if best is None or cost < best[0]:
+            best = (cost, (trial, res), sig if best is None else best[2])
+    return best[1]
+
+
+def _robust_cost(result, row_sigma=None):
+    """Σ Huber(r) over every row (outliers included) at a solved result, whitened by ``row_sigma`` (default
+    the result's own: pass the first trial's, so that trials with re-estimated sigmas compare in one unit).
+    Returns (cost, the row sigmas used)."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p = result["problem"]
+    lin = linearise(p, result["state"], make_layout(p), _kinds(p))
+    own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
+    sig = own if row_sigma is None else row_sigma
+    return float(np.sum(huber_rho(lin.r * own / sig))), sig
 
 
 def _suspects(result):
@@ -441,12 +470,15 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
         for _ in range(MAX_ROUNDS):
-            new, records = detect(result, models, names)
+            proposals, records = detect(result, models, names)
             rounds.append(records)
-            if not new:
+            if not proposals:
                 break
-            models.update(new)
-            result = solve(correct_features(features, models), **options)
+            if len(proposals) == 1:
+                models = {**models, **proposals[0]}
+                result = solve(correct_features(features, models), **options)
+            else:
+                models, result = _decide(solve, features, models, proposals, options)
         if models:
             result, models = _refine_and_resolve(solve, features, result, models, options)
             if _worse(result, first):   # the models did not explain the data: the linear clock's result
