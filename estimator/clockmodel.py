@@ -367,7 +367,7 @@ def joint_scan(result, models):
 
 
 # ----------------------------------------------------------------------------------------------- selection
-def detect(result, models, names):
+def detect(result, models):
     """One detection round at a solved ``result``: proposals {array name: its components with the new one}
     of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
     within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
@@ -461,7 +461,6 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     result = solve(features, **options)
     # the corrected TDOAs make a new problem (a prebuilt one, ``problem=``, is of the uncorrected features)
     options = {k: v for k, v in options.items() if k != "problem"}
-    names = [str(n) for n in features["meta"]["arrays"]]
     models, rounds = {}, []
     p = result["problem"]
     # the reference runs at a rate no crystal gives against the emission times: the session's time base
@@ -470,7 +469,7 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
         for _ in range(MAX_ROUNDS):
-            proposals, records = detect(result, models, names)
+            proposals, records = detect(result, models)
             rounds.append(records)
             if not proposals:
                 break
