@@ -84,6 +84,20 @@ class Component:
         return Component(self.kind, self.time, float(value), std)
 
 
+def basis_matrix(comps, u):
+    """(len(u), len(comps)) φ of every component at times u, one vectorised expression per kind."""
+    u = np.asarray(u, float)
+    kind = np.array([c.kind for c in comps], dtype=object)
+    time = np.array([c.time for c in comps], float)
+    out = np.zeros((len(u), len(comps)))
+    step = (kind == "step") | (kind == "mshift")
+    out[:, step] = u[:, None] >= time[step][None, :]
+    out[:, kind == "quadratic"] = 0.5 * (u * u)[:, None]
+    hinge = kind == "hinge"
+    out[:, hinge] = np.maximum(u[:, None] - time[hinge][None, :], 0.0)
+    return out
+
+
 def extra(components, u):
     """h(u) = Σ c φ(u) of a list of components."""
     out = np.zeros(np.shape(u))
@@ -187,8 +201,8 @@ def _design(D, comps):
     if not comps:
         return np.zeros((len(D.zs), 0)), np.zeros((len(D.ym), 0))
     # an "mshift" (the reference's step seen from this array: its TDOA-M shift, no TDOA-S jump) has no TDOA-S part
-    S = np.column_stack([(c.kind != "mshift") * (c.basis(D.u[D.b]) - c.basis(D.u[D.a])) for c in comps])
-    M = np.column_stack([c.basis(D.u[D.j]) for c in comps])
+    S = (basis_matrix(comps, D.u[D.b]) - basis_matrix(comps, D.u[D.a])) * np.array([c.kind != "mshift" for c in comps])
+    M = basis_matrix(comps, D.u[D.j])
     return S, M
 
 
@@ -577,12 +591,13 @@ def _columns(p, fs, i, comps):
         sig = np.broadcast_to(f.row_sigma, n)[:, None]
         if f.kind == "tdoa_s":
             rows = p.tdoa_s
-            phi = np.column_stack([c.basis(u[rows.b]) - c.basis(u[rows.a]) for c in comps]) if comps else 0.0
-            B[start:start + n] = np.where((rows.arr == i)[:, None], phi, 0.0) / sig
+            mine = rows.arr == i
+            B[start:start + n][mine] = (basis_matrix(comps, u[rows.b[mine]])
+                                        - basis_matrix(comps, u[rows.a[mine]])) / sig[mine]
         elif f.kind == "tdoa_m":
             rows = p.tdoa_m
-            phi = np.column_stack([c.basis(u[rows.ev]) for c in comps]) if comps else 0.0
-            B[start:start + n] = (-phi if i == p.ref else np.where((rows.arr == i)[:, None], phi, 0.0)) / sig
+            mine = np.ones(n, bool) if i == p.ref else rows.arr == i
+            B[start:start + n][mine] = (-1.0 if i == p.ref else 1.0) * basis_matrix(comps, u[rows.ev[mine]]) / sig[mine]
         start += n
     return B
 
@@ -597,7 +612,7 @@ def _emitter_columns(p, fs, comps):
         if f.kind == "tdoa_s" and comps:
             rows = p.tdoa_s
             sig = np.broadcast_to(f.row_sigma, n)[:, None]
-            B[start:start + n] = np.column_stack([c.basis(u[rows.b]) - c.basis(u[rows.a]) for c in comps]) / sig
+            B[start:start + n] = (basis_matrix(comps, u[rows.b]) - basis_matrix(comps, u[rows.a])) / sig
         start += n
     return B
 
