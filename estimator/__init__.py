@@ -8,11 +8,11 @@ Cramér–Rao bound at a ground truth), :func:`rebuild`, :func:`residuals`, :fun
 # hand out the module once anything imported the submodule first.
 from .assess import array_covariance, position_covariances, rebuild, residuals
 from .calibrate import calibrate, to_frames, to_tables, validate_options
-from .factors import KINDS, MeasurementKind
+from .factors import KINDS, register, unregister
 from .init import ObservabilityError
 from .problem import LINE_COLUMN
 from .uncertainty import crlb, draw_from_crlb, state_from_frames
 
-__all__ = ["KINDS", "LINE_COLUMN", "MeasurementKind", "array_covariance", "calibrate", "crlb", "draw_from_crlb",
+__all__ = ["KINDS", "LINE_COLUMN", "register", "unregister", "array_covariance", "calibrate", "crlb", "draw_from_crlb",
            "ObservabilityError", "position_covariances", "rebuild", "residuals", "state_from_frames", "to_frames",
            "to_tables", "validate_options"]

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import chdtrc  # χ² survival function (scipy.stats.chi2.sf without importing scipy.stats, ~0.3 s)
 
-from .factors import ARRAY_KINDS
+from calib.kinds import KINDS
 
 ARRAY_MIN_REDUNDANCY = 5.0    # Σ(1 − h) of an array's rows of one type for its own component
 # either way, relative to the type's sigma: covers one array several times noisier than the others, and
@@ -36,7 +36,7 @@ ARRAY_ALPHA = 0.01            # family level of the tests "this array's noise is
 
 def start_scales(p, kinds):
     """``p.array_scale``: a = 1 for every array of each per-array type with rows in ``kinds``."""
-    p.array_scale = {k: np.ones(p.N) for k in ARRAY_KINDS if k in kinds and len(p.rows(k).arr)}
+    p.array_scale = {k: np.ones(p.N) for k in kinds if KINDS[k].per_array and len(p.rows(k).arr)}
     return p
 
 
@@ -46,7 +46,8 @@ def vce_groups(p, f, r, h, keep):
     pooled one: χ²(redundancy) upper tail below ARRAY_ALPHA / (arrays tested), redundancy ≥
     ARRAY_MIN_REDUNDANCY."""
     arr = np.repeat(p.rows(f.kind).arr, f.dim)[keep]
-    red_rows = (1.0 - h[keep]) - (1.0 / 3.0 if f.kind == "doa" else 0.0)   # DOA: 2 dof of 3 components
+    dof = KINDS[f.kind].dof   # e.g. DOA: 2 dof of 3 components
+    red_rows = (1.0 - h[keep]) - ((f.dim - dof) / f.dim if dof is not None and dof < f.dim else 0.0)
     red = np.bincount(arr, weights=red_rows, minlength=p.N)
     ss = np.bincount(arr, weights=r[keep] ** 2, minlength=p.N)
     pooled = ss.sum() / max(red.sum(), 1e-12)

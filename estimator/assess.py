@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import clockmodel
-from .factors import ALL_KINDS, KINDS, UNITS, natural
+from .factors import KINDS, active_kinds, natural
 from .factors import evaluate as factors
 from .observability import check_observability
 from .problem import build_problem, make_layout
@@ -47,7 +47,7 @@ def rebuild(features, calib):
     corr = rep.get("emission_corrections_s") or {}
     st.e = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])
     st.odo_yaw = np.array([np.deg2rad(float(frame.get("yaw_deg") or 0.0))])
-    kinds = [k for k in ALL_KINDS if k != "emission" or sig_e > 0]
+    kinds = active_kinds(p)
     if _rank_deficient(p, rep.get("undetermined") or []):
         # the estimator left out what the data do not determine: the same rank check at the estimate
         check_observability(p, make_layout(p), kinds, st)
@@ -93,7 +93,7 @@ def residuals(model):
     for f in factors(model["problem"], model["state"], model["layout"], model["kinds"]):
         if len(f.r) == 0:
             continue
-        unit, scale = UNITS[f.kind]
+        unit, scale = KINDS[f.kind].unit, KINDS[f.kind].scale
         keep = model["mask"].get(f.kind, np.ones(len(f.r), bool))
         r = natural(f)
         if f.kind == "doa":

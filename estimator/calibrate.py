@@ -11,21 +11,22 @@ import pandas as pd
 import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
+from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
 from calib import __version__
 from calib.robust import median
 
 from . import arraynoise, clockmodel
-from .factors import ALL_KINDS, KINDS, UNITS, natural
+from .factors import KINDS, active_kinds, natural
 from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
-from .problem import State, build_problem, make_layout, matrix_quaternions, state_from_dict
-from .robust import (DOF, FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
-                     fit_array_alone, measurement_stats, count_measurements, factor_sizes, variance_factors,
-                     remove_outliers, restore_inliers, sym_inverse)
+from .problem import State, build_problem, make_layout, state_from_dict
+from .robust import (FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
+                     fit_array_alone, measurement_stats, count_measurements, factor_sizes, per_array_kinds,
+                     variance_factors, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
 from .verdict import MOVE_SIGMA, concentrated_outliers, make_verdict, residual_ratios, stated_sigma_excess
@@ -87,14 +88,14 @@ def residual_table(fs, mask=None):
         r = natural(f)[keep]
         if f.dim == 3:
             r = np.linalg.norm(r.reshape(-1, 3), axis=1)
-        unit, scale = UNITS[f.kind]
+        unit, scale = KINDS[f.kind].unit, KINDS[f.kind].scale
         out[f.kind] = {"n": int(len(r)), f"rms_{unit}": float(np.sqrt(np.mean(r * r)) * scale) if len(r) else 0.0}
     return out
 
 
 def _quaternions(R):
     """(N, 4) scalar-first unit quaternions of rotation matrices (N, 3, 3), with qw >= 0."""
-    q = matrix_quaternions(R)
+    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
     return q
 
@@ -142,7 +143,7 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
                                              rtol=1e-6)
     info["yaw_test"] = p.odo_yaw_test
     if noise_bounds is not None and loss:
-        stated = {k: p.sigma[k] for k in REWEIGHTED}
+        stated = {k: p.sigma[k] for k in reweighted()}
         st = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
                                 robust_k=robust_k, max_iter=max_iter, floors=noise_floors)
     if lay.odo_yaw[0] >= 0 and info["yaw_test"] is None:
@@ -189,11 +190,11 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
     for _ in range(steps):
         stats = measurement_stats(p, st, lay, kinds, {})
         changed = False
-        for kind in REWEIGHTED:
+        for kind in reweighted():
             m = stats.kept & (stats.kind == kind)
             if m.sum() < 5:
                 continue
-            f = float(np.sqrt(median(stats.q[m]) / chi2_median(DOF[kind])))
+            f = float(np.sqrt(median(stats.q[m]) / chi2_median(KINDS[kind].dof)))
             b = bounds.get(kind, FREE_MAX_FACTOR)
             lo = (floors or bounds).get(kind, b)
             new = float(np.clip(p.sigma[kind] * f, stated[kind] / lo, stated[kind] * b))
@@ -206,8 +207,8 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
 
 
 def _rows_per_array(p):
-    """{array name: number of its measurement rows (TDOA-S, TDOA-M, DOA, cone)}."""
-    cols = [p.tdoa_s.arr, p.tdoa_m.arr, p.doa.arr, p.cone.arr]
+    """{array name: number of its measurement rows (of every per-array kind)}."""
+    cols = [p.rows(k).arr for k in per_array_kinds()]
     counts = np.bincount(np.concatenate(cols).astype(int), minlength=p.N)
     return {str(n): int(k) for n, k in zip(p.names, counts)}
 
@@ -321,8 +322,11 @@ def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
     return float(z.max()) if z.size else 0.0
 
 
-REWEIGHTED = tuple(k.name for k in KINDS.values() if k.reweight)   # kinds whose sigma the data may re-weight
-META_KEY = {k.name: k.meta_key for k in KINDS.values() if k.reweight}
+def reweighted():
+    """The kinds whose sigma the data may re-weight (``reweight`` in their spec), in registry order."""
+    return [k for k, spec in KINDS.items() if spec.reweight]
+
+
 # A sigma the user states as measured (meta.json/session.toml, not listed in ``sigmas_estimated``) is a
 # prior: variance components may move it by at most this factor either way (the data can say "a bit
 # worse than stated", never replace a 3 cm odometry prior with 3 m and so hide a failure).
@@ -360,7 +364,8 @@ def sigma_bounds(meta, noise):
     """
     est = set(meta.get("sigmas_estimated") or [])
     out = {}
-    for kind, key in META_KEY.items():
+    for kind in reweighted():
+        key = KINDS[kind].noise_key
         free = key in est or (noise == "estimate" and kind != "odometry")
         out[kind] = FREE_MAX_FACTOR if free else PRIOR_MAX_FACTOR
     return out
@@ -370,8 +375,8 @@ def sigma_floors(meta, bounds):
     """Per type, the largest factor variance components may LOWER its sigma by: FRONTEND_MIN_FACTOR for a
     frontend's own figure (meta ``sigmas_estimated``), else its bound (:func:`sigma_bounds`)."""
     est = set(meta.get("sigmas_estimated") or [])
-    return {kind: min(bounds[kind], FRONTEND_MIN_FACTOR) if key in est else bounds[kind]
-            for kind, key in META_KEY.items()}
+    return {kind: min(bounds[kind], FRONTEND_MIN_FACTOR) if KINDS[kind].noise_key in est else bounds[kind]
+            for kind in reweighted()}
 
 
 def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None, redundancy=None):
@@ -400,13 +405,14 @@ def _vce_factors(p, st, lay, kinds, mask, min_redundancy, cov=None, arrays=None,
         n = len(f.r)
         sl = slice(start, start + n)
         start += n
-        if f.kind not in REWEIGHTED or n == 0:
+        if not KINDS[f.kind].reweight or n == 0:
             continue
         if arrays is not None and f.kind in (p.array_scale or {}):
             arrays[f.kind] = arraynoise.vce_groups(p, f, r[sl], h[sl], keep[sl])
         red = float(np.sum((1.0 - h[sl])[keep[sl]]))
-        if f.kind == "doa":
-            red -= float(keep[sl].sum()) / 3.0  # a unit-vector residual has no noise along the direction itself
+        dof = KINDS[f.kind].dof
+        if dof is not None and dof < f.dim:   # e.g. a unit-vector residual: no noise along the direction itself
+            red -= float(keep[sl].sum()) * (f.dim - dof) / f.dim
         if red >= min_redundancy:
             out[f.kind] = float(np.sum(r[sl][keep[sl]] ** 2)) / red
             if redundancy is not None:
@@ -429,9 +435,9 @@ def estimate_noise(p, st, kinds, mask, *, bounds=None, floors=None, iterations=V
     if p.array_scale:
         p.array_own = {}
     lay = lay or make_layout(p)
-    bounds = bounds or {k: FREE_MAX_FACTOR for k in REWEIGHTED}
-    base = stated or {k: p.sigma[k] for k in REWEIGHTED}
-    scales = {k: p.sigma[k] / base[k] for k in REWEIGHTED}
+    bounds = bounds or {k: FREE_MAX_FACTOR for k in reweighted()}
+    base = stated or {k: p.sigma[k] for k in reweighted()}
+    scales = {k: p.sigma[k] / base[k] for k in reweighted()}
     last_dir = {}
     info, at_bound = {}, {}
     steps = max(iterations, VCE_ITERATIONS_ARRAYS) if p.array_scale else iterations
@@ -502,13 +508,13 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
         t1 = time.perf_counter()
         q = subproblem(p, np.arange(p.N), doa_arrays=[p.ref])
         lay_ive = make_layout(q, rotations=False)
-        st, ive = levenberg_marquardt(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+        st, ive = levenberg_marquardt(q, st, lay_ive, active_kinds(q, "ive"), loss=loss,
                                       k=robust_k, max_iter=max_iter, rtol=1e-6)
         st = init_cone_axes(p, rotations_by_kabsch(p, st))
         if lay_ive.odo_yaw[0] >= 0:
             # decide on the odometry yaw here (its σ from the IVE's data is a conservative one), so the
             # joint pass starts in the right parameter set
-            lin = linearise(q, st, lay_ive, ["tdoa_s", "tdoa_m", "doa", "odometry"], loss=loss,
+            lin = linearise(q, st, lay_ive, active_kinds(q, "ive"), loss=loss,
                                               k=robust_k)
             J_ive, w_ive = lin.J, lin.w
             p.odo_yaw_test = _yaw_decision(p, st, whiten(J_ive, w_ive), int(lay_ive.odo_yaw[0]))
@@ -668,7 +674,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         p = problem.copy()   # the solve updates its problem in place (sigmas, odometry yaw, undetermined)
     if p.K < 3:
         raise ObservabilityError(f"only {p.K} event(s): at least 3 are needed to calibrate")
-    kinds = [k for k in ALL_KINDS if k != "emission" or emission_sigma > 0]
+    kinds = active_kinds(p)
     if init_state is None:
         st, stages, stage_states = initial_state(p, kinds, method=method, loss=loss, robust_k=robust_k,
                                                  max_iter=max_iter, times=times)
@@ -740,7 +746,7 @@ def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_t
     """
     bounds = sigma_bounds(meta, noise)
     floors = sigma_floors(meta, bounds)
-    stated = {k: p.sigma[k] for k in REWEIGHTED}
+    stated = {k: p.sigma[k] for k in reweighted()}
     st, info = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
                           max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None,
                           noise_floors=floors)
@@ -750,7 +756,7 @@ def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_t
         info["final"] = {**info["final"], **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
         stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds, "floors": floors,
                            "array_scale": arraynoise.report_scales(p)}
-    scales = {k: p.sigma[k] / stated[k] for k in REWEIGHTED}
+    scales = {k: p.sigma[k] / stated[k] for k in reweighted()}
     return st, p, info, scales, bounds
 
 
@@ -775,11 +781,10 @@ def _report(p, st, info, stages, judged, fs, *, method, noise, emission_sigma, t
         "array_consistency": info["arrays"],
         "unreliable_arrays": [str(p.names[i]) for i in info["dropped"]],
         "undetermined": undetermined_parameters(p),
-        "used": {"tdoa_s": bool(len(p.tdoa_s.val)), "tdoa_m": bool(len(p.tdoa_m.val)), "doa": bool(len(p.doa.u)),
+        "used": {**{k: bool(len(p.rows(k))) for k, spec in KINDS.items() if spec.table is not None},
                  "emission_correction": emission_sigma > 0},
         "drift_reference": "emitter clock" if len(p.tdoa_s.val) else "reference array (no TDOA-S: its drift fixed to 0)",
-        "sigmas": {"tdoa_s": p.sigma["tdoa_s"], "tdoa_m": p.sigma["tdoa_m"], "doa_rad_per_axis": p.sigma["doa"],
-                   "odometry_m": p.sigma["odometry"], "cone_rad": p.sigma["cone"], "emission_s": emission_sigma,
+        "sigmas": {**{spec.report_sigma: p.sigma[k] for k, spec in KINDS.items() if spec.report_sigma},
                    "source": noise, "per_array_factor": arraynoise.report_scales(p),
                    "doa_row_scale": _row_scale_summary(p.doa.scale)},
         "timings_s": times,

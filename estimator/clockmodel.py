@@ -318,9 +318,9 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
 
 # ----------------------------------------------------------------------------------------------- joint scan
 def _kinds(p):
-    from .factors import ALL_KINDS
+    from .factors import active_kinds
 
-    return [k for k in ALL_KINDS if k != "emission" or p.sigma["emission"] > 0]
+    return active_kinds(p)
 
 
 def joint_scan(result, models):
@@ -632,13 +632,12 @@ def refine(result, models):
 
     Returns (moved: a coefficient moved by more than REFIT_SIGMA σ, models with the new values and their
     1-σ, info for :func:`_apply_std`: the problem, layout and joint covariance of the other parameters)."""
-    from .factors import ALL_KINDS
     from .problem import make_layout
     from .solver import linearise
     from .uncertainty import covariance
 
     p, st = result["problem"], result["state"]
-    kinds = [k for k in ALL_KINDS if k != "emission" or p.sigma["emission"] > 0]
+    kinds = _kinds(p)
     lay = make_layout(p)
     full = linearise(p, st, lay, kinds)
     outliers = result["outliers"] if "outliers" in result else result["report"]["outliers"]

@@ -1,30 +1,31 @@
 """Measurement factors: each one residual (whitened by its sigma) and its analytic Jacobian, in one place.
 
-Every factor is a function ``f(p, st, lay, memo=None) -> Factor`` (a :class:`~calib.estimator.problem.Problem`,
-a ``State`` and a ``Layout``; ``memo`` keeps the Jacobian's index bookkeeping between evaluations of one
-problem and layout, :func:`_fill`): ``kind`` (str), ``r`` (m,) whitened residuals, ``J`` (m, n) Jacobian
+Every factor is a function ``f(p, st, lay) -> Factor`` (a :class:`~calib.estimator.problem.Problem`,
+a ``State`` and a ``Layout``): ``kind`` (str), ``r`` (m,) whitened residuals, ``J`` (m, n) Jacobian
 w.r.t. the free parameters of ``lay`` (a sparse :class:`Jacobian` from :func:`jacobian`, filled by
-:func:`_put` / :func:`_fill`; a dense array works too), ``row`` (m,) the measurement's row in its CSV (for
+:func:`put`; a dense array works too), ``row`` (m,) the measurement's row in its CSV (for
 reports), ``dim`` residuals per measurement, ``robust`` (bool) whether the robust loss applies, ``sigma``
 the whitening scale (SI).
 
-Adding a measurement type = adding its factor function and one ``MeasurementKind`` entry in ``KINDS``
-here (units, labels, sigma names and test degrees of freedom come from that entry); its rows are a
-``Rows`` block of ``problem.Problem``.
+Adding a measurement kind = its spec (``calib.kinds.KindSpec``), its factor function and (rows of its own)
+a rows builder, joined by :func:`register` (docs/architecture.md, "Adding a measurement kind").
 Clock model (docs/architecture.md): arrival a_ij = (1+δ_i)(t_j + e_j + |s_j − x_i|/c) + τ_i + β δ_i.
 """
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
-
 import numpy as np
+
+from calib import kinds as K
+from calib.kinds import KINDS
+
+from .problem import doa_rows, event_rows, tdoa_m_rows, tdoa_s_rows
 
 
 
 class Jacobian:
-    """A factor's Jacobian (m, n) as a sparse accumulator: ``_put`` appends (row, col, value) chunks.
+    """A factor's Jacobian (m, n) as a sparse accumulator: ``put`` appends (row, col, value) chunks.
 
     Each measurement row touches one or two arrays and one or two sources, so J is almost all zeros for
     large problems; :func:`calib.estimator.solver.linearise` stacks the chunks of all factors into one
@@ -58,60 +59,32 @@ class Jacobian:
 
 
 def jacobian(m, lay):
-    """An empty (m, n free parameters) Jacobian for a factor to ``_put`` into."""
+    """An empty (m, n free parameters) Jacobian for a factor to ``put`` into."""
     return Jacobian(m, lay.n)
 
 
-def _put(J, rows, cols, vals):
-    """J[rows, cols] += vals for the free columns (cols >= 0). rows (m,), cols/vals (m, q).
+def put(J, rows, cols, vals):
+    """J[rows, cols] += vals for the free columns (cols >= 0). rows (m,), cols (m, q), vals (m, q) or broadcast.
 
     ``J`` is a :class:`Jacobian` (sparse accumulator) or a dense (m, n) array. Within one call the (row, col)
     pairs are distinct (a row names each parameter once), so buffered fancy-index addition is exact.
     """
-    _apply(J, _pattern(rows, cols), vals)
-
-
-def _pattern(rows, cols):
-    """The index bookkeeping of one :func:`_put`: (rows, cols of the free entries, which of the (m, q)
-    values they are (None: all), (m, q)). It depends on the problem and layout only, not the state."""
     cols = np.asarray(cols).reshape(len(rows), -1)
-    rr, cc = np.repeat(rows, cols.shape[1]), cols.ravel()
-    m = cc >= 0
-    keep = None if m.all() else m
-    if keep is not None:
-        rr, cc = rr[m], cc[m]
-    rr.setflags(write=False)
-    cc.setflags(write=False)
-    return rr, cc, keep, cols.shape
-
-
-def _apply(J, pattern, vals):
-    """J[rows, cols] += vals with the index bookkeeping of :func:`_pattern` (vals (m, q), or broadcast)."""
-    rr, cc, keep, shape = pattern
+    shape = cols.shape
+    rr, cc = np.repeat(rows, shape[1]), cols.ravel()
+    free = cc >= 0
     vals = np.asarray(vals, float)
     if vals.size != shape[0] * shape[1]:
         vals = np.broadcast_to(vals.reshape(shape[0], -1), shape)
     vv = vals.ravel()
-    if keep is not None:
-        vv = vv[keep]
+    if not free.all():
+        rr, cc, vv = rr[free], cc[free], vv[free]
     if not len(cc):
         return
     if isinstance(J, Jacobian):
         J.add(rr, cc, vv)
     else:
         J[rr, cc] += vv
-
-
-def _fill(J, memo, slot, index, vals):
-    """:func:`_put` with ``index() -> (rows, cols)``, whose bookkeeping ``memo`` (a dict the caller keeps
-    for one problem and layout, e.g. one LM solve; None: no reuse) holds under ``slot`` after the first
-    evaluation: later evaluations compute the values only."""
-    pattern = None if memo is None else memo.get(slot)
-    if pattern is None:
-        pattern = _pattern(*index())
-        if memo is not None:
-            memo[slot] = pattern
-    _apply(J, pattern, vals)
 
 
 def norm(v, axis=-1, keepdims=False):
@@ -157,7 +130,7 @@ def _out(kind, r, J, row, dim, robust, sigma):
     return Factor(kind, r, J, row, dim, robust, sigma)
 
 
-def tdoa_s(p, st, lay, memo=None):
+def tdoa_s(p, st, lay):
     """TDOA-S: a_{i,b} − a_{i,a} = (1+δ_i)(t_b − t_a + e_b − e_a + (d_ib − d_ia)/c)."""
     i, a, b, z = p.tdoa_s.arr, p.tdoa_s.a, p.tdoa_s.b, p.tdoa_s.val
     m, c, sig = len(z), p.c, p.sigma["tdoa_s"]
@@ -170,13 +143,12 @@ def tdoa_s(p, st, lay, memo=None):
     g = 1.0 + st.drift[i]
     r = (g * h - z) / sig
     gc = (g / (c * sig))[:, None]
-    _fill(J, memo, 0,
-          lambda: (np.arange(m), np.column_stack([lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]])),
-          _cols([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
+    put(J, np.arange(m), np.column_stack([lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]]),
+        _cols([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
     return _out("tdoa_s", r, J, p.tdoa_s.row, 1, True, sig)
 
 
-def tdoa_m(p, st, lay, memo=None):
+def tdoa_m(p, st, lay):
     """TDOA-M: a_ij − a_{ref,j}."""
     i, j, z = p.tdoa_m.arr, p.tdoa_m.ev, p.tdoa_m.val
     ref, m, c, sig, beta = p.ref, len(z), p.c, p.sigma["tdoa_m"], p.beta
@@ -193,11 +165,10 @@ def tdoa_m(p, st, lay, memo=None):
              - g0 * (te + d0 / c) - st.offset[ref] - beta * st.drift[ref])
     r = (model - z) / sig
     one = np.full(m, 1.0 / sig)
-    _fill(J, memo, 0,
-          lambda: (np.arange(m), np.column_stack([lay.drift[i], np.full(m, lay.drift[ref]), lay.offset[i],
+    put(J, np.arange(m), np.column_stack([lay.drift[i], np.full(m, lay.drift[ref]), lay.offset[i],
                                                   np.full(m, lay.offset[ref]), lay.x[i], np.tile(lay.x[ref], (m, 1)),
-                                                  lay.s[j], lay.e[j]])),
-          _cols([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
+                                                  lay.s[j], lay.e[j]]),
+        _cols([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
                            -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig)) * n0,
                            (gi[:, None] * ni - g0 * n0) / (c * sig), (gi - g0) / sig]))
     return _out("tdoa_m", r, J, p.tdoa_m.row, 1, True, sig)
@@ -207,7 +178,7 @@ def tdoa_m(p, st, lay, memo=None):
 _SKEW = np.array([6, 5, 1, 2, 6, 3, 4, 0, 6])
 
 
-def doa(p, st, lay, memo=None):
+def doa(p, st, lay):
     """DOA: R_iᵀ (s_j − x_i)/|s_j − x_i| − u_ij, three components per measurement."""
     i, j, u = p.doa.arr, p.doa.ev, p.doa.u
     m = len(i)
@@ -220,12 +191,7 @@ def doa(p, st, lay, memo=None):
     v = np.einsum("kab,kb->ka", Rt, n)
     # Mirror-ambiguous (planar) arrays: compare the prediction folded to the measured side, v → H v with
     # the reflection H = I − 2 n nᵀ where n·v < 0 (so the Jacobians are multiplied by H there too).
-    # no folded array (p.fold all zero, known per problem and layout in ``memo``): n·v = 0, nothing flips
-    foldable = None if memo is None else memo.get("foldable")
-    if foldable is None:
-        foldable = bool(p.fold.any())
-        if memo is not None:
-            memo["foldable"] = foldable
+    foldable = bool(p.fold.any())   # no folded array: n·v = 0, nothing flips
     if foldable:
         nf = p.fold[i]
         flip = np.einsum("ka,ka->k", nf, v) < 0
@@ -243,12 +209,12 @@ def doa(p, st, lay, memo=None):
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = Rt @ P
     vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig[:, None]
-    _fill(J, memo, 0, lambda: (np.arange(3 * m), np.repeat(np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]), 3, axis=0)),
+    put(J, np.arange(3 * m), np.repeat(np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]), 3, axis=0),
           vals)
     return Factor("doa", r, J, np.repeat(p.doa.row, 3), 3, True, p.sigma["doa"], sig)
 
 
-def odometry(p, st, lay, memo=None):
+def odometry(p, st, lay):
     """Odometry: (s_{j+1} − s_j) − (o_{j+1} − o_j), three components per step."""
     K, sig = p.K, p.sigma["odometry"]
     J = jacobian(3 * (K - 1), lay)
@@ -256,12 +222,12 @@ def odometry(p, st, lay, memo=None):
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
     r = ((np.diff(st.s, axis=0) - np.diff(p.odom, axis=0)) / sig).ravel()
     k = np.arange(3 * (K - 1))
-    _put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
-    _put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
+    put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
+    put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
     return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
 
 
-def emission(p, st, lay, memo=None):
+def emission(p, st, lay):
     """Prior on the per-interval emission-time corrections: (e_{j+1} − e_j) ~ N(0, sigma_emit²)."""
     K, sig = p.K, p.sigma["emission"]
     if sig <= 0 or K < 2 or not (lay.e >= 0).any():
@@ -269,12 +235,12 @@ def emission(p, st, lay, memo=None):
     r = np.diff(st.e) / sig
     J = jacobian(K - 1, lay)
     k = np.arange(K - 1)
-    _fill(J, memo, 0, lambda: (k, lay.e[1:]), np.full(K - 1, 1.0 / sig))
-    _fill(J, memo, 1, lambda: (k, lay.e[:-1]), np.full(K - 1, -1.0 / sig))
+    put(J, k, lay.e[1:], np.full(K - 1, 1.0 / sig))
+    put(J, k, lay.e[:-1], np.full(K - 1, -1.0 / sig))
     return _out("emission", r, J, np.arange(1, K), 1, False, sig)
 
 
-def odometry_frame(p, st, lay, memo=None):
+def odometry_frame(p, st, lay):
     """Odometry in its own frame: (s_{j+1} − s_j) − Rz(ψ)(o_{j+1} − o_j), three components per step.
 
     ψ (``st.odo_yaw``, rad) is the odometry frame's rotation about the reference frame's z axis
@@ -287,27 +253,21 @@ def odometry_frame(p, st, lay, memo=None):
         return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
     psi = float(st.odo_yaw[0])
     yaw_col = int(lay.odo_yaw[0])
-    const = None if memo is None else memo.get("const")
-    if const is None:   # what does not depend on the state (kept in ``memo`` for one problem and layout)
-        const = (np.diff(p.odom, axis=0), np.arange(3 * (K - 1)), np.full(3 * (K - 1), 1.0 / sig),
-                 np.full(3 * (K - 1), -1.0 / sig), np.repeat(np.arange(1, K), 3))
-        if memo is not None:
-            memo["const"] = const
-    do, k, plus, minus, rows = const
+    do, k = np.diff(p.odom, axis=0), np.arange(3 * (K - 1))
     if psi != 0.0:
         c, s = np.cos(psi), np.sin(psi)
         do = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
     r = ((st.s[1:] - st.s[:-1] - do) / sig).ravel()   # (np.diff's subtraction, without its wrapper)
-    _fill(J, memo, 0, lambda: (k, lay.s[1:].ravel()), plus)
-    _fill(J, memo, 1, lambda: (k, lay.s[:-1].ravel()), minus)
+    put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
+    put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
     if yaw_col >= 0:
         # d(Rz(ψ) Δo)/dψ = (−y', x', 0) of the rotated step (x', y', z') = Rz(ψ) Δo
         drot = np.column_stack([-do[:, 1], do[:, 0], np.zeros(K - 1)])
-        _fill(J, memo, 2, lambda: (k, np.full(3 * (K - 1), yaw_col)), -drot.ravel() / sig)
-    return _out("odometry", r, J, rows, 3, False, sig)
+        put(J, k, np.full(3 * (K - 1), yaw_col), -drot.ravel() / sig)
+    return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
 
 
-def cone(p, st, lay, memo=None):
+def cone(p, st, lay):
     """Cone (linear arrays, 2-mic pairs): aᵀ R_iᵀ (s_j − x_i)/|s_j − x_i| − cos θ_ij, one per measurement.
 
     ``a`` (array frame) is the array's axis, θ the measured angle between it and the source direction
@@ -328,59 +288,42 @@ def cone(p, st, lay, memo=None):
     dphi = np.cross(a, w)
     b = np.einsum("kab,kb->ka", st.R[i], a)
     ds = (b - np.einsum("ka,ka->k", b, n)[:, None] * n) / d[:, None]
-    _fill(J, memo, 0, lambda: (np.arange(m), np.column_stack([lay.rot[i], lay.s[j], lay.x[i]])),
-          _cols([dphi, ds, -ds]) / sig)
+    put(J, np.arange(m), np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]),
+        _cols([dphi, ds, -ds]) / sig)
     return _out("cone", r, J, p.cone.row, 1, True, sig)
 
 
-@dataclass(frozen=True)
-class MeasurementKind:
-    """Everything calib knows about one kind of measurement, in one place (a new kind = one entry here).
-
-    factor : ``f(p, st, lay) -> Factor`` (residual, Jacobian, rows, whitening sigma).
-    unit, scale : report unit and the factor from SI (µs, deg, cm). label, title : plot/report texts.
-    Its sigma is ``Problem.sigma[name]``; meta_key : the meta.json key that states it (None: an option);
-    report_sigma : its key in report.json ``sigmas``; reweight : variance components may re-estimate it
-    (False: a fixed prior). dof : degrees of freedom of one measurement in the outlier tests (None: not
-    tested).
-    """
-    name: str
-    factor: Callable
-    unit: str
-    scale: float
-    label: str
-    title: str
-    meta_key: str | None = None
-    report_sigma: str | None = None
-    reweight: bool = False
-    dof: int | None = None
+# The estimator's half of each measurement kind (its spec, ``calib.kinds.KINDS``, says the rest): the factor
+# function, and the rows builder ``build(df, index) -> Rows`` (``problem.RowIndex``) of the kinds with rows of
+# their own in a features table (``spec.source``); the others' rows are derived in ``problem.build_problem``.
+FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission,
+           "cone": cone}
+ROWS = {"tdoa_s": tdoa_s_rows, "tdoa_m": tdoa_m_rows, "doa": doa_rows}
 
 
-_DEG = float(np.rad2deg(1.0))
-KINDS = {k.name: k for k in (
-    MeasurementKind("tdoa_s", tdoa_s, "us", 1e6, "TDOA-S residual (µs)", "TDOA-S", meta_key="sigma_tdoa",
-                    report_sigma="tdoa_s", reweight=True, dof=1),
-    MeasurementKind("tdoa_m", tdoa_m, "us", 1e6, "TDOA-M residual (µs)", "TDOA-M", meta_key="sigma_tdoa",
-                    report_sigma="tdoa_m", reweight=True, dof=1),
-    # a unit-vector residual has no noise along the direction itself: 2 degrees of freedom
-    MeasurementKind("doa", doa, "deg", _DEG, "DOA angular error (deg)", "DOA", meta_key="sigma_doa_deg",
-                    report_sigma="doa_rad_per_axis", reweight=True, dof=2),
-    MeasurementKind("odometry", odometry_frame, "cm", 100.0, "odometry residual per axis (cm)", "Odometry",
-                    meta_key="sigma_odo", report_sigma="odometry_m", reweight=True, dof=3),
-    MeasurementKind("emission", emission, "us", 1e6, "emission-interval correction (µs)", "Emission",
-                    report_sigma="emission_s"),
-    # cone: cosine difference ≈ rad · sin θ, shown in degrees
-    MeasurementKind("cone", cone, "deg", _DEG, "cone (axis angle) residual, cos × 57.3 (≈ deg)", "Cone",
-                    meta_key="sigma_doa_deg", report_sigma="cone_rad", reweight=True, dof=1),
-)}
-# Derived views (kept for the call sites that need only one attribute)
-ALL_KINDS = list(KINDS)
-UNITS = {k.name: (k.unit, k.scale) for k in KINDS.values()}
-FACTORS = {k.name: k.factor for k in KINDS.values()}
+def register(spec, factor, rows=None):
+    """Add a measurement kind: its spec (``calib.kinds.KindSpec``) and its factor function. A kind with a
+    table of its own gets its rows from ``rows(df, problem.RowIndex) -> problem.Rows``, by default
+    :func:`~calib.estimator.problem.event_rows` (a table of event, array and value columns). Everything
+    else (reading, validation, robust statistics, report, stage key) loops over the registry. Returns the spec."""
+    K.register(spec)
+    FACTORS[spec.name] = factor
+    if spec.table is not None:
+        ROWS[spec.name] = rows or event_rows(spec)
+    return spec
 
 
-# The kinds that can carry a per-array variance component (``p.array_scale``, estimator/arraynoise.py).
-ARRAY_KINDS = ("tdoa_s", "tdoa_m", "doa", "cone")  # the kinds measured per array (rows with ``arr``)
+def unregister(name):
+    """Remove a kind added by :func:`register`."""
+    K.unregister(name)
+    FACTORS.pop(name, None)
+    ROWS.pop(name, None)
+
+
+def active_kinds(p, stage="joint"):
+    """The kinds a ``stage`` of the estimator uses on problem ``p``, in registry order: those whose spec
+    lists the stage; a kind whose sigma is an option (no meta key: the emission prior) only when it is > 0."""
+    return [k for k in FACTORS if stage in KINDS[k].stages and (KINDS[k].noise_key or p.sigma[k] > 0)]
 
 
 def per_array(p, f):
@@ -405,15 +348,7 @@ def natural(f):
     return f.r * f.row_sigma
 
 
-def evaluate(p, st, lay, kinds=None, memo=None):
-    """Evaluate the listed factors (default all) → list of factor dicts (per-array components applied).
-
-    ``memo``: a dict kept for one problem and layout (e.g. by one LM solve): each factor's Jacobian index
-    bookkeeping is computed at the first evaluation and reused (:func:`_fill`); None: computed each time.
-    """
-    kinds = kinds or FACTORS
-    if memo is None:
-        fs = [FACTORS[k](p, st, lay) for k in kinds]
-    else:
-        fs = [FACTORS[k](p, st, lay, memo.setdefault(k, {})) for k in kinds]
+def evaluate(p, st, lay, kinds=None):
+    """Evaluate the listed factors (default all) → list of :class:`Factor` (per-array components applied)."""
+    fs = [FACTORS[k](p, st, lay) for k in (kinds or FACTORS)]
     return [per_array(p, f) for f in fs] if p.array_scale else fs

@@ -18,17 +18,10 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
+from calib.kinds import KINDS
 from calib.tables import LINE_COLUMN, columns
 
-try:   # scipy's compiled rotation kernels, which Rotation calls for numpy (N, 3) / (N, 3, 3) float64 input
-    from scipy.spatial.transform import _rotation_cy as _ROT
-except ImportError:   # pragma: no cover - another scipy layout: the public class (the same values)
-    _ROT = None
 
-# Documented defaults when meta.json gives no sigmas (the paper's real-data settings).
-DEFAULT_SIGMA_TDOA = 1e-4      # s
-DEFAULT_SIGMA_DOA_DEG = 5.0    # deg per tangent axis
-DEFAULT_SIGMA_ODO = 0.01       # m per axis per step
 
 
 
@@ -39,6 +32,11 @@ class Rows:
 
     def __len__(self):
         return len(self.row)
+
+    @property
+    def event(self):
+        """The event index of each measurement (the one it is reported at)."""
+        return self.ev
 
     def select(self, keep):
         """The rows where the boolean (n,) ``keep`` is True (or at the integer indices ``keep``)."""
@@ -62,6 +60,10 @@ class TdoaSRows(Rows):
     b: np.ndarray
     val: np.ndarray
     row: np.ndarray
+
+    @property
+    def event(self):
+        return self.b
 
 
 @dataclass
@@ -96,6 +98,7 @@ class Problem:
     cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
     (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
     odo_yaw_free: the odometry frame's yaw is estimated; odo_yaw_test: the test that decided it;
+    extra_rows: {kind: Rows} of the kinds registered beyond these (``factors.register``);
     array_scale, array_own: per-array variance components (opt-in); fixed_cols, unobservable: the
     parameters the data leave undetermined (left out of the solve, reported).
     """
@@ -116,6 +119,7 @@ class Problem:
     rot_fixed_axis: np.ndarray
     rot_free: np.ndarray
     n_doa_events: np.ndarray
+    extra_rows: dict = dataclasses.field(default_factory=dict)   # {kind: Rows} of registered kinds beyond these
     odo_yaw_free: bool = False
     odo_yaw_test: dict | None = None
     # per-array variance components (estimator/arraynoise.py): {kind: (N,) sigma factor of each array},
@@ -136,8 +140,8 @@ class Problem:
         return len(self.events)
 
     def rows(self, kind):
-        """The measurement rows of ``kind`` (tdoa_m, tdoa_s, doa, cone)."""
-        return getattr(self, kind)
+        """The measurement rows of ``kind`` (tdoa_m, tdoa_s, doa, cone, or a registered kind's)."""
+        return self.extra_rows[kind] if kind in self.extra_rows else getattr(self, kind)
 
     def replace(self, **changes):
         """A copy with ``changes``: measurement arrays shared, the per-solve state (sigmas, per-array
@@ -153,51 +157,91 @@ class Problem:
         return self.replace()
 
 
-def sigma_doa_per_axis(sigma_deg):
-    """meta ``sigma_doa_deg`` → std per tangent axis of the DOA direction error (rad).
+@dataclass(frozen=True)
+class RowIndex:
+    """What a rows builder needs besides its table: array and event indices by name / id, and meta."""
+    arrays: dict
+    events: dict
+    meta: dict
 
-    ``sigma_doa_deg`` is the standard deviation of the DOA error along each of the two axes
-    perpendicular to the true direction (the weighting of the paper's code, where each component of the
-    unit-vector residual has std 2·sin(σ/2) ≈ σ). The paper's simulation draws a rotation about an isotropic
-    random axis by N(0, σ²); that is σ/√3 per axis (``pipeline.simulate.featsim`` writes it so).
-    """
-    return float(np.deg2rad(sigma_deg))
+    def arr(self, names):
+        """Array indices (m,) of array names."""
+        return np.array([self.arrays[v] for v in names], dtype=int)
+
+    def ev(self, ids):
+        """Event indices (m,) of event ids."""
+        return np.array([self.events[v] for v in ids], dtype=int)
+
+    @staticmethod
+    def lines(df):
+        """The rows' lines in their CSV file (:func:`_lines`)."""
+        return _lines(df)
+
+
+@dataclass
+class EventRows(Rows):
+    """The rows of a kind measured by array ``arr`` at event ``ev`` (indices): value ``val`` (m,) or (m, k),
+    the table's columns other than event and array (the default rows of a registered kind)."""
+    ev: np.ndarray
+    arr: np.ndarray
+    val: np.ndarray
+    row: np.ndarray
+
+
+def event_rows(spec):
+    """The default rows builder of a kind whose table is (event, array, value columns...): :class:`EventRows`."""
+    values = tuple(c for c in spec.table.columns if c not in ("event", "array"))
+
+    def build(df, ix):
+        val = columns(df, values)
+        return EventRows(ix.ev(df["event"]), ix.arr(df["array"]), val[:, 0] if len(values) == 1 else val, _lines(df))
+    return build
+
+
+def tdoa_m_rows(df, ix):
+    return TdoaMRows(ix.ev(df["event"]), ix.arr(df["array"]), df["tdoa"].to_numpy(float), _lines(df))
+
+
+def tdoa_s_rows(df, ix):
+    return TdoaSRows(ix.arr(df["array"]), ix.ev(df["from_event"]), ix.ev(df["to_event"]), df["tdoa"].to_numpy(float),
+                     _lines(df))
+
+
+def doa_rows(df, ix):
+    return DoaRows(ix.ev(df["event"]), ix.arr(df["array"]), columns(df, ("ux", "uy", "uz")).reshape(-1, 3), _lines(df),
+                   doa_row_scales(df, ix.meta))
 
 
 def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0, odometry_yaw=False):
-    """Index the measurements of a (validated) features dict → :class:`Problem`."""
+    """Index the measurements of a (validated) features dict → :class:`Problem`.
+
+    Each kind with a rows builder (``factors.ROWS``) gets its rows from its features table (``use_*``: False
+    leaves that kind empty); the cone rows are split from the DOA rows (meta ``doa_axes``); each kind's sigma
+    comes from meta (``calib.kinds``: key and default), the emission prior's from ``sigma_emit``.
+    """
+    from .factors import ROWS   # (factors builds on this module)
+
     meta = features["meta"]
     names = np.asarray(meta["arrays"], dtype=object)
     idx = {n: k for k, n in enumerate(names)}
     ev = features["events"]
     events = ev["event"].to_numpy(int)
-    eidx = {e: k for k, e in enumerate(events)}
     t_emit = ev["t_emit"].to_numpy(float)
-
-    def rows(df, use):
-        return df if use else df.iloc[:0]
-
-    def index(values, table):
-        return np.array([table[v] for v in values], dtype=int)
-
-    tm = rows(features["tdoa_m"], use_tdoa_m)
-    ts = rows(features["tdoa_s"], use_tdoa_s)
-    doa = rows(features["doa"], use_doa)
-    sigma_tdoa = float(meta.get("sigma_tdoa", DEFAULT_SIGMA_TDOA))
-    sigma_doa = float(sigma_doa_per_axis(meta.get("sigma_doa_deg", DEFAULT_SIGMA_DOA_DEG)))
+    ix = RowIndex(idx, {e: k for k, e in enumerate(events)}, meta)
+    use = {"tdoa_s": use_tdoa_s, "tdoa_m": use_tdoa_m, "doa": use_doa}
+    rows = {}
+    for kind, build in ROWS.items():
+        df = features.get(KINDS[kind].source)
+        df = KINDS[kind].table.empty() if df is None else df
+        rows[kind] = build(df if use.get(kind, True) else df.iloc[:0], ix)
+    sigma = {k: s.sigma_si(meta) for k, s in KINDS.items() if s.noise_key}
     N = len(names)
     p = Problem(
         names=names, ref=idx[meta["reference_array"]], c=float(meta["speed_of_sound"]),
         beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events,
-        odom=columns(ev, ("odom_x", "odom_y", "odom_z")),
-        tdoa_m=TdoaMRows(index(tm["event"], eidx), index(tm["array"], idx), tm["tdoa"].to_numpy(float), _lines(tm)),
-        tdoa_s=TdoaSRows(index(ts["array"], idx), index(ts["from_event"], eidx), index(ts["to_event"], eidx),
-                         ts["tdoa"].to_numpy(float), _lines(ts)),
-        doa=DoaRows(index(doa["event"], eidx), index(doa["array"], idx),
-                    columns(doa, ("ux", "uy", "uz")).reshape(-1, 3), _lines(doa), doa_row_scales(doa, meta)),
-        cone=ConeRows(np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0, int)),
-        sigma={"tdoa_s": sigma_tdoa, "tdoa_m": sigma_tdoa, "doa": sigma_doa, "cone": sigma_doa,
-               "odometry": float(meta.get("sigma_odo", DEFAULT_SIGMA_ODO)), "emission": float(sigma_emit)},
+        odom=columns(ev, ("odom_x", "odom_y", "odom_z")), tdoa_m=rows.pop("tdoa_m"), tdoa_s=rows.pop("tdoa_s"),
+        doa=rows.pop("doa"), cone=ConeRows(np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0, int)),
+        sigma={**sigma, "emission": float(sigma_emit)}, extra_rows=rows,
         fold=np.zeros((N, 3)), cone_axis=np.zeros((N, 3)), rot_fixed_axis=-np.ones(N, int),
         rot_free=np.ones(N, bool), n_doa_events=np.zeros(N, int))
     _fold_mirror_ambiguous(p, meta, idx)
@@ -241,7 +285,7 @@ def doa_row_scales(doa, meta):
     toward 1 (``DOA_ROW_WEIGHT``). 1 for rows without a value and for files without the column."""
     if "sigma_deg" not in doa.columns or not len(doa):
         return np.ones(len(doa))
-    typical = float(meta.get("sigma_doa_deg", DEFAULT_SIGMA_DOA_DEG))
+    typical = float(meta.get("sigma_doa_deg", KINDS["doa"].noise_default))
     own = pd.to_numeric(doa["sigma_deg"], errors="coerce").to_numpy(float) / typical
     scale2 = (1.0 - DOA_ROW_WEIGHT) + DOA_ROW_WEIGHT * own**2
     return np.where(np.isfinite(scale2), np.sqrt(scale2), 1.0)
@@ -253,7 +297,7 @@ def _split_cones(p, meta, idx):
     ``doa_axes``: {array: axis}, the axis a unit vector in the array frame (sign free; usually a
     coordinate axis). Such an array measures only the angle θ between its axis and the source direction;
     its doa.csv rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Sets
-    ``p.cone`` (its rows), ``p.cone_axis`` (N, 3), ``p.rot_fixed_axis`` (N,) and ``p.sigma["cone"]`` (rad).
+    ``p.cone`` (its rows), ``p.cone_axis`` (N, 3) and ``p.rot_fixed_axis`` (N,).
     ``rot_fixed_axis`` is the array-frame coordinate axis k nearest the
     array's axis (-1 for other arrays): the rotation component about e_k is not estimated. The roll about
     the axis is not observable; the two components about the other coordinate axes move the axis in every
@@ -268,7 +312,6 @@ def _split_cones(p, meta, idx):
     d = p.doa.select(is_cone)
     p.cone = ConeRows(d.ev, d.arr, np.clip(np.einsum("ka,ka->k", p.cone_axis[d.arr], d.u), -1.0, 1.0), d.row)
     p.doa = p.doa.select(~is_cone)
-    p.sigma["cone"] = p.sigma["doa"]
 
 
 # The yaw of the odometry frame needs horizontal motion: a spread of the odometry across the vertical
@@ -412,15 +455,9 @@ def _without_fixed(lay, fixed):
     return lay
 
 
-def retract(st, lay, delta, memo=None):
-    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ).
-
-    ``memo``: a dict kept by the caller for one layout (an LM solve): the index bookkeeping, which
-    depends on the layout only, is computed once (:func:`_retract_index`)."""
-    index = _retract_index(lay) if memo is None else memo.get("_retract")
-    if index is None:
-        index = memo["_retract"] = _retract_index(lay)
-    additive, rows, idx, free = index
+def retract(st, lay, delta):
+    """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ)."""
+    additive, rows, idx, free = _retract_index(lay)
     out = st.copy()
     for key, m, cols in additive:
         if m is None:   # every entry free: the whole field, in its own order (the same sums, no masking)
@@ -430,25 +467,8 @@ def retract(st, lay, delta, memo=None):
             getattr(out, key)[m] += delta[cols]
     if rows.size:
         phi = delta[idx] if free is None else np.where(free, delta[idx], 0.0)
-        out.R[rows] = st.R[rows] @ rotvec_matrices(phi)
+        out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
     return out
-
-
-def rotvec_matrices(phi):
-    """Rotation matrices (N, 3, 3) of rotation vectors ``phi`` (N, 3): ``Rotation.from_rotvec(phi).as_matrix()``
-    by the compiled kernels it calls, without its per-call array-API dispatch (~6 µs of ~9; every LM
-    candidate retracts)."""
-    if _ROT is None:
-        return Rotation.from_rotvec(phi).as_matrix()
-    return np.asarray(_ROT.as_matrix(_ROT.from_rotvec(np.ascontiguousarray(phi, dtype=float))))
-
-
-def matrix_quaternions(R, scalar_first=True):
-    """Unit quaternions (N, 4) of rotation matrices ``R`` (N, 3, 3):
-    ``Rotation.from_matrix(R).as_quat(scalar_first=...)`` by the compiled kernels it calls."""
-    if _ROT is None:
-        return Rotation.from_matrix(R).as_quat(scalar_first=scalar_first)
-    return np.asarray(_ROT.as_quat(_ROT.from_matrix(np.ascontiguousarray(R, dtype=float)), scalar_first=scalar_first))
 
 
 def _retract_index(lay):
@@ -465,10 +485,3 @@ def _retract_index(lay):
     idx = lay.rot[rows]
     free = idx >= 0
     return additive, rows, np.maximum(idx, 0), None if free.all() else free
-
-
-def state_to_frames(p, st):
-    """State → (arrays DataFrame columns as dict of arrays, sources (K, 3))."""
-    q = matrix_quaternions(st.R)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)  # canonical sign: qw >= 0
-    return q

@@ -25,12 +25,10 @@ from scipy.special import gammaincc, gammainccinv, gammaln, ndtri
 
 from calib.robust import median
 
-from .factors import KINDS, UNITS
+from .factors import KINDS
 from .problem import make_layout
 from .solver import cholesky_solve, levenberg_marquardt, linearise, use_dense
 
-DOF = {k.name: k.dof for k in KINDS.values() if k.dof is not None}   # measurement kinds the tests cover
-TESTED_KINDS = tuple(DOF)
 FAMILY_ALPHA = 0.01          # family-wise false-alarm rate of the outlier test (Bonferroni over measurements)
 MAX_OUTLIER_FRACTION = 0.3   # the row-wise removal stops after this fraction of the measurements
 UNTESTABLE = 1e-6            # 1 − h below this: the row is fitted exactly by its own parameters
@@ -50,7 +48,7 @@ CONCENTRATED_OWN = 0.1
 
 @dataclass
 class MeasurementStats:
-    """Per-measurement test statistics at a state (only kinds in TESTED_KINDS).
+    """Per-measurement test statistics at a state (only the kinds with ``dof``: :func:`tested_kinds`).
 
     kind (M,) str, index (M,) measurement index within its factor, line (M,) CSV line, array (M,) array index
     (-1 for odometry), event (M,) event index, q (M,) χ² statistic, dof (M,), kept (M,) bool (not masked),
@@ -71,19 +69,28 @@ class MeasurementStats:
     scale: dict
 
 
-def measurement_arrays(p, kind):
-    """(array index (m,), event index (m,)) of each measurement of ``kind`` (-1 array for odometry)."""
-    if kind == "tdoa_s":
-        return p.tdoa_s.arr, p.tdoa_s.b
-    if kind == "tdoa_m":
-        return p.tdoa_m.arr, p.tdoa_m.ev
-    if kind == "doa":
-        return p.doa.arr, p.doa.ev
-    if kind == "odometry":
-        return np.full(max(p.K - 1, 0), -1), np.arange(1, p.K)
-    if kind == "cone":
-        return p.cone.arr, p.cone.ev
-    raise KeyError(kind)
+def tested_kinds():
+    """The kinds the outlier tests cover (a ``dof`` in their spec), in registry order."""
+    return [k for k, spec in KINDS.items() if spec.dof is not None]
+
+
+def per_array_kinds():
+    """The tested kinds measured per array (rows with ``arr``), in registry order."""
+    return [k for k in tested_kinds() if KINDS[k].per_array]
+
+
+def n_measurements(p, kind):
+    """Number of measurements of ``kind``: its rows, or for a per-event kind its steps (odometry)."""
+    return len(p.rows(kind)) if KINDS[kind].per_array else max(p.K - 1, 0)
+
+
+def measurement_arrays(p, f):
+    """(array index (m,), event index (m,)) of each measurement of factor ``f`` (-1 array for a per-event
+    kind, whose factor rows are the event of each step)."""
+    if KINDS[f.kind].per_array:
+        rows = p.rows(f.kind)
+        return rows.arr, rows.event
+    return np.full(len(f.r) // f.dim, -1), np.asarray(f.row)[::f.dim]
 
 
 def _hat_factor(J, keep):
@@ -116,7 +123,7 @@ def measurement_stats(p, st, lay, kinds, mask):
     for f in fs:
         n = len(f.r)
         sl0, start = start, start + n
-        if f.kind not in TESTED_KINDS or n == 0:
+        if KINDS[f.kind].dof is None or n == 0:
             continue
         dim = f.dim
         m = n // dim
@@ -139,8 +146,8 @@ def measurement_stats(p, st, lay, kinds, mask):
         else:
             # DOA: along the predicted direction H ≈ 0 and r ≈ 0, so I − H stays regular there
             q = _block_quadratic(I_H, rg)
-        arr, ev = measurement_arrays(p, f.kind)
-        unit_scale = UNITS[f.kind][1]
+        arr, ev = measurement_arrays(p, f)
+        unit_scale = KINDS[f.kind].scale
         nat = rg[:, 0] if dim == 1 else np.linalg.norm(rg, axis=1)   # signed for scalar measurements
         out["kind"].append(np.full(m, f.kind, dtype=object))
         out["index"].append(np.arange(m))
@@ -148,7 +155,7 @@ def measurement_stats(p, st, lay, kinds, mask):
         out["array"].append(np.asarray(arr, int))
         out["event"].append(np.asarray(ev, int))
         out["q"].append(q)
-        out["dof"].append(np.full(m, DOF[f.kind]))
+        out["dof"].append(np.full(m, KINDS[f.kind].dof))
         out["kept"].append(kept)
         out["natural"].append(nat * np.broadcast_to(f.row_sigma, rg.size)[::dim] * unit_scale)
     if not out["q"]:
@@ -250,24 +257,27 @@ def flag_record(p, stats, k, reason="normalised residual"):
     rec = {"type": kind, "line": int(stats.line[k]), "array": str(p.names[a]) if a >= 0 else None,
            "event": int(p.events[stats.event[k]]),
            "residual_sigma": float(np.sign(stats.natural[k]) * min(stats.z[k], 1e6)),
-           "residual": float(stats.natural[k]), "unit": UNITS[kind][0].replace("us", "µs"), "reason": reason}
-    if kind in ("tdoa_s", "tdoa_m"):
+           "residual": float(stats.natural[k]), "unit": KINDS[kind].unit.replace("us", "µs"), "reason": reason}
+    if KINDS[kind].unit == "us":
         rec["residual_us"] = float(stats.natural[k])
     return rec
 
 
 def factor_sizes(p):
     """{kind: (number of residuals, residuals per measurement)} of the tested factors, from the problem."""
-    return {"tdoa_s": (len(p.tdoa_s.val), 1), "tdoa_m": (len(p.tdoa_m.val), 1), "doa": (3 * len(p.doa.u), 3),
-            "odometry": (3 * max(p.K - 1, 0), 3), "cone": (len(p.cone.cos), 1)}
+    return {k: (KINDS[k].dim * n_measurements(p, k), KINDS[k].dim) for k in tested_kinds()}
 
 
 def count_measurements(p, exclude_arrays=()):
     """Number of tested measurements (TDOA rows, DOAs, odometry steps), leaving out ``exclude_arrays``."""
-    n = max(p.K - 1, 0)
-    for rows in (p.tdoa_s, p.tdoa_m, p.doa, p.cone):
+    n = 0
+    for kind in tested_kinds():
+        if not KINDS[kind].per_array:
+            n += n_measurements(p, kind)
+            continue
+        arr = p.rows(kind).arr
         # nothing excluded (the common case): every row counts, without np.isin's set machinery
-        n += int(np.sum(~np.isin(rows.arr, list(exclude_arrays)))) if len(exclude_arrays) else int(np.size(rows.arr))
+        n += int(np.sum(~np.isin(arr, list(exclude_arrays)))) if len(exclude_arrays) else int(np.size(arr))
     return n
 
 
@@ -342,11 +352,10 @@ def restore_inliers(p, st, lay, kinds, mask, flagged, *, threshold, max_iter):
 
 
 def array_mask(p, mask, sizes, i):
-    """``mask`` with every measurement of array i excluded (its TDOA-S, TDOA-M and DOA rows)."""
+    """``mask`` with every measurement of array i excluded (its rows of every per-array kind)."""
     out = {kk: v.copy() for kk, v in mask.items()}
-    for kind, dim in (("tdoa_s", 1), ("tdoa_m", 1), ("doa", 3), ("cone", 1)):
-        if kind not in sizes:
-            continue
+    for kind in per_array_kinds():
+        dim = KINDS[kind].dim
         keep = out.get(kind, np.ones(sizes[kind][0], bool)).copy()
         keep &= np.repeat(p.rows(kind).arr != i, dim)
         out[kind] = keep
@@ -362,11 +371,11 @@ def array_candidates(p, stats, ratio=ARRAY_RATIO, min_rows=ARRAY_MIN_ROWS):
     Returns a list of (array index, {kind: ratio}) sorted by the largest ratio, worst first.
     """
     out = {}
-    for kind in ("tdoa_s", "tdoa_m", "doa", "cone"):
+    for kind in per_array_kinds():
         m = stats.kept & (stats.kind == kind)
         if m.sum() < 2 * min_rows:
             continue
-        qn = stats.q[m] / chi2_median(DOF[kind])
+        qn = stats.q[m] / chi2_median(KINDS[kind].dof)
         pooled = max(float(median(qn)), 1.0)
         arr = stats.array[m]
         for i in np.unique(arr):

@@ -7,9 +7,6 @@ Small problems solve them dense; large ones with a sparse Jacobian and a Schur c
 """
 from __future__ import annotations
 
-import dataclasses
-import functools
-import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -18,7 +15,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from .factors import Jacobian, evaluate
-from .problem import retract
+from .problem import STATE_FIELDS, retract
 
 
 def rho(r, loss, k):
@@ -46,24 +43,12 @@ def use_dense(lay):
     return lay.n <= DENSE_MAX_PARAMS
 
 
-def stack_jacobians(Js, n, dense, memo=None):
+def stack_jacobians(Js, n, dense):
     """Stack the factors' Jacobians (each a ``factors.Jacobian``, a dense array or scipy.sparse matrix).
 
     Returns the (M, n) Jacobian: a dense array if ``dense`` else a ``scipy.sparse.csr_matrix``.
-    ``memo`` (a dict kept for one problem and layout, as in ``factors.evaluate``): the dense path's flat
-    entry indices are computed once and reused while the chunks' sizes are the same.
     """
     M = sum(J.shape[0] for J in Js)
-    if memo is not None and dense and all(isinstance(J, Jacobian) for J in Js):
-        sizes = (M, n) + tuple(len(c[0]) for J in Js for c in J.chunks)
-        known = memo.get("_stack")
-        if known is None or known[0] != sizes:
-            flat = [r + off for r, off in zip(*_chunk_rows(Js))]
-            cols = [c for J in Js for _, c, _ in J.chunks]
-            known = memo["_stack"] = (sizes, np.concatenate(flat) * n + np.concatenate(cols) if flat else None)
-        if known[1] is not None:
-            vals = np.concatenate([v for J in Js for _, _, v in J.chunks])
-            return np.bincount(known[1], weights=vals, minlength=M * n).reshape(M, n)
     rows, cols, vals, off = [], [], [], 0
     for J in Js:
         if isinstance(J, Jacobian):
@@ -84,212 +69,6 @@ def stack_jacobians(Js, n, dense, memo=None):
     return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
 
 
-def _chunk_rows(Js):
-    """The row arrays of the factors' Jacobian chunks and each one's row offset in the stacked matrix."""
-    rows, offs, off = [], [], 0
-    for J in Js:
-        for r, _, _ in J.chunks:
-            rows.append(r)
-            offs.append(off)
-        off += J.shape[0]
-    return rows, offs
-
-
-@functools.cache
-def _field_names(cls):
-    """The field names of dataclass ``cls`` (cached: ``dataclasses.fields`` costs more than the lookup)."""
-    return tuple(f.name for f in dataclasses.fields(cls))
-
-
-_SCALARS = frozenset((int, float, str, bool, type(None)))
-
-
-def _snapshot(v, refs):
-    """A comparable picture of a problem entry: arrays by identity (kept alive in ``refs``, so an id is
-    never reused while cached), scalars by type and repr, dicts/lists/tuples recursively by content (an
-    entry such as ``p.array_scale`` is a dict updated in place)."""
-    t = type(v)
-    if t is np.ndarray:   # the common case first (a problem is mostly arrays)
-        refs.append(v)
-        return id(v)
-    if t in _SCALARS:
-        return (t.__name__, repr(v))
-    if hasattr(t, "__dataclass_fields__"):   # the Problem and its Rows blocks
-        return ("c", t.__name__, tuple(_dataclass_items(v, _field_names(t), refs)))
-    if isinstance(v, dict):
-        return ("d", tuple([(k, _snapshot(x, refs)) for k, x in v.items()]))
-    if isinstance(v, (list, tuple)):
-        return ("s", tuple([_snapshot(x, refs) for x in v]))
-    if isinstance(v, (int, float, str, bool, np.number)):
-        return (t.__name__, repr(v))
-    refs.append(v)   # any other object (ndarray subclasses included) by identity
-    return ("o", id(v))
-
-
-def _dataclass_items(v, names, refs):
-    """[(name, _snapshot(field))] of dataclass ``v``: array fields (most of a problem's ~50 entries)
-    inline, without a recursive call each; the same values as the recursion."""
-    out = []
-    for name in names:
-        x = getattr(v, name)
-        if type(x) is np.ndarray:
-            refs.append(x)
-            out.append((name, id(x)))
-        else:
-            out.append((name, _snapshot(x, refs)))
-    return out
-
-
-def _values_key(*objs):
-    """The fields of dataclasses ``objs`` (states, layouts: arrays) by value: (dtypes and shapes, bytes)."""
-    vals = [np.asarray(getattr(d, name)) for d in objs for name in _field_names(type(d))]
-    return (tuple((v.dtype.char, v.shape) for v in vals), b"".join([v.tobytes() for v in vals]))
-
-
-class _LineariseCache:
-    """The last few factor evaluations (and stacked Jacobians), keyed by everything they depend on.
-
-    The estimator's stages often linearise again where the previous one stopped (each LM call starts
-    where the last ended; the outlier statistics, drop tests and covariances look at the state an LM call
-    just returned), so the factors are evaluated once per (problem, state, layout, kinds) and the identical
-    arrays reused. The key holds the state and layout by value and the problem by :func:`_snapshot`: its
-    arrays are replaced, never modified in place (a new sigma, a new per-array scale is a new object), and
-    the cached arrays are made read-only.
-    """
-
-    SIZE = 4
-
-    def __init__(self):
-        self.entries = []   # [_Entry], most recent last
-        self.lock = threading.Lock()
-
-    @staticmethod
-    def problem_key(p, kinds):
-        """The part of the key that names the problem and kinds (one LM call computes it once: its
-        problem does not change between iterations): (key part, objects it names by identity)."""
-        refs = []
-        return (tuple(kinds), _snapshot(p, refs)), refs
-
-    @staticmethod
-    def key(p, st, lay, kinds, pkey=None):
-        head, refs = _LineariseCache.problem_key(p, kinds) if pkey is None else pkey
-        return head + _values_key(st, lay), refs
-
-    def lookup(self, p, st, lay, kinds, pkey=None):
-        key, refs = self.key(p, st, lay, kinds, pkey)
-        with self.lock:
-            for e in reversed(self.entries):
-                if e.key == key:
-                    return (key, refs), e
-        return (key, refs), None
-
-    def store(self, key, fs):
-        chunks = [f.J for f in fs]
-        fs = [_without_jacobian(f) for f in fs]   # the Jacobian lives in the entry (chunks, then stacked forms)
-        for f in fs:
-            for name in ("r", "row"):
-                if isinstance(getattr(f, name), np.ndarray):
-                    getattr(f, name).setflags(write=False)
-        e = _Entry(key[0], key[1], fs, chunks)
-        with self.lock:
-            self.entries = self.entries[-(self.SIZE - 1):] + [e]
-        return e
-
-
-def _without_jacobian(f):
-    """A shallow copy of factor ``f`` with ``J`` None (``dataclasses.replace(f, J=None)``'s result, without
-    its per-call field introspection: ~7 factors per cached evaluation)."""
-    g = object.__new__(type(f))
-    g.__dict__.update(f.__dict__)
-    g.J = None
-    return g
-
-
-class _Entry:
-    """One cached evaluation: key, the objects its problem snapshot names (kept alive), factor dicts (``J``
-    None), the factors' Jacobian chunks (dropped once a sparse J is stacked) and the stacked forms."""
-
-    __slots__ = ("key", "vals", "fs", "chunks", "forms")
-
-    def __init__(self, key, vals, fs, chunks):
-        self.key, self.vals, self.fs, self.chunks, self.forms = key, vals, fs, chunks, {}
-
-    def put_form(self, J, dense):
-        """Keep the stacked J (read-only); a sparse one replaces the per-factor chunks (memory)."""
-        (J if dense else J.data).setflags(write=False)
-        self.forms[dense] = J
-        if not dense:
-            self.chunks = None
-
-
-_CACHE = _LineariseCache()
-
-
-class _MemoCache:
-    """The factors' index bookkeeping (``memo`` of :func:`factors.evaluate`, :func:`stack_jacobians`,
-    :func:`retract`) of the last few small (dense-path) problems, kinds and layouts: it depends on nothing
-    else, so the LM calls and single evaluations of one problem share it instead of rebuilding it. Keyed like
-    :class:`_LineariseCache` without the state (the problem by :func:`_snapshot`, its sigmas by value)."""
-
-    SIZE = 8
-
-    def __init__(self):
-        self.entries = []   # [(key, objects the key names by identity, memo)], most recent last
-        self.lock = threading.Lock()
-
-    def get(self, pkey, lay):
-        if not use_dense(lay):   # large problems: bookkeeping as large as J, kept for one LM call only
-            return {}
-        head, refs = pkey
-        key = head + _values_key(lay)
-        with self.lock:
-            for e in reversed(self.entries):
-                if e[0] == key:
-                    return e[2]
-            memo = {}
-            self.entries = self.entries[-(self.SIZE - 1):] + [(key, refs, memo)]
-        return memo
-
-
-_MEMOS = _MemoCache()
-
-
-def remember(p, st, lay, kinds, lin, dense, pkey=None):
-    """Put a linearisation computed with ``cache=False`` (:func:`linearise`) into the cache, as if it
-    had been computed through it: an LM solve evaluates each candidate state uncached (most are never
-    seen again) and keeps only the state it returns, which the next stage reads first."""
-    key, e = _CACHE.lookup(p, st, lay, kinds, pkey)
-    if e is None:
-        _CACHE.store(key, lin.factors).put_form(lin.J, dense)
-
-
-def factors_at(p, st, lay, kinds, dense=None, pkey=None, memo=None):
-    """(factor dicts, stacked Jacobian or None when ``dense`` is None): evaluated once per distinct input.
-
-    ``pkey``: ``_LineariseCache.problem_key(p, kinds)`` when the caller already has it (an LM call);
-    ``memo``: the index bookkeeping kept for this problem and layout (``factors.evaluate``).
-    Thread-safe: concurrent calls at the same input may both compute it (the results are equal).
-    """
-    if pkey is None:
-        pkey = _CACHE.problem_key(p, kinds)
-    key, e = _CACHE.lookup(p, st, lay, kinds, pkey)
-    if memo is None and (e is None or (dense is not None and dense not in e.forms)):
-        memo = _MEMOS.get(pkey, lay)
-    if e is None:
-        e = _CACHE.store(key, evaluate(p, st, lay, kinds, memo))
-    if dense is None:
-        return e.fs, None
-    J = e.forms.get(dense)
-    if J is None:
-        chunks, sparse = e.chunks, e.forms.get(False)   # (this order: chunks are dropped after the sparse J is in)
-        if sparse is not None:   # the chunks may be gone: the same entries from the sparse form
-            J = sparse if not dense else sparse.toarray()
-        else:
-            J = stack_jacobians(chunks, lay.n, dense, memo)
-        e.put_form(J, dense)
-    return e.fs, J
-
-
 class Linearised(NamedTuple):
     """The stacked factors at one state: whitened residuals r (M,), Jacobian J (M, n; dense or CSR), IRLS
     weights w (M,), cost ½ Σ ρ(r) and the factors in stacking order."""
@@ -300,24 +79,16 @@ class Linearised(NamedTuple):
     factors: list
 
 
-def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=None, memo=None,
-              cache=True) -> Linearised:
+def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Linearised:
     """Stack the factors: residuals r, Jacobian J, IRLS weights w, per-residual kind labels and cost.
 
     ``mask`` maps factor kind → boolean array over that factor's residuals (False = excluded outlier).
     ``dense``: J as a dense (M, n) array (True), a ``scipy.sparse.csr_matrix`` (False) or chosen by size
-    (None, see :func:`use_dense`). J and the factors' arrays are shared with later calls at the same
-    inputs (read-only); the factor dicts carry no per-factor ``J`` (``factors.evaluate`` has those).
-    ``pkey``, ``memo``: what one LM solve keeps between its linearisations, :func:`factors_at`.
-    ``cache=False``: evaluated without looking up or storing in the cache (then the factors keep their
-    ``J`` and the arrays are the caller's; :func:`remember` stores them later).
+    (None, see :func:`use_dense`).
     """
     dense = use_dense(lay) if dense is None else dense
-    if cache:
-        fs, J = factors_at(p, st, lay, kinds, dense, pkey, memo)
-    else:
-        fs = evaluate(p, st, lay, kinds, memo)
-        J = stack_jacobians([f.J for f in fs], lay.n, dense, memo)
+    fs = evaluate(p, st, lay, kinds)
+    J = stack_jacobians([f.J for f in fs], lay.n, dense)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f.r
@@ -332,9 +103,9 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None, pkey=N
 
 
 def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
-    """½ Σ ρ(r) at ``st`` (residuals only: no Jacobian is stacked)."""
+    """½ Σ ρ(r) at ``st``."""
     cost = 0.0
-    for f in factors_at(p, st, lay, kinds)[0]:
+    for f in evaluate(p, st, lay, kinds):
         keep = np.ones(len(f.r), bool) if mask is None or f.kind not in mask else mask[f.kind]
         c, _ = rho(np.where(keep, f.r, 0.0), loss if f.robust else None, k)
         cost += 0.5 * float(np.sum(np.where(keep, c, 0.0)))
@@ -496,7 +267,7 @@ def _solve_damped(H, g, lam):
 def _same_state(a, b):
     """Whether states ``a`` and ``b`` are equal (every field; ``np.array_equal``'s test, without its
     per-call conversions)."""
-    for name in _field_names(type(a)):
+    for name in STATE_FIELDS:
         x, y = getattr(a, name), getattr(b, name)
         if x.shape != y.shape or not (x == y).all():
             return False
@@ -515,13 +286,9 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                     "reason": "no free parameters"}
     dense = use_dense(lay) if dense is None else dense
     lam, nu = lam0, 2.0
-    # p and lay do not change during the solve: the cache key's problem part is computed once, and the
-    # factors' index bookkeeping (memo) is the one kept for this problem and layout (:class:`_MemoCache`)
-    pkey = _CACHE.problem_key(p, kinds)
-    memo = _MEMOS.get(pkey, lay)
-    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense, pkey=pkey, memo=memo)
+    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense)
     r, J, w, cost = lin.r, lin.J, lin.w, lin.cost
-    reason, it, fresh = "max_iter", 0, False
+    reason, it = "max_iter", 0
     for it in range(1, max_iter + 1):
         H, g = normal_equations(J, w, r)
         diag = np.diag(H) if dense else H.diagonal()
@@ -538,12 +305,12 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                 # is not evaluated (it would move the state by ~sqrt(2 rtol cost) in whitened units)
                 reason = "cost"
                 break
-            cand = retract(st, lay, step, memo)
+            cand = retract(st, lay, step)
             if _same_state(cand, st):
                 # the damped step no longer moves the state (it is below the parameters' rounding): it
                 # cannot lower the cost, and more damping only shrinks it further
                 break
-            lin2 = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense, memo=memo, cache=False)
+            lin2 = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense)
             r2, J2, w2, cost2 = lin2.r, lin2.J, lin2.w, lin2.cost
             ratio = (cost - cost2) / pred if pred > 0 else -1.0
             if cost2 < cost and np.isfinite(cost2):
@@ -562,11 +329,9 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         lam *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3) if ratio > 0 else 2.0
         nu = 2.0
         dec = cost - cost2
-        st, r, J, w, cost, lin, fresh = cand, r2, J2, w2, cost2, lin2, True
+        st, r, J, w, cost = cand, r2, J2, w2, cost2
         if dec <= rtol * max(cost, 1e-30):
             reason = "cost"
             break
-    if fresh:   # the returned state was evaluated uncached: the next stage will read it
-        remember(p, st, lay, kinds, lin, dense, pkey)
     # "no decrease": no damped step lowers the cost any more, i.e. a numerical minimum.
     return st, {"iterations": it, "cost": cost, "converged": reason != "max_iter", "reason": reason}

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.tables import columns
 
-from .factors import ALL_KINDS
+from .factors import active_kinds
 from .problem import build_problem, empty_state, make_layout, retract
 from .solver import Schur, linearise
 
@@ -196,7 +196,7 @@ def _rows_of(column, keys, what):
 def fisher(p, st, kinds=None):
     """Fisher information JᵀJ of the whitened residuals at ``st`` and its layout."""
     lay = make_layout(p)
-    kinds = kinds or [k for k in ALL_KINDS if k != "emission" or p.sigma["emission"] > 0]
+    kinds = kinds or active_kinds(p)
     J = linearise(p, st, lay, kinds).J
     return J, lay
 

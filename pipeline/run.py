@@ -8,7 +8,7 @@ Layout of an output folder ``OUT`` (every sub-folder is written atomically, docs
     OUT/report/        summary.md, PNG plots, metrics.json + stamp   ← stage "report"
 
 A stage's *key* is the sha256 of (its input files' contents, sorted by name; its settings; the calib
-version and a digest of the source code of the packages it runs). The stamp ``.calib-stage.json`` is
+version and a digest of every calib source file: a rule that cannot miss a module a stage runs). The stamp ``.calib-stage.json`` is
 written LAST, after the stage's output is atomically in place, and removed before a stage recomputes, so
 an interrupted stage never leaves a stamp a later run would trust. A stage is skipped when its stamp holds
 the same key and its outputs exist. Stage outputs are inputs of the next stage *by content*: a
@@ -32,7 +32,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from calib import __version__
-from calib.modgraph import module_closure
+from calib.kinds import tables
 
 from calib.pipeline.formats import validate as V
 from calib.pipeline.formats.io import InputError, atomic_write_text, dumps_json, read_calibration, read_features, read_truth
@@ -41,7 +41,6 @@ from calib.pipeline.formats.outputs import check_replaceable, check_separate, ow
 STAMP = ".calib-stage.json"
 STAGES = ("features", "estimate", "report")
 OUT_DIRS = ("features", "diagnostics", "calibration", "report")  # the sub-folders of OUT that run owns
-FEATURE_FILES = ("meta.json", "events.csv", "tdoa_m.csv", "tdoa_s.csv", "doa.csv")
 CALIBRATION_FILES = ("arrays.csv", "sources.csv", "report.json")
 TRUTH_FILES = ("arrays.csv", "sources.csv")
 # files whose absence makes a stamped stage run again (a user deleted part of an output)
@@ -49,14 +48,6 @@ REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostic
             "calibration": ("arrays.csv", "report.json", "calibration.json"), "report": ("summary.md",)}
 ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
                      "outlier_threshold": 5.0, "noise": "auto", "array_noise": False}
-# The modules each stage calls into. Their source, and that of every calib module they import
-# (transitively, found from the import statements), is hashed into the stage key, so editing any of
-# them invalidates the stage even when the version number does not change.
-CODE = {
-    "features": ("calib.pipeline.features",),
-    "estimate": ("calib.estimator", "calib.pipeline.formats.io"),
-    "report": ("calib.pipeline.report.summary",),
-}
 
 
 # ----------------------------------------------------------------------------------------------- hashing
@@ -72,49 +63,44 @@ def file_sha256(path, chunk=1 << 20):
     return h.hexdigest()
 
 
-_DIGESTS = {}  # (modules, source fingerprint) → digest: a process re-running the pipeline parses once
+_DIGESTS = {}  # source fingerprint → digest: a process re-running the pipeline reads the sources once
 CALIB_PACKAGES = ("calib", "calib.frontend", "calib.estimator", "calib.pipeline", "calib.cli")
 
 
-def _source_fingerprint():
-    """(path, mtime, size) of every calib source file: changes whenever any source file is edited."""
+def source_files():
+    """Every calib source file (all ``*.py`` under the packages' folders, sub-packages included), sorted."""
     out = []
     for pkg in CALIB_PACKAGES:
         spec = importlib.util.find_spec(pkg)
         for folder in (spec.submodule_search_locations or []) if spec else []:
-            for f in sorted(Path(folder).glob("*.py")):
-                st = f.stat()
-                out.append((str(f), st.st_mtime_ns, st.st_size))
-    return tuple(out)
+            out += Path(folder).rglob("*.py")
+    return sorted(out)
 
 
-def code_digest(modules):
-    """sha256 over the source of ``modules`` and every calib module they import, transitively."""
-    key = (tuple(modules), _source_fingerprint())
+def code_digest():
+    """sha256 over the source of every calib module (path relative to its package folder, and contents);
+    recomputed when a file's (path, mtime, size) changes."""
+    files = source_files()
+    key = tuple((str(f), f.stat().st_mtime_ns, f.stat().st_size) for f in files)
     if key not in _DIGESTS:
-        _DIGESTS[key] = _code_digest(modules)
+        h = hashlib.sha256()
+        for f in files:
+            h.update(f"{f.parent.name}/{f.name}".encode() + b"\0" + f.read_bytes() + b"\0")
+        _DIGESTS[key] = h.hexdigest()
     return _DIGESTS[key]
 
 
-def _code_digest(modules):
-    h = hashlib.sha256()
-    for name, path in sorted(module_closure(modules).items()):
-        h.update(name.encode() + b"\0" + Path(path).read_bytes() + b"\0")
-    return h.hexdigest()
-
-
-def stage_key(inputs, settings, code):
+def stage_key(inputs, settings):
     """Key of a stage run.
 
     inputs : dict label → sha256 hex (or None for an absent optional file); labels are relative names
         (``recordings/A1.wav``, ``features/tdoa_m.csv``) so moving folders does not invalidate a stage.
     settings : JSON-able dict of the options that change the stage's output.
-    code : list of project paths whose source the stage runs.
 
     Returns (key hex, the stamp dict without timings).
     """
     stamp = {"inputs": dict(sorted(inputs.items())), "settings": settings,
-             "version": software_version(), "code": code_digest(code)}
+             "version": software_version(), "code": code_digest()}
     key = hashlib.sha256(json.dumps(stamp, sort_keys=True, default=str).encode()).hexdigest()
     return key, {"key": key, **stamp}
 
@@ -179,7 +165,12 @@ def session_inputs(session):
 
 
 def features_inputs(out):
-    return hash_files(Path(out) / "features", "features", FEATURE_FILES)
+    return hash_files(Path(out) / "features", "features", feature_files())
+
+
+def feature_files():
+    """The files of features/ the estimate reads: meta.json, events.csv and each kind's CSV (``calib.kinds``)."""
+    return ("meta.json", "events.csv", *(f"{t.name}.csv" for t in tables()))
 
 
 # ----------------------------------------------------------------------------------------------- stages
@@ -306,7 +297,7 @@ def _run_stages(recordings, out, session, truth_dir, force, feat_run, est_opts, 
     metrics = None
 
     def stage(name, out_dirs, inputs, settings, work):
-        key, stamp = stage_key(inputs, settings, CODE[name])
+        key, stamp = stage_key(inputs, settings)
         stamp_dir = out_dirs[0]
         old = read_stamp(stamp_dir)
         reason = "--force" if force else why_stale(old, stamp)

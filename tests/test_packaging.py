@@ -3,6 +3,8 @@ import re
 import tomllib
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -33,3 +35,15 @@ def test_lowest_pins_are_the_declared_floors():
 
 def test_license_file_is_mit():
     assert (ROOT / "LICENSE").read_text().startswith("MIT License")
+
+
+@pytest.mark.slow
+def test_wheel_declares_its_annotations(tmp_path):
+    """PEP 561: the built wheel carries calib/py.typed, so type checkers read calib's annotations."""
+    import subprocess
+    import sys
+    import zipfile
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q",
+                    "-w", str(tmp_path), str(ROOT)], check=True, capture_output=True)
+    (wheel,) = tmp_path.glob("calib_arrays-*.whl")
+    assert "calib/py.typed" in zipfile.ZipFile(wheel).namelist()

@@ -405,12 +405,12 @@ CONCURRENCY_TRIALS = int(os.environ.get("CALIB_CONCURRENCY_TRIALS", "2"))
 
 def check_consistent(out):
     """Every stage stamp in ``out`` matches the files beside it (no report stamped for other inputs)."""
-    from calib.pipeline.run import (CALIBRATION_FILES, FEATURE_FILES, STAMP, hash_files, read_stamp)
+    from calib.pipeline.run import (CALIBRATION_FILES, STAMP, feature_files, hash_files, read_stamp)
 
     est = read_stamp(out / "calibration")
     rep = read_stamp(out / "report")
     assert est is not None and rep is not None
-    feats = hash_files(out / "features", "features", FEATURE_FILES)
+    feats = hash_files(out / "features", "features", feature_files())
     assert est["inputs"] == feats
     cal = hash_files(out / "calibration", "calibration", CALIBRATION_FILES)
     assert {k: v for k, v in rep["inputs"].items() if k.startswith(("features/", "calibration/"))} == {**feats, **cal}

@@ -192,24 +192,37 @@ def test_end_to_end_paper_scene(tmp_path):
 
 @pytest.mark.slow
 def test_stage_code_digest_covers_every_module_the_stages_load(base, session, tmp_path):
-    """Run the whole pipeline in a fresh interpreter and list the calib modules it loaded: each must be in
-    the import closure hashed into some stage key (a module outside it could change and leave a stale
-    stage marked "skipped")."""
+    """Run the whole pipeline in a fresh interpreter and list the source files of the calib modules it loaded:
+    each must be hashed into the stage keys (a module outside them could change and leave a stale stage
+    marked "skipped")."""
     import json
     import subprocess
     import sys
 
-    from calib.modgraph import module_closure
-    from calib.pipeline.run import CODE
+    from calib.pipeline.run import source_files
 
     out = copy_of(base, tmp_path)
     code = ("import json, sys\nfrom calib.pipeline.run import run\n"
             f"run({str(session)!r}, {str(out)!r}, force=True)\n"
-            "print(json.dumps(sorted(m for m in sys.modules if m == 'calib' or m.startswith('calib.'))))")
+            "print(json.dumps(sorted(m.__file__ for n, m in list(sys.modules.items())"
+            " if (n == 'calib' or n.startswith('calib.')) and getattr(m, '__file__', None))))")
     loaded = json.loads(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                                        text=True).stdout.strip().splitlines()[-1])
-    hashed = set()
-    for modules in CODE.values():
-        hashed |= set(module_closure(modules))
-    orchestration = {"calib.pipeline.run", "calib.modgraph"}  # decide what runs; not part of any output
-    assert set(loaded) - hashed - orchestration == set()
+    hashed = {str(Path(f).resolve()) for f in source_files()}
+    assert len(loaded) > 20 and {str(Path(f).resolve()) for f in loaded} - hashed == set()
+
+
+def test_editing_any_source_file_changes_the_stage_key(tmp_path, monkeypatch):
+    """The stage key covers every calib source, sub-packages included (pipeline/formats, simulate, report)."""
+    from calib.pipeline import run as R
+
+    k0 = R.stage_key({}, {})[0]
+    for rel in ("pipeline/formats/io.py", "pipeline/simulate/featsim.py", "pipeline/report/summary.py"):
+        target = next(f for f in R.source_files() if f.as_posix().endswith(rel))
+        copy = tmp_path / target.parent.name / target.name   # the same name, other contents
+        copy.parent.mkdir(exist_ok=True)
+        copy.write_bytes(target.read_bytes() + b"# edited\n")
+        files = [copy if f == target else f for f in R.source_files()]
+        monkeypatch.setattr(R, "source_files", lambda files=files: files)
+        assert R.stage_key({}, {})[0] != k0, rel
+        monkeypatch.undo()

@@ -69,7 +69,7 @@ def test_sparse_jacobian_equals_dense_and_factors_accept_dense_arrays():
     assert scipy.sparse.issparse(Js) and not scipy.sparse.issparse(Jd)
     np.testing.assert_array_equal(Jd, Js.toarray())
     assert c1 == c2 and np.array_equal(r1, r2)
-    # a factor written against a dense J (np.zeros + _put) stacks the same way
+    # a factor written against a dense J (np.zeros + put) stacks the same way
     f = FACTORS["doa"](p, st, lay)
     assert np.array_equal(np.asarray(f.J), f.J.toarray()) and f.J.shape == (len(f.r), lay.n)
 

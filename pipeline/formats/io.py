@@ -20,17 +20,18 @@ In-memory representation (plain dicts of pandas DataFrames, sorted, with clean d
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import os
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pandas as pd
 
+from calib import kinds as K
+from calib.kinds import Table  # noqa: F401  (re-exported: the table description lives with the kinds)
 from calib.tables import LINE_COLUMN
 
 
@@ -44,7 +45,6 @@ from calib.pipeline.formats.outputs import publish, publish_mode
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
 ARRAYS_COLS = ["array", "x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
 SOURCES_COLS = ["event", "x", "y", "z"]
-SIGMA_KEYS = ("sigma_tdoa", "sigma_doa_deg", "sigma_odo")
 DOA_NORM_TOL = 1e-3
 
 
@@ -219,8 +219,8 @@ def read_events(path):
 
 # ----------------------------------------------------------------------------------------------- features
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
-META_KEYS = ("speed_of_sound", "reference_array", "arrays", *SIGMA_KEYS, "chirp_drift_bias", "sigmas_estimated",
-             "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s")
+META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
+             "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -231,7 +231,8 @@ def validate_meta(meta, path="meta.json"):
     """
     if not isinstance(meta, dict):
         raise InputError(f"{path}: must be a JSON object")
-    V.check_keys([k for k in meta if not str(k).startswith("_")], META_KEYS, str(path))
+    sigma_keys = tuple(K.noise_keys())
+    V.check_keys([k for k in meta if not str(k).startswith("_")], (*META_KEYS, *sigma_keys), str(path))
     for key in ("speed_of_sound", "reference_array", "arrays"):
         if key not in meta:
             raise InputError(f"{path}: missing key '{key}'")
@@ -246,7 +247,7 @@ def validate_meta(meta, path="meta.json"):
         raise InputError(f"{path}: duplicate array name in 'arrays'")
     if not isinstance(meta["reference_array"], str) or meta["reference_array"] not in arrays:
         raise InputError(f"{path}: reference_array {meta['reference_array']!r} is not in 'arrays'")
-    for key in SIGMA_KEYS:
+    for key in sigma_keys:
         if meta.get(key) is None:
             out.pop(key, None)
             continue
@@ -255,8 +256,8 @@ def validate_meta(meta, path="meta.json"):
         out["chirp_drift_bias"] = V.number(meta["chirp_drift_bias"], f"{path}: 'chirp_drift_bias'",
                                            lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME)
     est = meta.get("sigmas_estimated")
-    if est is not None and (not isinstance(est, list) or not all(k in SIGMA_KEYS for k in est)):
-        raise InputError(f"{path}: 'sigmas_estimated' must be a list of {', '.join(SIGMA_KEYS)}")
+    if est is not None and (not isinstance(est, list) or not all(k in sigma_keys for k in est)):
+        raise InputError(f"{path}: 'sigmas_estimated' must be a list of {', '.join(sigma_keys)}")
     for key in ("doa_mirror_normals", "doa_axes"):
         if meta.get(key) is not None:
             out[key] = _array_vectors(meta[key], key, arrays, path)
@@ -277,25 +278,6 @@ def _array_vectors(value, key, arrays, path):
         v = np.asarray(V.vector3(n, f"{path}: '{key}' of {name!r}", nonzero=True))
         clean[name] = (v / np.linalg.norm(v)).tolist()
     return clean
-
-
-@dataclass(frozen=True)
-class Table:
-    """One measurement table of a features/ folder (docs/formats.md section 2), described once: the
-    reader, the validation and the writer are derived from it. Columns beyond ``columns`` are kept."""
-    name: str                 # <name>.csv, and the key in the features dict
-    columns: tuple
-    int_cols: tuple           # integer columns (event ids)
-    event_cols: tuple         # columns of event ids, each must be in events.csv
-    keys: tuple               # unique together, and the sort order
-    float_format: str = "%.12g"
-    check: Callable | None = None   # table-specific check and cleaning: (df, path, meta) -> df
-    str_cols: tuple = ("array",)
-    residuals: int = 1        # residuals per row (for the problem-size check)
-
-    def empty(self):
-        return pd.DataFrame({c: np.zeros(0, int if c in self.int_cols else str if c in self.str_cols else float)
-                             for c in self.columns})
 
 
 def _not_reference(df, path, meta):
@@ -344,13 +326,13 @@ def _row_sigmas(df, path, col):
     return df
 
 
-FEATURE_TABLES = (
-    Table("tdoa_m", ("event", "array", "tdoa"), ("event",), ("event",), ("event", "array"), check=_not_reference),
-    Table("tdoa_s", ("array", "from_event", "to_event", "tdoa"), ("from_event", "to_event"),
-          ("from_event", "to_event"), ("array", "from_event", "to_event"), check=_ordered_events),
-    Table("doa", ("event", "array", "ux", "uy", "uz"), ("event",), ("event",), ("event", "array"),
-          float_format="%.10g", check=_doa_rows, residuals=3),
-)
+# the table-specific checks of the kinds' CSV tables (``calib.kinds``; a kind without one: none)
+TABLE_CHECKS = {"tdoa_m": _not_reference, "tdoa_s": _ordered_events, "doa": _doa_rows}
+
+
+def feature_tables():
+    """The measurement tables of features/ (one per kind with a CSV of its own, ``calib.kinds.KINDS``)."""
+    return [dataclasses.replace(t, check=TABLE_CHECKS.get(t.name, t.check)) for t in K.tables()]
 
 
 def validate_features(feats):
@@ -360,7 +342,7 @@ def validate_features(feats):
     ev = feats["events"]
     events = set(ev["event"].tolist())
     out = {"meta": meta, "events": ev}
-    for t in FEATURE_TABLES:
+    for t in feature_tables():
         df = feats.get(t.name)
         df = t.empty() if df is None else df
         p = df.attrs.get("path", f"{t.name}.csv")
@@ -371,15 +353,15 @@ def validate_features(feats):
         df = t.check(df, p, meta) if t.check else df
         out[t.name] = df.sort_values(list(t.keys), kind="stable").reset_index(drop=True)
     where = Path(feats["meta"].get("_path", "features/meta.json")).parent
-    V.check_problem_size(len(ev), len(arrays), sum(t.residuals * len(out[t.name])
-                                                   for t in FEATURE_TABLES), where)
+    V.check_problem_size(len(ev), len(arrays), sum(K.KINDS[t.name].dim * len(out[t.name])
+                                                   for t in feature_tables()), where)
     return out
 
 
 def read_features(directory):
     """Read and validate a ``features/`` directory (docs/formats.md section 2).
 
-    The measurement tables (``FEATURE_TABLES``: tdoa_m.csv, tdoa_s.csv, doa.csv) are optional (absent = no
+    The measurement tables (:func:`feature_tables`: tdoa_m.csv, tdoa_s.csv, doa.csv, ...) are optional (absent = no
     such measurements).
     """
     d = Path(directory)
@@ -388,7 +370,7 @@ def read_features(directory):
     meta = _read_json(d / "meta.json")
     meta = validate_meta(meta, d / "meta.json")
     feats = {"meta": meta, "events": read_events(d / "events.csv")}
-    for t in FEATURE_TABLES:
+    for t in feature_tables():
         p = d / f"{t.name}.csv"
         feats[t.name] = read_table(p, list(t.columns), int_cols=t.int_cols, str_cols=t.str_cols) if p.exists() \
             else None
@@ -410,7 +392,7 @@ def write_features_files(folder, feats):
     meta = {k: v for k, v in feats["meta"].items() if not k.startswith("_")}
     (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     write_table(feats["events"], folder / "events.csv", EVENTS_COLS, float_format="%.9f")
-    for t in FEATURE_TABLES:
+    for t in feature_tables():
         write_table(feats[t.name], folder / f"{t.name}.csv", list(t.columns), float_format=t.float_format)
 
 

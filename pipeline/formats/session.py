@@ -26,7 +26,8 @@ from calib.frontend.signals import SWEEP_KINDS
 from calib.errors import InputWarning
 
 from calib.pipeline.formats import validate as V
-from calib.pipeline.formats.io import InputError, atomic_write_text, read_events, SIGMA_KEYS
+from calib.kinds import noise_keys
+from calib.pipeline.formats.io import InputError, atomic_write_text, read_events
 
 DEFAULT_SPEED_OF_SOUND = 343.0  # m/s, air at 20 °C
 MAX_MIC_RADIUS = 10.0           # m: mic coordinates are relative to their array's centre
@@ -59,9 +60,9 @@ def read_session(directory, check_audio=True):
     chirp = _read_chirp(cfg.get("chirp"), d, p)
     noise_cfg = cfg.get("noise", {})
     if not isinstance(noise_cfg, dict):
-        raise InputError(f"{p}: [noise] must be a table of {', '.join(SIGMA_KEYS)}")
-    V.check_keys(noise_cfg, SIGMA_KEYS, f"{p}: [noise]")
-    noise = {k: V.sigma(k, noise_cfg[k], f"{p}: 'noise.{k}'") for k in SIGMA_KEYS if k in noise_cfg}
+        raise InputError(f"{p}: [noise] must be a table of {', '.join(noise_keys())}")
+    V.check_keys(noise_cfg, noise_keys(), f"{p}: [noise]")
+    noise = {k: V.sigma(k, noise_cfg[k], f"{p}: 'noise.{k}'") for k in noise_keys() if k in noise_cfg}
     arrays = _read_arrays(cfg.get("arrays"), d, p)
     names = [a["name"] for a in arrays]
     ref = cfg.get("reference_array", names[0])

@@ -23,13 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from calib.errors import InputError, InputWarning
+from calib.kinds import noise_keys
 
 BOM = "\ufeff"
 
 # ---- documented ranges (docs/reliability.md); SI units
 SPEED_OF_SOUND = (150.0, 2000.0)      # m/s: any gas to water; air is ~343
 SAMPLE_RATE = (1000, 1_000_000)       # Hz, WAV sample rates the frontend handles
-SIGMA_RANGES = {"sigma_tdoa": (0.0, 1.0), "sigma_doa_deg": (0.0, 180.0), "sigma_odo": (0.0, 100.0)}  # (lo, hi]
 MAX_ABS_POSITION = 1e5                # m: coordinates, odometry (100 km; beyond is a unit mistake)
 MAX_ABS_TIME = 1e7                    # s: emission times, TDOAs, offsets (~115 days)
 MAX_ABS_DRIFT = 0.01                  # clock drift (1 %: far beyond any real crystal)
@@ -112,8 +112,8 @@ def vector3(value, where, *, nonzero=False, bound=MAX_ABS_POSITION):
 
 
 def sigma(key, value, where):
-    """A noise figure of meta.json / session.toml within its documented range (see SIGMA_RANGES)."""
-    lo, hi = SIGMA_RANGES[key]
+    """A noise figure of meta.json / session.toml within its documented range (``calib.kinds``: noise_range)."""
+    lo, hi = noise_keys()[key]
     return number(value, where, lo=lo, hi=hi, lo_open=True)
 
 

@@ -28,8 +28,6 @@ from calib.estimator import KINDS, LINE_COLUMN, position_covariances, rebuild, r
 from calib.tables import METRIC_ROWS
 from calib.pipeline.formats.io import atomic_dir, dumps_json
 
-UNIT_LABEL = {k.name: k.label for k in KINDS.values()}
-TITLE = {k.name: k.title for k in KINDS.values()}
 
 
 def _plt():
@@ -257,8 +255,8 @@ def plot_residuals(path, res):
                     f"the RMS is {sig / rms_:.1f}× smaller", transform=ax.transAxes, va="top",
                     fontsize=8, bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.7"})
         rms = float(np.sqrt(np.mean(inl ** 2))) if inl.size else float("nan")
-        ax.set_title(f"{TITLE[kind]}: RMS {rms:.3g} {d['unit']}")
-        ax.set_xlabel(UNIT_LABEL[kind])
+        ax.set_title(f"{KINDS[kind].title}: RMS {rms:.3g} {d['unit']}")
+        ax.set_xlabel(KINDS[kind].label)
         ax.set_ylabel("count")
         ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)
     fig.suptitle("Residuals at the estimate (dashed: the σ the estimator weighted with, median over rows)",
@@ -346,7 +344,9 @@ def metrics_markdown(metrics):
 def _outlier_lines(features, outliers):
     out = []
     for o in outliers:
-        df = features.get(o["type"])
+        spec = KINDS.get(o["type"])
+        source = spec.source if spec is not None else o["type"]   # (cone rows are in doa.csv)
+        df = features.get(source)
         line = int(o["line"])
         what = f"event {o['event']}, array {o['array']}" if o.get("array") else \
             (f"step to event {o['event']}" if o.get("event") is not None else "")
@@ -359,7 +359,7 @@ def _outlier_lines(features, outliers):
                 what = f"array {r['array']}, events {r['from_event']}→{r['to_event']}"
         size = f"{o['residual_us']:+.0f} µs" if "residual_us" in o else f"{o.get('residual', float('nan')):.3g} " \
                                                                        f"{o.get('unit', '')}"
-        where = f"step {line}" if o["type"] == "odometry" else f"features/{o['type']}.csv line {line}"
+        where = f"step {line}" if spec is not None and not spec.per_array else f"features/{source}.csv line {line}"
         out.append(f"- {o['type']} ({what}), {where}: residual {size} = "
                    f"{o['residual_sigma']:+.1f} σ — excluded from the final solve")
     return out
@@ -390,7 +390,7 @@ def _row_weight_lines(rep):
                    f"(median {rows['median']:.2f}).")
     for kind, arrays in (sig.get("per_array_factor") or {}).items():
         if arrays:
-            out.append(f"- {TITLE.get(kind, kind)}: arrays with a σ of their own (× the type's): "
+            out.append(f"- {KINDS[kind].title if kind in KINDS else kind}: arrays with a σ of their own (× the type's): "
                        + ", ".join(f"{a} {v:.2f}" for a, v in arrays.items()) + ".")
     return ["", *out] if out else []
 
@@ -422,7 +422,7 @@ def summary_markdown(features, calib, res, metrics, diag, images):
     for kind, d in res.items():
         v = d["values"][~d["outlier"]]
         rms = float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
-        L.append(f"| {TITLE[kind]} | {v.size} | {rms:.3g} {d['unit']} | {_sigma_text(d, _row_sigma(d)[~d['outlier']])} |")
+        L.append(f"| {KINDS[kind].title} | {v.size} | {rms:.3g} {d['unit']} | {_sigma_text(d, _row_sigma(d)[~d['outlier']])} |")
     L += _row_weight_lines(rep)
     if res:
         L += ["", f"![residuals]({images['residuals']})", ""]
