@@ -721,11 +721,23 @@ def nominal_rate(drift, std=None):
     return out
 
 
-def _base_text(name, nr):
-    return (f"time base: the reference array {name}'s clock runs at {nr['ratio']:.5f}× the emission times "
-            f"(events.csv t_emit): either those times are scaled or {name}'s stated sample rate is wrong"
-            + (f" (as a {nr['actual_hz']} Hz board written as {nr['header_hz']} Hz)" if nr["header_hz"] else "")
-            + "; no clock model was fitted")
+def _rate_drifts(result):
+    """Each array's drift to judge for a wrong nominal rate (NaN: not judged), and the common ratio of a
+    wrong time base (or None). Against the emission times, an array runs off by a ratio no crystal gives
+    when its own header is wrong — or when the emission times are scaled, and then every array (the
+    reference too) runs off by the same ratio: that is named once, as the time base, not per array."""
+    st, ref = result["state"], int(result["problem"].ref)
+    g = 1.0 + np.asarray(st.drift, float)
+    off = np.abs(g - 1.0) >= RATE_ERROR_MIN
+    same_as_ref = np.abs(g / g[ref] - 1.0) < RATE_ERROR_MIN
+    if off[ref] and np.mean(same_as_ref) > 0.5:   # most arrays agree with the reference: the time base
+        return np.where(same_as_ref, 0.0, g / g[ref] - 1.0), float(g[ref])
+    return g - 1.0, None
+
+
+def _base_text(ratio):
+    return (f"time base: the arrays' clocks run at {ratio:.5f}× the emission times (events.csv t_emit), all "
+            "alike: those times are scaled (or every stated sample rate is wrong); no clock model was fitted")
 
 
 def _rate_text(name, nr):
@@ -773,14 +785,11 @@ def clock_report(result, features, models, rounds):
     st = result["state"]
     std = result["arrays"]["drift_std"].to_numpy(float) if "arrays" in result else np.full(len(st.drift), np.nan)
     arrays, findings = {}, []
-    ref = int(result["problem"].ref)
-    g_ref = 1.0 + float(st.drift[ref])
+    rates, base = _rate_drifts(result)
     for i, name in enumerate(str(n) for n in features["meta"]["arrays"]):
-        # a wrong header shows against the reference array (the emitter's time for the reference itself)
-        rel = float(st.drift[i]) if i == ref else (1.0 + float(st.drift[i])) / g_ref - 1.0
-        e = array_clock_entry(models.get(name, []), events, u, rel, std[i])
+        e = array_clock_entry(models.get(name, []), events, u, rates[i], std[i])
         if e["nominal_rate"]:
-            e["nominal_rate"]["relative_to"] = "emitter (events.csv t_emit)" if i == ref else "reference array"
+            e["nominal_rate"]["relative_to"] = "emitter (events.csv t_emit)"
         arrays[name] = e
         for s in e["steps"]:
             sd = f", σ {s['std'] * 1e6:.1f} µs" if s["std"] is not None else ""
@@ -789,7 +798,9 @@ def clock_report(result, features, models, rounds):
         if e["drift_model"] != "linear":
             findings.append(f"{name}: drift varies over the session (modelled as {e['drift_model']})")
         if e["nominal_rate"]:
-            findings.append(_rate_text(name, e["nominal_rate"]) if i != ref else _base_text(name, e["nominal_rate"]))
+            findings.append(_rate_text(name, e["nominal_rate"]))
+    if base is not None:
+        findings.append(_base_text(base))
     emitter = array_clock_entry(models.get(EMITTER, []), events, u, 0.0, None)
     emitter.pop("nominal_rate")
     for s in emitter["steps"]:
