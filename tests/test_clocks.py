@@ -136,6 +136,18 @@ def test_a_wrong_nominal_rate_is_named_and_the_others_unbent(fault, header):
     assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean["position_rmse_m"]
 
 
+def test_the_reference_s_wrong_rate_is_its_own_and_a_scaled_schedule_is_the_time_base():
+    f, _ = simulate_features(3, SIGMA, seed=2, clocks={"A1": "rate1pct"})
+    rep = calibrate(f)["report"]["clock"]
+    assert [n for n, e in rep["arrays"].items() if e["nominal_rate"]] == ["A1"]
+    f, _ = simulate_features(3, SIGMA, seed=2)
+    ev = f["events"].copy()
+    ev["t_emit"] *= 1.02                       # the schedule, not the boards: every array 1/1.02 against it
+    rep = calibrate({**f, "events": ev})["report"]["clock"]
+    assert not any(e["nominal_rate"] for e in rep["arrays"].values())
+    assert any(x.startswith("time base") for x in rep["findings"])
+
+
 def test_a_common_emission_step_is_the_emitters_not_every_arrays():
     f, _ = simulate_features(3, SIGMA, seed=6)
     ev = f["events"].copy()
