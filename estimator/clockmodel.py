@@ -267,15 +267,15 @@ def candidates(u, comps):
 
 
 def family_sizes(u):
-    """{kind: number of candidates} of :func:`candidates` for event times u (the scans' multiplicity)."""
+    """Number of candidates :func:`candidates` tests for event times u (the scans' multiplicity)."""
     k = len(np.unique(u))
-    return {"step": max(k - 1, 1), "mshift": max(k - 1, 1), "quadratic": 1, "hinge": max(k - 3, 1)}
+    return max(k - 1, 1) + 1 + max(k - 3, 1)
 
 
 def penalty(kind, n, n_arrays, n_candidates):
     """The χ² drop a new component must beat: BIC's ln n, or the χ²₁ quantile at FAMILY_ALPHA / 2 (two
-    tests: :func:`best_component`, :func:`joint_scan`) over the arrays and this family's candidates (the
-    scan's multiplicity), whichever is larger."""
+    tests: :func:`best_component`, :func:`joint_scan`) over the arrays and the candidates tested on each (the
+    scan's multiplicity, every kind), whichever is larger."""
     m = 2 * max(n_candidates, 1) * max(n_arrays, 1)
     return max(float(np.log(max(n, 2))), float(chdtri(1, FAMILY_ALPHA / m)))
 
@@ -309,7 +309,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
             continue
         cost, cand, coef, r = min(fam, key=lambda f: f[0])
         drop = 2.0 * (np.sum(huber_rho(rb / scale)) - np.sum(huber_rho(r / scale)))
-        margin = drop - penalty(kind, D.n, n_arrays, len(fam))
+        margin = drop - penalty(kind, D.n, n_arrays, len(fits))   # (Bonferroni over every candidate tested)
         if best is None or margin > best[1]:
             new = [c.with_value(v) for c, v in zip(base + [cand], coef)]
             best = (new, float(margin), {"chi2_drop": float(drop), "scale": scale, "kind": kind})
@@ -371,7 +371,7 @@ def joint_scan(result, models):
             if not fam.size:
                 continue
             k = fam[np.argmax(drop[fam])]
-            margin = float(drop[k]) - penalty(kind, n, p.N + 1, fam.size)
+            margin = float(drop[k]) - penalty(kind, n, p.N + 1, len(cands))   # (over every candidate tested)
             if best is None or margin > best[1]:
                 new = have + [cands[k].with_value(value[k])]
                 best = (new, margin, {"chi2_drop": float(drop[k]), "scale": scale, "kind": kind, "test": "joint"})
@@ -560,7 +560,7 @@ def _weakest(p, models):
                 return name, k
             if not c.std:
                 continue
-            m = (c.value / c.std) ** 2 - penalty(c.kind, n, p.N + 1, sizes[c.kind])
+            m = (c.value / c.std) ** 2 - penalty(c.kind, n, p.N + 1, sizes)
             if m < worst:
                 worst, where = m, (name, k)
     return where
