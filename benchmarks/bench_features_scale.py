@@ -6,6 +6,7 @@
     python benchmarks/bench_features_scale.py --events 960 --rates 48000 --jobs 2   # 2 arrays at a time
     python benchmarks/bench_features_scale.py --association   # association alone, 240 … 16000 events
     python benchmarks/bench_features_scale.py --json r.json; ... --replot r.json --plot out.png
+    python benchmarks/bench_features_scale.py --cli --events 90 --rates 48000   # `calib features` as a process (3 min)
 
 Sessions: anechoic and synthetic, written block by block (so writing them is cheap and bounded in memory;
 the room simulator is not needed to measure the frontend's cost): 5 arrays × 6 mics (a 3.54 cm circle,
@@ -197,6 +198,41 @@ def plot(rows, path):
     fig.savefig(path, dpi=100)
 
 
+def cli_case(folder, jobs):
+    """``calib features FOLDER -o OUT -q`` as its own process (start-up, imports, reading, writing the features
+    and diagnostics included): wall, user + system CPU and peak RSS of that process (dict)."""
+    import tempfile
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from cliproc import calib_cmd, measure
+
+    with tempfile.TemporaryDirectory(prefix="calib-bench-features-") as tmp:
+        m = measure(calib_cmd("features", folder, "-o", Path(tmp) / "features", "--diagnostics",
+                              Path(tmp) / "diagnostics", "--jobs", jobs, "-q"))
+        if m["rc"]:
+            raise RuntimeError(m["stderr"])
+        duration = json.loads((Path(tmp) / "diagnostics" / "diagnostics.json").read_text())["recording_duration_s"]
+    return {**m, "duration_s": duration}
+
+
+def main_cli(args):
+    """The --cli table: one row per session, the whole `calib features` process."""
+    print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f} (1/5/15 min); "
+          f"calib features --jobs {args.jobs} as a process")
+    print("| events | fs | audio (s) | wall (s) | wall % of audio | CPU (s) | CPU % of audio | peak RSS (MB) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for fs in args.rates:
+        for k in args.events:
+            folder = args.dir / f"k{k}_fs{fs}_s{args.seed}"
+            if not (folder / "complete").exists():
+                write_session(folder, k, fs, args.seed)
+            r = cli_case(folder, args.jobs)
+            d = r["duration_s"]
+            print(f"| {k} | {fs // 1000} kHz | {d:.0f} | {r['wall_s']:.2f} | {100 * r['wall_s'] / d:.2f} | "
+                  f"{r['cpu_s']:.2f} | {100 * r['cpu_s'] / d:.2f} | {r['peak_mb']:.0f} |", flush=True)
+    print(f"load after: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--events", type=int, nargs="+", default=[14, 60, 240, 960])
@@ -209,7 +245,12 @@ def main():
     ap.add_argument("--jobs", type=int, default=1, help="arrays at a time (session_features(jobs=...), threads)")
     ap.add_argument("--association", action="store_true", help="only the association timing table")
     ap.add_argument("--replot", type=Path, help="only redraw --plot from a --json file of an earlier run")
+    ap.add_argument("--cli", action="store_true", help="time `calib features` as a process (its default --jobs "
+                                                       "unless --jobs is given)")
     args = ap.parse_args()
+    if args.cli:
+        args.jobs = args.jobs if "--jobs" in sys.argv else -1
+        return main_cli(args)
     if args.replot:
         plot(json.loads(args.replot.read_text()), args.plot)
         return

@@ -196,3 +196,48 @@ def exit_on_failed(report):
     """Exit with EXIT_FAILED when the verdict is "failed" (after everything has been written and shown)."""
     if (report.get("verdict") or {}).get("status") == "failed":
         raise typer.Exit(EXIT_FAILED)
+
+
+PLAIN_PROGRESS_EVERY_S = 5.0  # a log file gets a progress line at most this often (and the last one always)
+
+
+class _PlainProgress:
+    """``progress(done, total, message)`` as plain timestamped lines on stderr (``HH:MM:SS name: done/total
+    message``): what a log file can hold, where a live bar writes nothing until it ends."""
+
+    def __init__(self, name):
+        self.name, self.last = name, None
+
+    def __call__(self, done, total, msg=""):
+        import time
+
+        now = time.monotonic()
+        final = total is not None and done >= total
+        if self.last is not None and now - self.last < PLAIN_PROGRESS_EVERY_S and not final:
+            return
+        self.last = now
+        count = f"{done}/{total}" if total else f"{done}"
+        print(f"{datetime.datetime.now():%H:%M:%S} {self.name}: {count} {msg}".rstrip(), file=sys.stderr, flush=True)
+
+
+def progress_display(name, remaining=False):
+    """A context manager giving a long command's ``progress(done, total, message)`` callback: a rich bar when
+    stderr is a terminal, else plain timestamped lines (:class:`_PlainProgress`). ``remaining``: the bar also
+    shows the time left."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def display():
+        if not console.is_terminal:
+            yield _PlainProgress(name)
+            return
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                   TimeRemainingColumn)
+
+        cols = [TextColumn(name), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[msg]}"),
+                TimeElapsedColumn()] + ([TimeRemainingColumn()] if remaining else [])
+        with Progress(*cols, console=console) as bar:
+            task = bar.add_task(name, total=None, msg="")
+            yield lambda done, total, msg="": bar.update(task, total=total, completed=done, msg=msg)
+
+    return display()

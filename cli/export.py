@@ -15,12 +15,13 @@ from calib.errors import InputError
 def export(
     calibration: Path = typer.Argument(..., help="calibration/ folder (or its calibration.json)"),
     fmt: str = typer.Option(..., "--format", "-f", help=f"output format: {', '.join(FORMATS)}"),
-    out: Path = typer.Option(..., "-o", "--out", help="file to write (usual suffixes: .json, .yaml, .npy, .cfg, "
-                                                      ".urdf, .sh)"),
+    out: Path = typer.Option(..., "-o", "--out", help="file to write (usual suffixes: .json, .yaml, .npy, .urdf, "
+                                                      ".sh); odas: a folder of <array>.cfg"),
     quiet: Quiet = False,
 ):
     """Export a calibration: json, yaml (Kalibr-style), pyroomacoustics (.npy of mic positions, shape (3, all
-    mics)), odas (mic blocks), urdf, tf (ROS 2 static transforms). Formats: docs/formats.md."""
+    mics)), odas (one complete ODAS configuration per array), urdf, tf (ROS 2 static transforms). Formats:
+    docs/formats.md."""
     if fmt not in FORMATS:
         raise InputError(f"--format must be one of {', '.join(FORMATS)}, not {fmt!r}")
     cal = load_calibration(calibration)

@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from .common import Jobs, console, user_errors, waiting
+from .common import Jobs, console, progress_display, user_errors, waiting
 from .signals import checked
 
 
@@ -34,7 +34,7 @@ def features(
     opts = {**features_options({"threshold": detect_threshold, "max_drift": max_drift}), "jobs": jobs_option(jobs)}
     check_separate([out, diag_dir], [recordings])
     session = read_session(recordings)  # every input checked before any output is touched
-    inputs = [recordings, *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]
+    inputs = [recordings, *(f for a in session["arrays"] for f in a["files"]), session["chirp"].get("reference")]
     with owned_output([out, diag_dir], inputs, command="calib features", on_wait=waiting):
         feats, diag = _extract(session, opts, quiet)
         write_feature_outputs(out, diag_dir, feats, diag)
@@ -49,15 +49,7 @@ def _extract(recordings, opts, quiet):
     if quiet:
         feats, diag = session_features(recordings, progress=checked(), **opts)
     else:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-        with Progress(TextColumn("features"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[msg]}"),
-                      TimeElapsedColumn(), console=console) as bar:
-            task = bar.add_task("features", total=None, msg="")
-
-            def progress(done, total, msg):
-                bar.update(task, total=total, completed=done, msg=msg)
-
+        with progress_display("features") as progress:
             feats, diag = session_features(recordings, progress=checked(progress), **opts)
     return feats, diag
 

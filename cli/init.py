@@ -7,7 +7,7 @@ from typing import List, Optional
 import typer
 
 from calib.pipeline.formats.io import InputError, atomic_write_text
-from calib.pipeline.sessiontools import MODELS, init_session
+from calib.pipeline.sessiontools import MODELS, PER_MIC_NAME, init_session
 from .common import Quiet, console, user_errors
 
 
@@ -21,14 +21,18 @@ def init(
                                             help="reference array [default: the first WAV, by name]"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", show_default=False,
                                        help="file to write [default: FOLDER/session.toml]"),
+    layout: str = typer.Option("array", "--layout",
+                               help="array: each WAV one array (named after the file); per-mic: one mono WAV per "
+                                    "mic, named ARRAY-MIC.wav (e.g. the seed paper's arr1-1.wav ... arr1-4.wav)"),
     force: bool = typer.Option(False, "--force", help="replace an existing session.toml"),
     quiet: Quiet = False,
 ):
     """Write a session.toml for the WAVs in FOLDER: each WAV one array, mics from the array model.
 
-    Models: respeaker-6-circular, minidsp-uma8, matrix-voice (geometry of the ODAS configurations),
-    respeaker-4-linear (nominal spacing: measure your board) and custom (zeros to fill in). Check the result,
-    add events.csv, then run `calib check FOLDER`.
+    Models: respeaker-6-circular, respeaker-usb-4mic, minidsp-uma8, matrix-voice (geometry of the ODAS
+    configurations), respeaker-4-linear (nominal spacing: measure your board) and custom (zeros to fill in).
+    A WAV in the board's raw layout (e.g. 8 channels of a ReSpeaker 6-Mic, 6 of a ReSpeaker USB v2.0) gets
+    its channel map. Check the result, add events.csv, then run `calib check FOLDER`.
     """
     per = dict(m.split("=", 1) for m in model if "=" in m)
     plain = [m for m in model if "=" not in m]
@@ -37,11 +41,19 @@ def init(
     for m in list(per.values()) + plain:
         if m not in MODELS:
             raise InputError(f"--model must be one of {', '.join(MODELS)}, not {m!r}")
-    spec = {**{p.stem: plain[0] if plain else "custom" for p in folder.glob("*.wav")}, **per} if per else plain[0]
+    spec = {**dict.fromkeys(_array_names(folder, layout), plain[0] if plain else "custom"), **per} if per else plain[0]
     path = out if out is not None else folder / "session.toml"
     if path.exists() and not force:
         raise InputError(f"{path}: exists (use --force to replace it)")
-    text = init_session(folder, spec, reference=reference)
+    text = init_session(folder, spec, reference=reference, layout=layout)
     atomic_write_text(path, text)
     if not quiet:
         console.print(f"wrote {path}")
+
+
+def _array_names(folder, layout):
+    """The array names of the WAVs of ``folder`` (the NAME of --model NAME=MODEL)."""
+    names = [p.stem for p in folder.glob("*.wav")]
+    if layout == "per-mic":
+        names = [m["array"] for m in map(PER_MIC_NAME.match, (p.name for p in folder.glob("*.wav"))) if m]
+    return names

@@ -7,7 +7,7 @@ import typer
 
 from calib import __version__
 
-from . import chirp, check, estimate, evaluate, export, features, init, montecarlo, run, simulate
+from . import chirp, check, estimate, evaluate, export, features, import_bag, init, montecarlo, run, simulate
 
 app = typer.Typer(
     name="calib",
@@ -41,6 +41,7 @@ app.command("export")(export.export)
 app.command("chirp")(chirp.chirp)
 app.command("init")(init.init)
 app.command("check")(check.check)
+app.command("import-bag")(import_bag.import_bag)
 app.command("montecarlo")(montecarlo.montecarlo)
 
 

@@ -10,7 +10,7 @@ from typing import Optional
 import typer
 
 from calib.pipeline.formats.io import InputError
-from .common import console, user_errors, waiting
+from .common import progress_display, user_errors, waiting
 from .signals import checked, interrupted
 
 
@@ -99,16 +99,13 @@ def montecarlo(
 
 @contextlib.contextmanager
 def _bar(quiet):
-    """A rich progress bar on stderr, as the ``progress(done, total, message)`` callback (None when quiet)."""
+    """Progress on stderr (a bar on a terminal, timestamped lines in a log file), as the ``progress(done, total,
+    message)`` callback (None when quiet)."""
     if quiet:
         yield None
         return
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    with Progress(TextColumn("montecarlo ({task.fields[msg]})"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TimeRemainingColumn(), console=console) as bar:
-        task = bar.add_task("calibrations", total=None, msg="")
-        yield lambda done, total, msg: bar.update(task, completed=done, total=total, msg=msg)
+    with progress_display("montecarlo", remaining=True) as progress:
+        yield progress
 
 
 def _print_summary(res):

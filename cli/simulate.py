@@ -11,7 +11,7 @@ from calib.pipeline.formats import validate as V
 from calib.pipeline.formats.io import InputError
 from calib.pipeline.formats.outputs import owned_output
 from calib.pipeline.simulate.presets import PRESETS
-from .common import console, user_errors, waiting
+from .common import console, progress_display, user_errors, waiting
 from .signals import checked
 
 
@@ -87,9 +87,21 @@ def simulate(
     if out_pos is not None:  # after success only: a bad input stays one line
         print("note: `calib simulate OUT_DIR` is deprecated; use `calib simulate -o OUT_DIR`", file=sys.stderr)
     if not quiet:
-        t = sc["t_emit"]
-        console.print(f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "
-                      f"{t[-1] - t[0]:.1f} s, RT60 {sc['rt60']:g} s, SNR {sc['snr']:g} dB, fs {sc['fs']} Hz → {path}")
+        console.print(_summary(sc) + f" → {path}")
+
+
+def _summary(sc):
+    """One line: the scene's arrays, chirps, acoustics and deployment conditions."""
+    t = sc["t_emit"]
+    rates = sorted({int(a.get("fs", sc["fs"])) for a in sc["arrays"]})
+    fs = f"{rates[0]}" if len(rates) == 1 else f"{rates[0]}–{rates[-1]}"
+    n_obs = len(sc.get("obstacles") or [])
+    extra = [x for x, on in (("non-convex room", sc.get("floor_plan") is not None),
+                             (f"{n_obs} obstacle{'s' * (n_obs != 1)}", n_obs > 0),
+                             ("speaker moving while chirping", sc.get("trajectory") is not None)) if on]
+    return (f"{sc['preset']} (seed {sc['seed']}): {len(sc['arrays'])} arrays, {len(t)} chirps over "
+            f"{t[-1] - t[0]:.1f} s, RT60 {sc['rt60']:g} s, SNR {sc['snr']:g} dB, fs {fs} Hz"
+            + "".join(f", {x}" for x in extra))
 
 
 # ranges of the numeric options (docs/reliability.md): (lo, hi, lo open, integer)
@@ -113,16 +125,8 @@ def _check_options(**values):
 
 
 def _simulate_with_bar(sc, out_dir):
-    """The simulation with a rich progress bar (the library reports progress through a callback)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    with Progress(TextColumn("simulate"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[msg]}"),
-                  TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task("simulate", total=None, msg="")
-
-        def progress(done, total, msg):
-            bar.update(task, total=total, completed=done, msg=msg)
-
+    """The simulation with progress (a bar on a terminal, timestamped lines in a log file)."""
+    with progress_display("simulate") as progress:
         return _run(sc, out_dir, checked(progress))
 
 
@@ -135,7 +139,7 @@ def _run(sc, out_dir, progress):
 
 def _set(over, item):
     """Apply one ``--set KEY=VALUE`` to the overrides (VALUE read as TOML, else as a string)."""
-    import tomllib
+    from calib.tomlcompat import tomllib
 
     key, sep, text = item.partition("=")
     key = key.strip()

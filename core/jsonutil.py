@@ -19,6 +19,8 @@ def jsonable(obj, drop_private=False):
     if isinstance(obj, (list, tuple)):
         return [jsonable(v, drop_private) for v in obj]
     if isinstance(obj, np.ndarray):
+        if obj.dtype.kind in "fiu" and (obj.dtype.kind != "f" or np.isfinite(obj).all()):
+            return obj.tolist()   # numbers only, all finite: Python ints/floats already (no walk per element)
         return jsonable(obj.tolist(), drop_private)
     if isinstance(obj, (bool, np.bool_)):
         return bool(obj)

@@ -27,3 +27,15 @@ def columns(df, names):
     selection builds a new frame first: ~130 µs; the Monte-Carlo study scores every run and stage).
     """
     return np.column_stack([df[c].to_numpy(float) for c in names]) if len(names) else np.zeros((len(df), 0))
+
+
+VELOCITY_COLUMNS = ("vel_x", "vel_y", "vel_z")   # events.csv, optional: the source's velocity during the sweep
+
+
+def event_velocities(events):
+    """(K, 3) source velocity at each event (m/s, odometry axes) from events.csv's optional ``vel_x, vel_y,
+    vel_z`` (docs/formats.md; empty cells = 0), or None when the events do not carry them."""
+    if not all(k in events.columns for k in VELOCITY_COLUMNS):
+        return None
+    v = columns(events, VELOCITY_COLUMNS)
+    return np.where(np.isfinite(v), v, 0.0)

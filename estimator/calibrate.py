@@ -19,17 +19,19 @@ from calib.robust import median
 
 from . import arraynoise, clockmodel
 from .factors import KINDS, active_kinds, natural
-from .init import ObservabilityError, doa_rotation, initialise, kabsch, reflect, subproblem
+from .init import ObservabilityError, doa_rotation, fold_basins, initialise, kabsch, reflect, subproblem
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
 from .problem import State, build_problem, make_layout, state_from_dict
+from .motion import motion_solve
+from .screen import distrusted, screen_rows
 from .robust import (FAMILY_ALPHA, chi2_median, array_candidates, array_mask, concentrated_candidates, drop_test,
                      fit_array_alone, measurement_stats, count_measurements, factor_sizes, per_array_kinds,
                      variance_factors, remove_outliers, restore_inliers, sym_inverse)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov
-from .verdict import MOVE_SIGMA, concentrated_outliers, make_verdict, residual_ratios, stated_sigma_excess
+from .verdict import MOVE_SIGMA, concentrated_outliers, fold_ambiguity, make_verdict, name_distrusted, residual_ratios, stated_sigma_excess
 
 
 
@@ -663,11 +665,12 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
                      array_noise=array_noise, outputs=outputs)
     if loss == "linear":
         loss = None
-    times = {}
-    t0 = time.perf_counter()
+    times, t0 = {}, time.perf_counter()
     if method == "wang":
         use_tdoa_s = False
-    if problem is None:
+    screened = None
+    if problem is None:   # absurd and reflection-only rows out first (estimator/screen.py)
+        features, screened = screen_rows(features)
         p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
     else:
         _check_given_problem(problem, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma)
@@ -686,14 +689,41 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
     if noise == "estimate" and array_noise:
         arraynoise.start_scales(p, kinds)
-    st, p, info, scales, bounds = _joint_solve(p, st, kinds, stages, features["meta"], noise=noise, loss=loss,
-                                               robust_k=robust_k, outlier_threshold=outlier_threshold,
-                                               max_iter=max_iter)
+    st, p, info, scales, bounds, basins = _deployment_solve(
+        p, st, kinds, stages, features, lambda p_, st_: _joint_solve(
+            p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
+            outlier_threshold=outlier_threshold, max_iter=max_iter), max_iter)
     times["joint"] = time.perf_counter() - t2
     if outputs == "solution":
         return _solution(p, st, info, kinds, stage_states)
-    return _full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, method=method, noise=noise,
-                         emission_sigma=emission_sigma, times=times, t0=t0)
+    return _name_untrusted(_full_outputs(p, st, info, kinds, stages, stage_states, scales, bounds, method=method,
+                                         noise=noise, emission_sigma=emission_sigma, times=times, t0=t0), screened, basins)
+
+
+def _name_untrusted(out, screened, basins):
+    """report.json ``screened`` and the verdict's naming of the rows and arrays not trusted (in place)."""
+    if screened is not None:
+        out["report"]["screened"] = {"rows": screened["rows"], "arrays": distrusted(screened)}
+        name_distrusted(out["report"]["verdict"], screened)
+    return fold_ambiguity(out, basins)
+
+
+def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
+    """The joint solve (``joint(problem, state)``, :func:`_joint_solve`'s tuple), with a source moving during
+    the sweep corrected (``estimator/motion.py``), then the other fold basin of planar arrays whose sources
+    all lie near their mic plane tried (``init.fold_basins``). Records go to ``stages``. Returns
+    (state, problem, info, scales, bounds, fold basin records)."""
+    meta = features["meta"]
+    p_raw = p.copy()
+    (st, p, info, scales, bounds), motion = motion_solve(p_raw, features["events"], joint(p, st), joint, kinds=kinds,
+                                                         curve=meta.get("chirp_stretch_shift"),
+                                                         t_doa=float(meta.get("doa_time_s") or 0.0))
+    if motion["source"] is not None:
+        stages["motion"] = motion
+    st, basins = fold_basins(p, st, info["layout"], kinds, info["mask"], max_iter)
+    if basins:
+        stages["fold_basins"] = basins
+    return st, p, info, scales, bounds, basins
 
 
 def _check_given_problem(p, *, use_tdoa_s, emission_sigma):

@@ -603,3 +603,68 @@ def initialise(p):
     st, placed = place_arrays(p, st, arrays, kappa, sigma_d, grid=grid)
     costs = {p.names[i]: c for i, c in zip(arrays, placed)}
     return st, {"source_sigma": sig_src, "array_costs": costs, "reference_iterations": info_ref["iterations"]}
+
+
+# --------------------------------------------------------------------------------------- fold basins
+FOLD_NEAR_PLANE_DEG = 20.0  # a planar array whose sources all lie this close to its mic plane has two basins
+FOLD_DCOST = 4.5            # an alternative basin within this cost (½ Δχ² = 3σ²/2) is not excluded by the data
+FOLD_MIN_DEG = 2.0          # ... if it is another basin: its orientation this far from the solution's
+FOLD_SWITCH = 1.0           # a basin lower by this much cost replaces the solution (the solve started wrong)
+
+
+def _rot(axis, angle):
+    """Rotation matrix about unit ``axis`` by ``angle`` (rad), Rodrigues."""
+    k = np.asarray(axis, float)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * (K @ K)
+
+
+def fold_candidates(p, st, i):
+    """Other starting orientations of a mirror-ambiguous planar array ``i`` whose sources lie within
+    FOLD_NEAR_PLANE_DEG of its mic plane: folded DOAs only tell each source's |elevation|, so a tilt that
+    turns the elevations' mean e into −e (about the in-plane axis across the sources' mean direction, by
+    ∓2e) fits them too. Returns a list of rotation matrices (empty when the array is not in that case)."""
+    m = p.doa.arr == i
+    if i == p.ref or not np.any(p.fold[i]) or not p.rot_free[i] or m.sum() < 3:
+        return []
+    n = st.R[i] @ p.fold[i]
+    w = st.s[p.doa.ev[m]] - st.x[i]
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    elev = np.arcsin(np.clip(w @ n, -1, 1))
+    if np.max(np.abs(elev)) > np.deg2rad(FOLD_NEAR_PLANE_DEG):
+        return []
+    mean_dir = w.mean(axis=0) - (w.mean(axis=0) @ n) * n
+    if np.linalg.norm(mean_dir) < 1e-6:
+        return []
+    k = np.cross(n, mean_dir / np.linalg.norm(mean_dir))
+    e = float(np.mean(elev))
+    return [_rot(k, a) @ st.R[i] for a in (2 * e, -2 * e) if abs(a) > np.deg2rad(1.0)]
+
+
+def fold_basins(p, st, lay, kinds, mask, max_iter=200):
+    """Try each planar array's other fold basin (:func:`fold_candidates`), re-solved by least squares from
+    there (the final mask). A lower cost: the solve had started in the wrong basin, and the better state is
+    kept. A cost within FOLD_DCOST (and FOLD_MIN_DEG away): the data cannot tell the basins apart. Returns
+    (state, records): one {array, dcost, rotation_deg, position_m, switched, ambiguous} per candidate."""
+    from .solver import linearise
+    cands = {i: fold_candidates(p, st, i) for i in range(p.N) if np.any(p.fold[i])}
+    if not any(cands.values()):
+        return st, []
+    cost0 = linearise(p, st, lay, kinds, mask=mask).cost
+    records = []
+    for i in cands:
+        for R in fold_candidates(p, st, i):
+            alt = st.copy()
+            alt.R[i] = R
+            alt, _ = levenberg_marquardt(p, alt, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+            c = linearise(p, alt, lay, kinds, mask=mask).cost
+            dR = st.R[i].T @ alt.R[i]
+            rec = {"array": str(p.names[i]), "dcost": float(c - cost0),
+                   "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
+                   "position_m": float(np.linalg.norm(alt.x[i] - st.x[i]))}
+            rec["switched"] = bool(c < cost0 - FOLD_SWITCH and rec["rotation_deg"] >= FOLD_MIN_DEG)
+            rec["ambiguous"] = bool(abs(c - cost0) < FOLD_DCOST and rec["rotation_deg"] >= FOLD_MIN_DEG)
+            records.append(rec)
+            if rec["switched"]:
+                st, cost0 = alt, c
+    return st, records

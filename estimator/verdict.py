@@ -134,5 +134,105 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
                              "data may be biased as a whole (reflections, occlusion)")
     if odometry_yaw and odometry_yaw.get("kept"):
         worse("suspect", f"the odometry frame is rotated by {odometry_yaw['yaw_deg']:.1f} ± {odometry_yaw['std_deg']:.1f}° "
-                         "about the vertical relative to the reference array (estimated; check the odometry's axes)")
+                         "about the vertical relative to the reference array (estimated; check the odometry's axes, and "
+                         "the arrays' mic geometry and doa_hemisphere: a mirrored or mis-ordered geometry turns the "
+                         "DOAs the same way)")
     return {"status": status, "reasons": reasons, "flagged_arrays": flagged}
+
+
+REASON_TEXT = {"nlos": "reflection-only arrivals (late against the array's range track: line of sight blocked)",
+               "absurd": "TDOAs no room can produce (> 100 m of path off the array's clock line)"}
+
+
+def name_distrusted(verdict, screened):
+    """Name the arrays and events the estimator did not trust (``estimator.screen``), in place.
+
+    ``verdict["distrusted"]`` (only when there is any): one {array, reason, events} per array and reason, for the rows taken out
+    (their arrays were calibrated from the rest) and for arrays most of whose rows are in doubt (kept:
+    there is too little else; the array is then flagged and the status at least ``suspect``). Absurd rows
+    make the status ``suspect`` too: something upstream failed."""
+    # the events whose arrival AT the array is in doubt: its DOA rows' when it has any (a TDOA-S row names
+    # two events, a TDOA-M row carries the reference's doubts too), else its TDOA-M rows', else TDOA-S
+    rank = {"doa": 0, "tdoa_m": 1, "tdoa_s": 2}
+    best = {}
+    for r in screened["rows"]:
+        if r.get("via_reference"):
+            continue   # a TDOA-M row out for the reference's arrival: named under the reference
+        key = (r["array"], r["reason"])
+        k = rank.get(r["type"], 2)
+        if key not in best or k < best[key][0]:
+            best[key] = (k, set())
+        if k == best[key][0]:
+            best[key][1].update(r["events"])
+    groups = {key: ev for key, (_, ev) in best.items()}
+    listed = [{"array": a, "reason": why, "events": sorted(ev), "taken_out": True}
+              for (a, why), ev in sorted(groups.items())]
+    worst = verdict["status"]
+    for a, n in sorted(screened["kept_doubted"].items()):
+        listed.append({"array": a, "reason": "nlos", "events": [], "taken_out": False})
+        if a not in verdict["flagged_arrays"]:
+            verdict["flagged_arrays"].append(a)
+        verdict["reasons"].append(f"array {a}: in {n} of its events its arrivals are {REASON_TEXT['nlos']}: most of its data, kept; "
+                                  "its calibration is not trusted")
+        worst = max(worst, "suspect", key=STATUS_RANK.get)
+    absurd = sorted({a for (a, why) in groups if why == "absurd"})
+    if absurd:
+        verdict["reasons"].append(f"{sum(len(groups[(a, 'absurd')]) for a in absurd)} event(s) of array(s) "
+                                  f"{', '.join(absurd)} had {REASON_TEXT['absurd']}: taken out")
+        worst = max(worst, "suspect", key=STATUS_RANK.get)
+    nlos = [a for (a, why) in groups if why == "nlos"]
+    if nlos:
+        verdict["reasons"].append("not trusted, taken out: " + "; ".join(
+            f"{a} events {', '.join(map(str, sorted(groups[(a, 'nlos')])))}" for a in nlos)
+            + f" ({REASON_TEXT['nlos']})")
+    verdict["status"] = worst
+    if listed:
+        verdict["distrusted"] = listed
+    return verdict
+
+
+def fold_ambiguity(out, basins):
+    """Arrays whose other fold basin (``init.fold_basins``) fits as well (``ambiguous``): their std is raised to
+    cover the other basin (rotation std per axis ≥ the angle between the basins, position std ≥ the
+    distance), and the verdict names them (``suspect``). In place on ``calibrate``'s output."""
+    arrays, verdict = out["arrays"], out["report"]["verdict"]
+    for b in basins:
+        if b["switched"] or not b["ambiguous"]:
+            continue
+        k = arrays.index[arrays["array"] == b["array"]]
+        for c in ("rx_std", "ry_std", "rz_std"):
+            arrays.loc[k, c] = np.maximum(arrays.loc[k, c], np.radians(b["rotation_deg"]))
+        for c in ("x_std", "y_std", "z_std"):
+            arrays.loc[k, c] = np.maximum(arrays.loc[k, c], b["position_m"])
+        if b["array"] not in verdict["flagged_arrays"]:
+            verdict["flagged_arrays"].append(b["array"])
+        verdict["reasons"].append(f"array {b['array']}: its sources all lie near its mic plane, where planar DOAs "
+                                  f"fold; another orientation {b['rotation_deg']:.0f}° away fits as well (cost "
+                                  f"+{b['dcost']:.1f}): its std covers both")
+        verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    return out
+
+SETUP_PREFIX = "set-up: "
+# generic reasons that a set-up mistake produces as a symptom; named as such when set-up findings failed
+SYMPTOM_NOTE = " (probably a symptom of the set-up finding(s) above, not a cause of its own)"
+
+
+def with_setup(verdict, findings):
+    """The verdict with the set-up findings (``calib.pipeline.setupcheck``: dicts with status "failed",
+    "suspect" or "note", text, array) ranked above the estimator's own reasons: a mistake in the set-up is
+    the cause, the residuals and the odometry's apparent rotation its symptoms. A failed finding makes the
+    verdict failed (the result cannot be trusted, whatever the residuals say); a suspect one at least
+    suspect. The arrays named are added to ``flagged_arrays``. Returns a new dict."""
+    status = verdict.get("status", "ok")
+    setup, flagged = [], list(verdict.get("flagged_arrays", []))
+    for f in findings:
+        if f.get("status") not in STATUS_RANK:
+            continue
+        setup.append(SETUP_PREFIX + f["text"])
+        if STATUS_RANK[f["status"]] > STATUS_RANK[status]:
+            status = f["status"]
+        if f.get("array") and f["array"] not in flagged:
+            flagged.append(f["array"])
+    failed = any(f.get("status") == "failed" for f in findings)
+    generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])]
+    return {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}

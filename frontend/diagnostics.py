@@ -16,7 +16,7 @@ def _pool(env, rate, width=4000):
 
 # margins of the detection plot, inches: tick labels + "dB" left, suptitle + first title on top, x label below,
 # each row's title between rows
-MARGIN_IN = {"left": 0.75, "right": 0.2, "top": 0.62, "bottom": 0.55, "between": 0.42}
+MARGIN_IN = {"left": 0.75, "right": 0.2, "top": 0.8, "bottom": 0.55, "between": 0.42}
 
 
 def _fixed_margins(fig, n_rows):
@@ -28,11 +28,29 @@ def _fixed_margins(fig, n_rows):
                         bottom=m["bottom"] / h, hspace=m["between"] / row)
 
 
+NLOS_COLOR, DOUBT_COLOR = "tab:red", "tab:orange"
+STRONG_DOUBTS = ("nlos", "occluded", "weak_direct", "track", "redetected")   # marked on the timeline
+
+
+def _mark_doubted(ax, a, top):
+    """▼ above each arrival the estimator distrusts or may: red for NLOS (reflection-only: taken out by the
+    estimator), orange for the other strong doubts (docs/frontend.md)."""
+    for x in a.get("arrivals", []):
+        flags = (x.get("flag") or "").split("+")
+        if "nlos" in flags:
+            color = NLOS_COLOR
+        elif any(f in STRONG_DOUBTS for f in flags):
+            color = DOUBT_COLOR
+        else:
+            continue
+        ax.plot([x["time"]], [top * 1.13], "v", color=color, ms=5)
+
+
 def plot_detections(path, diag, marks=None):
     """Detection timeline, one row per array on its own clock: matched-filter envelope (dB re. its median),
     matched detections (green, event id), spurious ones (red ×), missed events at their predicted time
     (grey dashed); ``marks`` {array: [(time on its clock, label)]}: e.g. the clock steps the estimator found
-    (orange dash-dot)."""
+    (purple dash-dot)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -67,21 +85,23 @@ def plot_detections(path, diag, marks=None):
             ax.vlines(te, 0, 1, transform=across, color="0.3", linestyles="--", lw=1)
             for e, t_e in zip(a["missed_events"], te):
                 ax.text(t_e, top * 1.02, f"{e}?", color="0.3", ha="center", va="bottom", fontsize=7)
+        _mark_doubted(ax, a, top)
         for t_m, label in (marks or {}).get(name, ()):
-            ax.axvline(t_m, color="tab:orange", ls="-.", lw=1.5)
-            ax.text(t_m, top * 0.5, f" {label}", color="tab:orange", ha="left", va="center", fontsize=8)
+            ax.axvline(t_m, color="tab:purple", ls="-.", lw=1.5)
+            ax.text(t_m, top * 0.5, f" {label}", color="tab:purple", ha="left", va="center", fontsize=8)
         n_m = sum(d["event"] is not None for d in det)
         warn = "  ⚠ " + "; ".join(a["warnings"]) if a["warnings"] else ""
         ax.set_title(f"{name}: {n_m} matched, {len(a['missed_events'])} missed "
                      f"({', '.join(map(str, a['missed_events'])) or 'none'}), {len(a['spurious'])} spurious"
                      f"{warn}", fontsize=9, loc="left")
-        ax.set_ylim(-5, top * 1.18)
+        ax.set_ylim(-5, top * 1.2)
         ax.set_ylabel("dB", fontsize=8)
         ax.tick_params(labelsize=8)
         ax.set_xlim(0, t_max)
     axes[-1, 0].set_xlabel("time on each array's own clock (s)")
     fig.suptitle("Chirp detections: matched-filter envelope; green = matched (event id), red × = spurious, "
-                 "dashed = missed event (predicted time)", fontsize=10)
+                 "dashed = missed event (predicted time)\n▼ distrusted arrival: red = NLOS (reflection only, taken "
+                 "out by the estimator), orange = another doubt", fontsize=10)
     _fixed_margins(fig, n)  # tight_layout measured every label: ~0.1 s of a ~0.5 s plot
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -18,14 +18,16 @@ import numpy as np
 import pandas as pd
 
 from calib.errors import InputError
+from calib.tables import event_velocities
 
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .doa import cone_vectors, mic_geometry, single_thread_blas, srp_cone, srp_doa, srp_setup
+from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
-from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup
+from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup, stretch_shifts
 
 DEFAULTS = {
     "threshold": 8.0,        # detection: peak / local background of the matched-filter envelope
@@ -95,11 +97,22 @@ def _extract(session, progress, opt, jobs=1):
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
     results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
+    curve = _stretch_curve(arrays[order[0]], session, c, opt)
+    flag_nlos(results, events, _shift_function(beta, curve), c)
     flag_doa_spread(results)
+    warn_moving(results, events)
     if progress is not None:
         progress(len(arrays), len(arrays), "done")
 
     feats = _tables(session, results, ev_ids, beta)
+    if curve is not None:
+        meta = feats["meta"]
+        meta["chirp_stretch_shift"] = curve
+        # the SRP weights the sweep's band evenly, and a linear sweep spends equal time per Hz: its DOA looks
+        # at the source as it was half-way through the sweep
+        meta["doa_time_s"] = 0.5 * float(session["chirp"]["duration"])
+        if "sigma_tdoa" in meta.get("sigmas_estimated", []):
+            meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion_sd(events, c, _shift_function(beta, curve))))
     diag = _diagnostics(session, results, ev_ids, beta, time.perf_counter() - t_start)
     return feats, diag
 
@@ -193,7 +206,9 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
         # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
         # propagation delays, so only as an upper bound on the measured broadening)
-        smear_max = int(round(max(0.0, 2 * abs(asc["scale"] - 1.0) * st["dur"] - g["pulse"]) * fs))
+        # a source moving during the sweep stretches it by 1 + ṙ/c alike (events.csv vel_x/y/z: |ṙ| ≤ |v|)
+        stretch = abs(asc["scale"] - 1.0) + _max_speed(session["events"]) / c
+        smear_max = int(round(max(0.0, 2 * stretch * st["dur"] - g["pulse"]) * fs))
         # event segments read and processed in chunks (memory bounded however long the recording)
         loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max}, workers=fft_workers)
     finally:
@@ -218,6 +233,54 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         "has_doa": doa["kind"] != "single", "doa_axis": doa["axis"],
         "mic_quality": loc["value"], "warnings": warnings, "timings": timings,
     }
+
+
+def _max_speed(events):
+    """The largest source speed during a sweep (m/s) from events.csv's optional velocity columns; 0 without."""
+    v = event_velocities(events)
+    return float(np.max(np.linalg.norm(v, axis=1))) if v is not None and len(v) else 0.0
+
+
+STRETCH_POINTS = 17     # points of the stretch → shift curve (odd: ε = 0 among them)
+STRETCH_MARGIN = 1.25   # the curve spans ± this × the largest |v|/c of the events
+
+
+def _stretch_curve(a, session, c, opt):
+    """meta ``chirp_stretch_shift`` for a source that moves during the sweep (events.csv velocities): this
+    estimator's arrival shift for the sweep received stretched by 1 + ε (ε = ṙ/c), measured as β is
+    (:func:`timing.stretch_shifts`) at the reference array's rate, on ± STRETCH_MARGIN × the largest
+    |v|/c. Beyond a stretch of ~1e-4 the shift is no longer β ε. None without velocities."""
+    vmax = _max_speed(session["events"])
+    if vmax <= 0:
+        return None
+    fs = int(read_header(a).samplerate)
+    template = chirp_template(session["chirp"], fs)
+    band = chirp_band(session["chirp"], template, fs)
+    g = _timing_layout(np.asarray(a["mics"], float), band, fs, c, len(template), opt)
+    eps = np.linspace(-1.0, 1.0, STRETCH_POINTS) * STRETCH_MARGIN * vmax / c
+    shift, real = stretch_shifts(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"], eps)
+    zero = float(np.interp(0.0, real, shift))
+    return {"stretch": [float(v) for v in real], "shift_s": [float(v - zero) for v in shift]}
+
+
+MOTION_MODEL_ERROR = 0.2   # the shift model's error, a fraction of the shift: arrival errors against β ṙ/c had
+                           # slopes 0.91-1.13 and ~100-150 µs scatter on the moving preset (seed 0, 0.5 m/s)
+
+
+def motion_sd(events, c, shift):
+    """The TDOA error (s) a moving source's shift leaves after its correction: √2 × MOTION_MODEL_ERROR × the
+    RMS shift of a range rate of |v|/√3 (a random direction), added to the frontend's sigma_tdoa."""
+    v = event_velocities(events)
+    eps = np.linalg.norm(v, axis=1) / np.sqrt(3) / c
+    return float(np.sqrt(2) * MOTION_MODEL_ERROR * np.sqrt(np.mean(shift(eps) ** 2)))
+
+
+def _shift_function(beta, curve):
+    """ε → arrival shift (s): the measured curve when there is one, else β ε."""
+    if curve is None:
+        return lambda eps: beta * eps
+    x, y = np.asarray(curve["stretch"]), np.asarray(curve["shift_s"])
+    return lambda eps: np.interp(eps, x, y)
 
 
 def _reference_beta(a, session, c, opt):
@@ -430,6 +493,54 @@ DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's
                           # the RMS that sets the session's DOA sigma it would weigh as much as 900 typical rows
 
 
+def flag_nlos(results, events, shift, c):
+    """Add the doubt "nlos" to every arrival late against its array's own range track along the odometry
+    (:func:`calib.frontend.nlos.late_arrivals`: a reflection-only arrival, the direct path blocked), halve its
+    quality, and keep each arrival's lateness as ``late`` (s; NaN: not judged). In place."""
+    t_emit = events["t_emit"].to_numpy(float)
+    odom = events[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+    vel = event_velocities(events)
+    for r in results.values():
+        j = r["ev_idx"]
+        ev = late_arrivals(np.asarray(r["arrival"], float), t_emit[j] - t_emit[0], odom[j], c, shift,
+                           None if vel is None else vel[j])
+        r["late"] = ev["late"]
+        for k in np.flatnonzero(ev["nlos"]):
+            r["flags"][k].append("nlos")
+            r["quality"][k] *= DOUBT_PENALTY
+        n = int(ev["nlos"].sum())
+        if n:
+            r["warnings"].append(f"{n} of {len(j)} arrivals are late against the array's range track along the "
+                                 "odometry by more than a direct path can be (reflection only: line of sight "
+                                 "blocked, flagged nlos)")
+        if ev["early"] >= max(3, 0.1 * len(j)):
+            r["warnings"].append(f"{ev['early']} arrivals are early against the array's range track: most of its "
+                                 "arrivals may be reflections (line of sight blocked)")
+
+
+MOVING_DOA_SPREAD_DEG = 10.0  # an array's median DOA spread above this: its mics disagree with any one plane wave
+                              # (0.3-2° in the controlled rooms; 17 and 76° for 2 of 4 arrays of a robot moving
+                              # at 0.5 m/s, preset moving seed 0, without velocities)
+
+
+def warn_moving(results, events):
+    """Warn (every array's warnings) when the DOA spreads say the source moved during the sweep — its
+    stretch smears every mic's pulse — and events.csv gives no velocities to correct for it: at least half
+    of the arrays with DOAs have a median spread above MOVING_DOA_SPREAD_DEG (one occluded array alone
+    does not make it)."""
+    if event_velocities(events) is not None:
+        return
+    med = [float(np.degrees(np.nanmedian(r["doa_spread"]))) for r in results.values()
+           if r["has_doa"] and np.any(np.isfinite(r["doa_spread"]))]
+    high = [m for m in med if m > MOVING_DOA_SPREAD_DEG]
+    if med and len(high) >= 0.5 * len(med):
+        text = (f"the DOAs of {len(high)} of {len(med)} arrays disagree with any plane wave (median spreads "
+                f"{', '.join(f'{m:.0f}' for m in high)}° > {MOVING_DOA_SPREAD_DEG:g}°): did the source move during "
+                "the sweeps? events.csv vel_x, vel_y, vel_z let calib correct for it")
+        for r in results.values():
+            r["warnings"].append(text)
+
+
 def flag_doa_spread(results):
     """Add the doubt "doa_spread" to every arrival whose DOA spread (:func:`doa_spread`) exceeds
     ``DOA_SPREAD_FACTOR`` × the median over the session's DOAs without doubts (in place; the median over
@@ -544,22 +655,24 @@ def _tables(session, results, ev_ids, beta):
     names = [a["name"] for a in session["arrays"]]
     arr = {}
     for name, r in results.items():
-        arr[name] = {int(ev_ids[j]): (r["arrival"][k], r["quality"][k], _flag_text(r["flags"][k], doa=False))
+        late = r.get("late", np.full(len(r["ev_idx"]), np.nan))
+        arr[name] = {int(ev_ids[j]): (r["arrival"][k], r["quality"][k], _flag_text(r["flags"][k], doa=False), late[k])
                      for k, j in enumerate(r["ev_idx"])}
     tm, ts, doa = [], [], []
     for name in names:
-        for e, (t, q, f) in arr[name].items():
+        for e, (t, q, f, lt) in arr[name].items():
             if name != ref and e in arr[ref]:
-                tr, qr, fr = arr[ref][e]
-                tm.append((e, name, t - tr, min(q, qr), _join(fr, f)))
+                tr, qr, fr, lr = arr[ref][e]
+                tm.append((e, name, t - tr, min(q, qr), _join(fr, f), _later(lt, lr)))
         evs = sorted(arr[name])
         for e1, e2 in zip(evs[:-1], evs[1:]):
-            (t1, q1, f1), (t2, q2, f2) = arr[name][e1], arr[name][e2]
-            ts.append((name, e1, e2, t2 - t1, min(q1, q2), _join(f1, f2)))
+            (t1, q1, f1, l1), (t2, q2, f2, l2) = arr[name][e1], arr[name][e2]
+            ts.append((name, e1, e2, t2 - t1, min(q1, q2), _join(f1, f2), _later(l1, l2)))
         r = results[name]
         for k, j in enumerate(r["ev_idx"] if r["has_doa"] else []):
             doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k], _flag_text(r["flags"][k], doa=True),
-                        _row_sigma_deg(r["doa_spread"][k]) if r["doa_axis"] is None else np.nan))
+                        _row_sigma_deg(r["doa_spread"][k]) if r["doa_axis"] is None else np.nan,
+                        arr[name][int(ev_ids[j])][3]))
     est = noise_estimates(results)
     est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
@@ -577,11 +690,12 @@ def _tables(session, results, ev_ids, beta):
     return {
         "meta": meta,
         "events": session["events"].copy(),
-        "tdoa_m": pd.DataFrame(tm, columns=["event", "array", "tdoa", "quality", "flag"]).astype({"event": int}),
-        "tdoa_s": pd.DataFrame(ts, columns=["array", "from_event", "to_event", "tdoa", "quality", "flag"])
-        .astype({"from_event": int, "to_event": int}),
-        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality", "flag", "sigma_deg"])
+        "tdoa_m": pd.DataFrame(tm, columns=["event", "array", "tdoa", "quality", "flag", "late_s"])
         .astype({"event": int}),
+        "tdoa_s": pd.DataFrame(ts, columns=["array", "from_event", "to_event", "tdoa", "quality", "flag", "late_s"])
+        .astype({"from_event": int, "to_event": int}),
+        "doa": pd.DataFrame(doa, columns=["event", "array", "ux", "uy", "uz", "quality", "flag", "sigma_deg",
+                                          "late_s"]).astype({"event": int}),
     }
 
 
@@ -592,8 +706,8 @@ def _row_sigma_deg(sd):
     return float(np.degrees(sd)) if np.isfinite(sd) and sd > 0 else np.nan
 
 
-TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded")
-DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "doa_spread", "mic_spread", "occluded")
+TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded", "nlos")
+DOA_DOUBTS = ("weak_direct", "low_snr", "doa_reflection", "doa_spread", "mic_spread", "occluded", "nlos")
 DOA_ONLY_DOUBTS = ("doa_reflection", "doa_spread")  # no bearing on the arrival time (nor its quality)
 
 
@@ -601,6 +715,11 @@ def _flag_text(reasons, doa):
     """The ``flag`` column: the doubts that concern a timing (or a DOA) row, joined by '+'; '' = none."""
     keep = DOA_DOUBTS if doa else TIMING_DOUBTS
     return "+".join(x for x in reasons if x in keep)
+
+
+def _later(a, b):
+    """``late_s`` of a row built from two arrivals: the later one's (NaN when neither was judged)."""
+    return float(np.nanmax([a, b])) if np.isfinite(a) or np.isfinite(b) else np.nan
 
 
 def _join(a, b):
@@ -658,7 +777,8 @@ def _diagnostics(session, results, ev_ids, beta, elapsed):
             "arrival_spread_median_s": float(np.nanmedian(r["spread"])),
             "arrivals": [{"event": int(ev_ids[j]), "time": float(r["arrival"][k]),
                           "quality": float(r["quality"][k]), "flag": "+".join(r["flags"][k]),
-                          "mic_sd_s": float(r["mic_sd"][k]), "sd_s": float(r["arrival_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k]))}
+                          "mic_sd_s": float(r["mic_sd"][k]), "sd_s": float(r["arrival_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k])),
+                          "late_s": float(r["late"][k]) if "late" in r else None}
                          for k, j in enumerate(r["ev_idx"])],
             "doubtful": {int(ev_ids[j]): r["flags"][k] for k, j in enumerate(r["ev_idx"]) if r["flags"][k]},
             "redetected_events": [int(ev_ids[j]) for j in np.flatnonzero(r["redetected"])],

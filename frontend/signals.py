@@ -11,6 +11,7 @@ import ctypes
 import functools
 import math
 import mmap
+from dataclasses import dataclass
 from fractions import Fraction
 
 import numpy as np
@@ -20,24 +21,77 @@ import soundfile as sf
 from calib.errors import InputError
 
 
-def read_header(array):
-    """Check one array's audio file against the session without reading the samples.
+def audio_files(array):
+    """The audio files of an array: ``array["files"]`` (one mono file per mic, in the order of ``mics``), or
+    its one ``wav``."""
+    return tuple(array.get("files") or (array["wav"],))
 
-    array : dict from ``pipeline.formats.session.read_session`` (``name``, ``wav``, ``mics`` (M, 3)).
-    Returns the ``soundfile.info`` of the file. Raises :class:`InputError` naming the file for an
-    unreadable file, a channel count that is not the number of mics, or an empty file.
-    """
-    path, n_mics = array["wav"], len(array["mics"])
+
+@dataclass(frozen=True)
+class PerMicInfo:
+    """The header of an array recorded as one mono file per mic (:func:`read_header`): the files' common
+    rate, length and sample format; ``channels`` = the number of mics."""
+    samplerate: int
+    channels: int
+    frames: int
+    subtype: str
+    format: str
+
+    @property
+    def duration(self):
+        return self.frames / self.samplerate
+
+
+def _info(path):
     try:
         info = sf.info(str(path))
     except Exception as exc:  # libsndfile reports format problems in many ways
         raise InputError(f"{path}: cannot read audio ({_first_line(exc)})") from None
-    if info.channels != n_mics:
-        what = "a mono file" if info.channels == 1 else f"{info.channels} channels"
-        raise InputError(f"{path}: {what}, but array {array['name']!r} has {n_mics} mics in session.toml")
     if info.frames == 0:
         raise InputError(f"{path}: no audio samples")
     return info
+
+
+def read_header(array):
+    """Check one array's audio against the session without reading the samples.
+
+    array : dict from ``pipeline.formats.session.read_session`` (``name``, ``wav``, ``mics`` (M, 3), optional
+    ``channels``: the file's channel of each mic, counted from 0; optional ``files``: one mono file per mic).
+    Returns the ``soundfile.info`` of the file (a :class:`PerMicInfo` for one file per mic). Raises
+    :class:`InputError` naming the file for an unreadable or empty file, a channel count that is not the
+    number of mics (without a channel map), a mapped channel the file lacks, or per-mic files that differ in
+    rate or length.
+    """
+    files, n_mics = audio_files(array), len(array["mics"])
+    if len(files) > 1:
+        return _per_mic_header(array, files)
+    path, sel = files[0], array.get("channels")
+    info = _info(path)
+    if sel is None and info.channels != n_mics:
+        what = "a mono file" if info.channels == 1 else f"{info.channels} channels"
+        raise InputError(f"{path}: {what}, but array {array['name']!r} has {n_mics} mics in session.toml "
+                         "(a raw recording with other channels too: give 'channels', docs/formats.md)")
+    if sel is not None and max(sel) >= info.channels:
+        raise InputError(f"{path}: {info.channels} channel(s), but array {array['name']!r} maps a mic to channel "
+                         f"{max(sel)} (channels are counted from 0)")
+    return info
+
+
+def _per_mic_header(array, files):
+    """:func:`read_header` of one mono file per mic: all mono, one rate, one length."""
+    infos = [_info(f) for f in files]
+    first = infos[0]
+    for f, info in zip(files, infos):
+        if info.channels != 1:
+            raise InputError(f"{f}: {info.channels} channels, but array {array['name']!r} lists one mono file "
+                             "per mic")
+        if info.samplerate != first.samplerate:
+            raise InputError(f"{f}: {info.samplerate} Hz, but {files[0].name} has {first.samplerate} Hz "
+                             f"(array {array['name']!r}: its files must share one rate)")
+        if info.frames != first.frames:
+            raise InputError(f"{f}: {info.frames} frames, but {files[0].name} has {first.frames} "
+                             f"(array {array['name']!r}: its files must have one length)")
+    return PerMicInfo(int(first.samplerate), len(files), int(first.frames), first.subtype, first.format)
 
 
 def read_array_audio(array):
@@ -63,25 +117,30 @@ SUM_BLOCK_FRAMES = 16384  # frames converted per step of _int_channel_sum: its f
                           # back 6 MiB (2x slower; with two arrays in threads, 1.6x)
 
 
-def _int_channel_sum(frames, scale=1.0, out=None):
+def _int_channel_sum(frames, scale=1.0, out=None, cols=None):
     """Sum over the channels of (N, M) integer PCM frames as float32, times ``scale`` (a power of two: the
     full scale), into ``out`` if given; ``SUM_BLOCK_FRAMES`` frames at a time (per-frame arithmetic: the
     same values in any blocking). 16-bit samples: one streaming conversion to float32 and a
     matrix-vector product with ``scale`` in the vector (every partial sum of M ≤ 256 such samples is an
     integer below 2^24, exact in float32 in any order, and a power-of-two scale is exact: the values of
     float32 accumulation then scaling; ~20 % less CPU than summing the strided columns in int32 and
-    scaling in a second pass); wider ones accumulate in float32, column by column, then are scaled."""
+    scaling in a second pass); wider ones accumulate in float32, column by column, then are scaled.
+    cols : the columns to sum (a channel map), default all (the others weigh 0: the same exact sums)."""
     out = np.empty(len(frames), np.float32) if out is None else out
+    cols = range(frames.shape[1]) if cols is None else cols
     for a in range(0, len(frames), SUM_BLOCK_FRAMES):
-        _channel_sum_block(frames[a : a + SUM_BLOCK_FRAMES], scale, out[a : a + SUM_BLOCK_FRAMES])
+        _channel_sum_block(frames[a : a + SUM_BLOCK_FRAMES], scale, out[a : a + SUM_BLOCK_FRAMES], cols)
     return out
 
 
-def _channel_sum_block(frames, scale, out):
+def _channel_sum_block(frames, scale, out, cols):
     if frames.dtype.itemsize <= 2 and frames.shape[1] <= 256:
-        return np.matmul(frames.astype(np.float32), np.full(frames.shape[1], scale, np.float32), out=out)
-    acc = frames[:, 0].astype(np.float32)
-    for ch in range(1, frames.shape[1]):
+        w = np.zeros(frames.shape[1], np.float32)
+        w[list(cols)] = scale
+        return np.matmul(frames.astype(np.float32), w, out=out)
+    first, *rest = cols
+    acc = frames[:, first].astype(np.float32)
+    for ch in rest:
         acc += frames[:, ch]
     return np.multiply(acc, np.float32(scale), out=out)
 
@@ -126,14 +185,27 @@ class ArrayAudio:
     :func:`calib.frontend.detect.matched_envelope` use. Non-finite samples raise :class:`InputError`
     naming the file when they are read. Use as a context manager (or call :meth:`close`).
 
-    array : dict from ``pipeline.formats.session.read_session`` (``name``, ``wav``, ``mics``); checked with
-    :func:`read_header` on opening.
+    array : dict from ``pipeline.formats.session.read_session`` (``name``, ``wav``, ``mics``, optional
+    ``channels``, ``files``); checked with :func:`read_header` on opening. With a channel map, the
+    recording is the mapped channels in the order of the mics (the other channels are never converted);
+    with one file per mic, a :class:`_PerMicAudio` stacks the files.
     """
+
+    def __new__(cls, array):
+        if cls is ArrayAudio and len(audio_files(array)) > 1:
+            return super().__new__(_PerMicAudio)
+        return super().__new__(cls)
 
     def __init__(self, array):
         info = read_header(array)
-        self.path = array["wav"]
-        self.fs, self.channels, self.frames = int(info.samplerate), int(info.channels), int(info.frames)
+        self.path = audio_files(array)[0]
+        self.fs, self.file_channels, self.frames = int(info.samplerate), int(info.channels), int(info.frames)
+        sel = array.get("channels")
+        self._sel = None if sel is None else np.asarray(sel, int)  # file column of each mic, or None: all
+        self._cols = range(self.file_channels) if sel is None else tuple(int(c) for c in sel)
+        self.channels = len(self._cols)
+        self._weights = np.zeros(self.file_channels, np.float32)  # 1 on the mics' columns: their sum
+        self._weights[list(self._cols)] = 1.0
         self._int = _INTEGER_READ.get(info.subtype)  # (dtype, full scale) for integer PCM, else None
         self._file = None
         self._sum_buf = self._fill_buf = None
@@ -198,7 +270,7 @@ class ArrayAudio:
                 self._raw_dtype = None
                 return None
         _, frames, offset = self._raw
-        row = self.channels * frames.dtype.itemsize
+        row = self.file_channels * frames.dtype.itemsize
         lo, hi = offset + a * row, offset + b * row
         if self._span is not None:
             lo_s, hi_s = min(self._span[0], lo), max(self._span[1], hi)
@@ -214,15 +286,15 @@ class ArrayAudio:
         chunk is missing or shorter than the header says."""
         dt = np.dtype(self._raw_dtype)
         where = wav_data_chunk(self.path)
-        if where is None or where[1] < self.frames * self.channels * dt.itemsize:
+        if where is None or where[1] < self.frames * self.file_channels * dt.itemsize:
             return None
         try:
             with open(self.path, "rb") as fh:
                 mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
         except (OSError, ValueError) as exc:
             raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
-        frames = np.frombuffer(mm, dt, count=self.frames * self.channels, offset=where[0])
-        return mm, frames.reshape(self.frames, self.channels), where[0]
+        frames = np.frombuffer(mm, dt, count=self.frames * self.file_channels, offset=where[0])
+        return mm, frames.reshape(self.frames, self.file_channels), where[0]
 
     def _raw_sum(self, start, stop):
         """:meth:`segment` with ``channel_sum`` from the raw frames (the same values), or None."""
@@ -236,9 +308,9 @@ class ArrayAudio:
         if blk is None:
             return None
         if self._int is not None:
-            _int_channel_sum(blk, 1.0 / self._int[1], out=acc[a - start : b - start])
+            _int_channel_sum(blk, 1.0 / self._int[1], out=acc[a - start : b - start], cols=self._cols)
             return acc
-        np.matmul(blk, np.ones(self.channels, np.float32), out=acc[a - start : b - start])  # no temporary
+        np.matmul(blk, self._weights, out=acc[a - start : b - start])  # no temporary
         if not np.all(np.isfinite(acc)):
             self._check_finite(blk)
         return acc
@@ -264,16 +336,20 @@ class ArrayAudio:
             out[: max(a - start, 0)] = 0
             out[max(b - start, 0) :] = 0
         else:
-            out = np.zeros((n, self.channels), dtype)
+            out = np.zeros((n, self.file_channels), dtype)
         if b > a:
             self._read_into(a, out[a - start : b - start])
         if raw and channel_sum:
-            return _int_channel_sum(out, 1.0 / self._int[1])
+            return _int_channel_sum(out, 1.0 / self._int[1], cols=self._cols)
         if raw:  # integer PCM read as such and scaled here: half the bytes, ~3x cheaper than libsndfile's floats
-            return np.multiply(out.T, np.float32(1.0 / self._int[1]), dtype=np.float32)
+            return np.multiply(self._mics(out.T), np.float32(1.0 / self._int[1]), dtype=np.float32)
         if channel_sum:
-            return out @ np.ones(self.channels, np.float32)
-        return out.T
+            return out @ self._weights
+        return self._mics(out.T)
+
+    def _mics(self, rows):
+        """The mics' rows of (file channels, n) data: all of them (a view), or a copy in the channel map's order."""
+        return rows if self._sel is None else rows[self._sel]
 
     def fill_segment(self, out, start):
         """Write frames ``start .. start + n − 1`` (all inside the file) into ``out`` ((M, n) float32, e.g. a
@@ -286,9 +362,9 @@ class ArrayAudio:
             buf = self._buffer("_fill_buf", n, dtype)
             self._read_into(start, buf)
         if self._int is not None:
-            np.multiply(buf.T, np.float32(1.0 / self._int[1]), out=out, dtype=np.float32)
+            np.multiply(self._mics(buf.T), np.float32(1.0 / self._int[1]), out=out, dtype=np.float32)
         else:
-            out[...] = buf.T
+            out[...] = self._mics(buf.T)
             if self._raw is not None:
                 self._check_finite(out)
 
@@ -313,7 +389,7 @@ class ArrayAudio:
         """An (n, M) ``dtype`` view of a buffer kept in attribute ``name`` and reused read after read."""
         buf = getattr(self, name)
         if buf is None or buf.shape[0] < n or buf.dtype != dtype:
-            buf = np.empty((n, self.channels), dtype)
+            buf = np.empty((n, self.file_channels), dtype)
             setattr(self, name, buf)
         return buf[:n]
 
@@ -329,6 +405,40 @@ class ArrayAudio:
     def channel_sum(self):
         """A (1, N) view whose slices are the sum over channels (read on demand)."""
         return _ChannelSum(self)
+
+
+class _PerMicAudio(ArrayAudio):
+    """An array recorded as one mono file per mic (``array["files"]``): an :class:`ArrayAudio` per file, stacked
+    as the ``(M, N)`` recording (same interface; :func:`read_header` has checked one rate and one length)."""
+
+    def __init__(self, array):
+        info = read_header(array)
+        files = audio_files(array)
+        self.path = files[0]
+        self.fs, self.channels, self.frames = int(info.samplerate), len(files), int(info.frames)
+        self._parts = [ArrayAudio({"name": array["name"], "wav": f, "mics": array["mics"][k : k + 1]})
+                       for k, f in enumerate(files)]
+
+    def segment(self, start, stop, channel_sum=False):
+        if channel_sum:
+            parts = iter(self._parts)
+            acc = next(parts).segment(start, stop, channel_sum=True).copy()
+            for p in parts:
+                acc += p.segment(start, stop, channel_sum=True)
+            return acc
+        return np.concatenate([p.segment(start, stop) for p in self._parts])
+
+    def fill_segment(self, out, start):
+        for k, p in enumerate(self._parts):
+            p.fill_segment(out[k : k + 1], start)
+
+    def release(self):
+        for p in self._parts:
+            p.release()
+
+    def close(self):
+        for p in self._parts:
+            p.close()
 
 
 class _ChannelSum:

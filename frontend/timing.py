@@ -1043,18 +1043,28 @@ def drift_bias(template, fs, band, locate_kw, pre, seg_len, whiten_hz=500.0, del
     exactly by zero-padding the buffer to ≥ 1/δ samples (one sample of stretch). For any sweep β equals the
     band-weighted mean of ``d(f τ_g(f))/df`` (``τ_g`` the template's group delay; tests check both).
     """
+    (s1, s2), (d1, d2) = stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, (delta, -delta))
+    return float((s1 - s2) / (d1 - d2))
+
+
+def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stretches):
+    """This estimator's arrival shift (s) for the chirp received stretched by ``1 + ε`` about its start, for
+    each ε of ``stretches`` (each realised exactly by band-limited resampling: returns the ε realised too).
+    Small ε: β ε (:func:`drift_bias`); a source moving at ~1 m/s (ε ~ 3e-3) is beyond the linear range.
+    Returns (shifts (n,), stretches realised (n,))."""
     n = len(template)
-    pad = sfft.next_fast_len(max(seg_len + 2 * pre, int(np.ceil(1.0 / delta))))
+    smallest = min(abs(d) for d in stretches if d) if any(stretches) else 1e-3
+    pad = sfft.next_fast_len(max(seg_len + 2 * pre, int(np.ceil(1.0 / smallest))))
     setup = spectra_setup(template, fs, band, seg_len, whiten_hz)
-    out = []
-    for d in (delta, -delta):
-        k = int(round(d * pad)) or (1 if d > 0 else -1)
+    shifts, real = [], []
+    for d in stretches:
+        k = int(round(d * pad)) or (0 if d == 0 else (1 if d > 0 else -1))
         dd = k / pad  # stretch realisable exactly by resampling pad → pad + k samples
         buf = np.zeros(pad)
         buf[pre : pre + n] = template
-        y = fft_resample(buf, pad + k)[:seg_len]  # y[i] = buf(i / (1 + dd)): the chirp starts at pre (1 + dd)
+        y = fft_resample(buf, pad + k)[:seg_len] if k else buf[:seg_len]  # y[i] = buf(i / (1 + dd))
         c = segment_spectra(y[None, :], np.zeros(1, int), setup)
         res = locate(c, setup, **locate_kw)
-        out.append((res["tau"][0, 0] - pre * (1 + dd) / fs, dd))
-    (s1, d1), (s2, d2) = out
-    return float((s1 - s2) / (d1 - d2))
+        shifts.append(res["tau"][0, 0] - pre * (1 + dd) / fs)
+        real.append(dd)
+    return np.asarray(shifts), np.asarray(real)

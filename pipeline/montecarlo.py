@@ -23,7 +23,7 @@ import json
 import math
 import os
 import time
-import tomllib
+from calib.tomlcompat import tomllib
 import zlib
 from pathlib import Path
 
@@ -62,6 +62,10 @@ SUMMARY_METRICS = {"loc_cm": ("position_rmse_m", 100.0), "ang_deg": ("orientatio
                    "geo_deg": ("orientation_geodesic_deg", 1.0), "offset_1e-4s": ("offset_rmse_s", 1e4),
                    "drift_ppm": ("relative_drift_rmse", 1e6), "src_cm": ("source_rmse_m", 100.0)}
 SETTINGS = ("base_seed", "sigma_odo", "check_convergence", "with_crlb")
+# Chunks of runs per worker task (:func:`_chunks`): each takes 1/GUIDED_SHARE of what is left per worker, at most
+# MAX_CHUNK runs (a part file's worth: what an interrupted study loses per worker).
+GUIDED_SHARE = 2
+MAX_CHUNK = 40
 _BLAS = ThreadpoolController()  # tiny matrices: single-threaded BLAS, parallelism across runs instead
 
 
@@ -324,11 +328,20 @@ def _check_settings(out, settings):
                                  "use the same settings to resume or another output directory")
 
 
-def _chunks(tasks, n_chunks):
-    """Split tasks into contiguous chunks (a chunk = one part file)."""
-    n_chunks = max(1, min(n_chunks, len(tasks)))
-    bounds = np.linspace(0, len(tasks), n_chunks + 1).round().astype(int)
-    return [tasks[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+def _chunks(tasks, n_workers, size=None):
+    """Split tasks into contiguous chunks (a chunk = one worker task = one part file).
+
+    ``size`` given: chunks of that many tasks. Else guided self-scheduling: each chunk takes
+    1/GUIDED_SHARE of the remaining tasks per worker (at most MAX_CHUNK), so the first chunks are long (the
+    per-chunk set-up and part file are amortised) and the last ones short (the workers finish together: the
+    study's tail is one short chunk, not one of average length).
+    """
+    out, k = [], 0
+    while k < len(tasks):
+        n = size or int(np.clip(math.ceil((len(tasks) - k) / (GUIDED_SHARE * max(n_workers, 1))), 1, MAX_CHUNK))
+        out.append(tasks[k:k + n])
+        k += n
+    return out
 
 
 def _connect(scheduler):
@@ -364,7 +377,9 @@ def _execute(chunks, settings, jobs, client):
         from joblib import Parallel, delayed
 
         try:
-            yield from Parallel(n_jobs=jobs, return_as="generator_unordered")(
+            # batch_size=1: a chunk is already a batch (joblib's automatic batching would merge the short
+            # last chunks again)
+            yield from Parallel(n_jobs=jobs, return_as="generator_unordered", batch_size=1)(
                 delayed(_run_chunk)(c, settings) for c in chunks)
         except BaseException:  # interrupt (SIGINT/SIGTERM) or error: stop the workers, do not let them compute on
             _kill_workers()
@@ -398,7 +413,7 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     base_seed, sigma_odo : scene generation (``run_seed``, odometry noise m); check_convergence: also solve
         from ground truth (``converged`` column); with_crlb: score one CRLB draw per run. These four must
         match the ones of a study being resumed (``study.json``).
-    chunk_size : runs per part file / worker task (default: about 8 chunks per worker, at most 40 runs).
+    chunk_size : runs per part file / worker task (default: shrinking chunks, :func:`_chunks`).
 
     Returns
     -------
@@ -426,9 +441,7 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
         n_workers = sum(client.nthreads().values())
     else:
         n_workers = (os.cpu_count() or 1) if jobs == -1 else jobs
-    if chunk_size is None:
-        chunk_size = int(np.clip(math.ceil(len(tasks) / (8 * max(n_workers, 1))), 1, 40))
-    chunks = _chunks(tasks, math.ceil(len(tasks) / chunk_size)) if tasks else []
+    chunks = _chunks(tasks, n_workers, chunk_size)
     total = sum(len(t[4]) for t in tasks)
     t0 = time.perf_counter()
     if chunks:
@@ -541,6 +554,27 @@ def summarise(runs):
 
 
 # ---------------------------------------------------------------------------------------------- figure
+def _plot_references(ax, summary, method, name, cells, pos):
+    """The CRLB IQR-mean (bars) and the paper's values (stars) of one method's final estimates, one line
+    artist each (markers at ``pos``, one per cell)."""
+    sm = summary[(summary["method"] == method) & (summary["stage"] == "final")]
+    crlb, paper = [], []
+    for i, (st, sd) in enumerate(cells):
+        r = sm[np.isclose(sm["sigma_tdoa_ms"], st * 1e3) & np.isclose(sm["sigma_doa_deg"], sd)]
+        if not len(r):
+            continue
+        crlb.append((pos[i], r[f"crlb_{name}"].iloc[0]))
+        if name in ("loc_cm", "ang_deg"):
+            paper.append((pos[i], r["paper_loc_cm" if name == "loc_cm" else "paper_ang_deg"].iloc[0]))
+    for pts, style, label in ((crlb, dict(marker="_", color="k", ms=14, mew=2),
+                               "CRLB of the method's measurements (IQR-mean of draws)"),
+                              (paper, dict(marker="*", color="gold", mec="k", ms=11),
+                               "published, Zhang et al. 2025 (IQR-mean)")):
+        pts = [(x, y) for x, y in pts if np.isfinite(y)]
+        if pts:
+            ax.plot(*np.transpose(pts), ls="none", label=label, **style)
+
+
 def plot_study(runs, summary, path):
     """The paper's Fig. 3 layout: per metric a panel; per cell, one box per method/stage (whiskers at the
     5th/95th percentiles), the CRLB draws' IQR-mean (bar) and the paper's published value (star)."""
@@ -561,12 +595,13 @@ def plot_study(runs, summary, path):
     fig, axes = plt.subplots(len(panels), 1, figsize=(max(8.0, 1.25 * len(cells) + 3), 3.2 * len(panels)),
                              sharex=True)
     width = 0.8 / max(len(series), 1)
+    groups = {k: g for k, g in ok.groupby(["sigma_tdoa", "sigma_doa_deg", "method", "stage"], sort=False)}
     for ax, (name, label) in zip(np.atleast_1d(axes), panels):
         col, scale = SUMMARY_METRICS[name]
         for k, (m, s) in enumerate(series):
             pos = np.arange(len(cells)) + (k - (len(series) - 1) / 2) * width
-            data = [scale * ok.loc[(ok["sigma_tdoa"] == st) & (ok["sigma_doa_deg"] == sd) & (ok["method"] == m)
-                                   & (ok["stage"] == s), col].dropna().to_numpy() for st, sd in cells]
+            empty = pd.DataFrame({col: []})
+            data = [scale * groups.get((st, sd, m, s), empty)[col].dropna().to_numpy() for st, sd in cells]
             keep = [i for i, d in enumerate(data) if len(d)]
             if not keep:
                 continue
@@ -578,17 +613,7 @@ def plot_study(runs, summary, path):
                 med.set(color="k")
             ax.plot([], [], "s", color=colors.get((m, s), "#bbbbbb"), label=f"{m} ({s})")
             if s == "final":
-                sm = summary[(summary["method"] == m) & (summary["stage"] == s)]
-                for i, (st, sd) in enumerate(cells):
-                    r = sm[np.isclose(sm["sigma_tdoa_ms"], st * 1e3) & np.isclose(sm["sigma_doa_deg"], sd)]
-                    if len(r) and np.isfinite(r[f"crlb_{name}"].iloc[0]):
-                        ax.plot(pos[i], r[f"crlb_{name}"].iloc[0], "_", color="k", ms=14, mew=2,
-                                label="CRLB of the method's measurements (IQR-mean of draws)")
-                    if name in ("loc_cm", "ang_deg") and len(r):
-                        pv = r["paper_loc_cm" if name == "loc_cm" else "paper_ang_deg"].iloc[0]
-                        if np.isfinite(pv):
-                            ax.plot(pos[i], pv, "*", color="gold", mec="k", ms=11,
-                                    label="published, Zhang et al. 2025 (IQR-mean)")
+                _plot_references(ax, summary, m, name, cells, pos)
         ax.set_yscale("log")
         ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 1.5, 2.0, 3.0, 5.0, 7.0)))
         ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))

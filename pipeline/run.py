@@ -148,7 +148,7 @@ def why_stale(old, new):
 def session_inputs(session):
     """Hashes of the files a recording session's feature extraction reads (session.toml, events, WAVs)."""
     d = Path(session["dir"])
-    files = {d / "session.toml", d / "events.csv"} | {Path(a["wav"]) for a in session["arrays"]}
+    files = {d / "session.toml", d / "events.csv"} | {Path(f) for a in session["arrays"] for f in a["files"]}
     if session["chirp"].get("reference") is not None:
         files.add(Path(session["chirp"]["reference"]))
     files = sorted(files)
@@ -184,11 +184,15 @@ def features_stage(recordings, out, options, progress=None, jobs=1):
     return diag
 
 
-def estimate_stage(out, options):
-    """Estimator: OUT/features/ → OUT/calibration/ (atomic). Returns the calibration dict."""
+def estimate_stage(out, options, setup=()):
+    """Estimator: OUT/features/ → OUT/calibration/ (atomic). Returns the calibration dict.
+
+    setup : the set-up findings (``calib.pipeline.setupcheck.stage_findings``), ranked first in the verdict."""
     from calib.pipeline.formats.io import write_calibration
+    from calib.pipeline.setupcheck import apply_findings
 
     calib, feats = estimate_features(Path(out) / "features", options)
+    calib = apply_findings(calib, setup)
     write_calibration(Path(out) / "calibration", calib, features=feats)  # + calibration.json
     return calib
 
@@ -279,7 +283,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
         read_truth(truth_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
-    inputs = [Path(recordings), *(a["wav"] for a in session["arrays"]), session["chirp"].get("reference")]
+    inputs = [Path(recordings), *(f for a in session["arrays"] for f in a["files"]), session["chirp"].get("reference")]
     check_separate([out], inputs)
     subdirs = [out / n for n in OUT_DIRS]
     with owned_output(subdirs, inputs, command="calib run", on_wait=on_wait, lock=out,
@@ -321,12 +325,25 @@ def _run_stages(recordings, out, session, truth_dir, force, feat_run, est_opts, 
         log(name, "done", secs)
         return result
 
-    out.mkdir(parents=True, exist_ok=True)
-    stage("features", [out / "features", out / "diagnostics"], session_inputs(session), feat_opts,
-          lambda: features_stage(recordings, out, feat_opts, progress, jobs))
+    from calib.pipeline.setupcheck import explain_failure, stage_findings
 
-    stage("estimate", [out / "calibration"], features_inputs(out), est_opts,
-          lambda: estimate_stage(out, est_opts))
+    out.mkdir(parents=True, exist_ok=True)
+    threshold = feat_opts.get("threshold", 8.0)
+    try:
+        stage("features", [out / "features", out / "diagnostics"], session_inputs(session), feat_opts,
+              lambda: features_stage(recordings, out, feat_opts, progress, jobs))
+    except InputError as exc:  # say the set-up mistake that explains it, if one does
+        raise explain_failure(session, exc, threshold) from None
+    # the set-up consistency stage (seconds): its findings lead the verdict; part of the estimate's settings
+    setup = stage_findings(session, out, threshold)
+    try:
+        stage("estimate", [out / "calibration"], features_inputs(out), {**est_opts, "setup": setup},
+              lambda: estimate_stage(out, est_opts, setup))
+    except InputError as exc:
+        failed = [f["text"] for f in setup if f["status"] == "failed"]
+        if not failed:
+            raise
+        raise InputError(f"{failed[0]}; then: {exc}") from None
 
     rep_inputs = {**features_inputs(out),
                   **hash_files(out / "calibration", "calibration", CALIBRATION_FILES),

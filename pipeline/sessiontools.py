@@ -2,12 +2,14 @@
 
 - :func:`chirp_files` — the sweep (``calib.frontend.signals.sweep``) as a WAV to play from the robot, and an
   emission schedule (``event,t_emit``, jittered intervals) the robot follows and logs into events.csv.
-- :func:`init_session` — a ``session.toml`` from the WAVs of a folder and an array model (:data:`ARRAY_MODELS`).
+- :func:`init_session` — a ``session.toml`` from the WAVs of a folder and a board model
+  (:data:`calib.pipeline.formats.boards.BOARDS`), one multichannel WAV per array or one mono WAV per mic.
 - :func:`check_session` — validates a session without estimating: one row per check (array, check, status,
   detail), so a user sees everything that is wrong at once.
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,33 +19,12 @@ import soundfile as sf
 from calib.errors import InputError
 from calib.frontend.signals import sweep
 
+from calib.pipeline.formats.boards import BOARDS
 from calib.pipeline.formats.io import atomic_write_text
 from calib.pipeline.formats.session import session_toml
 
 
-def _circle(n, radius, start_deg=0.0, ccw=True, z=0.0):
-    a = np.deg2rad(start_deg + (1 if ccw else -1) * 360.0 * np.arange(n) / n)
-    return np.column_stack([radius * np.cos(a), radius * np.sin(a), np.full(n, z)])
-
-
-# Mic geometries (m, the array's own frame, WAV channel order) of common arrays. Sources: the ODAS project's
-# configurations (introlab/odas config/odaslive: respeaker_6_mic_array, minidsp (UMA-8), matrix_voice).
-# respeaker-4-linear is NOMINAL (4 mics on x, 4 cm apart, centred): measure your board and edit session.toml.
-ARRAY_MODELS = {
-    "respeaker-6-circular": {"mics": [[-0.0232, 0.0401, 0.0], [-0.0463, 0.0, 0.0], [-0.0232, -0.0401, 0.0],
-                                      [0.0232, -0.0401, 0.0], [0.0463, 0.0, 0.0], [0.0232, 0.0401, 0.0]],
-                             "note": "ReSpeaker 6-Mic Circular Array kit: r = 46.3 mm (ODAS configuration)"},
-    "minidsp-uma8": {"mics": [[0.0, 0.0, 0.0], [0.0, 0.043, 0.0], [0.037, 0.021, 0.0], [0.037, -0.021, 0.0],
-                              [0.0, -0.043, 0.0], [-0.037, -0.021, 0.0], [-0.037, 0.021, 0.0]],
-                     "note": "miniDSP UMA-8: centre mic + 6 on r = 43 mm (ODAS configuration)"},
-    "matrix-voice": {"mics": [[0.0, 0.0, 0.0], [-0.038133, 0.003576, 0.0], [-0.020980, 0.032043, 0.0],
-                              [0.011971, 0.036381, 0.0], [0.035908, 0.013323, 0.0], [0.032805, -0.019767, 0.0],
-                              [0.004999, -0.037972, 0.0], [-0.026571, -0.027584, 0.0]],
-                     "note": "MATRIX Voice: 8 mics (ODAS configuration)"},
-    "respeaker-4-linear": {"mics": [[-0.06, 0.0, 0.0], [-0.02, 0.0, 0.0], [0.02, 0.0, 0.0], [0.06, 0.0, 0.0]],
-                           "note": "ReSpeaker 4-Mic Linear Array: NOMINAL spacing (4 cm): measure your board"},
-}
-MODELS = tuple(ARRAY_MODELS) + ("custom",)
+MODELS = tuple(BOARDS) + ("custom",)
 # planar arrays: DOAs are taken on the side of +z (the side the mics face); say so in session.toml
 PLANAR_HEMISPHERE = [0.0, 0.0, 1.0]
 
@@ -97,42 +78,93 @@ def chirp_files(out_dir, *, fs=48000, n_events=30, interval=INTERVAL, jitter=JIT
     return {"chirp": out / "chirp.wav", "schedule": out / "schedule.csv", "toml": out / "chirp.toml"}
 
 
-def model_mics(model, channels):
-    """Mic geometry (M, 3) of ``model`` for a WAV of ``channels`` channels (custom: zeros to fill in)."""
+def model_layout(model, channels, where):
+    """(mics (M, 3), channel map or None) of ``model`` for a WAV of ``channels`` channels: a WAV of the mics
+    only needs no map; one in the board's raw layout gets the board's map. custom: zeros to fill in."""
     if model == "custom":
-        return np.zeros((channels, 3))
-    if model not in ARRAY_MODELS:
+        return np.zeros((channels, 3)), None
+    if model not in BOARDS:
         raise InputError(f"unknown array model {model!r}: one of {', '.join(MODELS)}")
-    return np.asarray(ARRAY_MODELS[model]["mics"], float)
+    b = BOARDS[model]
+    if channels == len(b.mics):
+        return b.mic_array(), None
+    if channels == b.raw_channels:
+        return b.mic_array(), list(b.channels)
+    raise InputError(f"{where}: {channels} channels, but a {model} has {len(b.mics)} mics (raw layout: "
+                     f"{b.raw_channels} channels); record the mics or the board's raw channels, or use --model custom")
 
 
-def init_session(folder, model, *, reference=None, chirp=None, speed_of_sound=343.0):
-    """``session.toml`` text for the WAVs of ``folder`` (each one array, named after the file).
+LAYOUTS = ("array", "per-mic")
+# one mono file per mic: <array>-<mic number>.wav (the seed paper's published audio: arr<i>-<m>.wav)
+PER_MIC_NAME = re.compile(r"^(?P<array>.+)-(?P<mic>[0-9]+)\.wav$")
 
-    model : a name of :data:`ARRAY_MODELS` or "custom" (mics left as zeros to fill in), or {wav stem: model}.
+
+def _audio(path):
+    try:
+        return sf.info(str(path))
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read audio ({str(exc).splitlines()[0]})") from None
+
+
+def _group_per_mic(d, wavs):
+    """{array name: [files in mic order]} of ``<array>-<mic>.wav`` files (each mono)."""
+    groups = {}
+    for w in wavs:
+        m = PER_MIC_NAME.match(w.name)
+        if m is None:
+            raise InputError(f"{w}: not named <array>-<mic>.wav (--layout per-mic: one mono file per mic)")
+        groups.setdefault(m["array"], []).append((int(m["mic"]), w))
+    out = {}
+    for name, items in sorted(groups.items()):
+        nums = sorted(n for n, _ in items)
+        if len(set(nums)) != len(nums):
+            raise InputError(f"{d}: array {name!r} has two files for mic {nums[0]}")
+        out[name] = [w for _, w in sorted(items)]
+    return out
+
+
+def _init_arrays(d, wavs, model, layout):
+    """The [[arrays]] of :func:`init_session` and one comment line each."""
+    arrays, notes = [], []
+    units = _group_per_mic(d, wavs) if layout == "per-mic" else {w.stem: [w] for w in wavs}
+    for name, files in units.items():
+        m = model.get(name, "custom") if isinstance(model, dict) else model
+        infos = [_audio(f) for f in files]
+        if layout == "per-mic":
+            bad = [(f, i.channels) for f, i in zip(files, infos) if i.channels != 1]
+            if bad:
+                raise InputError(f"{bad[0][0]}: {bad[0][1]} channels (--layout per-mic: one mono file per mic)")
+            mics, chans = model_layout(m, len(files), f"{d}: array {name!r} ({len(files)} files)")
+            if chans is not None:
+                raise InputError(f"{d}: array {name!r} has {len(files)} files, but a {m} has {len(mics)} mics")
+        else:
+            mics, chans = model_layout(m, infos[0].channels, str(files[0]))
+        planar = np.ptp(mics[:, 2]) == 0 and m != "custom"
+        entry = {"name": name, "mics": mics, "channels": chans, "doa_hemisphere": PLANAR_HEMISPHERE if planar else None}
+        entry.update({"files": [f.name for f in files]} if layout == "per-mic" else {"wav": files[0].name})
+        arrays.append(entry)
+        notes.append(f"# {name}: {m}" + (f" ({BOARDS[m].note}; source: {BOARDS[m].source})" if m in BOARDS else
+                                        ": FILL IN the mic positions (m, array frame, one row per channel)"))
+    return arrays, notes
+
+
+def init_session(folder, model, *, reference=None, chirp=None, speed_of_sound=343.0, layout="array"):
+    """``session.toml`` text for the WAVs of ``folder``.
+
+    model : a name of :data:`BOARDS` or "custom" (mics left as zeros to fill in), or {array name: model}. A WAV
+        in the board's raw layout (more channels than mics) gets the board's channel map.
+    layout : "array" (each WAV one array, named after the file) or "per-mic" (one mono WAV per mic, named
+        ``<array>-<mic>.wav``, mics in the order of their numbers: the seed paper's ``arr<i>-<m>.wav``).
     chirp : the [chirp] values (default: :func:`chirp_files`'s defaults, with reference = chirp.wav if present).
     Raises InputError when the folder has no WAV or a WAV's channel count does not fit its model.
     """
     d = Path(folder)
+    if layout not in LAYOUTS:
+        raise InputError(f"--layout must be one of {', '.join(LAYOUTS)}, not {layout!r}")
     wavs = sorted(p for p in d.glob("*.wav") if p.name != "chirp.wav")
     if not wavs:
         raise InputError(f"{d}: no array WAV files (*.wav other than chirp.wav)")
-    arrays, notes = [], []
-    for w in wavs:
-        m = model.get(w.stem, "custom") if isinstance(model, dict) else model
-        try:
-            ch = sf.info(str(w)).channels
-        except Exception as exc:
-            raise InputError(f"{w}: cannot read audio ({str(exc).splitlines()[0]})") from None
-        mics = model_mics(m, ch)
-        if len(mics) != ch:
-            raise InputError(f"{w}: {ch} channels, but a {m} has {len(mics)} mics (record only the mic channels, "
-                             f"or use --model custom)")
-        planar = np.ptp(mics[:, 2]) == 0 and m != "custom"
-        arrays.append({"name": w.stem, "wav": w.name, "mics": mics,
-                       "doa_hemisphere": PLANAR_HEMISPHERE if planar else None})
-        notes.append(f"# {w.stem}: {m}" + (f" ({ARRAY_MODELS[m]['note']})" if m in ARRAY_MODELS else
-                                          ": FILL IN the mic positions (m, array frame, one row per channel)"))
+    arrays, notes = _init_arrays(d, wavs, model, layout)
     if chirp is None:
         chirp = {"f0": CHIRP_F0, "f1": CHIRP_F1, "duration": CHIRP_DURATION, "fade": CHIRP_FADE}
         if (d / "chirp.wav").is_file():
@@ -207,9 +239,9 @@ def _check_detections(session, options):
     from calib.frontend import extract_features
 
     try:
-        _, diag = extract_features(session, **options)
+        feats, diag = extract_features(session, **options)
     except InputError as exc:
-        return [_row("frontend", "chirp audible", "FAIL", str(exc))]
+        return [_row("frontend", "chirp audible", "FAIL", str(exc))] + _check_setup(session, None, None, options)
     rows, n = [], len(session["events"])
     for name, a in diag["arrays"].items():
         matched = sum(d["event"] is not None for d in a["detections"])
@@ -219,7 +251,24 @@ def _check_detections(session, options):
                          (f"; missed {a['missed_events'][:8]}" if a["missed_events"] else "")))
         for w in a["warnings"]:
             rows.append(_row(name, "frontend", "warn", w))
-    return rows
+    return rows + _check_setup(session, diag, feats, options)
+
+
+SETUP_STATUS = {"failed": "FAIL", "suspect": "warn", "note": "ok"}
+
+
+def _check_setup(session, diag, feats, options):
+    """The set-up consistency stage (``calib.pipeline.setupcheck``): one row per finding, or one ok row."""
+    from calib.pipeline.setupcheck import setup_findings
+
+    try:
+        found = setup_findings(session, diag, feats, options.get("threshold", 8.0))
+    except InputError as exc:
+        return [_row("set-up", "consistency", "FAIL", str(exc))]
+    if not found:
+        return [_row("set-up", "consistency", "ok", "channels, mic geometry, clocks, recordings, speed of sound "
+                                                      "and trajectory consistent with the data")]
+    return [_row(f.what, f.check, SETUP_STATUS[f.status], f.text) for f in found]
 
 
 def check_session(folder, *, detect=True, **options):

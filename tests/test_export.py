@@ -115,12 +115,11 @@ def test_reference_offset_and_clock_conversions_follow_the_simulators_clock_mode
                       beta * arr["drift"].iloc[ref]).max() < 1e-12
 
 
-def _parse_odas(text):
-    blocks = {}
-    for name, body in re.findall(r"# array (\S+)\nmics = \((.*?)\n\);", text, re.S):
-        mu = [list(map(float, m.split(","))) for m in re.findall(r"mu = \(([^)]*)\)", body)]
-        blocks[name] = np.array(mu)
-    return blocks
+def _parse_odas(folder):
+    """{array: its configuration} of an odas export, each read by libconf (libconfig syntax, as ODAS reads it)."""
+    import libconf
+
+    return {p.stem: libconf.loads(p.read_text()) for p in sorted(folder.glob("*.cfg"))}
 
 
 def _parse_urdf(text):
@@ -160,10 +159,16 @@ def test_every_export_round_trips(calibrated, tmp_path, fmt):
     elif fmt == "pyroomacoustics":
         assert np.abs(np.load(path) - np.vstack(list(mics_ref.values())).T).max() < TOL
     elif fmt == "odas":
-        blocks = _parse_odas(path.read_text())
-        assert list(blocks) == cal.names
+        configs = _parse_odas(path)
+        assert sorted(configs) == sorted(cal.names)  # one complete configuration per array
         for a in cal.arrays:  # array-centred, reference axes: mics_reference − position
-            assert np.abs(blocks[a.name] - (mics_ref[a.name] - a.position)).max() < TOL
+            g = configs[a.name]["general"]
+            mu = np.array([m["mu"] for m in g["mics"]])
+            assert np.abs(mu - (mics_ref[a.name] - a.position)).max() < TOL
+            z = a.rotation.as_matrix()[:, 2]  # the spatial filter: the half-space the array's mics face
+            assert len(g["spatialfilters"]) == 1 and np.allclose(g["spatialfilters"][0]["direction"], z)
+            assert configs[a.name]["raw"]["nChannels"] == len(mu) == len(configs[a.name]["mapping"]["map"])
+            assert {"sne", "ssl", "sst", "sss", "classify"} <= set(configs[a.name])
     elif fmt == "urdf":
         joints, pose = _parse_urdf(path.read_text())
         for a in cal.arrays:
@@ -202,9 +207,9 @@ def test_typed_views_have_public_columns_only(calibrated):
 
 def test_export_cli_and_bad_input(calibrated, tmp_path):
     d, _, _ = calibrated
-    r = CliRunner().invoke(app, ["export", str(d), "--format", "odas", "-o", str(tmp_path / "m.cfg"), "-q"])
+    r = CliRunner().invoke(app, ["export", str(d), "--format", "odas", "-o", str(tmp_path / "odas"), "-q"])
     assert r.exit_code == 0, r.output
-    assert (tmp_path / "m.cfg").is_file()
+    assert len(list((tmp_path / "odas").glob("*.cfg"))) == len(load_calibration(d).arrays)
     r = CliRunner().invoke(app, ["export", str(d), "--format", "vrml", "-o", str(tmp_path / "x")])
     assert r.exit_code == 2 and "--format must be one of" in r.stderr and not (tmp_path / "x").exists()
     r = CliRunner().invoke(app, ["export", str(tmp_path), "--format", "json", "-o", str(tmp_path / "y")])

@@ -160,3 +160,16 @@ def test_cli_runs_a_grid_and_rejects_bad_input_without_output(tmp_path):
         r = runner.invoke(app, ["montecarlo", "-o", str(bad), "-q", *args])
         assert r.exit_code == 2 and msg in r.output and r.output.startswith("error: "), r.output
         assert not bad.exists()
+
+
+def test_chunks_shrink_cover_every_task_in_order_and_honour_a_fixed_size():
+    tasks = list(range(1000))
+    for workers in (1, 2, 16):
+        chunks = mc._chunks(tasks, workers)
+        assert [t for c in chunks for t in c] == tasks                     # contiguous, in order, each once
+        sizes = [len(c) for c in chunks]
+        assert max(sizes) <= mc.MAX_CHUNK and sizes == sorted(sizes, reverse=True)
+        # the last chunks are short: the workers finish together (the tail is about one run per worker)
+        assert sizes[-1] == 1 and sum(sizes[-workers:]) <= 2 * workers
+    assert [len(c) for c in mc._chunks(tasks[:7], 4, size=3)] == [3, 3, 1]
+    assert mc._chunks([], 4) == []

@@ -1,6 +1,6 @@
 """Packaging: the lowest-versions CI pins are the floors pyproject.toml declares; the licence is there."""
 import re
-import tomllib
+from calib.tomlcompat import tomllib
 from pathlib import Path
 
 import pytest

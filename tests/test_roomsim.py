@@ -277,7 +277,7 @@ def test_interferer_arrives_where_the_clock_model_says(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------- scenarios
-@pytest.mark.parametrize("preset", [p for p in rs.PRESETS if p not in rs.REALISTIC])
+@pytest.mark.parametrize("preset", [p for p in rs.PRESETS if p not in rs.REALISTIC + rs.DEPLOY])  # paper / lab3 layouts
 def test_presets_respect_layout_constraints(preset):
     for seed in range(3):
         sc = rs.make_scenario(preset, seed=seed)

@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 from calib.cli.main import app
 from .sessions import small_lab3_session
 from calib.pipeline.formats.session import read_session
-from calib.pipeline.sessiontools import ARRAY_MODELS, check_session, emission_schedule
+from calib.pipeline.formats.boards import BOARDS
+from calib.pipeline.sessiontools import check_session, emission_schedule
 
 
 def invoke(*args):
@@ -47,26 +48,26 @@ def _wav(path, channels, fs=16000):
 
 
 def test_init_writes_a_session_for_each_model(tmp_path):
-    for model, spec in ARRAY_MODELS.items():
+    for model, spec in BOARDS.items():
         d = tmp_path / model
         d.mkdir()
-        _wav(d / "left.wav", len(spec["mics"]))
-        _wav(d / "right.wav", len(spec["mics"]))
+        _wav(d / "left.wav", len(spec.mics))
+        _wav(d / "right.wav", len(spec.mics))
         r = invoke("init", d, "--model", model, "--reference", "right", "-q")
         assert r.exit_code == 0, r.output
         pd.DataFrame({"event": [0, 1, 2], "t_emit": [1.0, 2.0, 3.0], "odom_x": 0.0, "odom_y": 0.0,
                       "odom_z": 0.0}).to_csv(d / "events.csv", index=False)
         s = read_session(d)
         assert s["reference_array"] == "right" and [a["name"] for a in s["arrays"]] == ["left", "right"]
-        assert np.allclose(s["arrays"][0]["mics"], spec["mics"])
-    m = np.asarray(ARRAY_MODELS["respeaker-6-circular"]["mics"])
+        assert np.allclose(s["arrays"][0]["mics"], spec.mics) and s["arrays"][0]["channels"] is None
+    m = BOARDS["respeaker-6-circular"].mic_array()
     assert np.allclose(np.linalg.norm(m, axis=1), 0.0463, atol=1e-4)  # ODAS: circular, R = 46.3 mm
     # a WAV whose channel count does not fit its model: one line, exit 2, nothing written
     d = tmp_path / "bad"
     d.mkdir()
     _wav(d / "a.wav", 4)
     r = invoke("init", d, "--model", "minidsp-uma8")
-    assert r.exit_code == 2 and "4 channels, but a minidsp-uma8 has 7 mics" in r.stderr
+    assert r.exit_code == 2 and "4 channels, but a minidsp-uma8 has 7 mics (raw layout: 8 channels)" in r.stderr
     assert not (d / "session.toml").exists()
     r = invoke("init", d, "--model", "a=custom")
     assert r.exit_code == 0 and np.allclose(read_session_mics(d / "session.toml"), 0)
@@ -74,7 +75,7 @@ def test_init_writes_a_session_for_each_model(tmp_path):
 
 
 def read_session_mics(path):
-    import tomllib
+    from calib.tomlcompat import tomllib
 
     return np.asarray(tomllib.loads(path.read_text())["arrays"][0]["mics"])
 

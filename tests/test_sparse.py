@@ -133,3 +133,50 @@ def test_sparse_observability_names_an_unlocatable_source():
             check_observability(p, lay, kinds, st, dense=dense)
         msgs.append(str(e.value))
     assert named(msgs[0]) == named(msgs[1])
+
+
+def test_array_covariance_of_a_large_problem_is_the_dense_inverse_block():
+    # calibration.json's covariance (estimator.array_covariance) on a problem past the dense limit: the
+    # sparse block inverse, not a dense n x n pinv of the whole Jacobian (11 GB at 40 arrays x 1000 events)
+    from calib.estimator import array_covariance
+    from calib.estimator.solver import use_dense
+
+    rng = np.random.default_rng(7)
+    stops = np.cumsum(rng.normal(0, 0.4, (90, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
+    feats, truth = simulate_features(trajectory=stops, seed=7, n_arrays=5)
+    p = build_problem(feats)
+    st = state_from_frames(p, truth["arrays"], truth["sources"])
+    lay = make_layout(p)
+    assert not use_dense(lay)
+    labels, cov = array_covariance({"problem": p, "state": st, "layout": lay, "kinds": KINDS, "mask": {}})
+    J = linearise(p, st, lay, KINDS, dense=True).J
+    idx = np.concatenate([np.r_[lay.x[i], lay.rot[i], lay.offset[i], lay.drift[i]] for i in range(len(p.names))])
+    idx = idx[idx >= 0]
+    ref = covariance(J, lay.n)[np.ix_(idx, idx)]
+    assert len(labels) == len(idx)
+    np.testing.assert_allclose(cov, ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max())
+
+
+def test_memory_check_counts_the_sparse_jacobian_and_refuses_only_what_cannot_fit(monkeypatch):
+    from calib.errors import InputError
+    from calib.pipeline.formats import validate as V
+
+    # the Jacobian width per row bounds the factors' real non-zeros (within 25 %: the reference array's
+    # fixed columns are the difference)
+    rng = np.random.default_rng(3)
+    stops = np.cumsum(rng.normal(0, 0.4, (90, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
+    feats, truth = simulate_features(trajectory=stops, seed=3, n_arrays=8)
+    p = build_problem(feats)
+    J = linearise(p, state_from_frames(p, truth["arrays"], truth["sources"]), make_layout(p), KINDS,
+                  dense=False).J
+    rows = {"tdoa_m": len(feats["tdoa_m"]), "tdoa_s": len(feats["tdoa_s"]), "doa": 3 * len(feats["doa"])}
+    bound = V.jacobian_entries(p.K, rows)
+    assert 0.75 * bound <= J.nnz <= bound
+    # 40 arrays x 1000 events (issue 32: refused before as "6.62 GiB"): about half a GiB, accepted on 1 GiB
+    big = {"tdoa_m": 39 * 1000, "tdoa_s": 40 * 999, "doa": 3 * 40 * 1000}
+    assert 0.3 * 2**30 < V.estimator_memory(1000, 40, big) < 0.7 * 2**30
+    monkeypatch.setattr(V, "memory_limit", lambda: 2**30)
+    V.check_problem_size(1000, 40, big, "features")
+    monkeypatch.setattr(V, "memory_limit", lambda: 2**28)
+    with pytest.raises(InputError, match=r"features: 1000 events × 40 arrays .* need about 0\.\d+ GiB .* 0\.25 GiB"):
+        V.check_problem_size(1000, 40, big, "features")

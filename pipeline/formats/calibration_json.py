@@ -178,7 +178,7 @@ def calibration_document(calib, features):
                                 [u for u in report.get("undetermined") or [] if u.get("array") == r["array"]],
                                 ((report.get("clock") or {}).get("arrays") or {}).get(r["array"]))
                    for r in rows],
-        "covariance": None if labels is None else {"parameters": labels, "matrix": cov.tolist()},
+        "covariance": None if labels is None else {"parameters": labels, "matrix": np.asarray(cov)},
         # the odometry-frame rotation when the estimator estimated it (report.json always says whether)
         "odometry_frame": (report.get("odometry_frame") if (report.get("odometry_frame") or {}).get("estimated")
                            else None),

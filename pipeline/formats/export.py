@@ -8,9 +8,10 @@ format             what is written
                    the reference frame), ``quaternion_wxyz``, ``mics``, ``mics_reference``, ``clock``
 ``pyroomacoustics`` ``.npy`` of shape (3, all mics): the ``R`` argument of ``pyroomacoustics.MicrophoneArray``,
                    reference frame, arrays in calibration order, channels in WAV order
-``odas``           the ``mics = (...)`` block of an ODAS configuration per array: ``mu`` = R·m (array-centred, axes
-                   of the reference frame, so ODAS's directions come out in the reference frame), ``sigma2`` the
-                   mic-position covariance from the rotation's, ``direction`` the array's z axis
+``odas``           a folder with one complete ODAS configuration per array, ``<array>.cfg`` (``calib.pipeline.formats.
+                   odas``): ``mu`` = R·m (array-centred, axes of the reference frame, so ODAS's directions come out
+                   in the reference frame), ``sigma2`` the mic-position covariance from the rotation's,
+                   ``direction`` and the spatial filter the array's z axis
 ``urdf``           a URDF robot: a link per array and per mic, fixed joints (xyz, rpy)
 ``tf``             a shell script of ROS 2 ``static_transform_publisher`` commands, reference → each array
 =================  ==========================================================================================
@@ -24,13 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from calib.pipeline.formats.io import atomic_write_text
+from calib.pipeline.formats.odas import to_odas_configs
 from calib.pipeline.formats.results import REFERENCE, Calibration
 from calib.errors import InputError
 
 FORMATS = ("json", "yaml", "pyroomacoustics", "odas", "urdf", "tf")
-SUFFIX = {"json": ".json", "yaml": ".yaml", "pyroomacoustics": ".npy", "odas": ".cfg", "urdf": ".urdf", "tf": ".sh"}
-# ODAS's default microphone pick-up cone (deg): full gain up to 80°, none beyond 90° off the array's z axis
-ODAS_ANGLE_DEG = (80.0, 90.0)
+SUFFIX = {"json": ".json", "yaml": ".yaml", "pyroomacoustics": ".npy", "odas": "", "urdf": ".urdf", "tf": ".sh"}  # odas: a folder
 
 
 def _f(v):
@@ -55,47 +55,6 @@ def to_yaml(cal: Calibration):
     import yaml  # PyYAML: a dependency for this export (Kalibr's files are YAML)
 
     return yaml.safe_dump(to_yaml_dict(cal), sort_keys=False, default_flow_style=None, width=120)
-
-
-def _skew(v):
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
-def odas_mic_blocks(cal: Calibration):
-    """{array: [(mu (3,), sigma2 (3, 3), direction (3,)), ...]} for the ODAS export (see module docstring)."""
-    labels = [] if cal.covariance is None else list(cal.covariance.index)
-    out = {}
-    for a in cal.arrays:
-        R = a.rotation.as_matrix()
-        rot_lab = [f"{a.name}.r{c}" for c in "xyz"]
-        if all(lab in labels for lab in rot_lab):
-            S_phi = cal.covariance.loc[rot_lab, rot_lab].to_numpy(float)
-        else:
-            S_phi = np.zeros((3, 3))  # the reference array: its rotation is the frame, known exactly
-        rows = []
-        for m in a.mics:
-            J = -R @ _skew(m)  # d(R Exp(φ) m)/dφ at φ = 0
-            rows.append((R @ m, J @ S_phi @ J.T, R[:, 2]))
-        out[a.name] = rows
-    return out
-
-
-def to_odas(cal: Calibration):
-    lines = ["# ODAS mic blocks from calib (calibration.json): one `mics` block per array; paste the one of an",
-             "# array into its ODAS configuration. mu = R·m (m): array-centred, axes of the reference array's",
-             f"# frame ({cal.reference_array}), so ODAS's directions are in that frame. sigma2: mic-position",
-             "# covariance (m²) from the calibrated rotation's. direction: the array's z axis.", ""]
-    for name, rows in odas_mic_blocks(cal).items():
-        lines += [f"# array {name}", "mics = ("]
-        for k, (mu, s2, d) in enumerate(rows):
-            sep = "," if k < len(rows) - 1 else ""
-            lines += [f"    # microphone {k + 1} (WAV channel {k})", "    {",
-                      f"        mu = ( {', '.join(_f(v) for v in mu)} );",
-                      f"        sigma2 = ( {', '.join(_f(v) for v in s2.ravel())} );",
-                      f"        direction = ( {', '.join(_f(v) for v in d)} );",
-                      f"        angle = ( {ODAS_ANGLE_DEG[0]}, {ODAS_ANGLE_DEG[1]} );", "    }" + sep]
-        lines += [");", ""]
-    return "\n".join(lines)
 
 
 def _rpy(rot):
@@ -160,7 +119,13 @@ def export(cal: Calibration, fmt, path):
         tmp.write_bytes(buf.getvalue())
         tmp.replace(path)
         return path
-    text = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml, "odas": to_odas,
+    if fmt == "odas":  # one configuration per array (ODAS runs one array per process)
+        if path.exists() and not path.is_dir():
+            raise InputError(f"{path}: exists and is not a folder (the odas export writes one <array>.cfg per array)")
+        for name, text in to_odas_configs(cal).items():
+            atomic_write_text(path / f"{name}.cfg", text)
+        return path
+    text = {"json": lambda c: json.dumps(c.document, indent=2) + "\n", "yaml": to_yaml,
             "urdf": to_urdf, "tf": to_tf}[fmt](cal)
     atomic_write_text(path, text)
     return path

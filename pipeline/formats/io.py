@@ -24,6 +24,7 @@ import dataclasses
 import io
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -77,6 +78,9 @@ def atomic_write_text(path, text):
 
 
 # ----------------------------------------------------------------------------------------------- CSV
+_CELL_SPACE = re.compile(r"[ \t]*(,|\n)[ \t]*")   # spaces and tabs around a separator
+
+
 def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bounds=None, max_rows=None):
     """Read a CSV with validation.
 
@@ -95,6 +99,11 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bou
     """
     path = Path(path)
     text = V.read_text(path)
+    # spaces around cells are ignored: removed in one pass over the text (a strip of every cell costs ~1 s per
+    # million cells), or cell by cell when quotes may hold separators
+    quoted = '"' in text
+    if not quoted:
+        text = _CELL_SPACE.sub(r"\1", text).strip(" \t")
     try:
         raw = pd.read_csv(io.StringIO(text), dtype=str, keep_default_na=False, skipinitialspace=True)
     except Exception as exc:  # pandas raises many kinds on malformed files
@@ -109,8 +118,8 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bou
     if len(raw) > limit:
         raise InputError(f"{path}: {len(raw)} rows, more than the {limit} calib handles in one session")
     bounds = bounds or {}
-    out = {col: _column(raw[col].str.strip(), col, path, col in str_cols, col in int_cols, col in optional_cols,
-                        bounds.get(col)) for col in columns}
+    out = {col: _column(raw[col].str.strip() if quoted else raw[col], col, path, col in str_cols, col in int_cols,
+                        col in optional_cols, bounds.get(col)) for col in columns}
     df = pd.DataFrame(out, index=pd.RangeIndex(len(raw)))
     extra = [c for c in raw.columns if c not in columns]
     for c in extra:
@@ -220,7 +229,8 @@ def read_events(path):
 # ----------------------------------------------------------------------------------------------- features
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
-             "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s")   # + the kinds' noise keys
+             "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s", "chirp_stretch_shift",
+             "doa_time_s")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -255,6 +265,10 @@ def validate_meta(meta, path="meta.json"):
     if meta.get("chirp_drift_bias") is not None:
         out["chirp_drift_bias"] = V.number(meta["chirp_drift_bias"], f"{path}: 'chirp_drift_bias'",
                                            lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME)
+    if meta.get("doa_time_s") is not None:
+        out["doa_time_s"] = V.number(meta["doa_time_s"], f"{path}: 'doa_time_s'", lo=0.0, hi=V.MAX_ABS_TIME)
+    if meta.get("chirp_stretch_shift") is not None:
+        out["chirp_stretch_shift"] = _stretch_curve(meta["chirp_stretch_shift"], path)
     est = meta.get("sigmas_estimated")
     if est is not None and (not isinstance(est, list) or not all(k in sigma_keys for k in est)):
         raise InputError(f"{path}: 'sigmas_estimated' must be a list of {', '.join(sigma_keys)}")
@@ -265,6 +279,22 @@ def validate_meta(meta, path="meta.json"):
     if both:
         raise InputError(f"{path}: array {sorted(both)[0]!r} is in both 'doa_mirror_normals' and 'doa_axes'")
     return out
+
+
+def _stretch_curve(value, path):
+    """meta ``chirp_stretch_shift`` ({stretch: [...], shift_s: [...]}, stretches increasing, finite) → a clean copy."""
+    msg = f"{path}: 'chirp_stretch_shift' must be {{\"stretch\": [...], \"shift_s\": [...]}}: equal lengths ≥ 2, " \
+          "finite numbers, stretches increasing"
+    if not isinstance(value, dict) or set(value) != {"stretch", "shift_s"}:
+        raise InputError(msg)
+    try:
+        x, y = (np.asarray(value[k], float) for k in ("stretch", "shift_s"))
+    except (TypeError, ValueError):
+        raise InputError(msg) from None
+    if x.ndim != 1 or x.shape != y.shape or len(x) < 2 or not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))) \
+            or np.any(np.diff(x) <= 0) or np.any(np.abs(x) > V.MAX_ABS_DRIFT) or np.any(np.abs(y) > V.MAX_ABS_TIME):
+        raise InputError(msg)
+    return {"stretch": x.tolist(), "shift_s": y.tolist()}
 
 
 def _array_vectors(value, key, arrays, path):
@@ -335,6 +365,12 @@ def feature_tables():
     return [dataclasses.replace(t, check=TABLE_CHECKS.get(t.name, t.check)) for t in K.tables()]
 
 
+def measurement_rows(feats):
+    """Scalar residual rows per measurement kind of a features dict (a row of a kind of dimension d counts d)."""
+    return {t.name: K.KINDS[t.name].dim * len(feats[t.name]) for t in feature_tables()
+            if feats.get(t.name) is not None}
+
+
 def validate_features(feats):
     """Validate an in-memory features dict (as produced by a reader or a simulator). Returns it cleaned."""
     meta = validate_meta(feats["meta"], feats["meta"].get("_path", "meta.json"))
@@ -353,8 +389,7 @@ def validate_features(feats):
         df = t.check(df, p, meta) if t.check else df
         out[t.name] = df.sort_values(list(t.keys), kind="stable").reset_index(drop=True)
     where = Path(feats["meta"].get("_path", "features/meta.json")).parent
-    V.check_problem_size(len(ev), len(arrays), sum(K.KINDS[t.name].dim * len(out[t.name])
-                                                   for t in feature_tables()), where)
+    V.check_problem_size(len(ev), len(arrays), measurement_rows(out), where)
     return out
 
 

@@ -8,18 +8,25 @@ A session in memory is a plain dict::
       "reference_array": str,
       "chirp": {"f0": Hz, "f1": Hz, "duration": s, "reference": Path | None},
       "noise": {"sigma_tdoa": s, "sigma_doa_deg": deg, "sigma_odo": m},   # only the keys given
-      "arrays": [{"name": str, "wav": Path, "mics": (M, 3) ndarray,
-                  "doa_hemisphere": (3,) ndarray | None}, ...],
-      "events": DataFrame (event, t_emit, odom_x, odom_y, odom_z),
+      "arrays": [{"name": str, "wav": Path, "files": (Path, ...), "channels": (int, ...) | None,
+                  "mics": (M, 3) ndarray, "doa_hemisphere": (3,) ndarray | None}, ...],
+      "robot": {"speaker_offset": (3,) ndarray},   # only the keys given
+      "events": DataFrame (event, t_emit, odom_x, odom_y, odom_z): the speaker's positions (speaker_positions),
     }
+
+An array's audio is one multichannel WAV (``wav``; ``files == (wav,)``), optionally with a channel map
+(``channels``: the WAV channel of each mic, counted from 0, in the order of ``mics``: a raw board recording with
+playback or processed channels too), or one mono file per mic (``files``, in the order of ``mics``; ``wav`` is
+the first of them).
 """
 from __future__ import annotations
 
-import tomllib
+from calib.tomlcompat import tomllib
 import warnings
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from calib.frontend.signals import SWEEP_KINDS
 
@@ -34,9 +41,12 @@ MAX_MIC_RADIUS = 10.0           # m: mic coordinates are relative to their array
 SPAN_WAVELENGTHS = 50.0         # an array wider than this many wavelengths is a unit mistake (mm for m)
 
 
-TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays")
+TOP_KEYS = ("speed_of_sound", "reference_array", "chirp", "noise", "arrays", "robot", "temperature")
+ROBOT_KEYS = ("speaker_offset",)
+MAX_LEVER_ARM = 5.0             # m: the speaker sits on the robot
+TEMPERATURE_C = (-50.0, 60.0)   # °C: the air of a room (optional key, checked against speed_of_sound)
 CHIRP_KEYS = ("f0", "f1", "duration", "reference", "kind", "fade")
-ARRAY_KEYS = ("name", "wav", "mics", "doa_hemisphere")
+ARRAY_KEYS = ("name", "wav", "files", "channels", "mics", "doa_hemisphere")
 
 
 def read_session(directory, check_audio=True):
@@ -68,6 +78,7 @@ def read_session(directory, check_audio=True):
     ref = cfg.get("reference_array", names[0])
     if not isinstance(ref, str) or ref not in names:
         raise InputError(f"{p}: reference_array {ref!r} is not one of the arrays")
+    robot = _read_robot(cfg.get("robot", {}), p)
     session = {
         "dir": d,
         "speed_of_sound": c,
@@ -75,11 +86,54 @@ def read_session(directory, check_audio=True):
         "chirp": chirp,
         "noise": noise,
         "arrays": arrays,
-        "events": read_events(d / "events.csv"),
+        "robot": robot,
+        "events": speaker_positions(read_events(d / "events.csv"), robot.get("speaker_offset"), p),
     }
+    if "temperature" in cfg:
+        session["temperature"] = V.number(cfg["temperature"], f"{p}: 'temperature'", lo=TEMPERATURE_C[0],
+                                          hi=TEMPERATURE_C[1])
     if check_audio:
         _check_audio(session, p)
     return session
+
+
+def _read_robot(cfg, p):
+    """The [robot] table → {"speaker_offset": (3,) ndarray} (only the keys given)."""
+    if not isinstance(cfg, dict):
+        raise InputError(f"{p}: [robot] must be a table (speaker_offset = [x, y, z])")
+    V.check_keys(cfg, ROBOT_KEYS, f"{p}: [robot]")
+    out = {}
+    if "speaker_offset" in cfg:
+        out["speaker_offset"] = np.asarray(V.vector3(cfg["speaker_offset"], f"{p}: 'robot.speaker_offset'",
+                                                     bound=MAX_LEVER_ARM))
+    return out
+
+
+def speaker_positions(events, speaker_offset, where):
+    """events.csv's odometry as the speaker's positions.
+
+    With an ``odom_yaw`` column (the robot's heading, rad; ``calib import-bag`` writes it) the odometry is the
+    robot base's pose, and the speaker is at ``odom + Rz(yaw) · speaker_offset`` (``[robot] speaker_offset``, m,
+    robot frame: x forward, z up; default 0); the column is consumed. Without it the odometry is the
+    speaker's position already, and a speaker_offset is an error (it cannot be rotated)."""
+    if "odom_yaw" not in events.columns:
+        if speaker_offset is not None:
+            raise InputError(f"{where}: [robot] speaker_offset needs the robot's heading: an odom_yaw column (rad) "
+                             "in events.csv (calib import-bag writes it)")
+        return events
+    yaw = pd.to_numeric(events["odom_yaw"], errors="coerce").to_numpy(float)
+    if not np.all(np.isfinite(yaw)):
+        k = int(np.flatnonzero(~np.isfinite(yaw))[0])
+        raise InputError(f"{events.attrs.get('path', 'events.csv')}: event {events['event'].iloc[k]}: odom_yaw must "
+                         "be a finite number (rad)")
+    off = np.zeros(3) if speaker_offset is None else np.asarray(speaker_offset, float)
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = events.drop(columns="odom_yaw")
+    out["odom_x"] = events["odom_x"] + c * off[0] - s * off[1]
+    out["odom_y"] = events["odom_y"] + s * off[0] + c * off[1]
+    out["odom_z"] = events["odom_z"] + off[2]
+    out.attrs = dict(events.attrs)
+    return out
 
 
 def _read_chirp(chirp_cfg, d, p):
@@ -126,25 +180,60 @@ def _read_arrays(items, d, p):
         if not isinstance(name, str) or not name:
             raise InputError(f"{p}: arrays[{k}] needs a 'name' (a non-empty string), not {name!r}")
         V.check_keys(a, ARRAY_KEYS, f"{p}: array {name!r}")
-        if "wav" not in a:
-            raise InputError(f"{p}: array {name!r} has no 'wav'")
-        wav = d / V.string(a["wav"], f"{p}: array {name!r}: 'wav'")
-        if not wav.is_file():
-            raise InputError(f"{wav}: file not found (array {name!r} in {p.name})")
-        real = wav.resolve()
-        if real in wavs:
-            raise InputError(f"{p}: arrays {wavs[real]!r} and {name!r} share one recording {a['wav']!r}")
-        wavs[real] = name
         mics = _read_mics(a.get("mics"), f"{p}: array {name!r}: 'mics'")
+        files = _read_files(a, name, len(mics), d, p)
+        for f in files:
+            real = f.resolve()
+            if real in wavs:
+                raise InputError(f"{p}: arrays {wavs[real]!r} and {name!r} share one recording {f.name!r}")
+            wavs[real] = name
+        channels = _read_channels(a.get("channels"), len(mics), f"{p}: array {name!r}: 'channels'")
+        if channels is not None and len(files) > 1:
+            raise InputError(f"{p}: array {name!r}: 'channels' selects channels of one 'wav'; with one file per mic "
+                             "('files') leave it out")
         hemi = a.get("doa_hemisphere")
         if hemi is not None:
             hemi = np.asarray(V.vector3(hemi, f"{p}: array {name!r}: 'doa_hemisphere'", nonzero=True))
             hemi = hemi / np.linalg.norm(hemi)
-        arrays.append({"name": name, "wav": wav, "mics": mics, "doa_hemisphere": hemi})
+        arrays.append({"name": name, "wav": files[0], "files": files, "channels": channels, "mics": mics,
+                       "doa_hemisphere": hemi})
     names = [a["name"] for a in arrays]
     if len(set(names)) != len(names):
         raise InputError(f"{p}: duplicate array name")
     return arrays
+
+
+def _read_files(a, name, n_mics, d, p):
+    """The array's audio files: ``(wav,)``, or its ``files`` (one per mic, in the order of ``mics``); each exists."""
+    if ("wav" in a) == ("files" in a):
+        raise InputError(f"{p}: array {name!r} needs either 'wav' (one multichannel file) or 'files' (one file "
+                         "per mic)" + (", not both" if "wav" in a else ""))
+    if "wav" in a:
+        names = [V.string(a["wav"], f"{p}: array {name!r}: 'wav'")]
+    else:
+        where = f"{p}: array {name!r}: 'files'"
+        if not isinstance(a["files"], list) or not a["files"]:
+            raise InputError(f"{where} must be a non-empty list of file names (one per mic)")
+        names = [V.string(f, where) for f in a["files"]]
+        if len(names) != n_mics:
+            raise InputError(f"{where}: {len(names)} files for {n_mics} mics (one file per mic, in the order of 'mics')")
+    files = tuple(d / f for f in names)
+    for f in files:
+        if not f.is_file():
+            raise InputError(f"{f}: file not found (array {name!r} in {p.name})")
+    return files
+
+
+def _read_channels(value, n_mics, where):
+    """A channel map: one distinct WAV channel (an integer ≥ 0) per mic → tuple, or None when not given."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != n_mics:
+        raise InputError(f"{where} must list one WAV channel per mic ({n_mics}, counted from 0), not {value!r}")
+    chans = tuple(V.number(c, where, lo=0, hi=V.MAX_CHANNELS - 1, integer=True) for c in value)
+    if len(set(chans)) != len(chans):
+        raise InputError(f"{where}: channel {max(chans, key=chans.count)} is given for two mics")
+    return chans
 
 
 def _read_mics(value, where):
@@ -198,20 +287,30 @@ def _toml_value(v):
     raise TypeError(f"cannot write {type(v)} to TOML")
 
 
-def session_toml(speed_of_sound, reference_array, chirp, arrays, noise=None):
+def session_toml(speed_of_sound, reference_array, chirp, arrays, noise=None, robot=None):
     """Text of a ``session.toml``.
 
     chirp : dict with f0, f1, duration (and/or reference, a file name relative to the session).
-    arrays : list of dicts with name, wav (file name), mics ((M, 3) array-like), optional doa_hemisphere.
+    arrays : list of dicts with name, wav (file name) or files (file names, one per mic), optional channels (the
+        WAV channel of each mic, from 0), mics ((M, 3) array-like), optional doa_hemisphere.
     noise : optional dict of sigma_tdoa (s), sigma_doa_deg, sigma_odo (m).
+    robot : optional dict of speaker_offset ((3,) m, robot frame).
     """
     lines = [f"speed_of_sound = {_toml_value(float(speed_of_sound))}",
              f"reference_array = {_toml_value(reference_array)}", "", "[chirp]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in chirp.items() if v is not None]
     if noise:
         lines += ["", "[noise]"] + [f"{k} = {_toml_value(float(v))}" for k, v in noise.items()]
+    if robot:
+        lines += ["", "[robot]"] + [f"{k} = {_toml_value(np.asarray(v, float).tolist())}" for k, v in robot.items()]
     for a in arrays:
-        lines += ["", "[[arrays]]", f"name = {_toml_value(a['name'])}", f"wav = {_toml_value(str(a['wav']))}"]
+        lines += ["", "[[arrays]]", f"name = {_toml_value(a['name'])}"]
+        if a.get("files") is not None and len(a["files"]) > 1:
+            lines.append(f"files = {_toml_value([str(f) for f in a['files']])}")
+        else:
+            lines.append(f"wav = {_toml_value(str(a['wav']))}")
+        if a.get("channels") is not None:
+            lines.append(f"channels = {_toml_value([int(c) for c in a['channels']])}")
         lines.append(f"mics = {_toml_value(np.asarray(a['mics'], float).tolist())}")
         if a.get("doa_hemisphere") is not None:
             lines.append(f"doa_hemisphere = {_toml_value(np.asarray(a['doa_hemisphere'], float).tolist())}")

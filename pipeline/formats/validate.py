@@ -37,11 +37,20 @@ MAX_EVENT_ID = 10**9
 MAX_EVENTS = 10_000                   # events in one session (memory of the frontend and estimator)
 MAX_ARRAYS = 256
 MAX_MICS = 64                         # mics per array
+MAX_CHANNELS = 1024                   # channels of one WAV (a channel map's indices are below this)
 MIN_MIC_SPACING = 1e-3                # m: closer mics are the same mic (a typo)
 CHIRP_DURATION = (1e-3, 60.0)         # s
 MIN_DIRECTION_NORM = 1e-9             # a direction vector shorter than this has no direction
-# dense Jacobians of the estimator: refuse problems whose working set would not fit
-ESTIMATOR_MEMORY_BUDGET = 4 * 2**30   # bytes (capped further at half the machine's RAM)
+# The estimator's working set (:func:`estimator_memory`), so that a problem is refused only when the solver
+# that runs (sparse above ~300 parameters) cannot fit; benchmarks/bench_scale.py checks it against the peak RSS
+# of `calib estimate`.
+JACOBIAN_WIDTH = {"tdoa_m": 9, "tdoa_s": 10, "doa": 9, "odometry": 2}  # free columns of one scalar row, at most
+BYTES_PER_JACOBIAN_ENTRY = 200   # per entry, alive at the peak: the stacked CSR Jacobians the linearisation
+#                                  cache keeps (12 B each), the factors' COO triplets and index bookkeeping
+#                                  (~50 B), Jᵀ and W J of the normal equations (24 B), robust statistics (measured)
+DENSE_EVENT_ARRAY_BLOCKS = 3     # dense (event parameters × array parameters) blocks: H_EA, X = H_EE⁻¹ H_EA, X S⁻¹
+ESTIMATOR_BASE_BYTES = 150 * 2**20  # the interpreter, numpy/scipy/pandas and the calib modules (measured)
+ESTIMATOR_PER_ARRAY_BYTES = 2**20   # per array, whatever the events (measured: 40 × 200 peaks 38 MB above 10 × 200)
 
 
 def strip_bom(text):
@@ -131,25 +140,65 @@ def check_keys(table, known, where):
         warnings.warn(f"{where}: unknown key '{key}' ignored{hint}", InputWarning, stacklevel=2)
 
 
-def estimator_budget():
-    """Bytes the estimator's dense Jacobians may take: ESTIMATOR_MEMORY_BUDGET, at most half the RAM."""
+def memory_limit():
+    """Bytes this process can have: the physical memory, or less where a cgroup (container) or ulimit caps it."""
     try:
-        ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        limit = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
-        ram = 2 * ESTIMATOR_MEMORY_BUDGET
-    return min(ESTIMATOR_MEMORY_BUDGET, ram // 2)
+        limit = float("inf")
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(path).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            limit = min(limit, int(text))
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            limit = min(limit, soft)
+    except (ImportError, ValueError, OSError):
+        pass
+    return limit
 
 
-def check_problem_size(n_events, n_arrays, n_rows, where):
-    """Refuse an estimation whose dense Jacobian (rows × parameters float64) would not fit in memory.
+def jacobian_entries(n_events, rows):
+    """Non-zeros of the estimator's Jacobian (at most): ``JACOBIAN_WIDTH`` per scalar row of each kind in
+    ``rows`` (kind → scalar rows), plus the odometry rows of ``n_events`` events."""
+    rows = {**rows, "odometry": 3 * max(n_events - 1, 0)}
+    return sum(JACOBIAN_WIDTH.get(k, max(JACOBIAN_WIDTH.values())) * m for k, m in rows.items())
 
-    n_rows : scalar measurement rows (a DOA counts 3). Parameters: 4 per event, 10 per array.
+
+def estimator_memory(n_events, n_arrays, rows):
+    """Peak bytes of a calibration (``calib estimate``) of ``n_events`` × ``n_arrays`` with ``rows`` (dict:
+    measurement kind → scalar residual rows; a DOA counts 3), for the sparse solver that runs above
+    ``estimator.solver.DENSE_MAX_PARAMS`` (300) parameters.
+
+    A base and ``ESTIMATOR_PER_ARRAY_BYTES`` per array, ``BYTES_PER_JACOBIAN_ENTRY`` per non-zero of the
+    Jacobian (``JACOBIAN_WIDTH`` per row), the Schur complement's dense event × array blocks and a few copies
+    of the dense array block. Parameters: 3 per event (source), 10 per array (position, rotation, offset,
+    drift). The dense path's problems (≤ 300 parameters: ≤ 100 events) take a few tens of MB, within
+    ``ESTIMATOR_BASE_BYTES``. Within −2 … +15 % of the measured peak RSS of `calib estimate` from 5 × 100 to
+    40 × 1000 (benchmarks/bench_scale.py, column pred/peak).
     """
-    n_par = 4 * n_events + 10 * n_arrays
-    need = 8.0 * (n_rows + 3 * n_events) * n_par
-    if need > estimator_budget():
-        raise InputError(f"{where}: {n_events} events and {n_rows} measurements need {need / 2**30:.3g} GiB "
-                         f"for the estimator (limit {estimator_budget() / 2**30:.3g} GiB); split the session")
+    n_ev, n_ar = 3 * n_events, 10 * n_arrays
+    return (ESTIMATOR_BASE_BYTES + ESTIMATOR_PER_ARRAY_BYTES * n_arrays
+            + BYTES_PER_JACOBIAN_ENTRY * jacobian_entries(n_events, rows)
+            + 8.0 * (DENSE_EVENT_ARRAY_BLOCKS * n_ev * n_ar + 3 * n_ar * n_ar))
+
+
+def check_problem_size(n_events, n_arrays, rows, where):
+    """Refuse an estimation whose working set (:func:`estimator_memory`) exceeds this machine's memory.
+
+    rows : dict measurement kind → scalar residual rows (a DOA counts 3).
+    """
+    need, limit = estimator_memory(n_events, n_arrays, rows), memory_limit()
+    if need > limit:
+        raise InputError(f"{where}: {n_events} events × {n_arrays} arrays with {sum(rows.values())} measurements "
+                         f"need about {need / 2**30:.3g} GiB for the estimator, more than the {limit / 2**30:.3g} "
+                         "GiB of memory here; split the session")
 
 
 # ---------------------------------------------------------------------------------------------- CLI options

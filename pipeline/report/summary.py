@@ -365,6 +365,9 @@ def _outlier_lines(features, outliers):
     return out
 
 
+DISTRUST_LABEL = {"nlos": "reflection only (NLOS: line of sight blocked)", "absurd": "absurd TDOA"}
+
+
 def verdict_markdown(verdict):
     """The summary's first lines: title with the verdict's status, then its reasons (report.json ``verdict``)."""
     if not verdict:
@@ -374,7 +377,14 @@ def verdict_markdown(verdict):
         L += [f"Flagged arrays (inconsistent with the others; their pose is unreliable): "
               f"**{', '.join(verdict['flagged_arrays'])}**", ""]
     L += [f"- {r}" for r in verdict.get("reasons") or []]
-    return L + ([""] if verdict.get("reasons") else [])
+    L += [""] if verdict.get("reasons") else []
+    if verdict.get("distrusted"):
+        L += ["| array | not trusted | events | |", "|---|---|---|---|"]
+        L += [f"| {d['array']} | {DISTRUST_LABEL.get(d['reason'], d['reason'])} | "
+              f"{', '.join(map(str, d['events'])) or 'most'} | {'taken out' if d['taken_out'] else 'kept'} |"
+              for d in verdict["distrusted"]]
+        L += ["", "(detections.png marks the NLOS arrivals ▼ red and the other doubted ones ▼ orange.)", ""]
+    return L
 
 
 def _row_weight_lines(rep):

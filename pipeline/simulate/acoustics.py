@@ -65,14 +65,16 @@ def wall_areas(room):
     return np.array([ly * lz, ly * lz, lx * lz, lx * lz, lx * ly, lx * ly])
 
 
-def scaled_absorption(materials, room, rt60, c, air=True):
+def scaled_absorption(materials, room, rt60, c, air=True, surfaces=None):
     """Energy absorption (6 walls, 7 bands), the materials' shapes scaled so the ``RT60_BAND`` octave has
     the Sabine reverberation time ``rt60`` (air absorption included when ``air``).
 
     materials : dict wall → material (name or 7 coefficients); missing walls take ``materials['walls']``.
+    surfaces : (names, areas (W,), volume) of another room shape (a polygonal room: :func:`poly_surfaces`);
+        default the shoebox ``room``'s six walls.
     """
-    shape = np.stack([material_coeffs(materials.get(w, materials.get("walls"))) for w in WALLS])
-    S, V = wall_areas(room), float(np.prod(room))
+    names, S, V = surfaces if surfaces is not None else (WALLS, wall_areas(room), float(np.prod(room)))
+    shape = np.stack([material_coeffs(materials.get(w, materials.get("walls"))) for w in names])
     m = air_attenuation() if air else np.zeros(len(BAND_CENTERS))
     b = BAND_CENTERS.index(RT60_BAND)
     need = SABINE * V / (c * rt60) - 4 * m[b] * V       # Σ S α at the reference band
@@ -85,9 +87,16 @@ def scaled_absorption(materials, room, rt60, c, air=True):
     return np.minimum(alpha, ALPHA_MAX)
 
 
-def band_rt60(alpha, room, c, air=True):
-    """Sabine RT60 per band (7,) s for absorption ``alpha`` (6, 7)."""
-    S, V = wall_areas(room), float(np.prod(room))
+def poly_surfaces(geo):
+    """(names, areas, volume) of a polygonal room (``polyroom.make_geometry``): its vertical walls are
+    ``wall0``… (material ``materials['wall0']`` or ``materials['walls']``), then ``floor`` and ``ceiling``."""
+    names = [f"wall{w}" for w in range(len(geo["corners"]))] + ["floor", "ceiling"]
+    return names, geo["area"], geo["volume"]
+
+
+def band_rt60(alpha, room, c, air=True, surfaces=None):
+    """Sabine RT60 per band (7,) s for absorption ``alpha`` (6, 7) (or (W, 7) with ``surfaces``)."""
+    _, S, V = surfaces if surfaces is not None else (WALLS, wall_areas(room), float(np.prod(room)))
     m = air_attenuation() if air else np.zeros(len(BAND_CENTERS))
     return SABINE * V / (c * (S @ alpha + 4 * m * V))
 
@@ -133,6 +142,9 @@ def image_band_amplitudes(hits, alpha):
 def emission_directions(images, mics):
     """Unit emission directions (n_img, M, 3) at the real source of the ray from each image to each mic."""
     d = mics[None, :, :] - images["pos"][:, None, :]
+    if "M" in images:                     # general images (polyroom): mapped back through the reflections
+        d = np.einsum("nji,nmj->nmi", images["M"], d)
+        return d / np.linalg.norm(d, axis=2, keepdims=True)
     d = np.where(images["flip"][:, None, :], -d, d)
     return d / np.linalg.norm(d, axis=2, keepdims=True)
 
@@ -163,7 +175,7 @@ def band_weights(freqs):
     w[0, f <= c[0]] = 1.0
     w[-1, f >= c[-1]] = 1.0
     for b in range(c.size - 1):
-        sel = (f > c[b]) & (f < c[b + 1])
+        sel = (f >= c[b]) & (f < c[b + 1])       # a bin exactly on a centre belongs to that band
         x = np.log(f[sel] / c[b]) / np.log(c[b + 1] / c[b])
         w[b, sel] = np.cos(0.5 * np.pi * x) ** 2
         w[b + 1, sel] = np.sin(0.5 * np.pi * x) ** 2

@@ -111,12 +111,13 @@ def flat_reach(images, a, c, rt60):
 
 
 # ----------------------------------------------------------------------------------------------- bands model
-def band_rir(em, a, fsp, sc, delay, rng, cache):
-    """RIRs (M, L) of the ``bands`` model for emitter ``em`` at array ``a`` (rate ``fsp``).
-
-    em : dict with ``images`` (:func:`acoustics.shoebox_images`), ``axis`` (3,) speaker axis or None.
-    a : normalised array with ``mics_room`` and ``rir_length`` (samples, fixed per array), ``direct_db``.
-    """
+def band_paths(em, a, fsp, sc):
+    """The early image paths of emitter ``em`` at array ``a`` (rate ``fsp``): a dict with ``taps`` (n, M)
+    delays in samples (NaN: later than ``mixing_time`` after the direct path, or blocked), ``dist`` (n, M)
+    m, ``amp`` (n, M, B) band amplitudes without the 1/distance spreading (wall reflections, speaker
+    directivity, air absorption, occlusion of the direct path, walls and obstacles of a polygonal room),
+    ``amp_open``, ``taps_open`` the same before walls and obstacles block or attenuate the paths, ``first`` (the geometric
+    direct path's delay, samples, blocked or not)."""
     ab, c = sc["acoustic"], sc["speed_of_sound"]
     img, mics = em["images"], a["mics_room"]
     dist = np.linalg.norm(img["pos"][:, None, :] - mics[None], axis=2)          # (n, M)
@@ -128,16 +129,35 @@ def band_rir(em, a, fsp, sc, delay, rng, cache):
         gain = ac.directivity_gain(sc["directivity"], em["axis"], ac.emission_directions(img, mics),
                                     sc["rear_floor_db"])
     gain[img["direct"]] *= 10 ** (a["direct_db"] / 20)
-    refl = ac.image_band_amplitudes(img["hits"], ab["alpha"])                   # (n, B)
+    amp = ac.image_band_amplitudes(img["hits"], ab["alpha"])[:, None, :] * gain[..., None] \
+        * np.exp(-0.5 * ab["air"][None, None, :] * dist[..., None])                # (n, M, B)
+    out = {"dist": dist, "amp_open": amp, "taps_open": taps, "first": first}
+    if "tree" in img:                                  # polygonal room / obstacles: what actually arrives
+        amp = amp * img["path_gain"](mics)
+        taps = np.where(np.any(amp > 0, axis=2), taps, np.nan)
+    return out | {"taps": taps, "amp": amp}
+
+
+def band_rir(em, a, fsp, sc, delay, rng, cache, exclude=None):
+    """RIRs (M, L) of the ``bands`` model for emitter ``em`` at array ``a`` (rate ``fsp``).
+
+    em : dict with ``images`` (:func:`acoustics.shoebox_images` or a ``polyroom`` tree), ``axis`` (3,)
+        speaker axis or None.
+    a : normalised array with ``mics_room`` and ``rir_length`` (samples, fixed per array), ``direct_db``.
+    exclude : (n,) bool, images left out (a moving source renders them itself, :mod:`.motion`).
+    """
+    paths = band_paths(em, a, fsp, sc)
+    taps, dist = paths["taps"], paths["dist"]
+    if exclude is not None:
+        taps = np.where(exclude[:, None], np.nan, taps)
     L = a["rir_length"]
     nfft = next_fast_len(L + int(WRAP_MARGIN * fsp))
     W = _weights(cache, nfft, fsp)
-    H = np.zeros((len(mics), nfft // 2 + 1), complex)
+    H = np.zeros((len(a["mics_room"]), nfft // 2 + 1), complex)
     for b in range(len(ac.BAND_CENTERS)):
-        amp = refl[:, b, None] * gain * np.exp(-0.5 * ab["air"][b] * dist) / dist
-        H += W[b] * rfft(build_rirs(taps, amp, L), nfft, axis=1)
+        H += W[b] * rfft(build_rirs(taps, paths["amp"][:, :, b] / dist, L), nfft, axis=1)
     if sc["rt60"] > 0:
-        H += _tail_spectrum(a, fsp, sc, first, delay, rng, nfft, W, em["diffuse_gain"], cache)
+        H += _tail_spectrum(a, fsp, sc, paths["first"], delay, rng, nfft, W, em["diffuse_gain"], cache)
     return irfft(H, nfft, axis=1)[:, :L]
 
 

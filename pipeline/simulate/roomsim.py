@@ -25,7 +25,8 @@ from __future__ import annotations
 import copy
 import json
 import math
-import tomllib
+import zlib
+from calib.tomlcompat import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -34,17 +35,19 @@ from scipy.spatial.transform import Rotation
 from calib.jsonutil import jsonable  # inf (no noise) and NaN ↔ null
 
 from calib.pipeline.simulate import acoustics as ac
-from calib.pipeline.simulate import scenes, simrender
+from calib.pipeline.simulate import deploy, scenes, simrender
+from calib.pipeline.simulate.presets import DEPLOY
 from calib.pipeline.simulate import clocks
 from calib.pipeline.formats.io import EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
 from calib.pipeline.simulate.render import EARLY, FDL, FDL_LATE, builder_delay, local_time  # noqa: F401  (public names)
 from calib.pipeline.simulate.scenario import (  # noqa: F401  (PRESETS, REALISTIC, _PAPER_TRAJ, _room_acoustics: public/test names)
     _LAB_HEIGHTS, _LAB_LOOP, _PAPER_TRAJ, ALL_KEYS, GEN_DEFAULTS, NEW_GEN_DEFAULTS,
-    NEW_SCENE_DEFAULTS, PRESETS, REALISTIC, SCENE_DEFAULTS, _float, _int, _materials, _matrix, _merge,
-    _room_acoustics, _rng, _vector, Scenario, arrival_times, odometry, scenario_truth, validate_scenario)
+    NEW_SCENE_DEFAULTS, PRESETS, REALISTIC, SCENE_DEFAULTS, SCENE_KEYS, _float, _int, _materials, _matrix, _merge,
+    _room_acoustics, _rng, _vector, VEL_COLS, Scenario, arrival_times, odometry, odometry_velocity, scenario_truth,
+    trajectory_truth, validate_scenario)
 from calib.pipeline.formats.session import write_session_toml
 from calib.pipeline.formats.validate import read_text
-from calib.pipeline.simulate.simrender import direct_amplitudes, noise_levels, render_session
+from calib.pipeline.simulate.simrender import direct_amplitudes, line_of_sight, noise_levels, render_session
 from calib.pipeline.simulate.sounds import burst_signal, chirp_power, chirp_signal  # noqa: F401  (public names of the simulator)
 
 
@@ -95,6 +98,8 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
     """
     g, sc = _start(preset, seed, overrides)
     seed = sc["seed"]
+    if preset in DEPLOY:
+        return _deploy_scenario(preset, g, sc, overrides)
     # speaker stops (room frame) and the room
     if "sources" in overrides:
         sources = _matrix(overrides["sources"], "sources", 3)
@@ -133,6 +138,31 @@ def make_scenario(preset="paper-traj3", seed=0, **overrides):
     return sc
 
 
+def _deploy_scenario(preset, g, sc, overrides):
+    """A deployment preset (pipeline/simulate/deploy.py): the layout drawn from the seed, overrides kept."""
+    sc |= {k: copy.deepcopy(v) for k, v in overrides.items() if k in SCENE_KEYS}
+    try:
+        stream = zlib.crc32(preset.encode())       # each preset its own draws: no two share a room by seed
+        deploy.build(g, sc, lambda k: _rng(sc["seed"], 200 + k, stream), overrides)
+    except ValueError as exc:
+        raise InputError(f"scenario: {exc}") from None
+    sc["reference_array"] = overrides.get("reference_array", sc["arrays"][0]["name"])
+    sc.setdefault("interferers", [])
+    sc["generator"] = {k: g[k] for k in GEN_DEFAULTS}
+    return sc
+
+
+def _draws(preset, seed, overrides):
+    """The preset's per-seed draws {key: U(lo, hi)} (integers for integer keys), keys given kept."""
+    rng = _rng(seed, 11)
+    out = {}
+    for k, (lo, hi) in sorted(PRESETS[preset].get("draws", {}).items()):
+        v = rng.uniform(lo, hi)
+        if k not in overrides:
+            out[k] = int(rng.integers(lo, hi + 1)) if isinstance(lo, int) else round(float(v), 3)
+    return out
+
+
 def _start(preset, seed, overrides):
     """Checked preset/seed/keys → (generation keys, scene keys with preset and overrides merged)."""
     if preset not in PRESETS:
@@ -142,6 +172,7 @@ def _start(preset, seed, overrides):
     unknown = sorted(set(overrides) - ALL_KEYS)
     if unknown:
         raise InputError(f"scenario: unknown key(s) {', '.join(map(repr, unknown))}")
+    overrides = {**_draws(preset, seed, overrides), **overrides}
     g = {**GEN_DEFAULTS, **{k: v for k, v in PRESETS[preset].items() if k in GEN_DEFAULTS},
          **{k: v for k, v in overrides.items() if k in GEN_DEFAULTS}}
     base = _merge(SCENE_DEFAULTS, {k: v for k, v in PRESETS[preset].items() if k in SCENE_DEFAULTS})
@@ -485,7 +516,12 @@ def _write_session(tmp, sc, derived, flat, scenario):
     odo = odometry(sc)
     ev = pd.DataFrame({"event": np.arange(len(sc["t_emit"])), "t_emit": sc["t_emit"],
                        "odom_x": odo[:, 0], "odom_y": odo[:, 1], "odom_z": odo[:, 2]})
-    write_table(ev, tmp / "events.csv", EVENTS_COLS, float_format="%.9f")
+    cols = EVENTS_COLS
+    if sc.get("trajectory") is not None:       # a moving speaker: the robot's velocity at each sweep start
+        vel = odometry_velocity(sc)
+        ev[VEL_COLS] = vel
+        cols = EVENTS_COLS + VEL_COLS
+    write_table(ev, tmp / "events.csv", cols, float_format="%.9f")
 
     # [noise] holds what the "user" knows: the odometry noise the robot was simulated with, plus any
     # priors the scenario states. Invented TDOA/DOA priors would override the frontend's own estimates.
@@ -510,6 +546,11 @@ def _write_session(tmp, sc, derived, flat, scenario):
         "derived": _derived(sc, derived, flat),
     }
     extra = {"manifest.json": json.dumps(jsonable(manifest), indent=1, allow_nan=False) + "\n"}
+    if sc["model"] == "bands":
+        extra["los.csv"] = line_of_sight(sc).to_csv(index=False, float_format="%.6g", lineterminator="\n")
+    if sc.get("trajectory") is not None:
+        extra["trajectory.csv"] = trajectory_truth(sc).to_csv(index=False, float_format="%.9g",
+                                                              lineterminator="\n")
     faulty = clocks.records(sc, sc.get("clock_faults"))
     if faulty:   # each faulty array's clock as a function of time (calib.clock.Clock JSON form)
         extra["clocks.json"] = json.dumps(jsonable(faulty), indent=1, allow_nan=False) + "\n"

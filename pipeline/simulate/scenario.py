@@ -16,12 +16,13 @@ from scipy.spatial.transform import Rotation
 from calib.frontend.signals import SWEEP_KINDS
 
 from calib.pipeline.simulate import acoustics as ac
-from calib.pipeline.simulate import scenes
+from calib.pipeline.simulate import motion, polyroom, scenes
 from calib.pipeline.formats.io import ARRAYS_COLS, InputError
 from calib.pipeline.simulate.presets import PRESETS, REALISTIC  # noqa: F401  (public names)
 from calib.pipeline.simulate import clocks
 
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
+INTERFERER_KINDS = ("tones", "speech", "noise")
 MODELS = ("flat", "bands")
 
 # Speaker trajectories of Zhang et al. 2025 (simulation section; published with their code, gt_generation.m).
@@ -70,6 +71,18 @@ NEW_GEN_DEFAULTS = {
     "speech_level_db": 0.0,    # their power re. the chirp's emitted power, dB
     "n_quiet": 0,              # quiet events: emitted so that one array's matched-filter SNR is ...
     "quiet_snr_db": 0.0,       # ... this (single mic, white self-noise + diffuse noise), dB
+    # deployment presets (pipeline/simulate/deploy.py)
+    "room_shape": "box",       # "box" (room_dim), "L" / "U" (random L- / U-shaped plan), "nonconvex" (L or U)
+    "motion": "none",          # the robot: "none" (stops for each chirp), "constant" / "varying" speed, "any"
+    "n_stops": 16,             # events of a deployment preset (n_events overrides)
+    "heights": [1.3, 1.0],     # m: speaker height in the first and second half of the session
+    "boards": None,            # board names (deploy.BOARDS), cycled over the arrays (None: 6-mic circles)
+    "mounts": None,            # "wall" | "table" | "stand", cycled over the arrays (None: wall, table)
+    "n_obstacles": 0,          # panels across the line from the speaker to some arrays ...
+    "obstacle_loss_db": [6.0, 20.0],   # ... with a 1 kHz loss drawn from this range, dB
+    "n_noise": 0,              # broadband noise bursts (fans, trolleys) between chirps
+    "interferer_levels_db": [-10.0, 6.0],  # deployment presets: each interferer's level drawn from this range
+    "talker_overlap": False,   # deployment presets: the last interferer also spans a chirp
 }
 GEN_DEFAULTS |= NEW_GEN_DEFAULTS
 
@@ -102,6 +115,11 @@ NEW_SCENE_DEFAULTS = {
     "hum_freq": 50.0,          # Hz
     "hum_harmonics": 5,        # number of harmonics (amplitude 1/h)
     "gain_mismatch_db": 0.0,   # per-mic gains drawn U(−x, x) dB (arrays may give mic_gain_db instead)
+    "floor_plan": None,        # bands: (P, 2) m corners of a polygonal (e.g. L-shaped) room, extruded to room_dim[2]
+    "obstacles": None,         # bands: [{p0, p1 (2,) m, z (2,) m, loss_db, loss_slope_db}] attenuating panels
+    "image_order": 3,          # bands, polygonal rooms / obstacles: reflections per image path
+    "trajectory": None,        # {t (n,) s, pos (n, 3) m}: the speaker moves (cubic spline), also while chirping
+    "sigma_vel": 0.01,         # m/s per axis: noise of the velocity odometry reports (events.csv vel_*)
 }
 SCENE_DEFAULTS |= NEW_SCENE_DEFAULTS
 SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers", "clock_faults"}
@@ -197,13 +215,14 @@ def validate_scenario(scenario):
     sc["chirp"] = _check_chirp(sc["chirp"], sc["fs"])
     src = sc["sources"] = _matrix(sc["sources"], "sources", 3)
     room = sc["room_dim"]
+    sc["geometry"] = _check_geometry(sc)
     t = sc["t_emit"] = _vector(sc["t_emit"], "t_emit")
     if t.size != len(src):
         raise InputError(f"scenario: t_emit has {t.size} values for {len(src)} speaker stops")
     if np.any(np.diff(t) <= 0):
         raise InputError("scenario: t_emit must increase strictly")
     for j, s_ in enumerate(src):
-        if np.any(s_ < 0.05) or np.any(s_ > room - 0.05):
+        if np.any(s_ < 0.05) or np.any(s_ > room - 0.05) or not _inside(sc, s_, 0.05):
             raise InputError(f"scenario: speaker stop {j} {np.round(s_, 3).tolist()} is outside the room "
                              f"{room.tolist()} (or within 5 cm of a wall)")
     lev = sc.get("event_level_db")
@@ -220,6 +239,7 @@ def validate_scenario(scenario):
         raise InputError(f"scenario: reference_array {ref!r} is not one of the arrays {names}")
     sc["reference_array"] = ref
     sc["interferers"] = [_check_interferer(k, it, sc) for k, it in enumerate(sc.get("interferers") or [])]
+    sc["trajectory"] = _check_trajectory(sc)
     clocks.attach(sc, sc.get("clock_faults"), sc["seed"])   # dropped/inserted blocks, drift changes, wrong rates
     _check_spacing(sc)
     if sc["model"] == "bands":
@@ -243,6 +263,7 @@ def _check_scalars(sc):
     for key in ("snr", "diffuse_snr", "hum_snr"):
         sc[key] = _float(sc.get(key, math.inf), key, allow_inf=True)
     sc["sigma_odo"] = _float(sc.get("sigma_odo", 0.0), "sigma_odo", 0)
+    sc["sigma_vel"] = _float(sc.get("sigma_vel", 0.01), "sigma_vel", 0)
     sc["tail"] = _float(sc.get("tail", 0.3), "tail", 0)
     sc["subtype"] = str(sc.get("subtype", "FLOAT")).upper()
     if sc["subtype"] not in SUBTYPES:
@@ -310,6 +331,8 @@ def _check_array(k, a, sc):
     if np.any(pos <= 0) or np.any(pos >= room) or np.any(mr <= 0.01) or np.any(mr >= room - 0.01):
         raise InputError(f"scenario: array {name!r} at {np.round(pos, 3).tolist()} is outside the room "
                          f"{room.tolist()}")
+    if not np.all(_inside(sc, mr, 0.01)):
+        raise InputError(f"scenario: array {name!r} at {np.round(pos, 3).tolist()} is outside the floor plan")
     if np.min(np.linalg.norm(src[:, None, :] - mr[None], axis=2)) < 0.05:
         raise InputError(f"scenario: array {name!r} is within 5 cm of a speaker stop")
     hemi = a.get("doa_hemisphere")
@@ -323,8 +346,10 @@ def _check_array(k, a, sc):
     else:
         x = sc["gain_mismatch_db"]
         gains = _rng(sc["seed"], 7, k).uniform(-x, x, len(mics)) if x > 0 else np.zeros(len(mics))
+    fs = _int(a.get("fs", sc["fs"]), f"array {name!r} fs", sc["fs"])   # mixed rates: ≥ the scenario's fs
     return {"name": name, "position": pos, "quat": q, "R": R, "mics": mics, "mics_room": mr, "tau": tau,
-            "drift": drift, "doa_hemisphere": hemi, "direct_db": direct_db, "mic_gain_db": gains, "index": k}
+            "drift": drift, "doa_hemisphere": hemi, "direct_db": direct_db, "mic_gain_db": gains, "index": k,
+            "fs": fs}
 
 
 def _check_interferer(k, it, sc):
@@ -332,11 +357,12 @@ def _check_interferer(k, it, sc):
         raise InputError(f"scenario: interferers[{k}] must be a table")
     room = sc["room_dim"]
     p = _vector(it.get("position"), f"interferers[{k}] position", 3)
-    if np.any(p < 0.05) or np.any(p > room - 0.05):
+    if np.any(p < 0.05) or np.any(p > room - 0.05) or not _inside(sc, p, 0.05):
         raise InputError(f"scenario: interferers[{k}] is outside the room")
     kind = it.get("kind", "tones")
-    if kind not in ("tones", "speech"):
-        raise InputError(f"scenario: interferers[{k}] kind must be tones or speech, got {kind!r}")
+    if kind not in INTERFERER_KINDS:
+        raise InputError(f"scenario: interferers[{k}] kind must be one of {', '.join(INTERFERER_KINDS)}, "
+                         f"got {kind!r}")
     f_lo = _float(it.get("f_lo", 300.0), f"interferers[{k}] f_lo", 0, strict=True)
     f_hi = _float(it.get("f_hi", 5000.0), f"interferers[{k}] f_hi", f_lo, strict=True)
     f_hi = min(f_hi, 0.45 * sc["fs"])  # keep the burst band-limited on every clock
@@ -374,15 +400,94 @@ def _check_bands(sc):
             raise InputError(f"scenario: source_axis must be {k} non-zero [x, y, z]")
         sc["source_axis"] = ax / np.linalg.norm(ax, axis=1, keepdims=True)
     room, c, air = sc["room_dim"], sc["speed_of_sound"], bool(sc["air_absorption"])
+    geo = sc["geometry"]
+    surf = ac.poly_surfaces(geo) if geo is not None else None
+    n_walls = 6 if geo is None else len(geo["area"])
     try:
-        alpha = (ac.scaled_absorption(_materials(sc), room, sc["rt60"], c, air) if sc["rt60"] > 0
-                 else np.ones((6, len(ac.BAND_CENTERS))))
+        alpha = (ac.scaled_absorption(_materials(sc), room, sc["rt60"], c, air, surf) if sc["rt60"] > 0
+                 else np.ones((n_walls, len(ac.BAND_CENTERS))))
     except ValueError as exc:
         raise InputError(f"scenario: {exc}") from None
     sc["acoustic"] = {
         "alpha": alpha, "air": ac.air_attenuation() if air else np.zeros(len(ac.BAND_CENTERS)),
-        "rt60_bands": ac.band_rt60(alpha, room, c, air) if sc["rt60"] > 0 else np.zeros(len(ac.BAND_CENTERS)),
-        "volume": float(np.prod(room))}
+        "rt60_bands": (ac.band_rt60(alpha, room, c, air, surf) if sc["rt60"] > 0
+                       else np.zeros(len(ac.BAND_CENTERS))),
+        "volume": float(np.prod(room)) if geo is None else float(geo["volume"])}
+
+
+def _check_geometry(sc):
+    """A polygonal room and/or obstacles (``polyroom.make_geometry``), or None for a plain shoebox."""
+    fp, obs = sc.get("floor_plan"), sc.get("obstacles") or []
+    sc["image_order"] = _int(sc.get("image_order", 3), "image_order", 0)
+    if fp is None and not obs:
+        return None
+    if sc["model"] != "bands":
+        raise InputError("scenario: floor_plan and obstacles need model = \"bands\"")
+    room = sc["room_dim"]
+    if fp is None:
+        fp = [[0.0, 0.0], [room[0], 0.0], [room[0], room[1]], [0.0, room[1]]]
+    c = _matrix([list(p) + [0.0] for p in fp] if _is_rows(fp, 2) else fp, "floor_plan", 3)[:, :2]
+    if len(c) < 3 or np.any(c < 0) or np.any(c > room[:2] + 1e-9) or abs(polyroom.signed_area(c)) < 1e-6:
+        raise InputError("scenario: floor_plan must be ≥ 3 corners [x, y] inside room_dim's x-y box, "
+                         "enclosing an area")
+    out = []
+    for k, o in enumerate(obs):
+        if not isinstance(o, dict):
+            raise InputError(f"scenario: obstacles[{k}] must be a table")
+        loss = _float(o.get("loss_db", 10.0), f"obstacles[{k}] loss_db", 0)
+        slope = _float(o.get("loss_slope_db", 3.0), f"obstacles[{k}] loss_slope_db")
+        out.append({"p0": _vector(o.get("p0"), f"obstacles[{k}] p0", 2),
+                    "p1": _vector(o.get("p1"), f"obstacles[{k}] p1", 2),
+                    "z": _vector(o.get("z", [0.0, room[2]]), f"obstacles[{k}] z", 2),
+                    "loss_db": obstacle_loss(loss, slope)})
+    return polyroom.make_geometry(c, room[2], out)
+
+
+def obstacle_loss(loss_db, slope_db):
+    """(7,) band losses (dB ≥ 0) of an obstacle: ``loss_db`` at 1 kHz, ``slope_db`` more per octave up."""
+    return np.maximum(loss_db + slope_db * np.log2(np.asarray(ac.BAND_CENTERS) / ac.RT60_BAND), 0.0)
+
+
+def _is_rows(v, n):
+    try:
+        return all(len(p) == n for p in v)
+    except TypeError:
+        return False
+
+
+def _inside(sc, p, margin):
+    """Whether point(s) ``p`` lie inside the floor plan (True for a shoebox: its box is checked elsewhere)."""
+    geo = sc.get("geometry")
+    if geo is None or sc.get("floor_plan") is None:
+        return True
+    return bool(np.all(polyroom.inside(geo, np.atleast_2d(p), margin)))
+
+
+def _check_trajectory(sc):
+    """A moving speaker: its Trajectory (None if it stops for each chirp). The stops ``sources`` must be
+    its positions at the sweep starts ``t_emit`` and it must stay in the room while chirping."""
+    spec = sc.get("trajectory")
+    if spec is None:
+        return None
+    if sc["model"] != "bands":
+        raise InputError("scenario: a trajectory needs model = \"bands\"")
+    if not isinstance(spec, dict) or "t" not in spec or "pos" not in spec:
+        raise InputError("scenario: trajectory must be a table with t (s) and pos ([x, y, z] m)")
+    t = _vector(spec["t"], "trajectory.t")
+    pos = _matrix(spec["pos"], "trajectory.pos", 3)
+    if len(t) != len(pos) or len(t) < 4 or np.any(np.diff(t) <= 0):
+        raise InputError("scenario: trajectory needs ≥ 4 increasing times t, one pos per time")
+    dur = sc["chirp"]["duration"]
+    if t[0] > sc["t_emit"][0] or t[-1] < sc["t_emit"][-1] + dur:
+        raise InputError("scenario: the trajectory must cover every chirp (t_emit[0] to t_emit[-1] + duration)")
+    traj = motion.Trajectory({"t": t, "pos": pos})
+    if np.max(np.abs(traj(sc["t_emit"]) - sc["sources"])) > 1e-6:
+        raise InputError("scenario: sources must be the trajectory's positions at t_emit (the sweep starts)")
+    ts = np.concatenate([np.linspace(x, x + dur, 11) for x in sc["t_emit"]])
+    p = traj(ts)
+    if np.any(p < 0.05) or np.any(p > sc["room_dim"] - 0.05) or not _inside(sc, p, 0.05):
+        raise InputError("scenario: the speaker leaves the room while chirping")
+    return traj
 
 
 def _room_acoustics(sc):
@@ -472,3 +577,26 @@ def odometry(scenario):
     steps = _rng(int(scenario.get("seed", 0)), 10).normal(0.0, float(scenario.get("sigma_odo", 0.0)), s.shape)
     steps[0] = 0.0
     return (s - s[0]) @ ref["R"] + np.cumsum(steps, axis=0)
+
+
+VEL_COLS = ["vel_x", "vel_y", "vel_z"]   # optional events.csv columns: the robot's velocity at the sweep start
+TRAJECTORY_STEP = 0.02                   # s between the rows of truth/trajectory.csv
+
+
+def odometry_velocity(scenario):
+    """(K, 3) the moving speaker's velocity at each sweep start in the reference frame (m/s), as odometry
+    reports it: ``R_refᵀ v(t_emit)`` + N(0, σ_vel²) per axis (``sigma_vel``)."""
+    sc = scenario if isinstance(scenario, Scenario) else validate_scenario(scenario)
+    ref = next(a for a in sc["arrays"] if a["name"] == sc["reference_array"])
+    v = sc["trajectory"].velocity(sc["t_emit"]) @ ref["R"]
+    return v + _rng(int(sc.get("seed", 0)), 12).normal(0.0, float(sc.get("sigma_vel", 0.0)), v.shape)
+
+
+def trajectory_truth(scenario):
+    """The moving speaker's true path in the reference frame: DataFrame ``t`` (emitter clock, s), ``x``,
+    ``y``, ``z`` (m) every TRAJECTORY_STEP from the first sweep start to the end of the last sweep."""
+    sc = scenario if isinstance(scenario, Scenario) else validate_scenario(scenario)
+    ref = next(a for a in sc["arrays"] if a["name"] == sc["reference_array"])
+    t = np.arange(sc["t_emit"][0], sc["t_emit"][-1] + sc["chirp"]["duration"] + 1e-9, TRAJECTORY_STEP)
+    p = (sc["trajectory"](t) - ref["position"]) @ ref["R"]
+    return pd.DataFrame({"t": t, "x": p[:, 0], "y": p[:, 1], "z": p[:, 2]})

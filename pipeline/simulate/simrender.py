@@ -15,9 +15,10 @@ import numpy as np
 
 from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import clocks
+from calib.pipeline.simulate import motion, polyroom
 from calib.pipeline.simulate import render as rd
 from calib.pipeline.simulate.sounds import (BlockWhite, CoherentPink, RowMajorWhite, burst_params, burst_signal, chirp_power,
-                     chirp_signal, hum, speech_params, speech_signal)
+                     chirp_signal, hum, noise_params, noise_signal, speech_params, speech_signal)
 
 IMAGE_CACHE = 2_000_000  # flat model: image sources kept between the two passes up to this many (~64 MB)
 TARGET_PEAK = 0.25   # the largest direct-path amplitude at any mic
@@ -68,17 +69,26 @@ def emitters(sc, lv):
     """Every emission (chirps, then interferers) as a dict: kind, index, pos, t_start, dur, wave, level, axis."""
     ch = sc["chirp"]
     out = []
+    traj = sc.get("trajectory")
     for j, s in enumerate(sc["sources"]):
         axis = sc["source_axis"][j] if sc["model"] == "bands" and sc["directivity"] != "omni" else None
-        out.append({"kind": "chirp", "index": j, "pos": s, "t_start": sc["t_emit"][j], "dur": ch["duration"],
-                    "wave": lambda u: chirp_signal(u, ch), "axis": axis,
-                    "level": lv["gain"] * 10 ** (sc["event_level_db"][j] / 20)})
+        e = {"kind": "chirp", "index": j, "pos": s, "t_start": sc["t_emit"][j], "dur": ch["duration"],
+             "wave": lambda u: chirp_signal(u, ch), "axis": axis,
+             "level": lv["gain"] * 10 ** (sc["event_level_db"][j] / 20)}
+        if traj is not None:               # moving speaker: images at the sweep's middle, early paths exact
+            e |= {"pos": traj(e["t_start"] + e["dur"] / 2), "trajectory": traj}
+        out.append(e)
     for k, it in enumerate(sc["interferers"]):
         if it["kind"] == "speech":
             prm = speech_params(sc["seed"], k, it["duration"], it["f0"], sc["fs"])
 
             def wave(u, dur=it["duration"], prm=prm):
                 return speech_signal(u, dur, prm)
+        elif it["kind"] == "noise":
+            prm = noise_params(sc["seed"], k, it["f_lo"], it["f_hi"])
+
+            def wave(u, dur=it["duration"], prm=prm):
+                return noise_signal(u, dur, *prm)
         else:
             freqs, phases = burst_params(sc["seed"], k, it["f_lo"], it["f_hi"])
 
@@ -99,12 +109,24 @@ def _attach_images(sc, em, flat, lo, hi):
             e["images"] = e.pop("cached_images")
         elif sc["model"] == "flat":
             e["images"] = rd.pra_images(sc, *flat, e["pos"])
+        elif sc.get("geometry") is not None:
+            e["images"] = _poly_images(sc, e)
         else:
             # every image that can arrive within mixing_time of the direct path at any mic (+10 cm margin)
             reach = 2 * np.linalg.norm(mics - e["pos"], axis=1).max() + c * sc["mixing_time"] + 0.1
             e["images"] = ac.shoebox_images(np.asarray(e["pos"], float), sc["room_dim"], e["pos"], reach)
+            if "trajectory" in e:           # the images' affine maps p_k(s) = M_k s + b_k (mirror signs)
+                e["images"]["M"] = np.stack([np.diag(np.where(f, -1.0, 1.0)) for f in e["images"]["flip"]])
+        if sc["model"] == "bands":
             e["diffuse_gain"] = (ac.mean_power_gain(sc["directivity"], sc["rear_floor_db"])
                                  if e["axis"] is not None else 1.0)
+
+
+def _poly_images(sc, e):
+    """Image sources of a polygonal room / a room with obstacles, with their visibility per mic set."""
+    geo = sc["geometry"]
+    tree = polyroom.image_tree(geo, np.asarray(e["pos"], float), sc["image_order"])
+    return {**tree, "tree": True, "path_gain": lambda mics: polyroom.path_gains(geo, tree, mics)}
 
 
 def _tail_length(sc):
@@ -113,7 +135,7 @@ def _tail_length(sc):
 
 def recording_ends(sc, em, flat):
     """Samples per array: from local time 0 to the last chirp's reverberation + ``tail`` (+ FDL)."""
-    c, fs, dur, t0 = sc["speed_of_sound"], sc["fs"], sc["chirp"]["duration"], sc["t_emit"][0]
+    c, dur, t0 = sc["speed_of_sound"], sc["chirp"]["duration"], sc["t_emit"][0]
     chirps = [e for e in em if e["kind"] == "chirp"]
     last = np.zeros(len(sc["arrays"]))
     kept = 0
@@ -130,13 +152,14 @@ def recording_ends(sc, em, flat):
                      + _tail_length(sc) for a in sc["arrays"]]
         for i, a in enumerate(sc["arrays"]):
             last[i] = max(last[i], clocks.local(a, e["t_start"] + reach[i] + dur, t0))
-    return [int(math.ceil((x + sc["tail"]) * fs)) + rd.FDL for x in last]
+    return [int(math.ceil((x + sc["tail"]) * a["fs"])) + rd.FDL for x, a in zip(last, sc["arrays"])]
 
 
 # ----------------------------------------------------------------------------------------------- noise
 def _finisher(sc, i, a, n, lv):
     """finish(a, b, block) for array ``i``: diffuse noise, mic gains, self-noise and hum of samples [a, b)."""
-    M, seed, fs = len(a["mics"]), sc["seed"], sc["fs"]
+    M, seed, fs = len(a["mics"]), sc["seed"], a["fs"]
+    wide = math.sqrt(fs / sc["fs"])     # a faster recorder: same noise density in the chirp's band
     white = (RowMajorWhite(_rng(seed, 20 + 2 * i), M, n) if sc["model"] == "flat"
              else BlockWhite(seed, 40 + i, M)) if lv["sigma"] > 0 else None
     pink = CoherentPink(_rng(seed, 21 + 2 * i), a["mics_room"], fs, sc["speed_of_sound"]) \
@@ -150,7 +173,7 @@ def _finisher(sc, i, a, n, lv):
         if np.any(gains != 1.0):
             block *= gains[:, None]
         if white is not None:
-            block += lv["sigma"] * white.get(lo, hi)
+            block += lv["sigma"] * wide * white.get(lo, hi)
         if lv["hum_std"] > 0:
             block += lv["hum_std"] * hum(lo, hi, fs, sc["hum_freq"], sc["hum_harmonics"], phases)[None]
         return block
@@ -165,7 +188,7 @@ def _prepare_arrays(sc, delay):
     out = []
     for a in sc["arrays"]:
         a = dict(a)
-        fsp = sc["fs"] * (1 + a["drift"])
+        fsp = a["fs"] * (1 + a["drift"])
         dmax = np.linalg.norm(pos[:, None] - a["mics_room"][None], axis=2).max()
         a["rir_length"] = int(math.ceil((dmax / c + sc["mixing_time"] + _tail_length(sc)) * fsp)) \
             + rd.PAD + rd.FDL + delay
@@ -173,11 +196,38 @@ def _prepare_arrays(sc, delay):
     return out
 
 
-def _rir_function(sc, e, a, delay, cache):
+def _rir_function(sc, e, a, delay, cache, exclude=None):
     if sc["model"] == "flat":
         return lambda fsp: rd.flat_rir(e["images"], a, fsp, sc["speed_of_sound"], sc["rt60"])
     rng = _rng(sc["seed"], 30, 0 if e["kind"] == "chirp" else 1, e["index"], a["index"])
-    return lambda fsp: rd.band_rir(e, a, fsp, sc, delay, rng, cache)
+    return lambda fsp: rd.band_rir(e, a, fsp, sc, delay, rng, cache, exclude)
+
+
+def _segment(sc, e, a, delay, cache):
+    """One emission at array ``a``: (first sample, (M, n) samples); a moving chirp's early paths rendered
+    with the exact time-varying delay (:mod:`.motion`), the rest from the RIR at the sweep's middle."""
+    fs, t0 = a["fs"], sc["t_emit"][0]
+    if "trajectory" not in e:
+        return rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, cache),
+                          a, fs, t0, delay, e["level"], rd.local_time)
+    fsp = fs * (1 + a["drift"])
+    paths = rd.band_paths(e, a, fsp, sc)
+    early = motion.early_mask(paths, fsp)
+    start, seg = rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, cache, early),
+                            a, fs, t0, delay, e["level"], rd.local_time)
+    vis = None
+    if "tree" in e["images"]:
+        geo, traj = sc["geometry"], e["trajectory"]
+
+        def vis(times):
+            return np.stack([polyroom.path_gains(geo, e["images"], a["mics_room"],
+                                                 polyroom.moved(e["images"], traj(t)), only=early) for t in times])
+    lo, part = motion.early_part(e, a, paths, early, sc, t0, e["level"], rd.local_time, vis)
+    first = min(start, lo)
+    out = np.zeros((seg.shape[0], max(start + seg.shape[1], lo + part.shape[1]) - first))
+    out[:, start - first:start - first + seg.shape[1]] += seg
+    out[:, lo - first:lo - first + part.shape[1]] += part
+    return first, out
 
 
 def render_session(sc, tmp, flat, progress=None, zero_peak=None):
@@ -186,22 +236,20 @@ def render_session(sc, tmp, flat, progress=None, zero_peak=None):
     flat : (energy absorption, ISM order) of the ``flat`` model; progress : optional callback
     ``progress(done, total, message)``; zero_peak : function(path) that normalises a WAV's PEAK chunk.
     """
-    fs, t0 = sc["fs"], sc["t_emit"][0]
     delay = rd.builder_delay()
     lv = noise_levels(sc)
     em = sorted(emitters(sc, lv), key=lambda e: e["t_start"])
     ends = recording_ends(sc, em, flat)
     arrays = _prepare_arrays(sc, delay)
     tmp = Path(tmp)
-    tracks = [rd.Track(tmp / f".{a['name']}.f32.wav", fs, len(a["mics"]), _finisher(sc, i, a, n, lv))
+    tracks = [rd.Track(tmp / f".{a['name']}.f32.wav", a["fs"], len(a["mics"]), _finisher(sc, i, a, n, lv))
               for i, (a, n) in enumerate(zip(arrays, ends))]
     cache = {}
     for n in range(len(em)):
         _attach_images(sc, em, flat, n, n + 1)
         e = em[n]
         for a, tr in zip(arrays, tracks):
-            start, seg = rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, cache),
-                                    a, fs, t0, delay, e["level"], rd.local_time)
+            start, seg = _segment(sc, e, a, delay, cache)
             tr.flush(max(start, 0))
             tr.add(start, seg)
         e.pop("images")
@@ -217,7 +265,7 @@ def render_session(sc, tmp, flat, progress=None, zero_peak=None):
             os.replace(src, dst)
             zero_peak(dst)
         else:
-            rd.finalise_wav(src, dst, fs, sc["subtype"], rescale, zero_peak)
+            rd.finalise_wav(src, dst, a["fs"], sc["subtype"], rescale, zero_peak)
             src.unlink()
     if progress:
         progress(len(em) + 1, len(em) + 1, "written")
@@ -233,5 +281,49 @@ def impulse_response(sc, event, array, flat=(None, None)):
     em = [e for e in emitters(sc, {"gain": 1.0, "p_chirp": 1.0}) if e["kind"] == "chirp"]
     a = _prepare_arrays(sc, delay)[array]
     _attach_images(sc, em, flat, event, event + 1)
-    fsp = sc["fs"] * (1 + a["drift"])
+    fsp = a["fs"] * (1 + a["drift"])
     return _rir_function(sc, em[event], a, delay, {})(fsp), fsp
+
+
+# ----------------------------------------------------------------------------------------------- line of sight
+LOS_COLS = ["event", "array", "los", "direct_db", "direct_minus_reflection_db", "cause", "los_fraction"]
+
+
+def line_of_sight(sc):
+    """Truth of the direct path per event and array (``bands`` model): a DataFrame of ``LOS_COLS``.
+
+    At the array ORIGIN, the speaker at the sweep START (the event's truth position): ``los`` 1 when the
+    direct path arrives unobstructed (no wall, obstacle or mount attenuation), ``direct_db`` its gain re.
+    free field at 1 kHz (dB ≤ 0; empty when a wall blocks it), ``direct_minus_reflection_db`` the direct
+    path's 1 kHz amplitude over the strongest reflection arriving within ``mixing_time`` (dB; empty when
+    blocked: only reflections arrive), ``cause`` what attenuates or blocks it (``wall``, ``obstacle``,
+    ``mount``, joined by ``+``; empty when clear), ``los_fraction`` the share of the sweep (moving speaker:
+    ``motion.N_VIS_KNOTS`` instants) during which no wall blocks it.
+    """
+    import pandas as pd
+
+    geo, traj = sc.get("geometry"), sc.get("trajectory")
+    b1k = ac.BAND_CENTERS.index(ac.RT60_BAND)
+    em = [e for e in emitters(sc, {"gain": 1.0, "p_chirp": 1.0}) if e["kind"] == "chirp"]
+    rows = []
+    for j, e in enumerate(em):
+        e = {**e, "pos": sc["sources"][j]}
+        e.pop("trajectory", None)
+        _attach_images(sc, [e], None, 0, 1)
+        knots = sc["t_emit"][j] + sc["chirp"]["duration"] * np.linspace(0, 1, motion.N_VIS_KNOTS)
+        for a in sc["arrays"]:
+            o = np.asarray(a["position"], float)
+            g = polyroom.direct_gain(geo, sc["sources"][j], o[None])[0, b1k] if geo is not None else 1.0
+            at = [traj(t) for t in knots] if traj is not None else [sc["sources"][j]]
+            seen = [polyroom.direct_gain(geo, p, o[None])[0, b1k] > 0 if geo is not None else True for p in at]
+            cause = ["wall"] if g == 0 else ["obstacle"] if g < 1 else []
+            cause += ["mount"] if a["direct_db"] < 0 else []
+            paths = rd.band_paths(e, {**a, "mics_room": o[None]}, a["fs"], sc)
+            amp = paths["amp"][:, 0, b1k] / paths["dist"][:, 0]
+            refl = np.max(np.where(np.isfinite(paths["taps"][:, 0]) & ~e["images"]["direct"], amp, 0.0))
+            direct = float(amp[e["images"]["direct"]][0])
+            rows.append({"event": j, "array": a["name"], "los": int(not cause),
+                         "direct_db": 20 * np.log10(g) + a["direct_db"] if g > 0 else np.nan,
+                         "direct_minus_reflection_db": 20 * np.log10(direct / refl) if direct > 0 and refl > 0
+                         else np.nan, "cause": "+".join(cause), "los_fraction": float(np.mean(seen))})
+    return pd.DataFrame(rows, columns=LOS_COLS)

@@ -50,6 +50,30 @@ def burst_signal(u, duration, freqs, phases):
     return env * s / np.sqrt(3 / 8 * len(freqs) / 2)
 
 
+NOISE_TONES = 256     # random tones of a broadband noise burst (a fan, a vacuum cleaner, a trolley)
+NOISE_FADE = 0.02     # s, raised-cosine on/off ramps of a noise burst
+
+
+def noise_params(seed, index, f_lo, f_hi):
+    """Random log-spaced frequencies, pink (1/√f) amplitudes and phases of noise burst ``index``."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(102, index)))
+    f = np.exp(rng.uniform(np.log(f_lo), np.log(f_hi), NOISE_TONES))
+    a = rng.rayleigh(1.0, NOISE_TONES)           # log-spaced tones already give 1/f power density
+    return f, a / np.sqrt(np.sum(a ** 2) / 2), rng.uniform(0, 2 * np.pi, NOISE_TONES)
+
+
+def noise_signal(u, duration, freqs, amps, phases):
+    """Broadband noise burst: many random tones (pink), flat envelope with NOISE_FADE ramps, unit power."""
+    u = np.asarray(u, float)
+    edge = np.clip(np.minimum(u, duration - u), 0, None)
+    fade = min(NOISE_FADE, duration / 2)
+    env = np.where(edge < fade, 0.5 * (1 - np.cos(np.pi * edge / fade)), 1.0)
+    s = np.zeros_like(u)
+    for f, a, p in zip(freqs, amps, phases):
+        s += a * np.cos(2 * np.pi * f * u + p)
+    return np.where((u >= 0) & (u <= duration), env * s, 0.0)
+
+
 def speech_params(seed, index, duration, f0, fs):
     """Random parameters of a speech-like interferer: per-syllable harmonic amplitudes (n_syl, H),
     harmonic phases (H,), pitch-vibrato phase. Harmonics stay below 0.45 fs at the highest pitch."""

@@ -1,0 +1,152 @@
+"""A source that moves during the sweep: the matched filter's range–Doppler coupling (docs/method.md).
+
+The event's time and source position are those of the sweep's START (docs/architecture.md: ``t_emit`` and
+``s_j``). A source moving with velocity ``v`` changes its range to array ``i`` at the rate
+``ṙ_ij = v_j · (s_j − x_i)/|s_j − x_i|`` (> 0 moving away), so the array receives the sweep time-stretched
+by ``1 + ṙ/c`` about its start — the same stretch as a clock running ``ṙ/c`` fast. Matched filtering then
+shifts the arrival by ``β ṙ_ij / c`` (β = meta ``chirp_drift_bias``, the coupling the frontend measures for
+the clock drift; ≈ f1·T/(f1 − f0): 0.57 s for a 0.5 s 0.5–4 kHz sweep, so 0.5 m/s moves an arrival by
+0.8 ms = 28 cm of path). With ``u`` the unit vector from the source to the array this is ``−β (v·u)/c``.
+
+The estimator removes the shift from TDOA-M (``shift_i − shift_ref``) and TDOA-S (``shift_to − shift_from``)
+at the current geometry and re-solves (a fixed point: the shift's derivative with respect to the
+geometry is ``β|v|/(c r)`` ~ 3e-4 of the range's, so two passes converge).
+
+Velocities: events.csv ``vel_x, vel_y, vel_z`` when present (used as given), else central differences of
+the odometry over the emission times — which are also nonzero for a robot that stops for every chirp, so
+then the correction is kept only if it lowers the cost of the same rows under the same sigmas
+(:func:`motion_gain`: does the static solve leave the shift pattern in its residuals?).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+from calib.tables import event_velocities
+
+from .solver import linearise
+
+MOTION_ITERATIONS = 2    # correction passes (each a warm joint solve)
+MIN_SPEED = 0.05         # m/s: slower odometry (median over the intervals) is not tested for motion
+MIN_GAIN = 0.5           # odometry velocities are used when the residuals hold at least half the shift pattern
+
+
+def odometry_velocities(t, odom):
+    """(K, 3) velocity at each event from the odometry: central differences (one-sided at the ends)."""
+    if len(t) < 2:
+        return np.zeros_like(odom)
+    return np.gradient(odom, t, axis=0)
+
+
+def source_velocities(events, t, odom):
+    """(velocities (K, 3) in odometry axes, source "events" | "odometry") or (None, None) when the odometry
+    does not move at MIN_SPEED (the test would only cost time)."""
+    v = event_velocities(events)
+    if v is not None:
+        return v, "events"
+    if len(t) < 3:
+        return None, None
+    speed = np.linalg.norm(np.diff(odom, axis=0), axis=1) / np.maximum(np.diff(t), 1e-9)
+    if np.median(speed) < MIN_SPEED:
+        return None, None
+    return odometry_velocities(t, odom), "odometry"
+
+
+def _yawed(v, yaw):
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
+
+
+def arrival_shifts(p, st, vel, curve=None):
+    """(N, K) matched-filter arrival shift of every array and event at state ``st``: β ṙ_ij / c, or the
+    frontend's measured curve (meta ``chirp_stretch_shift``: {stretch, shift_s}) at ε = ṙ_ij / c."""
+    v = _yawed(vel, float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0)
+    w = st.s[None, :, :] - st.x[:, None, :]                   # (N, K, 3) array → source
+    d = np.linalg.norm(w, axis=2)
+    eps = np.einsum("kc,nkc->nk", v, w) / np.maximum(d, 1e-9) / p.c
+    if curve:
+        return np.interp(eps, np.asarray(curve["stretch"], float), np.asarray(curve["shift_s"], float))
+    return p.beta * eps
+
+
+def doa_moves(p, st, vel, t_doa, arr, ev, u):
+    """(m, 3) change of the direction (array frame) from the source at its DOA time ``t_doa`` after the
+    sweep start (``s + v t_doa``) to the source at the sweep start ``s``, at state ``st``, for DOA rows
+    (arr, ev, measured u). A mirror-ambiguous array's change is mirrored where its measurement is."""
+    v = _yawed(vel, float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0)
+    a = st.s[ev] - st.x[arr]
+    b = a + v[ev] * t_doa
+    d = a / np.linalg.norm(a, axis=1, keepdims=True) - b / np.linalg.norm(b, axis=1, keepdims=True)
+    R = st.R[arr]
+    d_arr = np.einsum("kba,kb->ka", R, d)                      # R_iᵀ d
+    pred = np.einsum("kba,kb->ka", R, a)
+    n = p.fold[arr]
+    flip = np.any(n != 0, axis=1) & (np.einsum("ka,ka->k", u, n) * np.einsum("ka,ka->k", pred, n) < 0)
+    d_arr[flip] -= 2 * np.einsum("ka,ka->k", d_arr[flip], n[flip])[:, None] * n[flip]
+    return d_arr
+
+
+def corrected(p, st, vel, curve=None, t_doa=0.0):
+    """``p`` with its TDOAs freed of the motion's arrival shifts at ``st`` and its DOAs turned from the
+    source at ``t_doa`` after the sweep start to the source at the start (a copy; measured rows as read)."""
+    sh = arrival_shifts(p, st, vel, curve)
+    tm, ts = p.tdoa_m, p.tdoa_s
+    out = {"tdoa_m": dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
+           "tdoa_s": dataclasses.replace(ts, val=ts.val - (sh[ts.arr, ts.b] - sh[ts.arr, ts.a]))}
+    if t_doa and len(p.doa.u):
+        u = p.doa.u + doa_moves(p, st, vel, t_doa, p.doa.arr, p.doa.ev, p.doa.u)
+        out["doa"] = dataclasses.replace(p.doa, u=u / np.linalg.norm(u, axis=1, keepdims=True))
+    if t_doa and len(p.cone.cos):
+        k = p.cone
+        d = doa_moves(p, st, vel, t_doa, k.arr, k.ev, np.zeros((len(k.cos), 3)))
+        out["cone"] = dataclasses.replace(k, cos=np.clip(k.cos + np.einsum("ka,ka->k", p.cone_axis[k.arr], d), -1, 1))
+    return p.replace(**out)
+
+
+def motion_gain(p, st, info, vel, kinds):
+    """How much of the motion's arrival-shift pattern the residuals of the static solve hold: γ̂ of
+    ``r + γ P⊥ δr`` (r the whitened residuals at the solution, δr their change when the shifts are removed,
+    P⊥ the projector off the Jacobian's range: what a re-solve cannot absorb). γ̂ ≈ 1: the arrivals carry
+    the shifts (a moving source), ≈ 0: they do not (the robot stopped for the chirps). One linearisation and
+    one least-squares solve, not a second calibration. Returns (γ̂, its std)."""
+    lay, mask = info["layout"], info["mask"]
+    lin = linearise(p, st, lay, kinds, mask=mask)
+    dr = linearise(corrected(p, st, vel), st, lay, kinds, mask=mask).r - lin.r
+    sw = np.sqrt(lin.w)
+    A = scipy.sparse.diags(sw) @ scipy.sparse.csr_matrix(lin.J) if not scipy.sparse.issparse(lin.J) else \
+        scipy.sparse.diags(sw) @ lin.J
+    g = sw * dr
+    g_perp = g - A @ scipy.sparse.linalg.lsqr(A, g, atol=1e-10, btol=1e-10)[0]
+    gg = float(g_perp @ g_perp)
+    if gg <= 0:
+        return 0.0, np.inf
+    return float(-(sw * lin.r) @ g_perp / gg), float(1.0 / np.sqrt(gg))
+
+
+def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0):
+    """The joint solve with the moving source's arrival shifts removed, when the source moves.
+
+    p_raw : the problem as built (before a solve changed its sigmas); first : ``solve``'s result
+    (state, problem, info, scales, bounds) on ``p_raw``; solve(problem, state) → the same tuple; curve: meta
+    ``chirp_stretch_shift`` (the frontend's measured shift for large stretches) or None (β ε); t_doa: meta
+    ``doa_time_s``, when after the sweep start the DOAs look (0: not corrected).
+    Odometry velocities are used only when the static solve's residuals hold the shift pattern
+    (:func:`motion_gain` ≥ MIN_GAIN). Returns (the result kept, record for report.json ``motion``).
+    """
+    vel, source = source_velocities(events, p_raw.t, p_raw.odom)
+    if vel is None or not p_raw.beta:   # β = 0: the features state no coupling (a frontend that has none)
+        return first, {"source": None, "applied": False}
+    rec = {"source": source, "median_speed_m_s": float(np.median(np.linalg.norm(vel, axis=1)))}
+    if source == "odometry":
+        gain, sd = motion_gain(first[1], first[0], first[2], vel, kinds)
+        rec.update(gain=gain, gain_std=sd)
+        if not gain >= MIN_GAIN:
+            return first, {**rec, "applied": False}
+    cur = first
+    for _ in range(MOTION_ITERATIONS):
+        cur = solve(corrected(p_raw, cur[0], vel, curve, t_doa), cur[0])
+    return cur, {**rec, "applied": True, "curve": bool(curve),
+                 "max_shift_s": float(np.max(np.abs(arrival_shifts(p_raw, cur[0], vel, curve))))}

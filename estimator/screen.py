@@ -1,0 +1,160 @@
+"""Rows the estimator does not trust, taken out before the solve — rows, never whole arrays.
+
+Two kinds (docs/method.md, "Screened rows"):
+
+* **absurd**: a TDOA no room can produce. Per array, TDOA-M follows its clock line ``offset + drift · t`` up
+  to the geometry (|Δd|/c), TDOA-S the emission interval ``(1 + drift) Δt`` up to the range change. A row off
+  its array's robust line by more than ``ABSURD_S`` (100 m of path) is a bookkeeping or detection failure
+  (one TDOA of −95 s reached the estimator, issue 27); it would otherwise decide the initialisation.
+* **nlos**: the frontend's evidence that an arrival is a reflection only (flag ``nlos``: late against the
+  array's own range track along the odometry, docs/frontend.md). Such a row is late by metres of path and
+  would pull the array that heard it — and through the shared sources every other array.
+
+An array whose rows are mostly doubted keeps them (dropping most of an array's data leaves it to a handful
+of rows): it is reported as distrusted instead, and the verdict names it (:func:`distrusted_arrays`).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+ABSURD_S = 0.3              # s: 100 m of path, beyond any room's geometry; a row further off its clock line is absurd
+MAX_DOUBTED_FRACTION = 0.5  # an array with more of its rows flagged nlos keeps them (named as distrusted instead)
+DROP_FLAGS = ("nlos",)      # frontend doubts (the ``flag`` column) whose rows are taken out
+
+
+def _flags(df):
+    """(rows,) bool: the row's ``flag`` holds one of DROP_FLAGS."""
+    if "flag" not in df.columns:
+        return np.zeros(len(df), bool)
+    pattern = r"(?:^|\+)(?:" + "|".join(DROP_FLAGS) + r")(?:\+|$)"
+    f = df["flag"]
+    return f.astype(object).where(f.notna(), "").astype(str).str.contains(pattern).to_numpy(bool)
+
+
+def _robust_line_residuals(t, y):
+    """Residuals of y against a robust line in t (Theil–Sen slope from consecutive pairs, median intercept)."""
+    if len(y) < 2:
+        return y - np.median(y) if len(y) else y
+    order = np.argsort(t)
+    dt, dy = np.diff(t[order]), np.diff(y[order])
+    ok = dt > 0
+    slope = float(np.median(dy[ok] / dt[ok])) if ok.any() else 0.0
+    r = y - slope * t
+    return r - np.median(r)
+
+
+def _groups(df):
+    """Row indices of each array's rows of table ``df``."""
+    codes, uniq = pd.factorize(df["array"])
+    return [np.flatnonzero(codes == k) for k in range(len(uniq))]
+
+
+def absurd_rows(features):
+    """{table: (rows,) bool} TDOA rows off their array's clock line by more than ``ABSURD_S``."""
+    ev = features["events"]
+    t_of = pd.Series(ev["t_emit"].to_numpy(float), index=ev["event"].to_numpy(int))
+    out = {}
+    tm = features["tdoa_m"]
+    bad = np.zeros(len(tm), bool)
+    t_m = tm["event"].map(t_of).to_numpy(float)
+    for idx in _groups(tm):
+        y = tm["tdoa"].to_numpy(float)[idx]
+        bad[idx] = ~np.isfinite(y) | (np.abs(_robust_line_residuals(t_m[idx], np.nan_to_num(y))) > ABSURD_S)
+    out["tdoa_m"] = bad
+    ts = features["tdoa_s"]
+    bad = np.zeros(len(ts), bool)
+    dt_s = ts["to_event"].map(t_of).to_numpy(float) - ts["from_event"].map(t_of).to_numpy(float)
+    for idx in _groups(ts):
+        dt = dt_s[idx]
+        y = ts["tdoa"].to_numpy(float)[idx]
+        yy = np.nan_to_num(y)
+        k = float(np.median(yy[dt > 0] / dt[dt > 0])) if np.any(dt > 0) else 1.0   # the array's (1 + drift)
+        r = yy - k * dt
+        bad[idx] = ~np.isfinite(y) | (np.abs(r - np.median(r)) > ABSURD_S)
+    out["tdoa_s"] = bad
+    for name, tab in (("tdoa_m", tm), ("tdoa_s", ts)):
+        # most of an array's rows off its line: the model (e.g. the emission times) is wrong, not the rows
+        for idx in _groups(tab):
+            if out[name][idx].sum() > MAX_DOUBTED_FRACTION * len(idx):
+                out[name][idx] = ~np.isfinite(tab["tdoa"].to_numpy(float)[idx])
+    return out
+
+
+def _row_events(df):
+    """(rows,) lists of the events each row depends on."""
+    if "event" in df.columns:
+        return [[int(e)] for e in df["event"].to_numpy(int)]
+    return [[int(a), int(b)] for a, b in zip(df["from_event"].to_numpy(int), df["to_event"].to_numpy(int))]
+
+
+def own_doubted_events(features, doubt, array):
+    """The events whose arrival at ``array`` itself is in doubt: a TDOA-M row carries the reference's doubts
+    too, so those come from its DOA rows (its own arrival), else from its TDOA-S rows (an event whose every
+    TDOA-S row is flagged)."""
+    d = features["doa"]
+    if "doa" in doubt and np.any(m := (d["array"].astype(str) == array).to_numpy()):
+        return set(d["event"].to_numpy(int)[m & doubt["doa"]].tolist())
+    ts = features["tdoa_s"]
+    if "tdoa_s" not in doubt:
+        return set()
+    m = (ts["array"].astype(str) == array).to_numpy()
+    rows = [(evs, f) for evs, f, k in zip(_row_events(ts), doubt["tdoa_s"], m) if k]
+    events = {e for evs, _ in rows for e in evs}
+    return {e for e in events if all(f for evs, f in rows if e in evs)}
+
+
+def mostly_doubted(features, doubt):
+    """Arrays whose own doubted events (:func:`own_doubted_events`) are more than MAX_DOUBTED_FRACTION of
+    the events they have rows for: {array: number of doubted events}."""
+    seen = {}
+    for name in doubt:
+        df = features[name]
+        for a, evs in zip(df["array"].astype(str), _row_events(df)):
+            seen.setdefault(a, set()).update(evs)
+    out = {}
+    for a, evs in seen.items():
+        n = len(own_doubted_events(features, doubt, a))
+        if n > MAX_DOUBTED_FRACTION * len(evs):
+            out[a] = n
+    return out
+
+
+def screen_rows(features):
+    """Features without the rows not trusted, and the record of what was taken out and why.
+
+    Returns (features copy, record): record = {"rows": [{"type", "array", "events", "reason"[, "line"]}],
+    "kept_doubted": {array: its doubted events, kept because they are most of its events}}.
+    """
+    absurd = absurd_rows(features)
+    names = [n for n in ("tdoa_m", "tdoa_s", "doa") if len(features[n])]
+    doubt = {n: _flags(features[n]) for n in names}
+    kept = mostly_doubted(features, doubt) if any(d.any() for d in doubt.values()) else {}
+    out, rows = dict(features), []
+    ref = str(features["meta"].get("reference_array"))
+    ref_bad = own_doubted_events(features, doubt, ref) if any(d.any() for d in doubt.values()) else set()
+    for name in names:
+        df = features[name]
+        arr = df["array"].astype(str).to_numpy()
+        bad = absurd.get(name, np.zeros(len(df), bool))
+        drop = bad | (doubt[name] & ~np.isin(arr, list(kept)))
+        for k, evs in zip(np.flatnonzero(drop), [e for e, d in zip(_row_events(df), drop) if d]):
+            via = name == "tdoa_m" and not bad[k] and evs[0] in ref_bad   # the reference's arrival, not its own
+            rows.append({"type": name, "array": str(arr[k]), "events": evs, "reason": "absurd" if bad[k] else "nlos",
+                         **({"via_reference": True} if via else {}),
+                         **({"line": int(df["csv_line"].iloc[k])} if "csv_line" in df.columns else {})})
+        if drop.any():
+            out[name] = df[~drop]
+    return out, {"rows": rows, "kept_doubted": kept}
+
+
+def distrusted(record):
+    """Summary for the report: {array: {reason: number of rows}} of the screened rows, plus the arrays whose
+    doubted rows were kept (``"nlos_kept"``)."""
+    out = {}
+    for r in record["rows"]:
+        d = out.setdefault(r["array"], {})
+        d[r["reason"]] = d.get(r["reason"], 0) + 1
+    for a, n in record["kept_doubted"].items():
+        out.setdefault(a, {})["nlos_kept"] = n
+    return out

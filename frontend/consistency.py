@@ -1,0 +1,311 @@
+"""Signal-level set-up checks of one array's recording: do its channels fit the declared mic geometry?
+
+A wiring or typing mistake in the set-up (a dead mic, two channels swapped, a mic wired with inverted
+polarity, coordinates in cm typed as m, a circle declared as a line) leaves the delays between the mics of
+one array inconsistent with the declared rigid geometry, which any plane wave must satisfy:
+``t_m − t_n = −(p_m − p_n)·w`` with ``w = u / c`` (``u`` toward the source, ``p`` the mic positions). This
+module measures those delays on the strongest chirps and names the channel or the scale that does not fit.
+
+Per array (:func:`check_array`):
+1. the chirps are detected as the frontend does (:mod:`calib.frontend.detect`, on the channel sum), or the
+   caller's detections are used; the ``N_EVENTS`` strongest are kept;
+2. each channel is matched-filtered with the chirp, gated around the direct path (the strongest peak of
+   the summed envelope), and every mic pair cross-correlated (PHAT, the chirp's band) → the pair's delay,
+   the sign of its peak (a negative peak: one of the two is inverted) and the channel energies;
+3. :func:`fit_geometry`: per event a plane wave fitted to the pair delays with the declared geometry; the
+   misfit against the array's own scale, the leave-one-out and swapped-pair fits, the scale ``|w|·c``.
+
+What the delays cannot show (docs/reliability.md, "Set-up mistakes"): any orthogonal transform of the
+geometry (a relabelling that is a symmetry of the array, a rotation, a mirror) fits exactly as well, since
+the direction ``w`` is free per event. Mirrors are observable only through the DOAs against the other
+arrays (the estimator's residuals).
+
+Every function returns plain data; the pipeline (``calib.pipeline.setupcheck``) turns it into findings.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+
+from .detect import matched_envelope, pick_peaks, refine_peak
+from .signals import ArrayAudio, band_weights, chirp_band, chirp_template
+
+N_EVENTS = 8              # strongest chirps whose inter-mic delays are measured
+MAX_BOARD_M = 0.5         # m: no single board is wider; bounds the lag search when the declared size is wrong
+MIN_BOARD_M = 0.15        # m: the lag search covers at least this (a geometry declared too small)
+UPSAMPLE = 8              # cross-correlation interpolation factor (before the parabolic refinement)
+DEAD_DB = -30.0           # a channel this far below the array's median energy in the chirps is dead
+WEAK_DB = -12.0           # ... this far below: weak (a loose connector, a covered mic)
+PLATEAU_RUN = 4           # samples: a run of equal values at least this long near the peak level is clipping
+CLIP_LEVEL = 0.9          # ... near the peak: above this fraction of the channel's largest magnitude
+CLIP_FRACTION = 0.005     # fraction of the chirp samples on such plateaus above which a channel is clipped
+INVERTED_FRACTION = 0.75  # a mic whose pair peaks are negative in more than this fraction: inverted
+MISFIT_FAIL = 0.15        # misfit RMS over the array's largest measured delay: the geometry does not fit
+MISFIT_NAMED = 0.02       # ... above this, a fix that cuts it by FIX_NAMED names the channel (clean: < 0.005)
+FIX_NAMED = 5.0
+MISFIT_FLOOR_S = 3e-6     # s: below this absolute misfit a geometry always fits (clean rooms: 0.1-1.2 µs)
+FIX_RATIO = 3.0           # a fix (a swap, leaving a mic out) must cut the misfit by this factor to be named
+SCALE_FAIL = 1.6          # |w|·c (the declared size's inverse scale) off 1 by more than this factor
+
+
+@dataclass(frozen=True)
+class PairDelays:
+    """Inter-mic delays of one array on its strongest chirps.
+
+    pairs : (P, 2) int mic indices (m, n), m < n. tau : (K, P) s, ``t_m − t_n``. sign : (K, P) ±1, the sign of
+    the cross-correlation peak. coherence : (K, P) normalised peak height in [0, 1]. energy : (K, M) matched
+    filter energy of each channel in the gated direct path. plateau : (M,) fraction of the chirp samples on
+    clipping plateaus. identical : list of (m, n) channel pairs with identical samples. times : (K,) s, the
+    chirps' detection times used. fs : Hz.
+    """
+    pairs: np.ndarray
+    tau: np.ndarray
+    sign: np.ndarray
+    coherence: np.ndarray
+    energy: np.ndarray
+    plateau: np.ndarray
+    identical: list
+    times: np.ndarray
+    fs: float
+    digest: str = ""
+
+
+@dataclass(frozen=True)
+class GeometryFit:
+    """:func:`fit_geometry`'s result. misfit : s, median over events of the RMS pair residual; ratio : misfit
+    over the largest measured pair delay; scale : the factor by which the declared geometry is too large
+    (1 = right; NaN if not measurable); loo : {mic: misfit without it}; swaps : {(m, n): misfit with the two
+    swapped}; used : mics in the fit."""
+    misfit: float
+    ratio: float
+    scale: float
+    span: float
+    loo: dict = field(default_factory=dict)
+    swaps: dict = field(default_factory=dict)
+    used: tuple = ()
+
+
+# ----------------------------------------------------------------------------------------------- detection
+def detect_chirps(x, template, fs, band, t_emit, threshold=8.0):
+    """Detection times (s, local clock) and scores of the chirps in recording ``x`` (the frontend's detector:
+    matched envelope of the channel sum, peaks above ``threshold`` × the local background)."""
+    env, dec = matched_envelope(x.channel_sum(), template, fs, band)
+    env_rate = fs / dec
+    dur = len(template) / fs
+    spacing = np.min(np.diff(t_emit)) if len(t_emit) > 1 else np.inf
+    idx, score = pick_peaks(env, env_rate, min(dur, 0.5 * spacing), threshold)
+    return (refine_peak(env, idx) / env_rate if len(idx) else np.zeros(0)), np.asarray(score, float)
+
+
+def clock_scale(det_t, t_emit, tol=2e-3, lo=0.5, hi=2.0):
+    """The ratio (local clock rate / emission clock rate) that best aligns the detections with the emission
+    pattern, whatever its size (the association only searches |δ| ≤ 1e-3): the mode of the interval ratios
+    ``(d_b − d_a) / (e_b − e_a)`` over all pairs, in log bins of ``tol``. Returns (scale, support): support
+    is the fraction of the emission pairs that agree (1 = every interval matched). NaN when < 3 detections."""
+    d, e = np.sort(np.asarray(det_t, float)), np.sort(np.asarray(t_emit, float))
+    if len(d) < 3 or len(e) < 3:
+        return float("nan"), 0.0
+    dd = (d[None, :] - d[:, None])[np.triu_indices(len(d), 1)]
+    de = (e[None, :] - e[:, None])[np.triu_indices(len(e), 1)]
+    de = de[de > 0]
+    r = np.log(np.abs(dd)[:, None] / de[None, :]).ravel()
+    r = r[(r > np.log(lo)) & (r < np.log(hi))]
+    if not r.size:
+        return float("nan"), 0.0
+    bins = np.floor(r / tol).astype(np.int64)
+    vals, counts = np.unique(np.concatenate([bins, bins + 1]), return_counts=True)  # overlapping bins
+    best = vals[np.argmax(counts)]
+    sel = r[(bins == best) | (bins == best - 1)]
+    return float(np.exp(np.median(sel))), float(len(sel) / len(de))
+
+
+# ----------------------------------------------------------------------------------------------- delays
+def _lag_bound(mics, c):
+    """Largest |pair delay| searched (s): the declared size, clipped to what a board can be."""
+    d = np.max(np.linalg.norm(mics[:, None] - mics[None], axis=-1)) if len(mics) > 1 else 0.0
+    return float(np.clip(1.2 * d, MIN_BOARD_M, MAX_BOARD_M) / c)
+
+
+def _plateau_fraction(seg):
+    """(M,) fraction of each channel's samples lying on runs of ≥ PLATEAU_RUN equal values above CLIP_LEVEL ×
+    its largest magnitude: a digital rail or a limiter (a clean signal, even quantised, rarely repeats a value
+    near its peak more than twice)."""
+    out = np.zeros(seg.shape[0])
+    for m, x in enumerate(seg):
+        peak = np.max(np.abs(x))
+        if peak <= 0:
+            continue
+        same = np.r_[False, x[1:] == x[:-1]]
+        high = np.abs(x) >= CLIP_LEVEL * peak
+        flag = same & high
+        # run lengths of consecutive flagged samples (each run of k equal values gives k − 1 flags)
+        edges = np.diff(np.r_[0, flag.astype(np.int8), 0])
+        starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+        runs = stops - starts + 1
+        out[m] = np.sum(runs[runs >= PLATEAU_RUN]) / len(x)
+    return out
+
+
+def _matched(seg, template, fs, band, n_lags):
+    """(M, n_lags) real band-limited matched-filter outputs of ``seg`` (M, L) and their summed envelope."""
+    L = seg.shape[1]
+    nfft = int(2 ** np.ceil(np.log2(L + len(template))))
+    f = np.fft.rfftfreq(nfft, 1 / fs)
+    spec = np.fft.rfft(seg, nfft, axis=-1) * np.conj(np.fft.rfft(template, nfft)) * band_weights(f, band)
+    r = np.fft.irfft(spec, nfft, axis=-1)[:, :n_lags]
+    analytic = np.fft.ifft(np.concatenate([spec, np.zeros((len(seg), nfft - spec.shape[1]))], axis=-1) * 2,
+                           axis=-1)[:, :n_lags]
+    return r, np.sum(np.abs(analytic), axis=0)
+
+
+def _pair_lags(g, fs, band, max_lag):
+    """PHAT cross-correlation of every pair of gated pulses ``g`` (M, W): (P, 2) pairs, lags (P,) s, signed
+    peak heights (P,) normalised to [−1, 1]."""
+    m, w = g.shape
+    nfft = int(2 ** np.ceil(np.log2(2 * w)))
+    f = np.fft.rfftfreq(nfft, 1 / fs)
+    wts = band_weights(f, band)
+    G = np.fft.rfft(g, nfft, axis=-1)
+    pairs = np.array(list(combinations(range(m), 2)), int).reshape(-1, 2)
+    cross = G[pairs[:, 0]] * np.conj(G[pairs[:, 1]])
+    cross = wts * cross / np.maximum(np.abs(cross), 1e-30)
+    n_up = nfft * UPSAMPLE
+    cc = np.fft.irfft(cross, n_up, axis=-1) * n_up / max(2 * np.sum(wts), 1e-30)  # 1 = fully coherent
+    k = int(np.ceil(max_lag * fs * UPSAMPLE))
+    win = np.concatenate([cc[:, -k:], cc[:, : k + 1]], axis=-1)  # lags −k .. k (upsampled samples)
+    best = np.argmax(np.abs(win), axis=-1)
+    peak = win[np.arange(len(pairs)), best]
+    y = np.abs(win)
+    b = np.clip(best, 1, win.shape[1] - 2)
+    a0, a1, a2 = y[np.arange(len(pairs)), b - 1], y[np.arange(len(pairs)), b], y[np.arange(len(pairs)), b + 1]
+    den = a0 - 2 * a1 + a2
+    off = np.where(den < 0, 0.5 * (a0 - a2) / np.where(den < 0, den, -1.0), 0.0)
+    lag = (b + np.clip(off, -0.5, 0.5) - k) / (fs * UPSAMPLE)
+    return pairs, lag, np.clip(peak, -1.0, 1.0)
+
+
+def measure_delays(x, mics, template, fs, band, times, c):
+    """:class:`PairDelays` on the chirps detected at ``times`` (s) in recording ``x`` ((M, N), sliceable)."""
+    mics = np.asarray(mics, float)
+    max_lag = _lag_bound(mics, c)
+    pulse = 1.0 / (band[1] - band[0])
+    half = int(np.ceil((max_lag + 3 * pulse) * fs))
+    pre = 2 * half + int(0.02 * fs)  # the direct path may precede the strongest peak a little
+    n_lags = 2 * pre
+    taus, signs, cohs, energies, plateau, identical = [], [], [], [], [], set()
+    for t in times:
+        s0 = int(round(t * fs)) - pre
+        seg = np.asarray(x[:, s0 : s0 + n_lags + len(template)], np.float64)
+        plateau.append(_plateau_fraction(seg[:, pre : pre + len(template)]))
+        identical |= {(a, b) for a, b in combinations(range(len(seg)), 2)
+                      if np.any(seg[a]) and np.array_equal(seg[a], seg[b])}
+        r, env = _matched(seg, template, fs, band, n_lags)
+        p = int(np.argmax(env[half : n_lags - half])) + half
+        taper = np.hanning(2 * half + 1)
+        g = r[:, p - half : p + half + 1] * taper
+        pairs, lag, peak = _pair_lags(g, fs, band, max_lag)
+        taus.append(lag)
+        signs.append(np.sign(peak))
+        cohs.append(np.abs(peak))
+        energies.append(np.sum(g**2, axis=1))
+    m = len(mics)
+    pairs = np.array(list(combinations(range(m), 2)), int).reshape(-1, 2)
+    k = len(taus)
+    return PairDelays(pairs=pairs, tau=np.array(taus).reshape(k, len(pairs)),
+                      sign=np.array(signs).reshape(k, len(pairs)), coherence=np.array(cohs).reshape(k, len(pairs)),
+                      energy=np.array(energies).reshape(k, m),
+                      plateau=np.max(plateau, axis=0) if plateau else np.zeros(m), identical=sorted(identical),
+                      times=np.asarray(times, float), fs=float(fs))
+
+
+# ----------------------------------------------------------------------------------------------- fits
+def _misfit(tau, pairs, mics, use):
+    """Median over events of the RMS pair residual of the per-event plane-wave fit, over the pairs of mics
+    ``use``; and the per-event fitted ``w`` (K, 3)."""
+    sel = np.isin(pairs[:, 0], use) & np.isin(pairs[:, 1], use)
+    A = -(mics[pairs[sel, 0]] - mics[pairs[sel, 1]])  # (P', 3)
+    y = tau[:, sel].T  # (P', K)
+    w, *_ = np.linalg.lstsq(A, y, rcond=None)
+    res = y - A @ w
+    return float(np.median(np.sqrt(np.mean(res**2, axis=0)))), w.T
+
+
+def fit_geometry(delays, mics, c, exclude=()):
+    """Fit the declared geometry ``mics`` (M, 3) to the measured pair delays (:class:`PairDelays`): the plane
+    wave of each event is free, so the misfit measures the geometry only (:class:`GeometryFit`).
+
+    scale: the declared geometry is ``scale`` × too large. A 3-D array measures it from every event
+    (``1 / median(|w| c)``); a planar (or linear) one only sees the in-plane part of ``w``, so ``|w| c ≤ 1``
+    and only the largest over the events estimates it (a source near the plane, usually the case)."""
+    mics = np.asarray(mics, float)
+    use = tuple(m for m in range(len(mics)) if m not in exclude)
+    span = float(np.max(np.abs(delays.tau))) if delays.tau.size else 0.0
+    if len(use) < 3 or not delays.tau.size:
+        return GeometryFit(np.nan, np.nan, np.nan, span, used=use)
+    misfit, w = _misfit(delays.tau, delays.pairs, mics, use)
+    wc = np.linalg.norm(w, axis=1) * c
+    d = mics[list(use)] - mics[list(use)].mean(axis=0)
+    sv = np.linalg.svd(d, compute_uv=False)
+    full3d = sv[-1] > 0.1 * sv[0]
+    scale = 1.0 / float(np.median(wc) if full3d else np.max(wc)) if np.max(wc) > 0 else np.nan
+    loo = {m: _misfit(delays.tau, delays.pairs, mics, tuple(u for u in use if u != m))[0]
+           for m in use} if len(use) > 3 else {}
+    swaps = {}
+    for a, b in combinations(use, 2):
+        p = mics.copy()
+        p[[a, b]] = p[[b, a]]
+        swaps[(a, b)] = _misfit(delays.tau, delays.pairs, p, use)[0]
+    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, loo, swaps, use)
+
+
+def inverted_channels(delays, exclude=()):
+    """Mics whose pair peaks are mostly negative: ``{mic: fraction}`` for those above INVERTED_FRACTION,
+    judged against the pairs with the other (not excluded) mics over all events."""
+    out = {}
+    m = delays.energy.shape[1]
+    for k in range(m):
+        if k in exclude:
+            continue
+        sel = ((delays.pairs[:, 0] == k) | (delays.pairs[:, 1] == k)) & \
+            ~np.isin(delays.pairs[:, 0], exclude) & ~np.isin(delays.pairs[:, 1], exclude)
+        if not np.any(sel):
+            continue
+        frac = float(np.mean(delays.sign[:, sel] < 0))
+        if frac > INVERTED_FRACTION:
+            out[k] = frac
+    return out
+
+
+def channel_levels_db(delays):
+    """(M,) each channel's energy in the chirps' direct path, in dB relative to the array's median channel."""
+    e = np.median(delays.energy, axis=0)
+    ref = np.median(e)
+    with np.errstate(divide="ignore"):
+        return 10 * np.log10(np.maximum(e, 0) / ref) if ref > 0 else np.full(len(e), -np.inf)
+
+
+# ----------------------------------------------------------------------------------------------- one array
+def check_array(a, session, times=None, scores=None, threshold=8.0, n_events=N_EVENTS):
+    """Measure one array's channels (:class:`PairDelays`) and its clock against the emission times.
+
+    a : the session's array dict (name, wav, mics); session : the in-memory session (chirp, events,
+    speed_of_sound). times, scores : the chirps' detection times (s) and scores, if already known (the
+    features' diagnostics); else detected here. Returns a dict: delays (:class:`PairDelays` or None when no
+    chirp was found), n_detected, clock_scale, clock_support, fs."""
+    t_emit = session["events"]["t_emit"].to_numpy(float)
+    with ArrayAudio(a) as x:
+        fs = x.fs
+        template = chirp_template(session["chirp"], fs)
+        band = chirp_band(session["chirp"], template, fs)
+        if times is None:
+            times, scores = detect_chirps(x, template, fs, band, t_emit, threshold)
+        times, scores = np.asarray(times, float), np.asarray(scores, float)
+        scale, support = clock_scale(times, t_emit)
+        if not len(times):
+            return {"delays": None, "n_detected": 0, "clock_scale": scale, "clock_support": support, "fs": fs}
+        keep = np.sort(times[np.argsort(-scores)[:n_events]])
+        delays = measure_delays(x, a["mics"], template, fs, band, keep, session["speed_of_sound"])
+    return {"delays": delays, "n_detected": int(len(times)), "clock_scale": scale, "clock_support": support,
+            "fs": fs}

@@ -1,0 +1,174 @@
+"""Is an arrival the direct path? Evidence from the array's own range track along the odometry.
+
+A reflection-only (NLOS) arrival — the line of sight blocked by a wall, only a reflection heard — arrives
+LATE: its path is longer than the direct one by metres (5–25 ms in an office). One array's arrivals along
+the robot's trajectory follow ``a_j = τ + (1 + δ) t_j + |s_j − x|/c`` (docs/architecture.md, the array's
+own clock; ``s_j`` the odometry, in the reference frame up to the gauge, which a range to an unknown ``x``
+absorbs). The frontend knows every term but ``x``, ``τ``, ``δ``: a robust fit of those five numbers to the
+array's arrivals leaves each arrival's residual, and a reflection is a residual that is large AND positive
+(a direct path is never late by metres; an early residual is a detection error of another kind).
+
+With a moving source (events.csv ``vel_x, vel_y, vel_z``) the matched filter shifts each arrival by
+``shift(v·(s − x)/(c|s − x|))`` ≈ ``β ṙ/c`` (the range-Doppler coupling, estimator/motion.py); the fit models it, so a
+robot that keeps moving does not look like reflections.
+
+Limits: the track needs about SUBSET direct arrivals that a candidate subset catches (runs along the
+trajectory, or random draws); arrivals still early against it are counted (``early``, a warning). With
+fewer than ``MIN_EVENTS`` arrivals nothing is judged.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+MIN_EVENTS = 8          # arrivals needed to fit the 5 unknowns and still judge each one
+NLOS_MIN_S = 2.0e-3     # late by at least this (69 cm of path): a direct path is within ~0.1 ms of its track, a
+                        # misfit track (few events, a degenerate trajectory) left 1.2 ms (hall seed 0); walls: 5-25 ms
+NLOS_SIGMAS = 8.0       # ... and by this many robust residual stds of the array's own fit (:func:`_judge`)
+Q_ABS = 0.3186          # quartile of |x| for x ~ N(0, 1)
+SUBSET = 5              # arrivals per candidate track (5 unknowns)
+RANDOM_SUBSETS = 20     # random candidate subsets besides the windows (fixed seed: deterministic)
+INLIER_S = 3e-4         # s: an arrival this close to a candidate track supports it (10 cm of path)
+MIN_INLIERS = 6         # fewer: the refinement uses every arrival
+DRIFT_PRIOR = 2e-4      # clock drifts beyond this are rare (200 ppm); a weak prior row in the track fit
+ROBUST_SCALE_S = 2e-4   # the robust loss's scale in the fit (s): direct-path noise is well inside it
+
+
+def range_model(params, t, s, c, shift=None, vel=None):
+    """Arrival times (J,) of the model ``τ + (1 + δ) t + |s − x|/c [+ shift(ṙ/c)]``; params = (x (3), τ, δ);
+    ``shift``: the matched filter's arrival shift for a sweep stretched by 1 + ε (≈ β ε)."""
+    x, tau, delta = params[:3], params[3], params[4]
+    w = s - x
+    d = np.sqrt(np.sum(w * w, axis=1))
+    out = tau + (1.0 + delta) * t + d / c
+    if vel is not None and shift is not None:
+        out = out + shift(np.sum(vel * w, axis=1) / np.maximum(d, 1e-9) / c)
+    return out
+
+
+def _jacobian(params, t, s, c):
+    """d(model)/d(params) (J, 5) of :func:`range_model` without the (tiny) motion term's derivative."""
+    w = s - params[:3]
+    d = np.maximum(np.sqrt(np.sum(w * w, axis=1)), 1e-9)
+    return np.column_stack([-w / (c * d[:, None]), np.ones(len(t)), t])
+
+
+def linear_start(arrival, t, s, c):
+    """Initial (x, τ, δ = 0) of the track from the squared ranges, linear in (x, τ, c²τ² − |x|²):
+    ``|s_j|² − c² b_j² = 2 s_j·x − 2 c² b_j τ + (c² τ² − |x|²)`` with ``b_j = a_j − t_j`` (least squares,
+    minimum norm: a planar trajectory leaves x's height to the refinement)."""
+    b = arrival - t
+    b0 = float(np.median(b))
+    bb = b - b0                       # conditioning: τ relative to the median arrival
+    A = np.column_stack([2 * s, -2 * c * c * bb, np.ones(len(t))])
+    y = np.sum(s * s, axis=1) - c * c * bb * bb
+    sol = np.linalg.lstsq(A, y, rcond=None)[0]
+    return np.r_[sol[:3], b0 + sol[3], 0.0]
+
+
+def _candidates(j, rng):
+    """Index subsets to seed the track: windows of SUBSET consecutive events (line of sight is lost and
+    regained in runs along the trajectory) and RANDOM_SUBSETS random ones."""
+    win = [np.arange(k, k + SUBSET) for k in range(0, j - SUBSET + 1)]
+    rand = [np.sort(rng.choice(j, SUBSET, replace=False)) for _ in range(RANDOM_SUBSETS)]
+    return win + rand
+
+
+def _score(res):
+    """A candidate track's support: arrivals within INLIER_S of it, less twice those EARLY by more than
+    NLOS_MIN_S (a direct path is never early: a track with early arrivals follows reflections)."""
+    return int(np.sum(np.abs(res) < INLIER_S)) - 2 * int(np.sum(res < -NLOS_MIN_S))
+
+
+def _refine(q0, idx, arrival, t, s, c, shift, vel, loss="cauchy"):
+    """:func:`range_model`'s parameters fitted to the arrivals ``idx`` from ``q0`` (analytic Jacobian), with
+    a prior row δ / DRIFT_PRIOR: a far array with a fudged drift mimics a track (a plane wave whose delay
+    trend the drift absorbs; seen 370 m away with δ = −6e-4 on the L-shaped office)."""
+    v = None if vel is None else vel[idx]
+    prior = np.zeros((1, 5))
+    prior[0, 4] = 1.0 / DRIFT_PRIOR
+    return least_squares(
+        lambda q: np.r_[(arrival[idx] - range_model(q, t[idx], s[idx], c, shift, v)) / ROBUST_SCALE_S,
+                        q[4] / DRIFT_PRIOR],
+        q0, jac=lambda q: np.vstack([-_jacobian(q, t[idx], s[idx], c) / ROBUST_SCALE_S, prior]), loss=loss,
+        f_scale=1.0, x_scale=np.r_[1, 1, 1, 1e-3, 1e-5], max_nfev=60).x
+
+
+def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
+    """Fit of :func:`range_model` to one array's arrivals that follows its direct paths, not the majority.
+
+    First a robust (Cauchy) fit to all arrivals from the linear start (:func:`linear_start`) and from above
+    the trajectory's centre. When it leaves arrivals EARLY (a direct path is never early: the fit followed
+    reflections), RANSAC: tracks fitted to subsets (:func:`_candidates`, fixed seed) and then to their
+    inliers, each scored by its support (:func:`_score`); the best track is kept.
+    ``delta0``: a drift guess (0 is better than the association's scale − 1, which carries the trend of
+    the propagation delays: up to 7e-4 in the hall, which sent one array's fit to RANSAC).
+    arrival (J,) local s; t (J,) emission times − t_emit[0]; s (J, 3) odometry; vel (J, 3) or None.
+    Returns (params (5,), residuals (J,) s: measured − model).
+    """
+    j, every = len(arrival), np.arange(len(arrival))
+    model = lambda q: range_model(q, t, s, c, shift, vel)
+    centre = s.mean(axis=0) + [0.0, 0.0, 4.0]
+    starts = [linear_start(arrival - delta0 * t, t, s, c),
+              np.r_[centre, float(np.median(arrival - t - np.linalg.norm(s - centre, axis=1) / c)), 0.0]]
+    best, best_score = None, None
+    for q0 in starts:   # the second start only when the first leaves arrivals early
+        if best is not None and not np.any(arrival - model(best) < -NLOS_MIN_S):
+            break
+        if np.all(np.isfinite(q0)):
+            q0[4] = delta0
+            q = _refine(q0, every, arrival, t, s, c, shift, vel)
+            sc = _score(arrival - model(q))
+            if best_score is None or sc > best_score:
+                best, best_score = q, sc
+    early = np.flatnonzero(arrival - model(best) < -NLOS_MIN_S)
+    if not early.size:
+        return best, arrival - model(best)
+    # the early group itself (the direct paths when the fit followed the reflections), then the subsets
+    for idx in ([early] if early.size >= SUBSET else []) + _candidates(j, np.random.default_rng(0)):
+        q0 = linear_start(arrival[idx] - delta0 * t[idx], t[idx], s[idx], c)
+        q0 = q0 if np.all(np.isfinite(q0)) else best.copy()
+        q0[4] = delta0
+        q = _refine(q0, idx, arrival, t, s, c, shift, vel, loss="linear")
+        inl = np.flatnonzero(np.abs(arrival - model(q)) < INLIER_S)
+        if len(inl) >= MIN_INLIERS:
+            q = _refine(q, inl, arrival, t, s, c, shift, vel)
+        res = arrival - model(q)
+        sc = _score(res)
+        if sc > best_score:
+            best, best_score = q, sc
+        if not np.any(res < -NLOS_MIN_S) and np.sum(np.abs(res) < INLIER_S) >= max(MIN_INLIERS, j / 3):
+            break   # a track with a third of the arrivals on it and none early: the direct paths' (enough)
+    return best, arrival - model(best)
+
+
+def _judge(res):
+    """(scale, margin) of a fit from the residuals of the arrivals it was fitted to: the std from the
+    quartile of |residual| (|N(0, σ²)| has its quartile at Q_ABS σ), which holds while a quarter of the
+    arrivals are direct paths (a median-based scale breaks when half of them are reflections)."""
+    scale = float(np.quantile(np.abs(res), 0.25)) / Q_ABS
+    return scale, max(NLOS_MIN_S, NLOS_SIGMAS * scale)
+
+
+def late_arrivals(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
+    """Per arrival, how late it is against the array's own range track and whether that makes it NLOS.
+
+    A direct path is never late by metres, and never early: the track (:func:`fit_range_track`) is the
+    one with the most support and no early arrivals, so reflections do not take it over even when they are
+    the majority (a reflection off one wall follows an image of the array just as smoothly).
+
+    Returns dict: ``late`` (J,) residual (s; NaN when not judged), ``nlos`` (J,) bool, ``scale`` (robust
+    std of the residuals, s), ``early`` (arrivals still early by the margin: the track is in doubt).
+    """
+    j = len(arrival)
+    ok = np.isfinite(arrival)
+    out = {"late": np.full(j, np.nan), "nlos": np.zeros(j, bool), "scale": np.nan, "early": 0}
+    if ok.sum() < MIN_EVENTS:
+        return out
+    _, res = fit_range_track(arrival[ok], t[ok], s[ok], c, shift, None if vel is None else vel[ok], delta0)
+    scale, margin = _judge(res)
+    out["late"][ok] = res
+    out["nlos"][ok] = res > margin
+    out["scale"] = scale
+    out["early"] = int(np.sum(res < -margin))
+    return out

@@ -1,0 +1,562 @@
+"""The set-up consistency stage: the mistakes people make in a set-up, found in the data and named.
+
+Run by ``calib check`` (in seconds) and by ``calib run`` before the estimate (docs/reliability.md, "Set-up
+mistakes"). Each finding is one line naming the file (and channel) and the fix; a ``failed`` finding means
+the calibration cannot be trusted, and ``calib run`` then ends with verdict ``failed`` (exit 3) whatever the
+estimate says, its reasons first (``calib.estimator.verdict.with_setup``).
+
+What is checked, and from what:
+
+| mistake | seen as | module |
+| --- | --- | --- |
+| dead / weak / clipped / duplicated channel | chirp energy, plateaus at the peak level, equal samples | ``frontend.consistency`` |
+| inverted polarity | negative inter-mic correlation peaks | ``frontend.consistency`` |
+| swapped channels, wrong shape, wrong coordinates | inter-mic delays vs the declared rigid geometry | ``frontend.consistency`` |
+| coordinates in cm instead of m | the plane-wave fit's scale ``|w|·c`` | ``frontend.consistency`` |
+| wrong sample rate in a header | the detections' interval ratio to the emission times | ``frontend.consistency`` |
+| the same recording for two arrays | equal samples | :func:`identical_recordings` |
+| wrong speed of sound / odometry units | ranges from the metric odometry vs the arrivals | :func:`speed_of_sound_fit` |
+| events.csv of another session | arrivals the odometry cannot explain; unmatched chirps | :func:`speed_of_sound_fit` |
+| sources on a line or in one non-horizontal plane | the odometry's spread | :func:`trajectory_findings` |
+| mirrored geometry, doa_hemisphere on the wrong side, odometry axes mirrored | DOAs that fit the odometry only with an improper rotation | :func:`mirror_findings` |
+| speed of sound against the air temperature | session.toml's optional ``temperature`` | :func:`temperature_findings` |
+
+Library use (a notebook)::
+
+    from calib.pipeline.setupcheck import setup_findings
+    for f in setup_findings(read_session("rec")): print(f.status, f.text)
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+from itertools import combinations
+
+import numpy as np
+
+from calib.frontend import consistency as C
+
+STATUS_RANK = {"note": 0, "suspect": 1, "failed": 2}
+CLOCK_FAIL = 0.005        # an array's clock this far (relative) from the emission clock: a wrong sample rate
+CLOCK_SUPPORT = 0.2       # ... found from at least this fraction of the emission intervals
+STANDARD_RATES = (8000, 11025, 16000, 22050, 24000, 32000, 44100, 48000, 88200, 96000, 176400, 192000)
+SOUND_TOL = 0.03          # relative: a declared speed of sound this far from the odometry's is wrong ...
+SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate
+ODO_SIGMA_DEFAULT = 0.02  # m: odometry noise per event when meta.json states none
+TYPICAL_RANGE_M = 2.0     # m: source distance that turns the odometry's noise into a direction's
+SOUND_AT_0C, SOUND_PER_C = 331.3, 0.606  # m/s, m/s per °C: dry air
+TEMPERATURE_TOL = 0.015   # relative: humidity and the thermometer allow this much (±5 °C ≈ ±0.9 %)
+DOA_TRUST = 2.5           # RMS normalised residual above which the DOAs do not help the speed of sound
+MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RMS) is also fitted mirrored ...
+MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
+S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
+MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit
+ODO_RESIDUAL_S = 3e-3     # s: arrivals the odometry cannot explain to better than this (RMS): another session's log
+ODO_MISFIT = 12.0         # ... or arrivals and DOAs this many sigmas off (RMS; σ_odo included; real sets: ≤ 5)
+MATCHED_FAIL = 0.5        # fewer chirps than this fraction of the events matched: events.csv does not fit
+LINE_RATIO = 0.05         # odometry spread: second principal std below this × the first: sources on a line
+PLANE_RATIO = 0.05        # third below this × the second: sources in one plane ...
+HORIZONTAL_COS = 0.9      # ... which is harmless when horizontal in the reference frame (|n_z| above this)
+IDENTICAL_SECONDS = 2.0   # s of audio compared between recordings
+PLANAR_SCALE_FAIL = 5.0   # a planar array's scale (an upper bound only) must be off by this much
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One set-up finding. status: "failed" (the result cannot be trusted), "suspect" or "note"; what: the
+    file it concerns; check: a short name; text: one line naming the file, channel and the fix; array: the
+    array's name when one array is concerned."""
+    status: str
+    what: str
+    check: str
+    text: str
+    array: str | None = None
+
+    def as_dict(self):
+        return asdict(self)
+
+
+def worst(findings):
+    """The worst status among ``findings`` ("ok" if none)."""
+    ranks = [STATUS_RANK[f.status] for f in findings]
+    return "ok" if not ranks or max(ranks) == 0 else {1: "suspect", 2: "failed"}[max(ranks)]
+
+
+def _wav(a):
+    return getattr(a["wav"], "name", str(a["wav"]))
+
+
+# ----------------------------------------------------------------------------------------------- channels
+def channel_findings(a, res, c):
+    """Findings of one array from :func:`calib.frontend.consistency.check_array`'s result ``res``."""
+    d, wav, out = res["delays"], _wav(a), []
+    if d is None or not len(d.times):
+        return out
+    lev = C.channel_levels_db(d)
+    dead = [m for m in range(len(lev)) if not lev[m] > C.DEAD_DB]
+    for m in dead:
+        out.append(Finding("failed", wav, "dead channel", f"{wav} channel {m + 1}: "
+                           + ("all zeros" if not np.any(d.energy[:, m]) else f"{lev[m]:.0f} dB below the others")
+                           + " in the chirps: a dead or unplugged mic; fix the wiring, or remove the channel and "
+                             f"row {m + 1} of the array's mics"))
+    for m in range(len(lev)):
+        if m not in dead and lev[m] < C.WEAK_DB:
+            out.append(Finding("suspect", wav, "weak channel", f"{wav} channel {m + 1}: {lev[m]:.0f} dB below the "
+                               "others in the chirps: a loose connector, a covered or damaged mic"))
+    for m in np.flatnonzero(d.plateau > C.CLIP_FRACTION):
+        out.append(Finding("failed", wav, "clipped", f"{wav} channel {m + 1}: {100 * d.plateau[m]:.1f} % of the "
+                           "chirps' samples are clipped (flat at the peak level): lower the input gain or the "
+                           "speaker volume and record again"))
+    dup = set()
+    for m, n in d.identical:
+        dup.add(n)
+        out.append(Finding("failed", wav, "duplicated channel", f"{wav} channels {m + 1} and {n + 1} hold identical "
+                           "samples: one mic recorded twice (a routing or channel-map mistake); fix the channel map"))
+    bad = set(dead) | dup
+    inv = C.inverted_channels(d, exclude=tuple(bad))
+    if inv and 2 * len(inv) >= len(lev) - len(bad):  # no majority to call the right polarity (e.g. a pair)
+        names = " and ".join(str(m + 1) for m in inv)
+        out.append(Finding("failed", wav, "polarity", f"{wav} channels {names}: opposite polarities (their "
+                           "correlation peaks are negative): one side is inverted; rewire it, or multiply it by −1"))
+        inv = {}
+    for m, frac in inv.items():
+        out.append(Finding("failed", wav, "polarity", f"{wav} channel {m + 1}: inverted polarity (its correlation "
+                           f"with the other mics is negative in {100 * frac:.0f} % of the pairs): rewire it, or "
+                           "multiply the channel by −1"))
+    out += geometry_findings(a, d, c, tuple(sorted(bad)))
+    return [replace(f, array=a["name"]) for f in out]
+
+
+def _congruent(mics, perm):
+    """True if relabelling the mics by ``perm`` preserves every inter-mic distance: a symmetry of the array,
+    indistinguishable from a rotated (or mirrored) array in any recording."""
+    dist = np.linalg.norm(mics[:, None] - mics[None], axis=-1)
+    return bool(np.allclose(dist, dist[np.ix_(perm, perm)], atol=1e-4 * max(dist.max(), 1e-12)))
+
+
+def geometry_findings(a, d, c, exclude=()):
+    """The declared geometry against the inter-mic delays: swapped channels, a channel that does not fit,
+    the wrong shape, the wrong units."""
+    mics, wav = np.asarray(a["mics"], float), _wav(a)
+    g = C.fit_geometry(d, mics, c, exclude)
+    if not np.isfinite(g.misfit):
+        return []
+    if g.misfit > C.MISFIT_FLOOR_S and g.ratio > C.MISFIT_NAMED:
+        f = _misfit_finding(a, g, mics, C.FIX_RATIO if g.ratio > C.MISFIT_FAIL else C.FIX_NAMED)
+        if f is not None:
+            return [f]
+    if not np.isfinite(g.scale):
+        return []
+    planar = np.linalg.svd(mics[list(g.used)] - mics[list(g.used)].mean(axis=0), compute_uv=False)
+    full3d = planar[-1] > 0.1 * planar[0]
+    too_big = g.scale > (C.SCALE_FAIL if full3d else PLANAR_SCALE_FAIL)
+    if too_big or g.scale < 1 / C.SCALE_FAIL:
+        p10 = 10 ** np.round(np.log10(g.scale))
+        hint = (f"in {'cm' if p10 == 100 else 'mm' if p10 == 1000 else 'other units'} instead of m? divide them "
+                f"by {p10:g}" if too_big and p10 >= 10 and abs(np.log10(g.scale / p10)) < 0.15
+                else f"measure the board: they should be {1 / g.scale:.2g} × the declared ones")
+        return [Finding("failed", wav, "geometry scale", f"{wav} (array {a['name']}): the mic coordinates are "
+                        f"{g.scale:.3g} × {'larger' if g.scale > 1 else 'smaller'} than the inter-mic delays say "
+                        f"(speed of sound {c:g} m/s): {hint}")]
+    return []
+
+
+def _misfit_finding(a, g, mics, fix_ratio):
+    """The finding of a geometry that does not fit: the swap or the channel that explains the misfit (cut by
+    ``fix_ratio``), else (a misfit above MISFIT_FAIL) the geometry as a whole; None if nothing is named."""
+    wav, us = _wav(a), 1e6
+    head = f"{wav} (array {a['name']}): the inter-mic delays do not fit the declared mic geometry " \
+           f"(misfit {us * g.misfit:.0f} µs, {100 * g.ratio:.0f} % of the largest delay)"
+    swaps = {k: v for k, v in g.swaps.items() if not _congruent(mics, _swap_perm(len(mics), *k))}
+    if swaps:
+        (m, n), v = min(swaps.items(), key=lambda kv: kv[1])
+        if v * fix_ratio < g.misfit and v / max(g.span, 1e-12) < C.MISFIT_FAIL:
+            return Finding("failed", wav, "swapped channels", f"{head}; with channels {m + 1} and {n + 1} swapped "
+                           f"they fit ({us * v:.0f} µs): swap rows {m + 1} and {n + 1} of its mics, or the cables")
+    if g.loo:
+        m, v = min(g.loo.items(), key=lambda kv: kv[1])
+        if v * fix_ratio < g.misfit and v / max(g.span, 1e-12) < C.MISFIT_FAIL:
+            return Finding("failed", wav, "channel geometry", f"{head}; without channel {m + 1} they fit "
+                           f"({us * v:.0f} µs): check row {m + 1} of its mics (a typo?) and that channel's wiring")
+    if g.ratio <= C.MISFIT_FAIL:
+        return None
+    return Finding("failed", wav, "geometry", f"{head}: the mics in session.toml are not this board's (shape, "
+                   "order or coordinates; e.g. a circle declared as a line): enter the board's geometry")
+
+
+def _swap_perm(n, a, b):
+    p = np.arange(n)
+    p[[a, b]] = p[[b, a]]
+    return p
+
+
+# ----------------------------------------------------------------------------------------------- clocks
+def clock_findings(session, results):
+    """Each array's clock against the emission times: a rate this far off is a wrong header, not a drift."""
+    scales = {a["name"]: results[a["name"]]["clock_scale"] for a in session["arrays"]
+              if a["name"] in results and results[a["name"]]["clock_support"] >= CLOCK_SUPPORT}
+    off = {k: s for k, s in scales.items() if abs(s - 1) > CLOCK_FAIL}
+    if not off:
+        return []
+    if len(off) == len(session["arrays"]) > 1 and np.ptp(list(off.values())) < CLOCK_FAIL:
+        s = float(np.median(list(off.values())))
+        return [Finding("failed", "events.csv", "emission clock", f"events.csv: every array's clock runs {s:.4g} × "
+                        "the emission times' (t_emit): are they in seconds, from this session?")]
+    out = []
+    for a in session["arrays"]:
+        if a["name"] not in off:
+            continue
+        s, fs = off[a["name"]], results[a["name"]]["fs"]
+        true = fs * s
+        near = min(STANDARD_RATES, key=lambda r: abs(r - true))
+        guess = f"{near} Hz fits" if abs(near / true - 1) < CLOCK_FAIL else f"the data say ≈ {true:.0f} Hz"
+        out.append(Finding("failed", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): its clock runs "
+                           f"{100 * (s - 1):+.1f} % against the emission times, far beyond a clock drift: the "
+                           f"header's sample rate {fs} Hz is wrong ({guess}); rewrite the header", a["name"]))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- recordings
+def identical_recordings(session, seconds=IDENTICAL_SECONDS):
+    """Pairs of arrays whose recordings hold the same samples (a copied file): findings."""
+    from calib.frontend.signals import ArrayAudio
+
+    clips = {}
+    for a in session["arrays"]:
+        with ArrayAudio(a) as x:
+            n = int(seconds * x.fs)
+            mid = max(0, x.frames // 2 - n // 2)
+            clips[a["name"]] = (x.fs, np.asarray(x[:, mid : mid + n], np.float64), _wav(a))
+    out = []
+    for (na, (fa, xa, wa)), (nb, (fb, xb, wb)) in combinations(clips.items(), 2):
+        if fa != fb or xa.shape != xb.shape or not np.any(xa):
+            continue
+        if np.max(np.abs(xa - xb)) <= 1e-4 * np.max(np.abs(xa)):
+            out.append(Finding("failed", wb, "identical recordings", f"{wa} and {wb} (arrays {na} and {nb}) hold "
+                               "the same samples: one recording copied for two arrays; give each array its own WAV", nb))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- features
+def _arrival_chain(tdoa_s, name):
+    """(events, relative arrivals, segment id) of one array from its TDOA-S rows chained end to end."""
+    rows = tdoa_s[tdoa_s["array"] == name].sort_values("from_event")
+    ev, t, seg = [], [], []
+    k = -1
+    for f, to, dt in zip(rows["from_event"].to_numpy(int), rows["to_event"].to_numpy(int), rows["tdoa"].to_numpy(float)):
+        if not ev or ev[-1] != f:
+            k += 1
+            ev.append(f), t.append(0.0), seg.append(k)
+        ev.append(to), t.append(t[-1] + dt), seg.append(k)
+    return np.array(ev, int), np.array(t), np.array(seg, int)
+
+
+def _kabsch(u, d, w=None, proper=True):
+    """Rotation (3, 3) taking the unit vectors ``u`` (K, 3) closest to ``d`` (K, 3); ``proper=False``: the best
+    improper one (a rotation times a mirror)."""
+    h = (u * (1.0 if w is None else w[:, None])).T @ d
+    U, _, Vt = np.linalg.svd(h)
+    s = np.sign(np.linalg.det(Vt.T @ U.T)) * (1 if proper else -1)
+    return Vt.T @ np.diag([1.0, 1.0, s]) @ U.T
+
+
+def _one_array_residual(odo, e, y, seg, u, sig_t, sig_d, proper=True):
+    """Residual function of one array's quick fit: θ = (x (3), τ per segment, δ, k); arrivals
+    ``y = τ_seg + δ·e + k·|odo − x|`` (s, over ``sig_t``) and, where DOAs ``u`` (K, 3, NaN = none) are
+    given, ``R u`` against the direction to the odometry's position (the rotation profiled out by
+    :func:`_kabsch`, over ``sig_d`` rad)."""
+    nseg = seg.max() + 1
+    has_u = np.all(np.isfinite(u), axis=1)
+
+    def f(theta):
+        x, tau, delta, k = theta[:3], theta[3 : 3 + nseg], theta[3 + nseg], theta[4 + nseg]
+        diff = odo - x
+        r = np.linalg.norm(diff, axis=1)
+        out = [(y - tau[seg] - delta * e - k * r) / sig_t]
+        if has_u.sum() >= 3:
+            d = diff[has_u] / r[has_u, None]
+            R = _kabsch(u[has_u], d, proper=proper)
+            out.append(((u[has_u] @ R.T) - d).ravel() / sig_d)
+        return np.concatenate(out)
+    return f
+
+
+def _arrival_starts(odo, e, y, seg, n_best=3):
+    """Starting positions for :func:`_fit_one_array`: the arrivals alone fitted from starts around the
+    trajectory (the linear parameters projected out); the ``n_best`` best, (x, τ, δ, k) each."""
+    from scipy.optimize import least_squares
+
+    nseg = seg.max() + 1
+
+    def linear(x):
+        A = np.column_stack([np.eye(nseg)[seg], e, np.linalg.norm(odo - x, axis=1)])
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        return coef, y - A @ coef
+
+    centre, span = odo.mean(axis=0), max(float(np.ptp(odo, axis=0).max()), 0.5)
+    dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
+                     [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], float)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    sols = [least_squares(lambda x: linear(x)[1], centre + r0 * dv, method="lm", max_nfev=200)
+            for r0 in (1.0 * span, 2.5 * span) for dv in dirs]
+    sols.sort(key=lambda sol: sol.cost)
+    return [np.concatenate([sol.x, linear(sol.x)[0]]) for sol in sols[:n_best]]
+
+
+def _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper=True):
+    """One array's position, clock and k = 1 / c from its arrivals (and DOAs) against the metric odometry.
+    Returns (k, std of k, RMS arrival residual s, RMS normalised residual)."""
+    from scipy.optimize import least_squares
+
+    nseg = seg.max() + 1
+    f = _one_array_residual(odo, e, y, seg, u, sig_t, sig_d, proper)
+    best = None
+    for th in _arrival_starts(odo, e, y, seg):
+        sol = least_squares(f, th, x_scale="jac", max_nfev=100)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    J, res = best.jac, best.fun
+    n_t = len(y)
+    s2 = max(float(res @ res) / max(len(res) - len(best.x), 1), S2_FLOOR)
+    cov = np.linalg.pinv(J.T @ J) * s2
+    k = float(best.x[4 + nseg])
+    return k, float(np.sqrt(max(cov[4 + nseg, 4 + nseg], 0.0))), float(np.sqrt(np.mean((res[:n_t] * sig_t) ** 2))), \
+        float(np.sqrt(np.mean(res**2)))
+
+
+def _doa_rows(features, name, e_id):
+    """(K, 3) DOAs of array ``name`` at events ``e_id`` in its frame (NaN where none, or where the array's DOAs
+    are ambiguous: a planar array without hemisphere, a linear one)."""
+    meta = features["meta"]
+    u = np.full((len(e_id), 3), np.nan)
+    if name in (meta.get("doa_mirror_normals") or {}) or name in (meta.get("doa_axes") or {}):
+        return u
+    doa = features["doa"]
+    doa = doa[doa["array"] == name]
+    if "flag" in doa:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
+        doa = doa[doa["flag"].isna() | (doa["flag"].astype(str) == "")]
+    doa = doa.drop_duplicates("event").set_index("event")
+    have = np.isin(e_id, doa.index)
+    u[have] = doa.loc[e_id[have], ["ux", "uy", "uz"]].to_numpy(float)
+    return u
+
+
+def speed_of_sound_fit(features, proper=True, arrays=None):
+    """Speed of sound from the metric odometry: per array, its arrivals (TDOA-S chained, less the emission
+    times) against the ranges from an unknown position to the odometry's source positions, its DOAs against
+    the directions to them (the angles between sources fix the metric distance, whatever c). Returns
+    {array: (c, std of c, RMS arrival residual s, RMS normalised residual)} for the arrays with enough
+    arrivals; c is inf (std inf) where the best fit has no positive 1/c (no range explains the arrivals).
+    proper=False: each array's DOAs are fitted with a mirror (an improper rotation) instead; arrays: only these."""
+    ev = features["events"].set_index("event")
+    meta = features["meta"]
+    # the odometry's noise is the largest part here: ranges and directions to its positions carry it
+    c0, sig_o = float(meta["speed_of_sound"]), float(meta.get("sigma_odo") or ODO_SIGMA_DEFAULT)
+    sig_t = float(np.hypot(float(meta.get("sigma_tdoa") or 1e-5) / np.sqrt(2), sig_o / c0))
+    sig_d = float(np.hypot(np.radians(float(meta.get("sigma_doa_deg") or 1.0)), sig_o / TYPICAL_RANGE_M))
+    out = {}
+    for name in meta["arrays"] if arrays is None else arrays:
+        e_id, t, seg = _arrival_chain(features["tdoa_s"], name)
+        keep = np.isin(e_id, ev.index)
+        if keep.sum() < MIN_SOUND_EVENTS:
+            continue
+        e_id, t, seg = e_id[keep], t[keep], np.unique(seg[keep], return_inverse=True)[1]
+        te = ev.loc[e_id, "t_emit"].to_numpy(float)
+        odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+        y = t - (te - te[0])
+        u = _doa_rows(features, name, e_id)
+        k, sk, rms, misfit = _fit_one_array(odo, te - te[0], y, seg, u, sig_t, sig_d, proper)
+        if misfit > DOA_TRUST and np.any(np.isfinite(u)):
+            # DOAs that do not fit (a wrong speed of sound also bends a planar array's elevations): c from
+            # the arrivals alone; the misfit kept for the mirror and the odometry tests
+            k, sk, rms, _ = _fit_one_array(odo, te - te[0], y, seg, np.full_like(u, np.nan), sig_t, sig_d)
+        out[name] = (1.0 / k, sk / k**2, rms, misfit) if k > 0 else (np.inf, np.inf, rms, misfit)
+    return out
+
+
+def sound_findings(features, fits=None, source="session.toml"):
+    """The declared speed of sound against the odometry's metric scale, and arrivals the odometry cannot
+    explain (events.csv of another session). source: the file that declares the speed of sound (a features
+    folder's meta.json for ``calib estimate``)."""
+    fits = speed_of_sound_fit(features) if fits is None else fits
+    c0 = float(features["meta"]["speed_of_sound"])
+    out = mirror_findings(features, fits)
+    if out:
+        return out
+    bad = {k: v for k, v in fits.items() if v[2] > ODO_RESIDUAL_S or v[3] > ODO_MISFIT or not np.isfinite(v[0])}
+    if bad and len(bad) >= max(1, len(fits) // 2 + 1):
+        worst_ = max(v[3] for v in bad.values())
+        return [Finding("failed", "events.csv", "odometry vs arrivals", f"events.csv: the odometry does not explain "
+                        f"the chirps' arrival times and directions (residuals up to {worst_:.0f}× their sigma in "
+                        f"{', '.join(sorted(bad))}): is events.csv from this session (times and odometry)?")]
+    good = {k: v for k, v in fits.items() if k not in bad and np.isfinite(v[1]) and v[1] > 0}
+    if not good:
+        return out
+    w = np.array([1 / v[1] ** 2 for v in good.values()])
+    cs = np.array([v[0] for v in good.values()])
+    c_hat = float(np.sum(w * cs) / np.sum(w))
+    sd = float(1 / np.sqrt(np.sum(w)))
+    rel = c_hat / c0 - 1
+    if abs(rel) > SOUND_TOL and abs(c_hat - c0) > SOUND_SIGMA * sd:
+        p10 = 10 ** np.round(np.log10(c_hat / c0))
+        units = (f" — or the odometry is not in metres ({p10:g} × fits)" if p10 != 1 and
+                 abs(np.log10(c_hat / c0 / p10)) < 0.1 else "")
+        out.append(Finding("failed", source, "speed of sound", f"{source}: speed_of_sound = {c0:g} m/s, "
+                           f"but the metric odometry says {c_hat:.0f} ± {sd:.0f} m/s ({100 * rel:+.0f} %): set it "
+                           f"to the air's (343 m/s at 20 °C; 331.3 + 0.606·T °C){units}"))
+    return out
+
+
+def mirror_findings(features, fits):
+    """Arrays whose DOAs fit the odometry only as a mirror image (an improper rotation): their mic geometry
+    is mirrored or their doa_hemisphere is on the wrong side; all of them: the odometry's axes are mirrored
+    (x and y swapped, or one negated). Observable only where the sources span 3-D: with a planar path the
+    array's mirror image across it fits as well (docs/reliability.md)."""
+    poor = [k for k, v in fits.items() if v[3] > MIRROR_MIN]
+    if not poor:
+        return []
+    mirrored = speed_of_sound_fit(features, proper=False, arrays=poor)
+    named = [k for k in poor if k in mirrored and mirrored[k][3] * MIRROR_RATIO < fits[k][3]]
+    if not named:
+        return []
+    if len(named) == len(fits) > 1:
+        return [Finding("failed", "events.csv", "odometry axes", "events.csv: every array's DOAs fit the odometry "
+                        "only mirrored (residuals " + ", ".join(f"{fits[k][3]:.0f}→{mirrored[k][3]:.1f}σ" for k in named)
+                        + "): the odometry's axes are mirrored against the reference array's (x and y swapped, or "
+                        "one axis negated); fix odom_x, odom_y, odom_z")]
+    return [Finding("failed", "session.toml", "mirrored geometry", f"session.toml: array {k}'s DOAs fit the "
+                    f"directions to the odometry's positions only mirrored (residuals {fits[k][3]:.0f}σ → "
+                    f"{mirrored[k][3]:.1f}σ): its mics are mirrored (y typed as −y, or its channels in reversed order) "
+                    "or its doa_hemisphere is on the wrong side; fix its mics or doa_hemisphere", k) for k in named]
+
+
+def temperature_findings(session):
+    """session.toml's speed of sound against its (optional) air temperature: c = 331.3 + 0.606·T m/s."""
+    if session.get("temperature") is None:
+        return []
+    t, c0 = float(session["temperature"]), float(session["speed_of_sound"])
+    c_t = SOUND_AT_0C + SOUND_PER_C * t
+    if abs(c0 / c_t - 1) <= TEMPERATURE_TOL:
+        return []
+    return [Finding("failed", "session.toml", "speed of sound", f"session.toml: speed_of_sound = {c0:g} m/s, but "
+                    f"its temperature {t:g} °C gives {c_t:.1f} m/s in air ({100 * (c0 / c_t - 1):+.1f} %): correct "
+                    "one of them")]
+
+
+def trajectory_findings(events):
+    """Sources on a line, or in one plane that is not horizontal in the reference frame: the arrays' mirror
+    images across it (rotations about the line) explain the TDOAs as well."""
+    odo = events[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+    if len(odo) < 3:
+        return []
+    _, s, vt = np.linalg.svd(odo - odo.mean(axis=0), full_matrices=False)
+    s = s / np.sqrt(len(odo))
+    if s[0] <= 0:
+        return [Finding("failed", "events.csv", "trajectory", "events.csv: the odometry never moves: the sources' "
+                        "positions cannot place the arrays; drive the robot around the room")]
+    if s[1] < LINE_RATIO * s[0]:
+        return [Finding("failed", "events.csv", "trajectory", f"events.csv: the sources lie on a line (spread "
+                        f"{s[0]:.2f} m along it, {s[1]:.3f} m across): each array may turn about it freely; drive "
+                        "a path that turns")]
+    n = vt[2]
+    if s[2] < PLANE_RATIO * s[1] and abs(n[2]) < HORIZONTAL_COS:
+        return [Finding("failed", "events.csv", "trajectory", f"events.csv: the sources lie in one plane that is not "
+                        f"horizontal (normal {n[0]:+.2f}, {n[1]:+.2f}, {n[2]:+.2f}): every array's mirror image across "
+                        "it fits the delays as well; drive a path that leaves it")]
+    return []
+
+
+# ----------------------------------------------------------------------------------------------- together
+def detections_from_diagnostics(diagnostics):
+    """{array: (times, scores)} of the frontend's detections (diagnostics.json)."""
+    out = {}
+    for name, a in (diagnostics or {}).get("arrays", {}).items():
+        det = a.get("detections", [])
+        out[name] = (np.array([d["time"] for d in det], float), np.array([d["score"] for d in det], float))
+    return out
+
+
+def matched_findings(session, diagnostics):
+    """Arrays whose detections mostly match no event: events.csv's emission times do not fit this recording."""
+    n = len(session["events"])
+    out = []
+    for name, a in (diagnostics or {}).get("arrays", {}).items():
+        matched = sum(d.get("event") is not None for d in a.get("detections", []))
+        if matched < MATCHED_FAIL * n and len(a.get("detections", [])) >= MATCHED_FAIL * n:
+            out.append(Finding("failed", "events.csv", "events vs chirps", f"events.csv: only {matched} of {n} events "
+                               f"match the {len(a['detections'])} chirps detected in {a.get('wav', name)}: are the "
+                               "emission times from this session?", name))
+    return out
+
+
+def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
+    """Every set-up finding of a session (list of :class:`Finding`, the failed ones first).
+
+    session : the in-memory session; diagnostics : the frontend's (its detections are reused; else the chirps
+    are detected here); features : the features (speed of sound and the odometry's checks; skipped if None).
+    """
+    dets = detections_from_diagnostics(diagnostics)
+    results, out = {}, []
+    for a in session["arrays"]:
+        times, scores = dets.get(a["name"], (None, None))
+        res = C.check_array(a, session, times, scores, threshold)
+        results[a["name"]] = res
+        out += channel_findings(a, res, session["speed_of_sound"])
+    out += clock_findings(session, results)
+    out += identical_recordings(session)
+    out += trajectory_findings(session["events"]) + temperature_findings(session)
+    if diagnostics is not None:
+        out += matched_findings(session, diagnostics)
+    if features is not None and not any(f.check in ("events vs chirps", "emission clock") for f in out):
+        out += sound_findings(features)
+    return sorted(out, key=lambda f: -STATUS_RANK[f.status])
+
+
+def feature_findings(features):
+    """The set-up findings a features folder alone can show (``calib estimate``: no recordings): the speed of
+    sound and the odometry against the arrivals and DOAs, mirrored DOAs, the trajectory. Dicts, as
+    :func:`stage_findings`."""
+    found = sound_findings(features, source="meta.json") + trajectory_findings(features["events"])
+    return [f.as_dict() for f in sorted(found, key=lambda f: -STATUS_RANK[f.status])]
+
+
+def apply_findings(calib, findings):
+    """The calibration dict with the set-up ``findings`` (dicts) in its report (``setup``) and ranked first
+    in its verdict (``calib.estimator.verdict.with_setup``); unchanged when there are none."""
+    from calib.estimator.verdict import with_setup
+
+    if not findings:
+        return calib
+    rep = calib["report"]
+    return {**calib, "report": {**rep, "verdict": with_setup(rep.get("verdict", {}), findings),
+                                "setup": list(findings)}}
+
+
+def stage_findings(session, out, threshold=8.0):
+    """:func:`setup_findings` for ``calib run`` after its features stage: the detections of OUT/diagnostics and
+    the features of OUT/features are reused. Returns the findings as dicts (JSON-able)."""
+    import json
+    from pathlib import Path
+
+    from calib.pipeline.formats.io import read_features
+
+    out = Path(out)
+    try:
+        diag = json.loads((out / "diagnostics" / "diagnostics.json").read_text())
+    except (OSError, ValueError):
+        diag = None
+    return [f.as_dict() for f in setup_findings(session, diag, read_features(out / "features"), threshold)]
+
+
+def explain_failure(session, exc, threshold=8.0):
+    """The InputError to raise when the features of a session could not be extracted (``exc``): the set-up
+    findings that explain it first (a wrong sample rate, another session's events.csv), else ``exc``."""
+    from calib.errors import InputError
+
+    try:
+        found = [f for f in setup_findings(session, threshold=threshold) if f.status == "failed"]
+    except InputError:
+        return exc
+    if not found:
+        return exc
+    more = f" (+{len(found) - 1} more set-up finding(s): calib check lists them)" if len(found) > 1 else ""
+    return InputError(f"{found[0].text}{more}; then: {exc}")
