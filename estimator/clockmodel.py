@@ -374,7 +374,12 @@ def joint_scan(result, models):
             margin = float(drop[k]) - penalty(kind, n, p.N + 1, len(cands))   # (over every candidate tested)
             if best is None or margin > best[1]:
                 new = have + [cands[k].with_value(value[k])]
-                best = (new, margin, {"chi2_drop": float(drop[k]), "scale": scale, "kind": kind, "test": "joint"})
+                # candidates the rows cannot tell apart (an array without rows at the event between two
+                # intervals: screened out, or missed) go to the rivals' solves (:func:`_decide`)
+                tied = [have + [cands[j].with_value(value[j])] for j in fam
+                        if j != k and abs(drop[j] - drop[k]) <= 1e-6 * max(abs(drop[k]), 1.0)]
+                best = (new, margin, {"chi2_drop": float(drop[k]), "scale": scale, "kind": kind, "test": "joint",
+                                      "tied": tied})
         if best is not None:
             out[i] = best
     return out
@@ -407,12 +412,16 @@ def detect(result, models):
         if got is None or got[0] is None:
             continue
         new, margin, info = got
+        tied = info.pop("tied", [])
         records.append({"array": name, "margin_chi2": margin, **info})
         if margin > 0:
             found[name] = (new, margin)
+            for k, alt in enumerate(tied[:MAX_RIVALS - 1]):
+                found[(name, k)] = (alt, margin)
     ref = str(p.names[p.ref])
     proposals = []
-    for name, (new, margin) in found.items():
+    for key, (new, margin) in found.items():
+        name = key[0] if isinstance(key, tuple) else key
         if new[-1].kind == "mshift":   # the reference's clock stepped: its step (opposite sign)
             step = Component("step", new[-1].time, -new[-1].value)
             have = [c.with_value(0.0) for c in models.get(ref, [])]
@@ -434,21 +443,29 @@ def _decide(solve, features, models, proposals, options):
     best = None
     for prop in proposals:
         trial = {**models, **prop}
-        res = solve(correct_features(features, trial), **options)
-        cost, sig = _robust_cost(res, None if best is None else best[2])
+        corrected = correct_features(features, trial)
+        res = solve(corrected, **options)
+        cost, sig = _robust_cost(res, None if best is None else best[2], corrected)
         if best is None or cost < best[0]:
             best = (cost, (trial, res), sig if best is None else best[2])
     return best[1]
 
 
-def _robust_cost(result, row_sigma=None):
+def _robust_cost(result, row_sigma=None, features=None):
     """Σ Huber(r) over every row (outliers included) at a solved result, whitened by ``row_sigma`` (default
-    the result's own: pass the first trial's, so that trials with re-estimated sigmas compare in one unit).
-    Returns (cost, the row sigmas used)."""
-    from .problem import make_layout
+    the result's own: pass the first trial's, so that trials with re-estimated sigmas compare in one unit);
+    over every row of ``features`` when given (rows the solve screened out count too: a wrong model must not
+    win by screening the rows that contradict it). Returns (cost, the row sigmas used)."""
+    from .problem import build_problem, make_layout
     from .solver import linearise
 
     p = result["problem"]
+    if features is not None:
+        q = build_problem(features, use_tdoa_s=bool(len(p.tdoa_s.val)), sigma_emit=p.sigma.get("emission", 0.0),
+                          odometry_yaw=p.odo_yaw_free)
+        if q.K == p.K and q.N == p.N:
+            q.sigma.update(p.sigma)
+            p = q
     lin = linearise(p, result["state"], make_layout(p), _kinds(p))
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if row_sigma is None else row_sigma
