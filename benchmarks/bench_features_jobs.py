@@ -8,8 +8,7 @@ the recording's duration (its longest WAV). Also checks that both give the same 
 Wall time depends on the machine's load; the CPU column on it much less.
 
 --one-shot: what `calib features` sees. Each run is a fresh process that extracts once (nothing cached,
-no memory to reuse; imports not timed) with the default threads, with the CLI's allocator settings
-(calib.alloc) and, alternating, without; median and worst of --repeat runs of each.
+no memory to reuse; imports not timed) with the default threads; median and worst of --repeat runs.
 """
 from __future__ import annotations
 
@@ -39,13 +38,10 @@ def same(a, b):
 
 TARGET_PERCENT = 2.0  # issue 9: feature extraction within 2 % of the recording's duration
 
-# one fresh extraction: prints wall and CPU seconds (argv: session, "1" = the CLI's allocator settings)
+# one fresh extraction: prints wall and CPU seconds (argv: session)
 ONE_SHOT = """
 import sys, time
 from pathlib import Path
-from calib.alloc import keep_freed_memory
-if sys.argv[2] == "1":
-    keep_freed_memory()
 from calib.pipeline.features import session_features
 w, c = time.perf_counter(), time.process_time()
 session_features(Path(sys.argv[1]), jobs=-1)
@@ -58,18 +54,18 @@ def duration(session):
 
 
 def one_shot(sessions, repeat):
-    """Table of fresh-process extractions, with and without the CLI's allocator settings."""
+    """Table of fresh-process extractions."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
     rows = []
     for s in sessions:
-        dur, runs = duration(s), {"1": [], "0": []}
+        dur, runs = duration(s), {"1": []}
         for _ in range(repeat):
             for mode in runs:
                 out = subprocess.run([sys.executable, "-c", ONE_SHOT, str(s), mode], env=env, check=True,
                                      capture_output=True, text=True).stdout.split()
                 runs[mode].append([100 * float(v) / dur for v in out])
         row = {"session": s.name, "audio_s": round(dur, 1)}
-        for mode, tag in (("1", "cli"), ("0", "plain")):
+        for mode, tag in (("1", "cli"),):
             wall, cpu = [r[0] for r in runs[mode]], [r[1] for r in runs[mode]]
             row |= {f"wall_%_{tag}_med": statistics.median(wall), f"wall_%_{tag}_max": max(wall),
                     f"cpu_%_{tag}_med": statistics.median(cpu)}

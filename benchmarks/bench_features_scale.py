@@ -16,8 +16,7 @@ to 1 s and drifts up to 1e-4, white noise 30 dB below a chirp at 1 m, 16-bit PCM
 the sweep (frontend.signals.sweep) evaluated at its exact, drifted arrival times, so no fractional-delay
 filter stands between the truth and the audio.
 
-Each case runs in a fresh child process with the `calib` command's allocator settings (calib.alloc; the
-parent's imports and data do not count): wall time and CPU
+Each case runs in a fresh child process (the parent's imports and data do not count): wall time and CPU
 time (user + system, all threads) of session_features, each also as % of the recording's duration (the
 CPU figure is what the machine's load does not inflate), and the child's peak resident memory (ru_maxrss). Also checked against the truth: events
 matched / present, spurious detections, and the RMS error of TDOA-S (µs; the drift bias β δ cancels in a
@@ -107,8 +106,6 @@ def truth_tdoa_s(n_events, seed=0):
 
 CHILD = r"""
 import json, resource, sys, time
-from calib.alloc import keep_freed_memory
-keep_freed_memory()  # as the calib command does
 t0 = time.perf_counter()
 from calib.pipeline.features import session_features
 t1 = time.perf_counter()

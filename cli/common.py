@@ -123,58 +123,52 @@ def _internal(exc):
     raise typer.Exit(EXIT_INTERNAL) from None
 
 
-# Estimator options shared by `calib estimate` and `calib run` (one declaration, one help text).
-Method = Annotated[str, typer.Option(help="estimator: hybrid (ours) or wang (baseline, no TDOA-S)")]
-NoTdoaS = Annotated[bool, typer.Option("--no-tdoa-s", help="ignore TDOA-S (Wang et al.'s measurement set)")]
-EmissionSigma = Annotated[float, typer.Option(help="prior std (s) of emission-interval errors to estimate; 0 = off")]
-Loss = Annotated[str, typer.Option(help="robust loss on TDOA residuals: cauchy, huber or linear")]
-OutlierThreshold = Annotated[float, typer.Option(help="flag and drop measurements (TDOA, DOA, odometry) whose "
-                                                       "normalised residual exceeds this many sigmas (or the "
-                                                       "Bonferroni level, if larger)")]
-Noise = Annotated[str, typer.Option(help="weights: auto (re-estimate the frontend's own noise figures from the "
-                                         "residuals), meta (meta.json's sigmas as they are) or estimate")]
-ArrayNoise = Annotated[bool, typer.Option("--array-noise", help="when noise figures are re-estimated: also one "
-                                          "figure per measurement type and array where the data allow it (an "
-                                          "array noisier than the rest is down-weighted instead of distorting "
-                                          "the others)")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="print nothing but errors")]
 Jobs = Annotated[int, typer.Option("--jobs", "-j", help="arrays whose features are extracted at a time, in threads "
                                    "(-1: one per core); the results do not depend on it")]
 
 
-# (name, declaration, default) of the estimator options, in the order --help shows them
-ESTIMATE_OPTIONS = (("method", Method, "hybrid"), ("no_tdoa_s", NoTdoaS, False), ("emission_sigma", EmissionSigma, 0.0),
-                    ("loss", Loss, "cauchy"), ("outlier_threshold", OutlierThreshold, 5.0), ("noise", Noise, "auto"),
-                    ("array_noise", ArrayNoise, False))
+def _estimate_params():
+    """The typer parameters of the estimator options (``calib.estimator.options``: flag, help, default)."""
+    from calib.options import cli_options
+
+    params = []
+    for o in cli_options():
+        name = o.flag[2:].replace("-", "_")  # the bool flag's own name (no_tdoa_s)
+        decl = typer.Option(o.flag, help=o.help) if o.kind is bool else typer.Option(help=o.help)
+        default = False if o.kind is bool else o.default  # a bool's flag is a switch: given or not
+        params.append(inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                        annotation=Annotated[o.kind, decl], default=default))
+    return params
 
 
-def estimate_options(method, no_tdoa_s, emission_sigma, loss, outlier_threshold, noise, array_noise):
+def estimate_options(values):
     """Validated keyword arguments of ``estimator.calibrate`` from the shared CLI options (InputError)."""
-    return V.estimate_options({"method": method, "use_tdoa_s": not no_tdoa_s, "emission_sigma": emission_sigma,
-                               "loss": loss, "outlier_threshold": outlier_threshold, "noise": noise,
-                               "array_noise": array_noise})
+    from calib.options import cli_options
+
+    # a bool's switch, when given, flips the library default (--no-tdoa-s: use_tdoa_s=False)
+    opts = {o.name: (o.default != v) if o.kind is bool else v for o, v in zip(cli_options(), values)}
+    return V.estimate_options(opts)
 
 
 def with_estimate_options(func):
     """Give a command the estimator options (one declaration for `calib estimate` and `calib run`).
 
-    ``func`` declares a parameter ``est_opts``; the command shows the options of ``ESTIMATE_OPTIONS`` in its
-    place and ``func`` receives them validated (:func:`estimate_options`; put it under ``user_errors``).
+    ``func`` declares a parameter ``est_opts``; the command shows the flagged options of
+    ``calib.estimator.options.OPTIONS`` in its place and ``func`` receives them validated
+    (:func:`estimate_options`; put it under ``user_errors``).
     """
     sig = inspect.signature(func, eval_str=True)  # (typer does not evaluate a __signature__'s strings)
-    names = [n for n, _, _ in ESTIMATE_OPTIONS]
+    est = _estimate_params()
+    names = [p.name for p in est]
     params = []
     for p in sig.parameters.values():
-        if p.name != "est_opts":
-            params.append(p)
-            continue
-        params += [inspect.Parameter(n, inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=a, default=d)
-                   for n, a, d in ESTIMATE_OPTIONS]
+        params += est if p.name == "est_opts" else [p]
 
     @functools.wraps(func)
     def wrapper(**kwargs):
         values = [kwargs.pop(n) for n in names]
-        return func(**kwargs, est_opts=estimate_options(*values))
+        return func(**kwargs, est_opts=estimate_options(values))
 
     wrapper.__signature__ = sig.replace(parameters=params)
     return wrapper

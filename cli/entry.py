@@ -1,18 +1,14 @@
-"""The ``calib`` console script: signal handlers and allocator settings first, then the (slow) imports, then
-the command.
+"""The ``calib`` console script: signal handlers first, then the (slow) imports, then the command.
 
 An interrupt during the imports (the first seconds) exits quietly with 130/143 instead of a traceback.
 """
 from __future__ import annotations
-
-from calib.alloc import keep_freed_memory
 
 from . import signals
 
 
 def main():
     signals.install()
-    keep_freed_memory()  # a short-lived process of large arrays: reuse freed blocks (calib.alloc)
     try:
         from calib.cli.main import app
     except KeyboardInterrupt as exc:

@@ -18,7 +18,7 @@ from .tables import print_arrays
 def estimate(
     features: Path = typer.Argument(..., help="features/ directory (docs/formats.md section 2)"),
     out: Path = typer.Option(..., "-o", "--out", help="calibration/ directory to write (replaced atomically)"),
-    est_opts: dict = None,
+    est_opts: dict | None = None,
     quiet: Quiet = False,
 ):
     """Estimate array poses, clock offsets/drifts and source positions from features.

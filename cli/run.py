@@ -64,7 +64,7 @@ def run(
     out: Optional[Path] = typer.Option(None, "-o", "--out",
                                        help="output folder (default: ./<session folder name>-calib)"),
     force: bool = typer.Option(False, "--force", help="recompute every stage even if its inputs are unchanged"),
-    est_opts: dict = None,
+    est_opts: dict | None = None,
     detect_threshold: Optional[float] = typer.Option(
         None, show_default=False,
         help="chirp detection threshold: matched-filter peak over local background [default: 8]"),

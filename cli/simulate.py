@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 
@@ -59,7 +59,7 @@ def simulate(
     _check_options(rt60=rt60, snr=snr, diffuse_snr=diffuse_snr, fs=fs, n_arrays=n_arrays, n_events=n_events,
                    interval=interval, chirp_duration=chirp_duration, interferers=interferers, sigma_odo=sigma_odo,
                    seed=seed)
-    over = {k: v for k, v in {
+    over: dict[str, Any] = {k: v for k, v in {
         "preset": preset, "seed": seed, "rt60": rt60, "snr": snr, "diffuse_snr": diffuse_snr, "fs": fs,
         "n_arrays": n_arrays, "n_events": n_events, "interval": interval, "n_interferers": interferers,
         "sigma_odo": sigma_odo, "subtype": subtype}.items() if v is not None}

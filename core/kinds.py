@@ -10,7 +10,7 @@ summary.md loop over ``KINDS``. Adding a kind: docs/architecture.md, "Adding a m
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -85,12 +85,12 @@ class KindSpec:
 
 
 _DEG = float(np.rad2deg(1.0))
-_TDOA = dict(noise_key="sigma_tdoa", noise_default=1e-4, noise_range=(0.0, 1.0), dof=1, reweight=True,
+_TDOA: dict[str, Any] = dict(noise_key="sigma_tdoa", noise_default=1e-4, noise_range=(0.0, 1.0), dof=1, reweight=True,
              stages=("ive", "joint"))
 # sigma_doa_deg: the std of the DOA error along each of the two axes perpendicular to the true direction (the
 # paper's code's weighting: each unit-vector residual component has std 2·sin(σ/2) ≈ σ); the paper's simulation
 # rotates about an isotropic random axis by N(0, σ²), i.e. σ/√3 per axis (``pipeline.simulate.featsim`` writes so)
-_DOA = dict(noise_key="sigma_doa_deg", noise_default=5.0, noise_range=(0.0, 180.0), noise_unit="deg", reweight=True)
+_DOA: dict[str, Any] = dict(noise_key="sigma_doa_deg", noise_default=5.0, noise_range=(0.0, 180.0), noise_unit="deg", reweight=True)
 
 KINDS: dict[str, KindSpec] = {k.name: k for k in (
     KindSpec("tdoa_s", Table("tdoa_s", ("array", "from_event", "to_event", "tdoa"), ("from_event", "to_event"),

@@ -3,6 +3,6 @@ package tomllib was taken from: the same API and parser; a dependency only where
 try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
+    import tomli as tomllib  # type: ignore[no-redef]
 
 __all__ = ["tomllib"]

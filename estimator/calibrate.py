@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -15,11 +16,12 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import ThreadpoolController
 
 from calib import __version__
-from calib.robust import median
+from calib.geometry import mirror
+from calib.options import validate_options
 
 from . import arraynoise, clockmodel
 from .factors import KINDS, active_kinds, natural
-from .init import ObservabilityError, doa_rotation, fold_basins, initialise, kabsch, reflect, subproblem
+from .init import ObservabilityError, doa_rotation, fold_basins, initialise, kabsch, subproblem
 from .observability import check_observability
 from .geometry import init_cone_axes
 from .odoframe import initial_yaw, rotate_odometry, yaw_is_significant
@@ -75,7 +77,7 @@ def rotations_by_kabsch(p, st):
         if np.any(n):
             # mirror-ambiguous DOAs: decide which events lie behind the mic plane afresh from the IVE's
             # positions and sources, which no longer depend on this array's DOAs
-            u = np.where(((w @ doa_rotation(p, st, i, st.x[i])) @ n < 0)[:, None], reflect(u, n), u)
+            u = np.where(((w @ doa_rotation(p, st, i, st.x[i])) @ n < 0)[:, None], mirror(u, n), u)
         st.R[i], _ = kabsch(u * d, w)
     return st
 
@@ -196,7 +198,7 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
             m = stats.kept & (stats.kind == kind)
             if m.sum() < 5:
                 continue
-            f = float(np.sqrt(median(stats.q[m]) / chi2_median(KINDS[kind].dof)))
+            f = float(np.sqrt(np.median(stats.q[m]) / chi2_median(KINDS[kind].dof)))
             b = bounds.get(kind, FREE_MAX_FACTOR)
             lo = (floors or bounds).get(kind, b)
             new = float(np.clip(p.sigma[kind] * f, stated[kind] / lo, stated[kind] * b))
@@ -526,39 +528,6 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
     return st, stages, stage_states
 
 
-def validate_options(*, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
-                     outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto", array_noise=False,
-                     outputs="all"):
-    """Raise ValueError with a clear message for any option of :func:`calibrate_features` out of range.
-
-    The one place the estimator options are checked (the CLI and ``pipeline.run`` call it before reading
-    any data): NaN, infinities and negative values are refused, never silently used.
-    """
-    choices = {"method": (method, tuple(INIT_METHODS)), "loss": (loss, ("cauchy", "huber", "linear", None)),
-               "noise": (noise, ("auto", "meta", "estimate")), "outputs": (outputs, ("all", "solution"))}
-    for name, (value, allowed) in choices.items():
-        if value not in allowed:
-            shown = [a for a in allowed if a is not None]
-            raise ValueError(f"{name} must be {', '.join(shown[:-1])} or {shown[-1]}, not {value!r}")
-
-    def number(name, v, lo, strict):
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name} must be a number, not {v!r}") from None
-        if not np.isfinite(f) or (f <= lo if strict else f < lo):
-            raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {lo:g}, not {v!r}")
-
-    number("emission_sigma", emission_sigma, 0.0, False)
-    number("robust_k", robust_k, 0.0, True)
-    number("outlier_threshold", outlier_threshold, 0.0, True)
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-        raise ValueError(f"max_iter must be an integer >= 1, not {max_iter!r}")
-    for name, v in (("use_tdoa_s", use_tdoa_s), ("array_noise", array_noise)):
-        if not isinstance(v, (bool, np.bool_)):
-            raise ValueError(f"{name} must be True or False, not {v!r}")
-
-
 def _yaw_std_deg(cov, yaw_i, p, st, lay, kinds, mask):
     """1-σ of the odometry yaw in degrees: from the dense covariance, or one sparse solve (large problems)."""
     if isinstance(cov, np.ndarray):
@@ -608,7 +577,7 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
     return verdict, ratios, odo_frame, cost, n_res
 
 
-def calibrate(features, **options):
+def calibrate(features: dict[str, Any], **options: Any) -> dict[str, Any]:
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
@@ -623,7 +592,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
               array_noise=False, outputs="all", problem=None):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
-    Parameters
+    Parameters (declared in ``calib.options.OPTIONS``, which tests/test_options.py holds these defaults to)
     ----------
     features : dict from ``pipeline.formats.io.read_features`` (or a simulator).
     method : "hybrid" (this project's estimator, Zhang et al. structure) or "wang" (the baseline; see
@@ -662,7 +631,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
                      robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise,
-                     array_noise=array_noise, outputs=outputs)
+                     array_noise=array_noise, outputs=outputs, odometry_yaw=odometry_yaw)
     if loss == "linear":
         loss = None
     times, t0 = {}, time.perf_counter()

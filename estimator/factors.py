@@ -15,9 +15,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Callable
+
 import numpy as np
 
 from calib import kinds as K
+from calib.geometry import yaw_rotate
 from calib.kinds import KINDS
 
 from .problem import doa_rows, event_rows, tdoa_m_rows, tdoa_s_rows
@@ -87,22 +90,10 @@ def put(J, rows, cols, vals):
         J[rr, cc] += vv
 
 
-def norm(v, axis=-1, keepdims=False):
-    """Euclidean norms along ``axis``: the values ``np.linalg.norm(v, axis=axis)`` gives for a real array
-    (the same operations), without its per-call checks (~3 µs, paid thousands of times per solve)."""
-    return np.sqrt(np.add.reduce(v * v, axis=axis, keepdims=keepdims))
-
-
-def _cols(pieces):
-    """``np.column_stack(pieces)`` for (m,) and (m, q) float pieces (the same array) without its per-piece
-    conversions: the factors stack their Jacobian values once per evaluation, thousands of times a solve."""
-    return np.concatenate([x[:, None] if x.ndim == 1 else x for x in pieces], axis=1)
-
-
 def _dist(st, arr, ev):
     """Distances (m,) and unit vectors (m, 3) from arrays ``arr`` to sources ``ev``."""
     w = st.s[ev] - st.x[arr]
-    d = norm(w, axis=1)
+    d = np.linalg.norm(w, axis=1)
     return d, w / d[:, None]
 
 
@@ -144,7 +135,7 @@ def tdoa_s(p, st, lay):
     r = (g * h - z) / sig
     gc = (g / (c * sig))[:, None]
     put(J, np.arange(m), np.column_stack([lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]]),
-        _cols([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
+        np.column_stack([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
     return _out("tdoa_s", r, J, p.tdoa_s.row, 1, True, sig)
 
 
@@ -157,7 +148,7 @@ def tdoa_m(p, st, lay):
         return _out("tdoa_m", np.zeros(0), J, p.tdoa_m.row, 1, True, sig)
     di, ni = _dist(st, i, j)
     w0 = st.s[j] - st.x[ref]   # (the reference array for every row: one broadcast, no gather)
-    d0 = norm(w0, axis=1)
+    d0 = np.linalg.norm(w0, axis=1)
     n0 = w0 / d0[:, None]
     te = p.t[j] + st.e[j]
     gi, g0 = 1.0 + st.drift[i], 1.0 + st.drift[ref]
@@ -168,7 +159,7 @@ def tdoa_m(p, st, lay):
     put(J, np.arange(m), np.column_stack([lay.drift[i], np.full(m, lay.drift[ref]), lay.offset[i],
                                                   np.full(m, lay.offset[ref]), lay.x[i], np.tile(lay.x[ref], (m, 1)),
                                                   lay.s[j], lay.e[j]]),
-        _cols([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
+        np.column_stack([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
                            -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig)) * n0,
                            (gi[:, None] * ni - g0 * n0) / (c * sig), (gi - g0) / sig]))
     return _out("tdoa_m", r, J, p.tdoa_m.row, 1, True, sig)
@@ -255,8 +246,7 @@ def odometry_frame(p, st, lay):
     yaw_col = int(lay.odo_yaw[0])
     do, k = np.diff(p.odom, axis=0), np.arange(3 * (K - 1))
     if psi != 0.0:
-        c, s = np.cos(psi), np.sin(psi)
-        do = np.column_stack([c * do[:, 0] - s * do[:, 1], s * do[:, 0] + c * do[:, 1], do[:, 2]])
+        do = yaw_rotate(do, psi)
     r = ((st.s[1:] - st.s[:-1] - do) / sig).ravel()   # (np.diff's subtraction, without its wrapper)
     put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
     put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
@@ -289,7 +279,7 @@ def cone(p, st, lay):
     b = np.einsum("kab,kb->ka", st.R[i], a)
     ds = (b - np.einsum("ka,ka->k", b, n)[:, None] * n) / d[:, None]
     put(J, np.arange(m), np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]),
-        _cols([dphi, ds, -ds]) / sig)
+        np.column_stack([dphi, ds, -ds]) / sig)
     return _out("cone", r, J, p.cone.row, 1, True, sig)
 
 
@@ -301,7 +291,7 @@ FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_
 ROWS = {"tdoa_s": tdoa_s_rows, "tdoa_m": tdoa_m_rows, "doa": doa_rows}
 
 
-def register(spec, factor, rows=None):
+def register(spec: K.KindSpec, factor: Callable[..., Factor], rows: Callable | None = None) -> K.KindSpec:
     """Add a measurement kind: its spec (``calib.kinds.KindSpec``) and its factor function. A kind with a
     table of its own gets its rows from ``rows(df, problem.RowIndex) -> problem.Rows``, by default
     :func:`~calib.estimator.problem.event_rows` (a table of event, array and value columns). Everything

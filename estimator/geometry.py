@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib.geometry import mirror
+
 from .init import subproblem
 from .problem import make_layout
 from .solver import levenberg_marquardt
@@ -58,7 +60,7 @@ def reseat(p, st, i):
     lay = make_layout(q, arrays=[i], sources=False, ref_drift=False, odo_yaw=False)
     kinds = list(RESEAT_KINDS)
     best, best_cost = st, None
-    for x0 in (st.x[i], st.x[i] - 2.0 * ((st.x[i] - st.s.mean(axis=0)) @ n) * n):
+    for x0 in (st.x[i], mirror(st.x[i], n, origin=st.s.mean(axis=0))):
         trial = st.copy()
         trial.x[i] = x0
         if p.rot_fixed_axis[i] >= 0:

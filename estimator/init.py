@@ -14,8 +14,8 @@ from scipy.ndimage import minimum_filter
 from scipy.spatial import cKDTree
 
 from calib.errors import InputError
+from calib.geometry import fold, mirror
 
-from .factors import norm
 from .problem import empty_state, make_layout
 from .solver import levenberg_marquardt
 
@@ -94,7 +94,7 @@ def _folded_start_points(u, oj, n, n_keep=3, zoom_levels=6):
     def misfit(s0):  # s0 (G, 3)
         v = s0[:, None, :] + oj[None]
         v = v / np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-9)
-        v = np.where((v @ n < 0)[..., None], reflect(v, n), v)
+        v = fold(v, n)
         return ((v - u[None]) ** 2).sum((1, 2))
 
     span = max(5.0, 2.0 * float(np.max(np.ptp(oj, axis=0))))
@@ -178,7 +178,7 @@ def coarse_cost(p, st, i, kappa, sigma_d, grid, n_irls=6):
     """:func:`profile_cost` of array ``i`` at every point of the shared coarse grid (:func:`coarse_grid`),
     which only ranks candidates for the zoom, so it is computed for speed, the same values up to rounding:
     in the grid's transposed layout (measurements × points, :func:`_clock_irls_t`), the Kabsch matrices by
-    matrix products and their eigenvalues in closed form (see :func:`kabsch_cost`). Returns cost (G,).
+    matrix products (see :func:`kabsch_cost`). Returns cost (G,).
     """
     G = len(grid["pts"])
     XT, YT, ns, use_off = _clock_columns_t(p, st, i, grid)
@@ -190,7 +190,7 @@ def coarse_cost(p, st, i, kappa, sigma_d, grid, n_irls=6):
     if np.any(p.fold[i]):
         v = grid["u"][:, grid["col"][ev]]
         normals = _NORMALS_COARSE if G > 500 else _NORMALS
-        kc = np.minimum(*[kabsch_cost(uu, v, True) for uu in unfold_candidates(u, p.fold[i], v, normals)])
+        kc = np.minimum(*[kabsch_cost(uu, v) for uu in unfold_candidates(u, p.fold[i], v, normals)])
     else:
         # every point's Kabsch matrix M = Σ v uᵀ and MᵀM, entry by entry as vectors over the G points:
         # R[a, b] = M[:, a, b] from three (3, n) @ (n, G) matrix products
@@ -198,7 +198,7 @@ def coarse_cost(p, st, i, kappa, sigma_d, grid, n_irls=6):
         MtM = np.empty((3, 3, G))
         for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
             MtM[a, b] = MtM[b, a] = R[0, a] * R[0, b] + R[1, a] * R[1, b] + R[2, a] * R[2, b]
-        kc = _kabsch_value(R.transpose(2, 0, 1), MtM.transpose(2, 0, 1), True, len(ev))
+        kc = _kabsch_value(R.transpose(2, 0, 1), MtM.transpose(2, 0, 1), len(ev))
     return cost + kc / (2.0 * sigma_d ** 2)
 
 
@@ -213,7 +213,7 @@ def _clock_rows(p, st, i):
     need = np.unique(np.concatenate([a, b, j]))                    # the events these rows name
     col = np.zeros(len(s), int)
     col[need] = np.arange(len(need))
-    dr = norm(s[j] - st.x[ref], axis=1)
+    dr = np.linalg.norm(s[j] - st.x[ref], axis=1)
     g0 = 1.0 + st.drift[ref]
     return {"a": a, "b": b, "j": j, "zs": zs[None], "zm": zm[None], "dt": (t[b] - t[a])[None], "tj": t[j][None],
             "yref": (g0 * (t[j] + dr / c) + beta * st.drift[ref])[None], "src": s[need][None, :, :],
@@ -226,7 +226,7 @@ def _clock_columns(p, st, i, pts, rows=None):
     whether the offset is solved (>= 2 TDOA-M rows)."""
     q = _clock_rows(p, st, i) if rows is None else rows
     c, a, b, j, col = p.c, q["a"], q["b"], q["j"], q["col"]
-    d = norm(q["src"] - pts[:, None, :], axis=2)  # (G, events named)
+    d = np.linalg.norm(q["src"] - pts[:, None, :], axis=2)  # (G, events named)
     h = q["dt"] + (d[:, col[b]] - d[:, col[a]]) / c
     dj = q["tj"] + d[:, col[j]] / c
     X = np.concatenate([h, dj + p.beta], axis=1)
@@ -294,7 +294,7 @@ def profile_cost_many(items, st, kappa, sigma_d, n_irls=6, rows=None):
     drift, off, r2 = _clock_irls_masked(XT, YT, maskT, S, kappa, use_off, n_irls)
     cost = (np.log1p(r2) * maskT).sum(0)
     if D:   # nd = 0 rows: exactly 0 added
-        cost = cost + kabsch_cost(U, V, closed_form=True, n=nd) / (2.0 * sigma_d ** 2)
+        cost = cost + kabsch_cost(U, V, n=nd) / (2.0 * sigma_d ** 2)
     return cost, drift, off
 
 
@@ -386,7 +386,7 @@ def coarse_grid(s, events=None):
     grid, step = grid_points(s)
     pts = grid.reshape(-1, 3)
     w = s[events][None] - pts[:, None, :]
-    d = norm(w, axis=2)
+    d = np.linalg.norm(w, axis=2)
     col = np.full(len(s), -1)
     col[events] = np.arange(len(events))
     u = w / d[..., None]
@@ -399,57 +399,25 @@ def coarse_grid(s, events=None):
 def _directions(src, pts):
     """Unit vectors (G, n, 3) from points (G, 3) to sources (n, 3)."""
     v = src[None] - pts[:, None, :]
-    return v / norm(v, axis=2, keepdims=True)
+    return v / np.linalg.norm(v, axis=2, keepdims=True)
 
 
-def kabsch_cost(u, v, closed_form=False, n=None):
+def kabsch_cost(u, v, n=None):
     """min_R Σ |R u_k − v_k|² for u (n, 3) or (G, n, 3) and a batch v (G, n, 3), without forming R.
 
     With M = Σ v uᵀ, the optimum is 2n − 2(σ1 + σ2 + sign(det M) σ3); the singular values are the square
-    roots of the eigenvalues of the symmetric MᵀM (LAPACK, or with ``closed_form`` :func:`sym3_eigvals`:
-    ~10× cheaper on thousands of matrices, slightly less accurate: ~1e-8 of n where two singular values
-    nearly coincide, far below the cost differences between grid points; the coarse grid and the batched
-    zoom (:func:`profile_cost_many`) use it, the one-array :func:`profile_cost` keeps LAPACK's values, the
-    reference the tests compare with). The zoom only starts the joint solve, which polishes it.
+    roots of the eigenvalues of the symmetric MᵀM. n: the pairs per row (scalar or (G,); default u's).
     """
     M = np.matmul(v.transpose(0, 2, 1), u)  # (G, 3, 3) = Σ_n v_n u_nᵀ (batched matmul beats einsum here)
     MtM = np.matmul(M.transpose(0, 2, 1), M)
-    return _kabsch_value(M, MtM, closed_form, u.shape[-2] if n is None else n)
+    return _kabsch_value(M, MtM, u.shape[-2] if n is None else n)
 
 
-def _kabsch_value(M, MtM, closed_form, n):
+def _kabsch_value(M, MtM, n):
     """:func:`kabsch_cost` from the matrices M (G, 3, 3), MᵀM and n (scalar or (G,), the pairs per row)."""
-    ev = np.sqrt(np.maximum(sym3_eigvals(MtM) if closed_form else np.linalg.eigvalsh(MtM), 0.0))  # ascending
-    sgn = np.where((_det3(M) if closed_form else np.linalg.det(M)) < 0, -1.0, 1.0)
+    ev = np.sqrt(np.maximum(np.linalg.eigvalsh(MtM), 0.0))  # ascending
+    sgn = np.where(np.linalg.det(M) < 0, -1.0, 1.0)
     return np.maximum(2.0 * n - 2.0 * (ev[:, 2] + ev[:, 1] + sgn * ev[:, 0]), 0.0)
-
-
-def _det3(M):
-    """Determinants of a batch of 3 × 3 matrices (G, 3, 3) by cofactors."""
-    return (M[:, 0, 0] * (M[:, 1, 1] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 1])
-            - M[:, 0, 1] * (M[:, 1, 0] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 0])
-            + M[:, 0, 2] * (M[:, 1, 0] * M[:, 2, 1] - M[:, 1, 1] * M[:, 2, 0]))
-
-
-def sym3_eigvals(A):
-    """Eigenvalues (G, 3), ascending, of a batch of symmetric 3 × 3 matrices (G, 3, 3), in closed form.
-
-    The trigonometric solution of the characteristic cubic (Smith 1961): with q = tr A / 3 and
-    B = (A − qI) / p, p² = tr((A − qI)²) / 6, the eigenvalues are q + 2p cos(φ + 2πk/3), φ = acos(det B / 2) / 3.
-    Error ~1e-14 of the largest eigenvalue for well separated eigenvalues, up to ~1e-8 where two nearly
-    coincide (acos near ±1): good enough to rank grid points, not to replace LAPACK where values matter.
-    """
-    a00, a11, a22 = A[:, 0, 0], A[:, 1, 1], A[:, 2, 2]
-    a01, a02, a12 = A[:, 0, 1], A[:, 0, 2], A[:, 1, 2]
-    q = (a00 + a11 + a22) / 3.0
-    b00, b11, b22 = a00 - q, a11 - q, a22 - q
-    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0)
-    ps = np.where(p > 0, p, 1.0)        # p = 0: A = qI, every eigenvalue q
-    det_b = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)) / ps ** 3
-    phi = np.arccos(np.clip(det_b / 2.0, -1.0, 1.0)) / 3.0
-    e_max = q + 2.0 * p * np.cos(phi)
-    e_min = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    return np.stack([e_min, 3.0 * q - e_max - e_min, e_max], axis=1)
 
 
 def hemisphere_normals(n=200):
@@ -465,11 +433,6 @@ _NORMALS = hemisphere_normals()
 _NORMALS_COARSE = hemisphere_normals(64)  # ~20° apart: enough to rank a coarse position grid
 
 
-def reflect(u, n):
-    """Mirror image of directions u (..., 3) across the plane with unit normal n (3,)."""
-    return u - 2.0 * (u @ n)[..., None] * n
-
-
 def unfold_candidates(u, n_a, v, normals=_NORMALS):
     """The two sign patterns that unfold mirror-ambiguous DOAs, for world directions v (G, n, 3).
 
@@ -481,7 +444,7 @@ def unfold_candidates(u, n_a, v, normals=_NORMALS):
     proj = (v.reshape(-1, 3) @ normals.T).reshape(v.shape[0], v.shape[1], -1)  # BLAS, not einsum
     h = np.argmin(((np.abs(proj) - c[None, :, None]) ** 2).sum(1), axis=1)
     behind = (np.take_along_axis(proj, h[:, None, None], axis=2)[..., 0] < 0)[..., None]
-    ur = reflect(u, n_a)
+    ur = mirror(u, n_a)
     return np.where(behind, ur, u), np.where(behind, u, ur)
 
 

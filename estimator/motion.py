@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+from calib.geometry import yaw_rotate
 from calib.tables import event_velocities
 
 from .solver import linearise
@@ -55,15 +56,10 @@ def source_velocities(events, t, odom):
     return odometry_velocities(t, odom), "odometry"
 
 
-def _yawed(v, yaw):
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
-
-
 def arrival_shifts(p, st, vel, curve=None):
     """(N, K) matched-filter arrival shift of every array and event at state ``st``: β ṙ_ij / c, or the
     frontend's measured curve (meta ``chirp_stretch_shift``: {stretch, shift_s}) at ε = ṙ_ij / c."""
-    v = _yawed(vel, float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0)
+    v = yaw_rotate(vel, float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0)
     w = st.s[None, :, :] - st.x[:, None, :]                   # (N, K, 3) array → source
     d = np.linalg.norm(w, axis=2)
     eps = np.einsum("kc,nkc->nk", v, w) / np.maximum(d, 1e-9) / p.c
@@ -76,7 +72,7 @@ def doa_moves(p, st, vel, t_doa, arr, ev, u):
     """(m, 3) change of the direction (array frame) from the source at its DOA time ``t_doa`` after the
     sweep start (``s + v t_doa``) to the source at the sweep start ``s``, at state ``st``, for DOA rows
     (arr, ev, measured u). A mirror-ambiguous array's change is mirrored where its measurement is."""
-    v = _yawed(vel, float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0)
+    v = yaw_rotate(vel, float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0)
     a = st.s[ev] - st.x[arr]
     b = a + v[ev] * t_doa
     d = a / np.linalg.norm(a, axis=1, keepdims=True) - b / np.linalg.norm(b, axis=1, keepdims=True)

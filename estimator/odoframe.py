@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib.geometry import mirror, yaw_rotate
+
 
 COARSE_STEP_DEG = 5.0   # grid over the full circle, then refined
 FINE_STEP_DEG = 0.25
@@ -38,9 +40,7 @@ def ray_misfit(p, yaws):
     u, j = p.doa.u[m], p.doa.ev[m]
     n = p.fold[p.ref]
     o = (p.odom - p.odom[0])[j]                                   # (n, 3)
-    c, sn = np.cos(np.atleast_1d(yaws))[:, None], np.sin(np.atleast_1d(yaws))[:, None]
-    oy = np.stack([c * o[:, 0] - sn * o[:, 1], sn * o[:, 0] + c * o[:, 1],
-                   np.broadcast_to(o[:, 2], c.shape[:1] + o[:, 2].shape)], axis=2)   # (Y, n, 3) = Rz(ψ) o
+    oy = yaw_rotate(o, np.atleast_1d(yaws))                       # (Y, n, 3) = Rz(ψ) o
     U = np.broadcast_to(u, oy.shape)
     for _ in range(UNFOLD_PASSES if np.any(n) else 1):
         P = np.eye(3) - U[..., :, None] * U[..., None, :]                # (Y, n, 3, 3)
@@ -51,7 +51,7 @@ def ray_misfit(p, yaws):
         v = s0[:, None, :] + oy
         v /= np.maximum(np.linalg.norm(v, axis=2, keepdims=True), 1e-12)
         if np.any(n):
-            U = np.where(((v @ n) * (U @ n) < 0)[..., None], U - 2.0 * (U @ n)[..., None] * n, U)
+            U = np.where(((v @ n) * (U @ n) < 0)[..., None], mirror(U, n), U)
     return np.sum(1.0 - np.einsum("yna,yna->yn", v, U) ** 2, axis=1)
 
 

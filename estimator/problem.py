@@ -19,6 +19,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.kinds import KINDS
+from calib.geometry import fold
 from calib.tables import LINE_COLUMN, columns
 
 
@@ -267,8 +268,7 @@ def _fold_mirror_ambiguous(p, meta, idx):
     for name, n in (meta.get("doa_mirror_normals") or {}).items():
         p.fold[idx[name]] = np.asarray(n, float) / np.linalg.norm(n)
     nf = p.fold[p.doa.arr]
-    dots = np.einsum("ka,ka->k", nf, p.doa.u)
-    p.doa.u = np.where((dots < 0)[:, None], p.doa.u - 2.0 * dots[:, None] * nf, p.doa.u)
+    p.doa.u = fold(p.doa.u, nf)
 
 
 # A row's own DOA sigma (doa.csv ``sigma_deg``) is shrunk this far toward the type's: scale² = (1 − w) +

@@ -23,7 +23,6 @@ import scipy.linalg
 import scipy.sparse
 from scipy.special import gammaincc, gammainccinv, gammaln, ndtri
 
-from calib.robust import median
 
 from .factors import KINDS
 from .problem import make_layout
@@ -187,7 +186,7 @@ def _normal_scores(kind, q, dof, kept):
         if not m.any():
             continue
         d = int(dof[m][0])
-        v = max(1.0, float(median(q[m])) / chi2_median(d))
+        v = max(1.0, float(np.median(q[m])) / chi2_median(d))
         scale[str(k)] = v
         a = kind == k                      # excluded rows are scored in the kept rows' units
         z[a] = _z_from_logp(chi2_logsf(q[a] / v, d))
@@ -376,7 +375,7 @@ def array_candidates(p, stats, ratio=ARRAY_RATIO, min_rows=ARRAY_MIN_ROWS):
         if m.sum() < 2 * min_rows:
             continue
         qn = stats.q[m] / chi2_median(KINDS[kind].dof)
-        pooled = max(float(median(qn)), 1.0)
+        pooled = max(float(np.median(qn)), 1.0)
         arr = stats.array[m]
         for i in np.unique(arr):
             if i == p.ref and kind == "tdoa_m":
@@ -384,7 +383,7 @@ def array_candidates(p, stats, ratio=ARRAY_RATIO, min_rows=ARRAY_MIN_ROWS):
             qi = qn[arr == i]
             if len(qi) < min_rows:
                 continue
-            rr = float(median(qi)) / pooled
+            rr = float(np.median(qi)) / pooled
             if rr > ratio:
                 out.setdefault(int(i), {})[kind] = rr
     return sorted(out.items(), key=lambda t: -max(t[1].values()))

@@ -238,19 +238,12 @@ class Schur:
         return x / self.d
 
 
-_POTRF, _POTRS = scipy.linalg.lapack.get_lapack_funcs(("potrf", "potrs"), (np.zeros(1),))
-
-
 def cholesky_solve(A, b):
-    """x solving A x = b for symmetric positive definite A by LAPACK's potrf/potrs, called directly (what
-    ``cho_factor``/``cho_solve`` call, without their per-call checks: ~30 us of a ~60 us solve at 75
-    parameters); None when A is not positive definite."""
-    c, info = _POTRF(A, lower=0, clean=0)
-    if info == 0:
-        x, info = _POTRS(c, b, lower=0)
-        if info == 0:
-            return x
-    return None
+    """x solving A x = b for symmetric positive definite A (Cholesky); None when A is not positive definite."""
+    try:
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(A, check_finite=False), b, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
 
 
 def _solve_damped(H, g, lam):
@@ -262,16 +255,6 @@ def _solve_damped(H, g, lam):
     if x is None:   # not positive definite (or a LAPACK argument error): least squares
         x = np.linalg.lstsq(A, g / d, rcond=None)[0]
     return -x / d
-
-
-def _same_state(a, b):
-    """Whether states ``a`` and ``b`` are equal (every field; ``np.array_equal``'s test, without its
-    per-call conversions)."""
-    for name in STATE_FIELDS:
-        x, y = getattr(a, name), getattr(b, name)
-        if x.shape != y.shape or not (x == y).all():
-            return False
-    return True
 
 
 def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_iter=200, rtol=1e-12,
@@ -306,7 +289,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                 reason = "cost"
                 break
             cand = retract(st, lay, step)
-            if _same_state(cand, st):
+            if all(np.array_equal(getattr(cand, f), getattr(st, f)) for f in STATE_FIELDS):
                 # the damped step no longer moves the state (it is below the parameters' rounding): it
                 # cannot lower the cost, and more damping only shrinks it further
                 break

@@ -5,6 +5,8 @@ Cramér–Rao lower bound for unbiased estimators under the stated Gaussian nois
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.sparse
 from scipy.spatial.transform import Rotation
@@ -201,7 +203,8 @@ def fisher(p, st, kinds=None):
     return J, lay
 
 
-def crlb(features, truth, *, use_tdoa_s=True, emission_sigma=0.0, problem=None, state=None):
+def crlb(features: dict[str, Any], truth: dict[str, Any], *, use_tdoa_s: bool = True, emission_sigma: float = 0.0,
+         problem: Any = None, state: Any = None) -> dict[str, Any]:
     """Cramér–Rao bound at ground truth.
 
     Returns dict: ``cov`` (n, n) over the free parameters (a :class:`BlockCovariance` for large problems), ``layout``, ``std`` (per-parameter 1-σ keyed

@@ -27,7 +27,7 @@ import functools
 import itertools
 
 import numpy as np
-from calib.robust import MAD_TO_SIGMA, mad_std, median
+from calib.robust import MAD_TO_SIGMA, mad_std
 
 from .init import ObservabilityError, init_sources, kabsch
 from .problem import empty_state
@@ -112,11 +112,11 @@ def robust_mean(v):
     v = np.asarray(v, float)
     if v.size < 3:
         return float(np.mean(v))
-    med = median(v)
+    med = np.median(v)
     if np.isnan(med):
         mad = mad_std(v, center=med)
     else:   # no NaN: mad_std's value without its NaN-aware median (several times slower on ~20 values)
-        mad = MAD_TO_SIGMA * median(np.abs(v - med))
+        mad = MAD_TO_SIGMA * np.median(np.abs(v - med))
     keep = np.abs(v - med) <= 3.0 * max(mad, 1e-9)
     return float(np.mean(v[keep]))
 

@@ -103,59 +103,11 @@ def local_floor(env, block):
     """
     n = len(env)
     nb = max(1, n // block)
-    med = median_last(env[: nb * block].reshape(nb, -1)) if n >= block else np.array([median_last(env)])
+    med = np.median(env[: nb * block].reshape(nb, -1), axis=-1) if n >= block else np.array([np.median(env)])
     med = np.r_[med, med[-1]] if nb * block < n and n >= block else med  # the partial last block
     neigh = np.maximum(med, np.maximum(np.r_[med[1:], med[-1]], np.r_[med[0], med[:-1]]))
-    level = np.maximum(neigh, median_last(env))  # per block: the max commutes with the repetition
-    out = np.empty(n, level.dtype)  # sample k gets level[min(k // block, last)], written block-wise
-    n_full = min(n // block, len(level))
-    out[: n_full * block].reshape(n_full, block)[...] = level[:n_full, None]
-    out[n_full * block :] = level[min(n_full, len(level) - 1)]
-    return out
-
-
-def median_last(a):
-    """``np.median(a, axis=-1)`` of a NaN-free array, bit-identical and ~2–3× faster: one selection at the
-    upper middle, the lower middle (even length) as the maximum of the part below it, where numpy's
-    median runs a second selection. A long 1-D array (a recording's envelope) selects among the few
-    values a sorted subsample brackets the middle with (:func:`_bracketed_middle`; ~4× faster again)."""
-    n = a.shape[-1]
-    h = n // 2
-    if a.ndim == 1 and n >= BRACKET_MIN:
-        middle = _bracketed_middle(a)
-        if middle is not None:
-            return middle if n % 2 else np.mean(np.stack(middle, axis=-1), axis=-1)
-    part = np.partition(a, h, axis=-1)
-    if n % 2:
-        return part[..., h]
-    return np.mean(np.stack([np.max(part[..., :h], axis=-1), part[..., h]], axis=-1), axis=-1)
-
-
-BRACKET_MIN = 1 << 15   # 1-D arrays at least this long: median via a bracket from a subsample
-BRACKET_SAMPLE = 4096   # about this many values in the subsample
-BRACKET_SD = 5.0        # bracket half-width: this many binomial standard deviations of the middle's rank
-
-
-def _bracketed_middle(a):
-    """The value at rank ``n // 2`` of a 1-D array (odd length), or the values at ranks ``n//2 − 1`` and
-    ``n//2`` (even), exactly: a sorted subsample gives values ``lo ≤ hi`` whose ranks bracket the middle
-    with a margin of ``BRACKET_SD`` standard deviations; one count of the values below ``lo`` and a
-    selection among the few in ``[lo, hi]`` give the exact order statistics. None when the bracket
-    missed (then the caller selects over everything)."""
-    n = len(a)
-    h = n // 2
-    sample = np.sort(a[:: max(1, n // BRACKET_SAMPLE)])
-    s = len(sample)
-    margin = int(BRACKET_SD * 0.5 * np.sqrt(s)) + 2
-    lo, hi = sample[max(s // 2 - margin, 0)], sample[min(s // 2 + margin, s - 1)]
-    below = int(np.count_nonzero(a < lo))
-    inside = a[(a >= lo) & (a <= hi)]
-    first = h - 1 if n % 2 == 0 else h  # the lowest rank needed
-    if not below <= first or not h < below + len(inside):
-        return None
-    ranks = [first - below, h - below] if n % 2 == 0 else [h - below]
-    vals = np.partition(inside, ranks)[ranks]
-    return vals[0] if n % 2 else (vals[0], vals[1])
+    level = np.maximum(neigh, np.median(env))
+    return level[np.minimum(np.arange(n) // block, len(level) - 1)]  # sample k: its block's level
 
 
 def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
@@ -174,64 +126,10 @@ def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
     """
     floor = local_floor(env, max(1, int(block_s * env_rate)))
     dist = max(1, int(min_separation * env_rate))
-    idx = _peaks_above(env, threshold * floor, dist)
+    from scipy.signal import find_peaks  # (on use: `calib --help` does not wait for scipy.signal)
+
+    idx = find_peaks(env, height=threshold * floor, distance=dist)[0]
     return idx, env[idx] / floor[idx]
-
-
-PEAK_MARGIN = 64  # samples of context around the above-threshold runs in which local maxima are sought
-
-
-def _peaks_above(env, height, distance):
-    """``scipy.signal.find_peaks(env, height=height, distance=distance)[0]`` (the same peaks, without
-    importing scipy.signal: ~0.4 s of every ``calib features``), found only in the stretches above
-    ``height`` (a few per chirp) instead of among the millions of local maxima of the noise: the windows
-    around those stretches are widened while the envelope stays flat at their edges, so a plateau's middle
-    and its strictly lower neighbours are the ones :func:`local_maxima` sees."""
-    above = np.flatnonzero(env >= height)
-    if not above.size:
-        return above
-    cut = np.flatnonzero(np.diff(above) > 2 * PEAK_MARGIN)
-    starts = np.maximum(above[np.r_[0, cut + 1]] - PEAK_MARGIN, 0)
-    stops = np.minimum(above[np.r_[cut, len(above) - 1]] + PEAK_MARGIN + 1, len(env))
-    found = []
-    for a, b in zip(starts, stops):
-        while a > 0 and env[a - 1] == env[a]:  # a plateau crossing the window's edge: take all of it
-            a -= 1
-        while b < len(env) and env[b] == env[b - 1]:
-            b += 1
-        p = local_maxima(env[a:b])
-        p = p[env[a:b][p] >= height[a:b][p]]
-        # a maximum at the window's edge is not one of the whole envelope's (its outer neighbour is unseen)
-        found.append(a + p[((p > 0) | (a == 0)) & ((p < b - a - 1) | (b == len(env)))])
-    peaks = np.unique(np.concatenate(found))
-    return peaks[select_by_distance(peaks, env[peaks].astype(np.float64), distance)]
-
-
-def local_maxima(x):
-    """Indices of the local maxima of ``x`` (1-D) as ``scipy.signal.find_peaks`` defines them: a sample, or
-    the middle (rounded down) of a run of equal samples, strictly above the samples on either side; the
-    first and last samples never count."""
-    change = np.flatnonzero(x[1:] != x[:-1]) + 1
-    if len(change) < 2:
-        return np.zeros(0, int)
-    first, last = change[:-1], change[1:] - 1  # the runs with a neighbour on each side: [first, last]
-    v = x[first]
-    peak = (v > x[first - 1]) & (v > x[last + 1])
-    return (first[peak] + last[peak]) // 2
-
-
-def select_by_distance(peaks, priority, distance):
-    """Mask of ``peaks`` (ascending indices) kept when of any two closer than ``distance`` samples only the
-    one of higher ``priority`` stays, taken greedily from the highest (``find_peaks``'s ``distance``
-    rule, ties broken as it breaks them)."""
-    keep = np.ones(len(peaks), bool)
-    gap = np.ceil(distance)
-    for j in np.argsort(priority)[::-1]:
-        if keep[j]:
-            lo = np.searchsorted(peaks, peaks[j] - gap, side="right")  # peaks[lo:j] are within the gap
-            hi = np.searchsorted(peaks, peaks[j] + gap, side="left")   # and so are peaks[j + 1:hi]
-            keep[lo:j] = keep[j + 1 : hi] = False
-    return keep
 
 
 def refine_peak(y, k):

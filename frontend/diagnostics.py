@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .detect import median_last
 
 
 def _pool(env, rate, width=4000):
@@ -63,7 +62,7 @@ def plot_detections(path, diag, marks=None):
     for ax, (name, a) in zip(axes[:, 0], arrays.items()):
         if "_env" in a:
             t, y = _pool(np.asarray(a["_env"]), a["_env_rate"])
-            ydb = 20 * np.log10(np.maximum(y, 1e-12) / max(median_last(np.asarray(a["_env"])), 1e-12))
+            ydb = 20 * np.log10(np.maximum(y, 1e-12) / max(np.median(a["_env"]), 1e-12))
             ax.plot(t, ydb, color="0.45", lw=0.6)
             top = max(float(ydb.max()), 20.0)
         else:

@@ -27,11 +27,12 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from calib.memo import SetupCache
+from calib.geometry import fold, mirror
 
 from .timing import phasors
 
 
-_BLAS = []  # the ThreadpoolController, made on first use (it scans the loaded libraries: ~5 ms)
+_BLAS: list = []  # the ThreadpoolController, made on first use (it scans the loaded libraries: ~5 ms)
 
 
 def single_thread_blas():
@@ -186,7 +187,7 @@ def _coarse_setup(grid, mics, freqs, c, step, hemi):
     steer = steering(coarse, mics, freqs, c)
     normal = is_planar(mics)
     if normal is not None:  # a planar array's mirror image has (nearly) the same power: search both caps
-        mirrored = coarse - 2 * (coarse @ normal)[:, None] * normal
+        mirrored = mirror(coarse, normal)
         cap = np.sort(np.c_[cap, cap[np.argmax(mirrored @ coarse.T, axis=1)]], axis=1)
     return {"coarse_steer": steer, "cap": cap}
 
@@ -277,8 +278,7 @@ def _fold(u, setup):
     """Keep directions in the hemisphere for planar arrays (their mirror image is equivalent)."""
     h = setup["hemisphere"]
     if setup["mirror"]:
-        d = u @ h
-        u = u - 2 * np.minimum(d, 0.0)[..., None] * h
+        u = fold(u, h)
     return u / np.linalg.norm(u, axis=-1, keepdims=True)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import time
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -52,7 +53,8 @@ def _check_audio(session):
         read_header(a)
 
 
-def extract_features(session, progress=None, jobs=1, **options):
+def extract_features(session: Any, progress: Callable[[int, int, str], Any] | None = None, jobs: int = 1,
+                     **options: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """Features of a recording session.
 
     Parameters

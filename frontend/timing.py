@@ -33,7 +33,6 @@ from scipy.ndimage import maximum_filter1d, uniform_filter1d
 from calib.memo import SetupCache
 from calib.robust import mad_std
 
-from .detect import median_last
 from .signals import band_weights
 
 
@@ -170,57 +169,16 @@ def lag_grid(c, setup, lo, hi, step=1.0):
     return y[..., n_q - 1 : n_q - 1 + n_t] * post
 
 
-POWERS_MIN_LAGS = 32  # cis_powers builds its tables by multiplication for at least this many lags
-
-
-def _fill_powers(z, step):
-    """``z[:, k] = z[:, 0] · step^k`` along axis 1 of ``z`` (P, n, ...) for the P steps ``step`` (P, ...), by
-    doubling: ``z[:, m:2m] = z[:, :m] · step^m``, ``step^m`` squared up as it goes (⌈log₂ n⌉ products
-    and as many squarings instead of n − 1 products: the one-step-per-call loop held the interpreter's
-    lock ~0.1 ms per table). The phase error grows with k as in the step-by-step product (~k × 1e-16 ×
-    the phase step)."""
-    n = z.shape[1]
-    m = 1
-    power = step[:, None]
-    while m < n:
-        w = min(m, n - m)
-        np.multiply(z[:, :w], power, out=z[:, m : m + w])
-        m += w
-        if m < n:
-            power = power * power
-    return z
-
-
 def cis_powers(tau, f0, df, n):
-    """``e^{j2π (f_0 + k Δf) τ}`` for k = 0 .. n − 1: (...,) lags (s) → (..., n) complex (a strided view).
-
-    Two complex exponentials per lag and the rest by multiplication (:func:`_fill_powers`, ~2 log₂ n
-    vectorised multiplies over all lags): complex exponentials cost ~30 ns each, and the phasor tables of
-    the Newton steps and of the SRP took most of their time in them. The error grows with k, ~k × 1e-16 ×
-    the phase step: ~1e-12 of a unit phasor for 80 steps of a 0.1 s lag, ~3e-17 s of timing."""
+    """``e^{j2π (f_0 + k Δf) τ}`` for k = 0 .. n − 1: (...,) lags (s) → (..., n) complex."""
     tau = np.asarray(tau, float)
-    if tau.size < POWERS_MIN_LAGS:  # few lags: the loop's per-step overhead exceeds the exponentials
-        return np.exp(2j * np.pi * tau[..., None] * (f0 + df * np.arange(n)))
-    z = np.empty((1, n) + tau.shape, complex)
-    z[0, 0] = np.exp(2j * np.pi * f0 * tau)
-    _fill_powers(z, np.exp(2j * np.pi * df * tau)[None])
-    return np.moveaxis(z[0], 0, -1)
+    return np.exp(2j * np.pi * tau[..., None] * (f0 + df * np.arange(n)))
 
 
 def cis_tables(tau, f0, df, b, n_a):
     """The inner and outer phasor tables of a uniform band folded into (A, B) blocks, ``f = f_0 + (aB + b')Δf``:
-    ``cis_powers(tau, 0, Δf, B)`` and ``cis_powers(tau, f_0, BΔf, A)`` (the same values: entry k is the same
-    product whatever the table's length), filled together: half the calls, each too small
-    to let another thread run. Returns ((..., B), (..., A))."""
-    tau = np.asarray(tau, float)
-    if tau.size < POWERS_MIN_LAGS:
-        return cis_powers(tau, 0.0, df, b), cis_powers(tau, f0, df * b, n_a)
-    n = max(b, n_a)
-    z = np.empty((2, n) + tau.shape, complex)  # each table laid out as cis_powers lays out its own
-    z[0, 0] = 1.0
-    z[1, 0] = np.exp(2j * np.pi * f0 * tau)
-    _fill_powers(z, np.stack([np.exp(2j * np.pi * df * tau), np.exp(2j * np.pi * (df * b) * tau)]))
-    return np.moveaxis(z[0, :b], 0, -1), np.moveaxis(z[1, :n_a], 0, -1)
+    ``cis_powers(tau, 0, Δf, B)`` and ``cis_powers(tau, f_0, BΔf, A)``. Returns ((..., B), (..., A))."""
+    return cis_powers(tau, 0.0, df, b), cis_powers(tau, f0, df * b, n_a)
 
 
 def phasors(freqs, tau, dtype=np.complex128):
@@ -549,7 +507,7 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
     for i in range(j):
         if own_floor:
             before = env[i, : kmax[i]]
-            floor[i] = median_last(before) if before.size >= 16 else median_last(env[i])
+            floor[i] = np.median(before) if before.size >= 16 else np.median(env[i])
         thr = max(snr_factor * floor[i], min_ratio * peak[i])
         cand = np.flatnonzero(is_max[i, : kmax[i]] & (env[i, : kmax[i]] >= thr))
         if not cand.size:
@@ -1017,18 +975,6 @@ def fuse_times(t_origin, spread_floor=2e-6):
     return t, sd / np.sqrt(np.maximum(n, 1)), keep
 
 
-def fft_resample(x, num):
-    """Real ``x`` (N,) resampled to ``num`` samples over the same span by zero-padding or truncating its
-    spectrum (band-limited, periodic): ``scipy.signal.resample(x, num)``, without importing scipy.signal
-    (~0.4 s). The unpaired bin at ``min(N, num) / 2`` (even) is split or merged as scipy does."""
-    n = len(x)
-    m = min(num, n)
-    spec = sfft.rfft(x)[: m // 2 + 1]
-    if m % 2 == 0 and num != n:
-        spec[m // 2] *= 2 if num < n else 0.5
-    return sfft.irfft(spec / (n / num), n=num, overwrite_x=True)
-
-
 def drift_bias(template, fs, band, locate_kw, pre, seg_len, whiten_hz=500.0, delta=2e-5):
     """``β``: how far (s per unit drift) a chirp recorded on a clock running ``1 + δ`` fast moves this
     estimator's arrival time: ``measured = true_start + β δ``.
@@ -1052,6 +998,8 @@ def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stret
     each ε of ``stretches`` (each realised exactly by band-limited resampling: returns the ε realised too).
     Small ε: β ε (:func:`drift_bias`); a source moving at ~1 m/s (ε ~ 3e-3) is beyond the linear range.
     Returns (shifts (n,), stretches realised (n,))."""
+    from scipy.signal import resample  # (on use: `calib --help` does not wait for scipy.signal)
+
     n = len(template)
     smallest = min(abs(d) for d in stretches if d) if any(stretches) else 1e-3
     pad = sfft.next_fast_len(max(seg_len + 2 * pre, int(np.ceil(1.0 / smallest))))
@@ -1062,7 +1010,7 @@ def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stret
         dd = k / pad  # stretch realisable exactly by resampling pad → pad + k samples
         buf = np.zeros(pad)
         buf[pre : pre + n] = template
-        y = fft_resample(buf, pad + k)[:seg_len] if k else buf[:seg_len]  # y[i] = buf(i / (1 + dd))
+        y = resample(buf, pad + k)[:seg_len] if k else buf[:seg_len]  # y[i] = buf(i / (1 + dd))
         c = segment_spectra(y[None, :], np.zeros(1, int), setup)
         res = locate(c, setup, **locate_kw)
         shifts.append(res["tau"][0, 0] - pre * (1 + dd) / fs)

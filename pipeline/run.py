@@ -30,6 +30,7 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any, Callable
 
 from calib import __version__
 from calib.kinds import tables
@@ -46,8 +47,6 @@ TRUTH_FILES = ("arrays.csv", "sources.csv")
 # files whose absence makes a stamped stage run again (a user deleted part of an output)
 REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostics.json",),
             "calibration": ("arrays.csv", "report.json", "calibration.json"), "report": ("summary.md",)}
-ESTIMATE_DEFAULTS = {"method": "hybrid", "use_tdoa_s": True, "emission_sigma": 0.0, "loss": "cauchy",
-                     "outlier_threshold": 5.0, "noise": "auto", "array_noise": False}
 
 
 # ----------------------------------------------------------------------------------------------- hashing
@@ -63,7 +62,7 @@ def file_sha256(path, chunk=1 << 20):
     return h.hexdigest()
 
 
-_DIGESTS = {}  # source fingerprint → digest: a process re-running the pipeline reads the sources once
+_DIGESTS: dict[tuple, str] = {}  # source fingerprint → digest: a process re-running the pipeline reads the sources once
 CALIB_PACKAGES = ("calib", "calib.frontend", "calib.estimator", "calib.pipeline", "calib.cli")
 
 
@@ -198,7 +197,7 @@ def estimate_stage(out, options, setup=()):
 
 
 def estimate_features(features_dir, options):
-    """Read a features folder and calibrate it (options as ``ESTIMATE_DEFAULTS``; loss "linear" = none).
+    """Read a features folder and calibrate it (options: ``estimate_defaults()``; loss "linear" = none).
     Returns (calibration, features).
 
     Data that cannot determine the calibration raises InputError naming the features folder.
@@ -229,16 +228,25 @@ def report_stage(out, truth_dir=None, progress=None):
 
 
 # ----------------------------------------------------------------------------------------------- driver
+def estimate_defaults():
+    """{name: default} of the estimator options `calib run` takes (``calib.estimator.options``, flagged ones)."""
+    from calib.options import cli_options
+
+    return {o.name: o.default for o in cli_options()}
+
+
 def _check_options(estimate_options):
-    opts = {**ESTIMATE_DEFAULTS, **(estimate_options or {})}
-    unknown = set(opts) - set(ESTIMATE_DEFAULTS)
+    defaults = estimate_defaults()
+    opts = {**defaults, **(estimate_options or {})}
+    unknown = set(opts) - set(defaults)
     if unknown:
         raise TypeError(f"unknown estimate option(s): {', '.join(sorted(unknown))}")
     return V.estimate_options(opts)
 
 
-def run(recordings, out, *, force=False, features_options=None, estimate_options=None, progress=None,
-        log=None, on_wait=None, jobs=1):
+def run(recordings: str | Path, out: str | Path, *, force: bool = False, features_options: dict | None = None,
+        estimate_options: dict | None = None, progress: Callable | None = None, log: Callable | None = None,
+        on_wait: Callable | None = None, jobs: int = 1) -> dict[str, Any]:
     """Run the pipeline on a recording session, skipping stages whose inputs and settings are unchanged.
 
     Parameters
@@ -277,8 +285,7 @@ def run(recordings, out, *, force=False, features_options=None, estimate_options
     jobs = V.jobs_option(jobs)
     # validate every input before any work, so bad input fails fast and writes nothing
     session = read_session(recordings)
-    truth_dir = Path(recordings) / "truth"
-    truth_dir = truth_dir if truth_dir.is_dir() else None
+    truth_dir: Path | None = Path(recordings) / "truth" if (Path(recordings) / "truth").is_dir() else None
     if truth_dir is not None:
         read_truth(truth_dir)
     if out.exists() and not out.is_dir():

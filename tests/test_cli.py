@@ -106,6 +106,7 @@ def test_run_bad_inputs_write_nothing(session, tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(("o", ".o"))]
 
 
+@pytest.mark.slow
 def test_run_json_quiet_and_skip(session, tmp_path):
     out = tmp_path / "out"
     r = invoke("run", session, "-o", out, "--json")

@@ -141,6 +141,7 @@ def test_moving_source_matches_the_retarded_time_closed_form(tmp_path):
         assert abs(measured - expected) < 0.1 * abs(expected - f_emit / (1 + 4e-5))
 
 
+@pytest.mark.slow
 def test_events_carry_the_velocity_at_the_sweep_start(tmp_path):
     sc = make_scenario("moving", 2, n_events=3, rt60=0.3, sigma_vel=0.0, sigma_odo=0.0)
     out = simulate(sc, tmp_path / "m")
@@ -158,6 +159,7 @@ def test_events_carry_the_velocity_at_the_sweep_start(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------- presets
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", DEPLOY + ("occluded-lab",))
 def test_deploy_presets_validate_and_vary_by_seed(preset):
     a, b = make_scenario(preset, 0), make_scenario(preset, 1)
@@ -182,6 +184,10 @@ def test_presets_hold_their_conditions():
     m = validate_scenario(make_scenario("office", 0))
     assert sorted({len(a["mics"]) for a in m["arrays"]}) == [2, 4, 6, 7]
     assert {a["fs"] for a in m["arrays"]} == {16000, 44100, 48000}
+    for seed in range(5):       # the reference is never a linear array or a pair (sources not placeable)
+        sc = make_scenario("office", seed)
+        ref = next(a for a in sc["arrays"] if a["name"] == sc["reference_array"])
+        assert np.linalg.matrix_rank(np.asarray(ref["mics"]) - np.mean(ref["mics"], axis=0), tol=1e-6) >= 2
     # the warehouse: size, reverberation, arrays, SNR, rate as the scene
     w = validate_scenario(make_scenario("warehouse", 3))
     assert w["room_dim"].tolist() == [20.0, 15.0, 6.0] and 1.1 <= w["rt60"] <= 1.3

@@ -85,6 +85,7 @@ def test_bad_meta(features_dir):
         read_features(features_dir)
 
 
+@pytest.mark.slow
 def test_cli_bad_input_exit_code_2_and_nothing_written(features_dir, tmp_path):
     edit(features_dir / "doa.csv", "event,array,ux", "event,arr,ux")
     out = tmp_path / "calibration"

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from calib.estimator import calibrate, factors
-from calib.estimator.factors import Factor, jacobian, norm, put
+from calib.estimator.factors import Factor, jacobian, put
 from calib.kinds import KindSpec, Table
 from calib.tables import LINE_COLUMN
 from calib.pipeline.formats.io import read_features, write_features
@@ -39,7 +39,7 @@ def range_factor(p, st, lay):
     rows, sig = p.rows("range"), p.sigma["range"]
     i, j, m = rows.arr, rows.ev, len(rows)
     w = st.s[j] - st.x[i]
-    d = norm(w, axis=1)
+    d = np.linalg.norm(w, axis=1)
     n = w / np.where(d > 0, d, 1.0)[:, None]
     J = jacobian(m, lay)
     put(J, np.arange(m), np.column_stack([lay.s[j], lay.x[i]]), np.column_stack([n, -n]) / sig)

@@ -43,6 +43,7 @@ def _moving(feats, truth, *, with_vel, shift=True, beta=BETA):
             "tdoa_s": ts}, sh
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_moving_source_shift_removed(seed):
     """Arrival errors against the analytic shift: slope ~1 in the raw TDOAs, ~0 after the correction; the

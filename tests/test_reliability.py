@@ -258,6 +258,7 @@ def test_table_covers_the_issue():
 
 
 # ----------------------------------------------------------------------------------------------- output policy
+@pytest.mark.slow
 def test_run_rerun_user_edit_and_user_files(base, tmp_path):
     """A second run replaces only calib's own folders; a hand edit is kept while its stage is skipped and
     stops the run (not overwritten) when the stage must run; litter of killed runs is removed."""

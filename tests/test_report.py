@@ -74,6 +74,7 @@ def test_rebuilt_model_matches_the_estimator(calibrated):
         assert np.sqrt(np.mean(v ** 2)) == pytest.approx(calib["report"]["residuals"][kind]["rms_us"], rel=1e-4)
 
 
+@pytest.mark.slow
 def test_report_folder(calibrated, tmp_path):
     feats, truth, _, from_disk, row = calibrated
     out = tmp_path / "report"
@@ -96,6 +97,7 @@ def test_report_folder(calibrated, tmp_path):
     assert "Evaluation" not in (tmp_path / "r2" / "summary.md").read_text()
 
 
+@pytest.mark.slow
 def test_failed_report_leaves_previous_one(calibrated, tmp_path, monkeypatch):
     feats, _, _, from_disk, _ = calibrated
     out = tmp_path / "report"

@@ -19,6 +19,7 @@ bench = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench)
 
 
+@pytest.mark.slow
 def test_normalised_statistics_have_their_chi2_mean_on_clean_data():
     """q = rᵀ(I − H)⁻¹r is χ²(dof): its mean over clean scenes is the dof (hat-matrix correction included)."""
     q = {"tdoa_s": [], "tdoa_m": [], "doa": [], "odometry": []}
@@ -321,6 +322,7 @@ def test_cli_exit_codes_for_failed_verdict_and_bad_options(tmp_path):
     assert r.exit_code == 2 and "--outlier-threshold" in r.stderr and not (tmp_path / "c2").exists()
 
 
+@pytest.mark.slow
 def test_report_first_line_states_the_verdict(tmp_path):
     from calib.pipeline.formats.io import read_calibration, write_calibration
     from calib.pipeline.report.summary import make_report

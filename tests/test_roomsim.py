@@ -171,6 +171,7 @@ def _bytes(d):
     return {p.relative_to(d).as_posix(): p.read_bytes() for p in sorted(Path(d).rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes_different_seed_different_scene(tmp_path):
     a = rs.simulate(rs.make_scenario("lab3", seed=5, snr=20, **SMALL), tmp_path / "a")
     b = rs.simulate(rs.make_scenario("lab3", seed=5, snr=20, **SMALL), tmp_path / "b")
@@ -557,6 +558,7 @@ def test_diffuse_noise_has_diffuse_field_coherence(tmp_path):
     assert np.median(err) < 0.04 and np.max(err) < 0.2          # estimation noise ~0.05 at 190 segments
 
 
+@pytest.mark.slow
 def test_realistic_preset_is_deterministic_and_streams_short_sessions(tmp_path):
     """Same seed → same bytes for the bands model (tail noise, speech, hum included), and the manifest
     reproduces the session; all files present, no temporary files left."""

@@ -79,6 +79,7 @@ def test_second_run_skips_everything_and_changes_nothing(base, session, tmp_path
     assert res["metrics"]["position_rmse_m"] == pytest.approx(base[1]["metrics"]["position_rmse_m"])
 
 
+@pytest.mark.slow
 def test_deleted_output_is_recomputed(base, session, tmp_path):
     out = copy_of(base, tmp_path)
     (out / "report" / "summary.md").unlink()
@@ -88,6 +89,7 @@ def test_deleted_output_is_recomputed(base, session, tmp_path):
     assert res["stages"]["estimate"]["status"] == "skipped"
 
 
+@pytest.mark.slow
 def test_edited_tdoa_reestimates_but_keeps_features(base, session, tmp_path):
     out = copy_of(base, tmp_path)
     p = out / "features" / "tdoa_m.csv"
@@ -107,6 +109,7 @@ def test_edited_tdoa_reestimates_but_keeps_features(base, session, tmp_path):
     assert ("estimate", "run", res["stages"]["estimate"]["reason"]) in logs
 
 
+@pytest.mark.slow
 def test_changed_setting_reruns_only_downstream(base, session, tmp_path):
     out = copy_of(base, tmp_path)
     before = tree_digest(out / "calibration")
@@ -119,6 +122,7 @@ def test_changed_setting_reruns_only_downstream(base, session, tmp_path):
     assert "outlier_threshold" in res["stages"]["estimate"]["reason"]
 
 
+@pytest.mark.slow
 def test_crash_while_writing_features_leaves_nothing_trusted(base, session, tmp_path, monkeypatch):
     out = copy_of(base, tmp_path)
     before = tree_digest(out / "features")
@@ -142,6 +146,7 @@ def test_crash_while_writing_features_leaves_nothing_trusted(base, session, tmp_
     assert (out / "features" / STAMP).is_file()
 
 
+@pytest.mark.slow
 def test_interrupt_in_estimate_then_resume(base, session, tmp_path, monkeypatch):
     out = copy_of(base, tmp_path)
     p = out / "features" / "tdoa_s.csv"

@@ -243,6 +243,7 @@ SIGNAL_CASES = [k for k in OBSERVABLE if CASES[k][2] == "setup" and not re.searc
     r"speed of sound [34]00|odometry|another session|t_emit|mirrored|hemisphere", k)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", SIGNAL_CASES)
 def test_stage_names_the_mistake(case, tmp_path):
     found, err = _stage(build(case, tmp_path))
@@ -324,6 +325,7 @@ def test_wrong_speed_of_sound_is_named(sample_features, c):
     assert found and found[0].status == "failed" and f"speed_of_sound = {c:g}" in found[0].text
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["odometry in cm", "odometry rows of another session", "odometry x and y swapped"])
 def test_odometry_mistakes_are_named(sample_features, case):
     ev = sample_features["events"].copy()

@@ -40,6 +40,7 @@ def named(msg):
 # Parameter agreement in units of σ. With emission corrections the dense solver itself, started from two
 # nearby points, stops 1.5e-6 σ apart (the cost is flat to its floating-point noise, ~1e-12 relative, over
 # that distance), so there the bar is the solver's own reproducibility, 1e-5 σ.
+@pytest.mark.slow
 @pytest.mark.parametrize("seed,trajectory,emission,loss,tol", [(0, 3, 0.0, None, 1e-6), (1, 2, 0.0, "cauchy", 1e-6),
                                                                 (3, 1, 0.0, None, 1e-6), (2, 1, 1e-3, None, 1e-5)])
 def test_sparse_and_dense_solvers_reach_the_same_minimum(seed, trajectory, emission, loss, tol):
@@ -135,6 +136,7 @@ def test_sparse_observability_names_an_unlocatable_source():
     assert named(msgs[0]) == named(msgs[1])
 
 
+@pytest.mark.slow
 def test_array_covariance_of_a_large_problem_is_the_dense_inverse_block():
     # calibration.json's covariance (estimator.array_covariance) on a problem past the dense limit: the
     # sparse block inverse, not a dense n x n pinv of the whole Jacobian (11 GB at 40 arrays x 1000 events)

@@ -30,7 +30,6 @@ from calib.pipeline.formats.results import REFERENCE, Calibration
 from calib.errors import InputError
 
 FORMATS = ("json", "yaml", "pyroomacoustics", "odas", "urdf", "tf")
-SUFFIX = {"json": ".json", "yaml": ".yaml", "pyroomacoustics": ".npy", "odas": "", "urdf": ".urdf", "tf": ".sh"}  # odas: a folder
 
 
 def _f(v):

@@ -27,6 +27,7 @@ import os
 import re
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -393,7 +394,7 @@ def validate_features(feats):
     return out
 
 
-def read_features(directory):
+def read_features(directory: str | Path) -> dict[str, Any]:
     """Read and validate a ``features/`` directory (docs/formats.md section 2).
 
     The measurement tables (:func:`feature_tables`: tdoa_m.csv, tdoa_s.csv, doa.csv, ...) are optional (absent = no
@@ -415,7 +416,7 @@ def read_features(directory):
     return out
 
 
-def write_features(directory, feats, command="calib"):
+def write_features(directory: str | Path, feats: dict[str, Any], command: str = "calib") -> None:
     """Write a features dict to ``directory`` atomically (validated first, so nothing bad is written)."""
     with atomic_dir(directory, command=command) as tmp:
         write_features_files(tmp, feats)
@@ -487,7 +488,7 @@ def write_calibration(directory, calib, features=None, command="calib"):
             (tmp / "calibration.json").write_text(dumps_json(calibration_document(calib, features), indent=2) + "\n")
 
 
-def read_truth(directory):
+def read_truth(directory: str | Path) -> dict[str, Any]:
     """Read a ``truth/`` directory; unknown values are NaN."""
     d = Path(directory)
     if not d.is_dir():

@@ -37,7 +37,7 @@ def mic_blocks(cal: Calibration):
     for a in cal.arrays:
         R = a.rotation.as_matrix()
         rot_lab = [f"{a.name}.r{c}" for c in "xyz"]
-        if all(lab in labels for lab in rot_lab):
+        if cal.covariance is not None and all(lab in labels for lab in rot_lab):
             S_phi = cal.covariance.loc[rot_lab, rot_lab].to_numpy(float)
         else:
             S_phi = np.zeros((3, 3))  # the reference array: its rotation is the frame, known exactly

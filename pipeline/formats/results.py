@@ -20,11 +20,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
+from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
+from calib.geometry import local_time
 
 from calib.pipeline.formats.calibration_json import FORMAT_NAME, FORMAT_VERSION
 
@@ -91,10 +93,10 @@ class Calibration:
 
     # ------------------------------------------------------------------ lookup and views
     @property
-    def names(self) -> list:
+    def names(self) -> list[str]:
         return [a.name for a in self.arrays]
 
-    def array(self, name) -> ArrayCalibration:
+    def array(self, name: str) -> ArrayCalibration:
         for a in self.arrays:
             if a.name == name:
                 return a
@@ -116,7 +118,7 @@ class Calibration:
         a = self.array(frame)
         return a.rotation.inv().apply(points_ref - a.position)
 
-    def mics(self, frame=REFERENCE, array=None) -> np.ndarray:
+    def mics(self, frame: str = REFERENCE, array: str | None = None) -> np.ndarray:
         """Mic positions (M, 3) m in ``frame`` ("reference" or an array name).
 
         array : one array's mics (WAV channel order); None = all arrays in calibration order, stacked.
@@ -128,8 +130,8 @@ class Calibration:
         ref = np.vstack([a.rotation.apply(a.mics) + a.position for a in arrays])
         return self._to_frame(ref, frame)
 
-    def transform(self, points, from_frame, to_frame=REFERENCE) -> np.ndarray:
-        """Points (n, 3) from one frame ("reference" or an array name) to another."""
+    def transform(self, points: ArrayLike, from_frame: str, to_frame: str = REFERENCE) -> np.ndarray:
+        """Points (n, 3) m from one frame ("reference" or an array name) to another."""
         p = np.atleast_2d(np.asarray(points, float))
         if from_frame != REFERENCE:
             a = self.array(from_frame)
@@ -155,7 +157,7 @@ class Calibration:
         e = self.clock.emitter
         return 0.0 if e is None else e.extra(np.asarray(t, float) - self.clock.t0)
 
-    def to_emitter_time(self, name, local_time, chirp=False):
+    def to_emitter_time(self, name: str, local_time: ArrayLike, chirp: bool = False) -> np.ndarray:
         """Emitter time (events.csv clock) of the array's local time(s) (s), through its clock model (steps:
         inside an inserted block, the step's time). chirp: the arrival was measured by matched filtering the
         calibration chirp (subtract its bias β·δ)."""
@@ -164,14 +166,14 @@ class Calibration:
         t = self._clock(name).emitter(np.asarray(local_time, float) - bias)
         return t - self._emitter_extra(t)
 
-    def to_local_time(self, name, emitter_time, chirp=False):
+    def to_local_time(self, name: str, emitter_time: ArrayLike, chirp: bool = False) -> np.ndarray:
         """The array's local time(s) of emitter time(s): the inverse of :meth:`to_emitter_time`."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
         t = np.asarray(emitter_time, float)
         return self._clock(name).local(t + self._emitter_extra(t)) + bias
 
-    def to_reference_time(self, name, local_time, chirp=False):
+    def to_reference_time(self, name: str, local_time: ArrayLike, chirp: bool = False) -> np.ndarray:
         """The reference array's local time of the instant the array ``name`` reads as ``local_time``."""
         t = self.to_emitter_time(name, local_time, chirp)
         return self.to_local_time(self.reference_array, t, chirp)

@@ -222,33 +222,28 @@ def _show(value):
 
 
 # ---------------------------------------------------------------------------------------------- command options
-ESTIMATE_CHOICES = {"method": ("hybrid", "wang"), "loss": ("cauchy", "huber", "linear"),
-                    "noise": ("auto", "meta", "estimate")}
-MAX_EMISSION_SIGMA = 10.0          # s: prior std of emission-interval errors
-OUTLIER_THRESHOLD = (1.0, 1e3)     # sigmas
 DETECT_THRESHOLD = (1.0, 1e6)      # matched-filter peak over local background
 MAX_DRIFT = (1e-9, MAX_ABS_DRIFT)  # bound on |clock drift| for association
 
 
 def estimate_options(opts):
-    """Validate estimator options (keys method, use_tdoa_s, emission_sigma, loss, outlier_threshold, noise).
+    """Validate estimator options (the flagged ones of ``calib.estimator.options.OPTIONS``).
 
     Messages name the CLI option (``--outlier-threshold``). Returns a cleaned copy.
     """
-    out = dict(opts)
-    for key, allowed in ESTIMATE_CHOICES.items():
-        if key in out:
-            choice(out[key], key, allowed)
-    if "emission_sigma" in out:
-        out["emission_sigma"] = option(out["emission_sigma"], "emission-sigma", lo=0.0, hi=MAX_EMISSION_SIGMA,
-                                       allow_none=False)
-    if "outlier_threshold" in out:
-        out["outlier_threshold"] = option(out["outlier_threshold"], "outlier-threshold", lo=OUTLIER_THRESHOLD[0],
-                                          hi=OUTLIER_THRESHOLD[1], allow_none=False)
-    from calib.estimator import validate_options
+    from calib import options as O
 
+    out = dict(opts)
+    for o in O.cli_options():
+        if o.name not in out:
+            continue
+        if o.choices:
+            choice(out[o.name], o.name, tuple(c for c in o.choices if c is not None))
+        elif o.kind is float:
+            out[o.name] = option(out[o.name], o.name.replace("_", "-"), lo=o.lo, hi=o.hi, lo_open=o.lo_open,
+                                 allow_none=False)
     try:  # the estimator's own check of its options (the library API uses it too) has the last word
-        validate_options(**out)
+        O.validate_options(**out)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     return out

@@ -1,17 +1,15 @@
 """Calibration vs ground truth: the metrics of docs/formats.md section 4 (the paper's, Zhang et al. 2025)."""
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.pipeline.formats.io import InputError
+from calib.geometry import mirror
 from calib.tables import columns
-
-try:   # scipy's compiled rotation kernels, which Rotation calls for numpy (N, 4) float64 quaternions
-    from scipy.spatial.transform import _rotation_cy as _ROT
-except ImportError:   # pragma: no cover - another scipy layout: the public class (the same values)
-    _ROT = None
 
 P_PAPER = np.ones(3) / np.sqrt(3.0)
 
@@ -89,18 +87,9 @@ def array_errors(est, truth, reference=None, undetermined=()):
 
 def rotation_errors(qe, qt):
     """Geodesic angle (rad) between estimated and true rotations (m, 4 scalar-first quaternions each) and the
-    cosine between their images of ``P_PAPER``: ``(Rt.inv() * Re).magnitude()`` and ``Σ Rt·p ⊙ Re·p`` with
-    ``Rotation``'s own compiled kernels in its order (the study scores every run and stage: ~14 scorings
-    per scene, each ~7 Rotation calls of mostly dispatch overhead)."""
-    if _ROT is None:
-        Re, Rt = Rotation.from_quat(qe, scalar_first=True), Rotation.from_quat(qt, scalar_first=True)
-        return (Rt.inv() * Re).magnitude(), np.sum(Rt.apply(P_PAPER) * Re.apply(P_PAPER), axis=1)
-    qe = _ROT.from_quat(np.ascontiguousarray(qe, dtype=float), normalize=True, copy=True, scalar_first=True)
-    qt = _ROT.from_quat(np.ascontiguousarray(qt, dtype=float), normalize=True, copy=True, scalar_first=True)
-    rel = _ROT.from_quat(_ROT.compose_quat(_ROT.inv(qt), qe), normalize=True, copy=False, scalar_first=False)
-    p = P_PAPER[None]
-    return (np.asarray(_ROT.magnitude(rel)),
-            np.sum(np.asarray(_ROT.apply(qt, p, inverse=False)) * np.asarray(_ROT.apply(qe, p, inverse=False)), axis=1))
+    cosine between their images of ``P_PAPER``: ``(Rt.inv() * Re).magnitude()`` and ``Σ Rt·p ⊙ Re·p``."""
+    Re, Rt = Rotation.from_quat(qe, scalar_first=True), Rotation.from_quat(qt, scalar_first=True)
+    return (Rt.inv() * Re).magnitude(), np.sum(Rt.apply(P_PAPER) * Re.apply(P_PAPER), axis=1)
 
 
 # report.json ``undetermined`` parameter → the error keys it leaves unscored
@@ -148,7 +137,7 @@ def truth_tables(truth):
     return out
 
 
-def evaluate(calib, truth):
+def evaluate(calib: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     """Metrics of a calibration dict against a truth dict (both as in ``pipeline.formats.io``).
 
     The frames may also be given as tables (:func:`array_table`, :func:`source_table`, :func:`truth_tables`).
@@ -223,7 +212,7 @@ def feature_errors(feats, scenario):
         rows = i3 == k
         if len(sv) == 3 and sv[1] >= 1e-6 > sv[2] and rows.any():   # planar (not linear: those are cones)
             n = vt[2]
-            um = ut[rows] - 2.0 * (ut[rows] @ n)[:, None] * n
+            um = mirror(ut[rows], n)
             alt = np.degrees(np.arccos(np.clip(np.sum(u[rows] * um, axis=1), -1.0, 1.0)))
             folded[rows] = np.minimum(ang[rows], alt)
     axes = np.zeros((len(names), 3))

@@ -286,7 +286,22 @@ def build(g, sc, rng, overrides):
         sc["obstacles"] = _obstacles(g, geo, np.asarray(sc["sources"]), sc["arrays"], rng(7))
     if "interferers" not in overrides:
         sc["interferers"] = _talkers(g, geo, room, t_emit, sc["chirp"]["duration"], rng(8))
+    if "reference_array" not in overrides:
+        sc["reference_array"] = best_view(sc, corners, room)
     return sc
+
+
+def best_view(sc, corners, room):
+    """The array with the direct path (no wall, no obstacle) to the most speaker stops: the one a user
+    would pick as the reference (the first of equals). Linear arrays and pairs (collinear mics: no full
+    direction, so the sources cannot be placed in their frame) are never the reference."""
+    geo = polyroom.make_geometry(corners, room[2], [
+        {**o, "loss_db": np.full(7, float(o["loss_db"]))} for o in sc.get("obstacles") or []])
+    src = np.asarray(sc["sources"], float)
+    seen = [np.mean([polyroom.direct_gain(geo, s, np.array([a["position"]]))[0, 3] > 0.99 for s in src])
+            if np.linalg.matrix_rank(np.asarray(a["mics"]) - np.mean(a["mics"], axis=0), tol=1e-6) >= 2 else -1.0
+            for a in sc["arrays"]]
+    return sc["arrays"][int(np.argmax(seen))]["name"]
 
 
 def _robot_curve(geo, room, rng, way):

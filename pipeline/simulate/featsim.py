@@ -7,10 +7,13 @@ measurements of ``docs/architecture.md`` and adds noise, returning the same dict
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
+
+from calib.geometry import arrival_time, fold
 
 # The paper's three trajectories (speaker stops, metres, before the +0.5 m shift) and the boxes the
 # non-reference arrays are drawn in (low corner, size).
@@ -56,7 +59,7 @@ def arrival_times(x, s, t, offset, drift, c, beta=0.0):
     offset, drift : (N,); beta : chirp drift bias (s per unit drift).
     """
     d = np.linalg.norm(s[None, :, :] - x[:, None, :], axis=2)
-    return (1.0 + drift[:, None]) * (t[None, :] + d / c) + offset[:, None] + beta * drift[:, None]
+    return arrival_time(t[None, :], d, offset[:, None], drift[:, None], c, beta)
 
 
 @dataclass(frozen=True)
@@ -80,11 +83,12 @@ class SceneSpec:
     names: tuple | None = None
     reference_drift: float | None = None
     planar: tuple | None = None
-    positions: object = None
+    positions: Any = None
 
 
-def simulate_features(trajectory=3, sigma_tdoa=1e-4, sigma_doa_deg=5.0, sigma_odo=0.03, seed=0, *,
-                      tdoa_s=True, tdoa_m=True, noise=True, clocks=None, **scene):
+def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4, sigma_doa_deg: float = 5.0,
+                      sigma_odo: float = 0.03, seed: int = 0, *, tdoa_s: bool = True, tdoa_m: bool = True,
+                      noise: bool = True, clocks: dict | None = None, **scene: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """Draw one scene of the paper's protocol and its noisy features.
 
     Parameters
@@ -210,7 +214,7 @@ def _measure(rng, stops, tr, spec, sig, scale, use_tdoa_s, use_tdoa_m):
     u = perturb_directions(rng, u_true, scale * sig["doa"])
     if spec.planar is not None:
         n = _unit(spec.planar)
-        u = np.where((u @ n < 0)[:, None], u - 2.0 * (u @ n)[:, None] * n, u)
+        u = fold(u, n)
     doa = pd.DataFrame({"event": jj, "array": names[ii], "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]})
     return {"events": events, "tdoa_m": tm if use_tdoa_m else tm.iloc[:0].reset_index(drop=True),
             "tdoa_s": ts if use_tdoa_s else ts.iloc[:0].reset_index(drop=True), "doa": doa}

@@ -23,6 +23,7 @@ import pandas as pd
 import soundfile as sf
 
 from calib.errors import InputError
+from calib.geometry import yaw_rotate
 from calib.pipeline.formats.boards import BOARDS
 from calib.pipeline.formats.io import read_events
 from calib.pipeline.formats.rosbag import write_bag
@@ -110,8 +111,7 @@ def robot_path(ev, speaker_offset, latency, chirp_duration):
     spk = ev[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     yaw = np.unwrap(headings(spk))
     off = np.asarray(speaker_offset, float)
-    base = spk - np.column_stack([np.cos(yaw) * off[0] - np.sin(yaw) * off[1],
-                                  np.sin(yaw) * off[0] + np.cos(yaw) * off[1], np.full(len(yaw), off[2])])
+    base = spk - yaw_rotate(off, yaw)
     t_true = ev["t_emit"].to_numpy(float)
     t_log = t_true - latency
     knots_t = np.column_stack([t_log - STOP_BEFORE, t_true + chirp_duration + STOP_AFTER]).ravel()

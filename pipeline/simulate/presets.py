@@ -5,7 +5,9 @@ over its defaults; docs/simulation.md describes them.
 """
 from __future__ import annotations
 
-PRESETS = {
+from typing import Any
+
+PRESETS: dict[str, dict[str, Any]] = {
     "paper-traj1": {"n_arrays": 5, "room_margin": 1.5},
     "paper-traj2": {"n_arrays": 5, "room_margin": 1.5},
     "paper-traj3": {"n_arrays": 5, "room_margin": 1.5},
@@ -58,5 +60,6 @@ PRESETS |= {
                "boards": ["circle7c", "circle6", "linear4", "tetra", "pair"],
                "mounts": ["wall", "table", "wall", "stand", "wall"], "n_speech": 1, "n_noise": 1, "n_obstacles": 1},
 }
-DEPLOY = ("office", "robot", "warehouse", "lshape", "ushape", "moving", "mixed", "talkers", "occluded", "bighall", "deploy")
+DEPLOY = ("office", "robot", "warehouse", "lshape", "ushape", "moving", "mixed", "talkers", "occluded", "bighall",
+          "deploy")
 ISSUE27_SCENES = ("occluded-lab", "office", "robot", "warehouse")

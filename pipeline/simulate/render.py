@@ -32,11 +32,6 @@ TAIL_FADE = 0.002  # s, raised-cosine fade-in of the stochastic tail at the mixi
 WRAP_MARGIN = 0.02  # s of zero padding so the zero-phase band filters' pre-ringing never wraps around
 
 
-def local_time(t, tau, drift, t0):
-    """Array clock reading ``L(t) = (1 + δ)(t − t0) + τ`` at true (emitter) time ``t`` (s)."""
-    return (1.0 + drift) * (np.asarray(t, float) - t0) + tau
-
-
 # ----------------------------------------------------------------------------------------------- RIR builder
 def build_rirs(delays, amps, length, early=np.inf, horizon=np.inf):
     """RIRs (n_mics, length) from image delays in SAMPLES (n_img, n_mics) and amplitudes (n_img, n_mics).
@@ -116,8 +111,8 @@ def band_paths(em, a, fsp, sc):
     delays in samples (NaN: later than ``mixing_time`` after the direct path, or blocked), ``dist`` (n, M)
     m, ``amp`` (n, M, B) band amplitudes without the 1/distance spreading (wall reflections, speaker
     directivity, air absorption, occlusion of the direct path, walls and obstacles of a polygonal room),
-    ``amp_open``, ``taps_open`` the same before walls and obstacles block or attenuate the paths, ``first`` (the geometric
-    direct path's delay, samples, blocked or not)."""
+    ``amp_open``, ``taps_open`` the same before walls and obstacles block or attenuate the paths, ``first``
+    (the geometric direct path's delay, samples, blocked or not)."""
     ab, c = sc["acoustic"], sc["speed_of_sound"]
     img, mics = em["images"], a["mics_room"]
     dist = np.linalg.norm(img["pos"][:, None, :] - mics[None], axis=2)          # (n, M)

@@ -28,6 +28,7 @@ import math
 import zlib
 from calib.tomlcompat import tomllib
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -39,7 +40,8 @@ from calib.pipeline.simulate import deploy, scenes, simrender
 from calib.pipeline.simulate.presets import DEPLOY
 from calib.pipeline.simulate import clocks
 from calib.pipeline.formats.io import EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
-from calib.pipeline.simulate.render import EARLY, FDL, FDL_LATE, builder_delay, local_time  # noqa: F401  (public names)
+from calib.geometry import local_time, yaw_matrix  # noqa: F401  (local_time: a public name)
+from calib.pipeline.simulate.render import EARLY, FDL, FDL_LATE, builder_delay  # noqa: F401  (public names)
 from calib.pipeline.simulate.scenario import (  # noqa: F401  (PRESETS, REALISTIC, _PAPER_TRAJ, _room_acoustics: public/test names)
     _LAB_HEIGHTS, _LAB_LOOP, _PAPER_TRAJ, ALL_KEYS, GEN_DEFAULTS, NEW_GEN_DEFAULTS,
     NEW_SCENE_DEFAULTS, PRESETS, REALISTIC, SCENE_DEFAULTS, SCENE_KEYS, _float, _int, _materials, _matrix, _merge,
@@ -58,7 +60,7 @@ def circular_array(n_mics=6, radius=0.0354):
 
 
 # ----------------------------------------------------------------------------------------------- scenario
-def make_scenario(preset="paper-traj3", seed=0, **overrides):
+def make_scenario(preset: str = "paper-traj3", seed: int = 0, **overrides: Any) -> dict[str, Any]:
     """A complete, deterministic scenario (plain dict) from a preset, a seed and overrides.
 
     Presets: ``paper-traj1`` (8 stops, 3×3×3 m cube), ``paper-traj2`` (10 stops, 2×6×2 m),
@@ -146,7 +148,7 @@ def _deploy_scenario(preset, g, sc, overrides):
         deploy.build(g, sc, lambda k: _rng(sc["seed"], 200 + k, stream), overrides)
     except ValueError as exc:
         raise InputError(f"scenario: {exc}") from None
-    sc["reference_array"] = overrides.get("reference_array", sc["arrays"][0]["name"])
+    sc["reference_array"] = overrides.get("reference_array", sc.get("reference_array", sc["arrays"][0]["name"]))
     sc.setdefault("interferers", [])
     sc["generator"] = {k: g[k] for k in GEN_DEFAULTS}
     return sc
@@ -206,7 +208,7 @@ def _make_sources(preset, g, room_dim, rng):
     # lab3: the real loop, rotated about z, jittered, centred near the middle of the room
     room = _vector(room_dim, "room_dim", 3)
     psi = rng.uniform(-np.pi, np.pi)
-    rot = np.array([[np.cos(psi), -np.sin(psi)], [np.sin(psi), np.cos(psi)]])
+    rot = yaw_matrix(psi)[:2, :2]
     centre = room[:2] / 2 + rng.uniform(-0.3, 0.3, 2)
     stops = []
     for h in _LAB_HEIGHTS:
@@ -474,7 +476,8 @@ def load_scenario(path, **overrides):
     return sc
 
 # ----------------------------------------------------------------------------------------------- simulate
-def simulate(scenario, out_dir, progress=None, overwrite=False):
+def simulate(scenario: dict[str, Any], out_dir: str | Path, progress: Callable | None = None,
+             overwrite: bool = False) -> Path:
     """Simulate a scenario and write a recording session (+ truth/) to ``out_dir``; returns its Path.
 
     Written (atomically: a failure leaves nothing): ``session.toml``, ``<array>.wav`` (n_samples,

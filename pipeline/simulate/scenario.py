@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import math
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -20,21 +21,15 @@ from calib.pipeline.simulate import motion, polyroom, scenes
 from calib.pipeline.formats.io import ARRAYS_COLS, InputError
 from calib.pipeline.simulate.presets import PRESETS, REALISTIC  # noqa: F401  (public names)
 from calib.pipeline.simulate import clocks
+from calib.geometry import local_time
+from calib.pipeline.simulate.featsim import TRAJECTORIES
 
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")
 INTERFERER_KINDS = ("tones", "speech", "noise")
 MODELS = ("flat", "bands")
 
 # Speaker trajectories of Zhang et al. 2025 (simulation section; published with their code, gt_generation.m).
-_PAPER_TRAJ = {
-    "paper-traj1": 3.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
-                                   [0, 1, 1], [0, 0, 1], [1, 0, 1], [1, 1, 1]], float),
-    "paper-traj2": np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [2, 4, 0], [2, 6, 0],
-                             [2, 6, 2], [2, 4, 2], [2, 2, 2], [2, 0, 2], [0, 0, 2]], float),
-    "paper-traj3": 2.0 * np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 2, 0], [0, 2, 0], [-1, 2, 0], [-1, 1, 0],
-                                   [-1, 0, 0], [-1, 0, 1], [-1, 1, 1], [-1, 2, 1], [0, 2, 1], [1, 2, 1],
-                                   [1, 1, 1]], float),
-}
+_PAPER_TRAJ = {f"paper-traj{k}": v["stops"] for k, v in TRAJECTORIES.items()}
 # The real lab loop (zhang_real_01 truth, x/y in metres, centred): 7 stops, flown at two speaker heights.
 _LAB_LOOP = np.array([[0.87, 0.25], [0.87, -0.27], [0.37, -0.57], [-0.40, -0.57],
                       [-0.87, -0.03], [-0.44, 0.56], [0.36, 0.56]])
@@ -43,7 +38,7 @@ _LAB_HEIGHTS = (1.12, 0.75)  # m above the floor: first loop high, second low (a
 DEFAULT_MATERIALS = {"walls": "plasterboard", "floor": "linoleum_on_concrete", "ceiling": "ceiling_plasterboard"}
 
 # Keys that only steer the random generation in make_scenario (kept in the scenario for the record).
-GEN_DEFAULTS = {
+GEN_DEFAULTS: dict[str, Any] = {
     "n_arrays": 5,             # number of arrays (names A1..AN, A1 = reference)
     "n_events": None,          # speaker stops used (≤ the preset's trajectory length; None = all)
     "interval": 2.0,           # mean time between chirp emissions, s

@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import math
 import os
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from calib.geometry import local_time
 from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import clocks
 from calib.pipeline.simulate import motion, polyroom
@@ -82,18 +84,13 @@ def emitters(sc, lv):
         if it["kind"] == "speech":
             prm = speech_params(sc["seed"], k, it["duration"], it["f0"], sc["fs"])
 
-            def wave(u, dur=it["duration"], prm=prm):
-                return speech_signal(u, dur, prm)
+            wave = partial(speech_signal, duration=it["duration"], prm=prm)
         elif it["kind"] == "noise":
-            prm = noise_params(sc["seed"], k, it["f_lo"], it["f_hi"])
-
-            def wave(u, dur=it["duration"], prm=prm):
-                return noise_signal(u, dur, *prm)
+            freqs, amps, phases = noise_params(sc["seed"], k, it["f_lo"], it["f_hi"])
+            wave = partial(noise_signal, duration=it["duration"], freqs=freqs, amps=amps, phases=phases)
         else:
             freqs, phases = burst_params(sc["seed"], k, it["f_lo"], it["f_hi"])
-
-            def wave(u, dur=it["duration"], freqs=freqs, phases=phases):
-                return burst_signal(u, dur, freqs, phases)
+            wave = partial(burst_signal, duration=it["duration"], freqs=freqs, phases=phases)
         out.append({"kind": "interferer", "index": k, "pos": it["position"], "t_start": it["t_start"],
                     "dur": it["duration"], "wave": wave, "axis": None,
                     "level": lv["gain"] * math.sqrt(lv["p_chirp"]) * 10 ** (it["level_db"] / 20)})
@@ -209,12 +206,12 @@ def _segment(sc, e, a, delay, cache):
     fs, t0 = a["fs"], sc["t_emit"][0]
     if "trajectory" not in e:
         return rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, cache),
-                          a, fs, t0, delay, e["level"], rd.local_time)
+                          a, fs, t0, delay, e["level"], local_time)
     fsp = fs * (1 + a["drift"])
     paths = rd.band_paths(e, a, fsp, sc)
     early = motion.early_mask(paths, fsp)
     start, seg = rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, cache, early),
-                            a, fs, t0, delay, e["level"], rd.local_time)
+                            a, fs, t0, delay, e["level"], local_time)
     vis = None
     if "tree" in e["images"]:
         geo, traj = sc["geometry"], e["trajectory"]
@@ -222,7 +219,7 @@ def _segment(sc, e, a, delay, cache):
         def vis(times):
             return np.stack([polyroom.path_gains(geo, e["images"], a["mics_room"],
                                                  polyroom.moved(e["images"], traj(t)), only=early) for t in times])
-    lo, part = motion.early_part(e, a, paths, early, sc, t0, e["level"], rd.local_time, vis)
+    lo, part = motion.early_part(e, a, paths, early, sc, t0, e["level"], local_time, vis)
     first = min(start, lo)
     out = np.zeros((seg.shape[0], max(start + seg.shape[1], lo + part.shape[1]) - first))
     out[:, start - first:start - first + seg.shape[1]] += seg

@@ -1,0 +1,65 @@
+"""Geometry and clock formulas every layer shares (one place each; docs/architecture.md).
+
+- :func:`mirror` / :func:`fold`: the mirror image of directions across a plane (planar arrays measure DOAs
+  up to that image) and the fold onto the plane's positive side.
+- :func:`yaw_matrix` / :func:`yaw_rotate`: the rotation ``Rz(ψ)`` about the vertical axis.
+- :func:`local_time` / :func:`arrival_time`: the clock model ``L_i(t) = (1 + δ_i)(t − t_0) + τ_i`` and the
+  arrival ``a_ij = L_i(t_j + |s_j − x_i| / c) + β δ_i`` (β: the chirp's drift bias).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Values = float | NDArray  # a number, or an array that broadcasts against the others
+
+
+def _dot(u, n):
+    """u·n over the last axis: one normal (3,) for all (BLAS), or one per row (..., 3)."""
+    return u @ n if np.ndim(n) == 1 else np.einsum("...a,...a->...", u, n)
+
+
+def mirror(u: NDArray, n: NDArray, origin: NDArray | None = None) -> NDArray:
+    """Mirror image ``u − 2 ((u − origin)·n) n`` of points or directions u (..., 3) across the plane with
+    unit normal n ((3,) or one per row (..., 3)) through ``origin`` (3,) (default: through 0)."""
+    d = _dot(u if origin is None else u - origin, n)
+    return u - 2.0 * d[..., None] * n
+
+
+def fold(u: NDArray, n: NDArray) -> NDArray:
+    """Directions u (..., 3) folded onto the side n·u >= 0 of the plane with unit normal n ((3,) or (..., 3)):
+    the mirror image where n·u < 0, u elsewhere."""
+    d = _dot(u, n)
+    return np.where((d < 0)[..., None], u - 2.0 * d[..., None] * n, u)
+
+
+def yaw_matrix(psi: float) -> NDArray:
+    """(3, 3) rotation ``Rz(ψ)`` by ψ (rad) about z (counter-clockwise seen from +z)."""
+    c, s = np.cos(psi), np.sin(psi)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def yaw_rotate(v: NDArray, psi: ArrayLike) -> NDArray:
+    """``Rz(ψ) v`` for vectors v (..., 3), written out (no matrix product) so it vectorises over yaws:
+    ψ a scalar gives v's shape; ψ (Y,) gives (Y, ..., 3)."""
+    psi = np.asarray(psi, float)
+    c, s = np.cos(psi), np.sin(psi)
+    if psi.ndim:
+        c, s = (a.reshape(a.shape + (1,) * (v.ndim - 1)) for a in (c, s))
+    x, y = c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]
+    return np.stack([x, y, np.broadcast_to(v[..., 2], x.shape)], axis=-1)
+
+
+def local_time(t: ArrayLike, offset: Values, drift: Values, t0: float = 0.0) -> NDArray:
+    """Array clock reading ``L(t) = (1 + δ)(t − t0) + τ`` (s) at true (emitter) time(s) t (s).
+
+    offset τ (s) and drift δ broadcast against t; t0: the first emission (the clocks' common origin).
+    """
+    return (1.0 + drift) * (np.asarray(t, float) - t0) + offset
+
+
+def arrival_time(t_emit: ArrayLike, dist: Values, offset: Values, drift: Values, c: float,
+                 beta: float = 0.0, t0: float = 0.0) -> NDArray:
+    """Local-clock arrival ``a = L(t_emit + dist / c) + β δ`` (s) of a chirp emitted at t_emit (s) travelling
+    dist (m) at c (m/s); β (s per unit drift): the matched filter's drift bias of the chirp."""
+    return local_time(np.asarray(t_emit, float) + dist / c, offset, drift, t0) + beta * drift
