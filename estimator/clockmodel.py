@@ -312,7 +312,10 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
         margin = drop - penalty(kind, D.n, n_arrays, len(fits))   # (Bonferroni over every candidate tested)
         if best is None or margin > best[1]:
             new = [c.with_value(v) for c, v in zip(base + [cand], coef)]
-            best = (new, float(margin), {"chi2_drop": float(drop), "scale": scale, "kind": kind})
+            # candidates the rows cannot tell apart go to the rivals' solves (as in :func:`joint_scan`)
+            tied = [[c.with_value(v) for c, v in zip(base + [f[1]], f[2])] for f in fam
+                    if f[1] is not cand and abs(f[0] - cost) <= 1e-6 * max(abs(cost), 1.0)]
+            best = (new, float(margin), {"chi2_drop": float(drop), "scale": scale, "kind": kind, "tied": tied})
     return best
 
 

@@ -26,7 +26,6 @@ if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
-from calib.geometry import local_time
 
 from calib.pipeline.formats.calibration_json import FORMAT_NAME, FORMAT_VERSION
 
