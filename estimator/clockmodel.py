@@ -434,11 +434,34 @@ def detect(result, models):
             name, new = ref, have + [step]
         old = models.get(name, [])
         merged = [c.with_value(c.value + (old[k].value if k < len(old) else 0.0)) for k, c in enumerate(new)]
+        if _pulse(merged):
+            continue
         proposals.append((margin, {name: merged}))
     # the strongest evidence first (a large fault bends the fit and so the others' tests); rivals within
     # TIE_MARGIN of it are decided by solving with each (:func:`_decide`)
     proposals.sort(key=lambda m: -m[0])
     return [prop for m, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS], records
+
+
+PULSE_MATCH = 0.25   # a drop and an insert this close in size (share of the larger) on one array: a pulse
+
+
+def _pulse(comps):
+    """A step that undoes another of the array's (opposite sign, sizes within PULSE_MATCH): the arrivals
+    between them are late or early as a block — reflections while the line of sight is blocked, or a bad
+    stretch of detections — which no clock does (a buffer that drops samples does not give them back)."""
+    steps = [c for c in comps if c.kind == "step"]
+    new = steps[-1] if steps and comps[-1].kind == "step" else None
+    if new is None:
+        return False
+    return any(c.value * new.value < 0 and abs(c.value + new.value) <= PULSE_MATCH * max(abs(c.value), abs(new.value))
+               for c in steps[:-1])
+
+
+def _has_pulse(comps):
+    """Any two of the array's steps undo each other (:func:`_pulse`)."""
+    steps = [c for c in comps if c.kind == "step"]
+    return any(_pulse(steps[:k + 1]) for k in range(1, len(steps)))
 
 
 def _decide(solve, features, models, proposals, options):
@@ -554,6 +577,7 @@ def _refine_and_resolve(solve, features, result, models, options):
     # keeps the linear clock and the consistency tests name it as before
     flagged = ((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or []
     bad = [n for n in set(_unreliable(result)) | set(flagged) if n in models]
+    bad += [n for n, comps in models.items() if n not in bad and _has_pulse(comps)]
     if bad:
         models = {n: c for n, c in models.items() if n not in bad}
         result = solve(correct_features(features, models), **options)
