@@ -81,7 +81,7 @@ def run_case(name, seeds, make):
         f, truth = scene(seed, clocks)
         f0, truth0 = scene(seed)
         t = time.perf_counter()
-        cal = calibrate(f)
+        cal = calibrate(f, clock_model="auto")
         dt = time.perf_counter() - t
         c0 = calibrate(f0)
         e, e0 = evaluate(cal, truth), evaluate(c0, truth0)
@@ -163,7 +163,7 @@ def false_models(seeds, paper):
     for seed in seeds:
         f, _ = simulate_features(1 + seed % 3, seed=seed) if paper else scene(seed)
         try:
-            rep = calibrate(f)["report"]["clock"]
+            rep = calibrate(f, clock_model="auto")["report"]["clock"]
         except ObservabilityError:   # a degenerate draw (e.g. collinear stops): no calibration to judge
             skipped += 1
             continue
@@ -178,7 +178,7 @@ def real_sets():
 
     for d in sorted(glob.glob(os.path.join(REAL, "*", "features"))):
         f, tr = read_features(d), read_truth(os.path.join(os.path.dirname(d), "truth"))
-        a, b = calibrate(f), calibrate(f, clock_model="linear")
+        a, b = calibrate(f, clock_model="auto"), calibrate(f, clock_model="linear")
         ea, eb = evaluate(a, tr), evaluate(b, tr)
         arr_models = [n for n, e in a["report"]["clock"]["arrays"].items() if e["steps"] or e["drift_terms"]]
         out.append(f"| {os.path.basename(os.path.dirname(d))} | {arr_models or '-'} | "

@@ -581,7 +581,7 @@ def calibrate(features: dict[str, Any], **options: Any) -> dict[str, Any]:
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
-    array's clock model (``clock_model="auto"``, default, or "linear": ``estimator.clockmodel``).
+    array's clock model (``clock_model="auto"``, or "linear", the default for now: ``estimator.clockmodel``).
     """
     with _BLAS.limit(limits=1, user_api="blas"):
         return clockmodel.calibrate_clocks(calibrate_features, features, **options)

@@ -94,14 +94,14 @@ def _interval(truth_clock, features):
 @pytest.mark.parametrize("seed,size", [(1, -0.020), (2, 0.0005)])
 def test_a_step_is_found_in_its_interval_with_its_size(seed, size):
     f, truth = simulate_features(3, SIGMA, seed=seed, clocks={"A3": {"steps": [{"size": size}]}})
-    cal = calibrate(f)
+    cal = calibrate(f, clock_model="auto")
     (s,) = _steps(cal, "A3")
     assert (s["after_event"], s["before_event"]) == _interval(truth["clocks"]["A3"], f)
     assert abs(s["size"] - size) < 3 * s["std"]
     assert s["kind"] == ("dropped" if size < 0 else "inserted")
     assert all(not _steps(cal, a) for a in ("A1", "A2", "A4", "A5"))
     assert cal["report"]["unreliable_arrays"] == []
-    clean = evaluate(calibrate(simulate_features(3, SIGMA, seed=seed)[0]), simulate_features(3, SIGMA, seed=seed)[1])
+    clean = evaluate(calibrate(simulate_features(3, SIGMA, seed=seed)[0], clock_model="auto"), simulate_features(3, SIGMA, seed=seed)[1])
     assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean["position_rmse_m"]
     # the calibration's clock follows the model: local times at the events against the true clock
     f["meta"]["reference_detections_s"] = {str(e): 0.0 for e in f["events"]["event"]}
@@ -117,7 +117,7 @@ def test_a_step_is_found_in_its_interval_with_its_size(seed, size):
 @pytest.mark.parametrize("seed", [0, 3, 5])
 def test_clean_sessions_get_the_linear_clock(seed):
     f, _ = simulate_features(3, SIGMA, seed=seed)
-    rep = calibrate(f)["report"]["clock"]
+    rep = calibrate(f, clock_model="auto")["report"]["clock"]
     assert rep["findings"] == []
     assert all(e["drift_model"] == "linear" and not e["steps"] for e in rep["arrays"].values())
 
@@ -125,25 +125,25 @@ def test_clean_sessions_get_the_linear_clock(seed):
 @pytest.mark.parametrize("fault,header", [("rate44k", (48000, 44100)), ("rate1pct", None)])
 def test_a_wrong_nominal_rate_is_named_and_the_others_unbent(fault, header):
     f, truth = simulate_features(3, SIGMA, seed=2, clocks={"A4": fault})
-    cal = calibrate(f)
+    cal = calibrate(f, clock_model="auto")
     nr = cal["report"]["clock"]["arrays"]["A4"]["nominal_rate"]
     assert nr is not None and nr["ratio"] == pytest.approx(1 + truth["arrays"].set_index("array").loc["A4", "drift"]
                                                            - truth["arrays"]["drift"].iloc[0], abs=2e-4)
     assert (nr["header_hz"], nr["actual_hz"]) == (header or (None, None))
     assert any("A4: wrong nominal sample rate" in r for r in cal["report"]["verdict"]["reasons"])
     assert all(e["nominal_rate"] is None for n, e in cal["report"]["clock"]["arrays"].items() if n != "A4")
-    clean = evaluate(calibrate(simulate_features(3, SIGMA, seed=2)[0]), truth)
+    clean = evaluate(calibrate(simulate_features(3, SIGMA, seed=2)[0], clock_model="auto"), truth)
     assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean["position_rmse_m"]
 
 
 def test_the_reference_s_wrong_rate_is_its_own_and_a_scaled_schedule_is_the_time_base():
     f, _ = simulate_features(3, SIGMA, seed=2, clocks={"A1": "rate1pct"})
-    rep = calibrate(f)["report"]["clock"]
+    rep = calibrate(f, clock_model="auto")["report"]["clock"]
     assert [n for n, e in rep["arrays"].items() if e["nominal_rate"]] == ["A1"]
     f, _ = simulate_features(3, SIGMA, seed=2)
     ev = f["events"].copy()
     ev["t_emit"] *= 1.02                       # the schedule, not the boards: every array 1/1.02 against it
-    rep = calibrate({**f, "events": ev})["report"]["clock"]
+    rep = calibrate({**f, "events": ev}, clock_model="auto")["report"]["clock"]
     assert not any(e["nominal_rate"] for e in rep["arrays"].values())
     assert any(x.startswith("time base") for x in rep["findings"])
 
@@ -152,7 +152,7 @@ def test_a_common_emission_step_is_the_emitters_not_every_arrays():
     f, _ = simulate_features(3, SIGMA, seed=6)
     ev = f["events"].copy()
     ev.loc[ev["event"] >= 5, "t_emit"] -= 0.001   # events.csv 1 ms early from event 5 on (as real set 01)
-    cal = calibrate({**f, "events": ev})
+    cal = calibrate({**f, "events": ev}, clock_model="auto")
     rep = cal["report"]["clock"]
     assert all(not e["steps"] for e in rep["arrays"].values())
     (s,) = rep["emitter"]["steps"]
@@ -192,12 +192,16 @@ def test_calib_run_on_a_rendered_session_with_a_dropped_block(tmp_path):
         run = calib("run", str(tmp_path / name), "-o", str(tmp_path / f"out_{name}"), "-q")
         assert run.returncode == 0, run.stderr
         cal = tmp_path / f"out_{name}" / "calibration"
-        rep = json.loads((cal / "report.json").read_text())
         truth = read_truth(tmp_path / name / "truth")
-        from calib.pipeline.formats.io import read_calibration
+        from calib.pipeline.formats.io import read_features
+        from calib.pipeline.formats.calibration_json import calibration_document
         from calib.pipeline.report.evaluate import evaluate
 
-        errs[name] = evaluate(read_calibration(cal), truth)["position_rmse_m"]
+        # the features of `calib run`, estimated with clock models (not yet the CLI's default)
+        feats = read_features(tmp_path / f"out_{name}" / "features")
+        result = calibrate(feats, clock_model="auto")
+        rep = result["report"]
+        errs[name] = evaluate(result, truth)["position_rmse_m"]
         steps = rep["clock"]["arrays"]["A3"]["steps"]
         if name == "clean":
             assert rep["clock"]["findings"] == []
@@ -207,6 +211,6 @@ def test_calib_run_on_a_rendered_session_with_a_dropped_block(tmp_path):
         ev = pd.read_csv(tmp_path / name / "events.csv")
         assert (s["after_event"], s["before_event"]) == (int(ev.event[ev.t_emit < t].max()), int(ev.event[ev.t_emit > t].min()))
         assert s["kind"] == "dropped" and abs(s["size"] + 0.02) < max(3 * s["std"], 1e-5)
-        doc = json.loads((cal / "calibration.json").read_text())
+        doc = calibration_document(result, feats)
         assert next(a for a in doc["arrays"] if a["name"] == "A3")["clock"]["steps"][0]["after_event"] == s["after_event"]
     assert errs["drop"] < 1.5 * errs["clean"] + 0.002
