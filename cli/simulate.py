@@ -48,6 +48,9 @@ def simulate(
     subtype: Optional[str] = typer.Option(None, help="WAV sample format: FLOAT, PCM_24 or PCM_16 [default: FLOAT]"),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="any scenario key: KEY=VALUE (TOML value; "
                                              "dotted keys for tables, e.g. chirp.kind=exponential); repeatable"),
+    clock: Optional[list[str]] = typer.Option(None, "--clock", help="a faulty clock: ARRAY=PRESET (drop, insert, "
+                                              "esp, warmup, walk, rate44k, rate1pct, rate1000ppm) or ARRAY={TOML "
+                                              "table}, e.g. 'A3={steps=[{size=-0.02, time=60}]}'; repeatable"),
     force: bool = typer.Option(False, "--force", help="replace OUT_DIR if it exists and is not empty"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar or summary"),
 ):
@@ -64,6 +67,8 @@ def simulate(
         over["chirp"] = {"duration": chirp_duration}
     for item in set_ or []:
         _set(over, item)
+    for item in clock or []:
+        _clock(over, item)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not force:
         raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
     # the simulator is loaded here: it needs scipy.spatial and more, which every other command would pay at start
@@ -151,3 +156,25 @@ def _set(over, item):
         if not isinstance(node, dict):
             raise InputError(f"--set {item!r}: {k!r} is not a table")
     node[last] = value
+
+
+def _clock(over, item):
+    """Apply one ``--clock ARRAY=FAULT`` (a preset name of ``pipeline.simulate.clocks`` or a TOML table)."""
+    name, sep, text = item.partition("=")
+    if not sep or not name.strip() or not text.strip():
+        raise InputError(f"--clock {item!r}: expected ARRAY=PRESET or ARRAY={{TOML table}}")
+    from calib.pipeline.simulate.clocks import CLOCK_PRESETS
+
+    text = text.strip()
+    if text.startswith("{"):
+        import tomllib
+
+        try:
+            value = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(f"--clock {item!r}: not a TOML table ({exc})") from None
+    elif text in CLOCK_PRESETS:
+        value = text
+    else:
+        raise InputError(f"--clock {item!r}: unknown clock preset {text!r} (known: {', '.join(CLOCK_PRESETS)})")
+    over.setdefault("clock_faults", {})[name.strip()] = value

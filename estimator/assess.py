@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import clockmodel
 from .factors import KINDS, active_kinds, natural
 from .factors import evaluate as factors
 from .observability import check_observability
@@ -30,6 +31,8 @@ def rebuild(features, calib):
     sig_e = float((rep.get("sigmas") or {}).get("emission_s") or 0.0)
     use_ts = bool((rep.get("used") or {}).get("tdoa_s", True))
     frame = rep.get("odometry_frame") or {}
+    # the clock models the estimator chose (steps, drift terms): taken out of the TDOAs as it did
+    features = clockmodel.correct_features(features, clockmodel.models_from_report(rep))
     p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e, odometry_yaw=bool(frame.get("estimated")))
     # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
     for kind in KINDS.values():

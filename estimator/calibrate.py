@@ -19,7 +19,7 @@ from calib import __version__
 from calib.geometry import mirror
 from calib.options import validate_options
 
-from . import arraynoise
+from . import arraynoise, clockmodel
 from .factors import KINDS, active_kinds, natural
 from .init import ObservabilityError, doa_rotation, fold_basins, initialise, kabsch, subproblem
 from .observability import check_observability
@@ -580,10 +580,11 @@ def _judge(p, st, info, lay, cov, w, cost, *, scales, bounds, noise, kinds):
 def calibrate(features: dict[str, Any], **options: Any) -> dict[str, Any]:
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
-    See :func:`calibrate_features` for the options; this wrapper only pins BLAS to one thread.
+    See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
+    array's clock model (``clock_model="auto"``, or "linear", the default for now: ``estimator.clockmodel``).
     """
     with _BLAS.limit(limits=1, user_api="blas"):
-        return calibrate_features(features, **options)
+        return clockmodel.calibrate_clocks(calibrate_features, features, **options)
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy", robust_k=3.0,
@@ -732,7 +733,8 @@ def _solution(p, st, info, kinds, stage_states):
     return {"state": st, "problem": p, "stage_states": stage_states,
             "converged": bool(info["final"]["converged"]),
             "cost": linearise(p, st, lay, kinds, mask=info["mask"]).cost,
-            "outliers": info["outliers"], "undetermined": undetermined_parameters(p)}
+            "outliers": info["outliers"], "undetermined": undetermined_parameters(p),
+            "unreliable_arrays": [str(p.names[i]) for i in info["dropped"]]}
 
 
 def _joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_threshold, max_iter):

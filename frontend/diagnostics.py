@@ -45,10 +45,11 @@ def _mark_doubted(ax, a, top):
         ax.plot([x["time"]], [top * 1.13], "v", color=color, ms=5)
 
 
-def plot_detections(path, diag):
+def plot_detections(path, diag, marks=None):
     """Detection timeline, one row per array on its own clock: matched-filter envelope (dB re. its median),
     matched detections (green, event id), spurious ones (red ×), missed events at their predicted time
-    (grey dashed)."""
+    (grey dashed); ``marks`` {array: [(time on its clock, label)]}: e.g. the clock steps the estimator found
+    (purple dash-dot)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -84,6 +85,9 @@ def plot_detections(path, diag):
             for e, t_e in zip(a["missed_events"], te):
                 ax.text(t_e, top * 1.02, f"{e}?", color="0.3", ha="center", va="bottom", fontsize=7)
         _mark_doubted(ax, a, top)
+        for t_m, label in (marks or {}).get(name, ()):
+            ax.axvline(t_m, color="tab:purple", ls="-.", lw=1.5)
+            ax.text(t_m, top * 0.5, f" {label}", color="tab:purple", ha="left", va="center", fontsize=8)
         n_m = sum(d["event"] is not None for d in det)
         warn = "  ⚠ " + "; ".join(a["warnings"]) if a["warnings"] else ""
         ax.set_title(f"{name}: {n_m} matched, {len(a['missed_events'])} missed "

@@ -28,10 +28,15 @@ CONVENTIONS = {
 }
 UNITS = {"position": "m", "time": "s", "drift": "1 (s per s)", "rotation_std": "rad", "speed_of_sound": "m/s",
          "chirp_drift_bias": "s (per unit drift)"}
-CLOCK_MODEL = ("T_i = (1 + drift_i) * (t - t0) + offset_i + reference_offset [+ chirp_drift_bias * drift_i]: "
-               "T_i the array's local time (WAV sample / fs), t the emitter's time (events.csv t_emit), t0 the "
-               "first event's t_emit. The bracketed term applies to arrival times measured by matched filtering "
-               "the calibration chirp (as calib's frontend does), not to other sounds.")
+CLOCK_MODEL = ("T_i = (1 + drift_i) * (t - t0) + offset_i + reference_offset + h_i(t - t0) [+ chirp_drift_bias * "
+               "drift_i]: T_i the array's local time (WAV sample / fs), t the emitter's time (events.csv t_emit), t0 "
+               "the first event's t_emit. h_i: the array's clock steps (samples inserted: size > 0; dropped: size < 0, "
+               "applied from their time, the middle of the interval between the two events they lie between) and "
+               "drift terms (quadratic: slope * u^2 / 2; hinge: change * max(0, u - time)); absent: 0. The bracketed "
+               "term applies to arrival times measured by matched filtering the calibration chirp (as calib's "
+               "frontend does), not to other sounds.")
+# the keys of an array's clock model (report.json ``clock.arrays``) copied into its calibration.json ``clock``
+CLOCK_MODEL_KEYS = ("drift_model", "steps", "drift_terms", "nominal_rate")
 # A clock offset seen through coarse detections: fewer than this many matched events → no estimate.
 MIN_ANCHOR_EVENTS = 2
 
@@ -97,9 +102,10 @@ def _std(row, cols):
                                                                          for v in vals]
 
 
-def _array_entry(row, mics, tau_ref, undetermined=()):
+def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None):
     """One array's entry: pose, mics (own and reference frame), clock, 1-σ, and what the data left
-    undetermined (report.json ``undetermined`` of this array: parameter names, the axis of a linear array)."""
+    undetermined (report.json ``undetermined`` of this array: parameter names, the axis of a linear array);
+    ``clock_model``: its report.json ``clock.arrays`` entry (steps, drift terms, a wrong nominal rate)."""
     from scipy.spatial.transform import Rotation  # (~0.1 s to load: not at every command's start)
 
     pos = row[["x", "y", "z"]].to_numpy(float)
@@ -116,7 +122,8 @@ def _array_entry(row, mics, tau_ref, undetermined=()):
         "mics": None if mics is None else mics.tolist(),
         "mics_reference": None if mics is None else (mics @ R.T + pos).tolist(),
         "clock": {"offset": offset, "drift": drift,
-                  "offset_emitter": None if tau_ref is None else offset + tau_ref},
+                  "offset_emitter": None if tau_ref is None else offset + tau_ref,
+                  **{k: (clock_model or {}).get(k) for k in CLOCK_MODEL_KEYS if clock_model}},
         "std": {"position": _std(row, ("x_std", "y_std", "z_std")),
                 "rotation": _std(row, ("rx_std", "ry_std", "rz_std")),
                 "offset": float(off_std) if np.isfinite(off_std) else None,
@@ -162,9 +169,14 @@ def calibration_document(calib, features):
             "reference_offset_events": n_anchor,
             "chirp_drift_bias": float(meta.get("chirp_drift_bias") or 0.0),
             "drift_reference": report.get("drift_reference"),
+            # emission times off by a term every array saw (steps / drift terms, as an array's): events.csv
+            # time = true emission time − h_emitter
+            "emitter": {k: v for k, v in ((report.get("clock") or {}).get("emitter") or {}).items()
+                        if k in CLOCK_MODEL_KEYS} or None,
         },
         "arrays": [_array_entry(r, mics.get(r["array"]), tau,
-                                [u for u in report.get("undetermined") or [] if u.get("array") == r["array"]])
+                                [u for u in report.get("undetermined") or [] if u.get("array") == r["array"]],
+                                ((report.get("clock") or {}).get("arrays") or {}).get(r["array"]))
                    for r in rows],
         "covariance": None if labels is None else {"parameters": labels, "matrix": np.asarray(cov)},
         # the odometry-frame rotation when the estimator estimated it (report.json always says whether)

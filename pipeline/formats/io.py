@@ -507,7 +507,13 @@ def read_truth(directory: str | Path) -> dict[str, Any]:
     if len(arrays) == 0:
         raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header): nothing to compare with")
     sources = _read_sources(d / "sources.csv", truth=True) if (d / "sources.csv").exists() else None
-    return {"arrays": arrays, "sources": sources}
+    out = {"arrays": arrays, "sources": sources}
+    if (d / "clocks.json").exists():   # faulty clocks of a simulation (calib.clock.Clock JSON form per array)
+        try:
+            out["clocks"] = json.loads((d / "clocks.json").read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise InputError(f"{d / 'clocks.json'}: invalid JSON ({exc})") from None
+    return out
 
 
 def write_truth(directory, truth, extra_files=None):

@@ -26,7 +26,6 @@ if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
-from calib.geometry import local_time
 from calib.jsonutil import dumps_json
 
 from calib.pipeline.formats import validate as V
@@ -51,6 +50,8 @@ class ArrayCalibration:
     std: dict = field(default_factory=dict)
     undetermined: tuple = ()
     axis: np.ndarray | None = None
+    # steps and drift terms beyond the linear clock (calib.clock.Clock with offset 0, drift 0, t0 0)
+    clock_extra: object = None
 
     @property
     def rotation(self) -> Rotation:
@@ -74,6 +75,8 @@ class ClockModel:
     reference_offset: float | None
     chirp_drift_bias: float
     drift_reference: str | None = None
+    # emission times off by a common term (calibration.json clock.emitter): events.csv = true − h_emitter
+    emitter: object = None
 
 
 @dataclass(frozen=True)
@@ -143,18 +146,33 @@ class Calibration:
                              "array's detections): the emitter time is not known")
         return self.array(name).offset + self.clock.reference_offset
 
+    def _clock(self, name):
+        """The array's :class:`calib.clock.Clock` (local time of true emitter time), steps and terms included."""
+        from calib.clock import Clock
+
+        a = self.array(name)
+        ex = a.clock_extra or Clock()
+        return Clock(self._tau(name), a.drift, self.clock.t0, ex.steps, ex.terms)
+
+    def _emitter_extra(self, t):
+        e = self.clock.emitter
+        return 0.0 if e is None else e.extra(np.asarray(t, float) - self.clock.t0)
+
     def to_emitter_time(self, name: str, local_time: ArrayLike, chirp: bool = False) -> np.ndarray:
-        """Emitter time(s) (events.csv clock, s; the shape of ``local_time``) of the array's local time(s) (s). chirp: the arrival was measured by
-        matched filtering the calibration chirp (subtract its bias β·δ)."""
+        """Emitter time (events.csv clock) of the array's local time(s) (s), through its clock model (steps:
+        inside an inserted block, the step's time). chirp: the arrival was measured by matched filtering the
+        calibration chirp (subtract its bias β·δ)."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
-        return self.clock.t0 + (np.asarray(local_time, float) - self._tau(name) - bias) / (1.0 + a.drift)
+        t = self._clock(name).emitter(np.asarray(local_time, float) - bias)
+        return t - self._emitter_extra(t)
 
     def to_local_time(self, name: str, emitter_time: ArrayLike, chirp: bool = False) -> np.ndarray:
         """The array's local time(s) of emitter time(s): the inverse of :meth:`to_emitter_time`."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
-        return local_time(emitter_time, self._tau(name), a.drift, self.clock.t0) + bias
+        t = np.asarray(emitter_time, float)
+        return self._clock(name).local(t + self._emitter_extra(t)) + bias
 
     def to_reference_time(self, name: str, local_time: ArrayLike, chirp: bool = False) -> np.ndarray:
         """The reference array's local time of the instant the array ``name`` reads as ``local_time``."""
@@ -230,7 +248,26 @@ def _array(entry, where):
         drift=V.number(clock.get("drift"), f"{where}.clock.drift", lo=-MAX_ABS_CAL_DRIFT, hi=MAX_ABS_CAL_DRIFT),
         std=_std_entry(entry.get("std"), f"{where}.std"),
         undetermined=tuple(V.string(u, f"{where}.undetermined") for u in und),
-        axis=None if axis is None else np.array(V.vector3(axis, f"{where}.axis", nonzero=True)))
+        axis=None if axis is None else np.array(V.vector3(axis, f"{where}.axis", nonzero=True)),
+        clock_extra=_clock_extra(clock, f"{where}.clock"))
+
+
+def _clock_extra(ck, where):
+    """The steps and drift terms of a calibration.json clock entry as a :class:`calib.clock.Clock` (offset 0,
+    drift 0, t0 0), or None when it has none (the linear clock; files before these keys)."""
+    from calib.clock import Clock
+
+    if not ck or not (ck.get("steps") or ck.get("drift_terms")):
+        return None
+    try:
+        return Clock.from_dict({"steps": _list(ck.get("steps"), f"{where}.steps", optional=True) or (),
+                                "terms": [{"kind": d["kind"], **{k: v for k, v in d.items() if k not in ("kind", "std")}}
+                                          for d in _list(ck.get("drift_terms"), f"{where}.drift_terms",
+                                                         optional=True) or ()]})
+    except InputError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise InputError(f"{where}: malformed clock model ({type(exc).__name__}: {exc})") from None
 
 
 def _clock(value, where):
@@ -242,7 +279,9 @@ def _clock(value, where):
                                                 hi=t[1], allow_none=True),
                       chirp_drift_bias=V.number(ck.get("chirp_drift_bias") or 0.0, f"{where}.chirp_drift_bias",
                                                 lo=t[0], hi=t[1]),
-                      drift_reference=None if drift_ref is None else V.string(drift_ref, f"{where}.drift_reference"))
+                      drift_reference=None if drift_ref is None else V.string(drift_ref, f"{where}.drift_reference"),
+                      emitter=_clock_extra(_obj(ck.get("emitter"), f"{where}.emitter", optional=True),
+                                           f"{where}.emitter"))
 
 
 def _covariance(value, where):

@@ -423,6 +423,7 @@ def summary_markdown(features, calib, res, metrics, diag, images):
             by.setdefault(u["array"], []).append(u["parameter"])
         L += ["Not determined by the data (not estimated, no σ; the rest is): "
               + "; ".join(f"{a}: {', '.join(v)}" for a, v in by.items()) + ".", ""]
+    L += clock_lines(rep.get("clock") or {})
     if metrics is not None:
         L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
     L += ["## Scene", "", f"![scene]({images['scene']})", ""]
@@ -463,6 +464,34 @@ def summary_markdown(features, calib, res, metrics, diag, images):
     return "\n".join(L) + "\n"
 
 
+def rep_clock(calib):
+    """report.json ``clock`` of a calibration ({} without clock models)."""
+    return (calib.get("report") or {}).get("clock") or {}
+
+
+def step_marks(clock, diag):
+    """{array: [(time on its clock, label)]}: each clock step midway between the detections of the two events
+    it lies between (steps whose events were not both detected are left out)."""
+    out = {}
+    for name, e in (clock.get("arrays") or {}).items():
+        det = {d["event"]: d["time"] for d in ((diag.get("arrays") or {}).get(name) or {}).get("detections", [])
+               if d.get("event") is not None}
+        for s in e.get("steps") or []:
+            a, b = det.get(s["after_event"]), det.get(s["before_event"])
+            if a is not None and b is not None:
+                out.setdefault(name, []).append((0.5 * (a + b), f"{s['size'] * 1e3:+.2f} ms step"))
+    return out
+
+
+def clock_lines(clock):
+    """summary.md's clock section: one line per finding (steps, drift models, wrong rates, emission times)."""
+    f = clock.get("findings") or []
+    if not f:
+        return []
+    return ["## Clocks", "", "Each array's clock model, chosen by the evidence (docs/method.md \"Clock models\"):",
+            ""] + [f"- {x}" for x in f] + [""]
+
+
 # ----------------------------------------------------------------------------------------------- driver
 def make_report(directory, features, calib, truth=None, diagnostics_dir=None, progress=None):
     """Write the report folder atomically. Returns the evaluation metrics (dict) when ``truth`` is given."""
@@ -490,7 +519,13 @@ def make_report(directory, features, calib, truth=None, diagnostics_dir=None, pr
             plot_residuals(tmp / "residuals.png", res)
         step(3, "detections")
         src_png = Path(diagnostics_dir) / "detections.png" if diagnostics_dir is not None else None
-        if src_png is not None and src_png.is_file():
+        marks = step_marks(rep_clock(calib), diag) if diag is not None else {}
+        if marks:   # the clock steps the estimator found, on each array's detection row (redrawn)
+            from calib.frontend import plot_detections
+
+            plot_detections(tmp / "detections.png", diag, marks=marks)
+            images["detections"] = "detections.png"
+        elif src_png is not None and src_png.is_file():
             shutil.copyfile(src_png, tmp / "detections.png")
             images["detections"] = "detections.png"
         elif diag is not None:

@@ -88,7 +88,7 @@ class SceneSpec:
 
 def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4, sigma_doa_deg: float = 5.0,
                       sigma_odo: float = 0.03, seed: int = 0, *, tdoa_s: bool = True, tdoa_m: bool = True,
-                      noise: bool = True, **scene: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+                      noise: bool = True, clocks: dict | None = None, **scene: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """Draw one scene of the paper's protocol and its noisy features.
 
     Parameters
@@ -102,6 +102,10 @@ def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4
     seed : seed of the numpy Generator; same seed, same scene and noise.
     tdoa_s, tdoa_m : include that measurement type.
     noise : False gives exact measurements (the sigmas still go to meta.json as weights).
+    clocks : None, or {array name or index: clock faults} (``pipeline.simulate.clocks``: a preset name or a
+        fault dict: dropped/inserted blocks, warm-up, random walk, wrong nominal rate); drawn from their own
+        seeded stream, so the scene of a seed is the same with and without them. The truth then has
+        ``clocks`` ({array: clock record}) and its ``drift`` includes a rate error.
     scene : fields of :class:`SceneSpec` (n_arrays, c, max_offset, max_drift, max_interval, names,
         reference_drift, planar, positions).
 
@@ -117,6 +121,7 @@ def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4
     rng = np.random.default_rng(seed)
     stops, box = _stops_and_box(trajectory)
     truth = _draw_scene(rng, stops, box, spec)
+    truth["clocks"] = _fault_clocks(clocks, truth, seed)
     sig = {"tdoa": sigma_tdoa, "doa": np.deg2rad(sigma_doa_deg), "odo": sigma_odo}
     features = _measure(rng, stops, truth, spec, sig, 1.0 if noise else 0.0, tdoa_s, tdoa_m)
     # meta's sigma_doa_deg is the std per tangent axis: a rotation by N(0, σ²) about an isotropic random
@@ -126,7 +131,27 @@ def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4
                         "sigma_doa_deg": sigma_doa_deg / np.sqrt(3.0), "sigma_odo": sigma_odo}
     if spec.planar is not None:
         features["meta"]["doa_mirror_normals"] = {a: _unit(spec.planar).tolist() for a in truth["names"]}
-    return features, _truth_frames(stops, truth)
+    out = _truth_frames(stops, truth)
+    if truth["clocks"]:
+        out["clocks"] = {truth["names"][i]: rec for i, (_, rec) in truth["clocks"].items()}
+    return features, out
+
+
+def _fault_clocks(clocks, tr, seed):
+    """{array index: (clock with faults, its truth record)} (their own random stream); sets the truth's drift
+    to each clock's."""
+    if not clocks:
+        return {}
+    from calib.pipeline.simulate import clocks as ck
+
+    rng = np.random.default_rng([int(seed), 28])
+    out = {}
+    for key, faults in clocks.items():
+        i = tr["names"].index(key) if isinstance(key, str) else int(key)
+        clk = ck.fault_clock(tr["offset"][i], tr["drift"][i], faults, event_times=tr["t"], rng=rng)
+        tr["drift"][i] = clk.drift
+        out[i] = (clk, ck.clock_record(clk, faults))
+    return out
 
 
 def _unit(v):
@@ -170,6 +195,8 @@ def _measure(rng, stops, tr, spec, sig, scale, use_tdoa_s, use_tdoa_m):
     N, K = spec.n_arrays, len(stops)
     names = np.asarray(tr["names"])
     a = arrival_times(tr["x"], stops, tr["t"], tr["offset"], tr["drift"], spec.c)
+    for i, (clk, _) in tr["clocks"].items():   # faulty clocks: L_i(t_j + d_ij / c) in full
+        a[i] = clk.local(tr["t"] + np.linalg.norm(stops - tr["x"][i], axis=1) / spec.c)
     ev = np.arange(K)
     odo_steps = np.diff(stops, axis=0) + scale * rng.normal(0, sig["odo"], (K - 1, 3))
     odom = np.vstack([np.zeros(3), np.cumsum(odo_steps, axis=0)])

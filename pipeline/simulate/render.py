@@ -20,6 +20,7 @@ import soundfile as sf
 from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
 
 from calib.pipeline.simulate import acoustics as ac
+from calib.pipeline.simulate import clocks
 
 FDL = 81           # fractional-delay filter length (pyroomacoustics default)
 LUT_GRAN = 512     # sinc look-up granularity of the RIR builder (pra default 20; finer = more exact delays)
@@ -189,8 +190,11 @@ def segment(wave, t_start, dur, rir, a, fs, t0, delay, level, local_time):
     """
     from scipy.signal import fftconvolve  # (scipy.signal is slow to import: loaded when rendering)
 
-    fsp = fs * (1.0 + a["drift"])                    # true-time rate of this array's samples
-    nu = fs * local_time(t_start, a["tau"], a["drift"], t0)   # emission instant in this array's samples
+    if a.get("clock") is not None:                   # a faulty clock (steps, drift terms): pipeline.simulate.clocks
+        fsp, nu = fs * clocks.rate(a, t_start), fs * clocks.local(a, t_start, t0)
+    else:
+        fsp = fs * (1.0 + a["drift"])                    # true-time rate of this array's samples
+        nu = fs * local_time(t_start, a["tau"], a["drift"], t0)   # emission instant in this array's samples
     n0 = int(math.floor(nu))
     frac = nu - n0
     p = np.arange(int(math.ceil(dur * fsp + frac)) + 2)

@@ -38,6 +38,7 @@ from calib.jsonutil import jsonable  # inf (no noise) and NaN ↔ null
 from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import deploy, scenes, simrender
 from calib.pipeline.simulate.presets import DEPLOY
+from calib.pipeline.simulate import clocks
 from calib.pipeline.formats.io import EVENTS_COLS, InputError, atomic_dir, write_table, write_truth
 from calib.geometry import local_time, yaw_matrix  # noqa: F401  (local_time: a public name)
 from calib.pipeline.simulate.render import EARLY, FDL, FDL_LATE, builder_delay  # noqa: F401  (public names)
@@ -179,6 +180,8 @@ def _start(preset, seed, overrides):
     base = _merge(SCENE_DEFAULTS, {k: v for k, v in PRESETS[preset].items() if k in SCENE_DEFAULTS})
     sc = _merge(base, {k: v for k, v in overrides.items()
                        if k in SCENE_DEFAULTS and k not in ("reference_array",)})
+    if overrides.get("clock_faults"):   # {array: clock faults} (pipeline.simulate.clocks), checked with the arrays
+        sc["clock_faults"] = copy.deepcopy(dict(overrides["clock_faults"]))
     return g, {"preset": preset, "seed": int(seed), **sc}
 
 
@@ -551,6 +554,9 @@ def _write_session(tmp, sc, derived, flat, scenario):
     if sc.get("trajectory") is not None:
         extra["trajectory.csv"] = trajectory_truth(sc).to_csv(index=False, float_format="%.9g",
                                                               lineterminator="\n")
+    faulty = clocks.records(sc, sc.get("clock_faults"))
+    if faulty:   # each faulty array's clock as a function of time (calib.clock.Clock JSON form)
+        extra["clocks.json"] = json.dumps(jsonable(faulty), indent=1, allow_nan=False) + "\n"
     write_truth(tmp / "truth", scenario_truth(sc), extra_files=extra)
 
 

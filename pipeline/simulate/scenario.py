@@ -20,6 +20,7 @@ from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import motion, polyroom, scenes
 from calib.pipeline.formats.io import ARRAYS_COLS, InputError
 from calib.pipeline.simulate.presets import PRESETS, REALISTIC  # noqa: F401  (public names)
+from calib.pipeline.simulate import clocks
 from calib.geometry import local_time
 from calib.pipeline.simulate.featsim import TRAJECTORIES
 
@@ -116,7 +117,7 @@ NEW_SCENE_DEFAULTS = {
     "sigma_vel": 0.01,         # m/s per axis: noise of the velocity odometry reports (events.csv vel_*)
 }
 SCENE_DEFAULTS |= NEW_SCENE_DEFAULTS
-SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers"}
+SCENE_KEYS = set(SCENE_DEFAULTS) | {"arrays", "sources", "t_emit", "interferers", "clock_faults"}
 META_KEYS = {"preset", "seed"}
 ALL_KEYS = SCENE_KEYS | set(GEN_DEFAULTS) | META_KEYS
 
@@ -234,6 +235,7 @@ def validate_scenario(scenario):
     sc["reference_array"] = ref
     sc["interferers"] = [_check_interferer(k, it, sc) for k, it in enumerate(sc.get("interferers") or [])]
     sc["trajectory"] = _check_trajectory(sc)
+    clocks.attach(sc, sc.get("clock_faults"), sc["seed"])   # dropped/inserted blocks, drift changes, wrong rates
     _check_spacing(sc)
     if sc["model"] == "bands":
         _check_bands(sc)
@@ -505,7 +507,7 @@ def _arrivals(sc):
     out = []
     for a in sc["arrays"]:
         d = np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None], axis=2)  # (K, M)
-        out.append(local_time(sc["t_emit"][:, None] + d / sc["speed_of_sound"], a["tau"], a["drift"], t0))
+        out.append(clocks.local(a, sc["t_emit"][:, None] + d / sc["speed_of_sound"], t0))
     m = {x.shape[1] for x in out}
     if len(m) == 1:
         return np.stack(out)
@@ -522,11 +524,11 @@ def arrival_times(scenario, mics=False):
     sc = scenario if isinstance(scenario, Scenario) else _normalise_light(scenario)
     t0 = sc["t_emit"][0]
     if mics:
-        return [local_time(sc["t_emit"][:, None] + np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None],
-                                                                  axis=2) / sc["speed_of_sound"],
-                           a["tau"], a["drift"], t0) for a in sc["arrays"]]
-    return np.stack([local_time(sc["t_emit"] + np.linalg.norm(sc["sources"] - a["position"], axis=1)
-                                / sc["speed_of_sound"], a["tau"], a["drift"], t0) for a in sc["arrays"]])
+        return [clocks.local(a, sc["t_emit"][:, None] + np.linalg.norm(sc["sources"][:, None, :] - a["mics_room"][None],
+                                                                       axis=2) / sc["speed_of_sound"], t0)
+                for a in sc["arrays"]]
+    return np.stack([clocks.local(a, sc["t_emit"] + np.linalg.norm(sc["sources"] - a["position"], axis=1)
+                                  / sc["speed_of_sound"], t0) for a in sc["arrays"]])
 
 
 def _normalise_light(scenario):
@@ -537,7 +539,7 @@ def _normalise_light(scenario):
         pos = np.asarray(a["position"], float)
         sc["arrays"].append({"name": a["name"], "position": pos, "R": R, "tau": float(a["tau"]),
                              "drift": float(a["drift"]), "mics_room": pos + np.asarray(a["mics"], float) @ R.T})
-    return sc
+    return clocks.attach(sc, scenario.get("clock_faults"), scenario.get("seed", 0))
 
 
 def scenario_truth(scenario):

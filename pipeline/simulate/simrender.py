@@ -16,6 +16,7 @@ import numpy as np
 
 from calib.geometry import local_time
 from calib.pipeline.simulate import acoustics as ac
+from calib.pipeline.simulate import clocks
 from calib.pipeline.simulate import motion, polyroom
 from calib.pipeline.simulate import render as rd
 from calib.pipeline.simulate.sounds import (BlockWhite, CoherentPink, RowMajorWhite, burst_params, burst_signal, chirp_power,
@@ -147,7 +148,7 @@ def recording_ends(sc, em, flat):
             reach = [np.linalg.norm(a["mics_room"] - e["pos"], axis=1).max() / c + sc["mixing_time"]
                      + _tail_length(sc) for a in sc["arrays"]]
         for i, a in enumerate(sc["arrays"]):
-            last[i] = max(last[i], local_time(e["t_start"] + reach[i] + dur, a["tau"], a["drift"], t0))
+            last[i] = max(last[i], clocks.local(a, e["t_start"] + reach[i] + dur, t0))
     return [int(math.ceil((x + sc["tail"]) * a["fs"])) + rd.FDL for x, a in zip(last, sc["arrays"])]
 
 

@@ -1,0 +1,876 @@
+"""Per-array clock models chosen by the evidence: steps (dropped / inserted sample blocks), drift that varies
+(quadratic, piecewise linear) and wrong nominal rates (docs/method.md, "Clock models").
+
+The base model is the linear clock of docs/architecture.md. An extra term ``h_i(t) = Σ_m c_m φ_m(t)`` per
+array adds to its local arrival times (:class:`calib.clock.Clock` ``extra``), with these components φ:
+
+* ``step`` at an interval between two events (at its middle): 1 after it, 0 before — a block of samples
+  inserted (c > 0) or dropped (c < 0). It shows as one TDOA-S of +c and every TDOA-M after it shifted by c;
+* ``quadratic``: u²/2 (u = t − t0): the drift changes linearly in time (c: its slope, 1/s);
+* ``hinge`` at an event time h: max(0, u − h): the drift changes by c at h (piecewise-linear clock).
+
+Selection (:func:`calibrate_clocks`), after a first robust fit (the sources and the other arrays come from
+all the data; a faulty array cannot bend them, the robust tests drop it): for each array, with the sources
+and the reference clock of that fit fixed, a small robust (Huber) fit of its position and clock to its own
+TDOA-S and TDOA-M, with each candidate component in turn (every interval's step, every event's hinge, the
+quadratic). The best candidate is kept when its χ² drop beats the BIC penalty with the scan's multiplicity:
+``max(ln n, χ²₁ quantile at FAMILY_ALPHA / (arrays × candidates))`` (false steps < FAMILY_ALPHA per session).
+Kept components correct the TDOAs (:func:`correct_features`) and the session is solved again; rounds repeat
+until nothing is kept. A last joint Gauss–Newton step adds the components' columns to the full Jacobian
+(:func:`refine`): their sizes, their 1-σ and the array parameters' 1-σ with them (the step's uncertainty in
+the error bars).
+
+A fitted |drift| >= RATE_ERROR_MIN is no crystal's: the header's sample rate is wrong; it is named (with
+the pair of common rates it matches, :func:`calib.clock.header_ratio`) and the calibration stays in the
+drift (1 + δ = rate ratio × (1 + crystal drift)).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+from scipy.special import chdtri
+
+from calib.clock import Clock, Step, Term, header_ratio
+
+FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
+HUBER_K = 2.5           # robust scale of the per-array fits, in σ
+MAX_ROUNDS = 6          # detection rounds (each adds at most one component)
+MAX_COMPONENTS = 4      # extra clock parameters per array at most
+GN_ITERATIONS = 20
+MIN_EVENTS = 6          # fewer events: the linear clock only (nothing to test a change against)
+# A clock's drift changes by a few ppm as a board warms up or the room's temperature drifts (CHiME-6: ~1-5 ppm);
+# a drift term implying a larger change over the session is a geometric error (reflections) in clock guise
+MAX_DRIFT_CHANGE = 20e-6
+MAX_STEP = 0.5          # s: buffer under- and overruns lose or repeat ms (USB: 0.5-20 ms); larger is no clock step
+RATE_ERROR_MIN = 5e-3   # |drift| beyond any crystal's (±100 ppm typical): a wrong nominal rate
+RATE_MATCH_TOL = 5e-4   # a rate ratio this close to a ratio of two common rates names them
+EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term in every array's clock
+TIE_MARGIN = 10.0       # χ²: proposals this close to the best are decided by solving with each
+MAX_RIVALS = 3
+REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × its σ: solve once more
+
+
+@dataclass(frozen=True)
+class Component:
+    """One extra clock component of an array: ``kind`` in (step, quadratic, hinge), ``time`` (s since t0;
+    the step's instant, the hinge's knot; 0 for the quadratic), coefficient ``value`` and its 1-σ."""
+    kind: str
+    time: float
+    value: float
+    std: float | None = None
+
+    def basis(self, u):
+        """φ(u) at times u (s since t0): the component with a unit coefficient."""
+        u = np.asarray(u, float)
+        if self.kind in ("step", "mshift"):
+            return (u >= self.time).astype(float)
+        if self.kind == "quadratic":
+            return 0.5 * u * u
+        return np.maximum(u - self.time, 0.0)
+
+    def plausible(self, duration):
+        """A clock could do this: a drift term changes the drift by at most MAX_DRIFT_CHANGE over ``duration``,
+        a step is at most MAX_STEP."""
+        if self.kind == "quadratic":
+            return abs(self.value) * duration <= MAX_DRIFT_CHANGE
+        if self.kind == "hinge":
+            return abs(self.value) <= MAX_DRIFT_CHANGE
+        return bool(np.isfinite(self.value)) and abs(self.value) <= MAX_STEP
+
+    def with_value(self, value, std=None):
+        return Component(self.kind, self.time, float(value), std)
+
+
+def basis_matrix(comps, u):
+    """(len(u), len(comps)) φ of every component at times u, one vectorised expression per kind."""
+    u = np.asarray(u, float)
+    kind = np.array([c.kind for c in comps], dtype=object)
+    time = np.array([c.time for c in comps], float)
+    out = np.zeros((len(u), len(comps)))
+    step = (kind == "step") | (kind == "mshift")
+    out[:, step] = u[:, None] >= time[step][None, :]
+    out[:, kind == "quadratic"] = 0.5 * (u * u)[:, None]
+    hinge = kind == "hinge"
+    out[:, hinge] = np.maximum(u[:, None] - time[hinge][None, :], 0.0)
+    return out
+
+
+def extra(components, u):
+    """h(u) = Σ c φ(u) of a list of components."""
+    out = np.zeros(np.shape(u))
+    for c in components:
+        out = out + c.value * c.basis(u)
+    return out
+
+
+def as_clock(components, offset=0.0, drift=0.0, t0=0.0):
+    """The :class:`calib.clock.Clock` of a linear clock plus components (steps and drift terms)."""
+    steps = tuple(Step(c.time, c.value, c.std) for c in components if c.kind == "step")
+    terms = tuple(Term("quadratic", {"slope": c.value}) if c.kind == "quadratic"
+                  else Term("hinge", {"time": c.time, "change": c.value}) for c in components if c.kind != "step")
+    return Clock(offset, drift, t0, steps, terms)
+
+
+# ----------------------------------------------------------------------------------------------- features
+def correct_features(features, models):
+    """A copy of ``features`` with the clock components taken out of the TDOAs.
+
+    models : {array name: [Component]}. TDOA-M of array i at event j loses h_i(t_j) and gains h_ref(t_j);
+    TDOA-S of array i over (a, b) loses h_i(t_b) − h_i(t_a). The key EMITTER: the emission times are late
+    by h(t) (every array's TDOA-S loses h(t_b) − h(t_a); the TDOA-M, a difference at one emission, keep
+    theirs). Nothing else changes.
+    """
+    models = {k: v for k, v in (models or {}).items() if v}
+    if not models:
+        return features
+    ev = features["events"]
+    t0 = float(ev["t_emit"].iloc[0])
+    u_of = dict(zip(ev["event"].to_numpy(int), ev["t_emit"].to_numpy(float) - t0))
+    ref = features["meta"]["reference_array"]
+    out = dict(features)
+    tm = features["tdoa_m"].copy()
+    u = np.array([u_of[e] for e in tm["event"].to_numpy(int)])
+    corr = np.zeros(len(tm))
+    for name, comps in models.items():
+        if name == EMITTER:
+            continue   # the emission times' error is common to both arrays of a TDOA-M
+        if name == ref:
+            corr -= extra(comps, u)
+        else:
+            corr += np.where(tm["array"].to_numpy() == name, extra(comps, u), 0.0)
+    tm["tdoa"] = tm["tdoa"].to_numpy(float) - corr
+    ts = features["tdoa_s"].copy()
+    ua = np.array([u_of[e] for e in ts["from_event"].to_numpy(int)])
+    ub = np.array([u_of[e] for e in ts["to_event"].to_numpy(int)])
+    corr = np.zeros(len(ts))
+    for name, comps in models.items():
+        mine = np.ones(len(ts), bool) if name == EMITTER else ts["array"].to_numpy() == name
+        corr += np.where(mine, extra(comps, ub) - extra(comps, ua), 0.0)
+    ts["tdoa"] = ts["tdoa"].to_numpy(float) - corr
+    out["tdoa_m"], out["tdoa_s"] = tm, ts
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- per-array fits
+@dataclass
+class ArrayData:
+    """One array's TDOAs with everything else fixed at a fit: TDOA-S rows (event indices a, b, value zs),
+    TDOA-M rows as local arrival times (event j, ym = TDOA-M + the reference's predicted arrival), the
+    sources s (K, 3), event times u (K,) and t (K, + emission corrections), c, β, the σs; ``ref``: the
+    reference array (its TDOA-S only, its position fixed at the origin)."""
+    a: np.ndarray
+    b: np.ndarray
+    zs: np.ndarray
+    j: np.ndarray
+    ym: np.ndarray
+    s: np.ndarray
+    u: np.ndarray
+    t: np.ndarray
+    c: float
+    beta: float
+    sig_s: float
+    sig_m: float
+    ref: bool
+
+    @property
+    def n(self):
+        return len(self.zs) + len(self.ym)
+
+
+def array_data(p, st, i):
+    """:class:`ArrayData` of array i at the state ``st`` of problem ``p``."""
+    ms = p.tdoa_s.arr == i
+    t = p.t + st.e
+    if i != p.ref:
+        mm = p.tdoa_m.arr == i
+        j = p.tdoa_m.ev[mm]
+        d0 = np.linalg.norm(st.s[j] - st.x[p.ref], axis=1)
+        aref = (1 + st.drift[p.ref]) * (t[j] + d0 / p.c) + st.offset[p.ref] + p.beta * st.drift[p.ref]
+        ym = p.tdoa_m.val[mm] + aref
+    else:
+        j, ym = np.zeros(0, int), np.zeros(0)
+    return ArrayData(p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms], j, ym, st.s, p.t, t, p.c, p.beta,
+                     p.sigma["tdoa_s"], p.sigma["tdoa_m"], i == p.ref)
+
+
+def _design(D, comps):
+    """Basis columns of components on the TDOA-S rows (φ(u_b) − φ(u_a)) and TDOA-M rows (φ(u_j))."""
+    if not comps:
+        return np.zeros((len(D.zs), 0)), np.zeros((len(D.ym), 0))
+    # an "mshift" (the reference's step seen from this array: its TDOA-M shift, no TDOA-S jump) has no TDOA-S part
+    S = (basis_matrix(comps, D.u[D.b]) - basis_matrix(comps, D.u[D.a])) * np.array([c.kind != "mshift" for c in comps])
+    M = basis_matrix(comps, D.u[D.j])
+    return S, M
+
+
+def _residuals(D, x, g, tau, coef, PS, PM):
+    """Whitened residuals (model − data) and Jacobian columns [x (3), g, τ, coef...] of one array."""
+    ws = D.s[D.b] - x
+    wa = D.s[D.a] - x
+    db, da = np.linalg.norm(ws, axis=1), np.linalg.norm(wa, axis=1)
+    h = D.t[D.b] - D.t[D.a] + (db - da) / D.c
+    rs = (g * h + PS @ coef - D.zs) / D.sig_s
+    Js = np.column_stack([-(g / D.c) * (ws / db[:, None] - wa / da[:, None]), h, np.zeros(len(h)), PS]) / D.sig_s
+    wm = D.s[D.j] - x
+    dm = np.linalg.norm(wm, axis=1)
+    tm = D.t[D.j] + dm / D.c
+    rm = (g * tm + tau + D.beta * (g - 1) + PM @ coef - D.ym) / D.sig_m
+    Jm = np.column_stack([-(g / D.c) * wm / dm[:, None], tm + D.beta, np.ones(len(tm)), PM]) / D.sig_m
+    return np.concatenate([rs, rm]), np.vstack([Js, Jm])
+
+
+def huber_rho(r, k=HUBER_K):
+    a = np.abs(r)
+    return np.where(a <= k, 0.5 * r * r, k * a - 0.5 * k * k)
+
+
+def fit_array(D, comps, x0, g0, tau0):
+    """Robust (Huber) Gauss–Newton fit of one array's position (not the reference's), clock and the
+    components' coefficients. Returns (x, g, τ, coef, whitened residuals)."""
+    PS, PM = _design(D, comps)
+    theta = np.concatenate([x0, [g0, tau0], [c.value for c in comps]]).astype(float)
+    free = np.ones(len(theta), bool)
+    if D.ref:
+        free[:3] = False
+        free[4] = False
+    for _ in range(GN_ITERATIONS):
+        r, J = _residuals(D, theta[:3], theta[3], theta[4], theta[5:], PS, PM)
+        w = np.sqrt(np.where(np.abs(r) <= HUBER_K, 1.0, HUBER_K / np.maximum(np.abs(r), 1e-300)))
+        A = J[:, free] * w[:, None]
+        d = np.linalg.norm(A, axis=0)
+        d = np.where(d > 0, d, 1.0)
+        step = np.linalg.lstsq(A / d, -r * w, rcond=None)[0] / d
+        theta[free] += step
+        if np.all(np.abs(step[3:] if not D.ref else step) <= 1e-10 * (1 + np.abs(theta[free][3:] if not D.ref
+                                                                                 else theta[free]))) \
+                and np.linalg.norm(step[:3] if not D.ref else 0.0) < 1e-7:
+            break
+    r, _ = _residuals(D, theta[:3], theta[3], theta[4], theta[5:], PS, PM)
+    return theta[:3], theta[3], theta[4], theta[5:], r
+
+
+def candidates(u, comps):
+    """Components to test on this array: a step in every interval between consecutive event times (but those
+    next to a step it has), the quadratic, a hinge at every interior event time but the last (those already
+    in ``comps`` left out)."""
+    t = np.unique(u)
+    have = {(c.kind, round(c.time, 9)) for c in comps}
+    # no step next to one already there: two opposite steps around one event are that event's arrival off
+    near = {k + d for c in comps if c.kind == "step" for k in [int(np.searchsorted(t, c.time)) - 1] for d in (-1, 1)}
+    out = [Component("step", 0.5 * (t[k] + t[k + 1]), 0.0) for k in range(len(t) - 1) if k not in near]
+    # (no hinge at the last interior event: it moves only the last event, as a step in the last interval)
+    out += [Component("quadratic", 0.0, 0.0)] + [Component("hinge", float(v), 0.0) for v in t[1:-2]]
+    return [c for c in out if (c.kind, round(c.time, 9)) not in have]
+
+
+def family_sizes(u):
+    """Number of candidates :func:`candidates` tests for event times u (the scans' multiplicity)."""
+    k = len(np.unique(u))
+    return max(k - 1, 1) + 1 + max(k - 3, 1)
+
+
+def penalty(kind, n, n_arrays, n_candidates):
+    """The χ² drop a new component must beat: BIC's ln n, or the χ²₁ quantile at FAMILY_ALPHA / 2 (two
+    tests: :func:`best_component`, :func:`joint_scan`) over the arrays and the candidates tested on each (the
+    scan's multiplicity, every kind), whichever is larger."""
+    m = 2 * max(n_candidates, 1) * max(n_arrays, 1)
+    return max(float(np.log(max(n, 2))), float(chdtri(1, FAMILY_ALPHA / m)))
+
+
+def best_component(D, comps, x0, g0, tau0, n_arrays):
+    """The best new component of one array and its margin over the penalty (χ²), or (None, margin <= 0).
+
+    The base fit (``comps``) and each candidate's fit are robust; their χ² drop is measured in the
+    residuals' own robust scale (MAD of the best candidate's whitened residuals, at least 1: a sigma stated
+    too small never makes a false step)."""
+    if len(np.unique(D.u)) < MIN_EVENTS or D.n < MIN_EVENTS or len(comps) >= MAX_COMPONENTS:
+        return None, 0.0, None
+    xb, gb, tb, cb, rb = fit_array(D, comps, x0, g0, tau0)
+    base = [c.with_value(v) for c, v in zip(comps, cb)]
+    cands = candidates(D.u, comps)
+    if not D.ref:   # the reference's step, seen from here
+        cands += [Component("mshift", c.time, 0.0) for c in cands if c.kind == "step"]
+    fits = []
+    duration = float(np.ptp(D.u))
+    for cand in cands:
+        x, g, tau, coef, r = fit_array(D, base + [cand], xb, gb, tb)
+        if np.all(np.isfinite(r)) and cand.with_value(coef[-1]).plausible(duration):
+            fits.append((float(np.sum(huber_rho(r))), cand, coef, r))
+    if not fits:
+        return None, 0.0, None
+    scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
+    best = None
+    for kind in ("step", "mshift", "quadratic", "hinge"):
+        fam = [f for f in fits if f[1].kind == kind]
+        if not fam:
+            continue
+        cost, cand, coef, r = min(fam, key=lambda f: f[0])
+        drop = 2.0 * (np.sum(huber_rho(rb / scale)) - np.sum(huber_rho(r / scale)))
+        margin = drop - penalty(kind, D.n, n_arrays, len(fits))   # (Bonferroni over every candidate tested)
+        if best is None or margin > best[1]:
+            new = [c.with_value(v) for c, v in zip(base + [cand], coef)]
+            # candidates the rows cannot tell apart go to the rivals' solves (as in :func:`joint_scan`)
+            tied = [[c.with_value(v) for c, v in zip(base + [f[1]], f[2])] for f in fam
+                    if f[1] is not cand and abs(f[0] - cost) <= 1e-6 * max(abs(cost), 1.0)]
+            best = (new, float(margin), {"chi2_drop": float(drop), "scale": scale, "kind": kind, "tied": tied})
+    return best
+
+
+# ----------------------------------------------------------------------------------------------- joint scan
+def _kinds(p):
+    from .factors import active_kinds
+
+    return active_kinds(p)
+
+
+def joint_scan(result, models):
+    """Every array's candidates tested in the linearised joint problem at ``result`` (the sources and the
+    other arrays free: what a fit absorbs by moving them is not evidence). Rows Huber-weighted (an outlier
+    row cannot make a step), the χ² drop of each candidate column after projecting out the Jacobian's
+    (and the existing components') columns, in the robust scale of the residuals.
+
+    Returns {array index: (new components as increments, margin, info)} like :func:`best_component`, or
+    {} for problems too large for a dense Jacobian."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p, st = result["problem"], result["state"]
+    lay = make_layout(p)
+    if lay.n > DENSE_MAX:
+        return {}
+    lin = linearise(p, st, lay, _kinds(p))
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    r = lin.r
+    tdoa = np.concatenate([np.full(len(f.r), f.kind in ("tdoa_s", "tdoa_m")) for f in lin.factors])
+    scale = max(1.0, 1.4826 * float(np.median(np.abs(r[tdoa])))) if tdoa.any() else 1.0
+    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    zero = {name: [c.with_value(0.0) for c in comps] for name, comps in models.items()}
+    E, _ = component_columns(p, lin.factors, zero)
+    Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
+    rw = r * sw
+    rp = rw - Q @ (Q.T @ rw)
+    out = {}
+    for i in range(-1, p.N):   # -1: the emitter
+        name = EMITTER if i < 0 else str(p.names[i])
+        have = zero.get(name, [])
+        if len(have) >= MAX_COMPONENTS or len(np.unique(p.t)) < MIN_EVENTS:
+            continue
+        cands = candidates(p.t, have)
+        B = _columns(p, lin.factors, i, cands) * sw[:, None]
+        Bp = B - Q @ (Q.T @ B)
+        den = np.einsum("ij,ij->j", Bp, Bp)
+        ok = den > 1e-12 * np.maximum(np.einsum("ij,ij->j", B, B), 1e-300)
+        num = Bp.T @ rp
+        value = np.where(ok, -num / np.where(ok, den, 1.0), 0.0)
+        fine = np.array([c.with_value(v).plausible(float(np.ptp(p.t))) for c, v in zip(cands, value)], bool)
+        drop = np.where(ok & fine, num * num / np.where(ok, den, 1.0), 0.0) / scale ** 2
+        n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
+        best = None
+        for kind in ("step", "quadratic", "hinge"):
+            fam = np.flatnonzero([c.kind == kind for c in cands])
+            if not fam.size:
+                continue
+            k = fam[np.argmax(drop[fam])]
+            margin = float(drop[k]) - penalty(kind, n, p.N + 1, len(cands))   # (over every candidate tested)
+            if best is None or margin > best[1]:
+                new = have + [cands[k].with_value(value[k])]
+                # candidates the rows cannot tell apart (an array without rows at the event between two
+                # intervals: screened out, or missed) go to the rivals' solves (:func:`_decide`)
+                tied = [have + [cands[j].with_value(value[j])] for j in fam
+                        if j != k and abs(drop[j] - drop[k]) <= 1e-6 * max(abs(drop[k]), 1.0)]
+                best = (new, margin, {"chi2_drop": float(drop[k]), "scale": scale, "kind": kind, "test": "joint",
+                                      "tied": tied})
+        if best is not None:
+            out[i] = best
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- selection
+def detect(result, models):
+    """One detection round at a solved ``result``: proposals {array name: its components with the new one}
+    of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
+    within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
+    arrays' tests) — and the round's records. The emitter (:data:`EMITTER`, emission times off: the same term in every clock) is
+    one more candidate, tested jointly only."""
+    p, st = result["problem"], result["state"]
+    found, records = {}, []
+    joint = joint_scan(result, models)
+    suspects = _suspects(result)
+    for i in range(-1, p.N):
+        name = EMITTER if i < 0 else str(p.names[i])
+        zero = [c.with_value(0.0) for c in models.get(name, [])]
+        got = None
+        # the fit may be bent around this array: its own robust fits, sources held (not the reference's: a
+        # step of its clock shows in every other array's TDOA-M, which its own fit does not see)
+        if i >= 0 and i != p.ref and name in suspects:
+            D = array_data(p, st, i)
+            got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1)
+        if got is not None and got[0] is not None:
+            got[2]["test"] = "array"
+        if i in joint and (got is None or got[0] is None or joint[i][1] > got[1]):
+            got = joint[i]
+        if got is None or got[0] is None:
+            continue
+        new, margin, info = got
+        tied = info.pop("tied", [])
+        records.append({"array": name, "margin_chi2": margin, **info})
+        if margin > 0:
+            found[name] = (new, margin)
+            for k, alt in enumerate(tied[:MAX_RIVALS - 1]):
+                found[(name, k)] = (alt, margin)
+    ref = str(p.names[p.ref])
+    proposals = []
+    for key, (new, margin) in found.items():
+        name = key[0] if isinstance(key, tuple) else key
+        if new[-1].kind == "mshift":   # the reference's clock stepped: its step (opposite sign)
+            step = Component("step", new[-1].time, -new[-1].value)
+            have = [c.with_value(0.0) for c in models.get(ref, [])]
+            allowed = {round(c.time, 9) for c in candidates(p.t, have) if c.kind == "step"}
+            if round(step.time, 9) not in allowed:
+                continue
+            name, new = ref, have + [step]
+        old = models.get(name, [])
+        merged = [c.with_value(c.value + (old[k].value if k < len(old) else 0.0)) for k, c in enumerate(new)]
+        if _pulse(merged):
+            continue
+        proposals.append((margin, {name: merged}))
+    # the strongest evidence first (a large fault bends the fit and so the others' tests); rivals within
+    # TIE_MARGIN of it are decided by solving with each (:func:`_decide`)
+    proposals.sort(key=lambda m: -m[0])
+    return [prop for m, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS], records
+
+
+PULSE_MATCH = 0.25   # a drop and an insert this close in size (share of the larger) on one array: a pulse
+
+
+def _pulse(comps):
+    """A step that undoes another of the array's (opposite sign, sizes within PULSE_MATCH): the arrivals
+    between them are late or early as a block — reflections while the line of sight is blocked, or a bad
+    stretch of detections — which no clock does (a buffer that drops samples does not give them back)."""
+    steps = [c for c in comps if c.kind == "step"]
+    new = steps[-1] if steps and comps[-1].kind == "step" else None
+    if new is None:
+        return False
+    return any(c.value * new.value < 0 and abs(c.value + new.value) <= PULSE_MATCH * max(abs(c.value), abs(new.value))
+               for c in steps[:-1])
+
+
+def _has_pulse(comps):
+    """Any two of the array's steps undo each other (:func:`_pulse`)."""
+    steps = [c for c in comps if c.kind == "step"]
+    return any(_pulse(steps[:k + 1]) for k in range(1, len(steps)))
+
+
+def _decide(solve, features, models, proposals, options):
+    """(models, result) of the proposal whose solve leaves the smallest robust cost (one solve each)."""
+    best = None
+    for prop in proposals:
+        trial = {**models, **prop}
+        corrected = correct_features(features, trial)
+        res = solve(corrected, **options)
+        cost, sig = _robust_cost(res, None if best is None else best[2], corrected)
+        if best is None or cost < best[0]:
+            best = (cost, (trial, res), sig if best is None else best[2])
+    return best[1]
+
+
+def _robust_cost(result, row_sigma=None, features=None):
+    """Σ Huber(r) over every row (outliers included) at a solved result, whitened by ``row_sigma`` (default
+    the result's own: pass the first trial's, so that trials with re-estimated sigmas compare in one unit);
+    over every row of ``features`` when given (rows the solve screened out count too: a wrong model must not
+    win by screening the rows that contradict it). Returns (cost, the row sigmas used)."""
+    from .problem import build_problem, make_layout
+    from .solver import linearise
+
+    p = result["problem"]
+    if features is not None:
+        q = build_problem(features, use_tdoa_s=bool(len(p.tdoa_s.val)), sigma_emit=p.sigma.get("emission", 0.0),
+                          odometry_yaw=p.odo_yaw_free)
+        if q.K == p.K and q.N == p.N:
+            q.sigma.update(p.sigma)
+            p = q
+    lin = linearise(p, result["state"], make_layout(p), _kinds(p))
+    own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
+    sig = own if row_sigma is None else row_sigma
+    return float(np.sum(huber_rho(lin.r * own / sig))), sig
+
+
+def _suspects(result):
+    """Arrays the fit may be bent around: dropped as inconsistent, or with TDOA rows flagged as outliers."""
+    rep = result.get("report") or {}
+    out = set(_unreliable(result))
+    outliers = result["outliers"] if "outliers" in result else rep.get("outliers") or []
+    return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
+
+
+def calibrate_clocks(solve, features, *, clock_model="linear", **options):
+    """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
+
+    clock_model : "linear" (default, for now: on the `hard` preset's occluded arrays the selection still takes
+        reflections for clock steps, tests/test_robust.py slow) or "auto": steps / drift terms per array.
+    The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
+    arrays' and sources' 1-σ include the components' uncertainty.
+    """
+    if clock_model not in ("auto", "linear"):
+        raise ValueError(f"clock_model must be 'auto' or 'linear', not {clock_model!r}")
+    result = solve(features, **options)
+    # the corrected TDOAs make a new problem (a prebuilt one, ``problem=``, is of the uncorrected features)
+    options = {k: v for k, v in options.items() if k != "problem"}
+    models, rounds = {}, []
+    p = result["problem"]
+    # the reference runs at a rate no crystal gives against the emission times: the session's time base
+    # (events.csv t_emit, or the reference's stated rate) is wrong; nothing to model (named in the report)
+    base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
+    first = result
+    if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
+        for _ in range(MAX_ROUNDS):
+            proposals, records = detect(result, models)
+            rounds.append(records)
+            if not proposals:
+                break
+            if len(proposals) == 1:
+                models = {**models, **proposals[0]}
+                result = solve(correct_features(features, models), **options)
+            else:
+                models, result = _decide(solve, features, models, proposals, options)
+        if models:
+            result, models = _refine_and_resolve(solve, features, result, models, options)
+            if _worse(result, first):   # the models did not explain the data: the linear clock's result
+                result, models = first, {}
+                rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
+    _attach_report(result, features, models, rounds)
+    return result
+
+
+def _worse(result, first):
+    """The result with clock models is worse than the linear clock's: a worse verdict, or (solution outputs)
+    not converged where that one was, or more unreliable arrays."""
+    from .verdict import STATUS_RANK
+
+    rank = [STATUS_RANK.get(((r.get("report") or {}).get("verdict") or {}).get("status"), 0) for r in (result, first)]
+    conv = [bool(r["report"]["converged"] if "report" in r else r.get("converged", True)) for r in (result, first)]
+    return rank[0] > rank[1] or (conv[1] and not conv[0]) or len(_unreliable(result)) > len(_unreliable(first))
+
+
+def _refine_and_resolve(solve, features, result, models, options):
+    """The joint step for the components (:func:`refine`), then backward elimination: the component whose
+    joint χ² (value / σ)² falls furthest short of its penalty is removed and the session solved again (a
+    component taken while a larger fault still bent the fit may not be needed once that fault is modelled);
+    solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ."""
+    cov_info = None
+    for _ in range(2 * sum(len(c) for c in models.values()) + 2):
+        moved, models, cov_info = refine(result, models)
+        weak = _weakest(result["problem"], models)
+        if weak is not None:
+            name, k = weak
+            models = {**models, name: [c for j, c in enumerate(models[name]) if j != k]}
+            models = {n: c for n, c in models.items() if c}
+        elif not moved:
+            break
+        result = solve(correct_features(features, models), **options)
+        if not models:
+            return result, models
+    # an array the session still contradicts with its components (dropped as inconsistent, or named for
+    # holding the outliers: biased as a whole): they did not explain it, a reflection's bias is no clock's; it
+    # keeps the linear clock and the consistency tests name it as before
+    flagged = ((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or []
+    bad = [n for n in set(_unreliable(result)) | set(flagged) if n in models]
+    bad += [n for n, comps in models.items() if n not in bad and _has_pulse(comps)]
+    if bad:
+        models = {n: c for n, c in models.items() if n not in bad}
+        result = solve(correct_features(features, models), **options)
+        cov_info = refine(result, models)[2] if models else None
+    _apply_std(result, cov_info)
+    return result, models
+
+
+def _unreliable(result):
+    return list((result.get("report") or {}).get("unreliable_arrays") or result.get("unreliable_arrays") or [])
+
+
+def _weakest(p, models):
+    """(array name, index) of the component with the most negative (value/σ)² − penalty, or None."""
+    sizes = family_sizes(p.t)
+    index = {str(n): i for i, n in enumerate(p.names)}
+    worst, where = 0.0, None
+    duration = float(np.ptp(p.t))
+    for name, comps in models.items():
+        i = index.get(name, -1)
+        n = len(p.tdoa_s.val) if i < 0 else int(np.sum(p.tdoa_s.arr == i)) + int(np.sum(p.tdoa_m.arr == i))
+        for k, c in enumerate(comps):
+            if not c.plausible(duration):
+                return name, k
+            if not c.std:
+                continue
+            m = (c.value / c.std) ** 2 - penalty(c.kind, n, p.N + 1, sizes)
+            if m < worst:
+                worst, where = m, (name, k)
+    return where
+
+
+# ----------------------------------------------------------------------------------------------- joint step
+DENSE_MAX = 4000   # parameters: above this the components' σ are conditional (the rest held), no joint std
+
+
+def _outlier_mask(fs, outliers):
+    """{kind: keep per residual} from report-style outlier records (type, line), as ``assess.rebuild``."""
+    flagged = {}
+    for o in outliers or []:
+        flagged.setdefault(o["type"], set()).add(int(o["line"]))
+    return {f.kind: ~np.isin(np.asarray(f.row), list(flagged[f.kind])) for f in fs if f.kind in flagged}
+
+
+def _columns(p, fs, i, comps):
+    """Whitened Jacobian columns (rows of the stacked factors ``fs``) of array i's components' coefficients
+    (i = -1: the emitter's, every array's TDOA-S)."""
+    if i < 0:
+        return _emitter_columns(p, fs, comps)
+    u = p.t
+    B = np.zeros((sum(len(f.r) for f in fs), len(comps)))
+    start = 0
+    for f in fs:
+        n = len(f.r)
+        sig = np.broadcast_to(f.row_sigma, n)[:, None]
+        if f.kind == "tdoa_s":
+            rows = p.tdoa_s
+            mine = rows.arr == i
+            B[start:start + n][mine] = (basis_matrix(comps, u[rows.b[mine]])
+                                        - basis_matrix(comps, u[rows.a[mine]])) / sig[mine]
+        elif f.kind == "tdoa_m":
+            rows = p.tdoa_m
+            mine = np.ones(n, bool) if i == p.ref else rows.arr == i
+            B[start:start + n][mine] = (-1.0 if i == p.ref else 1.0) * basis_matrix(comps, u[rows.ev[mine]]) / sig[mine]
+        start += n
+    return B
+
+
+def _emitter_columns(p, fs, comps):
+    """The emitter's columns: every array's TDOA-S (each TDOA-M, a difference at one emission, cancels)."""
+    u = p.t
+    B = np.zeros((sum(len(f.r) for f in fs), len(comps)))
+    start = 0
+    for f in fs:
+        n = len(f.r)
+        if f.kind == "tdoa_s" and comps:
+            rows = p.tdoa_s
+            sig = np.broadcast_to(f.row_sigma, n)[:, None]
+            B[start:start + n] = (basis_matrix(comps, u[rows.b]) - basis_matrix(comps, u[rows.a])) / sig
+        start += n
+    return B
+
+
+def component_columns(p, fs, models):
+    """Whitened Jacobian columns of every component's coefficient (:func:`_columns`) and the (array name,
+    component index) of each column."""
+    index = {**{str(n): i for i, n in enumerate(p.names)}, EMITTER: -1}
+    keys = [(name, k) for name, comps in models.items() for k in range(len(comps))]
+    cols = [_columns(p, fs, index[name], comps) for name, comps in models.items() if comps]
+    return (np.hstack(cols) if cols else np.zeros((sum(len(f.r) for f in fs), 0))), keys
+
+
+def refine(result, models):
+    """One joint Gauss–Newton step of the components' coefficients with every parameter of the solved
+    ``result`` (on the corrected data), and the joint covariance.
+
+    Returns (moved: a coefficient moved by more than REFIT_SIGMA σ, models with the new values and their
+    1-σ, info for :func:`_apply_std`: the problem, layout and joint covariance of the other parameters)."""
+    from .problem import make_layout
+    from .solver import linearise
+    from .uncertainty import covariance
+
+    p, st = result["problem"], result["state"]
+    kinds = _kinds(p)
+    lay = make_layout(p)
+    full = linearise(p, st, lay, kinds)
+    outliers = result["outliers"] if "outliers" in result else result["report"]["outliers"]
+    lin = linearise(p, st, lay, kinds, mask=_outlier_mask(full.factors, outliers))
+    B, keys = component_columns(p, lin.factors, models)
+    keep = lin.w > 0
+    if lay.n > DENSE_MAX:
+        return _conditional(lin, B, keep, keys, models)
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    # the step: every row, Huber-weighted (rows flagged against a wrong component are evidence against it)
+    r = full.r
+    scale = max(1.0, 1.4826 * float(np.median(np.abs(r[keep])))) if keep.any() else 1.0
+    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    Ah = np.hstack([J, B]) * sw[:, None]
+    step = np.linalg.lstsq(Ah, -r * sw, rcond=None)[0]
+    # the covariance: the estimator's rows (outliers out), as its own error bars
+    A = np.hstack([J, B])[keep] * np.sqrt(lin.w[keep])[:, None]
+    cov = covariance(A, A.shape[1])
+    dc, sd = step[lay.n:], np.sqrt(np.maximum(np.diag(cov)[lay.n:], 0.0))
+    return _update(models, keys, dc, sd) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n]},)
+
+
+def _conditional(lin, B, keep, keys, models):
+    """Large problems: the components' step and σ with the other parameters held (no joint covariance)."""
+    Bk = B[keep] * np.sqrt(lin.w[keep])[:, None]
+    cov = np.linalg.pinv(Bk.T @ Bk)
+    dc = -cov @ (Bk.T @ (lin.r[keep] * np.sqrt(lin.w[keep])))
+    return _update(models, keys, dc, np.sqrt(np.maximum(np.diag(cov), 0.0))) + (None,)
+
+
+def _update(models, keys, dc, sd):
+    moved = bool(np.any(np.abs(dc) > REFIT_SIGMA * np.maximum(sd, 1e-300)))
+    out = {name: list(comps) for name, comps in models.items()}
+    for col, (name, k) in enumerate(keys):
+        c = out[name][k]
+        out[name][k] = c.with_value(c.value + dc[col], float(sd[col]))
+    return moved, out
+
+
+def _apply_std(result, info):
+    """The arrays' and sources' 1-σ columns from the joint covariance with the components (where they are
+    given: an unreliable array's stay empty)."""
+    if info is None or "arrays" not in result:
+        return
+    from .uncertainty import std_from_cov
+
+    std = std_from_cov(info["problem"], info["layout"], info["cov"])
+    arrays, sources = result["arrays"], result["sources"]
+    cols = [("x", [f"{c}_std" for c in "xyz"]), ("rot", [f"r{c}_std" for c in "xyz"]),
+            ("offset", ["offset_std"]), ("drift", ["drift_std"])]
+    for key, names in cols:
+        v = np.asarray(std[key]).reshape(len(arrays), -1)
+        for k, col in enumerate(names):
+            if col in arrays:
+                old = arrays[col].to_numpy(float)
+                arrays[col] = np.where(np.isfinite(old) & np.isfinite(v[:, k]), v[:, k], old)
+    for k, c in enumerate("xyz"):
+        col = f"{c}_std"
+        if col in sources:
+            old = sources[col].to_numpy(float)
+            sources[col] = np.where(np.isfinite(old), std["s"][:, k], old)
+
+
+# ----------------------------------------------------------------------------------------------- report
+def _event_of(features):
+    ev = features["events"]
+    t0 = float(ev["t_emit"].iloc[0])
+    return ev["event"].to_numpy(int), ev["t_emit"].to_numpy(float) - t0
+
+
+def nominal_rate(drift, std=None):
+    """A wrong nominal rate read from a fitted drift, or None: {ratio, header_hz, actual_hz (when the ratio
+    matches two common rates), crystal_drift (what is left of the drift after that ratio)}."""
+    if not np.isfinite(drift) or abs(drift) < RATE_ERROR_MIN:
+        return None
+    ratio = 1.0 + float(drift)
+    pair = header_ratio(ratio, RATE_MATCH_TOL + 3.0 * float(std or 0.0))
+    out = {"ratio": ratio, "header_hz": None, "actual_hz": None, "crystal_drift": None}
+    if pair:
+        out.update(header_hz=pair[0], actual_hz=pair[1], crystal_drift=ratio / (pair[1] / pair[0]) - 1.0)
+    return out
+
+
+def _rate_drifts(result):
+    """Each array's drift to judge for a wrong nominal rate (NaN: not judged), and the common ratio of a
+    wrong time base (or None). Against the emission times, an array runs off by a ratio no crystal gives
+    when its own header is wrong — or when the emission times are scaled, and then every array (the
+    reference too) runs off by the same ratio: that is named once, as the time base, not per array."""
+    st, ref = result["state"], int(result["problem"].ref)
+    g = 1.0 + np.asarray(st.drift, float)
+    off = np.abs(g - 1.0) >= RATE_ERROR_MIN
+    same_as_ref = np.abs(g / g[ref] - 1.0) < RATE_ERROR_MIN
+    if off[ref] and np.mean(same_as_ref) > 0.5:   # most arrays agree with the reference: the time base
+        return np.where(same_as_ref, 0.0, g / g[ref] - 1.0), float(g[ref])
+    return g - 1.0, None
+
+
+def _base_text(ratio):
+    return (f"time base: the arrays' clocks run at {ratio:.5f}× the emission times (events.csv t_emit), all "
+            "alike: those times are scaled (or every stated sample rate is wrong); no clock model was fitted")
+
+
+def _rate_text(name, nr):
+    if nr["header_hz"]:
+        return (f"{name}: wrong nominal sample rate: its clock runs at {nr['ratio']:.5f}× the stated rate, as a "
+                f"{nr['actual_hz']} Hz board whose WAV says {nr['header_hz']} Hz (crystal drift after that: "
+                f"{nr['crystal_drift'] * 1e6:+.0f} ppm); calibrated with that rate")
+    return (f"{name}: wrong nominal sample rate: its clock runs at {nr['ratio']:.5f}× the stated rate "
+            f"({(nr['ratio'] - 1) * 100:+.2f} %, no crystal drifts so far); calibrated with that rate")
+
+
+def array_clock_entry(comps, events, u, drift, drift_std):
+    """report.json ``clock.arrays[name]``: drift model, steps (between which events, size, σ), drift terms,
+    the raw components (read back by :func:`models_from_report`) and a nominal-rate finding."""
+    steps = []
+    for c in comps:
+        if c.kind != "step":
+            continue
+        before, after = u < c.time, u > c.time
+        steps.append({"after_event": int(events[before][np.argmax(u[before])]) if before.any() else None,
+                      "before_event": int(events[after][np.argmin(u[after])]) if after.any() else None,
+                      "time": float(c.time), "size": float(c.value), "std": c.std,
+                      "kind": "inserted" if c.value > 0 else "dropped"})
+    terms = [c for c in comps if c.kind != "step"]
+    kinds = sorted({"quadratic" if c.kind == "quadratic" else "piecewise_linear" for c in terms})
+    return {"drift_model": "+".join(kinds) if kinds else "linear", "steps": steps,
+            "drift_terms": [({"kind": "quadratic", "slope": c.value, "std": c.std} if c.kind == "quadratic" else
+                             {"kind": "hinge", "time": c.time, "change": c.value, "std": c.std}) for c in terms],
+            "components": [{"kind": c.kind, "time": c.time, "value": c.value, "std": c.std} for c in comps],
+            "nominal_rate": nominal_rate(drift, drift_std)}
+
+
+def models_from_report(report):
+    """{array name: [Component]} from report.json ``clock`` (empty when absent: the linear clock)."""
+    clock = (report or {}).get("clock") or {}
+    entries = {**(clock.get("arrays") or {}), EMITTER: clock.get("emitter") or {}}
+    return {name: [Component(c["kind"], float(c["time"]), float(c["value"]), c.get("std"))
+                   for c in e.get("components") or []] for name, e in entries.items() if e.get("components")}
+
+
+def clock_report(result, features, models, rounds):
+    """report.json ``clock``: per array its model (:func:`array_clock_entry`), the emitter's (emission times
+    off by a common term), the findings, the detection rounds' records."""
+    events, u = _event_of(features)
+    st = result["state"]
+    std = result["arrays"]["drift_std"].to_numpy(float) if "arrays" in result else np.full(len(st.drift), np.nan)
+    arrays, findings = {}, []
+    rates, base = _rate_drifts(result)
+    for i, name in enumerate(str(n) for n in features["meta"]["arrays"]):
+        e = array_clock_entry(models.get(name, []), events, u, rates[i], std[i])
+        if e["nominal_rate"]:
+            e["nominal_rate"]["relative_to"] = "emitter (events.csv t_emit)"
+        arrays[name] = e
+        for s in e["steps"]:
+            sd = f", σ {s['std'] * 1e6:.1f} µs" if s["std"] is not None else ""
+            findings.append(f"{name}: {abs(s['size']) * 1e3:.3f} ms of samples {s['kind']} between events "
+                            f"{s['after_event']} and {s['before_event']}{sd} (modelled as a clock step)")
+        if e["drift_model"] != "linear":
+            findings.append(f"{name}: drift varies over the session (modelled as {e['drift_model']})")
+        if e["nominal_rate"]:
+            findings.append(_rate_text(name, e["nominal_rate"]))
+    if base is not None:
+        findings.append(_base_text(base))
+    emitter = array_clock_entry(models.get(EMITTER, []), events, u, 0.0, None)
+    emitter.pop("nominal_rate")
+    for s in emitter["steps"]:
+        findings.append(f"emission times: the interval between events {s['after_event']} and {s['before_event']} is "
+                        f"{abs(s['size']) * 1e3:.3f} ms {'longer' if s['size'] > 0 else 'shorter'} than events.csv "
+                        f"says (every array sees it; modelled)")
+    if emitter["drift_model"] != "linear":
+        findings.append(f"emission times drift against events.csv (every array sees it; modelled as "
+                        f"{emitter['drift_model']})")
+    return {"selection": "auto" if rounds else "linear", "arrays": arrays, "emitter": emitter,
+            "findings": findings, "detection": rounds}
+
+
+def _attach_report(result, features, models, rounds):
+    """Put ``clock`` into the report (or the solution dict); a wrong nominal rate is a verdict reason."""
+    block = clock_report(result, features, models, rounds)
+    result["clock_models"] = models
+    if "report" not in result:
+        result["clock"] = block
+        return
+    rep = result["report"]
+    rep["clock"] = block
+    rates = [f for f in block["findings"] if "wrong nominal sample rate" in f or f.startswith("time base")]
+    if rates:
+        v = rep["verdict"]
+        v["reasons"] = list(v.get("reasons") or []) + rates
+        if v.get("status") == "ok":
+            v["status"] = "suspect"
