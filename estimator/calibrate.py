@@ -340,7 +340,7 @@ FREE_MAX_FACTOR = 100.0   # a frontend's own figure (or noise="estimate" for TDO
 # 1.5 of the errors on the realistic rooms), while the residuals cannot see the part of the errors the fit
 # absorbs (per-event sources, clocks) and shrink with a type's weight. Lowered down to a third, the TDOA sigma
 # sat at that bound in every lab session: position errors 1.9× their stated std (z RMS), half the lab verdicts
-# false "suspect"s, 40 % larger errors (docs/results.md, 24 Nov 16:10); with no bound it ran to 1/100 and the
+# false "suspect"s, 40 % larger errors (CHANGELOG.md, 24 Nov 16:10); with no bound it ran to 1/100 and the
 # fit bent the sources to biased TDOAs
 FRONTEND_MIN_FACTOR = 1.0
 VCE_ITERATIONS = 4        # variance-component steps at most; stopped early when a factor reverses or settles

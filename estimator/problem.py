@@ -275,7 +275,7 @@ def _fold_mirror_ambiguous(p, meta, idx):
 # w (σ_row / σ)². It is measured from a handful of mics, so it is itself noisy: taken raw (w = 1, clipped to
 # 0.3–30), the rows claiming least pulled the fit and the hall's error bars came out 1.4–1.5× too small;
 # halfway, the lab's worst array went 2.76 → 1.96 cm, the hard preset's 10.5 → 5.7 cm, error / std 0.84–1.11
-# (64 realistic sessions, docs/results.md, 24 Nov 2026 evening)
+# (64 realistic sessions, CHANGELOG.md, 24 Nov 2026 evening)
 DOA_ROW_WEIGHT = 0.5
 
 

@@ -64,7 +64,7 @@ def extract_features(session: Any, progress: Callable[[int, int, str], Any] | No
     progress : optional callable ``progress(done, total, message)``, called as arrays are processed.
     jobs : arrays processed at a time, in threads (−1: one per core). The results do not depend on it
         (each array's work is independent and deterministic); the FFTs and most of the numpy work release
-        the GIL, so 2 threads cut the wall time by about a quarter to a third (docs/results.md).
+        the GIL, so 2 threads cut the wall time by about a quarter to a third (CHANGELOG.md).
     options : overrides of :data:`DEFAULTS`.
 
     Returns
@@ -81,7 +81,7 @@ def extract_features(session: Any, progress: Callable[[int, int, str], Any] | No
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs == 0 or jobs < -1:
         raise ValueError(f"jobs must be a positive integer or -1 (one per core), got {jobs!r}")
     # single-threaded BLAS: the frontend's products are small (mics × grid, events × taps), and OpenBLAS
-    # threads spin on them: ~40 % more CPU for no wall-clock gain (docs/results.md, issue 12)
+    # threads spin on them: ~40 % more CPU for no wall-clock gain (CHANGELOG.md, issue 12)
     with single_thread_blas():
         return _extract(session, progress, opt, jobs)
 
@@ -611,7 +611,7 @@ def _doa_noise_var(res, u, mics, c):
 
     The wavefront curvature of a near source (``near_field_fit``: ≈ 1.8 µs across a 10 cm array at 2 m) is
     symmetric about the array's centre, so it leaves the direction alone; counted as noise it made the hall's
-    10 cm arrays claim 2.3× their DOA error (docs/results.md, issue 9). With ≥ 5 mics the curvature is fitted
+    10 cm arrays claim 2.3× their DOA error (CHANGELOG.md, issue 9). With ≥ 5 mics the curvature is fitted
     and removed (4 dof: t_0, two angles, κ); otherwise the plane-wave spread (3 dof).
     """
     ok = np.isfinite(res)

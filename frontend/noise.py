@@ -13,7 +13,7 @@ An arrival's error has three parts, each estimated from the session's own data:
 
 The three add in quadrature. The plane-wave spread used before (one mic's spread about the fused arrival)
 contains the curvature pattern itself: on 10 cm arrays it claimed 1.6–2× the measured error, while on
-3.5 cm arrays it matched only because it did (docs/results.md, issue 9).
+3.5 cm arrays it matched only because it did (CHANGELOG.md, issue 9).
 """
 from __future__ import annotations
 

@@ -83,7 +83,7 @@ def test_clean_scenes_get_no_array_component():
 def test_a_much_noisier_array_gets_its_own_sigma(seed):
     """One array with 5x the DOA noise: unless the array test already dropped it, that array (only) gets a
     DOA factor above 1.5 (the outlier tests trim its tails first: about 2 for a true 5), at most the bound. (At 3x the tests
-    find it in only part of the runs with 14 events: docs/results.md.)"""
+    find it in only part of the runs with 14 events: CHANGELOG.md.)"""
     feats, truth = simulate_features(3, 1e-4, 5.0, 0.03, seed=2000 + seed)
     bad = feats["meta"]["arrays"][1 + seed]
     f2 = _noisy_doas(feats, bad, 5.0, np.random.default_rng(seed))
