@@ -27,6 +27,7 @@ from calib.geometry import yaw_rotate
 from calib.pipeline.formats.boards import BOARDS
 from calib.pipeline.formats.io import read_events
 from calib.pipeline.formats.rosbag import write_bag
+from calib.pipeline.formats.outputs import BOOKKEEPING
 from calib.pipeline.formats.session import write_session_toml
 from calib.tomlcompat import tomllib
 
@@ -37,13 +38,16 @@ STOP_AFTER = 0.1      # s: ... until this long after the chirp ends (it stops fo
 
 
 def _copy_rest(src, dst, skip):
-    """Copy every file and folder of ``src`` but the names in ``skip`` (and session.toml) into a new ``dst``."""
+    """Copy every file and folder of ``src`` but the names in ``skip`` (and session.toml) into a new ``dst``.
+
+    calib's bookkeeping (``outputs.BOOKKEEPING``: the manifest of what calib wrote in ``src``, stamps) is not
+    copied: it describes ``src``'s files, not the rewritten ones."""
     src, dst = Path(src), Path(dst)
     if dst.exists():
         raise InputError(f"{dst}: exists")
     dst.mkdir(parents=True)
     for p in src.iterdir():
-        if p.name in skip or p.name == "session.toml":
+        if p.name in skip or p.name == "session.toml" or p.name in BOOKKEEPING:
             continue
         (shutil.copytree if p.is_dir() else shutil.copy2)(p, dst / p.name)
     return tomllib.loads((src / "session.toml").read_text())
@@ -55,9 +59,10 @@ def _write_toml(dst, cfg, arrays, robot=None):
                        noise=cfg.get("noise"), robot=robot)
 
 
-def to_board_layout(src, dst, board, seed=0, arrays=None):
+def to_board_layout(src, dst, board, seed=0, arrays=None, session_toml=True):
     """``src`` session → ``dst`` with the WAVs of ``arrays`` (names; default all, each with the board's mic
-    count) in ``board``'s raw layout; the other arrays' WAVs are copied as they are."""
+    count) in ``board``'s raw layout; the other arrays' WAVs are copied as they are. ``session_toml=False``
+    leaves session.toml out, as a board's own recording comes (``calib init`` writes it)."""
     b = BOARDS[board]
     cfg = tomllib.loads((Path(src) / "session.toml").read_text())
     names = [a["name"] for a in cfg["arrays"]] if arrays is None else list(arrays)
@@ -76,12 +81,14 @@ def to_board_layout(src, dst, board, seed=0, arrays=None):
         raw[:, list(b.channels)] = x
         sf.write(Path(dst) / a["wav"], raw, fs, subtype=info.subtype)
         out.append({**a, "channels": list(b.channels)})
-    _write_toml(Path(dst), cfg, out)
+    if session_toml:
+        _write_toml(Path(dst), cfg, out)
     return Path(dst)
 
 
-def to_per_mic(src, dst):
-    """``src`` session → ``dst`` with one mono WAV per mic, ``<array>-<m>.wav`` (m from 1), listed as ``files``."""
+def to_per_mic(src, dst, session_toml=True):
+    """``src`` session → ``dst`` with one mono WAV per mic, ``<array>-<m>.wav`` (m from 1), listed as ``files``
+    (``session_toml=False``: none written, as a recorder leaves it)."""
     cfg = tomllib.loads((Path(src) / "session.toml").read_text())
     _copy_rest(src, dst, {a["wav"] for a in cfg["arrays"]})
     arrays = []
@@ -92,7 +99,8 @@ def to_per_mic(src, dst):
         for m, f in enumerate(files):
             sf.write(Path(dst) / f, x[:, m], fs, subtype=info.subtype)
         arrays.append({k: v for k, v in a.items() if k != "wav"} | {"files": files})
-    _write_toml(Path(dst), cfg, arrays)
+    if session_toml:
+        _write_toml(Path(dst), cfg, arrays)
     return Path(dst)
 
 
