@@ -167,7 +167,7 @@ def _clock(over, item):
 
     text = text.strip()
     if text.startswith("{"):
-        import tomllib
+        from calib.tomlcompat import tomllib
 
         try:
             value = tomllib.loads(f"v = {text}")["v"]

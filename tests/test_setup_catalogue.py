@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import re
 import shutil
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +22,7 @@ from calib.cli.main import app
 from calib.pipeline.formats.session import read_session, session_toml
 from calib.pipeline.setupcheck import setup_findings, sound_findings, speed_of_sound_fit, trajectory_findings
 from calib.pipeline.sessiontools import emission_schedule
+from calib.tomlcompat import tomllib
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "lab3"
 RNG_SEED = 29

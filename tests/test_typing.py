@@ -11,10 +11,7 @@ from pathlib import Path
 
 import pytest
 
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
+from calib.tomlcompat import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 
