@@ -52,4 +52,6 @@ def test_docs_cli_md_shows_each_flag_as_help_does(command):
     for o in cli_options():
         entry = re.search(rf"^  {o.flag}\b.*?(?=^  -)", help_text, re.S | re.M)
         assert entry and " ".join(o.help.split()[:4]) in entry.group(0)
-        assert squeeze(entry.group(0)) in squeeze(block), f"docs/cli.md: update `calib {command} --help` ({o.flag}):\n{help_text}"
+        # the flag and its help text (the rendering around them, e.g. a metavar, varies with typer's version)
+        assert o.flag in block and squeeze(o.help) in squeeze(block), \
+            f"docs/cli.md: update `calib {command} --help` ({o.flag}):\n{help_text}"
