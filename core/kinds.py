@@ -134,7 +134,3 @@ def noise_keys():
     """{meta.json noise key: its (lo, hi] range}, in registry order (kinds may share a key)."""
     return {k.noise_key: k.noise_range for k in KINDS.values() if k.noise_key}
 
-
-def kinds_with(**attrs):
-    """The names of the registered kinds whose spec attributes equal ``attrs``, in registry order."""
-    return [k.name for k in KINDS.values() if all(getattr(k, a) == v for a, v in attrs.items())]
