@@ -24,23 +24,12 @@ searched on a 1-D grid by :func:`srp_cone`), a single microphone nothing.
 from __future__ import annotations
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
+from calib.blas import single_thread_blas
 from calib.memo import SetupCache
 from calib.geometry import fold, mirror
 
 from .timing import phasors
-
-
-_BLAS: list = []  # the ThreadpoolController, made on first use (it scans the loaded libraries: ~5 ms)
-
-
-def single_thread_blas():
-    """Context manager limiting BLAS to one thread. One shared controller: ``threadpool_limits`` scanned
-    the process's libraries on every entry, 5–6 ms per array of a session (~4 % of the hall's frontend)."""
-    if not _BLAS:
-        _BLAS.append(ThreadpoolController())
-    return _BLAS[0].limit(limits=1, user_api="blas")
 
 
 def fibonacci_sphere(n):

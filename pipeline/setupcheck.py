@@ -33,6 +33,7 @@ from itertools import combinations
 
 import numpy as np
 
+from calib.blas import single_thread_blas
 from calib.frontend import consistency as C
 
 STATUS_RANK = {"note": 0, "suspect": 1, "failed": 2}
@@ -50,6 +51,7 @@ MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RM
 MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
 S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
 MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit
+SAME_START_M = 1e-3       # m: starts of that fit closer than this lie in one minimum (tried once)
 ODO_RESIDUAL_S = 3e-3     # s: arrivals the odometry cannot explain to better than this (RMS): another session's log
 ODO_MISFIT = 12.0         # ... or arrivals and DOAs this many sigmas off (RMS; σ_odo included; real sets: ≤ 5)
 MATCHED_FAIL = 0.5        # fewer chirps than this fraction of the events matched: events.csv does not fit
@@ -280,37 +282,102 @@ def _one_array_residual(odo, e, y, seg, u, sig_t, sig_d, proper=True):
     return f
 
 
+def _range_projection(odo, e, y, seg):
+    """The arrivals' fit ``y ≈ τ_seg + δ·e + k·r``, ``r = |odo − x|``, with τ and δ projected out (variable
+    projection), for S candidate positions at once: ``f(X (S, 3)) -> (residuals (S, K), Jacobians (S, K, 3))``,
+    exact. ``seg`` (K,) is non-decreasing (segments of the arrival chain). Each call costs a few vectorised
+    passes over S × K, not S least-squares solves of (K, nseg + 2)."""
+    bounds = np.flatnonzero(np.r_[True, np.diff(seg) != 0])
+    cnt = np.diff(np.r_[bounds, len(seg)])[:, None]
+
+    def demean(v):
+        """v (S, K, m) less its mean over each segment."""
+        return v - np.repeat(np.add.reduceat(v, bounds, axis=1) / cnt, cnt[:, 0], axis=1)
+
+    e_p = demean(e[None, :, None])[0, :, 0]
+    ee = float(e_p @ e_p)
+
+    def perp(v):
+        """v (S, K, m) projected orthogonally to the segment indicators and to e."""
+        v = demean(v)
+        return v - e_p[None, :, None] * np.einsum("skm,k->sm", v, e_p)[:, None, :] / ee if ee > 0 else v
+
+    y_p = perp(y[None, :, None])
+
+    def f(X):
+        diff = odo[None] - X[:, None, :]                           # (S, K, 3)
+        r = np.sqrt(np.einsum("ski,ski->sk", diff, diff))[..., None]
+        r_p = perp(r)
+        n2 = np.einsum("skm,skm->s", r_p, r_p)[:, None, None]
+        safe = np.where(n2 > 0, n2, 1.0)
+        k = np.where(n2 > 0, np.einsum("skm,skm->s", r_p, y_p)[:, None, None] / safe, 0.0)
+        dr_p = perp(-diff / np.maximum(r, 1e-12))                  # ∂r/∂x projected
+        dk = np.einsum("sk,ski->si", (y_p - 2 * k * r_p)[..., 0], dr_p)[:, None, :] / safe
+        return (y_p - k * r_p)[..., 0], -r_p * dk - k * dr_p
+
+    return f
+
+
+def _batch_lm(f, X, max_iter=200, tol=1e-8):
+    """Levenberg–Marquardt from several starts at once (each its own damping and stopping): ``f(X (S, n)) ->
+    (r (S, K), J (S, K, n))``. Stops a start when a step changes its cost or position by less than ``tol``
+    (relative, as MINPACK's ftol / xtol). Returns (X (S, n), cost ½|r|² (S,))."""
+    X = np.array(X, float)
+    r, J = f(X)
+    cost = 0.5 * np.einsum("sk,sk->s", r, r)
+    lam = np.full(len(X), 1e-3)
+    active = np.ones(len(X), bool)
+    eye = np.eye(X.shape[1])
+    for _ in range(max_iter):
+        a = np.flatnonzero(active)
+        Jt = J[a].transpose(0, 2, 1)
+        H, g = Jt @ J[a], (Jt @ r[a][..., None])[..., 0]
+        D = np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-30)
+        dx = -np.linalg.solve(H + lam[a, None, None] * D[:, :, None] * eye, g[..., None])[..., 0]
+        r_n, J_n = f(X[a] + dx)
+        c_n = 0.5 * np.einsum("sk,sk->s", r_n, r_n)
+        ok = c_n < cost[a]
+        done = (np.abs(cost[a] - c_n) <= tol * cost[a]) | \
+            (np.linalg.norm(dx, axis=1) <= tol * (np.linalg.norm(X[a], axis=1) + tol))
+        acc = a[ok]
+        X[acc], r[acc], J[acc], cost[acc] = X[acc] + dx[ok], r_n[ok], J_n[ok], c_n[ok]
+        lam[acc] /= 10.0
+        lam[a[~ok]] *= 10.0
+        active[a[done | (lam[a] > 1e16)]] = False
+        if not active.any():
+            break
+    return X, cost
+
+
 def _arrival_starts(odo, e, y, seg, n_best=3):
     """Starting positions for :func:`_fit_one_array`: the arrivals alone fitted from starts around the
-    trajectory (the linear parameters projected out); the ``n_best`` best, (x, τ, δ, k) each."""
-    from scipy.optimize import least_squares
-
-    nseg = seg.max() + 1
-
-    def linear(x):
-        A = np.column_stack([np.eye(nseg)[seg], e, np.linalg.norm(odo - x, axis=1)])
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        return coef, y - A @ coef
-
+    trajectory (the linear parameters projected out, :func:`_range_projection`, all starts at once); the
+    ``n_best`` best, (x, τ, δ, k) each, less those within ``SAME_START_M`` of a better one (one minimum)."""
     centre, span = odo.mean(axis=0), max(float(np.ptp(odo, axis=0).max()), 0.5)
     dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
                      [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], float)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    sols = [least_squares(lambda x: linear(x)[1], centre + r0 * dv, method="lm", max_nfev=200)
-            for r0 in (1.0 * span, 2.5 * span) for dv in dirs]
-    sols.sort(key=lambda sol: sol.cost)
-    return [np.concatenate([sol.x, linear(sol.x)[0]]) for sol in sols[:n_best]]
+    X0 = np.array([centre + r0 * dv for r0 in (1.0 * span, 2.5 * span) for dv in dirs])
+    X, cost = _batch_lm(_range_projection(odo, e, y, seg), X0)
+    best = X[np.argsort(cost, kind="stable")[:n_best]]
+    best = best[[i == 0 or np.min(np.linalg.norm(best[:i] - best[i], axis=1)) > SAME_START_M for i in range(len(best))]]
+    out = []
+    for x in best:
+        A = np.column_stack([np.eye(seg.max() + 1)[seg], e, np.linalg.norm(odo - x, axis=1)])
+        out.append(np.concatenate([x, np.linalg.lstsq(A, y, rcond=None)[0]]))
+    return out
 
 
-def _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper=True):
-    """One array's position, clock and k = 1 / c from its arrivals (and DOAs) against the metric odometry.
-    Returns (k, std of k, RMS arrival residual s, RMS normalised residual)."""
+def _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper=True, starts=None):
+    """One array's position, clock and k = 1 / c from its arrivals (and DOAs) against the metric odometry,
+    from ``starts`` (default :func:`_arrival_starts`). Returns (k, std of k, RMS arrival residual s, RMS
+    normalised residual)."""
     from scipy.optimize import least_squares
 
     nseg = seg.max() + 1
     f = _one_array_residual(odo, e, y, seg, u, sig_t, sig_d, proper)
     best = None
-    for th in _arrival_starts(odo, e, y, seg):
+    for th in _arrival_starts(odo, e, y, seg) if starts is None else starts:
         sol = least_squares(f, th, x_scale="jac", max_nfev=100)
         if best is None or sol.cost < best.cost:
             best = sol
@@ -354,23 +421,33 @@ def speed_of_sound_fit(features, proper=True, arrays=None):
     sig_t = float(np.hypot(float(meta.get("sigma_tdoa") or 1e-5) / np.sqrt(2), sig_o / c0))
     sig_d = float(np.hypot(np.radians(float(meta.get("sigma_doa_deg") or 1.0)), sig_o / TYPICAL_RANGE_M))
     out = {}
-    for name in meta["arrays"] if arrays is None else arrays:
-        e_id, t, seg = _arrival_chain(features["tdoa_s"], name)
-        keep = np.isin(e_id, ev.index)
-        if keep.sum() < MIN_SOUND_EVENTS:
-            continue
-        e_id, t, seg = e_id[keep], t[keep], np.unique(seg[keep], return_inverse=True)[1]
-        te = ev.loc[e_id, "t_emit"].to_numpy(float)
-        odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
-        y = t - (te - te[0])
-        u = _doa_rows(features, name, e_id)
-        k, sk, rms, misfit = _fit_one_array(odo, te - te[0], y, seg, u, sig_t, sig_d, proper)
-        if misfit > DOA_TRUST and np.any(np.isfinite(u)):
-            # DOAs that do not fit (a wrong speed of sound also bends a planar array's elevations): c from
-            # the arrivals alone; the misfit kept for the mirror and the odometry tests
-            k, sk, rms, _ = _fit_one_array(odo, te - te[0], y, seg, np.full_like(u, np.nan), sig_t, sig_d)
-        out[name] = (1.0 / k, sk / k**2, rms, misfit) if k > 0 else (np.inf, np.inf, rms, misfit)
+    with single_thread_blas():  # small matrices (calib.blas)
+        for name in meta["arrays"] if arrays is None else arrays:
+            fit = _array_sound_fit(features, ev, name, sig_t, sig_d, proper)
+            if fit is not None:
+                out[name] = fit
     return out
+
+
+def _array_sound_fit(features, ev, name, sig_t, sig_d, proper):
+    """One array's entry of :func:`speed_of_sound_fit` (None: too few arrivals)."""
+    e_id, t, seg = _arrival_chain(features["tdoa_s"], name)
+    keep = np.isin(e_id, ev.index)
+    if keep.sum() < MIN_SOUND_EVENTS:
+        return None
+    e_id, t, seg = e_id[keep], t[keep], np.unique(seg[keep], return_inverse=True)[1]
+    te = ev.loc[e_id, "t_emit"].to_numpy(float)
+    odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+    e = te - te[0]
+    y = t - e
+    u = _doa_rows(features, name, e_id)
+    starts = _arrival_starts(odo, e, y, seg)
+    k, sk, rms, misfit = _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper, starts)
+    if misfit > DOA_TRUST and np.any(np.isfinite(u)):
+        # DOAs that do not fit (a wrong speed of sound also bends a planar array's elevations): c from
+        # the arrivals alone; the misfit kept for the mirror and the odometry tests
+        k, sk, rms, _ = _fit_one_array(odo, e, y, seg, np.full_like(u, np.nan), sig_t, sig_d, starts=starts)
+    return (1.0 / k, sk / k**2, rms, misfit) if k > 0 else (np.inf, np.inf, rms, misfit)
 
 
 def sound_findings(features, fits=None, source="session.toml"):
