@@ -142,7 +142,7 @@ def array_covariance(model):
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     J, w = lin.J, lin.w
-    cov = covariance(J[w > 0], lay.n, lay)   # large problems: the array block alone (no dense n x n inverse)
+    cov = covariance(J[w > 0], lay.n, lay, arrays_only=True)   # large problems: the array block alone
     labels, idx = [], []
     skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
     for i, name in enumerate(p.names):

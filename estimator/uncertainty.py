@@ -23,17 +23,17 @@ from .solver import Schur, linearise
 _SELECTED_INVERSE_BATCH = 256
 
 
-def covariance(J, lay_n, lay=None):
+def covariance(J, lay_n, lay=None, arrays_only=False):
     """(JᵀJ)⁻¹ for whitened residuals (Jacobi-scaled for conditioning).
 
     A dense J gives the dense (n, n) matrix (pseudo-inverse). A sparse J (large problems, with ``lay``)
-    gives a :class:`BlockCovariance`: no n × n inverse is formed.
+    gives a :class:`BlockCovariance`: no n × n inverse is formed (``arrays_only``: its array block alone).
     """
     if scipy.sparse.issparse(J):
         if lay is None:
             J = J.toarray()
         else:
-            return BlockCovariance(J, lay)
+            return BlockCovariance(J, lay, arrays_only)
     d = np.linalg.norm(J, axis=0)
     d = np.where(d > 0, d, 1.0)
     Js = J / d
@@ -47,10 +47,11 @@ class BlockCovariance:
     With X = H_EE⁻¹ H_EA (scaled), the event block of the inverse is H_EE⁻¹ + X S⁻¹ Xᵀ; only its diagonal
     and its 3 × 3 source blocks are formed (H_EE⁻¹'s by batched sparse solves).
     Attributes: ``diag`` (n,), ``arr_cols`` (nA,), ``arr`` (nA, nA), ``src_blocks`` (K, 3, 3) (NaN for
-    fixed sources), ``shape``.
+    fixed sources), ``shape``. ``arrays_only``: the event blocks are not formed (NaN in ``diag`` and
+    ``src_blocks``): the array block costs one Schur complement, the event blocks a solve per source.
     """
 
-    def __init__(self, J, lay):
+    def __init__(self, J, lay, arrays_only=False):
         J = scipy.sparse.csr_matrix(J)
         n = lay.n
         self.shape, self.J, self.lay = (n, n), J, lay
@@ -64,15 +65,16 @@ class BlockCovariance:
         XS = sch.X @ Sinv
         diag_s = np.empty(n)
         diag_s[:nA] = np.diag(Sinv)
-        Einv = self._event_inverse_blocks(sch, lay)
-        diag_s[nA:] = Einv["diag"] + np.einsum("ia,ia->i", XS, sch.X)
+        Einv = None if arrays_only else self._event_inverse_blocks(sch, lay)
+        diag_s[nA:] = np.nan if arrays_only else Einv["diag"] + np.einsum("ia,ia->i", XS, sch.X)
         diag = np.empty(n)
         diag[sch.perm] = diag_s / d[sch.perm] ** 2
         diag[dead] = np.nan
         self.diag = diag
         self.arr_cols = sch.perm[:nA]
         self.arr = Sinv / d[self.arr_cols][:, None] / d[self.arr_cols][None, :]
-        self.src_blocks = self._source_blocks(sch, lay, Einv, XS, dead)
+        self.src_blocks = np.full((len(lay.s), 3, 3), np.nan) if arrays_only else \
+            self._source_blocks(sch, lay, Einv, XS, dead)
 
     @staticmethod
     def _event_inverse_blocks(sch, lay):

@@ -82,7 +82,8 @@ def atomic_write_text(path, text):
 
 
 # ----------------------------------------------------------------------------------------------- CSV
-_CELL_SPACE = re.compile(r"[ \t]*(,|\n)[ \t]*")   # spaces and tabs around a separator
+# spaces and tabs around a separator (matched only where there are some: no per-cell replacement)
+_CELL_SPACE = re.compile(r"[ \t]+(?=[,\n])|(?<=[,\n])[ \t]+")
 
 
 def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bounds=None, max_rows=None):
@@ -107,7 +108,7 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bou
     # million cells), or cell by cell when quotes may hold separators
     quoted = '"' in text
     if not quoted:
-        text = _CELL_SPACE.sub(r"\1", text).strip(" \t")
+        text = _CELL_SPACE.sub("", text).strip(" \t")
     try:
         raw = pd.read_csv(io.StringIO(text), dtype=str, keep_default_na=False, skipinitialspace=True)
     except Exception as exc:  # pandas raises many kinds on malformed files
