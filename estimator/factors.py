@@ -74,7 +74,9 @@ def put(J, rows, cols, vals):
     """
     cols = np.asarray(cols).reshape(len(rows), -1)
     shape = cols.shape
-    rr, cc = np.repeat(rows, shape[1]), cols.ravel()
+    # 32-bit indices where they fit (half the memory of a large problem's Jacobian)
+    itype = np.int32 if max(int(np.max(rows, initial=0)), int(cols.max(initial=0))) < np.iinfo(np.int32).max else np.int64
+    rr, cc = np.repeat(np.asarray(rows, itype), shape[1]), cols.ravel().astype(itype, copy=False)
     free = cc >= 0
     vals = np.asarray(vals, float)
     if vals.size != shape[0] * shape[1]:

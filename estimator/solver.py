@@ -7,6 +7,7 @@ Small problems solve them dense; large ones with a sparse Jacobian and a Schur c
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
@@ -46,32 +47,64 @@ def use_dense(lay):
 def stack_jacobians(Js, n, dense):
     """Stack the factors' Jacobians (each a ``factors.Jacobian``, a dense array or scipy.sparse matrix).
 
-    Returns the (M, n) Jacobian: a dense array if ``dense`` else a ``scipy.sparse.csr_matrix``.
+    Returns the (M, n) Jacobian: a dense array if ``dense`` else a ``scipy.sparse.csr_matrix`` (32-bit
+    indices where they fit; each factor's rows built in place, :func:`_csr_parts`, without a COO copy).
     """
     M = sum(J.shape[0] for J in Js)
-    rows, cols, vals, off = [], [], [], 0
-    for J in Js:
-        if isinstance(J, Jacobian):
-            chunks = J.chunks
-        else:
-            C = scipy.sparse.coo_matrix(J)
-            chunks = [(C.row, C.col, C.data)]
-        for r, c, v in chunks:
-            rows.append(r + off)
-            cols.append(c)
-            vals.append(v)
-        off += J.shape[0]
-    if not rows:
-        return np.zeros((M, n)) if dense else scipy.sparse.csr_matrix((M, n))
-    rows, cols, vals = (np.concatenate(z) for z in (rows, cols, vals))
     if dense:  # one pass over all entries; bincount sums any duplicates
+        rows, cols, vals, off = [], [], [], 0
+        for J in Js:
+            for r, c, v in _chunks(J):
+                rows.append(np.asarray(r, np.int64) + off), cols.append(c), vals.append(v)
+            off += J.shape[0]
+        if not rows:
+            return np.zeros((M, n))
+        rows, cols, vals = (np.concatenate(z) for z in (rows, cols, vals))
         return np.bincount(rows * n + cols, weights=vals, minlength=M * n).reshape(M, n)
-    return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(M, n))  # sums duplicate entries
+    parts = [_csr_parts(J, n) for J in Js]
+    nnz = sum(len(d) for _, _, d in parts)
+    itype = np.int32 if max(nnz, n, M) < np.iinfo(np.int32).max else np.int64
+    indptr, off = [np.zeros(1, itype)], 0
+    for ptr, _, _ in parts:
+        indptr.append((ptr[1:] + off).astype(itype))
+        off += int(ptr[-1])
+    data = np.concatenate([d for _, _, d in parts]) if parts else np.zeros(0)
+    indices = np.concatenate([c.astype(itype, copy=False) for _, c, _ in parts]) if parts else np.zeros(0, itype)
+    return scipy.sparse.csr_matrix((data, indices, np.concatenate(indptr)), shape=(M, n))
+
+
+def _chunks(J):
+    """A factor Jacobian's (rows, cols, vals) chunks (a ``factors.Jacobian``'s own, else from COO)."""
+    if isinstance(J, Jacobian):
+        return J.chunks
+    C = scipy.sparse.coo_matrix(J)
+    return [(C.row, C.col, C.data)]
+
+
+def _csr_parts(J, n):
+    """(indptr, indices, data) of one factor's Jacobian in CSR order. One chunk whose rows are in order (every
+    built-in factor's) is used as it is: its (row, col) pairs are distinct; otherwise the rows are ordered by a
+    stable sort and duplicates summed."""
+    chunks = _chunks(J)
+    m = J.shape[0]
+    if len(chunks) == 1 and np.all(np.diff(chunks[0][0]) >= 0):
+        r, c, v = chunks[0]
+    else:
+        if not chunks:
+            return np.zeros(m + 1, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        r, c, v = (np.concatenate(z) for z in zip(*chunks))
+        C = scipy.sparse.csr_matrix((v, (r, c)), shape=(m, n))
+        C.sum_duplicates()
+        return C.indptr, C.indices, C.data
+    ptr = np.zeros(m + 1, np.int64)
+    np.cumsum(np.bincount(r, minlength=m), out=ptr[1:])
+    return ptr, c, np.asarray(v, float)
 
 
 class Linearised(NamedTuple):
     """The stacked factors at one state: whitened residuals r (M,), Jacobian J (M, n; dense or CSR), IRLS
-    weights w (M,), cost ½ Σ ρ(r) and the factors in stacking order."""
+    weights w (M,), cost ½ Σ ρ(r) and the factors in stacking order (their ``J`` None: its rows are in J, not
+    kept twice)."""
     r: np.ndarray
     J: object
     w: np.ndarray
@@ -89,6 +122,7 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Lin
     dense = use_dense(lay) if dense is None else dense
     fs = evaluate(p, st, lay, kinds)
     J = stack_jacobians([f.J for f in fs], lay.n, dense)
+    fs = [dataclasses.replace(f, J=None) for f in fs]
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f.r
@@ -269,10 +303,10 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                     "reason": "no free parameters"}
     dense = use_dense(lay) if dense is None else dense
     lam, nu = lam0, 2.0
-    lin = linearise(p, st, lay, kinds, loss, k, mask, dense=dense)
-    r, J, w, cost = lin.r, lin.J, lin.w, lin.cost
+    r, J, w, cost = linearise(p, st, lay, kinds, loss, k, mask, dense=dense)[:4]
     reason, it = "max_iter", 0
     for it in range(1, max_iter + 1):
+        H = system = None   # (the previous iteration's, released before the new ones are formed)
         H, g = normal_equations(J, w, r)
         diag = np.diag(H) if dense else H.diagonal()
         if (np.abs(g) / np.sqrt(np.maximum(diag, 1e-300))).max() < 1e-10 * max(1.0, np.sqrt(cost)):
@@ -293,8 +327,8 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                 # the damped step no longer moves the state (it is below the parameters' rounding): it
                 # cannot lower the cost, and more damping only shrinks it further
                 break
-            lin2 = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense)
-            r2, J2, w2, cost2 = lin2.r, lin2.J, lin2.w, lin2.cost
+            r2 = J2 = None   # (a rejected candidate's, released first)
+            r2, J2, w2, cost2 = linearise(p, cand, lay, kinds, loss, k, mask, dense=dense)[:4]
             ratio = (cost - cost2) / pred if pred > 0 else -1.0
             if cost2 < cost and np.isfinite(cost2):
                 accepted = True
