@@ -26,11 +26,8 @@ def estimate(
     Exit code 0 when the verdict is ok or suspect, 3 when it is failed (the calibration is still written),
     2 on bad input.
     """
-    from calib.pipeline.setupcheck import apply_findings, feature_findings
-
     with owned_output([out], [features], command="calib estimate", on_wait=waiting):
-        calib, feats = estimate_features(features, est_opts)
-        calib = apply_findings(calib, feature_findings(feats))  # the set-up checks features can show
+        calib, feats = estimate_features(features, est_opts, findings=True)  # + the set-up checks features show
         write_calibration(out, calib, features=feats, command="calib estimate")  # + calibration.json
     if not quiet:
         print_arrays(calib)

@@ -23,6 +23,7 @@ Library use (a notebook)::
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import json
@@ -199,22 +200,28 @@ def estimate_stage(out, options, setup=()):
     return calib
 
 
-def estimate_features(features_dir, options):
+def estimate_features(features_dir, options, findings=False):
     """Read a features folder and calibrate it (options: ``estimate_defaults()``; loss "linear" = none).
-    Returns (calibration, features).
+    Returns (calibration, features). ``findings``: with the set-up findings the features show
+    (``setupcheck.feature_findings``) in its report and verdict, computed in a second process meanwhile
+    (:class:`calib.pipeline.background.Background`).
 
     Data that cannot determine the calibration raises InputError naming the features folder.
     """
     from calib.estimator import ObservabilityError, calibrate
+    from calib.pipeline.background import Background
+    from calib.pipeline.setupcheck import apply_findings, feature_findings
 
     feats = read_features(features_dir)
     _check_something_to_place(feats, features_dir)
     opts = dict(options)
     loss = opts.pop("loss", "cauchy")
-    try:
-        return calibrate(feats, loss=None if loss == "linear" else loss, **opts), feats
-    except ObservabilityError as exc:
-        raise InputError(f"{features_dir}: {exc}") from None
+    with Background(feature_findings, feats) if findings else contextlib.nullcontext() as job:
+        try:
+            calib = calibrate(feats, loss=None if loss == "linear" else loss, **opts)
+        except ObservabilityError as exc:
+            raise InputError(f"{features_dir}: {exc}") from None
+        return (apply_findings(calib, job.result()) if findings else calib), feats
 
 
 def _check_something_to_place(feats, where):

@@ -60,6 +60,20 @@ def test_estimate_bad_inputs(featdir, tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(("c", ".c"))]  # nothing written
 
 
+def test_estimate_names_a_wrong_speed_of_sound(featdir, tmp_path):
+    """The set-up findings a features folder shows (computed in a second process beside the estimator) reach
+    report.json and the verdict: meta.json's speed of sound against the odometry's metric scale."""
+    d, _, _ = featdir
+    wrong = tmp_path / "wrong"
+    shutil.copytree(d / "features", wrong)
+    meta = json.loads((wrong / "meta.json").read_text())
+    (wrong / "meta.json").write_text(json.dumps({**meta, "speed_of_sound": 300.0}))
+    r = invoke("estimate", wrong, "-o", tmp_path / "cal", "-q")
+    assert r.exit_code == 3, (r.exit_code, r.stdout, r.stderr)
+    rep = json.loads((tmp_path / "cal" / "report.json").read_text())
+    assert rep["verdict"]["status"] == "failed" and "speed_of_sound = 300" in json.dumps(rep["setup"])
+
+
 def _event_fields(name, row):
     f = row.split(",")
     return [f[0]] if name in ("tdoa_m.csv", "doa.csv") else [f[1], f[2]]
