@@ -5,12 +5,23 @@ import numpy as np
 
 
 
-def _pool(env, rate, width=4000):
+PLOT_POINTS = 4000   # envelope points per row of the detection plot
+
+
+def _pool(env, rate, width=PLOT_POINTS):
     """Max-pool an envelope to about ``width`` points (peaks stay visible). Returns (t, y)."""
     k = max(1, len(env) // width)
     n = len(env) // k * k
     y = env[:n].reshape(-1, k).max(axis=1)
     return (np.arange(len(y)) * k + k / 2) / rate, y
+
+
+def envelope_summary(env, rate):
+    """What the detection plot draws of a matched-filter envelope: ``(t, y, median)``, the envelope max-pooled
+    to about :data:`PLOT_POINTS` and the full envelope's median (its 0 dB). Kept instead of the envelope itself,
+    which grows with the recording (2 h at 48 kHz: 126 MB per array)."""
+    t, y = _pool(np.asarray(env), rate)
+    return t, y, float(np.median(env))
 
 
 # margins of the detection plot, inches: tick labels + "dB" left, suptitle + first title on top, x label below,
@@ -61,8 +72,8 @@ def plot_detections(path, diag, marks=None):
     t_max = max(a["duration_s"] for a in arrays.values())
     for ax, (name, a) in zip(axes[:, 0], arrays.items()):
         if "_env" in a:
-            t, y = _pool(np.asarray(a["_env"]), a["_env_rate"])
-            ydb = 20 * np.log10(np.maximum(y, 1e-12) / max(np.median(a["_env"]), 1e-12))
+            t, y, med = a["_env"]   # envelope_summary
+            ydb = 20 * np.log10(np.maximum(y, 1e-12) / max(med, 1e-12))
             ax.plot(t, ydb, color="0.45", lw=0.6)
             top = max(float(ydb.max()), 20.0)
         else:

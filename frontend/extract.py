@@ -23,6 +23,7 @@ from calib.tables import event_velocities
 
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
+from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, single_thread_blas, srp_cone, srp_doa, srp_setup
 from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
@@ -188,8 +189,9 @@ def detect_array(a, session, t_emit, c, opt):
     except BaseException:
         x.close()
         raise
-    return {"a": a, "x": x, "fs": fs, "template": template, "band": band, "dur": dur, "env": env, "dec": dec,
-            "env_rate": env_rate, "det_t": det_t, "score": score, "asc": asc, "redetected": redetected,
+    # the envelope grows with the recording: only what the detection plot draws is kept
+    return {"a": a, "x": x, "fs": fs, "template": template, "band": band, "dur": dur, "n_samples": len(env) * dec,
+            "env": envelope_summary(env, env_rate), "dec": dec, "env_rate": env_rate, "det_t": det_t, "score": score, "asc": asc, "redetected": redetected,
             "timings": timings}
 
 
@@ -227,7 +229,7 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
     if asc["ambiguous"]:
         warnings.append("association ambiguous: another alignment of the events explains as many detections")
     return {
-        "name": a["name"], "fs": fs, "n_samples": int(len(st["env"]) * st["dec"]), "channels": len(mics),
+        "name": a["name"], "fs": fs, "n_samples": int(st["n_samples"]), "channels": len(mics),
         "band": band, "phase": loc["phase"], "env": st["env"], "env_rate": st["env_rate"], "det_t": det_t,
         "det_score": st["score"], "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
         "u": doa["u"], "doa_power": doa["power"], "redetected": st["redetected"],
