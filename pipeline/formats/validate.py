@@ -45,9 +45,10 @@ MIN_DIRECTION_NORM = 1e-9             # a direction vector shorter than this has
 # that runs (sparse above ~300 parameters) cannot fit; benchmarks/bench_scale.py checks it against the peak RSS
 # of `calib estimate`.
 JACOBIAN_WIDTH = {"tdoa_m": 9, "tdoa_s": 10, "doa": 9, "odometry": 2}  # free columns of one scalar row, at most
-BYTES_PER_JACOBIAN_ENTRY = 200   # per entry, alive at the peak: the stacked CSR Jacobians the linearisation
-#                                  cache keeps (12 B each), the factors' COO triplets and index bookkeeping
-#                                  (~50 B), Jᵀ and W J of the normal equations (24 B), robust statistics (measured)
+BYTES_PER_JACOBIAN_ENTRY = 100   # per entry, alive at the peak: the current and the candidate CSR Jacobians
+#                                  (12 B each, 32-bit indices), a factor's chunk while it is stacked (16 B), H,
+#                                  Jᵀ and W J of the normal equations (36 B), robust statistics. Measured peak RSS of
+#                                  `calib estimate`: 40 × 1000 358 MB (predicted 396), 100 × 5000 2570 MB (2808)
 DENSE_EVENT_ARRAY_BLOCKS = 3     # dense (event parameters × array parameters) blocks: H_EA, X = H_EE⁻¹ H_EA, X S⁻¹
 ESTIMATOR_BASE_BYTES = 150 * 2**20  # the interpreter, numpy/scipy/pandas and the calib modules (measured)
 ESTIMATOR_PER_ARRAY_BYTES = 2**20   # per array, whatever the events (measured: 40 × 200 peaks 38 MB above 10 × 200)
