@@ -139,3 +139,32 @@ def test_newton_from_grid_samples_finds_a_single_path_delay():
         env_tau, z = newton_envelope(c, setup["freqs"], start, iters=3, sums=sums)
         tau, _ = newton_peak(c, setup["freqs"], env_tau, np.angle(z), iters=3, sums=sums)
         assert np.max(np.abs(env_tau - truth)) < 1e-9 and np.max(np.abs(tau - truth)) < 1e-9
+
+
+def _chirp_envelope(n, rng):
+    """An envelope like the matched filter's: noise, a reverberant chirp peak every ~2 s at 4.8 kHz, a stretch
+    of digital silence (exact zeros: flat runs) and a clipped (flat-topped) peak."""
+    env = np.abs(rng.standard_normal(n)).astype(np.float32)
+    for c in np.arange(2000, n - 2000, 9600) + rng.integers(-500, 500, len(np.arange(2000, n - 2000, 9600))):
+        k = np.arange(-300, 300)
+        env[c + k] += (40.0 * np.exp(-np.abs(k) / 60.0) * (1 + 0.3 * np.cos(k / 3.0))).astype(np.float32)
+    env[n // 3 : n // 3 + 20000] = 0.0
+    env[n // 2 : n // 2 + 6] = 60.0
+    return env
+
+
+@pytest.mark.parametrize("seed, threshold, sep_s", [(0, 8.0, 0.25), (1, 3.0, 0.01), (2, 8.0, 1.0)])
+def test_pick_peaks_equals_find_peaks_on_the_whole_envelope(seed, threshold, sep_s):
+    """pick_peaks looks only around the samples above the threshold (bounded memory): the peaks and scores of
+    find_peaks on the whole envelope with the per-sample floor as its height."""
+    from scipy.signal import find_peaks
+
+    from calib.frontend.detect import local_floor, pick_peaks
+
+    rng = np.random.default_rng(seed)
+    env, rate = _chirp_envelope(400_000 + seed * 1234, rng), 4800.0
+    floor = local_floor(env, int(0.25 * rate))
+    want = find_peaks(env, height=threshold * floor, distance=max(1, int(sep_s * rate)))[0]
+    idx, score = pick_peaks(env, rate, sep_s, threshold)
+    assert len(want) > 10 and np.array_equal(idx, want)
+    np.testing.assert_array_equal(score, env[want] / floor[want])
