@@ -7,6 +7,7 @@
     python benchmarks/bench_features_scale.py --association   # association alone, 240 … 16000 events
     python benchmarks/bench_features_scale.py --json r.json; ... --replot r.json --plot out.png
     python benchmarks/bench_features_scale.py --cli --events 90 --rates 48000   # `calib features` as a process (3 min)
+    python benchmarks/bench_features_scale.py --cli --events 3600 --rates 48000 --arrays 8 --mics 2   # 2 hours, 11 GB
 
 Sessions: anechoic and synthetic, written block by block (so writing them is cheap and bounded in memory;
 the room simulator is not needed to measure the frontend's cost): 5 arrays × 6 mics (a 3.54 cm circle,
@@ -42,46 +43,50 @@ C = 343.0
 CHIRP = {"f0": 500.0, "f1": 4000.0, "duration": 0.5, "fade": 0.005}
 MICS = np.c_[0.0354 * np.cos(np.arange(6) * np.pi / 3), 0.0354 * np.sin(np.arange(6) * np.pi / 3),
              0.02 * (-1.0) ** np.arange(6)]
-ARRAY_POS = np.array([[0.5, 0.5, 2.5], [11.5, 0.5, 2.4], [11.5, 8.5, 2.6], [0.5, 8.5, 2.5], [6.0, 4.5, 2.8]])
+ARRAY_POS = np.array([[0.5, 0.5, 2.5], [11.5, 0.5, 2.4], [11.5, 8.5, 2.6], [0.5, 8.5, 2.5], [6.0, 4.5, 2.8],
+                      [6.0, 0.5, 2.6], [6.0, 8.5, 2.4], [11.5, 4.5, 2.7]])   # the first 5 unless --arrays
+MIC_ORDER = [0, 3, 1, 4, 2, 5]  # --mics M keeps the first M of these (2: a 7.1 cm pair across the circle)
 SPACING, JITTER = 2.0, 0.3     # s between chirps
 NOISE_RMS = 10 ** (-30 / 20) / np.sqrt(2)  # 30 dB below a unit-amplitude sweep (rms 1/√2) at 1 m
 BLOCK_S = 10.0                 # the writer renders this many seconds at a time
 
 
-def scene(n_events, seed=0):
+def scene(n_events, seed=0, n_arrays=5):
     """Emission times, source positions and clocks (offset τ, drift δ) of a synthetic session."""
     rng = np.random.default_rng(seed)
     t_emit = 1.0 + np.cumsum(np.r_[0.0, SPACING + rng.uniform(-JITTER, JITTER, n_events - 1)])
     ang = 2 * np.pi * np.arange(n_events) / 40.0
     src = np.c_[6.0 + 4.0 * np.cos(ang), 4.5 + 3.0 * np.sin(ang), np.full(n_events, 0.3)]
-    tau = rng.uniform(0.0, 1.0, len(ARRAY_POS))
-    delta = rng.uniform(-1e-4, 1e-4, len(ARRAY_POS))
+    tau = rng.uniform(0.0, 1.0, n_arrays)
+    delta = rng.uniform(-1e-4, 1e-4, n_arrays)
     return t_emit, src, tau, delta
 
 
-def write_session(folder, n_events, fs, seed=0):
-    """Write session.toml, events.csv and one 16-bit WAV per array (rendered BLOCK_S at a time)."""
+def write_session(folder, n_events, fs, seed=0, n_arrays=5, n_mics=6):
+    """Write session.toml, events.csv and one 16-bit WAV per array (rendered BLOCK_S at a time); ``n_arrays``
+    (≤ 8) of :data:`ARRAY_POS`, ``n_mics`` (≤ 6) of :data:`MICS` in :data:`MIC_ORDER`."""
     folder.mkdir(parents=True, exist_ok=True)
-    t_emit, src, tau, delta = scene(n_events, seed)
+    t_emit, src, tau, delta = scene(n_events, seed, n_arrays)
+    mics = MICS[MIC_ORDER[:n_mics]]
     rng = np.random.default_rng(seed + 1)
     n_t = int(np.ceil(CHIRP["duration"] * fs))
     lines = ["speed_of_sound = 343.0", 'reference_array = "A1"', "", "[chirp]",
              *(f"{k} = {v}" for k, v in CHIRP.items()), ""]
-    for i, pos in enumerate(ARRAY_POS):
+    for i, pos in enumerate(ARRAY_POS[:n_arrays]):
         name = f"A{i + 1}"
         lines += ["[[arrays]]", f'name = "{name}"', f'wav = "{name}.wav"',
-                  "mics = [" + ", ".join("[" + ", ".join(f"{v:.6f}" for v in m) + "]" for m in MICS) + "]", ""]
-        mic_pos = pos + MICS
+                  "mics = [" + ", ".join("[" + ", ".join(f"{v:.6f}" for v in m) + "]" for m in mics) + "]", ""]
+        mic_pos = pos + mics
         dist = np.linalg.norm(src[:, None, :] - mic_pos[None], axis=-1)  # (K, M)
         t_arr = (1 + delta[i]) * (t_emit[:, None] + dist / C) + tau[i]  # local seconds
         n_total = int((t_arr.max() + 1.0) * fs)
-        with sf.SoundFile(folder / f"{name}.wav", "w", fs, len(MICS), "PCM_16") as f:
+        with sf.SoundFile(folder / f"{name}.wav", "w", fs, len(mics), "PCM_16") as f:
             for b0 in range(0, n_total, int(BLOCK_S * fs)):
                 b1 = min(b0 + int(BLOCK_S * fs), n_total)
-                blk = rng.standard_normal((b1 - b0, len(MICS)), np.float32) * np.float32(NOISE_RMS)
+                blk = rng.standard_normal((b1 - b0, len(mics)), np.float32) * np.float32(NOISE_RMS)
                 near = np.flatnonzero((t_arr.max(axis=1) * fs > b0 - n_t - 2) & (t_arr.min(axis=1) * fs < b1))
                 for k in near:
-                    for m in range(len(MICS)):
+                    for m in range(len(mics)):
                         n0 = max(b0, int(t_arr[k, m] * fs))
                         n1 = min(b1, int(t_arr[k, m] * fs) + n_t + 2)
                         u = (np.arange(n0, n1) / fs - t_arr[k, m]) / (1 + delta[i])  # emitter seconds
@@ -98,7 +103,7 @@ def truth_tdoa_s(n_events, seed=0):
     """True TDOA-S per array between consecutive events: (1 + δ) × difference of arrivals at the origin."""
     t_emit, src, tau, delta = scene(n_events, seed)
     out = {}
-    for i, pos in enumerate(ARRAY_POS):
+    for i, pos in enumerate(ARRAY_POS[: len(delta)]):
         a = t_emit + np.linalg.norm(src - pos, axis=1) / C
         out[f"A{i + 1}"] = {(j, j + 1): (1 + delta[i]) * (a[j + 1] - a[j]) for j in range(n_events - 1)}
     return out
@@ -189,7 +194,7 @@ def plot(rows, path):
     for a in ax:
         a.grid(True, which="both", alpha=0.3)
         a.legend(fontsize=8)
-    fig.suptitle(f"calib features: {len(ARRAY_POS)} arrays × {len(MICS)} mics, a chirp every ~{SPACING:g} s")
+    fig.suptitle(f"calib features: 5 arrays × {len(MICS)} mics, a chirp every ~{SPACING:g} s")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
@@ -212,6 +217,12 @@ def cli_case(folder, jobs):
     return {**m, "duration_s": duration}
 
 
+def session_name(k, fs, args):
+    """The --dir folder of a session (the default layout keeps the names of earlier runs)."""
+    layout = "" if (args.arrays, args.mics) == (5, 6) else f"_a{args.arrays}m{args.mics}"
+    return f"k{k}_fs{fs}_s{args.seed}{layout}"
+
+
 def main_cli(args):
     """The --cli table: one row per session, the whole `calib features` process."""
     print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f} (1/5/15 min); "
@@ -220,9 +231,9 @@ def main_cli(args):
     print("|---|---|---|---|---|---|---|---|")
     for fs in args.rates:
         for k in args.events:
-            folder = args.dir / f"k{k}_fs{fs}_s{args.seed}"
+            folder = args.dir / session_name(k, fs, args)
             if not (folder / "complete").exists():
-                write_session(folder, k, fs, args.seed)
+                write_session(folder, k, fs, args.seed, args.arrays, args.mics)
             r = cli_case(folder, args.jobs)
             d = r["duration_s"]
             print(f"| {k} | {fs // 1000} kHz | {d:.0f} | {r['wall_s']:.2f} | {100 * r['wall_s'] / d:.2f} | "
@@ -239,6 +250,8 @@ def main():
                     help='the figure to write ("" for none)')
     ap.add_argument("--json", type=Path, help="also write the raw numbers here")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--arrays", type=int, default=5, choices=range(2, 9), help="arrays (--cli; default 5)")
+    ap.add_argument("--mics", type=int, default=6, choices=range(2, 7), help="mics per array (--cli; default 6)")
     ap.add_argument("--jobs", type=int, default=1, help="arrays at a time (session_features(jobs=...), threads)")
     ap.add_argument("--association", action="store_true", help="only the association timing table")
     ap.add_argument("--replot", type=Path, help="only redraw --plot from a --json file of an earlier run")
