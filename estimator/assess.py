@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.blas import single_thread_blas
+
 from . import clockmodel
 from .factors import KINDS, active_kinds, natural
 from .factors import evaluate as factors
@@ -142,7 +144,8 @@ def array_covariance(model):
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     J, w = lin.J, lin.w
-    cov = covariance(J[w > 0], lay.n, lay, arrays_only=True)   # large problems: the array block alone
+    with single_thread_blas():   # small dense blocks (calib.blas): threads only add synchronisation
+        cov = covariance(J[w > 0], lay.n, lay, arrays_only=True)   # large problems: the array block alone
     labels, idx = [], []
     skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
     for i, name in enumerate(p.names):
