@@ -118,7 +118,8 @@ def position_covariances(model):
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     J, w = lin.J, lin.w
-    cov = covariance(J[w > 0], lay.n, lay)
+    with single_thread_blas():   # (calib.blas)
+        cov = covariance(J[w > 0], lay.n, lay)
 
     def blocks(idx, skip=()):
         out = np.full((len(idx), 3, 3), np.nan)
