@@ -35,14 +35,13 @@ def rebuild(features, calib):
     features = clockmodel.correct_features(features, clockmodel.models_from_report(rep))
     p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e, odometry_yaw=bool(frame.get("estimated")))
     # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
-    for kind in KINDS.values():
-        v = (rep.get("sigmas") or {}).get(kind.report_sigma)
-        if kind.reweight and isinstance(v, (int, float)) and v > 0:
-            p.sigma[kind.name] = float(v)
+    sigmas = rep.get("sigmas") or {}
+    stated = {kind.name: sigmas.get(kind.report_sigma) for kind in KINDS.values() if kind.reweight}
+    sigma = {k: float(v) for k, v in stated.items() if isinstance(v, (int, float)) and v > 0}
     # ... and the arrays' own components (array_noise=True: report.json lists the arrays whose one moved)
-    for kind, own in ((rep.get("sigmas") or {}).get("per_array_factor") or {}).items():
-        if own:
-            p.array_scale[kind] = np.array([float(own.get(str(n), 1.0)) for n in p.names])
+    p = p.replace(sigma={**p.sigma, **sigma}, array_scale={
+        kind: np.array([float(own.get(str(n), 1.0)) for n in p.names])
+        for kind, own in (sigmas.get("per_array_factor") or {}).items() if own})
     st = state_from_frames(p, calib["arrays"], src)
     corr = rep.get("emission_corrections_s") or {}
     st.e = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])
@@ -50,7 +49,7 @@ def rebuild(features, calib):
     kinds = active_kinds(p)
     if _rank_deficient(p, rep.get("undetermined") or []):
         # the estimator left out what the data do not determine: the same rank check at the estimate
-        check_observability(p, make_layout(p), kinds, st)
+        p = check_observability(p, make_layout(p), kinds, st)
     lay = make_layout(p)
     flagged = {}
     for o in rep.get("outliers") or []:

@@ -37,10 +37,11 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
 
     Each null direction of the column-normalised Jacobian (the weakest one, found again after each fix)
     names the parameters it moves (weight >= NULL_SUPPORT of its largest): they are undetermined. An array
-    parameter among them (the largest) is then left out of the solve (``p.fixed_cols``, kept at its
+    parameter among them (the largest) is then left out of the solve (``fixed_cols``, kept at its
     initial value, NaN std) and the check repeated, so everything else is calibrated: parameters outside
-    every null direction are determined whatever the fixed values. ``p.unobservable`` gets one entry
-    per (array, parameter): {"parameter", "array", "reason"} (report.json ``undetermined``). Raises
+    every null direction are determined whatever the fixed values. Returns a new problem (``p`` is not
+    changed) with those ``fixed_cols`` and ``unobservable``: one entry per (array, parameter):
+    {"parameter", "array", "reason"} (report.json ``undetermined``). Raises
     ObservabilityError when a null direction moves no non-reference array parameter (e.g. sources only),
     or on the counting checks (collinear source path). ``lay`` is the full layout (recomputed here).
     ``dense`` as in :func:`calib.estimator.solver.linearise` (None: by problem size).
@@ -49,7 +50,9 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
 
     _check_counts(p)
     found = {}
+    fixed = {k: v.copy() for k, v in p.fixed_cols.items()}
     for _ in range(4 * p.N * 8):  # each pass fixes at least one column
+        p = p.replace(fixed_cols={k: v.copy() for k, v in fixed.items()})
         lay = make_layout(p)
         cols, untouched = _null_direction(p, lay, kinds, st, rel_tol, dense)
         if cols is None:
@@ -57,7 +60,6 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
         support = _support_blocks(p, lay, cols)
         if not support or (untouched and len(support) < len(cols)):
             raise ObservabilityError(f"the data cannot determine {_what(p, lay, cols, st)}")
-        fixed = p.fixed_cols
         for i, key, label, k in support:
             found[(i, label)] = True
         # untouched columns all at once, else the array column the null direction moves most
@@ -66,12 +68,11 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
             mask[(i, k) if mask.ndim == 2 else i] = True
     else:
         raise ObservabilityError("the data leave too many parameters undetermined")
-    p.unobservable = [{"parameter": label, "array": str(p.names[i]),
-                       "reason": "the data do not determine it (rank-deficient Fisher information: too few "
-                                 "measurements of this array); not estimated (kept at its initial value, NaN "
-                                 "std), the other parameters are"}
-                      for (i, label) in sorted(found)]
-    return p.unobservable
+    return p.replace(unobservable=[
+        {"parameter": label, "array": str(p.names[i]),
+         "reason": "the data do not determine it (rank-deficient Fisher information: too few measurements of "
+                   "this array); not estimated (kept at its initial value, NaN std), the other parameters are"}
+        for (i, label) in sorted(found)])
 
 
 def _null_direction(p, lay, kinds, st, rel_tol, dense):

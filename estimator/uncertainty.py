@@ -8,7 +8,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse
+import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
 from calib.tables import columns
@@ -229,3 +231,33 @@ def draw_from_crlb(bound, rng):
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     delta = V @ (np.sqrt(np.maximum(w, 0.0)) * rng.standard_normal(len(w)))
     return retract(bound["state"], bound["layout"], delta)
+
+
+def whiten(J, w):
+    """Rows of J scaled by sqrt(w) (IRLS weights), dense or sparse alike."""
+    if scipy.sparse.issparse(J):
+        return (scipy.sparse.diags(np.sqrt(w)) @ J).tocsr()
+    return J * np.sqrt(w)[:, None]
+
+
+def param_std(J, k):
+    """1-σ of parameter k from whitened J: sqrt((JᵀJ)⁻¹_kk) by one Cholesky solve (pinv if singular);
+    a sparse J by one sparse LU solve."""
+    if scipy.sparse.issparse(J):
+        d = np.sqrt(np.asarray(J.multiply(J).sum(axis=0)).ravel())
+        d = np.where(d > 0, d, 1.0)
+        Js = (J @ scipy.sparse.diags(1.0 / d)).tocsc()
+        e = np.zeros(J.shape[1])
+        e[k] = 1.0
+        x = scipy.sparse.linalg.splu((Js.T @ Js).tocsc()).solve(e)
+        return float(np.sqrt(max(x[k], 0.0)) / d[k])
+    d = np.linalg.norm(J, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    Js = J / d
+    e = np.zeros(J.shape[1])
+    e[k] = 1.0
+    try:
+        x = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Js.T @ Js), e)
+    except np.linalg.LinAlgError:
+        x = np.linalg.pinv(Js.T @ Js) @ e
+    return float(np.sqrt(max(x[k], 0.0)) / d[k])

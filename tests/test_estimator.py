@@ -182,7 +182,7 @@ def test_a_frontends_own_sigma_is_raised_by_the_residuals_but_never_lowered():
     """The same 10×-too-large TDOA sigma: stated by the user it is re-estimated toward the truth; as the
     frontend's own figure (meta sigmas_estimated) it stays (FRONTEND_MIN_FACTOR = 1). A 10×-too-small
     frontend figure is raised toward the truth."""
-    from calib.estimator.calibrate import FRONTEND_MIN_FACTOR
+    from calib.estimator.variance import FRONTEND_MIN_FACTOR
 
     assert FRONTEND_MIN_FACTOR == 1.0
     feats, _ = simulate_features(3, 1e-4, 5.0, seed=21)

@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calib.estimator import ObservabilityError, calibrate
-from calib.estimator.calibrate import to_frames
+from calib.estimator.outputs import to_frames
 from calib.estimator.problem import build_problem
 from calib.estimator.wang import clock_line_fit, pose_by_alignment, range_windows, wang_initialise, wang_ranges
 from calib.pipeline.report.evaluate import evaluate
