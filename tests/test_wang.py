@@ -99,7 +99,7 @@ def test_calibrate_wang_recovers_truth_on_low_noise_data():
 def test_too_few_doas_is_an_observability_error_naming_the_array():
     feats, _ = simulate_features(1, seed=0, noise=False)
     doa = feats["doa"]
-    feats["doa"] = doa[(doa["array"] != "A3") | (doa["event"] < 3)].reset_index(drop=True)
+    feats = feats.replace(doa=doa[(doa["array"] != "A3") | (doa["event"] < 3)].reset_index(drop=True))
     with pytest.raises(ObservabilityError, match="A3"):
         calibrate(feats, method="wang")
 

@@ -25,6 +25,7 @@ import io
 import json
 import os
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ import numpy as np
 import pandas as pd
 
 from calib import kinds as K
+from calib.records import Features
 from calib.kinds import Table  # noqa: F401  (re-exported: the table description lives with the kinds)
 from calib.tables import LINE_COLUMN
 
@@ -402,8 +404,9 @@ def validate_features(feats):
     return out
 
 
-def read_features(directory: str | Path) -> dict[str, Any]:
-    """Read and validate a ``features/`` directory (docs/formats.md section 2).
+def read_features(directory: str | Path) -> Features:
+    """Read and validate a ``features/`` directory (docs/formats.md section 2) → :class:`calib.records.Features`
+    (:func:`write_features` writes it back).
 
     The measurement tables (:func:`feature_tables`: tdoa_m.csv, tdoa_s.csv, doa.csv, ...) are optional (absent = no
     such measurements).
@@ -421,11 +424,12 @@ def read_features(directory: str | Path) -> dict[str, Any]:
     feats["meta"]["_path"] = str(d / "meta.json")
     out = validate_features(feats)
     out["meta"].pop("_path", None)
-    return out
+    return Features.from_dict(out)
 
 
-def write_features(directory: str | Path, feats: dict[str, Any], command: str = "calib") -> None:
-    """Write a features dict to ``directory`` atomically (validated first, so nothing bad is written)."""
+def write_features(directory: str | Path, feats: Mapping[str, Any], command: str = "calib") -> None:
+    """Write features (a :class:`calib.records.Features` or the dict form) to ``directory`` atomically
+    (validated first, so nothing bad is written); :func:`read_features` reads them back."""
     with atomic_dir(directory, command=command) as tmp:
         write_features_files(tmp, feats)
 
