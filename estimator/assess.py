@@ -11,7 +11,7 @@ from . import clockmodel
 from .factors import KINDS, active_kinds, natural
 from .factors import evaluate as factors
 from .observability import check_observability
-from .problem import build_problem, make_layout
+from .problem import ARRAY_PARAM_KEY, ARRAY_PARAMS, build_problem, make_layout
 from .solver import linearise
 from .uncertainty import cov_block, covariance, state_from_frames
 
@@ -74,9 +74,8 @@ def _rank_deficient(p, undetermined):
 
 def _undetermined(p):
     """{(array index, layout key)} of the parameters the rank check left out (``p.unobservable``)."""
-    key = {"position": "x", "orientation": "rot", "offset": "offset", "drift": "drift"}
     index = {str(n): i for i, n in enumerate(p.names)}
-    return {(index[u["array"]], key[u["parameter"]]) for u in p.unobservable}
+    return {(index[u["array"]], ARRAY_PARAM_KEY[u["parameter"]]) for u in p.unobservable}
 
 
 def residuals(model):
@@ -127,9 +126,6 @@ def position_covariances(model):
     return blocks(lay.x, {i for i, key in _undetermined(p) if key == "x"}), blocks(lay.s)
 
 
-ARRAY_PARAMS = (("x", ("x", "y", "z")), ("rot", ("rx", "ry", "rz")), ("offset", ("offset",)), ("drift", ("drift",)))
-
-
 def array_covariance(model):
     """Full 1-σ covariance of the free array parameters at the estimate (the (JᵀWJ)⁻¹ of the ``*_std`` columns).
 
@@ -145,11 +141,11 @@ def array_covariance(model):
     labels, idx = [], []
     skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
     for i, name in enumerate(p.names):
-        for key, names in ARRAY_PARAMS:
-            if (i, key) in skip:
+        for a in ARRAY_PARAMS:
+            if (i, a.key) in skip:
                 continue
-            cols = np.atleast_1d(getattr(lay, key)[i])
-            for col, label in zip(cols, names):
+            cols = np.atleast_1d(getattr(lay, a.key)[i])
+            for col, label in zip(cols, a.components):
                 if col >= 0:
                     labels.append(f"{name}.{label}")
                     idx.append(int(col))

@@ -15,6 +15,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from .init import ObservabilityError
+from .problem import ARRAY_PARAMS
 from .solver import Schur, linearise
 
 # Jn's smallest singular value below this (absolute; Jn has unit columns) means rank deficient.
@@ -28,8 +29,6 @@ LANCZOS_TOL = 1e-3
 # part of what the data do not determine (null vectors of a missing measurement are confined to the
 # columns it would have touched; other columns get only round-off).
 NULL_SUPPORT = 0.02
-# the array parameters that can be left out of a solve when the data do not determine them
-ARRAY_BLOCKS = (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift"))
 
 
 def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
@@ -114,7 +113,7 @@ def _support_blocks(p, lay, cols):
     """Non-reference array parameters among ``cols`` ({column: weight}), largest weight first:
     (array, layout key, label, component)."""
     out = []
-    for key, label in ARRAY_BLOCKS:
+    for key, label in ((a.key, a.label) for a in ARRAY_PARAMS):   # (each can be left out of a solve)
         idx = getattr(lay, key).reshape(p.N, -1)
         for i, k in np.argwhere(idx >= 0):
             c = int(idx[i, k])
@@ -193,10 +192,10 @@ def _weakest_event(sch, lay):
 
 def describe_param(p, lay, k):
     """Words for parameter column ``k`` of layout ``lay`` (e.g. "the orientation of array A3")."""
-    for key, label in (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift")):
-        hit = np.argwhere(getattr(lay, key).reshape(p.N, -1) == k)
+    for a in ARRAY_PARAMS:
+        hit = np.argwhere(getattr(lay, a.key).reshape(p.N, -1) == k)
         if hit.size:
-            return f"the {label} of array {p.names[hit[0, 0]]}"
+            return f"the {a.label} of array {p.names[hit[0, 0]]}"
     hit = np.argwhere(lay.s == k)
     if hit.size:
         return f"the position of source (event {p.events[hit[0, 0]]})"

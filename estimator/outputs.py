@@ -7,9 +7,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from .factors import KINDS, natural
-
-# the per-array parameters of the arrays table's ``*_std`` columns, by their key in ``std_from_cov``'s dict
-ARRAY_STD_KEYS = ("x", "rot", "offset", "drift")
+from .problem import ARRAY_PARAMS
 
 
 def undetermined_parameters(p):
@@ -70,9 +68,9 @@ def to_frames(p, st, std=None):
               "offset": a["offset"], "drift": a["drift"]}
     sources = {"event": s["event"], **{c: s["xyz"][:, k] for k, c in enumerate("xyz")}}
     if std is not None:   # the columns collected first: one DataFrame each (a column insert costs ~0.1 ms)
-        arrays.update({f"{c}_std": std["x"][:, k] for k, c in enumerate("xyz")})
-        arrays.update({f"r{c}_std": std["rot"][:, k] for k, c in enumerate("xyz")})
-        arrays.update({"offset_std": std["offset"], "drift_std": std["drift"]})
+        for a in ARRAY_PARAMS:
+            v = std[a.key].reshape(len(std[a.key]), -1)   # (N, dim)
+            arrays.update({c: v[:, k] for k, c in enumerate(a.std_columns)})
         sources.update({f"{c}_std": std["s"][:, k] for k, c in enumerate("xyz")})
     return pd.DataFrame(arrays), pd.DataFrame(sources)
 
@@ -82,6 +80,6 @@ def without_claims(std, arrays):
     refitted alone from data the rest contradict; the joint covariance holds no row of it (its std came out
     ~1e-8 m), so no uncertainty is claimed (empty, as the reference's)."""
     for i in arrays:
-        for key in ARRAY_STD_KEYS:
-            std[key][i] = np.nan
+        for a in ARRAY_PARAMS:
+            std[a.key][i] = np.nan
     return std

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from calib.tables import columns
 
 from .factors import active_kinds
-from .problem import build_problem, empty_state, make_layout, retract
+from .problem import ARRAY_PARAM_KEY, ARRAY_PARAMS, build_problem, empty_state, make_layout, retract
 from .solver import Schur, linearise
 
 
@@ -158,14 +158,12 @@ def std_from_cov(p, lay, cov):
     def pick(idx):
         return np.where(idx >= 0, sd[np.maximum(idx, 0)], np.nan)
 
-    out = {"x": pick(lay.x), "rot": pick(lay.rot), "offset": pick(lay.offset),
-           "drift": pick(lay.drift), "s": pick(lay.s), "e": pick(lay.e)}
+    out = {**{a.key: pick(getattr(lay, a.key)) for a in ARRAY_PARAMS}, "s": pick(lay.s), "e": pick(lay.e)}
     # a parameter the data leave undetermined (observability.check_observability) has no std, although
     # the gauge fixes only some of its components
-    key = {"position": "x", "orientation": "rot", "offset": "offset", "drift": "drift"}
     index = {str(n): i for i, n in enumerate(p.names)}
     for u in p.unobservable:
-        out[key[u["parameter"]]][index[u["array"]]] = np.nan
+        out[ARRAY_PARAM_KEY[u["parameter"]]][index[u["array"]]] = np.nan
     return out
 
 
