@@ -1,6 +1,8 @@
 """The features stage as files: a recording folder → features/ and diagnostics/ (both atomic)."""
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from calib.frontend import extract_features, plot_detections
 from calib.jsonutil import dumps_json
 from calib.records import Features
@@ -17,7 +19,7 @@ def session_features(recordings, progress=None, jobs=1, **options):
     core; the results do not depend on it). options : ``calib.frontend.DEFAULTS`` overrides.
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
-    session = recordings if isinstance(recordings, dict) else read_session(recordings)
+    session = recordings if isinstance(recordings, Mapping) else read_session(recordings)
     feats, diag = extract_features(session, progress=progress, jobs=jobs, **options)
     return add_session_meta(feats, session, diag), diag
 
