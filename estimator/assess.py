@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.tables import ARRAY_PARAM_KEY, ARRAY_PARAMS
+
 from . import clockmodel
 from .factors import KINDS, active_kinds, natural
 from .factors import evaluate as factors
 from .observability import check_observability
-from .problem import ARRAY_PARAM_KEY, ARRAY_PARAMS, build_problem, make_layout
+from .problem import build_problem, make_layout
 from .solver import linearise
 from .uncertainty import cov_block, covariance, state_from_frames
 

@@ -14,8 +14,9 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+from calib.tables import ARRAY_PARAMS
+
 from .init import ObservabilityError
-from .problem import ARRAY_PARAMS
 from .solver import Schur, linearise
 
 # Jn's smallest singular value below this (absolute; Jn has unit columns) means rank deficient.

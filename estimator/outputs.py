@@ -6,8 +6,9 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
+from calib.tables import ARRAY_PARAMS
+
 from .factors import KINDS, natural
-from .problem import ARRAY_PARAMS
 
 
 def undetermined_parameters(p):

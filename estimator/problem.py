@@ -423,29 +423,6 @@ def state_from_dict(d):
     return State(**{f.name: np.array(d[f.name], dtype=float, copy=True) for f in dataclasses.fields(State)})
 
 
-@dataclass(frozen=True)
-class ArrayParam:
-    """A per-array parameter: ``key`` its :class:`Layout` field (and ``std_from_cov`` key), ``label`` its name
-    in report.json ``undetermined`` and in messages, ``components`` the names of its components per array
-    (tangent-space ones for a rotation: rotation about the array's own axes); the arrays table's 1-σ
-    columns are ``<component>_std`` (docs/formats.md section 3)."""
-    key: str
-    label: str
-    components: tuple
-
-    @property
-    def std_columns(self):
-        return tuple(f"{c}_std" for c in self.components)
-
-
-# The per-array parameters, in the arrays table's order: every list of them (observability's blocks and
-# words, the std columns, the covariance labels, the NaN std of an unreliable or undetermined parameter)
-# loops over this.
-ARRAY_PARAMS = (ArrayParam("x", "position", ("x", "y", "z")), ArrayParam("rot", "orientation", ("rx", "ry", "rz")),
-                ArrayParam("offset", "offset", ("offset",)), ArrayParam("drift", "drift", ("drift",)))
-ARRAY_PARAM_KEY = {a.label: a.key for a in ARRAY_PARAMS}   # {report label: layout key}
-
-
 @dataclass
 class Layout:
     """Where each free parameter sits in the parameter vector: index arrays shaped like the state's

@@ -13,10 +13,10 @@ import scipy.sparse
 import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
-from calib.tables import columns
+from calib.tables import ARRAY_PARAM_KEY, ARRAY_PARAMS, columns
 
 from .factors import active_kinds
-from .problem import ARRAY_PARAM_KEY, ARRAY_PARAMS, build_problem, empty_state, make_layout, retract
+from .problem import build_problem, empty_state, make_layout, retract
 from .solver import Schur, linearise
 
 

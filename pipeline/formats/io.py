@@ -35,7 +35,7 @@ import pandas as pd
 from calib import kinds as K
 from calib.records import Features
 from calib.kinds import Table  # noqa: F401  (re-exported: the table description lives with the kinds)
-from calib.tables import LINE_COLUMN
+from calib.tables import ARRAYS_COLUMNS, LINE_COLUMN
 
 
 from calib.errors import InputError  # noqa: F401  (re-exported: readers raise it)
@@ -46,7 +46,7 @@ from calib.pipeline.formats.outputs import publish, publish_mode, temp_path
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
-ARRAYS_COLS = ["array", "x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
+ARRAYS_COLS = list(ARRAYS_COLUMNS)   # (calib.tables: from the per-array parameters)
 SOURCES_COLS = ["event", "x", "y", "z"]
 DOA_NORM_TOL = 1e-3
 
