@@ -7,7 +7,7 @@ freedom); the outcome is one typed :class:`JointResult`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -50,6 +50,18 @@ class JointResult:
     bounds: dict = field(default_factory=dict)
 
 
+class ArrayCheck(NamedTuple):
+    """:func:`consistency_stage`'s outcome: the state, layout and mask after the inconsistent arrays were
+    dropped (their parameters fixed, their rows out), their indices, one record per candidate tested
+    (report.json ``array_consistency``) and the measurement statistics at the input state."""
+    state: State
+    layout: Layout
+    mask: dict
+    dropped: list
+    records: list
+    stats: Any
+
+
 def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200,
                check_arrays=True, noise_bounds=None, noise_floors=None):
     """Joint NLS from a given state: robust pass → inconsistent arrays → outlier rows → plain least squares.
@@ -88,8 +100,10 @@ def _robust_stages(res, kinds, *, check_arrays, loss, robust_k, max_iter, thresh
     solution shows, flagged rows that fit given back."""
     p, st, lay, mask, stats = res.problem, res.state, res.layout, {}, None
     if check_arrays:
-        st, lay, mask, res.dropped, res.arrays, stats = consistency_stage(
-            p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter, threshold=threshold)
+        chk = consistency_stage(p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter,
+                                threshold=threshold)
+        st, lay, mask, stats = chk.state, chk.layout, chk.mask, chk.stats
+        res.dropped, res.arrays = chk.dropped, chk.records
     st, mask, flagged, _, _, cap1 = remove_outliers(p, st, lay, kinds, mask, threshold=threshold, loss=loss, k=robust_k,
                                                     max_iter=max_iter, stats=stats if not res.dropped else None)
     st, res.final = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
@@ -125,8 +139,7 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, thre
     also moves the rest by more than MOVE_SIGMA: its data bend the others' solution, as an occluded
     array's reflections do; otherwise its outlier rows are removed one by one as any others).
 
-    Returns (state, layout, mask, dropped array indices, per-candidate records for the report, the
-    statistics at the input state).
+    Returns an :class:`ArrayCheck`.
     """
     sizes = factor_sizes(p)
     stats = measurement_stats(p, st, lay, kinds, mask)
@@ -157,7 +170,7 @@ def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, thre
             st, lay, mask = st_w, lay_w, mask_w
             dropped.append(i)
         records.append(rec)
-    return st, lay, mask, dropped, records, stats
+    return ArrayCheck(st, lay, mask, dropped, records, stats)
 
 
 def _moves_sigma(p, st_a, st_b, lay, kinds, mask):

@@ -7,6 +7,7 @@ odometry yaw kept free or fixed) with the start state; the problem it was given 
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,7 +18,7 @@ from .geometry import init_cone_axes
 from .init import doa_rotation, initialise, kabsch, subproblem
 from .observability import check_observability
 from .odoframe import initial_yaw, rotate_odometry, yaw_decision
-from .problem import make_layout
+from .problem import Problem, State, make_layout
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import whiten
 
@@ -32,11 +33,20 @@ def _wang_initialise(p):
 INIT_METHODS = {"hybrid": initialise, "wang": _wang_initialise}
 
 
+class Start(NamedTuple):
+    """:func:`initial_state`'s outcome: the problem the stages leave (undetermined parameters out, the
+    odometry yaw's freedom decided), the start state of the joint solve, the stages' records for report.json
+    ``stages`` ({"init", "ive"}: cost, iterations, ...) and the state after each stage."""
+    problem: Problem
+    state: State
+    stages: dict
+    stage_states: dict
+
+
 def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
     """Initialisation (hybrid or Wang et al.'s) in the odometry frame's start yaw, the observability check,
-    then the IVE (hybrid with TDOA-S), where the odometry yaw is kept or fixed. Returns (problem, state,
-    stages, stage_states): the problem with the undetermined parameters and the yaw decision; ``times``
-    gets "init", "observability" and "ive" (s).
+    then the IVE (hybrid with TDOA-S), where the odometry yaw is kept or fixed. Returns a :class:`Start`
+    (the given problem is not changed); ``times`` gets "init", "observability" and "ive" (s).
     """
     t0 = time.perf_counter()
     stages, stage_states = {}, {}
@@ -58,7 +68,7 @@ def initial_state(p, kinds, *, method, loss, robust_k, max_iter, times):
         p, st, stages["ive"] = ive(p, st, loss=loss, robust_k=robust_k, max_iter=max_iter)
         stage_states["ive"] = st.copy()
         times["ive"] = time.perf_counter() - t1
-    return p, st, stages, stage_states
+    return Start(p, st, stages, stage_states)
 
 
 def ive(p, st, *, loss, robust_k, max_iter):
