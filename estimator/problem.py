@@ -1,4 +1,4 @@
-"""The numeric problem: features dict → a typed :class:`Problem`, and the state ↔ parameter-vector layout.
+"""The numeric problem: features (``calib.records.Features`` or the dict form) → an immutable :class:`Problem`, and the state ↔ parameter-vector layout.
 
 A :class:`Problem` (built once per data set) holds the arrays' names and reference, the events (emission
 times, cumulative odometry), one block of rows per measurement kind (:class:`TdoaMRows`, :class:`TdoaSRows`,

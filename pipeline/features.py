@@ -13,7 +13,7 @@ from calib.pipeline.formats.session import read_session
 
 
 def session_features(recordings, progress=None, jobs=1, **options):
-    """Read the session folder ``recordings`` (or take an already read session dict) and run the frontend.
+    """Read the session folder ``recordings`` (or take an already read session) and run the frontend.
 
     progress : optional ``progress(done, total, message)``. jobs : arrays at a time (threads; −1: one per
     core; the results do not depend on it). options : ``calib.frontend.DEFAULTS`` overrides.

@@ -5,12 +5,13 @@ the file, the row (1-based line number in the file, header = line 1) and the pro
 atomic: it writes into a temporary sibling directory and renames it into place, so an interrupted or
 failed write never leaves a partial directory that a later run could trust.
 
-In-memory representation (plain dicts of pandas DataFrames, sorted, with clean dtypes):
+In-memory representation (pandas DataFrames, sorted, with clean dtypes):
 
 ``features``
-    ``meta`` (dict), ``events`` (event, t_emit, odom_x, odom_y, odom_z), ``tdoa_m`` (event, array, tdoa),
-    ``tdoa_s`` (array, from_event, to_event, tdoa), ``doa`` (event, array, ux, uy, uz). Extra columns
-    (e.g. ``quality``) are kept.
+    a :class:`calib.records.Features` (read like a dict; :func:`validate_features` and the writers also
+    take the dict form): ``meta`` (dict), ``events`` (event, t_emit, odom_x, odom_y, odom_z), ``tdoa_m``
+    (event, array, tdoa), ``tdoa_s`` (array, from_event, to_event, tdoa), ``doa`` (event, array, ux, uy,
+    uz). Extra columns (e.g. ``quality``) are kept.
 ``calibration``
     ``arrays`` (array, x, y, z, qw, qx, qy, qz, offset, drift, optional ``*_std``), ``sources``
     (event, x, y, z, optional ``*_std``), ``report`` (dict).

@@ -1,6 +1,7 @@
 """Recording sessions (docs/formats.md section 1): ``session.toml`` + one WAV per array + ``events.csv``.
 
-A session in memory is a plain dict::
+A session in memory is a :class:`calib.records.Session`, which reads like this dict (the frontend also
+takes the dict form)::
 
     {
       "dir": Path,                      # the session folder
