@@ -1,4 +1,5 @@
-"""The numeric problem: features (``calib.records.Features`` or the dict form) → an immutable :class:`Problem`, and the state ↔ parameter-vector layout.
+"""The numeric problem: features (``calib.records.Features`` or the dict form) → an immutable :class:`Problem`,
+and the state ↔ parameter-vector layout.
 
 A :class:`Problem` (built once per data set) holds the arrays' names and reference, the events (emission
 times, cumulative odometry), one block of rows per measurement kind (:class:`TdoaMRows`, :class:`TdoaSRows`,
@@ -53,6 +54,10 @@ class Rows:
     def __post_init__(self):
         for f in dataclasses.fields(self):
             object.__setattr__(self, f.name, frozen_array(getattr(self, f.name)))
+
+    def __setstate__(self, state):   # (unpickled arrays come back writeable: frozen again)
+        self.__dict__.update(state)
+        self.__post_init__()
 
     def __len__(self):
         return len(self.row)
@@ -172,6 +177,13 @@ class Problem:
             elif f.name == "unobservable":
                 v = tuple(v)
             object.__setattr__(self, f.name, v)
+
+    def __getstate__(self):   # (a read-only mapping does not pickle: its dict does)
+        return {k: dict(v) if isinstance(v, MappingProxyType) else v for k, v in self.__dict__.items()}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self.__post_init__()
 
     @property
     def N(self):

@@ -119,3 +119,19 @@ def test_problem_fields_are_all_frozen():
             assert not v.flags.writeable, fld.name
         elif isinstance(v, (dict, list)):
             pytest.fail(f"{fld.name} is a mutable {type(v).__name__}")
+
+
+def test_problems_and_results_pickle_and_stay_frozen():
+    """Programs send problems and calibrate()'s results between processes (Monte-Carlo, Dask)."""
+    import pickle
+
+    f, _ = simulate_features(1, seed=0)
+    p = build_problem(f)
+    q = pickle.loads(pickle.dumps(p))
+    assert fingerprint(q) == fingerprint(p)
+    with pytest.raises(ValueError, match="read-only"):
+        q.doa.u[0, 0] = 0.0
+    with pytest.raises(TypeError):
+        q.sigma["doa"] = 1.0
+    res = pickle.loads(pickle.dumps(calibrate(f)))
+    assert fingerprint(res["problem"]) == fingerprint(calibrate(f)["problem"])
