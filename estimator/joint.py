@@ -104,20 +104,20 @@ def _robust_stages(res, kinds, *, check_arrays, loss, robust_k, max_iter, thresh
                                 threshold=threshold)
         st, lay, mask, stats = chk.state, chk.layout, chk.mask, chk.stats
         res.dropped, res.arrays = chk.dropped, chk.records
-    st, mask, flagged, _, _, cap1 = remove_outliers(p, st, lay, kinds, mask, threshold=threshold, loss=loss, k=robust_k,
-                                                    max_iter=max_iter, stats=stats if not res.dropped else None)
-    st, res.final = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+    first = remove_outliers(p, st, lay, kinds, mask, threshold=threshold, loss=loss, k=robust_k, max_iter=max_iter,
+                            stats=stats if not res.dropped else None)
+    st, res.final = levenberg_marquardt(p, first.state, lay, kinds, loss=None, mask=first.mask, max_iter=max_iter)
     # outliers that only show at the least-squares solution (the robust loss hid their pull)
-    st, mask, more, _, stats_b, cap2 = remove_outliers(p, st, lay, kinds, mask, threshold=threshold, loss=None,
-                                                       k=robust_k, max_iter=max_iter)
-    res.capped = cap1 or cap2
-    n_flagged = len(flagged) + len(more)
-    st, mask, flagged = restore_inliers(p, st, lay, kinds, mask, flagged + more, threshold=threshold,
-                                        max_iter=max_iter)
-    if more or len(flagged) < n_flagged:
+    more = remove_outliers(p, st, lay, kinds, first.mask, threshold=threshold, loss=None, k=robust_k,
+                           max_iter=max_iter)
+    res.capped = first.capped or more.capped
+    n_flagged = len(first.flagged) + len(more.flagged)
+    st, mask, flagged = restore_inliers(p, more.state, lay, kinds, more.mask, first.flagged + more.flagged,
+                                        threshold=threshold, max_iter=max_iter)
+    if more.flagged or len(flagged) < n_flagged:
         st, res.final = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
     else:
-        res.stats = stats_b   # the statistics at the final state (for the verdict)
+        res.stats = more.stats   # the statistics at the final state (for the verdict)
     res.state, res.layout, res.mask, res.outliers = st, lay, mask, flagged
 
 
