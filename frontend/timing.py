@@ -146,23 +146,28 @@ def stretch_bank(template, setup, stretches):
     return np.asarray(out).astype(np.complex64), np.asarray(real)
 
 
-def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0):
+def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, stretches=None,
+                    bound=None):
     """Index (J,) of the row of ``bank`` (:func:`stretch_bank`) whose stretched template gives each event's
     DIRECT PATH its highest peak: the Doppler filter that compresses the sweep of a moving source into one
     pulse (unstretched, it spreads over 2|ε|T, ~1 ms at 0.5 m/s, and its peak then moves with the path's
     curvature, reflections and noise by hundreds of µs). The direct path is the onset of the plain matched
     filter on lags lo..hi (:func:`direct_path_lag`, settings as :func:`locate`), not the strongest peak: a
     reflection has its own Doppler, and behind a directional speaker it is often the stronger.
-    c_plain : (J, M, Fb) plain spectra (:func:`segment_spectra`)."""
+    c_plain : (J, M, Fb) plain spectra (:func:`segment_spectra`). stretches : the bank's ε (n,) and bound :
+    (J,) the largest |ε| each event can have (|ṙ| ≤ |v|: the source's speed); None: any row."""
     pulse = pulse_envelope(setup, hi - lo, plain=True)
     near = pulse_near(setup, hi - lo, 2, plain=True)
     best = np.full(c_plain.shape[0], -np.inf)
     idx = np.zeros(c_plain.shape[0], int)
     rows = np.arange(c_plain.shape[0])
     for i, f in enumerate(bank):
+        allowed = np.ones(len(rows), bool) if bound is None else np.abs(stretches[i]) <= bound
+        if not np.any(allowed):
+            continue
         env = np.abs(lag_grid(c_plain * f, setup, lo, hi)).mean(axis=1)
         dp = direct_path_lag(env, pulse, snr_factor, min_ratio, sidelobe_margin, near=near)[0]
-        peak = env[rows, dp]
+        peak = np.where(allowed, env[rows, dp], -np.inf)
         better = peak > best
         best = np.where(better, peak, best)
         idx = np.where(better, i, idx)
@@ -1077,6 +1082,20 @@ def sweep_time(template, fs, band, locate_kw, pre, seg_len, whiten_hz, beta, up=
         res = locate(segment_spectra(y[None, :], np.zeros(1, int), setup), setup, **locate_kw)
         shifts.append(res["tau"][0, 0])
     return float((shifts[0] - shifts[1]) / (2 * alpha * beta))
+
+
+def doa_time(template, setup):
+    """When (s after the sweep start) the DOA of a source moving during the sweep looks: the SRP-PHAT peak is
+    the least-squares fit of the per-frequency directions, each frequency weighted by its band weight × f²
+    (the phase differences between mics grow with f), and a sweep passes frequency f at its group delay
+    t(f): the weighted mean of t(f). A 0.5 s, 0.5-4 kHz linear sweep: 0.33 s (the DOAs of the moving preset
+    fitted best at 0.32 s: 0.02-0.14° against 0.24-0.58° at T/2, anechoic)."""
+    n = sfft.next_fast_len(4 * len(template), real=True)   # bins fine enough that the phase steps < π
+    freqs = sfft.rfftfreq(n, 1 / setup["fs"])
+    w = np.interp(freqs, setup["freqs"], setup["weights"], left=0.0, right=0.0) * freqs ** 2
+    k = np.flatnonzero(w > 0)
+    tg = -np.gradient(np.unwrap(np.angle(sfft.rfft(template, n)[k])), 2 * np.pi * freqs[k])
+    return float(np.sum(w[k] * tg) / np.sum(w[k]))
 
 
 def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stretches):
