@@ -211,22 +211,14 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
         # propagation delays, so only as an upper bound on the measured broadening)
         # a source moving during the sweep stretches it by 1 + ṙ/c alike (events.csv vel_x/y/z: |ṙ| ≤ |v|)
-        stretch = abs(asc["scale"] - 1.0) + _max_speed(session["events"]) / c
+        bank = _event_bank(st["template"], setup, band, session["events"], ev_idx, c)
+        # with the Doppler bank only the mismatch of its step smears the sweep
+        stretch = abs(asc["scale"] - 1.0) + (_max_speed(session["events"]) / c if bank is None else
+                                             STRETCH_STEP_PULSES / (st["dur"] * (band[1] - band[0])))
         smear_max = int(round(max(0.0, 2 * stretch * st["dur"] - g["pulse"]) * fs))
         # event segments read and processed in chunks (memory bounded however long the recording)
-        bank = _doppler_bank(st["template"], setup, band, _max_speed(session["events"]), c)
-        if bank is not None:   # each event's |ε| ≤ its speed / c (+ the speed's change and noise: SPEED_SLACK)
-            speed = np.linalg.norm(event_velocities(session["events"]), axis=1)[ev_idx]
-            bank = (*bank, (speed + SPEED_SLACK) / c + 0.5 * (bank[1][1] - bank[1][0]))
-        if bank is not None:  # the bank's stretched template compresses the sweep: the smear is the mismatch's
-            smear_max = int(round(max(0.0, 2 * (abs(asc["scale"] - 1.0) + STRETCH_STEP_PULSES / st["dur"] / (band[1] - band[0]))
-                                      * st["dur"] - g["pulse"]) * fs))
-        import os, json as _j
-        _tru = None
-        if os.environ.get("H27_TRUE_EPS"):
-            _tru = np.asarray(_j.load(open(os.environ["H27_TRUE_EPS"]))[a["name"]])[ev_idx]
         loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max, "own_phase": bank is not None},
-                            workers=fft_workers, bank=bank, _true=_tru)
+                            workers=fft_workers, bank=bank)
     finally:
         x.close()
     timings["timing"] = time.perf_counter() - t0
@@ -255,6 +247,16 @@ SPEED_SLACK = 0.1   # m/s: how much faster than its speed at the sweep start a r
                     # 0.3 s) plus the velocity's noise
 STRETCH_STEP_PULSES = 0.25   # Doppler bank spacing: a mismatch of half a step smears the pulse by 1/8 of its width
                              # (2 Δε T / 2 = this × pulse / 2), where the shift stays linear in it (β Δε)
+
+
+def _event_bank(template, setup, band, events, ev_idx, c):
+    """:func:`_doppler_bank` with each event's bound on |ε| (|ṙ| ≤ its speed, + SPEED_SLACK and half a step)
+    as a third element; None for a robot that stops."""
+    bank = _doppler_bank(template, setup, band, _max_speed(events), c)
+    if bank is None:
+        return None
+    speed = np.linalg.norm(event_velocities(events), axis=1)[ev_idx]
+    return (*bank, (speed + SPEED_SLACK) / c + 0.5 * (bank[1][1] - bank[1][0]))
 
 
 def _doppler_bank(template, setup, band, vmax, c):
@@ -399,7 +401,7 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
 
 
-def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1, bank=None, _true=None):
+def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1, bank=None):
     """:func:`timing.locate` on all events, a chunk of events at a time (memory bounded by ``chunk_bytes``).
 
     x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
@@ -407,9 +409,10 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
     phase is estimated on the first chunk (all events when they fit in one) and used for every chunk, so
     all of the array's events share it. Returns locate's dict with the per-event arrays concatenated; its
     ``r`` holds only the lags ``r_lo[j] .. r_lo[j] + 2 gate`` of event j (``r_lo`` (J,) = dp − gate).
-    workers : threads of the segments' FFTs (:func:`timing.segment_spectra`). bank : (factors, stretches) of
-    :func:`timing.stretch_bank` (a source moving during the sweep): each event is timed against the template
-    stretched by its best-matching ε (:func:`timing.matched_stretch`), returned as ``stretch`` (J,); else 0.
+    workers : threads of the segments' FFTs (:func:`timing.segment_spectra`). bank : (factors, stretches[,
+    bound (J,)]) of :func:`_event_bank` (a source moving during the sweep): each event is timed against the
+    template stretched by its best-matching ε (:func:`timing.matched_stretch`, |ε| ≤ bound), returned as
+    ``stretch`` (J,); else 0.
     """
     m = x.shape[0]
     per_event = 32 * m * setup["nfft"]  # bound on a segment + its FFT + both band spectra, per event
@@ -422,9 +425,7 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
         if bank is not None:
             k = matched_stretch(c_plain, setup, bank[0], locate_kw["lo"], locate_kw["hi"], locate_kw["snr_factor"],
                                 locate_kw["min_ratio"], stretches=bank[1],
-                                bound=None if len(bank) < 3 else bank[2][j0 : j0 + n])
-            if _true is not None:
-                k = np.argmin(np.abs(bank[1][None, :] - _true[j0 : j0 + n][:, None]), axis=1)
+                                bound=bank[2][j0 : j0 + n] if len(bank) > 2 else None)
             c *= bank[0][k][:, None, :]
             c_plain *= bank[0][k][:, None, :]
             stretch = bank[1][k]
