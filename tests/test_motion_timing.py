@@ -66,3 +66,22 @@ def test_shared_phase_template_timing_slips_for_a_moving_source():
     the same arrivals by a good part of a carrier period (the stretch rotates the phase ~0.4 rad per 1e-4)."""
     err = _arrivals(bank=False)[0]
     assert np.max(np.abs(err)) > 60e-6
+
+
+def test_sweep_middle_is_exact_for_a_constant_acceleration():
+    """The estimator's source state ``t*`` into each sweep: a cubic Hermite through the odometry positions and
+    velocities at the sweep starts reproduces a quadratic path exactly (displacement and velocity)."""
+    from calib.estimator.motion import sweep_middle
+
+    rng = np.random.default_rng(1)
+    s0, v0, acc = rng.normal(0, 1, 3), rng.normal(0, 0.4, 3), rng.normal(0, 0.2, 3)
+    t = np.cumsum(rng.uniform(2.0, 4.0, 8))
+    pos = s0 + np.outer(t, v0) + 0.5 * np.outer(t**2, acc)
+    vel = v0 + np.outer(t, acc)
+    disp, v_mid = sweep_middle(t, pos, vel, 0.22)
+    tm = t + 0.22
+    assert np.allclose(disp, s0 + np.outer(tm, v0) + 0.5 * np.outer(tm**2, acc) - pos, atol=1e-12)
+    assert np.allclose(v_mid, v0 + np.outer(tm, acc), atol=1e-12)
+    # without a time: the start's velocity, no displacement
+    d0, v_0 = sweep_middle(t, pos, vel, 0.0)
+    assert np.all(d0 == 0) and np.all(v_0 == vel)
