@@ -614,9 +614,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     half_width : samples a mic's arrival may differ from the array's (aperture / c plus half a pulse).
     snr_factor, min_ratio, sidelobe_margin : :func:`direct_path_lag`. gate : extra lags kept around the
     window for the DOA. phase : carrier phase at the envelope peak (rad); None = estimate it from these
-    measurements; own_phase : each event's own phase instead (a source moving during the sweep stretches
-    each arrival differently, and the stretch rotates the phase: :data:`OWN_PHASE_ROTATION`); then the
-    returned ``phase`` is (J,). reflection_ratio : a later peak at least this × the direct path's (and not its sidelobe)
+    measurements; own_phase : each event's own (:func:`_carrier_phase`; ``phase`` returned (J,)). reflection_ratio : a later peak at least this × the direct path's (and not its sidelobe)
     is a strong reflection (it ends the DOA gate). c_onset : (J, M, Fb) spectra for the onset search
     (the plain matched filter of :func:`segment_spectra`, whose response is causal); None = ``c``.
     separate_pulses : a strong reflection within this many pulse widths (1 / bandwidth) of the direct path
@@ -677,11 +675,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     first = np.maximum(dp - pad, 0) - r_lo
     sums = grid if grid.covers(tau0, first, slack=int(np.ceil(0.5 * fs / fc)) + 2) else None
     env_tau, z = newton_envelope(c, freqs, tau0, sums=sums)
-    if own_phase:
-        phase = np.angle(np.sum(z, axis=1))
-    elif phase is None:
-        phase = estimate_phase(z)
-    ph = np.asarray(phase)[:, None] if np.ndim(phase) else phase
+    phase, ph = _carrier_phase(z, phase, own_phase)
     # carrier peak nearest the envelope peak (within half a carrier period), then Newton
     dphi = np.angle(z * np.exp(-1j * ph))
     tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), ph, sums=sums)
@@ -689,6 +683,17 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
             "interference": interference,
             "snr": snr, "strongest": strongest, "reflection": reflection, "separated": separated}
+
+
+def _carrier_phase(z, phase, own_phase):
+    """(phase, its broadcast against (J, M)): each event's own carrier phase (``own_phase``: a source moving
+    during the sweep stretches each arrival differently, and a stretch rotates the phase, ~0.4 rad per 1e-4),
+    else ``phase`` or, when None, the session's (:func:`estimate_phase`). z : (J, M) peak correlations."""
+    if own_phase:
+        phase = np.angle(np.sum(z, axis=1))
+    elif phase is None:
+        phase = estimate_phase(z)
+    return phase, (np.asarray(phase)[:, None] if np.ndim(phase) else phase)
 
 
 def _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_width, r_lo, separate_pulses,
