@@ -127,11 +127,19 @@ def stretch_bank(template, setup, stretches):
     by band-limited resampling (as :func:`stretch_shifts`). The whitening divides by the smoothed magnitude,
     which a stretch of ~1e-3 leaves unchanged, so multiplying by the factor is the whitened GCC against the
     stretched template. Returns (factors, stretches realised (n,))."""
+    key = ("_stretch_bank", len(template), tuple(np.round(np.asarray(stretches, float), 12)))
+    if key not in setup:   # the arrays of a session share the setup (same rate and template): one bank
+        setup[key] = _stretch_bank(template, setup, stretches)
+    return setup[key]
+
+
+def _stretch_bank(template, setup, stretches):
     from scipy.signal import resample  # (on use: `calib --help` does not wait for scipy.signal)
 
     n, nfft, kb = len(template), setup["nfft"], setup["kb"]
     step = np.min(np.abs(np.diff(np.sort(stretches)))) if len(stretches) > 1 else 1e-3
-    pad = sfft.next_fast_len(max(2 * n, int(np.ceil(8.0 / max(step, 1e-9)))))
+    # ε is realised as k / pad: within a quarter step of the grid
+    pad = sfft.next_fast_len(max(2 * n, int(np.ceil(4.0 / max(step, 1e-9)))))
     buf = np.zeros(pad)
     buf[:n] = template
     ref = np.conj(setup["tmpl_conj"])
@@ -147,7 +155,7 @@ def stretch_bank(template, setup, stretches):
 
 
 def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, stretches=None,
-                    bound=None):
+                    bound=None, coarse=3):
     """Index (J,) of the row of ``bank`` (:func:`stretch_bank`) whose stretched template gives each event's
     DIRECT PATH its highest peak: the Doppler filter that compresses the sweep of a moving source into one
     pulse (unstretched, it spreads over 2|ε|T, ~1 ms at 0.5 m/s, and its peak then moves with the path's
@@ -155,23 +163,30 @@ def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05
     filter on lags lo..hi (:func:`direct_path_lag`, settings as :func:`locate`), not the strongest peak: a
     reflection has its own Doppler, and behind a directional speaker it is often the stronger.
     c_plain : (J, M, Fb) plain spectra (:func:`segment_spectra`). stretches : the bank's ε (n,) and bound :
-    (J,) the largest |ε| each event can have (|ṙ| ≤ |v|: the source's speed); None: any row."""
-    pulse = pulse_envelope(setup, hi - lo, plain=True)
-    near = pulse_near(setup, hi - lo, 2, plain=True)
-    best = np.full(c_plain.shape[0], -np.inf)
-    idx = np.zeros(c_plain.shape[0], int)
-    rows = np.arange(c_plain.shape[0])
-    for i, f in enumerate(bank):
-        allowed = np.ones(len(rows), bool) if bound is None else np.abs(stretches[i]) <= bound
-        if not np.any(allowed):
-            continue
-        env = np.abs(lag_grid(c_plain * f, setup, lo, hi)).mean(axis=1)
-        dp = direct_path_lag(env, pulse, snr_factor, min_ratio, sidelobe_margin, near=near)[0]
-        peak = np.where(allowed, env[rows, dp], -np.inf)
-        better = peak > best
-        best = np.where(better, peak, best)
-        idx = np.where(better, i, idx)
-    return idx
+    (J,) the largest |ε| each event can have (|ṙ| ≤ |v|: the source's speed); None: any row. Every
+    ``coarse``-th row first, then the rows around each event's best (the peak falls smoothly off its row)."""
+    n, J = len(bank), c_plain.shape[0]
+    allowed = np.ones((n, J), bool) if bound is None else np.abs(np.asarray(stretches))[:, None] <= bound[None, :]
+    peak = np.full((n, J), -np.inf)
+    ctx = (setup, lo, hi, pulse_envelope(setup, hi - lo, plain=True), pulse_near(setup, hi - lo, 2, plain=True),
+           (snr_factor, min_ratio, sidelobe_margin))
+    for i in range(0, n, coarse):
+        _direct_peaks(c_plain, bank, i, allowed[i], peak, ctx)
+    best = np.argmax(peak, axis=0)
+    for i in range(n):
+        near = allowed[i] & (np.abs(best - i) < coarse) & ~np.isfinite(peak[i])
+        _direct_peaks(c_plain, bank, i, near, peak, ctx)
+    return np.argmax(peak, axis=0)
+
+
+def _direct_peaks(c_plain, bank, i, which, peak, ctx):
+    """peak[i, which] = the direct path's height in the plain envelope with bank row i (in place)."""
+    if not np.any(which):
+        return
+    setup, lo, hi, pulse, near, kw = ctx
+    env = np.abs(lag_grid(c_plain[which] * bank[i], setup, lo, hi)).mean(axis=1)
+    dp = direct_path_lag(env, pulse, *kw, near=near)[0]
+    peak[i, which] = env[np.arange(len(dp)), dp]
 
 
 def _power(z):
