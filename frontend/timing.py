@@ -155,7 +155,7 @@ def _stretch_bank(template, setup, stretches):
 
 
 def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, stretches=None,
-                    bound=None, coarse=3):
+                    bound=None, coarse=1):
     """Index (J,) of the row of ``bank`` (:func:`stretch_bank`) whose stretched template gives each event's
     DIRECT PATH its highest peak: the Doppler filter that compresses the sweep of a moving source into one
     pulse (unstretched, it spreads over 2|ε|T, ~1 ms at 0.5 m/s, and its peak then moves with the path's
