@@ -150,7 +150,8 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
     ``JointResult``, its state after the fold basins, fold basin records)."""
     meta = features["meta"]
     res, motion = motion_solve(p, features["events"], joint(p, st), joint, kinds=kinds,
-                               curve=meta.get("chirp_stretch_shift"), t_doa=float(meta.get("doa_time_s") or 0.0))
+                               curve=meta.get("chirp_stretch_shift"), t_doa=float(meta.get("doa_time_s") or 0.0),
+                               t_stretch=meta.get("stretch_time_s"))
     if motion["source"] is not None:
         stages["motion"] = motion
     res.state, basins = fold_basins(res.problem, res.state, res.layout, kinds, res.mask, max_iter)
