@@ -490,8 +490,7 @@ def _robust_cost(result, row_sigma=None, features=None):
         q = build_problem(features, use_tdoa_s=bool(len(p.tdoa_s.val)), sigma_emit=p.sigma.get("emission", 0.0),
                           odometry_yaw=p.odo_yaw_free)
         if q.K == p.K and q.N == p.N:
-            q.sigma.update(p.sigma)
-            p = q
+            p = q.replace(sigma={**q.sigma, **p.sigma})
     lin = linearise(p, result["state"], make_layout(p), _kinds(p))
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if row_sigma is None else row_sigma
