@@ -34,6 +34,7 @@ import scipy.sparse
 from scipy.special import chdtri
 
 from calib.clock import Clock, Step, Term, header_ratio
+from calib.options import validate_options
 
 FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
 HUBER_K = 2.5           # robust scale of the per-array fits, in σ
@@ -514,8 +515,7 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
-    if clock_model not in ("auto", "linear"):
-        raise ValueError(f"clock_model must be 'auto' or 'linear', not {clock_model!r}")
+    validate_options(clock_model=clock_model)
     result = solve(features, **options)
     # the corrected TDOAs make a new problem (a prebuilt one, ``problem=``, is of the uncorrected features)
     options = {k: v for k, v in options.items() if k != "problem"}
