@@ -171,6 +171,45 @@ def test_correct_features_takes_a_model_out_of_the_tdoas():
 
 
 # ----------------------------------------------------------------------------------------------- the user's path
+def test_estimate_clock_model_flag_and_evaluate_scores_the_clock(tmp_path):
+    """`calib estimate --clock-model auto` models A3's dropped block, `calib evaluate` scores it against
+    truth/clocks.json (found, in its interval, size within 3σ; the local time right to a few σ), and the
+    linear clock's calibration of the same features is scored as missing it."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from calib.cli.main import app
+    from calib.pipeline.formats.io import write_features, write_truth
+
+    f, truth = simulate_features(3, SIGMA, seed=1, clocks={"A3": {"steps": [{"size": -0.020}]}})
+    write_features(tmp_path / "features", f)
+    write_truth(tmp_path / "truth", truth, extra_files={"clocks.json": json.dumps(truth["clocks"])})
+    scored = {}
+    for model in ("auto", "linear"):
+        r = CliRunner().invoke(app, ["estimate", str(tmp_path / "features"), "-o", str(tmp_path / model), "-q",
+                                     "--clock-model", model])
+        assert r.exit_code in (0, 3), r.output
+        r = CliRunner().invoke(app, ["evaluate", str(tmp_path / model), str(tmp_path / "truth"), "--json"])
+        assert r.exit_code == 0, r.output
+        scored[model] = json.loads(r.output)["clock"]
+    got = scored["auto"]
+    (a3,) = [a for a in got["per_array"] if a["array"] == "A3"]
+    (s,) = a3["steps"]
+    assert s["found"] and s["placed"] and s["size_error_sigma"] <= 3
+    assert (s["after_event"], s["before_event"]) == _interval(truth["clocks"]["A3"], f)
+    assert (got["steps_found"], got["false_steps"], got["false_drift_models"]) == (1, 0, 0)
+    assert a3["local_time_max_error_s"] < 1e-4
+    miss = scored["linear"]
+    assert (miss["steps_found"], miss["steps_placed"]) == (0, 0)
+    # unmodelled, the 20 ms step leaves about half of it in A3's local time after a linear fit
+    assert miss["local_time_max_error_s"] > 5e-3
+    r = CliRunner().invoke(app, ["evaluate", str(tmp_path / "auto"), str(tmp_path / "truth")], terminal_width=200)
+    assert "1/1 true steps found" in r.output
+    r = CliRunner().invoke(app, ["estimate", str(tmp_path / "features"), "-o", str(tmp_path / "x"), "--clock-model", "steps"])
+    assert r.exit_code == 2 and "clock_model" in r.output
+
+
 @pytest.mark.slow
 def test_calib_run_on_a_rendered_session_with_a_dropped_block(tmp_path):
     """`calib simulate --clock` renders the drop into A3's WAV; `calib run` finds it in its interval and the

@@ -99,10 +99,15 @@ def _walk_term(walk, duration, rng):
     return Term("table", {"knots": knots, "values": values})
 
 
-def clock_record(clock, faults=None):
-    """The truth's record of one array's clock: the clock's JSON form + the nominal-rate ratio."""
+def clock_record(clock, faults=None, event_times=None):
+    """The truth's record of one array's clock: the clock's JSON form + the nominal-rate ratio, and the
+    session's emission times (s since t0, ``event_times``: events 0, 1, …) that ``calib evaluate`` scores the
+    clock at (which interval a step lies in, the local-time error over the session)."""
     faults = resolve(faults)
-    return {**clock.to_dict(), "rate_ratio": rate_ratio(faults.get("rate"))}
+    out = {**clock.to_dict(), "rate_ratio": rate_ratio(faults.get("rate"))}
+    if event_times is not None:
+        out["event_times"] = np.asarray(event_times, float).tolist()
+    return out
 
 
 
@@ -150,5 +155,6 @@ def rate(a, t):
 
 def records(sc, faults):
     """{array name: clock record} of a normalised scenario's faulty clocks (truth/clocks.json)."""
-    return {a["name"]: clock_record(a["clock"], (faults or {}).get(a["name"])) for a in sc["arrays"]
+    t = np.asarray(sc["t_emit"], float)
+    return {a["name"]: clock_record(a["clock"], (faults or {}).get(a["name"]), t - t[0]) for a in sc["arrays"]
             if a.get("clock") is not None}
