@@ -52,6 +52,9 @@ EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term 
 TIE_MARGIN = 10.0       # χ²: proposals this close to the best are decided by solving with each
 MAX_RIVALS = 3
 REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × its σ: solve once more
+# A kept component is tested once for its structure (:func:`structure_test`): a true clock's fails this rarely
+STRUCTURE_ALPHA = 1e-3
+MAX_REJECTED = 8        # components rejected by their structure before the selection stops looking
 
 
 @dataclass(frozen=True)
@@ -281,8 +284,15 @@ def penalty(kind, n, n_arrays, n_candidates):
     return max(float(np.log(max(n, 2))), float(chdtri(1, FAMILY_ALPHA / m)))
 
 
-def best_component(D, comps, x0, g0, tau0, n_arrays):
+def _key(c):
+    return c.kind, round(c.time, 9)
+
+
+def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference=True):
     """The best new component of one array and its margin over the penalty (χ²), or (None, margin <= 0).
+    ``reference``: the reference's step seen from here (its TDOA-M shifted, "mshift") is a candidate too —
+    not for an array the solve dropped: the reference's clock shows in every array's TDOA-M, and an array
+    whose rows contradict the rest cannot say alone that the reference stepped.
 
     The base fit (``comps``) and each candidate's fit are robust; their χ² drop is measured in the
     residuals' own robust scale (MAD of the best candidate's whitened residuals, at least 1: a sigma stated
@@ -292,8 +302,9 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
     xb, gb, tb, cb, rb = fit_array(D, comps, x0, g0, tau0)
     base = [c.with_value(v) for c, v in zip(comps, cb)]
     cands = candidates(D.u, comps)
-    if not D.ref:   # the reference's step, seen from here
+    if not D.ref and reference:   # the reference's step, seen from here
         cands += [Component("mshift", c.time, 0.0) for c in cands if c.kind == "step"]
+    cands = [c for c in cands if _key(c) not in skip]   # (rejected by their structure: :func:`structure_test`)
     fits = []
     duration = float(np.ptp(D.u))
     for cand in cands:
@@ -327,7 +338,31 @@ def _kinds(p):
     return active_kinds(p)
 
 
-def joint_scan(result, models):
+def _row_arrays(p, fs):
+    """The array of each stacked residual row of the factors ``fs`` (-1: rows of no array, e.g. odometry)."""
+    out = []
+    for f in fs:
+        arr = getattr(getattr(p, f.kind, None), "arr", None)
+        rows = np.repeat(arr, f.dim) if arr is not None and len(arr) * f.dim == len(f.r) else None
+        out.append(rows if rows is not None else np.full(len(f.r), -1))
+    return np.concatenate(out) if out else np.zeros(0, int)
+
+
+def _robust_weights(result, lin, p=None):
+    """√ of the Huber weights of a linearisation's rows in the TDOA rows' robust scale, and that scale. The
+    rows of the arrays the solve dropped as unreliable weigh nothing: their pose was fitted to them alone, the
+    sources and the other arrays to the rest (what those rows say is judged per array, :func:`best_component`)."""
+    r = lin.r
+    tdoa = np.concatenate([np.full(len(f.r), f.kind in ("tdoa_s", "tdoa_m")) for f in lin.factors])
+    p = result["problem"] if p is None else p
+    dropped = np.isin(_row_arrays(p, lin.factors), [j for j, n in enumerate(p.names) if str(n) in _unreliable(result)])
+    use = tdoa & ~dropped
+    scale = max(1.0, 1.4826 * float(np.median(np.abs(r[use])))) if use.any() else 1.0
+    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    return np.where(dropped, 0.0, sw), scale
+
+
+def joint_scan(result, models, banned=frozenset()):
     """Every array's candidates tested in the linearised joint problem at ``result`` (the sources and the
     other arrays free: what a fit absorbs by moving them is not evidence). Rows Huber-weighted (an outlier
     row cannot make a step), the χ² drop of each candidate column after projecting out the Jacobian's
@@ -345,9 +380,8 @@ def joint_scan(result, models):
     lin = linearise(p, st, lay, _kinds(p))
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     r = lin.r
-    tdoa = np.concatenate([np.full(len(f.r), f.kind in ("tdoa_s", "tdoa_m")) for f in lin.factors])
-    scale = max(1.0, 1.4826 * float(np.median(np.abs(r[tdoa])))) if tdoa.any() else 1.0
-    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    sw, scale = _robust_weights(result, lin)
+    dropped = set(_unreliable(result))
     zero = {name: [c.with_value(0.0) for c in comps] for name, comps in models.items()}
     E, _ = component_columns(p, lin.factors, zero)
     Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
@@ -357,9 +391,9 @@ def joint_scan(result, models):
     for i in range(-1, p.N):   # -1: the emitter
         name = EMITTER if i < 0 else str(p.names[i])
         have = zero.get(name, [])
-        if len(have) >= MAX_COMPONENTS or len(np.unique(p.t)) < MIN_EVENTS:
+        if len(have) >= MAX_COMPONENTS or len(np.unique(p.t)) < MIN_EVENTS or name in dropped:
             continue
-        cands = candidates(p.t, have)
+        cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
         B = _columns(p, lin.factors, i, cands) * sw[:, None]
         Bp = B - Q @ (Q.T @ B)
         den = np.einsum("ij,ij->j", Bp, Bp)
@@ -389,8 +423,92 @@ def joint_scan(result, models):
     return out
 
 
+# ----------------------------------------------------------------------------------------------- structure
+def _split_columns(p, fs, i, comp):
+    """Test columns of a component's structure: its column on all but one of the independent row groups that
+    see it. An array's clock term: its TDOA-S rows vs its TDOA-M rows, and a step's TDOA-M rows split in two
+    at the middle of the events after it (the same size at every later event); the reference's: its TDOA-S
+    rows and each other array's TDOA-M rows (every array sees it alike); the emitter's: each array's TDOA-S
+    rows."""
+    B = _columns(p, fs, i, [comp])[:, 0]
+    arr, kind, ev = (np.concatenate(v) for v in zip(*[
+        (getattr(p, f.kind).arr if f.kind in ("tdoa_s", "tdoa_m") else np.full(len(f.r), -2),
+         np.full(len(f.r), f.kind, dtype=object),
+         p.tdoa_m.ev if f.kind == "tdoa_m" else np.full(len(f.r), -1)) for f in fs]))
+    S, M = kind == "tdoa_s", kind == "tdoa_m"
+    if i < 0:
+        groups = [S & (arr == a) for a in range(p.N)]
+    elif i == p.ref:
+        groups = [S & (arr == i)] + [M & (arr == a) for a in range(p.N) if a != i]
+    else:
+        groups = [S & (arr == i), M & (arr == i)]
+        after = np.unique(ev[M & (arr == i) & (B != 0)])
+        if comp.kind == "step" and len(after) >= 2:   # the step's TDOA-M rows: early half vs late half
+            late = np.isin(ev, after[len(after) // 2:])
+            groups = [groups[0], groups[1] & ~late, groups[1] & late]
+    cols = [B * g for g in groups if np.any(B[g] != 0)]
+    return np.column_stack(cols[:-1]) if len(cols) > 1 else np.zeros((len(B), 0))
+
+
+def structure_test(result, models, name, k, features=None):
+    """(χ², dof) of the hypothesis that component k of ``name`` is a clock's, at a ``result`` solved with
+    ``models`` (the features corrected by them), or None when it cannot be judged (a problem too large).
+
+    A clock term adds the same h(t) to every arrival the clock stamps: a dropped or inserted block shifts one
+    TDOA-S (the interval it falls in) and every later TDOA-M by one size, on all of the array's channels
+    alike; the emitter's term shifts every array's TDOA-S alike. Arrivals delayed by reflections (a blocked
+    line of sight) vary from event to event and between arrays, so a step fitted to them is two different
+    sizes in the TDOA-S and in the TDOA-M (or between arrays). The test: the χ² drop of letting the
+    component's part on each row group (:func:`_split_columns`) differ from the rest, after projecting out
+    every parameter and component (linearised at the corrected solution, rows Huber-weighted in their robust
+    scale, as :func:`joint_scan`); χ² with dof = the number of independent test columns. ``features``: the
+    corrected features ``result`` was solved from: their every row counts, the ones the solve screened out
+    too (a wrong component must not pass by the screening of the rows that contradict it)."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p, st = _every_row(result, features), result["state"]
+    lay = make_layout(p)
+    if lay.n > DENSE_MAX:
+        return None
+    lin = linearise(p, st, lay, _kinds(p))
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    r = lin.r
+    sw, scale = _robust_weights(result, lin, p)
+    E, _ = component_columns(p, lin.factors, models)
+    Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
+    index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
+    T = _split_columns(p, lin.factors, index[name], models[name][k]) * sw[:, None]
+    if not T.shape[1]:
+        return 0.0, 0
+    Tp = T - Q @ (Q.T @ T)
+    rw = r * sw
+    rp = rw - Q @ (Q.T @ rw)
+    U, sv, _ = np.linalg.svd(Tp, full_matrices=False)
+    keep = sv > 1e-6 * max(np.linalg.norm(T), 1e-300)
+    if not keep.any():
+        return 0.0, 0
+    proj = U[:, keep].T @ rp
+    return float(proj @ proj) / scale ** 2, int(keep.sum())
+
+
+def _structure_failures(result, models, old, features):
+    """The components new in ``models`` (not in ``old``) that fail :func:`structure_test`, as ban keys
+    (name, kind, time)."""
+    bad = []
+    for name, comps in models.items():
+        before = {_key(c) for c in old.get(name, [])}
+        for k, c in enumerate(comps):
+            if _key(c) in before:
+                continue
+            got = structure_test(result, models, name, k, features)
+            if got is not None and got[1] and got[0] > float(chdtri(got[1], STRUCTURE_ALPHA)):
+                bad.append((name, *_key(c)))
+    return bad
+
+
 # ----------------------------------------------------------------------------------------------- selection
-def detect(result, models):
+def detect(result, models, banned=frozenset()):
     """One detection round at a solved ``result``: proposals {array name: its components with the new one}
     of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
     within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
@@ -398,7 +516,7 @@ def detect(result, models):
     one more candidate, tested jointly only."""
     p, st = result["problem"], result["state"]
     found, records = {}, []
-    joint = joint_scan(result, models)
+    joint = joint_scan(result, models, banned)
     suspects = _suspects(result)
     for i in range(-1, p.N):
         name = EMITTER if i < 0 else str(p.names[i])
@@ -408,7 +526,10 @@ def detect(result, models):
         # step of its clock shows in every other array's TDOA-M, which its own fit does not see)
         if i >= 0 and i != p.ref and name in suspects:
             D = array_data(p, st, i)
-            got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1)
+            ref = str(p.names[p.ref])
+            skip = {k[1:] for k in banned if k[0] == name} | {("mshift", k[2]) for k in banned if k[:2] == (ref, "step")}
+            got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1, skip,
+                                 reference=name not in _unreliable(result))
         if got is not None and got[0] is not None:
             got[2]["test"] = "array"
         if i in joint and (got is None or got[0] is None or joint[i][1] > got[1]):
@@ -478,13 +599,10 @@ def _decide(solve, features, models, proposals, options):
     return best[1]
 
 
-def _robust_cost(result, row_sigma=None, features=None):
-    """Σ Huber(r) over every row (outliers included) at a solved result, whitened by ``row_sigma`` (default
-    the result's own: pass the first trial's, so that trials with re-estimated sigmas compare in one unit);
-    over every row of ``features`` when given (rows the solve screened out count too: a wrong model must not
-    win by screening the rows that contradict it). Returns (cost, the row sigmas used)."""
-    from .problem import build_problem, make_layout
-    from .solver import linearise
+def _every_row(result, features=None):
+    """The problem of a solved ``result``, or (``features`` given: the features it was solved from) that
+    problem with every row of those features, the ones the solve screened out too, in its sigmas."""
+    from .problem import build_problem
 
     p = result["problem"]
     if features is not None:
@@ -492,7 +610,19 @@ def _robust_cost(result, row_sigma=None, features=None):
                           odometry_yaw=p.odo_yaw_free)
         if q.K == p.K and q.N == p.N:
             q.sigma.update(p.sigma)
-            p = q
+            return q
+    return p
+
+
+def _robust_cost(result, row_sigma=None, features=None):
+    """Σ Huber(r) over every row (outliers included) at a solved result, whitened by ``row_sigma`` (default
+    the result's own: pass the first trial's, so that trials with re-estimated sigmas compare in one unit);
+    over every row of ``features`` when given (rows the solve screened out count too: a wrong model must not
+    win by screening the rows that contradict it). Returns (cost, the row sigmas used)."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p = _every_row(result, features)
     lin = linearise(p, result["state"], make_layout(p), _kinds(p))
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if row_sigma is None else row_sigma
@@ -526,16 +656,7 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
     first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
-        for _ in range(MAX_ROUNDS):
-            proposals, records = detect(result, models)
-            rounds.append(records)
-            if not proposals:
-                break
-            if len(proposals) == 1:
-                models = {**models, **proposals[0]}
-                result = solve(correct_features(features, models), **options)
-            else:
-                models, result = _decide(solve, features, models, proposals, options)
+        models, result = _select(solve, features, result, options, rounds)
         if models:
             result, models = _refine_and_resolve(solve, features, result, models, options)
             if _worse(result, first):   # the models did not explain the data: the linear clock's result
@@ -543,6 +664,31 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
                 rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
     _attach_report(result, features, models, rounds)
     return result
+
+
+def _select(solve, features, result, options, rounds):
+    """Detection rounds from the linear clock's ``result``: each adds the best proposal (:func:`detect`,
+    rivals decided by :func:`_decide`) and solves again; a new component that fails its structure test
+    (:func:`structure_test`) is taken out again and not proposed again. Returns (models, result)."""
+    models, banned, kept = {}, set(), 0
+    while kept < MAX_ROUNDS and len(banned) < MAX_REJECTED:
+        proposals, records = detect(result, models, frozenset(banned))
+        rounds.append(records)
+        if not proposals:
+            break
+        if len(proposals) == 1:
+            trial = {**models, **proposals[0]}
+            res = solve(correct_features(features, trial), **options)
+        else:
+            trial, res = _decide(solve, features, models, proposals, options)
+        bad = _structure_failures(res, trial, models, correct_features(features, trial))
+        if bad:
+            banned.update(bad)
+            rounds.append([{"rejected": f"{b[0]}: {b[1]} at {b[2]:.3f} s: not a clock's structure (TDOA-S and "
+                                        "TDOA-M, or the arrays, disagree on its size)"} for b in bad])
+            continue
+        models, result, kept = trial, res, kept + 1
+    return models, result
 
 
 def _worse(result, first):
@@ -559,11 +705,13 @@ def _refine_and_resolve(solve, features, result, models, options):
     """The joint step for the components (:func:`refine`), then backward elimination: the component whose
     joint χ² (value / σ)² falls furthest short of its penalty is removed and the session solved again (a
     component taken while a larger fault still bent the fit may not be needed once that fault is modelled);
-    solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ."""
+    solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ. A component
+    that fails its structure test (:func:`structure_test`) at the solution with all of them is removed too
+    (each was tested when taken, with the components then held; those may have gone since)."""
     cov_info = None
     for _ in range(2 * sum(len(c) for c in models.values()) + 2):
         moved, models, cov_info = refine(result, models)
-        weak = _weakest(result["problem"], models)
+        weak = _weakest(result["problem"], models) or _unstructured(result, features, models)
         if weak is not None:
             name, k = weak
             models = {**models, name: [c for j, c in enumerate(models[name]) if j != k]}
@@ -579,12 +727,23 @@ def _refine_and_resolve(solve, features, result, models, options):
     flagged = ((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or []
     bad = [n for n in set(_unreliable(result)) | set(flagged) if n in models]
     bad += [n for n, comps in models.items() if n not in bad and _has_pulse(comps)]
-    if bad:
+    if bad:   # (the others' components were taken with these held: judged again without them)
         models = {n: c for n, c in models.items() if n not in bad}
         result = solve(correct_features(features, models), **options)
-        cov_info = refine(result, models)[2] if models else None
+        if models:
+            return _refine_and_resolve(solve, features, result, models, options)
+        cov_info = None
     _apply_std(result, cov_info)
     return result, models
+
+
+def _unstructured(result, features, models):
+    """(array name, index) of the first component failing its structure test at ``result``, or None."""
+    bad = _structure_failures(result, models, {}, correct_features(features, models))
+    if not bad:
+        return None
+    name, kind, time = bad[0]
+    return name, next(k for k, c in enumerate(models[name]) if _key(c) == (kind, time))
 
 
 def _unreliable(result):
