@@ -348,14 +348,16 @@ def _row_arrays(p, fs):
     return np.concatenate(out) if out else np.zeros(0, int)
 
 
-def _robust_weights(result, lin, p=None):
+def _robust_weights(result, lin, p=None, own=None):
     """√ of the Huber weights of a linearisation's rows in the TDOA rows' robust scale, and that scale. The
     rows of the arrays the solve dropped as unreliable weigh nothing: their pose was fitted to them alone, the
-    sources and the other arrays to the rest (what those rows say is judged per array, :func:`best_component`)."""
+    sources and the other arrays to the rest (what those rows say is judged per array, :func:`best_component`),
+    but for array ``own``'s (a component of its own under test)."""
     r = lin.r
     tdoa = np.concatenate([np.full(len(f.r), f.kind in ("tdoa_s", "tdoa_m")) for f in lin.factors])
     p = result["problem"] if p is None else p
-    dropped = np.isin(_row_arrays(p, lin.factors), [j for j, n in enumerate(p.names) if str(n) in _unreliable(result)])
+    dropped = np.isin(_row_arrays(p, lin.factors), [j for j, n in enumerate(p.names)
+                                                    if str(n) in _unreliable(result) and str(n) != own])
     use = tdoa & ~dropped
     scale = max(1.0, 1.4826 * float(np.median(np.abs(r[use])))) if use.any() else 1.0
     sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
@@ -474,7 +476,7 @@ def structure_test(result, models, name, k, features=None):
     lin = linearise(p, st, lay, _kinds(p))
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     r = lin.r
-    sw, scale = _robust_weights(result, lin, p)
+    sw, scale = _robust_weights(result, lin, p, own=name)
     E, _ = component_columns(p, lin.factors, models)
     Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
@@ -508,7 +510,7 @@ def _structure_failures(result, models, old, features):
 
 
 # ----------------------------------------------------------------------------------------------- selection
-def detect(result, models, banned=frozenset()):
+def detect(result, models, banned=frozenset(), excluded=frozenset()):
     """One detection round at a solved ``result``: proposals {array name: its components with the new one}
     of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
     within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
@@ -520,6 +522,8 @@ def detect(result, models, banned=frozenset()):
     suspects = _suspects(result)
     for i in range(-1, p.N):
         name = EMITTER if i < 0 else str(p.names[i])
+        if name in excluded:
+            continue
         zero = [c.with_value(0.0) for c in models.get(name, [])]
         got = None
         # the fit may be bent around this array: its own robust fits, sources held (not the reference's: a
@@ -554,6 +558,8 @@ def detect(result, models, banned=frozenset()):
             if round(step.time, 9) not in allowed:
                 continue
             name, new = ref, have + [step]
+        if name in excluded:
+            continue
         old = models.get(name, [])
         merged = [c.with_value(c.value + (old[k].value if k < len(old) else 0.0)) for k, c in enumerate(new)]
         if _pulse(merged):
@@ -656,23 +662,33 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
     first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
-        models, result = _select(solve, features, result, options, rounds)
-        if models:
-            result, models = _refine_and_resolve(solve, features, result, models, options)
-            if _worse(result, first):   # the models did not explain the data: the linear clock's result
-                result, models = first, {}
-                rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
+        excluded = set()
+        for _ in range(2):   # (a second selection without the arrays the first one could not explain)
+            models, result = _select(solve, features, first, options, rounds, excluded)
+            if not models:
+                result = first
+                break
+            result, models, bad = _refine_and_resolve(solve, features, result, models, options)
+            if not bad:
+                break
+            excluded |= set(bad)
+            rounds.append([{"rejected": f"{n}: its clock terms did not explain its rows (still named as inconsistent); "
+                                        "selected again without it"} for n in sorted(bad)])
+        if models and _worse(result, first):   # the models did not explain the data: the linear clock's result
+            result, models = first, {}
+            rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
     _attach_report(result, features, models, rounds)
     return result
 
 
-def _select(solve, features, result, options, rounds):
+def _select(solve, features, result, options, rounds, excluded=frozenset()):
     """Detection rounds from the linear clock's ``result``: each adds the best proposal (:func:`detect`,
     rivals decided by :func:`_decide`) and solves again; a new component that fails its structure test
-    (:func:`structure_test`) is taken out again and not proposed again. Returns (models, result)."""
+    (:func:`structure_test`) is taken out again and not proposed again. The arrays in ``excluded`` get no
+    components (nor their steps seen as the reference's). Returns (models, result)."""
     models, banned, kept = {}, set(), 0
     while kept < MAX_ROUNDS and len(banned) < MAX_REJECTED:
-        proposals, records = detect(result, models, frozenset(banned))
+        proposals, records = detect(result, models, frozenset(banned), frozenset(excluded))
         rounds.append(records)
         if not proposals:
             break
@@ -705,7 +721,8 @@ def _refine_and_resolve(solve, features, result, models, options):
     """The joint step for the components (:func:`refine`), then backward elimination: the component whose
     joint χ² (value / σ)² falls furthest short of its penalty is removed and the session solved again (a
     component taken while a larger fault still bent the fit may not be needed once that fault is modelled);
-    solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ. A component
+    solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ. Returns
+    (result, models, the arrays whose components were all removed at the end: still named). A component
     that fails its structure test (:func:`structure_test`) at the solution with all of them is removed too
     (each was tested when taken, with the components then held; those may have gone since)."""
     cov_info = None
@@ -727,14 +744,12 @@ def _refine_and_resolve(solve, features, result, models, options):
     flagged = ((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or []
     bad = [n for n in set(_unreliable(result)) | set(flagged) if n in models]
     bad += [n for n, comps in models.items() if n not in bad and _has_pulse(comps)]
-    if bad:   # (the others' components were taken with these held: judged again without them)
+    if bad:
         models = {n: c for n, c in models.items() if n not in bad}
         result = solve(correct_features(features, models), **options)
-        if models:
-            return _refine_and_resolve(solve, features, result, models, options)
-        cov_info = None
+        cov_info = refine(result, models)[2] if models else None
     _apply_std(result, cov_info)
-    return result, models
+    return result, models, bad
 
 
 def _unstructured(result, features, models):

@@ -159,6 +159,38 @@ def test_a_common_emission_step_is_the_emitters_not_every_arrays():
     assert (s["after_event"], s["before_event"]) == (4, 5) and abs(s["size"] - 0.001) < 3 * s["std"]
 
 
+def test_delayed_arrivals_of_one_size_are_a_clock_step():
+    """delay_arrivals (the NLOS contrast) with one delay from an event on is exactly a clock step there."""
+    f, truth = simulate_features(3, SIGMA, seed=1, noise=False, clocks={"A3": {"steps": [{"size": 4e-4}]}})
+    clean, _ = simulate_features(3, SIGMA, seed=1, noise=False)
+    k = _interval(truth["clocks"]["A3"], f)[1]
+    late = ck.delay_arrivals(clean, "A3", {j: 4e-4 for j in f["events"]["event"] if j >= k})
+    for kind in ("tdoa_m", "tdoa_s"):
+        np.testing.assert_allclose(late[kind]["tdoa"].to_numpy(), f[kind]["tdoa"].to_numpy(), atol=1e-12)
+
+
+@pytest.mark.parametrize("seed,form", [(2, "tail"), (4, "block")])
+def test_reflections_are_not_modelled_as_clock_steps(seed, form):
+    """One array's arrivals late by a detour that changes from stop to stop (a blocked line of sight, from an
+    event on to the end, or for a stretch): no clock term anywhere, and the array named as with the linear
+    clock. The same array with one clock step of the delays' mean size is found (the contrast)."""
+    f, truth = simulate_features(3, SIGMA, seed=seed)
+    ev = f["events"]["event"].to_numpy()
+    rng = np.random.default_rng(seed)
+    k = len(ev) // 3
+    span = ev[k:] if form == "tail" else ev[k:k + 6]
+    late = {int(j): rng.uniform(3e-4, 1.2e-3) for j in span}
+    g = ck.delay_arrivals(f, "A3", late)
+    auto, linear = calibrate(g, clock_model="auto")["report"], calibrate(g, clock_model="linear")["report"]
+    assert not auto["clock"]["findings"]
+    assert "A3" in auto["verdict"]["flagged_arrays"] and auto["verdict"]["flagged_arrays"] == linear["verdict"]["flagged_arrays"]
+    size = float(np.mean(list(late.values())))
+    t = f["events"]["t_emit"].to_numpy()
+    f, truth = simulate_features(3, SIGMA, seed=seed, clocks={"A3": {"steps": [{"size": size, "time": 0.5 * (t[k - 1] + t[k])}]}})
+    (s,) = _steps(calibrate(f, clock_model="auto"), "A3")
+    assert (s["after_event"], s["before_event"]) == (k - 1, k) and abs(s["size"] - size) < 3 * s["std"]
+
+
 def test_correct_features_takes_a_model_out_of_the_tdoas():
     f, truth = simulate_features(3, SIGMA, seed=1, noise=False, clocks={"A3": {"steps": [{"size": 0.004}]},
                                                                          "A1": {"steps": [{"size": -0.002}]}})
