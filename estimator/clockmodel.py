@@ -352,12 +352,13 @@ def _robust_weights(result, lin, p=None, own=None):
     """√ of the Huber weights of a linearisation's rows in the TDOA rows' robust scale, and that scale. The
     rows of the arrays the solve dropped as unreliable weigh nothing: their pose was fitted to them alone, the
     sources and the other arrays to the rest (what those rows say is judged per array, :func:`best_component`),
-    but for array ``own``'s (a component of its own under test)."""
+    but for array ``own``'s (a component of its own under test); so do those of the arrays the verdict names
+    (:func:`_distrusted`)."""
     r = lin.r
     tdoa = np.concatenate([np.full(len(f.r), f.kind in ("tdoa_s", "tdoa_m")) for f in lin.factors])
     p = result["problem"] if p is None else p
     dropped = np.isin(_row_arrays(p, lin.factors), [j for j, n in enumerate(p.names)
-                                                    if str(n) in _unreliable(result) and str(n) != own])
+                                                    if str(n) in _distrusted(result) and str(n) != own])
     use = tdoa & ~dropped
     scale = max(1.0, 1.4826 * float(np.median(np.abs(r[use])))) if use.any() else 1.0
     sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
@@ -383,7 +384,7 @@ def joint_scan(result, models, banned=frozenset()):
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     r = lin.r
     sw, scale = _robust_weights(result, lin)
-    dropped = set(_unreliable(result))
+    dropped = _distrusted(result)
     zero = {name: [c.with_value(0.0) for c in comps] for name, comps in models.items()}
     E, _ = component_columns(p, lin.factors, zero)
     Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
@@ -533,7 +534,7 @@ def detect(result, models, banned=frozenset(), excluded=frozenset()):
             ref = str(p.names[p.ref])
             skip = {k[1:] for k in banned if k[0] == name} | {("mshift", k[2]) for k in banned if k[:2] == (ref, "step")}
             got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1, skip,
-                                 reference=name not in _unreliable(result))
+                                 reference=name not in _distrusted(result))
         if got is not None and got[0] is not None:
             got[2]["test"] = "array"
         if i in joint and (got is None or got[0] is None or joint[i][1] > got[1]):
@@ -737,7 +738,7 @@ def _refine_and_resolve(solve, features, result, models, options):
             break
         result = solve(correct_features(features, models), **options)
         if not models:
-            return result, models
+            return result, models, []
     # an array the session still contradicts with its components (dropped as inconsistent, or named for
     # holding the outliers: biased as a whole): they did not explain it, a reflection's bias is no clock's; it
     # keeps the linear clock and the consistency tests name it as before
@@ -759,6 +760,17 @@ def _unstructured(result, features, models):
         return None
     name, kind, time = bad[0]
     return name, next(k for k, c in enumerate(models[name]) if _key(c) == (kind, time))
+
+
+def _distrusted(result):
+    """The arrays whose rows say nothing about the others' clocks: dropped as unreliable, or named by the
+    verdict as inconsistent (their rows bend the sources, and a scan of the others would read that bend as
+    their clocks) — the named ones only while they are fewer than half the other arrays (a fault most arrays
+    show is the reference's clock, seen from each)."""
+    out = set(_unreliable(result))
+    flagged = set(((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or ())
+    n_others = len(result["problem"].names) - 1
+    return out | flagged if len(out | flagged) < 0.5 * n_others else out
 
 
 def _unreliable(result):
