@@ -684,8 +684,8 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
 
 def _select(solve, features, result, options, rounds, excluded=frozenset()):
     """Detection rounds from the linear clock's ``result``: each adds the best proposal (:func:`detect`,
-    rivals decided by :func:`_decide`) and solves again; a new component that fails its structure test
-    (:func:`structure_test`) is taken out again and not proposed again. The arrays in ``excluded`` get no
+    rivals decided by :func:`_decide`) and solves again; a new component of the joint scan that fails its
+    structure test (:func:`structure_test`) is taken out again and not proposed again. The arrays in ``excluded`` get no
     components (nor their steps seen as the reference's). Returns (models, result)."""
     models, banned, kept = {}, set(), 0
     while kept < MAX_ROUNDS and len(banned) < MAX_REJECTED:
@@ -698,12 +698,16 @@ def _select(solve, features, result, options, rounds, excluded=frozenset()):
             res = solve(correct_features(features, trial), **options)
         else:
             trial, res = _decide(solve, features, models, proposals, options)
-        bad = _structure_failures(res, trial, models, correct_features(features, trial))
-        if bad:
-            banned.update(bad)
-            rounds.append([{"rejected": f"{b[0]}: {b[1]} at {b[2]:.3f} s: not a clock's structure (TDOA-S and "
-                                        "TDOA-M, or the arrays, disagree on its size)"} for b in bad])
-            continue
+        # proposals of the joint scan come from a fit not bent around them: their structure is judged at once;
+        # a per-array scan's (a fault large enough to bend the fit) may be placed or sized provisionally until
+        # the fault is modelled in full: judged at the end (:func:`_refine_and_resolve`)
+        if all(r.get("test") == "joint" for r in records if r.get("margin_chi2", 0.0) > 0):
+            bad = _structure_failures(res, trial, models, correct_features(features, trial))
+            if bad:
+                banned.update(bad)
+                rounds.append([{"rejected": f"{b[0]}: {b[1]} at {b[2]:.3f} s: not a clock's structure (TDOA-S and "
+                                            "TDOA-M, or the arrays, disagree on its size)"} for b in bad])
+                continue
         models, result, kept = trial, res, kept + 1
     return models, result
 
