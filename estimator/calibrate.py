@@ -686,7 +686,8 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
     p_raw = p.copy()
     (st, p, info, scales, bounds), motion = motion_solve(p_raw, features["events"], joint(p, st), joint, kinds=kinds,
                                                          curve=meta.get("chirp_stretch_shift"),
-                                                         t_doa=float(meta.get("doa_time_s") or 0.0))
+                                                         t_doa=float(meta.get("doa_time_s") or 0.0),
+                                                         t_stretch=meta.get("stretch_time_s"))
     if motion["source"] is not None:
         stages["motion"] = motion
     st, basins = fold_basins(p, st, info["layout"], kinds, info["mask"], max_iter)

@@ -239,7 +239,7 @@ def read_events(path):
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
              "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s", "chirp_stretch_shift",
-             "doa_time_s")   # + the kinds' noise keys
+             "doa_time_s", "stretch_time_s")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -274,8 +274,9 @@ def validate_meta(meta, path="meta.json"):
     if meta.get("chirp_drift_bias") is not None:
         out["chirp_drift_bias"] = V.number(meta["chirp_drift_bias"], f"{path}: 'chirp_drift_bias'",
                                            lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME)
-    if meta.get("doa_time_s") is not None:
-        out["doa_time_s"] = V.number(meta["doa_time_s"], f"{path}: 'doa_time_s'", lo=0.0, hi=V.MAX_ABS_TIME)
+    for key in ("doa_time_s", "stretch_time_s"):
+        if meta.get(key) is not None:
+            out[key] = V.number(meta[key], f"{path}: '{key}'", lo=0.0, hi=V.MAX_ABS_TIME)
     if meta.get("chirp_stretch_shift") is not None:
         out["chirp_stretch_shift"] = _stretch_curve(meta["chirp_stretch_shift"], path)
     est = meta.get("sigmas_estimated")
