@@ -16,7 +16,11 @@ TDOA-S and TDOA-M, with each candidate component in turn (every interval's step,
 quadratic). The best candidate is kept when its χ² drop beats the BIC penalty with the scan's multiplicity:
 ``max(ln n, χ²₁ quantile at FAMILY_ALPHA / (arrays × candidates))`` (false steps < FAMILY_ALPHA per session).
 Kept components correct the TDOAs (:func:`correct_features`) and the session is solved again; rounds repeat
-until nothing is kept. A last joint Gauss–Newton step adds the components' columns to the full Jacobian
+until nothing is kept. Each kept component must have a clock's structure (:func:`structure_test`: the same
+size in the TDOA-S and the TDOA-M, early and late after a step, across the arrays for the reference's and
+the emitter's), which reflections (a blocked line of sight: a detour changing from stop to stop) do not
+have; the rows of arrays the solve dropped or the verdict names are no evidence about the others' clocks
+(:func:`_distrusted`). A last joint Gauss–Newton step adds the components' columns to the full Jacobian
 (:func:`refine`): their sizes, their 1-σ and the array parameters' 1-σ with them (the step's uncertainty in
 the error bars).
 
@@ -647,8 +651,9 @@ def _suspects(result):
 def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
-    clock_model : "linear" (default, for now: on the `hard` preset's occluded arrays the selection still takes
-        reflections for clock steps, tests/test_robust.py slow) or "auto": steps / drift terms per array.
+    clock_model : "linear" (default, for now: 0.1 ms steps found in 90 % of bench_clocks' runs, false models on
+        1.3 % of clean sessions; docs/results.md) or "auto": steps / drift terms per array
+        (``calib.options.OPTIONS``: ``--clock-model``).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
