@@ -56,6 +56,7 @@ EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term 
 TIE_MARGIN = 10.0       # χ²: proposals this close to the best are decided by solving with each
 MAX_RIVALS = 3
 REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × its σ: solve once more
+AMBIGUOUS_CHI2 = float(chdtri(1, 0.05))   # rival proposals this close (χ²) are named as the data's ambiguity
 # A kept component is tested once for its structure (:func:`structure_test`): a true clock's fails this rarely
 STRUCTURE_ALPHA = 1e-3
 MAX_REJECTED = 8        # components rejected by their structure before the selection stops looking
@@ -598,16 +599,28 @@ def _has_pulse(comps):
 
 
 def _decide(solve, features, models, proposals, options):
-    """(models, result) of the proposal whose solve leaves the smallest robust cost (one solve each)."""
-    best = None
+    """(models, result, rivals) of the proposal whose solve leaves the smallest robust cost (one solve each);
+    rivals: the other proposals the data do not tell from it (their χ², twice the robust cost, within
+    AMBIGUOUS_CHI2 of its)."""
+    best, costs, sig0 = None, [], None
     for prop in proposals:
         trial = {**models, **prop}
         corrected = correct_features(features, trial)
         res = solve(corrected, **options)
-        cost, sig = _robust_cost(res, None if best is None else best[2], corrected)
+        cost, sig = _robust_cost(res, sig0, corrected)
+        sig0 = sig if sig0 is None else sig0
+        costs.append(cost)
         if best is None or cost < best[0]:
-            best = (cost, (trial, res), sig if best is None else best[2])
-    return best[1]
+            best = (cost, (trial, res), prop)
+    rivals = [prop for prop, c in zip(proposals, costs) if prop is not best[2] and 2.0 * (c - best[0]) < AMBIGUOUS_CHI2]
+    return (*best[1], rivals)
+
+
+def _last(trial, models):
+    """(name, kind, time, value) of the component a trial adds to ``models``."""
+    name = next(n for n, c in trial.items() if len(c) > len(models.get(n, [])) or c != models.get(n))
+    c = trial[name][-1]
+    return name, c.kind, float(c.time), float(c.value)
 
 
 def _every_row(result, features=None):
@@ -702,7 +715,9 @@ def _select(solve, features, result, options, rounds, excluded=frozenset()):
             trial = {**models, **proposals[0]}
             res = solve(correct_features(features, trial), **options)
         else:
-            trial, res = _decide(solve, features, models, proposals, options)
+            trial, res, rivals = _decide(solve, features, models, proposals, options)
+            if rivals:
+                rounds.append([{"ambiguous": [_last(trial, models)] + [_last({**models, **r}, models) for r in rivals]}])
         # proposals of the joint scan come from a fit not bent around them: their structure is judged at once;
         # a per-array scan's (a fault large enough to bend the fit) may be placed or sized provisionally until
         # the fault is modelled in full: judged at the end (:func:`_refine_and_resolve`)
@@ -1041,6 +1056,7 @@ def clock_report(result, features, models, rounds):
             findings.append(_rate_text(name, e["nominal_rate"]))
     if base is not None:
         findings.append(_base_text(base))
+    findings += _ambiguities(rounds, models, events, u)
     emitter = array_clock_entry(models.get(EMITTER, []), events, u, 0.0, None)
     emitter.pop("nominal_rate")
     for s in emitter["steps"]:
@@ -1052,6 +1068,26 @@ def clock_report(result, features, models, rounds):
                         f"{emitter['drift_model']})")
     return {"selection": "auto" if rounds else "linear", "arrays": arrays, "emitter": emitter,
             "findings": findings, "detection": rounds}
+
+
+def _ambiguities(rounds, models, events, u):
+    """Findings for the rival proposals the data could not tell from a component still in ``models``."""
+    def where(t):
+        before, after = u < t, u > t
+        return (f"between events {int(events[before][np.argmax(u[before])]) if before.any() else '-'} and "
+                f"{int(events[after][np.argmin(u[after])]) if after.any() else '-'}")
+
+    def text(name, kind, t, v):
+        return f"{name}'s {kind} of {v * 1e3:+.3f} ms {where(t)}" if kind == "step" else f"{name}'s {kind} term"
+
+    have = {(n, c.kind, round(c.time, 9)) for n, comps in models.items() for c in comps}
+    out = []
+    for rec in (r for rnd in rounds for r in rnd if "ambiguous" in r):
+        (name, kind, t, v), *alts = rec["ambiguous"]
+        if (name, kind, round(t, 9)) in have:
+            out.append(f"{text(name, kind, t, v)} (modelled) explains the data as well as "
+                       + " or ".join(text(*a) for a in alts) + ": the data cannot tell which clock it is")
+    return out
 
 
 def _attach_report(result, features, models, rounds):

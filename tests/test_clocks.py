@@ -191,6 +191,17 @@ def test_reflections_are_not_modelled_as_clock_steps(seed, form):
     assert (s["after_event"], s["before_event"]) == (k - 1, k) and abs(s["size"] - size) < 3 * s["std"]
 
 
+def test_rivals_the_data_cannot_tell_apart_are_named_while_the_chosen_one_is_kept():
+    from calib.estimator.clockmodel import _ambiguities
+
+    events, u = np.arange(4), np.array([0.0, 10.0, 20.0, 30.0])
+    rounds = [[{"array": "A4", "margin_chi2": 30.0}], [{"ambiguous": [("A5", "step", 15.0, -9.3e-5),
+                                                                      ("A4", "step", 15.0, 1.01e-4)]}]]
+    (text,) = _ambiguities(rounds, {"A5": [Component("step", 15.0, -9.3e-5)]}, events, u)
+    assert text.startswith("A5's step of -0.093 ms between events 1 and 2") and "A4's step of +0.101 ms" in text
+    assert _ambiguities(rounds, {}, events, u) == []      # the chosen one was eliminated later: nothing to name
+
+
 def test_correct_features_takes_a_model_out_of_the_tdoas():
     f, truth = simulate_features(3, SIGMA, seed=1, noise=False, clocks={"A3": {"steps": [{"size": 0.004}]},
                                                                          "A1": {"steps": [{"size": -0.002}]}})
