@@ -70,9 +70,9 @@ def print_clock_metrics(clock, console=None):
                 "(true → found)", "rate ratio (true → found)", "max local-time error [µs]"):
         t.add_column(col, justify="right")
     for a in clock["per_array"]:
-        found = ", ".join(f"{'ok' if s['placed'] else 'misplaced'} {_f(1e6 * s['size_error_s'], '.1f')} "
+        found = ", ".join(f"{'ok' if s['placed'] else '?' if s['placed'] is None else 'misplaced'} {_f(1e6 * s['size_error_s'], '.1f')} "
                           f"({_f(s['size_error_sigma'], '.1f')}σ)" if s["found"] else "missed" for s in a["steps"])
         t.add_row(a["array"], ", ".join(f"{1e3 * s['size']:+.3f}" for s in a["steps"]) or "—", found or "—",
                   str(a["false_steps"]), f"{a['drift_model_true']} → {a['drift_model']}",
-                  f"{a['rate_ratio_true']:.5f} → {_f(a['rate_ratio'], '.5f')}", _f(1e6 * a["local_time_max_error_s"], ".1f"))
+                  f"{a['rate_ratio_true']:.5f} → {_f(a['rate_ratio'], '.5f')}", _f(None if a["local_time_max_error_s"] is None else 1e6 * a["local_time_max_error_s"], ".1f"))
     (console or out).print(t)

@@ -249,6 +249,12 @@ def test_estimate_clock_model_flag_and_evaluate_scores_the_clock(tmp_path):
     assert miss["local_time_max_error_s"] > 5e-3
     r = CliRunner().invoke(app, ["evaluate", str(tmp_path / "auto"), str(tmp_path / "truth")], terminal_width=200)
     assert "1/1 true steps found" in r.output
+    # a clocks.json without the emission times (older folders): found and sized, the interval not judged
+    old = {n: {k: v for k, v in c.items() if k != "event_times"} for n, c in truth["clocks"].items()}
+    (tmp_path / "truth" / "clocks.json").write_text(json.dumps(old))
+    r = CliRunner().invoke(app, ["evaluate", str(tmp_path / "auto"), str(tmp_path / "truth"), "--json"])
+    (s,) = [a for a in json.loads(r.output)["clock"]["per_array"] if a["array"] == "A3"][0]["steps"]
+    assert s["found"] and s["placed"] is None and s["size_error_sigma"] <= 3
     r = CliRunner().invoke(app, ["estimate", str(tmp_path / "features"), "-o", str(tmp_path / "x"), "--clock-model", "steps"])
     assert r.exit_code == 2 and "clock_model" in r.output
 

@@ -258,7 +258,8 @@ def clock_errors(calib, truth):
     names, offset, drift = t["array"].tolist(), t["offset"].to_numpy(float), t["drift"].to_numpy(float)
     rec0 = next(iter(records.values()))
     t0 = float(rec0.get("t0", 0.0))
-    u = np.asarray(rec0.get("event_times") or [0.0], float)
+    # (a clocks.json from before event_times: no interval nor local-time error to score)
+    u = np.asarray(rec0.get("event_times") or [], float)
     true = {n: Clock.from_dict(records[n]) if n in records else Clock(offset[k], drift[k], t0)
             for k, n in enumerate(names)}
     est = _estimated_clocks(calib, t0)
@@ -274,16 +275,17 @@ def clock_errors(calib, truth):
                     "drift_model": (entries.get(n) or {}).get("drift_model", "linear"),
                     "rate_ratio_true": float(records.get(n, {}).get("rate_ratio", 1.0)),
                     "rate_ratio": ((entries.get(n) or {}).get("nominal_rate") or {}).get("ratio"),
-                    "local_time_max_error_s": float(np.max(np.abs(rel))) if n != ref else 0.0,
-                    "local_time_rms_error_s": _rms(rel) if n != ref else 0.0})
+                    "local_time_max_error_s": (float(np.max(np.abs(rel))) if n != ref else 0.0) if len(u) else None,
+                    "local_time_rms_error_s": (_rms(rel) if n != ref else 0.0) if len(u) else None})
     steps = [s for a in per for s in a["steps"]]
     return {"steps_true": len(steps), "steps_found": sum(s["found"] for s in steps),
-            "steps_placed": sum(s["placed"] for s in steps),
+            "steps_placed": sum(bool(s["placed"]) for s in steps),
             "steps_size_ok": sum(bool(s["size_error_sigma"] is not None and s["size_error_sigma"] <= STEP_SIGMAS)
                                  for s in steps),
             "false_steps": sum(a["false_steps"] for a in per),
             "false_drift_models": sum(a["drift_model_true"] == "linear" and a["drift_model"] != "linear" for a in per),
-            "local_time_max_error_s": max((a["local_time_max_error_s"] for a in per), default=0.0),
+            "local_time_max_error_s": max((a["local_time_max_error_s"] or 0.0 for a in per), default=0.0)
+            if len(u) else None,
             "per_array": per}
 
 
@@ -321,7 +323,8 @@ def _step_scores(record, recovered, u):
         e = None if r is None else float(r["size"] - s["size"])
         out.append({"time": float(s["time"]), "size": float(s["size"]), "after_event": interval[0],
                     "before_event": interval[1], "found": r is not None,
-                    "placed": r is not None and (r.get("after_event"), r.get("before_event")) == interval,
+                    "placed": (r is not None and (r.get("after_event"), r.get("before_event")) == interval)
+                    if len(u) else None,
                     "size_error_s": e,
                     "size_error_sigma": abs(e) / r["std"] if r is not None and r.get("std") else None})
     return {"steps": out, "false_steps": len(left)}
