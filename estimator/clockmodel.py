@@ -633,8 +633,7 @@ def _every_row(result, features=None):
         q = build_problem(features, use_tdoa_s=bool(len(p.tdoa_s.val)), sigma_emit=p.sigma.get("emission", 0.0),
                           odometry_yaw=p.odo_yaw_free)
         if q.K == p.K and q.N == p.N:
-            q.sigma.update(p.sigma)
-            return q
+            return q.replace(sigma={**q.sigma, **p.sigma})
     return p
 
 

@@ -128,13 +128,13 @@ def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None):
     return p.replace(**out)
 
 
-def motion_gain(p, st, info, vel, kinds):
+def motion_gain(p, st, lay, mask, vel, kinds):
     """How much of the motion's arrival-shift pattern the residuals of the static solve hold: γ̂ of
     ``r + γ P⊥ δr`` (r the whitened residuals at the solution, δr their change when the shifts are removed,
     P⊥ the projector off the Jacobian's range: what a re-solve cannot absorb). γ̂ ≈ 1: the arrivals carry
     the shifts (a moving source), ≈ 0: they do not (the robot stopped for the chirps). One linearisation and
-    one least-squares solve, not a second calibration. Returns (γ̂, its std)."""
-    lay, mask = info["layout"], info["mask"]
+    one least-squares solve, not a second calibration. ``lay``, ``mask``: the solve's layout and kept
+    residuals. Returns (γ̂, its std)."""
     lin = linearise(p, st, lay, kinds, mask=mask)
     dr = linearise(corrected(p, st, vel), st, lay, kinds, mask=mask).r - lin.r
     sw = np.sqrt(lin.w)
@@ -151,8 +151,8 @@ def motion_gain(p, st, info, vel, kinds):
 def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t_stretch=None):
     """The joint solve with the moving source's arrival shifts removed, when the source moves.
 
-    p_raw : the problem as built (before a solve changed its sigmas); first : ``solve``'s result
-    (state, problem, info, scales, bounds) on ``p_raw``; solve(problem, state) → the same tuple; curve: meta
+    p_raw : the problem as built (before a solve changed its sigmas); first : ``solve``'s result (a
+    ``joint.JointResult``) on ``p_raw``; solve(problem, state) → the same type; curve: meta
     ``chirp_stretch_shift`` (the frontend's measured shift for large stretches) or None (β ε); t_doa: meta
     ``doa_time_s``, when after the sweep start the DOAs look (0: not corrected); t_stretch: meta
     ``stretch_time_s``, when the range rate of the arrival shift is taken (None: t_doa).
@@ -164,13 +164,13 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
         return first, {"source": None, "applied": False}
     rec = {"source": source, "median_speed_m_s": float(np.median(np.linalg.norm(vel, axis=1)))}
     if source == "odometry":
-        gain, sd = motion_gain(first[1], first[0], first[2], vel, kinds)
+        gain, sd = motion_gain(first.problem, first.state, first.layout, first.mask, vel, kinds)
         rec.update(gain=gain, gain_std=sd)
         if not gain >= MIN_GAIN:
             return first, {**rec, "applied": False}
     cur = first
     for _ in range(MOTION_ITERATIONS):
-        cur = solve(corrected(p_raw, cur[0], vel, curve, t_doa, t_stretch), cur[0])
+        cur = solve(corrected(p_raw, cur.state, vel, curve, t_doa, t_stretch), cur.state)
     return cur, {**rec, "applied": True, "curve": bool(curve),
                  "max_shift_s": float(np.max(np.abs(arrival_shifts(
-                     p_raw, cur[0], vel, curve, sweep_middle(p_raw.t, p_raw.odom, vel, t_stretch or t_doa)))))}
+                     p_raw, cur.state, vel, curve, sweep_middle(p_raw.t, p_raw.odom, vel, t_stretch or t_doa)))))}

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 from calib.errors import InputError
+from calib.records import Features
 from calib.tables import event_velocities
 
 from . import associate as assoc_mod
@@ -55,7 +56,7 @@ def _check_audio(session):
 
 
 def extract_features(session: Any, progress: Callable[[int, int, str], Any] | None = None, jobs: int = 1,
-                     **options: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+                     **options: Any) -> tuple[Features, dict[str, Any]]:
     """Features of a recording session.
 
     Parameters
@@ -70,7 +71,7 @@ def extract_features(session: Any, progress: Callable[[int, int, str], Any] | No
 
     Returns
     -------
-    features : dict as ``pipeline.formats.io.read_features`` returns (meta, events, tdoa_m, tdoa_s, doa), with
+    features : :class:`calib.records.Features`, as ``pipeline.formats.io.read_features`` returns them, with
         a ``quality`` column in tdoa_m, tdoa_s and doa (docs/frontend.md).
     diagnostics : dict (JSON-able except keys starting with ``_``): per-array detections, matches,
         missed events, spurious detections, association fit, warnings, timings.
@@ -118,7 +119,7 @@ def _extract(session, progress, opt, jobs=1):
         if "sigma_tdoa" in meta.get("sigmas_estimated", []):
             meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion_sd(events, c, beta)))
     diag = _diagnostics(session, results, ev_ids, beta, time.perf_counter() - t_start)
-    return feats, diag
+    return Features.from_dict(feats), diag
 
 
 def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
