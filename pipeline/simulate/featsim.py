@@ -152,7 +152,7 @@ def _fault_clocks(clocks, tr, seed):
         i = tr["names"].index(key) if isinstance(key, str) else int(key)
         clk = ck.fault_clock(tr["offset"][i], tr["drift"][i], faults, event_times=tr["t"], rng=rng)
         tr["drift"][i] = clk.drift
-        out[i] = (clk, ck.clock_record(clk, faults))
+        out[i] = (clk, ck.clock_record(clk, faults, tr["t"]))
     return out
 
 
