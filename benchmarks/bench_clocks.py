@@ -14,13 +14,14 @@ Per case: found (every injected step found on its array, in its interval, nothin
 3σ, the location error (RMS over arrays, cm) faulty / fault-free (mean of each, and the share of runs within
 1.5× + 2 mm), nominal rates named (NLOS cases: the blocked array named by the verdict), others unbent, the
 false-model rate on clean sessions (any step or drift term), reflections (NLOS_CASES: one array's arrivals late
-by a delay that changes from stop to stop, three forms) that must not be modelled as clock terms, and the eight real feature sets (/work/shared/real_world or $CALIB_REAL_WORLD) with and without clock
+by a delay that changes from stop to stop, three forms) that must not be modelled as clock terms, and the eight real feature sets (../shared/real_world or $CALIB_REAL_WORLD: benchmarks/realdata.py) with and without clock
 models. Also three `calib run` subprocess runs are timed elsewhere (docs/results.md); this script is library only.
 """
 from __future__ import annotations
 
 import argparse
 import glob
+from pathlib import Path
 import os
 import time
 
@@ -30,10 +31,11 @@ from calib.estimator import ObservabilityError, calibrate
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.simulate.clocks import delay_arrivals
 from calib.pipeline.simulate.featsim import simulate_features
+from realdata import not_found, real_world_dir  # noqa: E402 (benchmarks/, the script's folder)
 
 SESSION_EVENTS = 36
 SIGMA_TDOA = 1e-5
-REAL = os.environ.get("CALIB_REAL_WORLD", "/work/shared/real_world")
+REAL = str(real_world_dir())
 
 
 def session(seed):
@@ -244,6 +246,8 @@ def main():
         print("\n| real set | arrays with a clock model | findings | loc cm linear → auto | rot deg linear → auto |")
         print("|---|---|---|---|---|")
         print("\n".join(rows))
+    else:
+        print(not_found(Path(REAL)))
 
 
 if __name__ == "__main__":

@@ -25,10 +25,11 @@ import calib.pipeline.montecarlo as montecarlo
 from calib.estimator import calibrate
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.formats.io import read_features, read_truth
+from realdata import not_found, real_world_dir  # noqa: E402 (benchmarks/, the script's folder)
 from calib.pipeline.montecarlo import (PAPER_FINAL, SIGMA_DOA_DEG, SIGMA_TDOA, TRAJECTORIES, iqr_mean,
                                  run_one)
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"
+REAL = real_world_dir()
 
 
 def _chunk(tasks, kw):
@@ -119,10 +120,12 @@ def main():
         print(f"time per calibration: median {1000 * tt.median():.1f} ms (trajectory 3, 5 arrays x 14 events: "
               f"{1000 * traj3.median():.1f} ms), p95 {1000 * tt.quantile(0.95):.1f} ms; "
               f"whole study (incl. truth-start solves and CRLB) {wall:.0f} s on {args.jobs} jobs")
-    if REAL.exists():
+    if not REAL.exists():
+        print(not_found(REAL))
+    else:
         for es in (0.0, 1e-3):
             r = real(es, options)
-            print(f"\nreal data (../shared/real_world), emission correction sigma = {es * 1e3:g} ms")
+            print(f"\nreal data ({REAL}), emission correction sigma = {es * 1e3:g} ms")
             print(r.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
             print(f"over the sets: mean of the per-set mean over arrays {r['loc_cm'].mean():.2f} cm / "
                   f"{r['ang_deg'].mean():.2f} deg; mean of the per-set RMS over arrays (the paper's statistic) "

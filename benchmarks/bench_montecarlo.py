@@ -27,8 +27,9 @@ from calib.estimator import calibrate
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.formats.io import read_features, read_truth
 from calib.pipeline.montecarlo import _run_chunk, run_study
+from realdata import not_found, real_world_dir  # noqa: E402 (benchmarks/, the script's folder)
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"
+REAL = real_world_dir()
 
 
 def cost_split(runs):
@@ -113,9 +114,11 @@ def main():
     if args.cost_split:
         print("\nCPU cost per calibration (one process, both methods averaged):")
         print(cost_split(args.cost_split).to_string(index=False, float_format=fmt))
-    if not args.no_real and REAL.exists():
+    if not args.no_real and not REAL.exists():
+        print(not_found(REAL))
+    elif not args.no_real:
         r = real()
-        print("\nreal data (../shared/real_world), mean over arrays per set:")
+        print(f"\nreal data ({REAL}), mean over arrays per set:")
         print(r.to_string(index=False, float_format=fmt))
         ok = r.dropna(subset=["loc_cm"]) if "loc_cm" in r else r
         print(ok.groupby("method")[["loc_cm", "ang_deg"]].mean().to_string(float_format=fmt))

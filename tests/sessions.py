@@ -1,7 +1,14 @@
 """Small recorded sessions from the room simulator, shared by the tests that need real WAVs."""
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 from calib.pipeline.simulate.roomsim import make_scenario, simulate
+
+# The paper lab's real feature sets: $CALIB_REAL_WORLD, else ../shared/real_world beside the checkout
+# (benchmarks/realdata.py looks in the same places); tests that need them skip when they are absent.
+REAL_WORLD = Path(os.environ.get("CALIB_REAL_WORLD") or Path(__file__).resolve().parents[2] / "shared" / "real_world")
 
 SHORT_CHIRP = {"duration": 0.2}  # s: keeps the WAVs (and the tests) small
 EVENT_INTERVAL = 0.8             # s between chirps

@@ -13,7 +13,7 @@ from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.simulate.featsim import simulate_features
 from calib.pipeline.formats.io import read_calibration, read_features, read_truth, write_calibration
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "real_world"
+from .sessions import REAL_WORLD as REAL
 
 
 def _truth_calib(truth):
