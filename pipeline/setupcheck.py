@@ -50,6 +50,8 @@ MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RM
 MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
 S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
 MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit
+STEP_CHI2 = 36.0          # a break in an array's chain of arrivals must explain this much χ² (a 6σ step) ...
+MAX_STEPS = 2             # ... and at most this many breaks are made per array
 NLOS_MINORITY = 0.5       # an array's arrivals flagged "nlos" left out of the fits while at most this fraction
 ODO_RESIDUAL_S = 3e-3     # s: arrivals the odometry cannot explain to better than this (RMS): another session's log
 ODO_MISFIT = 12.0         # ... or arrivals and DOAs this many sigmas off (RMS; σ_odo included; real sets: ≤ 5)
@@ -382,6 +384,36 @@ def _array_data(features, name):
     return odo, te - te[0], t - (te - te[0]), seg, e_id
 
 
+def split_steps(odo, e, y, seg, sig_t, max_steps=MAX_STEPS):
+    """Segment ids ``seg`` with the chain of arrivals broken where it steps: an emission interval logged wrong
+    (every array then sees the same error on that TDOA-S row: 0.7–0.9 ms in two of the real sets) or a block
+    of samples dropped or inserted (one array). A step shifts every later arrival of its chain, which no range
+    explains; each break frees an offset, so one is made only where it cuts the arrivals' χ² by STEP_CHI2 (the
+    array's position from the arrivals' best start, held), at most ``max_steps``."""
+    from scipy.optimize import least_squares
+
+    seg = np.asarray(seg, int).copy()
+    x0 = _arrival_starts(odo, e, y, seg, n_best=1)[0][:3]
+
+    def chi2(sg):  # the linear parameters projected out, the position refined from x0
+        def res(x):
+            A = np.column_stack([np.eye(sg.max() + 1)[sg], e, np.linalg.norm(odo - x, axis=1)])
+            return (y - A @ np.linalg.lstsq(A, y, rcond=None)[0]) / sig_t
+        return 2 * least_squares(res, x0, method="lm", max_nfev=50).cost
+
+    for _ in range(max_steps):
+        base = chi2(seg)
+        cands = [j for j in range(1, len(y)) if seg[j] == seg[j - 1]]
+        if not cands:
+            break
+        trials = {j: np.where(np.arange(len(y)) >= j, seg + (seg == seg[j]), seg + (seg > seg[j])) for j in cands}
+        j, best = min(((j, chi2(sg)) for j, sg in trials.items()), key=lambda t: t[1])
+        if base - best < STEP_CHI2:
+            break
+        seg = np.unique(trials[j], return_inverse=True)[1]
+    return seg
+
+
 def speed_of_sound_fit(features, proper=True, arrays=None):
     """Speed of sound from the metric odometry: per array, its arrivals (TDOA-S chained, less the emission
     times) against the ranges from an unknown position to the odometry's source positions, its DOAs against
@@ -397,6 +429,7 @@ def speed_of_sound_fit(features, proper=True, arrays=None):
         if data is None:
             continue
         odo, e, y, seg, e_id = data
+        seg = split_steps(odo, e, y, seg, sig_t)
         u = _doa_rows(features, name, e_id)
         k, sk, rms, misfit = _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper)
         if misfit > DOA_TRUST and np.any(np.isfinite(u)):
@@ -590,11 +623,13 @@ def mirror_findings(features, fits):
         return [Finding("failed", "events.csv", "odometry axes", "events.csv: every array's DOAs fit the odometry "
                         "only mirrored (residuals " + ", ".join(f"{fits[k][3]:.0f}→{mirrored[k][3]:.1f}σ" for k in named)
                         + "): the odometry's axes are mirrored against the reference array's (x and y swapped, or "
-                        "one axis negated); fix odom_x, odom_y, odom_z")]
+                        "one axis negated; fix odom_x, odom_y, odom_z), or every DOA points away from its source "
+                        "(doa.csv's convention: toward it)")]
     return [Finding("failed", "session.toml", "mirrored geometry", f"session.toml: array {k}'s DOAs fit the "
                     f"directions to the odometry's positions only mirrored (residuals {fits[k][3]:.0f}σ → "
                     f"{mirrored[k][3]:.1f}σ): its mics are mirrored (y typed as −y, or its channels in reversed order) "
-                    "or its doa_hemisphere is on the wrong side; fix its mics or doa_hemisphere", k) for k in named]
+                    "or its doa_hemisphere is on the wrong side (or its DOAs point away from the source); fix its "
+                    "mics or doa_hemisphere", k) for k in named]
 
 
 def temperature_findings(session):
