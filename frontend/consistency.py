@@ -81,8 +81,9 @@ class GeometryFit:
     """:func:`fit_geometry`'s result. misfit : s, the RMS pair residual of the events (:func:`_misfit`); ratio : misfit
     over the largest measured pair delay; scale : the factor by which the declared geometry is too large
     (1 = right; NaN if not measurable); loo : {mic: misfit without it}; swaps : {(m, n): misfit with the two
-    swapped}; used : mics in the fit; support : a 3-D array's fraction of the events that agree on its scale
-    (:func:`consensus`)."""
+    swapped}; used : mics in the fit; support : the fraction of the events that agree on the scale (a 3-D
+    array: :func:`consensus`; a planar or linear one: those with ``|w|·c > 1``, which only a geometry declared
+    too small gives)."""
     misfit: float
     ratio: float
     scale: float
@@ -264,8 +265,9 @@ def fit_geometry(delays, mics, c, exclude=()):
 
     scale: the declared geometry is ``scale`` × too large. A 3-D array measures it from every event
     (``1 / |w| c``, the value the events agree on: :func:`consensus`); a planar (or linear) one only sees the
-    in-plane part of ``w``, so ``|w| c ≤ 1`` and the largest over the events is only a bound (exact for a
-    source in the plane; its odometry tells the rest: ``calib.pipeline.setupcheck.geometry_scale_fit``)."""
+    in-plane part of ``w``, so ``|w| c ≤ 1``: the events above 1 (their consensus) say it is too small, else
+    the largest is only a bound (exact for a source in the plane; its odometry tells the rest:
+    ``calib.pipeline.setupcheck.geometry_scale_fit``)."""
     mics = np.asarray(mics, float)
     use = tuple(m for m in range(len(mics)) if m not in exclude)
     span = float(np.max(np.abs(delays.tau))) if delays.tau.size else 0.0
@@ -279,7 +281,11 @@ def fit_geometry(delays, mics, c, exclude=()):
     sv = np.linalg.svd(d, compute_uv=False)
     full3d = sv[-1] > 0.1 * sv[0]
     mode, support = consensus(wc)
-    scale = 1.0 / float(mode if full3d else np.max(wc)) if np.max(wc) > 0 else np.nan
+    if not full3d:  # |w|·c ≤ 1 for any plane wave: the events above, if many agree, bound the size from below
+        over = wc[wc > 1.0]
+        support = len(over) / len(wc)
+        mode = consensus(over)[0] if len(over) else np.max(wc)
+    scale = 1.0 / float(mode) if mode > 0 else np.nan
     loo = {m: _misfit(delays.tau, delays.pairs, mics, tuple(u for u in use if u != m))[0]
            for m in use} if len(use) - 2 > _rank(mics[list(use)]) else {}  # the rest still over-determined
     swaps = {}
@@ -287,8 +293,7 @@ def fit_geometry(delays, mics, c, exclude=()):
         p = mics.copy()
         p[[a, b]] = p[[b, a]]
         swaps[(a, b)] = _misfit(delays.tau, delays.pairs, p, use)[0]
-    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, loo, swaps, use,
-                       support if full3d else np.nan)
+    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, loo, swaps, use, support)
 
 
 def inverted_channels(delays, exclude=()):

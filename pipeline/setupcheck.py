@@ -69,6 +69,8 @@ SCALE_DOA_DOUBTS = ("doa_reflection", "doa_spread")
 SCALE_ROBUST = 3.0        # σ: the scale fit's soft-L1 loss turns linear beyond this ...
 SCALE_OUTLIER = 5.0       # ... and drops the DOAs it leaves this far off before its plain (covariance) fit
 SOUND_PRIOR = 0.01        # relative: the air's speed of sound near the declared one (±5 °C ≈ ±0.9 %) in that fit
+ROTATION_STARTS = 4       # the scale fit refines the best this many of its starting rotations
+SATURATED = 0.98          # a DOA's projection this near 1: at the horizon (the measured size clipped there)
 SCALE_RANGE = 5.0         # the fitted scale is searched within 1/this .. this (beyond: the delays' own check)
 SCALE_TOL = 0.15          # relative: a planar or linear array's declared geometry this much too large or small ...
 SCALE_SIGMA = 4.0         # ... and this many standard errors of its fitted scale: the wrong geometry
@@ -160,7 +162,7 @@ def geometry_findings(a, d, c, exclude=()):
         return []
     planar = np.linalg.svd(mics[list(g.used)] - mics[list(g.used)].mean(axis=0), compute_uv=False)
     full3d = planar[-1] > 0.1 * planar[0]
-    agreed = full3d and g.support >= C.CONSENSUS_SUPPORT
+    agreed = g.support >= C.CONSENSUS_SUPPORT  # a 3-D array's events, or a planar one's above |w|·c = 1
     fail = C.SCALE_FAIL_3D if agreed else C.SCALE_FAIL
     too_big = g.scale > (fail if full3d else PLANAR_SCALE_FAIL)
     if (too_big or g.scale < 1 / fail) and (agreed or not full3d):
@@ -526,8 +528,9 @@ def geometry_scale_fit(features, name, mics):
     m = u @ B
     f = _scale_residual(odo, e, y, seg, m, B, sig_t, sig_d, c0)
     # the arrivals' parameters held: a cheap first pass over the starting rotations
+    starts = sorted(_rotation_starts(u, d, B), key=lambda rv: float(np.sum(f(np.r_[theta0, rv, 0.0]) ** 2)))
     best = min((least_squares(lambda q: f(np.r_[theta0, q[:3], np.clip(q[3], -1.0, 1.0)]), np.r_[rv, 0.0], max_nfev=60)
-                for rv in _rotation_starts(u, d, B)), key=lambda sol: sol.cost)
+                for rv in starts[:ROTATION_STARTS]), key=lambda sol: sol.cost)
     lo, hi = np.full(len(best.x) + len(theta0), -np.inf), np.full(len(best.x) + len(theta0), np.inf)
     lo[-1], hi[-1] = -np.log(SCALE_RANGE), np.log(SCALE_RANGE)
     start = np.r_[theta0, best.x[:-1], np.clip(best.x[-1], 0.9 * lo[-1], 0.9 * hi[-1])]
@@ -541,8 +544,12 @@ def geometry_scale_fit(features, name, mics):
     fixed = least_squares(lambda q: f(np.r_[q, 0.0]), sol.x[:-1], x_scale="jac", max_nfev=200)
     sol = min((least_squares(f, x0, x_scale="jac", bounds=(lo, hi), max_nfev=200) for x0 in (sol.x, np.r_[fixed.x, 0.0])),
               key=lambda r: r.cost)
-    if abs(sol.x[-1]) > 0.99 * hi[-1] or not np.any(sol.jac[:, -1]):
-        return None  # every source at the array's horizon (a planar array): only the delays can tell its size
+    used = np.linalg.norm(m[np.all(np.isfinite(m), axis=1)], axis=1)
+    if abs(sol.x[-1]) > 0.99 * hi[-1] or not np.any(sol.jac[:, -1]) or \
+            (sol.x[-1] < 0 and np.mean(used > SATURATED) >= 0.5):
+        # most sources at the array's horizon (or beyond, for the declared size): the DOAs bound the size from
+        # one side only; the delays tell a geometry too small (calib.frontend.consistency.fit_geometry)
+        return None
     s2 = max(float(sol.fun @ sol.fun) / max(len(sol.fun) - len(sol.x), 1), S2_FLOOR)
     cov = np.linalg.pinv(sol.jac.T @ sol.jac) * s2
     return (float(np.exp(sol.x[-1])), float(np.sqrt(max(cov[-1, -1], 0.0))), float(np.sqrt(np.mean(sol.fun**2))),
