@@ -54,7 +54,8 @@ def init(
     path = out if out is not None else folder / "session.toml"
     inputs = [folder, *sorted(folder.glob("*.wav"))]
     kin = SESSION_WRITERS if path.name == SESSION_NAME else ()
-    check_file_replaceable(path, inputs, replace=force, command=COMMAND, kin=kin)  # before the work: never a user's file
+    # before the work: never a user's file
+    check_file_replaceable(path, inputs, replace=force, command=COMMAND, kin=kin)
     text = init_session(folder, spec, reference=reference, layout=layout)
     write_file(path, text, command=COMMAND, inputs=inputs, replace=force, kin=kin)
     if not quiet:

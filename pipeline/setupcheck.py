@@ -40,7 +40,8 @@ CLOCK_FAIL = 0.005        # an array's clock this far (relative) from the emissi
 CLOCK_SUPPORT = 0.2       # ... found from at least this fraction of the emission intervals
 STANDARD_RATES = (8000, 11025, 16000, 22050, 24000, 32000, 44100, 48000, 88200, 96000, 176400, 192000)
 SOUND_TOL = 0.03          # relative: a declared speed of sound this far from the odometry's is wrong ...
-SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate
+SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate ...
+SOUND_AGREE = 3.0         # ... the arrays agreeing on it (the spread of their estimates at most this × their errors)
 ODO_SIGMA_DEFAULT = 0.02  # m: odometry noise per event when meta.json states none
 TYPICAL_RANGE_M = 2.0     # m: source distance that turns the odometry's noise into a direction's
 SOUND_AT_0C, SOUND_PER_C = 331.3, 0.606  # m/s, m/s per °C: dry air
@@ -49,7 +50,8 @@ DOA_TRUST = 2.5           # RMS normalised residual above which the DOAs do not 
 MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RMS) is also fitted mirrored ...
 MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
 S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
-MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit
+MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit ...
+MIN_SOUND_DOF = 4         # ... and arrivals beyond its unknowns (a near-exact fit can be confidently wrong)
 STEP_CHI2 = 36.0          # a break in an array's chain of arrivals must explain this much χ² (a 6σ step) ...
 MAX_STEPS = 2             # ... and at most this many breaks are made per array
 NLOS_MINORITY = 0.5       # an array's arrivals flagged "nlos" left out of the fits while at most this fraction
@@ -381,6 +383,8 @@ def _array_data(features, name):
     if keep.sum() < MIN_SOUND_EVENTS:
         return None
     e_id, t, seg = e_id[keep], t[keep], np.unique(seg[keep], return_inverse=True)[1]
+    if keep.sum() - (seg.max() + 1) - 5 < MIN_SOUND_DOF:  # x (3), δ, k and an offset per segment
+        return None
     te = ev.loc[e_id, "t_emit"].to_numpy(float)
     odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     return odo, te - te[0], t - (te - te[0]), seg, e_id
@@ -542,8 +546,8 @@ def geometry_scale_fit(features, name, mics):
         return None
     f = _scale_residual(odo, e, y, seg, m, B, sig_t, sig_d, c0)
     fixed = least_squares(lambda q: f(np.r_[q, 0.0]), sol.x[:-1], x_scale="jac", max_nfev=200)
-    sol = min((least_squares(f, x0, x_scale="jac", bounds=(lo, hi), max_nfev=200) for x0 in (sol.x, np.r_[fixed.x, 0.0])),
-              key=lambda r: r.cost)
+    sol = min((least_squares(f, x0, x_scale="jac", bounds=(lo, hi), max_nfev=200)
+               for x0 in (sol.x, np.r_[fixed.x, 0.0])), key=lambda r: r.cost)
     used = np.linalg.norm(m[np.all(np.isfinite(m), axis=1)], axis=1)
     if abs(sol.x[-1]) > 0.99 * hi[-1] or not np.any(sol.jac[:, -1]) or \
             (sol.x[-1] < 0 and np.mean(used > SATURATED) >= 0.5):
@@ -587,7 +591,7 @@ def sound_findings(features, fits=None, source="session.toml"):
     if out:
         return out
     bad = {k: v for k, v in fits.items() if v[2] > ODO_RESIDUAL_S or v[3] > ODO_MISFIT or not np.isfinite(v[0])}
-    if bad and len(bad) >= max(1, len(fits) // 2 + 1):
+    if bad and len(bad) >= max(1, len(features["meta"]["arrays"]) // 2 + 1):  # most arrays, not only most fitted
         worst_ = max(v[3] for v in bad.values())
         return [Finding("failed", "events.csv", "odometry vs arrivals", f"events.csv: the odometry does not explain "
                         f"the chirps' arrival times and directions (residuals up to {worst_:.0f}× their sigma in "
@@ -598,9 +602,13 @@ def sound_findings(features, fits=None, source="session.toml"):
     w = np.array([1 / v[1] ** 2 for v in good.values()])
     cs = np.array([v[0] for v in good.values()])
     c_hat = float(np.sum(w * cs) / np.sum(w))
-    sd = float(1 / np.sqrt(np.sum(w)))
+    # arrays that disagree beyond their errors (a reflection-only array, a fit with few arrivals): the spread,
+    # not the stated errors, is then the mean's uncertainty (the Birge ratio)
+    birge = np.sqrt(max(float(np.sum(w * (cs - c_hat) ** 2)) / max(len(cs) - 1, 1), 1.0))
+    sd = float(birge / np.sqrt(np.sum(w)))
     rel = c_hat / c0 - 1
-    if abs(rel) > SOUND_TOL and abs(c_hat - c0) > SOUND_SIGMA * sd:
+    # a wrong declared speed of sound is common to every array: arrays that disagree this much show another cause
+    if abs(rel) > SOUND_TOL and abs(c_hat - c0) > SOUND_SIGMA * sd and birge <= SOUND_AGREE:
         p10 = 10 ** np.round(np.log10(c_hat / c0))
         units = (f" — or the odometry is not in metres ({p10:g} × fits)" if p10 != 1 and
                  abs(np.log10(c_hat / c0 / p10)) < 0.1 else "")
@@ -677,11 +685,12 @@ def trajectory_findings(events):
 
 # ----------------------------------------------------------------------------------------------- together
 def detections_from_diagnostics(diagnostics):
-    """{array: (times, scores)} of the frontend's detections (diagnostics.json)."""
+    """{array: (times, scores, events)} of the frontend's detections (diagnostics.json; event −1: unmatched)."""
     out = {}
     for name, a in (diagnostics or {}).get("arrays", {}).items():
         det = a.get("detections", [])
-        out[name] = (np.array([d["time"] for d in det], float), np.array([d["score"] for d in det], float))
+        out[name] = (np.array([d["time"] for d in det], float), np.array([d["score"] for d in det], float),
+                     np.array([-1 if d.get("event") is None else int(d["event"]) for d in det], int))
     return out
 
 
@@ -707,7 +716,7 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
     dets = detections_from_diagnostics(diagnostics)
     results, out = {}, []
     for a in session["arrays"]:
-        times, scores = dets.get(a["name"], (None, None))
+        times, scores, _ = dets.get(a["name"], (None, None, None))
         res = C.check_array(a, session, times, scores, threshold)
         results[a["name"]] = res
         out += channel_findings(a, res, session["speed_of_sound"])

@@ -134,7 +134,8 @@ def rooms(tmp_path_factory):
     from calib.pipeline.simulate.roomsim import make_scenario, simulate
 
     root = tmp_path_factory.mktemp("rooms")
-    return {(p, s): simulate(make_scenario(p, s, **kw), root / f"{p}_{s}") for p in ROOMS for s in (1, 2, 3)}
+    return {(p, s): simulate(make_scenario(p, s, **kw), root / f"{p}_{s}")
+            for p, kw in ROOMS.items() for s in (1, 2, 3)}
 
 
 def _findings(folder, target=None, factor=1.0):
