@@ -15,10 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.frontend import extract_features
 from calib.frontend.doa import mic_geometry
 from calib.pipeline.formats.session import read_session
-from calib.pipeline.setupcheck import setup_findings
+from calib.pipeline.setupcheck import folder_findings
 from calib.pipeline.simulate.roomsim import make_scenario, simulate
 
 SIZES = {"lab3": {"n_events": 10, "interval": 0.8, "chirp": {"duration": 0.2}},
@@ -32,12 +31,9 @@ def kind(mics):
 
 
 def findings(folder, target=None, factor=1.0):
-    s = read_session(folder)
-    for a in s["arrays"]:
-        if a["name"] == target:
-            a["mics"] = np.asarray(a["mics"], float) * factor
-    f, diag = extract_features(s)
-    return setup_findings(s, diag, f)
+    mics = {a["name"]: np.asarray(a["mics"], float) * factor for a in read_session(folder)["arrays"]
+            if a["name"] == target}
+    return folder_findings(folder, mics)
 
 
 def main():

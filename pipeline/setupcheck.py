@@ -12,7 +12,9 @@ What is checked, and from what:
 | dead / weak / clipped / duplicated channel | chirp energy, plateaus at the peak level, equal samples | ``frontend.consistency`` |
 | inverted polarity | negative inter-mic correlation peaks | ``frontend.consistency`` |
 | swapped channels, wrong shape, wrong coordinates | inter-mic delays vs the declared rigid geometry | ``frontend.consistency`` |
-| coordinates in cm instead of m | the plane-wave fit's scale ``|w|·c`` | ``frontend.consistency`` |
+| coordinates in cm instead of m, a 3-D board's size | the plane-wave fit's scale ``|w|·c`` (the chirps' consensus) | ``frontend.consistency`` |
+| a planar board declared too small | ``|w|·c`` above 1 in many chirps | ``frontend.consistency`` |
+| a planar or linear board's size | its DOAs' in-plane (axial) part against the odometry's directions | :func:`geometry_scale_fit` |
 | wrong sample rate in a header | the detections' interval ratio to the emission times | ``frontend.consistency`` |
 | the same recording for two arrays | equal samples | :func:`identical_recordings` |
 | wrong speed of sound / odometry units | ranges from the metric odometry vs the arrivals | :func:`speed_of_sound_fit` |
@@ -23,8 +25,9 @@ What is checked, and from what:
 
 Library use (a notebook)::
 
-    from calib.pipeline.setupcheck import setup_findings
-    for f in setup_findings(read_session("rec")): print(f.status, f.text)
+    from calib.pipeline.setupcheck import folder_findings, setup_findings
+    for f in setup_findings(read_session("rec")): print(f.status, f.text)   # the recordings alone
+    for f in folder_findings("rec"): print(f.status, f.text)                # with the features (odometry checks)
 """
 from __future__ import annotations
 
@@ -731,6 +734,20 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
         out += [f for f in sound_findings({**features, "meta": {**features["meta"], "mics": mics}})
                 if not (f.check == "geometry scale" and f.array in named)]
     return sorted(out, key=lambda f: -STATUS_RANK[f.status])
+
+
+def folder_findings(folder, mics=None, threshold=8.0):
+    """:func:`setup_findings` of a session folder, its features extracted here (a notebook's one call).
+    mics : {array: (M, 3) m} replacing session.toml's (what-if: a board declared at another size)."""
+    from calib.frontend import extract_features
+    from calib.pipeline.formats.session import read_session
+
+    session = read_session(folder)
+    for a in session["arrays"]:
+        if a["name"] in (mics or {}):
+            a["mics"] = np.asarray(mics[a["name"]], float)
+    features, diagnostics = extract_features(session, threshold=threshold)
+    return setup_findings(session, diagnostics, features, threshold)
 
 
 def feature_findings(features):

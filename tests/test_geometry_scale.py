@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.frontend.consistency import consensus
 from calib.frontend.doa import cone_vectors
-from calib.pipeline.setupcheck import geometry_scale_fit, scale_findings, setup_findings
+from calib.pipeline.setupcheck import folder_findings, geometry_scale_fit, scale_findings
 
 C = 343.0
 CIRCLE = np.c_[0.0463 * np.cos(np.arange(6) * np.pi / 3), 0.0463 * np.sin(np.arange(6) * np.pi / 3), np.zeros(6)]
@@ -139,15 +139,11 @@ def rooms(tmp_path_factory):
 
 
 def _findings(folder, target=None, factor=1.0):
-    from calib.frontend import extract_features
     from calib.pipeline.formats.session import read_session
 
-    s = read_session(folder)
-    for a in s["arrays"]:
-        if a["name"] == target:
-            a["mics"] = np.asarray(a["mics"], float) * factor
-    feats, diag = extract_features(s)
-    return setup_findings(s, diag, feats)
+    mics = {a["name"]: np.asarray(a["mics"], float) * factor for a in read_session(folder)["arrays"]
+            if a["name"] == target}
+    return folder_findings(folder, mics)
 
 
 @pytest.mark.slow
