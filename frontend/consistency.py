@@ -52,7 +52,6 @@ SCALE_FAIL = 1.6          # |w|·c (the declared size's inverse scale) off 1 by 
 SCALE_FAIL_3D = 1.15      # ... a 3-D array's, agreed on by CONSENSUS_SUPPORT of its events (clean: ≤ 1.11)
 CONSENSUS_TOL = 0.05      # relative: events whose |w|·c agree this well agree on the scale (clean: ~1 %)
 CONSENSUS_SUPPORT = 0.4
-PLANAR_UPPER = 0.75       # quantile of a planar array's |w|·c above 1 that estimates its scale (one outlier spared)
 
 
 @dataclass(frozen=True)
@@ -266,8 +265,8 @@ def fit_geometry(delays, mics, c, exclude=()):
 
     scale: the declared geometry is ``scale`` × too large. A 3-D array measures it from every event
     (``1 / |w| c``, the value the events agree on: :func:`consensus`); a planar (or linear) one only sees the
-    in-plane part of ``w``, so ``|w| c ≤ 1``: the events above 1 (their PLANAR_UPPER quantile) say it is too
-    small, else the largest is only a bound (exact for a source in the plane; its odometry tells the rest:
+    in-plane part of ``w``, so ``|w| c ≤ 1``: the events above 1, when many, say it is too small (the largest
+    but one: the source nearest the plane, an outlier spared), else the largest is only a bound (exact for a source in the plane; its odometry tells the rest:
     ``calib.pipeline.setupcheck.geometry_scale_fit``)."""
     mics = np.asarray(mics, float)
     use = tuple(m for m in range(len(mics)) if m not in exclude)
@@ -286,7 +285,7 @@ def fit_geometry(delays, mics, c, exclude=()):
         # they spread with the sources' elevations (cos el / scale): the sources nearest the plane tell the scale
         over = wc[wc > 1.0]
         support = len(over) / len(wc)
-        mode = np.quantile(over, PLANAR_UPPER) if len(over) else np.max(wc)
+        mode = np.sort(over)[-2] if len(over) > 1 else np.max(wc)  # the largest but one (an outlier spared)
     scale = 1.0 / float(mode) if mode > 0 else np.nan
     loo = {m: _misfit(delays.tau, delays.pairs, mics, tuple(u for u in use if u != m))[0]
            for m in use} if len(use) - 2 > _rank(mics[list(use)]) else {}  # the rest still over-determined

@@ -343,7 +343,7 @@ def test_odometry_mistakes_are_named(sample_features, case):
     assert ("axes" in found[0].text) == ("swapped" in case)
 
 
-@pytest.mark.parametrize("array, factor", [("A2", 1.3), ("A3", 2.0), ("A1", 0.75)])
+@pytest.mark.parametrize("array, factor", [("A2", 1.3), ("A3", 2.0), ("A1", 0.75), ("A2", 0.75)])
 def test_mis_scaled_planar_geometry_is_named(array, factor):
     """The sample with one array's mics scaled: the features extracted with that geometry, the set-up stage with
     them names the array (larger or smaller), and nothing else."""
