@@ -258,12 +258,17 @@ def identical_recordings(session, seconds=IDENTICAL_SECONDS):
 
 
 # ----------------------------------------------------------------------------------------------- features
+def _flags(column):
+    """The frontend's doubts of each row (a ``flag`` column: names joined by '+', empty or NaN for none): sets."""
+    return [set(str(f).split("+")) - {""} if isinstance(f, str) else set() for f in column]
+
+
 def _arrival_chain(tdoa_s, name):
     """(events, relative arrivals, segment id) of one array from its TDOA-S rows chained end to end."""
     rows = tdoa_s[tdoa_s["array"] == name].sort_values("from_event")
     if "flag" in rows:  # the arrivals the frontend found late against the odometry's range track (a blocked
         # direct path): left out while a minority; most of them late: the odometry's own evidence, kept
-        late = rows["flag"].fillna("").astype(str).str.split("+").map(lambda f: "nlos" in f).to_numpy(bool)
+        late = np.array(["nlos" in f for f in _flags(rows["flag"])], bool)
         if late.mean() <= NLOS_MINORITY:
             rows = rows[~late]
     ev, t, seg = [], [], []
@@ -360,8 +365,7 @@ def _doa_rows(features, name, e_id, ambiguous=False, allow=()):
     doa = features["doa"]
     doa = doa[doa["array"] == name]
     if "flag" in doa:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
-        flags = doa["flag"].fillna("").astype(str)
-        doa = doa[[set(f.split("+")) - {""} <= set(allow) for f in flags]]
+        doa = doa[[f <= set(allow) for f in _flags(doa["flag"])]]
     doa = doa.drop_duplicates("event").set_index("event")
     have = np.isin(e_id, doa.index)
     u[have] = doa.loc[e_id[have], ["ux", "uy", "uz"]].to_numpy(float)
