@@ -23,6 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -57,6 +58,15 @@ def dask(n, args, out):
         m = measure(calib_cmd("montecarlo", "-o", out, "--runs", args.runs, "--scheduler",
                               cluster.scheduler_address, "-q", *args.extra))
         return m, m["cpu_s"] + _worker_cpu(client) - c0
+
+
+def amdahl(n, wall):
+    """Least-squares (serial, parallel) seconds of T(N) = serial + parallel / N: the serial part is what
+    no number of workers removes (start-up, collecting and merging results, summary and figure)."""
+    n = np.asarray(n, float)
+    (serial, parallel), *_ = np.linalg.lstsq(np.column_stack([np.ones_like(n), 1.0 / n]), np.asarray(wall, float),
+                                             rcond=None)
+    return float(serial), float(parallel)
 
 
 def main():
@@ -95,6 +105,12 @@ def main():
             df.loc[g.index, "efficiency"] = t1 / g["wall_s"] / g["N"]
             df.loc[g.index, "cpu_ratio"] = g["cpu_s"] / c1
     print(df.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    for mode, g in df[df["rc"] == 0].groupby("mode"):
+        if g["N"].nunique() >= 2:
+            serial, parallel = amdahl(g["N"], g["wall_s"])
+            print(f"{mode}: Amdahl fit T(N) = serial + parallel / N: serial {serial:.1f} s, parallel {parallel:.1f} s"
+                  f" (best possible efficiency at N = {g['N'].max()}: "
+                  f"{(serial + parallel) / (g['N'].max() * serial + parallel):.2f})")
     print(f"end: {load()}; efficiency = T(1) / (N T(N)) per mode; same_rows: runs.csv (but time_s) equal "
           "to the first study's")
     return 0
