@@ -1,7 +1,7 @@
 """A wrong mic geometry scale (issue 29): each array of simulated sessions declared `k` × too large or too small,
 and the set-up consistency stage asked to name it (and nothing else); the clean sessions must raise nothing.
 
-    python benchmarks/bench_setup_scale.py [--seeds 1 2 3] [--presets lab3 lab mixed office] [--factors 1.3 2 0.7]
+    python benchmarks/bench_setup_scale.py [--seeds 1 2 3] [--presets lab3 lab mixed office noisy] [--factors 1.3 2 0.7]
 
 Prints one row per (preset, seed, array, factor): the board kind, the finding's check (or MISS), the other
 findings; then the catch rate per board kind and factor, and the clean sessions' findings (false alarms).
@@ -20,9 +20,11 @@ from calib.pipeline.formats.session import read_session
 from calib.pipeline.setupcheck import folder_findings
 from calib.pipeline.simulate.roomsim import make_scenario, simulate
 
-SIZES = {"lab3": {"n_events": 10, "interval": 0.8, "chirp": {"duration": 0.2}},
-         "lab": {"n_events": 10, "interval": 1.0, "chirp": {"duration": 0.2}},
-         "mixed": {"n_stops": 10}, "office": {"n_stops": 12}}
+# label → (preset, overrides): small sessions; "noisy": the lab3 room at 10 dB SNR and RT60 0.6 s
+SIZES = {"lab3": ("lab3", {"n_events": 10, "interval": 0.8, "chirp": {"duration": 0.2}}),
+         "lab": ("lab", {"n_events": 10, "interval": 1.0, "chirp": {"duration": 0.2}}),
+         "mixed": ("mixed", {"n_stops": 10}), "office": ("office", {"n_stops": 12}),
+         "noisy": ("lab3", {"n_events": 10, "interval": 1.0, "chirp": {"duration": 0.2}, "snr": 10.0, "rt60": 0.6})}
 
 
 def kind(mics):
@@ -39,14 +41,15 @@ def findings(folder, target=None, factor=1.0):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
-    ap.add_argument("--presets", nargs="+", default=list(SIZES))
+    ap.add_argument("--presets", nargs="+", default=list(SIZES), choices=list(SIZES))
     ap.add_argument("--factors", type=float, nargs="+", default=[1.3, 2.0, 0.7])
     args = ap.parse_args()
     rows, clean = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for preset in args.presets:
             for seed in args.seeds:
-                d = simulate(make_scenario(preset, seed, **SIZES.get(preset, {})), Path(tmp) / f"{preset}_{seed}")
+                name, kw = SIZES[preset]
+                d = simulate(make_scenario(name, seed, **kw), Path(tmp) / f"{preset}_{seed}")
                 found = findings(d)
                 clean.append((preset, seed, [f"{f.array}:{f.check}" for f in found]))
                 print(f"{preset} seed {seed} clean: {clean[-1][2] or 'nothing'}", flush=True)
