@@ -390,8 +390,6 @@ def _array_data(features, name):
     if keep.sum() < MIN_SOUND_EVENTS:
         return None
     e_id, t, seg = e_id[keep], t[keep], np.unique(seg[keep], return_inverse=True)[1]
-    if keep.sum() - (seg.max() + 1) - 5 < MIN_SOUND_DOF:  # x (3), δ, k and an offset per segment
-        return None
     te = ev.loc[e_id, "t_emit"].to_numpy(float)
     odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     return odo, te - te[0], t - (te - te[0]), seg, e_id
@@ -443,6 +441,8 @@ def speed_of_sound_fit(features, proper=True, arrays=None):
             continue
         odo, e, y, seg, e_id = data
         seg = split_steps(odo, e, y, seg, sig_t)
+        if len(y) - (seg.max() + 1) - 5 < MIN_SOUND_DOF:  # x (3), δ, k and an offset per segment
+            continue
         u = _doa_rows(features, name, e_id)
         k, sk, rms, misfit = _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper)
         if misfit > DOA_TRUST and np.any(np.isfinite(u)):
@@ -624,8 +624,9 @@ def sound_findings(features, fits=None, source="session.toml"):
                            f"to the air's (343 m/s at 20 °C; 331.3 + 0.606·T °C){units}"))
     if not out:  # the speed of sound fits the odometry: each planar or linear array's size against it
         # (the arrays whose arrivals fit: a wrong size raises the DOAs' misfit, not the arrivals')
-        out += scale_findings(features, source, arrays=[k for k, v in fits.items() if v[2] <= ODO_RESIDUAL_S
-                                                        and np.isfinite(v[0])])
+        # (arrays too short for a speed of sound of their own are tried: their DOAs place them)
+        out += scale_findings(features, source, arrays=[k for k in features["meta"]["arrays"] if k not in fits
+                                                        or (fits[k][2] <= ODO_RESIDUAL_S and np.isfinite(fits[k][0]))])
     return out
 
 
