@@ -186,7 +186,7 @@ def yaw_crlb(feats, truth):
     st = truth_state(p, truth)
     out = []
     for free in (True, False):
-        p.odo_yaw_free = free
+        p = p.replace(odo_yaw_free=free)
         J, lay = fisher(p, st)
         cov = covariance(J, lay.n, lay)
         sd = std_from_cov(p, lay, cov)["x"][1:]

@@ -57,3 +57,22 @@ def print_metrics(metrics, console=None):
                    _f(r["paper_deg"], ".2f"), *((_f(r.get("axis_deg", np.nan), ".2f"),) if axis else ()),
                    _f(1e6 * r["offset_s"], ".1f"), _f(1e6 * r["drift"], ".2f"))
     (console or out).print(pa)
+    if metrics.get("clock"):
+        print_clock_metrics(metrics["clock"], console)
+
+
+def print_clock_metrics(clock, console=None):
+    """Table of the recovered clock models against the true clocks (``evaluate``'s ``clock``)."""
+    t = Table(title=f"Clocks: {clock['steps_found']}/{clock['steps_true']} true steps found, "
+                    f"{clock['steps_placed']} in their interval, {clock['steps_size_ok']} with size within 3σ; "
+                    f"{clock['false_steps']} false step(s), {clock['false_drift_models']} false drift model(s)")
+    for col in ("array", "true steps [ms]", "found steps: interval, size error [µs] (σ)", "false", "drift model "
+                "(true → found)", "rate ratio (true → found)", "max local-time error [µs]"):
+        t.add_column(col, justify="right")
+    for a in clock["per_array"]:
+        found = ", ".join(f"{'ok' if s['placed'] else '?' if s['placed'] is None else 'misplaced'} {_f(1e6 * s['size_error_s'], '.1f')} "
+                          f"({_f(s['size_error_sigma'], '.1f')}σ)" if s["found"] else "missed" for s in a["steps"])
+        t.add_row(a["array"], ", ".join(f"{1e3 * s['size']:+.3f}" for s in a["steps"]) or "—", found or "—",
+                  str(a["false_steps"]), f"{a['drift_model_true']} → {a['drift_model']}",
+                  f"{a['rate_ratio_true']:.5f} → {_f(a['rate_ratio'], '.5f')}", _f(None if a["local_time_max_error_s"] is None else 1e6 * a["local_time_max_error_s"], ".1f"))
+    (console or out).print(t)

@@ -1,8 +1,8 @@
 """The estimator's options, declared once (scikit-learn's declared parameters): default, allowed values,
 CLI flag and help text of each keyword of ``calib.estimator.calibrate``.
 
-``calibrate_features``' signature repeats the defaults for its readers (tests/test_options.py holds them
-equal); ``validate_options`` (the library's check), the ``calib estimate`` / ``calib run`` options (``cli/common.py``), the CLI's input check
+``calibrate_features``' signature (and ``estimator.clockmodel.calibrate_clocks``' for ``clock_model``) repeats
+the defaults for its readers (tests/test_options.py holds them equal); ``validate_options`` (the library's check), the ``calib estimate`` / ``calib run`` options (``cli/common.py``), the CLI's input check
 (``pipeline/formats/validate.py``), the stage key's settings (``pipeline/run.py``) and docs/cli.md (a test)
 are loops over :data:`OPTIONS`. In the core so that the CLI declares its flags without loading the estimator.
 """
@@ -82,6 +82,9 @@ OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
     Option("array_noise", False, bool, "when noise figures are re-estimated: also one figure per measurement type and "
            "array where the data allow it (an array noisier than the rest is down-weighted instead of distorting "
            "the others)", flag="--array-noise"),
+    Option("clock_model", "linear", str, "each array's clock: linear (one offset and drift), or auto (clock steps from "
+           "dropped or inserted sample blocks and a varying drift, modelled where the evidence asks for them)",
+           choices=("linear", "auto"), flag="--clock-model"),
     Option("robust_k", 3.0, float, "robust scale, in units of each type's sigma", lo=0.0, lo_open=True),
     Option("max_iter", 200, int, "iterations of each Levenberg-Marquardt solve", lo=1),
     Option("odometry_yaw", True, bool, "estimate the odometry frame's yaw (kept only when significant)"),

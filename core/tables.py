@@ -1,6 +1,8 @@
 """Plain-array views of DataFrame columns, and the names of the columns and metrics the tables show (one place)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 # The readers (calib.pipeline.formats.io) add each row's line in its CSV file (header = 1) under this column, so
@@ -18,6 +20,33 @@ METRIC_ROWS = (
     ("relative_drift_rmse", "drift RMSE relative to reference", 1e6, "ppm"),
     ("source_rmse_m", "source position RMSE", 100.0, "cm"),
 )
+
+
+@dataclass(frozen=True)
+class ArrayParam:
+    """A per-array parameter: ``key`` its field in the estimator's layout (``Layout``; the state's is the same
+    but ``R`` for ``rot``) and std dict, ``label`` its name in report.json ``undetermined`` and in messages,
+    ``columns`` its value columns in arrays.csv, ``components`` the names of its components per array
+    (tangent-space ones for a rotation: about the array's own axes), whose 1-σ columns are
+    ``<component>_std`` (docs/formats.md section 3)."""
+    key: str
+    label: str
+    columns: tuple
+    components: tuple
+
+    @property
+    def std_columns(self):
+        return tuple(f"{c}_std" for c in self.components)
+
+
+# The per-array parameters, in the arrays table's order: every list of them (the arrays.csv columns, the
+# estimator's blocks and words for undetermined parameters, std columns, covariance labels) loops over this.
+ARRAY_PARAMS = (ArrayParam("x", "position", ("x", "y", "z"), ("x", "y", "z")),
+                ArrayParam("rot", "orientation", ("qw", "qx", "qy", "qz"), ("rx", "ry", "rz")),
+                ArrayParam("offset", "offset", ("offset",), ("offset",)),
+                ArrayParam("drift", "drift", ("drift",), ("drift",)))
+ARRAY_PARAM_KEY = {a.label: a.key for a in ARRAY_PARAMS}   # {report label: layout key}
+ARRAYS_COLUMNS = ("array", *(c for a in ARRAY_PARAMS for c in a.columns))   # arrays.csv (calibration, truth)
 
 
 def columns(df, names):

@@ -7,7 +7,8 @@ Cramér–Rao bound at a ground truth), :func:`rebuild`, :func:`residuals`, :fun
 # Imported eagerly: ``calibrate`` is both a submodule and the function it exports, so a lazy package would
 # hand out the module once anything imported the submodule first.
 from .assess import array_covariance, position_covariances, rebuild, residuals
-from .calibrate import calibrate, to_frames, to_tables, validate_options
+from .calibrate import calibrate, validate_options
+from .outputs import to_frames, to_tables
 from .factors import KINDS, register, unregister
 from .init import ObservabilityError
 from .problem import LINE_COLUMN

@@ -1,13 +1,13 @@
 """Variance components per array: one sigma multiplier per (measurement type, array) where redundancy allows.
 
 Model (docs/method.md, "Weights from the data"): a row of type k measured by array i has the sigma
-σ_k · a_{k,i}. σ_k is the type's component (``calibrate.robust_noise_steps`` / ``estimate_noise``);
+σ_k · a_{k,i}. σ_k is the type's component (``variance.robust_noise_steps`` / ``estimate_noise``);
 a_{k,i} (``p.array_scale[k][i]``, 1 to start) is the array's, for the types measured per array
 (TDOA-S, TDOA-M — attributed to the non-reference array of the pair —, DOA, cone). ``factors.evaluate``
 divides those rows' residuals and Jacobians by a_{k,i}.
 
 Rule: the components are estimated with the types' in the variance-component steps after the outlier
-and array tests (``calibrate.estimate_noise``, kept rows only). An array gets its own component for a
+and array tests (``variance.estimate_noise``, kept rows only). An array gets its own component for a
 type only when its rows of that type carry enough redundancy, Σ(1 − h_ii) ≥ ARRAY_MIN_REDUNDANCY (h the
 hat matrix's diagonal, as for the types), and when its factor is significantly above the type's pooled
 one (χ²(redundancy) upper tail at ARRAY_ALPHA, Bonferroni-corrected over the arrays tested), so an array
@@ -17,7 +17,7 @@ median-based per-array step before the outlier tests (n ≈ 8–14 rows) gave fa
 raise an array's sigma (a ≥ 1): they are for an array worse than the rest; a component below the type's
 ran away to its bound (as its weight grows, its own parameters absorb its residuals). Each a stays
 within [1, ARRAY_MAX_FACTOR], and σ_k · a_{k,i} within the type's bound around the stated
-sigma (``calibrate.sigma_bounds``: a measured prior is never inflated beyond PRIOR_MAX_FACTOR per array
+sigma (``variance.sigma_bounds``: a measured prior is never inflated beyond PRIOR_MAX_FACTOR per array
 either).
 """
 from __future__ import annotations
@@ -35,9 +35,8 @@ ARRAY_ALPHA = 0.01            # family level of the tests "this array's noise is
 
 
 def start_scales(p, kinds):
-    """``p.array_scale``: a = 1 for every array of each per-array type with rows in ``kinds``."""
-    p.array_scale = {k: np.ones(p.N) for k in kinds if KINDS[k].per_array and len(p.rows(k).arr)}
-    return p
+    """A new problem whose ``array_scale`` is a = 1 for every array of each per-array type with rows in ``kinds``."""
+    return p.replace(array_scale={k: np.ones(p.N) for k in kinds if KINDS[k].per_array and len(p.rows(k).arr)})
 
 
 def vce_groups(p, f, r, h, keep):
@@ -56,35 +55,37 @@ def vce_groups(p, f, r, h, keep):
     return {"ss": ss, "red": red, "significant": testable & (tail < ARRAY_ALPHA / max(int(testable.sum()), 1))}
 
 
-def own_components(p, kind, groups):
+def own_components(w, kind, groups):
     """Arrays of ``kind`` with their own component: those that had one, plus the newly significant ones
-    (``p.array_own``, updated). An array keeps its own component once it has one."""
-    own = p.array_own.get(kind, np.zeros(p.N, bool)) | groups["significant"]
-    p.array_own[kind] = own
+    (``w.array_own``, updated; ``w`` the stage's :class:`~calib.estimator.problem.Weights`). An array keeps
+    its own component once it has one."""
+    own = w.array_own.get(kind, np.zeros(len(groups["red"]), bool)) | groups["significant"]
+    w.array_own[kind] = own
     return own
 
 
-def type_factor(p, kind, groups, pooled, min_redundancy):
+def type_factor(w, kind, groups, pooled, min_redundancy):
     """The type's σ² factor from the arrays without their own component (``pooled``, the factor over all
     rows, when those carry less than ``min_redundancy``)."""
-    rest = ~own_components(p, kind, groups)
+    rest = ~own_components(w, kind, groups)
     red = float(groups["red"][rest].sum())
     return float(groups["ss"][rest].sum()) / red if red >= min_redundancy else pooled
 
 
-def update_scales(p, kind, groups, type_step, total, bound):
+def update_scales(w, kind, groups, type_step, total, bound):
     """After the type's sigma moved by ``type_step``: each array with its own component gets the sigma its
-    rows ask for (σ² × Σ r² / Σ(1 − h)), the others keep the type's (a unchanged). ``total``: the type's
-    sigma / stated, ``bound`` its allowed factor either way. Returns the arrays' total steps (N,)."""
-    a = p.array_scale[kind]
-    own = p.array_own[kind] & (groups["red"] > 0)
+    rows ask for (σ² × Σ r² / Σ(1 − h)), the others keep the type's (a unchanged; ``w.array_scale``
+    updated). ``total``: the type's sigma / stated, ``bound`` its allowed factor either way. Returns the
+    arrays' total steps (N,)."""
+    a = w.array_scale[kind]
+    own = w.array_own[kind] & (groups["red"] > 0)
     new = a.copy()
     f2 = groups["ss"][own] / groups["red"][own]
     new[own] = a[own] * np.sqrt(np.clip(f2, 1e-8, 1e8)) / type_step
     lo = 1.0
     hi = min(ARRAY_MAX_FACTOR, bound / total)
     new = np.clip(new, lo, hi)
-    p.array_scale[kind] = new
+    w.array_scale[kind] = new
     return new / a * type_step
 
 

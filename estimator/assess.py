@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.tables import ARRAY_PARAM_KEY, ARRAY_PARAMS
+
 from . import clockmodel
 from .factors import KINDS, active_kinds, natural
 from .factors import evaluate as factors
@@ -35,14 +37,13 @@ def rebuild(features, calib):
     features = clockmodel.correct_features(features, clockmodel.models_from_report(rep))
     p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e, odometry_yaw=bool(frame.get("estimated")))
     # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
-    for kind in KINDS.values():
-        v = (rep.get("sigmas") or {}).get(kind.report_sigma)
-        if kind.reweight and isinstance(v, (int, float)) and v > 0:
-            p.sigma[kind.name] = float(v)
+    sigmas = rep.get("sigmas") or {}
+    stated = {kind.name: sigmas.get(kind.report_sigma) for kind in KINDS.values() if kind.reweight}
+    sigma = {k: float(v) for k, v in stated.items() if isinstance(v, (int, float)) and v > 0}
     # ... and the arrays' own components (array_noise=True: report.json lists the arrays whose one moved)
-    for kind, own in ((rep.get("sigmas") or {}).get("per_array_factor") or {}).items():
-        if own:
-            p.array_scale[kind] = np.array([float(own.get(str(n), 1.0)) for n in p.names])
+    p = p.replace(sigma={**p.sigma, **sigma}, array_scale={
+        kind: np.array([float(own.get(str(n), 1.0)) for n in p.names])
+        for kind, own in (sigmas.get("per_array_factor") or {}).items() if own})
     st = state_from_frames(p, calib["arrays"], src)
     corr = rep.get("emission_corrections_s") or {}
     st.e = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])
@@ -50,7 +51,7 @@ def rebuild(features, calib):
     kinds = active_kinds(p)
     if _rank_deficient(p, rep.get("undetermined") or []):
         # the estimator left out what the data do not determine: the same rank check at the estimate
-        check_observability(p, make_layout(p), kinds, st)
+        p = check_observability(p, make_layout(p), kinds, st)
     lay = make_layout(p)
     flagged = {}
     for o in rep.get("outliers") or []:
@@ -75,9 +76,8 @@ def _rank_deficient(p, undetermined):
 
 def _undetermined(p):
     """{(array index, layout key)} of the parameters the rank check left out (``p.unobservable``)."""
-    key = {"position": "x", "orientation": "rot", "offset": "offset", "drift": "drift"}
     index = {str(n): i for i, n in enumerate(p.names)}
-    return {(index[u["array"]], key[u["parameter"]]) for u in p.unobservable}
+    return {(index[u["array"]], ARRAY_PARAM_KEY[u["parameter"]]) for u in p.unobservable}
 
 
 def residuals(model):
@@ -128,9 +128,6 @@ def position_covariances(model):
     return blocks(lay.x, {i for i, key in _undetermined(p) if key == "x"}), blocks(lay.s)
 
 
-ARRAY_PARAMS = (("x", ("x", "y", "z")), ("rot", ("rx", "ry", "rz")), ("offset", ("offset",)), ("drift", ("drift",)))
-
-
 def array_covariance(model):
     """Full 1-σ covariance of the free array parameters at the estimate (the (JᵀWJ)⁻¹ of the ``*_std`` columns).
 
@@ -146,11 +143,11 @@ def array_covariance(model):
     labels, idx = [], []
     skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
     for i, name in enumerate(p.names):
-        for key, names in ARRAY_PARAMS:
-            if (i, key) in skip:
+        for a in ARRAY_PARAMS:
+            if (i, a.key) in skip:
                 continue
-            cols = np.atleast_1d(getattr(lay, key)[i])
-            for col, label in zip(cols, names):
+            cols = np.atleast_1d(getattr(lay, a.key)[i])
+            for col, label in zip(cols, a.components):
                 if col >= 0:
                     labels.append(f"{name}.{label}")
                     idx.append(int(col))

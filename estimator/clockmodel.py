@@ -16,7 +16,11 @@ TDOA-S and TDOA-M, with each candidate component in turn (every interval's step,
 quadratic). The best candidate is kept when its χ² drop beats the BIC penalty with the scan's multiplicity:
 ``max(ln n, χ²₁ quantile at FAMILY_ALPHA / (arrays × candidates))`` (false steps < FAMILY_ALPHA per session).
 Kept components correct the TDOAs (:func:`correct_features`) and the session is solved again; rounds repeat
-until nothing is kept. A last joint Gauss–Newton step adds the components' columns to the full Jacobian
+until nothing is kept. Each kept component must have a clock's structure (:func:`structure_test`: the same
+size in the TDOA-S and the TDOA-M, early and late after a step, across the arrays for the reference's and
+the emitter's), which reflections (a blocked line of sight: a detour changing from stop to stop) do not
+have; the rows of arrays the solve dropped or the verdict names are no evidence about the others' clocks
+(:func:`_distrusted`). A last joint Gauss–Newton step adds the components' columns to the full Jacobian
 (:func:`refine`): their sizes, their 1-σ and the array parameters' 1-σ with them (the step's uncertainty in
 the error bars).
 
@@ -34,6 +38,7 @@ import scipy.sparse
 from scipy.special import chdtri
 
 from calib.clock import Clock, Step, Term, header_ratio
+from calib.options import validate_options
 
 FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
 HUBER_K = 2.5           # robust scale of the per-array fits, in σ
@@ -51,6 +56,10 @@ EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term 
 TIE_MARGIN = 10.0       # χ²: proposals this close to the best are decided by solving with each
 MAX_RIVALS = 3
 REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × its σ: solve once more
+AMBIGUOUS_CHI2 = float(chdtri(1, 0.05))   # rival proposals this close (χ²) are named as the data's ambiguity
+# A kept component is tested once for its structure (:func:`structure_test`): a true clock's fails this rarely
+STRUCTURE_ALPHA = 1e-3
+MAX_REJECTED = 8        # components rejected by their structure before the selection stops looking
 
 
 @dataclass(frozen=True)
@@ -280,8 +289,15 @@ def penalty(kind, n, n_arrays, n_candidates):
     return max(float(np.log(max(n, 2))), float(chdtri(1, FAMILY_ALPHA / m)))
 
 
-def best_component(D, comps, x0, g0, tau0, n_arrays):
+def _key(c):
+    return c.kind, round(c.time, 9)
+
+
+def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference=True):
     """The best new component of one array and its margin over the penalty (χ²), or (None, margin <= 0).
+    ``reference``: the reference's step seen from here (its TDOA-M shifted, "mshift") is a candidate too —
+    not for an array the solve dropped: the reference's clock shows in every array's TDOA-M, and an array
+    whose rows contradict the rest cannot say alone that the reference stepped.
 
     The base fit (``comps``) and each candidate's fit are robust; their χ² drop is measured in the
     residuals' own robust scale (MAD of the best candidate's whitened residuals, at least 1: a sigma stated
@@ -291,8 +307,9 @@ def best_component(D, comps, x0, g0, tau0, n_arrays):
     xb, gb, tb, cb, rb = fit_array(D, comps, x0, g0, tau0)
     base = [c.with_value(v) for c, v in zip(comps, cb)]
     cands = candidates(D.u, comps)
-    if not D.ref:   # the reference's step, seen from here
+    if not D.ref and reference:   # the reference's step, seen from here
         cands += [Component("mshift", c.time, 0.0) for c in cands if c.kind == "step"]
+    cands = [c for c in cands if _key(c) not in skip]   # (rejected by their structure: :func:`structure_test`)
     fits = []
     duration = float(np.ptp(D.u))
     for cand in cands:
@@ -326,7 +343,34 @@ def _kinds(p):
     return active_kinds(p)
 
 
-def joint_scan(result, models):
+def _row_arrays(p, fs):
+    """The array of each stacked residual row of the factors ``fs`` (-1: rows of no array, e.g. odometry)."""
+    out = []
+    for f in fs:
+        arr = getattr(getattr(p, f.kind, None), "arr", None)
+        rows = np.repeat(arr, f.dim) if arr is not None and len(arr) * f.dim == len(f.r) else None
+        out.append(rows if rows is not None else np.full(len(f.r), -1))
+    return np.concatenate(out) if out else np.zeros(0, int)
+
+
+def _robust_weights(result, lin, p=None, own=None):
+    """√ of the Huber weights of a linearisation's rows in the TDOA rows' robust scale, and that scale. The
+    rows of the arrays the solve dropped as unreliable weigh nothing: their pose was fitted to them alone, the
+    sources and the other arrays to the rest (what those rows say is judged per array, :func:`best_component`),
+    but for array ``own``'s (a component of its own under test); so do those of the arrays the verdict names
+    (:func:`_distrusted`)."""
+    r = lin.r
+    tdoa = np.concatenate([np.full(len(f.r), f.kind in ("tdoa_s", "tdoa_m")) for f in lin.factors])
+    p = result["problem"] if p is None else p
+    dropped = np.isin(_row_arrays(p, lin.factors), [j for j, n in enumerate(p.names)
+                                                    if str(n) in _distrusted(result) and str(n) != own])
+    use = tdoa & ~dropped
+    scale = max(1.0, 1.4826 * float(np.median(np.abs(r[use])))) if use.any() else 1.0
+    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    return np.where(dropped, 0.0, sw), scale
+
+
+def joint_scan(result, models, banned=frozenset()):
     """Every array's candidates tested in the linearised joint problem at ``result`` (the sources and the
     other arrays free: what a fit absorbs by moving them is not evidence). Rows Huber-weighted (an outlier
     row cannot make a step), the χ² drop of each candidate column after projecting out the Jacobian's
@@ -344,9 +388,8 @@ def joint_scan(result, models):
     lin = linearise(p, st, lay, _kinds(p))
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     r = lin.r
-    tdoa = np.concatenate([np.full(len(f.r), f.kind in ("tdoa_s", "tdoa_m")) for f in lin.factors])
-    scale = max(1.0, 1.4826 * float(np.median(np.abs(r[tdoa])))) if tdoa.any() else 1.0
-    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    sw, scale = _robust_weights(result, lin)
+    dropped = _distrusted(result)
     zero = {name: [c.with_value(0.0) for c in comps] for name, comps in models.items()}
     E, _ = component_columns(p, lin.factors, zero)
     Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
@@ -356,9 +399,9 @@ def joint_scan(result, models):
     for i in range(-1, p.N):   # -1: the emitter
         name = EMITTER if i < 0 else str(p.names[i])
         have = zero.get(name, [])
-        if len(have) >= MAX_COMPONENTS or len(np.unique(p.t)) < MIN_EVENTS:
+        if len(have) >= MAX_COMPONENTS or len(np.unique(p.t)) < MIN_EVENTS or name in dropped:
             continue
-        cands = candidates(p.t, have)
+        cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
         B = _columns(p, lin.factors, i, cands) * sw[:, None]
         Bp = B - Q @ (Q.T @ B)
         den = np.einsum("ij,ij->j", Bp, Bp)
@@ -388,8 +431,92 @@ def joint_scan(result, models):
     return out
 
 
+# ----------------------------------------------------------------------------------------------- structure
+def _split_columns(p, fs, i, comp):
+    """Test columns of a component's structure: its column on all but one of the independent row groups that
+    see it. An array's clock term: its TDOA-S rows vs its TDOA-M rows, and a step's TDOA-M rows split in two
+    at the middle of the events after it (the same size at every later event); the reference's: its TDOA-S
+    rows and each other array's TDOA-M rows (every array sees it alike); the emitter's: each array's TDOA-S
+    rows."""
+    B = _columns(p, fs, i, [comp])[:, 0]
+    arr, kind, ev = (np.concatenate(v) for v in zip(*[
+        (getattr(p, f.kind).arr if f.kind in ("tdoa_s", "tdoa_m") else np.full(len(f.r), -2),
+         np.full(len(f.r), f.kind, dtype=object),
+         p.tdoa_m.ev if f.kind == "tdoa_m" else np.full(len(f.r), -1)) for f in fs]))
+    S, M = kind == "tdoa_s", kind == "tdoa_m"
+    if i < 0:
+        groups = [S & (arr == a) for a in range(p.N)]
+    elif i == p.ref:
+        groups = [S & (arr == i)] + [M & (arr == a) for a in range(p.N) if a != i]
+    else:
+        groups = [S & (arr == i), M & (arr == i)]
+        after = np.unique(ev[M & (arr == i) & (B != 0)])
+        if comp.kind == "step" and len(after) >= 2:   # the step's TDOA-M rows: early half vs late half
+            late = np.isin(ev, after[len(after) // 2:])
+            groups = [groups[0], groups[1] & ~late, groups[1] & late]
+    cols = [B * g for g in groups if np.any(B[g] != 0)]
+    return np.column_stack(cols[:-1]) if len(cols) > 1 else np.zeros((len(B), 0))
+
+
+def structure_test(result, models, name, k, features=None):
+    """(χ², dof) of the hypothesis that component k of ``name`` is a clock's, at a ``result`` solved with
+    ``models`` (the features corrected by them), or None when it cannot be judged (a problem too large).
+
+    A clock term adds the same h(t) to every arrival the clock stamps: a dropped or inserted block shifts one
+    TDOA-S (the interval it falls in) and every later TDOA-M by one size, on all of the array's channels
+    alike; the emitter's term shifts every array's TDOA-S alike. Arrivals delayed by reflections (a blocked
+    line of sight) vary from event to event and between arrays, so a step fitted to them is two different
+    sizes in the TDOA-S and in the TDOA-M (or between arrays). The test: the χ² drop of letting the
+    component's part on each row group (:func:`_split_columns`) differ from the rest, after projecting out
+    every parameter and component (linearised at the corrected solution, rows Huber-weighted in their robust
+    scale, as :func:`joint_scan`); χ² with dof = the number of independent test columns. ``features``: the
+    corrected features ``result`` was solved from: their every row counts, the ones the solve screened out
+    too (a wrong component must not pass by the screening of the rows that contradict it)."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p, st = _every_row(result, features), result["state"]
+    lay = make_layout(p)
+    if lay.n > DENSE_MAX:
+        return None
+    lin = linearise(p, st, lay, _kinds(p))
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    r = lin.r
+    sw, scale = _robust_weights(result, lin, p, own=name)
+    E, _ = component_columns(p, lin.factors, models)
+    Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
+    index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
+    T = _split_columns(p, lin.factors, index[name], models[name][k]) * sw[:, None]
+    if not T.shape[1]:
+        return 0.0, 0
+    Tp = T - Q @ (Q.T @ T)
+    rw = r * sw
+    rp = rw - Q @ (Q.T @ rw)
+    U, sv, _ = np.linalg.svd(Tp, full_matrices=False)
+    keep = sv > 1e-6 * max(np.linalg.norm(T), 1e-300)
+    if not keep.any():
+        return 0.0, 0
+    proj = U[:, keep].T @ rp
+    return float(proj @ proj) / scale ** 2, int(keep.sum())
+
+
+def _structure_failures(result, models, old, features):
+    """The components new in ``models`` (not in ``old``) that fail :func:`structure_test`, as ban keys
+    (name, kind, time)."""
+    bad = []
+    for name, comps in models.items():
+        before = {_key(c) for c in old.get(name, [])}
+        for k, c in enumerate(comps):
+            if _key(c) in before:
+                continue
+            got = structure_test(result, models, name, k, features)
+            if got is not None and got[1] and got[0] > float(chdtri(got[1], STRUCTURE_ALPHA)):
+                bad.append((name, *_key(c)))
+    return bad
+
+
 # ----------------------------------------------------------------------------------------------- selection
-def detect(result, models):
+def detect(result, models, banned=frozenset(), excluded=frozenset()):
     """One detection round at a solved ``result``: proposals {array name: its components with the new one}
     of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
     within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
@@ -397,17 +524,22 @@ def detect(result, models):
     one more candidate, tested jointly only."""
     p, st = result["problem"], result["state"]
     found, records = {}, []
-    joint = joint_scan(result, models)
+    joint = joint_scan(result, models, banned)
     suspects = _suspects(result)
     for i in range(-1, p.N):
         name = EMITTER if i < 0 else str(p.names[i])
+        if name in excluded:
+            continue
         zero = [c.with_value(0.0) for c in models.get(name, [])]
         got = None
         # the fit may be bent around this array: its own robust fits, sources held (not the reference's: a
         # step of its clock shows in every other array's TDOA-M, which its own fit does not see)
         if i >= 0 and i != p.ref and name in suspects:
             D = array_data(p, st, i)
-            got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1)
+            ref = str(p.names[p.ref])
+            skip = {k[1:] for k in banned if k[0] == name} | {("mshift", k[2]) for k in banned if k[:2] == (ref, "step")}
+            got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1, skip,
+                                 reference=name not in _distrusted(result))
         if got is not None and got[0] is not None:
             got[2]["test"] = "array"
         if i in joint and (got is None or got[0] is None or joint[i][1] > got[1]):
@@ -432,6 +564,8 @@ def detect(result, models):
             if round(step.time, 9) not in allowed:
                 continue
             name, new = ref, have + [step]
+        if name in excluded:
+            continue
         old = models.get(name, [])
         merged = [c.with_value(c.value + (old[k].value if k < len(old) else 0.0)) for k, c in enumerate(new)]
         if _pulse(merged):
@@ -465,16 +599,42 @@ def _has_pulse(comps):
 
 
 def _decide(solve, features, models, proposals, options):
-    """(models, result) of the proposal whose solve leaves the smallest robust cost (one solve each)."""
-    best = None
+    """(models, result, rivals) of the proposal whose solve leaves the smallest robust cost (one solve each);
+    rivals: the other proposals the data do not tell from it (their χ², twice the robust cost, within
+    AMBIGUOUS_CHI2 of its)."""
+    best, costs, sig0 = None, [], None
     for prop in proposals:
         trial = {**models, **prop}
         corrected = correct_features(features, trial)
         res = solve(corrected, **options)
-        cost, sig = _robust_cost(res, None if best is None else best[2], corrected)
+        cost, sig = _robust_cost(res, sig0, corrected)
+        sig0 = sig if sig0 is None else sig0
+        costs.append(cost)
         if best is None or cost < best[0]:
-            best = (cost, (trial, res), sig if best is None else best[2])
-    return best[1]
+            best = (cost, (trial, res), prop)
+    rivals = [prop for prop, c in zip(proposals, costs) if prop is not best[2] and 2.0 * (c - best[0]) < AMBIGUOUS_CHI2]
+    return (*best[1], rivals)
+
+
+def _last(trial, models):
+    """(name, kind, time, value) of the component a trial adds to ``models``."""
+    name = next(n for n, c in trial.items() if len(c) > len(models.get(n, [])) or c != models.get(n))
+    c = trial[name][-1]
+    return name, c.kind, float(c.time), float(c.value)
+
+
+def _every_row(result, features=None):
+    """The problem of a solved ``result``, or (``features`` given: the features it was solved from) that
+    problem with every row of those features, the ones the solve screened out too, in its sigmas."""
+    from .problem import build_problem
+
+    p = result["problem"]
+    if features is not None:
+        q = build_problem(features, use_tdoa_s=bool(len(p.tdoa_s.val)), sigma_emit=p.sigma.get("emission", 0.0),
+                          odometry_yaw=p.odo_yaw_free)
+        if q.K == p.K and q.N == p.N:
+            return q.replace(sigma={**q.sigma, **p.sigma})
+    return p
 
 
 def _robust_cost(result, row_sigma=None, features=None):
@@ -482,16 +642,10 @@ def _robust_cost(result, row_sigma=None, features=None):
     the result's own: pass the first trial's, so that trials with re-estimated sigmas compare in one unit);
     over every row of ``features`` when given (rows the solve screened out count too: a wrong model must not
     win by screening the rows that contradict it). Returns (cost, the row sigmas used)."""
-    from .problem import build_problem, make_layout
+    from .problem import make_layout
     from .solver import linearise
 
-    p = result["problem"]
-    if features is not None:
-        q = build_problem(features, use_tdoa_s=bool(len(p.tdoa_s.val)), sigma_emit=p.sigma.get("emission", 0.0),
-                          odometry_yaw=p.odo_yaw_free)
-        if q.K == p.K and q.N == p.N:
-            q.sigma.update(p.sigma)
-            p = q
+    p = _every_row(result, features)
     lin = linearise(p, result["state"], make_layout(p), _kinds(p))
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if row_sigma is None else row_sigma
@@ -509,13 +663,13 @@ def _suspects(result):
 def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
-    clock_model : "linear" (default, for now: on the `hard` preset's occluded arrays the selection still takes
-        reflections for clock steps, tests/test_robust.py slow) or "auto": steps / drift terms per array.
+    clock_model : "linear" (default, for now: 0.1 ms steps found in 90 % of bench_clocks' runs, false models on
+        1.3 % of clean sessions; docs/results.md) or "auto": steps / drift terms per array
+        (``calib.options.OPTIONS``: ``--clock-model``).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
-    if clock_model not in ("auto", "linear"):
-        raise ValueError(f"clock_model must be 'auto' or 'linear', not {clock_model!r}")
+    validate_options(clock_model=clock_model)
     result = solve(features, **options)
     # the corrected TDOAs make a new problem (a prebuilt one, ``problem=``, is of the uncorrected features)
     options = {k: v for k, v in options.items() if k != "problem"}
@@ -526,23 +680,55 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
     first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
-        for _ in range(MAX_ROUNDS):
-            proposals, records = detect(result, models)
-            rounds.append(records)
-            if not proposals:
+        excluded = set()
+        for _ in range(2):   # (a second selection without the arrays the first one could not explain)
+            models, result = _select(solve, features, first, options, rounds, excluded)
+            if not models:
+                result = first
                 break
-            if len(proposals) == 1:
-                models = {**models, **proposals[0]}
-                result = solve(correct_features(features, models), **options)
-            else:
-                models, result = _decide(solve, features, models, proposals, options)
-        if models:
-            result, models = _refine_and_resolve(solve, features, result, models, options)
-            if _worse(result, first):   # the models did not explain the data: the linear clock's result
-                result, models = first, {}
-                rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
+            result, models, bad = _refine_and_resolve(solve, features, result, models, options)
+            if not bad:
+                break
+            excluded |= set(bad)
+            rounds.append([{"rejected": f"{n}: its clock terms did not explain its rows (still named as inconsistent); "
+                                        "selected again without it"} for n in sorted(bad)])
+        if models and _worse(result, first):   # the models did not explain the data: the linear clock's result
+            result, models = first, {}
+            rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
     _attach_report(result, features, models, rounds)
     return result
+
+
+def _select(solve, features, result, options, rounds, excluded=frozenset()):
+    """Detection rounds from the linear clock's ``result``: each adds the best proposal (:func:`detect`,
+    rivals decided by :func:`_decide`) and solves again; a new component of the joint scan that fails its
+    structure test (:func:`structure_test`) is taken out again and not proposed again. The arrays in ``excluded`` get no
+    components (nor their steps seen as the reference's). Returns (models, result)."""
+    models, banned, kept = {}, set(), 0
+    while kept < MAX_ROUNDS and len(banned) < MAX_REJECTED:
+        proposals, records = detect(result, models, frozenset(banned), frozenset(excluded))
+        rounds.append(records)
+        if not proposals:
+            break
+        if len(proposals) == 1:
+            trial = {**models, **proposals[0]}
+            res = solve(correct_features(features, trial), **options)
+        else:
+            trial, res, rivals = _decide(solve, features, models, proposals, options)
+            if rivals:
+                rounds.append([{"ambiguous": [_last(trial, models)] + [_last({**models, **r}, models) for r in rivals]}])
+        # proposals of the joint scan come from a fit not bent around them: their structure is judged at once;
+        # a per-array scan's (a fault large enough to bend the fit) may be placed or sized provisionally until
+        # the fault is modelled in full: judged at the end (:func:`_refine_and_resolve`)
+        if all(r.get("test") == "joint" for r in records if r.get("margin_chi2", 0.0) > 0):
+            bad = _structure_failures(res, trial, models, correct_features(features, trial))
+            if bad:
+                banned.update(bad)
+                rounds.append([{"rejected": f"{b[0]}: {b[1]} at {b[2]:.3f} s: not a clock's structure (TDOA-S and "
+                                            "TDOA-M, or the arrays, disagree on its size)"} for b in bad])
+                continue
+        models, result, kept = trial, res, kept + 1
+    return models, result
 
 
 def _worse(result, first):
@@ -559,11 +745,14 @@ def _refine_and_resolve(solve, features, result, models, options):
     """The joint step for the components (:func:`refine`), then backward elimination: the component whose
     joint χ² (value / σ)² falls furthest short of its penalty is removed and the session solved again (a
     component taken while a larger fault still bent the fit may not be needed once that fault is modelled);
-    solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ."""
+    solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ. Returns
+    (result, models, the arrays whose components were all removed at the end: still named). A component
+    that fails its structure test (:func:`structure_test`) at the solution with all of them is removed too
+    (each was tested when taken, with the components then held; those may have gone since)."""
     cov_info = None
     for _ in range(2 * sum(len(c) for c in models.values()) + 2):
         moved, models, cov_info = refine(result, models)
-        weak = _weakest(result["problem"], models)
+        weak = _weakest(result["problem"], models) or _unstructured(result, features, models)
         if weak is not None:
             name, k = weak
             models = {**models, name: [c for j, c in enumerate(models[name]) if j != k]}
@@ -572,7 +761,7 @@ def _refine_and_resolve(solve, features, result, models, options):
             break
         result = solve(correct_features(features, models), **options)
         if not models:
-            return result, models
+            return result, models, []
     # an array the session still contradicts with its components (dropped as inconsistent, or named for
     # holding the outliers: biased as a whole): they did not explain it, a reflection's bias is no clock's; it
     # keeps the linear clock and the consistency tests name it as before
@@ -584,7 +773,27 @@ def _refine_and_resolve(solve, features, result, models, options):
         result = solve(correct_features(features, models), **options)
         cov_info = refine(result, models)[2] if models else None
     _apply_std(result, cov_info)
-    return result, models
+    return result, models, bad
+
+
+def _unstructured(result, features, models):
+    """(array name, index) of the first component failing its structure test at ``result``, or None."""
+    bad = _structure_failures(result, models, {}, correct_features(features, models))
+    if not bad:
+        return None
+    name, kind, time = bad[0]
+    return name, next(k for k, c in enumerate(models[name]) if _key(c) == (kind, time))
+
+
+def _distrusted(result):
+    """The arrays whose rows say nothing about the others' clocks: dropped as unreliable, or named by the
+    verdict as inconsistent (their rows bend the sources, and a scan of the others would read that bend as
+    their clocks) — the named ones only while they are fewer than half the other arrays (a fault most arrays
+    show is the reference's clock, seen from each)."""
+    out = set(_unreliable(result))
+    flagged = set(((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or ())
+    n_others = len(result["problem"].names) - 1
+    return out | flagged if len(out | flagged) < 0.5 * n_others else out
 
 
 def _unreliable(result):
@@ -846,6 +1055,7 @@ def clock_report(result, features, models, rounds):
             findings.append(_rate_text(name, e["nominal_rate"]))
     if base is not None:
         findings.append(_base_text(base))
+    findings += _ambiguities(rounds, models, events, u)
     emitter = array_clock_entry(models.get(EMITTER, []), events, u, 0.0, None)
     emitter.pop("nominal_rate")
     for s in emitter["steps"]:
@@ -857,6 +1067,26 @@ def clock_report(result, features, models, rounds):
                         f"{emitter['drift_model']})")
     return {"selection": "auto" if rounds else "linear", "arrays": arrays, "emitter": emitter,
             "findings": findings, "detection": rounds}
+
+
+def _ambiguities(rounds, models, events, u):
+    """Findings for the rival proposals the data could not tell from a component still in ``models``."""
+    def where(t):
+        before, after = u < t, u > t
+        return (f"between events {int(events[before][np.argmax(u[before])]) if before.any() else '-'} and "
+                f"{int(events[after][np.argmin(u[after])]) if after.any() else '-'}")
+
+    def text(name, kind, t, v):
+        return f"{name}'s {kind} of {v * 1e3:+.3f} ms {where(t)}" if kind == "step" else f"{name}'s {kind} term"
+
+    have = {(n, c.kind, round(c.time, 9)) for n, comps in models.items() for c in comps}
+    out = []
+    for rec in (r for rnd in rounds for r in rnd if "ambiguous" in r):
+        (name, kind, t, v), *alts = rec["ambiguous"]
+        if (name, kind, round(t, 9)) in have:
+            out.append(f"{text(name, kind, t, v)} (modelled) explains the data as well as "
+                       + " or ".join(text(*a) for a in alts) + ": the data cannot tell which clock it is")
+    return out
 
 
 def _attach_report(result, features, models, rounds):

@@ -14,6 +14,8 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+from calib.tables import ARRAY_PARAMS
+
 from .init import ObservabilityError
 from .solver import Schur, linearise
 
@@ -28,8 +30,6 @@ LANCZOS_TOL = 1e-3
 # part of what the data do not determine (null vectors of a missing measurement are confined to the
 # columns it would have touched; other columns get only round-off).
 NULL_SUPPORT = 0.02
-# the array parameters that can be left out of a solve when the data do not determine them
-ARRAY_BLOCKS = (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift"))
 
 
 def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
@@ -37,10 +37,11 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
 
     Each null direction of the column-normalised Jacobian (the weakest one, found again after each fix)
     names the parameters it moves (weight >= NULL_SUPPORT of its largest): they are undetermined. An array
-    parameter among them (the largest) is then left out of the solve (``p.fixed_cols``, kept at its
+    parameter among them (the largest) is then left out of the solve (``fixed_cols``, kept at its
     initial value, NaN std) and the check repeated, so everything else is calibrated: parameters outside
-    every null direction are determined whatever the fixed values. ``p.unobservable`` gets one entry
-    per (array, parameter): {"parameter", "array", "reason"} (report.json ``undetermined``). Raises
+    every null direction are determined whatever the fixed values. Returns a new problem (``p`` is not
+    changed) with those ``fixed_cols`` and ``unobservable``: one entry per (array, parameter):
+    {"parameter", "array", "reason"} (report.json ``undetermined``). Raises
     ObservabilityError when a null direction moves no non-reference array parameter (e.g. sources only),
     or on the counting checks (collinear source path). ``lay`` is the full layout (recomputed here).
     ``dense`` as in :func:`calib.estimator.solver.linearise` (None: by problem size).
@@ -49,7 +50,9 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
 
     _check_counts(p)
     found = {}
+    fixed = {k: v.copy() for k, v in p.fixed_cols.items()}
     for _ in range(4 * p.N * 8):  # each pass fixes at least one column
+        p = p.replace(fixed_cols={k: v.copy() for k, v in fixed.items()})
         lay = make_layout(p)
         cols, untouched = _null_direction(p, lay, kinds, st, rel_tol, dense)
         if cols is None:
@@ -57,7 +60,6 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
         support = _support_blocks(p, lay, cols)
         if not support or (untouched and len(support) < len(cols)):
             raise ObservabilityError(f"the data cannot determine {_what(p, lay, cols, st)}")
-        fixed = p.fixed_cols
         for i, key, label, k in support:
             found[(i, label)] = True
         # untouched columns all at once, else the array column the null direction moves most
@@ -66,12 +68,11 @@ def check_observability(p, lay, kinds, st, rel_tol=1e-9, dense=None):
             mask[(i, k) if mask.ndim == 2 else i] = True
     else:
         raise ObservabilityError("the data leave too many parameters undetermined")
-    p.unobservable = [{"parameter": label, "array": str(p.names[i]),
-                       "reason": "the data do not determine it (rank-deficient Fisher information: too few "
-                                 "measurements of this array); not estimated (kept at its initial value, NaN "
-                                 "std), the other parameters are"}
-                      for (i, label) in sorted(found)]
-    return p.unobservable
+    return p.replace(unobservable=[
+        {"parameter": label, "array": str(p.names[i]),
+         "reason": "the data do not determine it (rank-deficient Fisher information: too few measurements of "
+                   "this array); not estimated (kept at its initial value, NaN std), the other parameters are"}
+        for (i, label) in sorted(found)])
 
 
 def _null_direction(p, lay, kinds, st, rel_tol, dense):
@@ -113,7 +114,7 @@ def _support_blocks(p, lay, cols):
     """Non-reference array parameters among ``cols`` ({column: weight}), largest weight first:
     (array, layout key, label, component)."""
     out = []
-    for key, label in ARRAY_BLOCKS:
+    for key, label in ((a.key, a.label) for a in ARRAY_PARAMS):   # (each can be left out of a solve)
         idx = getattr(lay, key).reshape(p.N, -1)
         for i, k in np.argwhere(idx >= 0):
             c = int(idx[i, k])
@@ -192,10 +193,10 @@ def _weakest_event(sch, lay):
 
 def describe_param(p, lay, k):
     """Words for parameter column ``k`` of layout ``lay`` (e.g. "the orientation of array A3")."""
-    for key, label in (("x", "position"), ("rot", "orientation"), ("offset", "offset"), ("drift", "drift")):
-        hit = np.argwhere(getattr(lay, key).reshape(p.N, -1) == k)
+    for a in ARRAY_PARAMS:
+        hit = np.argwhere(getattr(lay, a.key).reshape(p.N, -1) == k)
         if hit.size:
-            return f"the {label} of array {p.names[hit[0, 0]]}"
+            return f"the {a.label} of array {p.names[hit[0, 0]]}"
     hit = np.argwhere(lay.s == k)
     if hit.size:
         return f"the position of source (event {p.events[hit[0, 0]]})"

@@ -14,6 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from calib.geometry import mirror, yaw_rotate
 
+from .uncertainty import param_std
+
 
 COARSE_STEP_DEG = 5.0   # grid over the full circle, then refined
 FINE_STEP_DEG = 0.25
@@ -78,3 +80,16 @@ YAW_SIGNIFICANCE = 5.0
 def yaw_is_significant(yaw, yaw_std, level=YAW_SIGNIFICANCE):
     """True when the estimated yaw differs from 0 by more than ``level`` standard deviations."""
     return bool(yaw_std is not None and np.isfinite(yaw_std) and abs(yaw) > level * yaw_std)
+
+
+def yaw_decision(p, st, Jw, k):
+    """Test the odometry yaw (column k of the whitened Jacobian Jw, state ``st``). Returns (problem, state,
+    {yaw_deg, std_deg, kept}); when the yaw is not significant it is fixed: a new problem with
+    ``odo_yaw_free`` False and a new state with ``odo_yaw`` 0 (the inputs are not changed)."""
+    yaw, sd = float(st.odo_yaw[0]), param_std(Jw, k)
+    test = {"yaw_deg": float(np.rad2deg(yaw)), "std_deg": float(np.rad2deg(sd)), "kept": yaw_is_significant(yaw, sd)}
+    if not test["kept"]:
+        p = p.replace(odo_yaw_free=False)
+        st = st.copy()
+        st.odo_yaw = np.zeros(1)
+    return p, st, test

@@ -1,4 +1,5 @@
-"""The numeric problem: features dict → a typed :class:`Problem`, and the state ↔ parameter-vector layout.
+"""The numeric problem: features (``calib.records.Features`` or the dict form) → an immutable :class:`Problem`,
+and the state ↔ parameter-vector layout.
 
 A :class:`Problem` (built once per data set) holds the arrays' names and reference, the events (emission
 times, cumulative odometry), one block of rows per measurement kind (:class:`TdoaMRows`, :class:`TdoaSRows`,
@@ -12,7 +13,10 @@ parameter vector.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -26,10 +30,34 @@ from calib.tables import LINE_COLUMN, columns
 
 
 
-@dataclass
+def frozen_array(a):
+    """A read-only view of ``a`` (no copy; the caller's array keeps its own flag): measured data that no
+    stage may rewrite in place (an attempt raises ``ValueError: assignment destination is read-only``)."""
+    if not isinstance(a, np.ndarray):
+        return a
+    v = a.view()
+    v.flags.writeable = False
+    return v
+
+
+def frozen_arrays(d):
+    """A read-only mapping of read-only views of ``d``'s arrays (other values as they are)."""
+    return MappingProxyType({k: frozen_array(v) for k, v in d.items()})
+
+
+@dataclass(frozen=True, eq=False)
 class Rows:
     """The rows of one measurement kind: every field is an array with one entry (or row) per measurement;
-    ``row`` is the measurement's line in its CSV file (header = line 1), for reports."""
+    ``row`` is the measurement's line in its CSV file (header = line 1), for reports. Immutable: the fields
+    are read-only views (a changed copy is ``dataclasses.replace(rows, ...)`` or :meth:`select`)."""
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            object.__setattr__(self, f.name, frozen_array(getattr(self, f.name)))
+
+    def __setstate__(self, state):   # (unpickled arrays come back writeable: frozen again)
+        self.__dict__.update(state)
+        self.__post_init__()
 
     def __len__(self):
         return len(self.row)
@@ -44,7 +72,7 @@ class Rows:
         return dataclasses.replace(self, **{f.name: getattr(self, f.name)[keep] for f in dataclasses.fields(self)})
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class TdoaMRows(Rows):
     """TDOA-M: array ``arr`` vs the reference at event ``ev`` (indices), value ``val`` (s)."""
     ev: np.ndarray
@@ -53,7 +81,7 @@ class TdoaMRows(Rows):
     row: np.ndarray
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class TdoaSRows(Rows):
     """TDOA-S: array ``arr`` between events ``a`` and ``b`` (indices), value ``val`` (s)."""
     arr: np.ndarray
@@ -67,7 +95,7 @@ class TdoaSRows(Rows):
         return self.b
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class DoaRows(Rows):
     """DOA: unit vector ``u`` (n, 3) in array ``arr``'s frame toward the source of event ``ev``; ``scale``
     (n,): each row's sigma relative to the type's (:func:`doa_row_scales`)."""
@@ -78,7 +106,7 @@ class DoaRows(Rows):
     scale: np.ndarray
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class ConeRows(Rows):
     """Cone DOA of a linear array / 2-mic pair: cos of the angle between its axis and the source."""
     ev: np.ndarray
@@ -87,21 +115,30 @@ class ConeRows(Rows):
     row: np.ndarray
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class Problem:
-    """One calibration problem. Shapes: N arrays, K events; SI units (s, m, rad).
+    """One calibration problem: what was measured, and the settings of a solve. Shapes: N arrays, K events;
+    SI units (s, m, rad).
 
-    names (N,), ref the reference array's index, c (m/s), beta (s per unit drift: the matched filter's
-    drift bias), t (K,) emission times minus t_0, events (K,) event ids, odom (K, 3) cumulative odometry.
-    sigma: {kind: sigma} for ``tdoa_s``, ``tdoa_m`` (s), ``doa``, ``cone`` (rad per tangent axis),
-    ``odometry`` (m per axis per step), ``emission`` (s; 0 = emission times not estimated).
+    Immutable: every array is a read-only view, every mapping read-only; a stage that changes a setting
+    returns a new problem (:meth:`replace`, :meth:`with_weights`), so its input stays as it was.
+
+    Measured (fixed once built): names (N,), ref the reference array's index, c (m/s), beta (s per unit
+    drift: the matched filter's drift bias), t (K,) emission times minus t_0, events (K,) event ids, odom
+    (K, 3) cumulative odometry; the rows of each kind (``tdoa_m``, ``tdoa_s``, ``doa``, ``cone``, and
+    ``extra_rows``: {kind: Rows} of the kinds registered beyond these, ``factors.register``);
     fold (N, 3): mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere);
     cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
-    (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
-    odo_yaw_free: the odometry frame's yaw is estimated; odo_yaw_test: the test that decided it;
-    extra_rows: {kind: Rows} of the kinds registered beyond these (``factors.register``);
-    array_scale, array_own: per-array variance components (opt-in); fixed_cols, unobservable: the
-    parameters the data leave undetermined (left out of the solve, reported).
+    (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,).
+
+    Settings of a solve (typed values a stage replaces, never edits): sigma {kind: sigma} for ``tdoa_s``,
+    ``tdoa_m`` (s), ``doa``, ``cone`` (rad per tangent axis), ``odometry`` (m per axis per step),
+    ``emission`` (s; 0 = emission times not estimated); array_scale {kind: (N,) sigma factor of each array},
+    array_own {kind: (N,) bool, the array has its own component}: per-array variance components (opt-in,
+    estimator/arraynoise.py; the three together: :class:`Weights`); odo_yaw_free: the odometry frame's yaw
+    is estimated, odo_yaw_test: the test that decided it; fixed_cols {layout field: (shape of that field)
+    bool} the columns the data leave undetermined (left out of the solve) and unobservable (one report
+    entry per (array, parameter)): estimator/observability.py.
     """
     names: np.ndarray
     ref: int
@@ -114,23 +151,39 @@ class Problem:
     tdoa_s: TdoaSRows
     doa: DoaRows
     cone: ConeRows
-    sigma: dict
+    sigma: Mapping[str, float]
     fold: np.ndarray
     cone_axis: np.ndarray
     rot_fixed_axis: np.ndarray
     rot_free: np.ndarray
     n_doa_events: np.ndarray
-    extra_rows: dict = dataclasses.field(default_factory=dict)   # {kind: Rows} of registered kinds beyond these
+    extra_rows: Mapping[str, Rows] = dataclasses.field(default_factory=dict)
     odo_yaw_free: bool = False
-    odo_yaw_test: dict | None = None
-    # per-array variance components (estimator/arraynoise.py): {kind: (N,) sigma factor of each array},
-    # {kind: (N,) bool, the array has its own component}
-    array_scale: dict = dataclasses.field(default_factory=dict)
-    array_own: dict = dataclasses.field(default_factory=dict)
-    # parameters the data leave undetermined (estimator/observability.py): {layout field: bool mask} of the
-    # columns left out of the solve, and one report entry per (array, parameter)
-    fixed_cols: dict = dataclasses.field(default_factory=dict)
-    unobservable: list = dataclasses.field(default_factory=list)
+    odo_yaw_test: Mapping[str, Any] | None = None
+    array_scale: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    array_own: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    fixed_cols: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    unobservable: tuple = ()
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, np.ndarray):
+                v = frozen_array(v)
+            elif f.name in _ARRAY_MAPS:
+                v = frozen_arrays(v)
+            elif f.name in ("sigma", "extra_rows", "odo_yaw_test") and v is not None:
+                v = MappingProxyType(dict(v))
+            elif f.name == "unobservable":
+                v = tuple(v)
+            object.__setattr__(self, f.name, v)
+
+    def __getstate__(self):   # (a read-only mapping does not pickle: its dict does)
+        return {k: dict(v) if isinstance(v, MappingProxyType) else v for k, v in self.__dict__.items()}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self.__post_init__()
 
     @property
     def N(self):
@@ -145,17 +198,32 @@ class Problem:
         return self.extra_rows[kind] if kind in self.extra_rows else getattr(self, kind)
 
     def replace(self, **changes):
-        """A copy with ``changes``: measurement arrays shared, the per-solve state (sigmas, per-array
-        components, undetermined columns) copied, so a stage that changes it never leaks into another."""
-        changes.setdefault("sigma", dict(self.sigma))
-        changes.setdefault("array_scale", {k: v.copy() for k, v in self.array_scale.items()})
-        changes.setdefault("array_own", {k: v.copy() for k, v in self.array_own.items()})
-        changes.setdefault("fixed_cols", {k: v.copy() for k, v in self.fixed_cols.items()})
-        changes.setdefault("unobservable", list(self.unobservable))
+        """A new problem with ``changes`` (every other field shared: nothing in a problem is changed in place)."""
         return dataclasses.replace(self, **changes)
 
-    def copy(self):
-        return self.replace()
+    def weights(self):
+        """A working copy (:class:`Weights`) of the sigmas and per-array components, for a stage that
+        re-weights; :meth:`with_weights` turns it back into a problem."""
+        return Weights(dict(self.sigma), {k: v.copy() for k, v in self.array_scale.items()},
+                       {k: v.copy() for k, v in self.array_own.items()})
+
+    def with_weights(self, w):
+        """A new problem weighted by ``w`` (:class:`Weights`; its arrays are copied, so ``w`` may go on changing)."""
+        return self.replace(sigma=dict(w.sigma), array_scale={k: v.copy() for k, v in w.array_scale.items()},
+                            array_own={k: v.copy() for k, v in w.array_own.items()})
+
+
+_ARRAY_MAPS = ("array_scale", "array_own", "fixed_cols")
+
+
+@dataclass
+class Weights:
+    """The weights a variance-component stage works on (mutable, local to that stage): sigma {kind: sigma},
+    array_scale {kind: (N,) factor of each array's sigma}, array_own {kind: (N,) bool, the array has its own
+    component}; :meth:`Problem.with_weights` hands them to a solve."""
+    sigma: dict
+    array_scale: dict
+    array_own: dict
 
 
 @dataclass(frozen=True)
@@ -179,7 +247,7 @@ class RowIndex:
         return _lines(df)
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class EventRows(Rows):
     """The rows of a kind measured by array ``arr`` at event ``ev`` (indices): value ``val`` (m,) or (m, k),
     the table's columns other than event and array (the default rows of a registered kind)."""
@@ -237,38 +305,37 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         rows[kind] = build(df if use.get(kind, True) else df.iloc[:0], ix)
     sigma = {k: s.sigma_si(meta) for k, s in KINDS.items() if s.noise_key}
     N = len(names)
-    p = Problem(
-        names=names, ref=idx[meta["reference_array"]], c=float(meta["speed_of_sound"]),
-        beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events,
-        odom=columns(ev, ("odom_x", "odom_y", "odom_z")), tdoa_m=rows.pop("tdoa_m"), tdoa_s=rows.pop("tdoa_s"),
-        doa=rows.pop("doa"), cone=ConeRows(np.zeros(0, int), np.zeros(0, int), np.zeros(0), np.zeros(0, int)),
-        sigma={**sigma, "emission": float(sigma_emit)}, extra_rows=rows,
-        fold=np.zeros((N, 3)), cone_axis=np.zeros((N, 3)), rot_fixed_axis=-np.ones(N, int),
-        rot_free=np.ones(N, bool), n_doa_events=np.zeros(N, int))
-    _fold_mirror_ambiguous(p, meta, idx)
-    _split_cones(p, meta, idx)
+    normals = _mirror_normals(meta, idx, N)
+    doa = rows.pop("doa")
+    doa, cone, cone_axis, rot_fixed_axis = _split_cones(dataclasses.replace(doa, u=fold(doa.u, normals[doa.arr])),
+                                                         meta, idx, N)
     # orientation estimated only for arrays with DOAs for >= MIN_DOA_EVENTS events (single microphones and
     # arrays without usable DOAs: position and clock from the TDOAs, orientation reported undetermined)
-    n_doa = np.bincount(p.doa.arr, minlength=N)
-    p.rot_free = (n_doa >= MIN_DOA_EVENTS) | (np.bincount(p.cone.arr, minlength=N) >= MIN_DOA_EVENTS)
-    p.n_doa_events = n_doa
+    n_doa = np.bincount(doa.arr, minlength=N)
+    rot_free = (n_doa >= MIN_DOA_EVENTS) | (np.bincount(cone.arr, minlength=N) >= MIN_DOA_EVENTS)
     # a lone DOA of an array whose orientation is not estimated says nothing: leave it out
-    p.doa = p.doa.select(p.rot_free[p.doa.arr] | (p.doa.arr == p.ref))
-    p.odo_yaw_free = bool(odometry_yaw) and odometry_yaw_observable(p)
-    return p
+    doa = doa.select(rot_free[doa.arr] | (doa.arr == idx[meta["reference_array"]]))
+    odom = columns(ev, ("odom_x", "odom_y", "odom_z"))
+    return Problem(
+        names=names, ref=idx[meta["reference_array"]], c=float(meta["speed_of_sound"]),
+        beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events, odom=odom,
+        tdoa_m=rows.pop("tdoa_m"), tdoa_s=rows.pop("tdoa_s"), doa=doa, cone=cone,
+        sigma={**sigma, "emission": float(sigma_emit)}, extra_rows=rows, fold=normals, cone_axis=cone_axis,
+        rot_fixed_axis=rot_fixed_axis, rot_free=rot_free, n_doa_events=n_doa,
+        odo_yaw_free=bool(odometry_yaw) and odometry_yaw_observable(odom, len(doa.u), len(events)))
 
 
 MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
 
 
-def _fold_mirror_ambiguous(p, meta, idx):
-    """Planar arrays without a stated hemisphere (meta ``doa_mirror_normals``): their DOAs are known up to
-    the mirror image across the mic plane (normal n, array frame); fold them to n·u >= 0 whatever side a
-    frontend reported, and keep n in ``p.fold``."""
+def _mirror_normals(meta, idx, N):
+    """(N, 3): the mic-plane normal n (array frame) of each planar array without a stated hemisphere (meta
+    ``doa_mirror_normals``), zeros elsewhere. Their DOAs are known up to the mirror image across the mic
+    plane: ``build_problem`` folds them to n·u >= 0 whatever side a frontend reported."""
+    out = np.zeros((N, 3))
     for name, n in (meta.get("doa_mirror_normals") or {}).items():
-        p.fold[idx[name]] = np.asarray(n, float) / np.linalg.norm(n)
-    nf = p.fold[p.doa.arr]
-    p.doa.u = fold(p.doa.u, nf)
+        out[idx[name]] = np.asarray(n, float) / np.linalg.norm(n)
+    return out
 
 
 # A row's own DOA sigma (doa.csv ``sigma_deg``) is shrunk this far toward the type's: scale² = (1 − w) +
@@ -291,27 +358,27 @@ def doa_row_scales(doa, meta):
     return np.where(np.isfinite(scale2), np.sqrt(scale2), 1.0)
 
 
-def _split_cones(p, meta, idx):
+def _split_cones(doa, meta, idx, N):
     """Move the DOA rows of arrays listed in meta ``doa_axes`` (linear arrays, 2-mic pairs) to cone rows.
 
     ``doa_axes``: {array: axis}, the axis a unit vector in the array frame (sign free; usually a
     coordinate axis). Such an array measures only the angle θ between its axis and the source direction;
-    its doa.csv rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Sets
-    ``p.cone`` (its rows), ``p.cone_axis`` (N, 3) and ``p.rot_fixed_axis`` (N,).
+    its doa.csv rows hold any unit vector on that cone (the estimator uses cos θ = axis · u). Returns the
+    other DOA rows, the cone rows, ``cone_axis`` (N, 3) and ``rot_fixed_axis`` (N,).
     ``rot_fixed_axis`` is the array-frame coordinate axis k nearest the
     array's axis (-1 for other arrays): the rotation component about e_k is not estimated. The roll about
     the axis is not observable; the two components about the other coordinate axes move the axis in every
     direction (φ × a spans the plane ⟂ a when a_k ≠ 0), so they estimate it and fix that gauge.
     """
+    cone_axis, rot_fixed_axis = np.zeros((N, 3)), -np.ones(N, int)
     for name, ax in (meta.get("doa_axes") or {}).items():
         a = np.asarray(ax, float) / np.linalg.norm(ax)
-        k = int(np.argmax(np.abs(a)))
-        p.cone_axis[idx[name]] = a
-        p.rot_fixed_axis[idx[name]] = k
-    is_cone = p.rot_fixed_axis[p.doa.arr] >= 0
-    d = p.doa.select(is_cone)
-    p.cone = ConeRows(d.ev, d.arr, np.clip(np.einsum("ka,ka->k", p.cone_axis[d.arr], d.u), -1.0, 1.0), d.row)
-    p.doa = p.doa.select(~is_cone)
+        cone_axis[idx[name]] = a
+        rot_fixed_axis[idx[name]] = int(np.argmax(np.abs(a)))
+    is_cone = rot_fixed_axis[doa.arr] >= 0
+    d = doa.select(is_cone)
+    cone = ConeRows(d.ev, d.arr, np.clip(np.einsum("ka,ka->k", cone_axis[d.arr], d.u), -1.0, 1.0), d.row)
+    return doa.select(~is_cone), cone, cone_axis, rot_fixed_axis
 
 
 # The yaw of the odometry frame needs horizontal motion: a spread of the odometry across the vertical
@@ -319,10 +386,11 @@ def _split_cones(p, meta, idx):
 MIN_HORIZONTAL_SPREAD = 0.05
 
 
-def odometry_yaw_observable(p):
-    """True when the odometry moves horizontally enough (and there are DOAs) to fix its yaw."""
-    o = p.odom[:, :2] - p.odom[:, :2].mean(0)
-    return bool(len(p.doa.u) > 0 and p.K >= 3 and np.sqrt(np.mean(np.sum(o * o, axis=1))) > MIN_HORIZONTAL_SPREAD)
+def odometry_yaw_observable(odom, n_doa, K):
+    """True when the odometry (K, 3) moves horizontally enough (and there are ``n_doa`` > 0 DOA rows) to fix
+    its yaw."""
+    o = odom[:, :2] - odom[:, :2].mean(0)
+    return bool(n_doa > 0 and K >= 3 and np.sqrt(np.mean(np.sum(o * o, axis=1))) > MIN_HORIZONTAL_SPREAD)
 
 
 def _lines(df):

@@ -17,6 +17,7 @@ for the pull of a bad one.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -280,13 +281,25 @@ def count_measurements(p, exclude_arrays=()):
     return n
 
 
+class Removal(NamedTuple):
+    """:func:`remove_outliers`'s outcome: the state, the mask (kind → keep per residual), the flag records,
+    the info of the last solve (None: none ran), the statistics at the end (None when a solve followed
+    them) and whether the removal stopped at its cap."""
+    state: Any
+    mask: dict
+    flagged: list
+    info: dict | None
+    stats: Any
+    capped: bool
+
+
 def remove_outliers(p, st, lay, kinds, mask, *, threshold, loss, k, max_iter, exclude_arrays=(),
                     max_fraction=MAX_OUTLIER_FRACTION, stats=None):
     """Remove the single worst measurement while it is an outlier, re-solving (warm start) after each.
 
     ``mask``: kind → keep (per residual), updated copy returned. ``exclude_arrays``: array indices whose
-    rows are already dropped (not counted). Returns (state, mask, flagged records, info of the last solve,
-    stats at the end, stopped_at_cap bool). ``stats``: the statistics at (st, mask) when already known.
+    rows are already dropped (not counted). Returns a :class:`Removal`. ``stats``: the statistics at
+    (st, mask) when already known.
     """
     mask = {kk: v.copy() for kk, v in mask.items()}
     sizes = factor_sizes(p)
@@ -314,7 +327,7 @@ def remove_outliers(p, st, lay, kinds, mask, *, threshold, loss, k, max_iter, ex
             mask = _mask_measurement(mask, sizes[kind][0], kind, int(stats.index[worst]), sizes[kind][1])
         st, info = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=k, mask=mask, max_iter=max_iter, rtol=1e-6)
         stats = None
-    return st, mask, flagged, info, stats, capped
+    return Removal(st, mask, flagged, info, stats, capped)
 
 
 def restore_inliers(p, st, lay, kinds, mask, flagged, *, threshold, max_iter):

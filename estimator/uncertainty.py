@@ -8,10 +8,12 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse
+import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
-from calib.tables import columns
+from calib.tables import ARRAY_PARAM_KEY, ARRAY_PARAMS, columns
 
 from .factors import active_kinds
 from .problem import build_problem, empty_state, make_layout, retract
@@ -156,14 +158,12 @@ def std_from_cov(p, lay, cov):
     def pick(idx):
         return np.where(idx >= 0, sd[np.maximum(idx, 0)], np.nan)
 
-    out = {"x": pick(lay.x), "rot": pick(lay.rot), "offset": pick(lay.offset),
-           "drift": pick(lay.drift), "s": pick(lay.s), "e": pick(lay.e)}
+    out = {**{a.key: pick(getattr(lay, a.key)) for a in ARRAY_PARAMS}, "s": pick(lay.s), "e": pick(lay.e)}
     # a parameter the data leave undetermined (observability.check_observability) has no std, although
     # the gauge fixes only some of its components
-    key = {"position": "x", "orientation": "rot", "offset": "offset", "drift": "drift"}
     index = {str(n): i for i, n in enumerate(p.names)}
     for u in p.unobservable:
-        out[key[u["parameter"]]][index[u["array"]]] = np.nan
+        out[ARRAY_PARAM_KEY[u["parameter"]]][index[u["array"]]] = np.nan
     return out
 
 
@@ -229,3 +229,33 @@ def draw_from_crlb(bound, rng):
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     delta = V @ (np.sqrt(np.maximum(w, 0.0)) * rng.standard_normal(len(w)))
     return retract(bound["state"], bound["layout"], delta)
+
+
+def whiten(J, w):
+    """Rows of J scaled by sqrt(w) (IRLS weights), dense or sparse alike."""
+    if scipy.sparse.issparse(J):
+        return (scipy.sparse.diags(np.sqrt(w)) @ J).tocsr()
+    return J * np.sqrt(w)[:, None]
+
+
+def param_std(J, k):
+    """1-σ of parameter k from whitened J: sqrt((JᵀJ)⁻¹_kk) by one Cholesky solve (pinv if singular);
+    a sparse J by one sparse LU solve."""
+    if scipy.sparse.issparse(J):
+        d = np.sqrt(np.asarray(J.multiply(J).sum(axis=0)).ravel())
+        d = np.where(d > 0, d, 1.0)
+        Js = (J @ scipy.sparse.diags(1.0 / d)).tocsc()
+        e = np.zeros(J.shape[1])
+        e[k] = 1.0
+        x = scipy.sparse.linalg.splu((Js.T @ Js).tocsc()).solve(e)
+        return float(np.sqrt(max(x[k], 0.0)) / d[k])
+    d = np.linalg.norm(J, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    Js = J / d
+    e = np.zeros(J.shape[1])
+    e[k] = 1.0
+    try:
+        x = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Js.T @ Js), e)
+    except np.linalg.LinAlgError:
+        x = np.linalg.pinv(Js.T @ Js) @ e
+    return float(np.sqrt(max(x[k], 0.0)) / d[k])

@@ -82,7 +82,7 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
     """The verdict dict from the estimator's diagnostics.
 
     ratios : {kind: RMS normalised residual} (:func:`residual_ratios`); arrays: the consistency records
-    of ``calibrate.consistency_stage`` (``array``, ``inconsistent``, ``moves_sigma``); odometry_yaw: the
+    of ``joint.consistency_stage`` (``array``, ``inconsistent``, ``moves_sigma``); odometry_yaw: the
     yaw test ({yaw_deg, std_deg, kept}) — a kept yaw means the odometry is not in the frame it was said to be.
     excess: :func:`stated_sigma_excess`.
     """

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 from calib.errors import InputError
+from calib.records import Features
 from calib.tables import event_velocities
 
 from . import associate as assoc_mod
@@ -28,7 +29,8 @@ from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
-from .timing import drift_bias, fuse_times, locate, segment_spectra, spectra_setup, stretch_shifts
+from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, spectra_setup,
+                     stretch_bank, sweep_time)
 
 DEFAULTS = {
     "threshold": 8.0,        # detection: peak / local background of the matched-filter envelope
@@ -54,7 +56,7 @@ def _check_audio(session):
 
 
 def extract_features(session: Any, progress: Callable[[int, int, str], Any] | None = None, jobs: int = 1,
-                     **options: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+                     **options: Any) -> tuple[Features, dict[str, Any]]:
     """Features of a recording session.
 
     Parameters
@@ -69,7 +71,7 @@ def extract_features(session: Any, progress: Callable[[int, int, str], Any] | No
 
     Returns
     -------
-    features : dict as ``pipeline.formats.io.read_features`` returns (meta, events, tdoa_m, tdoa_s, doa), with
+    features : :class:`calib.records.Features`, as ``pipeline.formats.io.read_features`` returns them, with
         a ``quality`` column in tdoa_m, tdoa_s and doa (docs/frontend.md).
     diagnostics : dict (JSON-able except keys starting with ``_``): per-array detections, matches,
         missed events, spurious detections, association fit, warnings, timings.
@@ -99,24 +101,25 @@ def _extract(session, progress, opt, jobs=1):
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
     results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
-    curve = _stretch_curve(arrays[order[0]], session, c, opt)
-    flag_nlos(results, events, _shift_function(beta, curve), c)
+    for r in results.values():
+        # timed against the template stretched by ε̂ (Doppler bank): the arrival is the sweep start's plus
+        # β (ε − ε̂), linear in the small mismatch; adding β ε̂ gives the β ε convention of a static template
+        r["arrival"] = r["arrival"] + beta * r["stretch"]
+    flag_nlos(results, events, lambda eps: beta * eps, c)
     flag_doa_spread(results)
     warn_moving(results, events)
     if progress is not None:
         progress(len(arrays), len(arrays), "done")
 
     feats = _tables(session, results, ev_ids, beta)
-    if curve is not None:
+    if _max_speed(events) > 0:
         meta = feats["meta"]
-        meta["chirp_stretch_shift"] = curve
-        # the SRP weights the sweep's band evenly, and a linear sweep spends equal time per Hz: its DOA looks
-        # at the source as it was half-way through the sweep
-        meta["doa_time_s"] = 0.5 * float(session["chirp"]["duration"])
+        # when in the sweep the DOA looks at the source, and whose range rate the timing follows
+        meta["doa_time_s"], meta["stretch_time_s"] = _reference_sweep_times(arrays[order[0]], session, c, opt, beta)
         if "sigma_tdoa" in meta.get("sigmas_estimated", []):
-            meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion_sd(events, c, _shift_function(beta, curve))))
+            meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion_sd(events, c, beta)))
     diag = _diagnostics(session, results, ev_ids, beta, time.perf_counter() - t_start)
-    return feats, diag
+    return Features.from_dict(feats), diag
 
 
 def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
@@ -209,10 +212,14 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
         # propagation delays, so only as an upper bound on the measured broadening)
         # a source moving during the sweep stretches it by 1 + ṙ/c alike (events.csv vel_x/y/z: |ṙ| ≤ |v|)
-        stretch = abs(asc["scale"] - 1.0) + _max_speed(session["events"]) / c
+        bank = _event_bank(st["template"], setup, band, session["events"], ev_idx, c)
+        # with the Doppler bank only the mismatch of its step smears the sweep
+        stretch = abs(asc["scale"] - 1.0) + (_max_speed(session["events"]) / c if bank is None else
+                                             STRETCH_STEP_PULSES / (st["dur"] * (band[1] - band[0])))
         smear_max = int(round(max(0.0, 2 * stretch * st["dur"] - g["pulse"]) * fs))
         # event segments read and processed in chunks (memory bounded however long the recording)
-        loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max}, workers=fft_workers)
+        loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max, "own_phase": bank is not None},
+                            workers=fft_workers, bank=bank)
     finally:
         x.close()
     timings["timing"] = time.perf_counter() - t0
@@ -230,11 +237,38 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         "name": a["name"], "fs": fs, "n_samples": int(len(st["env"]) * st["dec"]), "channels": len(mics),
         "band": band, "phase": loc["phase"], "env": st["env"], "env_rate": st["env_rate"], "det_t": det_t,
         "det_score": st["score"], "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
-        "u": doa["u"], "doa_power": doa["power"], "redetected": st["redetected"],
+        "u": doa["u"], "doa_power": doa["power"], "redetected": st["redetected"], "stretch": loc["stretch"],
         "ambiguous_plane": doa["normal"] if a.get("doa_hemisphere") is None else None,
         "has_doa": doa["kind"] != "single", "doa_axis": doa["axis"],
         "mic_quality": loc["value"], "warnings": warnings, "timings": timings,
     }
+
+
+SPEED_SLACK = 0.1   # m/s: how much faster than its speed at the sweep start a robot may be during it (0.3 m/s² for
+                    # 0.3 s) plus the velocity's noise
+STRETCH_STEP_PULSES = 0.25   # Doppler bank spacing: a mismatch of half a step smears the pulse by 1/8 of its width
+                             # (2 Δε T / 2 = this × pulse / 2), where the shift stays linear in it (β Δε)
+
+
+def _event_bank(template, setup, band, events, ev_idx, c):
+    """:func:`_doppler_bank` with each event's bound on |ε| (|ṙ| ≤ its speed, + SPEED_SLACK and half a step)
+    as a third element; None for a robot that stops."""
+    bank = _doppler_bank(template, setup, band, _max_speed(events), c)
+    if bank is None:
+        return None
+    speed = np.linalg.norm(event_velocities(events), axis=1)[ev_idx]
+    return (*bank, (speed + SPEED_SLACK) / c + 0.5 * (bank[1][1] - bank[1][0]))
+
+
+def _doppler_bank(template, setup, band, vmax, c):
+    """:func:`timing.stretch_bank` over ± STRETCH_MARGIN × ``vmax``/c (the largest speed of events.csv's
+    velocities), a step of STRETCH_STEP_PULSES pulse widths of smear; None at 0 (a robot that stops)."""
+    if vmax <= 0:
+        return None
+    dur = len(template) / setup["fs"]
+    step = STRETCH_STEP_PULSES / ((band[1] - band[0]) * dur)
+    n = int(np.ceil(STRETCH_MARGIN * vmax / c / step))
+    return stretch_bank(template, setup, step * np.arange(-n, n + 1))
 
 
 def _max_speed(events):
@@ -243,46 +277,33 @@ def _max_speed(events):
     return float(np.max(np.linalg.norm(v, axis=1))) if v is not None and len(v) else 0.0
 
 
-STRETCH_POINTS = 17     # points of the stretch → shift curve (odd: ε = 0 among them)
-STRETCH_MARGIN = 1.25   # the curve spans ± this × the largest |v|/c of the events
+STRETCH_MARGIN = 1.25   # the Doppler bank spans ± this × the largest |v|/c of the events
 
 
-def _stretch_curve(a, session, c, opt):
-    """meta ``chirp_stretch_shift`` for a source that moves during the sweep (events.csv velocities): this
-    estimator's arrival shift for the sweep received stretched by 1 + ε (ε = ṙ/c), measured as β is
-    (:func:`timing.stretch_shifts`) at the reference array's rate, on ± STRETCH_MARGIN × the largest
-    |v|/c. Beyond a stretch of ~1e-4 the shift is no longer β ε. None without velocities."""
-    vmax = _max_speed(session["events"])
-    if vmax <= 0:
-        return None
+def _reference_sweep_times(a, session, c, opt, beta):
+    """(meta doa_time_s, stretch_time_s) of a source moving during the sweep: when the DOA looks at it
+    (:func:`timing.doa_time`) and when the range rate that moves the arrival is taken (t*,
+    :func:`timing.sweep_time`), at the rate and timing settings of array ``a`` (the reference), as
+    :func:`_reference_beta`."""
     fs = int(read_header(a).samplerate)
     template = chirp_template(session["chirp"], fs)
     band = chirp_band(session["chirp"], template, fs)
     g = _timing_layout(np.asarray(a["mics"], float), band, fs, c, len(template), opt)
-    eps = np.linspace(-1.0, 1.0, STRETCH_POINTS) * STRETCH_MARGIN * vmax / c
-    shift, real = stretch_shifts(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"], eps)
-    zero = float(np.interp(0.0, real, shift))
-    return {"stretch": [float(v) for v in real], "shift_s": [float(v - zero) for v in shift]}
+    setup = spectra_setup(template, fs, band, g["seg_len"], opt["whiten_hz"])
+    return (doa_time(template, setup),
+            sweep_time(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"], beta))
 
 
 MOTION_MODEL_ERROR = 0.2   # the shift model's error, a fraction of the shift: arrival errors against β ṙ/c had
                            # slopes 0.91-1.13 and ~100-150 µs scatter on the moving preset (seed 0, 0.5 m/s)
 
 
-def motion_sd(events, c, shift):
+def motion_sd(events, c, beta):
     """The TDOA error (s) a moving source's shift leaves after its correction: √2 × MOTION_MODEL_ERROR × the
-    RMS shift of a range rate of |v|/√3 (a random direction), added to the frontend's sigma_tdoa."""
+    RMS shift β ε of a range rate of |v|/√3 (a random direction), added to the frontend's sigma_tdoa."""
     v = event_velocities(events)
     eps = np.linalg.norm(v, axis=1) / np.sqrt(3) / c
-    return float(np.sqrt(2) * MOTION_MODEL_ERROR * np.sqrt(np.mean(shift(eps) ** 2)))
-
-
-def _shift_function(beta, curve):
-    """ε → arrival shift (s): the measured curve when there is one, else β ε."""
-    if curve is None:
-        return lambda eps: beta * eps
-    x, y = np.asarray(curve["stretch"]), np.asarray(curve["shift_s"])
-    return lambda eps: np.interp(eps, x, y)
+    return float(np.sqrt(2) * MOTION_MODEL_ERROR * beta * np.sqrt(np.mean(eps ** 2)))
 
 
 def _reference_beta(a, session, c, opt):
@@ -381,7 +402,7 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
 
 
-def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1):
+def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1, bank=None):
     """:func:`timing.locate` on all events, a chunk of events at a time (memory bounded by ``chunk_bytes``).
 
     x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
@@ -389,16 +410,28 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
     phase is estimated on the first chunk (all events when they fit in one) and used for every chunk, so
     all of the array's events share it. Returns locate's dict with the per-event arrays concatenated; its
     ``r`` holds only the lags ``r_lo[j] .. r_lo[j] + 2 gate`` of event j (``r_lo`` (J,) = dp − gate).
-    workers : threads of the segments' FFTs (:func:`timing.segment_spectra`).
+    workers : threads of the segments' FFTs (:func:`timing.segment_spectra`). bank : (factors, stretches[,
+    bound (J,)]) of :func:`_event_bank` (a source moving during the sweep): each event is timed against the
+    template stretched by its best-matching ε (:func:`timing.matched_stretch`, |ε| ≤ bound), returned as
+    ``stretch`` (J,); else 0.
     """
     m = x.shape[0]
     per_event = 32 * m * setup["nfft"]  # bound on a segment + its FFT + both band spectra, per event
     n = max(1, int(chunk_bytes // per_event))
-    parts, sizes, phase = [], [], locate_kw.get("phase")
+    parts, sizes, phase, own = [], [], locate_kw.get("phase"), locate_kw.get("own_phase", False)
     for j0 in range(0, max(len(starts), 1), n):
         chunk = starts[j0 : j0 + n]
         c, c_plain = segment_spectra(x, chunk, setup, plain=True, workers=workers)  # (J_c, M, Fb) each
+        stretch = np.zeros(len(chunk))
+        if bank is not None:
+            k = matched_stretch(c_plain, setup, bank[0], locate_kw["lo"], locate_kw["hi"], locate_kw["snr_factor"],
+                                locate_kw["min_ratio"], stretches=bank[1],
+                                bound=bank[2][j0 : j0 + n] if len(bank) > 2 else None)
+            c *= bank[0][k][:, None, :]
+            c_plain *= bank[0][k][:, None, :]
+            stretch = bank[1][k]
         res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
+        res["stretch"] = stretch
         # keep only the lags the DOA gate uses (± gate around the direct path), never a chunk-sized array
         hw = locate_kw.get("gate", 0)
         idx = (res["dp"] - hw - res["r_lo"])[:, None] + np.arange(2 * hw + 1)
@@ -406,10 +439,10 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
         res["r_lo"] = res["dp"] - hw
         parts.append(res)
         sizes.append(len(chunk))
-        phase = parts[0]["phase"]
+        phase = None if own else parts[0]["phase"]
     out = dict(parts[0])
     for key, v in parts[0].items():
-        if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == sizes[0] and key != "phase":
+        if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == sizes[0] and (key != "phase" or own):
             out[key] = np.concatenate([p[key] for p in parts])
     return out
 
@@ -637,7 +670,8 @@ def gated_spectra(r, r_lo, fs, setup, center, flat, taper, phase, right=None):
     width = 2 * half_width + 1
     nfft = int(2 ** np.ceil(np.log2(4 * width)))  # dense frequency sampling: per-bin PHAT is then accurate
     idx = (np.asarray(center) - half_width - r_lo)[:, None] + np.arange(width)  # (J, W)
-    seg = np.real(np.take_along_axis(r, idx[:, None, :], axis=-1) * np.exp(-1j * phase))
+    ph = np.asarray(phase)[:, None, None] if np.ndim(phase) else phase   # (J,): each event's own phase
+    seg = np.real(np.take_along_axis(r, idx[:, None, :], axis=-1) * np.exp(-1j * ph))
     right = np.full(len(idx), flat) if right is None else np.asarray(right)
     o = np.arange(width) - half_width  # offset from the centre
     edge = np.where(o[None, :] < 0, flat, right[:, None])  # (J, W) end of the flat part on each side
@@ -780,11 +814,12 @@ def _diagnostics(session, results, ev_ids, beta, elapsed):
             "arrivals": [{"event": int(ev_ids[j]), "time": float(r["arrival"][k]),
                           "quality": float(r["quality"][k]), "flag": "+".join(r["flags"][k]),
                           "mic_sd_s": float(r["mic_sd"][k]), "sd_s": float(r["arrival_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k])),
-                          "late_s": float(r["late"][k]) if "late" in r else None}
+                          "late_s": float(r["late"][k]) if "late" in r else None,
+                          "stretch": float(r["stretch"][k])}
                          for k, j in enumerate(r["ev_idx"])],
             "doubtful": {int(ev_ids[j]): r["flags"][k] for k, j in enumerate(r["ev_idx"]) if r["flags"][k]},
             "redetected_events": [int(ev_ids[j]) for j in np.flatnonzero(r["redetected"])],
-            "chirp_phase_rad": float(r["phase"]),
+            "chirp_phase_rad": float(estimate_phase(np.exp(1j * np.asarray(r["phase"])))),
             "warnings": r["warnings"],
             "timings_s": r["timings"],
             "_env": r["env"], "_env_rate": r["env_rate"],

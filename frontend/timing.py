@@ -120,6 +120,75 @@ def segment_spectra(x, starts, setup, plain=False, workers=-1):
     return (c, c_plain) if plain else c
 
 
+def stretch_bank(template, setup, stretches):
+    """Factors ``S_ε* / S*`` over the band (n, Fb) complex64 that turn :func:`segment_spectra`'s cross-spectra
+    with the template into those with the template received stretched by ``1 + ε`` about its start (a
+    source moving during the sweep, ε = ṙ/c), for each ε of ``stretches``, realised exactly as ``k / pad``
+    by band-limited resampling (as :func:`stretch_shifts`). The whitening divides by the smoothed magnitude,
+    which a stretch of ~1e-3 leaves unchanged, so multiplying by the factor is the whitened GCC against the
+    stretched template. Returns (factors, stretches realised (n,))."""
+    key = ("_stretch_bank", len(template), tuple(np.round(np.asarray(stretches, float), 12)))
+    if key not in setup:   # the arrays of a session share the setup (same rate and template): one bank
+        setup[key] = _stretch_bank(template, setup, stretches)
+    return setup[key]
+
+
+def _stretch_bank(template, setup, stretches):
+    from scipy.signal import resample  # (on use: `calib --help` does not wait for scipy.signal)
+
+    n, nfft, kb = len(template), setup["nfft"], setup["kb"]
+    step = np.min(np.abs(np.diff(np.sort(stretches)))) if len(stretches) > 1 else 1e-3
+    # ε is realised as k / pad: within a quarter step of the grid
+    pad = sfft.next_fast_len(max(2 * n, int(np.ceil(4.0 / max(step, 1e-9)))))
+    buf = np.zeros(pad)
+    buf[:n] = template
+    ref = np.conj(setup["tmpl_conj"])
+    ok = np.abs(ref) > 1e-6 * np.max(np.abs(ref))
+    out, real = [], []
+    for d in stretches:
+        k = int(round(d * pad))
+        y = resample(buf, pad + k)[: pad] if k else buf
+        spec = sfft.rfft(y[: min(len(y), nfft)], nfft)[kb]
+        out.append(np.where(ok, np.conj(spec) / np.where(ok, np.conj(ref), 1.0), 0.0))
+        real.append(k / pad)
+    return np.asarray(out).astype(np.complex64), np.asarray(real)
+
+
+def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, stretches=None,
+                    bound=None, coarse=1):
+    """Index (J,) of the row of ``bank`` (:func:`stretch_bank`) whose stretched template gives each event's
+    DIRECT PATH its highest peak: the Doppler filter that compresses the sweep of a moving source into one
+    pulse (unstretched, it spreads over 2|ε|T, ~1 ms at 0.5 m/s, and its peak then moves with the path's
+    curvature, reflections and noise by hundreds of µs). The direct path is the onset of the plain matched
+    filter on lags lo..hi (:func:`direct_path_lag`, settings as :func:`locate`), not the strongest peak: a
+    reflection has its own Doppler, and behind a directional speaker it is often the stronger.
+    c_plain : (J, M, Fb) plain spectra (:func:`segment_spectra`). stretches : the bank's ε (n,) and bound :
+    (J,) the largest |ε| each event can have (|ṙ| ≤ |v|: the source's speed); None: any row. Every
+    ``coarse``-th row first, then the rows around each event's best (the peak falls smoothly off its row)."""
+    n, J = len(bank), c_plain.shape[0]
+    allowed = np.ones((n, J), bool) if bound is None else np.abs(np.asarray(stretches))[:, None] <= bound[None, :]
+    peak = np.full((n, J), -np.inf)
+    ctx = (setup, lo, hi, pulse_envelope(setup, hi - lo, plain=True), pulse_near(setup, hi - lo, 2, plain=True),
+           (snr_factor, min_ratio, sidelobe_margin))
+    for i in range(0, n, coarse):
+        _direct_peaks(c_plain, bank, i, allowed[i], peak, ctx)
+    best = np.argmax(peak, axis=0)
+    for i in range(n):
+        near = allowed[i] & (np.abs(best - i) < coarse) & ~np.isfinite(peak[i])
+        _direct_peaks(c_plain, bank, i, near, peak, ctx)
+    return np.argmax(peak, axis=0)
+
+
+def _direct_peaks(c_plain, bank, i, which, peak, ctx):
+    """peak[i, which] = the direct path's height in the plain envelope with bank row i (in place)."""
+    if not np.any(which):
+        return
+    setup, lo, hi, pulse, near, kw = ctx
+    env = np.abs(lag_grid(c_plain[which] * bank[i], setup, lo, hi)).mean(axis=1)
+    dp = direct_path_lag(env, pulse, *kw, near=near)[0]
+    peak[i, which] = env[np.arange(len(dp)), dp]
+
+
 def _power(z):
     """``|z|²`` of a complex array without the square root of ``np.abs``."""
     return z.real * z.real + z.imag * z.imag
@@ -551,7 +620,8 @@ def refine_peak_along(y, k):
 
 
 def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, gate=0,
-           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=None, smear_max=None):
+           phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=None, smear_max=None,
+           own_phase=False):
     """Direct path and sub-sample chirp start at every mic, for all events of one array.
 
     c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path
@@ -559,7 +629,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     half_width : samples a mic's arrival may differ from the array's (aperture / c plus half a pulse).
     snr_factor, min_ratio, sidelobe_margin : :func:`direct_path_lag`. gate : extra lags kept around the
     window for the DOA. phase : carrier phase at the envelope peak (rad); None = estimate it from these
-    measurements. reflection_ratio : a later peak at least this × the direct path's (and not its sidelobe)
+    measurements; own_phase : each event's own (:func:`_carrier_phase`; ``phase`` returned (J,)). reflection_ratio : a later peak at least this × the direct path's (and not its sidelobe)
     is a strong reflection (it ends the DOA gate). c_onset : (J, M, Fb) spectra for the onset search
     (the plain matched filter of :func:`segment_spectra`, whose response is causal); None = ``c``.
     separate_pulses : a strong reflection within this many pulse widths (1 / bandwidth) of the direct path
@@ -620,15 +690,25 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     first = np.maximum(dp - pad, 0) - r_lo
     sums = grid if grid.covers(tau0, first, slack=int(np.ceil(0.5 * fs / fc)) + 2) else None
     env_tau, z = newton_envelope(c, freqs, tau0, sums=sums)
-    if phase is None:
-        phase = estimate_phase(z)
+    phase, ph = _carrier_phase(z, phase, own_phase)
     # carrier peak nearest the envelope peak (within half a carrier period), then Newton
-    dphi = np.angle(z * np.exp(-1j * phase))
-    tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), phase, sums=sums)
+    dphi = np.angle(z * np.exp(-1j * ph))
+    tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), ph, sums=sums)
     interference = interference_sd(env.mean(axis=1), dp - r_lo, half_width, pulse_near(setup, r.shape[-1], 0), fc)
     return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
             "interference": interference,
             "snr": snr, "strongest": strongest, "reflection": reflection, "separated": separated}
+
+
+def _carrier_phase(z, phase, own_phase):
+    """(phase, its broadcast against (J, M)): each event's own carrier phase (``own_phase``: a source moving
+    during the sweep stretches each arrival differently, and a stretch rotates the phase, ~0.4 rad per 1e-4),
+    else ``phase`` or, when None, the session's (:func:`estimate_phase`). z : (J, M) peak correlations."""
+    if own_phase:
+        phase = np.angle(np.sum(z, axis=1))
+    elif phase is None:
+        phase = estimate_phase(z)
+    return phase, (np.asarray(phase)[:, None] if np.ndim(phase) else phase)
 
 
 def _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_width, r_lo, separate_pulses,
@@ -993,6 +1073,49 @@ def drift_bias(template, fs, band, locate_kw, pre, seg_len, whiten_hz=500.0, del
     """
     (s1, s2), (d1, d2) = stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, (delta, -delta))
     return float((s1 - s2) / (d1 - d2))
+
+
+def sweep_time(template, fs, band, locate_kw, pre, seg_len, whiten_hz, beta, up=16):
+    """``t*`` (s after the sweep start): the instant of the sweep whose stretch this estimator's arrival
+    follows. A source moving during the sweep stretches it by ``1 + ṙ(t)/c``; with the range accelerating
+    (``r̈ = α c``: the path's curvature, the robot speeding up) the delay grows as ``ε t + ½ α t²`` and the
+    arrival moves by ``β (ε + α t*)``. Even weights over a linear sweep give ``T/2``; the envelope peak weighs
+    the band's middle more (0.44 T for a 0.5 s, 0.5-4 kHz sweep). Measured as β is, on the template received
+    with the delay ``± ½ α t²`` (central difference), evaluated at the emission times by band-limited
+    interpolation (×``up`` polyphase, then cubic). ``beta`` : :func:`drift_bias`. α keeps the group delay's
+    spread over the sweep (``~1.5 α T²``) at a quarter pulse: linear (at 4× that, t* came out 0.51 T)."""
+    from scipy.interpolate import CubicSpline
+    from scipy.signal import resample_poly
+
+    n = len(template)
+    alpha = 0.25 / ((band[1] - band[0]) * 1.5 * (n / fs) ** 2)
+    fine = resample_poly(np.r_[template, np.zeros(8)], up, 1)
+    spline = CubicSpline(np.arange(len(fine)) / (fs * up), fine)
+    setup = spectra_setup(template, fs, band, seg_len, whiten_hz)
+    u = (np.arange(seg_len) - pre) / fs
+    shifts = []
+    for a in (alpha, -alpha):
+        te = u.copy()
+        for _ in range(4):   # emission time of each sample: u = te + ½ a te² (fixed point, a te ≪ 1)
+            te = u - 0.5 * a * np.clip(te, 0, None) ** 2
+        y = np.where((te >= 0) & (te < n / fs), spline(np.clip(te, 0, None)), 0.0)
+        res = locate(segment_spectra(y[None, :], np.zeros(1, int), setup), setup, **locate_kw)
+        shifts.append(res["tau"][0, 0])
+    return float((shifts[0] - shifts[1]) / (2 * alpha * beta))
+
+
+def doa_time(template, setup):
+    """When (s after the sweep start) the DOA of a source moving during the sweep looks: the SRP-PHAT peak is
+    the least-squares fit of the per-frequency directions, each frequency weighted by its band weight × f²
+    (the phase differences between mics grow with f), and a sweep passes frequency f at its group delay
+    t(f): the weighted mean of t(f). A 0.5 s, 0.5-4 kHz linear sweep: 0.33 s (the DOAs of the moving preset
+    fitted best at 0.32 s: 0.02-0.14° against 0.24-0.58° at T/2, anechoic)."""
+    n = sfft.next_fast_len(4 * len(template), real=True)   # bins fine enough that the phase steps < π
+    freqs = sfft.rfftfreq(n, 1 / setup["fs"])
+    w = np.interp(freqs, setup["freqs"], setup["weights"], left=0.0, right=0.0) * freqs ** 2
+    k = np.flatnonzero(w > 0)
+    tg = -np.gradient(np.unwrap(np.angle(sfft.rfft(template, n)[k])), 2 * np.pi * freqs[k])
+    return float(np.sum(w[k] * tg) / np.sum(w[k]))
 
 
 def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stretches):

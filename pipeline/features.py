@@ -1,8 +1,11 @@
 """The features stage as files: a recording folder → features/ and diagnostics/ (both atomic)."""
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from calib.frontend import extract_features, plot_detections
 from calib.jsonutil import dumps_json
+from calib.records import Features
 
 from calib.pipeline.formats.io import atomic_dir, write_features_files
 from calib.pipeline.formats.outputs import publish
@@ -10,13 +13,13 @@ from calib.pipeline.formats.session import read_session
 
 
 def session_features(recordings, progress=None, jobs=1, **options):
-    """Read the session folder ``recordings`` (or take an already read session dict) and run the frontend.
+    """Read the session folder ``recordings`` (or take an already read session) and run the frontend.
 
     progress : optional ``progress(done, total, message)``. jobs : arrays at a time (threads; −1: one per
     core; the results do not depend on it). options : ``calib.frontend.DEFAULTS`` overrides.
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
-    session = recordings if isinstance(recordings, dict) else read_session(recordings)
+    session = recordings if isinstance(recordings, Mapping) else read_session(recordings)
     feats, diag = extract_features(session, progress=progress, jobs=jobs, **options)
     return add_session_meta(feats, session, diag), diag
 
@@ -27,13 +30,13 @@ def add_session_meta(feats, session, diag):
     ``mics``: {array: (M, 3) list, array frame, WAV channel order}, so ``calib estimate`` can write the mic
     geometry into calibration.json. ``reference_detections_s``: {event: local time (s) of the reference
     array's matched chirp detections} (the frontend's detection times, same chirp point as its arrivals): the
-    anchor of the reference array's absolute clock offset. Returns ``feats`` with an updated meta copy.
+    anchor of the reference array's absolute clock offset. Returns a new :class:`calib.records.Features`.
     """
     meta = dict(feats["meta"])
     meta["mics"] = {a["name"]: [[float(v) for v in m] for m in a["mics"]] for a in session["arrays"]}
     dets = (diag.get("arrays", {}).get(session["reference_array"]) or {}).get("detections") or []
     meta["reference_detections_s"] = {str(d["event"]): float(d["time"]) for d in dets if d.get("event") is not None}
-    return {**feats, "meta": meta}
+    return Features.from_dict({**feats, "meta": meta})
 
 
 def write_diagnostics(directory, diag):

@@ -33,7 +33,7 @@ def test_per_array_scaling_keeps_the_jacobian_exact():
     feats, _ = simulate_features(3, seed=1)
     p = build_problem(feats)
     rng = np.random.default_rng(0)
-    p.array_scale = {k: rng.uniform(1.0, 3.0, p.N) for k in ("tdoa_s", "tdoa_m", "doa")}
+    p = p.replace(array_scale={k: rng.uniform(1.0, 3.0, p.N) for k in ("tdoa_s", "tdoa_m", "doa")})
     st = state_from_dict({"x": rng.normal(0, 2, (p.N, 3)), "R": Rotation.random(p.N, random_state=1).as_matrix(),
                           "offset": rng.normal(0, 1e-3, p.N), "drift": np.zeros(p.N), "s": rng.normal(0, 2, (p.K, 3)),
                           "e": np.zeros(p.K), "odo_yaw": np.zeros(1)})

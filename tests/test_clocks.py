@@ -159,6 +159,49 @@ def test_a_common_emission_step_is_the_emitters_not_every_arrays():
     assert (s["after_event"], s["before_event"]) == (4, 5) and abs(s["size"] - 0.001) < 3 * s["std"]
 
 
+def test_delayed_arrivals_of_one_size_are_a_clock_step():
+    """delay_arrivals (the NLOS contrast) with one delay from an event on is exactly a clock step there."""
+    f, truth = simulate_features(3, SIGMA, seed=1, noise=False, clocks={"A3": {"steps": [{"size": 4e-4}]}})
+    clean, _ = simulate_features(3, SIGMA, seed=1, noise=False)
+    k = _interval(truth["clocks"]["A3"], f)[1]
+    late = ck.delay_arrivals(clean, "A3", {j: 4e-4 for j in f["events"]["event"] if j >= k})
+    for kind in ("tdoa_m", "tdoa_s"):
+        np.testing.assert_allclose(late[kind]["tdoa"].to_numpy(), f[kind]["tdoa"].to_numpy(), atol=1e-12)
+
+
+@pytest.mark.parametrize("seed,form", [(2, "tail"), (4, "block")])
+def test_reflections_are_not_modelled_as_clock_steps(seed, form):
+    """One array's arrivals late by a detour that changes from stop to stop (a blocked line of sight, from an
+    event on to the end, or for a stretch): no clock term anywhere, and the array named as with the linear
+    clock. The same array with one clock step of the delays' mean size is found (the contrast)."""
+    f, truth = simulate_features(3, SIGMA, seed=seed)
+    ev = f["events"]["event"].to_numpy()
+    rng = np.random.default_rng(seed)
+    k = len(ev) // 3
+    span = ev[k:] if form == "tail" else ev[k:k + 6]
+    late = {int(j): rng.uniform(3e-4, 1.2e-3) for j in span}
+    g = ck.delay_arrivals(f, "A3", late)
+    auto, linear = calibrate(g, clock_model="auto")["report"], calibrate(g, clock_model="linear")["report"]
+    assert not auto["clock"]["findings"]
+    assert "A3" in auto["verdict"]["flagged_arrays"] and auto["verdict"]["flagged_arrays"] == linear["verdict"]["flagged_arrays"]
+    size = float(np.mean(list(late.values())))
+    t = f["events"]["t_emit"].to_numpy()
+    f, truth = simulate_features(3, SIGMA, seed=seed, clocks={"A3": {"steps": [{"size": size, "time": 0.5 * (t[k - 1] + t[k])}]}})
+    (s,) = _steps(calibrate(f, clock_model="auto"), "A3")
+    assert (s["after_event"], s["before_event"]) == (k - 1, k) and abs(s["size"] - size) < 3 * s["std"]
+
+
+def test_rivals_the_data_cannot_tell_apart_are_named_while_the_chosen_one_is_kept():
+    from calib.estimator.clockmodel import _ambiguities
+
+    events, u = np.arange(4), np.array([0.0, 10.0, 20.0, 30.0])
+    rounds = [[{"array": "A4", "margin_chi2": 30.0}], [{"ambiguous": [("A5", "step", 15.0, -9.3e-5),
+                                                                      ("A4", "step", 15.0, 1.01e-4)]}]]
+    (text,) = _ambiguities(rounds, {"A5": [Component("step", 15.0, -9.3e-5)]}, events, u)
+    assert text.startswith("A5's step of -0.093 ms between events 1 and 2") and "A4's step of +0.101 ms" in text
+    assert _ambiguities(rounds, {}, events, u) == []      # the chosen one was eliminated later: nothing to name
+
+
 def test_correct_features_takes_a_model_out_of_the_tdoas():
     f, truth = simulate_features(3, SIGMA, seed=1, noise=False, clocks={"A3": {"steps": [{"size": 0.004}]},
                                                                          "A1": {"steps": [{"size": -0.002}]}})
@@ -171,6 +214,51 @@ def test_correct_features_takes_a_model_out_of_the_tdoas():
 
 
 # ----------------------------------------------------------------------------------------------- the user's path
+def test_estimate_clock_model_flag_and_evaluate_scores_the_clock(tmp_path):
+    """`calib estimate --clock-model auto` models A3's dropped block, `calib evaluate` scores it against
+    truth/clocks.json (found, in its interval, size within 3σ; the local time right to a few σ), and the
+    linear clock's calibration of the same features is scored as missing it."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from calib.cli.main import app
+    from calib.pipeline.formats.io import write_features, write_truth
+
+    f, truth = simulate_features(3, SIGMA, seed=1, clocks={"A3": {"steps": [{"size": -0.020}]}})
+    write_features(tmp_path / "features", f)
+    write_truth(tmp_path / "truth", truth, extra_files={"clocks.json": json.dumps(truth["clocks"])})
+    scored = {}
+    for model in ("auto", "linear"):
+        r = CliRunner().invoke(app, ["estimate", str(tmp_path / "features"), "-o", str(tmp_path / model), "-q",
+                                     "--clock-model", model])
+        assert r.exit_code in (0, 3), r.output
+        r = CliRunner().invoke(app, ["evaluate", str(tmp_path / model), str(tmp_path / "truth"), "--json"])
+        assert r.exit_code == 0, r.output
+        scored[model] = json.loads(r.output)["clock"]
+    got = scored["auto"]
+    (a3,) = [a for a in got["per_array"] if a["array"] == "A3"]
+    (s,) = a3["steps"]
+    assert s["found"] and s["placed"] and s["size_error_sigma"] <= 3
+    assert (s["after_event"], s["before_event"]) == _interval(truth["clocks"]["A3"], f)
+    assert (got["steps_found"], got["false_steps"], got["false_drift_models"]) == (1, 0, 0)
+    assert a3["local_time_max_error_s"] < 1e-4
+    miss = scored["linear"]
+    assert (miss["steps_found"], miss["steps_placed"]) == (0, 0)
+    # unmodelled, the 20 ms step leaves about half of it in A3's local time after a linear fit
+    assert miss["local_time_max_error_s"] > 5e-3
+    r = CliRunner().invoke(app, ["evaluate", str(tmp_path / "auto"), str(tmp_path / "truth")], terminal_width=200)
+    assert "1/1 true steps found" in r.output
+    # a clocks.json without the emission times (older folders): found and sized, the interval not judged
+    old = {n: {k: v for k, v in c.items() if k != "event_times"} for n, c in truth["clocks"].items()}
+    (tmp_path / "truth" / "clocks.json").write_text(json.dumps(old))
+    r = CliRunner().invoke(app, ["evaluate", str(tmp_path / "auto"), str(tmp_path / "truth"), "--json"])
+    (s,) = [a for a in json.loads(r.output)["clock"]["per_array"] if a["array"] == "A3"][0]["steps"]
+    assert s["found"] and s["placed"] is None and s["size_error_sigma"] <= 3
+    r = CliRunner().invoke(app, ["estimate", str(tmp_path / "features"), "-o", str(tmp_path / "x"), "--clock-model", "steps"])
+    assert r.exit_code == 2 and "clock_model" in r.output
+
+
 @pytest.mark.slow
 def test_calib_run_on_a_rendered_session_with_a_dropped_block(tmp_path):
     """`calib simulate --clock` renders the drop into A3's WAV; `calib run` finds it in its interval and the

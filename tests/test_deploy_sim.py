@@ -168,6 +168,15 @@ def test_deploy_presets_validate_and_vary_by_seed(preset):
     assert preset in PRESETS
 
 
+@pytest.mark.parametrize("preset", ["lab", "moving", "office"])
+def test_a_table_override_merges_into_the_preset(preset):
+    # `calib simulate --chirp-duration 1.0` (chirp={"duration": 1.0}): the chirp's band stays the preset's,
+    # on the room presets and on the deployment ones (which once replaced the whole chirp table)
+    base = validate_scenario(make_scenario(preset, 0))["chirp"]
+    got = validate_scenario(make_scenario(preset, 0, chirp={"duration": 1.0}))["chirp"]
+    assert got == {**base, "duration": 1.0} and base["duration"] != 1.0
+
+
 def test_presets_hold_their_conditions():
     # non-convex room: some (array, event) pairs lose the line of sight, not all
     for seed in (0, 1):

@@ -64,7 +64,7 @@ def _with_ranges(seed, outlier=None):
     df = pd.DataFrame(rows, columns=["event", "array", "range"])
     if outlier is not None:
         df.loc[outlier[0], "range"] += outlier[1]
-    feats["range"] = df
+    feats = feats.replace(range=df)
     feats["meta"]["sigma_range"] = SIGMA_RANGE
     return feats, truth
 

@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calib.estimator import ObservabilityError, calibrate
-from calib.estimator.calibrate import to_frames
+from calib.estimator.outputs import to_frames
 from calib.estimator.problem import build_problem
 from calib.estimator.wang import clock_line_fit, pose_by_alignment, range_windows, wang_initialise, wang_ranges
 from calib.pipeline.report.evaluate import evaluate
@@ -99,7 +99,7 @@ def test_calibrate_wang_recovers_truth_on_low_noise_data():
 def test_too_few_doas_is_an_observability_error_naming_the_array():
     feats, _ = simulate_features(1, seed=0, noise=False)
     doa = feats["doa"]
-    feats["doa"] = doa[(doa["array"] != "A3") | (doa["event"] < 3)].reset_index(drop=True)
+    feats = feats.replace(doa=doa[(doa["array"] != "A3") | (doa["event"] < 3)].reset_index(drop=True))
     with pytest.raises(ObservabilityError, match="A3"):
         calibrate(feats, method="wang")
 

@@ -5,12 +5,13 @@ the file, the row (1-based line number in the file, header = line 1) and the pro
 atomic: it writes into a temporary sibling directory and renames it into place, so an interrupted or
 failed write never leaves a partial directory that a later run could trust.
 
-In-memory representation (plain dicts of pandas DataFrames, sorted, with clean dtypes):
+In-memory representation (pandas DataFrames, sorted, with clean dtypes):
 
 ``features``
-    ``meta`` (dict), ``events`` (event, t_emit, odom_x, odom_y, odom_z), ``tdoa_m`` (event, array, tdoa),
-    ``tdoa_s`` (array, from_event, to_event, tdoa), ``doa`` (event, array, ux, uy, uz). Extra columns
-    (e.g. ``quality``) are kept.
+    a :class:`calib.records.Features` (read like a dict; :func:`validate_features` and the writers also
+    take the dict form): ``meta`` (dict), ``events`` (event, t_emit, odom_x, odom_y, odom_z), ``tdoa_m``
+    (event, array, tdoa), ``tdoa_s`` (array, from_event, to_event, tdoa), ``doa`` (event, array, ux, uy,
+    uz). Extra columns (e.g. ``quality``) are kept.
 ``calibration``
     ``arrays`` (array, x, y, z, qw, qx, qy, qz, offset, drift, optional ``*_std``), ``sources``
     (event, x, y, z, optional ``*_std``), ``report`` (dict).
@@ -25,6 +26,7 @@ import io
 import json
 import os
 import re
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +34,9 @@ import numpy as np
 import pandas as pd
 
 from calib import kinds as K
+from calib.records import Features
 from calib.kinds import Table  # noqa: F401  (re-exported: the table description lives with the kinds)
-from calib.tables import LINE_COLUMN
+from calib.tables import ARRAYS_COLUMNS, LINE_COLUMN
 
 
 from calib.errors import InputError  # noqa: F401  (re-exported: readers raise it)
@@ -44,7 +47,7 @@ from calib.pipeline.formats.outputs import publish, publish_mode, temp_path
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
-ARRAYS_COLS = ["array", "x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
+ARRAYS_COLS = list(ARRAYS_COLUMNS)   # (calib.tables: from the per-array parameters)
 SOURCES_COLS = ["event", "x", "y", "z"]
 DOA_NORM_TOL = 1e-3
 
@@ -244,7 +247,7 @@ def read_events(path):
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
              "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s", "chirp_stretch_shift",
-             "doa_time_s")   # + the kinds' noise keys
+             "doa_time_s", "stretch_time_s")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -279,8 +282,9 @@ def validate_meta(meta, path="meta.json"):
     if meta.get("chirp_drift_bias") is not None:
         out["chirp_drift_bias"] = V.number(meta["chirp_drift_bias"], f"{path}: 'chirp_drift_bias'",
                                            lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME)
-    if meta.get("doa_time_s") is not None:
-        out["doa_time_s"] = V.number(meta["doa_time_s"], f"{path}: 'doa_time_s'", lo=0.0, hi=V.MAX_ABS_TIME)
+    for key in ("doa_time_s", "stretch_time_s"):
+        if meta.get(key) is not None:
+            out[key] = V.number(meta[key], f"{path}: '{key}'", lo=0.0, hi=V.MAX_ABS_TIME)
     if meta.get("chirp_stretch_shift") is not None:
         out["chirp_stretch_shift"] = _stretch_curve(meta["chirp_stretch_shift"], path)
     est = meta.get("sigmas_estimated")
@@ -407,8 +411,9 @@ def validate_features(feats):
     return out
 
 
-def read_features(directory: str | Path) -> dict[str, Any]:
-    """Read and validate a ``features/`` directory (docs/formats.md section 2).
+def read_features(directory: str | Path) -> Features:
+    """Read and validate a ``features/`` directory (docs/formats.md section 2) → :class:`calib.records.Features`
+    (:func:`write_features` writes it back).
 
     The measurement tables (:func:`feature_tables`: tdoa_m.csv, tdoa_s.csv, doa.csv, ...) are optional (absent = no
     such measurements).
@@ -426,11 +431,12 @@ def read_features(directory: str | Path) -> dict[str, Any]:
     feats["meta"]["_path"] = str(d / "meta.json")
     out = validate_features(feats)
     out["meta"].pop("_path", None)
-    return out
+    return Features.from_dict(out)
 
 
-def write_features(directory: str | Path, feats: dict[str, Any], command: str = "calib") -> None:
-    """Write a features dict to ``directory`` atomically (validated first, so nothing bad is written)."""
+def write_features(directory: str | Path, feats: Mapping[str, Any], command: str = "calib") -> None:
+    """Write features (a :class:`calib.records.Features` or the dict form) to ``directory`` atomically
+    (validated first, so nothing bad is written); :func:`read_features` reads them back."""
     with atomic_dir(directory, command=command) as tmp:
         write_features_files(tmp, feats)
 

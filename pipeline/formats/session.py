@@ -1,6 +1,7 @@
 """Recording sessions (docs/formats.md section 1): ``session.toml`` + one WAV per array + ``events.csv``.
 
-A session in memory is a plain dict::
+A session in memory is a :class:`calib.records.Session`, which reads like this dict (the frontend also
+takes the dict form)::
 
     {
       "dir": Path,                      # the session folder
@@ -34,6 +35,7 @@ from calib.errors import InputWarning
 
 from calib.pipeline.formats import validate as V
 from calib.kinds import noise_keys
+from calib.records import Session
 from calib.pipeline.formats.io import InputError, atomic_write_text, read_events
 
 DEFAULT_SPEED_OF_SOUND = 343.0  # m/s, air at 20 °C
@@ -50,7 +52,7 @@ ARRAY_KEYS = ("name", "wav", "files", "channels", "mics", "doa_hemisphere")
 
 
 def read_session(directory, check_audio=True):
-    """Read and validate a recording session folder. WAV headers are checked (channels, sample rate vs
+    """Read and validate a recording session folder → :class:`calib.records.Session`. WAV headers are checked (channels, sample rate vs
     the chirp band), the samples are not read; ``check_audio=False`` skips that (``calib check`` lists
     every audio problem itself instead of stopping at the first).
 
@@ -95,7 +97,7 @@ def read_session(directory, check_audio=True):
                                           hi=TEMPERATURE_C[1])
     if check_audio:
         _check_audio(session, p)
-    return session
+    return Session.from_dict(session)
 
 
 def _check_event_spacing(events, duration):

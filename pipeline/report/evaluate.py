@@ -168,6 +168,8 @@ def evaluate(calib: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     out["per_array"] = [
         {"array": a, **{k: float(errs[k][n]) for k in errs if k != "array"}} for n, a in enumerate(errs["array"])
     ]
+    if truth.get("clocks"):
+        out["clock"] = clock_errors(calib, truth)
     return out
 
 
@@ -223,3 +225,106 @@ def feature_errors(feats, scenario):
                              - np.arccos(np.clip(np.sum(ut * ax, axis=1), -1, 1))))
     return {"tdoa_m_raw": raw, "tdoa_m": raw - beta * (delta[i] - delta[ref]), "tdoa_s": es, "doa": ang,
             "doa_folded": folded, "cone": np.where(np.any(ax != 0, axis=1), cone, np.nan), "dd": delta[i] - delta[ref]}
+
+
+# ----------------------------------------------------------------------------------------------- clocks
+STEP_SIGMAS = 3.0   # a recovered step's size is right when within this many of its own σ of the truth
+
+
+def clock_errors(calib, truth):
+    """A calibration's clock models (its arrays' offsets and drifts, report.json ``clock``) against a simulation's true clocks
+    (truth/clocks.json, :func:`calib.pipeline.simulate.clocks.clock_record`), or None without them.
+
+    Per array (every array of the report's clock block or the truth's clocks): its true steps, each with
+    ``found`` (a recovered step of the same sign, matched nearest in time, each used once), ``placed`` (in
+    the same event interval), ``size_error_s`` and ``size_error_sigma`` (|error| / the step's own σ);
+    ``false_steps`` (recovered steps matching none), the true and recovered drift model, the true and
+    recovered nominal-rate ratio, and ``local_time_max_error_s`` / ``local_time_rms_error_s``: the recovered
+    clock (offset, drift, steps and drift terms, :func:`calib.estimator.clockmodel.as_clock`) minus the true
+    one at the session's emission times, relative to the reference's (the frame the data fix). Totals:
+    ``steps_true``, ``steps_found``, ``steps_placed``, ``steps_size_ok`` (within STEP_SIGMAS σ),
+    ``false_steps``, ``false_drift_models`` (a varying drift recovered for a linear true clock) and the
+    largest local-time error.
+    """
+    records = truth.get("clocks") or {}
+    if not records:
+        return None
+    from calib.clock import Clock
+
+    report = calib.get("report") or {}
+    clock = report.get("clock") or {}
+    entries = clock.get("arrays") or {}
+    t = truth["arrays"]
+    names, offset, drift = t["array"].tolist(), t["offset"].to_numpy(float), t["drift"].to_numpy(float)
+    rec0 = next(iter(records.values()))
+    t0 = float(rec0.get("t0", 0.0))
+    # (a clocks.json from before event_times: no interval nor local-time error to score)
+    u = np.asarray(rec0.get("event_times") or [], float)
+    true = {n: Clock.from_dict(records[n]) if n in records else Clock(offset[k], drift[k], t0)
+            for k, n in enumerate(names)}
+    est = _estimated_clocks(calib, t0)
+    err = {n: (est[n].local(t0 + u) - true[n].local(t0 + u)) if n in est else np.full(len(u), np.nan) for n in names}
+    ref = names[int(np.argmin(np.linalg.norm(columns(t, ("x", "y", "z")), axis=1)))]
+    per = []
+    for n in names:
+        if n not in records and not (entries.get(n) or {}).get("components"):
+            continue   # a linear clock recovered as linear: nothing to score beyond the offset and drift
+        rel = err[n] - err[ref]
+        per.append({"array": n, **_step_scores(records.get(n, {}), (entries.get(n) or {}).get("steps") or [], u),
+                    "drift_model_true": _true_drift_model(records.get(n, {})),
+                    "drift_model": (entries.get(n) or {}).get("drift_model", "linear"),
+                    "rate_ratio_true": float(records.get(n, {}).get("rate_ratio", 1.0)),
+                    "rate_ratio": ((entries.get(n) or {}).get("nominal_rate") or {}).get("ratio"),
+                    "local_time_max_error_s": (float(np.max(np.abs(rel))) if n != ref else 0.0) if len(u) else None,
+                    "local_time_rms_error_s": (_rms(rel) if n != ref else 0.0) if len(u) else None})
+    steps = [s for a in per for s in a["steps"]]
+    return {"steps_true": len(steps), "steps_found": sum(s["found"] for s in steps),
+            "steps_placed": sum(bool(s["placed"]) for s in steps),
+            "steps_size_ok": sum(bool(s["size_error_sigma"] is not None and s["size_error_sigma"] <= STEP_SIGMAS)
+                                 for s in steps),
+            "false_steps": sum(a["false_steps"] for a in per),
+            "false_drift_models": sum(a["drift_model_true"] == "linear" and a["drift_model"] != "linear" for a in per),
+            "local_time_max_error_s": max((a["local_time_max_error_s"] or 0.0 for a in per), default=0.0)
+            if len(u) else None,
+            "per_array": per}
+
+
+def _estimated_clocks(calib, t0):
+    """{array: its recovered :class:`calib.clock.Clock`}: the calibration's offset and drift, and the steps
+    and drift terms of its report's clock models."""
+    from calib.estimator.clockmodel import as_clock, models_from_report
+
+    models = models_from_report(calib.get("report"))
+    a = calib["arrays"]
+    return {str(n): as_clock(models.get(str(n), []), o, d, t0=t0)
+            for n, o, d in zip(a["array"], a["offset"].to_numpy(float), a["drift"].to_numpy(float))}
+
+
+def _true_drift_model(record):
+    """The true clock's drift model in the report's words: linear, or its terms' kinds."""
+    words = {"exp": "warm-up", "table": "random walk", "quadratic": "quadratic", "hinge": "piecewise_linear"}
+    kinds = sorted({words.get(e["kind"], e["kind"]) for e in record.get("terms") or ()})
+    return "+".join(kinds) if kinds else "linear"
+
+
+def _step_scores(record, recovered, u):
+    """``steps`` (one score per true step) and ``false_steps`` of one array (:func:`clock_errors`)."""
+    events = np.arange(len(u))
+    left = list(recovered)
+    out = []
+    for s in sorted(record.get("steps") or (), key=lambda s: s["time"]):
+        before, after = u < s["time"], u > s["time"]
+        interval = (int(events[before].max()) if before.any() else None,
+                    int(events[after].min()) if after.any() else None)
+        same = [r for r in left if np.sign(r["size"]) == np.sign(s["size"])]
+        r = min(same, key=lambda r: abs(r["time"] - s["time"])) if same else None
+        if r is not None:
+            left.remove(r)
+        e = None if r is None else float(r["size"] - s["size"])
+        out.append({"time": float(s["time"]), "size": float(s["size"]), "after_event": interval[0],
+                    "before_event": interval[1], "found": r is not None,
+                    "placed": (r is not None and (r.get("after_event"), r.get("before_event")) == interval)
+                    if len(u) else None,
+                    "size_error_s": e,
+                    "size_error_sigma": abs(e) / r["std"] if r is not None and r.get("std") else None})
+    return {"steps": out, "false_steps": len(left)}

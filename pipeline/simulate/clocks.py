@@ -99,10 +99,15 @@ def _walk_term(walk, duration, rng):
     return Term("table", {"knots": knots, "values": values})
 
 
-def clock_record(clock, faults=None):
-    """The truth's record of one array's clock: the clock's JSON form + the nominal-rate ratio."""
+def clock_record(clock, faults=None, event_times=None):
+    """The truth's record of one array's clock: the clock's JSON form + the nominal-rate ratio, and the
+    session's emission times (s since t0, ``event_times``: events 0, 1, …) that ``calib evaluate`` scores the
+    clock at (which interval a step lies in, the local-time error over the session)."""
     faults = resolve(faults)
-    return {**clock.to_dict(), "rate_ratio": rate_ratio(faults.get("rate"))}
+    out = {**clock.to_dict(), "rate_ratio": rate_ratio(faults.get("rate"))}
+    if event_times is not None:
+        out["event_times"] = np.asarray(event_times, float).tolist()
+    return out
 
 
 
@@ -150,5 +155,27 @@ def rate(a, t):
 
 def records(sc, faults):
     """{array name: clock record} of a normalised scenario's faulty clocks (truth/clocks.json)."""
-    return {a["name"]: clock_record(a["clock"], (faults or {}).get(a["name"])) for a in sc["arrays"]
+    t = np.asarray(sc["t_emit"], float)
+    return {a["name"]: clock_record(a["clock"], (faults or {}).get(a["name"]), t - t[0]) for a in sc["arrays"]
             if a.get("clock") is not None}
+
+
+# ----------------------------------------------------------------------------------------------- not a clock
+def delay_arrivals(features, array, delays):
+    """A copy of (featsim) ``features`` with ``array``'s arrivals late by ``delays`` {event: s}: what a blocked
+    line of sight does (the first arrival is a reflection, late by a path difference that changes from stop to
+    stop), the contrast to a clock step (late by one size at every later event). Its TDOA-M at event j gain
+    delays[j], its TDOA-S over (a, b) gain delays[b] − delays[a]; the reference's delays shift every TDOA-M."""
+    d = {int(k): float(v) for k, v in delays.items()}
+    ref = features["meta"]["reference_array"]
+    out = dict(features)
+    tm = features["tdoa_m"].copy()
+    late = tm["event"].map(lambda e: d.get(int(e), 0.0)).to_numpy(float)
+    sign = np.where(tm["array"].to_numpy() == array, 1.0, 0.0) - (1.0 if array == ref else 0.0)
+    tm["tdoa"] = tm["tdoa"].to_numpy(float) + sign * late
+    ts = features["tdoa_s"].copy()
+    mine = ts["array"].to_numpy() == array
+    step = (ts["to_event"].map(lambda e: d.get(int(e), 0.0)) - ts["from_event"].map(lambda e: d.get(int(e), 0.0))).to_numpy(float)
+    ts["tdoa"] = ts["tdoa"].to_numpy(float) + np.where(mine, step, 0.0)
+    out["tdoa_m"], out["tdoa_s"] = tm, ts
+    return out

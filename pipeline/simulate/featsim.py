@@ -14,6 +14,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.geometry import arrival_time, fold
+from calib.records import Features
 
 # The paper's three trajectories (speaker stops, metres, before the +0.5 m shift) and the boxes the
 # non-reference arrays are drawn in (low corner, size).
@@ -88,7 +89,7 @@ class SceneSpec:
 
 def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4, sigma_doa_deg: float = 5.0,
                       sigma_odo: float = 0.03, seed: int = 0, *, tdoa_s: bool = True, tdoa_m: bool = True,
-                      noise: bool = True, clocks: dict | None = None, **scene: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+                      noise: bool = True, clocks: dict | None = None, **scene: Any) -> tuple[Features, dict[str, Any]]:
     """Draw one scene of the paper's protocol and its noisy features.
 
     Parameters
@@ -111,7 +112,8 @@ def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4
 
     Returns
     -------
-    features, truth : dicts as returned by ``calib.pipeline.formats.io.read_features`` / ``read_truth``.
+    features, truth : a :class:`calib.records.Features` and a dict, as ``calib.pipeline.formats.io.read_features``
+        / ``read_truth`` return them.
     """
     spec = SceneSpec(**scene)
     if spec.positions is not None:
@@ -134,7 +136,7 @@ def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4
     out = _truth_frames(stops, truth)
     if truth["clocks"]:
         out["clocks"] = {truth["names"][i]: rec for i, (_, rec) in truth["clocks"].items()}
-    return features, out
+    return Features.from_dict(features), out
 
 
 def _fault_clocks(clocks, tr, seed):
@@ -150,7 +152,7 @@ def _fault_clocks(clocks, tr, seed):
         i = tr["names"].index(key) if isinstance(key, str) else int(key)
         clk = ck.fault_clock(tr["offset"][i], tr["drift"][i], faults, event_times=tr["t"], rng=rng)
         tr["drift"][i] = clk.drift
-        out[i] = (clk, ck.clock_record(clk, faults))
+        out[i] = (clk, ck.clock_record(clk, faults, tr["t"]))
     return out
 
 

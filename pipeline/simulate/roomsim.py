@@ -142,7 +142,8 @@ def make_scenario(preset: str = "paper-traj3", seed: int = 0, **overrides: Any) 
 
 def _deploy_scenario(preset, g, sc, overrides):
     """A deployment preset (pipeline/simulate/deploy.py): the layout drawn from the seed, overrides kept."""
-    sc |= {k: copy.deepcopy(v) for k, v in overrides.items() if k in SCENE_KEYS}
+    # keys _start merged (tables such as chirp: --chirp-duration keeps f0/f1) stay merged; the rest as given
+    sc |= {k: copy.deepcopy(v) for k, v in overrides.items() if k in SCENE_KEYS and not isinstance(v, dict)}
     try:
         stream = zlib.crc32(preset.encode())       # each preset its own draws: no two share a room by seed
         deploy.build(g, sc, lambda k: _rng(sc["seed"], 200 + k, stream), overrides)

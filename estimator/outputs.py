@@ -1,0 +1,86 @@
+"""A solution as the tables a user reads: arrays and sources (docs/formats.md section 3), residuals per
+measurement type, and the parameters the data leave undetermined."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
+
+from calib.tables import ARRAY_PARAMS
+
+from .factors import KINDS, natural
+
+
+def undetermined_parameters(p):
+    """What the data leave undetermined but the estimator can work around, per parameter (report.json
+    ``undetermined``): orientations of arrays with DOAs for fewer than 2 events (single microphones, arrays
+    without usable DOAs) are not estimated — kept at identity with NaN std — while their positions and
+    clocks come from the TDOAs. Returns a list of {"parameter", "array", "reason"}."""
+    out = []
+    for i in range(p.N):
+        if i != p.ref and p.rot_free[i] and p.rot_fixed_axis[i] >= 0:
+            out.append({"parameter": "roll", "array": str(p.names[i]), "axis": p.cone_axis[i].tolist(),
+                        "reason": "linear array / mic pair: the rotation about its axis is not observable (not "
+                                  "estimated, NaN std); the axis direction is"})
+        if i != p.ref and not p.rot_free[i]:
+            nd = int(p.n_doa_events[i])
+            out.append({"parameter": "orientation", "array": str(p.names[i]),
+                        "reason": f"DOAs for {nd} event(s) (>= 2 needed): not estimated, reported as identity "
+                                  "with NaN std; position and clock from the TDOAs"})
+    return out + list(p.unobservable)   # found by the rank check (observability.py)
+
+
+def residual_table(fs, mask=None):
+    """Per measurement type: count, RMS in natural units (µs, deg, cm)."""
+    out = {}
+    for f in fs:
+        if len(f.r) == 0:
+            continue
+        keep = mask[f.kind] if mask and f.kind in mask else np.ones(len(f.r), bool)
+        r = natural(f)[keep]
+        if f.dim == 3:
+            r = np.linalg.norm(r.reshape(-1, 3), axis=1)
+        unit, scale = KINDS[f.kind].unit, KINDS[f.kind].scale
+        out[f.kind] = {"n": int(len(r)), f"rms_{unit}": float(np.sqrt(np.mean(r * r)) * scale) if len(r) else 0.0}
+    return out
+
+
+def _quaternions(R):
+    """(N, 4) scalar-first unit quaternions of rotation matrices (N, 3, 3), with qw >= 0."""
+    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q
+
+
+def to_tables(p, st):
+    """State → the plain tables scoring reads (``pipeline.report.evaluate.array_table`` / ``source_table``):
+    the values :func:`to_frames` would put in its DataFrames, without building them (the Monte-Carlo study
+    scores every run and stage)."""
+    arrays = {"names": list(p.names), "xyz": st.x, "quat": _quaternions(st.R), "offset": st.offset,
+              "drift": st.drift}
+    return arrays, {"event": np.asarray(p.events), "xyz": st.s}
+
+
+def to_frames(p, st, std=None):
+    """State (+ std) → arrays and sources DataFrames of docs/formats.md section 3."""
+    a, s = to_tables(p, st)
+    arrays = {"array": a["names"], **{c: a["xyz"][:, k] for k, c in enumerate("xyz")},
+              **{c: a["quat"][:, k] for k, c in enumerate(("qw", "qx", "qy", "qz"))},
+              "offset": a["offset"], "drift": a["drift"]}
+    sources = {"event": s["event"], **{c: s["xyz"][:, k] for k, c in enumerate("xyz")}}
+    if std is not None:   # the columns collected first: one DataFrame each (a column insert costs ~0.1 ms)
+        for a in ARRAY_PARAMS:
+            v = std[a.key].reshape(len(std[a.key]), -1)   # (N, dim)
+            arrays.update({c: v[:, k] for k, c in enumerate(a.std_columns)})
+        sources.update({f"{c}_std": std["s"][:, k] for k, c in enumerate("xyz")})
+    return pd.DataFrame(arrays), pd.DataFrame(sources)
+
+
+def without_claims(std, arrays):
+    """``std`` with NaN for the parameters of ``arrays`` (indices; in place): an unreliable array's pose was
+    refitted alone from data the rest contradict; the joint covariance holds no row of it (its std came out
+    ~1e-8 m), so no uncertainty is claimed (empty, as the reference's)."""
+    for i in arrays:
+        for a in ARRAY_PARAMS:
+            std[a.key][i] = np.nan
+    return std
