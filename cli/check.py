@@ -23,9 +23,9 @@ def check(
 ):
     """Check a session before a long run: channels vs mics, sample rates, recording length, chirp audible in
     each array, events and odometry plausible; and the set-up consistency stage: dead, clipped, inverted or
-    swapped channels, the mic geometry against the inter-mic delays (shape, units), each array's clock, copied
-    recordings, the speed of sound against the odometry, the trajectory. Exit code 0 when nothing FAILs, 2
-    otherwise."""
+    swapped channels, the mic geometry against the inter-mic delays (shape, units), each board's size against
+    its delays and the odometry, each array's clock, copied recordings, the speed of sound against the
+    odometry, the trajectory. Exit code 0 when nothing FAILs, 2 otherwise."""
     from rich.table import Table
 
     from calib.pipeline.sessiontools import check_session

@@ -11,6 +11,13 @@ from calib.pipeline.formats.outputs import check_file_replaceable, write_file
 from calib.pipeline.sessiontools import MODELS, PER_MIC_NAME, init_session
 from .common import Quiet, console, user_errors
 
+COMMAND = "calib init"
+# the other writers of a session.toml (a simulated session; "calib": a folder written before the manifest named
+# its command, or by a library call): calib's own session descriptions, which --force may replace; only a file
+# named session.toml (their events.csv or WAVs are a recording's, never init's to replace)
+SESSION_WRITERS = ("calib simulate", "calib")
+SESSION_NAME = "session.toml"
+
 
 @user_errors
 def init(
@@ -46,9 +53,11 @@ def init(
     spec = {**dict.fromkeys(_array_names(folder, layout), plain[0] if plain else "custom"), **per} if per else plain[0]
     path = out if out is not None else folder / "session.toml"
     inputs = [folder, *sorted(folder.glob("*.wav"))]
-    check_file_replaceable(path, inputs, replace=force, command="calib init")  # before the work: never a user's file
+    kin = SESSION_WRITERS if path.name == SESSION_NAME else ()
+    # before the work: never a user's file
+    check_file_replaceable(path, inputs, replace=force, command=COMMAND, kin=kin)
     text = init_session(folder, spec, reference=reference, layout=layout)
-    write_file(path, text, command="calib init", inputs=inputs, replace=force)
+    write_file(path, text, command=COMMAND, inputs=inputs, replace=force, kin=kin)
     if not quiet:
         console.print(f"wrote {path}")
 

@@ -510,6 +510,8 @@ def _without_fixed(lay, fixed):
         return lay
     for key, mask in fixed.items():
         setattr(lay, key, np.where(mask, -1, getattr(lay, key)))
+    if lay.n == 0:  # nothing free (e.g. the reference array alone, its drift held): nothing to renumber
+        return lay
     keys = [f.name for f in dataclasses.fields(lay) if f.name != "n"]
     used = np.zeros(lay.n, bool)
     for k in keys:

@@ -32,7 +32,7 @@ import numpy as np
 from .detect import matched_envelope, pick_peaks, refine_peak
 from .signals import ArrayAudio, band_weights, chirp_band, chirp_template
 
-N_EVENTS = 8              # strongest chirps whose inter-mic delays are measured
+N_EVENTS = 12             # strongest chirps whose inter-mic delays are measured
 MAX_BOARD_M = 0.5         # m: no single board is wider; bounds the lag search when the declared size is wrong
 MIN_BOARD_M = 0.15        # m: the lag search covers at least this (a geometry declared too small)
 UPSAMPLE = 8              # cross-correlation interpolation factor (before the parabolic refinement)
@@ -42,12 +42,16 @@ PLATEAU_RUN = 4           # samples: a run of equal values at least this long ne
 CLIP_LEVEL = 0.9          # ... near the peak: above this fraction of the channel's largest magnitude
 CLIP_FRACTION = 0.005     # fraction of the chirp samples on such plateaus above which a channel is clipped
 INVERTED_FRACTION = 0.75  # a mic whose pair peaks are negative in more than this fraction: inverted
+MISFIT_QUANTILE = 0.3     # the events' misfit that judges a geometry: most events (not all) must fit it
 MISFIT_FAIL = 0.15        # misfit RMS over the array's largest measured delay: the geometry does not fit
 MISFIT_NAMED = 0.02       # ... above this, a fix that cuts it by FIX_NAMED names the channel (clean: < 0.005)
 FIX_NAMED = 5.0
 MISFIT_FLOOR_S = 3e-6     # s: below this absolute misfit a geometry always fits (clean rooms: 0.1-1.2 µs)
 FIX_RATIO = 3.0           # a fix (a swap, leaving a mic out) must cut the misfit by this factor to be named
 SCALE_FAIL = 1.6          # |w|·c (the declared size's inverse scale) off 1 by more than this factor
+SCALE_FAIL_3D = 1.15      # ... a 3-D array's, agreed on by CONSENSUS_SUPPORT of its events (clean: ≤ 1.11)
+CONSENSUS_TOL = 0.05      # relative: events whose |w|·c agree this well agree on the scale (clean: ~1 %)
+CONSENSUS_SUPPORT = 0.4
 
 
 @dataclass(frozen=True)
@@ -74,10 +78,12 @@ class PairDelays:
 
 @dataclass(frozen=True)
 class GeometryFit:
-    """:func:`fit_geometry`'s result. misfit : s, median over events of the RMS pair residual; ratio : misfit
+    """:func:`fit_geometry`'s result. misfit : s, the RMS pair residual of the events (:func:`_misfit`); ratio : misfit
     over the largest measured pair delay; scale : the factor by which the declared geometry is too large
     (1 = right; NaN if not measurable); loo : {mic: misfit without it}; swaps : {(m, n): misfit with the two
-    swapped}; used : mics in the fit."""
+    swapped}; used : mics in the fit; support : the fraction of the events that agree on the scale (a 3-D
+    array: :func:`consensus`; a planar or linear one: those with ``|w|·c > 1``, which only a geometry declared
+    too small gives)."""
     misfit: float
     ratio: float
     scale: float
@@ -85,6 +91,7 @@ class GeometryFit:
     loo: dict = field(default_factory=dict)
     swaps: dict = field(default_factory=dict)
     used: tuple = ()
+    support: float = np.nan
 
 
 # ----------------------------------------------------------------------------------------------- detection
@@ -222,14 +229,34 @@ def measure_delays(x, mics, template, fs, band, times, c):
 
 # ----------------------------------------------------------------------------------------------- fits
 def _misfit(tau, pairs, mics, use):
-    """Median over events of the RMS pair residual of the per-event plane-wave fit, over the pairs of mics
-    ``use``; and the per-event fitted ``w`` (K, 3)."""
+    """The MISFIT_QUANTILE over events of the RMS pair residual of the per-event plane-wave fit, over the pairs
+    of mics ``use``; and the per-event fitted ``w`` (K, 3). A wrong geometry misfits every event; a
+    reflection stronger than the direct path (a reverberant room, a wall-mounted board) only some."""
     sel = np.isin(pairs[:, 0], use) & np.isin(pairs[:, 1], use)
     A = -(mics[pairs[sel, 0]] - mics[pairs[sel, 1]])  # (P', 3)
     y = tau[:, sel].T  # (P', K)
     w, *_ = np.linalg.lstsq(A, y, rcond=None)
     res = y - A @ w
-    return float(np.median(np.sqrt(np.mean(res**2, axis=0)))), w.T
+    return float(np.quantile(np.sqrt(np.mean(res**2, axis=0)), MISFIT_QUANTILE)), w.T
+
+
+def _rank(mics, tol=1e-3):
+    """Dimension spanned by the mics (1 linear, 2 planar, 3 volume): a plane wave's unknowns."""
+    sv = np.linalg.svd(mics - mics.mean(axis=0), compute_uv=False)
+    return int(np.sum(sv > tol * max(sv[0], 1e-12)))
+
+
+def consensus(x, tol=CONSENSUS_TOL):
+    """The value most of ``x`` (> 0) agree on, within a relative ``tol``: the median of the largest group
+    within ±tol of one of them, and that group's fraction of ``x``. A 3-D array's scale ``|w|·c`` per event:
+    with 4 mics every event fits a plane wave exactly (3 delays, 3 unknowns), so an event whose direct path a
+    reflection hid shows only as a wrong ``|w|·c`` (0.1–3 in reverberant rooms), never as a misfit."""
+    lx = np.log(np.asarray(x, float)[np.asarray(x, float) > 0])
+    if not lx.size:
+        return np.nan, 0.0
+    near = np.abs(lx[:, None] - lx[None, :]) <= np.log1p(tol)
+    best = int(np.argmax(near.sum(axis=1)))
+    return float(np.exp(np.median(lx[near[best]]))), float(near[best].sum() / len(lx))
 
 
 def fit_geometry(delays, mics, c, exclude=()):
@@ -237,27 +264,37 @@ def fit_geometry(delays, mics, c, exclude=()):
     wave of each event is free, so the misfit measures the geometry only (:class:`GeometryFit`).
 
     scale: the declared geometry is ``scale`` × too large. A 3-D array measures it from every event
-    (``1 / median(|w| c)``); a planar (or linear) one only sees the in-plane part of ``w``, so ``|w| c ≤ 1``
-    and only the largest over the events estimates it (a source near the plane, usually the case)."""
+    (``1 / |w| c``, the value the events agree on: :func:`consensus`); a planar (or linear) one only sees the
+    in-plane part of ``w``, so ``|w| c ≤ 1``: the events above 1, when many, say it is too small (the largest
+    but one: the source nearest the plane, an outlier spared), else the largest is only a bound (exact for a source in the plane; its odometry tells the rest:
+    ``calib.pipeline.setupcheck.geometry_scale_fit``)."""
     mics = np.asarray(mics, float)
     use = tuple(m for m in range(len(mics)) if m not in exclude)
     span = float(np.max(np.abs(delays.tau))) if delays.tau.size else 0.0
     if len(use) < 3 or not delays.tau.size:
         return GeometryFit(np.nan, np.nan, np.nan, span, used=use)
     misfit, w = _misfit(delays.tau, delays.pairs, mics, use)
+    if len(use) - 1 <= _rank(mics[list(use)]):  # as many delays as a plane wave's unknowns: any delays fit
+        misfit = np.nan
     wc = np.linalg.norm(w, axis=1) * c
     d = mics[list(use)] - mics[list(use)].mean(axis=0)
     sv = np.linalg.svd(d, compute_uv=False)
     full3d = sv[-1] > 0.1 * sv[0]
-    scale = 1.0 / float(np.median(wc) if full3d else np.max(wc)) if np.max(wc) > 0 else np.nan
+    mode, support = consensus(wc)
+    if not full3d:  # |w|·c ≤ 1 for any plane wave: the events above it, if many, say the size is too small;
+        # they spread with the sources' elevations (cos el / scale): the sources nearest the plane tell the scale
+        over = wc[wc > 1.0]
+        support = len(over) / len(wc)
+        mode = np.sort(over)[-2] if len(over) > 1 else np.max(wc)  # the largest but one (an outlier spared)
+    scale = 1.0 / float(mode) if mode > 0 else np.nan
     loo = {m: _misfit(delays.tau, delays.pairs, mics, tuple(u for u in use if u != m))[0]
-           for m in use} if len(use) > 3 else {}
+           for m in use} if len(use) - 2 > _rank(mics[list(use)]) else {}  # the rest still over-determined
     swaps = {}
     for a, b in combinations(use, 2):
         p = mics.copy()
         p[[a, b]] = p[[b, a]]
         swaps[(a, b)] = _misfit(delays.tau, delays.pairs, p, use)[0]
-    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, loo, swaps, use)
+    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, loo, swaps, use, support)
 
 
 def inverted_channels(delays, exclude=()):

@@ -12,7 +12,9 @@ What is checked, and from what:
 | dead / weak / clipped / duplicated channel | chirp energy, plateaus at the peak level, equal samples | ``frontend.consistency`` |
 | inverted polarity | negative inter-mic correlation peaks | ``frontend.consistency`` |
 | swapped channels, wrong shape, wrong coordinates | inter-mic delays vs the declared rigid geometry | ``frontend.consistency`` |
-| coordinates in cm instead of m | the plane-wave fit's scale ``|w|·c`` | ``frontend.consistency`` |
+| coordinates in cm instead of m, a 3-D board's size | the plane-wave fit's scale ``|w|·c`` (the chirps' consensus) | ``frontend.consistency`` |
+| a planar board declared too small | ``|w|·c`` above 1 in many chirps | ``frontend.consistency`` |
+| a planar or linear board's size | its DOAs' in-plane (axial) part against the odometry's directions | :func:`geometry_scale_fit` |
 | wrong sample rate in a header | the detections' interval ratio to the emission times | ``frontend.consistency`` |
 | the same recording for two arrays | equal samples | :func:`identical_recordings` |
 | wrong speed of sound / odometry units | ranges from the metric odometry vs the arrivals | :func:`speed_of_sound_fit` |
@@ -23,8 +25,9 @@ What is checked, and from what:
 
 Library use (a notebook)::
 
-    from calib.pipeline.setupcheck import setup_findings
-    for f in setup_findings(read_session("rec")): print(f.status, f.text)
+    from calib.pipeline.setupcheck import folder_findings, setup_findings
+    for f in setup_findings(read_session("rec")): print(f.status, f.text)   # the recordings alone
+    for f in folder_findings("rec"): print(f.status, f.text)                # with the features (odometry checks)
 """
 from __future__ import annotations
 
@@ -41,7 +44,8 @@ CLOCK_FAIL = 0.005        # an array's clock this far (relative) from the emissi
 CLOCK_SUPPORT = 0.2       # ... found from at least this fraction of the emission intervals
 STANDARD_RATES = (8000, 11025, 16000, 22050, 24000, 32000, 44100, 48000, 88200, 96000, 176400, 192000)
 SOUND_TOL = 0.03          # relative: a declared speed of sound this far from the odometry's is wrong ...
-SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate
+SOUND_SIGMA = 4.0         # ... and this many standard errors of that estimate ...
+SOUND_AGREE = 3.0         # ... the arrays agreeing on it (the spread of their estimates at most this × their errors)
 ODO_SIGMA_DEFAULT = 0.02  # m: odometry noise per event when meta.json states none
 TYPICAL_RANGE_M = 2.0     # m: source distance that turns the odometry's noise into a direction's
 SOUND_AT_0C, SOUND_PER_C = 331.3, 0.606  # m/s, m/s per °C: dry air
@@ -50,8 +54,12 @@ DOA_TRUST = 2.5           # RMS normalised residual above which the DOAs do not 
 MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RMS) is also fitted mirrored ...
 MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
 S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
-MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit
+MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit ...
+MIN_SOUND_DOF = 4         # ... and arrivals beyond its unknowns (a near-exact fit can be confidently wrong)
 SAME_START_M = 1e-3       # m: starts of that fit closer than this lie in one minimum (tried once)
+STEP_CHI2 = 36.0          # a break in an array's chain of arrivals must explain this much χ² (a 6σ step) ...
+MAX_STEPS = 2             # ... and at most this many breaks are made per array
+NLOS_MINORITY = 0.5       # an array's arrivals flagged "nlos" left out of the fits while at most this fraction
 ODO_RESIDUAL_S = 3e-3     # s: arrivals the odometry cannot explain to better than this (RMS): another session's log
 ODO_MISFIT = 12.0         # ... or arrivals and DOAs this many sigmas off (RMS; σ_odo included; real sets: ≤ 5)
 MATCHED_FAIL = 0.5        # fewer chirps than this fraction of the events matched: events.csv does not fit
@@ -60,6 +68,19 @@ PLANE_RATIO = 0.05        # third below this × the second: sources in one plane
 HORIZONTAL_COS = 0.9      # ... which is harmless when horizontal in the reference frame (|n_z| above this)
 IDENTICAL_SECONDS = 2.0   # s of audio compared between recordings
 PLANAR_SCALE_FAIL = 5.0   # a planar array's scale (an upper bound only) must be off by this much
+# the scale fit keeps the DOAs the frontend doubts for a reflection inside the gate (from the surface the array
+# is mounted on, a table or a wall, the image is the source mirrored across a plane parallel to the array's:
+# the same in-plane direction) ...
+# ... and a spread SRP peak (what a mis-scaled geometry itself gives): the robust fit weighs them
+SCALE_DOA_DOUBTS = ("doa_reflection", "doa_spread")
+SCALE_ROBUST = 3.0        # σ: the scale fit's soft-L1 loss turns linear beyond this ...
+SCALE_OUTLIER = 5.0       # ... and drops the DOAs it leaves this far off before its plain (covariance) fit
+SOUND_PRIOR = 0.01        # relative: the air's speed of sound near the declared one (±5 °C ≈ ±0.9 %) in that fit
+ROTATION_STARTS = 4       # the scale fit refines the best this many of its starting rotations
+SATURATED = 0.98          # a DOA's projection this near 1: at the horizon (the measured size clipped there)
+SCALE_RANGE = 5.0         # the fitted scale is searched within 1/this .. this (beyond: the delays' own check)
+SCALE_TOL = 0.15          # relative: a planar or linear array's declared geometry this much too large or small ...
+SCALE_SIGMA = 4.0         # ... and this many standard errors of its fitted scale: the wrong geometry
 
 
 @dataclass(frozen=True)
@@ -140,9 +161,7 @@ def geometry_findings(a, d, c, exclude=()):
     the wrong shape, the wrong units."""
     mics, wav = np.asarray(a["mics"], float), _wav(a)
     g = C.fit_geometry(d, mics, c, exclude)
-    if not np.isfinite(g.misfit):
-        return []
-    if g.misfit > C.MISFIT_FLOOR_S and g.ratio > C.MISFIT_NAMED:
+    if np.isfinite(g.misfit) and g.misfit > C.MISFIT_FLOOR_S and g.ratio > C.MISFIT_NAMED:
         f = _misfit_finding(a, g, mics, C.FIX_RATIO if g.ratio > C.MISFIT_FAIL else C.FIX_NAMED)
         if f is not None:
             return [f]
@@ -150,8 +169,10 @@ def geometry_findings(a, d, c, exclude=()):
         return []
     planar = np.linalg.svd(mics[list(g.used)] - mics[list(g.used)].mean(axis=0), compute_uv=False)
     full3d = planar[-1] > 0.1 * planar[0]
-    too_big = g.scale > (C.SCALE_FAIL if full3d else PLANAR_SCALE_FAIL)
-    if too_big or g.scale < 1 / C.SCALE_FAIL:
+    agreed = g.support >= C.CONSENSUS_SUPPORT  # a 3-D array's events, or a planar one's above |w|·c = 1
+    fail = C.SCALE_FAIL_3D if agreed else C.SCALE_FAIL
+    too_big = g.scale > (fail if full3d else PLANAR_SCALE_FAIL)
+    if (too_big or g.scale < 1 / fail) and (agreed or not full3d):
         p10 = 10 ** np.round(np.log10(g.scale))
         hint = (f"in {'cm' if p10 == 100 else 'mm' if p10 == 1000 else 'other units'} instead of m? divide them "
                 f"by {p10:g}" if too_big and p10 >= 10 and abs(np.log10(g.scale / p10)) < 0.15
@@ -239,9 +260,19 @@ def identical_recordings(session, seconds=IDENTICAL_SECONDS):
 
 
 # ----------------------------------------------------------------------------------------------- features
+def _flags(column):
+    """The frontend's doubts of each row (a ``flag`` column: names joined by '+', empty or NaN for none): sets."""
+    return [set(str(f).split("+")) - {""} if isinstance(f, str) else set() for f in column]
+
+
 def _arrival_chain(tdoa_s, name):
     """(events, relative arrivals, segment id) of one array from its TDOA-S rows chained end to end."""
     rows = tdoa_s[tdoa_s["array"] == name].sort_values("from_event")
+    if "flag" in rows:  # the arrivals the frontend found late against the odometry's range track (a blocked
+        # direct path): left out while a minority; most of them late: the odometry's own evidence, kept
+        late = np.array(["nlos" in f for f in _flags(rows["flag"])], bool)
+        if late.mean() <= NLOS_MINORITY:
+            rows = rows[~late]
     ev, t, seg = [], [], []
     k = -1
     for f, to, dt in zip(rows["from_event"].to_numpy(int), rows["to_event"].to_numpy(int), rows["tdoa"].to_numpy(float)):
@@ -390,21 +421,75 @@ def _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper=True, starts=None):
         float(np.sqrt(np.mean(res**2)))
 
 
-def _doa_rows(features, name, e_id):
+def _doa_rows(features, name, e_id, ambiguous=False, allow=()):
     """(K, 3) DOAs of array ``name`` at events ``e_id`` in its frame (NaN where none, or where the array's DOAs
-    are ambiguous: a planar array without hemisphere, a linear one)."""
+    are ambiguous: a planar array without hemisphere, a linear one; ``ambiguous=True``: those as given).
+    The rows the frontend doubts are left out, but for those whose flags are all in ``allow``."""
     meta = features["meta"]
     u = np.full((len(e_id), 3), np.nan)
-    if name in (meta.get("doa_mirror_normals") or {}) or name in (meta.get("doa_axes") or {}):
+    if not ambiguous and (name in (meta.get("doa_mirror_normals") or {}) or name in (meta.get("doa_axes") or {})):
         return u
     doa = features["doa"]
     doa = doa[doa["array"] == name]
     if "flag" in doa:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
-        doa = doa[doa["flag"].isna() | (doa["flag"].astype(str) == "")]
+        doa = doa[[f <= set(allow) for f in _flags(doa["flag"])]]
     doa = doa.drop_duplicates("event").set_index("event")
     have = np.isin(e_id, doa.index)
     u[have] = doa.loc[e_id[have], ["ux", "uy", "uz"]].to_numpy(float)
     return u
+
+
+def _sigmas(meta):
+    """(σ of an arrival, σ of a direction) in the quick fits: the odometry's noise is the largest part here,
+    ranges and directions to its positions carry it."""
+    c0, sig_o = float(meta["speed_of_sound"]), float(meta.get("sigma_odo") or ODO_SIGMA_DEFAULT)
+    sig_t = float(np.hypot(float(meta.get("sigma_tdoa") or 1e-5) / np.sqrt(2), sig_o / c0))
+    sig_d = float(np.hypot(np.radians(float(meta.get("sigma_doa_deg") or 1.0)), sig_o / TYPICAL_RANGE_M))
+    return sig_t, sig_d
+
+
+def _array_data(features, name):
+    """One array's arrivals against the odometry: (odometry (K, 3), emission times from the first (K,),
+    arrivals less the emission intervals (K,), segment ids (K,), event ids (K,)); None when too few."""
+    ev = features["events"].set_index("event")
+    e_id, t, seg = _arrival_chain(features["tdoa_s"], name)
+    keep = np.isin(e_id, ev.index)
+    if keep.sum() < MIN_SOUND_EVENTS:
+        return None
+    e_id, t, seg = e_id[keep], t[keep], np.unique(seg[keep], return_inverse=True)[1]
+    te = ev.loc[e_id, "t_emit"].to_numpy(float)
+    odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+    return odo, te - te[0], t - (te - te[0]), seg, e_id
+
+
+def split_steps(odo, e, y, seg, sig_t, max_steps=MAX_STEPS):
+    """Segment ids ``seg`` with the chain of arrivals broken where it steps: an emission interval logged wrong
+    (every array then sees the same error on that TDOA-S row: 0.7–0.9 ms in two of the real sets) or a block
+    of samples dropped or inserted (one array). A step shifts every later arrival of its chain, which no range
+    explains; each break frees an offset, so one is made only where it cuts the arrivals' χ² by STEP_CHI2 (the
+    array's position from the arrivals' best start, held), at most ``max_steps``."""
+    from scipy.optimize import least_squares
+
+    seg = np.asarray(seg, int).copy()
+    x0 = _arrival_starts(odo, e, y, seg, n_best=1)[0][:3]
+
+    def chi2(sg):  # the linear parameters projected out, the position refined from x0
+        def res(x):
+            A = np.column_stack([np.eye(sg.max() + 1)[sg], e, np.linalg.norm(odo - x, axis=1)])
+            return (y - A @ np.linalg.lstsq(A, y, rcond=None)[0]) / sig_t
+        return 2 * least_squares(res, x0, method="lm", max_nfev=50).cost
+
+    for _ in range(max_steps):
+        base = chi2(seg)
+        cands = [j for j in range(1, len(y)) if seg[j] == seg[j - 1]]
+        if not cands:
+            break
+        trials = {j: np.where(np.arange(len(y)) >= j, seg + (seg == seg[j]), seg + (seg > seg[j])) for j in cands}
+        j, best = min(((j, chi2(sg)) for j, sg in trials.items()), key=lambda t: t[1])
+        if base - best < STEP_CHI2:
+            break
+        seg = np.unique(trials[j], return_inverse=True)[1]
+    return seg
 
 
 def speed_of_sound_fit(features, proper=True, arrays=None):
@@ -414,32 +499,26 @@ def speed_of_sound_fit(features, proper=True, arrays=None):
     {array: (c, std of c, RMS arrival residual s, RMS normalised residual)} for the arrays with enough
     arrivals; c is inf (std inf) where the best fit has no positive 1/c (no range explains the arrivals).
     proper=False: each array's DOAs are fitted with a mirror (an improper rotation) instead; arrays: only these."""
-    ev = features["events"].set_index("event")
     meta = features["meta"]
-    # the odometry's noise is the largest part here: ranges and directions to its positions carry it
-    c0, sig_o = float(meta["speed_of_sound"]), float(meta.get("sigma_odo") or ODO_SIGMA_DEFAULT)
-    sig_t = float(np.hypot(float(meta.get("sigma_tdoa") or 1e-5) / np.sqrt(2), sig_o / c0))
-    sig_d = float(np.hypot(np.radians(float(meta.get("sigma_doa_deg") or 1.0)), sig_o / TYPICAL_RANGE_M))
+    sig_t, sig_d = _sigmas(meta)
     out = {}
     with single_thread_blas():  # small matrices (calib.blas)
         for name in meta["arrays"] if arrays is None else arrays:
-            fit = _array_sound_fit(features, ev, name, sig_t, sig_d, proper)
+            fit = _array_sound_fit(features, name, sig_t, sig_d, proper)
             if fit is not None:
                 out[name] = fit
     return out
 
 
-def _array_sound_fit(features, ev, name, sig_t, sig_d, proper):
+def _array_sound_fit(features, name, sig_t, sig_d, proper):
     """One array's entry of :func:`speed_of_sound_fit` (None: too few arrivals)."""
-    e_id, t, seg = _arrival_chain(features["tdoa_s"], name)
-    keep = np.isin(e_id, ev.index)
-    if keep.sum() < MIN_SOUND_EVENTS:
+    data = _array_data(features, name)
+    if data is None:
         return None
-    e_id, t, seg = e_id[keep], t[keep], np.unique(seg[keep], return_inverse=True)[1]
-    te = ev.loc[e_id, "t_emit"].to_numpy(float)
-    odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
-    e = te - te[0]
-    y = t - e
+    odo, e, y, seg, e_id = data
+    seg = split_steps(odo, e, y, seg, sig_t)
+    if len(y) - (seg.max() + 1) - 5 < MIN_SOUND_DOF:  # x (3), δ, k and an offset per segment
+        return None
     u = _doa_rows(features, name, e_id)
     starts = _arrival_starts(odo, e, y, seg)
     k, sk, rms, misfit = _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper, starts)
@@ -448,6 +527,142 @@ def _array_sound_fit(features, ev, name, sig_t, sig_d, proper):
         # the arrivals alone; the misfit kept for the mirror and the odometry tests
         k, sk, rms, _ = _fit_one_array(odo, e, y, seg, np.full_like(u, np.nan), sig_t, sig_d, starts=starts)
     return (1.0 / k, sk / k**2, rms, misfit) if k > 0 else (np.inf, np.inf, rms, misfit)
+
+
+# ----------------------------------------------------------------------------------------------- geometry scale
+def _subspace(mics):
+    """(3, r) orthonormal basis of what the array's delays measure of a direction: its axis (r = 1, a linear
+    array), its plane (r = 2); None for a volume array (its delays measure the scale directly) or one mic."""
+    from calib.frontend.doa import mic_geometry
+
+    kind, v = mic_geometry(mics)
+    if kind == "linear":
+        return np.asarray(v, float)[:, None]
+    if kind == "planar":
+        return np.linalg.svd(np.asarray(v, float)[None, :])[2][1:].T
+    return None
+
+
+def _projected(h):
+    """A direction's measured projection ``h`` (K, r) as the array's SRP reports it: clipped to the unit ball
+    (a geometry declared too small asks for more than a plane wave gives: the search stops at the horizon)."""
+    n = np.linalg.norm(h, axis=1, keepdims=True)
+    return h / np.maximum(n, 1.0)
+
+
+def _scale_residual(odo, e, y, seg, m, B, sig_t, sig_d, c0):
+    """Residual of the scaled-geometry fit: θ = (x, τ per segment, δ, k, rotation vector (3), log s); the
+    arrivals as :func:`_one_array_residual`, and the DOAs' projections ``m`` (K, r) on the array's subspace
+    ``B`` (3, r) against ``Bᵀ Rᵀ d / s`` (``d`` the directions to the odometry's positions): what the array
+    measures when its declared geometry is ``s`` × the true one; the speed of sound held near the declared
+    ``c0`` (SOUND_PRIOR: checked on its own before, :func:`sound_findings`)."""
+    from scipy.spatial.transform import Rotation
+
+    nseg = seg.max() + 1
+    arrivals = _one_array_residual(odo, e, y, seg, np.full((len(odo), 3), np.nan), sig_t, sig_d)
+    has = np.all(np.isfinite(m), axis=1)
+
+    def f(theta):
+        x, rv, log_s = theta[:3], theta[5 + nseg : 8 + nseg], theta[8 + nseg]
+        diff = odo[has] - x
+        d = diff / np.linalg.norm(diff, axis=1, keepdims=True)
+        h = _projected(d @ Rotation.from_rotvec(rv).as_matrix() @ B / np.exp(log_s))
+        return np.concatenate([arrivals(theta[: 5 + nseg]), ((m[has] - h) / sig_d).ravel(),
+                               [(theta[4 + nseg] * c0 - 1) / SOUND_PRIOR]])
+    return f
+
+
+def _rotation_starts(u, d, B):
+    """Starting rotations (rotation vectors) of the scaled fit: the DOAs as given and mirrored across the
+    array's plane (a planar array without hemisphere), taken to the directions ``d`` by :func:`_kabsch`,
+    and the 24 rotations of the cube (a linear array's DOAs fix its axis only)."""
+    from scipy.spatial.transform import Rotation
+
+    has = np.all(np.isfinite(u), axis=1)
+    starts = []
+    if has.sum() >= 3:
+        flips = [np.eye(3)] + ([np.eye(3) - 2 * np.outer(n, n) for n in [np.cross(*B.T)]] if B.shape[1] == 2 else [])
+        starts = [Rotation.from_matrix(_kabsch(u[has] @ F.T, d[has])).as_rotvec() for F in flips]
+    return starts + list(Rotation.create_group("O").as_rotvec())
+
+
+def geometry_scale_fit(features, name, mics):
+    """The factor ``s`` by which array ``name``'s declared geometry ``mics`` is larger than the one its DOAs
+    and arrivals fit against the metric odometry: (s, std of log s, RMS normalised residual at s, at s = 1);
+    None for a volume array (the delays measure its scale, :func:`calib.frontend.consistency.fit_geometry`)
+    or too few data. A planar (linear) array's delays measure only the in-plane part (the axial component)
+    of a source's direction, its size times that part: a geometry ``s`` × too large shrinks it by ``s`` (the
+    frontend reports the sources higher above the plane, or nearer the axis's normal), which the delays alone
+    cannot tell from a source that is; the odometry's positions seen from the array can."""
+    from scipy.optimize import least_squares
+
+    B = _subspace(np.asarray(mics, float))
+    data = _array_data(features, name)
+    if B is None or data is None:
+        return None
+    odo, e, y, seg, e_id = data
+    u = _doa_rows(features, name, e_id, ambiguous=True, allow=SCALE_DOA_DOUBTS)
+    has = np.all(np.isfinite(u), axis=1)
+    if has.sum() < MIN_SOUND_EVENTS:
+        return None
+    sig_t, sig_d = _sigmas(features["meta"])
+    c0 = float(features["meta"]["speed_of_sound"])
+    arr = _one_array_residual(odo, e, y, seg, np.full_like(u, np.nan), sig_t, sig_d)
+    theta0 = min((least_squares(arr, th, x_scale="jac", max_nfev=100) for th in _arrival_starts(odo, e, y, seg)),
+                 key=lambda sol: sol.cost).x
+    diff = odo - theta0[:3]
+    d = diff / np.linalg.norm(diff, axis=1, keepdims=True)
+    m = u @ B
+    f = _scale_residual(odo, e, y, seg, m, B, sig_t, sig_d, c0)
+    # the arrivals' parameters held: a cheap first pass over the starting rotations
+    starts = sorted(_rotation_starts(u, d, B), key=lambda rv: float(np.sum(f(np.r_[theta0, rv, 0.0]) ** 2)))
+    best = min((least_squares(lambda q: f(np.r_[theta0, q[:3], np.clip(q[3], -1.0, 1.0)]), np.r_[rv, 0.0], max_nfev=60)
+                for rv in starts[:ROTATION_STARTS]), key=lambda sol: sol.cost)
+    lo, hi = np.full(len(best.x) + len(theta0), -np.inf), np.full(len(best.x) + len(theta0), np.inf)
+    lo[-1], hi[-1] = -np.log(SCALE_RANGE), np.log(SCALE_RANGE)
+    start = np.r_[theta0, best.x[:-1], np.clip(best.x[-1], 0.9 * lo[-1], 0.9 * hi[-1])]
+    sol = least_squares(f, start, x_scale="jac", loss="soft_l1", f_scale=SCALE_ROBUST, bounds=(lo, hi), max_nfev=200)
+    # the DOAs the robust fit leaves out (a reflection, a spread peak) dropped; the plain fit's covariance then
+    res = np.linalg.norm(sol.fun[len(y):len(y) + B.shape[1] * has.sum()].reshape(-1, B.shape[1]), axis=1)
+    m[np.flatnonzero(has)[res > SCALE_OUTLIER]] = np.nan
+    if np.all(np.isfinite(m), axis=1).sum() < MIN_SOUND_EVENTS:
+        return None
+    f = _scale_residual(odo, e, y, seg, m, B, sig_t, sig_d, c0)
+    fixed = least_squares(lambda q: f(np.r_[q, 0.0]), sol.x[:-1], x_scale="jac", max_nfev=200)
+    sol = min((least_squares(f, x0, x_scale="jac", bounds=(lo, hi), max_nfev=200)
+               for x0 in (sol.x, np.r_[fixed.x, 0.0])), key=lambda r: r.cost)
+    used = np.linalg.norm(m[np.all(np.isfinite(m), axis=1)], axis=1)
+    if abs(sol.x[-1]) > 0.99 * hi[-1] or not np.any(sol.jac[:, -1]) or \
+            (sol.x[-1] < 0 and np.mean(used > SATURATED) >= 0.5):
+        # most sources at the array's horizon (or beyond, for the declared size): the DOAs bound the size from
+        # one side only; the delays tell a geometry too small (calib.frontend.consistency.fit_geometry)
+        return None
+    s2 = max(float(sol.fun @ sol.fun) / max(len(sol.fun) - len(sol.x), 1), S2_FLOOR)
+    cov = np.linalg.pinv(sol.jac.T @ sol.jac) * s2
+    return (float(np.exp(sol.x[-1])), float(np.sqrt(max(cov[-1, -1], 0.0))), float(np.sqrt(np.mean(sol.fun**2))),
+            float(np.sqrt(np.mean(fixed.fun**2))))
+
+
+def scale_findings(features, source="session.toml", arrays=None):
+    """Planar and linear arrays whose declared geometry is too large or too small for their DOAs against the
+    odometry (:func:`geometry_scale_fit`; the mics from meta ``mics``; arrays: only these)."""
+    mics, out = features["meta"].get("mics") or {}, []
+    for name in features["meta"]["arrays"] if arrays is None else arrays:
+        with single_thread_blas():  # small matrices (calib.blas)
+            fit = geometry_scale_fit(features, name, mics[name]) if name in mics else None
+        if fit is None:
+            continue
+        s, sd, rms, rms1 = fit
+        if rms > DOA_TRUST or abs(np.log(s)) < max(np.log1p(SCALE_TOL), SCALE_SIGMA * sd):
+            continue
+        kind = "linear" if _subspace(np.asarray(mics[name], float)).shape[1] == 1 else "planar"
+        seen = "angles to its axis" if kind == "linear" else "in-plane directions"
+        out.append(Finding("failed", source, "geometry scale", f"{source}: array {name}'s mic coordinates are "
+                           f"{s:.2f} × {'larger' if s > 1 else 'smaller'} than the geometry its DOAs fit against the "
+                           f"odometry ({seen} off by {rms1:.1f}σ RMS as declared, {rms:.1f}σ at {s:.2f}; ± "
+                           f"{100 * sd:.0f} %): the wrong board, or a radius typed as a diameter (or the reverse)? "
+                           f"measure its mics: they should be about {1 / s:.2f} × the declared ones", name))
+    return out
 
 
 def sound_findings(features, fits=None, source="session.toml"):
@@ -460,7 +675,7 @@ def sound_findings(features, fits=None, source="session.toml"):
     if out:
         return out
     bad = {k: v for k, v in fits.items() if v[2] > ODO_RESIDUAL_S or v[3] > ODO_MISFIT or not np.isfinite(v[0])}
-    if bad and len(bad) >= max(1, len(fits) // 2 + 1):
+    if bad and len(bad) >= max(1, len(features["meta"]["arrays"]) // 2 + 1):  # most arrays, not only most fitted
         worst_ = max(v[3] for v in bad.values())
         return [Finding("failed", "events.csv", "odometry vs arrivals", f"events.csv: the odometry does not explain "
                         f"the chirps' arrival times and directions (residuals up to {worst_:.0f}× their sigma in "
@@ -471,15 +686,24 @@ def sound_findings(features, fits=None, source="session.toml"):
     w = np.array([1 / v[1] ** 2 for v in good.values()])
     cs = np.array([v[0] for v in good.values()])
     c_hat = float(np.sum(w * cs) / np.sum(w))
-    sd = float(1 / np.sqrt(np.sum(w)))
+    # arrays that disagree beyond their errors (a reflection-only array, a fit with few arrivals): the spread,
+    # not the stated errors, is then the mean's uncertainty (the Birge ratio)
+    birge = np.sqrt(max(float(np.sum(w * (cs - c_hat) ** 2)) / max(len(cs) - 1, 1), 1.0))
+    sd = float(birge / np.sqrt(np.sum(w)))
     rel = c_hat / c0 - 1
-    if abs(rel) > SOUND_TOL and abs(c_hat - c0) > SOUND_SIGMA * sd:
+    # a wrong declared speed of sound is common to every array: arrays that disagree this much show another cause
+    if abs(rel) > SOUND_TOL and abs(c_hat - c0) > SOUND_SIGMA * sd and birge <= SOUND_AGREE:
         p10 = 10 ** np.round(np.log10(c_hat / c0))
         units = (f" — or the odometry is not in metres ({p10:g} × fits)" if p10 != 1 and
                  abs(np.log10(c_hat / c0 / p10)) < 0.1 else "")
         out.append(Finding("failed", source, "speed of sound", f"{source}: speed_of_sound = {c0:g} m/s, "
                            f"but the metric odometry says {c_hat:.0f} ± {sd:.0f} m/s ({100 * rel:+.0f} %): set it "
                            f"to the air's (343 m/s at 20 °C; 331.3 + 0.606·T °C){units}"))
+    if not out:  # the speed of sound fits the odometry: each planar or linear array's size against it
+        # (the arrays whose arrivals fit: a wrong size raises the DOAs' misfit, not the arrivals')
+        # (arrays too short for a speed of sound of their own are tried: their DOAs place them)
+        out += scale_findings(features, source, arrays=[k for k in features["meta"]["arrays"] if k not in fits
+                                                        or (fits[k][2] <= ODO_RESIDUAL_S and np.isfinite(fits[k][0]))])
     return out
 
 
@@ -499,11 +723,13 @@ def mirror_findings(features, fits):
         return [Finding("failed", "events.csv", "odometry axes", "events.csv: every array's DOAs fit the odometry "
                         "only mirrored (residuals " + ", ".join(f"{fits[k][3]:.0f}→{mirrored[k][3]:.1f}σ" for k in named)
                         + "): the odometry's axes are mirrored against the reference array's (x and y swapped, or "
-                        "one axis negated); fix odom_x, odom_y, odom_z")]
+                        "one axis negated; fix odom_x, odom_y, odom_z), or every DOA points away from its source "
+                        "(doa.csv's convention: toward it)")]
     return [Finding("failed", "session.toml", "mirrored geometry", f"session.toml: array {k}'s DOAs fit the "
                     f"directions to the odometry's positions only mirrored (residuals {fits[k][3]:.0f}σ → "
                     f"{mirrored[k][3]:.1f}σ): its mics are mirrored (y typed as −y, or its channels in reversed order) "
-                    "or its doa_hemisphere is on the wrong side; fix its mics or doa_hemisphere", k) for k in named]
+                    "or its doa_hemisphere is on the wrong side (or its DOAs point away from the source); fix its "
+                    "mics or doa_hemisphere", k) for k in named]
 
 
 def temperature_findings(session):
@@ -544,11 +770,12 @@ def trajectory_findings(events):
 
 # ----------------------------------------------------------------------------------------------- together
 def detections_from_diagnostics(diagnostics):
-    """{array: (times, scores)} of the frontend's detections (diagnostics.json)."""
+    """{array: (times, scores, events)} of the frontend's detections (diagnostics.json; event −1: unmatched)."""
     out = {}
     for name, a in (diagnostics or {}).get("arrays", {}).items():
         det = a.get("detections", [])
-        out[name] = (np.array([d["time"] for d in det], float), np.array([d["score"] for d in det], float))
+        out[name] = (np.array([d["time"] for d in det], float), np.array([d["score"] for d in det], float),
+                     np.array([-1 if d.get("event") is None else int(d["event"]) for d in det], int))
     return out
 
 
@@ -574,7 +801,7 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
     dets = detections_from_diagnostics(diagnostics)
     results, out = {}, []
     for a in session["arrays"]:
-        times, scores = dets.get(a["name"], (None, None))
+        times, scores, _ = dets.get(a["name"], (None, None, None))
         res = C.check_array(a, session, times, scores, threshold)
         results[a["name"]] = res
         out += channel_findings(a, res, session["speed_of_sound"])
@@ -584,8 +811,25 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
     if diagnostics is not None:
         out += matched_findings(session, diagnostics)
     if features is not None and not any(f.check in ("events vs chirps", "emission clock") for f in out):
-        out += sound_findings(features)
+        mics = {a["name"]: np.asarray(a["mics"], float).tolist() for a in session["arrays"]}
+        named = {f.array for f in out if f.status == "failed"}  # the delays already explain those arrays
+        out += [f for f in sound_findings({**features, "meta": {**features["meta"], "mics": mics}})
+                if not (f.check == "geometry scale" and f.array in named)]
     return sorted(out, key=lambda f: -STATUS_RANK[f.status])
+
+
+def folder_findings(folder, mics=None, threshold=8.0):
+    """:func:`setup_findings` of a session folder, its features extracted here (a notebook's one call).
+    mics : {array: (M, 3) m} replacing session.toml's (what-if: a board declared at another size)."""
+    from calib.frontend import extract_features
+    from calib.pipeline.formats.session import read_session
+
+    session = read_session(folder)
+    for a in session["arrays"]:
+        if a["name"] in (mics or {}):
+            a["mics"] = np.asarray(mics[a["name"]], float)
+    features, diagnostics = extract_features(session, threshold=threshold)
+    return setup_findings(session, diagnostics, features, threshold)
 
 
 def feature_findings(features):

@@ -170,6 +170,12 @@ CASES = {
     "A1 rows 1 and 4 swapped": ([mics("A1", lambda m: _perm(m, [3, 1, 2, 0, 4, 5]))], r"A1\.wav.*channels 1 and 4",
                                 "setup"),
     "A2 five mics for six channels": ([mics("A2", lambda m: m[:5])], r"A2", "input"),
+    # a planar array's size: its delays cannot tell a larger board from sources nearer its normal; the DOAs
+    # against the metric odometry can (the features are needed: not a signal-only case)
+    "A2 mics 1.3x (another board; DOAs vs odometry)": ([mics("A2", lambda m: m * 1.3)], r"array A2.*larger", "setup"),
+    "A3 mics 1.5x (DOAs vs odometry)": ([mics("A3", lambda m: m * 1.5)], r"array A3.*larger", "setup"),
+    "A1 mics 2x (diameter as radius; DOAs vs odometry)": ([mics("A1", lambda m: m * 2)], r"array A1.*larger", "setup"),
+    "A2 mics 0.75x (DOAs vs odometry)": ([mics("A2", lambda m: m * 0.75)], r"A2.*smaller", "setup"),
     # recordings
     "A2.wav = A1.wav": ([copy_wav("A1.wav", "A2.wav")], r"A1\.wav and A2\.wav", "setup"),
     "A3.wav = A2.wav": ([copy_wav("A2.wav", "A3.wav")], r"A2\.wav and A3\.wav", "setup"),
@@ -240,7 +246,7 @@ def _stage(d):
 
 
 SIGNAL_CASES = [k for k in OBSERVABLE if CASES[k][2] == "setup" and not re.search(
-    r"speed of sound [34]00|odometry|another session|t_emit|mirrored|hemisphere", k)]
+    r"speed of sound [34]00|odometry|another session|t_emit|mirrored|hemisphere", k)]  # (those need the features)
 
 
 @pytest.mark.slow
@@ -330,13 +336,27 @@ def test_wrong_speed_of_sound_is_named(sample_features, c):
 def test_odometry_mistakes_are_named(sample_features, case):
     ev = sample_features["events"].copy()
     ev = {"odometry in cm": lambda e: _odo(e, lambda o: o * 100), "odometry rows of another session": _other_session,
-          "A3 channel order reversed (mirrored circle)": ([channels("A3.wav", lambda x: x[:, [0, 5, 4, 3, 2, 1]])],
-                                                    r"array A3.*mirrored", "setup"),
-    "odometry x and y swapped": lambda e: _odo(e, lambda o: o[:, [1, 0, 2]])}[case](ev)
+          "odometry x and y swapped": lambda e: _odo(e, lambda o: o[:, [1, 0, 2]])}[case](ev)
     found = sound_findings(_with(sample_features, events=ev))
     assert found and found[0].status == "failed", found
     assert re.search(r"session\.toml|events\.csv", found[0].text)
     assert ("axes" in found[0].text) == ("swapped" in case)
+
+
+@pytest.mark.parametrize("array, factor", [("A2", 1.3), ("A3", 2.0), ("A1", 0.75), ("A2", 0.75)])
+def test_mis_scaled_planar_geometry_is_named(array, factor):
+    """The sample with one array's mics scaled: the features extracted with that geometry, the set-up stage with
+    them names the array (larger or smaller), and nothing else."""
+    from calib.frontend import extract_features
+
+    s = read_session(SAMPLE)
+    for a in s["arrays"]:
+        if a["name"] == array:
+            a["mics"] = np.asarray(a["mics"], float) * factor
+    feats, diag = extract_features(s)
+    found = setup_findings(s, diag, feats)
+    assert [(f.array, f.status) for f in found] == [(array, "failed")], [f.text for f in found]
+    assert ("larger" if factor > 1 else "smaller") in found[0].text
 
 
 def test_mirrored_doas_of_one_array_are_named(sample_features):

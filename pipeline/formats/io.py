@@ -138,6 +138,9 @@ def read_table(path, columns, *, int_cols=(), str_cols=(), optional_cols=(), bou
     return df
 
 
+_REPR = re.compile(r"^\s*(np|numpy)\.\w+\(.*\)\s*$")
+
+
 def _column(vals, col, path, is_str, is_int, optional, bound):
     """One validated column (vectorised): strings, or floats / ints within ``bound`` (see read_table)."""
     empty = (vals == "").to_numpy()
@@ -153,6 +156,8 @@ def _column(vals, col, path, is_str, is_int, optional, bound):
         k = int(np.flatnonzero(bad)[0])
         v = vals.iloc[k]
         why = "is not finite" if v.lower().lstrip("+-") in ("nan", "inf", "infinity") else "is not a number"
+        if _REPR.match(v):  # a script wrote repr(x) of a NumPy scalar: "np.float64(227.98)"
+            why += " (a NumPy repr: write float(x) or str(x), not repr(x))"
         raise InputError(f"{path}: line {k + 2}: '{col}' {why}: {v!r}")
     if np.isinf(arr).any():
         k = int(np.flatnonzero(np.isinf(arr))[0])

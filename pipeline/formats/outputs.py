@@ -241,13 +241,14 @@ def _command_name(command):
     return " ".join(str(command).split()[:2])  # "calib export --format yaml" → "calib export"
 
 
-def check_file_replaceable(path, inputs=(), replace=True, command=None):
+def check_file_replaceable(path, inputs=(), replace=True, command=None, kin=()):
     """Raise InputError unless calib may write the single file ``path``.
 
     It may when ``path`` is absent, or a plain file listed in its folder's manifest and unedited (and
     ``replace``), written by the same command (``command``, when given: `calib export` does not replace a
-    calibration's arrays.csv); never when it is an input (``inputs``, symlinks resolved), a folder or a
-    symbolic link.
+    calibration's arrays.csv) or by one of ``kin``, the commands that write the same file for the same use
+    (`calib init` replaces the session.toml of `calib simulate`); never when it is an input (``inputs``,
+    symlinks resolved), a folder or a symbolic link.
     """
     path = Path(path)
     for inp in inputs:
@@ -264,7 +265,8 @@ def check_file_replaceable(path, inputs=(), replace=True, command=None):
     if _sha256(path) != marker[path.name]:
         raise InputError(f"{path}: edited since calib wrote it; move it away or rename it to keep your edit")
     writer = _writer(path.parent, path.name)
-    if command is not None and writer is not None and _command_name(writer) != _command_name(command):
+    if command is not None and writer is not None and \
+            _command_name(writer) not in {_command_name(c) for c in (command, *kin)}:
         raise InputError(f"{path}: written by `{_command_name(writer)}`, not by `{_command_name(command)}`; "
                          "choose another output")
     if not replace:
@@ -509,7 +511,7 @@ def _write_temp_file(path, data):
     return tmp
 
 
-def write_file(path, data, *, command="calib", inputs=(), replace=True):
+def write_file(path, data, *, command="calib", inputs=(), replace=True, kin=()):
     """Write the single file ``path`` (an output a user names) under the policy; returns ``path``.
 
     data : bytes, str (UTF-8) or a function ``data(tmp_path)`` that writes the file (give it an explicit format:
@@ -517,12 +519,13 @@ def write_file(path, data, *, command="calib", inputs=(), replace=True):
     command : the command writing it (recorded; a file of another command is not replaced).
     inputs : the command's inputs; ``path`` may not be one of them.
     replace : whether an existing file calib wrote may be replaced (False: ``--force`` was not given).
+    kin : other commands whose file ``path`` may be replaced (:func:`check_file_replaceable`).
     The file is written to a temporary beside it and renamed into place; its sha256 goes into the folder's
     manifest ``.calib-output``, which is what makes it replaceable by calib later. A folder made for it is
     removed again if the write fails.
     """
     path = Path(path)
-    check_file_replaceable(path, inputs, replace, command)
+    check_file_replaceable(path, inputs, replace, command, kin)
     try:
         with output_lock(path):
             remove_litter(path)
@@ -530,7 +533,7 @@ def write_file(path, data, *, command="calib", inputs=(), replace=True):
             try:
                 digest = _sha256(tmp)
                 with _manifest_lock(path.parent):
-                    check_file_replaceable(path, inputs, replace, command)
+                    check_file_replaceable(path, inputs, replace, command, kin)
                     os.replace(tmp, path)
                     _update_manifest(path.parent, path.name, digest, command)
             finally:

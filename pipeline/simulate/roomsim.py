@@ -495,7 +495,7 @@ def simulate(scenario: dict[str, Any], out_dir: str | Path, progress: Callable |
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
         raise InputError(f"{out_dir}: exists and is not empty (use --force to replace it)")
     flat = _room_acoustics(sc) if sc["model"] == "flat" else (None, None)
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, command="calib simulate") as tmp:
         derived = render_session(sc, tmp, flat, progress=progress, zero_peak=_zero_peak_timestamp)
         _write_session(tmp, sc, derived, flat, scenario)
     return out_dir
