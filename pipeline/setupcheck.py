@@ -59,6 +59,7 @@ MIN_SOUND_DOF = 4         # ... and arrivals beyond its unknowns (a near-exact f
 SAME_START_M = 1e-3       # m: starts of that fit closer than this lie in one minimum (tried once)
 STEP_CHI2 = 36.0          # a break in an array's chain of arrivals must explain this much χ² (a 6σ step) ...
 MAX_STEPS = 2             # ... and at most this many breaks are made per array
+STEP_CANDIDATES = 8       # breaks refitted per step: the best by the held-position score (_step_scores)
 NLOS_MINORITY = 0.5       # an array's arrivals flagged "nlos" left out of the fits while at most this fraction
 ODO_RESIDUAL_S = 3e-3     # s: arrivals the odometry cannot explain to better than this (RMS): another session's log
 ODO_MISFIT = 12.0         # ... or arrivals and DOAs this many sigmas off (RMS; σ_odo included; real sets: ≤ 5)
@@ -465,31 +466,59 @@ def _array_data(features, name):
 def split_steps(odo, e, y, seg, sig_t, max_steps=MAX_STEPS):
     """Segment ids ``seg`` with the chain of arrivals broken where it steps: an emission interval logged wrong
     (every array then sees the same error on that TDOA-S row: 0.7–0.9 ms in two of the real sets) or a block
-    of samples dropped or inserted (one array). A step shifts every later arrival of its chain, which no range
-    explains; each break frees an offset, so one is made only where it cuts the arrivals' χ² by STEP_CHI2 (the
-    array's position from the arrivals' best start, held), at most ``max_steps``."""
+    of samples dropped or inserted (one array). A step shifts every later arrival of its segment, which no
+    range explains; each break frees an offset, so one is made only where it cuts the arrivals' χ² by
+    STEP_CHI2 (the array's position refitted), at most ``max_steps``. The breaks tried are the STEP_CANDIDATES
+    the fit at the current segments and position points to (:func:`_step_scores`, every arrival at once): a
+    step also pulls the position of a short chain, so the best score alone can miss it."""
     from scipy.optimize import least_squares
 
     seg = np.asarray(seg, int).copy()
-    x0 = _arrival_starts(odo, e, y, seg, n_best=1)[0][:3]
 
-    def chi2(sg):  # the linear parameters projected out, the position refined from x0
+    def start(sg):  # the best start of a segmentation (a large step sends the unbroken chain's position far)
+        return _arrival_starts(odo, e, y, sg, n_best=1)[0][:3]
+
+    def fit(sg, x0):  # (χ², position): the linear parameters projected out, the position refined from x0
         def res(x):
             A = np.column_stack([np.eye(sg.max() + 1)[sg], e, np.linalg.norm(odo - x, axis=1)])
             return (y - A @ np.linalg.lstsq(A, y, rcond=None)[0]) / sig_t
-        return 2 * least_squares(res, x0, method="lm", max_nfev=50).cost
+        sol = least_squares(res, x0, method="lm", max_nfev=50)
+        return 2 * sol.cost, sol.x
 
+    base, x = fit(seg, start(seg))
     for _ in range(max_steps):
-        base = chi2(seg)
-        cands = [j for j in range(1, len(y)) if seg[j] == seg[j - 1]]
-        if not cands:
+        score = _step_scores(odo, e, y, seg, x)
+        cands = [j for j in np.argsort(-score, kind="stable")[:STEP_CANDIDATES] if score[j] > 0]
+        trials = [np.where((np.arange(len(y)) >= j) & (seg == seg[j]), seg + 1, seg + (seg > seg[j])) for j in cands]
+        if not trials:
             break
-        trials = {j: np.where(np.arange(len(y)) >= j, seg + (seg == seg[j]), seg + (seg > seg[j])) for j in cands}
-        j, best = min(((j, chi2(sg)) for j, sg in trials.items()), key=lambda t: t[1])
-        if base - best < STEP_CHI2:
+        x0 = start(trials[0])  # the candidates differ by a few arrivals: one start serves them all
+        (chi2, x_trial), trial = min(((fit(t, x0), t) for t in trials), key=lambda ft: ft[0][0])
+        if base - chi2 < STEP_CHI2:
             break
-        seg = np.unique(trials[j], return_inverse=True)[1]
+        seg, base, x = trial, chi2, x_trial
     return seg
+
+
+def _step_scores(odo, e, y, seg, x):
+    """For every arrival j, how much a step before it (an offset added to the arrivals from j to the end of
+    its segment ``seg``, contiguous) would reduce the residual sum of squares of the linear fit (an offset per
+    segment, δ, 1/c) with the position ``x`` held: (hᵀr)² / (hᵀh − |Qᵀh|²), ``r`` the residuals, ``Q`` an
+    orthonormal basis of the fit's columns and ``h`` the step's indicator, all ``h`` at once by cumulative sums
+    from the end. 0 where no step can be placed (a segment's first arrival) or it is not identifiable."""
+    A = np.column_stack([np.eye(seg.max() + 1)[seg], e, np.linalg.norm(odo - x, axis=1)])
+    Q = np.linalg.qr(A)[0]
+    r = y - Q @ (Q.T @ y)
+    tail = np.empty((len(y), 1 + Q.shape[1] + 1))
+    for s_id in np.unique(seg):  # sums over i >= j within j's segment
+        idx = np.flatnonzero(seg == s_id)
+        v = np.column_stack([np.ones(len(idx)), Q[idx], r[idx]])
+        tail[idx] = np.cumsum(v[::-1], axis=0)[::-1]
+    hh, qh, hr = tail[:, 0], tail[:, 1:-1], tail[:, -1]
+    den = hh - np.sum(qh**2, axis=1)
+    first = np.r_[True, seg[1:] != seg[:-1]]
+    ok = ~first & (den > 1e-9 * np.maximum(hh, 1.0))
+    return np.where(ok, hr**2 / np.where(ok, den, 1.0), 0.0)
 
 
 def speed_of_sound_fit(features, proper=True, arrays=None):
