@@ -230,7 +230,8 @@ def main():
     ap.add_argument("--events", type=int, nargs="*", default=list(EVENTS))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-crlb", action="store_true", help="skip the CRLB (accuracy columns)")
-    ap.add_argument("--plot", type=Path, default=Path("bench_scale.png"), help="PNG of time vs size")
+    ap.add_argument("--plot", type=Path, default=None, help="PNG of time vs size (docs/bench_scale.png: the "
+                                                            "results page's)")
     ap.add_argument("--dense-check", action="store_true", help="sparse vs dense solver on small scenes")
     ap.add_argument("--library", action="store_true", help="calibrate() in a subprocess per case, not the CLI")
     ap.add_argument("--case", type=int, nargs=2, help=argparse.SUPPRESS)
@@ -258,8 +259,9 @@ def main():
     pd.set_option("display.max_columns", 30)
     print(pd.DataFrame(rows).to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     print(f"end: {load()} (wall times grow with the load; cpu_s is user + system CPU of the process)")
-    plot(rows, args.plot)
-    print(f"plot: {args.plot}")
+    if args.plot is not None:
+        plot(rows, args.plot)
+        print(f"plot: {args.plot}")
     return 0
 
 
