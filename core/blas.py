@@ -6,14 +6,18 @@ parallelism goes across arrays or calibrations instead.
 """
 from __future__ import annotations
 
-_CONTROLLER: list = []  # the ThreadpoolController, made on first use (it scans the loaded libraries: ~5 ms)
+import functools
+
+
+@functools.cache
+def _controller():
+    """The process's one ThreadpoolController, made on first use (it scans the loaded libraries: ~5 ms)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def single_thread_blas():
     """Context manager limiting BLAS to one thread. One shared controller: ``threadpool_limits`` scanned
     the process's libraries on every entry, 5–6 ms per array of a session (~4 % of the hall's frontend)."""
-    if not _CONTROLLER:
-        from threadpoolctl import ThreadpoolController
-
-        _CONTROLLER.append(ThreadpoolController())
-    return _CONTROLLER[0].limit(limits=1, user_api="blas")
+    return _controller().limit(limits=1, user_api="blas")

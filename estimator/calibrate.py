@@ -11,8 +11,8 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from threadpoolctl import ThreadpoolController
 
+from calib.blas import single_thread_blas
 from calib.options import validate_options
 
 from . import arraynoise, clockmodel
@@ -31,18 +31,13 @@ from .verdict import fold_ambiguity, name_distrusted
 
 __all__ = ["calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
 
-# The matrices here are tiny (~400 × 100): multi-threaded BLAS only adds synchronisation (measured 4×
-# slower on 2 cores), so the estimator runs BLAS single-threaded and parallelism goes across calibrations.
-_BLAS = ThreadpoolController()
-
-
 def calibrate(features: dict[str, Any], **options: Any) -> dict[str, Any]:
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
     array's clock model (``clock_model="auto"``, or "linear", the default for now: ``estimator.clockmodel``).
     """
-    with _BLAS.limit(limits=1, user_api="blas"):
+    with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
         return clockmodel.calibrate_clocks(calibrate_features, features, **options)
 
 

@@ -18,6 +18,7 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
+from calib.blas import single_thread_blas
 from calib.errors import InputError
 from calib.records import Features
 from calib.tables import event_velocities
@@ -25,7 +26,7 @@ from calib.tables import event_velocities
 from . import associate as assoc_mod
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
-from .doa import cone_vectors, mic_geometry, single_thread_blas, srp_cone, srp_doa, srp_setup
+from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
 from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .schedule import two_phase

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from threadpoolctl import ThreadpoolController
 
+from calib.blas import single_thread_blas
 from calib.estimator import calibrate, crlb, draw_from_crlb, state_from_frames, to_tables
 from calib.estimator.problem import build_problem
 
@@ -69,7 +69,6 @@ SETTINGS = ("base_seed", "sigma_odo", "check_convergence", "with_crlb")
 # MAX_CHUNK runs (a part file's worth: what an interrupted study loses per worker).
 GUIDED_SHARE = 2
 MAX_CHUNK = 40
-_BLAS = ThreadpoolController()  # tiny matrices: single-threaded BLAS, parallelism across runs instead
 
 
 # --------------------------------------------------------------------------------------------- one run
@@ -147,7 +146,7 @@ def run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, *, methods=("hybrid"
             row["converged"] = bool(row["cost"] <= row["cost_truth_start"] * (1 + 1e-6) + 1e-9)
         if with_crlb:
             rng = np.random.default_rng(seed + 1)
-            with _BLAS.limit(limits=1, user_api="blas"):
+            with single_thread_blas():  # (calib.blas)
                 use_ts = bool(len(p.tdoa_s.val))   # crlb's problem: p0 without the odometry yaw, when the same
                 same = use_ts == bool(len(p0.tdoa_s.val))
                 bound = crlb(feats, truth, use_tdoa_s=use_ts, problem=p0.replace(odo_yaw_free=False) if same else None,
@@ -276,7 +275,7 @@ def _key(sigma_tdoa, sigma_doa_deg, trajectory, run, method):
 def _run_chunk(tasks, settings):
     """Worker entry point: tasks = [(sigma_tdoa, sigma_doa_deg, trajectory, run, methods)] → rows."""
     rows = []
-    with _BLAS.limit(limits=1, user_api="blas"):
+    with single_thread_blas():  # tiny matrices (calib.blas): parallelism across runs instead
         for st, sd, traj, run, methods in tasks:
             rows += run_methods(st, sd, traj, run, methods=tuple(methods), **settings)
     return rows

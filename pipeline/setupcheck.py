@@ -676,9 +676,10 @@ def scale_findings(features, source="session.toml", arrays=None):
     """Planar and linear arrays whose declared geometry is too large or too small for their DOAs against the
     odometry (:func:`geometry_scale_fit`; the mics from meta ``mics``; arrays: only these)."""
     mics, out = features["meta"].get("mics") or {}, []
-    for name in features["meta"]["arrays"] if arrays is None else arrays:
-        with single_thread_blas():  # small matrices (calib.blas)
-            fit = geometry_scale_fit(features, name, mics[name]) if name in mics else None
+    with single_thread_blas():  # small matrices (calib.blas)
+        fits = {name: geometry_scale_fit(features, name, mics[name])
+                for name in (features["meta"]["arrays"] if arrays is None else arrays) if name in mics}
+    for name, fit in fits.items():
         if fit is None:
             continue
         s, sd, rms, rms1 = fit
