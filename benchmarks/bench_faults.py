@@ -306,6 +306,8 @@ def _yaw_bound_lines(g):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed … first-seed + seeds - 1 (new seeds: "
+                    "a check on scenes nothing was tuned on)")
     ap.add_argument("--faults", default=",".join(FAULTS))
     ap.add_argument("--csv")
     ap.add_argument("--noise", default="auto", choices=("auto", "meta", "estimate"), help="calibrate(noise=...)")
@@ -313,7 +315,7 @@ def main():
     args = ap.parse_args()
     faults = [f for f in args.faults.split(",") if f]
     options = {"noise": args.noise, "array_noise": args.array_noise}
-    rows = [r for s in range(args.seeds) for r in one(s, faults, options)]
+    rows = [r for s in range(args.first_seed, args.first_seed + args.seeds) for r in one(s, faults, options)]
     df = pd.DataFrame(rows)
     if args.csv:
         df.to_csv(args.csv, index=False)

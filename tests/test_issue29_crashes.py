@@ -16,8 +16,7 @@ from calib.errors import InputError
 from calib.estimator.problem import Layout, _without_fixed
 from calib.pipeline.formats.io import read_features
 
-REAL = Path("/work/shared/real_world") if Path("/work/shared/real_world").is_dir() else \
-    Path(__file__).resolve().parents[2] / "shared" / "real_world"
+from .sessions import REAL_WORLD as REAL  # noqa: E402
 runner = CliRunner()
 
 

@@ -367,8 +367,7 @@ def test_mirrored_doas_of_one_array_are_named(sample_features):
     assert [(f.array, f.check) for f in found] == [("A2", "mirrored geometry")]
 
 
-REAL = Path("/work/shared/real_world") if Path("/work/shared/real_world").is_dir() else \
-    Path(__file__).resolve().parents[2] / "shared" / "real_world"
+from .sessions import REAL_WORLD as REAL  # noqa: E402
 
 
 @pytest.mark.slow
