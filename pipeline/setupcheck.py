@@ -173,7 +173,9 @@ def geometry_findings(a, d, c, exclude=()):
     agreed = g.support >= C.CONSENSUS_SUPPORT  # a 3-D array's events, or a planar one's above |w|·c = 1
     fail = C.SCALE_FAIL_3D if agreed else C.SCALE_FAIL
     too_big = g.scale > (fail if full3d else PLANAR_SCALE_FAIL)
-    if (too_big or g.scale < 1 / fail) and (agreed or not full3d):
+    # too small only where the events agree: one event above |w|·c = 1 (a reflection) is no evidence (a clean
+    # reverberant lab: 1 of 12 at 1.9); a planar array's bound alone can still say too large
+    if (too_big and (agreed or not full3d)) or (g.scale < 1 / fail and agreed):
         p10 = 10 ** np.round(np.log10(g.scale))
         hint = (f"in {'cm' if p10 == 100 else 'mm' if p10 == 1000 else 'other units'} instead of m? divide them "
                 f"by {p10:g}" if too_big and p10 >= 10 and abs(np.log10(g.scale / p10)) < 0.15

@@ -113,6 +113,30 @@ def test_delays_of_a_planar_array_declared_too_small():
     assert right.support == 0.0 and right.scale >= 1.0
 
 
+@pytest.mark.parametrize("bent", [1, 2])
+def test_one_reflected_event_does_not_make_a_planar_board_too_small(bent):
+    """A clean reverberant room: one or two of 12 events whose delays a reflection stretched (|w|·c 1.9 on a
+    circle declared right) are no evidence of a board declared too small; most of the events are (0.7 ×)."""
+    from calib.frontend.consistency import PairDelays
+    from calib.pipeline.setupcheck import geometry_findings
+
+    rng = np.random.default_rng(31)
+    az, el = rng.uniform(0, 2 * np.pi, 12), rng.uniform(0.05, 0.6, 12)
+    u = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
+    t = -(u @ CIRCLE.T) / C + rng.normal(0, 2e-7, (12, 6))
+    pairs = np.array([(m, n) for m in range(6) for n in range(m + 1, 6)])
+    tau = t[:, pairs[:, 0]] - t[:, pairs[:, 1]]
+    tau[:bent] *= 1.9 / np.cos(el[:bent, None])    # in-plane |w|·c of those events: 1.9
+
+    def delays(x):
+        return PairDelays(pairs, x, np.ones_like(x), np.ones_like(x), np.ones((12, 6)), np.zeros(6), [],
+                          np.arange(12.0), 16000.0)
+    board = {"name": "A2", "mics": CIRCLE.tolist(), "wav": "A2.wav"}
+    assert geometry_findings(board, delays(tau), C) == []
+    small = geometry_findings({**board, "mics": (0.7 * CIRCLE).tolist()}, delays(tau), C)
+    assert [f.check for f in small] == ["geometry scale"] and "smaller" in small[0].text
+
+
 def test_consensus_ignores_the_events_a_reflection_bent():
     rng = np.random.default_rng(29)
     wc = np.r_[rng.normal(1 / 1.3, 0.005, 4), [1.15, 1.4, 1.9, 2.1, 2.7]]  # 5 of 9 events bent, scattered
