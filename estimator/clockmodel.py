@@ -542,21 +542,22 @@ def detect(result, models, banned=frozenset(), excluded=frozenset()):
                                  reference=name not in _distrusted(result))
         if got is not None and got[0] is not None:
             got[2]["test"] = "array"
-        if i in joint and (got is None or got[0] is None or joint[i][1] > got[1]):
-            got = joint[i]
-        if got is None or got[0] is None:
-            continue
-        new, margin, info = got
-        tied = info.pop("tied", [])
-        records.append({"array": name, "margin_chi2": margin, **info})
-        if margin > 0:
-            found[name] = (new, margin)
-            for k, alt in enumerate(tied[:MAX_RIVALS - 1]):
-                found[(name, k)] = (alt, margin)
+        # both tests' best proposals stay: the per-array fit holds the sources at a fit that another array's
+        # fault may have bent, so its χ² is not on the joint scan's scale (a reference step read as an
+        # outlier-laden array's step); proposals of the two tests are compared by solving (:func:`_decide`)
+        for got in (got, joint.get(i)):
+            if got is None or got[0] is None:
+                continue
+            new, margin, info = got
+            info = dict(info)
+            tied = info.pop("tied", [])
+            records.append({"array": name, "margin_chi2": margin, **info})
+            if margin > 0:
+                for k, alt in enumerate([new] + tied[:MAX_RIVALS - 1]):
+                    found[(name, info["test"], k)] = (alt, margin)
     ref = str(p.names[p.ref])
     proposals = []
-    for key, (new, margin) in found.items():
-        name = key[0] if isinstance(key, tuple) else key
+    for (name, test, _), (new, margin) in found.items():
         if new[-1].kind == "mshift":   # the reference's clock stepped: its step (opposite sign)
             step = Component("step", new[-1].time, -new[-1].value)
             have = [c.with_value(0.0) for c in models.get(ref, [])]
@@ -568,13 +569,19 @@ def detect(result, models, banned=frozenset(), excluded=frozenset()):
             continue
         old = models.get(name, [])
         merged = [c.with_value(c.value + (old[k].value if k < len(old) else 0.0)) for k, c in enumerate(new)]
-        if _pulse(merged):
+        if _pulse(merged) or any(prop == {name: merged} for _, _, prop in proposals):
             continue
-        proposals.append((margin, {name: merged}))
+        proposals.append((margin, test, {name: merged}))
+    if not proposals:
+        return [], records
     # the strongest evidence first (a large fault bends the fit and so the others' tests); rivals within
-    # TIE_MARGIN of it are decided by solving with each (:func:`_decide`)
+    # TIE_MARGIN of it, and the other test's best, are decided by solving with each (:func:`_decide`)
     proposals.sort(key=lambda m: -m[0])
-    return [prop for m, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS], records
+    top = [(test, prop) for m, test, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS]
+    other = next(((test, prop) for _, test, prop in proposals if test != top[0][0]), None)
+    if other is not None and other not in top:
+        top = top[:MAX_RIVALS - 1] + [other]
+    return top, records
 
 
 PULSE_MATCH = 0.25   # a drop and an insert this close in size (share of the larger) on one array: a pulse
@@ -711,16 +718,18 @@ def _select(solve, features, result, options, rounds, excluded=frozenset()):
         if not proposals:
             break
         if len(proposals) == 1:
-            trial = {**models, **proposals[0]}
+            (test, prop), = proposals
+            trial = {**models, **prop}
             res = solve(correct_features(features, trial), **options)
         else:
-            trial, res, rivals = _decide(solve, features, models, proposals, options)
+            trial, res, rivals = _decide(solve, features, models, [prop for _, prop in proposals], options)
+            test = next(t for t, prop in proposals if {**models, **prop} == trial)
             if rivals:
                 rounds.append([{"ambiguous": [_last(trial, models)] + [_last({**models, **r}, models) for r in rivals]}])
         # proposals of the joint scan come from a fit not bent around them: their structure is judged at once;
         # a per-array scan's (a fault large enough to bend the fit) may be placed or sized provisionally until
         # the fault is modelled in full: judged at the end (:func:`_refine_and_resolve`)
-        if all(r.get("test") == "joint" for r in records if r.get("margin_chi2", 0.0) > 0):
+        if test == "joint":
             bad = _structure_failures(res, trial, models, correct_features(features, trial))
             if bad:
                 banned.update(bad)
