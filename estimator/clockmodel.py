@@ -40,6 +40,8 @@ from scipy.special import chdtri
 from calib.clock import Clock, Step, Term, header_ratio
 from calib.options import validate_options
 
+from .init import ObservabilityError
+
 FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
 HUBER_K = 2.5           # robust scale of the per-array fits, in σ
 MAX_ROUNDS = 6          # detection rounds (each adds at most one component)
@@ -687,23 +689,33 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
     first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
-        excluded = set()
-        for _ in range(2):   # (a second selection without the arrays the first one could not explain)
-            models, result = _select(solve, features, first, options, rounds, excluded)
-            if not models:
-                result = first
-                break
-            result, models, bad = _refine_and_resolve(solve, features, result, models, options)
-            if not bad:
-                break
-            excluded |= set(bad)
-            rounds.append([{"rejected": f"{n}: its clock terms did not explain its rows (still named as inconsistent); "
-                                        "selected again without it"} for n in sorted(bad)])
-        if models and _worse(result, first):   # the models did not explain the data: the linear clock's result
+        try:
+            result, models = _auto(solve, features, first, options, rounds)
+        except ObservabilityError as err:   # a trial model left the data unable to fix something: linear
             result, models = first, {}
-            rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
+            rounds.append([{"rejected": f"a clock model left the problem unobservable ({err}): the linear clock"}])
     _attach_report(result, features, models, rounds)
     return result
+
+
+def _auto(solve, features, first, options, rounds):
+    """The selection of :func:`calibrate_clocks` from the linear clock's ``first`` result: (result, models)."""
+    excluded = set()
+    for _ in range(2):   # (a second selection without the arrays the first one could not explain)
+        models, result = _select(solve, features, first, options, rounds, excluded)
+        if not models:
+            result = first
+            break
+        result, models, bad = _refine_and_resolve(solve, features, result, models, options)
+        if not bad:
+            break
+        excluded |= set(bad)
+        rounds.append([{"rejected": f"{n}: its clock terms did not explain its rows (still named as inconsistent); "
+                                    "selected again without it"} for n in sorted(bad)])
+    if models and _worse(result, first):   # the models did not explain the data: the linear clock's result
+        result, models = first, {}
+        rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
+    return result, models
 
 
 def _select(solve, features, result, options, rounds, excluded=frozenset()):
