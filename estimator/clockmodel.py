@@ -238,9 +238,15 @@ def huber_rho(r, k=HUBER_K):
     return np.where(a <= k, 0.5 * r * r, k * a - 0.5 * k * k)
 
 
+def cauchy_rho(r, k=HUBER_K):
+    """Cauchy's ρ (r²/2 near 0): a row far off costs ~k² ln|r|, so no component wins by pulling a gross
+    outlier part of the way (a chirp lost in a dropped block, 600σ off: Huber pays k per σ of it)."""
+    return 0.5 * k * k * np.log1p((r / k) ** 2)
+
+
 def fit_array(D, comps, x0, g0, tau0):
-    """Robust (Huber) Gauss–Newton fit of one array's position (not the reference's), clock and the
-    components' coefficients. Returns (x, g, τ, coef, whitened residuals)."""
+    """Robust (Cauchy, :func:`cauchy_rho`) Gauss–Newton fit of one array's position (not the reference's),
+    clock and the components' coefficients. Returns (x, g, τ, coef, whitened residuals)."""
     PS, PM = _design(D, comps)
     theta = np.concatenate([x0, [g0, tau0], [c.value for c in comps]]).astype(float)
     free = np.ones(len(theta), bool)
@@ -249,7 +255,7 @@ def fit_array(D, comps, x0, g0, tau0):
         free[4] = False
     for _ in range(GN_ITERATIONS):
         r, J = _residuals(D, theta[:3], theta[3], theta[4], theta[5:], PS, PM)
-        w = np.sqrt(np.where(np.abs(r) <= HUBER_K, 1.0, HUBER_K / np.maximum(np.abs(r), 1e-300)))
+        w = 1.0 / np.sqrt(1.0 + (r / HUBER_K) ** 2)
         A = J[:, free] * w[:, None]
         d = np.linalg.norm(A, axis=0)
         d = np.where(d > 0, d, 1.0)
@@ -317,7 +323,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     for cand in cands:
         x, g, tau, coef, r = fit_array(D, base + [cand], xb, gb, tb)
         if np.all(np.isfinite(r)) and cand.with_value(coef[-1]).plausible(duration):
-            fits.append((float(np.sum(huber_rho(r))), cand, coef, r))
+            fits.append((float(np.sum(cauchy_rho(r))), cand, coef, r))
     if not fits:
         return None, 0.0, None
     scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
@@ -327,7 +333,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
         if not fam:
             continue
         cost, cand, coef, r = min(fam, key=lambda f: f[0])
-        drop = 2.0 * (np.sum(huber_rho(rb / scale)) - np.sum(huber_rho(r / scale)))
+        drop = 2.0 * (np.sum(cauchy_rho(rb / scale)) - np.sum(cauchy_rho(r / scale)))
         margin = drop - penalty(kind, D.n, n_arrays, len(fits))   # (Bonferroni over every candidate tested)
         if best is None or margin > best[1]:
             new = [c.with_value(v) for c, v in zip(base + [cand], coef)]
@@ -390,19 +396,29 @@ def joint_scan(result, models, banned=frozenset()):
     lin = linearise(p, st, lay, _kinds(p))
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     r = lin.r
-    sw, scale = _robust_weights(result, lin)
+    sw0, scale = _robust_weights(result, lin)
+    kept = _kept_rows(result, lin.factors)
     dropped = _distrusted(result)
     zero = {name: [c.with_value(0.0) for c in comps] for name, comps in models.items()}
     E, _ = component_columns(p, lin.factors, zero)
-    Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
-    rw = r * sw
-    rp = rw - Q @ (Q.T @ rw)
-    out = {}
+    JE = np.hstack([J, E])
+    out, bases = {}, {}
     for i in range(-1, p.N):   # -1: the emitter
         name = EMITTER if i < 0 else str(p.names[i])
         have = zero.get(name, [])
         if len(have) >= MAX_COMPONENTS or len(np.unique(p.t)) < MIN_EVENTS or name in dropped:
             continue
+        # rows the solve screened out are evidence about the clock that stamped them only: Huber's score gives
+        # a row 600σ off its full k, and through the sources it shares it reads as the other arrays' steps (a
+        # chirp lost in a dropped block made 0.14 ms "steps" of three others); its own clock's candidates
+        # keep it (a 1 ms emission step screens every array's TDOA-S row of its interval)
+        sw = sw0 * np.maximum(kept, _own_rows(p, lin.factors, i))
+        key = sw.tobytes()
+        if key not in bases:
+            Q, _ = np.linalg.qr(JE * sw[:, None])
+            rw = r * sw
+            bases = {key: (Q, rw - Q @ (Q.T @ rw))}
+        Q, rp = bases[key]
         cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
         B = _columns(p, lin.factors, i, cands) * sw[:, None]
         Bp = B - Q @ (Q.T @ B)
@@ -485,6 +501,7 @@ def structure_test(result, models, name, k, features=None):
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     r = lin.r
     sw, scale = _robust_weights(result, lin, p, own=name)
+    sw = sw * _kept_rows(result, lin.factors)
     E, _ = component_columns(p, lin.factors, models)
     Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
@@ -853,6 +870,30 @@ def _outlier_mask(fs, outliers):
     return {f.kind: ~np.isin(np.asarray(f.row), list(flagged[f.kind])) for f in fs if f.kind in flagged}
 
 
+def _kept_rows(result, fs):
+    """1 for each stacked residual row of the factors ``fs`` the solve kept, 0 for those it screened out."""
+    outliers = result["outliers"] if "outliers" in result else (result.get("report") or {}).get("outliers")
+    mask = _outlier_mask(fs, outliers)
+    keep = [np.ones(len(f.r), bool) if f.kind not in mask else
+            (mask[f.kind] if len(mask[f.kind]) == len(f.r) else np.repeat(mask[f.kind], f.dim)) for f in fs]
+    return np.concatenate(keep).astype(float) if keep else np.zeros(0)
+
+
+def _own_rows(p, fs, i):
+    """The stacked residual rows of the factors ``fs`` that clock i stamps: array i's TDOA-S and TDOA-M (the
+    reference's: its TDOA-S and every TDOA-M), the emitter's (i = -1): every TDOA-S."""
+    out = []
+    for f in fs:
+        arr = getattr(p, f.kind).arr if f.kind in ("tdoa_s", "tdoa_m") else None
+        if arr is None or len(arr) != len(f.r):
+            out.append(np.zeros(len(f.r), bool))
+        elif i < 0:
+            out.append(np.full(len(f.r), f.kind == "tdoa_s"))
+        else:
+            out.append((arr == i) | (f.kind == "tdoa_m" and i == p.ref))
+    return np.concatenate(out).astype(float) if out else np.zeros(0)
+
+
 def _columns(p, fs, i, comps):
     """Whitened Jacobian columns (rows of the stacked factors ``fs``) of array i's components' coefficients
     (i = -1: the emitter's, every array's TDOA-S)."""
@@ -922,10 +963,12 @@ def refine(result, models):
     if lay.n > DENSE_MAX:
         return _conditional(lin, B, keep, keys, models)
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
-    # the step: every row, Huber-weighted (rows flagged against a wrong component are evidence against it)
+    # the step: every row, Cauchy-weighted (rows flagged against a wrong component are evidence against it; a
+    # row hundreds of σ off, e.g. a chirp lost in a dropped block, pulls nothing: Huber's weight let it pull a
+    # 50 ms step's size by 5σ)
     r = full.r
     scale = max(1.0, 1.4826 * float(np.median(np.abs(r[keep])))) if keep.any() else 1.0
-    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    sw = 1.0 / np.sqrt(1.0 + (r / (HUBER_K * scale)) ** 2)
     Ah = np.hstack([J, B]) * sw[:, None]
     step = np.linalg.lstsq(Ah, -r * sw, rcond=None)[0]
     # the covariance: the estimator's rows (outliers out), as its own error bars
