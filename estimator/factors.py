@@ -44,12 +44,6 @@ class Jacobian:
     def add(self, rows, cols, vals):
         self.chunks.append((rows, cols, vals))
 
-    def triplets(self):
-        """All entries as (rows, cols, vals) arrays (duplicates to be summed)."""
-        if not self.chunks:
-            return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-        return tuple(np.concatenate(z) for z in zip(*self.chunks))
-
     def toarray(self):
         out = np.zeros(self.shape)
         for r, c, v in self.chunks:

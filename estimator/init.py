@@ -490,19 +490,6 @@ def event_subsample(p, i, max_events=GRID_MAX_EVENTS):
                      doa=p.doa.select(keep[p.doa.ev] & (p.doa.arr == i)))
 
 
-def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=None):
-    """Position, rotation, offset and drift of array ``i`` (sources fixed). Returns (state, cost).
-
-    Coarse grid → the best local minima → each zoomed in by successively halved 5×5×5 grids (vectorised,
-    no iterative solver) → the lowest concentrated cost wins. With more than ``GRID_MAX_EVENTS`` events the
-    search uses an evenly spaced subsample of them (the joint solve refines with all of them).
-    ``grid``: :func:`coarse_grid` of the current sources (computed if None). :func:`initialise` runs the
-    same steps for all arrays at once (:func:`place_arrays`).
-    """
-    st, costs = place_arrays(p, st, [i], kappa, sigma_d, n_candidates, zoom_levels, grid)
-    return st, costs[0]
-
-
 def coarse_candidates(p, st, i, kappa, sigma_d, grid, n_candidates=4):
     """The coarse grid's best local minima for array ``i`` (``p`` its event subsample): points (nc, 3)."""
     step, pts = grid["step"], grid["pts"]
@@ -520,9 +507,13 @@ def coarse_candidates(p, st, i, kappa, sigma_d, grid, n_candidates=4):
 
 
 def place_arrays(p, st, arrays, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=None):
-    """:func:`init_array` for each of ``arrays``: coarse grids one by one, then every array's candidates
-    zoomed in together (one batched evaluation per level, :func:`profile_cost_many`). Returns (state with
-    those arrays placed, their concentrated costs)."""
+    """Position, rotation, offset and drift of each of ``arrays`` (sources fixed): coarse grid → the best
+    local minima (:func:`coarse_candidates`) → each zoomed in by successively halved 5×5×5 grids (no
+    iterative solver), every array's candidates together (one batched evaluation per level,
+    :func:`profile_cost_many`) → the lowest concentrated cost wins. With more than ``GRID_MAX_EVENTS``
+    events the search uses an evenly spaced subsample of them (the joint solve refines with all of them).
+    ``grid``: :func:`coarse_grid` of the current sources (computed if None). Returns (state with those
+    arrays placed, their concentrated costs)."""
     grid = coarse_grid(st.s, grid_events(p)) if grid is None else grid
     subs = [event_subsample(p, i) for i in arrays]
     centres = [coarse_candidates(q, st, i, kappa, sigma_d, grid, n_candidates) for q, i in zip(subs, arrays)]

@@ -94,19 +94,6 @@ def _per_mic_header(array, files):
     return PerMicInfo(int(first.samplerate), len(files), int(first.frames), first.subtype, first.format)
 
 
-def read_array_audio(array):
-    """Read one array's whole recording, checked as :func:`read_header` does (short files, tests; the
-    frontend reads through :class:`ArrayAudio`, in bounded memory).
-
-    Returns
-    -------
-    x : (M, N) float32 ndarray (a transposed view of the sample-major file data).
-    fs : int, sample rate (Hz).
-    """
-    with ArrayAudio(array) as audio:
-        return audio[:, 0 : audio.frames], audio.fs
-
-
 # integer PCM subtypes read as integers (libsndfile's float conversion divides by the full scale)
 _INTEGER_READ = {"PCM_S8": (np.int16, 32768.0), "PCM_U8": (np.int16, 32768.0), "PCM_16": (np.int16, 32768.0),
                  "PCM_24": (np.int32, 2.0**31), "PCM_32": (np.int32, 2.0**31)}

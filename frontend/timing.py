@@ -218,7 +218,7 @@ def _lag_plan(nfft, k0, n_q, n_t, lo, step):
 
 def lag_grid(c, setup, lo, hi, step=1.0):
     """Analytic correlation on the native lag grid: (J, M, hi − lo) complex64 for lag samples lo..hi-1
-    (for peak search and gating; precise values come from :func:`corr_at`). ``step`` < 1: ``(hi − lo) /
+    (for peak search and gating; precise values come from :func:`newton_peak`). ``step`` < 1: ``(hi − lo) /
     step`` lags ``lo, lo + step, ...`` instead (a finer grid).
 
     ``r[n] = Σ_k c_k e^{j2πkn/nfft}`` over the band's bins only, evaluated at the wanted lags alone by a
@@ -436,11 +436,6 @@ def _interp_kernel(v, a, sigma, orders):
         e2 = (v**2 / sigma**4 - 1 / sigma**2) * e0
         out.append(car * (s2 * e0 + 2 * s1 * e1 + s0 * e2 + 2j * a * g1 - a * a * g0))
     return out
-
-
-def corr_at(c, freqs, tau):
-    """Analytic correlation at arbitrary lags: c (..., Fb), tau (...) seconds → (...) complex."""
-    return BandSums(np.asarray(c), freqs)(tau)[0]
 
 
 def corr_around(c, freqs, fs, lag, off, table=None):

@@ -159,11 +159,12 @@ def test_pick_peaks_equals_find_peaks_on_the_whole_envelope(seed, threshold, sep
     find_peaks on the whole envelope with the per-sample floor as its height."""
     from scipy.signal import find_peaks
 
-    from calib.frontend.detect import local_floor, pick_peaks
+    from calib.frontend.detect import block_levels, local_floor_at, pick_peaks
 
     rng = np.random.default_rng(seed)
     env, rate = _chirp_envelope(400_000 + seed * 1234, rng), 4800.0
-    floor = local_floor(env, int(0.25 * rate))
+    block = int(0.25 * rate)
+    floor = local_floor_at(block_levels(env, block), block, 0, len(env))
     want = find_peaks(env, height=threshold * floor, distance=max(1, int(sep_s * rate)))[0]
     idx, score = pick_peaks(env, rate, sep_s, threshold)
     assert len(want) > 10 and np.array_equal(idx, want)

@@ -11,7 +11,9 @@ import soundfile as sf
 from calib.errors import InputError
 from calib.frontend.associate import associate
 from calib.frontend.detect import matched_envelope
-from calib.frontend.signals import ArrayAudio, read_array_audio, sweep
+from calib.frontend.signals import ArrayAudio, sweep
+
+from .sessions import read_array_audio
 
 
 def clock_scene(k, seed, miss=0.05, n_spurious=None, periodic=False, jitter=0.03):
