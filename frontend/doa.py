@@ -26,7 +26,6 @@ from __future__ import annotations
 import numpy as np
 
 from calib.blas import single_thread_blas
-from calib.memo import SetupCache
 from calib.geometry import fold, mirror
 
 from .timing import phasors
@@ -121,11 +120,8 @@ def srp_cone(g, mics, axis, freqs, c, weights=None, step_deg=1.0, refine_to_deg=
     return np.cos(t), power(t[:, None])[:, 0]
 
 
-_SETUPS = SetupCache(9)
-
-
 def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
-    """Precompute the grid search for one array (cached: arrays of one model share it).
+    """Precompute the grid search for one array.
 
     mics : (M, 3) positions in the array frame (m). freqs : (F,) Hz of the gated spectra.
     step_deg : mean spacing of the grid. hemisphere : (3,) unit axis or None.
@@ -136,14 +132,8 @@ def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
     c, hemisphere, step (rad), planar_normal, mirror (bool: planar array with a hemisphere, so the
     mirror image across the plane is equivalent).
     """
-    mics = np.asarray(mics, float)
+    mics, freqs = np.asarray(mics, float), np.asarray(freqs, float)
     hemi = None if hemisphere is None else np.asarray(hemisphere, float)
-    key = (mics.tobytes(), np.asarray(freqs, float).tobytes(), float(c), float(step_deg),
-           None if hemi is None else hemi.tobytes(), int(n_grid_freqs))
-    return _SETUPS.get(key, lambda: _srp_setup(mics, np.asarray(freqs, float), c, step_deg, hemi, n_grid_freqs))
-
-
-def _srp_setup(mics, freqs, c, step_deg, hemi, n_grid_freqs):
     step = np.deg2rad(step_deg)
     grid = fibonacci_sphere(int(np.ceil(4 * np.pi / step**2)))
     if hemi is not None:

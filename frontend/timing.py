@@ -30,7 +30,6 @@ import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
 
-from calib.memo import SetupCache
 from calib.robust import mad_std
 
 from .signals import band_weights
@@ -44,13 +43,6 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
     whitens the cross-spectrum; 0 = plain matched filter. Returns a dict (nfft, kb (Fb,), freqs (Fb,),
     weights (Fb,), tmpl_conj (Fb,), fs, seg_len, whiten_bins).
     """
-    template = np.asarray(template)
-    key = (template.dtype.str, template.tobytes(), float(fs), tuple(float(b) for b in band), int(seg_len), float(whiten_hz))
-    # the arrays of one session share it (and its cached pulse shapes)
-    return _SETUPS.get(key, lambda: _spectra_setup(template, fs, band, seg_len, whiten_hz))
-
-
-def _spectra_setup(template, fs, band, seg_len, whiten_hz):
     # the lags we use keep the whole template inside the segment; 2·3·5-smooth (real=True): pocketfft's real
     # transform does factors 7 and 11 in a slow generic pass (29040 = 2⁴·3·5·11² took 25 % longer than
     # 29160 = 2³·3⁶·5)
@@ -64,7 +56,6 @@ def _spectra_setup(template, fs, band, seg_len, whiten_hz):
             "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
 
 
-_SETUPS = SetupCache(8)
 # a float32 spectrum floor: the smallest normal float32 (a recording of denormal samples would divide by zero)
 F32_FLOOR = float(np.finfo(np.float32).tiny)
 
