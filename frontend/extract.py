@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
 import numpy as np
@@ -29,7 +30,6 @@ from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
 from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
-from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, spectra_setup,
                      stretch_bank, sweep_time)
@@ -126,32 +126,38 @@ def _extract(session, progress, opt, jobs=1):
 
 def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
     """({array name: :func:`process_array` result} in ``order``, β of the reference ``order[0]``
-    (:func:`_reference_beta`)); ``jobs`` arrays at a time in threads, each array's detection and timing
-    staggered against the other threads' (:func:`calib.frontend.schedule.two_phase`), β as one more task.
+    (:func:`_reference_beta`)); ``jobs`` arrays at a time in threads (each array's FFTs then
+    single-threaded), β as one more task.
 
     Progress and errors follow ``order`` whatever finishes first, so a bad file is reported the same way
     with any ``jobs``; an error or interrupt cancels the arrays not started (the running ones finish).
     """
     arrays = session["arrays"]
     jobs = min(len(order), (os.cpu_count() or 1) if jobs == -1 else jobs)
-
-    def report(n_done, k):
-        if progress is not None:
-            progress(n_done, len(arrays), f"array {arrays[k]['name']}")
-
     if jobs <= 1:
         results = {}
         for n_done, k in enumerate(order):
-            report(n_done, k)
+            _progress(progress, n_done, arrays, k)
             results[arrays[k]["name"]] = process_array(arrays[k], session, t_emit, c, opt)
         return results, _reference_beta(arrays[order[0]], session, c, opt)
-    # one array per thread (each array's FFTs then single-threaded), its detection and its timing staggered
-    # against the other threads' (calib.frontend.schedule); β as one more timing-like task
-    out = two_phase(lambda i: detect_array(arrays[order[i]], session, t_emit, c, opt),
-                    lambda i, st: time_array(st, session, t_emit, c, opt, 1), len(order), jobs,
-                    extra=lambda: _reference_beta(arrays[order[0]], session, c, opt),
-                    waiting=lambda i: report(i, order[i]), discard=lambda st: st["x"].close())
-    return {arrays[k]["name"]: r for k, r in zip(order, out)}, out[-1]
+    with ThreadPoolExecutor(jobs, thread_name_prefix="calib-array") as pool:
+        futures = [pool.submit(process_array, arrays[k], session, t_emit, c, opt, 1) for k in order]
+        futures.append(pool.submit(_reference_beta, arrays[order[0]], session, c, opt))
+        try:
+            results = {}
+            for n_done, k in enumerate(order):
+                _progress(progress, n_done, arrays, k)
+                results[arrays[k]["name"]] = futures[n_done].result()
+            return results, futures[-1].result()
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+
+
+def _progress(progress, n_done, arrays, k):
+    if progress is not None:
+        progress(n_done, len(arrays), f"array {arrays[k]['name']}")
 
 
 def process_array(a, session, t_emit, c, opt, fft_workers=-1):
@@ -189,7 +195,7 @@ def detect_array(a, session, t_emit, c, opt):
                              f"({len(det_t)} detection(s)); need at least 2")
         det_t, score, redetected = _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt)
         timings["associate"] = time.perf_counter() - t0
-        x.release()  # the detection's last pages: the timing may start much later (calib.frontend.schedule)
+        x.release()  # the detection's last pages: the timing reads only the event segments
     except BaseException:
         x.close()
         raise
