@@ -25,6 +25,7 @@ from calib.records import Features
 from calib.tables import event_velocities
 
 from . import associate as assoc_mod
+from .arrayresult import ArrayResult
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
@@ -103,11 +104,10 @@ def _extract(session, progress, opt, jobs=1):
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
     results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
-    for r in results.values():
-        # timed against the template stretched by ε̂ (Doppler bank): the arrival is the sweep start's plus
-        # β (ε − ε̂), linear in the small mismatch; adding β ε̂ gives the β ε convention of a static template
-        r["arrival"] = r["arrival"] + beta * r["stretch"]
-    flag_nlos(results, events, lambda eps: beta * eps, c)
+    # timed against the template stretched by ε̂ (Doppler bank): the arrival is the sweep start's plus
+    # β (ε − ε̂), linear in the small mismatch; adding β ε̂ gives the β ε convention of a static template
+    results = {n: r.replace(arrival=r.arrival + beta * r.stretch) for n, r in results.items()}
+    results = flag_nlos(results, events, lambda eps: beta * eps, c)
     flag_doa_spread(results)
     warn_moving(results, events)
     if progress is not None:
@@ -207,7 +207,8 @@ def detect_array(a, session, t_emit, c, opt):
 
 def time_array(st, session, t_emit, c, opt, fft_workers=-1):
     """:func:`process_array`'s second phase, from :func:`detect_array`'s state ``st``: timing and DOA of
-    the associated events, fused into arrivals; closes the recording. Returns the array's result dict."""
+    the associated events, fused into arrivals; closes the recording. Returns the array's
+    :class:`~calib.frontend.arrayresult.ArrayResult`."""
     a, x, fs, band, asc, det_t = st["a"], st["x"], st["fs"], st["band"], st["asc"], st["det_t"]
     timings = st["timings"]
     try:
@@ -242,15 +243,13 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
     if asc["ambiguous"]:
         warnings.append("association ambiguous: another alignment of the events explains as many detections")
-    return {
-        "name": a["name"], "fs": fs, "n_samples": int(st["n_samples"]), "channels": len(mics),
-        "band": band, "phase": loc["phase"], "env": st["env"], "env_rate": st["env_rate"], "det_t": det_t,
-        "det_score": st["score"], "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
-        "u": doa["u"], "doa_power": doa["power"], "redetected": st["redetected"], "stretch": loc["stretch"],
-        "ambiguous_plane": doa["normal"] if a.get("doa_hemisphere") is None else None,
-        "has_doa": doa["kind"] != "single", "doa_axis": doa["axis"],
-        "mic_quality": loc["value"], "warnings": warnings, "timings": timings,
-    }
+    return ArrayResult(
+        name=a["name"], fs=fs, n_samples=int(st["n_samples"]), channels=len(mics), band=band, phase=loc["phase"],
+        env=st["env"], env_rate=st["env_rate"], det_t=det_t, det_score=st["score"], assoc=asc, ev_idx=ev_idx,
+        **{k: fused[k] for k in FUSED_KEYS}, u=doa["u"], doa_power=doa["power"], redetected=st["redetected"],
+        stretch=loc["stretch"], ambiguous_plane=doa["normal"] if a.get("doa_hemisphere") is None else None,
+        has_doa=doa["kind"] != "single", doa_axis=doa["axis"], mic_quality=loc["value"], warnings=warnings,
+        timings=timings)
 
 
 SPEED_SLACK = 0.1   # m/s: how much faster than its speed at the sweep start a robot may be during it (0.3 m/s² for
@@ -539,16 +538,17 @@ DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's
 
 def flag_nlos(results, events, shift, c):
     """Add the doubt "nlos" to every arrival late against its array's own range track along the odometry
-    (:func:`calib.frontend.nlos.late_arrivals`: a reflection-only arrival, the direct path blocked), halve its
-    quality, and keep each arrival's lateness as ``late`` (s; NaN: not judged). In place."""
+    (:func:`calib.frontend.nlos.late_arrivals`: a reflection-only arrival, the direct path blocked) and halve
+    its quality (in place). Returns the results with each arrival's lateness as ``late`` (s; NaN: not judged)."""
     t_emit = events["t_emit"].to_numpy(float)
     odom = events[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     vel = event_velocities(events)
-    for r in results.values():
+    out = {}
+    for name, r in results.items():
         j = r["ev_idx"]
         ev = late_arrivals(np.asarray(r["arrival"], float), t_emit[j] - t_emit[0], odom[j], c, shift,
                            None if vel is None else vel[j])
-        r["late"] = ev["late"]
+        out[name] = r.replace(late=ev["late"])
         for k in np.flatnonzero(ev["nlos"]):
             r["flags"][k].append("nlos")
             r["quality"][k] *= DOUBT_PENALTY
@@ -560,6 +560,7 @@ def flag_nlos(results, events, shift, c):
         if ev["early"] >= max(3, 0.1 * len(j)):
             r["warnings"].append(f"{ev['early']} arrivals are early against the array's range track: most of its "
                                  "arrivals may be reflections (line of sight blocked)")
+    return out
 
 
 MOVING_DOA_SPREAD_DEG = 10.0  # an array's median DOA spread above this: its mics disagree with any one plane wave
