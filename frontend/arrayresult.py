@@ -15,7 +15,7 @@ class ArrayResult(Mapping):
     events in the session; times in s on the array's own clock).
 
     name : the array's name. fs : its sample rate (Hz). n_samples : recording length (samples). channels : M.
-    band : (lo, hi) Hz, the chirp's band. phase : carrier phase (rad), one or (J,) (each event's own).
+    phase : carrier phase (rad), one or (J,) (each event's own).
     env, env_rate : the detection plot's envelope (``diagnostics.envelope_summary``: t, y, median) and the
     full envelope's rate (Hz). det_t, det_score : (D,) detection times and peak / local background.
     assoc : ``associate.associate``'s dict (offset s, scale, det_of (K,), event_of (D,), n_matched, ...).
@@ -23,12 +23,12 @@ class ArrayResult(Mapping):
     arrival : (J,) arrival at the array origin (timed against the Doppler bank's stretch ε̂: + β ε̂ once β is
     known). spread, mic_sd, arrival_sd : (J,) s, the fused arrival's standard error, one mic's spread, the
     claimed arrival error (``frontend.noise``). quality : (J,) in [0, 1]. flags : J lists of doubts.
-    doa_spread : (J,) rad, each DOA's own spread (std of cos θ for a linear array). mic_times : (J, M) each
-    mic's chirp start. u : (J, 3) unit DOA, array frame (zeros without a DOA). doa_power : (J,) SRP power.
+    doa_spread : (J,) rad, each DOA's own spread (std of cos θ for a linear array). u : (J, 3) unit DOA, array
+    frame (zeros without a DOA). doa_power : (J,) SRP power.
     redetected : (K,) bool. stretch : (J,) ε̂ (0 for a source at rest). ambiguous_plane : (3,) mic-plane
     normal of a planar array without a hemisphere, else None. has_doa : whether the geometry gives DOAs.
-    doa_axis : (3,) a linear array's axis (its DOAs are cones about it), else None. mic_quality : (J, M)
-    normalised GCC peak per mic. warnings : list of str. timings : {stage: s}.
+    doa_axis : (3,) a linear array's axis (its DOAs are cones about it), else None. warnings : list of str.
+    timings : {stage: s}.
     late : (J,) s late against the array's range track (NaN: not judged; ``extract.flag_nlos``), None
     (absent as a key) before that check.
 
@@ -39,7 +39,6 @@ class ArrayResult(Mapping):
     fs: int
     n_samples: int
     channels: int
-    band: tuple
     phase: Any
     env: tuple
     env_rate: float
@@ -54,7 +53,6 @@ class ArrayResult(Mapping):
     quality: np.ndarray
     flags: list
     doa_spread: np.ndarray
-    mic_times: np.ndarray
     u: np.ndarray
     doa_power: np.ndarray
     redetected: np.ndarray
@@ -62,7 +60,6 @@ class ArrayResult(Mapping):
     ambiguous_plane: np.ndarray | None
     has_doa: bool
     doa_axis: np.ndarray | None
-    mic_quality: np.ndarray
     warnings: list
     timings: dict
     late: np.ndarray | None = None

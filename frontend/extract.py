@@ -244,11 +244,11 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
     if asc["ambiguous"]:
         warnings.append("association ambiguous: another alignment of the events explains as many detections")
     return ArrayResult(
-        name=a["name"], fs=fs, n_samples=int(st["n_samples"]), channels=len(mics), band=band, phase=loc["phase"],
+        name=a["name"], fs=fs, n_samples=int(st["n_samples"]), channels=len(mics), phase=loc["phase"],
         env=st["env"], env_rate=st["env_rate"], det_t=det_t, det_score=st["score"], assoc=asc, ev_idx=ev_idx,
         **{k: fused[k] for k in FUSED_KEYS}, u=doa["u"], doa_power=doa["power"], redetected=st["redetected"],
         stretch=loc["stretch"], ambiguous_plane=doa["normal"] if a.get("doa_hemisphere") is None else None,
-        has_doa=doa["kind"] != "single", doa_axis=doa["axis"], mic_quality=loc["value"], warnings=warnings,
+        has_doa=doa["kind"] != "single", doa_axis=doa["axis"], warnings=warnings,
         timings=timings)
 
 
@@ -324,7 +324,7 @@ def _reference_beta(a, session, c, opt):
     return drift_bias(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"])
 
 
-FUSED_KEYS = ("arrival", "spread", "mic_sd", "arrival_sd", "quality", "flags", "doa_spread", "mic_times")
+FUSED_KEYS = ("arrival", "spread", "mic_sd", "arrival_sd", "quality", "flags", "doa_spread")
 
 
 def _timing_layout(mics, band, fs, c, n_template, opt):
@@ -404,7 +404,7 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
     arrival_sd, _ = claimed_sd(res, u, mics, c, lag, e, clean, loc["interference"])
     return {"arrival": arrival, "spread": spread, "mic_sd": mic_sd, "arrival_sd": arrival_sd,
             "quality": arrival_quality(gcc_quality, reasons), "flags": reasons, "doa_spread": doa_sd,
-            "mic_times": t_mic, "warnings": warnings}
+            "warnings": warnings}
 
 
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
