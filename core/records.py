@@ -9,9 +9,11 @@ consumer also still accepts. The calibration read back from disk is
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, ClassVar
 
 import pandas as pd
 
@@ -75,8 +77,34 @@ class Features(Mapping):
         return Features.from_dict({k: v for k, v in d.items() if v is not None})
 
 
+@functools.cache
+def _field_names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in fields(cls))
+
+
+class Record(Mapping):
+    """Dict-like read access (``r["name"]``, ``.get``, ``in``, ``dict(r)``) to a frozen dataclass's fields, as
+    the dicts of earlier versions read; the fields named in ``OPTIONAL`` are absent as keys while None."""
+    OPTIONAL: ClassVar[tuple[str, ...]] = ()
+
+    def __getitem__(self, key: str) -> Any:
+        if key not in _field_names(type(self)) or (key in self.OPTIONAL and getattr(self, key) is None):
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __iter__(self) -> Iterator[str]:
+        return (k for k in _field_names(type(self)) if k not in self.OPTIONAL or getattr(self, k) is not None)
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def replace(self, **changes: Any) -> Any:
+        """A copy with ``changes`` by field name."""
+        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+
+
 @dataclass(frozen=True, eq=False)
-class Session(Mapping):
+class Session(Record):
     """A recording session as ``calib.pipeline.formats.session.read_session(folder)`` reads it from its folder
     (session.toml, events.csv, the WAVs; docs/formats.md section 1), validated; what the frontend takes.
 
@@ -100,17 +128,7 @@ class Session(Mapping):
     robot: dict
     events: pd.DataFrame
     temperature: float | None = None
-
-    def __getitem__(self, key: str) -> Any:
-        if key not in _SESSION_KEYS or (key == "temperature" and self.temperature is None):
-            raise KeyError(key)
-        return getattr(self, key)
-
-    def __iter__(self) -> Iterator[str]:
-        return (k for k in _SESSION_KEYS if k != "temperature" or self.temperature is not None)
-
-    def __len__(self) -> int:
-        return sum(1 for _ in self)
+    OPTIONAL = ("temperature",)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Session:
@@ -121,5 +139,3 @@ class Session(Mapping):
         """The dict form (the same objects, not copies)."""
         return dict(self)
 
-
-_SESSION_KEYS = tuple(f.name for f in fields(Session))

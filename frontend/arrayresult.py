@@ -3,14 +3,15 @@ feature tables and the diagnostics (``extract``)."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
 
+from calib.records import Record
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class ArrayResult(Mapping):
+class ArrayResult(Record):
     """One array's detections, association, timing and DOAs (J matched events, M mics, D detections, K
     events in the session; times in s on the array's own clock).
 
@@ -63,20 +64,4 @@ class ArrayResult(Mapping):
     warnings: list
     timings: dict
     late: np.ndarray | None = None
-
-    def __getitem__(self, key: str) -> Any:
-        if key not in _KEYS or (key == "late" and self.late is None):
-            raise KeyError(key)
-        return getattr(self, key)
-
-    def __iter__(self) -> Iterator[str]:
-        return (k for k in _KEYS if k != "late" or self.late is not None)
-
-    def __len__(self) -> int:
-        return sum(1 for _ in self)
-
-    def replace(self, **changes: Any) -> ArrayResult:
-        return dataclasses.replace(self, **changes)
-
-
-_KEYS = tuple(f.name for f in dataclasses.fields(ArrayResult))
+    OPTIONAL = ("late",)
