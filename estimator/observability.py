@@ -114,7 +114,7 @@ def _support_blocks(p, lay, cols):
     """Non-reference array parameters among ``cols`` ({column: weight}), largest weight first:
     (array, layout key, label, component)."""
     out = []
-    for key, label in ((a.key, a.label) for a in ARRAY_PARAMS):   # (each can be left out of a solve)
+    for key, label in ((a.key, a.label) for a in ARRAY_PARAMS if a.can_freeze):
         idx = getattr(lay, key).reshape(p.N, -1)
         for i, k in np.argwhere(idx >= 0):
             c = int(idx[i, k])

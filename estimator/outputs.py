@@ -63,11 +63,11 @@ def to_tables(p, st):
 
 def to_frames(p, st, std=None):
     """State (+ std) → arrays and sources DataFrames of docs/formats.md section 3."""
-    a, s = to_tables(p, st)
-    arrays = {"array": a["names"], **{c: a["xyz"][:, k] for k, c in enumerate("xyz")},
-              **{c: a["quat"][:, k] for k, c in enumerate(("qw", "qx", "qy", "qz"))},
-              "offset": a["offset"], "drift": a["drift"]}
-    sources = {"event": s["event"], **{c: s["xyz"][:, k] for k, c in enumerate("xyz")}}
+    arrays = {"array": list(p.names)}
+    for a in ARRAY_PARAMS:
+        v = _quaternions(getattr(st, a.state)) if a.rotation else getattr(st, a.key).reshape(p.N, -1)
+        arrays.update({c: v[:, k] for k, c in enumerate(a.columns)})
+    sources = {"event": np.asarray(p.events), **{c: st.s[:, k] for k, c in enumerate("xyz")}}
     if std is not None:   # the columns collected first: one DataFrame each (a column insert costs ~0.1 ms)
         for a in ARRAY_PARAMS:
             v = std[a.key].reshape(len(std[a.key]), -1)   # (N, dim)
