@@ -404,6 +404,12 @@ class State:
     def __init__(self, **fields: np.ndarray):
         self.__dict__.update(fields)
 
+    def __getattr__(self, name: str) -> np.ndarray:   # (typing: the fields come from the registry)
+        raise AttributeError(name)
+
+    def __setattr__(self, name: str, value: np.ndarray) -> None:
+        self.__dict__[name] = value
+
     def copy(self):
         return State(**{k: np.array(v, dtype=float, copy=True) for k, v in vars(self).items()})
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
@@ -16,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from calib.tables import ARRAY_PARAMS, array_param, columns
 
 from .factors import active_kinds
-from .problem import build_problem, empty_state, make_layout, retract
+from .problem import Problem, State, build_problem, empty_state, make_layout, retract
 from .solver import Schur, linearise
 
 
@@ -169,7 +170,7 @@ def std_from_cov(p, lay, cov):
     return out
 
 
-def state_from_frames(p, arrays, sources=None):
+def state_from_frames(p: Problem, arrays: pd.DataFrame, sources: pd.DataFrame | None = None) -> State:
     """State from arrays/sources DataFrames (e.g. truth), ordered as the problem's arrays/events.
 
     A per-array parameter without columns, or unknown (NaN: offsets, drifts), is at its start value.
@@ -224,7 +225,7 @@ def crlb(features: dict[str, Any], truth: dict[str, Any], *, use_tdoa_s: bool = 
     return {"cov": cov, "layout": lay, "std": std_from_cov(p, lay, cov), "problem": p, "state": st}
 
 
-def draw_from_crlb(bound, rng):
+def draw_from_crlb(bound: dict[str, Any], rng: np.random.Generator) -> State:
     """One estimate drawn from N(truth, CRLB) as a state (rotations perturbed on the manifold)."""
     cov = bound["cov"]
     if isinstance(cov, BlockCovariance):
