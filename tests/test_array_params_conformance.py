@@ -16,6 +16,7 @@ import pytest
 from calib.estimator import calibrate, crlb, factors
 from calib.estimator.factors import put
 from calib.pipeline.formats.io import read_calibration, write_features
+from calib.pipeline.formats.results import load_calibration
 from calib.pipeline.run import estimate_stage
 from calib.pipeline.simulate.featsim import simulate_features
 from calib.tables import ARRAY_PARAMS, ArrayParam
@@ -75,12 +76,15 @@ def test_a_per_array_parameter_added_by_one_spec_is_estimated_with_its_std(range
     assert bound["state"].range_bias == pytest.approx(true_b.to_numpy())   # the truth reader took its column
     ratio = std.to_numpy() / bound["std"]["range_bias"]
     assert ((0.5 < ratio) & (ratio < 2.0)).all(), ratio
-    # the user's path: arrays.csv carries the value and its std (features written and read back: rounded)
+    # the user's path: arrays.csv and calibration.json carry the value and its std (features written and read
+    # back: rounded)
     write_features(tmp_path / "features", feats)
     estimate_stage(tmp_path, {"noise": "meta"})
     back = read_calibration(tmp_path / "calibration")["arrays"].set_index("array")
     np.testing.assert_allclose(back["range_bias"], est, atol=1e-3 * std.min())
     np.testing.assert_allclose(back["range_bias_std"], std, rtol=1e-3)
+    typed = {a.name: a.std["range bias"] for a in load_calibration(tmp_path / "calibration").arrays}   # calibration.json
+    np.testing.assert_allclose([typed[n] for n in std.index], std, rtol=1e-3)
 
 
 @pytest.mark.parametrize("silent", ["A3", "A1"])   # (A1: the reference, whose bias is "free")
