@@ -2,10 +2,11 @@
 
 A toy per-array parameter — a range bias b_i of each array's range measurements (a speaker offset), used by
 the toy range kind of tests/test_kinds_conformance.py — is added by exactly the recipe of
-docs/architecture.md ("Adding a per-array parameter"): ONE ``ArrayParam`` appended to ``calib.tables.ARRAY_PARAMS`` and the factor that uses it,
-nothing else. Then the state, the layout, the parameter step, the initial value, the truth reader, the
-observability check, the covariance and CRLB, the output tables with their ``*_std`` columns and arrays.csv
-must all carry it, and the calibration must find it.
+docs/architecture.md ("Adding a per-array parameter"): ONE ``ArrayParam`` appended to
+``calib.tables.ARRAY_PARAMS`` and the factor that uses it, nothing else. Then the state, the layout, the
+parameter step, the initial value, the truth reader, the observability check, the covariance and CRLB, the
+output tables with their ``*_std`` columns, arrays.csv and calibration.json must all carry it, and the
+calibration must find it.
 """
 import dataclasses
 
