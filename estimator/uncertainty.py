@@ -173,7 +173,8 @@ def std_from_cov(p, lay, cov):
 def state_from_frames(p: Problem, arrays: pd.DataFrame, sources: pd.DataFrame | None = None) -> State:
     """State from arrays/sources DataFrames (e.g. truth), ordered as the problem's arrays/events.
 
-    A per-array parameter without columns, or unknown (NaN: offsets, drifts), is at its start value.
+    A per-array parameter without columns, or a scalar one unknown (NaN: offsets, drifts), is at its start
+    value; a NaN position stays NaN (an unknown place is not the origin).
     """
     st = empty_state(p)
     ia = _rows_of(arrays["array"], p.names, "array")
@@ -181,7 +182,7 @@ def state_from_frames(p: Problem, arrays: pd.DataFrame, sources: pd.DataFrame | 
         if all(c in arrays for c in a.columns):
             v = columns(arrays, a.columns)[ia]
             setattr(st, a.state, Rotation.from_quat(v, scalar_first=True).as_matrix() if a.rotation else
-                    np.nan_to_num(v, nan=a.default).reshape(a.shape(p.N)))
+                    (np.nan_to_num(v, nan=a.default) if len(a.components) == 1 else v).reshape(a.shape(p.N)))
     if sources is not None:
         st.s = columns(sources, ("x", "y", "z"))[_rows_of(sources["event"], p.events, "event")]
     return st
