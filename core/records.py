@@ -9,11 +9,10 @@ consumer also still accepts. The calibration read back from disk is
 """
 from __future__ import annotations
 
-import dataclasses
-import functools
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, fields
-from typing import Any, ClassVar
+from dataclasses import dataclass, fields, replace as _replace
+from functools import cache
+from typing import Any
 
 import pandas as pd
 
@@ -77,30 +76,38 @@ class Features(Mapping):
         return Features.from_dict({k: v for k, v in d.items() if v is not None})
 
 
-@functools.cache
-def _field_names(cls: type) -> tuple[str, ...]:
-    return tuple(f.name for f in fields(cls))
-
-
 class Record(Mapping):
-    """Dict-like read access (``r["name"]``, ``.get``, ``in``, ``dict(r)``) to a frozen dataclass's fields, as
-    the dicts of earlier versions read; the fields named in ``OPTIONAL`` are absent as keys while None."""
-    OPTIONAL: ClassVar[tuple[str, ...]] = ()
+    """A frozen dataclass that reads like the dict form of earlier versions: its fields by name, a field that is
+    None not a key (``record["arrays"]``, ``.get``, ``{**record}``, ``dict(record)``)."""
 
     def __getitem__(self, key: str) -> Any:
-        if key not in _field_names(type(self)) or (key in self.OPTIONAL and getattr(self, key) is None):
+        if key not in _names(type(self)) or getattr(self, key) is None:
             raise KeyError(key)
         return getattr(self, key)
 
     def __iter__(self) -> Iterator[str]:
-        return (k for k in _field_names(type(self)) if k not in self.OPTIONAL or getattr(self, k) is not None)
+        return (k for k in _names(type(self)) if getattr(self, k) is not None)
 
     def __len__(self) -> int:
         return sum(1 for _ in self)
 
-    def replace(self, **changes: Any) -> Any:
-        """A copy with ``changes`` by field name."""
-        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Any:
+        """A record from the dict form (the keys of the fields; those absent are None)."""
+        return cls(**d)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The dict form (the same objects, not copies)."""
+        return dict(self)
+
+    def replace(self: Any, **changes: Any) -> Any:
+        """A copy with ``changes`` (field names)."""
+        return _replace(self, **changes)
+
+
+@cache
+def _names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in fields(cls))
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,14 +135,3 @@ class Session(Record):
     robot: dict
     events: pd.DataFrame
     temperature: float | None = None
-    OPTIONAL = ("temperature",)
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> Session:
-        """A record from the dict form (the keys of the fields; ``temperature`` optional)."""
-        return cls(**d)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The dict form (the same objects, not copies)."""
-        return dict(self)
-

@@ -31,10 +31,11 @@ class ArrayResult(Record):
     doa_axis : (3,) a linear array's axis (its DOAs are cones about it), else None. warnings : list of str.
     timings : {stage: s}.
     late : (J,) s late against the array's range track (NaN: not judged; ``extract.flag_nlos``), None
-    (absent as a key) before that check.
+    before that check.
 
     Frozen (a changed copy: :meth:`replace`); reads like the dict of earlier versions (``r["arrival"]``,
-    ``r.get``). flags, quality and warnings are filled in place by the session-wide checks.
+    ``r.get``; a field that is None is not a key). flags, quality and warnings are filled in place by the
+    session-wide checks.
     """
     name: str
     fs: int
@@ -64,4 +65,3 @@ class ArrayResult(Record):
     warnings: list
     timings: dict
     late: np.ndarray | None = None
-    OPTIONAL = ("late",)

@@ -717,7 +717,7 @@ def _tables(session, results, ev_ids, beta):
         r = results[name]
         for k, j in enumerate(r["ev_idx"] if r["has_doa"] else []):
             doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k], _flag_text(r["flags"][k], doa=True),
-                        _row_sigma_deg(r["doa_spread"][k]) if r["doa_axis"] is None else np.nan,
+                        _row_sigma_deg(r["doa_spread"][k]) if r.doa_axis is None else np.nan,
                         arr[name][int(ev_ids[j])][3]))
     est = noise_estimates(results)
     est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
@@ -726,11 +726,11 @@ def _tables(session, results, ev_ids, beta):
     # which sigmas are the frontend's own (spread-based) figures rather than the user's priors:
     # the estimator's noise="auto" then re-estimates the weights from the residuals
     meta["sigmas_estimated"] = sorted(k for k, v in est.items() if v is not None and k not in session["noise"])
-    planes = {n: [float(v) for v in results[n]["ambiguous_plane"]] for n in names
-              if results[n]["ambiguous_plane"] is not None}
+    planes = {n: [float(v) for v in results[n].ambiguous_plane] for n in names
+              if results[n].ambiguous_plane is not None}
     if planes:
         meta["doa_mirror_normals"] = planes
-    axes = {n: [float(v) for v in results[n]["doa_axis"]] for n in names if results[n].get("doa_axis") is not None}
+    axes = {n: [float(v) for v in results[n].doa_axis] for n in names if results[n].doa_axis is not None}
     if axes:  # linear arrays and 2-mic pairs: their doa.csv rows are on the cone about this axis
         meta["doa_axes"] = axes
     return {
