@@ -40,16 +40,6 @@ def fibonacci_sphere(n):
     return np.c_[r * np.cos(phi), r * np.sin(phi), z]
 
 
-def is_planar(mics, tol=1e-3):
-    """Unit normal of the mics' plane if they are (nearly) coplanar (spread < tol m), else None."""
-    mics = np.asarray(mics, float)
-    if len(mics) < 3:
-        return None
-    d = mics - mics.mean(axis=0)
-    _, sv, vt = np.linalg.svd(d)
-    return vt[2] if sv[2] / np.sqrt(len(mics)) < tol else None
-
-
 # mics whose RMS distance from their best-fit line (plane) is below this (m) form a linear (planar) array
 GEOMETRY_TOL = 1e-3
 
@@ -140,31 +130,32 @@ def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
         grid = grid[grid @ hemi >= -0.5 * step]
     fidx = np.unique(np.linspace(0, len(freqs) - 1, min(n_grid_freqs, len(freqs))).round().astype(int))
     steer = steering(grid, mics, freqs[fidx], c)
-    normal = is_planar(mics)
+    kind, vec = mic_geometry(mics)
+    normal = vec if kind == "planar" else None
     mirror = hemi is not None and normal is not None and abs(normal @ hemi) > 0.5
     return {"grid": grid, "steer": steer, "fidx": fidx, "mics": mics, "freqs": freqs, "c": c, "hemisphere": hemi,
             "step": step, "mirror": mirror, "planar_normal": normal,
-            **_coarse_setup(grid, mics, freqs[fidx], c, step, hemi)}
+            **_coarse_setup(grid, mics, freqs[fidx], c, step, hemi, normal)}
 
 
 COARSE_FACTOR = 3     # the coarse grid's step / the fine grid's (3° → 9°: 9× fewer points)
 CAP_COARSE_STEPS = 2  # fine points searched within this many coarse steps of the best coarse point
 
 
-def _coarse_setup(grid, mics, freqs, c, step, hemi):
+def _coarse_setup(grid, mics, freqs, c, step, hemi, normal):
     """Coarse-to-fine search of the fine grid: a grid ``COARSE_FACTOR`` times coarser, and per coarse
     point the fine points within ``CAP_COARSE_STEPS`` coarse steps of it (ascending indices, padded by
     repeating the last, so the first maximum is the exhaustive search's). The SRP's main lobe of a
     few-cm array is tens of degrees wide, so the coarse maximum lies well inside it and the cap holds the
     fine grid's maximum (the same grid point as the exhaustive search unless another lobe is within
-    rounding of the main one). Planar arrays also search the cap of the mirror image."""
+    rounding of the main one). Planar arrays (unit ``normal`` of their plane, else None) also search the cap
+    of the mirror image."""
     coarse_step = COARSE_FACTOR * step
     coarse = fibonacci_sphere(int(np.ceil(4 * np.pi / coarse_step**2)))
     if hemi is not None:
         coarse = coarse[coarse @ hemi >= -0.5 * coarse_step]
     cap = _cap_indices(coarse, grid, np.cos(CAP_COARSE_STEPS * coarse_step))
     steer = steering(coarse, mics, freqs, c)
-    normal = is_planar(mics)
     if normal is not None:  # a planar array's mirror image has (nearly) the same power: search both caps
         mirrored = mirror(coarse, normal)
         cap = np.sort(np.c_[cap, cap[np.argmax(mirrored @ coarse.T, axis=1)]], axis=1)
