@@ -48,6 +48,7 @@ HUBER_K = 2.5           # robust scale of the per-array fits, in σ
 MAX_ROUNDS = 6          # detection rounds (each adds at most one component)
 MAX_COMPONENTS = 4      # extra clock parameters per array at most
 GN_ITERATIONS = 20
+MAX_MOVE = 0.5         # m: the per-array fits' largest position update per Gauss-Newton iteration
 MIN_EVENTS = 6          # fewer events: the linear clock only (nothing to test a change against)
 # A clock's drift changes by a few ppm as a board warms up or the room's temperature drifts (CHiME-6: ~1-5 ppm);
 # a drift term implying a larger change over the session is a geometric error (reflections) in clock guise
@@ -271,6 +272,9 @@ def fit_array(D, comps, x0, g0, tau0):
             d = np.linalg.norm(A, axis=0)
             d = np.where(d > 0, d, 1.0)
             step = np.linalg.lstsq(A / d, -r * w, rcond=None)[0] / d
+            move = np.linalg.norm(step[:3]) if not D.ref else 0.0
+            if move > MAX_MOVE:   # a trust region: a pose metres off, its rows far from any fit, flew to 1e15 m
+                step = step * (MAX_MOVE / move)
             theta[free] += step
             if np.all(np.abs(step[3:] if not D.ref else step) <= 1e-10 * (1 + np.abs(theta[free][3:] if not D.ref
                                                                                      else theta[free]))) \
