@@ -291,6 +291,13 @@ def _solve_damped(H, g, lam):
     return -x / d
 
 
+# After an accepted step the damping falls by 1 − (2ρ − 1)³ (Nielsen; ρ = actual / predicted decrease), at most
+# by this factor. A model that predicted the decrease (ρ ≈ 1, as near a least-squares minimum) is trusted at
+# once: with Nielsen's 1/3 a damping of lam0 took ~10 factorisations to fade from the weakly determined
+# directions (drift against offset, a source along its rays), each a fraction of the parameters' σ (issue 32).
+LAM_DROP = 1e-3
+
+
 def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_iter=200, rtol=1e-12,
                         lam0=1e-4, dense=None):
     """Minimise ½ Σ ρ(r) over the free parameters of ``lay``. Returns (state, info).
@@ -343,7 +350,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         if not accepted:
             reason = "no decrease" if reason != "cost" else reason
             break
-        lam *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3) if ratio > 0 else 2.0
+        lam *= max(LAM_DROP, 1.0 - (2.0 * ratio - 1.0) ** 3) if ratio > 0 else 2.0
         nu = 2.0
         dec = cost - cost2
         st, r, J, w, cost = cand, r2, J2, w2, cost2
