@@ -147,13 +147,13 @@ def _stacked(p, st, lay, kinds, dense):
     kinds = tuple(kinds)
     hit = None if dense else getattr(_last, "entry", None)
     if hit is not None and hit[0] is p and hit[1] is lay and hit[2] == kinds and \
-            all(np.array_equal(v, getattr(st, f)) for f, v in zip(STATE_FIELDS, hit[3])):
+            hit[3].keys() == vars(st).keys() and all(np.array_equal(v, getattr(st, f)) for f, v in hit[3].items()):
         return hit[4], hit[5]
     fs = evaluate(p, st, lay, kinds)
     J = stack_jacobians([f.J for f in fs], lay.n, dense)
     fs = [dataclasses.replace(f, J=None) for f in fs]
     if not dense:
-        _last.entry = (p, lay, kinds, tuple(np.array(getattr(st, f)) for f in STATE_FIELDS), fs, J)
+        _last.entry = (p, lay, kinds, {f: np.array(v) for f, v in vars(st).items()}, fs, J)
     return fs, J
 
 
