@@ -143,6 +143,110 @@ class BlockCovariance:
         return self.system.solve(self.J.T @ z)
 
 
+def inflated_rows(p, lin, factors):
+    """The whitened Jacobian of ``lin``'s kept rows with each (type, array)'s rows divided by the root of
+    its σ² factor (``factors``: {kind: (N,)}, :func:`calib.estimator.variance.covariance_factors`): the
+    Jacobian whose (JᵀJ)⁻¹ is the covariance with those arrays' sigmas raised."""
+    s, start = np.ones(len(lin.r)), 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind in factors and n:
+            s[start:start + n] = np.repeat(np.sqrt(factors[f.kind])[p.rows(f.kind).arr], f.dim)
+        start += n
+    keep = lin.w > 0
+    return whiten(lin.J, 1.0 / s ** 2)[keep] if scipy.sparse.issparse(lin.J) else (lin.J / s[:, None])[keep]
+
+
+ARRIVAL_KINDS = ("tdoa_m", "tdoa_s")   # rows that are differences of two arrivals (docs/architecture.md)
+
+
+def arrival_rows(p, lin, factors):
+    """The whitened TDOA rows as combinations of arrival errors: a sparse (M, N·K) matrix D with
+    whitened residual error = D n, n the arrivals' errors in units of their own sigma.
+
+    A TDOA-M row a_ij − a_ref,j and a TDOA-S row a_ib − a_ia share arrivals: every TDOA-M row of an event
+    holds the reference's arrival (correlation ½ between them), consecutive TDOA-S rows share the middle
+    one (−½), a TDOA-M and a TDOA-S row of the same array and event share its arrival. An arrival's sigma is
+    its array's row sigma / √2 (the frontend's sigma_tdoa is √2 × its arrivals' spread), raised by the
+    largest of the array's σ² factors of the TDOA kinds (``factors``). Rows not kept (weight 0) and the
+    other kinds have no entry."""
+    keep = lin.w > 0
+    K = p.K
+    g = np.ones(p.N)
+    for kind in ARRIVAL_KINDS:
+        a = (p.array_scale or {}).get(kind)
+        g = np.maximum(g, np.ones(p.N) if a is None else np.asarray(a, float))
+    g = p.sigma["tdoa_s"] / np.sqrt(2.0) * g * np.sqrt(np.maximum.reduce(
+        [factors.get(k, np.ones(p.N)) for k in ARRIVAL_KINDS]))
+    rr, cc, vv, start = [], [], [], 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind in ARRIVAL_KINDS and n:
+            rows = p.rows(f.kind)
+            if f.kind == "tdoa_m":
+                first, second = (rows.arr, rows.ev), (np.full(n, p.ref), rows.ev)
+            else:
+                first, second = (rows.arr, rows.b), (rows.arr, rows.a)
+            sig = np.broadcast_to(f.row_sigma, n)
+            idx = start + np.arange(n)
+            for (arr, ev), sign in ((first, 1.0), (second, -1.0)):
+                rr.append(idx), cc.append(arr * K + ev), vv.append(sign * g[arr] / sig)
+        start += n
+    if not rr:
+        return None
+    r, c, v = np.concatenate(rr), np.concatenate(cc), np.concatenate(vv)
+    k = keep[r]
+    return scipy.sparse.csr_matrix((v[k], (r[k], c[k])), shape=(len(lin.r), p.N * K))
+
+
+def sandwich_covariance(p, lin, cov, factors, shared=True):
+    """Covariance of the estimate the solve made (weights as stated) under the errors as they are: H⁻¹ B H⁻¹
+    with H⁻¹ = ``cov`` (dense, the kept rows' (JᵀJ)⁻¹) and B = Jᵀ C J, C the whitened rows' covariance:
+    arrival-sharing TDOA rows through :func:`arrival_rows`, the other rows independent with their array's
+    σ² factor (``factors`` {kind: (N,)}, :func:`calib.estimator.variance.covariance_factors`); ``shared``
+    False: the TDOA rows independent too (features whose meta.json does not say ``tdoa_shared_arrivals``).
+    Returns the (n, n) covariance."""
+    keep = lin.w > 0
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
+    f_rows, start = np.ones(len(lin.r)), 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind in factors and n:
+            f_rows[start:start + n] = np.repeat(factors[f.kind][p.rows(f.kind).arr], f.dim)
+        start += n
+    D = arrival_rows(p, lin, factors) if shared else None
+    own = keep.copy()
+    if D is not None:
+        own &= np.asarray(abs(D).sum(axis=1)).ravel() == 0
+        G = D.T @ J   # (N·K, n): each arrival's error through every row that holds it
+        B = G.T @ G
+    else:
+        B = np.zeros((J.shape[1], J.shape[1]))
+    Jo = J[own] * np.sqrt(f_rows[own])[:, None]
+    B = B + Jo.T @ Jo
+    out = cov @ B @ cov
+    return 0.5 * (out + out.T)
+
+
+def honest_covariance(p, lin, lay, *, shared=False, cov=None, arrays_only=False):
+    """The covariance the ``*_std`` columns and calibration.json report, at the final linearisation ``lin``
+    (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
+    residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
+    TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) by :func:`sandwich_covariance`;
+    a large (sparse) problem gets the factors alone (:func:`inflated_rows`). ``cov``: the plain (JᵀJ)⁻¹ of the
+    kept rows when already computed; ``arrays_only`` as :func:`covariance`."""
+    from .variance import covariance_factors   # (variance's stages use this module's neighbours, not it)
+
+    if cov is None:
+        cov = covariance(lin.J[lin.w > 0], lay.n, lay, arrays_only)
+    factors = covariance_factors(p, lin, cov)
+    if isinstance(cov, np.ndarray):
+        return sandwich_covariance(p, lin, cov, factors, shared)
+    if any(np.any(v > 1) for v in factors.values()):
+        return covariance(inflated_rows(p, lin, factors), lay.n, lay, arrays_only)
+    return cov
+
+
 def cov_diagonal(cov):
     """Diagonal (n,) of a dense covariance or a :class:`BlockCovariance`."""
     return cov.diagonal() if isinstance(cov, BlockCovariance) else np.diag(cov)
