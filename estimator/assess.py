@@ -16,7 +16,7 @@ from .factors import evaluate as factors
 from .observability import check_observability
 from .problem import build_problem, make_layout
 from .solver import linearise
-from .uncertainty import cov_block, honest_covariance, state_from_frames
+from .uncertainty import cov_block, honest_covariance, plane_normals, state_from_frames
 
 
 def rebuild(features, calib):
@@ -60,7 +60,8 @@ def rebuild(features, calib):
     mask = {f.kind: ~np.isin(f.row, list(flagged[f.kind]))
             for f in factors(p, st, lay, kinds) if f.kind in flagged}
     return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask,
-            "shared": bool(features["meta"].get("tdoa_shared_arrivals"))}
+            "shared": bool(features["meta"].get("tdoa_shared_arrivals")),
+            "normals": plane_normals(features["meta"], p.names)}
 
 
 def _rank_deficient(p, undetermined):
@@ -118,7 +119,7 @@ def position_covariances(model):
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     with single_thread_blas():   # (calib.blas)
-        cov = honest_covariance(p, lin, lay, shared=model.get("shared", False))
+        cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), normals=model.get("normals"))
 
     def blocks(idx, skip=()):
         out = np.full((len(idx), 3, 3), np.nan)
@@ -143,7 +144,8 @@ def array_covariance(model):
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     with single_thread_blas():   # small dense blocks (calib.blas): threads only add synchronisation
         # large problems: the array block alone
-        cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), arrays_only=True)
+        cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), normals=model.get("normals"),
+                                arrays_only=True)
     labels, idx = [], []
     skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
     for i, name in enumerate(p.names):

@@ -13,6 +13,8 @@ import scipy.sparse
 import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
+from calib.geometry import plane_normal
+from calib.kinds import KINDS
 from calib.tables import ARRAY_PARAM_KEY, ARRAY_PARAMS, columns
 
 from .factors import active_kinds
@@ -199,12 +201,83 @@ def arrival_rows(p, lin, factors):
     return scipy.sparse.csr_matrix((v[k], (r[k], c[k])), shape=(len(lin.r), p.N * K))
 
 
-def sandwich_covariance(p, lin, cov, factors, shared=True):
+def plane_normals(meta, names):
+    """(N, 3): the mic-plane normal (array frame) of each planar array in meta.json ``mics``, zeros elsewhere
+    (and for every array when meta has no mics)."""
+    mics = meta.get("mics") or {}
+    out = np.zeros((len(names), 3))
+    for i, n in enumerate(names):
+        v = plane_normal(mics[str(n)]) if str(n) in mics else None
+        if v is not None:
+            out[i] = v
+    return out
+
+
+def planar_doa_rows(p, lin, normals, factors):
+    """The DOA rows of planar arrays with their errors as a planar array makes them: {"rows": (M,) bool, the
+    DOA residuals it models; "G": (m, n) rows whose GᵀG is their part of Jᵀ C J}; None when there is none.
+
+    A planar array measures the in-plane part of a direction, ρ = cos(el) (the mics' delays do not depend
+    on the rest): an in-plane error σ_p moves the azimuth by σ_p (along the sphere) and the elevation by
+    σ_p / sin(el) — near the mic plane the elevation is many times less certain than the azimuth (issue 27:
+    sources within a few degrees of the plane, azimuth errors ≤ 0.3°, elevation errors 1–11°), which an
+    isotropic sigma per row misses both ways. σ_p is each array's own (its residuals along azimuth, and along
+    elevation × sin(el)); 1 / sin(el) stops at √(2 / σ_p) (at el → 0, el ≈ √(2 (1 − ρ)): an error σ_p in ρ moves
+    it by √(2 σ_p)). The lag-1 correlation inflation of ``factors`` (in ``factors["doa_correlation"]``) applies;
+    along either direction the variance stays at least the row's sigma² × its array's σ² factor (``factors["doa"]``:
+    a frontend's figure is only ever raised, as the sigmas themselves are)."""
+    start = 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind != "doa" or not n:
+            start += n
+            continue
+        arr, u = p.doa.arr, p.doa.u
+        nv = normals[arr]
+        keep = (lin.w[start:start + n] > 0).reshape(-1, 3).all(axis=1) & np.any(nv != 0, axis=1)
+        if not keep.any():
+            return None
+        cos_n = np.einsum("ka,ka->k", nv, u)
+        e_el = nv - cos_n[:, None] * u
+        e_el /= np.maximum(np.linalg.norm(e_el, axis=1), 1e-12)[:, None]
+        e_az = np.cross(u, e_el)
+        sig = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)[:, 0]
+        res = lin.r[start:start + n].reshape(-1, 3) * sig[:, None]           # natural units (rad)
+        J = lin.J[start:start + n]
+        J = (J.toarray() if scipy.sparse.issparse(J) else np.asarray(J)).reshape(n // 3, 3, -1) * sig[:, None, None]
+        sin_el = np.abs(cos_n)
+        corr = factors.get("doa_correlation", np.ones(p.N))
+        iso_factor = factors.get("doa", np.ones(p.N))
+        G = []
+        for i in np.unique(arr[keep]):
+            m = np.flatnonzero(keep & (arr == i))
+            if len(m) < 3:
+                keep[arr == i] = False
+                continue
+            r_az, r_el = np.einsum("ka,ka->k", e_az[m], res[m]), np.einsum("ka,ka->k", e_el[m], res[m])
+            s = sin_el[m]
+            for _ in range(2):   # σ_p and the floor of sin(el) it sets
+                sp2 = float(np.sum(r_az ** 2 + (r_el * s) ** 2) / max(2 * len(m) - 3, 1))
+                s = np.maximum(sin_el[m], np.sqrt(np.sqrt(sp2) / 2.0))
+            # never below the row's own sigma with its array's factor (a frontend's figure is only raised)
+            iso = sig[m] ** 2 * iso_factor[i]
+            var_az, var_el = np.maximum(sp2 * corr[i], iso), np.maximum(sp2 * corr[i] / s ** 2, iso)
+            # Jᵀ C J of the whitened rows: (J_nat / σ)ᵀ (C_nat / σ²) (J_nat / σ)
+            G.append((np.sqrt(var_az) / sig[m] ** 2)[:, None] * np.einsum("ka,kan->kn", e_az[m], J[m]))
+            G.append((np.sqrt(var_el) / sig[m] ** 2)[:, None] * np.einsum("ka,kan->kn", e_el[m], J[m]))
+        rows = np.zeros(len(lin.r), bool)
+        rows[start:start + n] = np.repeat(keep, 3)
+        return {"rows": rows, "G": np.vstack(G)} if G else None
+    return None
+
+
+def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None):
     """Covariance of the estimate the solve made (weights as stated) under the errors as they are: H⁻¹ B H⁻¹
     with H⁻¹ = ``cov`` (dense, the kept rows' (JᵀJ)⁻¹) and B = Jᵀ C J, C the whitened rows' covariance:
     arrival-sharing TDOA rows through :func:`arrival_rows`, the other rows independent with their array's
     σ² factor (``factors`` {kind: (N,)}, :func:`calib.estimator.variance.covariance_factors`); ``shared``
-    False: the TDOA rows independent too (features whose meta.json does not say ``tdoa_shared_arrivals``).
+    False: the TDOA rows independent too (features whose meta.json does not say ``tdoa_shared_arrivals``);
+    ``normals`` (N, 3): planar arrays' DOA rows as they err (:func:`planar_doa_rows`).
     Returns the (n, n) covariance."""
     keep = lin.w > 0
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
@@ -216,6 +289,9 @@ def sandwich_covariance(p, lin, cov, factors, shared=True):
         start += n
     D = arrival_rows(p, lin, factors) if shared else None
     own = keep.copy()
+    planar = None if normals is None else planar_doa_rows(p, lin, normals, factors)
+    if planar is not None:
+        own &= ~planar["rows"]
     if D is not None:
         own &= np.asarray(abs(D).sum(axis=1)).ravel() == 0
         G = D.T @ J   # (N·K, n): each arrival's error through every row that holds it
@@ -224,25 +300,28 @@ def sandwich_covariance(p, lin, cov, factors, shared=True):
         B = np.zeros((J.shape[1], J.shape[1]))
     Jo = J[own] * np.sqrt(f_rows[own])[:, None]
     B = B + Jo.T @ Jo
+    if planar is not None:
+        B = B + planar["G"].T @ planar["G"]
     out = cov @ B @ cov
     return 0.5 * (out + out.T)
 
 
-def honest_covariance(p, lin, lay, *, shared=False, cov=None, arrays_only=False):
+def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arrays_only=False):
     """The covariance the ``*_std`` columns and calibration.json report, at the final linearisation ``lin``
     (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
     residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
     TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) by :func:`sandwich_covariance`;
     a large (sparse) problem gets the factors alone (:func:`inflated_rows`). ``cov``: the plain (JᵀJ)⁻¹ of the
-    kept rows when already computed; ``arrays_only`` as :func:`covariance`."""
+    kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
+    dense problems); ``arrays_only`` as :func:`covariance`."""
     from .variance import covariance_factors   # (variance's stages use this module's neighbours, not it)
 
     if cov is None:
         cov = covariance(lin.J[lin.w > 0], lay.n, lay, arrays_only)
     factors = covariance_factors(p, lin, cov)
     if isinstance(cov, np.ndarray):
-        return sandwich_covariance(p, lin, cov, factors, shared)
-    if any(np.any(v > 1) for v in factors.values()):
+        return sandwich_covariance(p, lin, cov, factors, shared, normals)
+    if any(np.any(v > 1) for k, v in factors.items() if k in KINDS):
         return covariance(inflated_rows(p, lin, factors), lay.n, lay, arrays_only)
     return cov
 

@@ -219,8 +219,8 @@ COVARIANCE_PRIOR_DOF = 4.0
 def covariance_factors(p, lin, cov=None):
     """Per (type, array) σ² factors ≥ 1 for the covariance: {kind: (N,)} from the final linearisation ``lin``
     (``solver.Linearised``, weights 0 on excluded rows) and its covariance ``cov`` when dense (leverages;
-    0 for a sparse problem, see :func:`_leverages`). Types without per-array rows or not re-weighted by the
-    data are left out."""
+    0 for a sparse problem, see :func:`_leverages`), and under ``<kind>_correlation`` the part of it from the
+    residuals' lag-1 correlation. Types without per-array rows or not re-weighted by the data are left out."""
     keep = lin.w > 0
     h = _leverages(lin.J, keep, cov if isinstance(cov, np.ndarray) else None)
     out, start = {}, 0
@@ -233,7 +233,9 @@ def covariance_factors(p, lin, cov=None):
         g = arraynoise.vce_groups(p, f, lin.r[sl], h[sl], keep[sl])
         red = np.maximum(g["red"], 0.0)
         v = np.maximum(1.0, (g["ss"] + COVARIANCE_PRIOR_DOF) / (red + COVARIANCE_PRIOR_DOF))
-        out[f.kind] = v * _correlation_inflation(p, f, lin.r[sl], keep[sl])
+        corr = _correlation_inflation(p, f, lin.r[sl], keep[sl])
+        out[f.kind] = v * corr
+        out[f.kind + "_correlation"] = corr
     return out
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from calib.blas import single_thread_blas
 from calib.memo import SetupCache
-from calib.geometry import fold, mirror
+from calib.geometry import fold, mirror, plane_normal
 
 from .timing import phasors
 
@@ -41,14 +41,7 @@ def fibonacci_sphere(n):
     return np.c_[r * np.cos(phi), r * np.sin(phi), z]
 
 
-def is_planar(mics, tol=1e-3):
-    """Unit normal of the mics' plane if they are (nearly) coplanar (spread < tol m), else None."""
-    mics = np.asarray(mics, float)
-    if len(mics) < 3:
-        return None
-    d = mics - mics.mean(axis=0)
-    _, sv, vt = np.linalg.svd(d)
-    return vt[2] if sv[2] / np.sqrt(len(mics)) < tol else None
+is_planar = plane_normal   # (calib.geometry: the estimator's error bars use it too)
 
 
 # mics whose RMS distance from their best-fit line (plane) is below this (m) form a linear (planar) array
