@@ -47,6 +47,7 @@ MISFIT_FAIL = 0.15        # misfit RMS over the array's largest measured delay: 
 MISFIT_NAMED = 0.02       # ... above this, a fix that cuts it by FIX_NAMED names the channel (clean: < 0.005)
 FIX_NAMED = 5.0
 MISFIT_FLOOR_S = 3e-6     # s: below this absolute misfit a geometry always fits (clean rooms: 0.1-1.2 µs)
+MOVE_ITERATIONS = 8        # alternating least squares that refit one mic's position (converged in 3-5)
 FIX_RATIO = 3.0           # a fix (a swap, leaving a mic out) must cut the misfit by this factor to be named
 SCALE_FAIL = 1.6          # |w|·c (the declared size's inverse scale) off 1 by more than this factor
 SCALE_FAIL_3D = 1.15      # ... a 3-D array's, agreed on by CONSENSUS_SUPPORT of its events (clean: ≤ 1.11)
@@ -80,8 +81,8 @@ class PairDelays:
 class GeometryFit:
     """:func:`fit_geometry`'s result. misfit : s, the RMS pair residual of the events (:func:`_misfit`); ratio : misfit
     over the largest measured pair delay; scale : the factor by which the declared geometry is too large
-    (1 = right; NaN if not measurable); loo : {mic: misfit without it}; swaps : {(m, n): misfit with the two
-    swapped}; used : mics in the fit; support : the fraction of the events that agree on the scale (a 3-D
+    (1 = right; NaN if not measurable); loo : {mic: misfit without it}; moved : {mic: (misfit, offset (3,) m)
+    with that mic's position refitted}; swaps : {(m, n): misfit with the two swapped}; used : mics in the fit; support : the fraction of the events that agree on the scale (a 3-D
     array: :func:`consensus`; a planar or linear one: those with ``|w|·c > 1``, which only a geometry declared
     too small gives)."""
     misfit: float
@@ -89,6 +90,7 @@ class GeometryFit:
     scale: float
     span: float
     loo: dict = field(default_factory=dict)
+    moved: dict = field(default_factory=dict)
     swaps: dict = field(default_factory=dict)
     used: tuple = ()
     support: float = np.nan
@@ -240,6 +242,24 @@ def _misfit(tau, pairs, mics, use):
     return float(np.quantile(np.sqrt(np.mean(res**2, axis=0)), MISFIT_QUANTILE)), w.T
 
 
+def _moved(tau, pairs, mics, use, m, iters=MOVE_ITERATIONS):
+    """:func:`_misfit` with mic ``m``'s position refitted (the events' plane waves and one offset of that mic,
+    by alternating least squares); and the offset (3,) m. A typed-in coordinate that is off is such an offset
+    in every event; a pair delay that a reflection bent in some events is not."""
+    p, delta = mics.copy(), np.zeros(3)
+    sel = np.isin(pairs[:, 0], use) & np.isin(pairs[:, 1], use)
+    pr, y = pairs[sel], tau[:, sel]
+    sign = (pr[:, 0] == m).astype(float) - (pr[:, 1] == m)  # tau = -(p_a - p_b)·w: mic m's share, per pair
+    for _ in range(iters):
+        misfit, w = _misfit(tau, pairs, p, use)
+        res = y + w @ (p[pr[:, 0]] - p[pr[:, 1]]).T  # (K, P') residual with the current geometry
+        J = (sign[None, :, None] * w[:, None, :]).reshape(-1, 3)  # d res / d delta
+        step, *_ = np.linalg.lstsq(J, -res.reshape(-1), rcond=None)
+        delta = delta + step
+        p[m] = mics[m] + delta
+    return _misfit(tau, pairs, p, use)[0], delta
+
+
 def _rank(mics, tol=1e-3):
     """Dimension spanned by the mics (1 linear, 2 planar, 3 volume): a plane wave's unknowns."""
     sv = np.linalg.svd(mics - mics.mean(axis=0), compute_uv=False)
@@ -289,12 +309,13 @@ def fit_geometry(delays, mics, c, exclude=()):
     scale = 1.0 / float(mode) if mode > 0 else np.nan
     loo = {m: _misfit(delays.tau, delays.pairs, mics, tuple(u for u in use if u != m))[0]
            for m in use} if len(use) - 2 > _rank(mics[list(use)]) else {}  # the rest still over-determined
+    moved = {m: _moved(delays.tau, delays.pairs, mics, use, m) for m in loo}
     swaps = {}
     for a, b in combinations(use, 2):
         p = mics.copy()
         p[[a, b]] = p[[b, a]]
         swaps[(a, b)] = _misfit(delays.tau, delays.pairs, p, use)[0]
-    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, loo, swaps, use, support)
+    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, loo, moved, swaps, use, support)
 
 
 def inverted_channels(delays, exclude=()):

@@ -198,11 +198,23 @@ def _misfit_finding(a, g, mics, fix_ratio):
         if v * fix_ratio < g.misfit and v / max(g.span, 1e-12) < C.MISFIT_FAIL:
             return Finding("failed", wav, "swapped channels", f"{head}; with channels {m + 1} and {n + 1} swapped "
                            f"they fit ({us * v:.0f} µs): swap rows {m + 1} and {n + 1} of its mics, or the cables")
-    if g.loo:
-        m, v = min(g.loo.items(), key=lambda kv: kv[1])
-        if v * fix_ratio < g.misfit and v / max(g.span, 1e-12) < C.MISFIT_FAIL:
-            return Finding("failed", wav, "channel geometry", f"{head}; without channel {m + 1} they fit "
-                           f"({us * v:.0f} µs): check row {m + 1} of its mics (a typo?) and that channel's wiring")
+    fixes = sorted((v, m) for m, v in g.loo.items() if v * fix_ratio < g.misfit and v / max(g.span, 1e-12)
+                   < C.MISFIT_FAIL)
+    if len(fixes) == 1:  # leaving out any other mic keeps the misfit: that one is misplaced or miswired
+        v, m = fixes[0]
+        return Finding("failed", wav, "channel geometry", f"{head}; without channel {m + 1} they fit "
+                       f"({us * v:.0f} µs): check row {m + 1} of its mics (a typo?) and that channel's wiring")
+    moved = [m for _, m in fixes if g.moved[m][0] * fix_ratio < g.misfit]  # one offset fits every event
+    if moved:  # (two rows can explain one typo where the rest leave a direction to just those two mics)
+        rows = " or ".join(f"row {m + 1} moved by ({', '.join(f'{100 * x:+.1f}' for x in g.moved[m][1])}) cm"
+                           for m in moved)
+        return Finding("failed", wav, "channel geometry", f"{head}; with {rows} they fit: check that row of its "
+                       "mics (a typo?)")
+    if fixes:  # leaving out either of two mics fits, moving neither does: their pair's delay is off
+        names = " or ".join(str(m + 1) for _, m in fixes)
+        return Finding("note", wav, "pair delay", f"{head}; without channel {names} they fit, with neither moved: "
+                       "the delay between these mics is off in many chirps (a reflection from a surface near the "
+                       "board?); not a set-up mistake")
     if g.ratio <= C.MISFIT_FAIL:
         return None
     return Finding("failed", wav, "geometry", f"{head}: the mics in session.toml are not this board's (shape, "
