@@ -5,6 +5,7 @@ Cramér–Rao lower bound for unbiased estimators under the stated Gaussian nois
 """
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
@@ -126,6 +127,14 @@ class BlockCovariance:
 
     def diagonal(self):
         return self.diag
+
+    def with_arrays(self, other):
+        """A copy whose array block (and its diagonal) is ``other``'s (a :class:`BlockCovariance` of the same
+        layout, e.g. ``arrays_only``); the source blocks stay this one's."""
+        out = copy.copy(self)
+        out.arr, out.diag = other.arr, self.diag.copy()
+        out.diag[self.arr_cols] = other.diag[other.arr_cols]
+        return out
 
     def block(self, ix):
         """Covariance block of the parameter columns ``ix`` (array parameters, or one source's 3 columns)."""
@@ -311,8 +320,9 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
     (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
     residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
     TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) by :func:`sandwich_covariance`;
-    a large (sparse) problem gets the factors alone (:func:`inflated_rows`). ``cov``: the plain (JᵀJ)⁻¹ of the
-    kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
+    a large (sparse) problem gets the factors alone (:func:`inflated_rows`) in its array block (its
+    sources' blocks stay the plain ones: the event blocks would cost a solve per source again). ``cov``: the
+    plain (JᵀJ)⁻¹ of the kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
     dense problems); ``arrays_only`` as :func:`covariance`."""
     from .variance import covariance_factors   # (variance's stages use this module's neighbours, not it)
 
@@ -321,9 +331,11 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
     factors = covariance_factors(p, lin, cov)
     if isinstance(cov, np.ndarray):
         return sandwich_covariance(p, lin, cov, factors, shared, normals)
-    if any(np.any(v > 1) for k, v in factors.items() if k in KINDS):
-        return covariance(inflated_rows(p, lin, factors), lay.n, lay, arrays_only)
-    return cov
+    if not any(np.any(v > 1) for k, v in factors.items() if k in KINDS):
+        return cov
+    # large problems: the array block with the factors (one more Schur complement); the sources keep theirs
+    arrays = covariance(inflated_rows(p, lin, factors), lay.n, lay, arrays_only=True)
+    return arrays if arrays_only else cov.with_arrays(arrays)
 
 
 def cov_diagonal(cov):

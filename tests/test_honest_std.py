@@ -192,3 +192,23 @@ def test_planar_array_near_its_plane_is_honest_in_tilt():
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
     assert max(z[True]) < 2.5 and rms[True] < 1.3
     assert rms[False] > 1.5 * rms[True]
+
+
+def test_large_problem_raises_the_array_block_only():
+    """Past the dense limit the array block gets the factors (one more Schur complement) and the sources keep
+    the plain blocks: array std never below the plain (JᵀJ)⁻¹'s, source std equal to it."""
+    from calib.estimator.solver import use_dense
+    from calib.estimator.uncertainty import cov_diagonal, honest_covariance
+
+    rng = np.random.default_rng(7)
+    stops = np.cumsum(rng.normal(0, 0.4, (90, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
+    feats, _ = simulate_features(trajectory=stops, seed=7, n_arrays=5)
+    p, lay, lin = _final_linearisation(calibrate(feats))
+    assert not use_dense(lay)
+    plain = covariance(lin.J[lin.w > 0], lay.n, lay)
+    honest = honest_covariance(p, lin, lay, cov=plain)
+    arr = plain.arr_cols
+    assert np.all(cov_diagonal(honest)[arr] >= cov_diagonal(plain)[arr] * (1 - 1e-9))
+    assert np.any(cov_diagonal(honest)[arr] > 1.01 * cov_diagonal(plain)[arr])
+    src = np.setdiff1d(np.arange(lay.n), arr)
+    np.testing.assert_array_equal(cov_diagonal(honest)[src], cov_diagonal(plain)[src])
