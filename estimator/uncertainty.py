@@ -233,8 +233,9 @@ def planar_doa_rows(p, lin, normals, factors):
     isotropic sigma per row misses both ways. σ_p is each array's own (its residuals along azimuth, and along
     elevation × sin(el)); 1 / sin(el) stops at √(2 / σ_p) (at el → 0, el ≈ √(2 (1 − ρ)): an error σ_p in ρ moves
     it by √(2 σ_p)). The lag-1 correlation inflation of ``factors`` (in ``factors["doa_correlation"]``) applies;
-    along either direction the variance stays at least the row's sigma² × its array's σ² factor (``factors["doa"]``:
-    a frontend's figure is only ever raised, as the sigmas themselves are)."""
+    the elevation's variance stays at least the row's sigma² × its array's σ² factor (``factors["doa"]``: a
+    frontend's figure is only ever raised, as the sigmas themselves are), the azimuth's is σ_p² (on the lab
+    preset azimuth errors 0.1° against a row sigma of 0.6°: the row sigma there made the std 1.5× the errors)."""
     start = 0
     for f in lin.factors:
         n = len(f.r)
@@ -268,9 +269,10 @@ def planar_doa_rows(p, lin, normals, factors):
             for _ in range(2):   # σ_p and the floor of sin(el) it sets
                 sp2 = float(np.sum(r_az ** 2 + (r_el * s) ** 2) / max(2 * len(m) - 3, 1))
                 s = np.maximum(sin_el[m], np.sqrt(np.sqrt(sp2) / 2.0))
-            # never below the row's own sigma with its array's factor (a frontend's figure is only raised)
-            iso = sig[m] ** 2 * iso_factor[i]
-            var_az, var_el = np.maximum(sp2 * corr[i], iso), np.maximum(sp2 * corr[i] / s ** 2, iso)
+            # the elevation never below the row's own sigma with its array's factor (what the fit absorbs of a
+            # tilt its residuals cannot show); the azimuth is what the array measures best
+            var_az = np.full(len(m), sp2 * corr[i])
+            var_el = np.maximum(sp2 * corr[i] / s ** 2, sig[m] ** 2 * iso_factor[i])
             # Jᵀ C J of the whitened rows: (J_nat / σ)ᵀ (C_nat / σ²) (J_nat / σ)
             G.append((np.sqrt(var_az) / sig[m] ** 2)[:, None] * np.einsum("ka,kan->kn", e_az[m], J[m]))
             G.append((np.sqrt(var_el) / sig[m] ** 2)[:, None] * np.einsum("ka,kan->kn", e_el[m], J[m]))

@@ -243,8 +243,9 @@ MAX_CORRELATION = 0.8   # lag-1 correlation used at most: (1 + ρ) / (1 − ρ) 
 
 
 def _correlation_inflation(p, f, r, keep):
-    """Per array (N,): (1 + ρ) / (1 − ρ) for ρ the lag-1 correlation (positive part, ≤ MAX_CORRELATION) of its
-    kept residual vectors in event order. Errors that drift along the trajectory (a reflection or the robot's
+    """Per array (N,): (1 + ρ) / (1 − ρ) for ρ the lag-1 correlation of its kept residual vectors in event order,
+    less 1/√n (a white series' spread of it: n = 14 white residuals reach 0.27 one time in six), positive part,
+    ≤ MAX_CORRELATION. Errors that drift along the trajectory (a reflection or the robot's
     motion biasing consecutive events alike) are not independent: n such rows carry the information of about
     n (1 − ρ) / (1 + ρ) independent ones (the variance of a mean of an AR(1) series), which the covariance
     would otherwise claim n times over. A fit leaves white residuals slightly anti-correlated, so clean rows
@@ -261,7 +262,7 @@ def _correlation_inflation(p, f, r, keep):
             continue
         x = x - x.mean(axis=0)
         rho = float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300))
-        rho = min(max(rho, 0.0), MAX_CORRELATION)
+        rho = min(max(rho - 1.0 / np.sqrt(len(x)), 0.0), MAX_CORRELATION)   # beyond a white series' spread
         out[i] = (1.0 + rho) / (1.0 - rho)
     return out
 
