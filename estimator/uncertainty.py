@@ -168,7 +168,8 @@ def inflated_rows(p, lin, factors):
     return whiten(lin.J, 1.0 / s ** 2)[keep] if scipy.sparse.issparse(lin.J) else (lin.J / s[:, None])[keep]
 
 
-ARRIVAL_KINDS = ("tdoa_m", "tdoa_s")   # rows that are differences of two arrivals (docs/architecture.md)
+ARRIVAL_KINDS = ("tdoa_m", "tdoa_s")
+FOLD_SIGMAS = 2.0   # a planar array's DOA this few elevation sigmas from its mic plane may be on either side   # rows that are differences of two arrivals (docs/architecture.md)
 
 
 def arrival_rows(p, lin, factors):
@@ -230,12 +231,17 @@ def planar_doa_rows(p, lin, normals, factors):
     on the rest): an in-plane error σ_p moves the azimuth by σ_p (along the sphere) and the elevation by
     σ_p / sin(el) — near the mic plane the elevation is many times less certain than the azimuth (issue 27:
     sources within a few degrees of the plane, azimuth errors ≤ 0.3°, elevation errors 1–11°), which an
-    isotropic sigma per row misses both ways. σ_p is each array's own (its residuals along azimuth, and along
-    elevation × sin(el)); 1 / sin(el) stops at √(2 / σ_p) (at el → 0, el ≈ √(2 (1 − ρ)): an error σ_p in ρ moves
-    it by √(2 σ_p)). The lag-1 correlation inflation of ``factors`` (in ``factors["doa_correlation"]``) applies;
-    the elevation's variance stays at least the row's sigma² × its array's σ² factor (``factors["doa"]``: a
-    frontend's figure is only ever raised, as the sigmas themselves are), the azimuth's is σ_p² (on the lab
-    preset azimuth errors 0.1° against a row sigma of 0.6°: the row sigma there made the std 1.5× the errors)."""
+    isotropic sigma per row misses both ways. The in-plane error is each array's own, in units of each row's
+    sigma (doa.csv ``sigma_deg``: a doubted row, 9.9° where the others have 1.2°, would otherwise set the
+    others' — lshape seed 24): from its whitened residuals along azimuth and along elevation × sin(el), over
+    2n − 3 (the rotation absorbs 3); 1 / sin(el) stops at
+    √(2 / σ_p) (at el → 0, el ≈ √(2 (1 − ρ)): an error σ_p in ρ moves it by √(2 σ_p)). The lag-1 correlation
+    inflation of ``factors`` (``factors["doa_correlation"]``) applies; the elevation's variance stays at least
+    the row's sigma² × its array's σ² factor (``factors["doa"]``: a frontend's figure is only ever raised, as
+    the sigmas themselves are), the azimuth's may go below it (on the lab preset azimuth errors were 0.1°
+    against a row sigma of 0.6°: the row sigma there made the std 1.5× the errors). A row closer to the plane
+    than FOLD_SIGMAS of its elevation std may be the mirror image of the truth (a stated hemisphere puts a
+    source 4.7° below the plane 5° above it: moving seed 23): its elevation variance gains el²."""
     start = 0
     for f in lin.factors:
         n = len(f.r)
@@ -252,9 +258,9 @@ def planar_doa_rows(p, lin, normals, factors):
         e_el /= np.maximum(np.linalg.norm(e_el, axis=1), 1e-12)[:, None]
         e_az = np.cross(u, e_el)
         sig = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)[:, 0]
-        res = lin.r[start:start + n].reshape(-1, 3) * sig[:, None]           # natural units (rad)
+        r = lin.r[start:start + n].reshape(-1, 3)           # whitened: each row in units of its own sigma
         J = lin.J[start:start + n]
-        J = (J.toarray() if scipy.sparse.issparse(J) else np.asarray(J)).reshape(n // 3, 3, -1) * sig[:, None, None]
+        J = (J.toarray() if scipy.sparse.issparse(J) else np.asarray(J)).reshape(n // 3, 3, -1)
         sin_el = np.abs(cos_n)
         corr = factors.get("doa_correlation", np.ones(p.N))
         iso_factor = factors.get("doa", np.ones(p.N))
@@ -264,18 +270,23 @@ def planar_doa_rows(p, lin, normals, factors):
             if len(m) < 3:
                 keep[arr == i] = False
                 continue
-            r_az, r_el = np.einsum("ka,ka->k", e_az[m], res[m]), np.einsum("ka,ka->k", e_el[m], res[m])
+            t_az, t_el = np.einsum("ka,ka->k", e_az[m], r[m]), np.einsum("ka,ka->k", e_el[m], r[m])
+            g_az, g_el = np.einsum("ka,kan->kn", e_az[m], J[m]), np.einsum("ka,kan->kn", e_el[m], J[m])
             s = sin_el[m]
-            for _ in range(2):   # σ_p and the floor of sin(el) it sets
-                sp2 = float(np.sum(r_az ** 2 + (r_el * s) ** 2) / max(2 * len(m) - 3, 1))
-                s = np.maximum(sin_el[m], np.sqrt(np.sqrt(sp2) / 2.0))
+            for _ in range(2):   # the in-plane error (in row sigmas) and the floor of sin(el) it sets
+                c2 = float(np.sum(t_az ** 2 + (t_el * s) ** 2)) / max(2 * len(m) - 3, 1)
+                s = np.maximum(sin_el[m], np.sqrt(np.sqrt(c2) * sig[m] / 2.0))
+            c2_az = c2_el = c2
             # the elevation never below the row's own sigma with its array's factor (what the fit absorbs of a
             # tilt its residuals cannot show); the azimuth is what the array measures best
-            var_az = np.full(len(m), sp2 * corr[i])
-            var_el = np.maximum(sp2 * corr[i] / s ** 2, sig[m] ** 2 * iso_factor[i])
-            # Jᵀ C J of the whitened rows: (J_nat / σ)ᵀ (C_nat / σ²) (J_nat / σ)
-            G.append((np.sqrt(var_az) / sig[m] ** 2)[:, None] * np.einsum("ka,kan->kn", e_az[m], J[m]))
-            G.append((np.sqrt(var_el) / sig[m] ** 2)[:, None] * np.einsum("ka,kan->kn", e_el[m], J[m]))
+            var_az = np.full(len(m), c2_az * corr[i])
+            var_el = np.maximum(c2_el * corr[i] / s ** 2, iso_factor[i])
+            # a row within FOLD_SIGMAS of its elevation noise of the plane cannot tell the plane's sides apart
+            # (a stated hemisphere, or the fold, puts it on one): its elevation may be off by up to twice itself
+            el = np.arcsin(np.clip(sin_el[m], 0.0, 1.0))
+            var_el = var_el + np.where(el < FOLD_SIGMAS * np.sqrt(var_el) * sig[m], (el / sig[m]) ** 2, 0.0)
+            G.append(np.sqrt(var_az)[:, None] * g_az)
+            G.append(np.sqrt(var_el)[:, None] * g_el)
         rows = np.zeros(len(lin.r), bool)
         rows[start:start + n] = np.repeat(keep, 3)
         return {"rows": rows, "G": np.vstack(G)} if G else None
