@@ -231,10 +231,10 @@ def planar_doa_rows(p, lin, normals, factors):
     on the rest): an in-plane error σ_p moves the azimuth by σ_p (along the sphere) and the elevation by
     σ_p / sin(el) — near the mic plane the elevation is many times less certain than the azimuth (issue 27:
     sources within a few degrees of the plane, azimuth errors ≤ 0.3°, elevation errors 1–11°), which an
-    isotropic sigma per row misses both ways. The in-plane error is each array's own, in units of each row's
-    sigma (doa.csv ``sigma_deg``: a doubted row, 9.9° where the others have 1.2°, would otherwise set the
-    others' — lshape seed 24): from its whitened residuals along azimuth and along elevation × sin(el), over
-    2n − 3 (the rotation absorbs 3); 1 / sin(el) stops at
+    isotropic sigma per row misses both ways. σ_p is each array's own: its residuals² along azimuth plus along
+    elevation × sin(el), over 2n − 3 (the rotation absorbs 3) — a mean, so one reflection's row (25° where the
+    others err by 1°, lshape seed 24) raises all of the array's rows' (a median, or each row's own sigma
+    weighting it, left arrays 3.1–3.9σ off: too little where it matters); 1 / sin(el) stops at
     √(2 / σ_p) (at el → 0, el ≈ √(2 (1 − ρ)): an error σ_p in ρ moves it by √(2 σ_p)). The lag-1 correlation
     inflation of ``factors`` (``factors["doa_correlation"]``) applies; the elevation's variance stays at least
     the row's sigma² × its array's σ² factor (``factors["doa"]``: a frontend's figure is only ever raised, as
@@ -272,11 +272,11 @@ def planar_doa_rows(p, lin, normals, factors):
                 continue
             t_az, t_el = np.einsum("ka,ka->k", e_az[m], r[m]), np.einsum("ka,ka->k", e_el[m], r[m])
             g_az, g_el = np.einsum("ka,kan->kn", e_az[m], J[m]), np.einsum("ka,kan->kn", e_el[m], J[m])
-            s = sin_el[m]
-            for _ in range(2):   # the in-plane error (in row sigmas) and the floor of sin(el) it sets
-                c2 = float(np.sum(t_az ** 2 + (t_el * s) ** 2)) / max(2 * len(m) - 3, 1)
-                s = np.maximum(sin_el[m], np.sqrt(np.sqrt(c2) * sig[m] / 2.0))
-            c2_az = c2_el = c2
+            s, x_az, x_el = sin_el[m], t_az * sig[m], t_el * sig[m]   # natural units (rad)
+            for _ in range(2):   # σ_p² (the rotation absorbs 3 of the 2n in-plane residuals) and the floor of sin(el)
+                sp2 = float(np.sum(x_az ** 2 + (x_el * s) ** 2)) / max(2 * len(m) - 3, 1)
+                s = np.maximum(sin_el[m], np.sqrt(np.sqrt(sp2) / 2.0))
+            c2_az = c2_el = sp2 / sig[m] ** 2   # in each row's sigma
             # the elevation never below the row's own sigma with its array's factor (what the fit absorbs of a
             # tilt its residuals cannot show); the azimuth is what the array measures best
             var_az = np.full(len(m), c2_az * corr[i])
