@@ -10,7 +10,8 @@ consumer also still accepts. The calibration read back from disk is
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace as _replace
+from functools import cache
 from typing import Any
 
 import pandas as pd
@@ -75,8 +76,42 @@ class Features(Mapping):
         return Features.from_dict({k: v for k, v in d.items() if v is not None})
 
 
+class Record(Mapping):
+    """A frozen dataclass that reads like the dict form of earlier versions: its fields by name, a field that is
+    None not a key (``record["arrays"]``, ``.get``, ``{**record}``, ``dict(record)``)."""
+
+    def __getitem__(self, key: str) -> Any:
+        if key not in _names(type(self)) or getattr(self, key) is None:
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __iter__(self) -> Iterator[str]:
+        return (k for k in _names(type(self)) if getattr(self, k) is not None)
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Any:
+        """A record from the dict form (the keys of the fields; those absent are None)."""
+        return cls(**d)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The dict form (the same objects, not copies)."""
+        return dict(self)
+
+    def replace(self: Any, **changes: Any) -> Any:
+        """A copy with ``changes`` (field names)."""
+        return _replace(self, **changes)
+
+
+@cache
+def _names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in fields(cls))
+
+
 @dataclass(frozen=True, eq=False)
-class Session(Mapping):
+class Session(Record):
     """A recording session as ``calib.pipeline.formats.session.read_session(folder)`` reads it from its folder
     (session.toml, events.csv, the WAVs; docs/formats.md section 1), validated; what the frontend takes.
 
@@ -100,26 +135,3 @@ class Session(Mapping):
     robot: dict
     events: pd.DataFrame
     temperature: float | None = None
-
-    def __getitem__(self, key: str) -> Any:
-        if key not in _SESSION_KEYS or (key == "temperature" and self.temperature is None):
-            raise KeyError(key)
-        return getattr(self, key)
-
-    def __iter__(self) -> Iterator[str]:
-        return (k for k in _SESSION_KEYS if k != "temperature" or self.temperature is not None)
-
-    def __len__(self) -> int:
-        return sum(1 for _ in self)
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> Session:
-        """A record from the dict form (the keys of the fields; ``temperature`` optional)."""
-        return cls(**d)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The dict form (the same objects, not copies)."""
-        return dict(self)
-
-
-_SESSION_KEYS = tuple(f.name for f in fields(Session))

@@ -24,29 +24,51 @@ METRIC_ROWS = (
 
 @dataclass(frozen=True)
 class ArrayParam:
-    """A per-array parameter: ``key`` its field in the estimator's layout (``Layout``; the state's is the same
-    but ``R`` for ``rot``) and std dict, ``label`` its name in report.json ``undetermined`` and in messages,
-    ``columns`` its value columns in arrays.csv, ``components`` the names of its components per array
-    (tangent-space ones for a rotation: about the array's own axes), whose 1-σ columns are
-    ``<component>_std`` (docs/formats.md section 3)."""
+    """A per-array parameter, declared once (docs/architecture.md, "Adding a per-array parameter"): ``key`` its
+    field in the estimator's ``Layout``, std dict and ``State`` (``state``: ``R`` for a rotation), ``label`` its
+    name in report.json ``undetermined`` and messages, ``columns`` its arrays.csv columns, ``components`` its
+    components per array (a rotation's: tangent-space, about the array's own axes) with 1-σ columns
+    ``<component>_std`` (docs/formats.md section 3), ``unit`` (SI); ``rotation``: on SO(3) (state (N, 3, 3),
+    identity at the start, columns a scalar-first quaternion, step R Exp(φ)), else additive with ``default``
+    at the start and where a table has none; ``reference``: the reference array's value "fixed" (it defines
+    the frame or the time origin), "free", or free when this kind has rows (the drift: TDOA-S);
+    ``can_freeze``: the observability check may leave it out of a solve when the data do not determine it."""
     key: str
     label: str
     columns: tuple
     components: tuple
+    unit: str = ""
+    rotation: bool = False
+    default: float = 0.0
+    reference: str = "fixed"
+    can_freeze: bool = True
 
     @property
     def std_columns(self):
         return tuple(f"{c}_std" for c in self.components)
 
+    @property
+    def state(self):
+        return "R" if self.rotation else self.key
 
-# The per-array parameters, in the arrays table's order: every list of them (the arrays.csv columns, the
-# estimator's blocks and words for undetermined parameters, std columns, covariance labels) loops over this.
-ARRAY_PARAMS = (ArrayParam("x", "position", ("x", "y", "z"), ("x", "y", "z")),
-                ArrayParam("rot", "orientation", ("qw", "qx", "qy", "qz"), ("rx", "ry", "rz")),
-                ArrayParam("offset", "offset", ("offset",), ("offset",)),
-                ArrayParam("drift", "drift", ("drift",), ("drift",)))
-ARRAY_PARAM_KEY = {a.label: a.key for a in ARRAY_PARAMS}   # {report label: layout key}
+    def shape(self, n):
+        """Its layout block's shape for ``n`` arrays (an additive one's state block too)."""
+        return (n,) if len(self.components) == 1 else (n, len(self.components))
+
+
+# The per-array parameters in the arrays table's order: every list of them (the estimator's state, layout and
+# step, arrays.csv's and the std columns, undetermined parameters, covariance labels) loops over this; a new
+# one is appended (its factors read ``st.<key>``, ``lay.<key>``).
+ARRAY_PARAMS = [ArrayParam("x", "position", ("x", "y", "z"), ("x", "y", "z"), "m"),
+                ArrayParam("rot", "orientation", ("qw", "qx", "qy", "qz"), ("rx", "ry", "rz"), "rad", rotation=True),
+                ArrayParam("offset", "offset", ("offset",), ("offset",), "s"),
+                ArrayParam("drift", "drift", ("drift",), ("drift",), "1", reference="tdoa_s")]
 ARRAYS_COLUMNS = ("array", *(c for a in ARRAY_PARAMS for c in a.columns))   # arrays.csv (calibration, truth)
+
+
+def array_param(name):
+    """The :class:`ArrayParam` of layout key or report label ``name``."""
+    return next(a for a in ARRAY_PARAMS if name in (a.key, a.label))
 
 
 def columns(df, names):

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib.blas import single_thread_blas
-from calib.tables import ARRAY_PARAM_KEY, ARRAY_PARAMS
+from calib.tables import ARRAY_PARAMS, array_param
 
 from . import clockmodel
 from .factors import KINDS, active_kinds, natural
@@ -80,7 +80,7 @@ def _rank_deficient(p, undetermined):
 def _undetermined(p):
     """{(array index, layout key)} of the parameters the rank check left out (``p.unobservable``)."""
     index = {str(n): i for i, n in enumerate(p.names)}
-    return {(index[u["array"]], ARRAY_PARAM_KEY[u["parameter"]]) for u in p.unobservable}
+    return {(index[u["array"]], array_param(u["parameter"]).key) for u in p.unobservable}
 
 
 def residuals(model):

@@ -9,6 +9,7 @@ returns a new one when it changes a setting.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from typing import Any
 
 
@@ -20,7 +21,7 @@ from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
 from .joint import joint_solve
 from .motion import motion_solve
-from .outputs import to_frames, to_tables, undetermined_parameters, without_claims
+from .outputs import CalibrationResult, to_frames, to_tables, undetermined_parameters, without_claims
 from .problem import State, build_problem, make_layout, state_from_dict
 from .reporting import judge, make_report
 from .screen import distrusted, screen_rows
@@ -29,16 +30,17 @@ from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
 from .verdict import fold_ambiguity, name_distrusted
 
-__all__ = ["calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
+__all__ = ["CalibrationResult", "calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
 
-def calibrate(features: dict[str, Any], **options: Any) -> dict[str, Any]:
-    """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
+def calibrate(features: Mapping[str, Any], **options: Any) -> CalibrationResult:
+    """Calibrate arrays (positions, rotations, offsets, drifts) and sources from features (a
+    ``calib.records.Features`` or its dict form) → a :class:`~calib.estimator.outputs.CalibrationResult`.
 
     See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
     array's clock model (``clock_model="auto"``, or "linear", the default for now: ``estimator.clockmodel``).
     """
     with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
-        return clockmodel.calibrate_clocks(calibrate_features, features, **options)
+        return CalibrationResult(**clockmodel.calibrate_clocks(calibrate_features, features, **options))
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy",
@@ -73,15 +75,10 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         use_tdoa_s=..., sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)`` gives for these options
         (programs that calibrate the same features several times build it once; it is not changed).
 
-    Returns
-    -------
-    dict with ``arrays`` and ``sources`` DataFrames (with ``*_std`` columns: 1-σ from (JᵀWJ)⁻¹, rotation
-    std per axis of the array frame in rad), ``report`` (dict with ``verdict`` first, see docs/method.md;
-    written as report.json), and for programs that go on from the solution: ``state`` (the final
-    :class:`~calib.estimator.problem.State`), ``problem`` (the :class:`~calib.estimator.problem.Problem`
-    with the final sigmas) and ``stage_states`` ({"init", "ive"}: the State after each stage, when run).
-    With ``outputs="solution"``: ``state``, ``problem``, ``stage_states`` and, with the values the full
-    report would give, ``converged``, ``cost`` (report ``cost.final``), ``outliers`` and ``undetermined``.
+    Returns the dict form of a :class:`~calib.estimator.outputs.CalibrationResult` (its fields and units;
+    ``calibrate`` returns the record): ``arrays``, ``sources`` (with 1-σ ``*_std`` columns from (JᵀWJ)⁻¹),
+    ``report``, ``state``, ``problem``, ``stage_states``; with ``outputs="solution"`` no tables or report but
+    ``converged``, ``cost``, ``outliers``, ``undetermined`` and ``unreliable_arrays``.
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
                      robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise,

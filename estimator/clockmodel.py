@@ -39,6 +39,7 @@ from scipy.special import chdtri
 
 from calib.clock import Clock, Step, Term, header_ratio
 from calib.options import validate_options
+from calib.tables import ARRAY_PARAMS
 
 FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
 HUBER_K = 2.5           # robust scale of the per-array fits, in σ
@@ -940,11 +941,9 @@ def _apply_std(result, info):
 
     std = std_from_cov(info["problem"], info["layout"], info["cov"])
     arrays, sources = result["arrays"], result["sources"]
-    cols = [("x", [f"{c}_std" for c in "xyz"]), ("rot", [f"r{c}_std" for c in "xyz"]),
-            ("offset", ["offset_std"]), ("drift", ["drift_std"])]
-    for key, names in cols:
-        v = np.asarray(std[key]).reshape(len(arrays), -1)
-        for k, col in enumerate(names):
+    for a in ARRAY_PARAMS:
+        v = np.asarray(std[a.key]).reshape(len(arrays), -1)
+        for k, col in enumerate(a.std_columns):
             if col in arrays:
                 old = arrays[col].to_numpy(float)
                 arrays[col] = np.where(np.isfinite(old) & np.isfinite(v[:, k]), v[:, k], old)

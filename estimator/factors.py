@@ -305,7 +305,7 @@ def register(spec: K.KindSpec, factor: Callable[..., Factor], rows: Callable | N
     return spec
 
 
-def unregister(name):
+def unregister(name: str) -> None:
     """Remove a kind added by :func:`register`."""
     K.unregister(name)
     FACTORS.pop(name, None)

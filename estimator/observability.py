@@ -114,12 +114,12 @@ def _support_blocks(p, lay, cols):
     """Non-reference array parameters among ``cols`` ({column: weight}), largest weight first:
     (array, layout key, label, component)."""
     out = []
-    for key, label in ((a.key, a.label) for a in ARRAY_PARAMS):   # (each can be left out of a solve)
-        idx = getattr(lay, key).reshape(p.N, -1)
+    for a in (a for a in ARRAY_PARAMS if a.can_freeze):
+        idx = getattr(lay, a.key).reshape(p.N, -1)
         for i, k in np.argwhere(idx >= 0):
             c = int(idx[i, k])
-            if c in cols and i != p.ref:
-                out.append((cols[c], int(i), key, label, int(k)))
+            if c in cols and (i != p.ref or a.reference == "free"):
+                out.append((cols[c], int(i), a.key, a.label, int(k)))
     return [b[1:] for b in sorted(out, key=lambda b: -b[0])]
 
 

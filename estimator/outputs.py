@@ -2,13 +2,47 @@
 measurement type, and the parameters the data leave undetermined."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
+from calib.records import Record
 from calib.tables import ARRAY_PARAMS
 
 from .factors import KINDS, natural
+from .problem import Problem, State
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult(Record):
+    """What ``calibrate(features)`` returns (SI units; N arrays, K events). Frozen; reads like the dict of
+    earlier versions (``result["arrays"]``, ``.get``, ``{**result}``): a field that is None is not a key.
+
+    arrays : DataFrame, N rows: ``array``, each per-array parameter's columns (``calib.tables.ARRAY_PARAMS``: x,
+        y, z m; qw, qx, qy, qz array → reference frame; offset s; drift) and 1-σ ``*_std`` (rx_std, ry_std,
+        rz_std: rad about the array's own axes; NaN: not determined). sources : DataFrame, K rows: event, x, y,
+        z (m) and their ``*_std``. report : report.json (``verdict`` first; docs/method.md). state, problem :
+        the final ``State`` and the ``Problem`` with the final sigmas; stage_states : {"init", "ive"}: the state
+        after each stage that ran. converged, cost, outliers, undetermined, unreliable_arrays : with
+        ``outputs="solution"`` (no tables, no report), what the report would say. clock_models : {array: clock
+        components} (estimator/clockmodel.py); clock : the report's ``clock`` block of a solution.
+    """
+    arrays: pd.DataFrame | None = None
+    sources: pd.DataFrame | None = None
+    report: dict[str, Any] | None = None
+    state: State | None = None
+    problem: Problem | None = None
+    stage_states: dict[str, State] | None = None
+    converged: bool | None = None
+    cost: float | None = None
+    outliers: list | None = None
+    undetermined: list | None = None
+    unreliable_arrays: list | None = None
+    clock_models: dict | None = None
+    clock: dict | None = None
 
 
 def undetermined_parameters(p):
@@ -52,7 +86,7 @@ def _quaternions(R):
     return q
 
 
-def to_tables(p, st):
+def to_tables(p: Problem, st: State) -> tuple[dict[str, Any], dict[str, Any]]:
     """State → the plain tables scoring reads (``pipeline.report.evaluate.array_table`` / ``source_table``):
     the values :func:`to_frames` would put in its DataFrames, without building them (the Monte-Carlo study
     scores every run and stage)."""
@@ -61,13 +95,13 @@ def to_tables(p, st):
     return arrays, {"event": np.asarray(p.events), "xyz": st.s}
 
 
-def to_frames(p, st, std=None):
+def to_frames(p: Problem, st: State, std: dict[str, np.ndarray] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """State (+ std) → arrays and sources DataFrames of docs/formats.md section 3."""
-    a, s = to_tables(p, st)
-    arrays = {"array": a["names"], **{c: a["xyz"][:, k] for k, c in enumerate("xyz")},
-              **{c: a["quat"][:, k] for k, c in enumerate(("qw", "qx", "qy", "qz"))},
-              "offset": a["offset"], "drift": a["drift"]}
-    sources = {"event": s["event"], **{c: s["xyz"][:, k] for k, c in enumerate("xyz")}}
+    arrays = {"array": list(p.names)}
+    for a in ARRAY_PARAMS:
+        v = _quaternions(getattr(st, a.state)) if a.rotation else getattr(st, a.key).reshape(p.N, -1)
+        arrays.update({c: v[:, k] for k, c in enumerate(a.columns)})
+    sources = {"event": np.asarray(p.events), **{c: st.s[:, k] for k, c in enumerate("xyz")}}
     if std is not None:   # the columns collected first: one DataFrame each (a column insert costs ~0.1 ms)
         for a in ARRAY_PARAMS:
             v = std[a.key].reshape(len(std[a.key]), -1)   # (N, dim)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
-from types import MappingProxyType
+from types import MappingProxyType, SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -24,10 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.kinds import KINDS
 from calib.geometry import fold
-from calib.tables import LINE_COLUMN, columns
-
-
-
+from calib.tables import ARRAY_PARAMS, LINE_COLUMN, columns
 
 
 def frozen_array(a):
@@ -398,99 +395,81 @@ def _lines(df):
     return df[LINE_COLUMN].to_numpy(int) if LINE_COLUMN in df else df.index.to_numpy(int) + 2
 
 
-@dataclass
 class State:
-    """The unknowns. x (N, 3) array positions (m), R (N, 3, 3) array rotations (array → reference frame),
-    offset (N,) clock offsets (s), drift (N,) clock drifts, s (K, 3) source positions (m), e (K,)
-    emission-time corrections (s; e[0] = 0), odo_yaw (1,) the odometry frame's yaw (rad)."""
-    x: np.ndarray
-    R: np.ndarray
-    offset: np.ndarray
-    drift: np.ndarray
-    s: np.ndarray
-    e: np.ndarray
-    odo_yaw: np.ndarray
+    """The unknowns (mutable; each solve returns a new one): the per-array parameters (``ARRAY_PARAMS``: x (N, 3)
+    positions (m), R (N, 3, 3) rotations (array → reference frame), offset (N,) clock offsets (s), drift (N,)
+    clock drifts, ...), s (K, 3) sources (m), e (K,) emission-time corrections (s; e[0] = 0), odo_yaw (1,) the
+    odometry frame's yaw (rad)."""
+
+    def __init__(self, **fields: np.ndarray):
+        self.__dict__.update(fields)
+
+    def __getattr__(self, name: str) -> np.ndarray:   # (typing: the fields come from the registry)
+        raise AttributeError(name)
+
+    def __setattr__(self, name: str, value: np.ndarray) -> None:
+        self.__dict__[name] = value
 
     def copy(self):
-        return State(*[np.array(getattr(self, name), dtype=float, copy=True) for name in STATE_FIELDS])
-
-
-STATE_FIELDS = tuple(f.name for f in dataclasses.fields(State))   # (``dataclasses.fields`` per copy costs µs)
-
-
-# State fields moved by a parameter step, and the layout field that places each of them
-ADDITIVE = ("x", "s", "offset", "drift", "e", "odo_yaw")
+        return State(**{k: np.array(v, dtype=float, copy=True) for k, v in vars(self).items()})
 
 
 def empty_state(p):
-    """A state with every array at the origin, identity rotations, zero clocks and sources."""
+    """A state for ``p.N`` arrays and ``p.K`` events: every per-array parameter at its start value (rotations
+    identity), zero sources and corrections."""
     N, K = p.N, p.K
-    return State(x=np.zeros((N, 3)), R=np.tile(np.eye(3), (N, 1, 1)), offset=np.zeros(N), drift=np.zeros(N),
-                 s=np.zeros((K, 3)), e=np.zeros(K), odo_yaw=np.zeros(1))
+    arrays = {a.state: np.tile(np.eye(3), (N, 1, 1)) if a.rotation else np.full(a.shape(N), a.default)
+              for a in ARRAY_PARAMS}
+    return State(**arrays, s=np.zeros((K, 3)), e=np.zeros(K), odo_yaw=np.zeros(1))
 
 
 def state_from_dict(d):
-    """A :class:`State` from a dict of its fields (array-like; ``odo_yaw`` may be missing: 0)."""
-    d = {"odo_yaw": np.zeros(1), **d}
-    return State(**{f.name: np.array(d[f.name], dtype=float, copy=True) for f in dataclasses.fields(State)})
+    """A :class:`State` from a dict of its fields (array-like); a missing one (``odo_yaw``, a registered
+    per-array parameter) at its start value."""
+    blank = vars(empty_state(SimpleNamespace(N=len(d["x"]), K=len(d["s"]))))
+    return State(**{k: np.array(d.get(k, v), dtype=float, copy=True) for k, v in blank.items()})
 
 
-@dataclass
 class Layout:
-    """Where each free parameter sits in the parameter vector: index arrays shaped like the state's
-    fields (-1 where a parameter is fixed): x (N, 3), rot (N, 3) (tangent-space rotation components),
-    offset (N,), drift (N,), s (K, 3), e (K,), odo_yaw (1,); n the number of free parameters."""
-    x: np.ndarray
-    rot: np.ndarray
-    offset: np.ndarray
-    drift: np.ndarray
-    s: np.ndarray
-    e: np.ndarray
-    odo_yaw: np.ndarray
-    n: int = 0
+    """Where each free parameter sits in the parameter vector: index arrays (-1 where a parameter is fixed),
+    one per block: the per-array parameters by ``key`` (``ArrayParam.shape``: x (N, 3), rot (N, 3) tangent-space
+    rotation components, offset (N,), drift (N,), ...), s (K, 3), e (K,), odo_yaw (1,); n the number of free
+    parameters."""
+
+    def __init__(self, n=0, **blocks: np.ndarray):
+        self.__dict__.update(blocks)
+        self.n = n
 
 
 def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=True, arrays=None, odo_yaw=None):
-    """Positions of the free parameters in the vector.
+    """Positions of the free parameters in the vector: per array its free ``ARRAY_PARAMS`` in order, then the
+    sources, emission corrections and the odometry yaw. Returns a :class:`Layout` (-1 where fixed).
 
-    Returns a :class:`Layout` (index arrays, -1 where a parameter is fixed).
     The reference array's position, rotation and offset are always fixed (they define the frame and the
-    time origin). Its drift is free when TDOA-S is present (``ref_drift=None`` decides that).
+    time origin). Its drift is free when TDOA-S has rows (``ref_drift=None`` decides that; ``reference`` of
+    its ``ArrayParam``). ``rotations=False`` fixes the rotations.
     ``arrays`` restricts the free array parameters to these indices (others are fixed).
     ``odo_yaw`` (1,): the odometry frame's yaw, free when the problem says so (``odo_yaw_free``) and the
     sources are free (``odo_yaw=None``), or as forced.
     """
-    N, K, ref = p.N, p.K, p.ref
-    if ref_drift is None:
-        ref_drift = len(p.tdoa_s.val) > 0
+    N, K = p.N, p.K
     if emission is None:
         emission = p.sigma["emission"] > 0
     free_arr = np.zeros(N, bool)
     free_arr[np.arange(N) if arrays is None else np.asarray(arrays, int)] = True
-    lay = Layout(x=-np.ones((N, 3), int), rot=-np.ones((N, 3), int), offset=-np.ones(N, int),
-                 drift=-np.ones(N, int), s=-np.ones((K, 3), int), e=-np.ones(K, int), odo_yaw=-np.ones(1, int))
-    n = 0
+    lay = Layout(**{a.key: -np.ones(a.shape(N), int) for a in ARRAY_PARAMS}, s=-np.ones((K, 3), int),
+                 e=-np.ones(K, int), odo_yaw=-np.ones(1, int))
 
     def take(k):
-        nonlocal n
-        out = np.arange(n, n + k)
-        n += k
+        out = np.arange(lay.n, lay.n + k)
+        lay.n += k
         return out
 
-    for i in range(N):
-        if not free_arr[i]:
-            continue
-        if i != ref:
-            lay.x[i] = take(3)
-            if rotations and p.rot_free[i]:
-                k_fix = p.rot_fixed_axis[i]
-                if k_fix >= 0:   # roll about a linear array's axis: not observable, not estimated
-                    lay.rot[i, [c for c in range(3) if c != k_fix]] = take(2)
-                else:
-                    lay.rot[i] = take(3)
-            lay.offset[i] = take(1)[0]
-        if i != ref or ref_drift:
-            lay.drift[i] = take(1)[0]
+    for i in np.flatnonzero(free_arr):
+        for a in ARRAY_PARAMS:
+            comps = _free_components(p, a, i, rotations, ref_drift)
+            if comps:
+                getattr(lay, a.key).reshape(N, -1)[i, comps] = take(len(comps))
     if sources:
         lay.s[:] = take(3 * K).reshape(K, 3)
     if emission and K > 1:
@@ -498,8 +477,19 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     if odo_yaw is None:
         odo_yaw = bool(p.odo_yaw_free) and sources
     lay.odo_yaw = take(1) if odo_yaw else -np.ones(1, int)
-    lay.n = n
     return _without_fixed(lay, p.fixed_cols)
+
+
+def _free_components(p, a, i, rotations, ref_free):
+    """The components of per-array parameter ``a`` of array ``i`` free in a solve (a list)."""
+    if i == p.ref and a.reference != "free":
+        if a.reference == "fixed" or not (len(p.rows(a.reference)) > 0 if ref_free is None else ref_free):
+            return []
+    if not a.rotation:
+        return list(range(len(a.components)))
+    if not (rotations and p.rot_free[i]):
+        return []
+    return [c for c in range(3) if c != p.rot_fixed_axis[i]]   # a linear array's roll: not observable
 
 
 def _without_fixed(lay, fixed):
@@ -512,7 +502,7 @@ def _without_fixed(lay, fixed):
         setattr(lay, key, np.where(mask, -1, getattr(lay, key)))
     if lay.n == 0:  # nothing free (e.g. the reference array alone, its drift held): nothing to renumber
         return lay
-    keys = [f.name for f in dataclasses.fields(lay) if f.name != "n"]
+    keys = [k for k in vars(lay) if k != "n"]
     used = np.zeros(lay.n, bool)
     for k in keys:
         cols = getattr(lay, k)
@@ -527,7 +517,7 @@ def _without_fixed(lay, fixed):
 
 def retract(st, lay, delta):
     """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ)."""
-    additive, rows, idx, free = _retract_index(lay)
+    additive, rotated = _retract_index(lay)
     out = st.copy()
     for key, m, cols in additive:
         if m is None:   # every entry free: the whole field, in its own order (the same sums, no masking)
@@ -535,23 +525,25 @@ def retract(st, lay, delta):
             v += delta[cols].reshape(v.shape)
         else:
             getattr(out, key)[m] += delta[cols]
-    if rows.size:
+    for key, rows, idx, free in rotated:
         phi = delta[idx] if free is None else np.where(free, delta[idx], 0.0)
-        out.R[rows] = st.R[rows] @ Rotation.from_rotvec(phi).as_matrix()
+        getattr(out, key)[rows] = getattr(st, key)[rows] @ Rotation.from_rotvec(phi).as_matrix()
     return out
 
 
 def _retract_index(lay):
     """Where a step lands (layout only): [(state field, its free entries (None: all), their columns)] for
-    the fields with a free entry, the rows of rotated arrays, their rotation columns (0 where fixed) and
-    which of those are free (None: all)."""
-    additive = []
-    for key in ADDITIVE:
+    the additive fields with a free entry; [(state field, the rows of rotated arrays, their rotation columns
+    (0 where fixed), which of those are free (None: all))] for the rotations with one."""
+    additive, rotated = [], []
+    for a in ARRAY_PARAMS:
+        if a.rotation and (getattr(lay, a.key) >= 0).any():
+            rows = np.flatnonzero(np.any(getattr(lay, a.key) >= 0, axis=1))
+            idx = getattr(lay, a.key)[rows]
+            rotated.append((a.state, rows, np.maximum(idx, 0), None if (idx >= 0).all() else idx >= 0))
+    for key in [a.key for a in ARRAY_PARAMS if not a.rotation] + ["s", "e", "odo_yaw"]:
         cols = getattr(lay, key)
         m = cols >= 0
         if m.any():   # (fields without a free entry are left out; m None: all entries free)
             additive.append((key, None if m.all() else m, cols[m]))
-    rows = np.flatnonzero(np.any(lay.rot >= 0, axis=1))
-    idx = lay.rot[rows]
-    free = idx >= 0
-    return additive, rows, np.maximum(idx, 0), None if free.all() else free
+    return additive, rotated

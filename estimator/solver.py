@@ -16,7 +16,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from .factors import Jacobian, evaluate
-from .problem import STATE_FIELDS, retract
+from .problem import retract
 
 
 def rho(r, loss, k):
@@ -323,7 +323,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
                 reason = "cost"
                 break
             cand = retract(st, lay, step)
-            if all(np.array_equal(getattr(cand, f), getattr(st, f)) for f in STATE_FIELDS):
+            if all(np.array_equal(v, getattr(st, f)) for f, v in vars(cand).items()):
                 # the damped step no longer moves the state (it is below the parameters' rounding): it
                 # cannot lower the cost, and more damping only shrinks it further
                 break

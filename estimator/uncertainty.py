@@ -9,6 +9,7 @@ import copy
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
@@ -16,10 +17,10 @@ from scipy.spatial.transform import Rotation
 
 from calib.geometry import plane_normal
 from calib.kinds import KINDS
-from calib.tables import ARRAY_PARAM_KEY, ARRAY_PARAMS, columns
+from calib.tables import ARRAY_PARAMS, array_param, columns
 
 from .factors import active_kinds
-from .problem import build_problem, empty_state, make_layout, retract
+from .problem import Problem, State, build_problem, empty_state, make_layout, retract
 from .solver import Schur, linearise
 
 
@@ -373,21 +374,23 @@ def std_from_cov(p, lay, cov):
     # the gauge fixes only some of its components
     index = {str(n): i for i, n in enumerate(p.names)}
     for u in p.unobservable:
-        out[ARRAY_PARAM_KEY[u["parameter"]]][index[u["array"]]] = np.nan
+        out[array_param(u["parameter"]).key][index[u["array"]]] = np.nan
     return out
 
 
-def state_from_frames(p, arrays, sources=None):
-    """State dict from arrays/sources DataFrames (e.g. truth), ordered as the problem's arrays/events.
+def state_from_frames(p: Problem, arrays: pd.DataFrame, sources: pd.DataFrame | None = None) -> State:
+    """State from arrays/sources DataFrames (e.g. truth), ordered as the problem's arrays/events.
 
-    Unknown (NaN) offsets or drifts become 0.
+    A per-array parameter without columns, or a scalar one unknown (NaN: offsets, drifts), is at its start
+    value; a NaN position stays NaN (an unknown place is not the origin).
     """
     st = empty_state(p)
     ia = _rows_of(arrays["array"], p.names, "array")
-    st.x = columns(arrays, ("x", "y", "z"))[ia]
-    st.R = Rotation.from_quat(columns(arrays, ("qw", "qx", "qy", "qz"))[ia], scalar_first=True).as_matrix()
-    st.offset = np.nan_to_num(arrays["offset"].to_numpy(float)[ia])
-    st.drift = np.nan_to_num(arrays["drift"].to_numpy(float)[ia])
+    for a in ARRAY_PARAMS:
+        if all(c in arrays for c in a.columns):
+            v = columns(arrays, a.columns)[ia]
+            setattr(st, a.state, Rotation.from_quat(v, scalar_first=True).as_matrix() if a.rotation else
+                    (np.nan_to_num(v, nan=a.default) if len(a.components) == 1 else v).reshape(a.shape(p.N)))
     if sources is not None:
         st.s = columns(sources, ("x", "y", "z"))[_rows_of(sources["event"], p.events, "event")]
     return st
@@ -431,7 +434,7 @@ def crlb(features: dict[str, Any], truth: dict[str, Any], *, use_tdoa_s: bool = 
     return {"cov": cov, "layout": lay, "std": std_from_cov(p, lay, cov), "problem": p, "state": st}
 
 
-def draw_from_crlb(bound, rng):
+def draw_from_crlb(bound: dict[str, Any], rng: np.random.Generator) -> State:
     """One estimate drawn from N(truth, CRLB) as a state (rotations perturbed on the manifold)."""
     cov = bound["cov"]
     if isinstance(cov, BlockCovariance):

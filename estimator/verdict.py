@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import chdtrc  # χ² survival function: scipy.stats.chi2.sf(x, n) = chdtrc(n, x)
 
+from calib.tables import array_param
+
 from .robust import is_concentrated
 
 RESIDUAL_SUSPECT = 3.0   # RMS residual 3× its sigma: the weights (or the model) are wrong
@@ -200,10 +202,9 @@ def fold_ambiguity(out, basins):
         if b["switched"] or not b["ambiguous"]:
             continue
         k = arrays.index[arrays["array"] == b["array"]]
-        for c in ("rx_std", "ry_std", "rz_std"):
-            arrays.loc[k, c] = np.maximum(arrays.loc[k, c], np.radians(b["rotation_deg"]))
-        for c in ("x_std", "y_std", "z_std"):
-            arrays.loc[k, c] = np.maximum(arrays.loc[k, c], b["position_m"])
+        for key, least in (("rot", np.radians(b["rotation_deg"])), ("x", b["position_m"])):
+            for c in array_param(key).std_columns:
+                arrays.loc[k, c] = np.maximum(arrays.loc[k, c], least)
         if b["array"] not in verdict["flagged_arrays"]:
             verdict["flagged_arrays"].append(b["array"])
         verdict["reasons"].append(f"array {b['array']}: its sources all lie near its mic plane, where planar DOAs "

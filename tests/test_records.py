@@ -1,5 +1,5 @@
-"""The typed records between stages (calib.records): Features and Session read like the earlier dicts, are
-frozen, and Features goes to its folder and back unchanged."""
+"""The typed records between stages (calib.records; calibrate()'s CalibrationResult): Features, Session and the
+calibration read like the earlier dicts, are frozen, and Features goes to its folder and back unchanged."""
 import dataclasses
 from pathlib import Path
 
@@ -60,3 +60,24 @@ def test_arrays_columns_come_from_the_per_array_parameters():
     assert ARRAYS_COLUMNS == ("array", "x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift")   # docs/formats.md
     assert [c for a in ARRAY_PARAMS for c in a.std_columns] == ["x_std", "y_std", "z_std", "rx_std", "ry_std",
                                                                  "rz_std", "offset_std", "drift_std"]
+
+
+def test_calibrate_returns_a_frozen_record_that_reads_like_the_dict_form():
+    from calib.estimator import CalibrationResult, calibrate
+    from calib.pipeline.report.evaluate import evaluate
+
+    feats, truth = simulate_features(1, seed=2)
+    res = calibrate(feats)
+    assert isinstance(res, CalibrationResult) and res["arrays"] is res.arrays and res.get("cost") is None
+    assert list(res) == ["arrays", "sources", "report", "state", "problem", "stage_states", "clock_models"]
+    assert "converged" not in res and dict(res).keys() == {**res}.keys()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        res.arrays = None
+    with pytest.raises(KeyError):
+        res["converged"]
+    assert evaluate(res, truth)["position_rmse_m"] == evaluate(dict(res), truth)["position_rmse_m"] < 0.2
+    # the solution form: the fields the full report would give, no tables
+    sol = calibrate(feats, outputs="solution")
+    assert isinstance(sol, CalibrationResult) and sol.arrays is None and "arrays" not in sol
+    assert sol["cost"] == pytest.approx(res.report["cost"]["final"]) and sol.converged == res.report["converged"]
+    assert CalibrationResult.from_dict(sol.to_dict()).to_dict().keys() == sol.to_dict().keys()

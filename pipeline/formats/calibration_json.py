@@ -13,6 +13,7 @@ import numpy as np
 from calib import __version__
 from calib.errors import InputError
 from calib.robust import mad_std
+from calib.tables import ARRAY_PARAMS
 
 FORMAT_NAME = "calib-calibration"
 FORMAT_VERSION = 1
@@ -96,10 +97,12 @@ def mic_geometry(meta):
     return out
 
 
-def _std(row, cols):
-    vals = [row.get(c, np.nan) for c in cols]
-    return None if all(v is None or not np.isfinite(v) for v in vals) else [None if not np.isfinite(v) else float(v)
-                                                                         for v in vals]
+def _std(row, param):
+    """A per-array parameter's 1-σ: a list over its components (a number for one), None where unknown."""
+    vals = [row.get(c, np.nan) for c in param.std_columns]
+    vals = None if all(v is None or not np.isfinite(v) for v in vals) else [float(v) if np.isfinite(v) else None
+                                                                              for v in vals]
+    return vals[0] if vals and len(vals) == 1 else vals
 
 
 def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None):
@@ -112,7 +115,6 @@ def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None):
     quat = row[["qw", "qx", "qy", "qz"]].to_numpy(float)
     R = Rotation.from_quat(quat, scalar_first=True).as_matrix()
     offset, drift = float(row["offset"]), float(row["drift"])
-    off_std, drift_std = row.get("offset_std", np.nan), row.get("drift_std", np.nan)
     axis = next((list(u["axis"]) for u in undetermined if u.get("axis") is not None), None)
     return {
         "name": str(row["array"]),
@@ -124,10 +126,7 @@ def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None):
         "clock": {"offset": offset, "drift": drift,
                   "offset_emitter": None if tau_ref is None else offset + tau_ref,
                   **{k: (clock_model or {}).get(k) for k in CLOCK_MODEL_KEYS if clock_model}},
-        "std": {"position": _std(row, ("x_std", "y_std", "z_std")),
-                "rotation": _std(row, ("rx_std", "ry_std", "rz_std")),
-                "offset": float(off_std) if np.isfinite(off_std) else None,
-                "drift": float(drift_std) if np.isfinite(drift_std) else None},
+        "std": {("rotation" if a.rotation else a.label): _std(row, a) for a in ARRAY_PARAMS},
         "undetermined": [u["parameter"] for u in undetermined],
         "axis": axis,   # linear arrays / mic pairs: the axis (own frame) whose direction is calibrated
     }
