@@ -35,7 +35,6 @@ import pandas as pd
 
 from calib import kinds as K
 from calib.records import Features
-from calib.kinds import Table  # noqa: F401  (re-exported: the table description lives with the kinds)
 from calib.tables import ARRAYS_COLUMNS, LINE_COLUMN
 
 
