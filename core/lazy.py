@@ -4,8 +4,8 @@ imports it does not need (``calib.frontend``: scipy.signal, matplotlib).
 Not for a name that equals one of the package's submodules (``calib.estimator.calibrate``): importing that
 submodule rebinds the package attribute to the module, which a lazy name cannot undo.
 
-A package lists ``EXPORTS = {name: submodule}`` as a literal dict in its ``__init__``; ``calib.modgraph``
-reads that dict, so a stage's code digest still covers the submodule behind every name it imports.
+A package lists ``EXPORTS = {name: submodule}`` as a literal dict in its ``__init__`` (the import-direction
+test, tests/modgraph.py, reads that dict to follow a name to its submodule).
 """
 from __future__ import annotations
 

@@ -44,12 +44,6 @@ class Jacobian:
     def add(self, rows, cols, vals):
         self.chunks.append((rows, cols, vals))
 
-    def triplets(self):
-        """All entries as (rows, cols, vals) arrays (duplicates to be summed)."""
-        if not self.chunks:
-            return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-        return tuple(np.concatenate(z) for z in zip(*self.chunks))
-
     def toarray(self):
         out = np.zeros(self.shape)
         for r, c, v in self.chunks:
@@ -207,19 +201,6 @@ def doa(p, st, lay):
     return Factor("doa", r, J, np.repeat(p.doa.row, 3), 3, True, p.sigma["doa"], sig)
 
 
-def odometry(p, st, lay):
-    """Odometry: (s_{j+1} − s_j) − (o_{j+1} − o_j), three components per step."""
-    K, sig = p.K, p.sigma["odometry"]
-    J = jacobian(3 * (K - 1), lay)
-    if K < 2:
-        return _out("odometry", np.zeros(0), J, np.zeros(0, int), 3, False, sig)
-    r = ((np.diff(st.s, axis=0) - np.diff(p.odom, axis=0)) / sig).ravel()
-    k = np.arange(3 * (K - 1))
-    put(J, k, lay.s[1:].ravel(), np.full(3 * (K - 1), 1.0 / sig))
-    put(J, k, lay.s[:-1].ravel(), np.full(3 * (K - 1), -1.0 / sig))
-    return _out("odometry", r, J, np.repeat(np.arange(1, K), 3), 3, False, sig)
-
-
 def emission(p, st, lay):
     """Prior on the per-interval emission-time corrections: (e_{j+1} − e_j) ~ N(0, sigma_emit²)."""
     K, sig = p.K, p.sigma["emission"]
@@ -238,7 +219,7 @@ def odometry_frame(p, st, lay):
 
     ψ (``st.odo_yaw``, rad) is the odometry frame's rotation about the reference frame's z axis
     (taken as the vertical: the odometry's z is the reference array's z). ψ = 0 (or no ``odo_yaw`` in the
-    state/layout) is the plain :func:`odometry` factor.
+    state/layout): the plain differences (s_{j+1} − s_j) − (o_{j+1} − o_j).
     """
     K, sig = p.K, p.sigma["odometry"]
     J = jacobian(3 * max(K - 1, 0), lay)

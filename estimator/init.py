@@ -177,12 +177,13 @@ def profile_cost(p, st, i, pts, kappa, sigma_d, n_irls=6):
 def coarse_cost(p, st, i, kappa, sigma_d, grid, n_irls=6):
     """:func:`profile_cost` of array ``i`` at every point of the shared coarse grid (:func:`coarse_grid`),
     which only ranks candidates for the zoom, so it is computed for speed, the same values up to rounding:
-    in the grid's transposed layout (measurements × points, :func:`_clock_irls_t`), the Kabsch matrices by
-    matrix products (see :func:`kabsch_cost`). Returns cost (G,).
+    in the grid's transposed layout (measurements × points: the IRLS sums run along contiguous rows of
+    points), the Kabsch matrices by matrix products (see :func:`kabsch_cost`). Returns cost (G,).
     """
     G = len(grid["pts"])
     XT, YT, ns, use_off = _clock_columns_t(p, st, i, grid)
-    cost = np.log1p(_clock_irls_t(XT, YT, ns, kappa, use_off, n_irls)).sum(0)
+    r2 = _clock_irls_masked(XT, YT, np.ones(XT.shape), ns, kappa, np.full(G, bool(use_off)), n_irls)[2]
+    cost = np.log1p(r2).sum(0)
     md = p.doa.arr == i
     if md.sum() < 2:
         return cost
@@ -299,7 +300,7 @@ def profile_cost_many(items, st, kappa, sigma_d, n_irls=6, rows=None):
 
 
 def _clock_irls_masked(XT, YT, mask, ns, kappa, use_off, n_irls):
-    """:func:`_clock_irls` on transposed columns XT, YT (n, G) (as :func:`_clock_irls_t`) with a weight
+    """:func:`_clock_irls` on transposed columns XT, YT (n, G) (rows of points) with a weight
     mask (n, G) (0 = padding) and ``use_off`` per point (G,). Returns drift (G,), offset (G,) and the
     last squared normalised residuals (n, G)."""
     G = XT.shape[1]
@@ -343,32 +344,6 @@ def _clock_irls(X, Y, ns, kappa, use_off, n_irls):
     drift, off, r2 = _clock_irls_masked(np.ascontiguousarray(X.T), np.ascontiguousarray(Y.T), np.ones(X.shape[::-1]),
                                         ns, kappa, np.full(len(X), bool(use_off)), n_irls)
     return drift, off, r2.T
-
-
-def _clock_irls_t(XT, YT, ns, kappa, use_off, n_irls):
-    """:func:`_clock_irls` on transposed columns XT, YT (n, G) (the coarse grid's layout): the sums over
-    the n measurements run along contiguous rows of G points (about twice as fast as G short dot
-    products; the same values up to rounding). Returns the last squared normalised residuals (n, G)."""
-    XT, YT = XT / kappa, YT / kappa   # residuals in units of kappa directly (the drift does not change)
-    w = np.ones(XT.shape)   # (XT is a fresh float64 quotient; np.ones_like's value, cheaper)
-    buf, r = np.empty_like(XT), np.empty_like(XT)
-    for it in range(n_irls):
-        wX = np.multiply(w, XT, out=buf) if it else XT   # (the first weights are all 1)
-        a11, b1 = np.einsum("kg,kg->g", wX, XT), np.einsum("kg,kg->g", wX, YT)
-        if use_off:
-            a12, a22, b2 = wX[ns:].sum(0), w[ns:].sum(0), np.einsum("kg,kg->g", w[ns:], YT[ns:])
-            det = a11 * a22 - a12 * a12
-            ok = np.abs(det) > 1e-300
-            drift = np.where(ok, (b1 * a22 - a12 * b2) / np.where(ok, det, 1), 0.0)
-            off = np.where(ok, (a11 * b2 - a12 * b1) / np.where(ok, det, 1), 0.0)
-        else:   # drift only
-            ok = a11 > 0
-            drift, off = np.where(ok, b1 / np.where(ok, a11, 1), 0.0), 0.0
-        _squared_residuals(XT, YT, drift, off, ns, r)   # r2 = (r / kappa)²
-        if it + 1 < n_irls:          # (the last weights would not be used)
-            np.add(r, 1.0, out=w)
-            np.divide(1.0, w, out=w)
-    return r
 
 
 def coarse_grid(s, events=None):
@@ -490,19 +465,6 @@ def event_subsample(p, i, max_events=GRID_MAX_EVENTS):
                      doa=p.doa.select(keep[p.doa.ev] & (p.doa.arr == i)))
 
 
-def init_array(p, st, i, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=None):
-    """Position, rotation, offset and drift of array ``i`` (sources fixed). Returns (state, cost).
-
-    Coarse grid → the best local minima → each zoomed in by successively halved 5×5×5 grids (vectorised,
-    no iterative solver) → the lowest concentrated cost wins. With more than ``GRID_MAX_EVENTS`` events the
-    search uses an evenly spaced subsample of them (the joint solve refines with all of them).
-    ``grid``: :func:`coarse_grid` of the current sources (computed if None). :func:`initialise` runs the
-    same steps for all arrays at once (:func:`place_arrays`).
-    """
-    st, costs = place_arrays(p, st, [i], kappa, sigma_d, n_candidates, zoom_levels, grid)
-    return st, costs[0]
-
-
 def coarse_candidates(p, st, i, kappa, sigma_d, grid, n_candidates=4):
     """The coarse grid's best local minima for array ``i`` (``p`` its event subsample): points (nc, 3)."""
     step, pts = grid["step"], grid["pts"]
@@ -520,9 +482,13 @@ def coarse_candidates(p, st, i, kappa, sigma_d, grid, n_candidates=4):
 
 
 def place_arrays(p, st, arrays, kappa, sigma_d, n_candidates=4, zoom_levels=4, grid=None):
-    """:func:`init_array` for each of ``arrays``: coarse grids one by one, then every array's candidates
-    zoomed in together (one batched evaluation per level, :func:`profile_cost_many`). Returns (state with
-    those arrays placed, their concentrated costs)."""
+    """Position, rotation, offset and drift of each of ``arrays`` (sources fixed): coarse grid → the best
+    local minima (:func:`coarse_candidates`) → each zoomed in by successively halved 5×5×5 grids (no
+    iterative solver), every array's candidates together (one batched evaluation per level,
+    :func:`profile_cost_many`) → the lowest concentrated cost wins. With more than ``GRID_MAX_EVENTS``
+    events the search uses an evenly spaced subsample of them (the joint solve refines with all of them).
+    ``grid``: :func:`coarse_grid` of the current sources (computed if None). Returns (state with those
+    arrays placed, their concentrated costs)."""
     grid = coarse_grid(st.s, grid_events(p)) if grid is None else grid
     subs = [event_subsample(p, i) for i in arrays]
     centres = [coarse_candidates(q, st, i, kappa, sigma_d, grid, n_candidates) for q, i in zip(subs, arrays)]

@@ -26,7 +26,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 from scipy.interpolate import CubicHermiteSpline
 
-from calib.geometry import yaw_rotate
+from calib.geometry import mirror, yaw_rotate
 from calib.tables import event_velocities
 
 from .solver import linearise
@@ -102,7 +102,7 @@ def doa_moves(p, st, disp, arr, ev, u):
     pred = np.einsum("kba,kb->ka", R, a)
     n = p.fold[arr]
     flip = np.any(n != 0, axis=1) & (np.einsum("ka,ka->k", u, n) * np.einsum("ka,ka->k", pred, n) < 0)
-    d_arr[flip] -= 2 * np.einsum("ka,ka->k", d_arr[flip], n[flip])[:, None] * n[flip]
+    d_arr[flip] = mirror(d_arr[flip], n[flip])
     return d_arr
 
 

@@ -23,7 +23,6 @@ outlier removal, which change nothing on outlier-free data). Drifts are relative
 """
 from __future__ import annotations
 
-import functools
 import itertools
 
 import numpy as np
@@ -131,19 +130,9 @@ def range_windows(n, window=WINDOW, span=SPAN):
     cost C(14, 4) = 1001 windows per array. Here each source sits in up to C(span − 1, 3) = 20 windows
     and the outlier-filtered mean discards the odd wrong one (0 of 120 off, 2.7 ms per array).
     """
-    return _range_windows(int(n), int(window), int(span))
-
-
-@functools.lru_cache(maxsize=64)
-def _range_windows(n, window, span):
-    """:func:`range_windows`, computed once per (n, window, span) (read-only: every Wang initialisation of
-    a study asks for the same few sizes, and ``np.unique(axis=0)`` costs ~0.1 ms each time)."""
     span = min(max(span, window), n)
     base = np.array(list(itertools.combinations(range(span), window)))
-    idx = (np.arange(n - span + 1)[:, None, None] + base[None]).reshape(-1, window)
-    idx = np.unique(idx, axis=0)
-    idx.setflags(write=False)
-    return idx
+    return np.unique((np.arange(n - span + 1)[:, None, None] + base[None]).reshape(-1, window), axis=0)
 
 
 def wang_ranges(us, ss, window=WINDOW, span=SPAN, start=RANGE_START):

@@ -89,11 +89,11 @@ class GeometryFit:
     ratio: float
     scale: float
     span: float
-    loo: dict = field(default_factory=dict)
-    moved: dict = field(default_factory=dict)
-    swaps: dict = field(default_factory=dict)
     used: tuple = ()
     support: float = np.nan
+    loo: dict = field(default_factory=dict)
+    swaps: dict = field(default_factory=dict)
+    moved: dict = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------------------------- detection
@@ -315,7 +315,7 @@ def fit_geometry(delays, mics, c, exclude=()):
         p = mics.copy()
         p[[a, b]] = p[[b, a]]
         swaps[(a, b)] = _misfit(delays.tau, delays.pairs, p, use)[0]
-    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, loo, moved, swaps, use, support)
+    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, use, support, loo, swaps, moved)
 
 
 def inverted_channels(delays, exclude=()):

@@ -4,8 +4,6 @@ from __future__ import annotations
 import numpy as np
 import scipy.fft as sfft
 
-from calib.memo import SetupCache
-
 
 BLOCK_SAMPLES = 1 << 18  # envelope block (FFT) length: ~5 s at 48 kHz, bounded memory for any duration
 EDGE_GUARD = 0.25        # × template length discarded at each block edge, beyond the L − 1 of overlap-save
@@ -76,14 +74,9 @@ def _fast_length(n):
     return min(k << max(0, int(np.ceil(np.log2(n / k)))) for k in (1, 3, 5))
 
 
-_TEMPLATE_BANDS = SetupCache(16)  # a full-length block per rate, a shorter last one per recording
-
-
 def _template_band(template, nfft, k0, k1):
-    """Conjugate of the template's FFT (float32, length ``nfft``) on bins ``k0 .. k1 − 1``: the arrays of a
-    session share the chirp and (at one rate) the block length, so it is computed once (small cache)."""
-    t32 = np.ascontiguousarray(template, np.float32)
-    return _TEMPLATE_BANDS.get((t32.tobytes(), nfft, k0, k1), lambda: np.conj(sfft.rfft(t32, nfft)[k0:k1]))
+    """Conjugate of the template's FFT (float32, length ``nfft``) on bins ``k0 .. k1 − 1``."""
+    return np.conj(sfft.rfft(np.ascontiguousarray(template, np.float32), nfft)[k0:k1])
 
 
 def _columns(x, a, b):
@@ -109,13 +102,8 @@ def block_levels(env, block):
     return np.maximum(neigh, np.median(env))
 
 
-def local_floor(env, block):
-    """:func:`block_levels` per sample: env (N,), block samples per block. Returns (N,)."""
-    return local_floor_at(block_levels(env, block), block, 0, len(env))
-
-
 def local_floor_at(level, block, a, b):
-    """Samples ``a .. b − 1`` of the per-sample floor of the block ``level``s (as ``local_floor(env)[a:b]``):
+    """Samples ``a .. b − 1`` of the per-sample floor of the block ``level``s (:func:`block_levels`):
     repeated, not gathered through int64 indices (20 bytes a sample: 0.6 GB for a 2-hour envelope)."""
     return np.repeat(level[a // block : -(-b // block)], block)[a % block : a % block + b - a]
 

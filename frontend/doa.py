@@ -26,7 +26,6 @@ from __future__ import annotations
 import numpy as np
 
 from calib.blas import single_thread_blas
-from calib.memo import SetupCache
 from calib.geometry import fold, mirror
 
 from .timing import phasors
@@ -39,16 +38,6 @@ def fibonacci_sphere(n):
     phi = np.pi * (1 + 5**0.5) * i
     r = np.sqrt(1 - z * z)
     return np.c_[r * np.cos(phi), r * np.sin(phi), z]
-
-
-def is_planar(mics, tol=1e-3):
-    """Unit normal of the mics' plane if they are (nearly) coplanar (spread < tol m), else None."""
-    mics = np.asarray(mics, float)
-    if len(mics) < 3:
-        return None
-    d = mics - mics.mean(axis=0)
-    _, sv, vt = np.linalg.svd(d)
-    return vt[2] if sv[2] / np.sqrt(len(mics)) < tol else None
 
 
 # mics whose RMS distance from their best-fit line (plane) is below this (m) form a linear (planar) array
@@ -121,11 +110,8 @@ def srp_cone(g, mics, axis, freqs, c, weights=None, step_deg=1.0, refine_to_deg=
     return np.cos(t), power(t[:, None])[:, 0]
 
 
-_SETUPS = SetupCache(9)
-
-
 def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
-    """Precompute the grid search for one array (cached: arrays of one model share it).
+    """Precompute the grid search for one array.
 
     mics : (M, 3) positions in the array frame (m). freqs : (F,) Hz of the gated spectra.
     step_deg : mean spacing of the grid. hemisphere : (3,) unit axis or None.
@@ -136,45 +122,40 @@ def srp_setup(mics, freqs, c, step_deg=3.0, hemisphere=None, n_grid_freqs=16):
     c, hemisphere, step (rad), planar_normal, mirror (bool: planar array with a hemisphere, so the
     mirror image across the plane is equivalent).
     """
-    mics = np.asarray(mics, float)
+    mics, freqs = np.asarray(mics, float), np.asarray(freqs, float)
     hemi = None if hemisphere is None else np.asarray(hemisphere, float)
-    key = (mics.tobytes(), np.asarray(freqs, float).tobytes(), float(c), float(step_deg),
-           None if hemi is None else hemi.tobytes(), int(n_grid_freqs))
-    return _SETUPS.get(key, lambda: _srp_setup(mics, np.asarray(freqs, float), c, step_deg, hemi, n_grid_freqs))
-
-
-def _srp_setup(mics, freqs, c, step_deg, hemi, n_grid_freqs):
     step = np.deg2rad(step_deg)
     grid = fibonacci_sphere(int(np.ceil(4 * np.pi / step**2)))
     if hemi is not None:
         grid = grid[grid @ hemi >= -0.5 * step]
     fidx = np.unique(np.linspace(0, len(freqs) - 1, min(n_grid_freqs, len(freqs))).round().astype(int))
     steer = steering(grid, mics, freqs[fidx], c)
-    normal = is_planar(mics)
+    kind, vec = mic_geometry(mics)
+    normal = vec if kind == "planar" else None
     mirror = hemi is not None and normal is not None and abs(normal @ hemi) > 0.5
     return {"grid": grid, "steer": steer, "fidx": fidx, "mics": mics, "freqs": freqs, "c": c, "hemisphere": hemi,
             "step": step, "mirror": mirror, "planar_normal": normal,
-            **_coarse_setup(grid, mics, freqs[fidx], c, step, hemi)}
+            **_coarse_setup(grid, mics, freqs[fidx], c, step, hemi, normal)}
 
 
 COARSE_FACTOR = 3     # the coarse grid's step / the fine grid's (3° → 9°: 9× fewer points)
 CAP_COARSE_STEPS = 2  # fine points searched within this many coarse steps of the best coarse point
 
 
-def _coarse_setup(grid, mics, freqs, c, step, hemi):
+def _coarse_setup(grid, mics, freqs, c, step, hemi, normal):
     """Coarse-to-fine search of the fine grid: a grid ``COARSE_FACTOR`` times coarser, and per coarse
     point the fine points within ``CAP_COARSE_STEPS`` coarse steps of it (ascending indices, padded by
     repeating the last, so the first maximum is the exhaustive search's). The SRP's main lobe of a
     few-cm array is tens of degrees wide, so the coarse maximum lies well inside it and the cap holds the
     fine grid's maximum (the same grid point as the exhaustive search unless another lobe is within
-    rounding of the main one). Planar arrays also search the cap of the mirror image."""
+    rounding of the main one). Planar arrays (unit ``normal`` of their plane, else None) also search the cap
+    of the mirror image."""
     coarse_step = COARSE_FACTOR * step
     coarse = fibonacci_sphere(int(np.ceil(4 * np.pi / coarse_step**2)))
     if hemi is not None:
         coarse = coarse[coarse @ hemi >= -0.5 * coarse_step]
     cap = _cap_indices(coarse, grid, np.cos(CAP_COARSE_STEPS * coarse_step))
     steer = steering(coarse, mics, freqs, c)
-    normal = is_planar(mics)
     if normal is not None:  # a planar array's mirror image has (nearly) the same power: search both caps
         mirrored = mirror(coarse, normal)
         cap = np.sort(np.c_[cap, cap[np.argmax(mirrored @ coarse.T, axis=1)]], axis=1)

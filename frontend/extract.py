@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
 import numpy as np
@@ -24,12 +25,12 @@ from calib.records import Features
 from calib.tables import event_velocities
 
 from . import associate as assoc_mod
+from .arrayresult import ArrayResult
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
 from .nlos import late_arrivals
 from .noise import arrival_sd as claimed_sd, near_field_fit
-from .schedule import two_phase
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, spectra_setup,
                      stretch_bank, sweep_time)
@@ -103,11 +104,10 @@ def _extract(session, progress, opt, jobs=1):
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
 
     results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
-    for r in results.values():
-        # timed against the template stretched by ε̂ (Doppler bank): the arrival is the sweep start's plus
-        # β (ε − ε̂), linear in the small mismatch; adding β ε̂ gives the β ε convention of a static template
-        r["arrival"] = r["arrival"] + beta * r["stretch"]
-    flag_nlos(results, events, lambda eps: beta * eps, c)
+    # timed against the template stretched by ε̂ (Doppler bank): the arrival is the sweep start's plus
+    # β (ε − ε̂), linear in the small mismatch; adding β ε̂ gives the β ε convention of a static template
+    results = {n: r.replace(arrival=r.arrival + beta * r.stretch) for n, r in results.items()}
+    results = flag_nlos(results, events, lambda eps: beta * eps, c)
     flag_doa_spread(results)
     warn_moving(results, events)
     if progress is not None:
@@ -126,32 +126,38 @@ def _extract(session, progress, opt, jobs=1):
 
 def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
     """({array name: :func:`process_array` result} in ``order``, β of the reference ``order[0]``
-    (:func:`_reference_beta`)); ``jobs`` arrays at a time in threads, each array's detection and timing
-    staggered against the other threads' (:func:`calib.frontend.schedule.two_phase`), β as one more task.
+    (:func:`_reference_beta`)); ``jobs`` arrays at a time in threads (each array's FFTs then
+    single-threaded), β as one more task.
 
     Progress and errors follow ``order`` whatever finishes first, so a bad file is reported the same way
     with any ``jobs``; an error or interrupt cancels the arrays not started (the running ones finish).
     """
     arrays = session["arrays"]
     jobs = min(len(order), (os.cpu_count() or 1) if jobs == -1 else jobs)
-
-    def report(n_done, k):
-        if progress is not None:
-            progress(n_done, len(arrays), f"array {arrays[k]['name']}")
-
     if jobs <= 1:
         results = {}
         for n_done, k in enumerate(order):
-            report(n_done, k)
+            _progress(progress, n_done, arrays, k)
             results[arrays[k]["name"]] = process_array(arrays[k], session, t_emit, c, opt)
         return results, _reference_beta(arrays[order[0]], session, c, opt)
-    # one array per thread (each array's FFTs then single-threaded), its detection and its timing staggered
-    # against the other threads' (calib.frontend.schedule); β as one more timing-like task
-    out = two_phase(lambda i: detect_array(arrays[order[i]], session, t_emit, c, opt),
-                    lambda i, st: time_array(st, session, t_emit, c, opt, 1), len(order), jobs,
-                    extra=lambda: _reference_beta(arrays[order[0]], session, c, opt),
-                    waiting=lambda i: report(i, order[i]), discard=lambda st: st["x"].close())
-    return {arrays[k]["name"]: r for k, r in zip(order, out)}, out[-1]
+    with ThreadPoolExecutor(jobs, thread_name_prefix="calib-array") as pool:
+        futures = [pool.submit(process_array, arrays[k], session, t_emit, c, opt, 1) for k in order]
+        futures.append(pool.submit(_reference_beta, arrays[order[0]], session, c, opt))
+        try:
+            results = {}
+            for n_done, k in enumerate(order):
+                _progress(progress, n_done, arrays, k)
+                results[arrays[k]["name"]] = futures[n_done].result()
+            return results, futures[-1].result()
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+
+
+def _progress(progress, n_done, arrays, k):
+    if progress is not None:
+        progress(n_done, len(arrays), f"array {arrays[k]['name']}")
 
 
 def process_array(a, session, t_emit, c, opt, fft_workers=-1):
@@ -189,7 +195,7 @@ def detect_array(a, session, t_emit, c, opt):
                              f"({len(det_t)} detection(s)); need at least 2")
         det_t, score, redetected = _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt)
         timings["associate"] = time.perf_counter() - t0
-        x.release()  # the detection's last pages: the timing may start much later (calib.frontend.schedule)
+        x.release()  # the detection's last pages: the timing reads only the event segments
     except BaseException:
         x.close()
         raise
@@ -201,7 +207,8 @@ def detect_array(a, session, t_emit, c, opt):
 
 def time_array(st, session, t_emit, c, opt, fft_workers=-1):
     """:func:`process_array`'s second phase, from :func:`detect_array`'s state ``st``: timing and DOA of
-    the associated events, fused into arrivals; closes the recording. Returns the array's result dict."""
+    the associated events, fused into arrivals; closes the recording. Returns the array's
+    :class:`~calib.frontend.arrayresult.ArrayResult`."""
     a, x, fs, band, asc, det_t = st["a"], st["x"], st["fs"], st["band"], st["asc"], st["det_t"]
     timings = st["timings"]
     try:
@@ -236,15 +243,13 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
     if asc["ambiguous"]:
         warnings.append("association ambiguous: another alignment of the events explains as many detections")
-    return {
-        "name": a["name"], "fs": fs, "n_samples": int(st["n_samples"]), "channels": len(mics),
-        "band": band, "phase": loc["phase"], "env": st["env"], "env_rate": st["env_rate"], "det_t": det_t,
-        "det_score": st["score"], "assoc": asc, "ev_idx": ev_idx, **{k: fused[k] for k in FUSED_KEYS},
-        "u": doa["u"], "doa_power": doa["power"], "redetected": st["redetected"], "stretch": loc["stretch"],
-        "ambiguous_plane": doa["normal"] if a.get("doa_hemisphere") is None else None,
-        "has_doa": doa["kind"] != "single", "doa_axis": doa["axis"],
-        "mic_quality": loc["value"], "warnings": warnings, "timings": timings,
-    }
+    return ArrayResult(
+        name=a["name"], fs=fs, n_samples=int(st["n_samples"]), channels=len(mics), phase=loc["phase"],
+        env=st["env"], env_rate=st["env_rate"], det_t=det_t, det_score=st["score"], assoc=asc, ev_idx=ev_idx,
+        **{k: fused[k] for k in FUSED_KEYS}, u=doa["u"], doa_power=doa["power"], redetected=st["redetected"],
+        stretch=loc["stretch"], ambiguous_plane=doa["normal"] if a.get("doa_hemisphere") is None else None,
+        has_doa=doa["kind"] != "single", doa_axis=doa["axis"], warnings=warnings,
+        timings=timings)
 
 
 SPEED_SLACK = 0.1   # m/s: how much faster than its speed at the sweep start a robot may be during it (0.3 m/s² for
@@ -319,7 +324,7 @@ def _reference_beta(a, session, c, opt):
     return drift_bias(template, fs, band, g["locate_kw"], g["pre"], g["seg_len"], opt["whiten_hz"])
 
 
-FUSED_KEYS = ("arrival", "spread", "mic_sd", "arrival_sd", "quality", "flags", "doa_spread", "mic_times")
+FUSED_KEYS = ("arrival", "spread", "mic_sd", "arrival_sd", "quality", "flags", "doa_spread")
 
 
 def _timing_layout(mics, band, fs, c, n_template, opt):
@@ -399,7 +404,7 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
     arrival_sd, _ = claimed_sd(res, u, mics, c, lag, e, clean, loc["interference"])
     return {"arrival": arrival, "spread": spread, "mic_sd": mic_sd, "arrival_sd": arrival_sd,
             "quality": arrival_quality(gcc_quality, reasons), "flags": reasons, "doa_spread": doa_sd,
-            "mic_times": t_mic, "warnings": warnings}
+            "warnings": warnings}
 
 
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
@@ -533,16 +538,17 @@ DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's
 
 def flag_nlos(results, events, shift, c):
     """Add the doubt "nlos" to every arrival late against its array's own range track along the odometry
-    (:func:`calib.frontend.nlos.late_arrivals`: a reflection-only arrival, the direct path blocked), halve its
-    quality, and keep each arrival's lateness as ``late`` (s; NaN: not judged). In place."""
+    (:func:`calib.frontend.nlos.late_arrivals`: a reflection-only arrival, the direct path blocked) and halve
+    its quality (in place). Returns the results with each arrival's lateness as ``late`` (s; NaN: not judged)."""
     t_emit = events["t_emit"].to_numpy(float)
     odom = events[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     vel = event_velocities(events)
-    for r in results.values():
+    out = {}
+    for name, r in results.items():
         j = r["ev_idx"]
         ev = late_arrivals(np.asarray(r["arrival"], float), t_emit[j] - t_emit[0], odom[j], c, shift,
                            None if vel is None else vel[j])
-        r["late"] = ev["late"]
+        out[name] = r.replace(late=ev["late"])
         for k in np.flatnonzero(ev["nlos"]):
             r["flags"][k].append("nlos")
             r["quality"][k] *= DOUBT_PENALTY
@@ -554,6 +560,7 @@ def flag_nlos(results, events, shift, c):
         if ev["early"] >= max(3, 0.1 * len(j)):
             r["warnings"].append(f"{ev['early']} arrivals are early against the array's range track: most of its "
                                  "arrivals may be reflections (line of sight blocked)")
+    return out
 
 
 MOVING_DOA_SPREAD_DEG = 10.0  # an array's median DOA spread above this: its mics disagree with any one plane wave
@@ -710,20 +717,21 @@ def _tables(session, results, ev_ids, beta):
         r = results[name]
         for k, j in enumerate(r["ev_idx"] if r["has_doa"] else []):
             doa.append((int(ev_ids[j]), name, *r["u"][k], r["doa_power"][k], _flag_text(r["flags"][k], doa=True),
-                        _row_sigma_deg(r["doa_spread"][k]) if r["doa_axis"] is None else np.nan,
+                        _row_sigma_deg(r["doa_spread"][k]) if r.doa_axis is None else np.nan,
                         arr[name][int(ev_ids[j])][3]))
     est = noise_estimates(results)
     est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
-            **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta}
+            **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta,
+            "tdoa_shared_arrivals": True}   # TDOA-M and TDOA-S are differences of one arrival per (array, event)
     # which sigmas are the frontend's own (spread-based) figures rather than the user's priors:
     # the estimator's noise="auto" then re-estimates the weights from the residuals
     meta["sigmas_estimated"] = sorted(k for k, v in est.items() if v is not None and k not in session["noise"])
-    planes = {n: [float(v) for v in results[n]["ambiguous_plane"]] for n in names
-              if results[n]["ambiguous_plane"] is not None}
+    planes = {n: [float(v) for v in results[n].ambiguous_plane] for n in names
+              if results[n].ambiguous_plane is not None}
     if planes:
         meta["doa_mirror_normals"] = planes
-    axes = {n: [float(v) for v in results[n]["doa_axis"]] for n in names if results[n].get("doa_axis") is not None}
+    axes = {n: [float(v) for v in results[n].doa_axis] for n in names if results[n].doa_axis is not None}
     if axes:  # linear arrays and 2-mic pairs: their doa.csv rows are on the cone about this axis
         meta["doa_axes"] = axes
     return {

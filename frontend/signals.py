@@ -6,11 +6,7 @@ sampled at the array's rate, starting at sample 0 (its time origin defines "the 
 """
 from __future__ import annotations
 
-import contextlib
-import ctypes
-import functools
 import math
-import mmap
 from dataclasses import dataclass
 from fractions import Fraction
 
@@ -94,19 +90,6 @@ def _per_mic_header(array, files):
     return PerMicInfo(int(first.samplerate), len(files), int(first.frames), first.subtype, first.format)
 
 
-def read_array_audio(array):
-    """Read one array's whole recording, checked as :func:`read_header` does (short files, tests; the
-    frontend reads through :class:`ArrayAudio`, in bounded memory).
-
-    Returns
-    -------
-    x : (M, N) float32 ndarray (a transposed view of the sample-major file data).
-    fs : int, sample rate (Hz).
-    """
-    with ArrayAudio(array) as audio:
-        return audio[:, 0 : audio.frames], audio.fs
-
-
 # integer PCM subtypes read as integers (libsndfile's float conversion divides by the full scale)
 _INTEGER_READ = {"PCM_S8": (np.int16, 32768.0), "PCM_U8": (np.int16, 32768.0), "PCM_16": (np.int16, 32768.0),
                  "PCM_24": (np.int32, 2.0**31), "PCM_32": (np.int32, 2.0**31)}
@@ -117,38 +100,6 @@ def _int_channel_sum(frames, scale=1.0, out=None, cols=None):
     times ``scale`` (the inverse full scale), into ``out`` if given: (N,) float32."""
     sel = frames if cols is None else frames[:, list(cols)]
     return np.multiply(sel.sum(axis=1, dtype=np.float32), np.float32(scale), out=out)
-
-
-RELEASE_BYTES = 16 << 20  # mapped pages are released once the ranges read span this many bytes (a madvise each)
-
-
-def _release(mm, base, start, stop):
-    """Drop the pages of bytes ``start .. stop`` of a read-only file map (at address ``base``) from this process
-    (they stay in the page cache; a later read maps them again). Through libc's ``madvise`` where it is
-    found: a foreign call lets other threads run while the kernel unmaps (``mmap.madvise`` holds the
-    interpreter's lock: ~3 % of a two-thread hall extraction's time in it)."""
-    page = mmap.PAGESIZE
-    lo, hi = -(-start // page) * page, stop // page * page
-    if hi <= lo:
-        return
-    madvise = _libc_madvise()
-    if madvise is not None:
-        madvise(base + lo, hi - lo, mmap.MADV_DONTNEED)  # a failure only leaves the pages mapped
-    elif hasattr(mm, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
-        mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
-
-
-@functools.lru_cache(maxsize=None)
-def _libc_madvise():
-    """libc's ``madvise`` as a ctypes function, or None (no such symbol, or no ``MADV_DONTNEED``)."""
-    if not hasattr(mmap, "MADV_DONTNEED"):
-        return None
-    try:
-        fn = ctypes.CDLL(None).madvise
-    except (OSError, AttributeError):
-        return None
-    fn.argtypes, fn.restype = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int), ctypes.c_int
-    return fn
 
 
 class ArrayAudio:
@@ -183,9 +134,6 @@ class ArrayAudio:
         self._int = _INTEGER_READ.get(info.subtype)  # (dtype, full scale) for integer PCM, else None
         self._file = None
         self._sum_buf = self._fill_buf = None
-        self._raw = None  # (mmap, (N, M) view of its data chunk, the chunk's byte offset) once frames are read raw
-        self._span = None  # (first, last) byte read through the map since its pages were last released
-        self._raw_dtype = _RAW_SUBTYPES.get(info.subtype) if info.format in ("WAV", "WAVEX") else None
 
     @property
     def shape(self):
@@ -199,24 +147,12 @@ class ArrayAudio:
         self.close()
 
     def release(self):
-        """Drop the pages read through the file's map so far from this process, and the reused read buffers
-        (the pages stay in the page cache; a later read maps them again): a recording waiting between two
-        phases of work holds none of its audio in memory."""
-        self._release_span()
-        self._span = self._sum_buf = self._fill_buf = None
-
-    def _release_span(self):
-        """:func:`_release` of the bytes read through the map since the last release (``_span``)."""
-        if self._raw is not None and self._span is not None:
-            mm, frames, offset = self._raw
-            _release(mm, frames.ctypes.data - offset, *self._span)
+        """Drop the reused read buffers: a recording waiting between two phases of work holds none of its
+        audio in memory."""
+        self._sum_buf = self._fill_buf = None
 
     def close(self):
-        mm = self._raw[0] if self._raw is not None else None
-        self._raw = self._span = self._sum_buf = self._fill_buf = None  # the view first: then the map can close
-        if mm is not None:
-            with contextlib.suppress(BufferError):  # a caller still holds a view: unmapped when it goes
-                mm.close()
+        self._sum_buf = self._fill_buf = None
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -229,66 +165,6 @@ class ArrayAudio:
                 raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
         return self._file
 
-    def _raw_frames(self, a, b):
-        """Frames ``a .. b − 1`` (inside the file) as an (b − a, M) read-only view of the file mapped into
-        memory (no copy, no conversion: a third of the CPU of a positioned read into a buffer, half of
-        libsndfile's), or None for anything but a plain little-endian WAV of 16-bit PCM or 32-bit float
-        (those are read with libsndfile). Once the ranges read span :data:`RELEASE_BYTES`, their pages
-        are released from the process (not from the page cache), so resident memory stays bounded
-        whatever the file's length."""
-        if self._raw_dtype is None:
-            return None
-        if self._raw is None:
-            self._raw = self._map()
-            if self._raw is None:
-                self._raw_dtype = None
-                return None
-        _, frames, offset = self._raw
-        row = self.file_channels * frames.dtype.itemsize
-        lo, hi = offset + a * row, offset + b * row
-        if self._span is not None:
-            lo_s, hi_s = min(self._span[0], lo), max(self._span[1], hi)
-            if hi_s - lo_s > RELEASE_BYTES:
-                self._release_span()
-            else:
-                lo, hi = lo_s, hi_s
-        self._span = (lo, hi)
-        return frames[a:b]
-
-    def _map(self):
-        """(mmap of the file, (N, M) view of its data chunk, the chunk's byte offset), or None if the data
-        chunk is missing or shorter than the header says."""
-        dt = np.dtype(self._raw_dtype)
-        where = wav_data_chunk(self.path)
-        if where is None or where[1] < self.frames * self.file_channels * dt.itemsize:
-            return None
-        try:
-            with open(self.path, "rb") as fh:
-                mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{self.path}: cannot read audio ({_first_line(exc)})") from None
-        frames = np.frombuffer(mm, dt, count=self.frames * self.file_channels, offset=where[0])
-        return mm, frames.reshape(self.frames, self.file_channels), where[0]
-
-    def _raw_sum(self, start, stop):
-        """:meth:`segment` with ``channel_sum`` from the raw frames (the same values), or None."""
-        a, b = max(start, 0), min(stop, self.frames)
-        if self._raw_dtype is None:
-            return None
-        acc = np.zeros(max(stop - start, 0), np.float32)
-        if b <= a:
-            return acc
-        blk = self._raw_frames(a, b)
-        if blk is None:
-            return None
-        if self._int is not None:
-            _int_channel_sum(blk, 1.0 / self._int[1], out=acc[a - start : b - start], cols=self._cols)
-            return acc
-        np.matmul(blk, self._weights, out=acc[a - start : b - start])  # no temporary
-        if not np.all(np.isfinite(acc)):
-            self._check_finite(blk)
-        return acc
-
     def segment(self, start, stop, channel_sum=False):
         """Samples ``start .. stop − 1`` (zeros outside the file).
 
@@ -297,10 +173,6 @@ class ArrayAudio:
         a quarter of the memory traffic of reading floats; the same values up to float32 rounding).
         """
         start, stop = int(start), int(stop)
-        if channel_sum:
-            acc = self._raw_sum(start, stop)
-            if acc is not None:
-                return acc
         n = max(stop - start, 0)
         a, b = max(start, 0), min(stop, self.frames)
         raw = self._int is not None
@@ -328,19 +200,14 @@ class ArrayAudio:
     def fill_segment(self, out, start):
         """Write frames ``start .. start + n − 1`` (all inside the file) into ``out`` ((M, n) float32, e.g. a
         slice of a larger array): the values of ``x[:, start:start + n]`` without an intermediate copy
-        (the sample-major frames come from the file's map, or else through one reused buffer)."""
+        (the sample-major frames come through one reused buffer)."""
         n, start = out.shape[-1], int(start)
-        buf = self._raw_frames(start, start + n)
-        if buf is None:
-            dtype = self._int[0] if self._int is not None else np.float32
-            buf = self._buffer("_fill_buf", n, dtype)
-            self._read_into(start, buf)
+        buf = self._buffer("_fill_buf", n, self._int[0] if self._int is not None else np.float32)
+        self._read_into(start, buf)
         if self._int is not None:
             np.multiply(self._mics(buf.T), np.float32(1.0 / self._int[1]), out=out, dtype=np.float32)
         else:
             out[...] = self._mics(buf.T)
-            if self._raw is not None:
-                self._check_finite(out)
 
     def _read_into(self, first, out):
         """Read ``len(out)`` frames from frame ``first`` into ``out`` ((n, M), C-contiguous)."""
@@ -425,31 +292,6 @@ class _ChannelSum:
     def __getitem__(self, key):
         a, b = key[1].start, key[1].stop
         return self.audio.segment(a, b, channel_sum=True)[None]
-
-
-# subtypes whose samples a WAV stores as plain little-endian arrays (read raw by ArrayAudio)
-_RAW_SUBTYPES = {"PCM_16": "<i2", "FLOAT": "<f4"}
-
-
-def wav_data_chunk(path):
-    """(byte offset, size) of a RIFF/WAVE file's ``data`` chunk, or None (not such a file, or no chunk)."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(12)
-            if len(head) < 12 or head[:4] != b"RIFF" or head[8:12] != b"WAVE":
-                return None
-            pos = 12
-            while True:
-                f.seek(pos)
-                h = f.read(8)
-                if len(h) < 8:
-                    return None
-                size = int.from_bytes(h[4:8], "little")
-                if h[:4] == b"data":
-                    return pos + 8, size
-                pos += 8 + size + (size & 1)
-    except OSError:
-        return None
 
 
 def _first_line(exc):

@@ -30,7 +30,6 @@ import numpy as np
 import scipy.fft as sfft
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
 
-from calib.memo import SetupCache
 from calib.robust import mad_std
 
 from .signals import band_weights
@@ -44,13 +43,6 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
     whitens the cross-spectrum; 0 = plain matched filter. Returns a dict (nfft, kb (Fb,), freqs (Fb,),
     weights (Fb,), tmpl_conj (Fb,), fs, seg_len, whiten_bins).
     """
-    template = np.asarray(template)
-    key = (template.dtype.str, template.tobytes(), float(fs), tuple(float(b) for b in band), int(seg_len), float(whiten_hz))
-    # the arrays of one session share it (and its cached pulse shapes)
-    return _SETUPS.get(key, lambda: _spectra_setup(template, fs, band, seg_len, whiten_hz))
-
-
-def _spectra_setup(template, fs, band, seg_len, whiten_hz):
     # the lags we use keep the whole template inside the segment; 2·3·5-smooth (real=True): pocketfft's real
     # transform does factors 7 and 11 in a slow generic pass (29040 = 2⁴·3·5·11² took 25 % longer than
     # 29160 = 2³·3⁶·5)
@@ -64,7 +56,6 @@ def _spectra_setup(template, fs, band, seg_len, whiten_hz):
             "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
 
 
-_SETUPS = SetupCache(8)
 # a float32 spectrum floor: the smallest normal float32 (a recording of denormal samples would divide by zero)
 F32_FLOOR = float(np.finfo(np.float32).tiny)
 
@@ -218,7 +209,7 @@ def _lag_plan(nfft, k0, n_q, n_t, lo, step):
 
 def lag_grid(c, setup, lo, hi, step=1.0):
     """Analytic correlation on the native lag grid: (J, M, hi − lo) complex64 for lag samples lo..hi-1
-    (for peak search and gating; precise values come from :func:`corr_at`). ``step`` < 1: ``(hi − lo) /
+    (for peak search and gating; precise values come from :func:`newton_peak`). ``step`` < 1: ``(hi − lo) /
     step`` lags ``lo, lo + step, ...`` instead (a finer grid).
 
     ``r[n] = Σ_k c_k e^{j2πkn/nfft}`` over the band's bins only, evaluated at the wanted lags alone by a
@@ -436,11 +427,6 @@ def _interp_kernel(v, a, sigma, orders):
         e2 = (v**2 / sigma**4 - 1 / sigma**2) * e0
         out.append(car * (s2 * e0 + 2 * s1 * e1 + s0 * e2 + 2j * a * g1 - a * a * g0))
     return out
-
-
-def corr_at(c, freqs, tau):
-    """Analytic correlation at arbitrary lags: c (..., Fb), tau (...) seconds → (...) complex."""
-    return BandSums(np.asarray(c), freqs)(tau)[0]
 
 
 def corr_around(c, freqs, fs, lag, off, table=None):

@@ -7,7 +7,7 @@ from calib.frontend import extract_features, plot_detections
 from calib.jsonutil import dumps_json
 from calib.records import Features
 
-from calib.pipeline.formats.io import atomic_dir, write_features_files
+from calib.pipeline.formats.io import write_features_files
 from calib.pipeline.formats.outputs import publish
 from calib.pipeline.formats.session import read_session
 
@@ -37,12 +37,6 @@ def add_session_meta(feats, session, diag):
     dets = (diag.get("arrays", {}).get(session["reference_array"]) or {}).get("detections") or []
     meta["reference_detections_s"] = {str(d["event"]): float(d["time"]) for d in dets if d.get("event") is not None}
     return Features.from_dict({**feats, "meta": meta})
-
-
-def write_diagnostics(directory, diag):
-    """Write ``diagnostics.json`` (private ``_`` keys dropped, NaN as null) and ``detections.png`` atomically."""
-    with atomic_dir(directory) as tmp:
-        write_diagnostics_files(tmp, diag)
 
 
 def write_diagnostics_files(folder, diag):

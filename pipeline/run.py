@@ -51,10 +51,6 @@ REQUIRED = {"features": ("meta.json", "events.csv"), "diagnostics": ("diagnostic
 
 
 # ----------------------------------------------------------------------------------------------- hashing
-def software_version():
-    return __version__
-
-
 def file_sha256(path, chunk=1 << 20):
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -63,7 +59,6 @@ def file_sha256(path, chunk=1 << 20):
     return h.hexdigest()
 
 
-_DIGESTS: dict[tuple, str] = {}  # source fingerprint → digest: a process re-running the pipeline reads the sources once
 CALIB_PACKAGES = ("calib", "calib.frontend", "calib.estimator", "calib.pipeline", "calib.cli")
 
 
@@ -78,16 +73,11 @@ def source_files():
 
 
 def code_digest():
-    """sha256 over the source of every calib module (path relative to its package folder, and contents);
-    recomputed when a file's (path, mtime, size) changes."""
-    files = source_files()
-    key = tuple((str(f), f.stat().st_mtime_ns, f.stat().st_size) for f in files)
-    if key not in _DIGESTS:
-        h = hashlib.sha256()
-        for f in files:
-            h.update(f"{f.parent.name}/{f.name}".encode() + b"\0" + f.read_bytes() + b"\0")
-        _DIGESTS[key] = h.hexdigest()
-    return _DIGESTS[key]
+    """sha256 over the source of every calib module (path relative to its package folder, and contents)."""
+    h = hashlib.sha256()
+    for f in source_files():
+        h.update(f"{f.parent.name}/{f.name}".encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()
 
 
 def stage_key(inputs, settings):
@@ -100,7 +90,7 @@ def stage_key(inputs, settings):
     Returns (key hex, the stamp dict without timings).
     """
     stamp = {"inputs": dict(sorted(inputs.items())), "settings": settings,
-             "version": software_version(), "code": code_digest()}
+             "version": __version__, "code": code_digest()}
     key = hashlib.sha256(json.dumps(stamp, sort_keys=True, default=str).encode()).hexdigest()
     return key, {"key": key, **stamp}
 
@@ -119,14 +109,6 @@ def read_stamp(directory):
         return None
     ok = isinstance(stamp, dict) and all(isinstance(stamp.get(k), dict) for k in ("inputs", "settings"))
     return stamp if ok else None
-
-
-def write_stamp(directory, stamp):
-    atomic_write_text(Path(directory) / STAMP, dumps_json(stamp, indent=2) + "\n")
-
-
-def clear_stamp(directory):
-    (Path(directory) / STAMP).unlink(missing_ok=True)
 
 
 def why_stale(old, new):
@@ -346,12 +328,12 @@ def _run_stages(recordings, out, session, truth_dir, force, feat_run, est_opts, 
         for d in out_dirs:  # a user's file in the way stops the run before the stage's work
             check_replaceable(d)
         log(name, "run", reason)
-        clear_stamp(stamp_dir)  # from here until the new stamp, this stage's output is untrusted
+        (Path(stamp_dir) / STAMP).unlink(missing_ok=True)  # from here until the new stamp, the output is untrusted
         t0 = time.perf_counter()
         result = work()
         secs = time.perf_counter() - t0
-        write_stamp(stamp_dir, {**stamp, "stage": name, "seconds": secs,
-                                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+        done = {**stamp, "stage": name, "seconds": secs, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        atomic_write_text(Path(stamp_dir) / STAMP, dumps_json(done, indent=2) + "\n")
         stages[name] = {"status": "run", "reason": reason, "seconds": secs, "output": str(stamp_dir)}
         log(name, "done", secs)
         return result

@@ -19,3 +19,11 @@ def small_lab3_session(folder, seed, n_events, rt60, snr=30):
     simulate(make_scenario("lab3", seed, n_events=n_events, interval=EVENT_INTERVAL, chirp=SHORT_CHIRP,
                            rt60=rt60, snr=snr), folder)
     return folder
+
+
+def read_array_audio(array):
+    """One array's whole recording (short test files): ((M, N) float32, fs), read as the frontend reads it."""
+    from calib.frontend.signals import ArrayAudio
+
+    with ArrayAudio(array) as audio:
+        return audio[:, 0 : audio.frames], audio.fs

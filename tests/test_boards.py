@@ -10,9 +10,11 @@ from typer.testing import CliRunner
 
 from calib.cli.main import app
 from calib.errors import InputError
-from calib.frontend.signals import ArrayAudio, read_array_audio, read_header
+from calib.frontend.signals import ArrayAudio, read_header
 from calib.pipeline.formats.boards import BOARDS
 from calib.pipeline.formats.session import read_session
+
+from .sessions import read_array_audio
 
 FS = 16000
 

@@ -58,41 +58,6 @@ def test_cap_indices_and_steering_match_their_definitions(step_deg, hemisphere):
     assert np.max(np.abs(got - want)) < 2e-6  # float32 phases of a few radians: rounding only
 
 
-def test_setup_cache_computes_a_shared_key_once_across_threads():
-    import threading
-    import time
-
-    from calib.memo import SetupCache
-
-    cache, calls = SetupCache(4), []
-
-    def make():
-        calls.append(threading.get_ident())
-        time.sleep(0.2)  # long enough for the other thread to ask meanwhile
-        return object()
-
-    got = [None, None]
-    threads = [threading.Thread(target=lambda k=k: got.__setitem__(k, cache.get("key", make))) for k in range(2)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert len(calls) == 1 and got[0] is got[1]
-
-    def fails():  # a failed computation is not cached, and a waiting thread then computes the value itself
-        calls.append("fail")
-        time.sleep(0.2)
-        raise RuntimeError("boom")
-
-    errors, values = [], []
-    first = threading.Thread(target=lambda: errors.append(pytest.raises(RuntimeError, cache.get, "other", fails)))
-    first.start()
-    time.sleep(0.05)
-    values.append(cache.get("other", lambda: "made"))
-    first.join()
-    assert len(errors) == 1 and values == ["made"] and calls.count("fail") == 1
-
-
 def _paths_setup(fs, band, rng, n_paths=5, shape=(3, 4)):
     """A chirp's spectra set-up at ``fs`` and whitened-like spectra of a few paths with random delays
     (200–400 samples) and gains: c_f = Σ_p a_p w_f e^{−j2πf t_p}, complex64 as the frontend's."""
@@ -159,11 +124,12 @@ def test_pick_peaks_equals_find_peaks_on_the_whole_envelope(seed, threshold, sep
     find_peaks on the whole envelope with the per-sample floor as its height."""
     from scipy.signal import find_peaks
 
-    from calib.frontend.detect import local_floor, pick_peaks
+    from calib.frontend.detect import block_levels, local_floor_at, pick_peaks
 
     rng = np.random.default_rng(seed)
     env, rate = _chirp_envelope(400_000 + seed * 1234, rng), 4800.0
-    floor = local_floor(env, int(0.25 * rate))
+    block = int(0.25 * rate)
+    floor = local_floor_at(block_levels(env, block), block, 0, len(env))
     want = find_peaks(env, height=threshold * floor, distance=max(1, int(sep_s * rate)))[0]
     idx, score = pick_peaks(env, rate, sep_s, threshold)
     assert len(want) > 10 and np.array_equal(idx, want)

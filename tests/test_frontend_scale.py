@@ -11,7 +11,9 @@ import soundfile as sf
 from calib.errors import InputError
 from calib.frontend.associate import associate
 from calib.frontend.detect import matched_envelope
-from calib.frontend.signals import ArrayAudio, read_array_audio, sweep
+from calib.frontend.signals import ArrayAudio, sweep
+
+from .sessions import read_array_audio
 
 
 def clock_scene(k, seed, miss=0.05, n_spurious=None, periodic=False, jitter=0.03):
@@ -258,35 +260,7 @@ def test_non_finite_sample_late_in_a_recording_is_one_clear_error(tmp_path):
     assert not out.exists()
 
 
-@pytest.mark.parametrize("subtype", ["PCM_16", "FLOAT"])
-def test_raw_reads_equal_libsndfile_reads(tmp_path, subtype):
-    # plain WAVs are read raw (positioned reads of the data chunk) for the channel sums and the event
-    # segments: the same samples as libsndfile's reads, also across the file's ends and with a chunk
-    # before the data chunk
-    rng = np.random.default_rng(3)
-    ref = np.clip(0.3 * rng.standard_normal((5000, 3)), -1, 1)
-    p = tmp_path / "a.wav"
-    sf.write(p, ref, 16000, subtype=subtype)
-    raw = p.read_bytes()
-    extra = b"JUNK" + (10).to_bytes(4, "little") + bytes(10)  # a padding chunk readers skip
-    q = tmp_path / "b.wav"
-    at = raw.index(b"data")  # the extra chunk goes just before the data chunk
-    q.write_bytes(raw[:4] + (len(raw) + len(extra) - 8).to_bytes(4, "little") + raw[8:at] + extra + raw[at:])
-    for path in (p, q):
-        arr = {"name": "A", "wav": path, "mics": np.zeros((3, 3))}
-        with ArrayAudio(arr) as mapped, ArrayAudio(arr) as plain:
-            plain._raw_dtype = None  # force libsndfile
-            for a, b in ((0, 5000), (-300, 700), (4000, 6000), (1234, 1235)):
-                np.testing.assert_array_equal(mapped.channel_sum()[:, a:b], plain.channel_sum()[:, a:b])
-            seg_m, seg_p = np.zeros((3, 800), np.float32), np.zeros((3, 800), np.float32)
-            mapped.fill_segment(seg_m, 4100)
-            plain.fill_segment(seg_p, 4100)
-            np.testing.assert_array_equal(seg_m, seg_p)
-            np.testing.assert_array_equal(seg_m, plain[:, 4100:4900])
-            assert mapped._raw is not None and plain._raw is None  # each path really taken
-
-
-def test_non_finite_samples_are_bad_input_in_raw_reads(tmp_path):
+def test_non_finite_samples_are_bad_input_in_sums_and_segments(tmp_path):
     with ArrayAudio(_float_wav_with(tmp_path, np.inf)) as x:
         assert np.all(x.channel_sum()[:, 0:2000] == 0)
         with pytest.raises(InputError, match="nan.wav: contains non-finite samples"):
@@ -295,38 +269,3 @@ def test_non_finite_samples_are_bad_input_in_raw_reads(tmp_path):
             x.fill_segment(np.zeros((2, 100), np.float32), 2950)
 
 
-def _mapped_rss(path):
-    """Resident bytes of this process's maps of ``path`` (Linux /proc/self/smaps), or None elsewhere."""
-    try:
-        lines = open("/proc/self/smaps").read().splitlines()
-    except OSError:
-        return None
-    total, inside = 0, False
-    for line in lines:
-        if "-" in line.split(" ")[0] and len(line.split()) >= 5:  # a mapping's header line
-            inside = line.endswith(str(path))
-        elif inside and line.startswith("Rss:"):
-            total += int(line.split()[1]) * 1024
-    return total
-
-
-def test_mapped_reads_release_their_pages_and_stay_exact(tmp_path, monkeypatch):
-    # a 30 s, 4-channel 48 kHz 16-bit WAV (12 MB) read block by block through its memory map, releasing
-    # every 2 MB read: the envelope equals libsndfile's and the map's resident pages stay a few blocks
-    # (without the releases: 11.5 MB)
-    import calib.frontend.signals as signals
-
-    monkeypatch.setattr(signals, "RELEASE_BYTES", 2 << 20)
-    fs = 48000
-    arr, tmpl = chirp_session(tmp_path / "a.wav", fs, 30, [fs, 20 * fs], [0.3, 0.3], channels=4)
-    band = (500.0, 4000.0)
-    with ArrayAudio(arr) as mapped, ArrayAudio(arr) as plain:
-        plain._raw_dtype = None  # libsndfile
-        env_m, _ = matched_envelope(mapped.channel_sum(), tmpl, fs, band, block=1 << 16)
-        rss = _mapped_rss(arr["wav"])
-        env_p, _ = matched_envelope(plain.channel_sum(), tmpl, fs, band, block=1 << 16)
-        assert mapped._raw is not None
-    np.testing.assert_array_equal(env_m, env_p)
-    size = (tmp_path / "a.wav").stat().st_size
-    if rss is not None:
-        assert rss < 2 * (2 << 20) + 4 * (1 << 16) * 4, f"{rss / 1e6:.1f} MB of a {size / 1e6:.0f} MB file resident"

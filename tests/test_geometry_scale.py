@@ -96,17 +96,22 @@ def test_a_volume_array_is_left_to_its_delays():
     assert geometry_scale_fit(feats, "A2", feats["meta"]["mics"]["A2"]) is None
 
 
+def _circle_waves(seed):
+    """12 plane waves from 3-34° above the plane of CIRCLE: elevations, the mic pairs, the pair delays (s)."""
+    rng = np.random.default_rng(seed)
+    az, el = rng.uniform(0, 2 * np.pi, 12), rng.uniform(0.05, 0.6, 12)
+    u = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
+    t = -(u @ CIRCLE.T) / C + rng.normal(0, 2e-7, (12, 6))
+    pairs = np.array([(m, n) for m in range(6) for n in range(m + 1, 6)])
+    return el, pairs, t[:, pairs[:, 0]] - t[:, pairs[:, 1]]
+
+
 def test_delays_of_a_planar_array_declared_too_small():
     """Plane waves from near a circle's plane on a geometry declared 0.7 × the true one: ``|w|·c`` above 1 (no
     plane wave gives that) in every event, and their consensus says 0.7; declared right: no event above 1."""
     from calib.frontend.consistency import PairDelays, fit_geometry
 
-    rng = np.random.default_rng(29)
-    az, el = rng.uniform(0, 2 * np.pi, 12), rng.uniform(0.05, 0.6, 12)
-    u = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
-    t = -(u @ CIRCLE.T) / C + rng.normal(0, 2e-7, (12, 6))
-    pairs = np.array([(m, n) for m in range(6) for n in range(m + 1, 6)])
-    tau = t[:, pairs[:, 0]] - t[:, pairs[:, 1]]
+    el, pairs, tau = _circle_waves(29)
     d = PairDelays(pairs, tau, np.ones_like(tau), np.ones_like(tau), np.ones((12, 6)), np.zeros(6), [],
                    np.arange(12.0), 16000.0)
     small = fit_geometry(d, 0.7 * CIRCLE, C)
@@ -122,12 +127,7 @@ def test_one_reflected_event_does_not_make_a_planar_board_too_small(bent):
     from calib.frontend.consistency import PairDelays
     from calib.pipeline.setupcheck import geometry_findings
 
-    rng = np.random.default_rng(31)
-    az, el = rng.uniform(0, 2 * np.pi, 12), rng.uniform(0.05, 0.6, 12)
-    u = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
-    t = -(u @ CIRCLE.T) / C + rng.normal(0, 2e-7, (12, 6))
-    pairs = np.array([(m, n) for m in range(6) for n in range(m + 1, 6)])
-    tau = t[:, pairs[:, 0]] - t[:, pairs[:, 1]]
+    el, pairs, tau = _circle_waves(31)
     tau[:bent] *= 1.9 / np.cos(el[:bent, None])    # in-plane |w|·c of those events: 1.9
 
     def delays(x):

@@ -142,6 +142,8 @@ def test_array_covariance_of_a_large_problem_is_the_dense_inverse_block():
     # sparse block inverse, not a dense n x n pinv of the whole Jacobian (11 GB at 40 arrays x 1000 events)
     from calib.estimator import array_covariance
     from calib.estimator.solver import use_dense
+    from calib.estimator.uncertainty import inflated_rows
+    from calib.estimator.variance import covariance_factors
 
     rng = np.random.default_rng(7)
     stops = np.cumsum(rng.normal(0, 0.4, (90, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
@@ -151,7 +153,10 @@ def test_array_covariance_of_a_large_problem_is_the_dense_inverse_block():
     lay = make_layout(p)
     assert not use_dense(lay)
     labels, cov = array_covariance({"problem": p, "state": st, "layout": lay, "kinds": KINDS, "mask": {}})
-    J = linearise(p, st, lay, KINDS, dense=True).J
+    # the honest covariance (uncertainty.honest_covariance): each array's rows with the σ² factor of its
+    # residuals (large problems: without leverages), the same factors on the dense Jacobian
+    factors = covariance_factors(p, linearise(p, st, lay, KINDS), None)
+    J = inflated_rows(p, linearise(p, st, lay, KINDS, dense=True), factors)
     idx = np.concatenate([np.r_[lay.x[i], lay.rot[i], lay.offset[i], lay.drift[i]] for i in range(len(p.names))])
     idx = idx[idx >= 0]
     ref = covariance(J, lay.n)[np.ix_(idx, idx)]

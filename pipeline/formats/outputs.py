@@ -142,12 +142,6 @@ def _entries(folder):
     return out, links
 
 
-def _files(folder):
-    """Relative posix paths of every entry under ``folder`` but calib's bookkeeping (symlinks included)."""
-    out, links = _entries(folder)
-    return [r for r in out + links if not _is_bookkeeping(folder, r)]
-
-
 def read_marker(folder):
     """{relative file: sha256} of the files calib wrote in ``folder``, or None when it has no valid manifest."""
     data = _read_manifest(folder)

@@ -12,8 +12,7 @@ Everything here works on one array's sample grid (rate ``fs' = fs (1 + δ)``), i
   the stochastic late tail (:func:`tail_envelopes`);
 * :func:`directivity_gain` — first-order (cardioid-family) speaker directivity;
 * :func:`diffuse_coherence_mix` — per-frequency mixing matrices giving a set of mics the sinc spatial
-  coherence of a spherically diffuse field;
-* :func:`schroeder_rt60` — an independent RT60 measurement (Schroeder backward integration, T20/T30).
+  coherence of a spherically diffuse field.
 """
 from __future__ import annotations
 
@@ -207,20 +206,3 @@ def diffuse_coherence_mix(mics, freqs, c):
     flat = root.reshape(len(coarse), -1)
     out = np.stack([np.interp(freqs, coarse, flat[:, k]) for k in range(flat.shape[1])], axis=1)
     return out.reshape(len(freqs), *d.shape)
-
-
-# ----------------------------------------------------------------------------------------------- measurement
-def schroeder_rt60(h, fs, band=RT60_BAND, fit=(-5.0, -25.0)):
-    """RT60 (s) of an impulse response ``h`` (n,) in the octave around ``band`` Hz: Schroeder backward
-    integration of the band-filtered energy, line fit between the ``fit`` levels (dB, T20 by default,
-    (-5, -35) for T30), extrapolated to −60 dB."""
-    from scipy.signal import butter, sosfiltfilt  # (a measurement tool: scipy.signal loads only here)
-
-    sos = butter(4, [band / math.sqrt(2), band * math.sqrt(2)], btype="band", fs=fs, output="sos")
-    e = sosfiltfilt(sos, np.asarray(h, float)) ** 2
-    edc = np.cumsum(e[::-1])[::-1]
-    edc_db = 10 * np.log10(edc / edc[0] + 1e-300)
-    sel = (edc_db <= fit[0]) & (edc_db >= fit[1])
-    t = np.arange(h.size) / fs
-    slope = np.polyfit(t[sel], edc_db[sel], 1)[0]
-    return -60.0 / slope

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib.clock import Clock, Step, Term
+from calib.geometry import local_time
 
 WALK_STEP = 1.0   # s between the random walk's drift increments (default)
 
@@ -142,9 +143,7 @@ def local(a, t, t0):
     """Local time of array ``a`` (normalised scenario entry) at true time(s) t: its fault clock if it has
     one, else ``(1 + δ)(t − t0) + τ``."""
     clk = a.get("clock")
-    if clk is not None:
-        return clk.local(t)
-    return (1.0 + a["drift"]) * (np.asarray(t, float) - t0) + a["tau"]
+    return clk.local(t) if clk is not None else local_time(t, a["tau"], a["drift"], t0)
 
 
 def rate(a, t):

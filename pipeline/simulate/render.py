@@ -133,7 +133,7 @@ def band_paths(em, a, fsp, sc):
     return out | {"taps": taps, "amp": amp}
 
 
-def band_rir(em, a, fsp, sc, delay, rng, cache, exclude=None):
+def band_rir(em, a, fsp, sc, delay, rng, exclude=None):
     """RIRs (M, L) of the ``bands`` model for emitter ``em`` at array ``a`` (rate ``fsp``).
 
     em : dict with ``images`` (:func:`acoustics.shoebox_images` or a ``polyroom`` tree), ``axis`` (3,)
@@ -147,23 +147,16 @@ def band_rir(em, a, fsp, sc, delay, rng, cache, exclude=None):
         taps = np.where(exclude[:, None], np.nan, taps)
     L = a["rir_length"]
     nfft = next_fast_len(L + int(WRAP_MARGIN * fsp))
-    W = _weights(cache, nfft, fsp)
+    W = ac.band_weights(rfftfreq(nfft, 1 / fsp))
     H = np.zeros((len(a["mics_room"]), nfft // 2 + 1), complex)
     for b in range(len(ac.BAND_CENTERS)):
         H += W[b] * rfft(build_rirs(taps, paths["amp"][:, :, b] / dist, L), nfft, axis=1)
     if sc["rt60"] > 0:
-        H += _tail_spectrum(a, fsp, sc, paths["first"], delay, rng, nfft, W, em["diffuse_gain"], cache)
+        H += _tail_spectrum(a, fsp, sc, paths["first"], delay, rng, nfft, W, em["diffuse_gain"])
     return irfft(H, nfft, axis=1)[:, :L]
 
 
-def _weights(cache, nfft, fsp):
-    key = ("w", nfft, fsp)
-    if key not in cache:
-        cache[key] = ac.band_weights(rfftfreq(nfft, 1 / fsp))
-    return cache[key]
-
-
-def _tail_spectrum(a, fsp, sc, first, delay, rng, nfft, W, diffuse_gain, cache):
+def _tail_spectrum(a, fsp, sc, first, delay, rng, nfft, W, diffuse_gain):
     """Spectrum (M, F) of the stochastic late tail from ``mixing_time`` after the direct path on."""
     ab, c = sc["acoustic"], sc["speed_of_sound"]
     L, M = a["rir_length"], len(a["mics_room"])
@@ -176,10 +169,7 @@ def _tail_spectrum(a, fsp, sc, first, delay, rng, nfft, W, diffuse_gain, cache):
     T = np.zeros((M, nfft // 2 + 1), complex)
     for b in range(len(ac.BAND_CENTERS)):     # independent noise per band, power-complementary weights
         T += np.sqrt(W[b]) * rfft(rng.standard_normal((M, L)) * env[b], nfft, axis=1)
-    key = ("mix", a["name"], nfft)
-    if key not in cache:
-        cache[key] = ac.diffuse_coherence_mix(a["mics_room"], rfftfreq(nfft, 1 / fsp), c)
-    return np.einsum("fmn,nf->mf", cache[key], T)
+    return np.einsum("fmn,nf->mf", ac.diffuse_coherence_mix(a["mics_room"], rfftfreq(nfft, 1 / fsp), c), T)
 
 
 # ----------------------------------------------------------------------------------------------- segments

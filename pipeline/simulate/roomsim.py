@@ -50,7 +50,7 @@ from calib.pipeline.simulate.scenario import (  # noqa: F401  (PRESETS, REALISTI
 from calib.pipeline.formats.session import write_session_toml
 from calib.pipeline.formats.validate import read_text
 from calib.pipeline.simulate.simrender import direct_amplitudes, line_of_sight, noise_levels, render_session
-from calib.pipeline.simulate.sounds import burst_signal, chirp_power, chirp_signal  # noqa: F401  (public names of the simulator)
+from calib.pipeline.simulate.sounds import chirp_signal  # noqa: F401  (a public name of the simulator)
 
 
 # ----------------------------------------------------------------------------------------------- signals

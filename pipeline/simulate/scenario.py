@@ -21,7 +21,6 @@ from calib.pipeline.simulate import motion, polyroom, scenes
 from calib.pipeline.formats.io import ARRAYS_COLS, InputError
 from calib.pipeline.simulate.presets import PRESETS, REALISTIC  # noqa: F401  (public names)
 from calib.pipeline.simulate import clocks
-from calib.geometry import local_time
 from calib.pipeline.simulate.featsim import TRAJECTORIES
 
 SUBTYPES = ("FLOAT", "PCM_24", "PCM_16")

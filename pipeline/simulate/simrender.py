@@ -22,7 +22,6 @@ from calib.pipeline.simulate import render as rd
 from calib.pipeline.simulate.sounds import (BlockWhite, CoherentPink, RowMajorWhite, burst_params, burst_signal, chirp_power,
                      chirp_signal, hum, noise_params, noise_signal, speech_params, speech_signal)
 
-IMAGE_CACHE = 2_000_000  # flat model: image sources kept between the two passes up to this many (~64 MB)
 TARGET_PEAK = 0.25   # the largest direct-path amplitude at any mic
 CLIP = 0.95          # recordings are scaled down if any sample would exceed this
 
@@ -102,9 +101,7 @@ def _attach_images(sc, em, flat, lo, hi):
     c = sc["speed_of_sound"]
     mics = np.concatenate([a["mics_room"] for a in sc["arrays"]])
     for e in em[lo:hi]:
-        if "cached_images" in e:
-            e["images"] = e.pop("cached_images")
-        elif sc["model"] == "flat":
+        if sc["model"] == "flat":
             e["images"] = rd.pra_images(sc, *flat, e["pos"])
         elif sc.get("geometry") is not None:
             e["images"] = _poly_images(sc, e)
@@ -135,15 +132,11 @@ def recording_ends(sc, em, flat):
     c, dur, t0 = sc["speed_of_sound"], sc["chirp"]["duration"], sc["t_emit"][0]
     chirps = [e for e in em if e["kind"] == "chirp"]
     last = np.zeros(len(sc["arrays"]))
-    kept = 0
     for n, e in enumerate(chirps):
         if sc["model"] == "flat":
             _attach_images(sc, chirps, flat, n, n + 1)
             images = e.pop("images")
             reach = [rd.flat_reach(images, a, c, sc["rt60"]) for a in sc["arrays"]]
-            kept += images[1].size
-            if kept <= IMAGE_CACHE:                   # short sessions: no second image-source pass
-                e["cached_images"] = images
         else:
             reach = [np.linalg.norm(a["mics_room"] - e["pos"], axis=1).max() / c + sc["mixing_time"]
                      + _tail_length(sc) for a in sc["arrays"]]
@@ -193,24 +186,24 @@ def _prepare_arrays(sc, delay):
     return out
 
 
-def _rir_function(sc, e, a, delay, cache, exclude=None):
+def _rir_function(sc, e, a, delay, exclude=None):
     if sc["model"] == "flat":
         return lambda fsp: rd.flat_rir(e["images"], a, fsp, sc["speed_of_sound"], sc["rt60"])
     rng = _rng(sc["seed"], 30, 0 if e["kind"] == "chirp" else 1, e["index"], a["index"])
-    return lambda fsp: rd.band_rir(e, a, fsp, sc, delay, rng, cache, exclude)
+    return lambda fsp: rd.band_rir(e, a, fsp, sc, delay, rng, exclude)
 
 
-def _segment(sc, e, a, delay, cache):
+def _segment(sc, e, a, delay):
     """One emission at array ``a``: (first sample, (M, n) samples); a moving chirp's early paths rendered
     with the exact time-varying delay (:mod:`.motion`), the rest from the RIR at the sweep's middle."""
     fs, t0 = a["fs"], sc["t_emit"][0]
     if "trajectory" not in e:
-        return rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, cache),
+        return rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay),
                           a, fs, t0, delay, e["level"], local_time)
     fsp = fs * (1 + a["drift"])
     paths = rd.band_paths(e, a, fsp, sc)
     early = motion.early_mask(paths, fsp)
-    start, seg = rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, cache, early),
+    start, seg = rd.segment(e["wave"], e["t_start"], e["dur"], _rir_function(sc, e, a, delay, early),
                             a, fs, t0, delay, e["level"], local_time)
     vis = None
     if "tree" in e["images"]:
@@ -241,12 +234,11 @@ def render_session(sc, tmp, flat, progress=None, zero_peak=None):
     tmp = Path(tmp)
     tracks = [rd.Track(tmp / f".{a['name']}.f32.wav", a["fs"], len(a["mics"]), _finisher(sc, i, a, n, lv))
               for i, (a, n) in enumerate(zip(arrays, ends))]
-    cache = {}
     for n in range(len(em)):
         _attach_images(sc, em, flat, n, n + 1)
         e = em[n]
         for a, tr in zip(arrays, tracks):
-            start, seg = _segment(sc, e, a, delay, cache)
+            start, seg = _segment(sc, e, a, delay)
             tr.flush(max(start, 0))
             tr.add(start, seg)
         e.pop("images")
@@ -279,7 +271,7 @@ def impulse_response(sc, event, array, flat=(None, None)):
     a = _prepare_arrays(sc, delay)[array]
     _attach_images(sc, em, flat, event, event + 1)
     fsp = a["fs"] * (1 + a["drift"])
-    return _rir_function(sc, em[event], a, delay, {})(fsp), fsp
+    return _rir_function(sc, em[event], a, delay)(fsp), fsp
 
 
 # ----------------------------------------------------------------------------------------------- line of sight
