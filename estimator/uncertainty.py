@@ -92,6 +92,11 @@ class BlockCovariance:
         diag, blocks = np.zeros(nE), np.full((len(src), 3, 3), np.nan)
         covered = np.zeros(nE, bool)
         has = np.flatnonzero((src >= 0).all(axis=1))
+        e = src[has]
+        band = sch.event_inverse(e[:, :, None], e[:, None, :])   # a banded event block: its inverse's band
+        if band is not None:
+            blocks[has] = band
+            return {"diag": sch.event_inverse(np.arange(nE), np.arange(nE)), "src": src, "blocks": blocks}
         for b in range(0, len(has), _SELECTED_INVERSE_BATCH):
             ks = has[b:b + _SELECTED_INVERSE_BATCH]
             cols = src[ks].ravel()
