@@ -10,10 +10,15 @@ simulate --set` items). Sessions are written under ``--work`` (default a tempora
 when present there. Columns: position RMSE (cm) and geodesic orientation RMS (deg) over the non-reference
 arrays; the worst array (cm / deg); the verdict (report.json) with its flagged arrays, and the worst of
 the arrays it did not flag (when it flagged any); the error bars' honesty: the RMS over the unflagged
-arrays' position coordinates of error / stated std (1 when honest; > 1: the std claims too much); the frontend's CPU
+arrays' position coordinates of error / stated std (1 when honest; > 1: the std claims too much), the
+unflagged arrays more than 3σ off (position or orientation: error / the norm of the stated std; bold when the
+verdict is `ok`: issue 27 says no such array may be in the `ok` set), and per array its errors and their
+ratios to the stated std (``*``: named by the verdict); the frontend's CPU
 seconds (process time of `session_features` inside the run, all threads: the machine may be loaded, wall
 time is not the cost; the stage's plots and files are not counted) as a percentage of the recording
-duration. Then per group the medians and the worst seed.
+duration (empty when a kept output's features stage was reused). Then per group the medians, the worst seed
+and how many unflagged arrays are beyond 2σ / 3σ. With ``--work`` the outputs are kept there too (``WORK/out``):
+a rerun with the same code reuses every stage.
 """
 from __future__ import annotations
 
@@ -60,7 +65,7 @@ def simulate(d, preset, seed, sets):
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def one(d, out):
+def one(d, out, reuse=False):
     """calib run on session ``d``; errors, verdict and the features stage's CPU seconds."""
     cpu = {}
     inner = features.session_features
@@ -74,7 +79,7 @@ def one(d, out):
 
     features.session_features = timed
     try:
-        res = run(d, out, force=True)
+        res = run(d, out, force=reuse is False)
     finally:
         features.session_features = inner
     m = res["metrics"]
@@ -87,13 +92,15 @@ def one(d, out):
     rest = [a for a in per if a["array"] not in named]
     rest_worst = max(rest, key=lambda a: a["position_m"]) if rest else None
     z2 = position_z2(out / "calibration" / "arrays.csv", d / "truth" / "arrays.csv", named)
-    return {"z2": z2, "loc_cm": 100 * m["position_rmse_m"], "geo_deg": m["orientation_geodesic_deg"],
+    za = array_z(out / "calibration" / "arrays.csv", per, named)
+    return {"z2": z2, "arrays": za,
+            "beyond": [a for a in za if not a["named"] and max(a["z_pos"], np.nan_to_num(a["z_rot"])) > Z_BEYOND], "loc_cm": 100 * m["position_rmse_m"], "geo_deg": m["orientation_geodesic_deg"],
             "worst": f"{worst['array']} {100 * worst['position_m']:.1f} / {worst['geodesic_deg']:.1f}",
             "worst_cm": 100 * worst["position_m"], "status": verdict.get("status", "?"),
             "rest": "-" if rest_worst is None or not named else
             f"{rest_worst['array']} {100 * rest_worst['position_m']:.1f} / {rest_worst['geodesic_deg']:.1f}",
             "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-",
-            "cpu_pct": 100 * cpu["s"] / diag["recording_duration_s"]}
+            "cpu_pct": 100 * cpu.get("s", np.nan) / diag["recording_duration_s"]}
 
 
 def position_z2(estimated, truth, named):
@@ -109,10 +116,55 @@ def position_z2(estimated, truth, named):
 
 
 STD = ("x_std", "y_std", "z_std")
+RSTD = ("rx_std", "ry_std", "rz_std")
+Z_BEYOND = 3.0   # an array whose error is more than 3x its stated std must not be in the `ok` set (issue 27)
+
+
+def array_z(estimated, per, named):
+    """Per non-reference array with a std: position error (m) / the norm of its stated position std, and
+    orientation error (geodesic, deg) / the norm of its stated rotation std (NaN when a rotation std is
+    missing: a pair's roll, an orientation not estimated). For a 3-D Gaussian error with those std the
+    ratio is sqrt(χ²₃ / 3) when isotropic: above 2 in 0.7 % of arrays, above 3 in 1e-5."""
+    est = pd.read_csv(estimated).set_index("array")
+    out = []
+    for a in per:
+        if a["array"] not in est.index:
+            continue
+        sd = est.loc[a["array"], list(STD)].to_numpy(float)
+        rs = np.degrees(est.loc[a["array"], list(RSTD)].to_numpy(float))
+        if not np.all(np.isfinite(sd)):
+            continue
+        zr = a["geodesic_deg"] / np.linalg.norm(rs) if np.all(np.isfinite(rs)) and np.isfinite(a["geodesic_deg"]) \
+            else float("nan")
+        out.append({"array": a["array"], "cm": 100 * a["position_m"], "z_pos": a["position_m"] / np.linalg.norm(sd),
+                    "deg": a["geodesic_deg"], "z_rot": zr, "named": a["array"] in named})
+    return out
+
+
+def per_array_text(za):
+    """``A2 1.8 cm 1.2σ / 0.6° 1.4σ; ...`` (``*``: named by the verdict)."""
+    return "; ".join(f"{a['array']}{'*' if a['named'] else ''} {a['cm']:.1f} cm {a['z_pos']:.1f}σ / "
+                     f"{a['deg']:.1f}° {a['z_rot']:.1f}σ" for a in za)
+
+
+def beyond_text(r):
+    """The unflagged arrays more than Z_BEYOND σ off (position or orientation), "-" when none; bold when `ok`."""
+    if not r["beyond"]:
+        return "-"
+    t = ", ".join(f"{a['array']} {max(a['z_pos'], np.nan_to_num(a['z_rot'])):.1f}σ" for a in r["beyond"])
+    return f"**{t}**" if r["status"] == "ok" else t
 
 
 def rms_z(z2):
     return float(np.sqrt(np.mean(z2))) if len(z2) else float("nan")
+
+
+def tail_text(rows):
+    """``k2 / k3 of n (in ok: j)``: unflagged arrays whose error exceeds 2σ and 3σ (position or orientation)."""
+    za = [(a, r["status"]) for r in rows for a in r["arrays"] if not a["named"]]
+    z = np.array([max(a["z_pos"], np.nan_to_num(a["z_rot"])) for a, _ in za])
+    ok3 = sum(1 for (a, st), v in zip(za, z) if v > Z_BEYOND and st == "ok")
+    return f"{int(np.sum(z > 2))} / {int(np.sum(z > Z_BEYOND))} of {len(z)} (in ok: {ok3})"
 
 
 def main():
@@ -125,8 +177,9 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         print("| session | position RMSE (cm) | orientation (deg) | worst array (cm / deg) | verdict | flagged "
-              "| worst unflagged (cm / deg) | error / stated std (RMS) | frontend CPU (% of audio) |")
-        print("|---|---|---|---|---|---|---|---|---|")
+              "| worst unflagged (cm / deg) | error / stated std (RMS) | unflagged > 3σ | frontend CPU (% of audio) "
+              "| per array: error / (error ÷ stated std), position and orientation |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
         groups = {}
         for spec in specs:
             preset, seeds, sets = parse_spec(spec)
@@ -134,15 +187,17 @@ def main():
             for seed in seeds:
                 d = session_dir(work, preset, seed, sets)
                 simulate(d, preset, seed, sets)
-                r = one(d, Path(tmp) / "out" / d.name)
+                r = one(d, (args.work or Path(tmp)) / "out" / d.name, reuse=args.work is not None)
                 groups.setdefault(name, []).append(r)
                 print(f"| {name}, seed {seed} | {r['loc_cm']:.2f} | {r['geo_deg']:.2f} | {r['worst']} "
-                      f"| {r['status']} | {r['flagged']} | {r['rest']} | {rms_z(r['z2']):.2f} | {r['cpu_pct']:.2f} |",
+                      f"| {r['status']} | {r['flagged']} | {r['rest']} | {rms_z(r['z2']):.2f} | {beyond_text(r)} "
+                      f"| {r['cpu_pct']:.2f} | {per_array_text(r['arrays'])} |",
                       flush=True)
         print()
         print("| group | sessions | median position (cm) | median orientation (deg) | worst seed (cm) "
-              "| verdicts | error / stated std (RMS, pooled) | median frontend CPU (%) |")
-        print("|---|---|---|---|---|---|---|---|")
+              "| verdicts | error / stated std (RMS, pooled) | arrays > 2σ / > 3σ (unflagged; in `ok`) "
+              "| median frontend CPU (%) |")
+        print("|---|---|---|---|---|---|---|---|---|")
         for name, rows in groups.items():
             st = {}
             for r in rows:
@@ -150,7 +205,7 @@ def main():
             print(f"| {name} | {len(rows)} | {np.median([r['loc_cm'] for r in rows]):.2f} "
                   f"| {np.median([r['geo_deg'] for r in rows]):.2f} | {max(r['loc_cm'] for r in rows):.2f} "
                   f"| {', '.join(f'{k} {v}' for k, v in sorted(st.items()))} "
-                  f"| {rms_z(np.concatenate([r['z2'] for r in rows])):.2f} "
+                  f"| {rms_z(np.concatenate([r['z2'] for r in rows])):.2f} | {tail_text(rows)} "
                   f"| {np.median([r['cpu_pct'] for r in rows]):.2f} |")
 
 

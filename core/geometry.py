@@ -2,6 +2,7 @@
 
 - :func:`mirror` / :func:`fold`: the mirror image of directions across a plane (planar arrays measure DOAs
   up to that image) and the fold onto the plane's positive side.
+- :func:`plane_normal`: the unit normal of a planar array's mics (None when they are not coplanar).
 - :func:`yaw_matrix` / :func:`yaw_rotate`: the rotation ``Rz(ψ)`` about the vertical axis.
 - :func:`local_time` / :func:`arrival_time`: the clock model ``L_i(t) = (1 + δ_i)(t − t_0) + τ_i`` and the
   arrival ``a_ij = L_i(t_j + |s_j − x_i| / c) + β δ_i`` (β: the chirp's drift bias).
@@ -31,6 +32,17 @@ def fold(u: NDArray, n: NDArray) -> NDArray:
     the mirror image where n·u < 0, u elsewhere."""
     d = _dot(u, n)
     return np.where((d < 0)[..., None], u - 2.0 * d[..., None] * n, u)
+
+
+def plane_normal(mics: ArrayLike, tol: float = 1e-3) -> NDArray | None:
+    """Unit normal of the mics' plane if they are (nearly) coplanar (RMS distance from it < ``tol`` m), else
+    None. Mics (n, 3) in the array frame; fewer than 3 span no plane."""
+    mics = np.asarray(mics, float)
+    if len(mics) < 3:
+        return None
+    d = mics - mics.mean(axis=0)
+    _, sv, vt = np.linalg.svd(d)
+    return vt[2] if sv[2] / np.sqrt(len(mics)) < tol else None
 
 
 def yaw_matrix(psi: float) -> NDArray:

@@ -16,7 +16,7 @@ from .factors import evaluate as factors
 from .observability import check_observability
 from .problem import build_problem, make_layout
 from .solver import linearise
-from .uncertainty import cov_block, covariance, state_from_frames
+from .uncertainty import cov_block, honest_covariance, plane_normals, state_from_frames
 
 
 def rebuild(features, calib):
@@ -59,7 +59,9 @@ def rebuild(features, calib):
         flagged.setdefault(o["type"], set()).add(int(o["line"]))
     mask = {f.kind: ~np.isin(f.row, list(flagged[f.kind]))
             for f in factors(p, st, lay, kinds) if f.kind in flagged}
-    return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask}
+    return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask,
+            "shared": bool(features["meta"].get("tdoa_shared_arrivals")),
+            "normals": plane_normals(features["meta"], p.names)}
 
 
 def _rank_deficient(p, undetermined):
@@ -116,9 +118,8 @@ def position_covariances(model):
     """1-σ position covariances at the estimate: arrays (N, 3, 3) and sources (K, 3, 3), m² (NaN where fixed)."""
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
-    J, w = lin.J, lin.w
     with single_thread_blas():   # (calib.blas)
-        cov = covariance(J[w > 0], lay.n, lay)
+        cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), normals=model.get("normals"))
 
     def blocks(idx, skip=()):
         out = np.full((len(idx), 3, 3), np.nan)
@@ -131,7 +132,8 @@ def position_covariances(model):
 
 
 def array_covariance(model):
-    """Full 1-σ covariance of the free array parameters at the estimate (the (JᵀWJ)⁻¹ of the ``*_std`` columns).
+    """Full 1-σ covariance of the free array parameters at the estimate (the ``*_std`` columns' covariance:
+    ``uncertainty.honest_covariance``).
 
     Returns (labels, cov): labels (n,) ``"<array>.<param>"`` with param in x, y, z (m), rx, ry, rz (rad,
     rotation about the array's own axes: φ in R Exp(φ)), offset (s), drift; cov (n, n) in those units. Arrays
@@ -140,9 +142,10 @@ def array_covariance(model):
     """
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
-    J, w = lin.J, lin.w
     with single_thread_blas():   # small dense blocks (calib.blas): threads only add synchronisation
-        cov = covariance(J[w > 0], lay.n, lay, arrays_only=True)   # large problems: the array block alone
+        # large problems: the array block alone
+        cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), normals=model.get("normals"),
+                                arrays_only=True)
     labels, idx = [], []
     skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
     for i, name in enumerate(p.names):

@@ -27,7 +27,7 @@ from .reporting import judge, make_report
 from .screen import distrusted, screen_rows
 from .solver import linearise
 from .staging import initial_state
-from .uncertainty import covariance, std_from_cov
+from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
 from .verdict import fold_ambiguity, name_distrusted
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
@@ -108,7 +108,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     if outputs == "solution":
         return _solution(res, kinds, stage_states)
     out = _full_outputs(res, kinds, stages, stage_states, method=method, noise=noise, emission_sigma=emission_sigma,
-                        times=times, t0=t0)
+                        times=times, t0=t0, meta=features["meta"])
     return _name_untrusted(out, screened, basins)
 
 
@@ -160,16 +160,20 @@ def _check_given_problem(p, *, use_tdoa_s, emission_sigma):
         raise ValueError("problem: not the problem build_problem gives for these features and options")
 
 
-def _full_outputs(res, kinds, stages, stage_states, *, method, noise, emission_sigma, times, t0):
+def _full_outputs(res, kinds, stages, stage_states, *, method, noise, emission_sigma, times, t0, meta=None):
     """``calibrate``'s result at the final state of ``res`` (``joint.JointResult``): covariance, frames with
-    std, verdict and report."""
+    std (``uncertainty.honest_covariance``, with what the features' ``meta`` says of the rows), verdict and
+    report."""
     p, st = res.problem, res.state
     lay = make_layout(p)
     lin = linearise(p, st, lay, kinds, mask=res.mask)
     t_cov = time.perf_counter()
     cov = covariance(lin.J[lin.w > 0], lay.n, lay)
+    meta = meta or {}
+    std_cov = honest_covariance(p, lin, lay, shared=bool(meta.get("tdoa_shared_arrivals")), cov=cov,
+                                normals=plane_normals(meta, p.names))   # the verdict's tests keep the plain one
     times["uncertainty"] = time.perf_counter() - t_cov
-    arrays, sources = to_frames(p, st, without_claims(std_from_cov(p, lay, cov), res.dropped))
+    arrays, sources = to_frames(p, st, without_claims(std_from_cov(p, lay, std_cov), res.dropped))
     times["total"] = time.perf_counter() - t0
     judged = judge(res, lay, cov, lin.w, lin.cost, noise=noise, kinds=kinds)
     report = make_report(res, stages, judged, lin.factors, method=method, noise=noise, emission_sigma=emission_sigma,

@@ -8,6 +8,7 @@ Small problems solve them dense; large ones with a sparse Jacobian and a Schur c
 from __future__ import annotations
 
 import dataclasses
+import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -120,9 +121,7 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Lin
     (None, see :func:`use_dense`).
     """
     dense = use_dense(lay) if dense is None else dense
-    fs = evaluate(p, st, lay, kinds)
-    J = stack_jacobians([f.J for f in fs], lay.n, dense)
-    fs = [dataclasses.replace(f, J=None) for f in fs]
+    fs, J = _stacked(p, st, lay, kinds, dense)
     r_all, w_all, cost = [], [], 0.0
     for f in fs:
         r = f.r
@@ -134,6 +133,28 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Lin
         r_all.append(r)
         w_all.append(w)
     return Linearised(np.concatenate(r_all), J, np.concatenate(w_all), cost, fs)
+
+
+_last = threading.local()   # .entry: the last sparse linearisation (problem, layout, kinds, state, factors, J)
+
+
+def _stacked(p, st, lay, kinds, dense):
+    """The factors at ``st`` (their ``J`` None) and their stacked Jacobian. A large (sparse) problem's last
+    ones are kept and returned again for the same problem, layout, kinds and state values: the outlier
+    removal linearises each state its solve ends on three times (the solve's last step, the statistics, the
+    next solve's start), and only the mask and the weights differ, which are applied afterwards. Nothing
+    returned is changed in place by its users."""
+    kinds = tuple(kinds)
+    hit = None if dense else getattr(_last, "entry", None)
+    if hit is not None and hit[0] is p and hit[1] is lay and hit[2] == kinds and \
+            hit[3].keys() == vars(st).keys() and all(np.array_equal(v, getattr(st, f)) for f, v in hit[3].items()):
+        return hit[4], hit[5]
+    fs = evaluate(p, st, lay, kinds)
+    J = stack_jacobians([f.J for f in fs], lay.n, dense)
+    fs = [dataclasses.replace(f, J=None) for f in fs]
+    if not dense:
+        _last.entry = (p, lay, kinds, {f: np.array(v) for f, v in vars(st).items()}, fs, J)
+    return fs, J
 
 
 def cost_of(p, st, lay, kinds, loss=None, k=3.0, mask=None):
@@ -187,10 +208,40 @@ class _BandedSPD:
         ab = np.zeros((u + 1, A.shape[0]))
         ab[u + C.row[m] - C.col[m], C.col[m]] = C.data[m]
         ab[u] += lam
+        self.u = u
         self.cb = scipy.linalg.cholesky_banded(ab, check_finite=False)
 
     def solve(self, b):
         return scipy.linalg.cho_solve_banded((self.cb, False), b, check_finite=False)
+
+    def inverse_band(self):
+        """The entries of (A + lam I)⁻¹ = Z within the band, ``Zb[i, k] = Z[i, i + k]`` (n, u + 1), by the
+        Takahashi recurrence on U (A + lam I = UᵀU; U Z = U⁻ᵀ is lower triangular with diagonal 1/U_ii):
+        Z_ij = (δ_ij / U_ii − Σ_{k=i+1}^{i+u} U_ik Z_kj) / U_ii, rows from the last up, each from the (u, u)
+        window of Z below it. O(n u²), where reading them off by solves costs O(n² u)."""
+        cb, u = self.cb, self.u
+        n = cb.shape[1]
+        Zb = np.zeros((n, u + 1))
+        W = np.zeros((0, 0))   # Z[i+1 : i+1+m, i+1 : i+1+m]
+        for i in range(n - 1, -1, -1):
+            m = min(u, n - 1 - i)
+            uii = cb[u, i]
+            urow = cb[u - np.arange(1, m + 1), i + np.arange(1, m + 1)]   # U[i, i+1 : i+1+m]
+            z = -(urow @ W) / uii
+            zii = (1.0 / uii - urow @ z) / uii
+            Zb[i, 0], Zb[i, 1:m + 1] = zii, z
+            k = min(u, n - i)   # the next row's window: this row and column, then the top of this window
+            W, Wn = np.empty((k, k)), W
+            if k:
+                W[0, 0], W[0, 1:], W[1:, 0], W[1:, 1:] = zii, z[:k - 1], z[:k - 1], Wn[:k - 1, :k - 1]
+        return Zb
+
+    def half_solve(self, b):
+        """U⁻ᵀ b (A + lam I = UᵀU): one of the two triangular solves, so that bᵀ (A + lam I)⁻¹ b = |U⁻ᵀ b|²."""
+        x, info = scipy.linalg.lapack.dtbtrs(self.cb, b, uplo="U", trans="T")
+        if info != 0:
+            raise np.linalg.LinAlgError(f"dtbtrs: info {info}")
+        return x
 
 
 def _factor_spd(A, lam):
@@ -239,19 +290,48 @@ class Schur:
         self.Hee = Hee.tocsc()
 
     def factor(self, lam=0.0):
-        """Factorise Hs + lam I (Hs the scaled H). Raises RuntimeError if the event block is singular."""
+        """Factorise Hs + lam I (Hs the scaled H). Raises RuntimeError if the event block is singular.
+
+        With a banded Cholesky UᵀU of the event block, S = H_AA − ZᵀZ with Z = U⁻ᵀ H_EA: one triangular solve
+        of the nA columns and a symmetric product, half the work of forming X = H_EE⁻¹ H_EA (:attr:`X`, formed
+        only when asked for)."""
         nE = self.Hee.shape[0]
+        self._X = None
         if nE:
             self.lu = _factor_spd(self.Hee, lam)
-            self.X = self.lu.solve(self.Hea) if self.nA else np.zeros((nE, 0))
+            if isinstance(self.lu, _BandedSPD) and self.nA:
+                Z = self.lu.half_solve(self.Hea)
+                reduction = Z.T @ Z
+            else:
+                reduction = self.Hea.T @ self.X
         else:
-            self.lu, self.X = None, np.zeros((0, self.nA))
-        self.S = self.Haa + lam * np.eye(self.nA) - self.Hea.T @ self.X
+            self.lu, self._X, reduction = None, np.zeros((0, self.nA)), 0.0
+        self.S = self.Haa + lam * np.eye(self.nA) - reduction
         try:
             self.cho = scipy.linalg.cho_factor(self.S, check_finite=False)
         except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
             self.cho = None
         return self
+
+    def event_inverse(self, a, b):
+        """Entries (a, b) of the event block's inverse (H_EE + lam I)⁻¹ (scaled; positions in the event block,
+        integer arrays of one shape), read off its band (:meth:`_BandedSPD.inverse_band`); None when the event
+        block was not factorised as a band or a pair lies outside it."""
+        if not isinstance(self.lu, _BandedSPD):
+            return None
+        lo, k = np.minimum(a, b), np.abs(a - b)
+        if k.size and k.max() > self.lu.u:
+            return None
+        if getattr(self, "_band_of", None) is not self.lu:
+            self._band, self._band_of = self.lu.inverse_band(), self.lu
+        return self._band[lo, k]
+
+    @property
+    def X(self):
+        """H_EE⁻¹ H_EA (scaled, with the damping of the last :meth:`factor`), (nE, nA)."""
+        if self._X is None:
+            self._X = self.lu.solve(self.Hea) if self.nA else np.zeros((self.Hee.shape[0], 0))
+        return self._X
 
     def _solve_scaled(self, b):
         """z solving (Hs + lam I) z = b in the permuted, scaled variables (b (nA + nE,) or (·, k))."""
@@ -262,7 +342,8 @@ class Schur:
             zA = scipy.linalg.cho_solve(self.cho, rhs, check_finite=False)
         else:
             zA = np.linalg.lstsq(self.S, rhs, rcond=None)[0]
-        return np.concatenate([zA, y - self.X @ zA])
+        back = self.X @ zA if self._X is not None or self.lu is None else self.lu.solve(self.Hea @ zA)
+        return np.concatenate([zA, y - back])
 
     def solve(self, b):
         """x solving (H + lam diag H) x = b, b (n,) in the original parameter order."""
@@ -289,6 +370,13 @@ def _solve_damped(H, g, lam):
     if x is None:   # not positive definite (or a LAPACK argument error): least squares
         x = np.linalg.lstsq(A, g / d, rcond=None)[0]
     return -x / d
+
+
+# After an accepted step the damping falls by 1 − (2ρ − 1)³ (Nielsen; ρ = actual / predicted decrease), at most
+# by this factor. A model that predicted the decrease (ρ ≈ 1, as near a least-squares minimum) is trusted at
+# once: with Nielsen's 1/3 a damping of lam0 took ~10 factorisations to fade from the weakly determined
+# directions (drift against offset, a source along its rays), each a fraction of the parameters' σ (issue 32).
+LAM_DROP = 1e-3
 
 
 def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_iter=200, rtol=1e-12,
@@ -343,7 +431,7 @@ def levenberg_marquardt(p, st, lay, kinds, *, loss=None, k=3.0, mask=None, max_i
         if not accepted:
             reason = "no decrease" if reason != "cost" else reason
             break
-        lam *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3) if ratio > 0 else 2.0
+        lam *= max(LAM_DROP, 1.0 - (2.0 * ratio - 1.0) ** 3) if ratio > 0 else 2.0
         nu = 2.0
         dec = cost - cost2
         st, r, J, w, cost = cand, r2, J2, w2, cost2

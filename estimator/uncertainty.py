@@ -5,6 +5,7 @@ Cramér–Rao lower bound for unbiased estimators under the stated Gaussian nois
 """
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,8 @@ import scipy.sparse
 import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
+from calib.geometry import plane_normal
+from calib.kinds import KINDS
 from calib.tables import ARRAY_PARAMS, array_param, columns
 
 from .factors import active_kinds
@@ -89,6 +92,11 @@ class BlockCovariance:
         diag, blocks = np.zeros(nE), np.full((len(src), 3, 3), np.nan)
         covered = np.zeros(nE, bool)
         has = np.flatnonzero((src >= 0).all(axis=1))
+        e = src[has]
+        band = sch.event_inverse(e[:, :, None], e[:, None, :])   # a banded event block: its inverse's band
+        if band is not None:
+            blocks[has] = band
+            return {"diag": sch.event_inverse(np.arange(nE), np.arange(nE)), "src": src, "blocks": blocks}
         for b in range(0, len(has), _SELECTED_INVERSE_BATCH):
             ks = has[b:b + _SELECTED_INVERSE_BATCH]
             cols = src[ks].ravel()
@@ -126,6 +134,14 @@ class BlockCovariance:
     def diagonal(self):
         return self.diag
 
+    def with_arrays(self, other):
+        """A copy whose array block (and its diagonal) is ``other``'s (a :class:`BlockCovariance` of the same
+        layout, e.g. ``arrays_only``); the source blocks stay this one's."""
+        out = copy.copy(self)
+        out.arr, out.diag = other.arr, self.diag.copy()
+        out.diag[self.arr_cols] = other.diag[other.arr_cols]
+        return out
+
     def block(self, ix):
         """Covariance block of the parameter columns ``ix`` (array parameters, or one source's 3 columns)."""
         ix = np.asarray(ix)
@@ -142,6 +158,203 @@ class BlockCovariance:
         """One draw (n,) from N(0, (JᵀJ)⁻¹): H⁻¹ Jᵀ z with z ~ N(0, I) has exactly that covariance."""
         z = rng.standard_normal(self.J.shape[0])
         return self.system.solve(self.J.T @ z)
+
+
+def inflated_rows(p, lin, factors):
+    """The whitened Jacobian of ``lin``'s kept rows with each (type, array)'s rows divided by the root of
+    its σ² factor (``factors``: {kind: (N,)}, :func:`calib.estimator.variance.covariance_factors`): the
+    Jacobian whose (JᵀJ)⁻¹ is the covariance with those arrays' sigmas raised."""
+    s, start = np.ones(len(lin.r)), 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind in factors and n:
+            s[start:start + n] = np.repeat(np.sqrt(factors[f.kind])[p.rows(f.kind).arr], f.dim)
+        start += n
+    keep = lin.w > 0
+    return whiten(lin.J, 1.0 / s ** 2)[keep] if scipy.sparse.issparse(lin.J) else (lin.J / s[:, None])[keep]
+
+
+ARRIVAL_KINDS = ("tdoa_m", "tdoa_s")
+FOLD_SIGMAS = 2.0   # a planar array's DOA this few elevation sigmas from its mic plane may be on either side   # rows that are differences of two arrivals (docs/architecture.md)
+
+
+def arrival_rows(p, lin, factors):
+    """The whitened TDOA rows as combinations of arrival errors: a sparse (M, N·K) matrix D with
+    whitened residual error = D n, n the arrivals' errors in units of their own sigma.
+
+    A TDOA-M row a_ij − a_ref,j and a TDOA-S row a_ib − a_ia share arrivals: every TDOA-M row of an event
+    holds the reference's arrival (correlation ½ between them), consecutive TDOA-S rows share the middle
+    one (−½), a TDOA-M and a TDOA-S row of the same array and event share its arrival. An arrival's sigma is
+    its array's row sigma / √2 (the frontend's sigma_tdoa is √2 × its arrivals' spread), raised by the
+    largest of the array's σ² factors of the TDOA kinds (``factors``). Rows not kept (weight 0) and the
+    other kinds have no entry."""
+    keep = lin.w > 0
+    K = p.K
+    g = np.ones(p.N)
+    for kind in ARRIVAL_KINDS:
+        a = (p.array_scale or {}).get(kind)
+        g = np.maximum(g, np.ones(p.N) if a is None else np.asarray(a, float))
+    g = p.sigma["tdoa_s"] / np.sqrt(2.0) * g * np.sqrt(np.maximum.reduce(
+        [factors.get(k, np.ones(p.N)) for k in ARRIVAL_KINDS]))
+    rr, cc, vv, start = [], [], [], 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind in ARRIVAL_KINDS and n:
+            rows = p.rows(f.kind)
+            if f.kind == "tdoa_m":
+                first, second = (rows.arr, rows.ev), (np.full(n, p.ref), rows.ev)
+            else:
+                first, second = (rows.arr, rows.b), (rows.arr, rows.a)
+            sig = np.broadcast_to(f.row_sigma, n)
+            idx = start + np.arange(n)
+            for (arr, ev), sign in ((first, 1.0), (second, -1.0)):
+                rr.append(idx), cc.append(arr * K + ev), vv.append(sign * g[arr] / sig)
+        start += n
+    if not rr:
+        return None
+    r, c, v = np.concatenate(rr), np.concatenate(cc), np.concatenate(vv)
+    k = keep[r]
+    return scipy.sparse.csr_matrix((v[k], (r[k], c[k])), shape=(len(lin.r), p.N * K))
+
+
+def plane_normals(meta, names):
+    """(N, 3): the mic-plane normal (array frame) of each planar array in meta.json ``mics``, zeros elsewhere
+    (and for every array when meta has no mics)."""
+    mics = meta.get("mics") or {}
+    out = np.zeros((len(names), 3))
+    for i, n in enumerate(names):
+        v = plane_normal(mics[str(n)]) if str(n) in mics else None
+        if v is not None:
+            out[i] = v
+    return out
+
+
+def planar_doa_rows(p, lin, normals, factors):
+    """The DOA rows of planar arrays with their errors as a planar array makes them: {"rows": (M,) bool, the
+    DOA residuals it models; "G": (m, n) rows whose GᵀG is their part of Jᵀ C J}; None when there is none.
+
+    A planar array measures the in-plane part of a direction, ρ = cos(el) (the mics' delays do not depend
+    on the rest): an in-plane error σ_p moves the azimuth by σ_p (along the sphere) and the elevation by
+    σ_p / sin(el) — near the mic plane the elevation is many times less certain than the azimuth (issue 27:
+    sources within a few degrees of the plane, azimuth errors ≤ 0.3°, elevation errors 1–11°), which an
+    isotropic sigma per row misses both ways. σ_p is each array's own: its residuals² along azimuth plus along
+    elevation × sin(el), over 2n − 3 (the rotation absorbs 3) — a mean, so one reflection's row (25° where the
+    others err by 1°, lshape seed 24) raises all of the array's rows' (a median, or each row's own sigma
+    weighting it, left arrays 3.1–3.9σ off: too little where it matters); 1 / sin(el) stops at
+    √(2 / σ_p) (at el → 0, el ≈ √(2 (1 − ρ)): an error σ_p in ρ moves it by √(2 σ_p)). The lag-1 correlation
+    inflation of ``factors`` (``factors["doa_correlation"]``) applies; the elevation's variance stays at least
+    the row's sigma² × its array's σ² factor (``factors["doa"]``: a frontend's figure is only ever raised, as
+    the sigmas themselves are), the azimuth's may go below it (on the lab preset azimuth errors were 0.1°
+    against a row sigma of 0.6°: the row sigma there made the std 1.5× the errors). A row closer to the plane
+    than FOLD_SIGMAS of its elevation std may be the mirror image of the truth (a stated hemisphere puts a
+    source 4.7° below the plane 5° above it: moving seed 23): its elevation variance gains el²."""
+    start = 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind != "doa" or not n:
+            start += n
+            continue
+        arr, u = p.doa.arr, p.doa.u
+        nv = normals[arr]
+        keep = (lin.w[start:start + n] > 0).reshape(-1, 3).all(axis=1) & np.any(nv != 0, axis=1)
+        if not keep.any():
+            return None
+        cos_n = np.einsum("ka,ka->k", nv, u)
+        e_el = nv - cos_n[:, None] * u
+        e_el /= np.maximum(np.linalg.norm(e_el, axis=1), 1e-12)[:, None]
+        e_az = np.cross(u, e_el)
+        sig = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)[:, 0]
+        r = lin.r[start:start + n].reshape(-1, 3)           # whitened: each row in units of its own sigma
+        J = lin.J[start:start + n]
+        J = (J.toarray() if scipy.sparse.issparse(J) else np.asarray(J)).reshape(n // 3, 3, -1)
+        sin_el = np.abs(cos_n)
+        corr = factors.get("doa_correlation", np.ones(p.N))
+        iso_factor = factors.get("doa", np.ones(p.N))
+        G = []
+        for i in np.unique(arr[keep]):
+            m = np.flatnonzero(keep & (arr == i))
+            if len(m) < 3:
+                keep[arr == i] = False
+                continue
+            t_az, t_el = np.einsum("ka,ka->k", e_az[m], r[m]), np.einsum("ka,ka->k", e_el[m], r[m])
+            g_az, g_el = np.einsum("ka,kan->kn", e_az[m], J[m]), np.einsum("ka,kan->kn", e_el[m], J[m])
+            s, x_az, x_el = sin_el[m], t_az * sig[m], t_el * sig[m]   # natural units (rad)
+            for _ in range(2):   # σ_p² (the rotation absorbs 3 of the 2n in-plane residuals) and the floor of sin(el)
+                sp2 = float(np.sum(x_az ** 2 + (x_el * s) ** 2)) / max(2 * len(m) - 3, 1)
+                s = np.maximum(sin_el[m], np.sqrt(np.sqrt(sp2) / 2.0))
+            c2_az = c2_el = sp2 / sig[m] ** 2   # in each row's sigma
+            # the elevation never below the row's own sigma with its array's factor (what the fit absorbs of a
+            # tilt its residuals cannot show); the azimuth is what the array measures best
+            var_az = np.full(len(m), c2_az * corr[i])
+            var_el = np.maximum(c2_el * corr[i] / s ** 2, iso_factor[i])
+            # a row within FOLD_SIGMAS of its elevation noise of the plane cannot tell the plane's sides apart
+            # (a stated hemisphere, or the fold, puts it on one): its elevation may be off by up to twice itself
+            el = np.arcsin(np.clip(sin_el[m], 0.0, 1.0))
+            var_el = var_el + np.where(el < FOLD_SIGMAS * np.sqrt(var_el) * sig[m], (el / sig[m]) ** 2, 0.0)
+            G.append(np.sqrt(var_az)[:, None] * g_az)
+            G.append(np.sqrt(var_el)[:, None] * g_el)
+        rows = np.zeros(len(lin.r), bool)
+        rows[start:start + n] = np.repeat(keep, 3)
+        return {"rows": rows, "G": np.vstack(G)} if G else None
+    return None
+
+
+def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None):
+    """Covariance of the estimate the solve made (weights as stated) under the errors as they are: H⁻¹ B H⁻¹
+    with H⁻¹ = ``cov`` (dense, the kept rows' (JᵀJ)⁻¹) and B = Jᵀ C J, C the whitened rows' covariance:
+    arrival-sharing TDOA rows through :func:`arrival_rows`, the other rows independent with their array's
+    σ² factor (``factors`` {kind: (N,)}, :func:`calib.estimator.variance.covariance_factors`); ``shared``
+    False: the TDOA rows independent too (features whose meta.json does not say ``tdoa_shared_arrivals``);
+    ``normals`` (N, 3): planar arrays' DOA rows as they err (:func:`planar_doa_rows`).
+    Returns the (n, n) covariance."""
+    keep = lin.w > 0
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
+    f_rows, start = np.ones(len(lin.r)), 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind in factors and n:
+            f_rows[start:start + n] = np.repeat(factors[f.kind][p.rows(f.kind).arr], f.dim)
+        start += n
+    D = arrival_rows(p, lin, factors) if shared else None
+    own = keep.copy()
+    planar = None if normals is None else planar_doa_rows(p, lin, normals, factors)
+    if planar is not None:
+        own &= ~planar["rows"]
+    if D is not None:
+        own &= np.asarray(abs(D).sum(axis=1)).ravel() == 0
+        G = D.T @ J   # (N·K, n): each arrival's error through every row that holds it
+        B = G.T @ G
+    else:
+        B = np.zeros((J.shape[1], J.shape[1]))
+    Jo = J[own] * np.sqrt(f_rows[own])[:, None]
+    B = B + Jo.T @ Jo
+    if planar is not None:
+        B = B + planar["G"].T @ planar["G"]
+    out = cov @ B @ cov
+    return 0.5 * (out + out.T)
+
+
+def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arrays_only=False):
+    """The covariance the ``*_std`` columns and calibration.json report, at the final linearisation ``lin``
+    (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
+    residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
+    TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) by :func:`sandwich_covariance`;
+    a large (sparse) problem gets the factors alone (:func:`inflated_rows`) in its array block (its
+    sources' blocks stay the plain ones: the event blocks would cost a solve per source again). ``cov``: the
+    plain (JᵀJ)⁻¹ of the kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
+    dense problems); ``arrays_only`` as :func:`covariance`."""
+    from .variance import covariance_factors   # (variance's stages use this module's neighbours, not it)
+
+    if cov is None:
+        cov = covariance(lin.J[lin.w > 0], lay.n, lay, arrays_only)
+    factors = covariance_factors(p, lin, cov)
+    if isinstance(cov, np.ndarray):
+        return sandwich_covariance(p, lin, cov, factors, shared, normals)
+    if not any(np.any(v > 1) for k, v in factors.items() if k in KINDS):
+        return cov
+    # large problems: the array block with the factors (one more Schur complement); the sources keep theirs
+    arrays = covariance(inflated_rows(p, lin, factors), lay.n, lay, arrays_only=True)
+    return arrays if arrays_only else cov.with_arrays(arrays)
 
 
 def cov_diagonal(cov):

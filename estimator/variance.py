@@ -202,3 +202,67 @@ def _vce_step(w, fac, per_array, scales, base, last_dir, at_bound, *, bounds, fl
         reversed_ |= bool(d and last_dir.get(kind, d) != d)
         last_dir[kind] = d
     return changed, reversed_
+
+
+# --------------------------------------------------------------------------------- honest error bars
+# The weights of the solve are one sigma per type (and, opt-in, per array); the error bars must also hold
+# for an array whose rows are worse than its type's (a close reflection biasing all of its mics alike: the
+# frontend's mic-scatter sigma misses it; per-row DOA sigmas 1.3–3.2x optimistic on such arrays, issue 27).
+# Each array's own residuals say so: its rows' variance factor Σ r² / Σ(1 − h) inflates, for the covariance
+# only, that array's rows of that type (never below the type's sigma: a factor below 1 is the scatter of a
+# few residuals, or an array whose parameters absorb its own rows). The factor is shrunk toward 1 by a prior
+# worth COVARIANCE_PRIOR_DOF residual degrees of freedom, so an array with little redundancy is not inflated
+# by the scatter of a handful of residuals.
+COVARIANCE_PRIOR_DOF = 4.0
+
+
+def covariance_factors(p, lin, cov=None):
+    """Per (type, array) σ² factors ≥ 1 for the covariance: {kind: (N,)} from the final linearisation ``lin``
+    (``solver.Linearised``, weights 0 on excluded rows) and its covariance ``cov`` when dense (leverages;
+    0 for a sparse problem, see :func:`_leverages`), and under ``<kind>_correlation`` the part of it from the
+    residuals' lag-1 correlation. Types without per-array rows or not re-weighted by the data are left out."""
+    keep = lin.w > 0
+    h = _leverages(lin.J, keep, cov if isinstance(cov, np.ndarray) else None)
+    out, start = {}, 0
+    for f in lin.factors:
+        n = len(f.r)
+        sl = slice(start, start + n)
+        start += n
+        if n == 0 or not KINDS[f.kind].per_array or not KINDS[f.kind].reweight:
+            continue
+        g = arraynoise.vce_groups(p, f, lin.r[sl], h[sl], keep[sl])
+        red = np.maximum(g["red"], 0.0)
+        v = np.maximum(1.0, (g["ss"] + COVARIANCE_PRIOR_DOF) / (red + COVARIANCE_PRIOR_DOF))
+        corr = _correlation_inflation(p, f, lin.r[sl], keep[sl])
+        out[f.kind] = v * corr
+        out[f.kind + "_correlation"] = corr
+    return out
+
+
+MAX_CORRELATION = 0.8   # lag-1 correlation used at most: (1 + ρ) / (1 − ρ) ≤ 9
+
+
+def _correlation_inflation(p, f, r, keep):
+    """Per array (N,): (1 + ρ) / (1 − ρ) for ρ the lag-1 correlation of its kept residual vectors in event order,
+    less 1/√n (a white series' spread of it: n = 14 white residuals reach 0.27 one time in six), positive part,
+    ≤ MAX_CORRELATION. Errors that drift along the trajectory (a reflection or the robot's
+    motion biasing consecutive events alike) are not independent: n such rows carry the information of about
+    n (1 − ρ) / (1 + ρ) independent ones (the variance of a mean of an AR(1) series), which the covariance
+    would otherwise claim n times over. A fit leaves white residuals slightly anti-correlated, so clean rows
+    stay at 1."""
+    rows = p.rows(f.kind)
+    order = rows.a if hasattr(rows, "a") else rows.ev
+    R = r.reshape(len(order), f.dim)
+    k = keep.reshape(len(order), f.dim).all(axis=1)
+    out = np.ones(p.N)
+    for i in np.unique(rows.arr[k]):
+        m = np.flatnonzero(k & (rows.arr == i))
+        x = R[m[np.argsort(order[m], kind="stable")]]
+        if len(x) < 4:
+            continue
+        x = x - x.mean(axis=0)
+        rho = float(np.sum(x[1:] * x[:-1]) / max(float(np.sum(x * x)), 1e-300))
+        rho = min(max(rho - 1.0 / np.sqrt(len(x)), 0.0), MAX_CORRELATION)   # beyond a white series' spread
+        out[i] = (1.0 + rho) / (1.0 - rho)
+    return out
+

@@ -722,7 +722,8 @@ def _tables(session, results, ev_ids, beta):
     est = noise_estimates(results)
     est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
-            **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta}
+            **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta,
+            "tdoa_shared_arrivals": True}   # TDOA-M and TDOA-S are differences of one arrival per (array, event)
     # which sigmas are the frontend's own (spread-based) figures rather than the user's priors:
     # the estimator's noise="auto" then re-estimates the weights from the residuals
     meta["sigmas_estimated"] = sorted(k for k, v in est.items() if v is not None and k not in session["noise"])

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 from itertools import combinations
+from typing import NamedTuple
 
 import numpy as np
 
@@ -57,6 +58,8 @@ S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at mos
 MIN_SOUND_EVENTS = 6      # per array, arrivals needed for a speed-of-sound fit ...
 MIN_SOUND_DOF = 4         # ... and arrivals beyond its unknowns (a near-exact fit can be confidently wrong)
 SAME_START_M = 1e-3       # m: starts of that fit closer than this lie in one minimum (tried once)
+COARSE_ARRIVALS = 400     # a longer chain's starts are first fitted to this many of its arrivals (evenly spread) ...
+POLISH_STARTS = 6         # ... and the best this many refined on every arrival
 STEP_CHI2 = 36.0          # a break in an array's chain of arrivals must explain this much χ² (a 6σ step) ...
 MAX_STEPS = 2             # ... and at most this many breaks are made per array
 STEP_CANDIDATES = 8       # breaks refitted per step: the best by the held-position score (_step_scores)
@@ -398,20 +401,33 @@ def _batch_lm(f, X, max_iter=200, tol=1e-8):
 def _arrival_starts(odo, e, y, seg, n_best=3):
     """Starting positions for :func:`_fit_one_array`: the arrivals alone fitted from starts around the
     trajectory (the linear parameters projected out, :func:`_range_projection`, all starts at once); the
-    ``n_best`` best, (x, τ, δ, k) each, less those within ``SAME_START_M`` of a better one (one minimum)."""
+    ``n_best`` best, (x, τ, δ, k) each, less those within ``SAME_START_M`` of a better one (one minimum).
+
+    A chain longer than ``COARSE_ARRIVALS`` is searched coarse to fine: the starts fitted to that many of its
+    arrivals (evenly spread: the same trajectory and clock, less noise averaged), then the ``POLISH_STARTS``
+    best refined on all of them, a few steps each: the search costs O(K) a few times, not once per start."""
     centre, span = odo.mean(axis=0), max(float(np.ptp(odo, axis=0).max()), 0.5)
     dirs = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
                      [1, 1, 1], [-1, -1, 1], [1, -1, -1], [-1, 1, -1]], float)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     X0 = np.array([centre + r0 * dv for r0 in (1.0 * span, 2.5 * span) for dv in dirs])
+    if len(y) > COARSE_ARRIVALS:
+        sub = np.unique(np.linspace(0, len(y) - 1, COARSE_ARRIVALS).round().astype(int))
+        X, cost = _batch_lm(_range_projection(odo[sub], e[sub], y[sub], np.unique(seg[sub], return_inverse=True)[1]),
+                            X0)
+        X0 = X[np.argsort(cost, kind="stable")[:POLISH_STARTS]]
     X, cost = _batch_lm(_range_projection(odo, e, y, seg), X0)
-    best = X[np.argsort(cost, kind="stable")[:n_best]]
-    best = best[[i == 0 or np.min(np.linalg.norm(best[:i] - best[i], axis=1)) > SAME_START_M for i in range(len(best))]]
+    best = _distinct(X[np.argsort(cost, kind="stable")[:n_best]])
     out = []
     for x in best:
         A = np.column_stack([np.eye(seg.max() + 1)[seg], e, np.linalg.norm(odo - x, axis=1)])
         out.append(np.concatenate([x, np.linalg.lstsq(A, y, rcond=None)[0]]))
     return out
+
+
+def _distinct(X):
+    """The positions ``X`` (S, 3), best first, less those within ``SAME_START_M`` of a better one."""
+    return X[[i == 0 or np.min(np.linalg.norm(X[:i] - X[i], axis=1)) > SAME_START_M for i in range(len(X))]]
 
 
 def _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper=True, starts=None):
@@ -535,26 +551,20 @@ def _step_scores(odo, e, y, seg, x):
     return np.where(ok, hr**2 / np.where(ok, den, 1.0), 0.0)
 
 
-def speed_of_sound_fit(features, proper=True, arrays=None):
-    """Speed of sound from the metric odometry: per array, its arrivals (TDOA-S chained, less the emission
-    times) against the ranges from an unknown position to the odometry's source positions, its DOAs against
-    the directions to them (the angles between sources fix the metric distance, whatever c). Returns
-    {array: (c, std of c, RMS arrival residual s, RMS normalised residual)} for the arrays with enough
-    arrivals; c is inf (std inf) where the best fit has no positive 1/c (no range explains the arrivals).
-    proper=False: each array's DOAs are fitted with a mirror (an improper rotation) instead; arrays: only these."""
-    meta = features["meta"]
-    sig_t, sig_d = _sigmas(meta)
-    out = {}
-    with single_thread_blas():  # small matrices (calib.blas)
-        for name in meta["arrays"] if arrays is None else arrays:
-            fit = _array_sound_fit(features, name, sig_t, sig_d, proper)
-            if fit is not None:
-                out[name] = fit
-    return out
+class ArrivalChain(NamedTuple):
+    """One array's arrivals against the odometry (:func:`_array_data`), its chain broken where it steps
+    (:func:`split_steps`) and the starts of its fits (:func:`_arrival_starts`): what the fits with a proper and
+    a mirrored rotation share (the arrivals alone decide it)."""
+    odo: np.ndarray
+    e: np.ndarray
+    y: np.ndarray
+    seg: np.ndarray
+    e_id: np.ndarray
+    starts: list
 
 
-def _array_sound_fit(features, name, sig_t, sig_d, proper):
-    """One array's entry of :func:`speed_of_sound_fit` (None: too few arrivals)."""
+def arrival_chain(features, name, sig_t):
+    """Array ``name``'s :class:`ArrivalChain` (None: too few arrivals for the speed of sound's fit)."""
     data = _array_data(features, name)
     if data is None:
         return None
@@ -562,8 +572,37 @@ def _array_sound_fit(features, name, sig_t, sig_d, proper):
     seg = split_steps(odo, e, y, seg, sig_t)
     if len(y) - (seg.max() + 1) - 5 < MIN_SOUND_DOF:  # x (3), δ, k and an offset per segment
         return None
+    return ArrivalChain(odo, e, y, seg, e_id, _arrival_starts(odo, e, y, seg))
+
+
+def speed_of_sound_fit(features, proper=True, arrays=None, chains=None):
+    """Speed of sound from the metric odometry: per array, its arrivals (TDOA-S chained, less the emission
+    times) against the ranges from an unknown position to the odometry's source positions, its DOAs against
+    the directions to them (the angles between sources fix the metric distance, whatever c). Returns
+    {array: (c, std of c, RMS arrival residual s, RMS normalised residual)} for the arrays with enough
+    arrivals; c is inf (std inf) where the best fit has no positive 1/c (no range explains the arrivals).
+    proper=False: each array's DOAs are fitted with a mirror (an improper rotation) instead; arrays: only these.
+    chains: {array: :class:`ArrivalChain` or None} already built (reused, the missing ones added)."""
+    meta = features["meta"]
+    sig_t, sig_d = _sigmas(meta)
+    chains = {} if chains is None else chains
+    out = {}
+    with single_thread_blas():  # small matrices (calib.blas)
+        for name in meta["arrays"] if arrays is None else arrays:
+            if name not in chains:
+                chains[name] = arrival_chain(features, name, sig_t)
+            fit = _array_sound_fit(features, name, chains[name], sig_t, sig_d, proper)
+            if fit is not None:
+                out[name] = fit
+    return out
+
+
+def _array_sound_fit(features, name, chain, sig_t, sig_d, proper):
+    """One array's entry of :func:`speed_of_sound_fit` from its :class:`ArrivalChain` (None: too few arrivals)."""
+    if chain is None:
+        return None
+    odo, e, y, seg, e_id, starts = chain
     u = _doa_rows(features, name, e_id)
-    starts = _arrival_starts(odo, e, y, seg)
     k, sk, rms, misfit = _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper, starts)
     if misfit > DOA_TRUST and np.any(np.isfinite(u)):
         # DOAs that do not fit (a wrong speed of sound also bends a planar array's elevations): c from
@@ -713,9 +752,10 @@ def sound_findings(features, fits=None, source="session.toml"):
     """The declared speed of sound against the odometry's metric scale, and arrivals the odometry cannot
     explain (events.csv of another session). source: the file that declares the speed of sound (a features
     folder's meta.json for ``calib estimate``)."""
-    fits = speed_of_sound_fit(features) if fits is None else fits
+    chains = {}  # each array's arrivals, split and started once for the proper and the mirrored fits
+    fits = speed_of_sound_fit(features, chains=chains) if fits is None else fits
     c0 = float(features["meta"]["speed_of_sound"])
-    out = mirror_findings(features, fits)
+    out = mirror_findings(features, fits, chains)
     if out:
         return out
     bad = {k: v for k, v in fits.items() if v[2] > ODO_RESIDUAL_S or v[3] > ODO_MISFIT or not np.isfinite(v[0])}
@@ -751,15 +791,15 @@ def sound_findings(features, fits=None, source="session.toml"):
     return out
 
 
-def mirror_findings(features, fits):
+def mirror_findings(features, fits, chains=None):
     """Arrays whose DOAs fit the odometry only as a mirror image (an improper rotation): their mic geometry
     is mirrored or their doa_hemisphere is on the wrong side; all of them: the odometry's axes are mirrored
     (x and y swapped, or one negated). Observable only where the sources span 3-D: with a planar path the
-    array's mirror image across it fits as well (docs/reliability.md)."""
+    array's mirror image across it fits as well (docs/reliability.md). chains: as :func:`speed_of_sound_fit`'s."""
     poor = [k for k, v in fits.items() if v[3] > MIRROR_MIN]
     if not poor:
         return []
-    mirrored = speed_of_sound_fit(features, proper=False, arrays=poor)
+    mirrored = speed_of_sound_fit(features, proper=False, arrays=poor, chains=chains)
     named = [k for k in poor if k in mirrored and mirrored[k][3] * MIRROR_RATIO < fits[k][3]]
     if not named:
         return []

@@ -142,6 +142,8 @@ def test_array_covariance_of_a_large_problem_is_the_dense_inverse_block():
     # sparse block inverse, not a dense n x n pinv of the whole Jacobian (11 GB at 40 arrays x 1000 events)
     from calib.estimator import array_covariance
     from calib.estimator.solver import use_dense
+    from calib.estimator.uncertainty import inflated_rows
+    from calib.estimator.variance import covariance_factors
 
     rng = np.random.default_rng(7)
     stops = np.cumsum(rng.normal(0, 0.4, (90, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
@@ -151,7 +153,10 @@ def test_array_covariance_of_a_large_problem_is_the_dense_inverse_block():
     lay = make_layout(p)
     assert not use_dense(lay)
     labels, cov = array_covariance({"problem": p, "state": st, "layout": lay, "kinds": KINDS, "mask": {}})
-    J = linearise(p, st, lay, KINDS, dense=True).J
+    # the honest covariance (uncertainty.honest_covariance): each array's rows with the σ² factor of its
+    # residuals (large problems: without leverages), the same factors on the dense Jacobian
+    factors = covariance_factors(p, linearise(p, st, lay, KINDS), None)
+    J = inflated_rows(p, linearise(p, st, lay, KINDS, dense=True), factors)
     idx = np.concatenate([np.r_[lay.x[i], lay.rot[i], lay.offset[i], lay.drift[i]] for i in range(len(p.names))])
     idx = idx[idx >= 0]
     ref = covariance(J, lay.n)[np.ix_(idx, idx)]
@@ -182,3 +187,24 @@ def test_memory_check_counts_the_sparse_jacobian_and_refuses_only_what_cannot_fi
     monkeypatch.setattr(V, "memory_limit", lambda: 2**28)
     with pytest.raises(InputError, match=r"features: 1000 events × 40 arrays .* need about 0\.\d+ GiB .* 0\.25 GiB"):
         V.check_problem_size(1000, 40, big, "features")
+
+
+@pytest.mark.parametrize("n, u", [(1, 0), (6, 2), (60, 5), (200, 7)])
+def test_banded_inverse_band_and_half_solve_equal_the_dense_inverse(n, u):
+    """_BandedSPD.inverse_band (Takahashi's recurrence) reads the band of (A + λI)⁻¹ that np.linalg.inv gives;
+    half_solve's |U⁻ᵀ b|² is bᵀ (A + λI)⁻¹ b (the Schur complement's reduction)."""
+    from calib.estimator.solver import _BandedSPD
+
+    rng = np.random.default_rng(n + u)
+    M = np.zeros((n, n))
+    for d in range(1, u + 1):
+        v = rng.normal(size=n - d)
+        M += np.diag(v, d) + np.diag(v, -d)
+    M += np.diag(np.abs(M).sum(axis=1) + rng.uniform(0.1, 1.0, n))   # diagonally dominant: SPD
+    f = _BandedSPD(scipy.sparse.csr_matrix(M), 0.01, u)
+    Z = np.linalg.inv(M + 0.01 * np.eye(n))
+    want = np.array([[Z[i, i + k] if i + k < n else 0.0 for k in range(u + 1)] for i in range(n)])
+    np.testing.assert_allclose(f.inverse_band(), want, rtol=0, atol=1e-13 * np.abs(Z).max())
+    B = rng.normal(size=(n, 4))
+    Y = f.half_solve(B)
+    np.testing.assert_allclose(Y.T @ Y, B.T @ Z @ B, rtol=1e-12, atol=1e-14)

@@ -55,3 +55,20 @@ def test_a_step_is_broken_out_where_it_is(seed, step_s):
 def test_a_clean_chain_is_left_whole(seed):
     odo, e, y, seg, _ = chain(seed, segments=(0, 25))
     np.testing.assert_array_equal(split_steps(odo, e, y, seg, SIG_T), seg)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_long_chain_is_started_coarse_to_fine_as_the_full_search_starts_it(seed, monkeypatch):
+    """Above COARSE_ARRIVALS the starts are searched on a spread subset first, then refined on every arrival:
+    the same minima as the 20 starts run on every arrival (positions within the search's tolerance)."""
+    import calib.pipeline.setupcheck as S
+
+    odo, e, y, seg, x = chain(seed, k=3 * S.COARSE_ARRIVALS, segments=(0, 500))
+    coarse = S._arrival_starts(odo, e, y, seg)
+    monkeypatch.setattr(S, "COARSE_ARRIVALS", len(y))
+    full = S._arrival_starts(odo, e, y, seg)
+    assert len(coarse) == len(full)
+    for a, b in zip(coarse, full):
+        np.testing.assert_allclose(a[:3], b[:3], atol=1e-5)      # m
+        np.testing.assert_allclose(a[-1], b[-1], rtol=1e-6)      # 1/c
+    assert np.linalg.norm(coarse[0][:3] - x) < 0.05 and abs(1 / coarse[0][-1] - C) < 1.0

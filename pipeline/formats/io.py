@@ -247,7 +247,7 @@ def read_events(path):
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
              "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s", "chirp_stretch_shift",
-             "doa_time_s", "stretch_time_s")   # + the kinds' noise keys
+             "doa_time_s", "stretch_time_s", "tdoa_shared_arrivals")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -287,6 +287,8 @@ def validate_meta(meta, path="meta.json"):
             out[key] = V.number(meta[key], f"{path}: '{key}'", lo=0.0, hi=V.MAX_ABS_TIME)
     if meta.get("chirp_stretch_shift") is not None:
         out["chirp_stretch_shift"] = _stretch_curve(meta["chirp_stretch_shift"], path)
+    if meta.get("tdoa_shared_arrivals") is not None and not isinstance(meta["tdoa_shared_arrivals"], bool):
+        raise InputError(f"{path}: 'tdoa_shared_arrivals' must be true or false")
     est = meta.get("sigmas_estimated")
     if est is not None and (not isinstance(est, list) or not all(k in sigma_keys for k in est)):
         raise InputError(f"{path}: 'sigmas_estimated' must be a list of {', '.join(sigma_keys)}")

@@ -1,0 +1,214 @@
+"""Honest error bars (issue 27): the covariance the ``*_std`` columns report (``uncertainty.honest_covariance``)
+against independent truth — arrival errors drawn by hand, arrays made noisier or correlated on purpose,
+and a Monte-Carlo of scenes whose TDOA rows share their arrivals as a frontend's do."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from calib.errors import InputError
+from calib.estimator import calibrate
+from calib.estimator.factors import active_kinds
+from calib.estimator.problem import make_layout
+from calib.estimator.solver import linearise
+from calib.estimator.uncertainty import arrival_rows, covariance
+from calib.estimator.variance import covariance_factors
+from calib.pipeline.formats.io import validate_meta
+from calib.pipeline.simulate.featsim import simulate_features
+
+SIGMA = 1e-4   # the paper's TDOA sigma (s)
+
+
+def _shared_arrivals(seed, sigma=SIGMA):
+    """A paper scene (trajectory 3) whose TDOAs are differences of one noisy arrival per (array, event)
+    (std sigma/√2, so each row's std is the stated sigma), DOAs and odometry with the simulator's noise;
+    meta.json says so. Returns (features, truth)."""
+    feats, truth = simulate_features(3, sigma_tdoa=sigma, seed=seed)
+    exact, _ = simulate_features(3, sigma_tdoa=sigma, seed=seed, noise=False)   # same scene, exact values
+    rng = np.random.default_rng(1000 + seed)
+    ref, K = exact["meta"]["reference_array"], len(exact["events"])
+    n = {a: rng.normal(0.0, sigma / np.sqrt(2), K) for a in exact["meta"]["arrays"]}
+    tm, ts = exact["tdoa_m"].copy(), exact["tdoa_s"].copy()
+    tm["tdoa"] += [n[a][e] - n[ref][e] for a, e in zip(tm["array"], tm["event"])]
+    ts["tdoa"] += [n[a][b] - n[a][e] for a, e, b in zip(ts["array"], ts["from_event"], ts["to_event"])]
+    return feats.replace(tdoa_m=tm, tdoa_s=ts, meta={**feats["meta"], "tdoa_shared_arrivals": True}), truth
+
+
+def _final_linearisation(cal):
+    p, st = cal["problem"], cal["state"]
+    lay = make_layout(p)
+    lin = linearise(p, st, lay, active_kinds(p))
+    return p, lay, lin
+
+
+def test_arrival_rows_are_the_rows_differences_of_arrivals():
+    """D maps arrival errors (in units of their sigma) to the whitened TDOA row errors: checked against
+    the rows' definitions (TDOA-M a_ij − a_ref,j, TDOA-S a_ib − a_ia) written out by hand."""
+    feats, _ = _shared_arrivals(0)
+    p, lay, lin = _final_linearisation(calibrate(feats))
+    D = arrival_rows(p, lin, {}).toarray()
+    rng = np.random.default_rng(3)
+    sig_a = p.sigma["tdoa_s"] / np.sqrt(2)
+    e = rng.normal(0.0, sig_a, (p.N, p.K))   # arrival errors (s)
+    expect, start = np.zeros(len(lin.r)), 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind == "tdoa_m":
+            rows = p.tdoa_m
+            expect[start:start + n] = (e[rows.arr, rows.ev] - e[p.ref, rows.ev]) / p.sigma["tdoa_m"]
+        elif f.kind == "tdoa_s":
+            rows = p.tdoa_s
+            expect[start:start + n] = (e[rows.arr, rows.b] - e[rows.arr, rows.a]) / p.sigma["tdoa_s"]
+        start += n
+    assert D @ (e / sig_a).ravel() == pytest.approx(expect, abs=1e-12)
+    # rows of other kinds hold no arrival; every TDOA row's error has unit variance
+    C = D @ D.T
+    tdoa = np.abs(D).sum(axis=1) > 0
+    assert np.diag(C)[tdoa] == pytest.approx(1.0)
+    assert np.count_nonzero(tdoa) == len(p.tdoa_m) + len(p.tdoa_s)
+
+
+def _rotate_doas(feats, array, rotvecs):
+    """doa.csv with the rows of ``array`` (in event order) rotated by ``rotvecs`` (m, 3) rad."""
+    doa = feats["doa"].copy()
+    m = (doa["array"] == array).to_numpy()
+    order = np.argsort(doa.loc[m, "event"].to_numpy(), kind="stable")
+    u = doa.loc[m, ["ux", "uy", "uz"]].to_numpy()[order]
+    u = Rotation.from_rotvec(rotvecs).apply(u)
+    vals = np.empty_like(u)
+    vals[order] = u
+    doa.loc[m, ["ux", "uy", "uz"]] = vals
+    return feats.replace(doa=doa)
+
+
+def _doa_factors(feats):
+    p, lay, lin = _final_linearisation(calibrate(feats, noise="meta"))
+    return dict(zip(p.names, covariance_factors(p, lin, covariance(lin.J[lin.w > 0], lay.n, lay))["doa"]))
+
+
+def test_a_noisier_array_gets_its_own_factor():
+    """One array's DOAs 3× noisier than the rest (and than stated): its rows' σ² factor is near 9, the
+    others' stay near 1 (the covariance, not the solve, is inflated)."""
+    feats, _ = simulate_features(3, sigma_tdoa=SIGMA, sigma_doa_deg=2.0, seed=4)
+    sd = np.radians(feats["meta"]["sigma_doa_deg"])   # per tangent axis
+    K = len(feats["events"])
+    noisy = _rotate_doas(feats, "A3", np.random.default_rng(5).normal(0.0, 2 * np.sqrt(2) * sd, (K, 3)))
+    f = _doa_factors(noisy)
+    assert 4.0 < f["A3"] < 20.0
+    assert all(v < 2.0 for a, v in f.items() if a != "A3")
+    clean = _doa_factors(feats)
+    assert max(clean.values()) < 2.0
+
+
+def test_errors_that_drift_along_the_trajectory_inflate():
+    """An array whose DOA errors follow a slow random walk (each event's close to the last: correlated,
+    as a reflection or the robot's motion makes them) gets a factor above 1 from the lag-1 correlation,
+    while the same errors shuffled in time (independent, same size) do not reach it."""
+    feats, _ = simulate_features(3, sigma_tdoa=SIGMA, sigma_doa_deg=2.0, seed=6)
+    sd = np.radians(feats["meta"]["sigma_doa_deg"])
+    K = len(feats["events"])
+    rng = np.random.default_rng(7)
+    walk = np.cumsum(rng.normal(0.0, sd, (K, 3)), axis=0)
+    walk -= walk.mean(axis=0)   # (a constant rotation is the array's orientation: no information)
+    walk *= 2 * sd / np.sqrt(np.mean(walk ** 2))
+    drifting = _doa_factors(_rotate_doas(feats, "A2", walk))["A2"]
+    shuffled = _doa_factors(_rotate_doas(feats, "A2", walk[rng.permutation(K)]))["A2"]
+    assert drifting > 1.5 * shuffled
+
+
+@pytest.mark.slow
+def test_shared_arrivals_error_bars_are_honest():
+    """Over 24 scenes whose TDOA rows share arrivals, position and clock-offset errors / stated std have an
+    RMS near 1 (a Gaussian's), and no worse than the std that treats the rows as independent."""
+    z = {True: [], False: []}
+    for seed in range(24):
+        feats, truth = _shared_arrivals(seed)
+        t = truth["arrays"].set_index("array")
+        for shared in (True, False):
+            f = feats if shared else feats.replace(meta={**feats["meta"], "tdoa_shared_arrivals": False})
+            a = calibrate(f)["arrays"].set_index("array")
+            keep = [n for n in a.index if np.isfinite(a.loc[n, "x_std"])]
+            for col in ("x", "y", "z", "offset"):
+                z[shared] += list((a.loc[keep, col] - t.loc[keep, col]) / a.loc[keep, f"{col}_std"])
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
+    assert 0.8 < rms[True] < 1.15
+    assert abs(rms[True] - 1.0) <= abs(rms[False] - 1.0) + 0.02
+
+
+def test_meta_key_is_a_boolean():
+    base = {"speed_of_sound": 343.0, "reference_array": "A1", "arrays": ["A1", "A2"]}
+    assert validate_meta({**base, "tdoa_shared_arrivals": True})["tdoa_shared_arrivals"] is True
+    with pytest.raises(InputError, match="tdoa_shared_arrivals"):
+        validate_meta({**base, "tdoa_shared_arrivals": 1})
+
+
+def _planar_near_plane(seed, sigma_p_deg=0.3):
+    """A scene (16 stops 6 × 5 m, heights 1.0–1.4 m, arrays among them) in which array A2 is a planar 6-mic circle whose mic plane is the plane closest to all
+    its sources (its true directions' least-squares plane) and whose DOAs err as a planar array's do: an
+    in-plane error of std σ_p per axis, the elevation then recovered from the in-plane length (clipped
+    at the plane). Returns (features, truth)."""
+    rng = np.random.default_rng(50 + seed)
+    stops = np.column_stack([rng.uniform(0, 6, 16), rng.uniform(0, 5, 16), rng.uniform(1.0, 1.4, 16)])
+    feats, truth = simulate_features(stops, sigma_tdoa=SIGMA, sigma_doa_deg=1.0, seed=seed)
+    t = truth["arrays"].set_index("array")
+    R = Rotation.from_quat(t.loc["A2", ["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True)
+    src = truth["sources"].set_index("event").loc[:, ["x", "y", "z"]]
+    doa = feats["doa"].copy()
+    m = (doa["array"] == "A2").to_numpy()
+    w = src.loc[doa.loc[m, "event"]].to_numpy(float) - t.loc["A2", ["x", "y", "z"]].to_numpy(float)
+    u = R.inv().apply(w / np.linalg.norm(w, axis=1, keepdims=True))
+    normal = np.linalg.svd(u - u.mean(axis=0))[2][2]
+    normal *= np.sign(np.mean(u @ normal)) or 1.0
+    side = np.sign(u @ normal)
+    v = u - (u @ normal)[:, None] * normal
+    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    v += rng.normal(0.0, np.radians(sigma_p_deg), (len(v), 2)) @ np.array([e1, e2])
+    rho = np.minimum(np.linalg.norm(v, axis=1), 1.0)
+    meas = v / np.linalg.norm(v, axis=1, keepdims=True) * rho[:, None] + (side * np.sqrt(1 - rho ** 2))[:, None] * normal
+    doa.loc[m, ["ux", "uy", "uz"]] = meas
+    ring = np.array([[np.cos(a), np.sin(a)] for a in np.linspace(0, 2 * np.pi, 6, endpoint=False)]) * 0.04
+    mics = {str(a): [[0.0, 0.0, 0.0]] for a in feats["meta"]["arrays"]}
+    mics["A2"] = (ring @ np.array([e1, e2])).tolist()
+    return feats.replace(doa=doa, meta={**feats["meta"], "mics": mics}), truth, float(np.max(np.abs(u @ normal)))
+
+
+def test_planar_array_near_its_plane_is_honest_in_tilt():
+    """A planar array whose sources lie near its mic plane measures azimuth well and elevation badly: over
+    8 scenes its orientation error / stated std stays Gaussian-sized with the planar model (meta ``mics``),
+    where the isotropic row sigma claims too much."""
+    z = {True: [], False: []}
+    for seed in range(8):
+        feats, truth, _ = _planar_near_plane(seed)
+        t = truth["arrays"].set_index("array")
+        qt = Rotation.from_quat(t.loc["A2", ["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True)
+        for planar in (True, False):
+            f = feats if planar else feats.replace(meta={k: v for k, v in feats["meta"].items() if k != "mics"})
+            a = calibrate(f, noise="meta")["arrays"].set_index("array")
+            qe = Rotation.from_quat(a.loc["A2", ["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True)
+            z[planar].append((qe * qt.inv()).magnitude() / np.linalg.norm(a.loc["A2", ["rx_std", "ry_std", "rz_std"]]))
+    z = {k: np.array(v)[np.isfinite(z[True]) & np.isfinite(z[False])] for k, v in z.items()}  # (a degenerate draw)
+    assert len(z[True]) >= 6
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
+    assert max(z[True]) < 2.5 and rms[True] < 1.3
+    assert rms[False] > 1.5 * rms[True]
+
+
+def test_large_problem_raises_the_array_block_only():
+    """Past the dense limit the array block gets the factors (one more Schur complement) and the sources keep
+    the plain blocks: array std never below the plain (JᵀJ)⁻¹'s, source std equal to it."""
+    from calib.estimator.solver import use_dense
+    from calib.estimator.uncertainty import cov_diagonal, honest_covariance
+
+    rng = np.random.default_rng(7)
+    stops = np.cumsum(rng.normal(0, 0.4, (90, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
+    feats, _ = simulate_features(trajectory=stops, seed=7, n_arrays=5)
+    p, lay, lin = _final_linearisation(calibrate(feats))
+    assert not use_dense(lay)
+    plain = covariance(lin.J[lin.w > 0], lay.n, lay)
+    honest = honest_covariance(p, lin, lay, cov=plain)
+    arr = plain.arr_cols
+    assert np.all(cov_diagonal(honest)[arr] >= cov_diagonal(plain)[arr] * (1 - 1e-9))
+    assert np.any(cov_diagonal(honest)[arr] > 1.01 * cov_diagonal(plain)[arr])
+    src = np.setdiff1d(np.arange(lay.n), arr)
+    np.testing.assert_array_equal(cov_diagonal(honest)[src], cov_diagonal(plain)[src])
