@@ -37,8 +37,7 @@ def calibrate(features: Mapping[str, Any], **options: Any) -> CalibrationResult:
     ``calib.records.Features`` or its dict form) → a :class:`~calib.estimator.outputs.CalibrationResult`.
 
     See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
-    array's clock model (``clock_model="auto"``, the default, or "linear" to force one offset and drift per array:
-    ``estimator.clockmodel``).
+    array's clock model (``clock_model="auto"``, or "linear", the default for now: ``estimator.clockmodel``).
     """
     with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
         return CalibrationResult(**clockmodel.calibrate_clocks(calibrate_features, features, **options))
