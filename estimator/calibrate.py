@@ -25,7 +25,7 @@ from .outputs import CalibrationResult, to_frames, to_tables, undetermined_param
 from .problem import State, build_problem, make_layout, state_from_dict
 from .reporting import judge, make_report
 from .screen import distrusted, screen_rows
-from .solver import linearise
+from .solver import forget_linearisation, linearise
 from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
 from .verdict import fold_ambiguity, name_distrusted
@@ -39,8 +39,11 @@ def calibrate(features: Mapping[str, Any], **options: Any) -> CalibrationResult:
     See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
     array's clock model (``clock_model="auto"``, or "linear", the default for now: ``estimator.clockmodel``).
     """
-    with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
-        return CalibrationResult(**clockmodel.calibrate_clocks(calibrate_features, features, **options))
+    try:
+        with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
+            return CalibrationResult(**clockmodel.calibrate_clocks(calibrate_features, features, **options))
+    finally:
+        forget_linearisation()
 
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy",

@@ -138,6 +138,12 @@ def linearise(p, st, lay, kinds, loss=None, k=3.0, mask=None, dense=None) -> Lin
 _last = threading.local()   # .entry: the last sparse linearisation (problem, layout, kinds, state, factors, J)
 
 
+def forget_linearisation():
+    """Drop the kept linearisation (:func:`_stacked`): ``calibrate`` calls this when it returns, so a finished
+    large problem's Jacobian (~200 MB at 100 arrays × 5000 events) is not held until the next solve."""
+    _last.entry = None
+
+
 def _stacked(p, st, lay, kinds, dense):
     """The factors at ``st`` (their ``J`` None) and their stacked Jacobian. A large (sparse) problem's last
     ones are kept and returned again for the same problem, layout, kinds and state values: the outlier
