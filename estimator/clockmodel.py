@@ -41,11 +41,14 @@ from calib.clock import Clock, Step, Term, header_ratio
 from calib.options import validate_options
 from calib.tables import ARRAY_PARAMS
 
+from .init import ObservabilityError
+
 FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
 HUBER_K = 2.5           # robust scale of the per-array fits, in σ
 MAX_ROUNDS = 6          # detection rounds (each adds at most one component)
 MAX_COMPONENTS = 4      # extra clock parameters per array at most
 GN_ITERATIONS = 20
+MAX_MOVE = 0.5         # m: the per-array fits' largest position update per Gauss-Newton iteration
 MIN_EVENTS = 6          # fewer events: the linear clock only (nothing to test a change against)
 # A clock's drift changes by a few ppm as a board warms up or the room's temperature drifts (CHiME-6: ~1-5 ppm);
 # a drift term implying a larger change over the session is a geometric error (reflections) in clock guise
@@ -237,27 +240,46 @@ def huber_rho(r, k=HUBER_K):
     return np.where(a <= k, 0.5 * r * r, k * a - 0.5 * k * k)
 
 
+def cauchy_rho(r, k=HUBER_K):
+    """Cauchy's ρ (r²/2 near 0): a row far off costs ~k² ln|r|, so no component wins by pulling a gross
+    outlier part of the way (a chirp lost in a dropped block, 600σ off: Huber pays k per σ of it)."""
+    return 0.5 * k * k * np.log1p((r / k) ** 2)
+
+
+def _sqrt_weights(r, loss):
+    """√ of the IRLS weights of whitened residuals r: Huber's or Cauchy's (scale HUBER_K)."""
+    if loss == "huber":
+        return np.sqrt(np.where(np.abs(r) <= HUBER_K, 1.0, HUBER_K / np.maximum(np.abs(r), 1e-300)))
+    return 1.0 / np.sqrt(1.0 + (r / HUBER_K) ** 2)
+
+
 def fit_array(D, comps, x0, g0, tau0):
-    """Robust (Huber) Gauss–Newton fit of one array's position (not the reference's), clock and the
-    components' coefficients. Returns (x, g, τ, coef, whitened residuals)."""
+    """Robust Gauss–Newton fit of one array's position (not the reference's), clock and the components'
+    coefficients: Huber's loss first (convex in the clock: it converges from a pose fitted to data a large step
+    contaminates, every row hundreds of σ off), then Cauchy's from there (:func:`cauchy_rho`: a gross
+    outlier pulls nothing). Returns (x, g, τ, coef, whitened residuals)."""
     PS, PM = _design(D, comps)
     theta = np.concatenate([x0, [g0, tau0], [c.value for c in comps]]).astype(float)
     free = np.ones(len(theta), bool)
     if D.ref:
         free[:3] = False
         free[4] = False
-    for _ in range(GN_ITERATIONS):
-        r, J = _residuals(D, theta[:3], theta[3], theta[4], theta[5:], PS, PM)
-        w = np.sqrt(np.where(np.abs(r) <= HUBER_K, 1.0, HUBER_K / np.maximum(np.abs(r), 1e-300)))
-        A = J[:, free] * w[:, None]
-        d = np.linalg.norm(A, axis=0)
-        d = np.where(d > 0, d, 1.0)
-        step = np.linalg.lstsq(A / d, -r * w, rcond=None)[0] / d
-        theta[free] += step
-        if np.all(np.abs(step[3:] if not D.ref else step) <= 1e-10 * (1 + np.abs(theta[free][3:] if not D.ref
-                                                                                 else theta[free]))) \
-                and np.linalg.norm(step[:3] if not D.ref else 0.0) < 1e-7:
-            break
+    for loss in ("huber", "cauchy"):
+        for _ in range(GN_ITERATIONS):
+            r, J = _residuals(D, theta[:3], theta[3], theta[4], theta[5:], PS, PM)
+            w = _sqrt_weights(r, loss)
+            A = J[:, free] * w[:, None]
+            d = np.linalg.norm(A, axis=0)
+            d = np.where(d > 0, d, 1.0)
+            step = np.linalg.lstsq(A / d, -r * w, rcond=None)[0] / d
+            move = np.linalg.norm(step[:3]) if not D.ref else 0.0
+            if move > MAX_MOVE:   # a trust region: a pose metres off, its rows far from any fit, flew to 1e15 m
+                step = step * (MAX_MOVE / move)
+            theta[free] += step
+            if np.all(np.abs(step[3:] if not D.ref else step) <= 1e-10 * (1 + np.abs(theta[free][3:] if not D.ref
+                                                                                     else theta[free]))) \
+                    and np.linalg.norm(step[:3] if not D.ref else 0.0) < 1e-7:
+                break
     r, _ = _residuals(D, theta[:3], theta[3], theta[4], theta[5:], PS, PM)
     return theta[:3], theta[3], theta[4], theta[5:], r
 
@@ -316,7 +338,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     for cand in cands:
         x, g, tau, coef, r = fit_array(D, base + [cand], xb, gb, tb)
         if np.all(np.isfinite(r)) and cand.with_value(coef[-1]).plausible(duration):
-            fits.append((float(np.sum(huber_rho(r))), cand, coef, r))
+            fits.append((float(np.sum(cauchy_rho(r))), cand, coef, r))
     if not fits:
         return None, 0.0, None
     scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
@@ -326,7 +348,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
         if not fam:
             continue
         cost, cand, coef, r = min(fam, key=lambda f: f[0])
-        drop = 2.0 * (np.sum(huber_rho(rb / scale)) - np.sum(huber_rho(r / scale)))
+        drop = 2.0 * (np.sum(cauchy_rho(rb / scale)) - np.sum(cauchy_rho(r / scale)))
         margin = drop - penalty(kind, D.n, n_arrays, len(fits))   # (Bonferroni over every candidate tested)
         if best is None or margin > best[1]:
             new = [c.with_value(v) for c, v in zip(base + [cand], coef)]
@@ -389,19 +411,29 @@ def joint_scan(result, models, banned=frozenset()):
     lin = linearise(p, st, lay, _kinds(p))
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     r = lin.r
-    sw, scale = _robust_weights(result, lin)
+    sw0, scale = _robust_weights(result, lin)
+    kept = _kept_rows(result, lin.factors)
     dropped = _distrusted(result)
     zero = {name: [c.with_value(0.0) for c in comps] for name, comps in models.items()}
     E, _ = component_columns(p, lin.factors, zero)
-    Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
-    rw = r * sw
-    rp = rw - Q @ (Q.T @ rw)
-    out = {}
+    JE = np.hstack([J, E])
+    out, bases = {}, {}
     for i in range(-1, p.N):   # -1: the emitter
         name = EMITTER if i < 0 else str(p.names[i])
         have = zero.get(name, [])
         if len(have) >= MAX_COMPONENTS or len(np.unique(p.t)) < MIN_EVENTS or name in dropped:
             continue
+        # rows the solve screened out are evidence about the clock that stamped them only: Huber's score gives
+        # a row 600σ off its full k, and through the sources it shares it reads as the other arrays' steps (a
+        # chirp lost in a dropped block made 0.14 ms "steps" of three others); its own clock's candidates
+        # keep it (a 1 ms emission step screens every array's TDOA-S row of its interval)
+        sw = sw0 * np.maximum(kept, _own_rows(p, lin.factors, i))
+        key = sw.tobytes()
+        if key not in bases:
+            Q, _ = np.linalg.qr(JE * sw[:, None])
+            rw = r * sw
+            bases = {key: (Q, rw - Q @ (Q.T @ rw))}
+        Q, rp = bases[key]
         cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
         B = _columns(p, lin.factors, i, cands) * sw[:, None]
         Bp = B - Q @ (Q.T @ B)
@@ -543,21 +575,22 @@ def detect(result, models, banned=frozenset(), excluded=frozenset()):
                                  reference=name not in _distrusted(result))
         if got is not None and got[0] is not None:
             got[2]["test"] = "array"
-        if i in joint and (got is None or got[0] is None or joint[i][1] > got[1]):
-            got = joint[i]
-        if got is None or got[0] is None:
-            continue
-        new, margin, info = got
-        tied = info.pop("tied", [])
-        records.append({"array": name, "margin_chi2": margin, **info})
-        if margin > 0:
-            found[name] = (new, margin)
-            for k, alt in enumerate(tied[:MAX_RIVALS - 1]):
-                found[(name, k)] = (alt, margin)
+        # both tests' best proposals stay: the per-array fit holds the sources at a fit that another array's
+        # fault may have bent, so its χ² is not on the joint scan's scale (a reference step read as an
+        # outlier-laden array's step); proposals of the two tests are compared by solving (:func:`_decide`)
+        for got in (got, joint.get(i)):
+            if got is None or got[0] is None:
+                continue
+            new, margin, info = got
+            info = dict(info)
+            tied = info.pop("tied", [])
+            records.append({"array": name, "margin_chi2": margin, **info})
+            if margin > 0:
+                for k, alt in enumerate([new] + tied[:MAX_RIVALS - 1]):
+                    found[(name, info["test"], k)] = (alt, margin)
     ref = str(p.names[p.ref])
     proposals = []
-    for key, (new, margin) in found.items():
-        name = key[0] if isinstance(key, tuple) else key
+    for (name, test, _), (new, margin) in found.items():
         if new[-1].kind == "mshift":   # the reference's clock stepped: its step (opposite sign)
             step = Component("step", new[-1].time, -new[-1].value)
             have = [c.with_value(0.0) for c in models.get(ref, [])]
@@ -569,13 +602,19 @@ def detect(result, models, banned=frozenset(), excluded=frozenset()):
             continue
         old = models.get(name, [])
         merged = [c.with_value(c.value + (old[k].value if k < len(old) else 0.0)) for k, c in enumerate(new)]
-        if _pulse(merged):
+        if _pulse(merged) or any(prop == {name: merged} for _, _, prop in proposals):
             continue
-        proposals.append((margin, {name: merged}))
+        proposals.append((margin, test, {name: merged}))
+    if not proposals:
+        return [], records
     # the strongest evidence first (a large fault bends the fit and so the others' tests); rivals within
-    # TIE_MARGIN of it are decided by solving with each (:func:`_decide`)
+    # TIE_MARGIN of it, and the other test's best, are decided by solving with each (:func:`_decide`)
     proposals.sort(key=lambda m: -m[0])
-    return [prop for m, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS], records
+    top = [(test, prop) for m, test, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS]
+    other = next(((test, prop) for _, test, prop in proposals if test != top[0][0]), None)
+    if other is not None and other not in top:
+        top = top[:MAX_RIVALS - 1] + [other]
+    return top, records
 
 
 PULSE_MATCH = 0.25   # a drop and an insert this close in size (share of the larger) on one array: a pulse
@@ -664,9 +703,9 @@ def _suspects(result):
 def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
-    clock_model : "linear" (default, for now: 0.1 ms steps found in 90 % of bench_clocks' runs, false models on
-        1.3 % of clean sessions; docs/results.md) or "auto": steps / drift terms per array
-        (``calib.options.OPTIONS``: ``--clock-model``).
+    clock_model : "linear" (default, for now: rendered realistic sessions get µs-sized false steps where the
+        frontend's stated σ is far below its structured errors, docs/results.md) or "auto": steps / drift terms
+        per array (``calib.options.OPTIONS``: ``--clock-model``).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
@@ -681,23 +720,33 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
     first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
-        excluded = set()
-        for _ in range(2):   # (a second selection without the arrays the first one could not explain)
-            models, result = _select(solve, features, first, options, rounds, excluded)
-            if not models:
-                result = first
-                break
-            result, models, bad = _refine_and_resolve(solve, features, result, models, options)
-            if not bad:
-                break
-            excluded |= set(bad)
-            rounds.append([{"rejected": f"{n}: its clock terms did not explain its rows (still named as inconsistent); "
-                                        "selected again without it"} for n in sorted(bad)])
-        if models and _worse(result, first):   # the models did not explain the data: the linear clock's result
+        try:
+            result, models = _auto(solve, features, first, options, rounds)
+        except ObservabilityError as err:   # a trial model left the data unable to fix something: linear
             result, models = first, {}
-            rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
+            rounds.append([{"rejected": f"a clock model left the problem unobservable ({err}): the linear clock"}])
     _attach_report(result, features, models, rounds)
     return result
+
+
+def _auto(solve, features, first, options, rounds):
+    """The selection of :func:`calibrate_clocks` from the linear clock's ``first`` result: (result, models)."""
+    excluded = set()
+    for _ in range(2):   # (a second selection without the arrays the first one could not explain)
+        models, result = _select(solve, features, first, options, rounds, excluded)
+        if not models:
+            result = first
+            break
+        result, models, bad = _refine_and_resolve(solve, features, result, models, options)
+        if not bad:
+            break
+        excluded |= set(bad)
+        rounds.append([{"rejected": f"{n}: its clock terms did not explain its rows (still named as inconsistent); "
+                                    "selected again without it"} for n in sorted(bad)])
+    if models and _worse(result, first):   # the models did not explain the data: the linear clock's result
+        result, models = first, {}
+        rounds.append([{"rejected": "the clock models left the fit worse than the linear clock's"}])
+    return result, models
 
 
 def _select(solve, features, result, options, rounds, excluded=frozenset()):
@@ -705,31 +754,61 @@ def _select(solve, features, result, options, rounds, excluded=frozenset()):
     rivals decided by :func:`_decide`) and solves again; a new component of the joint scan that fails its
     structure test (:func:`structure_test`) is taken out again and not proposed again. The arrays in ``excluded`` get no
     components (nor their steps seen as the reference's). Returns (models, result)."""
-    models, banned, kept = {}, set(), 0
-    while kept < MAX_ROUNDS and len(banned) < MAX_REJECTED:
-        proposals, records = detect(result, models, frozenset(banned), frozenset(excluded))
+    models, banned, aside, kept, rejected = {}, set(), set(), 0, 0
+    while kept < MAX_ROUNDS and rejected < MAX_REJECTED:
+        proposals, records = detect(result, models, frozenset(banned | aside), frozenset(excluded))
         rounds.append(records)
         if not proposals:
             break
         if len(proposals) == 1:
-            trial = {**models, **proposals[0]}
+            (test, prop), = proposals
+            trial = {**models, **prop}
             res = solve(correct_features(features, trial), **options)
         else:
-            trial, res, rivals = _decide(solve, features, models, proposals, options)
+            trial, res, rivals = _decide(solve, features, models, [prop for _, prop in proposals], options)
+            test = next(t for t, prop in proposals if {**models, **prop} == trial)
             if rivals:
                 rounds.append([{"ambiguous": [_last(trial, models)] + [_last({**models, **r}, models) for r in rivals]}])
         # proposals of the joint scan come from a fit not bent around them: their structure is judged at once;
         # a per-array scan's (a fault large enough to bend the fit) may be placed or sized provisionally until
         # the fault is modelled in full: judged at the end (:func:`_refine_and_resolve`)
-        if all(r.get("test") == "joint" for r in records if r.get("margin_chi2", 0.0) > 0):
+        if test == "joint":
+            trial, res = _resize(solve, features, trial, res, options)
             bad = _structure_failures(res, trial, models, correct_features(features, trial))
             if bad:
-                banned.update(bad)
+                rejected += 1
+                # another clock's fault still unmodelled shows in this one's row groups (a reference step's
+                # test reads every array's TDOA-M): set aside until a component is taken, banned otherwise
+                names = {b[0] for b in bad}
+                pending = any(r.get("margin_chi2", 0.0) > 0 and r.get("array") not in names for r in records)
+                (aside if pending else banned).update(bad)
                 rounds.append([{"rejected": f"{b[0]}: {b[1]} at {b[2]:.3f} s: not a clock's structure (TDOA-S and "
-                                            "TDOA-M, or the arrays, disagree on its size)"} for b in bad])
+                                            "TDOA-M, or the arrays, disagree on its size)"
+                                            + (" while another clock's fault is unmodelled: set aside" if pending else "")}
+                               for b in bad])
                 continue
         models, result, kept = trial, res, kept + 1
+        aside.clear()
     return models, result
+
+
+RESIZE_SIGMA = 1.0   # a joint step moving a new component by more than this × its σ: solved again before judging it
+RESIZE_ROUNDS = 3
+
+
+def _resize(solve, features, trial, res, options):
+    """The scan's size of a component is linear at a fit its fault bent: a 6.8 ms reference step came out
+    7.2 ms, and the 40σ left failed its structure test. Joint Gauss–Newton steps (:func:`refine`) and solves
+    until it moves by less than RESIZE_SIGMA σ. Returns (models, result)."""
+    for _ in range(RESIZE_ROUNDS):
+        moved, new, _ = refine(res, trial)
+        shift = max((abs(c.value - o.value) / max(c.std or 0.0, 1e-300) for n in new for c, o in zip(new[n], trial[n])),
+                    default=0.0)
+        if not moved or shift <= RESIZE_SIGMA:
+            break
+        trial = {n: [c.with_value(c.value) for c in comps] for n, comps in new.items()}
+        res = solve(correct_features(features, trial), **options)
+    return trial, res
 
 
 def _worse(result, first):
@@ -833,6 +912,30 @@ def _outlier_mask(fs, outliers):
     return {f.kind: ~np.isin(np.asarray(f.row), list(flagged[f.kind])) for f in fs if f.kind in flagged}
 
 
+def _kept_rows(result, fs):
+    """1 for each stacked residual row of the factors ``fs`` the solve kept, 0 for those it screened out."""
+    outliers = result["outliers"] if "outliers" in result else (result.get("report") or {}).get("outliers")
+    mask = _outlier_mask(fs, outliers)
+    keep = [np.ones(len(f.r), bool) if f.kind not in mask else
+            (mask[f.kind] if len(mask[f.kind]) == len(f.r) else np.repeat(mask[f.kind], f.dim)) for f in fs]
+    return np.concatenate(keep).astype(float) if keep else np.zeros(0)
+
+
+def _own_rows(p, fs, i):
+    """The stacked residual rows of the factors ``fs`` that clock i stamps: array i's TDOA-S and TDOA-M (the
+    reference's: its TDOA-S and every TDOA-M), the emitter's (i = -1): every TDOA-S."""
+    out = []
+    for f in fs:
+        arr = getattr(p, f.kind).arr if f.kind in ("tdoa_s", "tdoa_m") else None
+        if arr is None or len(arr) != len(f.r):
+            out.append(np.zeros(len(f.r), bool))
+        elif i < 0:
+            out.append(np.full(len(f.r), f.kind == "tdoa_s"))
+        else:
+            out.append((arr == i) | (f.kind == "tdoa_m" and i == p.ref))
+    return np.concatenate(out).astype(float) if out else np.zeros(0)
+
+
 def _columns(p, fs, i, comps):
     """Whitened Jacobian columns (rows of the stacked factors ``fs``) of array i's components' coefficients
     (i = -1: the emitter's, every array's TDOA-S)."""
@@ -902,10 +1005,12 @@ def refine(result, models):
     if lay.n > DENSE_MAX:
         return _conditional(lin, B, keep, keys, models)
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
-    # the step: every row, Huber-weighted (rows flagged against a wrong component are evidence against it)
+    # the step: every row, Cauchy-weighted (rows flagged against a wrong component are evidence against it; a
+    # row hundreds of σ off, e.g. a chirp lost in a dropped block, pulls nothing: Huber's weight let it pull a
+    # 50 ms step's size by 5σ)
     r = full.r
     scale = max(1.0, 1.4826 * float(np.median(np.abs(r[keep])))) if keep.any() else 1.0
-    sw = np.sqrt(np.where(np.abs(r) <= HUBER_K * scale, 1.0, HUBER_K * scale / np.maximum(np.abs(r), 1e-300)))
+    sw = 1.0 / np.sqrt(1.0 + (r / (HUBER_K * scale)) ** 2)
     Ah = np.hstack([J, B]) * sw[:, None]
     step = np.linalg.lstsq(Ah, -r * sw, rcond=None)[0]
     # the covariance: the estimator's rows (outliers out), as its own error bars

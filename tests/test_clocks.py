@@ -114,6 +114,52 @@ def test_a_step_is_found_in_its_interval_with_its_size(seed, size):
     np.testing.assert_allclose(c.to_emitter_time("A3", got), tt, atol=1e-9)
 
 
+def _session(seed, n=24):
+    """Stops of a random walk in a room-sized box (the robot stops for each chirp)."""
+    rng = np.random.default_rng([seed, 28])
+    walk = np.cumsum(rng.normal(0, 0.8, (n, 3)) * [1, 1, 0.2], axis=0) + [3.0, 2.5, 1.0]
+    return np.clip(walk, [0.2, 0.2, 0.3], [5.8, 4.8, 1.7])
+
+
+@pytest.mark.xfail(strict=True, reason="the lost chirp's rows (620σ, screened by the solve) fail the true step's "
+                   "structure test; excluding screened rows from that test let µs-sized false steps pass on a "
+                   "rendered hall session (docs/results.md): open")
+def test_a_chirp_lost_in_a_dropped_block_leaves_the_step_and_the_others_alone():
+    # a 50 ms block dropped between two events 80 ms apart: the later chirp falls into the lost samples (its
+    # arrival is the block's start), rows hundreds of σ off that the solve screens out; they must neither make
+    # steps of the other arrays nor fail the true step (a 36-stop walk of the clock benchmark's kind)
+    rng = np.random.default_rng([9, 2800])
+    stops = np.clip(np.cumsum(rng.normal(0, 0.8, (36, 3)) * [1, 1, 0.2], axis=0) + [3.0, 2.5, 1.0],
+                    [0.2, 0.2, 0.3], [5.8, 4.8, 1.7])
+    f0, _ = simulate_features(stops, SIGMA, seed=9, max_interval=10.0)
+    f, truth = simulate_features(stops, SIGMA, seed=9, max_interval=10.0, clocks={"A3": {"steps": [{"size": -0.05}]}})
+    t = f["events"]["t_emit"].to_numpy() - f["events"]["t_emit"].iloc[0]
+    k = _interval(truth["clocks"]["A3"], f)[0]
+    assert t[k + 1] - t[k] < 0.1   # (the scene has the property under test)
+    cal = calibrate(f, clock_model="auto")
+    (s,) = _steps(cal, "A3")
+    assert (s["after_event"], s["before_event"]) == (k, k + 1) and abs(s["size"] + 0.05) < 3 * s["std"]
+    assert all(not _steps(cal, a) for a in ("A1", "A2", "A4", "A5"))
+    assert not cal["report"]["clock"]["emitter"]["steps"]
+    clean = evaluate(calibrate(f0), truth)["position_rmse_m"]
+    assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean + 0.002
+
+
+def test_a_large_reference_step_beside_another_arrays_step_is_the_references():
+    # a 7 ms reference step bends the fit: its scanned size is off by tens of σ, and the other array's
+    # unmodelled step shows in its structure test's row groups; it is resized and set aside, not banned
+    f, truth = simulate_features(_session(5), SIGMA, seed=5, max_interval=10.0,
+                                 clocks={"A1": {"steps": [{"size": -0.007}]}, "A3": {"steps": [{"size": 0.0004}]}})
+    cal = calibrate(f, clock_model="auto")
+    for name in ("A1", "A3"):
+        (s,) = _steps(cal, name)
+        true = truth["clocks"][name]["steps"][0]["size"]
+        assert (s["after_event"], s["before_event"]) == _interval(truth["clocks"][name], f)
+        assert abs(s["size"] - true) < 3 * s["std"]
+    assert all(not _steps(cal, a) for a in ("A2", "A4", "A5"))
+    assert not cal["report"]["clock"]["emitter"]["steps"]
+
+
 @pytest.mark.parametrize("seed", [0, 3, 5])
 def test_clean_sessions_get_the_linear_clock(seed):
     f, _ = simulate_features(3, SIGMA, seed=seed)
