@@ -7,7 +7,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from calib.tables import METRIC_ROWS  # (not from report.evaluate: it loads scipy.spatial)
+from calib.tables import METRIC_ROWS, extra_array_params, extra_param_cells  # (not report.evaluate: scipy.spatial)
 
 out = Console()
 
@@ -23,7 +23,9 @@ def print_arrays(calib, console=None):
     a = calib["arrays"]
     t = Table(title="Calibrated arrays: position m, rotation angle deg, offset ms, drift ppm, 1-σ cm / deg",
               padding=(0, 1), collapse_padding=True)
-    for col in ("array", "x", "y", "z", "angle", "offset", "drift", "±pos", "±rot"):
+    extra = extra_array_params()   # registered per-array parameters beyond these: their own columns, SI
+    for col in ("array", "x", "y", "z", "angle", "offset", "drift", "±pos", "±rot",
+                *(f"{c} {a.unit}" for a in extra for c in a.columns)):
         t.add_column(col, justify="right")
     # rotation shown as its angle (the axis is in arrays.csv); keeps the table within 80 columns
     rv = np.rad2deg(Rotation.from_quat(a[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).magnitude())
@@ -32,7 +34,8 @@ def print_arrays(calib, console=None):
         rot_sd = math.degrees(math.sqrt(sum(row.get(f"r{c}_std", float("nan")) ** 2 for c in "xyz")))
         t.add_row(str(row["array"]), _f(row["x"], ".3f"), _f(row["y"], ".3f"), _f(row["z"], ".3f"),
                   _f(rv[k], ".1f"), _f(row["offset"] * 1e3, ".3f"),
-                  _f(row["drift"] * 1e6, ".2f"), _f(pos_sd, ".2f"), _f(rot_sd, ".2f"))
+                  _f(row["drift"] * 1e6, ".2f"), _f(pos_sd, ".2f"), _f(rot_sd, ".2f"),
+                  *(c for a in extra for c in extra_param_cells(row, a)))
     (console or out).print(t)
 
 

@@ -64,6 +64,20 @@ ARRAY_PARAMS = [ArrayParam("x", "position", ("x", "y", "z"), ("x", "y", "z"), "m
                 ArrayParam("offset", "offset", ("offset",), ("offset",), "s"),
                 ArrayParam("drift", "drift", ("drift",), ("drift",), "1", reference="tdoa_s")]
 ARRAYS_COLUMNS = ("array", *(c for a in ARRAY_PARAMS for c in a.columns))   # arrays.csv (calibration, truth)
+SHOWN_PARAMS = frozenset(a.key for a in ARRAY_PARAMS)   # the arrays tables show these in their own units ...
+
+
+def extra_array_params():
+    """... and every parameter registered beyond them as its own columns, in SI units (``value ± std``)."""
+    return [a for a in ARRAY_PARAMS if a.key not in SHOWN_PARAMS]
+
+
+def extra_param_cells(row, a):
+    """One registered parameter's components of an arrays-table ``row`` (mapping): "value ± std" each, SI."""
+    def cell(c, sd):
+        v, e = float(row.get(c, float("nan"))), float(row.get(sd, float("nan")))
+        return f"{v:.4g}" + (f" ± {e:.2g}" if e == e else "")
+    return [cell(c, sd) for c, sd in zip(a.columns, a.std_columns)]
 
 
 def array_param(name):

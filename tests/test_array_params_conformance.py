@@ -21,6 +21,9 @@ from calib.pipeline.formats.results import load_calibration
 from calib.pipeline.run import estimate_stage
 from calib.pipeline.simulate.featsim import simulate_features
 from calib.tables import ARRAY_PARAMS, ArrayParam
+from calib.cli.tables import print_arrays
+from calib.pipeline.report.summary import arrays_markdown
+from rich.console import Console
 
 from .test_factors import check_jacobian
 from .test_kinds_conformance import RANGE, SIGMA_RANGE, range_factor
@@ -86,6 +89,13 @@ def test_a_per_array_parameter_added_by_one_spec_is_estimated_with_its_std(range
     np.testing.assert_allclose(back["range_bias_std"], std, rtol=1e-3)
     typed = {a.name: a.std["range bias"] for a in load_calibration(tmp_path / "calibration").arrays}   # calibration.json
     np.testing.assert_allclose([typed[n] for n in std.index], std, rtol=1e-3)
+    # the arrays tables a user reads (summary.md, the terminal) show it with its std, in its unit
+    md = arrays_markdown(out["arrays"]).splitlines()
+    assert "range_bias (m)" in md[0] and f"{est.iloc[1]:.4g} ± {std.iloc[1]:.2g}" in md[3]
+    console = Console(record=True, width=300)
+    print_arrays(out, console)
+    text = console.export_text()
+    assert "range_bias m" in text and f"{est.iloc[1]:.4g} ± {std.iloc[1]:.2g}" in text
 
 
 @pytest.mark.parametrize("silent", ["A3", "A1"])   # (A1: the reference, whose bias is "free")

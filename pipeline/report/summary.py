@@ -25,7 +25,7 @@ import numpy as np
 
 from calib.estimator import KINDS, LINE_COLUMN, position_covariances, rebuild, residuals
 
-from calib.tables import METRIC_ROWS
+from calib.tables import METRIC_ROWS, extra_array_params, extra_param_cells
 from calib.pipeline.formats.io import atomic_dir, dumps_json
 
 
@@ -311,9 +311,10 @@ def arrays_markdown(arrays):
     from scipy.spatial.transform import Rotation
 
     rv = Rotation.from_quat(arrays[["qw", "qx", "qy", "qz"]].to_numpy(float), scalar_first=True).as_rotvec()
+    extra = [(a, c) for a in extra_array_params() for c in a.columns]   # registered beyond the built-in ones
     lines = ["| array | x (m) | y (m) | z (m) | rotation (deg) about axis | offset (ms) | drift (ppm) "
-             "| ±pos (cm) | ±rot (deg) | ±offset (µs) | ±drift (ppm) |",
-             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
+             "| ±pos (cm) | ±rot (deg) | ±offset (µs) | ±drift (ppm) |" + "".join(f" {c} ({a.unit}) |" for a, c in extra),
+             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(extra)]
     for k, r in arrays.reset_index(drop=True).iterrows():
         ang = np.linalg.norm(rv[k])
         ax = rv[k] / ang if ang > 0 else np.array([0.0, 0.0, 1.0])
@@ -323,7 +324,8 @@ def arrays_markdown(arrays):
                      f"{np.degrees(ang):.1f} about ({ax[0]:.2f}, {ax[1]:.2f}, {ax[2]:.2f}) | "
                      f"{_fmt(r['offset'], '.3f', 1e3)} | {_fmt(r['drift'], '.2f', 1e6)} | {_fmt(pos_sd, '.2f', 100)} | "
                      f"{_fmt(rot_sd, '.2f')} | {_fmt(r.get('offset_std'), '.1f', 1e6)} | "
-                     f"{_fmt(r.get('drift_std'), '.3f', 1e6)} |")
+                     f"{_fmt(r.get('drift_std'), '.3f', 1e6)} |"
+                     + "".join(f" {c} |" for a in extra_array_params() for c in extra_param_cells(r, a)))
     return "\n".join(lines)
 
 
