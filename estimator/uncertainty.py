@@ -160,22 +160,27 @@ class BlockCovariance:
         return self.system.solve(self.J.T @ z)
 
 
-def inflated_rows(p, lin, factors):
-    """The whitened Jacobian of ``lin``'s kept rows with each (type, array)'s rows divided by the root of
-    its σ² factor (``factors``: {kind: (N,)}, :func:`calib.estimator.variance.covariance_factors`): the
-    Jacobian whose (JᵀJ)⁻¹ is the covariance with those arrays' sigmas raised."""
-    s, start = np.ones(len(lin.r)), 0
+def row_factors(p, lin, factors):
+    """(M,): each residual row of ``lin`` with its (type, array)'s σ² factor (``factors``: {kind: (N,)},
+    :func:`calib.estimator.variance.covariance_factors`; 1 for kinds without one)."""
+    out, start = np.ones(len(lin.r)), 0
     for f in lin.factors:
         n = len(f.r)
         if f.kind in factors and n:
-            s[start:start + n] = np.repeat(np.sqrt(factors[f.kind])[p.rows(f.kind).arr], f.dim)
+            out[start:start + n] = np.repeat(factors[f.kind][p.rows(f.kind).arr], f.dim)
         start += n
-    keep = lin.w > 0
-    return whiten(lin.J, 1.0 / s ** 2)[keep] if scipy.sparse.issparse(lin.J) else (lin.J / s[:, None])[keep]
+    return out
 
 
-ARRIVAL_KINDS = ("tdoa_m", "tdoa_s")
-FOLD_SIGMAS = 2.0   # a planar array's DOA this few elevation sigmas from its mic plane may be on either side   # rows that are differences of two arrivals (docs/architecture.md)
+def inflated_rows(p, lin, factors):
+    """The whitened Jacobian of ``lin``'s kept rows with each (type, array)'s rows divided by the root of
+    its σ² factor (:func:`row_factors`): the Jacobian whose (JᵀJ)⁻¹ is the covariance with those arrays'
+    sigmas raised."""
+    return whiten(lin.J, 1.0 / row_factors(p, lin, factors))[lin.w > 0]
+
+
+ARRIVAL_KINDS = ("tdoa_m", "tdoa_s")   # rows that are differences of two arrivals (docs/architecture.md)
+FOLD_SIGMAS = 2.0   # a planar array's DOA this few elevation sigmas from its mic plane may be on either side
 
 
 def arrival_rows(p, lin, factors):
@@ -309,12 +314,7 @@ def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None):
     Returns the (n, n) covariance."""
     keep = lin.w > 0
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
-    f_rows, start = np.ones(len(lin.r)), 0
-    for f in lin.factors:
-        n = len(f.r)
-        if f.kind in factors and n:
-            f_rows[start:start + n] = np.repeat(factors[f.kind][p.rows(f.kind).arr], f.dim)
-        start += n
+    f_rows = row_factors(p, lin, factors)
     D = arrival_rows(p, lin, factors) if shared else None
     own = keep.copy()
     planar = None if normals is None else planar_doa_rows(p, lin, normals, factors)
