@@ -2,7 +2,8 @@
 
 - :func:`mirror` / :func:`fold`: the mirror image of directions across a plane (planar arrays measure DOAs
   up to that image) and the fold onto the plane's positive side.
-- :func:`plane_normal`: the unit normal of a planar array's mics (None when they are not coplanar).
+- :func:`mic_geometry` / :func:`plane_normal`: what an array's mics can measure (single, linear, planar,
+  volume) and a planar array's normal.
 - :func:`yaw_matrix` / :func:`yaw_rotate`: the rotation ``Rz(ψ)`` about the vertical axis.
 - :func:`local_time` / :func:`arrival_time`: the clock model ``L_i(t) = (1 + δ_i)(t − t_0) + τ_i`` and the
   arrival ``a_ij = L_i(t_j + |s_j − x_i| / c) + β δ_i`` (β: the chirp's drift bias).
@@ -34,15 +35,38 @@ def fold(u: NDArray, n: NDArray) -> NDArray:
     return np.where((d < 0)[..., None], u - 2.0 * d[..., None] * n, u)
 
 
-def plane_normal(mics: ArrayLike, tol: float = 1e-3) -> NDArray | None:
-    """Unit normal of the mics' plane if they are (nearly) coplanar (RMS distance from it < ``tol`` m), else
-    None. Mics (n, 3) in the array frame; fewer than 3 span no plane."""
+MIC_GEOMETRY_TOL = 1e-3   # m: RMS spread of the mics off a line / plane below which they lie on it
+
+
+def mic_geometry(mics: ArrayLike, tol: float = MIC_GEOMETRY_TOL) -> tuple[str, NDArray | None]:
+    """What the array's geometry lets it measure: (kind, vector).
+
+    kind: "single" (1 mic: no direction), "linear" (collinear mics, 2-mic pairs: the angle to the axis;
+    vector = the unit axis in the array frame, sign such that its largest component is positive, snapped
+    to a coordinate axis when within 1e-9), "planar" (vector = the unit normal of the mic plane) or
+    "volume" (full direction; vector None).
+    """
     mics = np.asarray(mics, float)
-    if len(mics) < 3:
-        return None
+    if len(mics) < 2:
+        return "single", None
     d = mics - mics.mean(axis=0)
-    _, sv, vt = np.linalg.svd(d)
-    return vt[2] if sv[2] / np.sqrt(len(mics)) < tol else None
+    _, sv, vt = np.linalg.svd(d, full_matrices=True)
+    sv = np.r_[sv, np.zeros(3 - len(sv))] / np.sqrt(len(mics))
+    if sv[1] < tol:
+        a = vt[0] * np.sign(vt[0][np.argmax(np.abs(vt[0]))])
+        k = int(np.argmax(np.abs(a)))
+        if a[k] > 1 - 1e-9:
+            a = np.eye(3)[k]
+        return "linear", a
+    if sv[2] < tol:
+        return "planar", vt[2]
+    return "volume", None
+
+
+def plane_normal(mics: ArrayLike) -> NDArray | None:
+    """Unit normal (3,) of a planar array's mic plane (:func:`mic_geometry`), None for any other geometry."""
+    kind, v = mic_geometry(mics)
+    return v if kind == "planar" else None
 
 
 def yaw_matrix(psi: float) -> NDArray:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib.blas import single_thread_blas
-from calib.geometry import fold, mirror
+from calib.geometry import fold, mic_geometry, mirror  # (mic_geometry: this module's public name too)
 
 from .timing import phasors
 
@@ -38,35 +38,6 @@ def fibonacci_sphere(n):
     phi = np.pi * (1 + 5**0.5) * i
     r = np.sqrt(1 - z * z)
     return np.c_[r * np.cos(phi), r * np.sin(phi), z]
-
-
-# mics whose RMS distance from their best-fit line (plane) is below this (m) form a linear (planar) array
-GEOMETRY_TOL = 1e-3
-
-
-def mic_geometry(mics, tol=GEOMETRY_TOL):
-    """What the array's geometry lets it measure: (kind, vector).
-
-    kind: "single" (1 mic: no direction), "linear" (collinear mics, 2-mic pairs: the angle to the axis;
-    vector = the unit axis in the array frame, sign such that its largest component is positive, snapped
-    to a coordinate axis when within 1e-9), "planar" (vector = the unit normal of the mic plane) or
-    "volume" (full direction; vector None).
-    """
-    mics = np.asarray(mics, float)
-    if len(mics) < 2:
-        return "single", None
-    d = mics - mics.mean(axis=0)
-    _, sv, vt = np.linalg.svd(d, full_matrices=True)
-    sv = np.r_[sv, np.zeros(3 - len(sv))] / np.sqrt(len(mics))
-    if sv[1] < tol:
-        a = vt[0] * np.sign(vt[0][np.argmax(np.abs(vt[0]))])
-        k = int(np.argmax(np.abs(a)))
-        if a[k] > 1 - 1e-9:
-            a = np.eye(3)[k]
-        return "linear", a
-    if sv[2] < tol:
-        return "planar", vt[2]
-    return "volume", None
 
 
 def cone_vectors(axis, cos_theta):
