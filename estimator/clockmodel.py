@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 import scipy.sparse
-from scipy.special import chdtri
+from scipy.special import chdtri, erf, erfc
 
 from calib.clock import Clock, Step, Term, header_ratio
 from calib.options import validate_options
@@ -63,6 +63,10 @@ REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × 
 AMBIGUOUS_CHI2 = float(chdtri(1, 0.05))   # rival proposals this close (χ²) are named as the data's ambiguity
 # A kept component is tested once for its structure (:func:`structure_test`): a true clock's fails this rarely
 STRUCTURE_ALPHA = 1e-3
+# a clock term's evidence must survive leaving out any this many consecutive events' rows (:func:`persistent_drop`):
+# rendered rooms leave one or two consecutive arrivals 3-8 σ off (a reflector near a few stops), which a step
+# at their edge explains; a step with fewer events than this on a side is those events' arrivals, as the data see it
+PERSIST_EVENTS = 2
 MAX_REJECTED = 8        # components rejected by their structure before the selection stops looking
 
 
@@ -253,6 +257,22 @@ def _sqrt_weights(r, loss):
     return 1.0 / np.sqrt(1.0 + (r / HUBER_K) ** 2)
 
 
+def spread(r, k=HUBER_K, iterations=3):
+    """The robust scale of whitened residuals r: Huber's "proposal 2" (the RMS of the residuals clipped at k
+    scales, over its value for a unit normal), from the MAD. A normal sample gets its σ; a heavy tail (a few
+    arrivals off by 3-8 σ: reflections in a rendered room) widens it where the MAD does not, and a gross
+    outlier counts as k scales only."""
+    r = np.asarray(r, float)
+    if not len(r):
+        return 1.0
+    s = max(1.4826 * float(np.median(np.abs(r))), 1e-300)
+    kn = k * np.exp(-0.5 * k * k) / np.sqrt(2 * np.pi)
+    norm = float(erf(k / np.sqrt(2.0))) - 2.0 * kn + k * k * float(erfc(k / np.sqrt(2.0)))   # E min(z², k²)
+    for _ in range(iterations):
+        s = float(np.sqrt(np.mean(np.minimum(r * r, (k * s) ** 2)) / norm))
+    return s
+
+
 def fit_array(D, comps, x0, g0, tau0):
     """Robust Gauss–Newton fit of one array's position (not the reference's), clock and the components'
     coefficients: Huber's loss first (convex in the clock: it converges from a pose fitted to data a large step
@@ -341,6 +361,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
             fits.append((float(np.sum(cauchy_rho(r))), cand, coef, r))
     if not fits:
         return None, 0.0, None
+    # (the MAD: this fit holds the sources where a large fault may have bent them, its rows are not clean yet)
     scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
     best = None
     for kind in ("step", "mshift", "quadratic", "hinge"):
@@ -442,26 +463,83 @@ def joint_scan(result, models, banned=frozenset()):
         num = Bp.T @ rp
         value = np.where(ok, -num / np.where(ok, den, 1.0), 0.0)
         fine = np.array([c.with_value(v).plausible(float(np.ptp(p.t))) for c, v in zip(cands, value)], bool)
-        drop = np.where(ok & fine, num * num / np.where(ok, den, 1.0), 0.0) / scale ** 2
+        raw = np.where(ok & fine, num * num / np.where(ok, den, 1.0), 0.0)
+        own = (_own_rows(p, lin.factors, i) > 0) & (sw > 0)
+        if not raw.any() or not own.any():
+            continue
+        # the array's own scale: its rows' robust spread once its best candidate is fitted (a stated σ below the
+        # scatter of this array's arrivals makes no step; neither does a large true step inflate it)
+        k0 = int(np.argmax(raw))
+        left = (rp - Bp[:, k0] * (num[k0] / den[k0] if ok[k0] else 0.0))[own] / sw[own]
+        scale_i = max(scale, spread(left))
+        events = _event_rows(p, lin.factors, own)
         n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
         best = None
         for kind in ("step", "quadratic", "hinge"):
             fam = np.flatnonzero([c.kind == kind for c in cands])
             if not fam.size:
                 continue
-            k = fam[np.argmax(drop[fam])]
-            margin = float(drop[k]) - penalty(kind, n, p.N + 1, len(cands))   # (over every candidate tested)
+            k = fam[np.argmax(raw[fam])]
+            # persistence: the evidence left with the rows of any PERSIST_EVENTS consecutive events of this array
+            # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
+            # (not the emitter's: a step of the emission times shows in one interval's TDOA-S only, every array's
+            # alike: :func:`structure_test`)
+            kept_drop = (min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events)) if raw[k] > 0 and i >= 0
+                         else float(raw[k]))
+            margin = kept_drop / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands))   # (every candidate tested)
             if best is None or margin > best[1]:
                 new = have + [cands[k].with_value(value[k])]
                 # candidates the rows cannot tell apart (an array without rows at the event between two
                 # intervals: screened out, or missed) go to the rivals' solves (:func:`_decide`)
                 tied = [have + [cands[j].with_value(value[j])] for j in fam
-                        if j != k and abs(drop[j] - drop[k]) <= 1e-6 * max(abs(drop[k]), 1.0)]
-                best = (new, margin, {"chi2_drop": float(drop[k]), "scale": scale, "kind": kind, "test": "joint",
-                                      "tied": tied})
+                        if j != k and abs(raw[j] - raw[k]) <= 1e-6 * max(abs(raw[k]), 1.0)]
+                best = (new, margin, {"chi2_drop": float(raw[k]) / scale_i ** 2,
+                                      "chi2_kept": kept_drop / scale_i ** 2, "scale": scale_i, "kind": kind,
+                                      "test": "joint", "tied": tied})
         if best is not None:
             out[i] = best
     return out
+
+
+def _event_rows(p, fs, rows):
+    """For each event with any of the stacked rows ``rows`` (bool mask over the factors ``fs``): the indices
+    of those rows that involve it (a TDOA-M at it, a TDOA-S from or to it)."""
+    a, b = [], []
+    for f in fs:
+        n = len(f.r)
+        if f.kind == "tdoa_s" and len(p.tdoa_s.a) == n:
+            a.append(p.tdoa_s.a), b.append(p.tdoa_s.b)
+        elif f.kind == "tdoa_m" and len(p.tdoa_m.ev) == n:
+            a.append(p.tdoa_m.ev), b.append(p.tdoa_m.ev)
+        else:
+            a.append(np.full(n, -1)), b.append(np.full(n, -1))
+    a, b = np.concatenate(a), np.concatenate(b)
+    return [np.flatnonzero(rows & ((a == e) | (b == e))) for e in np.unique(np.concatenate([a[rows], b[rows]]))
+            if e >= 0]
+
+
+def persistent_drop(Q, r, b, events):
+    """The smallest χ² drop (unscaled) of a column b (orthogonal to the orthonormal Q) against residuals r
+    (already projected off Q) with the rows of up to PERSIST_EVENTS consecutive events left out (``events``:
+    row indices per event, in time order): a clock term's evidence is in every row after it, not in one or
+    two bad arrivals. Each by the deletion formula: RSS without rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the
+    model without b (hat QQ') and with it (hat QQ' + bb'/b'b)."""
+    bb = float(b @ b)
+    if bb <= 0:
+        return 0.0
+    alpha = float(b @ r) / bb
+    full, e = alpha * alpha * bb, r - alpha * b
+    out = full
+    for w in range(1, PERSIST_EVENTS + 1):
+        for m in range(len(events) - w + 1):
+            R = np.unique(np.concatenate(events[m:m + w]))
+            QR, I = Q[R], np.eye(len(R))
+            HA = QR @ QR.T
+            HB = HA + np.outer(b[R], b[R]) / bb
+            dA = r[R] @ np.linalg.lstsq(I - HA, r[R], rcond=1e-10)[0]
+            dB = e[R] @ np.linalg.lstsq(I - HB, e[R], rcond=1e-10)[0]
+            out = min(out, full - dA + dB)
+    return max(float(out), 0.0)
 
 
 # ----------------------------------------------------------------------------------------------- structure
@@ -470,7 +548,7 @@ def _split_columns(p, fs, i, comp):
     see it. An array's clock term: its TDOA-S rows vs its TDOA-M rows, and a step's TDOA-M rows split in two
     at the middle of the events after it (the same size at every later event); the reference's: its TDOA-S
     rows and each other array's TDOA-M rows (every array sees it alike); the emitter's: each array's TDOA-S
-    rows."""
+    rows. A step of an array's also gets a level change between the two halves of its TDOA-M rows before it."""
     B = _columns(p, fs, i, [comp])[:, 0]
     arr, kind, ev = (np.concatenate(v) for v in zip(*[
         (getattr(p, f.kind).arr if f.kind in ("tdoa_s", "tdoa_m") else np.full(len(f.r), -2),
@@ -488,7 +566,15 @@ def _split_columns(p, fs, i, comp):
             late = np.isin(ev, after[len(after) // 2:])
             groups = [groups[0], groups[1] & ~late, groups[1] & late]
     cols = [B * g for g in groups if np.any(B[g] != 0)]
-    return np.column_stack(cols[:-1]) if len(cols) > 1 else np.zeros((len(B), 0))
+    cols = cols[:-1]
+    if comp.kind == "step" and i >= 0 and i != p.ref:
+        # and the level before it: the same at every earlier event (a few bad arrivals just before a jump back
+        # are no step): the late half of the earlier TDOA-M rows may not differ from the early half
+        level = _columns(p, fs, i, [Component("step", -np.inf, 1.0)])[:, 0] * (M & (arr == i))
+        before = np.unique(ev[(level != 0) & (B == 0)])
+        if len(before) >= 2:
+            cols.append(level * np.isin(ev, before[len(before) // 2:]) * (B == 0))
+    return np.column_stack(cols) if cols else np.zeros((len(B), 0))
 
 
 def structure_test(result, models, name, k, features=None):
@@ -832,7 +918,8 @@ def _refine_and_resolve(solve, features, result, models, options):
     cov_info = None
     for _ in range(2 * sum(len(c) for c in models.values()) + 2):
         moved, models, cov_info = refine(result, models)
-        weak = _weakest(result["problem"], models) or _unstructured(result, features, models)
+        weak = (_weakest(result["problem"], models) or _unstructured(result, features, models)
+                or _unpersistent(result, features, models))
         if weak is not None:
             name, k = weak
             models = {**models, name: [c for j, c in enumerate(models[name]) if j != k]}
@@ -863,6 +950,57 @@ def _unstructured(result, features, models):
         return None
     name, kind, time = bad[0]
     return name, next(k for k, c in enumerate(models[name]) if _key(c) == (kind, time))
+
+
+def persistence(result, models, features=None):
+    """{(array name, k): the χ² of component k that no PERSIST_EVENTS consecutive events of its clock carry
+    (:func:`persistent_drop`)}, in the joint problem linearised at a ``result`` solved with ``models`` (the
+    features corrected by them: ``features``, every row counted), each component against the others and every
+    parameter, rows Huber-weighted, in its clock's rows' robust scale (:func:`spread`); {} when the problem is
+    too large. The per-array scan proposes a component at a fit its fault bent (:func:`best_component`):
+    this judges it where the fit is not."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p, st = _every_row(result, features), result["state"]
+    lay = make_layout(p)
+    if lay.n > DENSE_MAX:
+        return {}
+    lin = linearise(p, st, lay, _kinds(p))
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    E, keys = component_columns(p, lin.factors, models)
+    index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
+    out = {}
+    for col, (name, k) in enumerate(keys):
+        if name == EMITTER:   # (its step is one interval's TDOA-S of every array: judged by its structure)
+            continue
+        sw, scale = _robust_weights(result, lin, p, own=name)
+        b = E[:, col] * sw
+        rest = np.hstack([J, np.delete(E, col, axis=1)]) * sw[:, None]
+        Q, _ = np.linalg.qr(rest)
+        r0 = (lin.r - models[name][k].value * E[:, col]) * sw
+        rp, bp = r0 - Q @ (Q.T @ r0), b - Q @ (Q.T @ b)
+        own = (_own_rows(p, lin.factors, index[name]) > 0) & (sw > 0)
+        e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
+        scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
+        out[(name, k)] = persistent_drop(Q, rp, bp, _event_rows(p, lin.factors, own)) / scale_i ** 2
+    return out
+
+
+def _unpersistent(result, features, models):
+    """(array name, index) of the component whose :func:`persistence` falls furthest short of its penalty, or
+    None."""
+    p = result["problem"]
+    sizes = family_sizes(p.t)
+    index = {str(n): i for i, n in enumerate(p.names)}
+    worst, where = 0.0, None
+    for (name, k), chi2 in persistence(result, models, correct_features(features, models)).items():
+        i = index.get(name, -1)
+        n = len(p.tdoa_s.val) if i < 0 else int(np.sum(p.tdoa_s.arr == i)) + int(np.sum(p.tdoa_m.arr == i))
+        m = chi2 - penalty(models[name][k].kind, n, p.N + 1, sizes)
+        if m < worst:
+            worst, where = m, (name, k)
+    return where
 
 
 def _distrusted(result):
