@@ -472,7 +472,7 @@ def joint_scan(result, models, banned=frozenset()):
         k0 = int(np.argmax(raw))
         left = (rp - Bp[:, k0] * (num[k0] / den[k0] if ok[k0] else 0.0))[own] / sw[own]
         scale_i = max(scale, spread(left))
-        events = _event_rows(p, lin.factors, own)
+        events = _event_rows(p, lin.factors, own) if i >= 0 else _array_rows(p, lin.factors, own)
         n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
         best = None
         for kind in ("step", "quadratic", "hinge"):
@@ -482,10 +482,10 @@ def joint_scan(result, models, banned=frozenset()):
             k = fam[np.argmax(raw[fam])]
             # persistence: the evidence left with the rows of any PERSIST_EVENTS consecutive events of this array
             # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
-            # (not the emitter's: a step of the emission times shows in one interval's TDOA-S only, every array's
-            # alike: :func:`structure_test`)
-            kept_drop = (min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events)) if raw[k] > 0 and i >= 0
-                         else float(raw[k]))
+            # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one array's rows may
+            # carry it)
+            kept_drop = min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events, 1 if i < 0 else PERSIST_EVENTS)
+                            ) if raw[k] > 0 else 0.0
             margin = kept_drop / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands))   # (every candidate tested)
             if best is None or margin > best[1]:
                 new = have + [cands[k].with_value(value[k])]
@@ -518,10 +518,16 @@ def _event_rows(p, fs, rows):
             if e >= 0]
 
 
-def persistent_drop(Q, r, b, events):
+def _array_rows(p, fs, rows):
+    """For each array with any of the stacked rows ``rows``: the indices of those rows that are its."""
+    arr = _row_arrays(p, fs)
+    return [np.flatnonzero(rows & (arr == a)) for a in np.unique(arr[rows]) if a >= 0]
+
+
+def persistent_drop(Q, r, b, events, window=None):
     """The smallest χ² drop (unscaled) of a column b (orthogonal to the orthonormal Q) against residuals r
-    (already projected off Q) with the rows of up to PERSIST_EVENTS consecutive events left out (``events``:
-    row indices per event, in time order): a clock term's evidence is in every row after it, not in one or
+    (already projected off Q) with the rows of up to ``window`` (default PERSIST_EVENTS) consecutive events
+    left out (``events``: row indices per event, in time order; or per array, window 1: the emitter's): a clock term's evidence is in every row after it, not in one or
     two bad arrivals. Each by the deletion formula: RSS without rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the
     model without b (hat QQ') and with it (hat QQ' + bb'/b'b)."""
     bb = float(b @ b)
@@ -530,7 +536,7 @@ def persistent_drop(Q, r, b, events):
     alpha = float(b @ r) / bb
     full, e = alpha * alpha * bb, r - alpha * b
     out = full
-    for w in range(1, PERSIST_EVENTS + 1):
+    for w in range(1, (PERSIST_EVENTS if window is None else window) + 1):
         for m in range(len(events) - w + 1):
             R = np.unique(np.concatenate(events[m:m + w]))
             QR, I = Q[R], np.eye(len(R))
@@ -823,7 +829,7 @@ def _auto(solve, features, first, options, rounds):
         if not models:
             result = first
             break
-        result, models, bad = _refine_and_resolve(solve, features, result, models, options)
+        result, models, bad = _refine_and_resolve(solve, features, result, models, options, first)
         if not bad:
             break
         excluded |= set(bad)
@@ -907,14 +913,15 @@ def _worse(result, first):
     return rank[0] > rank[1] or (conv[1] and not conv[0]) or len(_unreliable(result)) > len(_unreliable(first))
 
 
-def _refine_and_resolve(solve, features, result, models, options):
+def _refine_and_resolve(solve, features, result, models, options, first=None):
     """The joint step for the components (:func:`refine`), then backward elimination: the component whose
     joint χ² (value / σ)² falls furthest short of its penalty is removed and the session solved again (a
     component taken while a larger fault still bent the fit may not be needed once that fault is modelled);
     solved again too when the joint step moved a component by more than REFIT_SIGMA of its σ. Returns
     (result, models, the arrays whose components were all removed at the end: still named). A component
     that fails its structure test (:func:`structure_test`) at the solution with all of them is removed too
-    (each was tested when taken, with the components then held; those may have gone since)."""
+    (each was tested when taken, with the components then held; those may have gone since). ``first``: the
+    linear clock's result (:func:`_doa_worse`)."""
     cov_info = None
     for _ in range(2 * sum(len(c) for c in models.values()) + 2):
         moved, models, cov_info = refine(result, models)
@@ -935,12 +942,47 @@ def _refine_and_resolve(solve, features, result, models, options):
     flagged = ((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or []
     bad = [n for n in set(_unreliable(result)) | set(flagged) if n in models]
     bad += [n for n, comps in models.items() if n not in bad and _has_pulse(comps)]
+    # a clock term moves no DOA: an array whose DOAs fit worse with its terms (its pose moved to where the terms
+    # and the TDOAs agree: reflections, not a clock) keeps the linear clock
+    bad += [n for n in _doa_worse(first, result, features, models) if n not in bad]
     if bad:
         models = {n: c for n, c in models.items() if n not in bad}
         result = solve(correct_features(features, models), **options)
         cov_info = refine(result, models)[2] if models else None
     _apply_std(result, cov_info)
     return result, models, bad
+
+
+def _doa_cost(result, features, sigma=None):
+    """(per array: 2 Σ Huber of its DOA and cone residuals, every row of ``features``, whitened by ``sigma``
+    (default the result's own row σ), those row σ)."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p = _every_row(result, features)
+    kinds = [k for k in _kinds(p) if k in ("doa", "cone")]
+    if not kinds:
+        return np.zeros(p.N), {}
+    lin = linearise(p, result["state"], make_layout(p), kinds)
+    arr = _row_arrays(p, lin.factors)
+    phys = np.concatenate([f.r * np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
+    own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
+    sig = own if sigma is None or len(sigma) != len(own) else sigma
+    cost = 2.0 * huber_rho(phys / sig)
+    return np.array([float(np.sum(cost[arr == i])) for i in range(p.N)]), sig
+
+
+def _doa_worse(first, result, features, models):
+    """The arrays with clock terms in ``models`` whose DOAs fit ``result`` worse than the linear clock's
+    ``first`` by more than the χ² of a pose (6 dof) at STRUCTURE_ALPHA: a clock term changes no DOA, it can
+    only let the pose fitted to the TDOAs agree better with them."""
+    if first is None or not any(n != EMITTER for n in models):
+        return []
+    c0, sig = _doa_cost(first, features)
+    c1, _ = _doa_cost(result, correct_features(features, models), sig)
+    names = [str(n) for n in result["problem"].names]
+    limit = float(chdtri(6, STRUCTURE_ALPHA))
+    return [n for n in models if n in names and c1[names.index(n)] - c0[names.index(n)] > limit]
 
 
 def _unstructured(result, features, models):
@@ -972,8 +1014,6 @@ def persistence(result, models, features=None):
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
     out = {}
     for col, (name, k) in enumerate(keys):
-        if name == EMITTER:   # (its step is one interval's TDOA-S of every array: judged by its structure)
-            continue
         sw, scale = _robust_weights(result, lin, p, own=name)
         b = E[:, col] * sw
         rest = np.hstack([J, np.delete(E, col, axis=1)]) * sw[:, None]
@@ -983,7 +1023,8 @@ def persistence(result, models, features=None):
         own = (_own_rows(p, lin.factors, index[name]) > 0) & (sw > 0)
         e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
-        out[(name, k)] = persistent_drop(Q, rp, bp, _event_rows(p, lin.factors, own)) / scale_i ** 2
+        groups = _event_rows(p, lin.factors, own) if name != EMITTER else _array_rows(p, lin.factors, own)
+        out[(name, k)] = persistent_drop(Q, rp, bp, groups, 1 if name == EMITTER else None) / scale_i ** 2
     return out
 
 
