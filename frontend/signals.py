@@ -26,7 +26,8 @@ def audio_files(array):
 @dataclass(frozen=True)
 class PerMicInfo:
     """The header of an array recorded as one mono file per mic (:func:`read_header`): the files' common
-    rate, length and sample format; ``channels`` = the number of mics."""
+    rate, length and sample format; ``channels`` = the number of mics. (Also a header whose rate the session
+    declares.)"""
     samplerate: int
     channels: int
     frames: int
@@ -56,8 +57,20 @@ def read_header(array):
     Returns the ``soundfile.info`` of the file (a :class:`PerMicInfo` for one file per mic). Raises
     :class:`InputError` naming the file for an unreadable or empty file, a channel count that is not the
     number of mics (without a channel map), a mapped channel the file lacks, or per-mic files that differ in
-    rate or length.
+    rate or length. An array's ``sample_rate`` (session.toml: the true nominal rate of a board whose header
+    is wrong) replaces the header's rate.
     """
+    info = _file_header(array)
+    rate = array.get("sample_rate")
+    if rate is None:
+        return info
+    # the board's true nominal rate declared in session.toml (its WAV header is wrong): every stage takes the
+    # samples at this rate (local time n / rate)
+    return PerMicInfo(int(rate), int(info.channels), int(info.frames), info.subtype, info.format)
+
+
+def _file_header(array):
+    """:func:`read_header` as the files state it."""
     files, n_mics = audio_files(array), len(array["mics"])
     if len(files) > 1:
         return _per_mic_header(array, files)

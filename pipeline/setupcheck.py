@@ -252,7 +252,9 @@ def clock_findings(session, results):
         guess = f"{near} Hz fits" if abs(near / true - 1) < CLOCK_FAIL else f"the data say ≈ {true:.0f} Hz"
         out.append(Finding("failed", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): its clock runs "
                            f"{100 * (s - 1):+.1f} % against the emission times, far beyond a clock drift: the "
-                           f"header's sample rate {fs} Hz is wrong ({guess}); rewrite the header", a["name"]))
+                           f"header's sample rate {fs} Hz is wrong ({guess}); declare the board's true rate "
+                           f"(sample_rate = N in its [[arrays]] table of session.toml) or rewrite the header",
+                           a["name"]))
     return out
 
 

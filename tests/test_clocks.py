@@ -348,3 +348,54 @@ def test_calib_run_on_a_rendered_session_with_a_dropped_block(tmp_path):
         doc = calibration_document(result, feats)
         assert next(a for a in doc["arrays"] if a["name"] == "A3")["clock"]["steps"][0]["after_event"] == s["after_event"]
     assert errs["drop"] < 1.5 * errs["clean"] + 0.002
+
+
+# ----------------------------------------------------------------------------------------------- declared rates
+def _declare_rate(session_dir, array, value):
+    """session.toml with ``sample_rate = value`` (TOML text) in ``array``'s table."""
+    p = session_dir / "session.toml"
+    text = p.read_text()
+    head = f'name = "{array}"\n'
+    assert head in text
+    p.write_text(text.replace(head, head + f"sample_rate = {value}\n"))
+
+
+def test_a_declared_sample_rate_replaces_the_header_s_and_bad_values_are_named(tmp_path):
+    """session.toml's per-array ``sample_rate`` (a board whose WAV header states a wrong rate) is the rate every
+    stage reads its samples at; a bad value is one line naming the file and the key, exit 2."""
+    import soundfile as sf
+    from typer.testing import CliRunner
+
+    from calib.cli.main import app
+    from calib.errors import InputError
+    from calib.frontend.signals import ArrayAudio, read_header
+    from calib.pipeline.formats.session import read_session, session_toml
+
+    from .sessions import small_lab3_session
+
+    d = small_lab3_session(tmp_path / "s", seed=0, n_events=3, rt60=0.0)
+    header = sf.info(str(d / "A2.wav")).samplerate
+    declared = header - 160   # 1 % slow: what the board really runs at
+    _declare_rate(d, "A2", declared)
+    s = read_session(d)
+    a2 = next(a for a in s["arrays"] if a["name"] == "A2")
+    assert a2["sample_rate"] == declared and all(a["sample_rate"] is None for a in s["arrays"] if a["name"] != "A2")
+    assert read_header(a2).samplerate == declared
+    assert read_header(s["arrays"][0]).samplerate == header
+    with ArrayAudio(a2) as audio:
+        assert audio.fs == declared and audio.frames == sf.info(str(d / "A2.wav")).frames
+    # the writer keeps it (a session written back reads the same)
+    text = session_toml(343.0, "A1", {"f0": 500.0, "f1": 4000.0, "duration": 0.2},
+                        [{"name": a["name"], "wav": a["wav"].name, "mics": a["mics"], "sample_rate": a["sample_rate"]}
+                         for a in s["arrays"]])
+    assert text.count("sample_rate") == 1 and f"sample_rate = {declared}\n" in text
+    clean = (d / "session.toml").read_text().replace(f"sample_rate = {declared}\n", "")
+    for bad, why in (('"fast"', "must be a number"), ("0", ""), ("44100.5", ""), ("true", "must be a number"),
+                     ("1e9", "")):
+        (d / "session.toml").write_text(clean)
+        _declare_rate(d, "A2", bad)
+        with pytest.raises(InputError, match=f"session.toml: array 'A2': 'sample_rate'.*{why}"):
+            read_session(d)
+        r = CliRunner().invoke(app, ["features", str(d), "-o", str(tmp_path / "f"), "-q"])
+        assert r.exit_code == 2 and "'sample_rate'" in r.output and r.output.startswith("error: "), r.output
+        assert not (tmp_path / "f").exists()

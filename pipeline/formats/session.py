@@ -48,7 +48,7 @@ ROBOT_KEYS = ("speaker_offset",)
 MAX_LEVER_ARM = 5.0             # m: the speaker sits on the robot
 TEMPERATURE_C = (-50.0, 60.0)   # °C: the air of a room (optional key, checked against speed_of_sound)
 CHIRP_KEYS = ("f0", "f1", "duration", "reference", "kind", "fade")
-ARRAY_KEYS = ("name", "wav", "files", "channels", "mics", "doa_hemisphere")
+ARRAY_KEYS = ("name", "wav", "files", "channels", "mics", "doa_hemisphere", "sample_rate")
 
 
 def read_session(directory, check_audio=True):
@@ -215,8 +215,11 @@ def _read_arrays(items, d, p):
         if hemi is not None:
             hemi = np.asarray(V.vector3(hemi, f"{p}: array {name!r}: 'doa_hemisphere'", nonzero=True))
             hemi = hemi / np.linalg.norm(hemi)
+        # the board's true nominal rate where its WAV header states a wrong one (docs/formats.md)
+        rate = V.number(a.get("sample_rate"), f"{p}: array {name!r}: 'sample_rate'", lo=V.SAMPLE_RATE[0],
+                        hi=V.SAMPLE_RATE[1], integer=True, allow_none=True)
         arrays.append({"name": name, "wav": files[0], "files": files, "channels": channels, "mics": mics,
-                       "doa_hemisphere": hemi})
+                       "doa_hemisphere": hemi, "sample_rate": rate})
     names = [a["name"] for a in arrays]
     if len(set(names)) != len(names):
         raise InputError(f"{p}: duplicate array name")
@@ -334,6 +337,8 @@ def session_toml(speed_of_sound, reference_array, chirp, arrays, noise=None, rob
         lines.append(f"mics = {_toml_value(np.asarray(a['mics'], float).tolist())}")
         if a.get("doa_hemisphere") is not None:
             lines.append(f"doa_hemisphere = {_toml_value(np.asarray(a['doa_hemisphere'], float).tolist())}")
+        if a.get("sample_rate") is not None:
+            lines.append(f"sample_rate = {int(a['sample_rate'])}")
     return "\n".join(lines) + "\n"
 
 
