@@ -31,6 +31,7 @@ drift (1 + δ = rate ratio × (1 + crystal drift)).
 from __future__ import annotations
 
 from dataclasses import dataclass
+import itertools
 
 import numpy as np
 import scipy.linalg
@@ -482,9 +483,9 @@ def joint_scan(result, models, banned=frozenset()):
             k = fam[np.argmax(raw[fam])]
             # persistence: the evidence left with the rows of any PERSIST_EVENTS consecutive events of this array
             # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
-            # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one array's rows may
-            # carry it)
-            kept_drop = min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events, 1 if i < 0 else PERSIST_EVENTS)
+            # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows
+            # may carry it)
+            kept_drop = min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events, i < 0)
                             ) if raw[k] > 0 else 0.0
             margin = kept_drop / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands))   # (every candidate tested)
             if best is None or margin > best[1]:
@@ -524,21 +525,24 @@ def _array_rows(p, fs, rows):
     return [np.flatnonzero(rows & (arr == a)) for a in np.unique(arr[rows]) if a >= 0]
 
 
-def persistent_drop(Q, r, b, events, window=None):
+def persistent_drop(Q, r, b, groups, emitter=False):
     """The smallest χ² drop (unscaled) of a column b (orthogonal to the orthonormal Q) against residuals r
-    (already projected off Q) with the rows of up to ``window`` (default PERSIST_EVENTS) consecutive events
-    left out (``events``: row indices per event, in time order; or per array, window 1: the emitter's): a clock term's evidence is in every row after it, not in one or
-    two bad arrivals. Each by the deletion formula: RSS without rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the
-    model without b (hat QQ') and with it (hat QQ' + bb'/b'b)."""
+    (already projected off Q) with the rows of up to PERSIST_EVENTS groups left out: ``groups`` are row
+    indices per event in time order (any run of consecutive events: a clock term's evidence is in every row
+    after it, not in one or two bad arrivals), or (``emitter``) per array (any of them: the emitter's step is
+    one interval's TDOA-S at every array alike, not at one or two; at least two are left). Each by the deletion formula: RSS without
+    rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the model without b (hat QQ') and with it (hat QQ' + bb'/b'b)."""
     bb = float(b @ b)
     if bb <= 0:
         return 0.0
     alpha = float(b @ r) / bb
     full, e = alpha * alpha * bb, r - alpha * b
     out = full
-    for w in range(1, (PERSIST_EVENTS if window is None else window) + 1):
-        for m in range(len(events) - w + 1):
-            R = np.unique(np.concatenate(events[m:m + w]))
+    # (the emitter's: at least two arrays left to see it alike)
+    for w in range(1, (min(PERSIST_EVENTS, len(groups) - 2) if emitter else PERSIST_EVENTS) + 1):
+        runs = itertools.combinations(groups, w) if emitter else (groups[m:m + w] for m in range(len(groups) - w + 1))
+        for run in runs:
+            R = np.unique(np.concatenate(run))
             QR, I = Q[R], np.eye(len(R))
             HA = QR @ QR.T
             HB = HA + np.outer(b[R], b[R]) / bb
@@ -1024,7 +1028,7 @@ def persistence(result, models, features=None):
         e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
         groups = _event_rows(p, lin.factors, own) if name != EMITTER else _array_rows(p, lin.factors, own)
-        out[(name, k)] = persistent_drop(Q, rp, bp, groups, 1 if name == EMITTER else None) / scale_i ** 2
+        out[(name, k)] = persistent_drop(Q, rp, bp, groups, name == EMITTER) / scale_i ** 2
     return out
 
 
