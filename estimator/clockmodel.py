@@ -459,44 +459,7 @@ def joint_scan(result, models, banned=frozenset()):
         cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
         B = _columns(p, lin.factors, i, cands) * sw[:, None]
         Bp = B - Q @ (Q.T @ B)
-        den = np.einsum("ij,ij->j", Bp, Bp)
-        ok = den > 1e-12 * np.maximum(np.einsum("ij,ij->j", B, B), 1e-300)
-        num = Bp.T @ rp
-        value = np.where(ok, -num / np.where(ok, den, 1.0), 0.0)
-        fine = np.array([c.with_value(v).plausible(float(np.ptp(p.t))) for c, v in zip(cands, value)], bool)
-        raw = np.where(ok & fine, num * num / np.where(ok, den, 1.0), 0.0)
-        own = (_own_rows(p, lin.factors, i) > 0) & (sw > 0)
-        if not raw.any() or not own.any():
-            continue
-        # the array's own scale: its rows' robust spread once its best candidate is fitted (a stated σ below the
-        # scatter of this array's arrivals makes no step; neither does a large true step inflate it)
-        k0 = int(np.argmax(raw))
-        left = (rp - Bp[:, k0] * (num[k0] / den[k0] if ok[k0] else 0.0))[own] / sw[own]
-        scale_i = max(scale, spread(left))
-        events = _event_rows(p, lin.factors, own) if i >= 0 else _array_rows(p, lin.factors, own)
-        n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
-        best = None
-        for kind in ("step", "quadratic", "hinge"):
-            fam = np.flatnonzero([c.kind == kind for c in cands])
-            if not fam.size:
-                continue
-            k = fam[np.argmax(raw[fam])]
-            # persistence: the evidence left with the rows of any PERSIST_EVENTS consecutive events of this array
-            # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
-            # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows
-            # may carry it)
-            kept_drop = min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events, i < 0)
-                            ) if raw[k] > 0 else 0.0
-            margin = kept_drop / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands))   # (every candidate tested)
-            if best is None or margin > best[1]:
-                new = have + [cands[k].with_value(value[k])]
-                # candidates the rows cannot tell apart (an array without rows at the event between two
-                # intervals: screened out, or missed) go to the rivals' solves (:func:`_decide`)
-                tied = [have + [cands[j].with_value(value[j])] for j in fam
-                        if j != k and abs(raw[j] - raw[k]) <= 1e-6 * max(abs(raw[k]), 1.0)]
-                best = (new, margin, {"chi2_drop": float(raw[k]) / scale_i ** 2,
-                                      "chi2_kept": kept_drop / scale_i ** 2, "scale": scale_i, "kind": kind,
-                                      "test": "joint", "tied": tied})
+        best = _scan_best(p, lin.factors, i, cands, have, (Q, rp, B, Bp), sw, scale)
         if best is not None:
             out[i] = best
     return out
@@ -550,6 +513,53 @@ def persistent_drop(Q, r, b, groups, emitter=False):
             dB = e[R] @ np.linalg.lstsq(I - HB, e[R], rcond=1e-10)[0]
             out = min(out, full - dA + dB)
     return max(float(out), 0.0)
+
+
+def _scan_best(p, fs, i, cands, have, basis, sw, scale):
+    """The best candidate of each kind of clock i in :func:`joint_scan` (``basis``: Q, the projected residuals
+    rp, the weighted columns B and projected Bp; ``sw`` the rows' √weights, ``scale`` the TDOA rows' robust
+    scale), judged by its persistent χ² (:func:`persistent_drop`) in the clock's own robust scale: the
+    best of them as (components, margin, info), or None."""
+    Q, rp, B, Bp = basis
+    den = np.einsum("ij,ij->j", Bp, Bp)
+    ok = den > 1e-12 * np.maximum(np.einsum("ij,ij->j", B, B), 1e-300)
+    num = Bp.T @ rp
+    value = np.where(ok, -num / np.where(ok, den, 1.0), 0.0)
+    fine = np.array([c.with_value(v).plausible(float(np.ptp(p.t))) for c, v in zip(cands, value)], bool)
+    raw = np.where(ok & fine, num * num / np.where(ok, den, 1.0), 0.0)
+    own = (_own_rows(p, fs, i) > 0) & (sw > 0)
+    if not raw.any() or not own.any():
+        return None
+    # the array's own scale: its rows' robust spread once its best candidate is fitted (a stated σ below the
+    # scatter of this array's arrivals makes no step; neither does a large true step inflate it)
+    k0 = int(np.argmax(raw))
+    left = (rp - Bp[:, k0] * (num[k0] / den[k0] if ok[k0] else 0.0))[own] / sw[own]
+    scale_i = max(scale, spread(left))
+    events = _event_rows(p, fs, own) if i >= 0 else _array_rows(p, fs, own)
+    n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
+    best = None
+    for kind in ("step", "quadratic", "hinge"):
+        fam = np.flatnonzero([c.kind == kind for c in cands])
+        if not fam.size:
+            continue
+        k = fam[np.argmax(raw[fam])]
+        # persistence: the evidence left with the rows of any PERSIST_EVENTS consecutive events of this array
+        # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
+        # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows
+        # may carry it)
+        kept_drop = min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events, i < 0)
+                        ) if raw[k] > 0 else 0.0
+        margin = kept_drop / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands))   # (every candidate tested)
+        if best is None or margin > best[1]:
+            new = have + [cands[k].with_value(value[k])]
+            # candidates the rows cannot tell apart (an array without rows at the event between two
+            # intervals: screened out, or missed) go to the rivals' solves (:func:`_decide`)
+            tied = [have + [cands[j].with_value(value[j])] for j in fam
+                    if j != k and abs(raw[j] - raw[k]) <= 1e-6 * max(abs(raw[k]), 1.0)]
+            best = (new, margin, {"chi2_drop": float(raw[k]) / scale_i ** 2,
+                                  "chi2_kept": kept_drop / scale_i ** 2, "scale": scale_i, "kind": kind,
+                                  "test": "joint", "tied": tied})
+    return best
 
 
 # ----------------------------------------------------------------------------------------------- structure
@@ -796,12 +806,11 @@ def _suspects(result):
     return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
 
 
-def calibrate_clocks(solve, features, *, clock_model="linear", **options):
+def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
-    clock_model : "linear" (default, for now: rendered realistic sessions get µs-sized false steps where the
-        frontend's stated σ is far below its structured errors, docs/results.md) or "auto": steps / drift terms
-        per array (``calib.options.OPTIONS``: ``--clock-model``).
+    clock_model : "auto" (default: the linear clock unless the evidence asks for steps / drift terms per
+        array) or "linear" (never any) (``calib.options.OPTIONS``: ``--clock-model``).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
@@ -817,7 +826,8 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     first = result
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
         try:
-            result, models = _auto(solve, features, first, options, rounds)
+            first, start = _seeded(solve, features, first, options, rounds)
+            result, models = _auto(solve, features, first, options, rounds, start)
         except ObservabilityError as err:   # a trial model left the data unable to fix something: linear
             result, models = first, {}
             rounds.append([{"rejected": f"a clock model left the problem unobservable ({err}): the linear clock"}])
@@ -825,11 +835,34 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     return result
 
 
-def _auto(solve, features, first, options, rounds):
-    """The selection of :func:`calibrate_clocks` from the linear clock's ``first`` result: (result, models)."""
+def _seeded(solve, features, first, options, rounds):
+    """(first, start models): the linear clock's result, or where some array's arrivals jump further than any
+    source move allows (:func:`impossible_jumps`: a step so large that the linear solve may find no basin,
+    e.g. the reference's) and a step there solves better, that solve and those steps (sized by the jump; the
+    selection's joint steps size them)."""
+    jumps = impossible_jumps(features)
+    if not jumps:
+        return first, {}
+    events, u = _event_of(features)
+    u_of = dict(zip(events.tolist(), u.tolist()))
+    start = {}
+    for j in jumps:   # (the largest of each array's)
+        start.setdefault(j["array"], [Component("step", 0.5 * (u_of[j["after_event"]] + u_of[j["before_event"]]),
+                                                j["size"])])
+    trial = solve(correct_features(features, start), **options)
+    if _rank(trial) >= _rank(first):   # (a better verdict: the linear solve found no basin, e.g. `failed`)
+        return first, {}
+    rounds.append([{"seeded": f"{n}: a step of {c[0].value * 1e3:+.3f} ms at {c[0].time:.3f} s (its arrivals jump "
+                              "further than the speaker's move allows)"} for n, c in start.items()])
+    return trial, start
+
+
+def _auto(solve, features, first, options, rounds, start=None):
+    """The selection of :func:`calibrate_clocks` from the linear clock's ``first`` result (solved with the
+    ``start`` models, :func:`_seeded`): (result, models)."""
     excluded = set()
     for _ in range(2):   # (a second selection without the arrays the first one could not explain)
-        models, result = _select(solve, features, first, options, rounds, excluded)
+        models, result = _select(solve, features, first, options, rounds, excluded, start)
         if not models:
             result = first
             break
@@ -845,12 +878,13 @@ def _auto(solve, features, first, options, rounds):
     return result, models
 
 
-def _select(solve, features, result, options, rounds, excluded=frozenset()):
+def _select(solve, features, result, options, rounds, excluded=frozenset(), start=None):
     """Detection rounds from the linear clock's ``result``: each adds the best proposal (:func:`detect`,
     rivals decided by :func:`_decide`) and solves again; a new component of the joint scan that fails its
     structure test (:func:`structure_test`) is taken out again and not proposed again. The arrays in ``excluded`` get no
-    components (nor their steps seen as the reference's). Returns (models, result)."""
-    models, banned, aside, kept, rejected = {}, set(), set(), 0, 0
+    components (nor their steps seen as the reference's). ``start``: the models ``result`` was solved with.
+    Returns (models, result)."""
+    models, banned, aside, kept, rejected = dict(start or {}), set(), set(), 0, 0
     while kept < MAX_ROUNDS and rejected < MAX_REJECTED:
         proposals, records = detect(result, models, frozenset(banned | aside), frozenset(excluded))
         rounds.append(records)
@@ -905,6 +939,12 @@ def _resize(solve, features, trial, res, options):
         trial = {n: [c.with_value(c.value) for c in comps] for n, comps in new.items()}
         res = solve(correct_features(features, trial), **options)
     return trial, res
+
+
+def _rank(result):
+    from .verdict import STATUS_RANK
+
+    return STATUS_RANK.get(((result.get("report") or {}).get("verdict") or {}).get("status"), 0)
 
 
 def _worse(result, first):
@@ -1242,6 +1282,55 @@ def _apply_std(result, info):
             sources[col] = np.where(np.isfinite(old), std["s"][:, k], old)
 
 
+# ----------------------------------------------------------------------------------------------- bound
+JUMP_SIGMAS = 5.0   # a TDOA-S this many σ (its own and the odometry's) beyond what the speaker's move allows
+
+
+def impossible_jumps(features):
+    """Geometry-free: each array's TDOA-S that no source move explains. Between consecutive events a → b the
+    array's arrival interval is (1 + δ)(t_b − t_a) + (d_b − d_a)/c with |d_b − d_a| ≤ |s_b − s_a| (the
+    triangle inequality), the speaker's move from odometry. An interval further off than that (δ from the
+    array's median ratio, allowances of JUMP_SIGMAS σ for the TDOA, odometry and that ratio) holds a jump of
+    the array's clock (dropped or inserted samples) or a mis-detected chirp. It needs no fit: it names a
+    reference's step that leaves the linear solve in no basin at all.
+
+    Returns [{array, after_event, before_event, size (s: the excess interval), allowed (s)}], largest first."""
+    ev = features["events"].sort_values("event")
+    meta = features.get("meta") or {}
+    c = float(meta.get("speed_of_sound", 343.0))
+    sig_t = float(meta.get("sigma_tdoa") or 1e-4)
+    sig_o = float(meta.get("sigma_odo") or 0.01)
+    t = dict(zip(ev["event"].to_numpy(int), ev["t_emit"].to_numpy(float)))
+    cols = [k for k in ("odom_x", "odom_y", "odom_z") if k in ev]
+    pos = dict(zip(ev["event"].to_numpy(int), ev[cols].to_numpy(float))) if len(cols) == 3 else None
+    ts = features["tdoa_s"]
+    out = []
+    if pos is None or not len(ts):
+        return out
+    for name, rows in ts.groupby("array", sort=False):
+        a, b = rows["from_event"].to_numpy(int), rows["to_event"].to_numpy(int)
+        dt = np.array([t[j] - t[i] for i, j in zip(a, b)])
+        move = np.array([np.linalg.norm(pos[j] - pos[i]) for i, j in zip(a, b)])
+        use = dt > 0
+        if use.sum() < MIN_EVENTS:
+            continue
+        ratio = rows["tdoa"].to_numpy(float)[use] / dt[use]
+        g = float(np.median(ratio))
+        g_sd = 1.4826 * float(np.median(np.abs(ratio - g))) / np.sqrt(use.sum())
+        e = rows["tdoa"].to_numpy(float) - g * dt
+        allowed = move / c + JUMP_SIGMAS * (np.sqrt(2) * (sig_t + sig_o / c) + g_sd * np.abs(dt))
+        for k in np.flatnonzero(use & (np.abs(e) > allowed)):
+            out.append({"array": str(name), "after_event": int(a[k]), "before_event": int(b[k]),
+                        "size": float(e[k]), "allowed": float(allowed[k])})
+    return sorted(out, key=lambda j: -abs(j["size"]))
+
+
+def _jump_text(j):
+    return (f"{j['array']}: its arrivals jump {j['size'] * 1e3:+.3f} ms between events {j['after_event']} and "
+            f"{j['before_event']}, more than the speaker's move there allows (at most {j['allowed'] * 1e3:.3f} ms): "
+            "its clock jumped (samples dropped or inserted) or a chirp was mis-detected there")
+
+
 # ----------------------------------------------------------------------------------------------- report
 def _event_of(features):
     ev = features["events"]
@@ -1379,6 +1468,9 @@ def _ambiguities(rounds, models, events, u):
 def _attach_report(result, features, models, rounds):
     """Put ``clock`` into the report (or the solution dict); a wrong nominal rate is a verdict reason."""
     block = clock_report(result, features, models, rounds)
+    # jumps no source move explains, left after the modelled terms (:func:`impossible_jumps`)
+    block["jumps"] = impossible_jumps(correct_features(features, models))
+    block["findings"] += [_jump_text(j) for j in block["jumps"]]
     result["clock_models"] = models
     if "report" not in result:
         result["clock"] = block
@@ -1386,8 +1478,10 @@ def _attach_report(result, features, models, rounds):
     rep = result["report"]
     rep["clock"] = block
     rates = [f for f in block["findings"] if "wrong nominal sample rate" in f or f.startswith("time base")]
+    v = rep["verdict"]
     if rates:
-        v = rep["verdict"]
         v["reasons"] = list(v.get("reasons") or []) + rates
         if v.get("status") == "ok":
             v["status"] = "suspect"
+    if block["jumps"] and v.get("status") != "ok":   # what a failed or suspect result may come from
+        v["reasons"] = list(v.get("reasons") or []) + [_jump_text(j) for j in block["jumps"]]

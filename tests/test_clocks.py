@@ -399,3 +399,22 @@ def test_a_declared_sample_rate_replaces_the_header_s_and_bad_values_are_named(t
         r = CliRunner().invoke(app, ["features", str(d), "-o", str(tmp_path / "f"), "-q"])
         assert r.exit_code == 2 and "'sample_rate'" in r.output and r.output.startswith("error: "), r.output
         assert not (tmp_path / "f").exists()
+
+
+@pytest.mark.parametrize("seed,size", [(4, 0.040), (5, -0.040)])
+def test_a_large_step_of_the_reference_is_named_and_modelled(seed, size):
+    """A 40 ms step of the reference's clock shifts every TDOA-M: the linear solve may find no basin at all.
+    Its TDOA-S jumps further than any source move allows (the triangle inequality, no fit needed): named
+    there, and the step modelled from it in its interval, the session calibrated as without it."""
+    from calib.estimator.clockmodel import impossible_jumps
+
+    f, truth = simulate_features(3, SIGMA, seed=seed, clocks={"A1": {"steps": [{"size": size}]}})
+    interval = _interval(truth["clocks"]["A1"], f)
+    (j,) = impossible_jumps(f)
+    assert (j["array"], j["after_event"], j["before_event"]) == ("A1", *interval)
+    assert abs(j["size"] - size) <= j["allowed"]
+    cal = calibrate(f, clock_model="auto")
+    (s,) = _steps(cal, "A1")
+    assert (s["after_event"], s["before_event"]) == interval and abs(s["size"] - size) < 3 * s["std"]
+    clean = evaluate(calibrate(simulate_features(3, SIGMA, seed=seed)[0]), simulate_features(3, SIGMA, seed=seed)[1])
+    assert evaluate(cal, truth)["position_rmse_m"] <= 1.5 * clean["position_rmse_m"] + 0.002
