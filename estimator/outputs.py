@@ -133,8 +133,11 @@ def blank_diverged(out):
     d = np.linalg.norm(xa[:, None, :] - xs[None, :, :], axis=2)          # (N, K); NaN where either is unknown
     near = np.where(np.isnan(d), False, d <= AUDIBLE_RANGE)
     far_a = np.isfinite(xa).all(axis=1) & ~near.any(axis=1) & np.isfinite(xs).all(axis=1).any()
-    far_a[out["problem"].ref] = False    # the gauge: placed by definition, not solved
     far_s = np.isfinite(xs).all(axis=1) & ~near.any(axis=0)
+    ref = out["problem"].ref             # the gauge: placed by definition, not solved; it heard the sources, so
+    if far_a[ref]:                       # when it is far from all of them, everything solved ran off together
+        far_a, far_s = np.isfinite(xa).all(axis=1), np.isfinite(xs).all(axis=1)
+    far_a[ref] = False
     if not (far_a.any() or far_s.any()):
         return out
     names = [str(a) for a in arrays["array"][far_a]]

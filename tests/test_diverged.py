@@ -40,9 +40,13 @@ def test_blank_diverged_by_hand():
     a = bad["arrays"]
     assert a.loc[2, ["x", "y", "z", "x_std"]].isna().all() and np.isfinite(a.loc[:1, ["x", "y", "z"]]).all().all()
     assert bad["sources"].loc[2, ["x", "y", "z"]].isna().all() and bad["sources"].loc[:1, "x"].notna().all()
-    # the reference is the gauge: never blanked, even when every source ran off
-    far = blank_diverged(_out([[0, 0, 0], [5, 5, 1]], [[5e4, 0, 0]] * 3))
-    assert far["arrays"].loc[0, ["x", "y", "z"]].notna().all() and far["arrays"].loc[1, "x"] != far["arrays"].loc[1, "x"]
+    # the reference is the gauge: never blanked; it heard every source, so when all ran off (with the other
+    # arrays: near each other, far from it), everything but the reference is unknown
+    for xa in ([[0, 0, 0], [5, 5, 1]], [[0, 0, 0], [5e4, 1, 1]]):
+        far = blank_diverged(_out(xa, [[5e4, 0, 0]] * 3))
+        assert far["report"]["verdict"]["status"] == "failed" and far["report"]["verdict"]["flagged_arrays"] == ["A2"]
+        assert far["arrays"].loc[0, ["x", "y", "z"]].notna().all() and far["arrays"].loc[1, ["x", "y", "z"]].isna().all()
+        assert far["sources"][["x", "y", "z"]].isna().all().all()
 
 
 @pytest.fixture(scope="module")
