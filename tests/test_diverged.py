@@ -51,10 +51,9 @@ def test_blank_diverged_by_hand():
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    feats, truth = simulate_features(trajectory=1, seed=3)
     d = tmp_path_factory.mktemp("div")
-    write_features(d / "features", feats)
-    write_truth(d / "truth", truth)
+    feats, truth = simulate_features(trajectory=1, seed=3)
+    write_features(d / "features", feats), write_truth(d / "truth", truth)
     return d, feats
 
 

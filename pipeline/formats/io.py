@@ -482,15 +482,20 @@ def _read_sources(path):
     return df.drop(columns=LINE_COLUMN).sort_values("event", kind="stable").reset_index(drop=True)
 
 
-def read_calibration(directory):
-    """Read a ``calibration/`` directory (arrays.csv, sources.csv, optional report.json)."""
+def _arrays_and_sources(directory, why_needed=""):
+    """(folder, arrays.csv, sources.csv or None) of a calibration or truth folder (unknown values NaN)."""
     d = Path(directory)
     if not d.is_dir():
         raise InputError(f"{d}: not a directory")
     arrays = _read_arrays(d / "arrays.csv")
     if len(arrays) == 0:
-        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header)")
-    sources = _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
+        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header){why_needed}")
+    return d, arrays, _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
+
+
+def read_calibration(directory):
+    """Read a ``calibration/`` directory (arrays.csv, sources.csv, optional report.json)."""
+    d, arrays, sources = _arrays_and_sources(directory)
     report = _read_json(d / "report.json") if (d / "report.json").exists() else {}
     if not isinstance(report, dict):
         raise InputError(f"{d / 'report.json'}: must be a JSON object")
@@ -513,13 +518,7 @@ def write_calibration(directory, calib, features=None, command="calib"):
 
 def read_truth(directory: str | Path) -> dict[str, Any]:
     """Read a ``truth/`` directory; unknown values are NaN."""
-    d = Path(directory)
-    if not d.is_dir():
-        raise InputError(f"{d}: not a directory")
-    arrays = _read_arrays(d / "arrays.csv")
-    if len(arrays) == 0:
-        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header): nothing to compare with")
-    sources = _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
+    d, arrays, sources = _arrays_and_sources(directory, ": nothing to compare with")
     out = {"arrays": arrays, "sources": sources}
     if (d / "clocks.json").exists():   # faulty clocks of a simulation (calib.clock.Clock JSON form per array)
         try:
