@@ -1294,7 +1294,13 @@ def impossible_jumps(features):
     the array's clock (dropped or inserted samples) or a mis-detected chirp. It needs no fit: it names a
     reference's step that leaves the linear solve in no basin at all.
 
+    Only the rows the estimator keeps count (:func:`calib.estimator.screen.screen_rows`: the frontend's
+    reflection-only rows, 10-25 ms late in rendered rooms, are out; an array mostly so is named elsewhere).
+
     Returns [{array, after_event, before_event, size (s: the excess interval), allowed (s)}], largest first."""
+    from .screen import screen_rows
+
+    features, record = screen_rows(features)
     ev = features["events"].sort_values("event")
     meta = features.get("meta") or {}
     c = float(meta.get("speed_of_sound", 343.0))
@@ -1308,6 +1314,8 @@ def impossible_jumps(features):
     if pos is None or not len(ts):
         return out
     for name, rows in ts.groupby("array", sort=False):
+        if str(name) in record["kept_doubted"]:
+            continue
         a, b = rows["from_event"].to_numpy(int), rows["to_event"].to_numpy(int)
         dt = np.array([t[j] - t[i] for i, j in zip(a, b)])
         move = np.array([np.linalg.norm(pos[j] - pos[i]) for i, j in zip(a, b)])

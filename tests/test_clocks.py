@@ -418,3 +418,40 @@ def test_a_large_step_of_the_reference_is_named_and_modelled(seed, size):
     assert (s["after_event"], s["before_event"]) == interval and abs(s["size"] - size) < 3 * s["std"]
     clean = evaluate(calibrate(simulate_features(3, SIGMA, seed=seed)[0]), simulate_features(3, SIGMA, seed=seed)[1])
     assert evaluate(cal, truth)["position_rmse_m"] <= 1.5 * clean["position_rmse_m"] + 0.002
+
+
+@pytest.mark.slow
+def test_a_declared_rate_calibrates_a_wrong_header_as_if_right(tmp_path):
+    """`calib simulate --clock A2={rate=...}` renders A2 1 % slow under its header's rate; `calib run` names the
+    wrong header, and with A2's true rate declared in session.toml calibrates as the fault-free session."""
+    import json
+    import subprocess
+    import sys
+
+    import soundfile as sf
+
+    from calib.pipeline.formats.io import read_calibration, read_truth
+
+    def calib(*args):
+        return subprocess.run([sys.executable, "-m", "calib", *args], capture_output=True, text=True, timeout=900)
+
+    for name, extra in (("clean", []), ("slow", ["--clock", "A2={rate={error=-0.01}}"])):
+        sim = calib("simulate", "-o", str(tmp_path / name), "--preset", "paper-traj3", "--seed", "3", "--n-events",
+                    "10", "-q", *extra)
+        assert sim.returncode == 0, sim.stderr
+    import shutil
+
+    shutil.copytree(tmp_path / "slow", tmp_path / "declared")
+    fs = sf.info(str(tmp_path / "slow" / "A2.wav")).samplerate
+    _declare_rate(tmp_path / "declared", "A2", round(fs * 0.99))
+    out = {}
+    for name in ("clean", "slow", "declared"):
+        run = calib("run", str(tmp_path / name), "-o", str(tmp_path / f"out_{name}"), "-q")
+        assert run.returncode in (0, 3), run.stderr
+        rep = json.loads((tmp_path / f"out_{name}" / "calibration" / "report.json").read_text())
+        err = evaluate(read_calibration(tmp_path / f"out_{name}" / "calibration"), read_truth(tmp_path / name / "truth"))
+        out[name] = (rep, err["position_rmse_m"])
+    assert out["slow"][0]["clock"]["arrays"]["A2"]["nominal_rate"] is not None or out["slow"][0]["verdict"]["status"] != "ok"
+    rep, err = out["declared"]
+    assert rep["verdict"]["status"] == "ok" and all(a["nominal_rate"] is None for a in rep["clock"]["arrays"].values())
+    assert err <= 1.5 * out["clean"][1] + 0.002
