@@ -842,8 +842,8 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
 def _seeded(solve, features, first, options, rounds):
     """(first, start models): the linear clock's result, or where some array's arrivals jump further than any
     source move allows (:func:`impossible_jumps`: a step so large that the linear solve may find no basin,
-    e.g. the reference's) and a step there solves better, that solve and those steps (sized by the jump; the
-    selection's joint steps size them)."""
+    e.g. the reference's) and a step there solves better (a better verdict, or a clearly lower robust cost
+    over every row), that solve and those steps (sized by the jump; the selection's joint steps size them)."""
     jumps = impossible_jumps(features)
     if not jumps:
         return first, {}
@@ -854,7 +854,12 @@ def _seeded(solve, features, first, options, rounds):
         start.setdefault(j["array"], [Component("step", 0.5 * (u_of[j["after_event"]] + u_of[j["before_event"]]),
                                                 j["size"])])
     trial = solve(correct_features(features, start), **options)
-    if _rank(trial) >= _rank(first):   # (a better verdict: the linear solve found no basin, e.g. `failed`)
+    # a better verdict (the linear solve found no basin: `failed`), or as good and a robust cost over every row
+    # lower by more than one step's χ² at FAMILY_ALPHA
+    cost0, sig = _robust_cost(first, None, features)
+    cost1, _ = _robust_cost(trial, sig, correct_features(features, start))
+    if _rank(trial) > _rank(first) or (_rank(trial) == _rank(first)
+                                       and 2.0 * (cost0 - cost1) <= float(chdtri(1, FAMILY_ALPHA))):
         return first, {}
     rounds.append([{"seeded": f"{n}: a step of {c[0].value * 1e3:+.3f} ms at {c[0].time:.3f} s (its arrivals jump "
                               "further than the speaker's move allows)"} for n, c in start.items()])
