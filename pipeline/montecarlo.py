@@ -23,20 +23,16 @@ import itertools
 import json
 import math
 import os
+import threading
 import time
 from calib.tomlcompat import tomllib
-import zlib
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from calib.blas import single_thread_blas
-from calib.estimator import calibrate, crlb, draw_from_crlb, state_from_frames, to_tables
-from calib.estimator.problem import build_problem
 
-from calib.pipeline.report.evaluate import evaluate, truth_tables
-from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline import studytiming
 from calib.pipeline.formats.io import InputError, dumps_json
 from calib.pipeline.formats.outputs import (check_file_replaceable, is_own_temp, remove_owned_file, remove_temp,
                                             write_file)
@@ -69,100 +65,7 @@ SETTINGS = ("base_seed", "sigma_odo", "check_convergence", "with_crlb")
 # MAX_CHUNK runs (a part file's worth: what an interrupted study loses per worker).
 GUIDED_SHARE = 2
 MAX_CHUNK = 40
-
-
-# --------------------------------------------------------------------------------------------- one run
-def run_seed(sigma_tdoa, sigma_doa_deg, trajectory, run, base_seed=0):
-    """Deterministic seed of one run (same cell/trajectory/run → same scene, whatever the order)."""
-    key = f"{base_seed}|{sigma_tdoa:.6g}|{sigma_doa_deg:.6g}|{trajectory}|{run}".encode()
-    return zlib.crc32(key)
-
-
-def truth_state(p, truth, frames_state=None):
-    """Ground truth as a state of problem ``p``, in the parametrisation the estimator solves for.
-
-    Without TDOA-S the reference array's drift is fixed to 0 (drifts relative to it), so the truth start
-    is expressed the same way; otherwise a truth start would solve a different model.
-    ``frames_state``: ``state_from_frames`` of the truth for a problem with the same arrays and events,
-    when the caller has it (copied).
-    """
-    st = state_from_frames(p, truth["arrays"], truth["sources"]) if frames_state is None else frames_state.copy()
-    if len(p.tdoa_s.val) == 0:
-        st.drift = (1.0 + st.drift) / (1.0 + st.drift[p.ref]) - 1.0
-    return st
-
-
-def _scores(p, st, truth, undetermined=()):
-    """The METRICS of state ``st`` of problem ``p`` against ``truth`` (a dict of ``evaluate.truth_tables``)."""
-    arrays, sources = to_tables(p, st)
-    m = evaluate({"arrays": arrays, "sources": sources, "report": {"undetermined": undetermined}}, truth)
-    return {k: m[k] for k in METRICS}
-
-
-def run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, *, methods=("hybrid",), base_seed=0,
-                check_convergence=True, with_crlb=True, sigma_odo=SIGMA_ODO):
-    """Simulate one scene, calibrate it with each method and score it. Returns a list of row dicts.
-
-    Per method: one ``final`` row, plus one row per intermediate stage when ``calibrate`` returns
-    ``stage_states`` (dict stage → state). Failures (any exception of the estimator) give a row with
-    ``ok=False`` and the message: counted, never hidden.
-    Each method's problem is built once (``calibrate``'s default options) and handed, as a copy, to its
-    solve, its truth-start solve and its CRLB; the truth's state is read from the frames once per scene.
-    """
-    seed = run_seed(sigma_tdoa, sigma_doa_deg, trajectory, run, base_seed)
-    feats, truth = simulate_features(trajectory, sigma_tdoa, sigma_doa_deg, sigma_odo, seed=seed)
-    truth_t = truth_tables(truth)   # scored up to 7 times per method: its DataFrames read once
-    rows = []
-    truth_st = None   # the truth as a state (every method's problem has the same arrays and events)
-    for method in methods:
-        base = {"sigma_tdoa": sigma_tdoa, "sigma_doa_deg": sigma_doa_deg, "trajectory": trajectory, "run": run,
-                "method": method, "seed": seed}
-        row = {**base, "stage": "final"}
-        t0 = time.perf_counter()
-        try:   # the solution only: the study reads no covariance, frames or report
-            p0 = build_problem(feats, use_tdoa_s=method != "wang", odometry_yaw=True)  # calibrate's defaults
-            # the study's scenes have linear clocks by construction: no clock-model selection (it would cost
-            # ~10 % of each solve; its false-model rate on this protocol: benchmarks/bench_clocks.py)
-            cal = calibrate(feats, method=method, outputs="solution", problem=p0, clock_model="linear")
-        except Exception as exc:  # noqa: BLE001 - unobservable draw or estimator failure: a counted failure
-            row.update({"ok": False, "error": f"{type(exc).__name__}: {exc}", "time_s": time.perf_counter() - t0})
-            rows.append(row)
-            continue
-        row["time_s"] = time.perf_counter() - t0
-        row["ok"] = True
-        p = cal["problem"]
-        if truth_st is None:
-            truth_st = state_from_frames(p0, truth["arrays"], truth["sources"])
-        for stage, st in (cal.get("stage_states") or {}).items():
-            rows.append({**base, "stage": stage, "ok": True, **_scores(p, st, truth_t)})
-        row["solver_converged"] = cal["converged"]
-        row["cost"] = cal["cost"]
-        row["n_outliers"] = len(cal["outliers"])
-        row.update(_scores(p, cal["state"], truth_t, cal["undetermined"]))
-        if check_convergence:
-            gt = calibrate(feats, method=method, init_state=truth_state(p, truth, truth_st), outputs="solution",
-                           problem=p0, clock_model="linear")
-            row["cost_truth_start"] = gt["cost"]
-            row["converged"] = bool(row["cost"] <= row["cost_truth_start"] * (1 + 1e-6) + 1e-9)
-        if with_crlb:
-            rng = np.random.default_rng(seed + 1)
-            with single_thread_blas():  # (calib.blas)
-                use_ts = bool(len(p.tdoa_s.val))   # crlb's problem: p0 without the odometry yaw, when the same
-                same = use_ts == bool(len(p0.tdoa_s.val))
-                bound = crlb(feats, truth, use_tdoa_s=use_ts, problem=p0.replace(odo_yaw_free=False) if same else None,
-                             state=truth_st)
-                draw = _scores(bound["problem"], draw_from_crlb(bound, rng), truth_t)
-            row.update({f"crlb_{k}": v for k, v in draw.items()})
-        rows.append(row)
-    return rows
-
-
-def run_one(sigma_tdoa, sigma_doa_deg, trajectory, run, *, method="hybrid", base_seed=0, check_truth_start=True,
-            with_crlb=True, sigma_odo=SIGMA_ODO):
-    """Simulate, calibrate and score one run with one method. Returns the flat ``final`` row (dict)."""
-    rows = run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, methods=(method,), base_seed=base_seed,
-                       check_convergence=check_truth_start, with_crlb=with_crlb, sigma_odo=sigma_odo)
-    return rows[-1]
+ONE_RUN = ("run_seed", "truth_state", "run_methods", "run_one")   # in calib.pipeline.studyrun (the workers' side)
 
 
 def paper_values(sigma_tdoa, sigma_doa_deg):
@@ -273,12 +176,21 @@ def _key(sigma_tdoa, sigma_doa_deg, trajectory, run, method):
 
 
 def _run_chunk(tasks, settings):
-    """Worker entry point: tasks = [(sigma_tdoa, sigma_doa_deg, trajectory, run, methods)] → rows."""
-    rows = []
-    with single_thread_blas():  # tiny matrices (calib.blas): parallelism across runs instead
-        for st, sd, traj, run, methods in tasks:
-            rows += run_methods(st, sd, traj, run, methods=tuple(methods), **settings)
-    return rows
+    """Worker entry point (:func:`calib.pipeline.studyrun.run_chunk`, imported here: a study's parent process
+    never loads the estimator, 0.45 s of its start-up that no number of workers shortens)."""
+    from calib.pipeline.studyrun import run_chunk
+
+    return run_chunk(tasks, settings)
+
+
+def __getattr__(name):
+    """The one-run functions, formerly defined here (``from calib.pipeline.montecarlo import truth_state``)."""
+    if name in ONE_RUN:
+        from calib.pipeline import studyrun
+
+        return getattr(studyrun, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 
 def _rows_to_csv(rows):
@@ -435,6 +347,7 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     dict: ``runs`` (DataFrame of the requested grid's rows), ``summary`` (DataFrame), ``computed`` and
     ``skipped`` (numbers of runs × methods), ``wall_s``, ``paths`` (dict of written files).
     """
+    timeline = studytiming.StudyTimeline()
     g = paper_grid()
     grid = check_grid({**g, "cells": g["cells"] if cells is None else cells,
                        "trajectories": g["trajectories"] if trajectories is None else trajectories,
@@ -457,31 +370,53 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
         n_workers = (os.cpu_count() or 1) if jobs == -1 else jobs
     chunks = _chunks(tasks, n_workers, chunk_size)
     total = sum(len(t[4]) for t in tasks)
+    timeline.plan("dask" if client else "local" if jobs != 1 else "in-process", n_workers, tasks)
+    if figure and chunks:
+        threading.Thread(target=_import_plotting, daemon=True).start()  # meanwhile: off the path after the last run
+    timeline.mark("dispatch")
     t0 = time.perf_counter()
-    if chunks:
-        (out / "parts").mkdir(exist_ok=True)
-        stamp = f"{time.time_ns():x}"
-        try:
-            done_runs = 0
-            message = f"{skipped} already done"
-            if progress is not None:
-                progress(0, total, message)
-            for k, rows in enumerate(_execute(chunks, settings, jobs, client)):
-                write_file(out / "parts" / f"part-{stamp}-{k:05d}.csv", _rows_to_csv(rows), command=COMMAND)
-                done_runs += sum(r["stage"] == "final" for r in rows)
-                if progress is not None:
-                    progress(done_runs, total, message)
-        finally:
-            if client is not None and client is not scheduler:
-                client.close()
-    elif client is not None and client is not scheduler:
-        client.close()
+    try:
+        if chunks:
+            _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, skipped)
+    finally:
+        if client is not None and client is not scheduler:
+            client.close()
+    timeline.mark("collected")
     wall = time.perf_counter() - t0
     paths = finish_study(out, grid, figure=figure)
     all_runs = pd.read_csv(paths["runs"])
     sel = _select(all_runs, grid)
+    timeline.mark("end")
     return {"runs": sel, "summary": pd.read_csv(paths["summary"]), "computed": total, "skipped": skipped,
-            "wall_s": wall, "paths": paths}
+            "wall_s": wall, "paths": paths, "timing": timeline.data}
+
+
+def _import_plotting():
+    """Import what :func:`plot_study` needs (0.6-0.8 s), in a thread while the runs are computed."""
+    with contextlib.suppress(Exception):  # plot_study imports (and reports) for itself
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.collections  # noqa: F401
+        import matplotlib.pyplot  # noqa: F401
+
+
+def _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, skipped):
+    """Run the chunks; write each one's rows as a part file as it arrives; record the timeline."""
+    (out / "parts").mkdir(exist_ok=True)
+    stamp = f"{time.time_ns():x}"
+    done_runs = 0
+    message = f"{skipped} already done"
+    if progress is not None:
+        progress(0, total, message)
+    for k, res in enumerate(_execute(chunks, settings, jobs, client)):
+        t = time.perf_counter()
+        rows = res["rows"]
+        write_file(out / "parts" / f"part-{stamp}-{k:05d}.csv", _rows_to_csv(rows), command=COMMAND)
+        done_runs += sum(r["stage"] == "final" for r in rows)
+        if progress is not None:
+            progress(done_runs, total, message)
+        timeline.received(res["timing"], time.perf_counter() - t)
 
 
 def _pending_tasks(out, grid):
@@ -591,6 +526,24 @@ def _plot_references(ax, summary, method, name, cells, pos):
             ax.plot(*np.transpose(pts), ls="none", label=label, **style)
 
 
+def _boxes(ax, data, pos, width, color):
+    """Box plots of the arrays ``data`` at x ``pos``: quartile boxes, medians, whiskers to the data within the
+    5th-95th percentiles (matplotlib's ``boxplot_stats``), drawn as two collections: one artist per box part
+    (``Axes.boxplot``) made the study's figure 2-4 s, the slowest step after the last run."""
+    from matplotlib.cbook import boxplot_stats
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    boxes, lines = [], []
+    for st, x in zip(boxplot_stats(data, whis=(5, 95)), pos):
+        lo, hi, cap = x - width / 2, x + width / 2, width / 4
+        boxes.append([(lo, st["q1"]), (hi, st["q1"]), (hi, st["q3"]), (lo, st["q3"])])
+        lines += [[(lo, st["med"]), (hi, st["med"])], [(x, st["q1"]), (x, st["whislo"])],
+                  [(x, st["q3"]), (x, st["whishi"])], [(x - cap, st["whislo"]), (x + cap, st["whislo"])],
+                  [(x - cap, st["whishi"]), (x + cap, st["whishi"])]]
+    ax.add_collection(PolyCollection(boxes, facecolors=color, edgecolors="k", linewidths=1.0, alpha=0.85))
+    ax.add_collection(LineCollection(lines, colors="k", linewidths=1.0))
+
+
 def plot_study(runs, summary, path):
     """The paper's Fig. 3 layout: per metric a panel; per cell, one box per method/stage (whiskers at the
     5th/95th percentiles), the CRLB draws' IQR-mean (bar) and the paper's published value (star)."""
@@ -621,16 +574,12 @@ def plot_study(runs, summary, path):
             keep = [i for i, d in enumerate(data) if len(d)]
             if not keep:
                 continue
-            bp = ax.boxplot([data[i] for i in keep], positions=pos[keep], widths=0.85 * width, whis=(5, 95),
-                            showfliers=False, patch_artist=True, manage_ticks=False)
-            for b in bp["boxes"]:
-                b.set(facecolor=colors.get((m, s), "#bbbbbb"), alpha=0.85)
-            for med in bp["medians"]:
-                med.set(color="k")
+            _boxes(ax, [data[i] for i in keep], pos[keep], 0.85 * width, colors.get((m, s), "#bbbbbb"))
             ax.plot([], [], "s", color=colors.get((m, s), "#bbbbbb"), label=f"{m} ({s})")
             if s == "final":
                 _plot_references(ax, summary, m, name, cells, pos)
         ax.set_yscale("log")
+        ax.autoscale_view()
         ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 1.5, 2.0, 3.0, 5.0, 7.0)))
         ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
         ax.yaxis.set_minor_formatter(NullFormatter())
