@@ -61,8 +61,14 @@ def _worker_cpu(client):
     return sum(client.run(cpu).values())
 
 
+def timed(cmd):
+    """:func:`cliproc.measure` of ``cmd``, with ``launched``: the epoch second it was started."""
+    launched = time.time()
+    return {**measure(cmd), "launched": launched}
+
+
 def local(n, args, out, log):
-    m = measure(calib_cmd("montecarlo", "-o", out, "--runs", args.runs, "--jobs", n, "-q", "--timing-log", log,
+    m = timed(calib_cmd("montecarlo", "-o", out, "--runs", args.runs, "--jobs", n, "-q", "--timing-log", log,
                           *args.extra))
     return m, m["cpu_s"]
 
@@ -73,7 +79,7 @@ def dask(n, args, out, log):
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster) as client:
         c0 = _worker_cpu(client)
-        m = measure(calib_cmd("montecarlo", "-o", out, "--runs", args.runs, "--scheduler",
+        m = timed(calib_cmd("montecarlo", "-o", out, "--runs", args.runs, "--scheduler",
                               cluster.scheduler_address, "-q", "--timing-log", log, *args.extra))
         return m, m["cpu_s"] + _worker_cpu(client) - c0
 
@@ -84,18 +90,24 @@ def chunker(durations, n):
 
 
 def serial_parts(tl, launched, exited):
-    """The process's wall outside the task loop (s), by part."""
+    """The process's time outside the task loop (s), by part: as measured (wall) and for an idle machine
+    (``*_idle``: the parent's CPU in each part; its exit, whose CPU is not separable from the workers', as
+    the wall scaled by the CPU share the process got while it started)."""
     s = st.summary(tl)
-    return {"cli_start_s": tl["start"] - launched, "before_s": s["before_s"], "after_s": s["after_s"],
+    wall = {"cli_start_s": tl["start"] - launched, "before_s": s["before_s"], "after_s": s["after_s"],
             "cli_exit_s": exited - tl["phases"]["end"]["t"]}
+    share = min(1.0, s["cli_start_cpu_s"] / max(wall["cli_start_s"], 1e-9))
+    idle = {"cli_start_idle": s["cli_start_cpu_s"], "before_idle": s["before_cpu_s"], "after_idle": s["after_cpu_s"],
+            "cli_exit_idle": wall["cli_exit_s"] * share}
+    return {**wall, "serial_s": sum(wall.values()), **idle, "serial_idle_s": sum(idle.values())}
 
 
 def run_one(mode, n, args, tmp):
     out, log = Path(tmp) / f"{mode}{n}", Path(tmp) / f"{mode}{n}.json"
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
-    launched = time.time()
     m, cpu = (local if mode == "local" else dask)(n, args, out, log)
+    launched = m["launched"]
     row = {"mode": mode, "N": n, "rc": m["rc"], "wall_s": m["wall_s"], "cpu_s": cpu, "load_before": load0,
            "load_after": os.getloadavg()[0]}
     tl = None
@@ -103,8 +115,9 @@ def run_one(mode, n, args, tmp):
         tl = json.loads(log.read_text())
         s = st.summary(tl)
         parts = serial_parts(tl, launched, launched + m["wall_s"])
-        row.update(serial_s=sum(parts.values()), **parts, startup_s=s["startup_s"],
-                   chunk_ovh_ms=1e3 * s["chunk_overhead_s"], task_cpu_s=s["task_cpu_s"],
+        row.update(**parts, startup_s=s["startup_s"],
+                   startup_cpu_s=s["startup_cpu_s"], chunk_ovh_ms=1e3 * s["chunk_overhead_s"],
+                   task_cpu_s=s["task_cpu_s"],
                    task_wall_s=s["task_wall_s"], other_thread_cpu_s=s["task_process_cpu_s"] - s["task_cpu_s"],
                    rows=_rows_without_time(out / "runs.csv"))
     else:
@@ -129,28 +142,40 @@ def measured_table(rows):
     return df
 
 
+def validation(df, timelines):
+    """Each measured run replayed: its tasks with their measured wall durations list-scheduled on its N
+    workers, its measured serial part and worker start-up, against its measured wall time."""
+    out = []
+    for _, r in df[df["rc"] == 0].iterrows():
+        tl = timelines[(r["mode"], r["N"])]
+        replay = st.project(tl, r["N"], chunker, kind="wall", serial_s=float(r["serial_s"]))
+        out.append({"mode": r["mode"], "N": r["N"], "measured_wall_s": r["wall_s"], "replay_wall_s": replay,
+                    "error_pct": 100 * (replay / r["wall_s"] - 1),
+                    "idle_wall_s": st.project(tl, r["N"], chunker, kind="cpu", serial_s=float(r["serial_idle_s"]))})
+    return pd.DataFrame(out)
+
+
 def projections(df, timelines, project_n):
-    """Per mode: each measured run replayed (validation) and projected to every N of ``project_n``."""
+    """Per mode, from its run with the most workers (its chunk overhead, worker start-up, task CPU, serial part
+    on an idle machine): the projected wall time on N workers and efficiency = T(1) / (N T(N)), T(1) the same
+    projection of the mode's N = 1 run (its own serial part and task CPU). Also the parts of T(N): serial,
+    worker start-up, tasks' CPU / N and the rest (the tail: workers idle at the end, chunk overhead)."""
     out = []
     for mode, g in df[df["rc"] == 0].groupby("mode"):
-        base = g.loc[g["N"].idxmin()]
+        one, top = g[g["N"] == 1], g.loc[g["N"].idxmax()]
+        tl = timelines[(mode, top["N"])]
+        s = st.summary(tl)
         t1 = None
-        for _, r in g.sort_values("N").iterrows():
-            tl = timelines[(mode, r["N"])]
-            serial = float(r["serial_s"])
-            replay = st.project(tl, r["N"], chunker, kind="wall", serial_s=serial)
-            idle = st.project(tl, r["N"], chunker, kind="cpu", serial_s=serial)
-            out.append({"mode": mode, "from_N": r["N"], "N": r["N"], "what": "replay of the measured run",
-                        "wall_s": replay, "measured_wall_s": r["wall_s"], "error_pct": 100 * (replay / r["wall_s"] - 1),
-                        "idle_wall_s": idle})
-            for n in project_n:
-                p = st.project(tl, n, chunker, kind="cpu", serial_s=serial)
-                if r["N"] == base["N"] and n == 1:
-                    t1 = p
-                out.append({"mode": mode, "from_N": r["N"], "N": n, "what": "PROJECTION", "wall_s": p})
-        for row in out:
-            if row["mode"] == mode and row["what"] == "PROJECTION" and t1:
-                row["efficiency"] = t1 / (row["N"] * row["wall_s"])
+        if len(one):
+            tl1 = timelines[(mode, 1)]
+            t1 = st.project(tl1, 1, chunker, kind="cpu", serial_s=float(one["serial_idle_s"].iloc[0]))
+        for n in project_n:
+            p = st.project(tl, n, chunker, kind="cpu", serial_s=float(top["serial_idle_s"]))
+            work = s["task_cpu_s"] / n
+            out.append({"mode": mode, "from_N": top["N"], "N": n, "PROJECTED_wall_s": p,
+                        "efficiency": t1 / (n * p) if t1 else np.nan, "serial_s": top["serial_idle_s"],
+                        "startup_s": s["startup_cpu_s"], "work_per_worker_s": work,
+                        "tail_s": p - top["serial_idle_s"] - s["startup_cpu_s"] - work})
     return pd.DataFrame(out)
 
 
@@ -181,10 +206,15 @@ def main():
     df = measured_table(list(best.values()))
     print("MEASURED")
     print(df.drop(columns=["task_wall_s"], errors="ignore").to_string(index=False, float_format=fmt))
+    val = validation(df, timelines)
+    if len(val):
+        print("\nVALIDATION: each run replayed (its tasks' measured wall durations list-scheduled, its measured serial "
+              "part and worker start-up) vs its measured wall; idle_wall_s: the same with CPU durations (no load)")
+        print(val.to_string(index=False, float_format=fmt))
     proj = projections(df, timelines, args.project)
     if len(proj):
-        print("\nREPLAY (validation: each measured run's tasks with their measured wall durations, list-scheduled)"
-              " and PROJECTION (task CPU as duration: an idle machine with N cores)")
+        print("\nPROJECTION (not a measurement): an idle machine with N cores, each as fast per task as here; "
+              "shared memory bandwidth and clock speed under N busy cores are not in it")
         print(proj.to_string(index=False, float_format=fmt))
     print(f"end: {load()}; efficiency = T(1) / (N T(N)) per mode; same_rows: runs.csv (but time_s) equal "
           "to the first study's; serial_s = cli_start + before + after + cli_exit (outside the task loop)")

@@ -178,9 +178,12 @@ def _key(sigma_tdoa, sigma_doa_deg, trajectory, run, method):
 def _run_chunk(tasks, settings):
     """Worker entry point (:func:`calib.pipeline.studyrun.run_chunk`, imported here: a study's parent process
     never loads the estimator, 0.45 s of its start-up that no number of workers shortens)."""
-    from calib.pipeline.studyrun import run_chunk
+    cpu0 = time.process_time()
+    from calib.pipeline.studyrun import run_chunk   # a worker's first chunk: its imports of the estimator
 
-    return run_chunk(tasks, settings)
+    res = run_chunk(tasks, settings)
+    res["timing"]["import_cpu_s"] = res["timing"]["cpu_before"] - cpu0
+    return res
 
 
 def __getattr__(name):
@@ -286,7 +289,8 @@ def _connect(scheduler):
 
 
 def _kill_workers():
-    """Stop joblib's worker processes now (they would otherwise finish their chunks after the parent stops)."""
+    """Stop joblib's worker processes now (they would otherwise finish their chunks after the parent stops, or
+    take their time to exit with it)."""
     from joblib.externals.loky import reusable_executor
 
     executor = getattr(reusable_executor, "_executor", None)  # None: no pool was started
@@ -308,9 +312,8 @@ def _execute(chunks, settings, jobs, client):
             # last chunks again)
             yield from Parallel(n_jobs=jobs, return_as="generator_unordered", batch_size=1)(
                 delayed(_run_chunk)(c, settings) for c in chunks)
-        except BaseException:  # interrupt (SIGINT/SIGTERM) or error: stop the workers, do not let them compute on
-            _kill_workers()
-            raise
+        finally:  # done: the workers stop with the study (an idle worker's own clean exit takes the parent ~0.5 s
+            _kill_workers()  # to wait for); interrupted or failed: they must not compute on
         return
     from distributed import as_completed
 

@@ -49,11 +49,12 @@ def task_timer(timing, task):
 
 
 class StudyTimeline:
-    """The parent's side: phases (``mark``) and the chunks' records as they arrive (``received``)."""
+    """The parent's side: phases (``mark``) and the chunks' records as they arrive (``received``);
+    ``process_cpu_s``: the process's CPU time when the study started (a command's start-up and imports)."""
 
     def __init__(self):
-        self.data = {"start": time.time(), "phases": {}, "chunks": []}
         self._cpu0 = time.process_time()
+        self.data = {"start": time.time(), "process_cpu_s": self._cpu0, "phases": {}, "chunks": []}
 
     def plan(self, mode, n_workers, tasks):
         """The study's execution: ``mode`` (in-process, local, dask), its workers and its tasks, in order."""
@@ -76,26 +77,40 @@ def task_key(task):
 
 # ------------------------------------------------------------------------------------------- analysis
 def summary(tl):
-    """The measured figures of a timeline (dict): wall of the task loop, serial parts, worker start-up,
-    per-chunk overhead, task CPU and duration totals."""
+    """The measured figures of a timeline (dict of seconds): the parent's phases (wall and its CPU), the
+    workers' start-up (wall: hand-out to their first task; CPU: their set-up, see :func:`startup_cpu`), the
+    wall per chunk beyond its tasks, the tasks' wall, own CPU and their processes' CPU."""
     ph, t0 = tl["phases"], tl["start"]
     dispatch, collected, end = (ph[k]["t"] for k in ("dispatch", "collected", "end"))
+    cpu = {k: ph[k]["parent_cpu_s"] for k in ("dispatch", "collected", "end")}
     tasks = [t for c in tl["chunks"] for t in c["tasks"]]
-    first = {}
-    for c in tl["chunks"]:
-        if c["tasks"]:
-            first[c["worker"]] = min(first.get(c["worker"], np.inf), c["tasks"][0][0])
-    workers = sorted({c["worker"] for c in tl["chunks"]})
-    return {"n_workers": tl["n_workers"], "workers_seen": len(workers), "tasks": len(tasks),
-            "before_s": dispatch - t0, "loop_s": collected - dispatch, "after_s": end - collected,
-            "startup_s": float(np.median([first[w] - dispatch for w in first])) if first else 0.0,
-            "chunk_overhead_s": chunk_overhead(tl),
+    firsts = _first_chunks(tl)
+    return {"n_workers": tl["n_workers"], "workers_seen": len(firsts), "tasks": len(tasks),
+            "cli_start_cpu_s": tl["process_cpu_s"], "before_s": dispatch - t0, "before_cpu_s": cpu["dispatch"],
+            "loop_s": collected - dispatch, "after_s": end - collected, "after_cpu_s": cpu["end"] - cpu["collected"],
+            "startup_s": float(np.median([c["tasks"][0][0] - dispatch for c in firsts])) if firsts else 0.0,
+            "startup_cpu_s": startup_cpu(tl), "chunk_overhead_s": chunk_overhead(tl),
             "task_wall_s": float(sum(t[1] - t[0] for t in tasks)), "task_cpu_s": float(sum(t[2] for t in tasks)),
             "task_process_cpu_s": float(sum(t[3] for t in tasks)),
-            "worker_startup_cpu_s": float(sum(min(c["cpu_before"] for c in tl["chunks"] if c["worker"] == w)
-                                              for w in workers)),
-            "parent_handling_s": float(sum(c["handled_s"] for c in tl["chunks"])),
-            "parent_cpu_s": ph["end"]["parent_cpu_s"]}
+            "parent_handling_s": float(sum(c["handled_s"] for c in tl["chunks"]))}
+
+
+def _first_chunks(tl):
+    """Each worker's first chunk (by its first task's start)."""
+    first = {}
+    for c in tl["chunks"]:
+        if c["tasks"] and (c["worker"] not in first or c["tasks"][0][0] < first[c["worker"]]["tasks"][0][0]):
+            first[c["worker"]] = c
+    return list(first.values())
+
+
+def startup_cpu(tl):
+    """Median CPU seconds a worker spends before its first task: a local worker process its whole start
+    (interpreter, imports); a Dask worker (already running) or the study's own process its imports of the
+    estimator."""
+    firsts = _first_chunks(tl)
+    key = "cpu_before" if tl["mode"] == "local" else "import_cpu_s"
+    return float(np.median([c.get(key, 0.0) for c in firsts])) if firsts else 0.0
 
 
 def chunk_overhead(tl):
@@ -132,13 +147,16 @@ def project(tl, n_workers, chunker, *, kind="cpu", serial_s=None, startup_s=None
     """Projected wall time (s) of the timeline's study on ``n_workers``: serial + list-scheduled chunks.
 
     chunker(durations, n_workers) → the study's chunks of the task list for that many workers (lists of
-    durations). serial_s: time outside the task loop (default the timeline's before + after, i.e. inside
-    run_study; a caller adds the process's own start-up and exit); startup_s: a worker's delay to its first
-    task; overhead_s: wall per chunk beyond its tasks (defaults: as measured in ``tl``).
+    durations). kind: the tasks' and the workers' start-up durations, ``cpu`` (an idle machine) or ``wall``
+    (as measured). serial_s: time outside the task loop (default the timeline's before + after, i.e. inside
+    run_study, CPU for ``cpu``; a caller adds the process's own start-up and exit); startup_s: a worker's
+    delay to its first task; overhead_s: wall per chunk beyond its tasks (defaults: as measured in ``tl``).
     """
     s = summary(tl)
-    serial = s["before_s"] + s["after_s"] if serial_s is None else serial_s
-    startup = s["startup_s"] if startup_s is None else startup_s
+    idle = kind == "cpu"
+    if serial_s is None:
+        serial_s = s["before_cpu_s"] + s["after_cpu_s"] if idle else s["before_s"] + s["after_s"]
+    startup = (s["startup_cpu_s"] if idle else s["startup_s"]) if startup_s is None else startup_s
     overhead = s["chunk_overhead_s"] if overhead_s is None else overhead_s
     chunks = chunker(durations(tl, kind), n_workers)
-    return serial + list_schedule([sum(c) + overhead for c in chunks], n_workers, ready=startup)
+    return serial_s + list_schedule([sum(c) + overhead for c in chunks], n_workers, ready=startup)
