@@ -25,8 +25,9 @@ takes on a core of its own, whatever the load here), so the projection is for an
 many cores as workers, each as fast per task as in the measured run: memory bandwidth or clock speed
 shared by many busy cores are not in it (compare cpu_ratio measured there). It is validated here: the
 measured runs replayed with their *wall* durations (the load included) against their measured wall, and
-the projection at N = 1 and 2 against the measured N = 1 and 2 (load-adjusted: task CPU instead of wall).
-T(1) of the projected efficiency is the projection of the measured N = 1 run at N = 1.
+the projected efficiency from 1 to 2 workers against the measured one (``--repeat`` interleaves the runs).
+T(1) and T(N) of a projected efficiency share the tasks' CPU times (of the run with the most workers); T(1)
+has the serial part, worker start-up and chunk overhead of the N = 1 run.
 """
 from __future__ import annotations
 
@@ -157,10 +158,12 @@ def validation(df, timelines):
 
 
 def projections(df, timelines, project_n):
-    """Per mode, from its run with the most workers (its chunk overhead, worker start-up, task CPU, serial part
-    on an idle machine): the projected wall time on N workers and efficiency = T(1) / (N T(N)), T(1) the same
-    projection of the mode's N = 1 run (its own serial part and task CPU). Also the parts of T(N): serial,
-    worker start-up, tasks' CPU / N and the rest (the tail: workers idle at the end, chunk overhead)."""
+    """Per mode, from its run with the most workers: the projected wall time on N workers and efficiency =
+    T(1) / (N T(N)). Both use that run's task CPU times (on a shared machine a task's CPU time drifts with the
+    load, ±10 % between runs minutes apart: comparing two runs' tasks would measure the load, not the
+    scaling); T(N) its chunk overhead, worker start-up and serial part, T(1) those of the mode's N = 1 run.
+    Also the parts of T(N): serial, worker start-up, tasks' CPU / N and the rest (the tail: workers idle
+    at the end, chunk overhead)."""
     out = []
     for mode, g in df[df["rc"] == 0].groupby("mode"):
         one, top = g[g["N"] == 1], g.loc[g["N"].idxmax()]
@@ -168,8 +171,9 @@ def projections(df, timelines, project_n):
         s = st.summary(tl)
         t1 = None
         if len(one):
-            tl1 = timelines[(mode, 1)]
-            t1 = st.project(tl1, 1, chunker, kind="cpu", serial_s=float(one["serial_idle_s"].iloc[0]))
+            s1 = st.summary(timelines[(mode, 1)])
+            t1 = st.project(tl, 1, chunker, kind="cpu", serial_s=float(one["serial_idle_s"].iloc[0]),
+                            startup_s=s1["startup_cpu_s"], overhead_s=s1["chunk_overhead_s"])
         for n in project_n:
             p = st.project(tl, n, chunker, kind="cpu", serial_s=float(top["serial_idle_s"]))
             work = s["task_cpu_s"] / n
