@@ -32,6 +32,7 @@ has the serial part, worker start-up and chunk overhead of the N = 1 run.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -50,8 +51,9 @@ from calib.pipeline import studytiming as st  # noqa: E402
 
 
 def _rows_without_time(path):
+    """sha256 of runs.csv without its time_s column (every other column is a function of the seeds)."""
     df = pd.read_csv(path, dtype=str, keep_default_na=False)
-    return df.drop(columns="time_s").to_csv(index=False)
+    return hashlib.sha256(df.drop(columns="time_s").to_csv(index=False).encode()).hexdigest()
 
 
 def _worker_cpu(client):
@@ -157,14 +159,19 @@ def validation(df, timelines):
     return pd.DataFrame(out)
 
 
-def projections(df, timelines, project_n):
+def projections(df, timelines, project_n, slowdown=1.0):
     """Per mode, from its run with the most workers: the projected wall time on N workers and efficiency =
     T(1) / (N T(N)). Both use that run's task CPU times (on a shared machine a task's CPU time drifts with the
     load, ±10 % between runs minutes apart: comparing two runs' tasks would measure the load, not the
     scaling); T(N) its chunk overhead, worker start-up and serial part, T(1) those of the mode's N = 1 run.
     Also the parts of T(N): serial, worker start-up, tasks' CPU / N and the rest (the tail: workers idle
-    at the end, chunk overhead)."""
+    at the end, chunk overhead). ``slowdown``: every task of T(N > 1) that much longer (a what-if for
+    clock speed or memory bandwidth shared by N busy cores, which this machine cannot show)."""
     out = []
+
+    def slowed(durations, n):
+        return chunker([d * (slowdown if n > 1 else 1.0) for d in durations], n)
+
     for mode, g in df[df["rc"] == 0].groupby("mode"):
         one, top = g[g["N"] == 1], g.loc[g["N"].idxmax()]
         tl = timelines[(mode, top["N"])]
@@ -175,13 +182,60 @@ def projections(df, timelines, project_n):
             t1 = st.project(tl, 1, chunker, kind="cpu", serial_s=float(one["serial_idle_s"].iloc[0]),
                             startup_s=s1["startup_cpu_s"], overhead_s=s1["chunk_overhead_s"])
         for n in project_n:
-            p = st.project(tl, n, chunker, kind="cpu", serial_s=float(top["serial_idle_s"]))
-            work = s["task_cpu_s"] / n
+            p = st.project(tl, n, slowed, kind="cpu", serial_s=float(top["serial_idle_s"]))
+            work = s["task_cpu_s"] * (slowdown if n > 1 else 1.0) / n
             out.append({"mode": mode, "from_N": top["N"], "N": n, "PROJECTED_wall_s": p,
                         "efficiency": t1 / (n * p) if t1 else np.nan, "serial_s": top["serial_idle_s"],
                         "startup_s": s["startup_cpu_s"], "work_per_worker_s": work,
                         "tail_s": p - top["serial_idle_s"] - s["startup_cpu_s"] - work})
     return pd.DataFrame(out)
+
+
+def measure_all(args):
+    """Run every (mode, N), ``--repeat`` times interleaved; keep each one's fastest. Returns (rows, timelines)."""
+    best, timelines = {}, {}
+    with tempfile.TemporaryDirectory(prefix="calib-bench-scaleout-") as tmp:
+        for _ in range(args.repeat):
+            for mode in args.modes:
+                for n in args.workers:
+                    row, tl = run_one(mode, n, args, tmp)
+                    key = (mode, n)
+                    if key not in best or (row["rc"] == 0 and row["wall_s"] < best[key]["wall_s"]):
+                        best[key], timelines[key] = row, tl
+    return list(best.values()), timelines
+
+
+def save(folder, rows, timelines):
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "measured.json").write_text(json.dumps(rows))
+    for (mode, n), tl in timelines.items():
+        if tl is not None:
+            (folder / f"timeline-{mode}-{n}.json").write_text(json.dumps(tl))
+
+
+def load_saved(folder):
+    rows = json.loads((folder / "measured.json").read_text())
+    timelines = {(r["mode"], r["N"]): json.loads((folder / f"timeline-{r['mode']}-{r['N']}.json").read_text())
+                 for r in rows if r["rc"] == 0}
+    return rows, timelines
+
+
+def report(rows, timelines, project_n, slowdown=1.0):
+    fmt = lambda v: f"{v:.3g}"  # noqa: E731
+    df = measured_table(rows)
+    print("MEASURED")
+    print(df.drop(columns=["task_wall_s"], errors="ignore").to_string(index=False, float_format=fmt))
+    val = validation(df, timelines)
+    if len(val):
+        print("\nVALIDATION: each run replayed (its tasks' measured wall durations list-scheduled, its measured serial "
+              "part and worker start-up) vs its measured wall; idle_wall_s: the same with CPU durations (no load)")
+        print(val.to_string(index=False, float_format=fmt))
+    proj = projections(df, timelines, project_n, slowdown)
+    if len(proj):
+        print("\nPROJECTION (not a measurement): an idle machine with N cores, each as fast per task as here"
+              + (f" but {slowdown:g}x slower per task for N > 1" if slowdown != 1 else
+                 "; shared memory bandwidth and clock speed under N busy cores are not in it"))
+        print(proj.to_string(index=False, float_format=fmt))
 
 
 def main():
@@ -193,34 +247,22 @@ def main():
     ap.add_argument("--modes", nargs="+", default=["local", "dask"], choices=["local", "dask"])
     ap.add_argument("--repeat", type=int, default=1, help="measure each (mode, N) this many times, interleaved; "
                                                           "the table keeps the fastest")
+    ap.add_argument("--slowdown", type=float, default=1.0,
+                    help="projection what-if: tasks on N > 1 workers this much slower (e.g. 1.2)")
+    ap.add_argument("--save", type=Path, help="also write the measurements and timelines into this folder")
+    ap.add_argument("--analyse", type=Path, help="measure nothing: report the measurements saved in this folder")
     ap.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more calib montecarlo options")
     args = ap.parse_args()
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 40)
-    fmt = lambda v: f"{v:.3g}"  # noqa: E731
+    if args.analyse:
+        report(*load_saved(args.analyse), args.project, args.slowdown)
+        return 0
     print(f"calib montecarlo --runs {args.runs} {' '.join(args.extra)}; start: {load()}", flush=True)
-    best, timelines = {}, {}
-    with tempfile.TemporaryDirectory(prefix="calib-bench-scaleout-") as tmp:
-        for _ in range(args.repeat):
-            for mode in args.modes:
-                for n in args.workers:
-                    row, tl = run_one(mode, n, args, tmp)
-                    key = (mode, n)
-                    if key not in best or (row["rc"] == 0 and row["wall_s"] < best[key]["wall_s"]):
-                        best[key], timelines[key] = row, tl
-    df = measured_table(list(best.values()))
-    print("MEASURED")
-    print(df.drop(columns=["task_wall_s"], errors="ignore").to_string(index=False, float_format=fmt))
-    val = validation(df, timelines)
-    if len(val):
-        print("\nVALIDATION: each run replayed (its tasks' measured wall durations list-scheduled, its measured serial "
-              "part and worker start-up) vs its measured wall; idle_wall_s: the same with CPU durations (no load)")
-        print(val.to_string(index=False, float_format=fmt))
-    proj = projections(df, timelines, args.project)
-    if len(proj):
-        print("\nPROJECTION (not a measurement): an idle machine with N cores, each as fast per task as here; "
-              "shared memory bandwidth and clock speed under N busy cores are not in it")
-        print(proj.to_string(index=False, float_format=fmt))
+    rows, timelines = measure_all(args)
+    if args.save:
+        save(args.save, rows, timelines)
+    report(rows, timelines, args.project, args.slowdown)
     print(f"end: {load()}; efficiency = T(1) / (N T(N)) per mode; same_rows: runs.csv (but time_s) equal "
           "to the first study's; serial_s = cli_start + before + after + cli_exit (outside the task loop)")
     return 0

@@ -101,7 +101,7 @@ def test_interrupted_study_keeps_finished_chunks_and_resumes(study, tmp_path, mo
     with pytest.raises(KeyboardInterrupt):
         mc.run_study(out, runs=2, jobs=1, chunk_size=1, **TINY)
     parts = sorted((out / "parts").glob("part-*.csv"))
-    assert len(parts) == 2 and not (out / "runs.csv").exists()
+    assert parts and not (out / "runs.csv").exists()                  # written as the interrupt went up
     finals = sum((pd.read_csv(p)["stage"] == "final").sum() for p in parts)
     assert finals == 4                                                # 2 runs × 2 methods, complete rows
     monkeypatch.setattr(mc, "_run_chunk", real)
