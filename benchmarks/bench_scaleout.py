@@ -106,8 +106,8 @@ def serial_parts(tl, launched, exited):
     return {**wall, "serial_s": sum(wall.values()), **idle, "serial_idle_s": sum(idle.values())}
 
 
-def run_one(mode, n, args, tmp):
-    out, log = Path(tmp) / f"{mode}{n}", Path(tmp) / f"{mode}{n}.json"
+def run_one(mode, n, args, tmp, rep=0):
+    out, log = Path(tmp) / f"{mode}{n}-{rep}", Path(tmp) / f"{mode}{n}-{rep}.json"   # a fresh study each time
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     m, cpu = (local if mode == "local" else dask)(n, args, out, log)
@@ -195,10 +195,10 @@ def measure_all(args):
     """Run every (mode, N), ``--repeat`` times interleaved; keep each one's fastest. Returns (rows, timelines)."""
     best, timelines = {}, {}
     with tempfile.TemporaryDirectory(prefix="calib-bench-scaleout-") as tmp:
-        for _ in range(args.repeat):
+        for rep in range(args.repeat):
             for mode in args.modes:
                 for n in args.workers:
-                    row, tl = run_one(mode, n, args, tmp)
+                    row, tl = run_one(mode, n, args, tmp, rep)
                     key = (mode, n)
                     if key not in best or (row["rc"] == 0 and row["wall_s"] < best[key]["wall_s"]):
                         best[key], timelines[key] = row, tl
