@@ -31,7 +31,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-
 from calib.pipeline import studytiming
 from calib.pipeline.formats.io import InputError, dumps_json
 from calib.pipeline.formats.outputs import (check_file_replaceable, is_own_temp, remove_owned_file, remove_temp,
