@@ -2,7 +2,9 @@
 its parallel efficiency (speed-up / N) measured, and projected for more workers than this machine has.
 
     python benchmarks/bench_scaleout.py                       # N = 1, 2 and the machine's cores; --runs 4
-    python benchmarks/bench_scaleout.py --workers 1 2 --runs 40 --project 4 8 16
+    python benchmarks/bench_scaleout.py --workers 1 2 16 --runs 40     # issue 32's figure on a 16-core machine
+    python benchmarks/bench_scaleout.py --workers 1 2 --runs 40 --save DIR   # here: measure 1, 2; project to 16
+    python benchmarks/bench_scaleout.py --analyse DIR --slowdown 1.2        # the saved runs again, a what-if
     python benchmarks/bench_scaleout.py --modes local          # no Dask
 
 Every study runs as a user runs it: ``calib montecarlo -o OUT --runs R --jobs N -q --timing-log T`` (local) or
@@ -148,14 +150,21 @@ def measured_table(rows):
 
 def validation(df, timelines):
     """Each measured run replayed: its tasks with their measured wall durations list-scheduled on its N
-    workers, its measured serial part and worker start-up, against its measured wall time."""
+    workers, its measured serial part and worker start-up, against its measured wall time; for N > 2, also
+    what the mode's 2-worker run projects for that N (the check of the projection on a machine with the cores:
+    on an idle machine it should be close to measured_wall_s)."""
     out = []
     for _, r in df[df["rc"] == 0].iterrows():
         tl = timelines[(r["mode"], r["N"])]
         replay = st.project(tl, r["N"], chunker, kind="wall", serial_s=float(r["serial_s"]))
-        out.append({"mode": r["mode"], "N": r["N"], "measured_wall_s": r["wall_s"], "replay_wall_s": replay,
-                    "error_pct": 100 * (replay / r["wall_s"] - 1),
-                    "idle_wall_s": st.project(tl, r["N"], chunker, kind="cpu", serial_s=float(r["serial_idle_s"]))})
+        row = {"mode": r["mode"], "N": r["N"], "measured_wall_s": r["wall_s"], "replay_wall_s": replay,
+               "error_pct": 100 * (replay / r["wall_s"] - 1),
+               "idle_wall_s": st.project(tl, r["N"], chunker, kind="cpu", serial_s=float(r["serial_idle_s"]))}
+        two = df[(df["mode"] == r["mode"]) & (df["N"] == 2) & (df["rc"] == 0)]
+        if r["N"] > 2 and len(two):   # what a 2-worker run projected for this N (on an idle machine)
+            row["projected_from_2_s"] = st.project(timelines[(r["mode"], 2)], r["N"], chunker, kind="cpu",
+                                                   serial_s=float(two["serial_idle_s"].iloc[0]))
+        out.append(row)
     return pd.DataFrame(out)
 
 

@@ -33,8 +33,9 @@ def worker_id():
 
 def chunk_timing():
     """A chunk's timing record, opened when a worker starts it: ``worker``, ``cpu_before`` (the process's CPU
-    seconds so far: on a worker's first chunk, its start-up and imports) and ``tasks`` (filled by
-    :func:`task_timer`)."""
+    seconds so far: on a worker's first chunk, its start-up and imports) and ``keys``/``tasks`` (filled by
+    :func:`task_timer`). The study adds ``import_cpu_s``: the CPU its import of the one-run code took (a
+    worker's first chunk; 0 after)."""
     return {"worker": worker_id(), "cpu_before": time.process_time(), "keys": [], "tasks": []}
 
 
@@ -65,7 +66,7 @@ class StudyTimeline:
         self.data["phases"][phase] = {"t": time.time(), "parent_cpu_s": time.process_time() - self._cpu0}
 
     def received(self, timing, handled_s):
-        """A chunk's record arrived; ``handled_s``: the parent's wall time to write it (part file, progress)."""
+        """A chunk's record arrived; ``handled_s``: the parent's wall time to take its rows in (part file, progress)."""
         self.data["chunks"].append({**timing, "received": time.time(), "handled_s": handled_s})
 
 
