@@ -374,13 +374,12 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     chunks = _chunks(tasks, n_workers, chunk_size)
     total = sum(len(t[4]) for t in tasks)
     timeline.plan("dask" if client else "local" if jobs != 1 else "in-process", n_workers, tasks)
-    if figure and chunks:
-        threading.Thread(target=_import_plotting, daemon=True).start()  # meanwhile: off the path after the last run
     timeline.mark("dispatch")
     t0 = time.perf_counter()
     try:
         if chunks:
-            _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, skipped)
+            _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, skipped,
+                        first_result=_import_plotting_meanwhile if figure else None)
     finally:
         if client is not None and client is not scheduler:
             client.close()
@@ -394,8 +393,13 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
             "wall_s": wall, "paths": paths, "timing": timeline.data}
 
 
+def _import_plotting_meanwhile():
+    """Import what :func:`plot_study` needs (0.5-0.8 s CPU) in a thread, while the runs are computed (started
+    once the work is out: a thread importing holds the interpreter lock the hand-out needs)."""
+    threading.Thread(target=_import_plotting, daemon=True).start()
+
+
 def _import_plotting():
-    """Import what :func:`plot_study` needs (0.6-0.8 s), in a thread while the runs are computed."""
     with contextlib.suppress(Exception):  # plot_study imports (and reports) for itself
         import matplotlib
 
@@ -404,9 +408,9 @@ def _import_plotting():
         import matplotlib.pyplot  # noqa: F401
 
 
-def _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, skipped):
+def _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, skipped, first_result=None):
     """Run the chunks; write the rows that arrived as a part file every PART_EVERY_S and when the loop ends
-    (done, interrupted or failed); record the timeline."""
+    (done, interrupted or failed); record the timeline; call ``first_result()`` when the first chunk is in."""
     (out / "parts").mkdir(exist_ok=True)
     parts = _PartWriter(out / "parts")
     done_runs = 0
@@ -414,8 +418,10 @@ def _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, 
     if progress is not None:
         progress(0, total, message)
     try:
-        for res in _execute(chunks, settings, jobs, client):
+        for k, res in enumerate(_execute(chunks, settings, jobs, client)):
             t = time.perf_counter()
+            if k == 0 and first_result is not None:
+                first_result()
             parts.add(res["rows"])
             done_runs += sum(r["stage"] == "final" for r in res["rows"])
             if progress is not None:
