@@ -29,7 +29,7 @@ from .arrayresult import ArrayResult
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
-from .nlos import late_arrivals
+from .nlos import late_arrivals, merge_events, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, spectra_setup,
@@ -407,6 +407,13 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
             "warnings": warnings}
 
 
+def _gate(res, hw):
+    """``res`` (:func:`timing.locate`) with only the lags the DOA gate uses (± ``hw`` around the direct path)
+    of its correlation ``r``, never a chunk-sized array."""
+    idx = (res["dp"] - hw - res["r_lo"])[:, None] + np.arange(2 * hw + 1)
+    return {**res, "r": np.take_along_axis(res["r"], idx[:, None, :], axis=-1), "r_lo": res["dp"] - hw}
+
+
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
 
 
@@ -440,11 +447,9 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
             stretch = bank[1][k]
         res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
         res["stretch"] = stretch
-        # keep only the lags the DOA gate uses (± gate around the direct path), never a chunk-sized array
-        hw = locate_kw.get("gate", 0)
-        idx = (res["dp"] - hw - res["r_lo"])[:, None] + np.arange(2 * hw + 1)
-        res["r"] = np.take_along_axis(res["r"], idx[:, None, :], axis=-1)
-        res["r_lo"] = res["dp"] - hw
+        # a weak direct path before the timed arrival (a reflection): timed again on it (frontend.nlos)
+        res, again = retime_earlier(res, c, c_plain, setup, {**locate_kw, "phase": phase})
+        res = merge_events(_gate(res, locate_kw.get("gate", 0)), again and _gate(again, locate_kw.get("gate", 0)))
         parts.append(res)
         sizes.append(len(chunk))
         phase = None if own else parts[0]["phase"]
