@@ -186,3 +186,11 @@ def distrusted(record):
         for why in record.get("kept_reasons", {}).get(a, ["nlos"]):
             out.setdefault(a, {})[f"{why}_kept"] = n
     return out
+
+
+def isolated(record, names):
+    """Indices (into ``names``) of the arrays whose doubted rows were kept because they are most of their
+    rows (``record["kept_doubted"]``; None: nothing screened): distrusted as a whole, they are solved
+    without (``joint.consistency_stage``) and refitted alone, so their rows pull no other array."""
+    kept = (record or {}).get("kept_doubted") or {}
+    return [k for k, n in enumerate(map(str, names)) if n in kept]

@@ -228,3 +228,9 @@ def test_weak_direct_doas_are_taken_out_and_a_mostly_weak_array_named():
     assert "A2" in v["flagged_arrays"] and v["status"] != "ok"
     assert any(d["array"] == "A2" and d["reason"] == "weak_direct" and not d["taken_out"] for d in v["distrusted"])
     assert out["report"]["screened"]["arrays"]["A2"] == {"weak_direct_kept": len(every)}
+    # ... and isolated: the others are calibrated as if it had never been there, then it is refitted alone
+    alone = calibrate({**f, **{k: f[k][f[k]["array"] != "A2"] for k in ("tdoa_m", "tdoa_s", "doa")}})
+    others = out["arrays"]["array"] != "A2"
+    assert np.allclose(out["arrays"].loc[others, ["x", "y", "z"]].to_numpy(float),
+                       alone["arrays"].loc[alone["arrays"]["array"] != "A2", ["x", "y", "z"]].to_numpy(float), atol=1e-6)
+    assert out["report"]["unreliable_arrays"] == ["A2"]
