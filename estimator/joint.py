@@ -73,22 +73,26 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     alone, as the inconsistent ones (:func:`consistency_stage`). Returns a :class:`JointResult` (its
     ``problem`` carries the new sigmas and odometry-yaw freedom; ``p`` is not changed).
     """
-    lay = make_layout(p)
+    # arrays distrusted as a whole: out before anything is fitted (their rows move no sigma, yaw or source)
+    lay, mask, dropped = _isolation(p, isolate)
     # the robust pass only has to find the basin and the outliers; the final pass converges tightly
-    st, robust = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+    st, robust = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, mask=mask, max_iter=max_iter,
+                                     rtol=1e-6)
     yaw_test = None if p.odo_yaw_test is None else dict(p.odo_yaw_test)
     if noise_bounds is not None and loss:
         stated = {k: p.sigma[k] for k in reweighted()}
         st, p = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
-                                   robust_k=robust_k, max_iter=max_iter, floors=noise_floors)
+                                   robust_k=robust_k, max_iter=max_iter, floors=noise_floors, mask=mask)
     if lay.odo_yaw[0] >= 0 and yaw_test is None:
-        st, p, lay, yaw_test = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k, max_iter=max_iter)
-    res = JointResult(st, p, lay, robust, {}, yaw_test=yaw_test)
+        st, p, lay, yaw_test = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k, max_iter=max_iter,
+                                                  mask=mask, dropped=dropped)
+    res = JointResult(st, p, lay, robust, {}, mask=mask, dropped=dropped, yaw_test=yaw_test,
+                      arrays=[{"array": str(p.names[i]), "isolated": True, "inconsistent": False} for i in dropped])
     if loss:
         _robust_stages(res, kinds, check_arrays=check_arrays, loss=loss, robust_k=robust_k, max_iter=max_iter,
-                       threshold=outlier_threshold, isolate=isolate)
+                       threshold=outlier_threshold)
     else:
-        res.state, res.final = levenberg_marquardt(p, st, lay, kinds, loss=None, mask={}, max_iter=max_iter)
+        res.state, res.final = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
     res.n_measurements = count_measurements(p, res.dropped)
     for i in res.dropped:
         # the dropped array's own pose and clock from its data, everything else fixed (marked unreliable)
@@ -96,16 +100,27 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     return res
 
 
-def _robust_stages(res, kinds, *, check_arrays, loss, robust_k, max_iter, threshold, isolate=()):
-    """After the robust pass (``res``: its state and layout, updated here): distrusted arrays (``isolate``)
-    and inconsistent ones (``check_arrays``) out, outlier rows out one by one, least squares, the outliers
-    only the least-squares solution shows, flagged rows that fit given back."""
-    p, st, lay, mask, stats = res.problem, res.state, res.layout, {}, None
-    if check_arrays or len(isolate):
+def _isolation(p, isolate):
+    """(layout, mask, dropped) with the arrays ``isolate`` (indices; never the reference, and at least one
+    other array stays) left out: their parameters fixed, their rows masked."""
+    sizes, mask, dropped = factor_sizes(p), {}, []
+    for i in isolate:
+        if i != p.ref and i not in dropped and len(dropped) + 2 < p.N:
+            mask = array_mask(p, mask, sizes, i)
+            dropped.append(int(i))
+    return make_layout(p, arrays=[a for a in range(p.N) if a not in dropped]), mask, dropped
+
+
+def _robust_stages(res, kinds, *, check_arrays, loss, robust_k, max_iter, threshold):
+    """After the robust pass (``res``: its state, layout, mask and the arrays isolated so far, updated
+    here): inconsistent arrays out (``check_arrays``), outlier rows out one by one, least squares, the
+    outliers only the least-squares solution shows, flagged rows that fit given back."""
+    p, st, lay, mask, stats = res.problem, res.state, res.layout, res.mask, None
+    if check_arrays:
         chk = consistency_stage(p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter,
-                                threshold=threshold, isolate=isolate, check=check_arrays)
+                                threshold=threshold, dropped=res.dropped)
         st, lay, mask, stats = chk.state, chk.layout, chk.mask, chk.stats
-        res.dropped, res.arrays = chk.dropped, chk.records
+        res.dropped, res.arrays = chk.dropped, res.arrays + chk.records
     first = remove_outliers(p, st, lay, kinds, mask, threshold=threshold, loss=loss, k=robust_k, max_iter=max_iter,
                             stats=stats if not res.dropped else None)
     st, res.final = levenberg_marquardt(p, first.state, lay, kinds, loss=None, mask=first.mask, max_iter=max_iter)
@@ -123,48 +138,31 @@ def _robust_stages(res, kinds, *, check_arrays, loss, robust_k, max_iter, thresh
     res.state, res.layout, res.mask, res.outliers = st, lay, mask, flagged
 
 
-def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
+def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter, mask=None, dropped=()):
     """Keep the odometry yaw free only when significant (``odoframe.YAW_SIGNIFICANCE``); else fix it at 0
-    and re-solve. Returns (state, problem, layout, {yaw_deg, std_deg, kept})."""
-    lin = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
+    and re-solve (``mask``, ``dropped``: rows and arrays left out). Returns (state, problem, layout,
+    {yaw_deg, std_deg, kept})."""
+    lin = linearise(p, st, lay, kinds, loss=loss, k=robust_k, mask=mask)
     p, st, test = yaw_decision(p, st, whiten(lin.J, lin.w), int(lay.odo_yaw[0]))
     if not test["kept"]:
-        lay = make_layout(p)
-        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+        lay = make_layout(p, arrays=[a for a in range(p.N) if a not in dropped])
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, mask=mask, max_iter=max_iter, rtol=1e-6)
     return st, p, lay, test
 
 
-def _isolate(p, st, lay, kinds, mask, isolate, *, loss, robust_k, max_iter):
-    """The arrays ``isolate`` (indices; never the reference, and at least one other array stays) left out:
-    their rows masked, their parameters fixed, the rest re-solved. Returns (state, layout, mask, dropped,
-    records: one ``{"array", "isolated": True, "inconsistent": False}`` each)."""
-    sizes, dropped = factor_sizes(p), []
-    for i in isolate:
-        if i != p.ref and i not in dropped and len(dropped) + 2 < p.N:
-            mask = array_mask(p, mask, sizes, i)
-            dropped.append(int(i))
-    if dropped:
-        lay = make_layout(p, arrays=[a for a in range(p.N) if a not in dropped])
-        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, mask=mask, max_iter=max_iter, rtol=1e-6)
-    return st, lay, mask, dropped, [{"array": str(p.names[i]), "isolated": True, "inconsistent": False} for i in dropped]
-
-
-def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, threshold=5.0, isolate=(), check=True):
-    """Per-array consistency: the arrays ``isolate`` out first (:func:`_isolate`: the data distrust them as
-    a whole, so their rows never pull the others); then (``check``) for each candidate array (``robust.array_candidates``, then
+def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, threshold=5.0, dropped=()):
+    """Per-array consistency: for each candidate array (``robust.array_candidates``, then
     ``robust.concentrated_candidates`` at the outlier ``threshold``), re-solve without it and keep the drop
     when the χ² drop test rejects it at FAMILY_ALPHA / N (a concentrated candidate only when dropping it
     also moves the rest by more than MOVE_SIGMA: its data bend the others' solution, as an occluded
-    array's reflections do; otherwise its outlier rows are removed one by one as any others).
+    array's reflections do; otherwise its outlier rows are removed one by one as any others). ``dropped``:
+    arrays already left out (isolated; not tested again, listed first in the result's ``dropped``).
 
     Returns an :class:`ArrayCheck`.
     """
     sizes = factor_sizes(p)
-    st, lay, mask, dropped, records = _isolate(p, st, lay, kinds, mask, isolate, loss=loss, robust_k=robust_k,
-                                               max_iter=max_iter)
     stats = measurement_stats(p, st, lay, kinds, mask)
-    if not check:
-        return ArrayCheck(st, lay, mask, dropped, records, stats)
+    records, dropped = [], list(dropped)
     # (array, median ratios, outlier rows if it is a candidate only for holding most of them)
     cands = [(i, ratios, None) for i, ratios in array_candidates(p, stats)]
     listed = {i for i, _, _ in cands}
