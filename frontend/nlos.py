@@ -193,7 +193,7 @@ MIRROR_RATIO = 2.0        # ... nor one this many times above the residual at th
 EARLIER_MAX_RATIO = 0.35  # an earlier path weaker than this × the timed one (as extract.WEAK_DIRECT) is a weak
                           # direct path; a stronger one the onset search did not take is the other half of a
                           # merged two-path cluster (a clear wall array: 0.5-1.05, seen in occluded-lab 23, 41)
-PAIR_ITERS = 4            # alternating refinements of the (earlier, timed) pair of paths per mic
+PAIR_ITERS = 2            # alternating refinements of the (earlier, timed) pair of paths per mic
 
 
 def _pair_fit(c, setup, shape, early, timed, half_width):
