@@ -9,11 +9,12 @@ Two kinds (docs/method.md, "Screened rows"):
 * **nlos**: the frontend's evidence that an arrival is a reflection only (flag ``nlos``: late against the
   array's own range track along the odometry, docs/frontend.md). Such a row is late by metres of path and
   would pull the array that heard it — and through the shared sources every other array.
-* **weak_direct** (DOA rows only): the arrival's direct path is weaker than a reflection within a few pulse
-  widths after it (a mount or obstacle attenuates it by 10–20 dB; docs/frontend.md). Its time is the direct
-  path's, but its DOA is the direct path's seen through the reflection's leakage: 2–8° off on occluded-lab
-  seed 41 (0.2–1° for the arrays in line of sight), several times its own spread, and biased alike over an
-  array's events (the array tilts 7–10° at 3.5σ).
+* **weak_direct** (DOA rows; counted, not taken out): the arrival's direct path is weaker than a reflection
+  within a few pulse widths after it (a mount or obstacle attenuates it by 10–20 dB; docs/frontend.md). Its
+  time is the direct path's, but its DOA is the direct path's seen through the reflection's leakage: 2–8° off
+  on occluded-lab seed 41 (0.2–1° for the arrays in line of sight), several times its own spread, and biased
+  alike over an array's events (the array tilts 7–10° at 3.5σ). One such row is left to the outlier tests;
+  an array with most of its DOAs such is distrusted as a whole.
 
 Each kind of doubt is judged on its own: an array whose rows are mostly doubted for one reason keeps
 those rows (dropping most of an array's data leaves it to a handful of rows): it is reported as distrusted
@@ -26,8 +27,12 @@ import pandas as pd
 
 ABSURD_S = 0.3              # s: 100 m of path, beyond any room's geometry; a row further off its clock line is absurd
 MAX_DOUBTED_FRACTION = 0.5  # an array with more of its rows doubted for one reason keeps them (named as distrusted instead)
-# frontend doubts (the ``flag`` column) whose rows are taken out, and the tables where they are
+# frontend doubts (the ``flag`` column) and the tables where they count; ``nlos`` rows are taken out, while
+# ``weak_direct`` ones only count towards an array mostly doubted (kept, named and solved apart): one such DOA
+# is a row like any other for the outlier tests (taking them out cost moving seeds 0-1 up to 3 cm: a
+# reference array's DOAs), only a bias shared by most of an array's events escapes those tests
 DROP_FLAGS = {"nlos": ("tdoa_m", "tdoa_s", "doa"), "weak_direct": ("doa",)}
+ARRAY_ONLY = ("weak_direct",)
 
 
 def _flags(df, flags=tuple(DROP_FLAGS)):
@@ -157,7 +162,8 @@ def screen_rows(features):
         bad = absurd.get(name, np.zeros(len(df), bool))
         reason = np.where(bad, "absurd", "").astype(object)
         for why, (doubt, kept) in doubts.items():   # the first reason that takes a row out names it
-            reason[(reason == "") & doubt[name] & ~np.isin(arr, list(kept))] = why
+            if why not in ARRAY_ONLY:
+                reason[(reason == "") & doubt[name] & ~np.isin(arr, list(kept))] = why
         drop = reason != ""
         for k, evs in zip(np.flatnonzero(drop), [e for e, d in zip(_row_events(df), drop) if d]):
             # the reference's arrival, not its own

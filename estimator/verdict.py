@@ -186,12 +186,11 @@ def name_distrusted(verdict, screened):
         verdict["reasons"].append(f"{sum(len(groups[(a, 'absurd')]) for a in absurd)} event(s) of array(s) "
                                   f"{', '.join(absurd)} had {REASON_TEXT['absurd']}: taken out")
         worst = max(worst, "suspect", key=STATUS_RANK.get)
-    for why in ("nlos", "weak_direct"):
-        hit = [a for (a, w) in groups if w == why]
-        if hit:
-            verdict["reasons"].append("not trusted, taken out: " + "; ".join(
-                f"{a} events {', '.join(map(str, sorted(groups[(a, why)])))}" for a in hit)
-                + f" ({REASON_TEXT[why]}{': their DOAs' if why == 'weak_direct' else ''})")
+    nlos = [a for (a, why) in groups if why == "nlos"]
+    if nlos:
+        verdict["reasons"].append("not trusted, taken out: " + "; ".join(
+            f"{a} events {', '.join(map(str, sorted(groups[(a, 'nlos')])))}" for a in nlos)
+            + f" ({REASON_TEXT['nlos']})")
     verdict["status"] = worst
     if listed:
         verdict["distrusted"] = listed

@@ -447,8 +447,10 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
             stretch = bank[1][k]
         res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
         res["stretch"] = stretch
-        # a weak direct path before the timed arrival (a reflection): timed again on it (frontend.nlos)
-        res, again = retime_earlier(res, c, c_plain, setup, {**locate_kw, "phase": phase})
+        # a weak direct path before the timed arrival (a reflection): timed again on it (frontend.nlos); not
+        # for a moving source, whose paths each have their own stretch (the subtraction's pulse model fails)
+        res, again = (res, None) if bank is not None else retime_earlier(res, c, c_plain, setup,
+                                                                          {**locate_kw, "phase": phase})
         res = merge_events(_gate(res, locate_kw.get("gate", 0)), again and _gate(again, locate_kw.get("gate", 0)))
         parts.append(res)
         sizes.append(len(chunk))
