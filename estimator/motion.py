@@ -68,13 +68,9 @@ def sweep_middle(t, odom, vel, t_mid):
     return h(t + t_mid) - odom, h(t + t_mid, 1)
 
 
-def arrival_shifts(p, st, vel, curve=None, mid=None):
-    """(N, K) matched-filter arrival shift of every array and event at state ``st``: β ṙ_ij / c, or the
-    frontend's measured curve (meta ``chirp_stretch_shift``: {stretch, shift_s}) at ε = ṙ_ij / c.
-    mid : (displacement, velocity) of :func:`sweep_middle`: ṙ is then taken at the sweep's middle, from the
-    source there — the stretch a linear sweep's matched filter sees is the mean over the sweep (equal time
-    per Hz), so the path's curvature and the robot's acceleration shift the arrival by β r̈ T / (2c)
-    (on the moving preset's arrivals: 77 → 11 µs RMS against simulator truth, anechoic); None: at the start."""
+def range_rates(p, st, vel, mid=None):
+    """(N, K) range rate ṙ_ij (m/s, > 0 moving away) of every array and event at state ``st``, at the sweep
+    start or, with ``mid`` = (displacement, velocity) of :func:`sweep_middle`, from the source there."""
     yaw = float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0
     if mid is not None:
         v, s = yaw_rotate(mid[1], yaw), st.s + yaw_rotate(mid[0], yaw)
@@ -82,10 +78,32 @@ def arrival_shifts(p, st, vel, curve=None, mid=None):
         v, s = yaw_rotate(vel, yaw), st.s
     w = s[None, :, :] - st.x[:, None, :]                      # (N, K, 3) array → source
     d = np.linalg.norm(w, axis=2)
-    eps = np.einsum("kc,nkc->nk", v, w) / np.maximum(d, 1e-9) / p.c
+    return np.einsum("kc,nkc->nk", v, w) / np.maximum(d, 1e-9)
+
+
+def arrival_shifts(p, st, vel, curve=None, mid=None):
+    """(N, K) matched-filter arrival shift of every array and event at state ``st``: β ṙ_ij / c, or the
+    frontend's measured curve (meta ``chirp_stretch_shift``: {stretch, shift_s}) at ε = ṙ_ij / c.
+    mid : (displacement, velocity) of :func:`sweep_middle`: ṙ is then taken at the sweep's middle, from the
+    source there — the stretch a linear sweep's matched filter sees is the mean over the sweep (equal time
+    per Hz), so the path's curvature and the robot's acceleration shift the arrival by β r̈ T / (2c)
+    (on the moving preset's arrivals: 77 → 11 µs RMS against simulator truth, anechoic); None: at the start."""
+    eps = range_rates(p, st, vel, mid) / p.c
     if curve:
         return np.interp(eps, np.asarray(curve["stretch"], float), np.asarray(curve["shift_s"], float))
     return p.beta * eps
+
+
+def predicted_stretches(p, st, events, t_stretch):
+    """(N, K) stretch ε_ij each array records event j's sweep with, at state ``st``: ``ṙ_ij / c`` at
+    ``t_stretch`` after the sweep start (meta ``stretch_time_s``, the instant whose stretch the timing
+    follows) plus the array's clock drift (its samples run ``1 + drift`` fast: the same stretch); None when
+    the source does not move (no velocities, :func:`source_velocities`)."""
+    vel, _ = source_velocities(events, p.t, p.odom)
+    if vel is None:
+        return None
+    mid = sweep_middle(p.t, p.odom, vel, float(t_stretch)) if t_stretch else None
+    return range_rates(p, st, vel, mid) / p.c + np.asarray(st.drift, float)[:, None]
 
 
 def doa_moves(p, st, disp, arr, ev, u):
