@@ -149,8 +149,8 @@ def retime_arrivals(session, diag, stretches, min_rows=1):
                 results[name] = _copy_result(raw)
                 continue
             st = {**k["st"], "timings": dict(k["st"]["timings"])}
-            results[name] = _array_result(st, k["ctx"], _relocate(st, k["ctx"], k["loc"], change, rows), t_emit, c,
-                                          opt)
+            loc, doa = _relocate(st, k, change, rows, c, opt)
+            results[name] = _array_result(st, k["ctx"], loc, t_emit, c, opt, doa)
     meta_times = (diag.get("_sweep_times") or None)
     feats, out = _finish(session, results, keep["beta"], opt, t_start, meta_times, MOTION_MODEL_ERROR_RETIMED)
     out["retime"] = done
@@ -173,8 +173,10 @@ def _changed_rows(k, eps, min_rows):
     return inside & (np.abs(rows - old) >= min_rows), rows
 
 
-def _relocate(st, ctx, loc, change, rows):
-    """``loc`` (:func:`locate_events`) with the events ``change`` located again against bank rows ``rows``."""
+def _relocate(st, k, change, rows, c, opt):
+    """(loc, doa) of an array's kept state ``k`` (:func:`time_array`) with the events ``change`` located
+    (:func:`locate_events`) against bank rows ``rows`` and their DOAs (:func:`_direct_path_doa`) again."""
+    ctx, loc = k["ctx"], k["loc"]
     x = ArrayAudio(st["a"])
     try:
         t0 = time.perf_counter()
@@ -184,10 +186,20 @@ def _relocate(st, ctx, loc, change, rows):
     finally:
         x.close()
     st["timings"]["retime"] = time.perf_counter() - t0
-    out = dict(loc)
+    doa = _direct_path_doa(new, ctx["mics"], st["fs"], ctx["setup"], ctx["g"], c, opt, st["a"].get("doa_hemisphere"))
     j = len(ctx["ev_idx"])
-    for key, v in loc.items():
-        if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == j:
+    return _merge_events(loc, new, idx, j), _merge_events(k["doa"], doa, idx, j, DOA_EVENT_KEYS)
+
+
+DOA_EVENT_KEYS = ("u", "power", "gap")   # the per-event entries of _direct_path_doa's dict
+
+
+def _merge_events(old, new, idx, j, keys=None):
+    """``old`` (a dict of per-event arrays over J events, and others) with the events ``idx`` from ``new``
+    (``keys``: the per-event entries; None: every array of J rows)."""
+    out = dict(old)
+    for key, v in old.items():
+        if (key in keys) if keys is not None else (isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == j):
             w = np.array(v, copy=True)
             w[idx] = new[key]
             out[key] = w
@@ -323,8 +335,14 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1, keep=None):
         st["x"].close()
     timings["timing"] = time.perf_counter() - t0
     if keep is not None:
-        keep[st["a"]["name"]] = {"st": {k: v for k, v in st.items() if k != "x"}, "ctx": ctx, "loc": loc}
-    return _array_result(st, ctx, loc, t_emit, c, opt)
+        keep[st["a"]["name"]] = {"st": {k: v for k, v in st.items() if k != "x"}, "ctx": ctx, "loc": loc,
+                                 "doa": None}
+    t0 = time.perf_counter()
+    doa = _direct_path_doa(loc, ctx["mics"], st["fs"], ctx["setup"], ctx["g"], c, opt, st["a"].get("doa_hemisphere"))
+    timings["doa"] = time.perf_counter() - t0
+    if keep is not None:
+        keep[st["a"]["name"]]["doa"] = doa
+    return _array_result(st, ctx, loc, t_emit, c, opt, doa)
 
 
 def _timing_context(st, session, c, opt):
@@ -349,14 +367,15 @@ def _timing_context(st, session, c, opt):
             "locate_kw": {**g["locate_kw"], "smear_max": smear_max, "own_phase": bank is not None}}
 
 
-def _array_result(st, ctx, loc, t_emit, c, opt):
-    """DOAs and fused arrivals of the located events ``loc`` (:func:`locate_events`): the array's
-    :class:`~calib.frontend.arrayresult.ArrayResult`."""
+def _array_result(st, ctx, loc, t_emit, c, opt, doa=None):
+    """DOAs (unless given: ``doa``, :func:`_direct_path_doa`'s dict) and fused arrivals of the located events
+    ``loc`` (:func:`locate_events`): the array's :class:`~calib.frontend.arrayresult.ArrayResult`."""
     a, fs, asc, timings = st["a"], st["fs"], st["asc"], st["timings"]
     ev_idx, mics, g = ctx["ev_idx"], ctx["mics"], ctx["g"]
-    t0 = time.perf_counter()
-    doa = _direct_path_doa(loc, mics, fs, ctx["setup"], g, c, opt, a.get("doa_hemisphere"))
-    timings["doa"] = time.perf_counter() - t0
+    if doa is None:
+        t0 = time.perf_counter()
+        doa = _direct_path_doa(loc, mics, fs, ctx["setup"], g, c, opt, a.get("doa_hemisphere"))
+        timings["doa"] = time.perf_counter() - t0
     fused = _fuse_arrivals(loc, ctx["starts"], mics, doa, asc, t_emit, ev_idx, st["redetected"], fs, c, opt,
                            g["half"])
     warnings = doa["warnings"] + fused["warnings"]
