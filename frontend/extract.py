@@ -549,6 +549,8 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
             "warnings": warnings}
 
 
+SEARCH_COARSE = 3   # the first pass's Doppler search: every 3rd row, then around the best (the re-timing pass
+                    # sets the rows of every array the first solve places)
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
 
 
@@ -577,7 +579,8 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
         if bank is not None:
             k = np.asarray(rows[j0 : j0 + n], int) if rows is not None else matched_stretch(
                 c_plain, setup, bank[0], locate_kw["lo"], locate_kw["hi"], locate_kw["snr_factor"],
-                locate_kw["min_ratio"], stretches=bank[1], bound=bank[2][j0 : j0 + n] if len(bank) > 2 else None)
+                locate_kw["min_ratio"], stretches=bank[1], bound=bank[2][j0 : j0 + n] if len(bank) > 2 else None,
+                coarse=SEARCH_COARSE)
             c *= bank[0][k][:, None, :]
             c_plain *= bank[0][k][:, None, :]
             stretch = bank[1][k]
