@@ -22,7 +22,8 @@ def session_features(recordings, progress=None, jobs=1, **options):
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
     session = recordings if isinstance(recordings, Mapping) else read_session(recordings)
-    feats, diag = retime_moving(session, *extract_features(session, progress=progress, jobs=jobs, **options))
+    feats, diag = retime_moving(session, *extract_features(session, progress=progress, jobs=jobs, **options),
+                                progress=progress)
     return add_session_meta(feats, session, diag), diag
 
 

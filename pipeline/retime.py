@@ -22,19 +22,23 @@ import time
 import numpy as np
 
 
-def retime_moving(session, feats, diag):
+def retime_moving(session, feats, diag, progress=None):
     """(features, diagnostics) of ``extract_features`` on ``session`` re-timed with predicted stretches
     (module doc); the same objects when the source does not move. diagnostics ``retime``: the first solve's
-    seconds, the events re-timed per array, the arrays skipped and why."""
+    seconds, the events re-timed per array, the arrays skipped and why. progress : optional
+    ``progress(done, total, message)``, told when the pass starts."""
     from calib.frontend import retime_arrivals
 
     if diag.get("_retime") is None:
         return feats, diag
+    if progress is not None:
+        n = len(session["arrays"])
+        progress(n, n, "re-timing the moving source's arrivals")
     t0 = time.perf_counter()
     eps, record = first_pass_stretches(session, feats)
     record["solve_s"] = time.perf_counter() - t0
-    if eps is None:
-        return feats, {**diag, "retime": record}
+    if eps is None:   # the first pass's features stand (its re-timing state dropped)
+        return feats, {**{k: v for k, v in diag.items() if k not in ("_retime", "_sweep_times")}, "retime": record}
     new, out = retime_arrivals(session, diag, eps)
     record["events"] = out.pop("retime")
     record["seconds"] = time.perf_counter() - t0
