@@ -22,14 +22,15 @@ from .uncertainty import cov_block, honest_covariance, plane_normals, state_from
 def rebuild(features, calib):
     """The estimator's problem, state, layout, factor kinds and outlier mask at a calibration read from disk.
 
-    Returns None when the calibration cannot be evaluated against these features (no sources.csv, or
-    arrays/events that do not match).
+    Returns None when the calibration cannot be evaluated against these features (no sources.csv,
+    arrays/events that do not match, or positions left unknown: a diverged solve's, ``outputs.blank_diverged``).
     """
     rep = calib.get("report") or {}
     src = calib.get("sources")
     names = set(features["meta"]["arrays"])
     if src is None or set(calib["arrays"]["array"]) != names or \
-            set(src["event"]) != set(features["events"]["event"]):
+            set(src["event"]) != set(features["events"]["event"]) or \
+            not all(np.isfinite(t[["x", "y", "z"]].to_numpy(float)).all() for t in (calib["arrays"], src)):
         return None
     sig_e = float((rep.get("sigmas") or {}).get("emission_s") or 0.0)
     use_ts = bool((rep.get("used") or {}).get("tdoa_s", True))

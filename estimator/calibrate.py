@@ -21,7 +21,7 @@ from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
 from .joint import joint_solve
 from .motion import motion_solve
-from .outputs import CalibrationResult, to_frames, to_tables, undetermined_parameters, without_claims
+from .outputs import CalibrationResult, blank_diverged, to_frames, to_tables, undetermined_parameters, without_claims
 from .problem import State, build_problem, make_layout, state_from_dict
 from .reporting import judge, make_report
 from .screen import distrusted, screen_rows
@@ -111,7 +111,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         return _solution(res, kinds, stage_states)
     out = _full_outputs(res, kinds, stages, stage_states, method=method, noise=noise, emission_sigma=emission_sigma,
                         times=times, t0=t0, meta=features["meta"])
-    return _name_untrusted(out, screened, basins)
+    return blank_diverged(_name_untrusted(out, screened, basins))
 
 
 def _problem(features, problem, *, use_tdoa_s, emission_sigma, odometry_yaw):

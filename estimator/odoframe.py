@@ -86,7 +86,7 @@ def yaw_decision(p, st, Jw, k):
     """Test the odometry yaw (column k of the whitened Jacobian Jw, state ``st``). Returns (problem, state,
     {yaw_deg, std_deg, kept}); when the yaw is not significant it is fixed: a new problem with
     ``odo_yaw_free`` False and a new state with ``odo_yaw`` 0 (the inputs are not changed)."""
-    yaw, sd = float(st.odo_yaw[0]), param_std(Jw, k)
+    yaw, sd = float(np.angle(np.exp(1j * st.odo_yaw[0]))), param_std(Jw, k)   # yaw in (−π, π]: 360° is no yaw
     test = {"yaw_deg": float(np.rad2deg(yaw)), "std_deg": float(np.rad2deg(sd)), "kept": yaw_is_significant(yaw, sd)}
     if not test["kept"]:
         p = p.replace(odo_yaw_free=False)

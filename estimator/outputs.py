@@ -15,6 +15,8 @@ from calib.tables import ARRAY_PARAMS
 from .factors import KINDS, natural
 from .problem import Problem, State
 
+AUDIBLE_RANGE = 1000.0   # m: no calibration chirp is recorded farther away (a speaker's sweep is ~60 dB SPL there)
+
 
 @dataclass(frozen=True, eq=False)
 class CalibrationResult(Record):
@@ -118,3 +120,39 @@ def without_claims(std, arrays):
         for a in ARRAY_PARAMS:
             std[a.key][i] = np.nan
     return std
+
+
+def blank_diverged(out):
+    """An array farther than AUDIBLE_RANGE from every source, or a source farther than it from every array, is
+    a place no recording can come from: the solve diverged (data that fit no one geometry, e.g. another
+    session's events.csv). Their positions become NaN (the tables' "unknown": what a reader takes back, unlike
+    the 1e5 m such a solve may reach), their std NaN, and the verdict is ``failed``, naming them. In place on
+    ``calibrate``'s output; returns it."""
+    arrays, sources = out["arrays"], out["sources"]
+    xa, xs = arrays[["x", "y", "z"]].to_numpy(float), sources[["x", "y", "z"]].to_numpy(float)
+    d = np.linalg.norm(xa[:, None, :] - xs[None, :, :], axis=2)          # (N, K); NaN where either is unknown
+    near = np.where(np.isnan(d), False, d <= AUDIBLE_RANGE)
+    far_a = np.isfinite(xa).all(axis=1) & ~near.any(axis=1) & np.isfinite(xs).all(axis=1).any()
+    far_s = np.isfinite(xs).all(axis=1) & ~near.any(axis=0)
+    ref = out["problem"].ref             # the gauge: placed by definition, not solved; it heard the sources, so
+    if far_a[ref]:                       # when it is far from all of them, everything solved ran off together
+        far_a, far_s = np.isfinite(xa).all(axis=1), np.isfinite(xs).all(axis=1)
+    far_a[ref] = False
+    if not (far_a.any() or far_s.any()):
+        return out
+    names = [str(a) for a in arrays["array"][far_a]]
+    where = np.abs(np.concatenate([xa[far_a], xs[far_s]])).max()
+    std_cols = [c for c in arrays.columns if c.endswith("_std")]
+    arrays.loc[far_a, ["x", "y", "z", *std_cols]] = np.nan
+    sources.loc[far_s, ["x", "y", "z", *(c for c in sources.columns if c.endswith("_std"))]] = np.nan
+    what = "; ".join(filter(None, [
+        f"array(s) {', '.join(names)} farther than {AUDIBLE_RANGE:g} m from every source" if names else "",
+        f"{int(far_s.sum())} source position(s) farther than {AUDIBLE_RANGE:g} m from every array" if far_s.any() else ""]))
+    verdict = out["report"]["verdict"]
+    verdict["status"] = "failed"
+    verdict["reasons"].insert(0, f"the solve diverged: {what} (up to {where:.3g} m from the "
+                                 "origin; no chirp is recorded that far): the measurements fit no one geometry; those positions are "
+                                 "not written (NaN). Check that events.csv (t_emit, odometry) and the recordings "
+                                 "belong to the same session")
+    verdict["flagged_arrays"] = list(dict.fromkeys([*names, *verdict.get("flagged_arrays", [])]))
+    return out

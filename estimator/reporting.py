@@ -54,7 +54,7 @@ def _odometry_frame(res, lay, cov, kinds):
     """report.json ``odometry_frame``: the yaw, its 1-σ (when estimated) and the test that kept it."""
     yaw_i = int(lay.odo_yaw[0])
     return {
-        "yaw_deg": float(np.rad2deg(res.state.odo_yaw[0])),
+        "yaw_deg": float(np.rad2deg(np.angle(np.exp(1j * res.state.odo_yaw[0])))),   # in (−180, 180]
         "yaw_std_deg": _yaw_std_deg(cov, yaw_i, res.problem, res.state, lay, kinds, res.mask) if yaw_i >= 0 else None,
         "estimated": yaw_i >= 0,
         "test": res.yaw_test,

@@ -333,3 +333,22 @@ def test_report_first_line_states_the_verdict(tmp_path):
         make_report(tmp_path / status / "rep", f, read_calibration(tmp_path / status / "cal"))
         first = (tmp_path / status / "rep" / "summary.md").read_text().splitlines()[0]
         assert first.endswith(f"verdict: {status}"), first
+
+
+@pytest.mark.parametrize("turns", [1, -2])
+def test_yaw_test_wraps_full_turns(turns):
+    """A yaw of a whole number of turns plus a small angle is that small angle: not significant, and reported
+    in (−180°, 180°] (a solve that wandered round the circle once is no rotated odometry)."""
+    from calib.estimator.odoframe import yaw_decision
+
+    feats, _ = simulate_features(3, seed=1)
+    p = build_problem(feats, odometry_yaw=True)
+    lay = make_layout(p)
+    k = int(lay.odo_yaw[0])
+    Jw = np.zeros((lay.n + 1, lay.n))
+    Jw[np.arange(lay.n), np.arange(lay.n)] = 1.0 / np.deg2rad(1.0)    # every parameter's 1-σ: 1° (rad)
+    st = state_from_dict({"x": np.zeros((p.N, 3)), "R": np.tile(np.eye(3), (p.N, 1, 1)), "offset": np.zeros(p.N),
+                          "drift": np.zeros(p.N), "s": np.zeros((p.K, 3)), "e": np.zeros(p.K),
+                          "odo_yaw": np.array([2 * np.pi * turns + np.deg2rad(0.5)])})
+    _, _, test = yaw_decision(p, st, Jw, k)
+    assert test["yaw_deg"] == pytest.approx(0.5) and test["std_deg"] == pytest.approx(1.0) and not test["kept"]

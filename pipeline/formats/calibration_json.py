@@ -58,7 +58,8 @@ def reference_offset(meta, arrays, sources, events):
     ev = events.set_index("event")["t_emit"]
     src = sources.set_index("event")[["x", "y", "z"]]
     try:
-        keep = [int(e) for e in dets if int(e) in src.index and int(e) in ev.index]
+        keep = [int(e) for e in dets if int(e) in src.index and int(e) in ev.index
+                and np.isfinite(src.loc[int(e)].to_numpy(float)).all()]   # (a diverged solve's are unknown)
     except (TypeError, ValueError):
         raise InputError("meta.json: 'reference_detections_s' keys must be event ids") from None
     if len(keep) < MIN_ANCHOR_EVENTS:
@@ -118,7 +119,7 @@ def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None):
     axis = next((list(u["axis"]) for u in undetermined if u.get("axis") is not None), None)
     return {
         "name": str(row["array"]),
-        "position": pos.tolist(),
+        "position": pos.tolist() if np.isfinite(pos).all() else None,   # null: unknown (a diverged solve)
         "quaternion": quat.tolist(),
         "rotation_matrix": R.tolist(),
         "mics": None if mics is None else mics.tolist(),
@@ -182,6 +183,7 @@ def calibration_document(calib, features):
         "odometry_frame": (report.get("odometry_frame") if (report.get("odometry_frame") or {}).get("estimated")
                            else None),
         "sources": None if src is None else [
-            {"event": int(r["event"]), "position": [float(r["x"]), float(r["y"]), float(r["z"])]}
+            {"event": int(r["event"]), "position": [float(r["x"]), float(r["y"]), float(r["z"])]
+             if np.isfinite(r[["x", "y", "z"]].to_numpy(float)).all() else None}
             for _, r in src.iterrows()],
     }

@@ -108,6 +108,11 @@ def export(cal: Calibration, fmt, path, inputs=()):
     path = Path(path)
     if fmt not in FORMATS:
         raise InputError(f"unknown export format {fmt!r}: one of {', '.join(FORMATS)}")
+    unknown = [a.name for a in cal.arrays if not np.isfinite(a.position).all()]
+    if unknown:
+        where = f"{Path(inputs[-1])}: " if inputs else ""
+        raise InputError(f"{where}no position for array(s) {', '.join(unknown)}: the calibration failed (its "
+                         "report.json says why); nothing to export")
     missing = [a.name for a in cal.arrays if a.mics is None]
     if missing and fmt in ("pyroomacoustics", "odas", "urdf"):
         raise InputError(f"{fmt} export needs the mic geometry; none for {', '.join(missing)} "

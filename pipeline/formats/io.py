@@ -454,8 +454,8 @@ def write_features_files(folder, feats):
 
 
 # ----------------------------------------------------------------------------------------------- calibration / truth
-def _read_arrays(path, *, known=None, truth=False):
-    opt = ARRAYS_COLS[1:] if truth else ("offset", "drift")
+def _read_arrays(path, *, known=None):
+    opt = ARRAYS_COLS[1:]   # "empty cells where unknown" (FORMATS.md): e.g. a diverged solve's positions
     pos = (-V.MAX_ABS_POSITION, V.MAX_ABS_POSITION)
     df = read_table(path, ARRAYS_COLS, str_cols=("array",), optional_cols=opt, max_rows=V.MAX_ARRAYS,
                     bounds={"x": pos, "y": pos, "z": pos})
@@ -474,23 +474,28 @@ def _read_arrays(path, *, known=None, truth=False):
     return df.drop(columns=LINE_COLUMN).reset_index(drop=True)  # calibration/truth rows: no line needed
 
 
-def _read_sources(path, truth=False):
-    pos = (-V.MAX_ABS_POSITION, V.MAX_ABS_POSITION)
-    df = read_table(path, SOURCES_COLS, int_cols=("event",), optional_cols=("x", "y", "z") if truth else (),
+def _read_sources(path):
+    pos = (-V.MAX_ABS_POSITION, V.MAX_ABS_POSITION)   # empty cells where unknown (FORMATS.md)
+    df = read_table(path, SOURCES_COLS, int_cols=("event",), optional_cols=("x", "y", "z"),
                     max_rows=V.MAX_EVENTS, bounds={"x": pos, "y": pos, "z": pos})
     _check_unique(df, ["event"], path)
     return df.drop(columns=LINE_COLUMN).sort_values("event", kind="stable").reset_index(drop=True)
 
 
-def read_calibration(directory):
-    """Read a ``calibration/`` directory (arrays.csv, sources.csv, optional report.json)."""
+def _arrays_and_sources(directory, why_needed=""):
+    """(folder, arrays.csv, sources.csv or None) of a calibration or truth folder (unknown values NaN)."""
     d = Path(directory)
     if not d.is_dir():
         raise InputError(f"{d}: not a directory")
     arrays = _read_arrays(d / "arrays.csv")
     if len(arrays) == 0:
-        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header)")
-    sources = _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
+        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header){why_needed}")
+    return d, arrays, _read_sources(d / "sources.csv") if (d / "sources.csv").exists() else None
+
+
+def read_calibration(directory):
+    """Read a ``calibration/`` directory (arrays.csv, sources.csv, optional report.json)."""
+    d, arrays, sources = _arrays_and_sources(directory)
     report = _read_json(d / "report.json") if (d / "report.json").exists() else {}
     if not isinstance(report, dict):
         raise InputError(f"{d / 'report.json'}: must be a JSON object")
@@ -513,13 +518,7 @@ def write_calibration(directory, calib, features=None, command="calib"):
 
 def read_truth(directory: str | Path) -> dict[str, Any]:
     """Read a ``truth/`` directory; unknown values are NaN."""
-    d = Path(directory)
-    if not d.is_dir():
-        raise InputError(f"{d}: not a directory")
-    arrays = _read_arrays(d / "arrays.csv", truth=True)
-    if len(arrays) == 0:
-        raise InputError(f"{d / 'arrays.csv'}: no arrays (only a header): nothing to compare with")
-    sources = _read_sources(d / "sources.csv", truth=True) if (d / "sources.csv").exists() else None
+    d, arrays, sources = _arrays_and_sources(directory, ": nothing to compare with")
     out = {"arrays": arrays, "sources": sources}
     if (d / "clocks.json").exists():   # faulty clocks of a simulation (calib.clock.Clock JSON form per array)
         try:

@@ -232,6 +232,11 @@ def _std_entry(value, where):
     return dict(std)
 
 
+def _position(value, where):
+    """[x, y, z] m, or NaN (3,) for null: a position the calibration could not give (a diverged solve's)."""
+    return np.full(3, np.nan) if value is None else np.array(V.vector3(value, where))
+
+
 def _array(entry, where):
     entry = _obj(entry, where)
     name = V.string(entry.get("name"), f"{where}.name")
@@ -241,7 +246,7 @@ def _array(entry, where):
     und = _list(entry.get("undetermined"), f"{where}.undetermined", optional=True) or []
     axis = entry.get("axis")
     return ArrayCalibration(
-        name=name, position=np.array(V.vector3(entry.get("position"), f"{where}.position")),
+        name=name, position=_position(entry.get("position"), f"{where}.position"),
         quaternion=_quaternion(entry.get("quaternion"), f"{where}.quaternion"),
         mics=None if mics is None else _points(mics, f"{where}.mics", MAX_ABS_MIC),
         offset=V.number(clock.get("offset"), f"{where}.clock.offset", lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME),
@@ -306,7 +311,7 @@ def _sources(value, where):
     for k, s in enumerate(src):
         s = _obj(s, f"{where}[{k}]")
         ev = V.number(s.get("event"), f"{where}[{k}].event", lo=0, hi=V.MAX_EVENT_ID, integer=True)
-        rows.append({"event": ev, **dict(zip("xyz", V.vector3(s.get("position"), f"{where}[{k}].position")))})
+        rows.append({"event": ev, **dict(zip("xyz", _position(s.get("position"), f"{where}[{k}].position")))})
     return pd.DataFrame(rows, columns=["event", "x", "y", "z"])
 
 

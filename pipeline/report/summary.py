@@ -90,7 +90,8 @@ def _scene_points(calib, features, truth):
     src = calib.get("sources")
     S = src[["x", "y", "z"]].to_numpy(float) if src is not None else np.zeros((0, 3))
     odo = features["events"][["odom_x", "odom_y", "odom_z"]].to_numpy(float)
-    O = odo - odo[0] + (S[0] if len(S) else 0.0)  # odometry is relative: anchor it at the first source
+    known = np.flatnonzero(np.isfinite(S).all(axis=1))   # (a diverged solve's sources are unknown: NaN)
+    O = odo - odo[known[0]] + S[known[0]] if len(known) else odo - odo[0]  # relative: anchored at a source
     tA = tR = tS = None
     if truth is not None:
         ta = truth["arrays"].set_index("array").reindex(arr["array"])
@@ -104,6 +105,7 @@ def _scene_points(calib, features, truth):
     pts = [X, S, O] + ([tA[np.all(np.isfinite(tA), axis=1)]] if tA is not None else []) + \
           ([tS] if tS is not None else [])
     allp = np.vstack([q for q in pts if len(q)])
+    allp = allp[np.isfinite(allp).all(axis=1)]
     lo, hi = allp.min(0), allp.max(0)
     extent = float(max(np.max(hi - lo), 0.5))
     return {"names": list(arr["array"]), "X": X, "R": R, "S": S, "events": None if src is None else
