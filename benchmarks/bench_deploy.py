@@ -194,7 +194,8 @@ def main():
                 out.parent.mkdir(parents=True, exist_ok=True)
                 code, wall, cpu, solve = calibrate(d, out)
                 if not (out / "report" / "metrics.json").is_file():
-                    print(f"| {preset} | {seed} | exit {code} | | | | | | | | FAIL | | | | {sim_cpu:.1f} | {wall:.1f} |")
+                    print(f"| {preset} | {seed} | exit {code} |" + " |" * 7 + " FAIL |" + " |" * 3
+                          + f" {sim_cpu:.1f} | {wall:.1f} |")
                     groups.setdefault(preset, []).append(None)
                     continue
                 try:

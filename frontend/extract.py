@@ -151,8 +151,8 @@ def retime_arrivals(session, diag, stretches, min_rows=1):
             st = {**k["st"], "timings": dict(k["st"]["timings"])}
             loc, doa = _relocate(st, k, change, rows, c, opt)
             results[name] = _array_result(st, k["ctx"], loc, t_emit, c, opt, doa)
-    meta_times = (diag.get("_sweep_times") or None)
-    feats, out = _finish(session, results, keep["beta"], opt, t_start, meta_times, MOTION_MODEL_ERROR_RETIMED)
+    feats, out = _finish(session, results, keep["beta"], opt, t_start, diag.get("_sweep_times"),
+                         MOTION_MODEL_ERROR_RETIMED)
     out["retime"] = done
     return feats, out
 
@@ -231,7 +231,8 @@ def _finish(session, results, beta, opt, t_start, sweep_times=None, motion_error
         meta["doa_time_s"], meta["stretch_time_s"] = sweep_times or _reference_sweep_times(a_ref, session, c, opt,
                                                                                              beta)
         if "sigma_tdoa" in meta.get("sigmas_estimated", []):
-            meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion_sd(events, c, beta, motion_error or MOTION_MODEL_ERROR)))
+            motion = motion_sd(events, c, beta, motion_error or MOTION_MODEL_ERROR)
+            meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion))
     diag = _diagnostics(session, results, ev_ids, beta, time.perf_counter() - t_start)
     return Features.from_dict(feats), diag
 
@@ -323,7 +324,7 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1, keep=None):
     the associated events, fused into arrivals; closes the recording. Returns the array's
     :class:`~calib.frontend.arrayresult.ArrayResult`. keep : a dict (or None) that gets ``keep[name]`` =
     {"st": the state without the recording, "ctx": the timing layout, "loc": the located events}, from which
-    :func:`retime_arrivals` re-times chosen events without detecting again."""
+    :func:`retime_arrivals` re-times chosen events without detecting again, and "doa" their DOAs."""
     timings = st["timings"]
     try:
         t0 = time.perf_counter()
@@ -334,14 +335,11 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1, keep=None):
     finally:
         st["x"].close()
     timings["timing"] = time.perf_counter() - t0
-    if keep is not None:
-        keep[st["a"]["name"]] = {"st": {k: v for k, v in st.items() if k != "x"}, "ctx": ctx, "loc": loc,
-                                 "doa": None}
     t0 = time.perf_counter()
     doa = _direct_path_doa(loc, ctx["mics"], st["fs"], ctx["setup"], ctx["g"], c, opt, st["a"].get("doa_hemisphere"))
     timings["doa"] = time.perf_counter() - t0
     if keep is not None:
-        keep[st["a"]["name"]]["doa"] = doa
+        keep[st["a"]["name"]] = {"st": {k: v for k, v in st.items() if k != "x"}, "ctx": ctx, "loc": loc, "doa": doa}
     return _array_result(st, ctx, loc, t_emit, c, opt, doa)
 
 

@@ -85,7 +85,8 @@ def _tdoa_m_errors(feats, out):
     arr = pd.read_csv(out / "truth" / "arrays.csv").set_index("array")
     ev = feats["events"].set_index("event")
     meta = feats["meta"]
-    c, beta, t_star, ref = meta["speed_of_sound"], meta["chirp_drift_bias"], meta["stretch_time_s"], meta["reference_array"]
+    c, beta, t_star = meta["speed_of_sound"], meta["chirp_drift_bias"], meta["stretch_time_s"]
+    ref = meta["reference_array"]
     tt, path = tr["t"].to_numpy(), tr[["x", "y", "z"]].to_numpy()
     pos = lambda t: np.array([np.interp(t, tt, path[:, q]) for q in range(3)])
     t0 = ev["t_emit"].iloc[0]
