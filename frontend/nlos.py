@@ -258,7 +258,7 @@ def retime_earlier(res, c, c_plain, setup, locate_kw):
     located anew. Their ``ratio`` becomes the direct path's amplitude over the strongest peak's (so the
     arrival is flagged ``weak_direct``, and the array ``occluded`` when that is frequent) and ``strongest``
     stays the first look's. Returns (res, sub): ``sub`` the new location of those events (a dict like
-    ``res``, its ``events`` (K,) their indices) or None; :func:`merge_events` puts it into ``res``."""
+    ``res``, its ``events`` (K,) their indices) or None (``extract.locate_events`` puts it into ``res``)."""
     kw = {k: v for k, v in locate_kw.items() if k != "c_onset"}
     found, lag, ratio = earlier_paths(c_plain, setup, res["dp"], kw["lo"], kw["hi"], kw["half_width"],
                                       kw.get("snr_factor", 6.0), kw.get("min_ratio", 0.05),
@@ -280,22 +280,9 @@ def retime_earlier(res, c, c_plain, setup, locate_kw):
     ok = np.abs(sub["dp"] - lag[sel]) <= hw   # it timed the earlier arrival found (not something else)
     sub["ratio"] = res["ratio"][sel]
     sub["strongest"] = res["strongest"][sel]
+    sub["stretch"] = np.asarray(res.get("stretch", np.zeros(len(res["dp"]))))[sel]
     sub["events"] = sel
     sub = {key: v[ok] if isinstance(v, np.ndarray) and v.ndim >= 1 and len(v) == len(sel) else v
            for key, v in sub.items()}
     return res, (sub if np.any(ok) else None)
 
-
-def merge_events(res, sub):
-    """``res`` with the per-event entries of events ``sub["events"]`` replaced by ``sub``'s (both gated
-    alike; a session-wide ``phase`` is kept)."""
-    if sub is None:
-        return res
-    out, sel = dict(res), sub["events"]
-    for key, v in sub.items():
-        if key == "events" or key not in res or not isinstance(v, np.ndarray) or v.ndim < 1 or len(v) != len(sel):
-            continue
-        if isinstance(res[key], np.ndarray) and res[key].ndim >= 1 and res[key].shape[1:] == v.shape[1:]:
-            out[key] = res[key].copy()
-            out[key][sel] = v
-    return out
