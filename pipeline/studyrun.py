@@ -8,9 +8,6 @@ module (it would load the estimator for nothing).
 """
 from __future__ import annotations
 
-import contextlib
-import functools
-import os
 import time
 import zlib
 
@@ -123,57 +120,9 @@ def run_chunk(tasks, settings):
     per task its start and end (epoch s), its own CPU and its process's CPU)."""
     rows = []
     timing = studytiming.chunk_timing()
-    # tiny matrices (calib.blas): parallelism across runs instead; freed arrays reused, not re-faulted
-    with single_thread_blas(), _heap_kept():
+    with single_thread_blas():   # tiny matrices (calib.blas): parallelism across runs instead
         for task in tasks:
             st, sd, traj, run, methods = task
             with studytiming.task_timer(timing, task):
                 rows += run_methods(st, sd, traj, run, methods=tuple(methods), **settings)
     return {"rows": rows, "timing": timing}
-
-
-# glibc's mallopt parameters (malloc.h) and the most it keeps on its own: its dynamic mmap threshold's ceiling
-M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-HEAP_KEEP = 32 * 2**20   # bytes (DEFAULT_MMAP_THRESHOLD_MAX on 64-bit)
-MALLOC_ENV = {"MALLOC_TRIM_THRESHOLD_": M_TRIM_THRESHOLD, "MALLOC_MMAP_THRESHOLD_": M_MMAP_THRESHOLD}
-GLIBC_DEFAULT_THRESHOLD = 128 * 1024   # bytes: glibc's default for both
-
-
-@contextlib.contextmanager
-def _heap_kept():
-    """While a chunk runs, freed memory stays in glibc's heap instead of going back to the OS.
-
-    A run allocates and frees arrays over glibc's 128 KiB mmap threshold many times; each such array is a fresh
-    mapping whose pages fault in (and are zeroed) again: 40,000 page faults per 30 runs, measured 4-12 % of
-    their CPU (and memory bandwidth that N busy workers share). Dask's nanny starts workers with
-    MALLOC_TRIM_THRESHOLD_=65536, which also freezes that threshold: 8x the page faults, +15-27 % CPU. The chunk
-    runs with glibc's own ceilings (1,500 page faults); afterwards the environment's values (else glibc's
-    defaults) are set again and the kept memory handed back (``malloc_trim``), so a worker's memory policy
-    holds between chunks. Not glibc: nothing.
-    """
-    libc = _glibc()
-    if libc is None:
-        yield
-        return
-    libc.mallopt(M_MMAP_THRESHOLD, HEAP_KEEP)
-    libc.mallopt(M_TRIM_THRESHOLD, 2 * HEAP_KEEP)
-    try:
-        yield
-    finally:
-        for name, p in MALLOC_ENV.items():
-            with contextlib.suppress(ValueError):
-                libc.mallopt(p, int(os.environ.get(name, GLIBC_DEFAULT_THRESHOLD)))
-        libc.malloc_trim(0)
-
-
-@functools.cache
-def _glibc():
-    """The C library when it is glibc (``mallopt``, ``malloc_trim``), else None."""
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return libc if hasattr(libc, "malloc_trim") and hasattr(libc, "mallopt") else None
-    except OSError:
-        return None

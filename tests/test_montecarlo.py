@@ -188,37 +188,3 @@ def test_rows_are_the_same_whatever_the_workers_and_the_chunk_sizes(study, tmp_p
         workers = {c["worker"].rsplit(":", 1)[1] for c in res["timing"]["chunks"]}
         assert (workers == {str(os.getpid())}) == (jobs == 1)                    # jobs=2: worker processes
         assert without_time(out / "runs.csv") == without_time(fresh / "runs.csv")
-
-
-def test_heap_is_kept_during_a_chunk_and_the_environments_policy_restored_after(tmp_path):
-    """Dask's workers run with MALLOC_TRIM_THRESHOLD_=65536: every 1 MiB array is then a fresh mapping whose
-    256 pages fault in; inside _heap_kept they are reused; after it the environment's policy holds again."""
-    import subprocess
-    import sys
-
-    from calib.pipeline import studyrun
-
-    if studyrun._glibc() is None:
-        pytest.skip("not glibc")
-    code = """if True:
-        import resource
-        import numpy as np
-        from calib.pipeline.studyrun import _heap_kept
-
-        def faults():
-            r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-            for _ in range(100):
-                a = np.ones(2**17)   # 1 MiB, freed at once
-            return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0
-
-        before = faults()
-        with _heap_kept():
-            kept = faults()
-        print(before, kept, faults())
-    """
-    env = {**__import__("os").environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
-    before, kept, after = map(int, subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                                                  text=True, check=True).stdout.split())
-    pages = 100 * 2**20 // 4096
-    assert before > 0.9 * pages and after > 0.9 * pages      # one mapping per array, its pages faulted in
-    assert kept < 0.05 * pages                                # the first array's pages, reused 99 times
