@@ -20,7 +20,9 @@ orientation against the norm of its rotation std; "no std" when it was dropped);
 ``pass*`` the same but an array without the direct path is outside the bound and not named, ``named``
 when instead the verdict names exactly the arrays outside the bound and the others meet it, else ``FAIL``;
 ``FAIL(ok>3σ)`` when the verdict is ok while an array is more than 3σ off. Frontend CPU: process time of
-the features computation inside the `calib run` subprocess (all threads) as % of the recording.
+the features computation inside the `calib run` subprocess (all threads) as % of the recording, without the
+first solve of a moving source's re-timing pass (pipeline/retime.py: estimator work, its own column), and the
+number of arrivals that pass timed again.
 """
 from __future__ import annotations
 
@@ -45,13 +47,21 @@ BOUND = (0.03, 1.5)
 RUNNER = """
 import json, sys, time
 from calib.pipeline import features as F
-inner, cpu_file = F.session_features, sys.argv[1]
+from calib.pipeline import retime as R
+inner, cpu_file, solve = F.session_features, sys.argv[1], R.first_pass_stretches
+spent = {"solve_cpu_s": 0.0}
+def timed_solve(*a, **k):
+    t0 = time.process_time()
+    out = solve(*a, **k)
+    spent["solve_cpu_s"] += time.process_time() - t0
+    return out
 def timed(*a, **k):
     t0 = time.process_time()
     out = inner(*a, **k)
-    open(cpu_file, "w").write(json.dumps({"cpu_s": time.process_time() - t0}))
+    open(cpu_file, "w").write(json.dumps({"cpu_s": time.process_time() - t0, **spent}))
     return out
 F.session_features = timed
+R.first_pass_stretches = timed_solve
 sys.argv = ["calib", "run", *sys.argv[2:]]
 from calib.cli.entry import main
 main()
@@ -85,16 +95,18 @@ def simulate(d, preset, seed):
 
 
 def calibrate(d, out):
-    """`calib run` in a subprocess: (exit code, wall s, frontend CPU s)."""
+    """`calib run` in a subprocess: (exit code, wall s, frontend CPU s, CPU s of the re-timing's first solve
+    inside the features stage: estimator work, not the frontend's)."""
     cpu_file = out.parent / f"{out.name}.cpu.json"
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-c", RUNNER, str(cpu_file), str(d), "-o", str(out), "--force", "--quiet"],
                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     wall = time.perf_counter() - t0
-    cpu = json.loads(cpu_file.read_text())["cpu_s"] if cpu_file.is_file() else float("nan")
+    rec = json.loads(cpu_file.read_text()) if cpu_file.is_file() else {}
+    cpu, solve = rec.get("cpu_s", float("nan")), rec.get("solve_cpu_s", float("nan"))
     if p.returncode not in (0, 3):
         print(f"  calib run {d.name}: exit {p.returncode}: {p.stderr.strip().splitlines()[-1:]}", flush=True)
-    return p.returncode, wall, cpu
+    return p.returncode, wall, cpu - solve, solve
 
 
 def assess(d, out, preset):
@@ -170,8 +182,8 @@ def main():
         print(f"load: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
         print("| preset | seed | position RMSE (cm) | orientation (deg) | verdict | named | clear arrays | worst clear "
               "(cm / deg) | off, not named | > 3σ | no std | acceptance | frontend CPU (% of audio) "
-              "| simulate CPU (s) | run wall (s) |")
-        print("|---" * 15 + "|")
+              "| re-timing's first solve CPU (% of audio) | arrivals re-timed | simulate CPU (s) | run wall (s) |")
+        print("|---" * 17 + "|")
         groups = {}
         for spec in specs:
             preset, seeds = parse_spec(spec, args.seeds)
@@ -180,9 +192,10 @@ def main():
                 _, sim_cpu = simulate(d, preset, seed)
                 out = (Path(args.work) if args.work else Path(tmp)) / "runs" / d.name
                 out.parent.mkdir(parents=True, exist_ok=True)
-                code, wall, cpu = calibrate(d, out)
+                code, wall, cpu, solve = calibrate(d, out)
                 if not (out / "report" / "metrics.json").is_file():
-                    print(f"| {preset} | {seed} | exit {code} | | | | | | | | FAIL | | {sim_cpu:.1f} | {wall:.1f} |")
+                    print(f"| {preset} | {seed} | exit {code} |" + " |" * 7 + " FAIL |" + " |" * 3
+                          + f" {sim_cpu:.1f} | {wall:.1f} |")
                     groups.setdefault(preset, []).append(None)
                     continue
                 try:
@@ -191,13 +204,16 @@ def main():
                     print(f"| {preset} | {seed} | assessment failed: {type(exc).__name__}: {exc} |", flush=True)
                     groups.setdefault(preset, []).append(None)
                     continue
-                dur = json.loads((out / "diagnostics" / "diagnostics.json").read_text())["recording_duration_s"]
-                r["cpu_pct"] = 100 * cpu / dur
+                diag = json.loads((out / "diagnostics" / "diagnostics.json").read_text())
+                dur = diag["recording_duration_s"]
+                r["cpu_pct"], r["solve_pct"] = 100 * cpu / dur, 100 * solve / dur
+                r["retimed"] = sum((diag.get("retime") or {}).get("events", {}).values())
                 groups.setdefault(preset, []).append(r)
                 print(f"| {preset} | {seed} | {r['pos_cm']:.2f} | {r['rot_deg']:.2f} | {r['status']} | {r['named']} "
                       f"| {r['clear']} | {r['worst_clear']} | {r['off_unnamed']} | {r['over3']} | {r['no_std']} "
                       f"| {r['accept']} "
-                      f"| {r['cpu_pct']:.2f} | {sim_cpu:.1f} | {wall:.1f} |", flush=True)
+                      f"| {r['cpu_pct']:.2f} | {r['solve_pct']:.2f} | {r['retimed']} | {sim_cpu:.1f} | {wall:.1f} |",
+                      flush=True)
         print()
         print("| preset | sessions | median position (cm) | median orientation (deg) | verdicts | acceptance "
               "| ok with an array > 3σ | median frontend CPU (%) |")

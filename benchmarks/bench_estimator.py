@@ -21,7 +21,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 
-import calib.pipeline.montecarlo as montecarlo
+import calib.pipeline.studyrun as studyrun
 from calib.estimator import calibrate
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.formats.io import read_features, read_truth
@@ -116,7 +116,7 @@ def main():
     if options != {"noise": "auto", "array_noise": False}:
         if args.jobs != 1 and not args.no_sim:
             ap.error("--noise/--array-noise apply in this process only: use --jobs 1")
-        montecarlo.calibrate = functools.partial(calibrate, **options)   # the study's calibrations (in process)
+        studyrun.calibrate = functools.partial(calibrate, **options)   # the study's calibrations (in process)
     pd.set_option("display.width", 200)
     pd.set_option("display.max_columns", 30)
     if not args.no_sim:

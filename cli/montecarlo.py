@@ -56,6 +56,9 @@ def montecarlo(
                                            help="also solve from ground truth to tell global convergence"),
     crlb: bool = typer.Option(True, "--crlb/--no-crlb", help="score one draw from the CRLB per run"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar and no table"),
+    timing_log: Optional[Path] = typer.Option(None, help="also write the study's timeline to this JSON file: "
+                                                         "each task's worker, start, end and CPU time, the "
+                                                         "parent's phases (benchmarks/bench_scaleout.py reads it)"),
 ):
     """Run the paper's Monte-Carlo protocol (Zhang et al. 2025, Fig. 3) for every method.
 
@@ -68,8 +71,9 @@ def montecarlo(
     from calib.pipeline.montecarlo import paper_grid, read_grid, run_study
 
     from calib.pipeline.formats import validate as V
-    from calib.pipeline.formats.outputs import owned_output
-    from calib.pipeline.montecarlo import check_study_folder
+    from calib.pipeline.formats.io import dumps_json
+    from calib.pipeline.formats.outputs import check_file_replaceable, owned_output, write_file
+    from calib.pipeline.montecarlo import COMMAND, check_study_folder
 
     V.option(runs, "runs", lo=1, hi=10**6, integer=True)
     V.jobs_option(jobs)
@@ -87,6 +91,8 @@ def montecarlo(
     if seed is not None:
         g["base_seed"] = seed
     check_study_folder(out)  # a user's summary.csv (or any file calib did not write) stops it before the work
+    if timing_log is not None:
+        check_file_replaceable(timing_log, command=COMMAND)
     try:
         # locked, appended to, never replaced as a folder; each file through the output policy
         with owned_output([], [grid], lock=out, check=None, on_wait=waiting), _bar(quiet) as progress:
@@ -96,6 +102,8 @@ def montecarlo(
     except KeyboardInterrupt as exc:
         raise typer.Exit(interrupted(exc, f"the finished runs are kept in {out}; run the same command again to "
                                           "resume")) from None
+    if timing_log is not None:
+        write_file(timing_log, dumps_json(res["timing"]) + "\n", command=COMMAND)
     if not quiet:
         _print_summary(res)
 

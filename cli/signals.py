@@ -6,6 +6,7 @@ folders removed, locks released, worker pools stopped), then the command exits w
 """
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import sys
@@ -111,4 +112,5 @@ def leave(code):
             except (OSError, ValueError):
                 pass
         os._exit(code)
+    gc.freeze()  # the interpreter's exit then skips collecting every object again (0.1-0.7 s of a command's wall)
     sys.exit(code)

@@ -24,7 +24,7 @@ from .motion import motion_solve
 from .outputs import CalibrationResult, blank_diverged, to_frames, to_tables, undetermined_parameters, without_claims
 from .problem import State, build_problem, make_layout, state_from_dict
 from .reporting import judge, make_report
-from .screen import distrusted, screen_rows
+from .screen import distrusted, isolated, screen_rows
 from .solver import forget_linearisation, linearise
 from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
@@ -106,7 +106,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         p = arraynoise.start_scales(p, kinds)
     res, basins = _deployment_solve(p, st, kinds, stages, features, lambda p_, st_: joint_solve(
         p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
-        outlier_threshold=outlier_threshold, max_iter=max_iter), max_iter)
+        outlier_threshold=outlier_threshold, max_iter=max_iter, isolate=isolated(screened, p.names)), max_iter)
     times["joint"] = time.perf_counter() - t2
     if outputs == "solution":
         return _solution(res, kinds, stage_states)

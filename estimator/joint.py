@@ -63,30 +63,36 @@ class ArrayCheck(NamedTuple):
 
 
 def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5.0, max_iter=200,
-               check_arrays=True, noise_bounds=None, noise_floors=None):
+               check_arrays=True, noise_bounds=None, noise_floors=None, isolate=()):
     """Joint NLS from a given state: robust pass → inconsistent arrays → outlier rows → plain least squares.
 
     ``noise_bounds`` ({kind: factor}, noise="estimate"): first move the sigmas by the medians of the
     residual statistics (:func:`~calib.estimator.variance.robust_noise_steps`; ``noise_floors``: {kind: the
-    largest factor a sigma may be lowered by}, default the bound). Returns a :class:`JointResult` (its
+    largest factor a sigma may be lowered by}, default the bound). ``isolate``: indices of arrays the data
+    already distrust as a whole (``screen.isolated``): solved without them from the start and refitted
+    alone, as the inconsistent ones (:func:`consistency_stage`). Returns a :class:`JointResult` (its
     ``problem`` carries the new sigmas and odometry-yaw freedom; ``p`` is not changed).
     """
-    lay = make_layout(p)
+    # arrays distrusted as a whole: out before anything is fitted (their rows move no sigma, yaw or source)
+    lay, mask, dropped = _isolation(p, isolate)
     # the robust pass only has to find the basin and the outliers; the final pass converges tightly
-    st, robust = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+    st, robust = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, mask=mask, max_iter=max_iter,
+                                     rtol=1e-6)
     yaw_test = None if p.odo_yaw_test is None else dict(p.odo_yaw_test)
     if noise_bounds is not None and loss:
         stated = {k: p.sigma[k] for k in reweighted()}
         st, p = robust_noise_steps(p, st, lay, kinds, bounds=noise_bounds, stated=stated, loss=loss,
-                                   robust_k=robust_k, max_iter=max_iter, floors=noise_floors)
+                                   robust_k=robust_k, max_iter=max_iter, floors=noise_floors, mask=mask)
     if lay.odo_yaw[0] >= 0 and yaw_test is None:
-        st, p, lay, yaw_test = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k, max_iter=max_iter)
-    res = JointResult(st, p, lay, robust, {}, yaw_test=yaw_test)
+        st, p, lay, yaw_test = _odometry_yaw_test(p, st, lay, kinds, loss=loss, robust_k=robust_k, max_iter=max_iter,
+                                                  mask=mask, dropped=dropped)
+    res = JointResult(st, p, lay, robust, {}, mask=mask, dropped=dropped, yaw_test=yaw_test,
+                      arrays=[{"array": str(p.names[i]), "isolated": True, "inconsistent": False} for i in dropped])
     if loss:
         _robust_stages(res, kinds, check_arrays=check_arrays, loss=loss, robust_k=robust_k, max_iter=max_iter,
                        threshold=outlier_threshold)
     else:
-        res.state, res.final = levenberg_marquardt(p, st, lay, kinds, loss=None, mask={}, max_iter=max_iter)
+        res.state, res.final = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
     res.n_measurements = count_measurements(p, res.dropped)
     for i in res.dropped:
         # the dropped array's own pose and clock from its data, everything else fixed (marked unreliable)
@@ -94,16 +100,27 @@ def solve_from(p, st, *, kinds, loss="cauchy", robust_k=3.0, outlier_threshold=5
     return res
 
 
+def _isolation(p, isolate):
+    """(layout, mask, dropped) with the arrays ``isolate`` (indices; never the reference, and at least one
+    other array stays) left out: their parameters fixed, their rows masked."""
+    sizes, mask, dropped = factor_sizes(p), {}, []
+    for i in isolate:
+        if i != p.ref and i not in dropped and len(dropped) + 2 < p.N:
+            mask = array_mask(p, mask, sizes, i)
+            dropped.append(int(i))
+    return make_layout(p, arrays=[a for a in range(p.N) if a not in dropped]), mask, dropped
+
+
 def _robust_stages(res, kinds, *, check_arrays, loss, robust_k, max_iter, threshold):
-    """After the robust pass (``res``: its state and layout, updated here): inconsistent arrays out
-    (``check_arrays``), outlier rows out one by one, least squares, the outliers only the least-squares
-    solution shows, flagged rows that fit given back."""
-    p, st, lay, mask, stats = res.problem, res.state, res.layout, {}, None
+    """After the robust pass (``res``: its state, layout, mask and the arrays isolated so far, updated
+    here): inconsistent arrays out (``check_arrays``), outlier rows out one by one, least squares, the
+    outliers only the least-squares solution shows, flagged rows that fit given back."""
+    p, st, lay, mask, stats = res.problem, res.state, res.layout, res.mask, None
     if check_arrays:
         chk = consistency_stage(p, st, lay, kinds, mask, loss=loss, robust_k=robust_k, max_iter=max_iter,
-                                threshold=threshold)
+                                threshold=threshold, dropped=res.dropped)
         st, lay, mask, stats = chk.state, chk.layout, chk.mask, chk.stats
-        res.dropped, res.arrays = chk.dropped, chk.records
+        res.dropped, res.arrays = chk.dropped, res.arrays + chk.records
     first = remove_outliers(p, st, lay, kinds, mask, threshold=threshold, loss=loss, k=robust_k, max_iter=max_iter,
                             stats=stats if not res.dropped else None)
     st, res.final = levenberg_marquardt(p, first.state, lay, kinds, loss=None, mask=first.mask, max_iter=max_iter)
@@ -121,34 +138,38 @@ def _robust_stages(res, kinds, *, check_arrays, loss, robust_k, max_iter, thresh
     res.state, res.layout, res.mask, res.outliers = st, lay, mask, flagged
 
 
-def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter):
+def _odometry_yaw_test(p, st, lay, kinds, *, loss, robust_k, max_iter, mask=None, dropped=()):
     """Keep the odometry yaw free only when significant (``odoframe.YAW_SIGNIFICANCE``); else fix it at 0
-    and re-solve. Returns (state, problem, layout, {yaw_deg, std_deg, kept})."""
-    lin = linearise(p, st, lay, kinds, loss=loss, k=robust_k)
+    and re-solve (``mask``, ``dropped``: rows and arrays left out). Returns (state, problem, layout,
+    {yaw_deg, std_deg, kept})."""
+    lin = linearise(p, st, lay, kinds, loss=loss, k=robust_k, mask=mask)
     p, st, test = yaw_decision(p, st, whiten(lin.J, lin.w), int(lay.odo_yaw[0]))
     if not test["kept"]:
-        lay = make_layout(p)
-        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+        lay = make_layout(p, arrays=[a for a in range(p.N) if a not in dropped])
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, mask=mask, max_iter=max_iter, rtol=1e-6)
     return st, p, lay, test
 
 
-def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, threshold=5.0):
+def consistency_stage(p, st, lay, kinds, mask, *, loss, robust_k, max_iter, threshold=5.0, dropped=()):
     """Per-array consistency: for each candidate array (``robust.array_candidates``, then
     ``robust.concentrated_candidates`` at the outlier ``threshold``), re-solve without it and keep the drop
     when the χ² drop test rejects it at FAMILY_ALPHA / N (a concentrated candidate only when dropping it
     also moves the rest by more than MOVE_SIGMA: its data bend the others' solution, as an occluded
-    array's reflections do; otherwise its outlier rows are removed one by one as any others).
+    array's reflections do; otherwise its outlier rows are removed one by one as any others). ``dropped``:
+    arrays already left out (isolated; not tested again, listed first in the result's ``dropped``).
 
     Returns an :class:`ArrayCheck`.
     """
     sizes = factor_sizes(p)
     stats = measurement_stats(p, st, lay, kinds, mask)
-    records, dropped = [], []
+    records, dropped = [], list(dropped)
     # (array, median ratios, outlier rows if it is a candidate only for holding most of them)
     cands = [(i, ratios, None) for i, ratios in array_candidates(p, stats)]
     listed = {i for i, _, _ in cands}
     cands += [(i, {}, k) for i, k in concentrated_candidates(p, stats, threshold).items() if i not in listed]
     for i, ratios, rows in cands:
+        if i in dropped:
+            continue
         if len(dropped) + 2 >= p.N:
             break                      # keep the reference and at least one other array
         keep_arr = [a for a in range(p.N) if a != i and a not in dropped]
@@ -185,9 +206,10 @@ def _moves_sigma(p, st_a, st_b, lay, kinds, mask):
     return float(z.max()) if z.size else 0.0
 
 
-def joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_threshold, max_iter):
+def joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_threshold, max_iter, isolate=()):
     """Robust joint solve with outlier and array tests, then (noise="estimate") bounded variance components.
 
+    ``isolate``: array indices solved without (:func:`solve_from`).
     Returns a :class:`JointResult` with the final sigmas in its problem, ``scales`` ({kind: final / stated
     sigma}) and ``bounds``; ``stages`` gets the noise step's record.
     """
@@ -195,7 +217,8 @@ def joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_th
     floors = sigma_floors(meta, bounds)
     stated = {k: p.sigma[k] for k in reweighted()}
     res = solve_from(p, st, kinds=kinds, loss=loss, robust_k=robust_k, outlier_threshold=outlier_threshold,
-                     max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None, noise_floors=floors)
+                     max_iter=max_iter, noise_bounds=bounds if noise == "estimate" else None, noise_floors=floors,
+                     isolate=isolate)
     if noise == "estimate":
         res.state, res.problem, vce = estimate_noise(res.problem, res.state, kinds, res.mask, bounds=bounds,
                                                      floors=floors, max_iter=max_iter, lay=res.layout, stated=stated)

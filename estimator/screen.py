@@ -9,9 +9,16 @@ Two kinds (docs/method.md, "Screened rows"):
 * **nlos**: the frontend's evidence that an arrival is a reflection only (flag ``nlos``: late against the
   array's own range track along the odometry, docs/frontend.md). Such a row is late by metres of path and
   would pull the array that heard it — and through the shared sources every other array.
+* **weak_direct** (DOA rows; counted, not taken out): the arrival's direct path is weaker than a reflection
+  within a few pulse widths after it (a mount or obstacle attenuates it by 10–20 dB; docs/frontend.md). Its
+  time is the direct path's, but its DOA is the direct path's seen through the reflection's leakage: 2–8° off
+  on occluded-lab seed 41 (0.2–1° for the arrays in line of sight), several times its own spread, and biased
+  alike over an array's events (the array tilts 7–10° at 3.5σ). One such row is left to the outlier tests;
+  an array with most of its DOAs such is distrusted as a whole.
 
-An array whose rows are mostly doubted keeps them (dropping most of an array's data leaves it to a handful
-of rows): it is reported as distrusted instead, and the verdict names it (:func:`distrusted_arrays`).
+Each kind of doubt is judged on its own: an array whose rows are mostly doubted for one reason keeps
+those rows (dropping most of an array's data leaves it to a handful of rows): it is reported as distrusted
+instead, and the verdict names it (:func:`distrusted`).
 """
 from __future__ import annotations
 
@@ -19,15 +26,20 @@ import numpy as np
 import pandas as pd
 
 ABSURD_S = 0.3              # s: 100 m of path, beyond any room's geometry; a row further off its clock line is absurd
-MAX_DOUBTED_FRACTION = 0.5  # an array with more of its rows flagged nlos keeps them (named as distrusted instead)
-DROP_FLAGS = ("nlos",)      # frontend doubts (the ``flag`` column) whose rows are taken out
+MAX_DOUBTED_FRACTION = 0.5  # an array with more of its rows doubted for one reason keeps them (named as distrusted instead)
+# frontend doubts (the ``flag`` column) and the tables where they count; ``nlos`` rows are taken out, while
+# ``weak_direct`` ones only count towards an array mostly doubted (kept, named and solved apart): one such DOA
+# is a row like any other for the outlier tests (taking them out cost moving seeds 0-1 up to 3 cm: a
+# reference array's DOAs), only a bias shared by most of an array's events escapes those tests
+DROP_FLAGS = {"nlos": ("tdoa_m", "tdoa_s", "doa"), "weak_direct": ("doa",)}
+ARRAY_ONLY = ("weak_direct",)
 
 
-def _flags(df):
-    """(rows,) bool: the row's ``flag`` holds one of DROP_FLAGS."""
+def _flags(df, flags=tuple(DROP_FLAGS)):
+    """(rows,) bool: the row's ``flag`` holds one of ``flags``."""
     if "flag" not in df.columns:
         return np.zeros(len(df), bool)
-    pattern = r"(?:^|\+)(?:" + "|".join(DROP_FLAGS) + r")(?:\+|$)"
+    pattern = r"(?:^|\+)(?:" + "|".join(flags) + r")(?:\+|$)"
     f = df["flag"]
     return f.astype(object).where(f.notna(), "").astype(str).str.contains(pattern).to_numpy(bool)
 
@@ -120,41 +132,71 @@ def mostly_doubted(features, doubt):
     return out
 
 
+def _doubts(features, names):
+    """{reason: ({table: (rows,) bool doubted for it}, {array: its doubted events, kept because they are
+    most of its events (:func:`mostly_doubted`)})} for each reason of DROP_FLAGS with a doubted row."""
+    out = {}
+    for why, tables in DROP_FLAGS.items():
+        doubt = {n: _flags(features[n], (why,)) if n in tables else np.zeros(len(features[n]), bool) for n in names}
+        if any(d.any() for d in doubt.values()):
+            out[why] = (doubt, mostly_doubted(features, doubt))
+    return out
+
+
 def screen_rows(features):
     """Features without the rows not trusted, and the record of what was taken out and why.
 
     Returns (features copy, record): record = {"rows": [{"type", "array", "events", "reason"[, "line"]}],
-    "kept_doubted": {array: its doubted events, kept because they are most of its events}}.
+    "kept_doubted": {array: its doubted events, kept because they are most of its events}, "kept_reasons":
+    {array: [the reasons its rows were kept for]}}.
     """
     absurd = absurd_rows(features)
     names = [n for n in ("tdoa_m", "tdoa_s", "doa") if len(features[n])]
-    doubt = {n: _flags(features[n]) for n in names}
-    kept = mostly_doubted(features, doubt) if any(d.any() for d in doubt.values()) else {}
+    doubts = _doubts(features, names)
     out, rows = dict(features), []
     ref = str(features["meta"].get("reference_array"))
-    ref_bad = own_doubted_events(features, doubt, ref) if any(d.any() for d in doubt.values()) else set()
+    ref_bad = {why: own_doubted_events(features, d, ref) for why, (d, _) in doubts.items()}
     for name in names:
         df = features[name]
         arr = df["array"].astype(str).to_numpy()
         bad = absurd.get(name, np.zeros(len(df), bool))
-        drop = bad | (doubt[name] & ~np.isin(arr, list(kept)))
+        reason = np.where(bad, "absurd", "").astype(object)
+        for why, (doubt, kept) in doubts.items():   # the first reason that takes a row out names it
+            if why not in ARRAY_ONLY:
+                reason[(reason == "") & doubt[name] & ~np.isin(arr, list(kept))] = why
+        drop = reason != ""
         for k, evs in zip(np.flatnonzero(drop), [e for e, d in zip(_row_events(df), drop) if d]):
-            via = name == "tdoa_m" and not bad[k] and evs[0] in ref_bad   # the reference's arrival, not its own
-            rows.append({"type": name, "array": str(arr[k]), "events": evs, "reason": "absurd" if bad[k] else "nlos",
+            # the reference's arrival, not its own
+            via = name == "tdoa_m" and not bad[k] and evs[0] in ref_bad.get(reason[k], ())
+            rows.append({"type": name, "array": str(arr[k]), "events": evs, "reason": str(reason[k]),
                          **({"via_reference": True} if via else {}),
                          **({"line": int(df["csv_line"].iloc[k])} if "csv_line" in df.columns else {})})
         if drop.any():
             out[name] = df[~drop]
-    return out, {"rows": rows, "kept_doubted": kept}
+    kept, reasons = {}, {}
+    for why, (_, k) in doubts.items():
+        for a, n in k.items():
+            kept[a] = max(kept.get(a, 0), n)
+            reasons.setdefault(a, []).append(why)
+    return out, {"rows": rows, "kept_doubted": kept, "kept_reasons": reasons}
 
 
 def distrusted(record):
     """Summary for the report: {array: {reason: number of rows}} of the screened rows, plus the arrays whose
-    doubted rows were kept (``"nlos_kept"``)."""
+    doubted rows were kept (``"<reason>_kept"``: its doubted events)."""
     out = {}
     for r in record["rows"]:
         d = out.setdefault(r["array"], {})
         d[r["reason"]] = d.get(r["reason"], 0) + 1
     for a, n in record["kept_doubted"].items():
-        out.setdefault(a, {})["nlos_kept"] = n
+        for why in record.get("kept_reasons", {}).get(a, ["nlos"]):
+            out.setdefault(a, {})[f"{why}_kept"] = n
     return out
+
+
+def isolated(record, names):
+    """Indices (into ``names``) of the arrays whose doubted rows were kept because they are most of their
+    rows (``record["kept_doubted"]``; None: nothing screened): distrusted as a whole, they are solved
+    without (``joint.consistency_stage``) and refitted alone, so their rows pull no other array."""
+    kept = (record or {}).get("kept_doubted") or {}
+    return [k for k, n in enumerate(map(str, names)) if n in kept]

@@ -66,12 +66,13 @@ def sigma_floors(meta, bounds):
 
 
 def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max_iter, steps=ROBUST_VCE_STEPS,
-                       floors=None):
+                       floors=None, mask=None):
     """Sigmas from the median of each type's normalised statistics (outliers do not move a median), so
-    the outlier tests and the robust loss work in the data's own noise units. Returns (state, problem with
-    those sigmas)."""
+    the outlier tests and the robust loss work in the data's own noise units (``mask``: rows left out).
+    Returns (state, problem with those sigmas)."""
+    mask = mask or {}
     for _ in range(steps):
-        stats = measurement_stats(p, st, lay, kinds, {})
+        stats = measurement_stats(p, st, lay, kinds, mask)
         sigma, changed = dict(p.sigma), False
         for kind in reweighted():
             m = stats.kept & (stats.kind == kind)
@@ -86,7 +87,7 @@ def robust_noise_steps(p, st, lay, kinds, *, bounds, stated, loss, robust_k, max
         p = p.replace(sigma=sigma)
         if not changed:
             break
-        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, max_iter=max_iter, rtol=1e-6)
+        st, _ = levenberg_marquardt(p, st, lay, kinds, loss=loss, k=robust_k, mask=mask, max_iter=max_iter, rtol=1e-6)
     return st, p
 
 

@@ -143,6 +143,8 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
 
 
 REASON_TEXT = {"nlos": "reflection-only arrivals (late against the array's range track: line of sight blocked)",
+               "weak_direct": "direct paths weaker than a reflection just after them (line of sight attenuated: "
+                              "occlusion by a mount or obstacle), whose DOAs that reflection bends",
                "absurd": "TDOAs no room can produce (> 100 m of path off the array's clock line)"}
 
 
@@ -171,10 +173,12 @@ def name_distrusted(verdict, screened):
               for (a, why), ev in sorted(groups.items())]
     worst = verdict["status"]
     for a, n in sorted(screened["kept_doubted"].items()):
-        listed.append({"array": a, "reason": "nlos", "events": [], "taken_out": False})
+        whys = screened.get("kept_reasons", {}).get(a, ["nlos"])
+        listed += [{"array": a, "reason": why, "events": [], "taken_out": False} for why in whys]
         if a not in verdict["flagged_arrays"]:
             verdict["flagged_arrays"].append(a)
-        verdict["reasons"].append(f"array {a}: in {n} of its events its arrivals are {REASON_TEXT['nlos']}: most of its data, kept; "
+        verdict["reasons"].append(f"array {a}: in {n} of its events its arrivals are "
+                                  f"{' / '.join(REASON_TEXT[w] for w in whys)}: most of its data, kept; "
                                   "its calibration is not trusted")
         worst = max(worst, "suspect", key=STATUS_RANK.get)
     absurd = sorted({a for (a, why) in groups if why == "absurd"})

@@ -2,11 +2,12 @@
 
 ``extract_features(session, progress=None, **options) -> (features, diagnostics)`` works on an in-memory
 session (``calib.pipeline.formats.session.read_session``); ``plot_detections(path, diagnostics)`` draws the
-detection timeline. Reading folders and writing files is the pipeline's job (``calib.pipeline.features``).
+detection timeline; ``retime_arrivals(session, diagnostics, stretches)`` times a moving source's arrivals again
+against given stretches. Reading folders and writing files is the pipeline's job (``calib.pipeline.features``).
 """
 from calib.lazy import lazy_exports
 
-EXPORTS = {"extract_features": "extract", "DEFAULTS": "extract", "plot_detections": "diagnostics"}
+EXPORTS = {"extract_features": "extract", "retime_arrivals": "extract", "DEFAULTS": "extract", "plot_detections": "diagnostics"}
 __getattr__, __dir__ = lazy_exports(__name__, EXPORTS)
 
 __all__ = sorted(EXPORTS)

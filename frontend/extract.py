@@ -29,7 +29,7 @@ from .arrayresult import ArrayResult
 from .detect import matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
-from .nlos import late_arrivals
+from .nlos import late_arrivals, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, spectra_setup,
@@ -96,38 +96,152 @@ def _extract(session, progress, opt, jobs=1):
     t_start = time.perf_counter()
     _check_audio(session)
     c = session["speed_of_sound"]
-    events = session["events"]
-    t_emit = events["t_emit"].to_numpy(float)
-    ev_ids = events["event"].to_numpy(int)
+    t_emit = session["events"]["t_emit"].to_numpy(float)
     ref = session["reference_array"]
     arrays = session["arrays"]
     order = sorted(range(len(arrays)), key=lambda k: arrays[k]["name"] != ref)  # reference first: β at its rate
+    # a source moving during the sweep: what a re-timing with predicted stretches needs (retime_arrivals)
+    keep = {} if _max_speed(session["events"]) > 0 else None
+    results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs, keep)
+    if keep is not None:   # before the session-wide checks fill flags and warnings in place
+        keep = {"arrays": keep, "raw": {n: _copy_result(r) for n, r in results.items()}, "beta": beta, "opt": opt}
+    feats, diag = _finish(session, results, beta, opt, t_start)
+    if progress is not None:
+        progress(len(arrays), len(arrays), "done")
+    if keep is not None:
+        diag["_retime"] = keep
+        diag["_sweep_times"] = (feats["meta"]["doa_time_s"], feats["meta"]["stretch_time_s"])
+    return feats, diag
 
-    results, beta = _process_arrays(session, order, t_emit, c, opt, progress, jobs)
+
+def _copy_result(r):
+    """An :class:`ArrayResult` whose flags and warnings (filled in place by the session-wide checks) are its own."""
+    return r.replace(flags=[list(f) for f in r.flags], warnings=list(r.warnings))
+
+
+def retime_arrivals(session, diag, stretches, min_rows=1):
+    """The features again, each (array, event) timed against the template stretched by a GIVEN ε instead of
+    the one its own arrival matched best (a source moving during the sweep; ``pipeline/retime.py`` predicts
+    ε from a first solve's geometry and the robot's velocity: a direct path heard below a reflection takes the
+    reflection's Doppler in the search).
+
+    diag : the diagnostics of :func:`extract_features` on ``session`` (its private ``_retime`` state; absent
+    for a source at rest: nothing to do). stretches : {array: (K,) ε per session event (events.csv order),
+    NaN = keep the searched one}. Only the events whose given ε falls at least ``min_rows`` bank rows from the
+    searched one are timed again (their segments read again, no detection); the others, and arrays not in
+    ``stretches``, keep their first-pass timing. Returns (features, diagnostics) as :func:`extract_features`,
+    with diagnostics ``retime``: {array: events re-timed}; (None, diag) when there is no state.
+    """
+    keep = diag.get("_retime")
+    if keep is None:
+        return None, diag
+    t_start = time.perf_counter()
+    c, opt = session["speed_of_sound"], keep["opt"]
+    t_emit = session["events"]["t_emit"].to_numpy(float)
+    results, done = {}, {}
+    with single_thread_blas():
+        for name, raw in keep["raw"].items():
+            eps = stretches.get(name)
+            k = keep["arrays"][name]
+            change, rows = _changed_rows(k, eps, min_rows)
+            done[name] = int(np.sum(change))
+            if not done[name]:
+                results[name] = _copy_result(raw)
+                continue
+            st = {**k["st"], "timings": dict(k["st"]["timings"])}
+            loc, doa = _relocate(st, k, change, rows, c, opt)
+            results[name] = _array_result(st, k["ctx"], loc, t_emit, c, opt, doa)
+    feats, out = _finish(session, results, keep["beta"], opt, t_start, diag.get("_sweep_times"),
+                         MOTION_MODEL_ERROR_RETIMED)
+    out["retime"] = done
+    return feats, out
+
+
+def _changed_rows(k, eps, min_rows):
+    """((J,) bool: the events to time again, (J,) int: the bank row of each event's given ε) of one array's
+    kept state ``k`` (:func:`time_array`) and ε per session event (None: none given)."""
+    ev_idx, bank = k["ctx"]["ev_idx"], k["ctx"]["bank"]
+    j = len(ev_idx)
+    if eps is None or bank is None:
+        return np.zeros(j, bool), np.zeros(j, int)
+    grid = bank[1]
+    e = np.asarray(eps, float)[ev_idx]
+    rows = np.argmin(np.abs(np.nan_to_num(e)[:, None] - grid[None, :]), axis=1)
+    # the searched row of each event: its stretch on the grid
+    old = np.argmin(np.abs(np.asarray(k["loc"]["stretch"], float)[:, None] - grid[None, :]), axis=1)
+    inside = np.isfinite(e) & (np.abs(e) <= grid[-1] + 0.5 * (grid[1] - grid[0]))
+    return inside & (np.abs(rows - old) >= min_rows), rows
+
+
+def _relocate(st, k, change, rows, c, opt):
+    """(loc, doa) of an array's kept state ``k`` (:func:`time_array`) with the events ``change`` located
+    (:func:`locate_events`) against bank rows ``rows`` and their DOAs (:func:`_direct_path_doa`) again."""
+    ctx, loc = k["ctx"], k["loc"]
+    x = ArrayAudio(st["a"])
+    try:
+        t0 = time.perf_counter()
+        idx = np.flatnonzero(change)
+        new = locate_events(x, ctx["starts"][idx], ctx["setup"], ctx["locate_kw"], workers=1, bank=ctx["bank"],
+                            rows=rows[idx])
+    finally:
+        x.close()
+    st["timings"]["retime"] = time.perf_counter() - t0
+    doa = _direct_path_doa(new, ctx["mics"], st["fs"], ctx["setup"], ctx["g"], c, opt, st["a"].get("doa_hemisphere"))
+    j = len(ctx["ev_idx"])
+    return _merge_events(loc, new, idx, j), _merge_events(k["doa"], doa, idx, j, DOA_EVENT_KEYS)
+
+
+DOA_EVENT_KEYS = ("u", "power", "gap")   # the per-event entries of _direct_path_doa's dict
+
+
+def _merge_events(old, new, idx, j, keys=None):
+    """``old`` (a dict of per-event arrays over J events, and others) with the events ``idx`` from ``new``
+    (``keys``: the per-event entries; None: every array of J rows)."""
+    out = dict(old)
+    for key, v in old.items():
+        if (key in keys) if keys is not None else (isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == j):
+            w = np.array(v, copy=True)
+            w[idx] = new[key]
+            out[key] = w
+    return out
+
+
+def _finish(session, results, beta, opt, t_start, sweep_times=None, motion_error=None):
+    """The session-wide part of the frontend on the arrays' results: arrivals in the β ε convention, NLOS,
+    DOA-spread and motion checks, the feature tables and the diagnostics (``sweep_times``: meta
+    (doa_time_s, stretch_time_s) when already known; ``motion_error``: :func:`motion_sd`'s fraction, None:
+    MOTION_MODEL_ERROR).
+    Returns (Features, diagnostics)."""
+    c = session["speed_of_sound"]
+    events = session["events"]
+    ev_ids = events["event"].to_numpy(int)
     # timed against the template stretched by ε̂ (Doppler bank): the arrival is the sweep start's plus
     # β (ε − ε̂), linear in the small mismatch; adding β ε̂ gives the β ε convention of a static template
     results = {n: r.replace(arrival=r.arrival + beta * r.stretch) for n, r in results.items()}
     results = flag_nlos(results, events, lambda eps: beta * eps, c)
     flag_doa_spread(results)
     warn_moving(results, events)
-    if progress is not None:
-        progress(len(arrays), len(arrays), "done")
 
     feats = _tables(session, results, ev_ids, beta)
     if _max_speed(events) > 0:
         meta = feats["meta"]
+        ref = session["reference_array"]
+        a_ref = next(a for a in session["arrays"] if a["name"] == ref)
         # when in the sweep the DOA looks at the source, and whose range rate the timing follows
-        meta["doa_time_s"], meta["stretch_time_s"] = _reference_sweep_times(arrays[order[0]], session, c, opt, beta)
+        meta["doa_time_s"], meta["stretch_time_s"] = sweep_times or _reference_sweep_times(a_ref, session, c, opt,
+                                                                                             beta)
         if "sigma_tdoa" in meta.get("sigmas_estimated", []):
-            meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion_sd(events, c, beta)))
+            motion = motion_sd(events, c, beta, motion_error or MOTION_MODEL_ERROR)
+            meta["sigma_tdoa"] = float(np.hypot(meta["sigma_tdoa"], motion))
     diag = _diagnostics(session, results, ev_ids, beta, time.perf_counter() - t_start)
     return Features.from_dict(feats), diag
 
 
-def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
+def _process_arrays(session, order, t_emit, c, opt, progress, jobs, keep=None):
     """({array name: :func:`process_array` result} in ``order``, β of the reference ``order[0]``
     (:func:`_reference_beta`)); ``jobs`` arrays at a time in threads (each array's FFTs then
-    single-threaded), β as one more task.
+    single-threaded), β as one more task. keep : dict filled with each array's timing state
+    (:func:`time_array`), or None.
 
     Progress and errors follow ``order`` whatever finishes first, so a bad file is reported the same way
     with any ``jobs``; an error or interrupt cancels the arrays not started (the running ones finish).
@@ -138,10 +252,10 @@ def _process_arrays(session, order, t_emit, c, opt, progress, jobs):
         results = {}
         for n_done, k in enumerate(order):
             _progress(progress, n_done, arrays, k)
-            results[arrays[k]["name"]] = process_array(arrays[k], session, t_emit, c, opt)
+            results[arrays[k]["name"]] = process_array(arrays[k], session, t_emit, c, opt, keep=keep)
         return results, _reference_beta(arrays[order[0]], session, c, opt)
     with ThreadPoolExecutor(jobs, thread_name_prefix="calib-array") as pool:
-        futures = [pool.submit(process_array, arrays[k], session, t_emit, c, opt, 1) for k in order]
+        futures = [pool.submit(process_array, arrays[k], session, t_emit, c, opt, 1, keep) for k in order]
         futures.append(pool.submit(_reference_beta, arrays[order[0]], session, c, opt))
         try:
             results = {}
@@ -160,10 +274,10 @@ def _progress(progress, n_done, arrays, k):
         progress(n_done, len(arrays), f"array {arrays[k]['name']}")
 
 
-def process_array(a, session, t_emit, c, opt, fft_workers=-1):
+def process_array(a, session, t_emit, c, opt, fft_workers=-1, keep=None):
     """Detection, association, timing and DOA for one array (``fft_workers``: threads of the segments'
-    FFTs, :func:`timing.segment_spectra`)."""
-    return time_array(detect_array(a, session, t_emit, c, opt), session, t_emit, c, opt, fft_workers)
+    FFTs, :func:`timing.segment_spectra`; ``keep``: :func:`time_array`)."""
+    return time_array(detect_array(a, session, t_emit, c, opt), session, t_emit, c, opt, fft_workers, keep)
 
 
 def detect_array(a, session, t_emit, c, opt):
@@ -205,39 +319,63 @@ def detect_array(a, session, t_emit, c, opt):
             "timings": timings}
 
 
-def time_array(st, session, t_emit, c, opt, fft_workers=-1):
+def time_array(st, session, t_emit, c, opt, fft_workers=-1, keep=None):
     """:func:`process_array`'s second phase, from :func:`detect_array`'s state ``st``: timing and DOA of
     the associated events, fused into arrivals; closes the recording. Returns the array's
-    :class:`~calib.frontend.arrayresult.ArrayResult`."""
-    a, x, fs, band, asc, det_t = st["a"], st["x"], st["fs"], st["band"], st["asc"], st["det_t"]
+    :class:`~calib.frontend.arrayresult.ArrayResult`. keep : a dict (or None) that gets ``keep[name]`` =
+    {"st": the state without the recording, "ctx": the timing layout, "loc": the located events}, from which
+    :func:`retime_arrivals` re-times chosen events without detecting again, and "doa" their DOAs."""
     timings = st["timings"]
     try:
         t0 = time.perf_counter()
-        ev_idx = np.flatnonzero(asc["det_of"] >= 0)
-        mics = np.asarray(a["mics"], float)
-        g = _timing_layout(mics, band, fs, c, len(st["template"]), opt)
-        starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - g["pre"]
-        setup = spectra_setup(st["template"], fs, band, g["seg_len"], opt["whiten_hz"])
-        # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
-        # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
-        # propagation delays, so only as an upper bound on the measured broadening)
-        # a source moving during the sweep stretches it by 1 + ṙ/c alike (events.csv vel_x/y/z: |ṙ| ≤ |v|)
-        bank = _event_bank(st["template"], setup, band, session["events"], ev_idx, c)
-        # with the Doppler bank only the mismatch of its step smears the sweep
-        stretch = abs(asc["scale"] - 1.0) + (_max_speed(session["events"]) / c if bank is None else
-                                             STRETCH_STEP_PULSES / (st["dur"] * (band[1] - band[0])))
-        smear_max = int(round(max(0.0, 2 * stretch * st["dur"] - g["pulse"]) * fs))
+        ctx = _timing_context(st, session, c, opt)
         # event segments read and processed in chunks (memory bounded however long the recording)
-        loc = locate_events(x, starts, setup, {**g["locate_kw"], "smear_max": smear_max, "own_phase": bank is not None},
-                            workers=fft_workers, bank=bank)
+        loc = locate_events(st["x"], ctx["starts"], ctx["setup"], ctx["locate_kw"], workers=fft_workers,
+                            bank=ctx["bank"])
     finally:
-        x.close()
+        st["x"].close()
     timings["timing"] = time.perf_counter() - t0
-
     t0 = time.perf_counter()
-    doa = _direct_path_doa(loc, mics, fs, setup, g, c, opt, a.get("doa_hemisphere"))
+    doa = _direct_path_doa(loc, ctx["mics"], st["fs"], ctx["setup"], ctx["g"], c, opt, st["a"].get("doa_hemisphere"))
     timings["doa"] = time.perf_counter() - t0
-    fused = _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, st["redetected"], fs, c, opt, g["half"])
+    if keep is not None:
+        keep[st["a"]["name"]] = {"st": {k: v for k, v in st.items() if k != "x"}, "ctx": ctx, "loc": loc, "doa": doa}
+    return _array_result(st, ctx, loc, t_emit, c, opt, doa)
+
+
+def _timing_context(st, session, c, opt):
+    """The timing stage's layout of one array (:func:`time_array`): matched events ``ev_idx`` (J,), segment
+    ``starts`` (J,), lag layout ``g``, spectra ``setup``, Doppler ``bank`` (or None) and locate's keywords."""
+    fs, band, asc, det_t = st["fs"], st["band"], st["asc"], st["det_t"]
+    ev_idx = np.flatnonzero(asc["det_of"] >= 0)
+    mics = np.asarray(st["a"]["mics"], float)
+    g = _timing_layout(mics, band, fs, c, len(st["template"]), opt)
+    starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - g["pre"]
+    setup = spectra_setup(st["template"], fs, band, g["seg_len"], opt["whiten_hz"])
+    # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
+    # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
+    # propagation delays, so only as an upper bound on the measured broadening)
+    # a source moving during the sweep stretches it by 1 + ṙ/c alike (events.csv vel_x/y/z: |ṙ| ≤ |v|)
+    bank = _event_bank(st["template"], setup, band, session["events"], ev_idx, c)
+    # with the Doppler bank only the mismatch of its step smears the sweep
+    stretch = abs(asc["scale"] - 1.0) + (_max_speed(session["events"]) / c if bank is None else
+                                         STRETCH_STEP_PULSES / (st["dur"] * (band[1] - band[0])))
+    smear_max = int(round(max(0.0, 2 * stretch * st["dur"] - g["pulse"]) * fs))
+    return {"ev_idx": ev_idx, "mics": mics, "g": g, "starts": starts, "setup": setup, "bank": bank,
+            "locate_kw": {**g["locate_kw"], "smear_max": smear_max, "own_phase": bank is not None}}
+
+
+def _array_result(st, ctx, loc, t_emit, c, opt, doa=None):
+    """DOAs (unless given: ``doa``, :func:`_direct_path_doa`'s dict) and fused arrivals of the located events
+    ``loc`` (:func:`locate_events`): the array's :class:`~calib.frontend.arrayresult.ArrayResult`."""
+    a, fs, asc, timings = st["a"], st["fs"], st["asc"], st["timings"]
+    ev_idx, mics, g = ctx["ev_idx"], ctx["mics"], ctx["g"]
+    if doa is None:
+        t0 = time.perf_counter()
+        doa = _direct_path_doa(loc, mics, fs, ctx["setup"], g, c, opt, a.get("doa_hemisphere"))
+        timings["doa"] = time.perf_counter() - t0
+    fused = _fuse_arrivals(loc, ctx["starts"], mics, doa, asc, t_emit, ev_idx, st["redetected"], fs, c, opt,
+                           g["half"])
     warnings = doa["warnings"] + fused["warnings"]
     if doa["normal"] is not None and a.get("doa_hemisphere") is None:
         warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
@@ -245,7 +383,7 @@ def time_array(st, session, t_emit, c, opt, fft_workers=-1):
         warnings.append("association ambiguous: another alignment of the events explains as many detections")
     return ArrayResult(
         name=a["name"], fs=fs, n_samples=int(st["n_samples"]), channels=len(mics), phase=loc["phase"],
-        env=st["env"], env_rate=st["env_rate"], det_t=det_t, det_score=st["score"], assoc=asc, ev_idx=ev_idx,
+        env=st["env"], env_rate=st["env_rate"], det_t=st["det_t"], det_score=st["score"], assoc=asc, ev_idx=ev_idx,
         **{k: fused[k] for k in FUSED_KEYS}, u=doa["u"], doa_power=doa["power"], redetected=st["redetected"],
         stretch=loc["stretch"], ambiguous_plane=doa["normal"] if a.get("doa_hemisphere") is None else None,
         has_doa=doa["kind"] != "single", doa_axis=doa["axis"], warnings=warnings,
@@ -304,14 +442,16 @@ def _reference_sweep_times(a, session, c, opt, beta):
 
 MOTION_MODEL_ERROR = 0.2   # the shift model's error, a fraction of the shift: arrival errors against β ṙ/c had
                            # slopes 0.91-1.13 and ~100-150 µs scatter on the moving preset (seed 0, 0.5 m/s)
+MOTION_MODEL_ERROR_RETIMED = 0.1   # ... with the stretches predicted from the geometry (retime_arrivals): TDOA-M
+                                   # errors 0.06 of the RMS shift (moving 0, 2-4: 21-58 µs), 90 % within 0.1
 
 
-def motion_sd(events, c, beta):
-    """The TDOA error (s) a moving source's shift leaves after its correction: √2 × MOTION_MODEL_ERROR × the
-    RMS shift β ε of a range rate of |v|/√3 (a random direction), added to the frontend's sigma_tdoa."""
+def motion_sd(events, c, beta, fraction=MOTION_MODEL_ERROR):
+    """The TDOA error (s) a moving source's shift leaves after its correction: √2 × ``fraction`` × the RMS
+    shift β ε of a range rate of |v|/√3 (a random direction), added to the frontend's sigma_tdoa."""
     v = event_velocities(events)
     eps = np.linalg.norm(v, axis=1) / np.sqrt(3) / c
-    return float(np.sqrt(2) * MOTION_MODEL_ERROR * beta * np.sqrt(np.mean(eps ** 2)))
+    return float(np.sqrt(2) * fraction * beta * np.sqrt(np.mean(eps ** 2)))
 
 
 def _reference_beta(a, session, c, opt):
@@ -407,10 +547,19 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
             "warnings": warnings}
 
 
+def _gate(res, hw):
+    """``res`` (:func:`timing.locate`) with only the lags the DOA gate uses (± ``hw`` around the direct path)
+    of its correlation ``r``, never a chunk-sized array."""
+    idx = (res["dp"] - hw - res["r_lo"])[:, None] + np.arange(2 * hw + 1)
+    return {**res, "r": np.take_along_axis(res["r"], idx[:, None, :], axis=-1), "r_lo": res["dp"] - hw}
+
+
+SEARCH_COARSE = 3   # the first pass's Doppler search: every 3rd row, then around the best (the re-timing pass
+                    # sets the rows of every array the first solve places)
 TIMING_CHUNK_BYTES = 128e6  # working memory of one chunk of events in the timing stage (segments + FFTs)
 
 
-def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1, bank=None):
+def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, workers=-1, bank=None, rows=None):
     """:func:`timing.locate` on all events, a chunk of events at a time (memory bounded by ``chunk_bytes``).
 
     x : (M, N) recording (ndarray or :class:`signals.ArrayAudio`). starts : (J,) int segment starts.
@@ -421,7 +570,8 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
     workers : threads of the segments' FFTs (:func:`timing.segment_spectra`). bank : (factors, stretches[,
     bound (J,)]) of :func:`_event_bank` (a source moving during the sweep): each event is timed against the
     template stretched by its best-matching ε (:func:`timing.matched_stretch`, |ε| ≤ bound), returned as
-    ``stretch`` (J,); else 0.
+    ``stretch`` (J,); else 0. rows : (J,) int, the bank's row of each event given (a stretch predicted from
+    the geometry, :func:`retime_arrivals`) instead of searched.
     """
     m = x.shape[0]
     per_event = 32 * m * setup["nfft"]  # bound on a segment + its FFT + both band spectra, per event
@@ -432,19 +582,22 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
         c, c_plain = segment_spectra(x, chunk, setup, plain=True, workers=workers)  # (J_c, M, Fb) each
         stretch = np.zeros(len(chunk))
         if bank is not None:
-            k = matched_stretch(c_plain, setup, bank[0], locate_kw["lo"], locate_kw["hi"], locate_kw["snr_factor"],
-                                locate_kw["min_ratio"], stretches=bank[1],
-                                bound=bank[2][j0 : j0 + n] if len(bank) > 2 else None)
+            k = np.asarray(rows[j0 : j0 + n], int) if rows is not None else matched_stretch(
+                c_plain, setup, bank[0], locate_kw["lo"], locate_kw["hi"], locate_kw["snr_factor"],
+                locate_kw["min_ratio"], stretches=bank[1], bound=bank[2][j0 : j0 + n] if len(bank) > 2 else None,
+                coarse=SEARCH_COARSE)
             c *= bank[0][k][:, None, :]
             c_plain *= bank[0][k][:, None, :]
             stretch = bank[1][k]
         res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
         res["stretch"] = stretch
-        # keep only the lags the DOA gate uses (± gate around the direct path), never a chunk-sized array
-        hw = locate_kw.get("gate", 0)
-        idx = (res["dp"] - hw - res["r_lo"])[:, None] + np.arange(2 * hw + 1)
-        res["r"] = np.take_along_axis(res["r"], idx[:, None, :], axis=-1)
-        res["r_lo"] = res["dp"] - hw
+        # a weak direct path before the timed arrival (a reflection): timed again on it (frontend.nlos); not
+        # for a moving source, whose paths each have their own stretch (the subtraction's pulse model fails)
+        res, again = (res, None) if bank is not None else retime_earlier(res, c, c_plain, setup,
+                                                                          {**locate_kw, "phase": phase})
+        res = _gate(res, locate_kw.get("gate", 0))
+        if again is not None:
+            res = _merge_events(res, _gate(again, locate_kw.get("gate", 0)), again["events"], len(res["dp"]))
         parts.append(res)
         sizes.append(len(chunk))
         phase = None if own else parts[0]["phase"]

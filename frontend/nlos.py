@@ -21,6 +21,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
+from .timing import _path_peaks as path_peaks  # per mic, one path's refined time and amplitude near a lag
+from .timing import direct_path_lag, lag_grid, locate, path_model, pulse_envelope, subtract_path
+
 MIN_EVENTS = 8          # arrivals needed to fit the 5 unknowns and still judge each one
 NLOS_MIN_S = 2.0e-3     # late by at least this (69 cm of path): a direct path is within ~0.1 ms of its track, a
                         # misfit track (few events, a degenerate trajectory) left 1.2 ms (hall seed 0); walls: 5-25 ms
@@ -172,3 +175,114 @@ def late_arrivals(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
     out["scale"] = scale
     out["early"] = int(np.sum(res < -margin))
     return out
+
+
+# ------------------------------------------------------------ a weak direct path before the timed arrival
+# A mount or obstacle that only attenuates the direct path (10-20 dB) leaves it BEFORE a strong reflection
+# that arrives within a few pulse widths (a wall 10 cm behind the array: 0.3-0.6 ms). The onset search
+# rejects it as a possible sidelobe of that reflection (it sits on its rising flank), so the reflection is
+# timed — consistently in every event, so the array fits its image through the wall (20 cm, 55° off) and no
+# range track or residual can tell. Subtracting the timed path exactly (the plain matched filter's pulse is
+# known) removes its sidelobes: what is left before it is a genuine earlier arrival.
+# What is left after subtracting a path is not only other paths: its spectrum is not exactly the template's
+# (frequency-dependent walls and mics), and that residue lies within about a pulse width and a half (the
+# first sidelobes) on BOTH sides of it (an amplitude error is symmetric): 10 % of the path 1.2 pulses before
+# it in a 0.8 s hall. An earlier arrival counts only beyond that, or where nothing as strong mirrors it after.
+RESIDUE_PULSES = 1.5      # an earlier path further before the timed one than this many pulse widths is no residue
+MIRROR_RATIO = 2.0        # ... nor one this many times above the residual at the mirrored lag after it
+EARLIER_MAX_RATIO = 0.35  # an earlier path weaker than this × the timed one (as extract.WEAK_DIRECT) is a weak
+                          # direct path; a stronger one the onset search did not take is the other half of a
+                          # merged two-path cluster (a clear wall array: 0.5-1.05, seen in occluded-lab 23, 41)
+PAIR_ITERS = 2            # alternating refinements of the (earlier, timed) pair of paths per mic
+
+
+def _pair_fit(c, setup, shape, early, timed, half_width):
+    """Per mic the two paths near lags ``early`` and ``timed`` (J,), each refined with the other's model
+    subtracted (SAGE): (t0, a0, t1, a1) (J, M) times (s) and complex amplitudes of the earlier and timed."""
+    model = lambda t, a: path_model(setup, shape, t, a, c.dtype)
+    t1, a1 = path_peaks(c, setup, timed, half_width)
+    t0, a0 = path_peaks(c - model(t1, a1), setup, early, half_width)
+    for _ in range(PAIR_ITERS):
+        t1, a1 = path_peaks(c - model(t0, a0), setup, timed, half_width)
+        t0, a0 = path_peaks(c - model(t1, a1), setup, early, half_width)
+    return t0, a0, t1, a1
+
+
+def earlier_paths(c_plain, setup, dp, lo, hi, half_width, snr_factor, min_ratio, sidelobe_margin):
+    """Events whose timed arrival (lag ``dp`` (J,)) has a weak genuine arrival before it.
+
+    The timed path is subtracted from the plain matched filter's spectra ``c_plain`` (J, M, Fb) at every
+    mic (:func:`timing.subtract_path`); the onset search (:func:`timing.direct_path_lag`, the same
+    thresholds, the noise floor before the timed arrival) runs again on what is left; an arrival it finds
+    more than ``half_width`` before the timed one is refitted jointly with it (:func:`_pair_fit`) and kept
+    when its amplitude is ``min_ratio`` … EARLIER_MAX_RATIO of the timed path's (median over mics).
+    Returns (found (J,) bool, lag (J,) int of the earlier arrival, ratio (J,): its amplitude / the timed
+    path's; NaN where none).
+    """
+    j = len(dp)
+    shape = setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2
+    env = np.abs(lag_grid(c_plain, setup, lo, hi)).mean(axis=1)
+    k = np.asarray(dp) - lo
+    rows = np.arange(j)
+    sub = subtract_path(c_plain, setup, shape, dp, half_width)
+    env2 = np.abs(lag_grid(sub, setup, lo, hi)).mean(axis=1)
+    floor = np.array([np.median(env[i, : max(k[i] - half_width, 16)]) for i in rows])
+    d2, q2, s2, _ = direct_path_lag(env2, pulse_envelope(setup, hi - lo, plain=True), snr_factor, min_ratio,
+                                    sidelobe_margin, floor=floor, peak=env[rows, k])
+    cand = np.flatnonzero((d2 < k - half_width) & (q2 >= min_ratio) & (s2 >= snr_factor))
+    found, ratio = np.zeros(j, bool), np.full(j, np.nan)
+    if cand.size:
+        t0, a0, t1, a1 = _pair_fit(c_plain[cand], setup, shape, lo + d2[cand], dp[cand], half_width)
+        r = np.median(np.abs(a0), axis=1) / np.maximum(np.median(np.abs(a1), axis=1), 1e-300)
+        ratio[cand] = r
+        pulse = setup["fs"] / max(setup["freqs"].max() - setup["freqs"].min(), 1.0)   # samples
+        sep = np.median(t1 - t0, axis=1) * setup["fs"]
+        found[cand] = (r >= min_ratio) & (r < EARLIER_MAX_RATIO) & (
+            (sep > RESIDUE_PULSES * pulse) | (env2[cand, d2[cand]] > MIRROR_RATIO * _mirrored(env2[cand], k[cand], d2[cand], pulse)))
+    return found, lo + d2, ratio
+
+
+def _mirrored(env, k, d, pulse):
+    """(J,) the largest of ``env`` (J, T) within half a pulse of lag ``2 k − d``: ``d`` mirrored about ``k``."""
+    h = int(np.ceil(pulse / 2))
+    lags = (2 * k - d)[:, None] + np.arange(-h, h + 1)
+    inside = (lags >= 0) & (lags < env.shape[1])
+    vals = np.take_along_axis(env, np.clip(lags, 0, env.shape[1] - 1), axis=1)
+    return np.max(np.where(inside, vals, 0.0), axis=1)
+
+
+def retime_earlier(res, c, c_plain, setup, locate_kw):
+    """:func:`timing.locate`'s result ``res`` for one chunk of events, with the events whose timed arrival
+    has a weak direct path before it (:func:`earlier_paths`) timed again on that path: the timed path
+    subtracted from both spectra (as :func:`timing.locate`'s own second look does for a shadowed peak) and
+    located anew. Their ``ratio`` becomes the direct path's amplitude over the strongest peak's (so the
+    arrival is flagged ``weak_direct``, and the array ``occluded`` when that is frequent) and ``strongest``
+    stays the first look's. Returns (res, sub): ``sub`` the new location of those events (a dict like
+    ``res``, its ``events`` (K,) their indices) or None (``extract.locate_events`` puts it into ``res``)."""
+    kw = {k: v for k, v in locate_kw.items() if k != "c_onset"}
+    found, lag, ratio = earlier_paths(c_plain, setup, res["dp"], kw["lo"], kw["hi"], kw["half_width"],
+                                      kw.get("snr_factor", 6.0), kw.get("min_ratio", 0.05),
+                                      kw.get("sidelobe_margin", 2.0))
+    sel = np.flatnonzero(found)
+    if not sel.size:
+        return res, None
+    # the direct path's amplitude over the strongest peak's: flagged weak_direct even where not timed again
+    res = {**res, "ratio": np.where(found, ratio * res["ratio"], res["ratio"])}
+    hw = kw["half_width"]
+    plain_shape = setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2
+    c_sub = subtract_path(c[sel], setup, setup["weights"], res["dp"][sel], hw)
+    on_sub = subtract_path(c_plain[sel], setup, plain_shape, res["dp"][sel], hw)
+    phase = res["phase"][sel] if np.ndim(res["phase"]) else res["phase"]
+    # its level relative to the strongest peak may be below the onset's min_ratio (which holds relative to
+    # the path it precedes): the threshold scaled down alike; the lag found is checked against it below
+    min_ratio = kw.get("min_ratio", 0.05) * float(np.min(res["ratio"][sel] / ratio[sel]))
+    sub = locate(c_sub, setup, **{**kw, "phase": phase, "min_ratio": min_ratio}, c_onset=on_sub)
+    ok = np.abs(sub["dp"] - lag[sel]) <= hw   # it timed the earlier arrival found (not something else)
+    sub["ratio"] = res["ratio"][sel]
+    sub["strongest"] = res["strongest"][sel]
+    sub["stretch"] = np.asarray(res.get("stretch", np.zeros(len(res["dp"]))))[sel]
+    sub["events"] = sel
+    sub = {key: v[ok] if isinstance(v, np.ndarray) and v.ndim >= 1 and len(v) == len(sel) else v
+           for key, v in sub.items()}
+    return res, (sub if np.any(ok) else None)
+

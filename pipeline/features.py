@@ -10,17 +10,20 @@ from calib.records import Features
 from calib.pipeline.formats.io import write_features_files
 from calib.pipeline.formats.outputs import publish
 from calib.pipeline.formats.session import read_session
+from calib.pipeline.retime import retime_moving
 
 
 def session_features(recordings, progress=None, jobs=1, **options):
     """Read the session folder ``recordings`` (or take an already read session) and run the frontend.
 
     progress : optional ``progress(done, total, message)``. jobs : arrays at a time (threads; −1: one per
-    core; the results do not depend on it). options : ``calib.frontend.DEFAULTS`` overrides.
+    core; the results do not depend on it). options : ``calib.frontend.DEFAULTS`` overrides. A source moving
+    during the sweep: its arrivals timed again with stretches predicted from a first solve (pipeline/retime.py).
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
     session = recordings if isinstance(recordings, Mapping) else read_session(recordings)
-    feats, diag = extract_features(session, progress=progress, jobs=jobs, **options)
+    feats, diag = retime_moving(session, *extract_features(session, progress=progress, jobs=jobs, **options),
+                                progress=progress)
     return add_session_meta(feats, session, diag), diag
 
 

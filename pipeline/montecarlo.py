@@ -12,9 +12,9 @@ A *study* (:func:`run_study`) runs a grid of runs for several methods and writes
                  rate, the CRLB draws' IQR-means and the paper's published values
 ``fig3.png``     the paper's Fig. 3 layout: one panel per metric, boxes per cell and method, CRLB and paper
 ``study.json``   the settings every row depends on (a resumed study must use the same)
-``parts/``       while running: each finished chunk of runs as its own CSV (written atomically), so a killed
-                 study loses at most the chunks in flight; a rerun skips every run already in a part or in
-                 runs.csv, then merges them into runs.csv and removes parts/.
+``parts/``       while running: the finished runs as CSV files (written atomically, one per PART_EVERY_S), so
+                 a killed study loses at most the chunks in flight and the last seconds' runs; a rerun skips
+                 every run already in a part or in runs.csv, then merges them into runs.csv and removes parts/.
 """
 from __future__ import annotations
 
@@ -23,20 +23,15 @@ import itertools
 import json
 import math
 import os
+import threading
 import time
 from calib.tomlcompat import tomllib
-import zlib
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from calib.blas import single_thread_blas
-from calib.estimator import calibrate, crlb, draw_from_crlb, state_from_frames, to_tables
-from calib.estimator.problem import build_problem
-
-from calib.pipeline.report.evaluate import evaluate, truth_tables
-from calib.pipeline.simulate.featsim import simulate_features
+from calib.pipeline import studytiming
 from calib.pipeline.formats.io import InputError, dumps_json
 from calib.pipeline.formats.outputs import (check_file_replaceable, is_own_temp, remove_owned_file, remove_temp,
                                             write_file)
@@ -66,103 +61,11 @@ SUMMARY_METRICS = {"loc_cm": ("position_rmse_m", 100.0), "ang_deg": ("orientatio
                    "drift_ppm": ("relative_drift_rmse", 1e6), "src_cm": ("source_rmse_m", 100.0)}
 SETTINGS = ("base_seed", "sigma_odo", "check_convergence", "with_crlb")
 # Chunks of runs per worker task (:func:`_chunks`): each takes 1/GUIDED_SHARE of what is left per worker, at most
-# MAX_CHUNK runs (a part file's worth: what an interrupted study loses per worker).
+# MAX_CHUNK runs (what an interrupted study loses per worker).
 GUIDED_SHARE = 2
 MAX_CHUNK = 40
-
-
-# --------------------------------------------------------------------------------------------- one run
-def run_seed(sigma_tdoa, sigma_doa_deg, trajectory, run, base_seed=0):
-    """Deterministic seed of one run (same cell/trajectory/run → same scene, whatever the order)."""
-    key = f"{base_seed}|{sigma_tdoa:.6g}|{sigma_doa_deg:.6g}|{trajectory}|{run}".encode()
-    return zlib.crc32(key)
-
-
-def truth_state(p, truth, frames_state=None):
-    """Ground truth as a state of problem ``p``, in the parametrisation the estimator solves for.
-
-    Without TDOA-S the reference array's drift is fixed to 0 (drifts relative to it), so the truth start
-    is expressed the same way; otherwise a truth start would solve a different model.
-    ``frames_state``: ``state_from_frames`` of the truth for a problem with the same arrays and events,
-    when the caller has it (copied).
-    """
-    st = state_from_frames(p, truth["arrays"], truth["sources"]) if frames_state is None else frames_state.copy()
-    if len(p.tdoa_s.val) == 0:
-        st.drift = (1.0 + st.drift) / (1.0 + st.drift[p.ref]) - 1.0
-    return st
-
-
-def _scores(p, st, truth, undetermined=()):
-    """The METRICS of state ``st`` of problem ``p`` against ``truth`` (a dict of ``evaluate.truth_tables``)."""
-    arrays, sources = to_tables(p, st)
-    m = evaluate({"arrays": arrays, "sources": sources, "report": {"undetermined": undetermined}}, truth)
-    return {k: m[k] for k in METRICS}
-
-
-def run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, *, methods=("hybrid",), base_seed=0,
-                check_convergence=True, with_crlb=True, sigma_odo=SIGMA_ODO):
-    """Simulate one scene, calibrate it with each method and score it. Returns a list of row dicts.
-
-    Per method: one ``final`` row, plus one row per intermediate stage when ``calibrate`` returns
-    ``stage_states`` (dict stage → state). Failures (any exception of the estimator) give a row with
-    ``ok=False`` and the message: counted, never hidden.
-    Each method's problem is built once (``calibrate``'s default options) and handed, as a copy, to its
-    solve, its truth-start solve and its CRLB; the truth's state is read from the frames once per scene.
-    """
-    seed = run_seed(sigma_tdoa, sigma_doa_deg, trajectory, run, base_seed)
-    feats, truth = simulate_features(trajectory, sigma_tdoa, sigma_doa_deg, sigma_odo, seed=seed)
-    truth_t = truth_tables(truth)   # scored up to 7 times per method: its DataFrames read once
-    rows = []
-    truth_st = None   # the truth as a state (every method's problem has the same arrays and events)
-    for method in methods:
-        base = {"sigma_tdoa": sigma_tdoa, "sigma_doa_deg": sigma_doa_deg, "trajectory": trajectory, "run": run,
-                "method": method, "seed": seed}
-        row = {**base, "stage": "final"}
-        t0 = time.perf_counter()
-        try:   # the solution only: the study reads no covariance, frames or report
-            p0 = build_problem(feats, use_tdoa_s=method != "wang", odometry_yaw=True)  # calibrate's defaults
-            # the study's scenes have linear clocks by construction: no clock-model selection (it would cost
-            # ~10 % of each solve; its false-model rate on this protocol: benchmarks/bench_clocks.py)
-            cal = calibrate(feats, method=method, outputs="solution", problem=p0, clock_model="linear")
-        except Exception as exc:  # noqa: BLE001 - unobservable draw or estimator failure: a counted failure
-            row.update({"ok": False, "error": f"{type(exc).__name__}: {exc}", "time_s": time.perf_counter() - t0})
-            rows.append(row)
-            continue
-        row["time_s"] = time.perf_counter() - t0
-        row["ok"] = True
-        p = cal["problem"]
-        if truth_st is None:
-            truth_st = state_from_frames(p0, truth["arrays"], truth["sources"])
-        for stage, st in (cal.get("stage_states") or {}).items():
-            rows.append({**base, "stage": stage, "ok": True, **_scores(p, st, truth_t)})
-        row["solver_converged"] = cal["converged"]
-        row["cost"] = cal["cost"]
-        row["n_outliers"] = len(cal["outliers"])
-        row.update(_scores(p, cal["state"], truth_t, cal["undetermined"]))
-        if check_convergence:
-            gt = calibrate(feats, method=method, init_state=truth_state(p, truth, truth_st), outputs="solution",
-                           problem=p0, clock_model="linear")
-            row["cost_truth_start"] = gt["cost"]
-            row["converged"] = bool(row["cost"] <= row["cost_truth_start"] * (1 + 1e-6) + 1e-9)
-        if with_crlb:
-            rng = np.random.default_rng(seed + 1)
-            with single_thread_blas():  # (calib.blas)
-                use_ts = bool(len(p.tdoa_s.val))   # crlb's problem: p0 without the odometry yaw, when the same
-                same = use_ts == bool(len(p0.tdoa_s.val))
-                bound = crlb(feats, truth, use_tdoa_s=use_ts, problem=p0.replace(odo_yaw_free=False) if same else None,
-                             state=truth_st)
-                draw = _scores(bound["problem"], draw_from_crlb(bound, rng), truth_t)
-            row.update({f"crlb_{k}": v for k, v in draw.items()})
-        rows.append(row)
-    return rows
-
-
-def run_one(sigma_tdoa, sigma_doa_deg, trajectory, run, *, method="hybrid", base_seed=0, check_truth_start=True,
-            with_crlb=True, sigma_odo=SIGMA_ODO):
-    """Simulate, calibrate and score one run with one method. Returns the flat ``final`` row (dict)."""
-    rows = run_methods(sigma_tdoa, sigma_doa_deg, trajectory, run, methods=(method,), base_seed=base_seed,
-                       check_convergence=check_truth_start, with_crlb=with_crlb, sigma_odo=sigma_odo)
-    return rows[-1]
+PART_EVERY_S = 5.0   # s: the parent writes the finished runs as a part file at most this often (and at the end)
+ONE_RUN = ("run_seed", "truth_state", "run_methods", "run_one")   # in calib.pipeline.studyrun (the workers' side)
 
 
 def paper_values(sigma_tdoa, sigma_doa_deg):
@@ -273,12 +176,24 @@ def _key(sigma_tdoa, sigma_doa_deg, trajectory, run, method):
 
 
 def _run_chunk(tasks, settings):
-    """Worker entry point: tasks = [(sigma_tdoa, sigma_doa_deg, trajectory, run, methods)] → rows."""
-    rows = []
-    with single_thread_blas():  # tiny matrices (calib.blas): parallelism across runs instead
-        for st, sd, traj, run, methods in tasks:
-            rows += run_methods(st, sd, traj, run, methods=tuple(methods), **settings)
-    return rows
+    """Worker entry point (:func:`calib.pipeline.studyrun.run_chunk`, imported here: a study's parent process
+    never loads the estimator, 0.45 s of its start-up that no number of workers shortens)."""
+    cpu0 = time.process_time()
+    from calib.pipeline.studyrun import run_chunk   # a worker's first chunk: its imports of the estimator
+
+    res = run_chunk(tasks, settings)
+    res["timing"]["import_cpu_s"] = res["timing"]["cpu_before"] - cpu0
+    return res
+
+
+def __getattr__(name):
+    """The one-run functions, formerly defined here (``from calib.pipeline.montecarlo import truth_state``)."""
+    if name in ONE_RUN:
+        from calib.pipeline import studyrun
+
+        return getattr(studyrun, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 
 def _rows_to_csv(rows):
@@ -344,11 +259,11 @@ def _check_settings(out, settings):
 
 
 def _chunks(tasks, n_workers, size=None):
-    """Split tasks into contiguous chunks (a chunk = one worker task = one part file).
+    """Split tasks into contiguous chunks (a chunk = one worker task).
 
     ``size`` given: chunks of that many tasks. Else guided self-scheduling: each chunk takes
     1/GUIDED_SHARE of the remaining tasks per worker (at most MAX_CHUNK), so the first chunks are long (the
-    per-chunk set-up and part file are amortised) and the last ones short (the workers finish together: the
+    per-chunk hand-out and result transfer are amortised) and the last ones short (the workers finish together: the
     study's tail is one short chunk, not one of average length).
     """
     out, k = [], 0
@@ -374,7 +289,8 @@ def _connect(scheduler):
 
 
 def _kill_workers():
-    """Stop joblib's worker processes now (they would otherwise finish their chunks after the parent stops)."""
+    """Stop joblib's worker processes now (they would otherwise finish their chunks after the parent stops, or
+    take their time to exit with it)."""
     from joblib.externals.loky import reusable_executor
 
     executor = getattr(reusable_executor, "_executor", None)  # None: no pool was started
@@ -396,9 +312,8 @@ def _execute(chunks, settings, jobs, client):
             # last chunks again)
             yield from Parallel(n_jobs=jobs, return_as="generator_unordered", batch_size=1)(
                 delayed(_run_chunk)(c, settings) for c in chunks)
-        except BaseException:  # interrupt (SIGINT/SIGTERM) or error: stop the workers, do not let them compute on
-            _kill_workers()
-            raise
+        finally:  # done: the workers stop with the study (an idle worker's own clean exit takes the parent ~0.5 s
+            _kill_workers()  # to wait for); interrupted or failed: they must not compute on
         return
     from distributed import as_completed
 
@@ -428,13 +343,14 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     base_seed, sigma_odo : scene generation (``run_seed``, odometry noise m); check_convergence: also solve
         from ground truth (``converged`` column); with_crlb: score one CRLB draw per run. These four must
         match the ones of a study being resumed (``study.json``).
-    chunk_size : runs per part file / worker task (default: shrinking chunks, :func:`_chunks`).
+    chunk_size : runs per worker task (default: shrinking chunks, :func:`_chunks`).
 
     Returns
     -------
     dict: ``runs`` (DataFrame of the requested grid's rows), ``summary`` (DataFrame), ``computed`` and
     ``skipped`` (numbers of runs × methods), ``wall_s``, ``paths`` (dict of written files).
     """
+    timeline = studytiming.StudyTimeline()
     g = paper_grid()
     grid = check_grid({**g, "cells": g["cells"] if cells is None else cells,
                        "trajectories": g["trajectories"] if trajectories is None else trajectories,
@@ -457,31 +373,83 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
         n_workers = (os.cpu_count() or 1) if jobs == -1 else jobs
     chunks = _chunks(tasks, n_workers, chunk_size)
     total = sum(len(t[4]) for t in tasks)
+    timeline.plan("dask" if client else "local" if jobs != 1 else "in-process", n_workers, tasks)
+    timeline.mark("dispatch")
     t0 = time.perf_counter()
-    if chunks:
-        (out / "parts").mkdir(exist_ok=True)
-        stamp = f"{time.time_ns():x}"
-        try:
-            done_runs = 0
-            message = f"{skipped} already done"
-            if progress is not None:
-                progress(0, total, message)
-            for k, rows in enumerate(_execute(chunks, settings, jobs, client)):
-                write_file(out / "parts" / f"part-{stamp}-{k:05d}.csv", _rows_to_csv(rows), command=COMMAND)
-                done_runs += sum(r["stage"] == "final" for r in rows)
-                if progress is not None:
-                    progress(done_runs, total, message)
-        finally:
-            if client is not None and client is not scheduler:
-                client.close()
-    elif client is not None and client is not scheduler:
-        client.close()
+    try:
+        if chunks:
+            _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, skipped,
+                        first_result=_import_plotting_meanwhile if figure else None)
+    finally:
+        if client is not None and client is not scheduler:
+            client.close()
+    timeline.mark("collected")
     wall = time.perf_counter() - t0
     paths = finish_study(out, grid, figure=figure)
     all_runs = pd.read_csv(paths["runs"])
     sel = _select(all_runs, grid)
+    timeline.mark("end")
     return {"runs": sel, "summary": pd.read_csv(paths["summary"]), "computed": total, "skipped": skipped,
-            "wall_s": wall, "paths": paths}
+            "wall_s": wall, "paths": paths, "timing": timeline.data}
+
+
+def _import_plotting_meanwhile():
+    """Import what :func:`plot_study` needs (0.5-0.8 s CPU) in a thread, while the runs are computed (started
+    once the work is out: a thread importing holds the interpreter lock the hand-out needs)."""
+    threading.Thread(target=_import_plotting, daemon=True).start()
+
+
+def _import_plotting():
+    with contextlib.suppress(Exception):  # plot_study imports (and reports) for itself
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.collections  # noqa: F401
+        import matplotlib.pyplot  # noqa: F401
+
+
+def _run_chunks(out, chunks, settings, jobs, client, timeline, progress, total, skipped, first_result=None):
+    """Run the chunks; write the rows that arrived as a part file every PART_EVERY_S and when the loop ends
+    (done, interrupted or failed); record the timeline; call ``first_result()`` when the first chunk is in."""
+    (out / "parts").mkdir(exist_ok=True)
+    parts = _PartWriter(out / "parts")
+    done_runs = 0
+    message = f"{skipped} already done"
+    if progress is not None:
+        progress(0, total, message)
+    try:
+        for k, res in enumerate(_execute(chunks, settings, jobs, client)):
+            t = time.perf_counter()
+            if k == 0 and first_result is not None:
+                first_result()
+            parts.add(res["rows"])
+            done_runs += sum(r["stage"] == "final" for r in res["rows"])
+            if progress is not None:
+                progress(done_runs, total, message)
+            timeline.received(res["timing"], time.perf_counter() - t)
+    finally:
+        parts.flush()
+
+
+class _PartWriter:
+    """Rows → part files (``part-<stamp>-<k>.csv``, each written atomically): one file per PART_EVERY_S, not per
+    chunk. Each part costs the parent a write, a read and a removal when the study is merged (~20 ms; 130
+    chunks at 16 workers); a study killed outright loses at most the last PART_EVERY_S of finished runs."""
+
+    def __init__(self, folder):
+        self.folder, self.stamp, self.k = folder, f"{time.time_ns():x}", 0
+        self.rows, self.last = [], time.perf_counter()
+
+    def add(self, rows):
+        self.rows += rows
+        if time.perf_counter() - self.last >= PART_EVERY_S:
+            self.flush()
+
+    def flush(self):
+        if self.rows:
+            write_file(self.folder / f"part-{self.stamp}-{self.k:05d}.csv", _rows_to_csv(self.rows), command=COMMAND)
+            self.k += 1
+        self.rows, self.last = [], time.perf_counter()
 
 
 def _pending_tasks(out, grid):
@@ -591,6 +559,24 @@ def _plot_references(ax, summary, method, name, cells, pos):
             ax.plot(*np.transpose(pts), ls="none", label=label, **style)
 
 
+def _boxes(ax, data, pos, width, color):
+    """Box plots of the arrays ``data`` at x ``pos``: quartile boxes, medians, whiskers to the data within the
+    5th-95th percentiles (matplotlib's ``boxplot_stats``), drawn as two collections: one artist per box part
+    (``Axes.boxplot``) made the study's figure 2-4 s, the slowest step after the last run."""
+    from matplotlib.cbook import boxplot_stats
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    boxes, lines = [], []
+    for st, x in zip(boxplot_stats(data, whis=(5, 95)), pos):
+        lo, hi, cap = x - width / 2, x + width / 2, width / 4
+        boxes.append([(lo, st["q1"]), (hi, st["q1"]), (hi, st["q3"]), (lo, st["q3"])])
+        lines += [[(lo, st["med"]), (hi, st["med"])], [(x, st["q1"]), (x, st["whislo"])],
+                  [(x, st["q3"]), (x, st["whishi"])], [(x - cap, st["whislo"]), (x + cap, st["whislo"])],
+                  [(x - cap, st["whishi"]), (x + cap, st["whishi"])]]
+    ax.add_collection(PolyCollection(boxes, facecolors=color, edgecolors="k", linewidths=1.0, alpha=0.85))
+    ax.add_collection(LineCollection(lines, colors="k", linewidths=1.0))
+
+
 def plot_study(runs, summary, path):
     """The paper's Fig. 3 layout: per metric a panel; per cell, one box per method/stage (whiskers at the
     5th/95th percentiles), the CRLB draws' IQR-mean (bar) and the paper's published value (star)."""
@@ -621,16 +607,12 @@ def plot_study(runs, summary, path):
             keep = [i for i, d in enumerate(data) if len(d)]
             if not keep:
                 continue
-            bp = ax.boxplot([data[i] for i in keep], positions=pos[keep], widths=0.85 * width, whis=(5, 95),
-                            showfliers=False, patch_artist=True, manage_ticks=False)
-            for b in bp["boxes"]:
-                b.set(facecolor=colors.get((m, s), "#bbbbbb"), alpha=0.85)
-            for med in bp["medians"]:
-                med.set(color="k")
+            _boxes(ax, [data[i] for i in keep], pos[keep], 0.85 * width, colors.get((m, s), "#bbbbbb"))
             ax.plot([], [], "s", color=colors.get((m, s), "#bbbbbb"), label=f"{m} ({s})")
             if s == "final":
                 _plot_references(ax, summary, m, name, cells, pos)
         ax.set_yscale("log")
+        ax.autoscale_view()
         ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 1.5, 2.0, 3.0, 5.0, 7.0)))
         ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
         ax.yaxis.set_minor_formatter(NullFormatter())

@@ -65,6 +65,7 @@ MAX_STEPS = 2             # ... and at most this many breaks are made per array
 STEP_CANDIDATES = 8       # breaks refitted per step: the best by the held-position score (_step_scores)
 NLOS_MINORITY = 0.5       # an array's arrivals flagged "nlos" left out of the fits while at most this fraction
 ODO_RESIDUAL_S = 3e-3     # s: arrivals the odometry cannot explain to better than this (RMS): another session's log
+ODO_EXPLAINED = 3.0       # an array whose arrivals and DOAs fit the odometry this well (RMS σ) ties the log to the session
 ODO_MISFIT = 12.0         # ... or arrivals and DOAs this many sigmas off (RMS; σ_odo included; real sets: ≤ 5)
 MATCHED_FAIL = 0.5        # fewer chirps than this fraction of the events matched: events.csv does not fit
 LINE_RATIO = 0.05         # odometry spread: second principal std below this × the first: sources on a line
@@ -761,7 +762,10 @@ def sound_findings(features, fits=None, source="session.toml"):
     if out:
         return out
     bad = {k: v for k, v in fits.items() if v[2] > ODO_RESIDUAL_S or v[3] > ODO_MISFIT or not np.isfinite(v[0])}
-    if bad and len(bad) >= max(1, len(features["meta"]["arrays"]) // 2 + 1):  # most arrays, not only most fitted
+    # another session's log leaves no array explained; one array that fits it to its noise says the log is this
+    # session's, and the others' misfits have causes of their own (an L-shaped room's reflection-only arrivals)
+    explained = any(v[3] <= ODO_EXPLAINED and np.isfinite(v[0]) for v in fits.values())
+    if bad and not explained and len(bad) >= max(1, len(features["meta"]["arrays"]) // 2 + 1):  # most arrays
         worst_ = max(v[3] for v in bad.values())
         return [Finding("failed", "events.csv", "odometry vs arrivals", f"events.csv: the odometry does not explain "
                         f"the chirps' arrival times and directions (residuals up to {worst_:.0f}× their sigma in "

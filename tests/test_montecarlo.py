@@ -101,7 +101,7 @@ def test_interrupted_study_keeps_finished_chunks_and_resumes(study, tmp_path, mo
     with pytest.raises(KeyboardInterrupt):
         mc.run_study(out, runs=2, jobs=1, chunk_size=1, **TINY)
     parts = sorted((out / "parts").glob("part-*.csv"))
-    assert len(parts) == 2 and not (out / "runs.csv").exists()
+    assert parts and not (out / "runs.csv").exists()                  # written as the interrupt went up
     finals = sum((pd.read_csv(p)["stage"] == "final").sum() for p in parts)
     assert finals == 4                                                # 2 runs × 2 methods, complete rows
     monkeypatch.setattr(mc, "_run_chunk", real)
@@ -173,3 +173,18 @@ def test_chunks_shrink_cover_every_task_in_order_and_honour_a_fixed_size():
         assert sizes[-1] == 1 and sum(sizes[-workers:]) <= 2 * workers
     assert [len(c) for c in mc._chunks(tasks[:7], 4, size=3)] == [3, 3, 1]
     assert mc._chunks([], 4) == []
+
+
+@pytest.mark.slow
+def test_rows_are_the_same_whatever_the_workers_and_the_chunk_sizes(study, tmp_path):
+    import os
+
+    fresh, _ = study                                    # in this process, the default (guided) chunks
+    # (2 processes with the default chunks: test_resume_computes_only_missing_runs_and_matches_a_fresh_study)
+    for jobs, size, n_chunks in ((1, 3, 2), (2, 1, 4)):
+        out = tmp_path / f"jobs{jobs}-size{size}"
+        res = mc.run_study(out, runs=2, jobs=jobs, chunk_size=size, figure=False, **TINY)
+        assert res["computed"] == 8 and len(res["timing"]["chunks"]) == n_chunks   # 4 tasks (2 methods each)
+        workers = {c["worker"].rsplit(":", 1)[1] for c in res["timing"]["chunks"]}
+        assert (workers == {str(os.getpid())}) == (jobs == 1)                    # jobs=2: worker processes
+        assert without_time(out / "runs.csv") == without_time(fresh / "runs.csv")

@@ -192,3 +192,45 @@ def test_late_arrivals_when_reflections_are_the_majority():
     ev = late_arrivals(np.where(nlos, reflected, direct), t, s, 343.0)
     assert np.array_equal(ev["nlos"], nlos)
     assert ev["early"] == 0
+
+
+def _bent_doas(feats, array, events, deg, flag="weak_direct"):
+    """``array``'s DOAs of ``events`` turned by ``deg`` about the array's z axis (a reflection's leakage bends
+    them alike) and flagged; its TDOA rows of those events flagged too (their times stay right)."""
+    doa, tm = feats["doa"].copy(), feats["tdoa_m"].copy()
+    m = ((doa["array"] == array) & doa["event"].isin(events)).to_numpy()
+    a = np.radians(deg)
+    u = doa.loc[m, ["ux", "uy", "uz"]].to_numpy(float)
+    doa.loc[m, ["ux", "uy", "uz"]] = u @ np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]).T
+    doa["flag"] = np.where(m, flag, "")
+    tm["flag"] = np.where(((tm["array"] == array) & tm["event"].isin(events)).to_numpy(), flag, "")
+    return {**feats, "doa": doa, "tdoa_m": tm}, m
+
+
+def test_weak_direct_doas_count_only_when_most_of_an_array_has_them():
+    """DOAs of arrivals whose direct path is weaker than a reflection just after it (flag weak_direct) are
+    bent by that reflection. A few are rows like any other (the outlier tests judge them: the calibration is
+    the one without the flags); an array most of whose DOAs are such is named, never `ok`, and solved apart."""
+    f, tr = simulate_features(2, 1e-4, 5.0, 0.01, seed=7)
+    evs = [int(e) for e in f["events"]["event"][2:5]]
+    few, m = _bent_doas(f, "A2", evs, 8.0)
+    unflagged = {**few, "doa": few["doa"].assign(flag=""), "tdoa_m": few["tdoa_m"].assign(flag="")}
+    out = calibrate(few)
+    assert evaluate(out, tr)["position_rmse_m"] == pytest.approx(evaluate(calibrate(unflagged), tr)["position_rmse_m"],
+                                                                  rel=1e-9)
+    assert "distrusted" not in out["report"]["verdict"] and out["report"]["verdict"]["flagged_arrays"] == []
+    _, rec = screen_rows(few)
+    assert rec["rows"] == [] and rec["kept_doubted"] == {}
+    every = [int(e) for e in f["events"]["event"]]
+    most, _ = _bent_doas(f, "A2", every, 8.0)
+    out = calibrate(most)
+    v = out["report"]["verdict"]
+    assert "A2" in v["flagged_arrays"] and v["status"] != "ok"
+    assert any(d["array"] == "A2" and d["reason"] == "weak_direct" and not d["taken_out"] for d in v["distrusted"])
+    assert out["report"]["screened"]["arrays"]["A2"] == {"weak_direct_kept": len(every)}
+    # ... and isolated: the others are calibrated as if it had never been there, then it is refitted alone
+    alone = calibrate({**f, **{k: f[k][f[k]["array"] != "A2"] for k in ("tdoa_m", "tdoa_s", "doa")}})
+    others = out["arrays"]["array"] != "A2"
+    assert np.allclose(out["arrays"].loc[others, ["x", "y", "z"]].to_numpy(float),
+                       alone["arrays"].loc[alone["arrays"]["array"] != "A2", ["x", "y", "z"]].to_numpy(float), atol=1e-6)
+    assert out["report"]["unreliable_arrays"] == ["A2"]
