@@ -204,7 +204,9 @@ def _misfit_finding(a, g, mics, fix_ratio):
                            f"they fit ({us * v:.0f} µs): swap rows {m + 1} and {n + 1} of its mics, or the cables")
     fixes = sorted((v, m) for m, v in g.loo.items() if v * fix_ratio < g.misfit and v / max(g.span, 1e-12)
                    < C.MISFIT_FAIL)
-    if len(fixes) == 1:  # leaving out any other mic keeps the misfit: that one is misplaced or miswired
+    if len(fixes) == 1 and g.moved[fixes[0][1]][0] * fix_ratio < g.misfit:
+        # leaving out any other mic keeps the misfit, and one offset of that mic fits every chirp: misplaced or
+        # miswired (a mic that hears a reflection's path in some chirps fits without it, but no offset fits it)
         v, m = fixes[0]
         return Finding("failed", wav, "channel geometry", f"{head}; without channel {m + 1} they fit "
                        f"({us * v:.0f} µs): check row {m + 1} of its mics (a typo?) and that channel's wiring")
@@ -214,11 +216,12 @@ def _misfit_finding(a, g, mics, fix_ratio):
                            for m in moved)
         return Finding("failed", wav, "channel geometry", f"{head}; with {rows} they fit: check that row of its "
                        "mics (a typo?)")
-    if fixes:  # leaving out either of two mics fits, moving neither does: their pair's delay is off
+    if fixes:  # leaving out a mic (or either of two) fits, moving none does: a reflection bends their delays
         names = " or ".join(str(m + 1) for _, m in fixes)
-        return Finding("note", wav, "pair delay", f"{head}; without channel {names} they fit, with neither moved: "
-                       "the delay between these mics is off in many chirps (a reflection from a surface near the "
-                       "board?); not a set-up mistake")
+        which = "no offset of that mic does: its delays are" if len(fixes) == 1 else \
+            "moving neither does: the delay between these mics is"
+        return Finding("note", wav, "pair delay", f"{head}; without channel {names} they fit, {which} off in "
+                       "many chirps (a reflection from a surface near the board?); not a set-up mistake")
     if g.ratio <= C.MISFIT_FAIL:
         return None
     return Finding("failed", wav, "geometry", f"{head}: the mics in session.toml are not this board's (shape, "
