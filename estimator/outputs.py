@@ -122,6 +122,15 @@ def without_claims(std, arrays):
     return std
 
 
+def out_of_earshot(xa, xs):
+    """(arrays (N,), sources (K,)) bool: a known position farther than AUDIBLE_RANGE from every known counterpart
+    (an array only when some source is known). xa (N, 3), xs (K, 3) m, NaN where unknown."""
+    d = np.linalg.norm(xa[:, None, :] - xs[None, :, :], axis=2)          # (N, K); NaN where either is unknown
+    near = np.where(np.isnan(d), False, d <= AUDIBLE_RANGE)
+    far_a = np.isfinite(xa).all(axis=1) & ~near.any(axis=1) & np.isfinite(xs).all(axis=1).any()
+    return far_a, np.isfinite(xs).all(axis=1) & ~near.any(axis=0)
+
+
 def blank_diverged(out):
     """An array farther than AUDIBLE_RANGE from every source, or a source farther than it from every array, is
     a place no recording can come from: the solve diverged (data that fit no one geometry, e.g. another
@@ -130,10 +139,7 @@ def blank_diverged(out):
     ``calibrate``'s output; returns it."""
     arrays, sources = out["arrays"], out["sources"]
     xa, xs = arrays[["x", "y", "z"]].to_numpy(float), sources[["x", "y", "z"]].to_numpy(float)
-    d = np.linalg.norm(xa[:, None, :] - xs[None, :, :], axis=2)          # (N, K); NaN where either is unknown
-    near = np.where(np.isnan(d), False, d <= AUDIBLE_RANGE)
-    far_a = np.isfinite(xa).all(axis=1) & ~near.any(axis=1) & np.isfinite(xs).all(axis=1).any()
-    far_s = np.isfinite(xs).all(axis=1) & ~near.any(axis=0)
+    far_a, far_s = out_of_earshot(xa, xs)
     ref = out["problem"].ref             # the gauge: placed by definition, not solved; it heard the sources, so
     if far_a[ref]:                       # when it is far from all of them, everything solved ran off together
         far_a, far_s = np.isfinite(xa).all(axis=1), np.isfinite(xs).all(axis=1)

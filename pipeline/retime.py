@@ -50,7 +50,7 @@ def first_pass_stretches(session, feats):
     first pass's features; (None, record with ``skipped``) when that solve cannot predict."""
     from calib.estimator import ObservabilityError, calibrate
     from calib.estimator.motion import predicted_stretches
-    from calib.estimator.outputs import AUDIBLE_RANGE
+    from calib.estimator.outputs import out_of_earshot
 
     from calib.pipeline.features import add_session_meta
 
@@ -72,8 +72,7 @@ def first_pass_stretches(session, feats):
     col = {int(e): k for k, e in enumerate(p.events)}
     unreliable = set(sol["unreliable_arrays"])
     # a diverged array (beyond earshot of every source) predicts nothing either
-    dist = np.linalg.norm(st.x[:, None, :] - st.s[None, :, :], axis=2)
-    unreliable |= {str(n) for n, d in zip(p.names, dist) if not np.any(d <= AUDIBLE_RANGE)}
+    unreliable |= {str(n) for n, far in zip(p.names, out_of_earshot(st.x, st.s)[0]) if far}
     out = {}
     for i, name in enumerate(p.names):
         if str(name) in unreliable:
