@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from calib.frontend import extract_features, plot_detections
+from calib.frontend import DEFAULTS, extract_features, plot_detections
 from calib.jsonutil import dumps_json
 from calib.records import Features
 
@@ -26,7 +26,7 @@ def session_features(recordings, progress=None, jobs=1, **options):
     """
     session = recordings if isinstance(recordings, Mapping) else read_session(recordings)
     first = extract_features(session, progress=progress, jobs=jobs, **options)
-    fixes = rate_corrections(session, first[1])
+    fixes = rate_corrections(session, first[1], options.get("threshold", DEFAULTS["threshold"]))
     if fixes:   # a header's rate the chirps contradict: every array again, those at the measured rate
         first = extract_features(with_rates(session, fixes), progress=progress, jobs=jobs, **options)
         fixes, changed = refine_rates(with_rates(session, fixes), first[0], fixes)
