@@ -479,9 +479,10 @@ def test_a_wrong_header_rate_is_measured_from_the_chirps_spacing(seed):
     session = {"events": pd.DataFrame({"event": np.arange(40), "t_emit": t_emit}),
                "arrays": [{"name": n, "sample_rate": None} for n in ("A1", "A2", "A3")]}
 
-    def dets(scale, fs=16000, drop=()):
+    def dets(scale, fs=16000, drop=()):   # (the association matches a clock within 1e-3 of the emitter's)
         t = scale * (t_emit + ranges / 343.0) + rng.uniform(0, 5) + rng.normal(0, 1e-4, 40)
-        return {"fs": fs, "detections": [{"time": float(x)} for k, x in enumerate(t) if k not in drop]}
+        return {"fs": fs, "detections": [{"time": float(x), "event": k if abs(scale - 1) < 1e-3 else None}
+                                         for k, x in enumerate(t) if k not in drop]}
 
     true = 44100 / 48000
     diag = {"arrays": {"A1": dets(1.00002), "A2": dets(true, drop=(3, 17)), "A3": dets(0.99995)}}
