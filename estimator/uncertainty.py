@@ -252,7 +252,12 @@ def planar_doa_rows(p, lin, normals, factors):
     the sigmas themselves are), the azimuth's may go below it (on the lab preset azimuth errors were 0.1°
     against a row sigma of 0.6°: the row sigma there made the std 1.5× the errors). A row closer to the plane
     than FOLD_SIGMAS of its elevation std may be the mirror image of the truth (a stated hemisphere puts a
-    source 4.7° below the plane 5° above it: moving seed 23): its elevation variance gains el²."""
+    source 4.7° below the plane 5° above it: moving seed 23): its elevation variance gains el². Near the
+    plane the elevation is also biased, and the same way for every such row: it is read from the in-plane
+    magnitude ρ = cos(el) ≤ 1, so an error in ρ only ever makes |el| larger (measured 2.6-5.3° for sources
+    at −2…+1°: robot seeds 1-2, A5/A2, a tilt 3-4σ off with these rows taken as independent). Those rows'
+    elevation errors (each of its std) are therefore also taken as one error they share, which their
+    number does not average down."""
     start = 0
     for f in lin.factors:
         n = len(f.r)
@@ -295,9 +300,12 @@ def planar_doa_rows(p, lin, normals, factors):
             # a row within FOLD_SIGMAS of its elevation noise of the plane cannot tell the plane's sides apart
             # (a stated hemisphere, or the fold, puts it on one): its elevation may be off by up to twice itself
             el = np.arcsin(np.clip(sin_el[m], 0.0, 1.0))
-            var_el = var_el + np.where(el < FOLD_SIGMAS * np.sqrt(var_el) * sig[m], (el / sig[m]) ** 2, 0.0)
+            near = el < FOLD_SIGMAS * np.sqrt(var_el) * sig[m]
+            var_el = var_el + np.where(near, (el / sig[m]) ** 2, 0.0)
             G.append(np.sqrt(var_az)[:, None] * g_az)
             G.append(np.sqrt(var_el)[:, None] * g_el)
+            if near.sum() >= 2:   # ... and all of them the same way: one shared error, not averaged down
+                G.append(np.sum(np.sqrt(var_el[near])[:, None] * g_el[near], axis=0, keepdims=True))
         rows = np.zeros(len(lin.r), bool)
         rows[start:start + n] = np.repeat(keep, 3)
         return {"rows": rows, "G": np.vstack(G)} if G else None
