@@ -20,32 +20,11 @@ from calib.estimator.uncertainty import state_from_frames, velocity_rows
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.simulate.featsim import simulate_features
 
-BETA = 0.57   # s per unit stretch: a 0.5 s sweep 0.5-4 kHz
-
-
-def _moving(feats, truth, vel_error=None, beta=BETA):
-    """Features of a robot moving along the trajectory while it chirps (arrivals shifted by β ṙ/c at the
-    true velocity), events.csv carrying the velocity + ``vel_error`` (K, 3) (the odometry's error)."""
-    ev = feats["events"].copy()
-    t = ev["t_emit"].to_numpy(float)
-    s = truth["sources"][["x", "y", "z"]].to_numpy(float)
-    v = np.gradient(s, t, axis=0)
-    x = truth["arrays"][["x", "y", "z"]].to_numpy(float)
-    drift = truth["arrays"]["drift"].to_numpy(float)
-    ai = {n: k for k, n in enumerate(truth["arrays"]["array"])}
-    eid = {e: k for k, e in enumerate(ev["event"])}
-    ref = ai[feats["meta"]["reference_array"]]
-    w = s[None] - x[:, None]
-    sh = beta * np.einsum("kc,nkc->nk", v, w) / np.linalg.norm(w, axis=2) / feats["meta"]["speed_of_sound"]
-    tm, ts = feats["tdoa_m"].copy(), feats["tdoa_s"].copy()
-    i, j = tm["array"].map(ai).to_numpy(), tm["event"].map(eid).to_numpy()
-    tm["tdoa"] += sh[i, j] - sh[ref, j] + beta * (drift[i] - drift[ref])
-    i, a, b = (ts[c].map(m).to_numpy() for c, m in (("array", ai), ("from_event", eid), ("to_event", eid)))
-    ts["tdoa"] += sh[i, b] - sh[i, a]
-    vo = v + (0.0 if vel_error is None else vel_error)
-    ev["vel_x"], ev["vel_y"], ev["vel_z"] = vo.T
-    return {**feats, "meta": {**feats["meta"], "chirp_drift_bias": beta}, "events": ev, "tdoa_m": tm,
-            "tdoa_s": ts}
+def _moving(feats, truth, vel_error=None):
+    """Features of a robot moving while it chirps (arrivals shifted by β ṙ/c at the true velocity), events.csv
+    carrying the velocity + ``vel_error`` (the odometry's error): test_motion_nlos's scene."""
+    from .test_motion_nlos import _moving as moving
+    return moving(feats, truth, with_vel=True, vel_error=vel_error)[0]
 
 
 def _whitened(p, st, lay, kinds):
