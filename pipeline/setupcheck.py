@@ -597,6 +597,14 @@ def arrival_chain(features, name, sig_t):
     return ArrivalChain(odo, e, y, seg, e_id, _arrival_starts(odo, e, y, seg))
 
 
+def arrival_drift(features, name):
+    """Array ``name``'s clock drift against the emission times from its arrivals alone (TDOA-S chained against the
+    odometry's ranges from its best-fitting position, c free: :func:`arrival_chain`'s best start), or None when
+    too few arrivals. A quick look (no DOAs, no other array): ~1e-6 over a minute of chirps."""
+    chain = arrival_chain(features, name, _sigmas(features["meta"])[0])
+    return None if chain is None or not chain.starts else float(chain.starts[0][-2])
+
+
 def speed_of_sound_fit(features, proper=True, arrays=None, chains=None):
     """Speed of sound from the metric odometry: per array, its arrivals (TDOA-S chained, less the emission
     times) against the ranges from an unknown position to the odometry's source positions, its DOAs against
