@@ -102,12 +102,14 @@ def rate_corrections(session, diagnostics, threshold=8.0):
 def fast_clocks(session, feats, diagnostics, max_drift, skip=()):
     """Candidates for :func:`refine_rates` ({array: {"header", "used" = header, "scale": 1, "fast_clock": True}}):
     the arrays (not ``skip``, no declared rate) whose association's scale sits at its search bound 1 ± ``max_drift``
-    (the frontend's option) — a clock faster or slower than a crystal runs, or range changes that tilt the
-    association's line — and whose arrivals against the odometry (``setupcheck.arrival_drift``, no solve) put
-    their drift beyond half ``FAST_CLOCK``; the first solve's drift decides."""
+    (the frontend's option) — a clock faster or slower than a crystal runs, range changes that tilt the
+    association's line, or a clock that steps — whose arrivals jump nowhere (``clockmodel.impossible_jumps``: a
+    dropped block is no rate) and against the odometry (``setupcheck.arrival_drift``, no solve) put their drift
+    beyond half ``FAST_CLOCK``; the first solve's drift decides."""
+    from calib.estimator.clockmodel import impossible_jumps
     from calib.pipeline.setupcheck import arrival_drift
 
-    out = {}
+    out, jumped = {}, None
     for a in session["arrays"]:
         d = ((diagnostics or {}).get("arrays", {}).get(a["name"]) or {})
         scale = (d.get("association") or {}).get("scale")
@@ -115,8 +117,10 @@ def fast_clocks(session, feats, diagnostics, max_drift, skip=()):
             continue
         if abs(scale - 1) < CLAMPED * max_drift:
             continue
-        drift = arrival_drift(feats, a["name"])
-        if drift is None or abs(drift) > 0.5 * FAST_CLOCK:
+        if jumped is None:   # a clock that steps (a dropped block) tilts the association too: it is no rate
+            jumped = {j["array"] for j in impossible_jumps(feats)}
+        drift = None if a["name"] in jumped else arrival_drift(feats, a["name"])
+        if drift is not None and abs(drift) > 0.5 * FAST_CLOCK:
             out[a["name"]] = {"header": int(d["fs"]), "used": int(d["fs"]), "scale": 1.0, "fast_clock": True}
     return out
 
