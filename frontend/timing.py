@@ -32,7 +32,7 @@ from scipy.ndimage import maximum_filter1d, uniform_filter1d
 
 from calib.robust import mad_std
 
-from .signals import band_weights
+from .signals import band_weights, fourier_resample
 
 
 def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
@@ -144,12 +144,10 @@ def _stretched_templates(template_bytes, pad, ks):
     """The template (float64 bytes) zero-padded to ``pad`` samples and stretched by ``k / pad`` for each k of
     ``ks`` (band-limited resampling, :func:`stretch_bank`), each (pad,): the costly part of a bank, the same
     for every array of a session whatever its segment length (4 arrays: 4x fewer resamplings)."""
-    from scipy.signal import resample  # (on use: `calib --help` does not wait for scipy.signal)
-
     buf = np.zeros(pad)
     t = np.frombuffer(template_bytes, float)
     buf[: len(t)] = t
-    return tuple(resample(buf, pad + k)[:pad] if k else buf for k in ks)
+    return tuple(fourier_resample(buf, pad + k)[:pad] if k else buf for k in ks)
 
 
 def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, stretches=None,
@@ -1075,14 +1073,14 @@ def sweep_time(template, fs, band, locate_kw, pre, seg_len, whiten_hz, beta, up=
     arrival moves by ``β (ε + α t*)``. Even weights over a linear sweep give ``T/2``; the envelope peak weighs
     the band's middle more (0.44 T for a 0.5 s, 0.5-4 kHz sweep). Measured as β is, on the template received
     with the delay ``± ½ α t²`` (central difference), evaluated at the emission times by band-limited
-    interpolation (×``up`` polyphase, then cubic). ``beta`` : :func:`drift_bias`. α keeps the group delay's
+    interpolation (×``up`` by FFT, then cubic). ``beta`` : :func:`drift_bias`. α keeps the group delay's
     spread over the sweep (``~1.5 α T²``) at a quarter pulse: linear (at 4× that, t* came out 0.51 T)."""
     from scipy.interpolate import CubicSpline
-    from scipy.signal import resample_poly
 
     n = len(template)
     alpha = 0.25 / ((band[1] - band[0]) * 1.5 * (n / fs) ** 2)
-    fine = resample_poly(np.r_[template, np.zeros(8)], up, 1)
+    buf = np.r_[template, np.zeros(8)]   # faded to 0 at both ends: its periodic interpolation does not wrap
+    fine = fourier_resample(buf, up * len(buf))
     spline = CubicSpline(np.arange(len(fine)) / (fs * up), fine)
     setup = spectra_setup(template, fs, band, seg_len, whiten_hz)
     u = (np.arange(seg_len) - pre) / fs
@@ -1116,8 +1114,6 @@ def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stret
     each ε of ``stretches`` (each realised exactly by band-limited resampling: returns the ε realised too).
     Small ε: β ε (:func:`drift_bias`); a source moving at ~1 m/s (ε ~ 3e-3) is beyond the linear range.
     Returns (shifts (n,), stretches realised (n,))."""
-    from scipy.signal import resample  # (on use: `calib --help` does not wait for scipy.signal)
-
     n = len(template)
     smallest = min(abs(d) for d in stretches if d) if any(stretches) else 1e-3
     pad = sfft.next_fast_len(max(seg_len + 2 * pre, int(np.ceil(1.0 / smallest))))
@@ -1128,7 +1124,7 @@ def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stret
         dd = k / pad  # stretch realisable exactly by resampling pad → pad + k samples
         buf = np.zeros(pad)
         buf[pre : pre + n] = template
-        y = resample(buf, pad + k)[:seg_len] if k else buf[:seg_len]  # y[i] = buf(i / (1 + dd))
+        y = fourier_resample(buf, pad + k)[:seg_len] if k else buf[:seg_len]  # y[i] = buf(i / (1 + dd))
         c = segment_spectra(y[None, :], np.zeros(1, int), setup)
         res = locate(c, setup, **locate_kw)
         shifts.append(res["tau"][0, 0] - pre * (1 + dd) / fs)
