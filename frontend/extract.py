@@ -591,10 +591,11 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
             stretch = bank[1][k]
         res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
         res["stretch"] = stretch
+        onset_env = res.pop("onset_env")   # (J_c, lags): searched again by retime_earlier, not kept
         # a weak direct path before the timed arrival (a reflection): timed again on it (frontend.nlos); not
         # for a moving source, whose paths each have their own stretch (the subtraction's pulse model fails)
         res, again = (res, None) if bank is not None else retime_earlier(res, c, c_plain, setup,
-                                                                          {**locate_kw, "phase": phase})
+                                                                          {**locate_kw, "phase": phase}, onset_env)
         res = _gate(res, locate_kw.get("gate", 0))
         if again is not None:
             res = _merge_events(res, _gate(again, locate_kw.get("gate", 0)), again["events"], len(res["dp"]))
