@@ -152,9 +152,8 @@ def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
     score : (D,) float, peak / local background.
 
     The peaks of :func:`find_peaks` (as ``scipy.signal.find_peaks(env, height=threshold × local_floor,
-    distance)``), found only around
-    the samples above the threshold (:func:`_segments`): memory bounded by the chirps, not the recording
-    (find_peaks on a whole 2-hour envelope at 4.8 kHz holds ~0.8 GB of float64 copies and local maxima).
+    distance)``), found only around the samples above the threshold (:func:`_segments`): memory bounded by
+    the chirps, not the recording (find_peaks on a whole 2-hour envelope at 4.8 kHz holds ~0.8 GB of float64 copies and local maxima).
     """
     block = max(1, int(block_s * env_rate))
     level = block_levels(env, block)
