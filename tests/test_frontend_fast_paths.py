@@ -134,3 +134,21 @@ def test_pick_peaks_equals_find_peaks_on_the_whole_envelope(seed, threshold, sep
     idx, score = pick_peaks(env, rate, sep_s, threshold)
     assert len(want) > 10 and np.array_equal(idx, want)
     np.testing.assert_array_equal(score, env[want] / floor[want])
+
+
+def test_detection_plot_labels_only_what_fits():
+    """The detection plot draws an event's id only where it clears the last one drawn (a 2-hour session's
+    thousands of ids per row would cost seconds to draw as an unreadable smear): sparse ids are all kept, crowded
+    ones thinned to non-overlapping ones, each kept label at its own event's time."""
+    from calib.frontend.diagnostics import FIG_WIDTH_IN, LABEL_CHAR_IN, MARGIN_IN, _legible
+
+    s_per_in = 100.0 / (FIG_WIDTH_IN - MARGIN_IN["left"] - MARGIN_IN["right"])
+    sparse = np.arange(0.0, 100.0, 5.0)
+    assert [t for t, _ in _legible(sparse, [str(k) for k in range(len(sparse))], 100.0)] == list(sparse)
+    dense = np.sort(np.random.default_rng(0).uniform(0, 100, 400))
+    labels = [str(1000 + k) for k in range(len(dense))]
+    kept = _legible(dense, labels, 100.0)
+    assert 10 < len(kept) < len(dense) and kept[0] == (dense[0], labels[0])
+    assert all(labels[int(np.flatnonzero(dense == t)[0])] == lab for t, lab in kept)
+    half = 0.5 * 4 * LABEL_CHAR_IN * s_per_in   # 4-character labels
+    assert np.all(np.diff([t for t, _ in kept]) >= 2 * half)
