@@ -46,6 +46,7 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
     n_valid = -(-n // dec)
     env = np.zeros(n_valid, np.float32)
     q0, buf = 0, None  # first decimated output of the next block, the inverse transform's input
+    bands = {}   # the template's band per block length (all blocks but the last share one)
     while q0 < n_valid:
         # the last block only as long as what is left needs (a 28 s recording at 48 kHz: 7 blocks of 2^18
         # samples, the seventh for 3 % of its outputs)
@@ -53,7 +54,9 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
         nfft, q1 = nd_b * dec, min(q0 + nd_b - overlap, n_valid)
         k0 = int(np.floor(band[0] * nfft / fs))
         k1 = min(int(np.ceil(band[1] * nfft / fs)) + 1, nfft // 2 + 1, k0 + nd_b)
-        s_conj = _template_band(template, nfft, k0, k1)
+        if nfft not in bands:
+            bands[nfft] = _template_band(template, nfft, k0, k1)
+        s_conj = bands[nfft]
         buf = buf if buf is not None and len(buf) == nd_b else np.zeros(nd_b, np.complex64)
         s0 = (q0 - guard) * dec  # first input sample of the block
         seg = _columns(x, s0, s0 + nfft)
