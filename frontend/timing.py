@@ -56,6 +56,21 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
             "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
 
 
+def shared_setup(template, fs, band, seg_len, whiten_hz=500.0):
+    """:func:`spectra_setup`, one dict for every array with the same template, rate, band and segment length
+    (the boards of one kind in a session): the pulses, phasor tables and Doppler banks it caches as the timing
+    stage runs (``_pulse_cache``, ``_offset_tables``, ``_stretch_bank``) are then computed once, not per
+    array (a 48 kHz hall of six tetrahedra: ~0.1 s). Read-only apart from those caches, whose values depend
+    only on the key (threads may fill one twice: the same values)."""
+    t = np.ascontiguousarray(template, float)
+    return _shared_setup(t.tobytes(), int(fs), (float(band[0]), float(band[1])), int(seg_len), float(whiten_hz))
+
+
+@lru_cache(maxsize=8)
+def _shared_setup(template_bytes, fs, band, seg_len, whiten_hz):
+    return spectra_setup(np.frombuffer(template_bytes, float), fs, band, seg_len, whiten_hz)
+
+
 # a float32 spectrum floor: the smallest normal float32 (a recording of denormal samples would divide by zero)
 F32_FLOOR = float(np.finfo(np.float32).tiny)
 
