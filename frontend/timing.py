@@ -652,8 +652,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     ``reflection`` (J,) lag of the first strong reflection after the direct path (−1: none seen);
     ``separated`` (J,) bool: that reflection was subtracted before timing; ``interference`` (J,) s
     (:func:`interference_sd`); with ``c_onset``, ``onset_env`` (J, hi − lo): the mic-averaged plain envelope
-    the onset was searched in (before any second look), for a caller that searches it again
-    (:func:`calib.frontend.nlos.earlier_paths`).
+    the onset was searched in (before any second look; :func:`calib.frontend.nlos.earlier_paths` reuses it).
     """
     fs, freqs = setup["fs"], setup["freqs"]
     pad = gate + half_width + 2
@@ -703,12 +702,9 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     dphi = np.angle(z * np.exp(-1j * ph))
     tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), ph, sums=sums)
     interference = interference_sd(env.mean(axis=1), dp - r_lo, half_width, pulse_near(setup, r.shape[-1], 0), fc)
-    out = {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
-           "interference": interference,
-           "snr": snr, "strongest": strongest, "reflection": reflection, "separated": separated}
-    if c_onset is not None:
-        out["onset_env"] = onset_env
-    return out
+    return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
+            "interference": interference, "snr": snr, "strongest": strongest, "reflection": reflection,
+            "separated": separated, **({} if c_onset is None else {"onset_env": onset_env})}
 
 
 def _carrier_phase(z, phase, own_phase):
