@@ -59,7 +59,7 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
 def shared_setup(template, fs, band, seg_len, whiten_hz=500.0):
     """:func:`spectra_setup`, one dict for every array with the same template, rate, band and segment length
     (the boards of one kind in a session): the pulses, phasor tables and Doppler banks it caches as the timing
-    stage runs (``_pulse_cache``, ``_offset_tables``, ``_stretch_bank``) are then computed once, not per
+    stage runs (``_pulse_cache``, ``_offset_tables``, ``_stretch_banks``) are then computed once, not per
     array (a 48 kHz hall of six tetrahedra: ~0.1 s). Read-only apart from those caches, whose values depend
     only on the key (threads may fill one twice: the same values)."""
     t = np.ascontiguousarray(template, float)
@@ -133,10 +133,17 @@ def stretch_bank(template, setup, stretches):
     by band-limited resampling (as :func:`stretch_shifts`). The whitening divides by the smoothed magnitude,
     which a stretch of ~1e-3 leaves unchanged, so multiplying by the factor is the whitened GCC against the
     stretched template. Returns (factors, stretches realised (n,))."""
-    key = ("_stretch_bank", len(template), tuple(np.round(np.asarray(stretches, float), 12)))
-    if key not in setup:   # (the stretched templates themselves are shared by the session's arrays)
-        setup[key] = _stretch_bank(template, setup, stretches)
-    return setup[key]
+    banks = setup.setdefault("_stretch_banks", {})   # (a shared setup outlives a session: a few kept)
+    key = (len(template), tuple(np.round(np.asarray(stretches, float), 12)))
+    bank = banks.get(key)
+    if bank is None:   # (the stretched templates themselves are shared by the session's arrays)
+        for old in list(banks)[: max(0, len(banks) - KEPT_BANKS + 1)]:   # oldest first (threads: no iterator)
+            banks.pop(old, None)
+        bank = banks[key] = _stretch_bank(template, setup, stretches)
+    return bank
+
+
+KEPT_BANKS = 4   # Doppler banks kept per setup (each rows × band bins complex64, ~0.5-1.5 MB)
 
 
 def _stretch_bank(template, setup, stretches):

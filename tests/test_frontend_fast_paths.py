@@ -177,3 +177,23 @@ def test_fourier_resample_is_scipys():
     x = np.random.default_rng(3).standard_normal(101)
     for num in (99, 100, 101, 103, 202, 50):
         np.testing.assert_allclose(fourier_resample(x, num), resample(x, num), rtol=0, atol=1e-12)
+
+
+def test_shared_setup_is_one_per_board_kind_and_keeps_few_doppler_banks():
+    """Arrays with the same template, rate, band and segment length share one spectra setup (its cached pulses
+    and banks computed once); a setup outlives its session, so it keeps only the last KEPT_BANKS Doppler banks,
+    each equal to one built on a fresh setup."""
+    from calib.frontend.signals import chirp_band, sweep
+    from calib.frontend.timing import KEPT_BANKS, shared_setup, spectra_setup, stretch_bank
+
+    fs = 16000
+    tmpl = sweep(np.arange(8000) / fs, 500.0, 4000.0, 0.5, 0.005)
+    band = chirp_band({"f0": 500.0, "f1": 4000.0}, tmpl, fs)
+    a, b = shared_setup(tmpl, fs, band, 9000), shared_setup(tmpl.copy(), fs, band, 9000)
+    assert a is b and shared_setup(tmpl, fs, band, 9001) is not a
+    for k in range(KEPT_BANKS + 3):
+        eps = np.linspace(-1e-3, 1e-3, 5 + k)
+        got = stretch_bank(tmpl, a, eps)
+        want = stretch_bank(tmpl, spectra_setup(tmpl, fs, band, 9000), eps)
+        np.testing.assert_array_equal(got[0], want[0])
+        assert len(a["_stretch_banks"]) <= KEPT_BANKS
