@@ -33,6 +33,11 @@ MIN_MATCHED = 3   # detections for the straight-line fit
 # A first solve's drift beyond this re-extracts at the refined rate: half the frontend's Doppler-bank step
 # (1.4e-4 for a 0.5 s, 0.5-4 kHz sweep, pipeline/retime.py), where a template's stretch starts to bias timing.
 RATE_REFINE = 7e-5
+# A clock this far (relative) from the emitter's is no crystal's (they keep ±1e-4): its samples are taken at its
+# measured rate, its template mismatch (2 Doppler-bank steps) biasing the frontend's multipath checks otherwise
+FAST_CLOCK = 3e-4
+REFINE_ROUNDS = 2   # first solves that refine the rates (the second when the first moved a rate)
+CLAMPED = 0.98   # an association scale this close to its search bound (× max_drift) is a fast-clock candidate
 # An array whose detections match fewer of the events than this is searched at other rates ...
 MATCHED_MIN = 0.8
 # ... these multiples of its header's: every ratio of two common rates within ±13 % (44.1 kHz written as 48: 0.91875)
@@ -94,6 +99,22 @@ def rate_corrections(session, diagnostics, threshold=8.0):
     return found
 
 
+def fast_clocks(session, diagnostics, max_drift, skip=()):
+    """Candidates for :func:`refine_rates` ({array: {"header", "used" = header, "scale": 1, "fast_clock": True}}):
+    the arrays (not ``skip``, no declared rate) whose association's scale sits at its search bound 1 ± ``max_drift``
+    (the frontend's option): a clock that may run faster or slower than a crystal does, or range changes that
+    tilt the association's line; the first solve's drift tells them apart."""
+    out = {}
+    for a in session["arrays"]:
+        d = ((diagnostics or {}).get("arrays", {}).get(a["name"]) or {})
+        scale = (d.get("association") or {}).get("scale")
+        if a["name"] in skip or a.get("sample_rate") is not None or scale is None or not d.get("fs"):
+            continue
+        if abs(scale - 1) >= CLAMPED * max_drift:
+            out[a["name"]] = {"header": int(d["fs"]), "used": int(d["fs"]), "scale": 1.0, "fast_clock": True}
+    return out
+
+
 def searched_scale(array, session, threshold=8.0):
     """(scale, support, detection times at the header's rate) of an array's clock against the emission times,
     its chirps detected with the template at each rate of ``SEARCH_SCALES`` × the header's (a matched filter
@@ -144,12 +165,37 @@ def refine_rates(session, feats, corrections):
     drift = dict(zip((str(n) for n in sol["problem"].names), np.asarray(sol["state"].drift, float)))
     out, changed = {}, False
     for name, f in corrections.items():
-        d = drift.get(name, 0.0) if name not in sol["unreliable_arrays"] else 0.0
-        rate = nominal_rate(f["used"] * (1.0 + d))
-        changed |= abs(rate / f["used"] - 1) > RATE_REFINE
-        out[name] = {**f, "used": rate if abs(rate / f["used"] - 1) > RATE_REFINE else f["used"],
-                     "refined_by_drift": float(d)}
+        d = drift.get(name, 0.0)   # (an array the rest contradict is refitted alone: its drift is its own)
+        if f.get("fast_clock"):   # a header the chirps' spacing did not contradict: only a clock no crystal gives
+            if f["used"] == f["header"] and abs(d) <= FAST_CLOCK:
+                continue
+            rate = int(round(f["used"] * (1.0 + d)))
+        else:
+            rate = nominal_rate(f["used"] * (1.0 + d))
+        moved = abs(rate / f["used"] - 1) > RATE_REFINE
+        changed |= moved
+        out[name] = {**f, "used": rate if moved else f["used"], "refined_by_drift": float(d)}
+        if f.get("fast_clock"):
+            out[name]["scale"] = rate / f["header"]
     return out, changed
+
+
+def detections_only(session, threshold=8.0):
+    """The diagnostics :func:`rate_corrections` reads ({"arrays": {name: {"fs", "detections"}}}), from each
+    array's chirps detected at its header's rate (``frontend.consistency.detect_chirps``; none matched): for a
+    session the frontend refused (an array with too few chirps to associate)."""
+    from calib.frontend.consistency import detect_chirps
+    from calib.frontend.signals import ArrayAudio, chirp_band, chirp_template
+
+    t_emit = session["events"]["t_emit"].to_numpy(float)
+    out = {}
+    for a in session["arrays"]:
+        with ArrayAudio(a) as x:
+            template = chirp_template(session["chirp"], x.fs)
+            times, _ = detect_chirps(x, template, x.fs, chirp_band(session["chirp"], template, x.fs), t_emit,
+                                     threshold)
+            out[a["name"]] = {"fs": x.fs, "detections": [{"time": float(t)} for t in times]}
+    return {"arrays": out}
 
 
 def with_rates(session, corrections):

@@ -972,7 +972,12 @@ def header_rate_findings(session, fixed):
     out = []
     for a in session["arrays"]:
         f = fixed.get(a["name"])
-        if f:
+        if f and f.get("fast_clock"):
+            out.append(Finding("note", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): its clock runs "
+                               f"{1e6 * (f['scale'] - 1):+.0f} ppm against the emission times (more than a crystal "
+                               f"drifts): its samples taken at {f['used']} Hz (its offset and drift are relative to "
+                               f"that rate)", a["name"]))
+        elif f:
             out.append(Finding("suspect", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): the header's "
                                f"sample rate {f['header']} Hz is wrong: the chirps' spacing says "
                                f"{f['header'] * f['scale']:.0f} Hz ({100 * (f['scale'] - 1):+.2f} %, far beyond a "

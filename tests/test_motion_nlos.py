@@ -17,9 +17,10 @@ from calib.pipeline.simulate.featsim import simulate_features
 BETA = 0.57   # s per unit drift: a 0.5 s sweep 0.5-4 kHz (≈ f1 T / (f1 − f0))
 
 
-def _moving(feats, truth, *, with_vel, shift=True, beta=BETA):
+def _moving(feats, truth, *, with_vel, shift=True, beta=BETA, vel_error=None):
     """Features of a robot that keeps moving along the trajectory while it chirps: each arrival shifted by
-    β ṙ/c (ṙ the range rate at the sweep's start), TDOA-M also by β(δ_i − δ_ref) (meta gets β)."""
+    β ṙ/c (ṙ the range rate at the sweep's start), TDOA-M also by β(δ_i − δ_ref) (meta gets β); events.csv
+    with the velocity (``with_vel``) + ``vel_error`` (K, 3) when given (the odometry's error)."""
     ev = feats["events"].copy()
     t = ev["t_emit"].to_numpy(float)
     s = truth["sources"][["x", "y", "z"]].to_numpy(float)
@@ -38,7 +39,7 @@ def _moving(feats, truth, *, with_vel, shift=True, beta=BETA):
     i, a, b = (ts[c].map(m).to_numpy() for c, m in (("array", ai), ("from_event", eid), ("to_event", eid)))
     ts["tdoa"] += sh[i, b] - sh[i, a]
     if with_vel:
-        ev["vel_x"], ev["vel_y"], ev["vel_z"] = v.T
+        ev["vel_x"], ev["vel_y"], ev["vel_z"] = (v + (0.0 if vel_error is None else vel_error)).T
     return {**feats, "meta": {**feats["meta"], "chirp_drift_bias": beta}, "events": ev, "tdoa_m": tm,
             "tdoa_s": ts}, sh
 

@@ -52,6 +52,8 @@ class ArrayCalibration:
     axis: np.ndarray | None = None
     # steps and drift terms beyond the linear clock (calib.clock.Clock with offset 0, drift 0, t0 0)
     clock_extra: object = None
+    # Hz: the rate its local time counts WAV samples at (local time = sample / sample_rate); None: its header's
+    sample_rate: int | None = None
 
     @property
     def rotation(self) -> Rotation:
@@ -264,7 +266,9 @@ def _array(entry, where):
         std=_std_entry(entry.get("std"), f"{where}.std"),
         undetermined=tuple(V.string(u, f"{where}.undetermined") for u in und),
         axis=None if axis is None else np.array(V.vector3(axis, f"{where}.axis", nonzero=True)),
-        clock_extra=_clock_extra(clock, f"{where}.clock"))
+        clock_extra=_clock_extra(clock, f"{where}.clock"),
+        sample_rate=V.number(clock.get("sample_rate"), f"{where}.clock.sample_rate", lo=V.SAMPLE_RATE[0],
+                             hi=V.SAMPLE_RATE[1], integer=True, allow_none=True))
 
 
 def _clock_extra(ck, where):
