@@ -38,7 +38,7 @@ def session_features(recordings, progress=None, jobs=1, **options):
         first, fixes = None, _header_fixes_or_raise(session, opt, exc)
     else:
         fixes = rate_corrections(session, first[1], opt["threshold"])
-    fast = {} if first is None else fast_clocks(session, first[1], opt["max_drift"], skip=fixes)
+    fast = {} if first is None else fast_clocks(session, first[0], first[1], opt["max_drift"], skip=fixes)
     if fixes:   # a header's rate the chirps contradict: every array again, those at the measured rate
         first = extract(fixes)
     # the rates refined by a first solve's drift, and clocks no crystal gives taken at theirs

@@ -99,18 +99,24 @@ def rate_corrections(session, diagnostics, threshold=8.0):
     return found
 
 
-def fast_clocks(session, diagnostics, max_drift, skip=()):
+def fast_clocks(session, feats, diagnostics, max_drift, skip=()):
     """Candidates for :func:`refine_rates` ({array: {"header", "used" = header, "scale": 1, "fast_clock": True}}):
     the arrays (not ``skip``, no declared rate) whose association's scale sits at its search bound 1 ± ``max_drift``
-    (the frontend's option): a clock that may run faster or slower than a crystal does, or range changes that
-    tilt the association's line; the first solve's drift tells them apart."""
+    (the frontend's option) — a clock faster or slower than a crystal runs, or range changes that tilt the
+    association's line — and whose arrivals against the odometry (``setupcheck.arrival_drift``, no solve) put
+    their drift beyond half ``FAST_CLOCK``; the first solve's drift decides."""
+    from calib.pipeline.setupcheck import arrival_drift
+
     out = {}
     for a in session["arrays"]:
         d = ((diagnostics or {}).get("arrays", {}).get(a["name"]) or {})
         scale = (d.get("association") or {}).get("scale")
         if a["name"] in skip or a.get("sample_rate") is not None or scale is None or not d.get("fs"):
             continue
-        if abs(scale - 1) >= CLAMPED * max_drift:
+        if abs(scale - 1) < CLAMPED * max_drift:
+            continue
+        drift = arrival_drift(feats, a["name"])
+        if drift is None or abs(drift) > 0.5 * FAST_CLOCK:
             out[a["name"]] = {"header": int(d["fs"]), "used": int(d["fs"]), "scale": 1.0, "fast_clock": True}
     return out
 
