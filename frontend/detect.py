@@ -46,6 +46,7 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
     n_valid = -(-n // dec)
     env = np.zeros(n_valid, np.float32)
     q0, buf = 0, None  # first decimated output of the next block, the inverse transform's input
+    bands = {}   # the template's band per block length (all blocks but the last share one)
     while q0 < n_valid:
         # the last block only as long as what is left needs (a 28 s recording at 48 kHz: 7 blocks of 2^18
         # samples, the seventh for 3 % of its outputs)
@@ -53,7 +54,9 @@ def matched_envelope(x, template, fs, band, block=BLOCK_SAMPLES):
         nfft, q1 = nd_b * dec, min(q0 + nd_b - overlap, n_valid)
         k0 = int(np.floor(band[0] * nfft / fs))
         k1 = min(int(np.ceil(band[1] * nfft / fs)) + 1, nfft // 2 + 1, k0 + nd_b)
-        s_conj = _template_band(template, nfft, k0, k1)
+        if nfft not in bands:
+            bands[nfft] = _template_band(template, nfft, k0, k1)
+        s_conj = bands[nfft]
         buf = buf if buf is not None and len(buf) == nd_b else np.zeros(nd_b, np.complex64)
         s0 = (q0 - guard) * dec  # first input sample of the block
         seg = _columns(x, s0, s0 + nfft)
@@ -151,19 +154,53 @@ def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
     idx : (D,) int, envelope samples of the detections (ascending).
     score : (D,) float, peak / local background.
 
-    The peaks of ``scipy.signal.find_peaks(env, height=threshold × local_floor, distance)``, found only around
-    the samples above the threshold (:func:`_segments`): memory bounded by the chirps, not the recording
-    (find_peaks on a whole 2-hour envelope at 4.8 kHz holds ~0.8 GB of float64 copies and local maxima).
+    The peaks of :func:`find_peaks` (as ``scipy.signal.find_peaks(env, height=threshold × local_floor,
+    distance)``), found only around the samples above the threshold (:func:`_segments`): memory bounded by
+    the chirps, not the recording (find_peaks on a whole 2-hour envelope at 4.8 kHz holds ~0.8 GB of float64 copies and local maxima).
     """
     block = max(1, int(block_s * env_rate))
     level = block_levels(env, block)
     dist = max(1, int(min_separation * env_rate))
-    from scipy.signal import find_peaks  # (on use: `calib --help` does not wait for scipy.signal)
-
-    found = [a + find_peaks(env[a:b], height=threshold * local_floor_at(level, block, a, b), distance=dist)[0]
+    found = [a + find_peaks(env[a:b], threshold * local_floor_at(level, block, a, b), dist)
              for a, b in _segments(env, _above(env, level, block, threshold), dist)]
     idx = np.concatenate(found) if found else np.zeros(0, int)
     return idx, env[idx] / level[idx // block]
+
+
+def find_peaks(y, height, distance):
+    """``scipy.signal.find_peaks(y, height=height, distance=distance)[0]``, the same peaks: local maxima (a flat
+    top counts once, at its middle; not the ends of ``y``) at or above ``height`` ((N,) or a scalar), then of
+    two closer than ``distance`` samples only the higher (the highest first). Here because importing
+    scipy.signal (and the scipy.stats it pulls in) costs ~0.35 s of CPU, a fifth of `calib features` on a
+    short session. y : (N,); returns (P,) int ascending."""
+    y = np.asarray(y)
+    n = len(y)
+    if n < 3:
+        return np.zeros(0, np.intp)
+    dy = np.diff(y)
+    change = np.flatnonzero(dy != 0)                    # y[k + 1] != y[k]
+    rise = np.flatnonzero(dy[: n - 2] > 0) + 1          # y[i − 1] < y[i], 1 ≤ i ≤ n − 2
+    nxt = np.searchsorted(change, rise)                 # the first change at or after i: the end of i's flat run
+    has = nxt < len(change)
+    rise, k = rise[has], change[nxt[has]]
+    top = dy[k] < 0                                     # then a fall: a maximum over i .. k
+    peaks = (rise[top] + k[top]) // 2
+    peaks = peaks[y[peaks] >= np.broadcast_to(height, y.shape)[peaks]]
+    return peaks[_select_by_distance(peaks, y[peaks].astype(np.float64), distance)]
+
+
+def _select_by_distance(peaks, priority, distance):
+    """(P,) bool: the peaks kept when, highest first, each removes the lower ones closer than ``distance``
+    (scipy.signal's order, ties included: the same argsort). A loop over the candidates above the threshold
+    only: a few per chirp."""
+    keep = np.ones(len(peaks), bool)
+    d = int(np.ceil(distance))
+    for j in np.argsort(priority)[::-1]:
+        if keep[j]:
+            lo, hi = np.searchsorted(peaks, [peaks[j] - d + 1, peaks[j] + d])
+            keep[lo:j] = False
+            keep[j + 1 : hi] = False
+    return keep
 
 
 def refine_peak(y, k):

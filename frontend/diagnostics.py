@@ -56,10 +56,29 @@ def _mark_doubted(ax, a, top):
         ax.plot([x["time"]], [top * 1.13], "v", color=color, ms=5)
 
 
+FIG_WIDTH_IN = 13.0
+LABEL_CHAR_IN = 0.06   # width of a 7-point digit (inches), and the gap kept between two event labels
+LABEL_GAP_IN = 0.05
+
+
+def _legible(times, labels, t_max):
+    """The (time, label) pairs of a row drawn without overlapping: left to right, a label only where it clears
+    the last one drawn (a 3-minute session's 90 events fill every other slot; a 2-hour session's 3600 would
+    cost ~0.4 ms of drawing each, ~15 s for 8 arrays, to print an unreadable smear). Returns a list."""
+    s_per_in = t_max / (FIG_WIDTH_IN - MARGIN_IN["left"] - MARGIN_IN["right"])
+    out, last = [], -np.inf
+    for t, label in sorted(zip(times, labels)):
+        half = 0.5 * len(label) * LABEL_CHAR_IN * s_per_in
+        if t - half >= last:
+            out.append((t, label))
+            last = t + half + LABEL_GAP_IN * s_per_in
+    return out
+
+
 def plot_detections(path, diag, marks=None):
     """Detection timeline, one row per array on its own clock: matched-filter envelope (dB re. its median),
-    matched detections (green, event id), spurious ones (red ×), missed events at their predicted time
-    (grey dashed); ``marks`` {array: [(time on its clock, label)]}: e.g. the clock steps the estimator found
+    matched detections (green, event id where it fits beside the previous one), spurious ones (red ×), missed
+    events at their predicted time (grey dashed); ``marks`` {array: [(time on its clock, label)]}: e.g. the clock steps the estimator found
     (purple dash-dot)."""
     import matplotlib
 
@@ -68,7 +87,7 @@ def plot_detections(path, diag, marks=None):
 
     arrays = diag["arrays"]
     n = len(arrays)
-    fig, axes = plt.subplots(n, 1, figsize=(13, 1.55 * n + 0.9), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(n, 1, figsize=(FIG_WIDTH_IN, 1.55 * n + 0.9), sharex=True, squeeze=False)
     t_max = max(a["duration_s"] for a in arrays.values())
     for ax, (name, a) in zip(axes[:, 0], arrays.items()):
         if "_env" in a:
@@ -84,8 +103,8 @@ def plot_detections(path, diag, marks=None):
         # one collection per kind, not an artist per line (each axvline is a Line2D with its own transform)
         across = ax.get_xaxis_transform()  # x in data, y from the axes' bottom (0) to top (1)
         ax.vlines([d["time"] for d in matched], 0, 1, transform=across, color="tab:green", lw=1.2, alpha=0.8)
-        for d in matched:
-            ax.text(d["time"], top * 1.02, str(d["event"]), color="tab:green", ha="center", va="bottom", fontsize=7)
+        for t_d, label in _legible([d["time"] for d in matched], [str(d["event"]) for d in matched], t_max):
+            ax.text(t_d, top * 1.02, label, color="tab:green", ha="center", va="bottom", fontsize=7)
         if spurious:
             ax.plot([d["time"] for d in spurious], [20 * np.log10(max(d["score"], 1.0)) for d in spurious], "x",
                     color="tab:red", ms=8, mew=2)
@@ -93,8 +112,8 @@ def plot_detections(path, diag, marks=None):
         if pred is not None and a["missed_events"]:
             te = [pred[diag["event_ids"].index(e)] for e in a["missed_events"]]
             ax.vlines(te, 0, 1, transform=across, color="0.3", linestyles="--", lw=1)
-            for e, t_e in zip(a["missed_events"], te):
-                ax.text(t_e, top * 1.02, f"{e}?", color="0.3", ha="center", va="bottom", fontsize=7)
+            for t_e, label in _legible(te, [f"{e}?" for e in a["missed_events"]], t_max):
+                ax.text(t_e, top * 1.02, label, color="0.3", ha="center", va="bottom", fontsize=7)
         _mark_doubted(ax, a, top)
         for t_m, label in (marks or {}).get(name, ()):
             ax.axvline(t_m, color="tab:purple", ls="-.", lw=1.5)

@@ -32,8 +32,8 @@ from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
 from .nlos import late_arrivals, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
-from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, spectra_setup,
-                     stretch_bank, sweep_time)
+from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, shared_setup,
+                     spectra_setup, stretch_bank, sweep_time)
 
 DEFAULTS = {
     "threshold": 8.0,        # detection: peak / local background of the matched-filter envelope
@@ -351,7 +351,7 @@ def _timing_context(st, session, c, opt):
     mics = np.asarray(st["a"]["mics"], float)
     g = _timing_layout(mics, band, fs, c, len(st["template"]), opt)
     starts = np.round(det_t[asc["det_of"][ev_idx]] * fs).astype(int) - g["pre"]
-    setup = spectra_setup(st["template"], fs, band, g["seg_len"], opt["whiten_hz"])
+    setup = shared_setup(st["template"], fs, band, g["seg_len"], opt["whiten_hz"])
     # a clock drift δ disperses a linear sweep's group delay by 2|δ|T, broadening the pulse once that
     # exceeds a pulse width; the association's scale bounds |δ| (it also carries the trend of the
     # propagation delays, so only as an upper bound on the measured broadening)
@@ -591,10 +591,11 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
             stretch = bank[1][k]
         res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
         res["stretch"] = stretch
+        onset_env = res.pop("onset_env")   # (J_c, lags): searched again by retime_earlier, not kept
         # a weak direct path before the timed arrival (a reflection): timed again on it (frontend.nlos); not
         # for a moving source, whose paths each have their own stretch (the subtraction's pulse model fails)
         res, again = (res, None) if bank is not None else retime_earlier(res, c, c_plain, setup,
-                                                                          {**locate_kw, "phase": phase})
+                                                                          {**locate_kw, "phase": phase}, onset_env)
         res = _gate(res, locate_kw.get("gate", 0))
         if again is not None:
             res = _merge_events(res, _gate(again, locate_kw.get("gate", 0)), again["events"], len(res["dp"]))

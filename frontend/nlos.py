@@ -208,7 +208,7 @@ def _pair_fit(c, setup, shape, early, timed, half_width):
     return t0, a0, t1, a1
 
 
-def earlier_paths(c_plain, setup, dp, lo, hi, half_width, snr_factor, min_ratio, sidelobe_margin):
+def earlier_paths(c_plain, setup, dp, lo, hi, half_width, snr_factor, min_ratio, sidelobe_margin, env=None):
     """Events whose timed arrival (lag ``dp`` (J,)) has a weak genuine arrival before it.
 
     The timed path is subtracted from the plain matched filter's spectra ``c_plain`` (J, M, Fb) at every
@@ -217,11 +217,12 @@ def earlier_paths(c_plain, setup, dp, lo, hi, half_width, snr_factor, min_ratio,
     more than ``half_width`` before the timed one is refitted jointly with it (:func:`_pair_fit`) and kept
     when its amplitude is ``min_ratio`` … EARLIER_MAX_RATIO of the timed path's (median over mics).
     Returns (found (J,) bool, lag (J,) int of the earlier arrival, ratio (J,): its amplitude / the timed
-    path's; NaN where none).
+    path's; NaN where none). env : (J, hi − lo) the mic-averaged plain envelope on lags lo..hi when already
+    computed (:func:`timing.locate`'s ``onset_env``: the same values), else computed here.
     """
     j = len(dp)
     shape = setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2
-    env = np.abs(lag_grid(c_plain, setup, lo, hi)).mean(axis=1)
+    env = np.abs(lag_grid(c_plain, setup, lo, hi)).mean(axis=1) if env is None else env
     k = np.asarray(dp) - lo
     rows = np.arange(j)
     sub = subtract_path(c_plain, setup, shape, dp, half_width)
@@ -251,18 +252,19 @@ def _mirrored(env, k, d, pulse):
     return np.max(np.where(inside, vals, 0.0), axis=1)
 
 
-def retime_earlier(res, c, c_plain, setup, locate_kw):
+def retime_earlier(res, c, c_plain, setup, locate_kw, onset_env=None):
     """:func:`timing.locate`'s result ``res`` for one chunk of events, with the events whose timed arrival
     has a weak direct path before it (:func:`earlier_paths`) timed again on that path: the timed path
     subtracted from both spectra (as :func:`timing.locate`'s own second look does for a shadowed peak) and
     located anew. Their ``ratio`` becomes the direct path's amplitude over the strongest peak's (so the
     arrival is flagged ``weak_direct``, and the array ``occluded`` when that is frequent) and ``strongest``
     stays the first look's. Returns (res, sub): ``sub`` the new location of those events (a dict like
-    ``res``, its ``events`` (K,) their indices) or None (``extract.locate_events`` puts it into ``res``)."""
+    ``res``, its ``events`` (K,) their indices) or None (``extract.locate_events`` puts it into ``res``).
+    onset_env : locate's ``onset_env`` of ``c_plain`` (the plain envelope, not computed twice), or None."""
     kw = {k: v for k, v in locate_kw.items() if k != "c_onset"}
     found, lag, ratio = earlier_paths(c_plain, setup, res["dp"], kw["lo"], kw["hi"], kw["half_width"],
                                       kw.get("snr_factor", 6.0), kw.get("min_ratio", 0.05),
-                                      kw.get("sidelobe_margin", 2.0))
+                                      kw.get("sidelobe_margin", 2.0), env=onset_env)
     sel = np.flatnonzero(found)
     if not sel.size:
         return res, None
@@ -277,6 +279,7 @@ def retime_earlier(res, c, c_plain, setup, locate_kw):
     # the path it precedes): the threshold scaled down alike; the lag found is checked against it below
     min_ratio = kw.get("min_ratio", 0.05) * float(np.min(res["ratio"][sel] / ratio[sel]))
     sub = locate(c_sub, setup, **{**kw, "phase": phase, "min_ratio": min_ratio}, c_onset=on_sub)
+    sub.pop("onset_env", None)
     ok = np.abs(sub["dp"] - lag[sel]) <= hw   # it timed the earlier arrival found (not something else)
     sub["ratio"] = res["ratio"][sel]
     sub["strongest"] = res["strongest"][sel]

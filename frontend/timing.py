@@ -32,7 +32,7 @@ from scipy.ndimage import maximum_filter1d, uniform_filter1d
 
 from calib.robust import mad_std
 
-from .signals import band_weights
+from .signals import band_weights, fourier_resample
 
 
 def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
@@ -54,6 +54,21 @@ def spectra_setup(template, fs, band, seg_len, whiten_hz=500.0):
     return {"nfft": nfft, "kb": kb, "freqs": freqs_all[kb], "weights": w[kb], "tmpl_conj": np.conj(tmpl),
             "tmpl_conj64": np.conj(tmpl).astype(np.complex64),
             "fs": fs, "seg_len": seg_len, "whiten_bins": int(round(whiten_hz * nfft / fs))}
+
+
+def shared_setup(template, fs, band, seg_len, whiten_hz=500.0):
+    """:func:`spectra_setup`, one dict for every array with the same template, rate, band and segment length
+    (the boards of one kind in a session): the pulses, phasor tables and Doppler banks it caches as the timing
+    stage runs (``_pulse_cache``, ``_offset_tables``, ``_stretch_banks``) are then computed once, not per
+    array (a 48 kHz hall of six tetrahedra: ~0.1 s). Read-only apart from those caches, whose values depend
+    only on the key (threads may fill one twice: the same values)."""
+    t = np.ascontiguousarray(template, float)
+    return _shared_setup(t.tobytes(), int(fs), (float(band[0]), float(band[1])), int(seg_len), float(whiten_hz))
+
+
+@lru_cache(maxsize=8)
+def _shared_setup(template_bytes, fs, band, seg_len, whiten_hz):
+    return spectra_setup(np.frombuffer(template_bytes, float), fs, band, seg_len, whiten_hz)
 
 
 # a float32 spectrum floor: the smallest normal float32 (a recording of denormal samples would divide by zero)
@@ -118,10 +133,17 @@ def stretch_bank(template, setup, stretches):
     by band-limited resampling (as :func:`stretch_shifts`). The whitening divides by the smoothed magnitude,
     which a stretch of ~1e-3 leaves unchanged, so multiplying by the factor is the whitened GCC against the
     stretched template. Returns (factors, stretches realised (n,))."""
-    key = ("_stretch_bank", len(template), tuple(np.round(np.asarray(stretches, float), 12)))
-    if key not in setup:   # (the stretched templates themselves are shared by the session's arrays)
-        setup[key] = _stretch_bank(template, setup, stretches)
-    return setup[key]
+    banks = setup.setdefault("_stretch_banks", {})   # (a shared setup outlives a session: a few kept)
+    key = (len(template), tuple(np.round(np.asarray(stretches, float), 12)))
+    bank = banks.get(key)
+    if bank is None:   # (the stretched templates themselves are shared by the session's arrays)
+        for old in list(banks)[: max(0, len(banks) - KEPT_BANKS + 1)]:   # oldest first (threads: no iterator)
+            banks.pop(old, None)
+        bank = banks[key] = _stretch_bank(template, setup, stretches)
+    return bank
+
+
+KEPT_BANKS = 4   # Doppler banks kept per setup (each rows × band bins complex64, ~0.5-1.5 MB)
 
 
 def _stretch_bank(template, setup, stretches):
@@ -144,12 +166,10 @@ def _stretched_templates(template_bytes, pad, ks):
     """The template (float64 bytes) zero-padded to ``pad`` samples and stretched by ``k / pad`` for each k of
     ``ks`` (band-limited resampling, :func:`stretch_bank`), each (pad,): the costly part of a bank, the same
     for every array of a session whatever its segment length (4 arrays: 4x fewer resamplings)."""
-    from scipy.signal import resample  # (on use: `calib --help` does not wait for scipy.signal)
-
     buf = np.zeros(pad)
     t = np.frombuffer(template_bytes, float)
     buf[: len(t)] = t
-    return tuple(resample(buf, pad + k)[:pad] if k else buf for k in ks)
+    return tuple(fourier_resample(buf, pad + k)[:pad] if k else buf for k in ks)
 
 
 def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, stretches=None,
@@ -638,7 +658,8 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     ``snr`` (J,) direct path / noise floor; ``strongest`` (J,) lag of the strongest peak;
     ``reflection`` (J,) lag of the first strong reflection after the direct path (−1: none seen);
     ``separated`` (J,) bool: that reflection was subtracted before timing; ``interference`` (J,) s
-    (:func:`interference_sd`).
+    (:func:`interference_sd`); with ``c_onset``, ``onset_env`` (J, hi − lo): the mic-averaged plain envelope
+    the onset was searched in (before any second look; :func:`calib.frontend.nlos.earlier_paths` reuses it).
     """
     fs, freqs = setup["fs"], setup["freqs"]
     pad = gate + half_width + 2
@@ -689,8 +710,8 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     tau, val = newton_peak(c, freqs, env_tau - dphi / (2 * np.pi * fc), ph, sums=sums)
     interference = interference_sd(env.mean(axis=1), dp - r_lo, half_width, pulse_near(setup, r.shape[-1], 0), fc)
     return {"dp": dp, "tau": tau, "value": val, "phase": phase, "r": r, "r_lo": r_lo, "ratio": ratio,
-            "interference": interference,
-            "snr": snr, "strongest": strongest, "reflection": reflection, "separated": separated}
+            "interference": interference, "snr": snr, "strongest": strongest, "reflection": reflection,
+            "separated": separated, **({} if c_onset is None else {"onset_env": onset_env})}
 
 
 def _carrier_phase(z, phase, own_phase):
@@ -1075,14 +1096,14 @@ def sweep_time(template, fs, band, locate_kw, pre, seg_len, whiten_hz, beta, up=
     arrival moves by ``β (ε + α t*)``. Even weights over a linear sweep give ``T/2``; the envelope peak weighs
     the band's middle more (0.44 T for a 0.5 s, 0.5-4 kHz sweep). Measured as β is, on the template received
     with the delay ``± ½ α t²`` (central difference), evaluated at the emission times by band-limited
-    interpolation (×``up`` polyphase, then cubic). ``beta`` : :func:`drift_bias`. α keeps the group delay's
+    interpolation (×``up`` by FFT, then cubic). ``beta`` : :func:`drift_bias`. α keeps the group delay's
     spread over the sweep (``~1.5 α T²``) at a quarter pulse: linear (at 4× that, t* came out 0.51 T)."""
     from scipy.interpolate import CubicSpline
-    from scipy.signal import resample_poly
 
     n = len(template)
     alpha = 0.25 / ((band[1] - band[0]) * 1.5 * (n / fs) ** 2)
-    fine = resample_poly(np.r_[template, np.zeros(8)], up, 1)
+    buf = np.r_[template, np.zeros(8)]   # faded to 0 at both ends: its periodic interpolation does not wrap
+    fine = fourier_resample(buf, up * len(buf))
     spline = CubicSpline(np.arange(len(fine)) / (fs * up), fine)
     setup = spectra_setup(template, fs, band, seg_len, whiten_hz)
     u = (np.arange(seg_len) - pre) / fs
@@ -1116,8 +1137,6 @@ def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stret
     each ε of ``stretches`` (each realised exactly by band-limited resampling: returns the ε realised too).
     Small ε: β ε (:func:`drift_bias`); a source moving at ~1 m/s (ε ~ 3e-3) is beyond the linear range.
     Returns (shifts (n,), stretches realised (n,))."""
-    from scipy.signal import resample  # (on use: `calib --help` does not wait for scipy.signal)
-
     n = len(template)
     smallest = min(abs(d) for d in stretches if d) if any(stretches) else 1e-3
     pad = sfft.next_fast_len(max(seg_len + 2 * pre, int(np.ceil(1.0 / smallest))))
@@ -1128,7 +1147,7 @@ def stretch_shifts(template, fs, band, locate_kw, pre, seg_len, whiten_hz, stret
         dd = k / pad  # stretch realisable exactly by resampling pad → pad + k samples
         buf = np.zeros(pad)
         buf[pre : pre + n] = template
-        y = resample(buf, pad + k)[:seg_len] if k else buf[:seg_len]  # y[i] = buf(i / (1 + dd))
+        y = fourier_resample(buf, pad + k)[:seg_len] if k else buf[:seg_len]  # y[i] = buf(i / (1 + dd))
         c = segment_spectra(y[None, :], np.zeros(1, int), setup)
         res = locate(c, setup, **locate_kw)
         shifts.append(res["tau"][0, 0] - pre * (1 + dd) / fs)

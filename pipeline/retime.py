@@ -45,6 +45,12 @@ def retime_moving(session, feats, diag, progress=None):
     return new, {**out, "retime": record}
 
 
+FIRST_SOLVE_OUTLIERS = 20.0   # the first solve removes rows beyond this many σ (blunders, which bend the geometry),
+# not the estimate's 5σ: that removal goes one row at a time, re-solving after each (2/3 of the solve's CPU on
+# robot 44: 1.4 → 0.45 s), for error bars this pass does not use; it moved the predicted ε by ≤ 6e-6 (≤ 4 % of a
+# bank step) on robot 44 and 0 … 3e-6 on four other moving scenes: 0-2 of ~300 events land on a neighbouring row
+
+
 def first_pass_stretches(session, feats):
     """({array: (K,) predicted ε per session event, NaN where none}, record) from a calibration of the
     first pass's features; (None, record with ``skipped``) when that solve cannot predict."""
@@ -57,9 +63,10 @@ def first_pass_stretches(session, feats):
     try:
         # a geometry good to centimetres predicts the stretches (ε = ṙ/c): the stated sigmas' solve with the
         # linear clock, without the noise re-estimation and clock-model scans (robot 44: 3.3 → 1.4 s CPU, the
-        # stretches within 2e-6; an array a clock fault bends is unreliable and keeps its searched stretches)
+        # stretches within 2e-6; an array a clock fault bends is unreliable and keeps its searched stretches),
+        # and only blunders removed as outliers (FIRST_SOLVE_OUTLIERS)
         sol = calibrate(add_session_meta(feats, session, {}), outputs="solution", clock_model="linear",
-                        noise="meta")
+                        noise="meta", outlier_threshold=FIRST_SOLVE_OUTLIERS)
     except (ObservabilityError, ValueError) as exc:
         return None, {"skipped": f"first solve failed: {exc}"}
     if not sol["converged"]:

@@ -134,3 +134,52 @@ def test_pick_peaks_equals_find_peaks_on_the_whole_envelope(seed, threshold, sep
     idx, score = pick_peaks(env, rate, sep_s, threshold)
     assert len(want) > 10 and np.array_equal(idx, want)
     np.testing.assert_array_equal(score, env[want] / floor[want])
+
+
+def test_detection_plot_labels_only_what_fits():
+    """The detection plot draws an event's id only where it clears the last one drawn (a 2-hour session's
+    thousands of ids per row would cost seconds to draw as an unreadable smear): sparse ids are all kept, crowded
+    ones thinned to non-overlapping ones, each kept label at its own event's time."""
+    from calib.frontend.diagnostics import FIG_WIDTH_IN, LABEL_CHAR_IN, MARGIN_IN, _legible
+
+    s_per_in = 100.0 / (FIG_WIDTH_IN - MARGIN_IN["left"] - MARGIN_IN["right"])
+    sparse = np.arange(0.0, 100.0, 5.0)
+    assert [t for t, _ in _legible(sparse, [str(k) for k in range(len(sparse))], 100.0)] == list(sparse)
+    dense = np.sort(np.random.default_rng(0).uniform(0, 100, 400))
+    labels = [str(1000 + k) for k in range(len(dense))]
+    kept = _legible(dense, labels, 100.0)
+    assert 10 < len(kept) < len(dense) and kept[0] == (dense[0], labels[0])
+    assert all(labels[int(np.flatnonzero(dense == t)[0])] == lab for t, lab in kept)
+    half = 0.5 * 4 * LABEL_CHAR_IN * s_per_in   # 4-character labels
+    assert np.all(np.diff([t for t, _ in kept]) >= 2 * half)
+
+
+def test_fourier_resample_is_scipys():
+    """fourier_resample (the drift bias's and the Doppler bank's stretching) gives scipy.signal.resample's values."""
+    from scipy.signal import resample
+
+    from calib.frontend.signals import fourier_resample
+
+    x = np.random.default_rng(3).standard_normal(101)
+    for num in (99, 100, 101, 103, 202, 50):
+        np.testing.assert_allclose(fourier_resample(x, num), resample(x, num), rtol=0, atol=1e-12)
+
+
+def test_shared_setup_is_one_per_board_kind_and_keeps_few_doppler_banks():
+    """Arrays with the same template, rate, band and segment length share one spectra setup (its cached pulses
+    and banks computed once); a setup outlives its session, so it keeps only the last KEPT_BANKS Doppler banks,
+    each equal to one built on a fresh setup."""
+    from calib.frontend.signals import chirp_band, sweep
+    from calib.frontend.timing import KEPT_BANKS, shared_setup, spectra_setup, stretch_bank
+
+    fs = 16000
+    tmpl = sweep(np.arange(8000) / fs, 500.0, 4000.0, 0.5, 0.005)
+    band = chirp_band({"f0": 500.0, "f1": 4000.0}, tmpl, fs)
+    a, b = shared_setup(tmpl, fs, band, 9000), shared_setup(tmpl.copy(), fs, band, 9000)
+    assert a is b and shared_setup(tmpl, fs, band, 9001) is not a
+    for k in range(KEPT_BANKS + 3):
+        eps = np.linspace(-1e-3, 1e-3, 5 + k)
+        got = stretch_bank(tmpl, a, eps)
+        want = stretch_bank(tmpl, spectra_setup(tmpl, fs, band, 9000), eps)
+        np.testing.assert_array_equal(got[0], want[0])
+        assert len(a["_stretch_banks"]) <= KEPT_BANKS

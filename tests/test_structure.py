@@ -115,6 +115,22 @@ def test_feature_extraction_does_not_load_what_it_does_not_use():
     assert out == "", f"loaded for feature extraction: {out}"
 
 
+def test_feature_extraction_runs_without_scipy_signal():
+    """Nor does a features run load scipy.signal / scipy.stats (~0.35 s of CPU, a fifth of the frontend's cost on
+    a short session): peak picking and the drift bias's resampling are the frontend's own (frontend.detect,
+    frontend.signals)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    lab3 = Path(__file__).resolve().parents[1] / "sample_data" / "lab3"
+    code = ("import sys; from calib.pipeline.features import session_features; "
+            f"session_features({str(lab3)!r}); "
+            "print(','.join(m for m in ('scipy.signal', 'scipy.stats') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out.splitlines()[-1:] in ([], [""]), f"loaded by a features run: {out}"
+
+
 @pytest.mark.parametrize("package", ["calib.frontend", "calib.estimator"])
 def test_exported_names_are_the_objects_not_submodules(package):
     """A package's public names stay functions/classes even after every submodule has been imported (a
