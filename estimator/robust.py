@@ -139,13 +139,11 @@ def measurement_stats(p, st, lay, kinds, mask):
         rg = f.r.reshape(m, dim)
         kept = keep_rows[groups[:, 0]]
         # kept rows: residual variance I − H; excluded rows: prediction variance I + H (deletion residual)
-        I_H = np.eye(dim)[None] + np.where(kept, -1.0, 1.0)[:, None, None] * H
         if dim == 1:
-            den = I_H[:, 0, 0]
+            den = 1.0 + np.where(kept, -1.0, 1.0) * H[:, 0, 0]
             q = np.where(den > UNTESTABLE, rg[:, 0] ** 2 / np.maximum(den, UNTESTABLE), 0.0)
         else:
-            # DOA: along the predicted direction H ≈ 0 and r ≈ 0, so I − H stays regular there
-            q = _block_quadratic(I_H, rg)
+            q = _block_quadratic(H, kept, rg)
         arr, ev = measurement_arrays(p, f)
         unit_scale = KINDS[f.kind].scale
         nat = rg[:, 0] if dim == 1 else np.linalg.norm(rg, axis=1)   # signed for scalar measurements
@@ -167,15 +165,17 @@ def measurement_stats(p, st, lay, kinds, mask):
     return MeasurementStats(z=z, scale=scale, **cat)
 
 
-def _block_quadratic(M, r):
-    """rᵀ M⁻¹ r per block (G, d, d), (G, d): solve, pseudo-inverse where a block is (near) singular."""
-    try:
-        x = np.linalg.solve(M, r[..., None])[..., 0]
-        if np.all(np.isfinite(x)):
-            return np.einsum("gi,gi->g", r, x)
-    except np.linalg.LinAlgError:
-        pass
-    return np.einsum("gi,gij,gj->g", r, np.linalg.pinv(M, rcond=1e-6, hermitian=True), r)
+def _block_quadratic(H, kept, r):
+    """rᵀ (I ∓ H)⁻¹ r per block (G, d, d) of leverages H, residuals (G, d): − for kept rows (residual variance),
+    + for excluded ones (deletion residual). A hat block's eigenvalues lie in [0, 1]; they are clipped there
+    (an ill-conditioned solve's pseudo-inverse gave 1.006, a negative q and NaN sigmas), and the directions
+    a kept row's own parameters fit exactly (1 − λ ≤ UNTESTABLE) are untested, as a scalar row's. A DOA's
+    direction along the prediction has H ≈ 0 and r ≈ 0."""
+    lam, V = np.linalg.eigh(0.5 * (H + np.swapaxes(H, 1, 2)))
+    lam = np.clip(np.nan_to_num(lam), 0.0, 1.0)
+    den = 1.0 + np.where(kept, -1.0, 1.0)[:, None] * lam
+    proj = np.einsum("gij,gi->gj", V, r)   # r in the block's eigenbasis
+    return np.sum(np.where(den > UNTESTABLE, proj**2 / np.maximum(den, UNTESTABLE), 0.0), axis=1)
 
 
 def _normal_scores(kind, q, dof, kept):

@@ -352,3 +352,26 @@ def test_yaw_test_wraps_full_turns(turns):
                           "odo_yaw": np.array([2 * np.pi * turns + np.deg2rad(0.5)])})
     _, _, test = yaw_decision(p, st, Jw, k)
     assert test["yaw_deg"] == pytest.approx(0.5) and test["std_deg"] == pytest.approx(1.0) and not test["kept"]
+
+
+def test_block_statistic_is_the_quadratic_form_and_never_negative():
+    # rᵀ (I ∓ H)⁻¹ r of a DOA block: as the direct solve for a regular hat block; a block whose leverage came out
+    # above 1 (an ill-conditioned pseudo-inverse: 1.006 on another session's emission times) is clipped there, so
+    # the statistic is finite and ≥ 0 (it had been negative, the sigma NaN and calib run an internal error)
+    from calib.estimator.robust import _block_quadratic
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(5, 3, 3))
+    V = np.linalg.qr(A)[0]
+    lam = np.array([[0.2, 0.5, 0.9], [0.0, 0.3, 0.6], [0.1, 0.1, 0.1], [0.4, 0.7, 1.006], [0.0, 0.0, 1.0]])
+    H = np.einsum("gij,gj,gkj->gik", V, lam, V)
+    r = rng.normal(size=(5, 3))
+    kept = np.array([True, False, True, True, True])
+    q = _block_quadratic(H, kept, r)
+    for g in range(3):   # regular blocks: the direct formula
+        M = np.eye(3) + (-1 if kept[g] else 1) * H[g]
+        assert q[g] == pytest.approx(r[g] @ np.linalg.solve(M, r[g]), rel=1e-10)
+    assert np.all(np.isfinite(q)) and np.all(q >= 0)
+    # the exactly fitted direction (λ ≥ 1) is left untested: only the other two count
+    proj = np.einsum("ij,i->j", V[3], r[3])
+    assert q[3] == pytest.approx(proj[0] ** 2 / 0.6 + proj[1] ** 2 / 0.3, rel=1e-10)
