@@ -416,30 +416,42 @@ def _robust_weights(result, lin, p=None, own=None):
     return np.where(dropped, 0.0, sw), scale
 
 
-def joint_scan(result, models, banned=frozenset()):
+def joint_scan(result, models, banned=frozenset(), stats=None):
     """Every array's candidates tested in the linearised joint problem at ``result`` (the sources and the
     other arrays free: what a fit absorbs by moving them is not evidence). Rows Huber-weighted (an outlier
     row cannot make a step), the χ² drop of each candidate column after projecting out the Jacobian's
-    (and the existing components') columns, in the robust scale of the residuals.
+    (and the existing components') columns (:class:`~calib.estimator.clockscan.Projector`), in the robust
+    scale of the residuals.
+
+    Cost: a small problem (:func:`_exact_affordable`) scores every candidate of every clock so. A larger one
+    screens first (:func:`_screen`): each clock's candidates scored against its own rows with only its own
+    array's parameters projected out, all at once by cumulative sums; only a clock whose best local score
+    reaches SCREEN_FRACTION of its penalty has its SCREEN_TOP best candidates of each kind scored in the
+    joint problem (a clean array of a large session costs O(its rows)). ``stats`` (a dict): counts of the
+    clocks screened and scored (``screened``, ``scored``, ``factored``: projector factorisations).
 
     Returns {array index: (new components as increments, margin, info)} like :func:`best_component`, or
-    {} for problems too large for a dense Jacobian."""
+    {} for problems too large (DENSE_MAX parameters)."""
+    from .clockscan import Projector, clock_rows
     from .problem import make_layout
     from .solver import linearise
 
     p, st = result["problem"], result["state"]
+    stats = {} if stats is None else stats
     lay = make_layout(p)
     if lay.n > DENSE_MAX:
         return {}
-    lin = linearise(p, st, lay, _kinds(p))
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    lin = linearise(p, st, lay, _kinds(p), dense=False)
+    J = scipy.sparse.csr_matrix(lin.J)
     r = lin.r
     sw0, scale = _robust_weights(result, lin)
     kept = _kept_rows(result, lin.factors)
     dropped = _distrusted(result)
     zero = {name: [c.with_value(0.0) for c in comps] for name, comps in models.items()}
     E, _ = component_columns(p, lin.factors, zero)
-    JE = np.hstack([J, E])
+    JE = scipy.sparse.hstack([J, scipy.sparse.csr_matrix(E)]).tocsr()
+    local = np.setdiff1d(np.arange(JE.shape[1]), np.concatenate([lay.s.ravel(), lay.e.ravel(), lay.odo_yaw.ravel()]))
+    exact = _exact_affordable(lay.n, len(p.t), p.N + 1)
     out, bases = {}, {}
     for i in range(-1, p.N):   # -1: the emitter
         name = EMITTER if i < 0 else str(p.names[i])
@@ -451,18 +463,72 @@ def joint_scan(result, models, banned=frozenset()):
         # chirp lost in a dropped block made 0.14 ms "steps" of three others); its own clock's candidates
         # keep it (a 1 ms emission step screens every array's TDOA-S row of its interval)
         sw = sw0 * np.maximum(kept, _own_rows(p, lin.factors, i))
+        cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
+        cr = clock_rows(p, lin.factors, i, sw)
+        if not cands or not len(cr.rows):
+            continue
+        stats["screened"] = stats.get("screened", 0) + 1
+        if not exact:
+            cands = _screen(p, cr, JE, local, r, sw, cands, i, scale)
+            if not cands:
+                continue
+        stats["scored"] = stats.get("scored", 0) + 1
+        stats.setdefault("flagged", []).append(name)
         key = sw.tobytes()
         if key not in bases:
-            Q, _ = np.linalg.qr(JE * sw[:, None])
-            rw = r * sw
-            bases = {key: (Q, rw - Q @ (Q.T @ rw))}
-        Q, rp = bases[key]
-        cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
-        B = _columns(p, lin.factors, i, cands) * sw[:, None]
-        Bp = B - Q @ (Q.T @ B)
-        best = _scan_best(p, lin.factors, i, cands, have, (Q, rp, B, Bp), sw, scale)
+            stats["factored"] = stats.get("factored", 0) + 1
+            pr = Projector(JE.multiply(sw[:, None]).tocsr(), lay)
+            bases = {key: (pr, pr.resid(r * sw))}   # (one kept: the next clock's weights mostly differ)
+        pr, rp = bases[key]
+        best = _scan_best(p, lin.factors, i, cands, have, (pr, rp, cr), sw, scale)
         if best is not None:
             out[i] = best
+    return out
+
+
+EXACT_FLOPS = 2e9     # a joint scan of every candidate of every clock within this many flops: no screen
+SCREEN_FRACTION = 0.5   # a clock's best local score (own parameters out) below this share of its penalty: clean
+SCREEN_TOP = 8          # candidates of each kind scored in the joint problem for a clock the screen flags
+
+
+def _exact_affordable(n, k, clocks):
+    """Whether scoring every candidate (~3 per event) of every clock in the joint problem (n parameters) costs
+    at most EXACT_FLOPS (a triangular solve of n² per candidate)."""
+    return float(n) * n * 3 * k * clocks <= EXACT_FLOPS
+
+
+def _screen(p, cr, JE, local, r, sw, cands, i, scale):
+    """The candidates of clock i worth scoring in the joint problem (:func:`joint_scan`), by a local score:
+    each candidate against the clock's own rows ``cr`` with its own array parameters (the columns ``local`` of
+    JE: poses, clocks, components) projected out, in the clock's robust scale once its best local candidate is
+    fitted. The SCREEN_TOP best of each kind whose best reaches SCREEN_FRACTION of its penalty; none when no
+    kind does. Holding the sources makes this score smaller than the joint one by the share of a column the
+    sources absorb (measured 0.5-0.9 with 5-20 arrays); a clock term's evidence is in its own rows (a step:
+    one TDOA-S and every later TDOA-M alike; a drift change: the TDOA-M's curvature in time)."""
+    from .clockscan import family_columns, local_scores, project_off
+
+    sub = JE[cr.rows][:, local]
+    C = scipy.sparse.diags(sw[cr.rows]) @ sub
+    rw = r[cr.rows] * sw[cr.rows]
+    order = ([c for c in cands if c.kind == "step"] + [Component("quadratic", 0.0, 0.0)]
+             + [c for c in cands if c.kind == "hinge"])
+    L, value, _ = local_scores(cr, C, rw, [c.time for c in order if c.kind == "step"],
+                               [c.time for c in order if c.kind == "hinge"])
+    present = np.array([c.kind != "quadratic" or any(d.kind == "quadratic" for d in cands) for c in order])
+    duration = float(np.ptp(p.t))
+    L = np.where(present & np.array([c.with_value(v).plausible(duration) for c, v in zip(order, value)]), L, 0.0)
+    if not L.any():
+        return []
+    k0 = int(np.argmax(L))
+    X = project_off(cr, C, np.column_stack([family_columns(cr, [order[k0]]), rw]))
+    left = (X[:, 1] + value[k0] * X[:, 0]) / sw[cr.rows]
+    scale_i = max(scale, spread(left))
+    n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
+    out = []
+    for kind in ("step", "quadratic", "hinge"):
+        fam = np.flatnonzero([c.kind == kind for c in order])
+        if fam.size and L[fam].max() / scale_i ** 2 >= SCREEN_FRACTION * penalty(kind, n, p.N + 1, len(cands)):
+            out += [order[k] for k in fam[np.argsort(-L[fam])[:SCREEN_TOP]] if L[k] > 0]
     return out
 
 
@@ -489,17 +555,19 @@ def _array_rows(p, fs, rows):
     return [np.flatnonzero(rows & (arr == a)) for a in np.unique(arr[rows]) if a >= 0]
 
 
-def persistent_drop(Q, r, b, groups, emitter=False):
-    """The smallest χ² drop (unscaled) of a column b (orthogonal to the orthonormal Q) against residuals r
-    (already projected off Q) with the rows of up to PERSIST_EVENTS groups left out: ``groups`` are row
-    indices per event in time order (any run of consecutive events: a clock term's evidence is in every row
+def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
+    """The smallest χ² drop (unscaled) of a column b (projected off the model's columns) against residuals r
+    (projected too) with the rows of up to PERSIST_EVENTS groups left out: ``groups`` are row indices (into r
+    and b) per event in time order (any run of consecutive events: a clock term's evidence is in every row
     after it, not in one or two bad arrivals), or (``emitter``) per array (any of them: the emitter's step is
-    one interval's TDOA-S at every array alike, not at one or two; at least two are left). Each by the deletion formula: RSS without
-    rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the model without b (hat QQ') and with it (hat QQ' + bb'/b'b)."""
-    bb = float(b @ b)
+    one interval's TDOA-S at every array alike, not at one or two; at least two are left). Each by the deletion
+    formula: RSS without rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the model without b (hat H_RR = ``hat(R)``)
+    and with it (H_RR + b_R b_R'/b'b). r and b may hold only some of the rows (the clock's own): ``bb`` = |b|²
+    and ``br`` = b'r over every row then."""
+    bb = float(b @ b) if bb is None else float(bb)
     if bb <= 0:
         return 0.0
-    alpha = float(b @ r) / bb
+    alpha = (float(b @ r) if br is None else float(br)) / bb
     full, e = alpha * alpha * bb, r - alpha * b
     out = full
     # (the emitter's: at least two arrays left to see it alike)
@@ -507,8 +575,8 @@ def persistent_drop(Q, r, b, groups, emitter=False):
         runs = itertools.combinations(groups, w) if emitter else (groups[m:m + w] for m in range(len(groups) - w + 1))
         for run in runs:
             R = np.unique(np.concatenate(run))
-            QR, I = Q[R], np.eye(len(R))
-            HA = QR @ QR.T
+            I = np.eye(len(R))
+            HA = hat(R)
             HB = HA + np.outer(b[R], b[R]) / bb
             dA = r[R] @ np.linalg.lstsq(I - HA, r[R], rcond=1e-10)[0]
             dB = e[R] @ np.linalg.lstsq(I - HB, e[R], rcond=1e-10)[0]
@@ -517,26 +585,40 @@ def persistent_drop(Q, r, b, groups, emitter=False):
 
 
 def _scan_best(p, fs, i, cands, have, basis, sw, scale):
-    """The best candidate of each kind of clock i in :func:`joint_scan` (``basis``: Q, the projected residuals
-    rp, the weighted columns B and projected Bp; ``sw`` the rows' √weights, ``scale`` the TDOA rows' robust
-    scale), judged by its persistent χ² (:func:`persistent_drop`) in the clock's own robust scale: the
-    best of them as (components, margin, info), or None."""
-    Q, rp, B, Bp = basis
-    den = np.einsum("ij,ij->j", Bp, Bp)
-    ok = den > 1e-12 * np.maximum(np.einsum("ij,ij->j", B, B), 1e-300)
-    num = Bp.T @ rp
+    """The best candidate of each kind of clock i in :func:`joint_scan` (``basis``: the projector, the projected
+    residuals rp and the clock's rows, :class:`~calib.estimator.clockscan.ClockRows`; ``sw`` the rows'
+    √weights, ``scale`` the TDOA rows' robust scale), judged by its persistent χ² (:func:`persistent_drop`) in
+    the clock's own robust scale: the best of them as (components, margin, info), or None."""
+    from .clockscan import family_columns
+
+    pr, rp, cr = basis
+    O = cr.rows
+    B = family_columns(cr, cands)
+    nb = np.einsum("ij,ij->j", B, B)
+    den = nb - pr.explained(O, B)
+    ok = den > 1e-12 * np.maximum(nb, 1e-300)
+    num = B.T @ rp[O]
     value = np.where(ok, -num / np.where(ok, den, 1.0), 0.0)
     fine = np.array([c.with_value(v).plausible(float(np.ptp(p.t))) for c, v in zip(cands, value)], bool)
     raw = np.where(ok & fine, num * num / np.where(ok, den, 1.0), 0.0)
-    own = (_own_rows(p, fs, i) > 0) & (sw > 0)
-    if not raw.any() or not own.any():
+    if not raw.any() or not len(O):
         return None
+
+    def projected(k):   # the column of candidate k projected off the model, on the clock's rows
+        full = np.zeros(len(rp))
+        full[O] = B[:, k]
+        return pr.resid(full)[O]
+
     # the array's own scale: its rows' robust spread once its best candidate is fitted (a stated σ below the
     # scatter of this array's arrivals makes no step; neither does a large true step inflate it)
     k0 = int(np.argmax(raw))
-    left = (rp - Bp[:, k0] * (num[k0] / den[k0] if ok[k0] else 0.0))[own] / sw[own]
+    left = (rp[O] + projected(k0) * (value[k0] if ok[k0] else 0.0)) / sw[O]
     scale_i = max(scale, spread(left))
-    events = _event_rows(p, fs, own) if i >= 0 else _array_rows(p, fs, own)
+    own = np.zeros(len(rp), bool)
+    own[O] = True
+    pos = np.full(len(rp), -1)
+    pos[O] = np.arange(len(O))
+    events = [pos[g] for g in (_event_rows(p, fs, own) if i >= 0 else _array_rows(p, fs, own))]
     n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
     best = None
     for kind in ("step", "quadratic", "hinge"):
@@ -544,15 +626,16 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale):
         if not fam.size:
             continue
         k = fam[np.argmax(raw[fam])]
+        first = float(raw[k]) / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands))   # (every candidate)
         # persistence: the evidence left with the rows of any PERSIST_EVENTS consecutive events of this array
         # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
         # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows
-        # may carry it)
-        kept_drop = min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events, i < 0)
-                        ) if raw[k] > 0 else 0.0
+        # may carry it); judged only where the scan's own test passes (the margin is the smaller of the two)
+        kept_drop = min(float(raw[k]), persistent_drop(lambda R: pr.hat(O[R]), rp[O], projected(k), events, i < 0,
+                                                       bb=den[k], br=-value[k] * den[k])
+                        ) if raw[k] > 0 and first > 0 else None
         # chosen by the scan at its multiplicity; its persistence is one more test of that one candidate
-        margin = min(float(raw[k]) / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands)),   # (every candidate)
-                     kept_drop / scale_i ** 2 - PERSIST_CHI2)
+        margin = first if kept_drop is None else min(first, kept_drop / scale_i ** 2 - PERSIST_CHI2)
         if best is None or margin > best[1]:
             new = have + [cands[k].with_value(value[k])]
             # candidates the rows cannot tell apart (an array without rows at the event between two
@@ -560,7 +643,8 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale):
             tied = [have + [cands[j].with_value(value[j])] for j in fam
                     if j != k and abs(raw[j] - raw[k]) <= 1e-6 * max(abs(raw[k]), 1.0)]
             best = (new, margin, {"chi2_drop": float(raw[k]) / scale_i ** 2,
-                                  "chi2_kept": kept_drop / scale_i ** 2, "scale": scale_i, "kind": kind,
+                                  "chi2_kept": None if kept_drop is None else kept_drop / scale_i ** 2,
+                                  "scale": scale_i, "kind": kind,
                                   "test": "joint", "tied": tied})
     return best
 
@@ -809,12 +893,12 @@ def _suspects(result):
     return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
 
 
-def calibrate_clocks(solve, features, *, clock_model="linear", **options):
+def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
-    clock_model : "linear" (default, for now: 2 of 104 rendered realistic sessions still get a false µs-sized
-        step, docs/results.md) or "auto": the linear clock unless the evidence asks for steps / drift terms per
-        array (``calib.options.OPTIONS``: ``--clock-model``).
+    clock_model : "auto" (default): the linear clock unless the evidence asks for steps / drift terms per
+        array (2 of 104 rendered realistic sessions get a false µs-sized step, docs/results.md); "linear":
+        never more (``calib.options.OPTIONS``: ``--clock-model``).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
@@ -1077,7 +1161,7 @@ def persistence(result, models, features=None):
         e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
         groups = _event_rows(p, lin.factors, own) if name != EMITTER else _array_rows(p, lin.factors, own)
-        out[(name, k)] = persistent_drop(Q, rp, bp, groups, name == EMITTER) / scale_i ** 2
+        out[(name, k)] = persistent_drop(lambda R: Q[R] @ Q[R].T, rp, bp, groups, name == EMITTER) / scale_i ** 2
     return out
 
 
