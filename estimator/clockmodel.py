@@ -355,6 +355,9 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     if not D.ref and reference:   # the reference's step, seen from here
         cands += [Component("mshift", c.time, 0.0) for c in cands if c.kind == "step"]
     cands = [c for c in cands if _key(c) not in skip]   # (rejected by their structure: :func:`structure_test`)
+    tested = len(cands)
+    if tested > FIT_ALL_MAX:   # a long session: robust fits of the locally best few of each kind only
+        cands = _prescreen(D, base, (xb, gb, tb, cb, rb), cands)
     fits = []
     duration = float(np.ptp(D.u))
     for cand in cands:
@@ -372,7 +375,8 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
             continue
         cost, cand, coef, r = min(fam, key=lambda f: f[0])
         drop = 2.0 * (np.sum(cauchy_rho(rb / scale)) - np.sum(cauchy_rho(r / scale)))
-        margin = drop - penalty(kind, D.n, n_arrays, len(fits))   # (Bonferroni over every candidate tested)
+        margin = drop - penalty(kind, D.n, n_arrays, len(fits) if tested <= FIT_ALL_MAX else tested)   # (Bonferroni
+        # over every candidate tested, the prescreened ones too)
         if best is None or margin > best[1]:
             new = [c.with_value(v) for c, v in zip(base + [cand], coef)]
             # candidates the rows cannot tell apart go to the rivals' solves (as in :func:`joint_scan`)
@@ -380,6 +384,53 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
                     if f[1] is not cand and abs(f[0] - cost) <= 1e-6 * max(abs(cost), 1.0)]
             best = (new, float(margin), {"chi2_drop": float(drop), "scale": scale, "kind": kind, "tied": tied})
     return best
+
+
+FIT_ALL_MAX = 160   # candidates: beyond, an array's robust fits are of the SCREEN_TOP best of each kind, ranked
+                    # by their linearised score at the base fit (:func:`_prescreen`)
+
+
+def _prescreen(D, base, fit, cands):
+    """The SCREEN_TOP candidates of each kind with the largest χ² drop in the linearisation of the array's base
+    fit ``fit`` (x, g, τ, coefficients, residuals; rows Cauchy-weighted at it, its parameters projected out):
+    O(rows + candidates) by cumulative sums (:func:`calib.estimator.clockscan.local_scores`), so that a long
+    session's per-array scan fits a few dozen candidates, not three per event."""
+    from .clockscan import ClockRows, local_scores, subset
+
+    x, g, tau, coef, r = fit
+    PS, PM = _design(D, base)
+    _, J = _residuals(D, x, g, tau, coef, PS, PM)
+    if D.ref:
+        J = np.delete(J, [0, 1, 2, 4], axis=1)
+    sw = _sqrt_weights(r, "cauchy")
+    nS, nM = len(D.zs), len(D.ym)
+    w = sw / np.concatenate([np.full(nS, D.sig_s), np.full(nM, D.sig_m)])
+    rows = np.arange(nS + nM)
+    ends_row = np.concatenate([np.arange(nS), np.arange(nS), nS + np.arange(nM)])
+    U = np.concatenate([D.u[D.b], D.u[D.a], D.u[D.j]])
+    sgn = np.concatenate([np.ones(nS), -np.ones(nS), np.ones(nM)])
+    far = np.concatenate([D.u[D.b], D.u[D.b], D.u[D.j]])
+    span = np.concatenate([np.zeros(nS), D.u[D.b] - D.u[D.a], np.zeros(nM)])
+    cr = ClockRows(rows, np.zeros(len(rows), int), w, U, sgn, ends_row, far, span)
+    C = J * sw[:, None]
+    score = {}
+    for fam_rows, kinds in ((cr, ("step", "quadratic", "hinge")), (None, ("mshift",))):
+        fam = [c for c in cands if c.kind in kinds]
+        if not fam:
+            continue
+        sub = fam_rows if fam_rows is not None else subset(cr, rows >= nS)
+        keep = slice(None) if fam_rows is not None else slice(nS, None)
+        steps = [c.time for c in fam if c.kind in ("step", "mshift")]
+        hinges = [c.time for c in fam if c.kind == "hinge"]
+        L, _, _ = local_scores(sub, C[keep], (r * sw)[keep], steps, hinges)
+        order = [c for c in fam if c.kind in ("step", "mshift")] + [Component("quadratic", 0.0, 0.0)] + \
+            [c for c in fam if c.kind == "hinge"]
+        score.update({_key(c): v for c, v in zip(order, L)})
+    out = []
+    for kind in ("step", "mshift", "quadratic", "hinge"):
+        fam = [c for c in cands if c.kind == kind]
+        out += sorted(fam, key=lambda c: -score.get(_key(c), 0.0))[:SCREEN_TOP]
+    return out
 
 
 # ----------------------------------------------------------------------------------------------- joint scan
@@ -431,7 +482,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
     clocks screened and scored (``screened``, ``scored``, ``factored``: projector factorisations).
 
     Returns {array index: (new components as increments, margin, info)} like :func:`best_component`, or
-    {} for problems too large (DENSE_MAX parameters)."""
+    {} for problems too large (SCAN_MAX parameters)."""
     from .clockscan import Projector, clock_rows
     from .problem import make_layout
     from .solver import linearise
@@ -439,7 +490,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
     p, st = result["problem"], result["state"]
     stats = {} if stats is None else stats
     lay = make_layout(p)
-    if lay.n > DENSE_MAX:
+    if lay.n > SCAN_MAX:
         return {}
     lin = linearise(p, st, lay, _kinds(p), dense=False)
     J = scipy.sparse.csr_matrix(lin.J)
@@ -477,7 +528,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
         key = sw.tobytes()
         if key not in bases:
             stats["factored"] = stats.get("factored", 0) + 1
-            pr = Projector(JE.multiply(sw[:, None]).tocsr(), lay)
+            pr = Projector(scipy.sparse.diags(sw) @ JE, lay)
             bases = {key: (pr, pr.resid(r * sw))}   # (one kept: the next clock's weights mostly differ)
         pr, rp = bases[key]
         best = _scan_best(p, lin.factors, i, cands, have, (pr, rp, cr), sw, scale)
@@ -486,6 +537,13 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
     return out
 
 
+def _weighted(J, E, sw):
+    """[J, E] (sparse; E dense: the components' few columns) with rows scaled by sw, as CSR."""
+    JE = scipy.sparse.hstack([scipy.sparse.csr_matrix(J), scipy.sparse.csr_matrix(E)]).tocsr()
+    return scipy.sparse.diags(sw) @ JE
+
+
+SCAN_MAX = 4000         # parameters: the joint scans and tests up to this
 EXACT_FLOPS = 2e9     # a joint scan of every candidate of every clock within this many flops: no screen
 SCREEN_FRACTION = 0.5   # a clock's best local score (own parameters out) below this share of its penalty: clean
 SCREEN_TOP = 8          # candidates of each kind scored in the joint problem for a clock the screen flags
@@ -701,23 +759,23 @@ def structure_test(result, models, name, k, features=None):
     from .problem import make_layout
     from .solver import linearise
 
+    from .clockscan import Projector
+
     p, st = _every_row(result, features), result["state"]
     lay = make_layout(p)
-    if lay.n > DENSE_MAX:
+    if lay.n > SCAN_MAX:
         return None
-    lin = linearise(p, st, lay, _kinds(p))
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    lin = linearise(p, st, lay, _kinds(p), dense=False)
     r = lin.r
     sw, scale = _robust_weights(result, lin, p, own=name)
     E, _ = component_columns(p, lin.factors, models)
-    Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
     T = _split_columns(p, lin.factors, index[name], models[name][k]) * sw[:, None]
     if not T.shape[1]:
         return 0.0, 0
-    Tp = T - Q @ (Q.T @ T)
-    rw = r * sw
-    rp = rw - Q @ (Q.T @ rw)
+    pr = Projector(_weighted(lin.J, E, sw), lay)
+    Tp = pr.resid(T)
+    rp = pr.resid(r * sw)
     U, sv, _ = np.linalg.svd(Tp, full_matrices=False)
     keep = sv > 1e-6 * max(np.linalg.norm(T), 1e-300)
     if not keep.any():
@@ -1141,27 +1199,26 @@ def persistence(result, models, features=None):
     from .problem import make_layout
     from .solver import linearise
 
+    from .clockscan import Projector
+
     p, st = _every_row(result, features), result["state"]
     lay = make_layout(p)
-    if lay.n > DENSE_MAX:
+    if lay.n > SCAN_MAX:
         return {}
-    lin = linearise(p, st, lay, _kinds(p))
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    lin = linearise(p, st, lay, _kinds(p), dense=False)
     E, keys = component_columns(p, lin.factors, models)
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
     out = {}
     for col, (name, k) in enumerate(keys):
         sw, scale = _robust_weights(result, lin, p, own=name)
-        b = E[:, col] * sw
-        rest = np.hstack([J, np.delete(E, col, axis=1)]) * sw[:, None]
-        Q, _ = np.linalg.qr(rest)
+        pr = Projector(_weighted(lin.J, np.delete(E, col, axis=1), sw), lay)
         r0 = (lin.r - models[name][k].value * E[:, col]) * sw
-        rp, bp = r0 - Q @ (Q.T @ r0), b - Q @ (Q.T @ b)
+        rp, bp = pr.resid(r0), pr.resid(E[:, col] * sw)
         own = (_own_rows(p, lin.factors, index[name]) > 0) & (sw > 0)
         e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
         groups = _event_rows(p, lin.factors, own) if name != EMITTER else _array_rows(p, lin.factors, own)
-        out[(name, k)] = persistent_drop(lambda R: Q[R] @ Q[R].T, rp, bp, groups, name == EMITTER) / scale_i ** 2
+        out[(name, k)] = persistent_drop(pr.hat, rp, bp, groups, name == EMITTER) / scale_i ** 2
     return out
 
 
@@ -1302,7 +1359,6 @@ def refine(result, models):
     1-σ, info for :func:`_apply_std`: the problem, layout and joint covariance of the other parameters)."""
     from .problem import make_layout
     from .solver import linearise
-    from .uncertainty import covariance
 
     p, st = result["problem"], result["state"]
     kinds = _kinds(p)
@@ -1314,20 +1370,46 @@ def refine(result, models):
     keep = lin.w > 0
     if lay.n > DENSE_MAX:
         return _conditional(lin, B, keep, keys, models)
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     # the step: every row, Cauchy-weighted (rows flagged against a wrong component are evidence against it; a
     # row hundreds of σ off, e.g. a chirp lost in a dropped block, pulls nothing: Huber's weight let it pull a
     # 50 ms step's size by 5σ)
     r = full.r
     scale = max(1.0, 1.4826 * float(np.median(np.abs(r[keep])))) if keep.any() else 1.0
     sw = 1.0 / np.sqrt(1.0 + (r / (HUBER_K * scale)) ** 2)
-    Ah = np.hstack([J, B]) * sw[:, None]
-    step = np.linalg.lstsq(Ah, -r * sw, rcond=None)[0]
+    step = _normal_solve(_weighted(lin.J, B, sw), -r * sw)
     # the covariance: the estimator's rows (outliers out), as its own error bars
-    A = np.hstack([J, B])[keep] * np.sqrt(lin.w[keep])[:, None]
-    cov = covariance(A, A.shape[1])
+    cov = _normal_covariance(_weighted(lin.J, B, np.where(keep, np.sqrt(np.maximum(lin.w, 0.0)), 0.0)))
     dc, sd = step[lay.n:], np.sqrt(np.maximum(np.diag(cov)[lay.n:], 0.0))
     return _update(models, keys, dc, sd) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n]},)
+
+
+def _scaled_normal(A):
+    """(Jacobi-scaled AᵀA (dense), the scale d) of a sparse A: no dense rows × n matrix."""
+    H = (A.T @ A).toarray()
+    d = np.sqrt(np.maximum(np.diag(H), 0.0))
+    d = np.where(d > 0, d, 1.0)
+    return H / d[:, None] / d[None, :], d
+
+
+def _normal_solve(A, y):
+    """The least-squares solution of A x ≈ y (A sparse) by its scaled normal equations (pseudo-inverse where
+    they are singular, as ``lstsq``)."""
+    Hs, d = _scaled_normal(A)
+    g = (A.T @ y) / d
+    try:
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(Hs, check_finite=False), g, check_finite=False) / d
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        return np.linalg.lstsq(Hs, g, rcond=None)[0] / d
+
+
+def _normal_covariance(A):
+    """(AᵀA)⁻¹ (pseudo-inverse), Jacobi-scaled as :func:`calib.estimator.uncertainty.covariance`, from a sparse A."""
+    Hs, d = _scaled_normal(A)
+    try:   # (positive definite: Cholesky, a fraction of the SVD's cost at thousands of parameters)
+        cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Hs, check_finite=False), np.eye(len(d)), check_finite=False)
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+        cov = np.linalg.pinv(Hs)
+    return cov / d[:, None] / d[None, :]
 
 
 def _conditional(lin, B, keep, keys, models):
