@@ -503,7 +503,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
     JE = scipy.sparse.hstack([J, scipy.sparse.csr_matrix(E)]).tocsr()
     local = np.setdiff1d(np.arange(JE.shape[1]), np.concatenate([lay.s.ravel(), lay.e.ravel(), lay.odo_yaw.ravel()]))
     exact = _exact_affordable(lay.n, len(p.t), p.N + 1)
-    out, bases = {}, {}
+    out, bases, cache = {}, {}, {}
     for i in range(-1, p.N):   # -1: the emitter
         name = EMITTER if i < 0 else str(p.names[i])
         have = zero.get(name, [])
@@ -514,13 +514,13 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
         # chirp lost in a dropped block made 0.14 ms "steps" of three others); its own clock's candidates
         # keep it (a 1 ms emission step screens every array's TDOA-S row of its interval)
         sw = sw0 * np.maximum(kept, _own_rows(p, lin.factors, i))
-        cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
+        cands = _candidates_cached(p.t, have, {k[1:] for k in banned if k[0] == name}, cache)
         cr = clock_rows(p, lin.factors, i, sw)
         if not cands or not len(cr.rows):
             continue
         stats["screened"] = stats.get("screened", 0) + 1
         if not exact:
-            cands = _screen(p, cr, JE, local, r, sw, cands, i, scale)
+            cands = _screen(p, cr, JE, local, r, sw, cands, i, scale, cache)
             if not cands:
                 continue
         stats["scored"] = stats.get("scored", 0) + 1
@@ -555,7 +555,25 @@ def _exact_affordable(n, k, clocks):
     return float(n) * n * 3 * k * clocks <= EXACT_FLOPS
 
 
-def _screen(p, cr, JE, local, r, sw, cands, i, scale):
+def _candidates_cached(u, have, ban, cache):
+    """:func:`candidates` less the banned (kind, time) keys ``ban``: the same list object for the clocks with the
+    same components (most have none), with (kinds, times) arrays for :func:`_screen` in ``cache``."""
+    key = (tuple(_key(c) for c in have), frozenset(ban))
+    if key not in cache:
+        cands = [c for c in candidates(u, have) if not ban or _key(c) not in ban]
+        cache[key] = cands
+        cache[id(cands)] = (np.array([c.kind for c in cands]), np.array([c.time for c in cands], float))
+    return cache[key]
+
+
+def _plausible(kinds, values, duration):
+    """:meth:`Component.plausible` of many candidates at once."""
+    v = np.abs(values)
+    return np.where(kinds == "quadratic", v * duration <= MAX_DRIFT_CHANGE,
+                    np.where(kinds == "hinge", v <= MAX_DRIFT_CHANGE, np.isfinite(values) & (v <= MAX_STEP)))
+
+
+def _screen(p, cr, JE, local, r, sw, cands, i, scale, cache=None):
     """The candidates of clock i worth scoring in the joint problem (:func:`joint_scan`), by a local score:
     each candidate against the clock's own rows ``cr`` with its own array parameters (the columns ``local`` of
     JE: poses, clocks, components) projected out, in the clock's robust scale once its best local candidate is
@@ -565,28 +583,29 @@ def _screen(p, cr, JE, local, r, sw, cands, i, scale):
     one TDOA-S and every later TDOA-M alike; a drift change: the TDOA-M's curvature in time)."""
     from .clockscan import family_columns, local_scores, project_off
 
-    sub = JE[cr.rows][:, local]
-    C = scipy.sparse.diags(sw[cr.rows]) @ sub
+    kinds, times = (cache or {}).get(id(cands)) or (np.array([c.kind for c in cands]),
+                                                     np.array([c.time for c in cands], float))
+    C = scipy.sparse.diags(sw[cr.rows]) @ JE[cr.rows][:, local]
     rw = r[cr.rows] * sw[cr.rows]
-    order = ([c for c in cands if c.kind == "step"] + [Component("quadratic", 0.0, 0.0)]
-             + [c for c in cands if c.kind == "hinge"])
-    L, value, _ = local_scores(cr, C, rw, [c.time for c in order if c.kind == "step"],
-                               [c.time for c in order if c.kind == "hinge"])
-    present = np.array([c.kind != "quadratic" or any(d.kind == "quadratic" for d in cands) for c in order])
-    duration = float(np.ptp(p.t))
-    L = np.where(present & np.array([c.with_value(v).plausible(duration) for c, v in zip(order, value)]), L, 0.0)
+    st, hi = np.flatnonzero(kinds == "step"), np.flatnonzero(kinds == "hinge")
+    L, value, _ = local_scores(cr, C, rw, times[st], times[hi])
+    # local_scores' order: the steps, the quadratic, the hinges
+    where = np.concatenate([st, np.flatnonzero(kinds == "quadratic")[:1], hi])
+    keep = np.concatenate([np.ones(len(st), bool), [bool((kinds == "quadratic").any())], np.ones(len(hi), bool)])
+    L, value = L[keep], value[keep]
+    L = np.where(_plausible(kinds[where], value, float(np.ptp(p.t))), L, 0.0)
     if not L.any():
         return []
     k0 = int(np.argmax(L))
-    X = project_off(cr, C, np.column_stack([family_columns(cr, [order[k0]]), rw]))
+    X = project_off(cr, C, np.column_stack([family_columns(cr, [cands[where[k0]]]), rw]))
     left = (X[:, 1] + value[k0] * X[:, 0]) / sw[cr.rows]
     scale_i = max(scale, spread(left))
     n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
     out = []
     for kind in ("step", "quadratic", "hinge"):
-        fam = np.flatnonzero([c.kind == kind for c in order])
+        fam = np.flatnonzero(kinds[where] == kind)
         if fam.size and L[fam].max() / scale_i ** 2 >= SCREEN_FRACTION * penalty(kind, n, p.N + 1, len(cands)):
-            out += [order[k] for k in fam[np.argsort(-L[fam])[:SCREEN_TOP]] if L[k] > 0]
+            out += [cands[where[k]] for k in fam[np.argsort(-L[fam])[:SCREEN_TOP]] if L[k] > 0]
     return out
 
 

@@ -77,7 +77,33 @@ class Projector:
     def hat(self, R):
         """H_RR = A_R (AᵀA)⁻¹ A_Rᵀ for the row indices R."""
         AR = self.A[R]
-        return np.asarray(AR @ self.solve(AR.T.toarray())) if AR.nnz else np.zeros((len(R), len(R)))
+        if not AR.nnz:
+            return np.zeros((len(R), len(R)))
+        if self.schur is None:
+            return np.asarray(AR @ self.solve(AR.T.toarray()))
+        return self._schur_hat(AR)
+
+    def _schur_hat(self, AR):
+        """H_RR from the Schur blocks: with the rows' scaled array part a, their event part e on the few event
+        parameters T they touch and X = H_EE⁻¹ H_EA, H_RR = Y S⁻¹ Yᵀ + e (H_EE⁻¹)_TT eᵀ, Y = a − e X_T (no
+        solve over every parameter: a row group's cost is its rows × the array block)."""
+        sch = self.schur
+        Ah = scipy.sparse.csc_matrix(AR[:, sch.perm] @ scipy.sparse.diags(1.0 / sch.d[sch.perm]))
+        a = Ah[:, :sch.nA].toarray()
+        T = np.flatnonzero(np.diff(Ah.indptr[sch.nA:]))
+        e = Ah[:, sch.nA + T].toarray()
+        Y = a - e @ sch.X[T] if len(T) else a
+        SY = (scipy.linalg.cho_solve(sch.cho, Y.T, check_finite=False) if sch.cho is not None
+              else np.linalg.lstsq(sch.S, Y.T, rcond=None)[0])
+        H = Y @ SY
+        if len(T):
+            band = sch.event_inverse(T[:, None], T[None, :])
+            if band is None:
+                unit = np.zeros((sch.Hee.shape[0], len(T)))
+                unit[T, np.arange(len(T))] = 1.0
+                band = sch.lu.solve(unit)[T]
+            H = H + e @ band @ e.T
+        return H
 
 
 @dataclass(frozen=True)
