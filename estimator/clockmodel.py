@@ -708,7 +708,7 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale):
         # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
         # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows
         # may carry it); judged only where the scan's own test passes (the margin is the smaller of the two)
-        kept_drop = min(float(raw[k]), persistent_drop(lambda R: pr.hat(O[R]), rp[O], projected(k), events, i < 0,
+        kept_drop = min(float(raw[k]), persistent_drop(pr.hat_of(O), rp[O], projected(k), events, i < 0,
                                                        bb=den[k], br=-value[k] * den[k])
                         ) if raw[k] > 0 and first > 0 else None
         # chosen by the scan at its multiplicity; its persistence is one more test of that one candidate
@@ -1237,7 +1237,10 @@ def persistence(result, models, features=None):
         e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
         groups = _event_rows(p, lin.factors, own) if name != EMITTER else _array_rows(p, lin.factors, own)
-        out[(name, k)] = persistent_drop(pr.hat, rp, bp, groups, name == EMITTER) / scale_i ** 2
+        hat = pr.hat_of(np.flatnonzero(own))   # (the groups are own rows: indices into them)
+        pos = np.cumsum(own) - 1
+        out[(name, k)] = persistent_drop(hat, rp[own], bp[own], [pos[g] for g in groups], name == EMITTER,
+                                         bb=float(bp @ bp), br=float(bp @ rp)) / scale_i ** 2
     return out
 
 

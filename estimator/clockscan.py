@@ -76,22 +76,27 @@ class Projector:
 
     def hat(self, R):
         """H_RR = A_R (AᵀA)⁻¹ A_Rᵀ for the row indices R."""
-        AR = self.A[R]
-        if not AR.nnz:
-            return np.zeros((len(R), len(R)))
-        if self.schur is None:
-            return np.asarray(AR @ self.solve(AR.T.toarray()))
-        return self._schur_hat(AR)
+        return self.hat_of(np.arange(self.A.shape[0]))(np.asarray(R))
 
-    def _schur_hat(self, AR):
-        """H_RR from the Schur blocks: with the rows' scaled array part a, their event part e on the few event
-        parameters T they touch and X = H_EE⁻¹ H_EA, H_RR = Y S⁻¹ Yᵀ + e (H_EE⁻¹)_TT eᵀ, Y = a − e X_T (no
-        solve over every parameter: a row group's cost is its rows × the array block)."""
+    def hat_of(self, rows):
+        """A function R ↦ H_RR for index sets R into ``rows`` (row indices of A): the rows' scaled and permuted
+        part of A is taken once, each call is then numpy on |R| rows (a clock's persistence asks for thousands)."""
+        AO = self.A[rows]
+        if self.schur is None:
+            return lambda R: (np.asarray(AO[R] @ self.solve(AO[R].T.toarray())) if AO[R].nnz
+                              else np.zeros((len(R), len(R))))
         sch = self.schur
-        Ah = scipy.sparse.csc_matrix(AR[:, sch.perm] @ scipy.sparse.diags(1.0 / sch.d[sch.perm]))
-        a = Ah[:, :sch.nA].toarray()
-        T = np.flatnonzero(np.diff(Ah.indptr[sch.nA:]))
-        e = Ah[:, sch.nA + T].toarray()
+        Ah = (AO[:, sch.perm] @ scipy.sparse.diags(1.0 / sch.d[sch.perm])).tocsr()
+        return lambda R: self._schur_hat(Ah[R].toarray())
+
+    def _schur_hat(self, Ad):
+        """H_RR from the Schur blocks for rows Ad (dense, scaled and permuted: array columns first): with the
+        array part a, the event part e on the few event parameters T the rows touch and X = H_EE⁻¹ H_EA,
+        H_RR = Y S⁻¹ Yᵀ + e (H_EE⁻¹)_TT eᵀ, Y = a − e X_T (a row group costs its rows × the array block)."""
+        sch = self.schur
+        a, ev = Ad[:, :sch.nA], Ad[:, sch.nA:]
+        T = np.flatnonzero(np.any(ev != 0, axis=0))
+        e = ev[:, T]
         Y = a - e @ sch.X[T] if len(T) else a
         SY = (scipy.linalg.cho_solve(sch.cho, Y.T, check_finite=False) if sch.cho is not None
               else np.linalg.lstsq(sch.S, Y.T, rcond=None)[0])
