@@ -134,12 +134,10 @@ def position_covariances(model):
 
 def array_covariance(model):
     """Full 1-σ covariance of the free array parameters at the estimate (the ``*_std`` columns' covariance:
-    ``uncertainty.honest_covariance``).
+    ``uncertainty.honest_covariance``), of a calibration rebuilt from disk (:func:`rebuild`). ``calibrate``'s
+    own result carries it (``CalibrationResult.array_covariance``), computed once with its std columns.
 
-    Returns (labels, cov): labels (n,) ``"<array>.<param>"`` with param in x, y, z (m), rx, ry, rz (rad,
-    rotation about the array's own axes: φ in R Exp(φ)), offset (s), drift; cov (n, n) in those units. Arrays
-    in the problem's order, each array's parameters in that order; the reference array's fixed ones and
-    those the data leave undetermined (report.json ``undetermined``) are absent.
+    Returns (labels, cov): as :func:`labelled_array_covariance`.
     """
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
@@ -147,9 +145,21 @@ def array_covariance(model):
         # large problems: the array block alone
         cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), normals=model.get("normals"),
                                 arrays_only=True)
+    return labelled_array_covariance(p, lay, cov)
+
+
+def labelled_array_covariance(p, lay, cov, without=()):
+    """(labels, cov) of the free array parameters from a covariance of the layout ``lay`` (dense or
+    ``BlockCovariance``): labels (n,) ``"<array>.<param>"`` with param in x, y, z (m), rx, ry, rz (rad,
+    rotation about the array's own axes: φ in R Exp(φ)), offset (s), drift; cov (n, n) in those units. Arrays
+    in the problem's order, each array's parameters in that order; the reference array's fixed ones, those
+    the data leave undetermined (report.json ``undetermined``) and the arrays ``without`` (indices: refitted
+    alone, no uncertainty claimed) are absent."""
     labels, idx = [], []
     skip = _undetermined(p)   # undetermined parameters have no covariance (the gauge fixes only some of them)
     for i, name in enumerate(p.names):
+        if i in without:
+            continue
         for a in ARRAY_PARAMS:
             if (i, a.key) in skip:
                 continue

@@ -17,6 +17,7 @@ from calib.blas import single_thread_blas
 from calib.options import validate_options
 
 from . import arraynoise, clockmodel
+from .assess import labelled_array_covariance
 from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
 from .joint import joint_solve
@@ -177,12 +178,13 @@ def _full_outputs(res, kinds, stages, stage_states, *, method, noise, emission_s
                                 normals=plane_normals(meta, p.names))   # the verdict's tests keep the plain one
     times["uncertainty"] = time.perf_counter() - t_cov
     arrays, sources = to_frames(p, st, without_claims(std_from_cov(p, lay, std_cov), res.dropped))
+    arr_cov = labelled_array_covariance(p, lay, std_cov, without=set(res.dropped))
     times["total"] = time.perf_counter() - t0
     judged = judge(res, lay, cov, lin.w, lin.cost, noise=noise, kinds=kinds)
     report = make_report(res, stages, judged, lin.factors, method=method, noise=noise, emission_sigma=emission_sigma,
                          times=times)
     return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,
-            "stage_states": stage_states}
+            "stage_states": stage_states, "array_covariance": arr_cov}
 
 
 def _solution(res, kinds, stage_states):

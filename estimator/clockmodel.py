@@ -1456,9 +1456,15 @@ def _apply_std(result, info):
     given: an unreliable array's stay empty)."""
     if info is None or "arrays" not in result:
         return
+    from .assess import labelled_array_covariance
     from .uncertainty import std_from_cov
 
-    std = std_from_cov(info["problem"], info["layout"], info["cov"])
+    p = info["problem"]
+    std = std_from_cov(p, info["layout"], info["cov"])
+    if result.get("array_covariance") is not None:   # calibration.json's, as the std columns
+        index = {str(n): i for i, n in enumerate(p.names)}
+        result["array_covariance"] = labelled_array_covariance(
+            p, info["layout"], info["cov"], without={index[n] for n in _unreliable(result) if n in index})
     arrays, sources = result["arrays"], result["sources"]
     for a in ARRAY_PARAMS:
         v = np.asarray(std[a.key]).reshape(len(arrays), -1)

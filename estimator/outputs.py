@@ -31,6 +31,9 @@ class CalibrationResult(Record):
         after each stage that ran. converged, cost, outliers, undetermined, unreliable_arrays : with
         ``outputs="solution"`` (no tables, no report), what the report would say. clock_models : {array: clock
         components} (estimator/clockmodel.py); clock : the report's ``clock`` block of a solution.
+        array_covariance : (labels, cov) of the free array parameters, the ``*_std`` columns' covariance
+        (``assess.labelled_array_covariance``; calibration.json's ``covariance``), None where a position
+        was left unknown.
     """
     arrays: pd.DataFrame | None = None
     sources: pd.DataFrame | None = None
@@ -45,6 +48,7 @@ class CalibrationResult(Record):
     unreliable_arrays: list | None = None
     clock_models: dict | None = None
     clock: dict | None = None
+    array_covariance: tuple | None = None
 
 
 def undetermined_parameters(p):
@@ -150,6 +154,7 @@ def blank_diverged(out):
     where = np.abs(np.concatenate([xa[far_a], xs[far_s]])).max()
     std_cols = [c for c in arrays.columns if c.endswith("_std")]
     arrays.loc[far_a, ["x", "y", "z", *std_cols]] = np.nan
+    out["array_covariance"] = None   # (calibration.json: no covariance of a geometry partly unknown)
     sources.loc[far_s, ["x", "y", "z", *(c for c in sources.columns if c.endswith("_std"))]] = np.nan
     what = "; ".join(filter(None, [
         f"array(s) {', '.join(names)} farther than {AUDIBLE_RANGE:g} m from every source" if names else "",

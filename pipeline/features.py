@@ -10,6 +10,7 @@ from calib.records import Features
 from calib.pipeline.formats.io import write_features_files
 from calib.pipeline.formats.outputs import publish
 from calib.pipeline.formats.session import read_session
+from calib.pipeline.headerrate import rate_corrections, refine_rates, with_rates
 from calib.pipeline.retime import retime_moving
 
 
@@ -19,11 +20,22 @@ def session_features(recordings, progress=None, jobs=1, **options):
     progress : optional ``progress(done, total, message)``. jobs : arrays at a time (threads; −1: one per
     core; the results do not depend on it). options : ``calib.frontend.DEFAULTS`` overrides. A source moving
     during the sweep: its arrivals timed again with stretches predicted from a first solve (pipeline/retime.py).
+    An array whose WAV header states a rate the chirps' spacing contradicts: extracted again at the measured
+    rate (pipeline/headerrate.py; meta.json and diagnostics ``header_rates``).
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
     session = recordings if isinstance(recordings, Mapping) else read_session(recordings)
-    feats, diag = retime_moving(session, *extract_features(session, progress=progress, jobs=jobs, **options),
-                                progress=progress)
+    first = extract_features(session, progress=progress, jobs=jobs, **options)
+    fixes = rate_corrections(session, first[1])
+    if fixes:   # a header's rate the chirps contradict: every array again, those at the measured rate
+        first = extract_features(with_rates(session, fixes), progress=progress, jobs=jobs, **options)
+        fixes, changed = refine_rates(with_rates(session, fixes), first[0], fixes)
+        if changed:
+            first = extract_features(with_rates(session, fixes), progress=progress, jobs=jobs, **options)
+        session = with_rates(session, fixes)
+    feats, diag = retime_moving(session, *first, progress=progress)
+    if fixes:
+        diag = {**diag, "header_rates": fixes}
     return add_session_meta(feats, session, diag), diag
 
 
@@ -39,6 +51,8 @@ def add_session_meta(feats, session, diag):
     meta["mics"] = {a["name"]: [[float(v) for v in m] for m in a["mics"]] for a in session["arrays"]}
     dets = (diag.get("arrays", {}).get(session["reference_array"]) or {}).get("detections") or []
     meta["reference_detections_s"] = {str(d["event"]): float(d["time"]) for d in dets if d.get("event") is not None}
+    if diag.get("header_rates"):   # arrays whose samples were taken at the measured rate (pipeline/headerrate.py)
+        meta["header_rates"] = diag["header_rates"]
     return Features.from_dict({**feats, "meta": meta})
 
 

@@ -952,13 +952,34 @@ def stage_findings(session, out, threshold=8.0):
     from pathlib import Path
 
     from calib.pipeline.formats.io import read_features
+    from calib.pipeline.headerrate import with_rates
 
     out = Path(out)
     try:
         diag = json.loads((out / "diagnostics" / "diagnostics.json").read_text())
     except (OSError, ValueError):
         diag = None
-    return [f.as_dict() for f in setup_findings(session, diag, read_features(out / "features"), threshold)]
+    feats = read_features(out / "features")
+    fixed = feats["meta"].get("header_rates") or {}
+    found = setup_findings(with_rates(session, fixed), diag, feats, threshold)   # (the samples as extracted)
+    return [f.as_dict() for f in sorted(header_rate_findings(session, fixed) + found,
+                                        key=lambda f: -STATUS_RANK[f.status])]
+
+
+def header_rate_findings(session, fixed):
+    """``suspect`` findings for the arrays the features stage took at a measured rate instead of their WAV
+    header's (features/meta.json ``header_rates``, pipeline/headerrate.py)."""
+    out = []
+    for a in session["arrays"]:
+        f = fixed.get(a["name"])
+        if f:
+            out.append(Finding("suspect", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): the header's "
+                               f"sample rate {f['header']} Hz is wrong: the chirps' spacing says "
+                               f"{f['header'] * f['scale']:.0f} Hz ({100 * (f['scale'] - 1):+.2f} %, far beyond a "
+                               f"clock drift); calibrated with its samples at {f['used']} Hz. Declare it (sample_rate "
+                               f"= {f['used']} in its [[arrays]] table of session.toml) or rewrite the header",
+                               a["name"]))
+    return out
 
 
 def explain_failure(session, exc, threshold=8.0):

@@ -451,7 +451,47 @@ def test_a_declared_rate_calibrates_a_wrong_header_as_if_right(tmp_path):
         rep = json.loads((tmp_path / f"out_{name}" / "calibration" / "report.json").read_text())
         err = evaluate(read_calibration(tmp_path / f"out_{name}" / "calibration"), read_truth(tmp_path / name / "truth"))
         out[name] = (rep, err["position_rmse_m"])
-    assert out["slow"][0]["clock"]["arrays"]["A2"]["nominal_rate"] is not None or out["slow"][0]["verdict"]["status"] != "ok"
+    # undeclared: the features stage measured A2's rate from the chirps and took its samples at it
+    # (pipeline/headerrate.py): named as a wrong header (suspect), calibrated as the fault-free session
+    rep, err = out["slow"]
+    meta = json.loads((tmp_path / "out_slow" / "features" / "meta.json").read_text())
+    assert list(meta["header_rates"]) == ["A2"] and abs(meta["header_rates"]["A2"]["used"] / (fs * 0.99) - 1) < 2e-4
+    assert rep["verdict"]["status"] == "suspect" and "A2.wav (array A2): the header's sample rate" in \
+        rep["verdict"]["reasons"][0]
+    assert err <= 1.5 * out["clean"][1] + 0.002
     rep, err = out["declared"]
     assert rep["verdict"]["status"] == "ok" and all(a["nominal_rate"] is None for a in rep["clock"]["arrays"].values())
     assert err <= 1.5 * out["clean"][1] + 0.002
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_wrong_header_rate_is_measured_from_the_chirps_spacing(seed):
+    """Detections of a board sampling at s x its header's rate lie at s (t_emit + d/c) + b (plus noise): the rate
+    is measured to the range changes' share (the source moves metres: d/c varies by ms), the other arrays and
+    a declared rate are left alone, and arrays all off by one scale are the emission times' fault."""
+    import pandas as pd
+
+    from calib.pipeline.headerrate import rate_corrections
+
+    rng = np.random.default_rng(seed)
+    t_emit = np.cumsum(rng.uniform(1.5, 2.5, 40))
+    ranges = 3.0 + np.cumsum(rng.normal(0, 0.3, 40))            # m: the robot wanders
+    session = {"events": pd.DataFrame({"event": np.arange(40), "t_emit": t_emit}),
+               "arrays": [{"name": n, "sample_rate": None} for n in ("A1", "A2", "A3")]}
+
+    def dets(scale, fs=16000, drop=()):
+        t = scale * (t_emit + ranges / 343.0) + rng.uniform(0, 5) + rng.normal(0, 1e-4, 40)
+        return {"fs": fs, "detections": [{"time": float(x)} for k, x in enumerate(t) if k not in drop]}
+
+    true = 44100 / 48000
+    diag = {"arrays": {"A1": dets(1.00002), "A2": dets(true, drop=(3, 17)), "A3": dets(0.99995)}}
+    fixes = rate_corrections(session, diag)
+    assert list(fixes) == ["A2"]
+    # the spacing's error: the range changes' slope over the session (the first solve's drift refines it)
+    span = np.polyfit(t_emit, ranges / 343.0, 1)[0]
+    assert abs(fixes["A2"]["scale"] / true - 1) <= abs(span) * 1.5 + 2e-5
+    declared = {**session, "arrays": [{**a, "sample_rate": 14700 if a["name"] == "A2" else None}
+                                      for a in session["arrays"]]}
+    assert rate_corrections(declared, diag) == {}
+    every = {"arrays": {n: dets(1.02) for n in ("A1", "A2", "A3")}}
+    assert rate_corrections(session, every) == {}

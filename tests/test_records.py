@@ -69,7 +69,8 @@ def test_calibrate_returns_a_frozen_record_that_reads_like_the_dict_form():
     feats, truth = simulate_features(1, seed=2)
     res = calibrate(feats)
     assert isinstance(res, CalibrationResult) and res["arrays"] is res.arrays and res.get("cost") is None
-    assert list(res) == ["arrays", "sources", "report", "state", "problem", "stage_states", "clock_models"]
+    assert list(res) == ["arrays", "sources", "report", "state", "problem", "stage_states", "clock_models",
+                         "array_covariance"]
     assert "converged" not in res and dict(res).keys() == {**res}.keys()
     with pytest.raises(dataclasses.FrozenInstanceError):
         res.arrays = None

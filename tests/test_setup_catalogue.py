@@ -8,6 +8,7 @@ arrays) are listed for the record: the stage must stay silent on them, and docs/
 """
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -123,6 +124,7 @@ def _odo(ev, fn):
 LINE = np.array([[-0.06, 0, 0], [-0.036, 0, 0], [-0.012, 0, 0], [0.012, 0, 0], [0.036, 0, 0], [0.06, 0, 0]])
 
 # id → (edits, what the finding must name (regex), kind): kind "setup" = found by the set-up stage;
+# "corrected" = found, and `calib run` calibrates around it (a wrong header rate, pipeline/headerrate.py);
 # "input" = refused as bad input already (exit 2); "unobservable" = a symmetry: nothing can tell.
 CASES = {
     # dead, weak, clipped, duplicated channels
@@ -181,9 +183,9 @@ CASES = {
     "A3.wav = A2.wav": ([copy_wav("A2.wav", "A3.wav")], r"A2\.wav and A3\.wav", "setup"),
     "A3.wav = A1.wav as float": ([copy_wav("A1.wav", "A3.wav", "FLOAT")], r"A1\.wav and A3\.wav", "setup"),
     # clocks
-    "A2 header rate +10 %": ([wav("A2.wav", lambda x: x, rate=17600)], r"A2\.wav.*sample rate", "setup"),
-    "A3 header rate -10 %": ([wav("A3.wav", lambda x: x, rate=14400)], r"A3\.wav.*sample rate", "setup"),
-    "A1 header rate +10 %": ([wav("A1.wav", lambda x: x, rate=17600)], r"A1\.wav.*sample rate", "setup"),
+    "A2 header rate +10 %": ([wav("A2.wav", lambda x: x, rate=17600)], r"A2\.wav.*sample rate", "corrected"),
+    "A3 header rate -10 %": ([wav("A3.wav", lambda x: x, rate=14400)], r"A3\.wav.*sample rate", "corrected"),
+    "A1 header rate +10 %": ([wav("A1.wav", lambda x: x, rate=17600)], r"A1\.wav.*sample rate", "corrected"),
     "t_emit 10 % slow": ([events(lambda ev: ev.assign(t_emit=ev["t_emit"] * 1.1))], r"events\.csv", "setup"),
     # speed of sound, odometry, events
     "speed of sound 300": ([key("speed_of_sound", 300.0)], r"session\.toml.*speed_of_sound", "setup"),
@@ -245,7 +247,7 @@ def _stage(d):
     return setup_findings(s), None
 
 
-SIGNAL_CASES = [k for k in OBSERVABLE if CASES[k][2] == "setup" and not re.search(
+SIGNAL_CASES = [k for k in OBSERVABLE if CASES[k][2] in ("setup", "corrected") and not re.search(
     r"speed of sound [34]00|odometry|another session|t_emit|mirrored|hemisphere", k)]  # (those need the features)
 
 
@@ -293,6 +295,12 @@ def test_check_and_run_name_the_mistake(case, tmp_path):
     assert re.search(want, flat), chk.output
     r = invoke("run", d, "-o", tmp_path / "out", "-q", "--jobs", 1)
     text = " ".join((r.output + str(r.stderr_bytes or b"")).split())
+    if CASES[case][2] == "corrected":   # a wrong header rate: measured, calibrated at it, named (suspect)
+        rep = json.loads((tmp_path / "out" / "calibration" / "report.json").read_text())
+        assert r.exit_code == 0 and rep["verdict"]["status"] == "suspect", f"{case}: exit {r.exit_code}\n{text}"
+        assert re.search(want, rep["verdict"]["reasons"][0]) and "calibrated with its samples at 16000 Hz" in \
+            rep["verdict"]["reasons"][0], rep["verdict"]
+        return
     assert r.exit_code in (2, 3), f"{case}: exit {r.exit_code}\n{text}"
     if r.exit_code == 3:
         rep = (tmp_path / "out" / "calibration" / "report.json").read_text()

@@ -208,3 +208,29 @@ def test_banded_inverse_band_and_half_solve_equal_the_dense_inverse(n, u):
     B = rng.normal(size=(n, 4))
     Y = f.half_solve(B)
     np.testing.assert_allclose(Y.T @ Y, B.T @ Z @ B, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("n_stops", [12, pytest.param(90, marks=pytest.mark.slow)])
+def test_calibration_carries_the_covariance_the_std_columns_come_from(n_stops, tmp_path):
+    # calibrate() computes the array covariance once, with the std columns; calibration.json writes it. It must
+    # be the one a calibration read back from disk gives (estimator.rebuild + array_covariance), and its
+    # diagonal the squared std columns; dense (12 stops) and sparse (90 stops, past the dense limit) alike
+    from calib.estimator import array_covariance, calibrate, rebuild
+    from calib.pipeline.formats.io import read_calibration, write_calibration
+
+    rng = np.random.default_rng(11)
+    stops = np.cumsum(rng.normal(0, 0.4, (n_stops, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
+    feats, _ = simulate_features(trajectory=stops, seed=11, n_arrays=5)
+    cal = calibrate(feats)
+    labels, cov = cal["array_covariance"]
+    write_calibration(tmp_path / "c", cal, features=feats)
+    back = read_calibration(tmp_path / "c")
+    labels2, cov2 = array_covariance(rebuild(feats, back))
+    # the reference's drift, then 4 free arrays x (3 position, 3 rotation, offset, drift)
+    assert labels == labels2 and len(labels) == 1 + 4 * 8
+    sd = np.sqrt(np.diag(cov2))   # (each entry in units of its parameters' std: m, rad and s mix)
+    np.testing.assert_allclose(cov / np.outer(sd, sd), cov2 / np.outer(sd, sd), rtol=0, atol=1e-5)
+    std = {f"{r['array']}.{c}": r[f"{c}_std"] for _, r in cal["arrays"].iterrows() for c in ("x", "y", "z")}
+    for k, lab in enumerate(labels):
+        if lab in std:
+            assert np.sqrt(cov[k, k]) == pytest.approx(std[lab], rel=1e-9)

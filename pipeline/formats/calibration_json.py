@@ -134,7 +134,10 @@ def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None):
 
 
 def array_covariance_of(calib, features):
-    """(labels, covariance) of the array parameters through the estimator's public API, or (None, None)."""
+    """(labels, covariance) of the array parameters: the one ``calibrate`` computed with the std columns, or
+    for a calibration read from disk through the estimator's public API; (None, None) when there is none."""
+    if calib.get("array_covariance") is not None:
+        return calib["array_covariance"]
     from calib.estimator import array_covariance, rebuild
 
     model = rebuild(features, calib)

@@ -247,7 +247,7 @@ def read_events(path):
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
              "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s", "chirp_stretch_shift",
-             "doa_time_s", "stretch_time_s", "tdoa_shared_arrivals")   # + the kinds' noise keys
+             "doa_time_s", "stretch_time_s", "tdoa_shared_arrivals", "header_rates")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -298,6 +298,21 @@ def validate_meta(meta, path="meta.json"):
     both = set(out.get("doa_mirror_normals") or {}) & set(out.get("doa_axes") or {})
     if both:
         raise InputError(f"{path}: array {sorted(both)[0]!r} is in both 'doa_mirror_normals' and 'doa_axes'")
+    if meta.get("header_rates") is not None:
+        out["header_rates"] = _header_rates(meta["header_rates"], arrays, path)
+    return out
+
+
+def _header_rates(value, arrays, path):
+    """meta ``header_rates`` ({array: {header, used: Hz, scale, ...}}: pipeline/headerrate.py) → a clean copy."""
+    if not isinstance(value, dict) or not all(k in arrays and isinstance(v, dict) for k, v in value.items()):
+        raise InputError(f"{path}: 'header_rates' must map array names to {{\"header\": Hz, \"used\": Hz, \"scale\": r}}")
+    out = {}
+    for name, f in value.items():
+        where = f"{path}: 'header_rates' {name!r}"
+        out[name] = {**f, **{k: V.number(f.get(k), f"{where}: {k!r}", lo=V.SAMPLE_RATE[0], hi=V.SAMPLE_RATE[1],
+                                       integer=True) for k in ("header", "used")},
+                     "scale": V.number(f.get("scale"), f"{where}: 'scale'", lo=0.01, hi=100.0)}
     return out
 
 
