@@ -992,6 +992,8 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
         try:
             first, start = _seeded(solve, features, first, options, rounds)
+            if not start:
+                first, start, features = _readmitted(solve, features, first, options, rounds)
             result, models = _auto(solve, features, first, options, rounds, start)
         except ObservabilityError as err:   # a trial model left the data unable to fix something: linear
             result, models = first, {}
@@ -1025,6 +1027,114 @@ def _seeded(solve, features, first, options, rounds):
     rounds.append([{"seeded": f"{n}: a step of {c[0].value * 1e3:+.3f} ms at {c[0].time:.3f} s (its arrivals jump "
                               "further than the speaker's move allows)"} for n, c in start.items()])
     return trial, start
+
+
+READMIT_SPREAD = 0.02   # a doubted block's lags vary by less than this share of their size: one constant lag
+READMIT_SIGMAS = 20.0   # ... and that lag is this many times their spread (and the rows' σ) at least
+
+
+def _doubted_blocks(features):
+    """[(array, block events, (event before, event after) the boundary)]: each array whose own arrivals the
+    frontend doubts as reflections (flag ``nlos``, :func:`calib.estimator.screen.own_doubted_events`) at one
+    run of its consecutive events that starts or ends its session, with at least PERSIST_EVENTS events in it
+    and MIN_EVENTS outside it."""
+    from .screen import DROP_FLAGS, _flags, own_doubted_events
+
+    names = [n for n in DROP_FLAGS["nlos"] if len(features[n])]
+    doubt = {n: _flags(features[n], ("nlos",)) for n in names}
+    if not any(d.any() for d in doubt.values()):
+        return []
+    out = []
+    for a in (str(n) for n in features["meta"]["arrays"]):
+        bad = own_doubted_events(features, doubt, a)
+        evs = sorted({int(e) for n in names if "event" in features[n]
+                      for e in features[n]["event"][features[n]["array"].astype(str) == a]})
+        pos = np.flatnonzero(np.isin(evs, sorted(bad)))
+        if len(pos) < PERSIST_EVENTS or len(evs) - len(pos) < MIN_EVENTS or np.any(np.diff(pos) != 1):
+            continue
+        if pos[0] == 0:
+            out.append((a, [evs[k] for k in pos], (evs[pos[-1]], evs[pos[-1] + 1])))
+        elif pos[-1] == len(evs) - 1:
+            out.append((a, [evs[k] for k in pos], (evs[pos[0] - 1], evs[pos[0]])))
+    return out
+
+
+def _without_nlos(features, array, block, reference):
+    """A copy of ``features`` with the flag ``nlos`` taken off ``array``'s rows at the events ``block`` (every
+    array's TDOA-M there for the reference: its arrival is in each)."""
+    out = dict(features)
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        df = features[name]
+        if "flag" not in df.columns or not len(df):
+            continue
+        if "event" in df.columns:
+            at = df["event"].isin(block).to_numpy()
+        else:
+            at = (df["from_event"].isin(block) | df["to_event"].isin(block)).to_numpy()
+        mine = at & ((df["array"].astype(str) == array).to_numpy() | (reference and name == "tdoa_m"))
+        if not mine.any():
+            continue
+        flag = df["flag"].astype(object).where(df["flag"].notna(), "").astype(str)
+        cleared = flag.str.split("+").map(lambda parts: "+".join(x for x in parts if x and x != "nlos"))
+        df = df.copy()
+        df["flag"] = np.where(mine, cleared, flag)
+        out[name] = df
+    return out
+
+
+def _block_lag(first, features, array, block):
+    """(lag, spread) of ``array``'s TDOA-M at the events ``block`` against the first solve (its sources and
+    poses from the other rows): the median of model − data (s) and its robust spread."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p = _every_row(first, features)
+    if "tdoa_m" not in _kinds(p):
+        return None
+    lin = linearise(p, first["state"], make_layout(p), ["tdoa_m"])
+    f = lin.factors[0]
+    i = [str(n) for n in p.names].index(array)
+    rows = np.isin(p.tdoa_m.ev, [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)])
+    rows &= (p.tdoa_m.arr == i) | (i == p.ref)
+    if rows.sum() < PERSIST_EVENTS:
+        return None
+    e = (f.r * np.broadcast_to(f.row_sigma, len(f.r)))[rows] * (-1.0 if i == p.ref else 1.0)
+    lag = float(np.median(e))
+    return lag, 1.4826 * float(np.median(np.abs(e - lag))), float(np.median(np.broadcast_to(f.row_sigma, len(f.r))))
+
+
+def _readmitted(solve, features, first, options, rounds):
+    """(first, start models, features): where the frontend doubts an array's arrivals as reflections over a
+    block of events that opens or closes its session (:func:`_doubted_blocks`) and those arrivals are late (or
+    early) by ONE constant amount against the first solve (:func:`_block_lag`: a reflection's excess path
+    changes as the robot moves, a dropped or inserted sample block's does not), the rows are readmitted with a
+    step at the block's edge; kept when that solves better (as :func:`_seeded`). Else (first, {}, features)."""
+    events, u = _event_of(features)
+    u_of = dict(zip(events.tolist(), u.tolist()))
+    ref = str(features["meta"]["reference_array"])
+    for array, block, (before, after) in _doubted_blocks(features):
+        readmitted = _without_nlos(features, array, block, array == ref)
+        got = _block_lag(first, readmitted, array, block)
+        if got is None:
+            continue
+        lag, spread, sigma = got
+        if not (spread <= READMIT_SPREAD * abs(lag) and abs(lag) >= READMIT_SIGMAS * max(spread, sigma)):
+            continue
+        # model − data = c on the block's rows when it precedes the step (the fit follows the later clock)
+        size = lag if block[-1] == before else -lag
+        start = {array: [Component("step", 0.5 * (u_of[before] + u_of[after]), size)]}
+        corrected = correct_features(readmitted, start)
+        trial = solve(corrected, **options)
+        cost0, sig = _robust_cost(first, None, readmitted)
+        cost1, _ = _robust_cost(trial, sig, corrected)
+        if _rank(trial) < _rank(first) or 2.0 * (cost0 - cost1) <= float(chdtri(1, FAMILY_ALPHA)):
+            continue
+        rounds.append([{"readmitted": f"{array}: events {block[0]}-{block[-1]}, doubted as reflections, are "
+                                      f"{abs(lag) * 1e3:.3f} ms {'late' if lag < 0 else 'early'} alike (spread "
+                                      f"{spread * 1e6:.1f} µs): a clock step between events {before} and {after}, "
+                                      "not reflections; readmitted"}])
+        return trial, start, readmitted
+    return first, {}, features
 
 
 def _auto(solve, features, first, options, rounds, start=None):

@@ -164,3 +164,44 @@ def test_a_large_step_is_found_through_calib_estimate_with_its_defaults(large, t
     (s,) = rep["clock"]["arrays"]["A7"]["steps"]
     assert (s["after_event"], s["before_event"]) == (80, 81) and abs(s["size"] + 3e-4) < 3 * s["std"]
     assert _modelled(rep["clock"]) == ["A7"] and rep["unreliable_arrays"] == []
+
+
+# ----------------------------------------------------------------------------------------------- doubted blocks
+def _flag_nlos(features, array, events):
+    """``array``'s rows at ``events`` flagged as the frontend flags reflection-only arrivals (TDOA-S rows touching
+    them too)."""
+    out = dict(features)
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        df = features[name].copy()
+        at = df["event"].isin(events) if "event" in df else df["from_event"].isin(events) | df["to_event"].isin(events)
+        df["flag"] = np.where(at & (df["array"] == array), "nlos", "")
+        out[name] = df
+    return out
+
+
+def test_a_block_late_by_one_constant_amount_is_readmitted_as_a_clock_step():
+    """A 20 ms drop between events 6 and 7 that the frontend's range track reads as reflections (events 0-6
+    'late'): the rows are readmitted and the step modelled; late by a delay that changes from stop to stop
+    (a blocked line of sight), the same block stays out and nothing is modelled."""
+    from calib.pipeline.simulate.clocks import delay_arrivals
+
+    f0, truth0 = simulate_features(3, SIGMA, seed=3)
+    t = f0["events"]["t_emit"].to_numpy() - f0["events"]["t_emit"].iloc[0]
+    f, truth = simulate_features(3, SIGMA, seed=3, clocks={"A3": {"steps": [{"time": 0.5 * (t[6] + t[7]),
+                                                                               "size": -0.02}]}})
+    block = list(range(7))
+    cal = calibrate(_flag_nlos(f, "A3", block))
+    (s,) = cal["report"]["clock"]["arrays"]["A3"]["steps"]
+    assert (s["after_event"], s["before_event"]) == (6, 7) and abs(s["size"] + 0.02) < 3 * s["std"]
+    assert any("readmitted" in r for rnd in cal["report"]["clock"]["detection"] for r in rnd)
+    assert "A3" not in (cal["report"].get("screened") or {}).get("arrays", {})
+    from calib.pipeline.report.evaluate import evaluate
+
+    clean = evaluate(calibrate(f0), truth0)["position_rmse_m"]
+    assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean + 0.002
+    # reflections: 10-25 ms late, by a path that changes as the robot moves
+    rng = np.random.default_rng(5)
+    late = delay_arrivals(f0, "A3", {e: rng.uniform(0.010, 0.025) for e in block})
+    cal = calibrate(_flag_nlos(late, "A3", block))
+    assert not any("readmitted" in r for rnd in cal["report"]["clock"]["detection"] for r in rnd)
+    assert _modelled(cal["report"]["clock"]) == []
