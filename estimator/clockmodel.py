@@ -24,6 +24,12 @@ have; the rows of arrays the solve dropped or the verdict names are no evidence 
 (:func:`refine`): their sizes, their 1-σ and the array parameters' 1-σ with them (the step's uncertainty in
 the error bars).
 
+At scale (:mod:`calib.estimator.clockscan`): no dense rows × parameters matrix; a large session's clocks are
+screened on their own rows first (:func:`_screen`: cumulative sums, O(rows)) and only flagged clocks are scored
+jointly; a long session's per-array fits are of the locally best candidates (:func:`_prescreen`). Rows the
+frontend doubted as reflections over a block that opens or closes an array's session, off by one constant
+amount, are readmitted with a step at its edge (:func:`_readmitted`).
+
 A fitted |drift| >= RATE_ERROR_MIN is no crystal's: the header's sample rate is wrong; it is named (with
 the pair of common rates it matches, :func:`calib.clock.header_ratio`) and the calibration stays in the
 drift (1 + δ = rate ratio × (1 + crystal drift)).
