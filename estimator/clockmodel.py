@@ -1051,7 +1051,8 @@ def _doubted_blocks(features):
     if not any(d.any() for d in doubt.values()):
         return []
     out = []
-    for a in (str(n) for n in features["meta"]["arrays"]):
+    flagged = {str(a) for n in names for a in features[n]["array"][doubt[n]]}
+    for a in (str(n) for n in features["meta"]["arrays"] if str(n) in flagged):
         bad = own_doubted_events(features, doubt, a)
         evs = sorted({int(e) for n in names if "event" in features[n]
                       for e in features[n]["event"][features[n]["array"].astype(str) == a]})
