@@ -525,6 +525,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
         if not cands or not len(cr.rows):
             continue
         stats["screened"] = stats.get("screened", 0) + 1
+        tested = len(cands)   # (the scan's multiplicity: every candidate the screen looked at)
         if not exact:
             cands = _screen(p, cr, JE, local, r, sw, cands, i, scale, cache)
             if not cands:
@@ -537,7 +538,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
             pr = Projector(scipy.sparse.diags(sw) @ JE, lay)
             bases = {key: (pr, pr.resid(r * sw))}   # (one kept: the next clock's weights mostly differ)
         pr, rp = bases[key]
-        best = _scan_best(p, lin.factors, i, cands, have, (pr, rp, cr), sw, scale)
+        best = _scan_best(p, lin.factors, i, cands, have, (pr, rp, cr), sw, scale, tested)
         if best is not None:
             out[i] = best
     return out
@@ -667,11 +668,12 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
     return max(float(out), 0.0)
 
 
-def _scan_best(p, fs, i, cands, have, basis, sw, scale):
+def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None):
     """The best candidate of each kind of clock i in :func:`joint_scan` (``basis``: the projector, the projected
     residuals rp and the clock's rows, :class:`~calib.estimator.clockscan.ClockRows`; ``sw`` the rows'
-    √weights, ``scale`` the TDOA rows' robust scale), judged by its persistent χ² (:func:`persistent_drop`) in
-    the clock's own robust scale: the best of them as (components, margin, info), or None."""
+    √weights, ``scale`` the TDOA rows' robust scale; ``tested``: the number of candidates the penalty counts,
+    those the screen left out too), judged by its persistent χ² (:func:`persistent_drop`) in the clock's own
+    robust scale: the best of them as (components, margin, info), or None."""
     from .clockscan import family_columns
 
     pr, rp, cr = basis
@@ -709,7 +711,7 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale):
         if not fam.size:
             continue
         k = fam[np.argmax(raw[fam])]
-        first = float(raw[k]) / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands))   # (every candidate)
+        first = float(raw[k]) / scale_i ** 2 - penalty(kind, n, p.N + 1, tested or len(cands))   # (every candidate)
         # persistence: the evidence left with the rows of any PERSIST_EVENTS consecutive events of this array
         # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
         # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows

@@ -132,7 +132,7 @@ def _modelled(clock):
         (["emitter"] if clock["emitter"]["steps"] or clock["emitter"]["drift_terms"] else [])
 
 
-def test_a_small_step_in_a_large_session_is_screened_in_and_found(large):
+def test_a_small_step_in_a_large_session_is_screened_in_and_found(large, monkeypatch):
     f, truth = large[1]
     res = calibrate(f, clock_model="linear")
     stats = {}
@@ -140,6 +140,13 @@ def test_a_small_step_in_a_large_session_is_screened_in_and_found(large):
     assert "A7" in stats["flagged"] and len(stats["flagged"]) <= 3   # the faulty clock, not every clock
     i = [str(n) for n in res["problem"].names].index("A7")
     assert got[i][1] > 0 and got[i][0][-1].kind == "step"
+    # every candidate of every clock scored jointly: the same proposals with the same margins (the screen's
+    # penalty counts the candidates it left out)
+    monkeypatch.setattr(cm, "EXACT_FLOPS", float("inf"))
+    full = cm.joint_scan(res, {})
+    assert {j for j, g in full.items() if g[1] > 0} == {j for j, g in got.items() if g[1] > 0}
+    for j in (j for j, g in full.items() if g[1] > 0):
+        assert cm._key(full[j][0][-1]) == cm._key(got[j][0][-1]) and full[j][1] == pytest.approx(got[j][1], rel=1e-9)
     clock = calibrate(f)["report"]["clock"]   # the default: auto
     (s,) = clock["arrays"]["A7"]["steps"]
     assert (s["after_event"], s["before_event"]) == (80, 81) and abs(s["size"] + 6e-5) < 3 * s["std"]
