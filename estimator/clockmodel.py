@@ -65,6 +65,9 @@ RATE_ERROR_MIN = 5e-3   # |drift| beyond any crystal's (±100 ppm typical): a wr
 RATE_MATCH_TOL = 5e-4   # a rate ratio this close to a ratio of two common rates names them
 EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term in every array's clock
 TIE_MARGIN = 10.0       # χ²: proposals this close to the best are decided by solving with each
+# ... and those within this share of a large best margin: a fault bends the fit, and a large one makes other
+# clocks' proposals nearly as strong (a 2.9 ms reference step: the emitter's step 500, the reference's 437)
+TIE_SHARE = 0.25
 MAX_RIVALS = 3
 REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × its σ: solve once more
 AMBIGUOUS_CHI2 = float(chdtri(1, 0.05))   # rival proposals this close (χ²) are named as the data's ambiguity
@@ -888,7 +891,8 @@ def detect(result, models, banned=frozenset(), excluded=frozenset()):
     # the strongest evidence first (a large fault bends the fit and so the others' tests); rivals within
     # TIE_MARGIN of it, and the other test's best, are decided by solving with each (:func:`_decide`)
     proposals.sort(key=lambda m: -m[0])
-    top = [(test, prop) for m, test, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS]
+    tie = max(TIE_MARGIN, TIE_SHARE * proposals[0][0])
+    top = [(test, prop) for m, test, prop in proposals if m >= proposals[0][0] - tie][:MAX_RIVALS]
     other = next(((test, prop) for _, test, prop in proposals if test != top[0][0]), None)
     if other is not None and other not in top:
         top = top[:MAX_RIVALS - 1] + [other]
@@ -1533,24 +1537,18 @@ def _scaled_normal(A):
 
 
 def _normal_solve(A, y):
-    """The least-squares solution of A x ≈ y (A sparse) by its scaled normal equations (pseudo-inverse where
-    they are singular, as ``lstsq``)."""
+    """The least-squares solution of A x ≈ y (A sparse) by its scaled normal equations; the minimum-norm one
+    (a symmetric pseudo-inverse, as ``lstsq``) where they are singular (a direction no row fixes)."""
     Hs, d = _scaled_normal(A)
-    g = (A.T @ y) / d
-    try:
-        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(Hs, check_finite=False), g, check_finite=False) / d
-    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
-        return np.linalg.lstsq(Hs, g, rcond=None)[0] / d
+    return np.linalg.pinv(Hs, hermitian=True) @ ((A.T @ y) / d) / d
 
 
 def _normal_covariance(A):
-    """(AᵀA)⁻¹ (pseudo-inverse), Jacobi-scaled as :func:`calib.estimator.uncertainty.covariance`, from a sparse A."""
+    """(AᵀA)⁻¹ as :func:`calib.estimator.uncertainty.covariance` gives it (pseudo-inverse of the Jacobi-scaled
+    normal matrix; a Cholesky inverse is no substitute: near-singular directions made a 20 ms step's σ 98 s), from
+    a sparse A (its symmetric eigendecomposition, not an SVD of the rows)."""
     Hs, d = _scaled_normal(A)
-    try:   # (positive definite: Cholesky, a fraction of the SVD's cost at thousands of parameters)
-        cov = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Hs, check_finite=False), np.eye(len(d)), check_finite=False)
-    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
-        cov = np.linalg.pinv(Hs)
-    return cov / d[:, None] / d[None, :]
+    return np.linalg.pinv(Hs, hermitian=True) / d[:, None] / d[None, :]
 
 
 def _conditional(lin, B, keep, keys, models):
