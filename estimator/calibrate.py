@@ -21,7 +21,7 @@ from .assess import labelled_array_covariance
 from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
 from .joint import joint_solve
-from .motion import motion_solve
+from .motion import motion_noise, motion_solve
 from .outputs import CalibrationResult, blank_diverged, to_frames, to_tables, undetermined_parameters, without_claims
 from .problem import State, build_problem, make_layout, state_from_dict
 from .reporting import judge, make_report
@@ -175,7 +175,8 @@ def _full_outputs(res, kinds, stages, stage_states, *, method, noise, emission_s
     cov = covariance(lin.J[lin.w > 0], lay.n, lay)
     meta = meta or {}
     std_cov = honest_covariance(p, lin, lay, shared=bool(meta.get("tdoa_shared_arrivals")), cov=cov,
-                                normals=plane_normals(meta, p.names))   # the verdict's tests keep the plain one
+                                normals=plane_normals(meta, p.names),   # the verdict's tests keep the plain one
+                                motion=motion_noise(stages.get("motion"), p, meta.get("doa_time_s")))
     times["uncertainty"] = time.perf_counter() - t_cov
     arrays, sources = to_frames(p, st, without_claims(std_from_cov(p, lay, std_cov), res.dropped))
     arr_cov = labelled_array_covariance(p, lay, std_cov, without=set(res.dropped))

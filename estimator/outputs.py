@@ -16,6 +16,10 @@ from .factors import KINDS, natural
 from .problem import Problem, State
 
 AUDIBLE_RANGE = 1000.0   # m: no calibration chirp is recorded farther away (a speaker's sweep is ~60 dB SPL there)
+# s: no recording's clock is this far from the emitter's (~115 days; the tables' readers refuse beyond it:
+# pipeline/formats/validate.MAX_ABS_TIME)
+CLOCK_SPAN = 1e7
+DRIFT_SPAN = 0.5   # |drift|: 1 + drift a positive clock rate (the calibration.json reader's bound)
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,6 +152,18 @@ def blank_diverged(out):
     if far_a[ref]:                       # when it is far from all of them, everything solved ran off together
         far_a, far_s = np.isfinite(xa).all(axis=1), np.isfinite(xs).all(axis=1)
     far_a[ref] = False
+    # a clock run off (a refit alone of data no clock explains) is unknown too: not a time any recording has
+    off_clock = ~far_a & ((np.abs(arrays["offset"].to_numpy(float)) > CLOCK_SPAN) |
+                          (np.abs(arrays["drift"].to_numpy(float)) > DRIFT_SPAN) if "offset" in arrays else False)
+    if off_clock.any():
+        arrays.loc[off_clock, ["offset", "drift", *(c for c in ("offset_std", "drift_std") if c in arrays)]] = np.nan
+        out["array_covariance"] = None
+        out["report"]["verdict"]["reasons"].append(
+            f"the clock of array(s) {', '.join(str(a) for a in arrays['array'][off_clock])} ran off (offset beyond "
+            f"{CLOCK_SPAN:g} s or drift beyond {DRIFT_SPAN:g}): not written (NaN)")
+        out["report"]["verdict"]["status"] = "failed"
+        out["report"]["verdict"]["flagged_arrays"] = list(dict.fromkeys(
+            [*(str(a) for a in arrays["array"][off_clock]), *out["report"]["verdict"].get("flagged_arrays", [])]))
     if not (far_a.any() or far_s.any()):
         return out
     names = [str(a) for a in arrays["array"][far_a]]

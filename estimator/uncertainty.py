@@ -252,7 +252,12 @@ def planar_doa_rows(p, lin, normals, factors):
     the sigmas themselves are), the azimuth's may go below it (on the lab preset azimuth errors were 0.1°
     against a row sigma of 0.6°: the row sigma there made the std 1.5× the errors). A row closer to the plane
     than FOLD_SIGMAS of its elevation std may be the mirror image of the truth (a stated hemisphere puts a
-    source 4.7° below the plane 5° above it: moving seed 23): its elevation variance gains el²."""
+    source 4.7° below the plane 5° above it: moving seed 23): its elevation variance gains el². Near the
+    plane the elevation is also biased, and the same way for every such row: it is read from the in-plane
+    magnitude ρ = cos(el) ≤ 1, so an error in ρ only ever makes |el| larger (measured 2.6-5.3° for sources
+    at −2…+1°: robot seeds 1-2, A5/A2, a tilt 3-4σ off with these rows taken as independent). Those rows'
+    elevation errors (each of its std) are therefore also taken as one error they share, which their
+    number does not average down."""
     start = 0
     for f in lin.factors:
         n = len(f.r)
@@ -295,22 +300,53 @@ def planar_doa_rows(p, lin, normals, factors):
             # a row within FOLD_SIGMAS of its elevation noise of the plane cannot tell the plane's sides apart
             # (a stated hemisphere, or the fold, puts it on one): its elevation may be off by up to twice itself
             el = np.arcsin(np.clip(sin_el[m], 0.0, 1.0))
-            var_el = var_el + np.where(el < FOLD_SIGMAS * np.sqrt(var_el) * sig[m], (el / sig[m]) ** 2, 0.0)
+            near = el < FOLD_SIGMAS * np.sqrt(var_el) * sig[m]
+            var_el = var_el + np.where(near, (el / sig[m]) ** 2, 0.0)
             G.append(np.sqrt(var_az)[:, None] * g_az)
             G.append(np.sqrt(var_el)[:, None] * g_el)
+            if near.sum() >= 2:   # ... and all of them the same way: one shared error, not averaged down
+                G.append(np.sum(np.sqrt(var_el[near])[:, None] * g_el[near], axis=0, keepdims=True))
         rows = np.zeros(len(lin.r), bool)
         rows[start:start + n] = np.repeat(keep, 3)
         return {"rows": rows, "G": np.vstack(G)} if G else None
     return None
 
 
-def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None):
+VELOCITY_SCALED_KINDS = {"tdoa_m": "beta", "tdoa_s": "beta", "doa": "t_doa", "cone": "t_doa"}
+
+
+def velocity_rows(lin, lay, motion):
+    """(M, 3K) dense: each whitened residual's error per unit error of the velocity a moving source's
+    correction used (one 3-vector per event, ``motion`` a :class:`calib.estimator.motion.MotionNoise`), times
+    its std — None without a correction. The error δv_j moves event j's corrected arrivals exactly as a source
+    shift of β δv_j moves their times of flight, and its turned DOAs as one of t_doa δv_j, so the whitened
+    error is J[:, s_j] (β or t_doa) δv_j: the source's columns of the Jacobian, shared by every array of the
+    event (rows not kept, and the odometry's, have none)."""
+    if motion is None or not len(lay.s) or np.any(lay.s < 0):
+        return None
+    scale, start = np.zeros(len(lin.r)), 0
+    for f in lin.factors:
+        n = len(f.r)
+        key = VELOCITY_SCALED_KINDS.get(f.kind)
+        if key is not None:
+            scale[start:start + n] = getattr(motion, key)
+        start += n
+    scale = np.where(lin.w > 0, scale * motion.sigma, 0.0)
+    if not np.any(scale):
+        return None
+    J = lin.J[:, lay.s.ravel()]
+    J = J.toarray() if scipy.sparse.issparse(J) else np.asarray(J)
+    return J * scale[:, None]
+
+
+def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None, velocity=None):
     """Covariance of the estimate the solve made (weights as stated) under the errors as they are: H⁻¹ B H⁻¹
     with H⁻¹ = ``cov`` (dense, the kept rows' (JᵀJ)⁻¹) and B = Jᵀ C J, C the whitened rows' covariance:
     arrival-sharing TDOA rows through :func:`arrival_rows`, the other rows independent with their array's
     σ² factor (``factors`` {kind: (N,)}, :func:`calib.estimator.variance.covariance_factors`); ``shared``
     False: the TDOA rows independent too (features whose meta.json does not say ``tdoa_shared_arrivals``);
-    ``normals`` (N, 3): planar arrays' DOA rows as they err (:func:`planar_doa_rows`).
+    ``normals`` (N, 3): planar arrays' DOA rows as they err (:func:`planar_doa_rows`); ``velocity``: the
+    (M, 3K) rows of a moving source's velocity error (:func:`velocity_rows`), independent of the rest.
     Returns the (n, n) covariance."""
     keep = lin.w > 0
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
@@ -330,11 +366,14 @@ def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None):
     B = B + Jo.T @ Jo
     if planar is not None:
         B = B + planar["G"].T @ planar["G"]
+    if velocity is not None:
+        Gv = J.T @ velocity   # (n, 3K): each event's velocity error through every row it moves
+        B = B + Gv @ Gv.T
     out = cov @ B @ cov
     return 0.5 * (out + out.T)
 
 
-def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arrays_only=False):
+def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arrays_only=False, motion=None):
     """The covariance the ``*_std`` columns and calibration.json report, at the final linearisation ``lin``
     (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
     residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
@@ -342,14 +381,15 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
     a large (sparse) problem gets the factors alone (:func:`inflated_rows`) in its array block (its
     sources' blocks stay the plain ones: the event blocks would cost a solve per source again). ``cov``: the
     plain (JᵀJ)⁻¹ of the kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
-    dense problems); ``arrays_only`` as :func:`covariance`."""
+    dense problems); ``arrays_only`` as :func:`covariance`; ``motion``: a moving source's velocity error
+    (:class:`calib.estimator.motion.MotionNoise`, dense problems: :func:`velocity_rows`)."""
     from .variance import covariance_factors   # (variance's stages use this module's neighbours, not it)
 
     if cov is None:
         cov = covariance(lin.J[lin.w > 0], lay.n, lay, arrays_only)
     factors = covariance_factors(p, lin, cov)
     if isinstance(cov, np.ndarray):
-        return sandwich_covariance(p, lin, cov, factors, shared, normals)
+        return sandwich_covariance(p, lin, cov, factors, shared, normals, velocity_rows(lin, lay, motion))
     if not any(np.any(v > 1) for k, v in factors.items() if k in KINDS):
         return cov
     # large problems: the array block with the factors (one more Schur complement); the sources keep theirs

@@ -3,14 +3,16 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from calib.frontend import extract_features, plot_detections
+from calib.frontend import DEFAULTS, extract_features, plot_detections
+from calib.errors import InputError
 from calib.jsonutil import dumps_json
 from calib.records import Features
 
 from calib.pipeline.formats.io import write_features_files
 from calib.pipeline.formats.outputs import publish
 from calib.pipeline.formats.session import read_session
-from calib.pipeline.headerrate import rate_corrections, refine_rates, with_rates
+from calib.pipeline.headerrate import (REFINE_ROUNDS, detections_only, fast_clocks, rate_corrections, refine_rates,
+                                      with_rates)
 from calib.pipeline.retime import retime_moving
 
 
@@ -25,18 +27,43 @@ def session_features(recordings, progress=None, jobs=1, **options):
     Returns (features, diagnostics) as :func:`calib.frontend.extract_features`.
     """
     session = recordings if isinstance(recordings, Mapping) else read_session(recordings)
-    first = extract_features(session, progress=progress, jobs=jobs, **options)
-    fixes = rate_corrections(session, first[1])
+    opt = {**DEFAULTS, **options}
+
+    def extract(fixes):
+        return extract_features(with_rates(session, fixes), progress=progress, jobs=jobs, **options)
+
+    try:
+        first = extract({})
+    except InputError as exc:   # an array with too few chirps to associate: a wrong header's rate, or it stands
+        first, fixes = None, _header_fixes_or_raise(session, opt, exc)
+    else:
+        fixes = rate_corrections(session, first[1], opt["threshold"])
+    fast = {} if first is None else fast_clocks(session, first[0], first[1], opt["max_drift"], skip=fixes)
     if fixes:   # a header's rate the chirps contradict: every array again, those at the measured rate
-        first = extract_features(with_rates(session, fixes), progress=progress, jobs=jobs, **options)
-        fixes, changed = refine_rates(with_rates(session, fixes), first[0], fixes)
-        if changed:
-            first = extract_features(with_rates(session, fixes), progress=progress, jobs=jobs, **options)
-        session = with_rates(session, fixes)
+        first = extract(fixes)
+    # the rates refined by a first solve's drift, and clocks no crystal gives taken at theirs
+    for _ in range(REFINE_ROUNDS if fixes or fast else 0):
+        fixes, changed = refine_rates(with_rates(session, fixes), first[0], {**fixes, **fast})
+        fast = {}
+        if not changed:
+            break
+        first = extract(fixes)
+    session = with_rates(session, fixes)
     feats, diag = retime_moving(session, *first, progress=progress)
     if fixes:
         diag = {**diag, "header_rates": fixes}
     return add_session_meta(feats, session, diag), diag
+
+
+def _header_fixes_or_raise(session, opt, exc):
+    """The header rates the chirps contradict in a session the frontend refused (``exc``), else ``exc``."""
+    try:
+        fixes = rate_corrections(session, detections_only(session, opt["threshold"]), opt["threshold"])
+    except InputError:
+        fixes = {}
+    if not fixes:
+        raise exc
+    return fixes
 
 
 def add_session_meta(feats, session, diag):
@@ -53,6 +80,10 @@ def add_session_meta(feats, session, diag):
     meta["reference_detections_s"] = {str(d["event"]): float(d["time"]) for d in dets if d.get("event") is not None}
     if diag.get("header_rates"):   # arrays whose samples were taken at the measured rate (pipeline/headerrate.py)
         meta["header_rates"] = diag["header_rates"]
+    # the rates local times count samples at where not the WAV header's (declared in session.toml, or measured)
+    rates = {a["name"]: int(a["sample_rate"]) for a in session["arrays"] if a.get("sample_rate") is not None}
+    if rates:
+        meta["sample_rates"] = rates
     return Features.from_dict({**feats, "meta": meta})
 
 

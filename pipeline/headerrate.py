@@ -33,6 +33,17 @@ MIN_MATCHED = 3   # detections for the straight-line fit
 # A first solve's drift beyond this re-extracts at the refined rate: half the frontend's Doppler-bank step
 # (1.4e-4 for a 0.5 s, 0.5-4 kHz sweep, pipeline/retime.py), where a template's stretch starts to bias timing.
 RATE_REFINE = 7e-5
+# A clock this far (relative) from the emitter's is no crystal's (they keep ±1e-4): its samples are taken at its
+# measured rate, its template mismatch (2 Doppler-bank steps) biasing the frontend's multipath checks otherwise
+FAST_CLOCK = 3e-4
+REFINE_ROUNDS = 2   # first solves that refine the rates (the second when the first moved a rate)
+CLAMPED = 0.98   # an association scale this close to its search bound (× max_drift) is a fast-clock candidate
+# An array whose detections match fewer of the events than this is searched at other rates ...
+MATCHED_MIN = 0.8
+# ... these multiples of its header's: every ratio of two common rates within ±13 % (44.1 kHz written as 48: 0.91875)
+# and a grid 1.5 % apart between them (the detector finds a 0.5 s sweep within ~1 % of its rate)
+SEARCH_SCALES = tuple(np.unique(np.round(np.r_[np.arange(0.87, 1.135, 0.015), 44100 / 48000, 48000 / 44100,
+                                               22050 / 24000, 24000 / 22050], 5)))
 
 
 def refine_scale(times, t_emit, scale, tol=MATCH_TOL):
@@ -56,9 +67,11 @@ def refine_scale(times, t_emit, scale, tol=MATCH_TOL):
     return scale, int(ok.sum())
 
 
-def rate_corrections(session, diagnostics):
+def rate_corrections(session, diagnostics, threshold=8.0):
     """{array: {"header": Hz, "used": Hz, "scale", "support", "matched"}} for the arrays whose stated rate the
-    chirps contradict (module doc); {} when none or when every array is off alike (events.csv's times)."""
+    chirps contradict (module doc); {} when none or when every array is off alike (events.csv's times). An
+    array whose chirps the header-rate detector mostly missed (a sweep 5-10 % off its template) is searched
+    at other rates (:func:`searched_scale`; ``threshold``: the detector's)."""
     from calib.frontend.consistency import clock_scale
     from calib.pipeline.setupcheck import CLOCK_FAIL, CLOCK_SUPPORT
 
@@ -67,10 +80,14 @@ def rate_corrections(session, diagnostics):
     found = {}
     for a in session["arrays"]:
         d = arrays.get(a["name"]) or {}
-        times = np.array([x["time"] for x in d.get("detections", [])], float)
         if a.get("sample_rate") is not None or not d.get("fs"):
             continue   # a declared rate is the user's word
+        times = np.array([x["time"] for x in d.get("detections", [])], float)
         s, support = clock_scale(times, t_emit)
+        matched = sum(x.get("event") is not None for x in d.get("detections", []))
+        decided = support >= CLOCK_SUPPORT and abs(s - 1) > CLOCK_FAIL
+        if matched < MATCHED_MIN * len(t_emit) and not decided:
+            s, support, times = searched_scale(a, session, threshold)
         if not (support >= CLOCK_SUPPORT and abs(s - 1) > CLOCK_FAIL):
             continue
         s, matched = refine_scale(times, t_emit, s)
@@ -80,6 +97,50 @@ def rate_corrections(session, diagnostics):
     for f in found.values():
         f["used"] = nominal_rate(f["header"] * f["scale"])
     return found
+
+
+def fast_clocks(session, feats, diagnostics, max_drift, skip=()):
+    """Candidates for :func:`refine_rates` ({array: {"header", "used" = header, "scale": 1, "fast_clock": True}}):
+    the arrays (not ``skip``, no declared rate) whose association's scale sits at its search bound 1 ± ``max_drift``
+    (the frontend's option) — a clock faster or slower than a crystal runs, or range changes that tilt the
+    association's line — and whose arrivals against the odometry (``setupcheck.arrival_drift``, no solve) put
+    their drift beyond half ``FAST_CLOCK``; the first solve's drift decides."""
+    from calib.pipeline.setupcheck import arrival_drift
+
+    out = {}
+    for a in session["arrays"]:
+        d = ((diagnostics or {}).get("arrays", {}).get(a["name"]) or {})
+        scale = (d.get("association") or {}).get("scale")
+        if a["name"] in skip or a.get("sample_rate") is not None or scale is None or not d.get("fs"):
+            continue
+        if abs(scale - 1) < CLAMPED * max_drift:
+            continue
+        drift = arrival_drift(feats, a["name"])
+        if drift is None or abs(drift) > 0.5 * FAST_CLOCK:
+            out[a["name"]] = {"header": int(d["fs"]), "used": int(d["fs"]), "scale": 1.0, "fast_clock": True}
+    return out
+
+
+def searched_scale(array, session, threshold=8.0):
+    """(scale, support, detection times at the header's rate) of an array's clock against the emission times,
+    its chirps detected with the template at each rate of ``SEARCH_SCALES`` × the header's (a matched filter
+    finds a sweep only within a few per cent of its own rate); the rate whose detections agree with the most
+    emission intervals wins. (1.0, 0.0, []) when none has support."""
+    from calib.frontend.consistency import clock_scale, detect_chirps
+    from calib.frontend.signals import ArrayAudio, chirp_band, chirp_template
+
+    t_emit = session["events"]["t_emit"].to_numpy(float)
+    best = (0.0, 1.0, np.zeros(0))
+    with ArrayAudio(array) as x:
+        for k in SEARCH_SCALES:
+            fs = x.fs * k
+            template = chirp_template(session["chirp"], fs)
+            times, _ = detect_chirps(x, template, fs, chirp_band(session["chirp"], template, fs), t_emit, threshold)
+            s, support = clock_scale(times, t_emit)
+            if support > best[0]:   # (times at the rate tried → at the header's: × k)
+                best = (support, k * s, times * k)
+    support, scale, times = best
+    return scale, support, times
 
 
 def nominal_rate(rate):
@@ -110,12 +171,37 @@ def refine_rates(session, feats, corrections):
     drift = dict(zip((str(n) for n in sol["problem"].names), np.asarray(sol["state"].drift, float)))
     out, changed = {}, False
     for name, f in corrections.items():
-        d = drift.get(name, 0.0) if name not in sol["unreliable_arrays"] else 0.0
-        rate = nominal_rate(f["used"] * (1.0 + d))
-        changed |= abs(rate / f["used"] - 1) > RATE_REFINE
-        out[name] = {**f, "used": rate if abs(rate / f["used"] - 1) > RATE_REFINE else f["used"],
-                     "refined_by_drift": float(d)}
+        d = drift.get(name, 0.0)   # (an array the rest contradict is refitted alone: its drift is its own)
+        if f.get("fast_clock"):   # a header the chirps' spacing did not contradict: only a clock no crystal gives
+            if f["used"] == f["header"] and abs(d) <= FAST_CLOCK:
+                continue
+            rate = int(round(f["used"] * (1.0 + d)))
+        else:
+            rate = nominal_rate(f["used"] * (1.0 + d))
+        moved = abs(rate / f["used"] - 1) > RATE_REFINE
+        changed |= moved
+        out[name] = {**f, "used": rate if moved else f["used"], "refined_by_drift": float(d)}
+        if f.get("fast_clock"):
+            out[name]["scale"] = rate / f["header"]
     return out, changed
+
+
+def detections_only(session, threshold=8.0):
+    """The diagnostics :func:`rate_corrections` reads ({"arrays": {name: {"fs", "detections"}}}), from each
+    array's chirps detected at its header's rate (``frontend.consistency.detect_chirps``; none matched): for a
+    session the frontend refused (an array with too few chirps to associate)."""
+    from calib.frontend.consistency import detect_chirps
+    from calib.frontend.signals import ArrayAudio, chirp_band, chirp_template
+
+    t_emit = session["events"]["t_emit"].to_numpy(float)
+    out = {}
+    for a in session["arrays"]:
+        with ArrayAudio(a) as x:
+            template = chirp_template(session["chirp"], x.fs)
+            times, _ = detect_chirps(x, template, x.fs, chirp_band(session["chirp"], template, x.fs), t_emit,
+                                     threshold)
+            out[a["name"]] = {"fs": x.fs, "detections": [{"time": float(t)} for t in times]}
+    return {"arrays": out}
 
 
 def with_rates(session, corrections):

@@ -495,8 +495,24 @@ def _array_data(features, name):
         return None
     e_id, t, seg = e_id[keep], t[keep], np.unique(seg[keep], return_inverse=True)[1]
     te = ev.loc[e_id, "t_emit"].to_numpy(float)
-    odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float)
+    odo = ev.loc[e_id, ["odom_x", "odom_y", "odom_z"]].to_numpy(float) + _motion_shift(features, e_id)
     return odo, te - te[0], t - (te - te[0]), seg, e_id
+
+
+def _motion_shift(features, e_id):
+    """(K, 3) m: where the source of a sweep moving with velocity v (events.csv ``vel_*``) seems to be to the
+    arrivals: a matched filter shifts an arrival by β (v·u)/c (estimator/motion.py; β meta ``chirp_drift_bias``),
+    to first order the range of the source moved by β v. Zero without velocities: a robot stopped to chirp
+    (a −5 % speed of sound was read from a robot driving steadily away from most arrays before)."""
+    from calib.tables import event_velocities
+
+    events = features["events"]
+    v = event_velocities(events)
+    beta = float(features["meta"].get("chirp_drift_bias") or 0.0)
+    if v is None or not beta:
+        return np.zeros((len(e_id), 3))
+    row = {int(e): k for k, e in enumerate(events["event"].to_numpy())}
+    return beta * v[[row[int(e)] for e in e_id]]
 
 
 def split_steps(odo, e, y, seg, sig_t, max_steps=MAX_STEPS):
@@ -579,6 +595,14 @@ def arrival_chain(features, name, sig_t):
     if len(y) - (seg.max() + 1) - 5 < MIN_SOUND_DOF:  # x (3), δ, k and an offset per segment
         return None
     return ArrivalChain(odo, e, y, seg, e_id, _arrival_starts(odo, e, y, seg))
+
+
+def arrival_drift(features, name):
+    """Array ``name``'s clock drift against the emission times from its arrivals alone (TDOA-S chained against the
+    odometry's ranges from its best-fitting position, c free: :func:`arrival_chain`'s best start), or None when
+    too few arrivals. A quick look (no DOAs, no other array): ~1e-6 over a minute of chirps."""
+    chain = arrival_chain(features, name, _sigmas(features["meta"])[0])
+    return None if chain is None or not chain.starts else float(chain.starts[0][-2])
 
 
 def speed_of_sound_fit(features, proper=True, arrays=None, chains=None):
@@ -972,7 +996,12 @@ def header_rate_findings(session, fixed):
     out = []
     for a in session["arrays"]:
         f = fixed.get(a["name"])
-        if f:
+        if f and f.get("fast_clock"):
+            out.append(Finding("note", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): its clock runs "
+                               f"{1e6 * (f['scale'] - 1):+.0f} ppm against the emission times (more than a crystal "
+                               f"drifts): its samples taken at {f['used']} Hz (its offset and drift are relative to "
+                               f"that rate)", a["name"]))
+        elif f:
             out.append(Finding("suspect", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): the header's "
                                f"sample rate {f['header']} Hz is wrong: the chirps' spacing says "
                                f"{f['header'] * f['scale']:.0f} Hz ({100 * (f['scale'] - 1):+.2f} %, far beyond a "

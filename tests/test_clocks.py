@@ -479,9 +479,10 @@ def test_a_wrong_header_rate_is_measured_from_the_chirps_spacing(seed):
     session = {"events": pd.DataFrame({"event": np.arange(40), "t_emit": t_emit}),
                "arrays": [{"name": n, "sample_rate": None} for n in ("A1", "A2", "A3")]}
 
-    def dets(scale, fs=16000, drop=()):
+    def dets(scale, fs=16000, drop=()):   # (the association matches a clock within 1e-3 of the emitter's)
         t = scale * (t_emit + ranges / 343.0) + rng.uniform(0, 5) + rng.normal(0, 1e-4, 40)
-        return {"fs": fs, "detections": [{"time": float(x)} for k, x in enumerate(t) if k not in drop]}
+        return {"fs": fs, "detections": [{"time": float(x), "event": k if abs(scale - 1) < 1e-3 else None}
+                                         for k, x in enumerate(t) if k not in drop]}
 
     true = 44100 / 48000
     diag = {"arrays": {"A1": dets(1.00002), "A2": dets(true, drop=(3, 17)), "A3": dets(0.99995)}}
@@ -495,3 +496,42 @@ def test_a_wrong_header_rate_is_measured_from_the_chirps_spacing(seed):
     assert rate_corrections(declared, diag) == {}
     every = {"arrays": {n: dets(1.02) for n in ("A1", "A2", "A3")}}
     assert rate_corrections(session, every) == {}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fault,note", [("rate1000ppm", "note"), ("{rate={error=0.1}}", "suspect")])
+def test_a_clock_no_crystal_gives_is_measured_and_calibrated(tmp_path, fault, note):
+    """A board 10 % fast (header 10 % slow: its sweep 10 % off the template, most chirps missed at its header's
+    rate) or 1000 ppm fast (the association's bound; the template 7 Doppler-bank steps off): `calib run` measures
+    the rate (a search over rates; a first solve's drift), takes A2's samples at it, names it (10 %: a wrong
+    header, suspect; 1000 ppm: a note) and calibrates the session as the fault-free one."""
+    import json
+    import subprocess
+    import sys
+
+    from calib.pipeline.formats.io import read_calibration, read_truth
+
+    def calib(*args):
+        return subprocess.run([sys.executable, "-m", "calib", *args], capture_output=True, text=True, timeout=900)
+
+    err = {}
+    for name, extra in (("clean", []), ("fault", ["--clock", f"A2={fault}"])):
+        sim = calib("simulate", "-o", str(tmp_path / name), "--preset", "paper-traj3", "--seed", "5", "--n-events",
+                    "12", "-q", *extra)
+        assert sim.returncode == 0, sim.stderr
+        run = calib("run", str(tmp_path / name), "-o", str(tmp_path / f"out_{name}"), "-q")
+        assert run.returncode == 0, run.stderr
+        err[name] = evaluate(read_calibration(tmp_path / f"out_{name}" / "calibration"),
+                             read_truth(tmp_path / name / "truth"))["position_rmse_m"]
+    meta = json.loads((tmp_path / "out_fault" / "features" / "meta.json").read_text())
+    scale = 1.001 if fault == "rate1000ppm" else 1.1
+    a2 = meta["header_rates"]["A2"]
+    assert list(meta["header_rates"]) == ["A2"] and abs(a2["used"] / a2["header"] / scale - 1) < 2e-4
+    # calibration.json says at which rate A2's local times count its samples (the others: their headers')
+    from calib.pipeline.formats.results import load_calibration
+
+    cal = load_calibration(tmp_path / "out_fault" / "calibration" / "calibration.json")
+    assert {a.name: a.sample_rate for a in cal.arrays if a.sample_rate is not None} == {"A2": a2["used"]}
+    rep = json.loads((tmp_path / "out_fault" / "calibration" / "report.json").read_text())
+    assert [(f["status"], f["array"]) for f in rep["setup"] if f["check"] == "sample rate"] == [(note, "A2")]
+    assert err["fault"] <= 1.5 * err["clean"] + 0.002

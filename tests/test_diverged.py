@@ -49,6 +49,27 @@ def test_blank_diverged_by_hand():
         assert far["sources"][["x", "y", "z"]].isna().all().all()
 
 
+def test_a_clock_run_off_is_unknown_and_named(tmp_path):
+    # a clock beyond any recording's span (a refit alone of data no clock explains): its offset and drift are
+    # unknown (empty cells the readers take back), the verdict failed and naming it; the readers' bound is this one
+    from calib.estimator.outputs import CLOCK_SPAN, DRIFT_SPAN
+    from calib.pipeline.formats.results import MAX_ABS_CAL_DRIFT
+    from calib.pipeline.formats.validate import MAX_ABS_TIME
+
+    assert CLOCK_SPAN == MAX_ABS_TIME and DRIFT_SPAN == MAX_ABS_CAL_DRIFT
+    for offset, drift in ((-1.26e7, 0.3), (2.0, -0.7)):
+        out = _out([[0, 0, 0], [5, 5, 1], [2, 3, 1]], [[1.0, 0, 0], [2.0, 1, 0], [3.0, -1, 1]])
+        out["arrays"] = out["arrays"].assign(qw=1.0, qx=0.0, qy=0.0, qz=0.0, offset=[0.0, 0.01, offset],
+                                             drift=[0.0, 1e-5, drift], offset_std=1e-6, drift_std=1e-7)
+        v = blank_diverged(out)["report"]["verdict"]
+        assert v["status"] == "failed" and v["flagged_arrays"] == ["A3"] and "A3" in v["reasons"][-1]
+        a = out["arrays"]
+        assert a.loc[2, ["offset", "drift", "offset_std", "drift_std"]].isna().all() and a.loc[:1, "offset"].notna().all()
+        write_calibration(tmp_path / "c", out)
+        back = read_calibration(tmp_path / "c")["arrays"]
+        assert np.isnan(back.loc[2, "offset"]) and back.loc[1, "offset"] == pytest.approx(0.01)
+
+
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("div")

@@ -106,10 +106,12 @@ def _std(row, param):
     return vals[0] if vals and len(vals) == 1 else vals
 
 
-def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None):
+def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None, sample_rate=None):
     """One array's entry: pose, mics (own and reference frame), clock, 1-σ, and what the data left
     undetermined (report.json ``undetermined`` of this array: parameter names, the axis of a linear array);
-    ``clock_model``: its report.json ``clock.arrays`` entry (steps, drift terms, a wrong nominal rate)."""
+    ``clock_model``: its report.json ``clock.arrays`` entry (steps, drift terms, a wrong nominal rate);
+    ``sample_rate``: the rate (Hz) its local time counts WAV samples at, None: its header's (meta.json
+    ``sample_rates``)."""
     from scipy.spatial.transform import Rotation  # (~0.1 s to load: not at every command's start)
 
     pos = row[["x", "y", "z"]].to_numpy(float)
@@ -125,7 +127,7 @@ def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None):
         "mics": None if mics is None else mics.tolist(),
         "mics_reference": None if mics is None else (mics @ R.T + pos).tolist(),
         "clock": {"offset": offset, "drift": drift,
-                  "offset_emitter": None if tau_ref is None else offset + tau_ref,
+                  "offset_emitter": None if tau_ref is None else offset + tau_ref, "sample_rate": sample_rate,
                   **{k: (clock_model or {}).get(k) for k in CLOCK_MODEL_KEYS if clock_model}},
         "std": {("rotation" if a.rotation else a.label): _std(row, a) for a in ARRAY_PARAMS},
         "undetermined": [u["parameter"] for u in undetermined],
@@ -179,7 +181,8 @@ def calibration_document(calib, features):
         },
         "arrays": [_array_entry(r, mics.get(r["array"]), tau,
                                 [u for u in report.get("undetermined") or [] if u.get("array") == r["array"]],
-                                ((report.get("clock") or {}).get("arrays") or {}).get(r["array"]))
+                                ((report.get("clock") or {}).get("arrays") or {}).get(r["array"]),
+                                (meta.get("sample_rates") or {}).get(r["array"]))
                    for r in rows],
         "covariance": None if labels is None else {"parameters": labels, "matrix": np.asarray(cov)},
         # the odometry-frame rotation when the estimator estimated it (report.json always says whether)

@@ -52,6 +52,8 @@ class ArrayCalibration:
     axis: np.ndarray | None = None
     # steps and drift terms beyond the linear clock (calib.clock.Clock with offset 0, drift 0, t0 0)
     clock_extra: object = None
+    # Hz: the rate its local time counts WAV samples at (local time = sample / sample_rate); None: its header's
+    sample_rate: int | None = None
 
     @property
     def rotation(self) -> Rotation:
@@ -151,6 +153,9 @@ class Calibration:
         from calib.clock import Clock
 
         a = self.array(name)
+        if not (np.isfinite(a.offset) and np.isfinite(a.drift)):
+            raise InputError(f"calibration.json: array {name}'s clock is unknown (the calibration failed: report.json's "
+                             "verdict names it)")
         ex = a.clock_extra or Clock()
         return Clock(self._tau(name), a.drift, self.clock.t0, ex.steps, ex.terms)
 
@@ -237,6 +242,10 @@ def _position(value, where):
     return np.full(3, np.nan) if value is None else np.array(V.vector3(value, where))
 
 
+def _or_nan(v):
+    return float("nan") if v is None else v
+
+
 def _array(entry, where):
     entry = _obj(entry, where)
     name = V.string(entry.get("name"), f"{where}.name")
@@ -249,12 +258,17 @@ def _array(entry, where):
         name=name, position=_position(entry.get("position"), f"{where}.position"),
         quaternion=_quaternion(entry.get("quaternion"), f"{where}.quaternion"),
         mics=None if mics is None else _points(mics, f"{where}.mics", MAX_ABS_MIC),
-        offset=V.number(clock.get("offset"), f"{where}.clock.offset", lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME),
-        drift=V.number(clock.get("drift"), f"{where}.clock.drift", lo=-MAX_ABS_CAL_DRIFT, hi=MAX_ABS_CAL_DRIFT),
+        # null: a clock that ran off (estimator.outputs.blank_diverged), unknown as a null position
+        offset=_or_nan(V.number(clock.get("offset"), f"{where}.clock.offset", lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME,
+                                allow_none=True)),
+        drift=_or_nan(V.number(clock.get("drift"), f"{where}.clock.drift", lo=-MAX_ABS_CAL_DRIFT, hi=MAX_ABS_CAL_DRIFT,
+                               allow_none=True)),
         std=_std_entry(entry.get("std"), f"{where}.std"),
         undetermined=tuple(V.string(u, f"{where}.undetermined") for u in und),
         axis=None if axis is None else np.array(V.vector3(axis, f"{where}.axis", nonzero=True)),
-        clock_extra=_clock_extra(clock, f"{where}.clock"))
+        clock_extra=_clock_extra(clock, f"{where}.clock"),
+        sample_rate=V.number(clock.get("sample_rate"), f"{where}.clock.sample_rate", lo=V.SAMPLE_RATE[0],
+                             hi=V.SAMPLE_RATE[1], integer=True, allow_none=True))
 
 
 def _clock_extra(ck, where):
