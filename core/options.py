@@ -82,8 +82,8 @@ OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
     Option("array_noise", False, bool, "when noise figures are re-estimated: also one figure per measurement type and "
            "array where the data allow it (an array noisier than the rest is down-weighted instead of distorting "
            "the others)", flag="--array-noise"),
-    Option("clock_model", "linear", str, "each array's clock: linear (one offset and drift), or auto (clock steps from "
-           "dropped or inserted sample blocks and a varying drift, modelled where the evidence asks for them)",
+    Option("clock_model", "auto", str, "each array's clock: auto (one offset and drift, plus clock steps from dropped "
+           "or inserted sample blocks and a varying drift where the evidence asks for them), or linear (never more)",
            choices=("linear", "auto"), flag="--clock-model"),
     Option("robust_k", 3.0, float, "robust scale, in units of each type's sigma", lo=0.0, lo_open=True),
     Option("max_iter", 200, int, "iterations of each Levenberg-Marquardt solve", lo=1),

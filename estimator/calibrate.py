@@ -38,8 +38,8 @@ def calibrate(features: Mapping[str, Any], **options: Any) -> CalibrationResult:
     ``calib.records.Features`` or its dict form) → a :class:`~calib.estimator.outputs.CalibrationResult`.
 
     See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
-    array's clock model (``clock_model="auto"``: linear unless the evidence asks for more, or "linear", the
-    default for now: ``estimator.clockmodel``).
+    array's clock model (``clock_model="auto"``, the default: linear unless the evidence asks for more; or
+    "linear": ``estimator.clockmodel``).
     """
     try:
         with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations

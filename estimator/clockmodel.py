@@ -24,6 +24,12 @@ have; the rows of arrays the solve dropped or the verdict names are no evidence 
 (:func:`refine`): their sizes, their 1-σ and the array parameters' 1-σ with them (the step's uncertainty in
 the error bars).
 
+At scale (:mod:`calib.estimator.clockscan`): no dense rows × parameters matrix; a large session's clocks are
+screened on their own rows first (:func:`_screen`: cumulative sums, O(rows)) and only flagged clocks are scored
+jointly; a long session's per-array fits are of the locally best candidates (:func:`_prescreen`). Rows the
+frontend doubted as reflections over a block that opens or closes an array's session, off by one constant
+amount, are readmitted with a step at its edge (:func:`_readmitted`).
+
 A fitted |drift| >= RATE_ERROR_MIN is no crystal's: the header's sample rate is wrong; it is named (with
 the pair of common rates it matches, :func:`calib.clock.header_ratio`) and the calibration stays in the
 drift (1 + δ = rate ratio × (1 + crystal drift)).
@@ -59,6 +65,9 @@ RATE_ERROR_MIN = 5e-3   # |drift| beyond any crystal's (±100 ppm typical): a wr
 RATE_MATCH_TOL = 5e-4   # a rate ratio this close to a ratio of two common rates names them
 EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term in every array's clock
 TIE_MARGIN = 10.0       # χ²: proposals this close to the best are decided by solving with each
+# ... and those within this share of a large best margin: a fault bends the fit, and a large one makes other
+# clocks' proposals nearly as strong (a 2.9 ms reference step: the emitter's step 500, the reference's 437)
+TIE_SHARE = 0.25
 MAX_RIVALS = 3
 REFIT_SIGMA = 0.1       # the joint step moved a component by more than this × its σ: solve once more
 AMBIGUOUS_CHI2 = float(chdtri(1, 0.05))   # rival proposals this close (χ²) are named as the data's ambiguity
@@ -355,6 +364,9 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     if not D.ref and reference:   # the reference's step, seen from here
         cands += [Component("mshift", c.time, 0.0) for c in cands if c.kind == "step"]
     cands = [c for c in cands if _key(c) not in skip]   # (rejected by their structure: :func:`structure_test`)
+    tested = len(cands)
+    if tested > FIT_ALL_MAX:   # a long session: robust fits of the locally best few of each kind only
+        cands = _prescreen(D, base, (xb, gb, tb, cb, rb), cands)
     fits = []
     duration = float(np.ptp(D.u))
     for cand in cands:
@@ -372,7 +384,8 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
             continue
         cost, cand, coef, r = min(fam, key=lambda f: f[0])
         drop = 2.0 * (np.sum(cauchy_rho(rb / scale)) - np.sum(cauchy_rho(r / scale)))
-        margin = drop - penalty(kind, D.n, n_arrays, len(fits))   # (Bonferroni over every candidate tested)
+        margin = drop - penalty(kind, D.n, n_arrays, len(fits) if tested <= FIT_ALL_MAX else tested)   # (Bonferroni
+        # over every candidate tested, the prescreened ones too)
         if best is None or margin > best[1]:
             new = [c.with_value(v) for c, v in zip(base + [cand], coef)]
             # candidates the rows cannot tell apart go to the rivals' solves (as in :func:`joint_scan`)
@@ -380,6 +393,53 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
                     if f[1] is not cand and abs(f[0] - cost) <= 1e-6 * max(abs(cost), 1.0)]
             best = (new, float(margin), {"chi2_drop": float(drop), "scale": scale, "kind": kind, "tied": tied})
     return best
+
+
+FIT_ALL_MAX = 160   # candidates: beyond, an array's robust fits are of the SCREEN_TOP best of each kind, ranked
+                    # by their linearised score at the base fit (:func:`_prescreen`)
+
+
+def _prescreen(D, base, fit, cands):
+    """The SCREEN_TOP candidates of each kind with the largest χ² drop in the linearisation of the array's base
+    fit ``fit`` (x, g, τ, coefficients, residuals; rows Cauchy-weighted at it, its parameters projected out):
+    O(rows + candidates) by cumulative sums (:func:`calib.estimator.clockscan.local_scores`), so that a long
+    session's per-array scan fits a few dozen candidates, not three per event."""
+    from .clockscan import ClockRows, local_scores, subset
+
+    x, g, tau, coef, r = fit
+    PS, PM = _design(D, base)
+    _, J = _residuals(D, x, g, tau, coef, PS, PM)
+    if D.ref:
+        J = np.delete(J, [0, 1, 2, 4], axis=1)
+    sw = _sqrt_weights(r, "cauchy")
+    nS, nM = len(D.zs), len(D.ym)
+    w = sw / np.concatenate([np.full(nS, D.sig_s), np.full(nM, D.sig_m)])
+    rows = np.arange(nS + nM)
+    ends_row = np.concatenate([np.arange(nS), np.arange(nS), nS + np.arange(nM)])
+    U = np.concatenate([D.u[D.b], D.u[D.a], D.u[D.j]])
+    sgn = np.concatenate([np.ones(nS), -np.ones(nS), np.ones(nM)])
+    far = np.concatenate([D.u[D.b], D.u[D.b], D.u[D.j]])
+    span = np.concatenate([np.zeros(nS), D.u[D.b] - D.u[D.a], np.zeros(nM)])
+    cr = ClockRows(rows, np.zeros(len(rows), int), w, U, sgn, ends_row, far, span)
+    C = J * sw[:, None]
+    score = {}
+    for fam_rows, kinds in ((cr, ("step", "quadratic", "hinge")), (None, ("mshift",))):
+        fam = [c for c in cands if c.kind in kinds]
+        if not fam:
+            continue
+        sub = fam_rows if fam_rows is not None else subset(cr, rows >= nS)
+        keep = slice(None) if fam_rows is not None else slice(nS, None)
+        steps = [c.time for c in fam if c.kind in ("step", "mshift")]
+        hinges = [c.time for c in fam if c.kind == "hinge"]
+        L, _, _ = local_scores(sub, C[keep], (r * sw)[keep], steps, hinges)
+        order = [c for c in fam if c.kind in ("step", "mshift")] + [Component("quadratic", 0.0, 0.0)] + \
+            [c for c in fam if c.kind == "hinge"]
+        score.update({_key(c): v for c, v in zip(order, L)})
+    out = []
+    for kind in ("step", "mshift", "quadratic", "hinge"):
+        fam = [c for c in cands if c.kind == kind]
+        out += sorted(fam, key=lambda c: -score.get(_key(c), 0.0))[:SCREEN_TOP]
+    return out
 
 
 # ----------------------------------------------------------------------------------------------- joint scan
@@ -416,31 +476,43 @@ def _robust_weights(result, lin, p=None, own=None):
     return np.where(dropped, 0.0, sw), scale
 
 
-def joint_scan(result, models, banned=frozenset()):
+def joint_scan(result, models, banned=frozenset(), stats=None):
     """Every array's candidates tested in the linearised joint problem at ``result`` (the sources and the
     other arrays free: what a fit absorbs by moving them is not evidence). Rows Huber-weighted (an outlier
     row cannot make a step), the χ² drop of each candidate column after projecting out the Jacobian's
-    (and the existing components') columns, in the robust scale of the residuals.
+    (and the existing components') columns (:class:`~calib.estimator.clockscan.Projector`), in the robust
+    scale of the residuals.
+
+    Cost: a small problem (:func:`_exact_affordable`) scores every candidate of every clock so. A larger one
+    screens first (:func:`_screen`): each clock's candidates scored against its own rows with only its own
+    array's parameters projected out, all at once by cumulative sums; only a clock whose best local score
+    reaches SCREEN_FRACTION of its penalty has its SCREEN_TOP best candidates of each kind scored in the
+    joint problem (a clean array of a large session costs O(its rows)). ``stats`` (a dict): counts of the
+    clocks screened and scored (``screened``, ``scored``, ``factored``: projector factorisations).
 
     Returns {array index: (new components as increments, margin, info)} like :func:`best_component`, or
-    {} for problems too large for a dense Jacobian."""
+    {} for problems too large (SCAN_MAX parameters)."""
+    from .clockscan import Projector, clock_rows
     from .problem import make_layout
     from .solver import linearise
 
     p, st = result["problem"], result["state"]
+    stats = {} if stats is None else stats
     lay = make_layout(p)
-    if lay.n > DENSE_MAX:
+    if lay.n > SCAN_MAX:
         return {}
-    lin = linearise(p, st, lay, _kinds(p))
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    lin = linearise(p, st, lay, _kinds(p), dense=False)
+    J = scipy.sparse.csr_matrix(lin.J)
     r = lin.r
     sw0, scale = _robust_weights(result, lin)
     kept = _kept_rows(result, lin.factors)
     dropped = _distrusted(result)
     zero = {name: [c.with_value(0.0) for c in comps] for name, comps in models.items()}
     E, _ = component_columns(p, lin.factors, zero)
-    JE = np.hstack([J, E])
-    out, bases = {}, {}
+    JE = scipy.sparse.hstack([J, scipy.sparse.csr_matrix(E)]).tocsr()
+    local = np.setdiff1d(np.arange(JE.shape[1]), np.concatenate([lay.s.ravel(), lay.e.ravel(), lay.odo_yaw.ravel()]))
+    exact = _exact_affordable(lay.n, len(p.t), p.N + 1)
+    out, bases, cache = {}, {}, {}
     for i in range(-1, p.N):   # -1: the emitter
         name = EMITTER if i < 0 else str(p.names[i])
         have = zero.get(name, [])
@@ -451,18 +523,99 @@ def joint_scan(result, models, banned=frozenset()):
         # chirp lost in a dropped block made 0.14 ms "steps" of three others); its own clock's candidates
         # keep it (a 1 ms emission step screens every array's TDOA-S row of its interval)
         sw = sw0 * np.maximum(kept, _own_rows(p, lin.factors, i))
+        cands = _candidates_cached(p.t, have, {k[1:] for k in banned if k[0] == name}, cache)
+        cr = clock_rows(p, lin.factors, i, sw)
+        if not cands or not len(cr.rows):
+            continue
+        stats["screened"] = stats.get("screened", 0) + 1
+        tested = len(cands)   # (the scan's multiplicity: every candidate the screen looked at)
+        if not exact:
+            cands = _screen(p, cr, JE, local, r, sw, cands, i, scale, cache)
+            if not cands:
+                continue
+        stats["scored"] = stats.get("scored", 0) + 1
+        stats.setdefault("flagged", []).append(name)
         key = sw.tobytes()
         if key not in bases:
-            Q, _ = np.linalg.qr(JE * sw[:, None])
-            rw = r * sw
-            bases = {key: (Q, rw - Q @ (Q.T @ rw))}
-        Q, rp = bases[key]
-        cands = [c for c in candidates(p.t, have) if (name, *_key(c)) not in banned]
-        B = _columns(p, lin.factors, i, cands) * sw[:, None]
-        Bp = B - Q @ (Q.T @ B)
-        best = _scan_best(p, lin.factors, i, cands, have, (Q, rp, B, Bp), sw, scale)
+            stats["factored"] = stats.get("factored", 0) + 1
+            pr = Projector(scipy.sparse.diags(sw) @ JE, lay)
+            bases = {key: (pr, pr.resid(r * sw))}   # (one kept: the next clock's weights mostly differ)
+        pr, rp = bases[key]
+        best = _scan_best(p, lin.factors, i, cands, have, (pr, rp, cr), sw, scale, tested)
         if best is not None:
             out[i] = best
+    return out
+
+
+def _weighted(J, E, sw):
+    """[J, E] (sparse; E dense: the components' few columns) with rows scaled by sw, as CSR."""
+    JE = scipy.sparse.hstack([scipy.sparse.csr_matrix(J), scipy.sparse.csr_matrix(E)]).tocsr()
+    return scipy.sparse.diags(sw) @ JE
+
+
+SCAN_MAX = 4000         # parameters: the joint scans and tests up to this
+EXACT_FLOPS = 2e9     # a joint scan of every candidate of every clock within this many flops: no screen
+SCREEN_FRACTION = 0.5   # a clock's best local score (own parameters out) below this share of its penalty: clean
+SCREEN_TOP = 8          # candidates of each kind scored in the joint problem for a clock the screen flags
+
+
+def _exact_affordable(n, k, clocks):
+    """Whether scoring every candidate (~3 per event) of every clock in the joint problem (n parameters) costs
+    at most EXACT_FLOPS (a triangular solve of n² per candidate)."""
+    return float(n) * n * 3 * k * clocks <= EXACT_FLOPS
+
+
+def _candidates_cached(u, have, ban, cache):
+    """:func:`candidates` less the banned (kind, time) keys ``ban``: the same list object for the clocks with the
+    same components (most have none), with (kinds, times) arrays for :func:`_screen` in ``cache``."""
+    key = (tuple(_key(c) for c in have), frozenset(ban))
+    if key not in cache:
+        cands = [c for c in candidates(u, have) if not ban or _key(c) not in ban]
+        cache[key] = cands
+        cache[id(cands)] = (np.array([c.kind for c in cands]), np.array([c.time for c in cands], float))
+    return cache[key]
+
+
+def _plausible(kinds, values, duration):
+    """:meth:`Component.plausible` of many candidates at once."""
+    v = np.abs(values)
+    return np.where(kinds == "quadratic", v * duration <= MAX_DRIFT_CHANGE,
+                    np.where(kinds == "hinge", v <= MAX_DRIFT_CHANGE, np.isfinite(values) & (v <= MAX_STEP)))
+
+
+def _screen(p, cr, JE, local, r, sw, cands, i, scale, cache=None):
+    """The candidates of clock i worth scoring in the joint problem (:func:`joint_scan`), by a local score:
+    each candidate against the clock's own rows ``cr`` with its own array parameters (the columns ``local`` of
+    JE: poses, clocks, components) projected out, in the clock's robust scale once its best local candidate is
+    fitted. The SCREEN_TOP best of each kind whose best reaches SCREEN_FRACTION of its penalty; none when no
+    kind does. Holding the sources makes this score smaller than the joint one by the share of a column the
+    sources absorb (measured 0.5-0.9 with 5-20 arrays); a clock term's evidence is in its own rows (a step:
+    one TDOA-S and every later TDOA-M alike; a drift change: the TDOA-M's curvature in time)."""
+    from .clockscan import family_columns, local_scores, project_off
+
+    kinds, times = (cache or {}).get(id(cands)) or (np.array([c.kind for c in cands]),
+                                                     np.array([c.time for c in cands], float))
+    C = scipy.sparse.diags(sw[cr.rows]) @ JE[cr.rows][:, local]
+    rw = r[cr.rows] * sw[cr.rows]
+    st, hi = np.flatnonzero(kinds == "step"), np.flatnonzero(kinds == "hinge")
+    L, value, _ = local_scores(cr, C, rw, times[st], times[hi])
+    # local_scores' order: the steps, the quadratic, the hinges
+    where = np.concatenate([st, np.flatnonzero(kinds == "quadratic")[:1], hi])
+    keep = np.concatenate([np.ones(len(st), bool), [bool((kinds == "quadratic").any())], np.ones(len(hi), bool)])
+    L, value = L[keep], value[keep]
+    L = np.where(_plausible(kinds[where], value, float(np.ptp(p.t))), L, 0.0)
+    if not L.any():
+        return []
+    k0 = int(np.argmax(L))
+    X = project_off(cr, C, np.column_stack([family_columns(cr, [cands[where[k0]]]), rw]))
+    left = (X[:, 1] + value[k0] * X[:, 0]) / sw[cr.rows]
+    scale_i = max(scale, spread(left))
+    n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
+    out = []
+    for kind in ("step", "quadratic", "hinge"):
+        fam = np.flatnonzero(kinds[where] == kind)
+        if fam.size and L[fam].max() / scale_i ** 2 >= SCREEN_FRACTION * penalty(kind, n, p.N + 1, len(cands)):
+            out += [cands[where[k]] for k in fam[np.argsort(-L[fam])[:SCREEN_TOP]] if L[k] > 0]
     return out
 
 
@@ -489,17 +642,19 @@ def _array_rows(p, fs, rows):
     return [np.flatnonzero(rows & (arr == a)) for a in np.unique(arr[rows]) if a >= 0]
 
 
-def persistent_drop(Q, r, b, groups, emitter=False):
-    """The smallest χ² drop (unscaled) of a column b (orthogonal to the orthonormal Q) against residuals r
-    (already projected off Q) with the rows of up to PERSIST_EVENTS groups left out: ``groups`` are row
-    indices per event in time order (any run of consecutive events: a clock term's evidence is in every row
+def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
+    """The smallest χ² drop (unscaled) of a column b (projected off the model's columns) against residuals r
+    (projected too) with the rows of up to PERSIST_EVENTS groups left out: ``groups`` are row indices (into r
+    and b) per event in time order (any run of consecutive events: a clock term's evidence is in every row
     after it, not in one or two bad arrivals), or (``emitter``) per array (any of them: the emitter's step is
-    one interval's TDOA-S at every array alike, not at one or two; at least two are left). Each by the deletion formula: RSS without
-    rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the model without b (hat QQ') and with it (hat QQ' + bb'/b'b)."""
-    bb = float(b @ b)
+    one interval's TDOA-S at every array alike, not at one or two; at least two are left). Each by the deletion
+    formula: RSS without rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the model without b (hat H_RR = ``hat(R)``)
+    and with it (H_RR + b_R b_R'/b'b). r and b may hold only some of the rows (the clock's own): ``bb`` = |b|²
+    and ``br`` = b'r over every row then."""
+    bb = float(b @ b) if bb is None else float(bb)
     if bb <= 0:
         return 0.0
-    alpha = float(b @ r) / bb
+    alpha = (float(b @ r) if br is None else float(br)) / bb
     full, e = alpha * alpha * bb, r - alpha * b
     out = full
     # (the emitter's: at least two arrays left to see it alike)
@@ -507,8 +662,8 @@ def persistent_drop(Q, r, b, groups, emitter=False):
         runs = itertools.combinations(groups, w) if emitter else (groups[m:m + w] for m in range(len(groups) - w + 1))
         for run in runs:
             R = np.unique(np.concatenate(run))
-            QR, I = Q[R], np.eye(len(R))
-            HA = QR @ QR.T
+            I = np.eye(len(R))
+            HA = hat(R)
             HB = HA + np.outer(b[R], b[R]) / bb
             dA = r[R] @ np.linalg.lstsq(I - HA, r[R], rcond=1e-10)[0]
             dB = e[R] @ np.linalg.lstsq(I - HB, e[R], rcond=1e-10)[0]
@@ -516,27 +671,42 @@ def persistent_drop(Q, r, b, groups, emitter=False):
     return max(float(out), 0.0)
 
 
-def _scan_best(p, fs, i, cands, have, basis, sw, scale):
-    """The best candidate of each kind of clock i in :func:`joint_scan` (``basis``: Q, the projected residuals
-    rp, the weighted columns B and projected Bp; ``sw`` the rows' √weights, ``scale`` the TDOA rows' robust
-    scale), judged by its persistent χ² (:func:`persistent_drop`) in the clock's own robust scale: the
-    best of them as (components, margin, info), or None."""
-    Q, rp, B, Bp = basis
-    den = np.einsum("ij,ij->j", Bp, Bp)
-    ok = den > 1e-12 * np.maximum(np.einsum("ij,ij->j", B, B), 1e-300)
-    num = Bp.T @ rp
+def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None):
+    """The best candidate of each kind of clock i in :func:`joint_scan` (``basis``: the projector, the projected
+    residuals rp and the clock's rows, :class:`~calib.estimator.clockscan.ClockRows`; ``sw`` the rows'
+    √weights, ``scale`` the TDOA rows' robust scale; ``tested``: the number of candidates the penalty counts,
+    those the screen left out too), judged by its persistent χ² (:func:`persistent_drop`) in the clock's own
+    robust scale: the best of them as (components, margin, info), or None."""
+    from .clockscan import family_columns
+
+    pr, rp, cr = basis
+    O = cr.rows
+    B = family_columns(cr, cands)
+    nb = np.einsum("ij,ij->j", B, B)
+    den = nb - pr.explained(O, B)
+    ok = den > 1e-12 * np.maximum(nb, 1e-300)
+    num = B.T @ rp[O]
     value = np.where(ok, -num / np.where(ok, den, 1.0), 0.0)
     fine = np.array([c.with_value(v).plausible(float(np.ptp(p.t))) for c, v in zip(cands, value)], bool)
     raw = np.where(ok & fine, num * num / np.where(ok, den, 1.0), 0.0)
-    own = (_own_rows(p, fs, i) > 0) & (sw > 0)
-    if not raw.any() or not own.any():
+    if not raw.any() or not len(O):
         return None
+
+    def projected(k):   # the column of candidate k projected off the model, on the clock's rows
+        full = np.zeros(len(rp))
+        full[O] = B[:, k]
+        return pr.resid(full)[O]
+
     # the array's own scale: its rows' robust spread once its best candidate is fitted (a stated σ below the
     # scatter of this array's arrivals makes no step; neither does a large true step inflate it)
     k0 = int(np.argmax(raw))
-    left = (rp - Bp[:, k0] * (num[k0] / den[k0] if ok[k0] else 0.0))[own] / sw[own]
+    left = (rp[O] + projected(k0) * (value[k0] if ok[k0] else 0.0)) / sw[O]
     scale_i = max(scale, spread(left))
-    events = _event_rows(p, fs, own) if i >= 0 else _array_rows(p, fs, own)
+    own = np.zeros(len(rp), bool)
+    own[O] = True
+    pos = np.full(len(rp), -1)
+    pos[O] = np.arange(len(O))
+    events = [pos[g] for g in (_event_rows(p, fs, own) if i >= 0 else _array_rows(p, fs, own))]
     n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
     best = None
     for kind in ("step", "quadratic", "hinge"):
@@ -544,15 +714,16 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale):
         if not fam.size:
             continue
         k = fam[np.argmax(raw[fam])]
+        first = float(raw[k]) / scale_i ** 2 - penalty(kind, n, p.N + 1, tested or len(cands))   # (every candidate)
         # persistence: the evidence left with the rows of any PERSIST_EVENTS consecutive events of this array
         # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
         # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows
-        # may carry it)
-        kept_drop = min(float(raw[k]), persistent_drop(Q, rp, Bp[:, k], events, i < 0)
-                        ) if raw[k] > 0 else 0.0
+        # may carry it); judged only where the scan's own test passes (the margin is the smaller of the two)
+        kept_drop = min(float(raw[k]), persistent_drop(pr.hat_of(O), rp[O], projected(k), events, i < 0,
+                                                       bb=den[k], br=-value[k] * den[k])
+                        ) if raw[k] > 0 and first > 0 else None
         # chosen by the scan at its multiplicity; its persistence is one more test of that one candidate
-        margin = min(float(raw[k]) / scale_i ** 2 - penalty(kind, n, p.N + 1, len(cands)),   # (every candidate)
-                     kept_drop / scale_i ** 2 - PERSIST_CHI2)
+        margin = first if kept_drop is None else min(first, kept_drop / scale_i ** 2 - PERSIST_CHI2)
         if best is None or margin > best[1]:
             new = have + [cands[k].with_value(value[k])]
             # candidates the rows cannot tell apart (an array without rows at the event between two
@@ -560,7 +731,8 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale):
             tied = [have + [cands[j].with_value(value[j])] for j in fam
                     if j != k and abs(raw[j] - raw[k]) <= 1e-6 * max(abs(raw[k]), 1.0)]
             best = (new, margin, {"chi2_drop": float(raw[k]) / scale_i ** 2,
-                                  "chi2_kept": kept_drop / scale_i ** 2, "scale": scale_i, "kind": kind,
+                                  "chi2_kept": None if kept_drop is None else kept_drop / scale_i ** 2,
+                                  "scale": scale_i, "kind": kind,
                                   "test": "joint", "tied": tied})
     return best
 
@@ -617,23 +789,23 @@ def structure_test(result, models, name, k, features=None):
     from .problem import make_layout
     from .solver import linearise
 
+    from .clockscan import Projector
+
     p, st = _every_row(result, features), result["state"]
     lay = make_layout(p)
-    if lay.n > DENSE_MAX:
+    if lay.n > SCAN_MAX:
         return None
-    lin = linearise(p, st, lay, _kinds(p))
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    lin = linearise(p, st, lay, _kinds(p), dense=False)
     r = lin.r
     sw, scale = _robust_weights(result, lin, p, own=name)
     E, _ = component_columns(p, lin.factors, models)
-    Q, _ = np.linalg.qr(np.hstack([J, E]) * sw[:, None])
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
     T = _split_columns(p, lin.factors, index[name], models[name][k]) * sw[:, None]
     if not T.shape[1]:
         return 0.0, 0
-    Tp = T - Q @ (Q.T @ T)
-    rw = r * sw
-    rp = rw - Q @ (Q.T @ rw)
+    pr = Projector(_weighted(lin.J, E, sw), lay)
+    Tp = pr.resid(T)
+    rp = pr.resid(r * sw)
     U, sv, _ = np.linalg.svd(Tp, full_matrices=False)
     keep = sv > 1e-6 * max(np.linalg.norm(T), 1e-300)
     if not keep.any():
@@ -719,7 +891,8 @@ def detect(result, models, banned=frozenset(), excluded=frozenset()):
     # the strongest evidence first (a large fault bends the fit and so the others' tests); rivals within
     # TIE_MARGIN of it, and the other test's best, are decided by solving with each (:func:`_decide`)
     proposals.sort(key=lambda m: -m[0])
-    top = [(test, prop) for m, test, prop in proposals if m >= proposals[0][0] - TIE_MARGIN][:MAX_RIVALS]
+    tie = max(TIE_MARGIN, TIE_SHARE * proposals[0][0])
+    top = [(test, prop) for m, test, prop in proposals if m >= proposals[0][0] - tie][:MAX_RIVALS]
     other = next(((test, prop) for _, test, prop in proposals if test != top[0][0]), None)
     if other is not None and other not in top:
         top = top[:MAX_RIVALS - 1] + [other]
@@ -809,12 +982,12 @@ def _suspects(result):
     return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
 
 
-def calibrate_clocks(solve, features, *, clock_model="linear", **options):
+def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
-    clock_model : "linear" (default, for now: 2 of 104 rendered realistic sessions still get a false µs-sized
-        step, docs/results.md) or "auto": the linear clock unless the evidence asks for steps / drift terms per
-        array (``calib.options.OPTIONS``: ``--clock-model``).
+    clock_model : "auto" (default): the linear clock unless the evidence asks for steps / drift terms per
+        array (2 of 104 rendered realistic sessions get a false µs-sized step, docs/results.md); "linear":
+        never more (``calib.options.OPTIONS``: ``--clock-model``).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
@@ -831,6 +1004,8 @@ def calibrate_clocks(solve, features, *, clock_model="linear", **options):
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
         try:
             first, start = _seeded(solve, features, first, options, rounds)
+            if not start:
+                first, start, features = _readmitted(solve, features, first, options, rounds)
             result, models = _auto(solve, features, first, options, rounds, start)
         except ObservabilityError as err:   # a trial model left the data unable to fix something: linear
             result, models = first, {}
@@ -864,6 +1039,115 @@ def _seeded(solve, features, first, options, rounds):
     rounds.append([{"seeded": f"{n}: a step of {c[0].value * 1e3:+.3f} ms at {c[0].time:.3f} s (its arrivals jump "
                               "further than the speaker's move allows)"} for n, c in start.items()])
     return trial, start
+
+
+READMIT_SPREAD = 0.02   # a doubted block's lags vary by less than this share of their size: one constant lag
+READMIT_SIGMAS = 20.0   # ... and that lag is this many times their spread (and the rows' σ) at least
+
+
+def _doubted_blocks(features):
+    """[(array, block events, (event before, event after) the boundary)]: each array whose own arrivals the
+    frontend doubts as reflections (flag ``nlos``, :func:`calib.estimator.screen.own_doubted_events`) at one
+    run of its consecutive events that starts or ends its session, with at least PERSIST_EVENTS events in it
+    and MIN_EVENTS outside it."""
+    from .screen import DROP_FLAGS, _flags, own_doubted_events
+
+    names = [n for n in DROP_FLAGS["nlos"] if len(features[n])]
+    doubt = {n: _flags(features[n], ("nlos",)) for n in names}
+    if not any(d.any() for d in doubt.values()):
+        return []
+    out = []
+    flagged = {str(a) for n in names for a in features[n]["array"][doubt[n]]}
+    for a in (str(n) for n in features["meta"]["arrays"] if str(n) in flagged):
+        bad = own_doubted_events(features, doubt, a)
+        evs = sorted({int(e) for n in names if "event" in features[n]
+                      for e in features[n]["event"][features[n]["array"].astype(str) == a]})
+        pos = np.flatnonzero(np.isin(evs, sorted(bad)))
+        if len(pos) < PERSIST_EVENTS or len(evs) - len(pos) < MIN_EVENTS or np.any(np.diff(pos) != 1):
+            continue
+        if pos[0] == 0:
+            out.append((a, [evs[k] for k in pos], (evs[pos[-1]], evs[pos[-1] + 1])))
+        elif pos[-1] == len(evs) - 1:
+            out.append((a, [evs[k] for k in pos], (evs[pos[0] - 1], evs[pos[0]])))
+    return out
+
+
+def _without_nlos(features, array, block, reference):
+    """A copy of ``features`` with the flag ``nlos`` taken off ``array``'s rows at the events ``block`` (every
+    array's TDOA-M there for the reference: its arrival is in each)."""
+    out = dict(features)
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        df = features[name]
+        if "flag" not in df.columns or not len(df):
+            continue
+        if "event" in df.columns:
+            at = df["event"].isin(block).to_numpy()
+        else:
+            at = (df["from_event"].isin(block) | df["to_event"].isin(block)).to_numpy()
+        mine = at & ((df["array"].astype(str) == array).to_numpy() | (reference and name == "tdoa_m"))
+        if not mine.any():
+            continue
+        flag = df["flag"].astype(object).where(df["flag"].notna(), "").astype(str)
+        cleared = flag.str.split("+").map(lambda parts: "+".join(x for x in parts if x and x != "nlos"))
+        df = df.copy()
+        df["flag"] = np.where(mine, cleared, flag)
+        out[name] = df
+    return out
+
+
+def _block_lag(first, features, array, block):
+    """(lag, spread) of ``array``'s TDOA-M at the events ``block`` against the first solve (its sources and
+    poses from the other rows): the median of model − data (s) and its robust spread."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p = _every_row(first, features)
+    if "tdoa_m" not in _kinds(p):
+        return None
+    lin = linearise(p, first["state"], make_layout(p), ["tdoa_m"])
+    f = lin.factors[0]
+    i = [str(n) for n in p.names].index(array)
+    rows = np.isin(p.tdoa_m.ev, [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)])
+    rows &= (p.tdoa_m.arr == i) | (i == p.ref)
+    if rows.sum() < PERSIST_EVENTS:
+        return None
+    e = (f.r * np.broadcast_to(f.row_sigma, len(f.r)))[rows] * (-1.0 if i == p.ref else 1.0)
+    lag = float(np.median(e))
+    return lag, 1.4826 * float(np.median(np.abs(e - lag))), float(np.median(np.broadcast_to(f.row_sigma, len(f.r))))
+
+
+def _readmitted(solve, features, first, options, rounds):
+    """(first, start models, features): where the frontend doubts an array's arrivals as reflections over a
+    block of events that opens or closes its session (:func:`_doubted_blocks`) and those arrivals are late (or
+    early) by ONE constant amount against the first solve (:func:`_block_lag`: a reflection's excess path
+    changes as the robot moves, a dropped or inserted sample block's does not), the rows are readmitted with a
+    step at the block's edge; kept when that solves better (as :func:`_seeded`). Else (first, {}, features)."""
+    events, u = _event_of(features)
+    u_of = dict(zip(events.tolist(), u.tolist()))
+    ref = str(features["meta"]["reference_array"])
+    for array, block, (before, after) in _doubted_blocks(features):
+        readmitted = _without_nlos(features, array, block, array == ref)
+        got = _block_lag(first, readmitted, array, block)
+        if got is None:
+            continue
+        lag, spread, sigma = got
+        if not (spread <= READMIT_SPREAD * abs(lag) and abs(lag) >= READMIT_SIGMAS * max(spread, sigma)):
+            continue
+        # model − data = c on the block's rows when it precedes the step (the fit follows the later clock)
+        size = lag if block[-1] == before else -lag
+        start = {array: [Component("step", 0.5 * (u_of[before] + u_of[after]), size)]}
+        corrected = correct_features(readmitted, start)
+        trial = solve(corrected, **options)
+        cost0, sig = _robust_cost(first, None, readmitted)
+        cost1, _ = _robust_cost(trial, sig, corrected)
+        if _rank(trial) < _rank(first) or 2.0 * (cost0 - cost1) <= float(chdtri(1, FAMILY_ALPHA)):
+            continue
+        rounds.append([{"readmitted": f"{array}: events {block[0]}-{block[-1]}, doubted as reflections, are "
+                                      f"{abs(lag) * 1e3:.3f} ms {'late' if lag < 0 else 'early'} alike (spread "
+                                      f"{spread * 1e6:.1f} µs): a clock step between events {before} and {after}, "
+                                      "not reflections; readmitted"}])
+        return trial, start, readmitted
+    return first, {}, features
 
 
 def _auto(solve, features, first, options, rounds, start=None):
@@ -1057,27 +1341,29 @@ def persistence(result, models, features=None):
     from .problem import make_layout
     from .solver import linearise
 
+    from .clockscan import Projector
+
     p, st = _every_row(result, features), result["state"]
     lay = make_layout(p)
-    if lay.n > DENSE_MAX:
+    if lay.n > SCAN_MAX:
         return {}
-    lin = linearise(p, st, lay, _kinds(p))
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
+    lin = linearise(p, st, lay, _kinds(p), dense=False)
     E, keys = component_columns(p, lin.factors, models)
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
     out = {}
     for col, (name, k) in enumerate(keys):
         sw, scale = _robust_weights(result, lin, p, own=name)
-        b = E[:, col] * sw
-        rest = np.hstack([J, np.delete(E, col, axis=1)]) * sw[:, None]
-        Q, _ = np.linalg.qr(rest)
+        pr = Projector(_weighted(lin.J, np.delete(E, col, axis=1), sw), lay)
         r0 = (lin.r - models[name][k].value * E[:, col]) * sw
-        rp, bp = r0 - Q @ (Q.T @ r0), b - Q @ (Q.T @ b)
+        rp, bp = pr.resid(r0), pr.resid(E[:, col] * sw)
         own = (_own_rows(p, lin.factors, index[name]) > 0) & (sw > 0)
         e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
         groups = _event_rows(p, lin.factors, own) if name != EMITTER else _array_rows(p, lin.factors, own)
-        out[(name, k)] = persistent_drop(Q, rp, bp, groups, name == EMITTER) / scale_i ** 2
+        hat = pr.hat_of(np.flatnonzero(own))   # (the groups are own rows: indices into them)
+        pos = np.cumsum(own) - 1
+        out[(name, k)] = persistent_drop(hat, rp[own], bp[own], [pos[g] for g in groups], name == EMITTER,
+                                         bb=float(bp @ bp), br=float(bp @ rp)) / scale_i ** 2
     return out
 
 
@@ -1218,7 +1504,6 @@ def refine(result, models):
     1-σ, info for :func:`_apply_std`: the problem, layout and joint covariance of the other parameters)."""
     from .problem import make_layout
     from .solver import linearise
-    from .uncertainty import covariance
 
     p, st = result["problem"], result["state"]
     kinds = _kinds(p)
@@ -1230,20 +1515,40 @@ def refine(result, models):
     keep = lin.w > 0
     if lay.n > DENSE_MAX:
         return _conditional(lin, B, keep, keys, models)
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     # the step: every row, Cauchy-weighted (rows flagged against a wrong component are evidence against it; a
     # row hundreds of σ off, e.g. a chirp lost in a dropped block, pulls nothing: Huber's weight let it pull a
     # 50 ms step's size by 5σ)
     r = full.r
     scale = max(1.0, 1.4826 * float(np.median(np.abs(r[keep])))) if keep.any() else 1.0
     sw = 1.0 / np.sqrt(1.0 + (r / (HUBER_K * scale)) ** 2)
-    Ah = np.hstack([J, B]) * sw[:, None]
-    step = np.linalg.lstsq(Ah, -r * sw, rcond=None)[0]
+    step = _normal_solve(_weighted(lin.J, B, sw), -r * sw)
     # the covariance: the estimator's rows (outliers out), as its own error bars
-    A = np.hstack([J, B])[keep] * np.sqrt(lin.w[keep])[:, None]
-    cov = covariance(A, A.shape[1])
+    cov = _normal_covariance(_weighted(lin.J, B, np.where(keep, np.sqrt(np.maximum(lin.w, 0.0)), 0.0)))
     dc, sd = step[lay.n:], np.sqrt(np.maximum(np.diag(cov)[lay.n:], 0.0))
     return _update(models, keys, dc, sd) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n]},)
+
+
+def _scaled_normal(A):
+    """(Jacobi-scaled AᵀA (dense), the scale d) of a sparse A: no dense rows × n matrix."""
+    H = (A.T @ A).toarray()
+    d = np.sqrt(np.maximum(np.diag(H), 0.0))
+    d = np.where(d > 0, d, 1.0)
+    return H / d[:, None] / d[None, :], d
+
+
+def _normal_solve(A, y):
+    """The least-squares solution of A x ≈ y (A sparse) by its scaled normal equations; the minimum-norm one
+    (a symmetric pseudo-inverse, as ``lstsq``) where they are singular (a direction no row fixes)."""
+    Hs, d = _scaled_normal(A)
+    return np.linalg.pinv(Hs, hermitian=True) @ ((A.T @ y) / d) / d
+
+
+def _normal_covariance(A):
+    """(AᵀA)⁻¹ as :func:`calib.estimator.uncertainty.covariance` gives it (pseudo-inverse of the Jacobi-scaled
+    normal matrix; a Cholesky inverse is no substitute: near-singular directions made a 20 ms step's σ 98 s), from
+    a sparse A (its symmetric eigendecomposition, not an SVD of the rows)."""
+    Hs, d = _scaled_normal(A)
+    return np.linalg.pinv(Hs, hermitian=True) / d[:, None] / d[None, :]
 
 
 def _conditional(lin, B, keep, keys, models):
