@@ -356,13 +356,20 @@ def fourier_resample(x, num):
 
 
 def resample(x, fs_from, fs_to):
-    """Band-limited rational resampling of a 1-D signal (polyphase)."""
+    """Band-limited resampling of a 1-D signal from ``fs_from`` to ``fs_to`` (Hz, integers), zero outside it:
+    its first ``ceil(N fs_to / fs_from)`` samples at the new rate. The signal, zero-padded to at least twice
+    its length (so the periodic extension's copies stay apart) and to a whole number of the rates' common
+    periods, is resampled by FFT (:func:`fourier_resample`: ideal band-limited interpolation, no filter's
+    transition band or ripple). A reference chirp at another rate than an array's: scipy.signal's polyphase
+    filter, which this replaces, cost ~0.35 s of CPU per run to import (the templates agree to ~1e-3 of the
+    peak at the band's edge, their timing to far below a nanosecond)."""
+    x = np.asarray(x, float)
     if fs_from == fs_to:
-        return np.asarray(x, float)
-    import scipy.signal as ss  # (scipy.signal takes ~0.7 s to import: only when resampling)
-
-    r = Fraction(fs_to / fs_from).limit_denominator(1000)
-    return ss.resample_poly(np.asarray(x, float), r.numerator, r.denominator)
+        return x
+    r = Fraction(int(round(fs_to)), int(round(fs_from)))
+    n_out = -(-len(x) * r.numerator // r.denominator)
+    pad = -(-2 * len(x) // r.denominator) * r.denominator
+    return fourier_resample(np.r_[x, np.zeros(pad - len(x))], pad * r.numerator // r.denominator)[:n_out]
 
 
 def chirp_template(chirp, fs):

@@ -154,6 +154,20 @@ def test_detection_plot_labels_only_what_fits():
     assert np.all(np.diff([t for t, _ in kept]) >= 2 * half)
 
 
+@pytest.mark.parametrize("fs_from, fs_to", [(16000, 44100), (16000, 48000), (48000, 16000), (44100, 48000)])
+def test_reference_chirp_resampled_to_the_sweep_at_the_new_rate(fs_from, fs_to):
+    """A reference chirp recorded at another rate than an array's (mixed boards) is resampled band-limited:
+    the sweep sampled at the new rate directly (independent truth), to 1e-4 of its amplitude (scipy.signal's
+    polyphase filter, used before: 2e-3), ceil(N fs_to / fs_from) samples."""
+    from calib.frontend.signals import resample, sweep
+
+    ref = sweep(np.arange(8000 * fs_from // 16000) / fs_from, 500.0, 4000.0, 0.5, 0.005)
+    out = resample(ref, fs_from, fs_to)
+    assert len(out) == -(-len(ref) * fs_to // fs_from)
+    truth = sweep(np.arange(len(out)) / fs_to, 500.0, 4000.0, 0.5, 0.005)
+    assert np.max(np.abs(out - truth)) < 1e-4
+
+
 def test_fourier_resample_is_scipys():
     """fourier_resample (the drift bias's and the Doppler bank's stretching) gives scipy.signal.resample's values."""
     from scipy.signal import resample
