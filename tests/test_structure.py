@@ -90,28 +90,27 @@ def test_pipeline_parts_import_one_way(name, path):
             assert bits[2] in PIPELINE_PARTS[part] | {part}, f"{name} ({part}) imports {dep}"
 
 
-def test_cli_startup_does_not_load_the_heavy_libraries():
-    """`calib --help` must not wait for the simulator's or the frontend's libraries (they load on use)."""
+def _loaded_after(modules, heavy):
+    """Which of the modules ``heavy`` a fresh interpreter has loaded after importing ``modules``."""
     import subprocess
     import sys
 
-    code = ("import sys, calib.cli.main; heavy = ('pyroomacoustics', 'matplotlib', 'scipy.signal', 'scipy.spatial', "
-            "'calib.frontend.extract', 'calib.pipeline.simulate.roomsim'); "
-            "print(','.join(m for m in heavy if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    code = f"import sys, {', '.join(modules)}; print(','.join(m for m in {tuple(heavy)!r} if m in sys.modules))"
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+
+
+def test_cli_startup_does_not_load_the_heavy_libraries():
+    """`calib --help` must not wait for the simulator's or the frontend's libraries (they load on use)."""
+    out = _loaded_after(["calib.cli.main"], ["pyroomacoustics", "matplotlib", "scipy.signal", "scipy.spatial",
+                                             "calib.frontend.extract", "calib.pipeline.simulate.roomsim"])
     assert out == "", f"loaded at startup: {out}"
 
 
 def test_feature_extraction_does_not_load_what_it_does_not_use():
     """`calib features` pays for its imports on every run: not scipy.signal and the scipy.stats it pulls
     (~0.4 s), not the estimator."""
-    import subprocess
-    import sys
-
-    code = ("import sys, calib.cli.main, calib.cli.features, calib.pipeline.features, calib.frontend.extract; "
-            "heavy = ('scipy.signal', 'scipy.stats', 'calib.estimator'); "
-            "print(','.join(m for m in heavy if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    out = _loaded_after(["calib.cli.main", "calib.cli.features", "calib.pipeline.features", "calib.frontend.extract"],
+                        ["scipy.signal", "scipy.stats", "calib.estimator"])
     assert out == "", f"loaded for feature extraction: {out}"
 
 
