@@ -388,7 +388,11 @@ def _batch_lm(f, X, max_iter=200, tol=1e-8):
         Jt = J[a].transpose(0, 2, 1)
         H, g = Jt @ J[a], (Jt @ r[a][..., None])[..., 0]
         D = np.maximum(np.diagonal(H, axis1=1, axis2=2), 1e-30)
-        dx = -np.linalg.solve(H + lam[a, None, None] * D[:, :, None] * eye, g[..., None])[..., 0]
+        M = H + lam[a, None, None] * D[:, :, None] * eye
+        try:
+            dx = -np.linalg.solve(M, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:   # a start whose ranges leave a direction unconstrained: the least-norm step
+            dx = -(np.linalg.pinv(M, hermitian=True) @ g[..., None])[..., 0]
         r_n, J_n = f(X[a] + dx)
         c_n = 0.5 * np.einsum("sk,sk->s", r_n, r_n)
         ok = c_n < cost[a]

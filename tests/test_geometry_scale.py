@@ -260,3 +260,25 @@ def test_one_mic_hearing_a_reflection_is_not_a_channel_typo(seed, centre):
     typo[3, 1] += 0.02
     found = geometry_findings({**board, "mics": typo.tolist()}, delays(0.0), C)
     assert [f.check for f in found] == ["channel geometry"] and "row 4" in found[0].text, [f.text for f in found]
+
+
+def test_batch_lm_takes_the_least_norm_step_where_a_start_is_singular(monkeypatch):
+    # the set-up check's batched LM: where LAPACK calls a start's damped normal matrix singular (CI's mixed room
+    # did), the pseudo-inverse's least-norm step is taken and the fit still reaches the minimum
+    from calib.pipeline import setupcheck
+
+    target = np.array([1.0, -2.0])
+
+    def f(X):   # r = x - target, J = I, per start
+        return X - target, np.broadcast_to(np.eye(2), (len(X), 2, 2)).copy()
+
+    real = np.linalg.solve
+
+    def singular(a, b):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(setupcheck.np.linalg, "solve", singular)
+    X, cost = setupcheck._batch_lm(f, np.array([[0.0, 0.0], [5.0, 5.0]]))
+    monkeypatch.setattr(setupcheck.np.linalg, "solve", real)
+    np.testing.assert_allclose(X, [target, target], atol=1e-6)
+    assert np.all(cost < 1e-12)
