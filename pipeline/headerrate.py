@@ -36,6 +36,7 @@ RATE_REFINE = 7e-5
 # A clock this far (relative) from the emitter's is no crystal's (they keep ±1e-4): its samples are taken at its
 # measured rate, its template mismatch (2 Doppler-bank steps) biasing the frontend's multipath checks otherwise
 FAST_CLOCK = 3e-4
+OUTLIER_THRESHOLD = 5.0   # the refining solve's outlier test (calibrate's default: a drift, not a geometry)
 REFINE_ROUNDS = 2   # first solves that refine the rates (the second when the first moved a rate)
 CLAMPED = 0.98   # an association scale this close to its search bound (× max_drift) is a fast-clock candidate
 # An array whose detections match fewer of the events than this is searched at other rates ...
@@ -73,7 +74,7 @@ def rate_corrections(session, diagnostics, threshold=8.0):
     array whose chirps the header-rate detector mostly missed (a sweep 5-10 % off its template) is searched
     at other rates (:func:`searched_scale`; ``threshold``: the detector's)."""
     from calib.frontend.consistency import clock_scale
-    from calib.pipeline.setupcheck import CLOCK_FAIL, CLOCK_SUPPORT
+    from calib.pipeline.setupcheck import CLOCK_FAIL, CLOCK_SUPPORT, emission_times_scaled
 
     t_emit = session["events"]["t_emit"].to_numpy(float)
     arrays = (diagnostics or {}).get("arrays", {})
@@ -92,7 +93,7 @@ def rate_corrections(session, diagnostics, threshold=8.0):
             continue
         s, matched = refine_scale(times, t_emit, s)
         found[a["name"]] = {"header": int(d["fs"]), "scale": s, "support": float(support), "matched": matched}
-    if len(found) == len(session["arrays"]) > 1 and np.ptp([f["scale"] for f in found.values()]) < CLOCK_FAIL:
+    if emission_times_scaled({n: f["scale"] for n, f in found.items()}, len(session["arrays"])):
         return {}   # the emission times, not the headers (setupcheck.clock_findings names events.csv)
     for f in found.values():
         f["used"] = nominal_rate(f["header"] * f["scale"])
@@ -130,16 +131,14 @@ def searched_scale(array, session, threshold=8.0):
     its chirps detected with the template at each rate of ``SEARCH_SCALES`` × the header's (a matched filter
     finds a sweep only within a few per cent of its own rate); the rate whose detections agree with the most
     emission intervals wins. (1.0, 0.0, []) when none has support."""
-    from calib.frontend.consistency import clock_scale, detect_chirps
-    from calib.frontend.signals import ArrayAudio, chirp_band, chirp_template
+    from calib.frontend.consistency import clock_scale
+    from calib.frontend.signals import ArrayAudio
 
     t_emit = session["events"]["t_emit"].to_numpy(float)
     best = (0.0, 1.0, np.zeros(0))
     with ArrayAudio(array) as x:
         for k in SEARCH_SCALES:
-            fs = x.fs * k
-            template = chirp_template(session["chirp"], fs)
-            times, _ = detect_chirps(x, template, fs, chirp_band(session["chirp"], template, fs), t_emit, threshold)
+            times = _detections(x, session, x.fs * k, threshold)
             s, support = clock_scale(times, t_emit)
             if support > best[0]:   # (times at the rate tried → at the header's: × k)
                 best = (support, k * s, times * k)
@@ -161,16 +160,10 @@ def refine_rates(session, feats, corrections):
     the corrected rates) gives it: the chirps' spacing includes the source's range changes (metres over a
     session: up to ~1e-3 of the rate), the solve's drift does not. Returns (corrections, changed: an array's
     rate moved by more than ``RATE_REFINE``). A solve that fails or does not converge changes nothing."""
-    from calib.estimator import ObservabilityError, calibrate
+    from calib.pipeline.retime import first_solve
 
-    from calib.pipeline.features import add_session_meta
-
-    try:   # (as the moving source's first solve, pipeline/retime.py: stated sigmas, linear clock)
-        sol = calibrate(add_session_meta(feats, session, {}), outputs="solution", clock_model="linear",
-                        noise="meta")
-    except (ObservabilityError, ValueError):
-        return corrections, False
-    if not sol["converged"]:
+    sol, _ = first_solve(session, feats, outlier_threshold=OUTLIER_THRESHOLD)
+    if sol is None:
         return corrections, False
     drift = dict(zip((str(n) for n in sol["problem"].names), np.asarray(sol["state"].drift, float)))
     out, changed = {}, False
@@ -194,18 +187,25 @@ def detections_only(session, threshold=8.0):
     """The diagnostics :func:`rate_corrections` reads ({"arrays": {name: {"fs", "detections"}}}), from each
     array's chirps detected at its header's rate (``frontend.consistency.detect_chirps``; none matched): for a
     session the frontend refused (an array with too few chirps to associate)."""
-    from calib.frontend.consistency import detect_chirps
-    from calib.frontend.signals import ArrayAudio, chirp_band, chirp_template
+    from calib.frontend.signals import ArrayAudio
 
-    t_emit = session["events"]["t_emit"].to_numpy(float)
     out = {}
     for a in session["arrays"]:
         with ArrayAudio(a) as x:
-            template = chirp_template(session["chirp"], x.fs)
-            times, _ = detect_chirps(x, template, x.fs, chirp_band(session["chirp"], template, x.fs), t_emit,
-                                     threshold)
+            times = _detections(x, session, x.fs, threshold)
             out[a["name"]] = {"fs": x.fs, "detections": [{"time": float(t)} for t in times]}
     return {"arrays": out}
+
+
+def _detections(x, session, fs, threshold):
+    """Chirp detection times (s at ``fs``) in recording ``x`` read at the rate ``fs``, the template and its band
+    built at that rate (``frontend.consistency.detect_chirps``)."""
+    from calib.frontend.consistency import detect_chirps
+    from calib.frontend.signals import chirp_band, chirp_template
+
+    template = chirp_template(session["chirp"], fs)
+    return detect_chirps(x, template, fs, chirp_band(session["chirp"], template, fs),
+                         session["events"]["t_emit"].to_numpy(float), threshold)[0]
 
 
 def with_rates(session, corrections):

@@ -51,26 +51,35 @@ FIRST_SOLVE_OUTLIERS = 20.0   # the first solve removes rows beyond this many σ
 # bank step) on robot 44 and 0 … 3e-6 on four other moving scenes: 0-2 of ~300 events land on a neighbouring row
 
 
-def first_pass_stretches(session, feats):
-    """({array: (K,) predicted ε per session event, NaN where none}, record) from a calibration of the
-    first pass's features; (None, record with ``skipped``) when that solve cannot predict."""
+def first_solve(session, feats, outlier_threshold):
+    """(solution, None) of the quick calibration a features stage may run on its own features (the stated
+    sigmas, the linear clock: no noise re-estimation, no clock-model scans; ``outputs="solution"``), or
+    (None, why) when it fails or does not converge. Used to predict a moving source's stretches and to refine
+    a measured sample rate (pipeline/headerrate.py)."""
     from calib.estimator import ObservabilityError, calibrate
-    from calib.estimator.motion import predicted_stretches
-    from calib.estimator.outputs import out_of_earshot
 
     from calib.pipeline.features import add_session_meta
 
     try:
-        # a geometry good to centimetres predicts the stretches (ε = ṙ/c): the stated sigmas' solve with the
-        # linear clock, without the noise re-estimation and clock-model scans (robot 44: 3.3 → 1.4 s CPU, the
-        # stretches within 2e-6; an array a clock fault bends is unreliable and keeps its searched stretches),
-        # and only blunders removed as outliers (FIRST_SOLVE_OUTLIERS)
         sol = calibrate(add_session_meta(feats, session, {}), outputs="solution", clock_model="linear",
-                        noise="meta", outlier_threshold=FIRST_SOLVE_OUTLIERS)
+                        noise="meta", outlier_threshold=outlier_threshold)
     except (ObservabilityError, ValueError) as exc:
-        return None, {"skipped": f"first solve failed: {exc}"}
-    if not sol["converged"]:
-        return None, {"skipped": "first solve did not converge"}
+        return None, f"first solve failed: {exc}"
+    return (sol, None) if sol["converged"] else (None, "first solve did not converge")
+
+
+def first_pass_stretches(session, feats):
+    """({array: (K,) predicted ε per session event, NaN where none}, record) from a calibration of the
+    first pass's features; (None, record with ``skipped``) when that solve cannot predict."""
+    from calib.estimator.motion import predicted_stretches
+    from calib.estimator.outputs import out_of_earshot
+
+    # a geometry good to centimetres predicts the stretches (ε = ṙ/c) (robot 44: 3.3 → 1.4 s CPU, the stretches
+    # within 2e-6; an array a clock fault bends is unreliable and keeps its searched stretches), and only
+    # blunders removed as outliers (FIRST_SOLVE_OUTLIERS)
+    sol, why = first_solve(session, feats, FIRST_SOLVE_OUTLIERS)
+    if sol is None:
+        return None, {"skipped": why}
     p, st = sol["problem"], sol["state"]
     eps = predicted_stretches(p, st, feats["events"], feats["meta"].get("stretch_time_s"))
     if eps is None:

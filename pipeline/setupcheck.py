@@ -235,6 +235,12 @@ def _swap_perm(n, a, b):
 
 
 # ----------------------------------------------------------------------------------------------- clocks
+def emission_times_scaled(off, n_arrays):
+    """Whether the arrays' clock scales ``off`` ({array: scale}, each beyond CLOCK_FAIL) say the emission times
+    are scaled, not the headers wrong: every one of ``n_arrays`` (> 1) off, by one scale."""
+    return len(off) == n_arrays > 1 and np.ptp(list(off.values())) < CLOCK_FAIL
+
+
 def clock_findings(session, results):
     """Each array's clock against the emission times: a rate this far off is a wrong header, not a drift."""
     scales = {a["name"]: results[a["name"]]["clock_scale"] for a in session["arrays"]
@@ -242,7 +248,7 @@ def clock_findings(session, results):
     off = {k: s for k, s in scales.items() if abs(s - 1) > CLOCK_FAIL}
     if not off:
         return []
-    if len(off) == len(session["arrays"]) > 1 and np.ptp(list(off.values())) < CLOCK_FAIL:
+    if emission_times_scaled(off, len(session["arrays"])):
         s = float(np.median(list(off.values())))
         return [Finding("failed", "events.csv", "emission clock", f"events.csv: every array's clock runs {s:.4g} × "
                         "the emission times' (t_emit): are they in seconds, from this session?")]
