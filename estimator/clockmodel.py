@@ -619,9 +619,10 @@ def _screen(p, cr, JE, local, r, sw, cands, i, scale, cache=None):
     return out
 
 
-def _event_rows(p, fs, rows):
+def _event_rows(p, fs, rows, ids=False):
     """For each event with any of the stacked rows ``rows`` (bool mask over the factors ``fs``): the indices
-    of those rows that involve it (a TDOA-M at it, a TDOA-S from or to it)."""
+    of those rows that involve it (a TDOA-M at it, a TDOA-S from or to it), in event order; ``ids``: (the
+    events' indices, those lists)."""
     a, b = [], []
     for f in fs:
         n = len(f.r)
@@ -632,8 +633,9 @@ def _event_rows(p, fs, rows):
         else:
             a.append(np.full(n, -1)), b.append(np.full(n, -1))
     a, b = np.concatenate(a), np.concatenate(b)
-    return [np.flatnonzero(rows & ((a == e) | (b == e))) for e in np.unique(np.concatenate([a[rows], b[rows]]))
-            if e >= 0]
+    events = [int(e) for e in np.unique(np.concatenate([a[rows], b[rows]])) if e >= 0]
+    groups = [np.flatnonzero(rows & ((a == e) | (b == e))) for e in events]
+    return (np.array(events, int), groups) if ids else groups
 
 
 def _array_rows(p, fs, rows):
@@ -642,7 +644,20 @@ def _array_rows(p, fs, rows):
     return [np.flatnonzero(rows & (arr == a)) for a in np.unique(arr[rows]) if a >= 0]
 
 
-def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
+def end_side(t, time, n_events=PERSIST_EVENTS):
+    """The positions (into event times ``t``, in time order) of the events on the short side of a step at
+    ``time`` when that side holds at most ``n_events`` of them (a step near a session's start or end), else
+    None."""
+    before = np.flatnonzero(np.asarray(t) < time)
+    after = np.flatnonzero(np.asarray(t) > time)
+    if 0 < len(before) <= n_events and len(before) <= len(after):
+        return before
+    if 0 < len(after) <= n_events:
+        return after
+    return None
+
+
+def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None, side=None):
     """The smallest χ² drop (unscaled) of a column b (projected off the model's columns) against residuals r
     (projected too) with the rows of up to PERSIST_EVENTS groups left out: ``groups`` are row indices (into r
     and b) per event in time order (any run of consecutive events: a clock term's evidence is in every row
@@ -650,7 +665,9 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
     one interval's TDOA-S at every array alike, not at one or two; at least two are left). Each by the deletion
     formula: RSS without rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the model without b (hat H_RR = ``hat(R)``)
     and with it (H_RR + b_R b_R'/b'b). r and b may hold only some of the rows (the clock's own): ``bb`` = |b|²
-    and ``br`` = b'r over every row then."""
+    and ``br`` = b'r over every row then. ``side``: the positions (into ``groups``) of a step's events on its
+    short side (:func:`end_side`): a run holding all of them is not left out (it would leave the step no
+    event on that side: no leave-out can tell those events' arrivals from a clock; :func:`direct_path` does)."""
     bb = float(b @ b) if bb is None else float(bb)
     if bb <= 0:
         return 0.0
@@ -659,7 +676,8 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
     out = full
     # (the emitter's: at least two arrays left to see it alike)
     for w in range(1, (min(PERSIST_EVENTS, len(groups) - 2) if emitter else PERSIST_EVENTS) + 1):
-        runs = itertools.combinations(groups, w) if emitter else (groups[m:m + w] for m in range(len(groups) - w + 1))
+        runs = (itertools.combinations(groups, w) if emitter else
+                (groups[m:m + w] for m in range(len(groups) - w + 1) if side is None or not set(side) <= set(range(m, m + w))))
         for run in runs:
             R = np.unique(np.concatenate(run))
             I = np.eye(len(R))
@@ -669,6 +687,38 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
             dB = e[R] @ np.linalg.lstsq(I - HB, e[R], rcond=1e-10)[0]
             out = min(out, full - dA + dB)
     return max(float(out), 0.0)
+
+
+def direct_path(p, fs, i, events):
+    """Whether array i's DOAs at ``events`` (event indices) agree with the direct path of the fit the factors
+    ``fs`` are linearised at (their χ², in the array's own DOA scale, within the χ²₂ₘ quantile at
+    STRUCTURE_ALPHA); False where it has none there. A clock step shifts every microphone of the array alike:
+    its intra-array delays, the DOA, still point at the source; a reflection's (a blocked line of sight, a
+    chirp detected on an echo) point at an image source elsewhere."""
+    f = next((f for f in fs if f.kind == "doa" and len(f.r) == 3 * len(p.doa.arr)), None)
+    if f is None:
+        return False
+    z2 = np.sum(f.r.reshape(-1, 3) ** 2, axis=1)
+    mine = p.doa.arr == i
+    at = mine & np.isin(p.doa.ev, events)
+    if not at.any():
+        return False
+    scale2 = max(1.0, float(np.median(z2[mine])) / float(chdtri(2, 0.5)))   # (χ²₂'s median: 2 ln 2)
+    return float(np.sum(z2[at])) / scale2 <= float(chdtri(2 * int(at.sum()), STRUCTURE_ALPHA))
+
+
+def clock_persistence(p, fs, i, comp, groups, hat, r, b, bb=None, br=None, ids=None):
+    """:func:`persistent_drop` of component ``comp`` of clock i (-1: the emitter, ``groups`` per array; else per
+    event, the events' indices ``ids``). A step with at most PERSIST_EVENTS events on one side (:func:`end_side`:
+    near a session's start or end) shows in those events' arrivals alone, which no leave-out can tell from
+    bad arrivals: the runs holding all of them are not left out, and it persists only where the array's DOAs
+    there agree with the direct path (:func:`direct_path`); 0 otherwise."""
+    side = None
+    if i >= 0 and comp.kind == "step" and ids is not None:
+        side = end_side(p.t[ids], comp.time)
+        if side is not None and not direct_path(p, fs, i, ids[side]):
+            return 0.0
+    return persistent_drop(hat, r, b, groups, i < 0, bb=bb, br=br, side=side)
 
 
 def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None):
@@ -706,7 +756,8 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None):
     own[O] = True
     pos = np.full(len(rp), -1)
     pos[O] = np.arange(len(O))
-    events = [pos[g] for g in (_event_rows(p, fs, own) if i >= 0 else _array_rows(p, fs, own))]
+    ids, groups = _event_rows(p, fs, own, ids=True) if i >= 0 else (None, _array_rows(p, fs, own))
+    events = [pos[g] for g in groups]
     n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
     best = None
     for kind in ("step", "quadratic", "hinge"):
@@ -719,8 +770,8 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None):
         # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
         # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows
         # may carry it); judged only where the scan's own test passes (the margin is the smaller of the two)
-        kept_drop = min(float(raw[k]), persistent_drop(pr.hat_of(O), rp[O], projected(k), events, i < 0,
-                                                       bb=den[k], br=-value[k] * den[k])
+        kept_drop = min(float(raw[k]), clock_persistence(p, fs, i, cands[k], events, pr.hat_of(O), rp[O],
+                                                         projected(k), bb=den[k], br=-value[k] * den[k], ids=ids)
                         ) if raw[k] > 0 and first > 0 else None
         # chosen by the scan at its multiplicity; its persistence is one more test of that one candidate
         margin = first if kept_drop is None else min(first, kept_drop / scale_i ** 2 - PERSIST_CHI2)
@@ -1359,11 +1410,13 @@ def persistence(result, models, features=None):
         own = (_own_rows(p, lin.factors, index[name]) > 0) & (sw > 0)
         e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
-        groups = _event_rows(p, lin.factors, own) if name != EMITTER else _array_rows(p, lin.factors, own)
+        ids, groups = (_event_rows(p, lin.factors, own, ids=True) if name != EMITTER
+                       else (None, _array_rows(p, lin.factors, own)))
         hat = pr.hat_of(np.flatnonzero(own))   # (the groups are own rows: indices into them)
         pos = np.cumsum(own) - 1
-        out[(name, k)] = persistent_drop(hat, rp[own], bp[own], [pos[g] for g in groups], name == EMITTER,
-                                         bb=float(bp @ bp), br=float(bp @ rp)) / scale_i ** 2
+        out[(name, k)] = clock_persistence(p, lin.factors, index[name], models[name][k], [pos[g] for g in groups],
+                                           hat, rp[own], bp[own], bb=float(bp @ bp), br=float(bp @ rp),
+                                           ids=ids) / scale_i ** 2
     return out
 
 
