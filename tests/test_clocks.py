@@ -145,6 +145,55 @@ def test_a_chirp_lost_in_a_dropped_block_leaves_the_step_and_the_others_alone():
     assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean + 0.002
 
 
+@pytest.mark.parametrize("seed,name,interval,size", [(11, "A3", 0, -0.002), (12, "A3", 1, 0.0004),
+                                                     (13, "A3", -1, 0.003), (14, "A2", -2, -0.0003),
+                                                     (15, "A1", 0, 0.001)])
+def test_a_step_next_to_a_session_s_start_or_end_is_found(seed, name, interval, size):
+    """A step with one or two events on one side (the first or second interval, the last or the one before it;
+    the reference's too) shows in those events' arrivals alone, shifted alike, their DOAs still on the direct
+    path: found in its interval, sized within 3σ, nothing else modelled."""
+    stops = _session(seed)
+    f0, _ = simulate_features(stops, SIGMA, seed=seed, max_interval=10.0)
+    t = f0["events"]["t_emit"].to_numpy() - f0["events"]["t_emit"].iloc[0]
+    k = interval % (len(t) - 1)
+    f, truth = simulate_features(stops, SIGMA, seed=seed, max_interval=10.0,
+                                 clocks={name: {"steps": [{"size": size, "time": 0.5 * (t[k] + t[k + 1])}]}})
+    cal = calibrate(f, clock_model="auto")
+    (s,) = _steps(cal, name)
+    assert (s["after_event"], s["before_event"]) == _interval(truth["clocks"][name], f) == (k, k + 1)
+    assert abs(s["size"] - size) < 3 * s["std"]
+    assert all(not _steps(cal, a) for a in ("A1", "A2", "A3", "A4", "A5") if a != name)
+    assert not cal["report"]["clock"]["emitter"]["steps"] and not cal["report"]["clock"]["emitter"]["drift_terms"]
+
+
+def _turned(features, array, event, angle):
+    """A copy of ``features`` with ``array``'s DOA at ``event`` turned by ``angle`` (rad): an echo's direction."""
+    doa = features["doa"].copy()
+    at = ((doa["array"] == array) & (doa["event"] == event)).to_numpy()
+    u = doa.loc[at, ["ux", "uy", "uz"]].to_numpy(float)
+    w = np.cross(u, [0.0, 0.0, 1.0])
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    doa.loc[at, ["ux", "uy", "uz"]] = np.cos(angle) * u + np.sin(angle) * w
+    return {**features, "doa": doa}
+
+
+@pytest.mark.parametrize("seed,first", [(16, True), (17, False)])
+def test_an_end_event_s_echo_is_no_clock_step_but_the_same_shift_on_the_direct_path_is(seed, first):
+    """The first (or last) event's arrival at A3 late by 0.6 ms: in the TDOAs exactly a step next to that end.
+    With its DOA turned 40° (the chirp detected on an echo, from an image source) no clock term is modelled;
+    with its DOA on the direct path (every mic shifted alike: a clock) it is the step there."""
+    f, truth = simulate_features(_session(seed), SIGMA, seed=seed, max_interval=10.0)
+    ev = f["events"]["event"].to_numpy()
+    j = int(ev[0] if first else ev[-1])
+    late = ck.delay_arrivals(f, "A3", {j: 6e-4})
+    echo = calibrate(_turned(late, "A3", j, np.radians(40.0)), clock_model="auto")
+    assert not echo["report"]["clock"]["findings"]
+    assert evaluate(echo, truth)["position_rmse_m"] < 1.5 * evaluate(calibrate(f), truth)["position_rmse_m"] + 0.002
+    (s,) = _steps(calibrate(late, clock_model="auto"), "A3")
+    assert (s["after_event"], s["before_event"]) == ((ev[0], ev[1]) if first else (ev[-2], ev[-1]))
+    assert abs(s["size"] - (-6e-4 if first else 6e-4)) < 3 * s["std"]
+
+
 def test_a_large_reference_step_beside_another_arrays_step_is_the_references():
     # a 7 ms reference step bends the fit: its scanned size is off by tens of σ, and the other array's
     # unmodelled step shows in its structure test's row groups; it is resized and set aside, not banned
