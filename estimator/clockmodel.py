@@ -1874,8 +1874,8 @@ def _term_entry(c):
     """report.json's entry of a drift term."""
     if c.kind == "quadratic":
         return {"kind": "quadratic", "slope": c.value, "std": c.std}
-    if c.kind == "warmup":
-        return {"kind": "warmup", "time_constant": c.time, "amplitude": c.value, "std": c.std}
+    if c.kind == "warmup":   # (calib.clock's exponential term)
+        return {"kind": "exp", "amplitude": c.value, "time_constant": c.time, "std": c.std}
     return {"kind": "hinge", "time": c.time, "change": c.value, "std": c.std}
 
 
