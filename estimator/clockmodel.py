@@ -780,6 +780,23 @@ def clock_persistence(p, fs, i, comp, groups, hat, r, b, bb=None, br=None, ids=N
     return persistent_drop(hat, r, b, groups, i < 0, bb=bb, br=br, side=side)
 
 
+def _given(pr, rp, O, B, k, j):
+    """The χ² drop of candidate k once candidate j is fitted: their columns (B's, on the clock's rows O) and the
+    residuals rp projected off the model (``pr``)."""
+    def col(m):
+        full = np.zeros(len(rp))
+        full[O] = B[:, m]
+        return pr.resid(full)
+
+    bk, bj, r = col(k), col(j), rp
+    a = float(bj @ bj)
+    if a <= 0:
+        return float((bk @ r) ** 2 / max(float(bk @ bk), 1e-300))
+    c = float(bk @ bj)
+    den = float(bk @ bk) - c * c / a
+    return float((bk @ r - c * float(bj @ r) / a) ** 2 / den) if den > 1e-12 * float(bk @ bk) else 0.0
+
+
 def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=frozenset()):
     """The best candidate of each kind of clock i in :func:`joint_scan` (``basis``: the projector, the projected
     residuals rp and the clock's rows, :class:`~calib.estimator.clockscan.ClockRows`; ``sw`` the rows'
@@ -835,6 +852,15 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
                         ) if raw[k] > 0 and first > 0 else None
         # chosen by the scan at its multiplicity; its persistence is one more test of that one candidate
         margin = first if kept_drop is None else min(first, kept_drop / scale_i ** 2 - PERSIST_CHI2)
+        if kept_drop is not None and kind == "step" and i >= 0 and end_side(p.t[ids], cands[k].time) is not None:
+            # a step next to the session's start or end is those few arrivals shifted alike: so is the start of a
+            # drift that varies over the session (a warm-up, a quadratic), which shifts the next events too; what
+            # the best of them leaves of its evidence is one more test of it (not a hinge: one at the first
+            # interior event IS the first interval's step, the linear clock absorbing the rest)
+            smooth = [j for j in range(len(cands)) if cands[j].kind in ("quadratic", "warmup") and raw[j] > 0]
+            if smooth:
+                j = max(smooth, key=lambda j: raw[j])
+                margin = min(margin, _given(pr, rp, O, B, k, j) / scale_i ** 2 - PERSIST_CHI2)
         if best is None or margin > best[1]:
             new = have + [cands[k].with_value(value[k])]
             # candidates the rows cannot tell apart (an array without rows at the event between two
