@@ -7,20 +7,25 @@ array adds to its local arrival times (:class:`calib.clock.Clock` ``extra``), wi
 * ``step`` at an interval between two events (at its middle): 1 after it, 0 before — a block of samples
   inserted (c > 0) or dropped (c < 0). It shows as one TDOA-S of +c and every TDOA-M after it shifted by c;
 * ``quadratic``: u²/2 (u = t − t0): the drift changes linearly in time (c: its slope, 1/s);
-* ``hinge`` at an event time h: max(0, u − h): the drift changes by c at h (piecewise-linear clock).
+* ``hinge`` at an event time h: max(0, u − h): the drift changes by c at h (piecewise-linear clock);
+* ``warmup`` of time constant T: T (1 − exp(−u/T)): a drift excess c at the start relaxing as exp(−u/T) (a
+  board warming up; T on a grid, WARMUP_TIME_CONSTANTS).
 
 Selection (:func:`calibrate_clocks`), after a first robust fit (the sources and the other arrays come from
 all the data; a faulty array cannot bend them, the robust tests drop it): for each array, with the sources
 and the reference clock of that fit fixed, a small robust (Huber) fit of its position and clock to its own
 TDOA-S and TDOA-M, with each candidate component in turn (every interval's step, every event's hinge, the
-quadratic). The best candidate is kept when its χ² drop beats the BIC penalty with the scan's multiplicity:
+quadratic, every warm-up). The best candidate is kept when its χ² drop beats the BIC penalty with the scan's multiplicity:
 ``max(ln n, χ²₁ quantile at FAMILY_ALPHA / (arrays × candidates))`` (false steps < FAMILY_ALPHA per session).
 Kept components correct the TDOAs (:func:`correct_features`) and the session is solved again; rounds repeat
 until nothing is kept. Each kept component must have a clock's structure (:func:`structure_test`: the same
 size in the TDOA-S and the TDOA-M, early and late after a step, across the arrays for the reference's and
 the emitter's), which reflections (a blocked line of sight: a detour changing from stop to stop) do not
 have; the rows of arrays the solve dropped or the verdict names are no evidence about the others' clocks
-(:func:`_distrusted`). A last joint Gauss–Newton step adds the components' columns to the full Jacobian
+(:func:`_distrusted`). A step with at most PERSIST_EVENTS events on one side (next to the session's start or
+end) rests on those arrivals alone: it needs the array's DOAs there on the direct path and no frontend doubt
+about those arrivals (:func:`clock_persistence`, :func:`direct_path`), and to keep its evidence once the best
+smooth drift term is fitted (:func:`_given`). A last joint Gauss–Newton step adds the components' columns to the full Jacobian
 (:func:`refine`): their sizes, their 1-σ and the array parameters' 1-σ with them (the step's uncertainty in
 the error bars).
 
