@@ -4,6 +4,8 @@
   up to that image) and the fold onto the plane's positive side.
 - :func:`mic_geometry` / :func:`plane_normal`: what an array's mics can measure (single, linear, planar,
   volume) and a planar array's normal.
+- :func:`doa_covariance`: the shape of a plane-wave DOA's error covariance from the mics' layout (a planar
+  array's elevation error grows as the source nears its plane).
 - :func:`yaw_matrix` / :func:`yaw_rotate`: the rotation ``Rz(ψ)`` about the vertical axis.
 - :func:`local_time` / :func:`arrival_time`: the clock model ``L_i(t) = (1 + δ_i)(t − t_0) + τ_i`` and the
   arrival ``a_ij = L_i(t_j + |s_j − x_i| / c) + β δ_i`` (β: the chirp's drift bias).
@@ -67,6 +69,28 @@ def plane_normal(mics: ArrayLike) -> NDArray | None:
     """Unit normal (3,) of a planar array's mic plane (:func:`mic_geometry`), None for any other geometry."""
     kind, v = mic_geometry(mics)
     return v if kind == "planar" else None
+
+
+def doa_covariance(u: NDArray, mics: ArrayLike, normal: NDArray | None = None, floor: Values = 0.0) -> NDArray:
+    """(J, 3, 3) covariance of plane-wave DOAs u (J, 3) (array frame) per unit variance of the mic positions'
+    projections (m²/s² · s²: multiply by c² σ_t² for one mic's timing variance σ_t²): ``P S⁺ Pᵀ``, S the
+    scatter of the mic positions about their centre. A volume array (``normal`` None): P = I − u uᵀ. A planar
+    array (unit ``normal`` n) measures only the in-plane part v of u; the normal part √(1 − |v|²) follows
+    with P = I − n vᵀ / |u·n| (n on u's side), so the error along the elevation grows as 1/|u·n| while the azimuth's does
+    not (|u·n| floored at ``floor``, where the linearisation ends)."""
+    u = np.asarray(u, float)
+    d = np.asarray(mics, float)
+    d = d - d.mean(axis=0)
+    s_pinv = np.linalg.pinv(d.T @ d)
+    if normal is None:
+        p = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
+    else:
+        nrm = np.asarray(normal, float)
+        h = u @ nrm
+        v = u - h[:, None] * nrm
+        side = np.where(h < 0, -1.0, 1.0)[:, None] * nrm           # the normal on u's side of the plane
+        p = np.eye(3)[None] - side[:, :, None] * v[:, None, :] / np.maximum(np.abs(h), floor)[:, None, None]
+    return p @ s_pinv @ np.transpose(p, (0, 2, 1))
 
 
 def yaw_matrix(psi: float) -> NDArray:

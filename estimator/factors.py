@@ -187,7 +187,10 @@ def doa(p, st, lay):
         H = np.eye(3)[None] - 2.0 * flip[:, None, None] * nf[:, :, None] * nf[:, None, :]
         Rt = H @ Rt
         v = np.einsum("kab,kb->ka", Rt, n)
-    r = (v - u).ravel() / sig
+    # whitened along each row's axes (``DoaRows.axes``: its fit's principal tangent axes, then u)
+    B = p.doa.axes
+    sig = sig * p.doa.axis_scale.ravel()
+    r = np.einsum("kab,kb->ka", B, v - u).ravel() / sig
     # dv/dφ = H [w]x with w = Rᵀn (unfolded) for R → R Exp(φ); dv/ds = H Rᵀ (I − n nᵀ)/d = −dv/dx
     w = np.einsum("kab,kb->ka", H, v) if folded else v  # H is its own inverse
     # [w]x gathered from (w, −w, 0) in one indexing (exact negations, +0.0 on the diagonal)
@@ -195,7 +198,7 @@ def doa(p, st, lay):
     vx = H @ wx if folded else wx
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = Rt @ P
-    vals = np.concatenate([vx, dvds, -dvds], axis=2).reshape(3 * m, 9) / sig[:, None]
+    vals = (B @ np.concatenate([vx, dvds, -dvds], axis=2)).reshape(3 * m, 9) / sig[:, None]
     put(J, np.arange(3 * m), np.repeat(np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]), 3, axis=0),
           vals)
     return Factor("doa", r, J, np.repeat(p.doa.row, 3), 3, True, p.sigma["doa"], sig)

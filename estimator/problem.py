@@ -23,7 +23,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from calib.kinds import KINDS
-from calib.geometry import fold
+from calib.geometry import doa_covariance, fold, mic_geometry
 from calib.tables import ARRAY_PARAMS, LINE_COLUMN, columns
 
 
@@ -95,12 +95,16 @@ class TdoaSRows(Rows):
 @dataclass(frozen=True, eq=False)
 class DoaRows(Rows):
     """DOA: unit vector ``u`` (n, 3) in array ``arr``'s frame toward the source of event ``ev``; ``scale``
-    (n,): each row's sigma relative to the type's (:func:`doa_row_scales`)."""
+    (n,): each row's sigma relative to the type's (:func:`doa_row_scales`); ``axes`` (n, 3, 3): per row the
+    unit vectors (as rows) its residual is whitened along, ``axis_scale`` (n, 3) the sigma along each relative
+    to the row's (:func:`doa_axes`; identity / ones: isotropic)."""
     ev: np.ndarray
     arr: np.ndarray
     u: np.ndarray
     row: np.ndarray
     scale: np.ndarray
+    axes: np.ndarray
+    axis_scale: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -274,8 +278,9 @@ def tdoa_s_rows(df, ix):
 
 
 def doa_rows(df, ix):
+    n = len(df)
     return DoaRows(ix.ev(df["event"]), ix.arr(df["array"]), columns(df, ("ux", "uy", "uz")).reshape(-1, 3), _lines(df),
-                   doa_row_scales(df, ix.meta))
+                   doa_row_scales(df, ix.meta), np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), np.ones((n, 3)))
 
 
 def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0, odometry_yaw=False):
@@ -306,6 +311,7 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     doa = rows.pop("doa")
     doa, cone, cone_axis, rot_fixed_axis = _split_cones(dataclasses.replace(doa, u=fold(doa.u, normals[doa.arr])),
                                                          meta, idx, N)
+    doa = doa_axes(doa, meta, names, sigma["doa"])
     # orientation estimated only for arrays with DOAs for >= MIN_DOA_EVENTS events (single microphones and
     # arrays without usable DOAs: position and clock from the TDOAs, orientation reported undetermined)
     n_doa = np.bincount(doa.arr, minlength=N)
@@ -353,6 +359,36 @@ def doa_row_scales(doa, meta):
     own = pd.to_numeric(doa["sigma_deg"], errors="coerce").to_numpy(float) / typical
     scale2 = (1.0 - DOA_ROW_WEIGHT) + DOA_ROW_WEIGHT * own**2
     return np.where(np.isfinite(scale2), np.sqrt(scale2), 1.0)
+
+
+def doa_axes(doa, meta, names, sigma_doa):
+    """``doa`` with each row's whitening axes and their sigmas (``DoaRows.axes``, ``axis_scale``) from the
+    shape of its plane-wave fit's error covariance (``calib.geometry.doa_covariance``, meta ``mics``): the
+    two principal tangent axes, the better-measured one at the row's sigma and the other at that times the
+    ratio of their stds in that covariance, and the direction itself (second order in the residual) at 1.
+    A planar array measures the in-plane part of a DOA; a source near its plane is then good in azimuth and
+    poor in elevation (1/|u·n|, floored at √σ_doa (rad) as in the frontend's ``doa_spread``). Whitened
+    alike, the elevation errors bent the arrays of the moving preset (seed 6: 2.2° RMS in elevation, 0.07°
+    in azimuth, against 1.3° per axis stated). No axis is held tighter than the row's sigma: whitening them
+    at RMS 1 instead (the azimuth ~√2 |u·n| of it) left fresh moving sessions no better and 3 of 6 with an
+    array beyond 3σ. Arrays with fewer than 3 mics in meta (or none) stay isotropic."""
+    mics = meta.get("mics") or {}
+    axes, scale = np.array(doa.axes), np.array(doa.axis_scale)
+    for i, name in enumerate(names):
+        m = np.flatnonzero(doa.arr == i)
+        if not m.size or len(mics.get(name) or ()) < 3:
+            continue
+        kind, normal = mic_geometry(mics[name])
+        if kind not in ("planar", "volume"):
+            continue
+        u = doa.u[m]
+        cov = doa_covariance(u, mics[name], normal, np.sqrt(sigma_doa))
+        pu = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
+        lam, vec = np.linalg.eigh(pu @ cov @ pu)              # ascending: [≈0 along u, tangent, tangent]
+        lam = np.maximum(lam[:, 1:], 1e-12 * lam[:, 2:])
+        axes[m] = np.concatenate([np.transpose(vec[:, :, 1:], (0, 2, 1)), u[:, None, :]], axis=1)
+        scale[m] = np.column_stack([np.sqrt(lam / lam[:, :1]), np.ones(len(m))])
+    return dataclasses.replace(doa, axes=axes, axis_scale=scale)
 
 
 def _split_cones(doa, meta, idx, N):

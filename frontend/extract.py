@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from calib.blas import single_thread_blas
+from calib.geometry import doa_covariance
 from calib.errors import InputError
 from calib.records import Features
 from calib.tables import event_velocities
@@ -790,16 +791,11 @@ def doa_spread(res, u, mics, c, normal=None, axis=None):
         sig2 = (np.where(ok, res, 0.0) ** 2).sum(axis=1) / np.maximum(n - 2, 1)  # t_0 and θ
         return c * np.sqrt(sig2 / np.sum((d @ np.asarray(axis, float)) ** 2))
     sig2 = _doa_noise_var(res, u, mics, c)
-    s_pinv = np.linalg.pinv(d.T @ d)
-    if normal is None:
-        p = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
-    else:
-        nrm = np.asarray(normal, float)
-        v = u - (u @ nrm)[:, None] * nrm
-        sig_v = c * np.sqrt(sig2 * np.trace(s_pinv) / 2)
-        w = np.maximum(np.abs(u @ nrm), np.sqrt(sig_v))
-        p = np.eye(3)[None] - nrm[None, :, None] * v[:, None, :] / w[:, None, None]
-    tr = np.einsum("jab,bc,jac->j", p, s_pinv, p)
+    floor = 0.0
+    if normal is not None:
+        sig_v = c * np.sqrt(sig2 * np.trace(np.linalg.pinv(d.T @ d)) / 2)
+        floor = np.sqrt(sig_v)
+    tr = np.trace(doa_covariance(u, mics, normal, floor), axis1=1, axis2=2)
     return c * np.sqrt(sig2 * tr / 2)
 
 

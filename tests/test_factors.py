@@ -23,6 +23,21 @@ def test_jacobian_matches_central_differences(kind, planar):
     check_jacobian(feats, kind)
 
 
+CIRCLE6 = [[0.0463 * np.cos(a), 0.0463 * np.sin(a), 0.0] for a in np.arange(6) * np.pi / 3]
+
+
+@pytest.mark.parametrize("planar", [None, (0.3, -0.2, 0.9)])
+def test_doa_jacobian_with_per_row_axes(planar):
+    """The DOA factor whitened along each row's own axes (meta ``mics``: planar 6-mic circles, one array a
+    tetrahedron), mirror-ambiguous arrays or not."""
+    feats, _ = simulate_features(trajectory=3, seed=1, planar=planar)
+    tetra = [[0.05, 0.05, 0.05], [0.05, -0.05, -0.05], [-0.05, 0.05, -0.05], [-0.05, -0.05, 0.05]]
+    feats["meta"]["mics"] = {a: (tetra if k == 1 else CIRCLE6) for k, a in enumerate(feats["meta"]["arrays"])}
+    p = build_problem(feats)
+    assert np.ptp(p.doa.axis_scale[:, :2]) > 0.1   # the axes differ between rows: the test sees them
+    check_jacobian(feats, "doa")
+
+
 def check_jacobian(feats, kind, seed=3):
     """``kind``'s analytic Jacobian on ``feats`` at a random state against central differences (every
     parameter free, emission corrections included). Also used for kinds registered by other tests."""
@@ -69,3 +84,31 @@ def test_a_doa_rows_own_sigma_scales_its_residuals_and_jacobian_rows():
     np.testing.assert_allclose(f1.r * want, f0.r, rtol=1e-12)
     np.testing.assert_allclose(np.asarray(f1.J) * want[:, None], np.asarray(f0.J), rtol=1e-12, atol=1e-300)
     np.testing.assert_allclose(f1.row_sigma, f0.sigma * want, rtol=1e-12)
+
+
+@pytest.mark.parametrize("elev_deg", [6.0, 40.0, -25.0])
+def test_doa_axes_follow_a_planar_fits_errors(elev_deg):
+    """A 6-mic circle's DOAs from noisy mic times (least-squares plane wave on the in-plane slowness, the
+    normal part from |u| = 1): the errors along ``doa_axes``' two tangent axes have the std ratio it states
+    (elevation/azimuth ≈ 1/|u·n| near the plane, ≈ 1 far from it), and the better axis is the azimuth."""
+    from calib.estimator.problem import DoaRows, doa_axes
+
+    rng = np.random.default_rng(7)
+    mics, c, n = np.array(CIRCLE6), 343.0, 4000
+    el, az = np.radians(elev_deg), np.radians(30.0)
+    u = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    t = -(mics @ u) / c + rng.normal(0, 2e-8, (n, len(mics)))       # plane wave + timing noise
+    A = np.column_stack([np.ones(len(mics)), -mics[:, :2] / c])
+    v = np.linalg.lstsq(A, t.T, rcond=None)[0][1:].T                 # (n, 2) in-plane part
+    est = np.column_stack([v, np.sign(u[2]) * np.sqrt(np.clip(1 - (v ** 2).sum(axis=1), 0, None))])
+    rows = DoaRows(np.zeros(1, int), np.zeros(1, int), u[None], np.zeros(1, int), np.ones(1), np.eye(3)[None],
+                   np.ones((1, 3)))
+    out = doa_axes(rows, {"mics": {"A": CIRCLE6.copy()}}, np.array(["A"]), 1e-6)
+    B, f = out.axes[0], out.axis_scale[0]
+    sd = (est - u) @ B[:2].T
+    ratio = np.std(sd[:, 1]) / np.std(sd[:, 0])
+    assert f[0] == 1.0 and f[2] == 1.0
+    assert ratio == pytest.approx(f[1], rel=0.1)
+    assert abs(B[0] @ np.array([-np.sin(az), np.cos(az), 0.0])) > 0.99    # the azimuth axis
+    if abs(elev_deg) < 10:
+        assert f[1] > 5.0
