@@ -19,7 +19,6 @@ fewer than ``MIN_EVENTS`` arrivals nothing is judged.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from .timing import _path_peaks as path_peaks  # per mic, one path's refined time and amplitude near a lag
 from .timing import direct_path_lag, lag_grid, locate, path_model, pulse_envelope, subtract_path
@@ -86,15 +85,59 @@ def _score(res):
 def _refine(q0, idx, arrival, t, s, c, shift, vel, loss="cauchy"):
     """:func:`range_model`'s parameters fitted to the arrivals ``idx`` from ``q0`` (analytic Jacobian), with
     a prior row δ / DRIFT_PRIOR: a far array with a fudged drift mimics a track (a plane wave whose delay
-    trend the drift absorbs; seen 370 m away with δ = −6e-4 on the L-shaped office)."""
+    trend the drift absorbs; seen 370 m away with δ = −6e-4 on the L-shaped office). ``loss``: "cauchy"
+    (every row, the prior too, as scipy's ``least_squares(loss="cauchy", f_scale=1)``) or "linear"."""
+    a, ti, si = arrival[idx], t[idx], s[idx]
     v = None if vel is None else vel[idx]
     prior = np.zeros((1, 5))
     prior[0, 4] = 1.0 / DRIFT_PRIOR
-    return least_squares(
-        lambda q: np.r_[(arrival[idx] - range_model(q, t[idx], s[idx], c, shift, v)) / ROBUST_SCALE_S,
-                        q[4] / DRIFT_PRIOR],
-        q0, jac=lambda q: np.vstack([-_jacobian(q, t[idx], s[idx], c) / ROBUST_SCALE_S, prior]), loss=loss,
-        f_scale=1.0, x_scale=np.r_[1, 1, 1, 1e-3, 1e-5], max_nfev=60).x
+    return _levenberg_marquardt(
+        lambda q: np.r_[(a - range_model(q, ti, si, c, shift, v)) / ROBUST_SCALE_S, q[4] / DRIFT_PRIOR],
+        lambda q: np.vstack([-_jacobian(q, ti, si, c) / ROBUST_SCALE_S, prior]), q0, loss == "cauchy")
+
+
+LM_MAX_ITER = 60        # iterations of the track fit (each one 5 × 5 solve; as scipy's max_nfev before)
+LM_STEP_TOL = 1e-9      # a step below this × X_SCALE in every parameter ends the fit (nm, fs, 1e-14 drift)
+X_SCALE = np.array([1.0, 1.0, 1.0, 1e-3, 1e-5])   # the parameters' natural sizes (m, m, m, s, 1)
+
+
+def _levenberg_marquardt(fun, jac, q, robust):
+    """Minimise Σ ρ(f_i(q)²) of the 5 track parameters: ρ(z) = log(1 + z) (Cauchy, ``robust``) or z.
+
+    Iteratively reweighted Gauss–Newton (weights ρ'(f²) = 1 / (1 + f²): its fixed point is the cost's
+    stationary point) with Levenberg's damping in the parameters scaled by X_SCALE (as scipy's trust
+    region with ``x_scale``: a planar trajectory leaves the height of the array nearly free, which a damping
+    scaled by the curvature would not hold); a step is taken only when it lowers the cost. A closed 5 × 5
+    solve per iteration instead of scipy's trust-region machinery (~4× less CPU, the same minimum: the
+    features agree to the fit's tolerance). q (5,) start; returns q (5,)."""
+    cost = (lambda f: float(np.sum(np.log1p(f * f)))) if robust else (lambda f: float(np.sum(f * f)))
+    q = np.asarray(q, float).copy()
+    f = fun(q)
+    c0, lam = cost(f), None
+    for _ in range(LM_MAX_ITER):
+        J = jac(q) * X_SCALE
+        Jw = J / (1.0 + f * f)[:, None] if robust else J
+        A, g = J.T @ Jw, Jw.T @ f
+        lam = 1e-3 * float(np.max(np.diag(A))) if lam is None else lam
+        while True:
+            try:
+                step = -np.linalg.solve(A + lam * np.eye(len(q)), g) * X_SCALE
+            except np.linalg.LinAlgError:
+                step = np.full(len(q), np.nan)
+            qn = q + step
+            fn = fun(qn)
+            cn = cost(fn) if np.all(np.isfinite(fn)) else np.inf
+            if cn <= c0:
+                break
+            lam *= 10.0
+            if not lam < 1e30:   # no step lowers the cost: q is the minimum (to rounding)
+                return q
+        q, f, lam = qn, fn, lam / 10.0
+        done = np.all(np.abs(step) < LM_STEP_TOL * X_SCALE) or c0 - cn <= 1e-15 * max(c0, 1e-300)
+        c0 = cn
+        if done:
+            break
+    return q
 
 
 def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
