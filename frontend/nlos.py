@@ -145,8 +145,9 @@ def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
 
     First a robust (Cauchy) fit to all arrivals from the linear start (:func:`linear_start`) and from above
     the trajectory's centre. When it leaves arrivals EARLY (a direct path is never early: the fit followed
-    reflections), RANSAC: tracks fitted to subsets (:func:`_candidates`, fixed seed) and then to their
-    inliers, each scored by its support (:func:`_score`); the best track is kept.
+    reflections), the latest arrivals peeled off one by one (:func:`_peel`) and, unless that found the
+    direct paths' track (:func:`_enough`), RANSAC: tracks fitted to subsets (:func:`_candidates`, fixed
+    seed) and then to their inliers, each scored by its support (:func:`_score`); the best track is kept.
     ``delta0``: a drift guess (0 is better than the association's scale − 1, which carries the trend of
     the propagation delays: up to 7e-4 in the hall, which sent one array's fit to RANSAC).
     arrival (J,) local s; t (J,) emission times − t_emit[0]; s (J, 3) odometry; vel (J, 3) or None.
@@ -170,6 +171,11 @@ def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
     early = np.flatnonzero(arrival - model(best) < -NLOS_MIN_S)
     if not early.size:
         return best, arrival - model(best)
+    q, sc = _peel(best, arrival, t, s, c, shift, vel)
+    if sc > best_score:
+        best, best_score = q, sc
+    if _enough(arrival - model(best)):
+        return best, arrival - model(best)
     # the early group itself (the direct paths when the fit followed the reflections), then the subsets
     for idx in ([early] if early.size >= SUBSET else []) + _candidates(j, np.random.default_rng(0)):
         q0 = linear_start(arrival[idx] - delta0 * t[idx], t[idx], s[idx], c)
@@ -183,9 +189,32 @@ def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
         sc = _score(res)
         if sc > best_score:
             best, best_score = q, sc
-        if not np.any(res < -NLOS_MIN_S) and np.sum(np.abs(res) < INLIER_S) >= max(MIN_INLIERS, j / 3):
-            break   # a track with a third of the arrivals on it and none early: the direct paths' (enough)
+        if _enough(res):
+            break
     return best, arrival - model(best)
+
+
+def _enough(res):
+    """A track with a third of the arrivals on it and none early: the direct paths' (no need to search on)."""
+    return not np.any(res < -NLOS_MIN_S) and np.sum(np.abs(res) < INLIER_S) >= max(MIN_INLIERS, len(res) / 3)
+
+
+def _peel(q, arrival, t, s, c, shift, vel):
+    """The track left when the latest arrivals are taken off one at a time (a reflection is late, never
+    early): from the compromise track ``q`` of all arrivals, the arrival latest against it is dropped and
+    the track refitted to the rest, down to MIN_INLIERS arrivals; the best-scored (:func:`_score`) track on
+    the way. Where the line of sight comes and goes in runs shorter than SUBSET (an office's doorways:
+    8 direct paths of 16 in runs of 2–4), no window and few random subsets hold direct paths only, while
+    the reflections, metres late, are peeled off first. Returns (q (5,), score)."""
+    model = lambda qq: range_model(qq, t, s, c, shift, vel)
+    keep, best, best_score = np.arange(len(arrival)), q, _score(arrival - model(q))
+    while len(keep) > MIN_INLIERS:
+        keep = keep[keep != keep[np.argmax((arrival - model(q))[keep])]]
+        q = _refine(q, keep, arrival, t, s, c, shift, vel, loss="linear")
+        sc = _score(arrival - model(q))
+        if sc > best_score:
+            best, best_score = q, sc
+    return best, best_score
 
 
 def _judge(res):
