@@ -77,3 +77,14 @@ def test_peel_finds_the_direct_track_from_a_compromise():
     assert np.all(np.abs(res[los]) < nlos.INLIER_S)
     assert np.all(res[~los] > nlos.NLOS_MIN_S)
     assert score == int(los.sum())
+
+
+def test_setup_check_leaves_out_reflection_only_arrivals():
+    """The set-up check's channel and geometry tests take the frontend's detections less the events whose
+    arrival there is flagged nlos (diagnostics.json), the flag matched as a whole word of the '+' list."""
+    from calib.pipeline.setupcheck import nlos_events
+    diag = {"arrays": {"A1": {"arrivals": [{"event": 0, "flag": "track"}, {"event": 3, "flag": "weak_direct+nlos"},
+                                           {"event": 5, "flag": "nlos"}, {"event": 7, "flag": ""}]},
+                       "A2": {"arrivals": [{"event": 3, "flag": "doa_reflection"}]}}}
+    assert nlos_events(diag, "A1") == [3, 5]
+    assert nlos_events(diag, "A2") == [] and nlos_events(diag, "A9") == [] and nlos_events(None, "A1") == []
