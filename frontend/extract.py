@@ -29,7 +29,7 @@ from .arrayresult import ArrayResult
 from .detect import background, matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
-from .nlos import late_arrivals, retime_earlier
+from .nlos import TRACK_SCALE_MAX, late_arrivals, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, shared_setup,
@@ -713,6 +713,10 @@ def flag_nlos(results, events, shift, c):
             r["warnings"].append(f"{n} of {len(j)} arrivals are late against the array's range track along the "
                                  "odometry by more than a direct path can be (reflection only: line of sight "
                                  "blocked, flagged nlos)")
+        if ev["scale"] > TRACK_SCALE_MAX:
+            r["warnings"].append(f"the arrivals follow no range track along the odometry (robust scatter "
+                                 f"{1e3 * ev['scale']:.1f} ms about the best one): reflection-only arrivals are not "
+                                 "judged (is the odometry in metres, and this session's?)")
         if ev["early"] >= max(3, 0.1 * len(j)):
             r["warnings"].append(f"{ev['early']} arrivals are early against the array's range track: most of its "
                                  "arrivals may be reflections (line of sight blocked)")
