@@ -88,3 +88,18 @@ def test_setup_check_leaves_out_reflection_only_arrivals():
                        "A2": {"arrivals": [{"event": 3, "flag": "doa_reflection"}]}}}
     assert nlos_events(diag, "A1") == [3, 5]
     assert nlos_events(diag, "A2") == [] and nlos_events(diag, "A9") == [] and nlos_events(None, "A1") == []
+
+
+def test_arrivals_on_no_track_judge_nothing():
+    """Arrivals that follow no range track along the odometry (scattered by 5 ms about the true one: odometry
+    not of this session, or in other units on a rendered room) leave a track whose own arrivals scatter by
+    more than TRACK_SCALE_MAX: no arrival is called a reflection; with 20 µs of scatter the same reflections
+    are flagged."""
+    los = np.array([int(x) for x in "1111001111110011"], bool)
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        t, s, direct, reflected = _track(rng, n=16)
+        a = np.where(los, direct, reflected)
+        assert np.array_equal(nlos.late_arrivals(a, t, s, C)["nlos"], ~los)
+        ev = nlos.late_arrivals(a + rng.normal(0.0, 5e-3, 16), t, s, C)
+        assert ev["scale"] > nlos.TRACK_SCALE_MAX and not ev["nlos"].any() and np.all(np.isnan(ev["late"]))
