@@ -19,6 +19,12 @@ time is not the cost; the stage's plots and files are not counted) as a percenta
 duration (empty when a kept output's features stage was reused). Then per group the medians, the worst seed
 and how many unflagged arrays are beyond 2σ / 3σ. With ``--work`` the outputs are kept there too (``WORK/out``):
 a rerun with the same code reuses every stage.
+
+``--oracle`` adds, for sessions whose truth says which arrivals had the line of sight (truth/los.csv), each
+array's position error when the same features keep exactly the rows of line-of-sight arrivals (both of a
+TDOA's, the reference's too; flags cleared) and the estimator runs as in `calib run`: what perfect NLOS
+evidence would give from these arrivals (nan: an array with no line-of-sight row). An array off by as much
+there is limited by its direct paths' own errors and the geometry, not by the screening (issue 27).
 """
 from __future__ import annotations
 
@@ -34,6 +40,7 @@ import numpy as np
 import pandas as pd
 
 from calib.pipeline import features
+from calib.pipeline.formats.io import read_features
 from calib.pipeline.run import run
 
 DEFAULT = ["lab:0-4", "lab:0-4:chirp.kind=exponential", "lab:0-4:directivity=omni", "hard:0-4"]  # issue 9: 5 seeds
@@ -101,6 +108,36 @@ def one(d, out, reuse=False):
             f"{rest_worst['array']} {100 * rest_worst['position_m']:.1f} / {rest_worst['geodesic_deg']:.1f}",
             "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-",
             "cpu_pct": 100 * cpu.get("s", np.nan) / diag["recording_duration_s"]}
+
+
+def los_rows(df, los, ref):
+    """The rows of a features table whose arrivals all had the line of sight (``los``: (array, event) → 0/1;
+    a TDOA-M row needs the reference's arrival too), their ``flag`` cleared."""
+    if "from_event" in df.columns:
+        keys = [[(a, e1), (a, e2)] for a, e1, e2 in zip(df["array"], df["from_event"], df["to_event"])]
+    else:
+        keys = [[(a, e)] + ([(ref, e)] if "tdoa" in df.columns else []) for a, e in zip(df["array"], df["event"])]
+    keep = np.array([all(los.get(k, 1) == 1 for k in ks) for ks in keys], bool)
+    return df[keep].assign(flag="") if "flag" in df.columns else df[keep]
+
+
+def oracle_text(d, out):
+    """``A2 1.5, A3 4.4 cm``: each non-reference array's position error (cm) calibrated from the line-of-sight
+    rows only (:func:`los_rows`); "" without truth/los.csv."""
+    from calib.estimator import calibrate
+    from calib.pipeline.report.evaluate import evaluate
+
+    path = d / "truth" / "los.csv"
+    if not path.is_file():
+        return ""
+    los = pd.read_csv(path)
+    los = dict(zip(zip(los["array"].astype(str), los["event"].astype(int)), los["los"].astype(int)))
+    feats = read_features(out / "features")
+    ref = str(feats["meta"]["reference_array"])
+    feats = feats.replace(**{n: los_rows(feats[n], los, ref) for n in ("tdoa_m", "tdoa_s", "doa")})
+    truth = {n: pd.read_csv(d / "truth" / f"{n}.csv") for n in ("arrays", "sources")}
+    per = evaluate(calibrate(feats, loss="cauchy"), truth)["per_array"]
+    return ", ".join(f"{a['array']} {100 * a['position_m']:.1f}" for a in per if a["array"] != ref) + " cm"
 
 
 def position_z2(estimated, truth, named):
@@ -172,14 +209,17 @@ def main():
     ap.add_argument("--only", nargs="+", help="session specs instead of the default set (see above)")
     ap.add_argument("--hall", action="store_true", help="add hall seeds 0-4 to the default set")
     ap.add_argument("--work", type=Path, help="keep (and reuse) the simulated sessions here")
+    ap.add_argument("--oracle", action="store_true", help="add each array's error from the line-of-sight rows only "
+                                                          "(truth/los.csv; see above)")
     args = ap.parse_args()
     specs = args.only or DEFAULT + (HALL if args.hall else [])
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         print("| session | position RMSE (cm) | orientation (deg) | worst array (cm / deg) | verdict | flagged "
               "| worst unflagged (cm / deg) | error / stated std (RMS) | unflagged > 3σ | frontend CPU (% of audio) "
-              "| per array: error / (error ÷ stated std), position and orientation |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
+              "| per array: error / (error ÷ stated std), position and orientation |"
+              + (" oracle: line-of-sight rows only |" if args.oracle else ""))
+        print("|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if args.oracle else ""))
         groups = {}
         for spec in specs:
             preset, seeds, sets = parse_spec(spec)
@@ -187,12 +227,13 @@ def main():
             for seed in seeds:
                 d = session_dir(work, preset, seed, sets)
                 simulate(d, preset, seed, sets)
-                r = one(d, (args.work or Path(tmp)) / "out" / d.name, reuse=args.work is not None)
+                out = (args.work or Path(tmp)) / "out" / d.name
+                r = one(d, out, reuse=args.work is not None)
                 groups.setdefault(name, []).append(r)
                 print(f"| {name}, seed {seed} | {r['loc_cm']:.2f} | {r['geo_deg']:.2f} | {r['worst']} "
                       f"| {r['status']} | {r['flagged']} | {r['rest']} | {rms_z(r['z2']):.2f} | {beyond_text(r)} "
-                      f"| {r['cpu_pct']:.2f} | {per_array_text(r['arrays'])} |",
-                      flush=True)
+                      f"| {r['cpu_pct']:.2f} | {per_array_text(r['arrays'])} |"
+                      + (f" {oracle_text(d, out)} |" if args.oracle else ""), flush=True)
         print()
         print("| group | sessions | median position (cm) | median orientation (deg) | worst seed (cm) "
               "| verdicts | error / stated std (RMS, pooled) | arrays > 2σ / > 3σ (unflagged; in `ok`) "

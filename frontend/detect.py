@@ -1,6 +1,8 @@
 """Chirp detection: matched-filter envelope of a whole recording (block-wise) and robust peak picking."""
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.fft as sfft
 
@@ -89,20 +91,20 @@ def _columns(x, a, b):
     return np.concatenate([np.zeros((x.shape[0], -a), x.dtype), x[:, 0 : max(b, 0)]], axis=1)
 
 
-def block_levels(env, block):
+def block_levels(env, block, median=None):
     """Robust local background of an envelope, one level per block of ``block`` samples: per-block medians,
     the max over each block's neighbours, at least the global median. The last block is partial where
     ``block`` does not divide N: the levels cover the N samples.
 
     Reverberant tails raise the background after every chirp; a peak must stand out from this local
-    level (and from the global median) to count as a detection.
+    level (and from the global median) to count as a detection. median : ``np.median(env)`` when known.
     """
     n = len(env)
     nb = max(1, n // block)
     med = np.median(env[: nb * block].reshape(nb, -1), axis=-1) if n >= block else np.array([np.median(env)])
     med = np.r_[med, med[-1]] if nb * block < n and n >= block else med  # the partial last block
     neigh = np.maximum(med, np.maximum(np.r_[med[1:], med[-1]], np.r_[med[0], med[:-1]]))
-    return np.maximum(neigh, np.median(env))
+    return np.maximum(neigh, np.median(env) if median is None else median)
 
 
 def local_floor_at(level, block, a, b):
@@ -140,7 +142,27 @@ def _segments(env, pos, dist):
     return spans
 
 
-def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
+BLOCK_S = 0.25   # s: the blocks of the local background (:func:`block_levels`) of the detections
+
+
+class Background(NamedTuple):
+    """An envelope's local background: ``levels`` (:func:`block_levels` in blocks of ``block`` samples) and
+    the whole envelope's ``median`` (their floor)."""
+    levels: np.ndarray
+    block: int
+    median: float
+
+
+def background(env, env_rate, block_s=BLOCK_S):
+    """:class:`Background` of ``env`` in blocks of ``block_s`` seconds. Computed once per envelope and shared
+    by :func:`pick_peaks`, :func:`redetect` and the detection plot's summary (each a median over every
+    sample: a tenth of the frontend on a hall)."""
+    block = max(1, int(block_s * env_rate))
+    median = float(np.median(env))
+    return Background(block_levels(env, block, median), block, median)
+
+
+def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=BLOCK_S, levels=None):
     """Detections in a matched-filter envelope.
 
     Parameters
@@ -148,6 +170,7 @@ def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
     env : (N,) envelope sampled at ``env_rate`` (Hz).
     min_separation : s; of two peaks closer than this only the higher one is kept.
     threshold : a peak must exceed ``threshold`` × the local background (:func:`block_levels`).
+    levels : :func:`background` of ``env`` when already computed.
 
     Returns
     -------
@@ -158,8 +181,7 @@ def pick_peaks(env, env_rate, min_separation, threshold=8.0, block_s=0.25):
     distance)``), found only around the samples above the threshold (:func:`_segments`): memory bounded by
     the chirps, not the recording (find_peaks on a whole 2-hour envelope at 4.8 kHz holds ~0.8 GB of float64 copies and local maxima).
     """
-    block = max(1, int(block_s * env_rate))
-    level = block_levels(env, block)
+    level, block, _ = background(env, env_rate, block_s) if levels is None else levels
     dist = max(1, int(min_separation * env_rate))
     found = [a + find_peaks(env[a:b], threshold * local_floor_at(level, block, a, b), dist)
              for a, b in _segments(env, _above(env, level, block, threshold), dist)]
@@ -212,7 +234,7 @@ def refine_peak(y, k):
     return k + np.clip(off, -0.5, 0.5)
 
 
-def redetect(env, env_rate, times, half_window, threshold, block_s=0.25):
+def redetect(env, env_rate, times, half_window, threshold, block_s=BLOCK_S, levels=None):
     """Look for chirps the global detection missed, near times where they must be.
 
     The association's clock line predicts when each missed event arrives; within that narrow window a
@@ -221,11 +243,11 @@ def redetect(env, env_rate, times, half_window, threshold, block_s=0.25):
     raises the local background) without making it any less a chirp.
 
     env : (N,) envelope at ``env_rate``. times : (K,) predicted arrival times (s). half_window : s.
-    threshold : peak / local background needed. Returns idx (K,) int envelope samples (−1: nothing) and
-    score (K,) (nan where nothing).
+    threshold : peak / local background needed. levels : :func:`background` of ``env`` when already
+    computed. Returns idx (K,) int envelope samples (−1: nothing) and score (K,) (nan where
+    nothing).
     """
-    block = max(1, int(block_s * env_rate))
-    level = block_levels(env, block)   # sample q's floor: level[q // block]
+    level, block, _ = background(env, env_rate, block_s) if levels is None else levels   # q's floor: level[q // block]
     idx = np.full(len(times), -1)
     score = np.full(len(times), np.nan)
     h = max(1, int(round(half_window * env_rate)))

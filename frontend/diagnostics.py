@@ -16,12 +16,12 @@ def _pool(env, rate, width=PLOT_POINTS):
     return (np.arange(len(y)) * k + k / 2) / rate, y
 
 
-def envelope_summary(env, rate):
+def envelope_summary(env, rate, median=None):
     """What the detection plot draws of a matched-filter envelope: ``(t, y, median)``, the envelope max-pooled
     to about :data:`PLOT_POINTS` and the full envelope's median (its 0 dB). Kept instead of the envelope itself,
-    which grows with the recording (2 h at 48 kHz: 126 MB per array)."""
+    which grows with the recording (2 h at 48 kHz: 126 MB per array). median : ``np.median(env)`` when known."""
     t, y = _pool(np.asarray(env), rate)
-    return t, y, float(np.median(env))
+    return t, y, float(np.median(env) if median is None else median)
 
 
 # margins of the detection plot, inches: tick labels + "dB" left, suptitle + first title on top, x label below,

@@ -27,10 +27,10 @@ from calib.tables import event_velocities
 
 from . import associate as assoc_mod
 from .arrayresult import ArrayResult
-from .detect import matched_envelope, pick_peaks, redetect, refine_peak
+from .detect import background, matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
-from .nlos import late_arrivals, retime_earlier
+from .nlos import TRACK_SCALE_MAX, late_arrivals, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, shared_setup,
@@ -299,7 +299,8 @@ def detect_array(a, session, t_emit, c, opt):
         env, dec = matched_envelope(x.channel_sum(), template, fs, band)  # (1, N): summed as read
         env_rate = fs / dec
         spacing = np.min(np.diff(t_emit)) if len(t_emit) > 1 else np.inf
-        idx, score = pick_peaks(env, env_rate, min(dur, 0.5 * spacing), opt["threshold"])
+        levels = background(env, env_rate)   # shared by the detection and the second look at missed events
+        idx, score = pick_peaks(env, env_rate, min(dur, 0.5 * spacing), opt["threshold"], levels=levels)
         det_t = refine_peak(env, idx) / env_rate if len(idx) else np.zeros(0)
         timings["detect"] = time.perf_counter() - t0
 
@@ -308,7 +309,7 @@ def detect_array(a, session, t_emit, c, opt):
         if asc["n_matched"] < 2:
             raise InputError(f"{a['wav']}: found {asc['n_matched']} chirp(s) matching the events in events.csv "
                              f"({len(det_t)} detection(s)); need at least 2")
-        det_t, score, redetected = _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt)
+        det_t, score, redetected = _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt, levels)
         timings["associate"] = time.perf_counter() - t0
         x.release()  # the detection's last pages: the timing reads only the event segments
     except BaseException:
@@ -316,7 +317,7 @@ def detect_array(a, session, t_emit, c, opt):
         raise
     # the envelope grows with the recording: only what the detection plot draws is kept
     return {"a": a, "x": x, "fs": fs, "template": template, "band": band, "dur": dur, "n_samples": len(env) * dec,
-            "env": envelope_summary(env, env_rate), "dec": dec, "env_rate": env_rate, "det_t": det_t, "score": score, "asc": asc, "redetected": redetected,
+            "env": envelope_summary(env, env_rate, levels.median), "dec": dec, "env_rate": env_rate, "det_t": det_t, "score": score, "asc": asc, "redetected": redetected,
             "timings": timings}
 
 
@@ -619,10 +620,11 @@ DOUBT_PENALTY = 0.5      # each doubt halves an arrival's quality
 OCCLUDED_FRACTION = 0.3  # "weak_direct" in at least this fraction of an array's events: flagged "occluded"
 
 
-def _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt):
+def _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt, levels=None):
     """Events the association left without a detection: look again near their predicted arrival time at
     ``redetect_threshold`` (the window: the matched arrivals' largest deviation from the clock line, plus
-    5 ms, at most ``max_distance`` / c and the association tolerance). Updates ``asc`` in place.
+    5 ms, at most ``max_distance`` / c and the association tolerance; ``levels``: the envelope's background,
+    :func:`detect.background`). Updates ``asc`` in place.
     Returns (det_t, score, redetected (K,) bool per event)."""
     e = t_emit - t_emit[0]
     pred = asc["offset"] + asc["scale"] * e
@@ -633,7 +635,7 @@ def _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt):
     got = np.flatnonzero(asc["det_of"] >= 0)
     dev = np.max(np.abs(det_t[asc["det_of"][got]] - pred[got]))
     half = min(dev + 0.005, opt["max_distance"] / c, asc["tolerance"])
-    idx, sc = redetect(env, env_rate, pred[missed], half, opt["redetect_threshold"])
+    idx, sc = redetect(env, env_rate, pred[missed], half, opt["redetect_threshold"], levels=levels)
     taken = det_t[asc["det_of"][got]]
     for j, q, s in zip(missed, idx, sc):
         t = refine_peak(env, q) / env_rate if q >= 0 else np.nan
@@ -712,6 +714,10 @@ def flag_nlos(results, events, shift, c):
             r["warnings"].append(f"{n} of {len(j)} arrivals are late against the array's range track along the "
                                  "odometry by more than a direct path can be (reflection only: line of sight "
                                  "blocked, flagged nlos)")
+        if ev["scale"] > TRACK_SCALE_MAX:
+            r["warnings"].append(f"the arrivals follow no range track along the odometry (robust scatter "
+                                 f"{1e3 * ev['scale']:.1f} ms about the best one): reflection-only arrivals are not "
+                                 "judged (is the odometry in metres, and this session's?)")
         if ev["early"] >= max(3, 0.1 * len(j)):
             r["warnings"].append(f"{ev['early']} arrivals are early against the array's range track: most of its "
                                  "arrivals may be reflections (line of sight blocked)")
