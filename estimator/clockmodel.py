@@ -7,20 +7,25 @@ array adds to its local arrival times (:class:`calib.clock.Clock` ``extra``), wi
 * ``step`` at an interval between two events (at its middle): 1 after it, 0 before — a block of samples
   inserted (c > 0) or dropped (c < 0). It shows as one TDOA-S of +c and every TDOA-M after it shifted by c;
 * ``quadratic``: u²/2 (u = t − t0): the drift changes linearly in time (c: its slope, 1/s);
-* ``hinge`` at an event time h: max(0, u − h): the drift changes by c at h (piecewise-linear clock).
+* ``hinge`` at an event time h: max(0, u − h): the drift changes by c at h (piecewise-linear clock);
+* ``warmup`` of time constant T: T (1 − exp(−u/T)): a drift excess c at the start relaxing as exp(−u/T) (a
+  board warming up; T on a grid, WARMUP_TIME_CONSTANTS).
 
 Selection (:func:`calibrate_clocks`), after a first robust fit (the sources and the other arrays come from
 all the data; a faulty array cannot bend them, the robust tests drop it): for each array, with the sources
 and the reference clock of that fit fixed, a small robust (Huber) fit of its position and clock to its own
 TDOA-S and TDOA-M, with each candidate component in turn (every interval's step, every event's hinge, the
-quadratic). The best candidate is kept when its χ² drop beats the BIC penalty with the scan's multiplicity:
+quadratic, every warm-up). The best candidate is kept when its χ² drop beats the BIC penalty with the scan's multiplicity:
 ``max(ln n, χ²₁ quantile at FAMILY_ALPHA / (arrays × candidates))`` (false steps < FAMILY_ALPHA per session).
 Kept components correct the TDOAs (:func:`correct_features`) and the session is solved again; rounds repeat
 until nothing is kept. Each kept component must have a clock's structure (:func:`structure_test`: the same
 size in the TDOA-S and the TDOA-M, early and late after a step, across the arrays for the reference's and
 the emitter's), which reflections (a blocked line of sight: a detour changing from stop to stop) do not
 have; the rows of arrays the solve dropped or the verdict names are no evidence about the others' clocks
-(:func:`_distrusted`). A last joint Gauss–Newton step adds the components' columns to the full Jacobian
+(:func:`_distrusted`). A step with at most PERSIST_EVENTS events on one side (next to the session's start or
+end) rests on those arrivals alone: it needs the array's DOAs there on the direct path and no frontend doubt
+about those arrivals (:func:`clock_persistence`, :func:`direct_path`), and to keep its evidence once the best
+smooth drift term is fitted (:func:`_given`). A last joint Gauss–Newton step adds the components' columns to the full Jacobian
 (:func:`refine`): their sizes, their 1-σ and the array parameters' 1-σ with them (the step's uncertainty in
 the error bars).
 
@@ -61,6 +66,10 @@ MIN_EVENTS = 6          # fewer events: the linear clock only (nothing to test a
 # a drift term implying a larger change over the session is a geometric error (reflections) in clock guise
 MAX_DRIFT_CHANGE = 20e-6
 MAX_STEP = 0.5          # s: buffer under- and overruns lose or repeat ms (USB: 0.5-20 ms); larger is no clock step
+# a board warming up: its drift relaxes exponentially to the crystal's (thermal time constants of minutes); the
+# warm-up candidates' time constants (s), a factor 2 apart (the nearest one's shape fits any between them to a few
+# % of its curvature); those beyond the session's length are the quadratic already
+WARMUP_TIME_CONSTANTS = (25.0, 50.0, 100.0, 200.0, 400.0, 800.0)
 RATE_ERROR_MIN = 5e-3   # |drift| beyond any crystal's (±100 ppm typical): a wrong nominal rate
 RATE_MATCH_TOL = 5e-4   # a rate ratio this close to a ratio of two common rates names them
 EMITTER = "(emitter)"   # models key of the emitter's own timing: the same term in every array's clock
@@ -83,8 +92,9 @@ MAX_REJECTED = 8        # components rejected by their structure before the sele
 
 @dataclass(frozen=True)
 class Component:
-    """One extra clock component of an array: ``kind`` in (step, quadratic, hinge), ``time`` (s since t0;
-    the step's instant, the hinge's knot; 0 for the quadratic), coefficient ``value`` and its 1-σ."""
+    """One extra clock component of an array: ``kind`` in (step, quadratic, hinge, warmup), ``time`` (s since t0;
+    the step's instant, the hinge's knot, the warm-up's time constant T; 0 for the quadratic), coefficient
+    ``value`` (the warm-up's: its drift excess at t0, relaxing as exp(−u/T)) and its 1-σ."""
     kind: str
     time: float
     value: float
@@ -97,6 +107,8 @@ class Component:
             return (u >= self.time).astype(float)
         if self.kind == "quadratic":
             return 0.5 * u * u
+        if self.kind == "warmup":
+            return _warmup(u, self.time)
         return np.maximum(u - self.time, 0.0)
 
     def plausible(self, duration):
@@ -104,12 +116,19 @@ class Component:
         a step is at most MAX_STEP."""
         if self.kind == "quadratic":
             return abs(self.value) * duration <= MAX_DRIFT_CHANGE
-        if self.kind == "hinge":
+        if self.kind in ("hinge", "warmup"):
             return abs(self.value) <= MAX_DRIFT_CHANGE
         return bool(np.isfinite(self.value)) and abs(self.value) <= MAX_STEP
 
     def with_value(self, value, std=None):
         return Component(self.kind, self.time, float(value), std)
+
+
+def _warmup(u, T):
+    """T (1 − exp(−u/T)): the extra local time of a drift excess exp(−u/T) (u ≥ 0; linear before), as
+    :func:`calib.clock._exp_term` with a unit amplitude."""
+    u = np.asarray(u, float)
+    return -T * np.expm1(-np.maximum(u, 0.0) / T) + np.minimum(u, 0.0)
 
 
 def basis_matrix(comps, u):
@@ -123,6 +142,8 @@ def basis_matrix(comps, u):
     out[:, kind == "quadratic"] = 0.5 * (u * u)[:, None]
     hinge = kind == "hinge"
     out[:, hinge] = np.maximum(u[:, None] - time[hinge][None, :], 0.0)
+    warm = kind == "warmup"
+    out[:, warm] = _warmup(u[:, None], time[warm][None, :])
     return out
 
 
@@ -138,6 +159,7 @@ def as_clock(components, offset=0.0, drift=0.0, t0=0.0):
     """The :class:`calib.clock.Clock` of a linear clock plus components (steps and drift terms)."""
     steps = tuple(Step(c.time, c.value, c.std) for c in components if c.kind == "step")
     terms = tuple(Term("quadratic", {"slope": c.value}) if c.kind == "quadratic"
+                  else Term("exp", {"amplitude": c.value, "time_constant": c.time}) if c.kind == "warmup"
                   else Term("hinge", {"time": c.time, "change": c.value}) for c in components if c.kind != "step")
     return Clock(offset, drift, t0, steps, terms)
 
@@ -317,8 +339,8 @@ def fit_array(D, comps, x0, g0, tau0):
 
 def candidates(u, comps):
     """Components to test on this array: a step in every interval between consecutive event times (but those
-    next to a step it has), the quadratic, a hinge at every interior event time but the last (those already
-    in ``comps`` left out)."""
+    next to a step it has), the quadratic, a hinge at every interior event time but the last, a warm-up of each
+    time constant in WARMUP_TIME_CONSTANTS within the session's length (those already in ``comps`` left out)."""
     t = np.unique(u)
     have = {(c.kind, round(c.time, 9)) for c in comps}
     # no step next to one already there: two opposite steps around one event are that event's arrival off
@@ -326,13 +348,19 @@ def candidates(u, comps):
     out = [Component("step", 0.5 * (t[k] + t[k + 1]), 0.0) for k in range(len(t) - 1) if k not in near]
     # (no hinge at the last interior event: it moves only the last event, as a step in the last interval)
     out += [Component("quadratic", 0.0, 0.0)] + [Component("hinge", float(v), 0.0) for v in t[1:-2]]
+    out += [Component("warmup", T, 0.0) for T in _warmups(t)]
     return [c for c in out if (c.kind, round(c.time, 9)) not in have]
+
+
+def _warmups(t):
+    """The warm-up time constants tested over event times t: those up to the session's length."""
+    return [T for T in WARMUP_TIME_CONSTANTS if T <= np.ptp(t)] if len(t) > 1 else []
 
 
 def family_sizes(u):
     """Number of candidates :func:`candidates` tests for event times u (the scans' multiplicity)."""
     k = len(np.unique(u))
-    return max(k - 1, 1) + 1 + max(k - 3, 1)
+    return max(k - 1, 1) + 1 + max(k - 3, 1) + len(_warmups(np.unique(u)))
 
 
 def penalty(kind, n, n_arrays, n_candidates):
@@ -364,6 +392,9 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     if not D.ref and reference:   # the reference's step, seen from here
         cands += [Component("mshift", c.time, 0.0) for c in cands if c.kind == "step"]
     cands = [c for c in cands if _key(c) not in skip]   # (rejected by their structure: :func:`structure_test`)
+    # no step next to the session's start or end: it rests on those few arrivals, which bend no fit; the joint
+    # scan judges it with its persistence and direct path at once (:func:`clock_persistence`)
+    cands = [c for c in cands if c.kind not in ("step", "mshift") or end_side(D.u, c.time) is None]
     tested = len(cands)
     if tested > FIT_ALL_MAX:   # a long session: robust fits of the locally best few of each kind only
         cands = _prescreen(D, base, (xb, gb, tb, cb, rb), cands)
@@ -378,7 +409,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     # (the MAD: this fit holds the sources where a large fault may have bent them, its rows are not clean yet)
     scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
     best = None
-    for kind in ("step", "mshift", "quadratic", "hinge"):
+    for kind in ("step", "mshift", "quadratic", "hinge", "warmup"):
         fam = [f for f in fits if f[1].kind == kind]
         if not fam:
             continue
@@ -436,7 +467,7 @@ def _prescreen(D, base, fit, cands):
             [c for c in fam if c.kind == "hinge"]
         score.update({_key(c): v for c, v in zip(order, L)})
     out = []
-    for kind in ("step", "mshift", "quadratic", "hinge"):
+    for kind in ("step", "mshift", "quadratic", "hinge", "warmup"):   # (warm-ups: a few, all kept)
         fam = [c for c in cands if c.kind == kind]
         out += sorted(fam, key=lambda c: -score.get(_key(c), 0.0))[:SCREEN_TOP]
     return out
@@ -476,7 +507,7 @@ def _robust_weights(result, lin, p=None, own=None):
     return np.where(dropped, 0.0, sw), scale
 
 
-def joint_scan(result, models, banned=frozenset(), stats=None):
+def joint_scan(result, models, banned=frozenset(), stats=None, doubted=frozenset()):
     """Every array's candidates tested in the linearised joint problem at ``result`` (the sources and the
     other arrays free: what a fit absorbs by moving them is not evidence). Rows Huber-weighted (an outlier
     row cannot make a step), the χ² drop of each candidate column after projecting out the Jacobian's
@@ -488,7 +519,8 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
     array's parameters projected out, all at once by cumulative sums; only a clock whose best local score
     reaches SCREEN_FRACTION of its penalty has its SCREEN_TOP best candidates of each kind scored in the
     joint problem (a clean array of a large session costs O(its rows)). ``stats`` (a dict): counts of the
-    clocks screened and scored (``screened``, ``scored``, ``factored``: projector factorisations).
+    clocks screened and scored (``screened``, ``scored``, ``factored``: projector factorisations). ``doubted``:
+    the arrivals the frontend doubts (:func:`doubted_arrivals`: no step next to a session's end from them).
 
     Returns {array index: (new components as increments, margin, info)} like :func:`best_component`, or
     {} for problems too large (SCAN_MAX parameters)."""
@@ -541,7 +573,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None):
             pr = Projector(scipy.sparse.diags(sw) @ JE, lay)
             bases = {key: (pr, pr.resid(r * sw))}   # (one kept: the next clock's weights mostly differ)
         pr, rp = bases[key]
-        best = _scan_best(p, lin.factors, i, cands, have, (pr, rp, cr), sw, scale, tested)
+        best = _scan_best(p, lin.factors, i, cands, have, (pr, rp, cr), sw, scale, tested, doubted)
         if best is not None:
             out[i] = best
     return out
@@ -580,7 +612,8 @@ def _plausible(kinds, values, duration):
     """:meth:`Component.plausible` of many candidates at once."""
     v = np.abs(values)
     return np.where(kinds == "quadratic", v * duration <= MAX_DRIFT_CHANGE,
-                    np.where(kinds == "hinge", v <= MAX_DRIFT_CHANGE, np.isfinite(values) & (v <= MAX_STEP)))
+                    np.where((kinds == "hinge") | (kinds == "warmup"), v <= MAX_DRIFT_CHANGE,
+                             np.isfinite(values) & (v <= MAX_STEP)))
 
 
 def _screen(p, cr, JE, local, r, sw, cands, i, scale, cache=None):
@@ -603,6 +636,13 @@ def _screen(p, cr, JE, local, r, sw, cands, i, scale, cache=None):
     where = np.concatenate([st, np.flatnonzero(kinds == "quadratic")[:1], hi])
     keep = np.concatenate([np.ones(len(st), bool), [bool((kinds == "quadratic").any())], np.ones(len(hi), bool)])
     L, value = L[keep], value[keep]
+    warm = np.flatnonzero(kinds == "warmup")
+    if warm.size:   # (a few smooth columns: projected directly, O(rows) each)
+        X = project_off(cr, C, np.column_stack([family_columns(cr, [cands[k] for k in warm]), rw]))
+        b, y = X[:, :-1], X[:, -1]
+        nb = np.maximum(np.einsum("ij,ij->j", b, b), 1e-300)
+        L, value, where = np.concatenate([L, (b.T @ y) ** 2 / nb]), np.concatenate([value, -(b.T @ y) / nb]), \
+            np.concatenate([where, warm])
     L = np.where(_plausible(kinds[where], value, float(np.ptp(p.t))), L, 0.0)
     if not L.any():
         return []
@@ -612,16 +652,17 @@ def _screen(p, cr, JE, local, r, sw, cands, i, scale, cache=None):
     scale_i = max(scale, spread(left))
     n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
     out = []
-    for kind in ("step", "quadratic", "hinge"):
+    for kind in ("step", "quadratic", "hinge", "warmup"):
         fam = np.flatnonzero(kinds[where] == kind)
         if fam.size and L[fam].max() / scale_i ** 2 >= SCREEN_FRACTION * penalty(kind, n, p.N + 1, len(cands)):
             out += [cands[where[k]] for k in fam[np.argsort(-L[fam])[:SCREEN_TOP]] if L[k] > 0]
     return out
 
 
-def _event_rows(p, fs, rows):
+def _event_rows(p, fs, rows, ids=False):
     """For each event with any of the stacked rows ``rows`` (bool mask over the factors ``fs``): the indices
-    of those rows that involve it (a TDOA-M at it, a TDOA-S from or to it)."""
+    of those rows that involve it (a TDOA-M at it, a TDOA-S from or to it), in event order; ``ids``: (the
+    events' indices, those lists)."""
     a, b = [], []
     for f in fs:
         n = len(f.r)
@@ -632,8 +673,9 @@ def _event_rows(p, fs, rows):
         else:
             a.append(np.full(n, -1)), b.append(np.full(n, -1))
     a, b = np.concatenate(a), np.concatenate(b)
-    return [np.flatnonzero(rows & ((a == e) | (b == e))) for e in np.unique(np.concatenate([a[rows], b[rows]]))
-            if e >= 0]
+    events = [int(e) for e in np.unique(np.concatenate([a[rows], b[rows]])) if e >= 0]
+    groups = [np.flatnonzero(rows & ((a == e) | (b == e))) for e in events]
+    return (np.array(events, int), groups) if ids else groups
 
 
 def _array_rows(p, fs, rows):
@@ -642,7 +684,20 @@ def _array_rows(p, fs, rows):
     return [np.flatnonzero(rows & (arr == a)) for a in np.unique(arr[rows]) if a >= 0]
 
 
-def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
+def end_side(t, time, n_events=PERSIST_EVENTS):
+    """The positions (into event times ``t``, in time order) of the events on the short side of a step at
+    ``time`` when that side holds at most ``n_events`` of them (a step near a session's start or end), else
+    None."""
+    before = np.flatnonzero(np.asarray(t) < time)
+    after = np.flatnonzero(np.asarray(t) > time)
+    if 0 < len(before) <= n_events and len(before) <= len(after):
+        return before
+    if 0 < len(after) <= n_events:
+        return after
+    return None
+
+
+def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None, side=None):
     """The smallest χ² drop (unscaled) of a column b (projected off the model's columns) against residuals r
     (projected too) with the rows of up to PERSIST_EVENTS groups left out: ``groups`` are row indices (into r
     and b) per event in time order (any run of consecutive events: a clock term's evidence is in every row
@@ -650,7 +705,9 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
     one interval's TDOA-S at every array alike, not at one or two; at least two are left). Each by the deletion
     formula: RSS without rows R = RSS − e_R' (I − H_RR)⁻¹ e_R, for the model without b (hat H_RR = ``hat(R)``)
     and with it (H_RR + b_R b_R'/b'b). r and b may hold only some of the rows (the clock's own): ``bb`` = |b|²
-    and ``br`` = b'r over every row then."""
+    and ``br`` = b'r over every row then. ``side``: the positions (into ``groups``) of a step's events on its
+    short side (:func:`end_side`): a run holding all of them is not left out (it would leave the step no
+    event on that side: no leave-out can tell those events' arrivals from a clock; :func:`direct_path` does)."""
     bb = float(b @ b) if bb is None else float(bb)
     if bb <= 0:
         return 0.0
@@ -659,7 +716,8 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
     out = full
     # (the emitter's: at least two arrays left to see it alike)
     for w in range(1, (min(PERSIST_EVENTS, len(groups) - 2) if emitter else PERSIST_EVENTS) + 1):
-        runs = itertools.combinations(groups, w) if emitter else (groups[m:m + w] for m in range(len(groups) - w + 1))
+        runs = (itertools.combinations(groups, w) if emitter else
+                (groups[m:m + w] for m in range(len(groups) - w + 1) if side is None or not set(side) <= set(range(m, m + w))))
         for run in runs:
             R = np.unique(np.concatenate(run))
             I = np.eye(len(R))
@@ -671,7 +729,80 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None):
     return max(float(out), 0.0)
 
 
-def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None):
+# frontend doubts that an arrival is the direct path's (docs/frontend.md, ``flag``): a direct path weaker than a
+# later peak, a reflection only, an array mostly so, too little signal, mics that disagree
+ARRIVAL_DOUBTS = ("weak_direct", "nlos", "occluded", "low_snr", "mic_spread")
+
+
+def doubted_arrivals(features):
+    """{(array name, event)} whose arrival the frontend doubts as the direct path's (ARRIVAL_DOUBTS on the
+    array's TDOA-M or DOA row at the event)."""
+    from .screen import _flags
+
+    out = set()
+    for name in ("tdoa_m", "doa"):
+        df = features.get(name)
+        if df is None or not len(df) or "flag" not in df.columns:
+            continue
+        bad = _flags(df, ARRIVAL_DOUBTS)
+        out |= set(zip(df["array"].astype(str)[bad], df["event"].to_numpy(int)[bad].tolist()))
+    return frozenset(out)
+
+
+def direct_path(p, fs, i, events, doubted=frozenset()):
+    """Whether array i's arrivals at ``events`` (event indices) are the direct path's: none the frontend doubts
+    (``doubted``: :func:`doubted_arrivals`), and its DOAs there agree with the fit the factors ``fs`` are
+    linearised at (their χ², in the array's own DOA scale, within the χ²₂ₘ quantile at STRUCTURE_ALPHA); False
+    where it has no DOA there. A clock step shifts every microphone of the array alike: its intra-array delays,
+    the DOA, still point at the source; a reflection's (a blocked line of sight, a chirp detected on an echo)
+    point at an image source elsewhere."""
+    name = str(p.names[i])
+    if any((name, int(p.events[e])) in doubted for e in events):
+        return False
+    f = next((f for f in fs if f.kind == "doa" and len(f.r) == 3 * len(p.doa.arr)), None)
+    if f is None:
+        return False
+    z2 = np.sum(f.r.reshape(-1, 3) ** 2, axis=1)
+    mine = p.doa.arr == i
+    at = mine & np.isin(p.doa.ev, events)
+    if not at.any():
+        return False
+    scale2 = max(1.0, float(np.median(z2[mine])) / float(chdtri(2, 0.5)))   # (χ²₂'s median: 2 ln 2)
+    return float(np.sum(z2[at])) / scale2 <= float(chdtri(2 * int(at.sum()), STRUCTURE_ALPHA))
+
+
+def clock_persistence(p, fs, i, comp, groups, hat, r, b, bb=None, br=None, ids=None, doubted=frozenset()):
+    """:func:`persistent_drop` of component ``comp`` of clock i (-1: the emitter, ``groups`` per array; else per
+    event, the events' indices ``ids``). A step with at most PERSIST_EVENTS events on one side (:func:`end_side`:
+    near a session's start or end) shows in those events' arrivals alone, which no leave-out can tell from
+    bad arrivals: the runs holding all of them are not left out, and it persists only where the array's DOAs
+    there are the direct path's (:func:`direct_path`, ``doubted``); 0 otherwise."""
+    side = None
+    if i >= 0 and comp.kind == "step" and ids is not None:
+        side = end_side(p.t[ids], comp.time)
+        if side is not None and not direct_path(p, fs, i, ids[side], doubted):
+            return 0.0
+    return persistent_drop(hat, r, b, groups, i < 0, bb=bb, br=br, side=side)
+
+
+def _given(pr, rp, O, B, k, j):
+    """The χ² drop of candidate k once candidate j is fitted: their columns (B's, on the clock's rows O) and the
+    residuals rp projected off the model (``pr``)."""
+    def col(m):
+        full = np.zeros(len(rp))
+        full[O] = B[:, m]
+        return pr.resid(full)
+
+    bk, bj, r = col(k), col(j), rp
+    a = float(bj @ bj)
+    if a <= 0:
+        return float((bk @ r) ** 2 / max(float(bk @ bk), 1e-300))
+    c = float(bk @ bj)
+    den = float(bk @ bk) - c * c / a
+    return float((bk @ r - c * float(bj @ r) / a) ** 2 / den) if den > 1e-12 * float(bk @ bk) else 0.0
+
+
+def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=frozenset()):
     """The best candidate of each kind of clock i in :func:`joint_scan` (``basis``: the projector, the projected
     residuals rp and the clock's rows, :class:`~calib.estimator.clockscan.ClockRows`; ``sw`` the rows'
     √weights, ``scale`` the TDOA rows' robust scale; ``tested``: the number of candidates the penalty counts,
@@ -706,10 +837,11 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None):
     own[O] = True
     pos = np.full(len(rp), -1)
     pos[O] = np.arange(len(O))
-    events = [pos[g] for g in (_event_rows(p, fs, own) if i >= 0 else _array_rows(p, fs, own))]
+    ids, groups = _event_rows(p, fs, own, ids=True) if i >= 0 else (None, _array_rows(p, fs, own))
+    events = [pos[g] for g in groups]
     n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
     best = None
-    for kind in ("step", "quadratic", "hinge"):
+    for kind in ("step", "quadratic", "hinge", "warmup"):
         fam = np.flatnonzero([c.kind == kind for c in cands])
         if not fam.size:
             continue
@@ -719,11 +851,21 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None):
         # left out (no one or two bad arrivals make a clock term: a step shifts every later row alike)
         # (the emitter's shows in one interval's TDOA-S only, every array's alike: no one or two arrays' rows
         # may carry it); judged only where the scan's own test passes (the margin is the smaller of the two)
-        kept_drop = min(float(raw[k]), persistent_drop(pr.hat_of(O), rp[O], projected(k), events, i < 0,
-                                                       bb=den[k], br=-value[k] * den[k])
+        kept_drop = min(float(raw[k]), clock_persistence(p, fs, i, cands[k], events, pr.hat_of(O), rp[O],
+                                                         projected(k), bb=den[k], br=-value[k] * den[k], ids=ids,
+                                                         doubted=doubted)
                         ) if raw[k] > 0 and first > 0 else None
         # chosen by the scan at its multiplicity; its persistence is one more test of that one candidate
         margin = first if kept_drop is None else min(first, kept_drop / scale_i ** 2 - PERSIST_CHI2)
+        if kept_drop is not None and kind == "step" and i >= 0 and end_side(p.t[ids], cands[k].time) is not None:
+            # a step next to the session's start or end is those few arrivals shifted alike: so is the start of a
+            # drift that varies over the session (a warm-up, a quadratic), which shifts the next events too; what
+            # the best of them leaves of its evidence is one more test of it (not a hinge: one at the first
+            # interior event IS the first interval's step, the linear clock absorbing the rest)
+            smooth = [j for j in range(len(cands)) if cands[j].kind in ("quadratic", "warmup") and raw[j] > 0]
+            if smooth:
+                j = max(smooth, key=lambda j: raw[j])
+                margin = min(margin, _given(pr, rp, O, B, k, j) / scale_i ** 2 - PERSIST_CHI2)
         if best is None or margin > best[1]:
             new = have + [cands[k].with_value(value[k])]
             # candidates the rows cannot tell apart (an array without rows at the event between two
@@ -830,7 +972,7 @@ def _structure_failures(result, models, old, features):
 
 
 # ----------------------------------------------------------------------------------------------- selection
-def detect(result, models, banned=frozenset(), excluded=frozenset()):
+def detect(result, models, banned=frozenset(), excluded=frozenset(), doubted=frozenset()):
     """One detection round at a solved ``result``: proposals {array name: its components with the new one}
     of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
     within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
@@ -838,7 +980,7 @@ def detect(result, models, banned=frozenset(), excluded=frozenset()):
     one more candidate, tested jointly only."""
     p, st = result["problem"], result["state"]
     found, records = {}, []
-    joint = joint_scan(result, models, banned)
+    joint = joint_scan(result, models, banned, doubted=doubted)
     suspects = _suspects(result)
     for i in range(-1, p.N):
         name = EMITTER if i < 0 else str(p.names[i])
@@ -1048,8 +1190,9 @@ READMIT_SIGMAS = 20.0   # ... and that lag is this many times their spread (and 
 def _doubted_blocks(features):
     """[(array, block events, (event before, event after) the boundary)]: each array whose own arrivals the
     frontend doubts as reflections (flag ``nlos``, :func:`calib.estimator.screen.own_doubted_events`) at one
-    run of its consecutive events that starts or ends its session, with at least PERSIST_EVENTS events in it
-    and MIN_EVENTS outside it."""
+    run of its consecutive events that starts or ends its session (but for at most PERSIST_EVENTS events
+    before or after it, which a clock step shifts alike: :func:`end_side`), with at least PERSIST_EVENTS events
+    in it and MIN_EVENTS outside it."""
     from .screen import DROP_FLAGS, _flags, own_doubted_events
 
     names = [n for n in DROP_FLAGS["nlos"] if len(features[n])]
@@ -1065,9 +1208,9 @@ def _doubted_blocks(features):
         pos = np.flatnonzero(np.isin(evs, sorted(bad)))
         if len(pos) < PERSIST_EVENTS or len(evs) - len(pos) < MIN_EVENTS or np.any(np.diff(pos) != 1):
             continue
-        if pos[0] == 0:
+        if pos[0] <= PERSIST_EVENTS and pos[-1] < len(evs) - 1:
             out.append((a, [evs[k] for k in pos], (evs[pos[-1]], evs[pos[-1] + 1])))
-        elif pos[-1] == len(evs) - 1:
+        elif pos[-1] >= len(evs) - 1 - PERSIST_EVENTS and pos[0] > 0:
             out.append((a, [evs[k] for k in pos], (evs[pos[0] - 1], evs[pos[0]])))
     return out
 
@@ -1159,7 +1302,14 @@ def _auto(solve, features, first, options, rounds, start=None):
         if not models:
             result = first
             break
-        result, models, bad = _refine_and_resolve(solve, features, result, models, options, first)
+        result, models, bad, removed = _refine_and_resolve(solve, features, result, models, options, first)
+        if removed and not bad:
+            # a component the joint judgement removed leaves what it fitted unexplained (a warm-up taken for a
+            # step next to the session's start, which the leave-out then rejects): the selection looks again
+            # from what is kept, without the removed ones
+            more, res = _select(solve, features, result, options, rounds, excluded, models, removed)
+            if more != models:
+                result, models, bad, _ = _refine_and_resolve(solve, features, res, more, options, first)
         if not bad:
             break
         excluded |= set(bad)
@@ -1171,15 +1321,16 @@ def _auto(solve, features, first, options, rounds, start=None):
     return result, models
 
 
-def _select(solve, features, result, options, rounds, excluded=frozenset(), start=None):
+def _select(solve, features, result, options, rounds, excluded=frozenset(), start=None, banned=()):
     """Detection rounds from the linear clock's ``result``: each adds the best proposal (:func:`detect`,
     rivals decided by :func:`_decide`) and solves again; a new component of the joint scan that fails its
     structure test (:func:`structure_test`) is taken out again and not proposed again. The arrays in ``excluded`` get no
-    components (nor their steps seen as the reference's). ``start``: the models ``result`` was solved with.
-    Returns (models, result)."""
-    models, banned, aside, kept, rejected = dict(start or {}), set(), set(), 0, 0
+    components (nor their steps seen as the reference's). ``start``: the models ``result`` was solved with;
+    ``banned``: (name, kind, time) keys not to propose. Returns (models, result)."""
+    models, banned, aside, kept, rejected = dict(start or {}), set(banned), set(), 0, 0
     while kept < MAX_ROUNDS and rejected < MAX_REJECTED:
-        proposals, records = detect(result, models, frozenset(banned | aside), frozenset(excluded))
+        proposals, records = detect(result, models, frozenset(banned | aside), frozenset(excluded),
+                                    doubted_arrivals(features))
         rounds.append(records)
         if not proposals:
             break
@@ -1210,9 +1361,30 @@ def _select(solve, features, result, options, rounds, excluded=frozenset(), star
                                             + (" while another clock's fault is unmodelled: set aside" if pending else "")}
                                for b in bad])
                 continue
+        elif _end_step_unpersistent(res, trial, models, features):
+            # a per-array proposal is judged at the end, but a step next to the session's start or end rests on
+            # those few arrivals alone, which no other fault bends: judged at once (a warm-up's first arrivals
+            # read as a step would leave the warm-up itself unmodelled)
+            name, kind, time, _ = _last(trial, models)
+            rejected += 1
+            pending = any(r.get("margin_chi2", 0.0) > 0 and r.get("array") != name for r in records)
+            (aside if pending else banned).add((name, kind, round(time, 9)))
+            rounds.append([{"rejected": f"{name}: {kind} at {time:.3f} s next to the session's end: not persistent "
+                                        "(its few arrivals there are not shifted alike, or not on the direct path)"}])
+            continue
         models, result, kept = trial, res, kept + 1
         aside.clear()
     return models, result
+
+
+def _end_step_unpersistent(res, trial, models, features):
+    """Whether the component ``trial`` adds to ``models`` is a step within PERSIST_EVENTS events of the session's
+    start or end (:func:`end_side`) that fails its persistence at ``res`` (:func:`persistence`)."""
+    name, kind, time, _ = _last(trial, models)
+    if kind != "step" or name == EMITTER or end_side(res["problem"].t, time) is None:
+        return False
+    chi2 = persistence(res, trial, correct_features(features, trial)).get((name, len(trial[name]) - 1))
+    return chi2 is not None and chi2 < PERSIST_CHI2
 
 
 RESIZE_SIGMA = 1.0   # a joint step moving a new component by more than this × its σ: solved again before judging it
@@ -1258,21 +1430,23 @@ def _refine_and_resolve(solve, features, result, models, options, first=None):
     (result, models, the arrays whose components were all removed at the end: still named). A component
     that fails its structure test (:func:`structure_test`) at the solution with all of them is removed too
     (each was tested when taken, with the components then held; those may have gone since). ``first``: the
-    linear clock's result (:func:`_doa_worse`)."""
-    cov_info = None
+    linear clock's result (:func:`_doa_worse`). Also returns the (name, kind, time) keys of the components
+    removed as weak, unstructured or unpersistent."""
+    cov_info, removed = None, []
     for _ in range(2 * sum(len(c) for c in models.values()) + 2):
         moved, models, cov_info = refine(result, models)
         weak = (_weakest(result["problem"], models) or _unstructured(result, features, models)
                 or _unpersistent(result, features, models))
         if weak is not None:
             name, k = weak
+            removed.append((name, *_key(models[name][k])))
             models = {**models, name: [c for j, c in enumerate(models[name]) if j != k]}
             models = {n: c for n, c in models.items() if c}
         elif not moved:
             break
         result = solve(correct_features(features, models), **options)
         if not models:
-            return result, models, []
+            return result, models, [], removed
     # an array the session still contradicts with its components (dropped as inconsistent, or named for
     # holding the outliers: biased as a whole): they did not explain it, a reflection's bias is no clock's; it
     # keeps the linear clock and the consistency tests name it as before
@@ -1287,7 +1461,7 @@ def _refine_and_resolve(solve, features, result, models, options, first=None):
         result = solve(correct_features(features, models), **options)
         cov_info = refine(result, models)[2] if models else None
     _apply_std(result, cov_info)
-    return result, models, bad
+    return result, models, bad, removed
 
 
 def _doa_cost(result, features, sigma=None):
@@ -1350,6 +1524,7 @@ def persistence(result, models, features=None):
     lin = linearise(p, st, lay, _kinds(p), dense=False)
     E, keys = component_columns(p, lin.factors, models)
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
+    doubted = doubted_arrivals(features) if features is not None else frozenset()
     out = {}
     for col, (name, k) in enumerate(keys):
         sw, scale = _robust_weights(result, lin, p, own=name)
@@ -1359,11 +1534,13 @@ def persistence(result, models, features=None):
         own = (_own_rows(p, lin.factors, index[name]) > 0) & (sw > 0)
         e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
-        groups = _event_rows(p, lin.factors, own) if name != EMITTER else _array_rows(p, lin.factors, own)
+        ids, groups = (_event_rows(p, lin.factors, own, ids=True) if name != EMITTER
+                       else (None, _array_rows(p, lin.factors, own)))
         hat = pr.hat_of(np.flatnonzero(own))   # (the groups are own rows: indices into them)
         pos = np.cumsum(own) - 1
-        out[(name, k)] = persistent_drop(hat, rp[own], bp[own], [pos[g] for g in groups], name == EMITTER,
-                                         bb=float(bp @ bp), br=float(bp @ rp)) / scale_i ** 2
+        out[(name, k)] = clock_persistence(p, lin.factors, index[name], models[name][k], [pos[g] for g in groups],
+                                           hat, rp[own], bp[own], bb=float(bp @ bp), br=float(bp @ rp),
+                                           ids=ids, doubted=doubted) / scale_i ** 2
     return out
 
 
@@ -1717,12 +1894,20 @@ def array_clock_entry(comps, events, u, drift, drift_std):
                       "time": float(c.time), "size": float(c.value), "std": c.std,
                       "kind": "inserted" if c.value > 0 else "dropped"})
     terms = [c for c in comps if c.kind != "step"]
-    kinds = sorted({"quadratic" if c.kind == "quadratic" else "piecewise_linear" for c in terms})
+    kinds = sorted({{"quadratic": "quadratic", "warmup": "warm-up"}.get(c.kind, "piecewise_linear") for c in terms})
     return {"drift_model": "+".join(kinds) if kinds else "linear", "steps": steps,
-            "drift_terms": [({"kind": "quadratic", "slope": c.value, "std": c.std} if c.kind == "quadratic" else
-                             {"kind": "hinge", "time": c.time, "change": c.value, "std": c.std}) for c in terms],
+            "drift_terms": [_term_entry(c) for c in terms],
             "components": [{"kind": c.kind, "time": c.time, "value": c.value, "std": c.std} for c in comps],
             "nominal_rate": nominal_rate(drift, drift_std)}
+
+
+def _term_entry(c):
+    """report.json's entry of a drift term."""
+    if c.kind == "quadratic":
+        return {"kind": "quadratic", "slope": c.value, "std": c.std}
+    if c.kind == "warmup":   # (calib.clock's exponential term)
+        return {"kind": "exp", "amplitude": c.value, "time_constant": c.time, "std": c.std}
+    return {"kind": "hinge", "time": c.time, "change": c.value, "std": c.std}
 
 
 def models_from_report(report):
