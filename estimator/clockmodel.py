@@ -49,7 +49,7 @@ import scipy.linalg
 import scipy.sparse
 from scipy.special import chdtri, erf, erfc
 
-from calib.clock import Clock, Step, Term, header_ratio
+from calib.clock import TERMS as CLOCK_TERMS, Clock, Step, Term, header_ratio
 from calib.options import validate_options
 from calib.tables import ARRAY_PARAMS
 
@@ -125,10 +125,9 @@ class Component:
 
 
 def _warmup(u, T):
-    """T (1 − exp(−u/T)): the extra local time of a drift excess exp(−u/T) (u ≥ 0; linear before), as
-    :func:`calib.clock._exp_term` with a unit amplitude."""
-    u = np.asarray(u, float)
-    return -T * np.expm1(-np.maximum(u, 0.0) / T) + np.minimum(u, 0.0)
+    """T (1 − exp(−u/T)): the extra local time of a drift excess exp(−u/T) (u ≥ 0; linear before): calib.clock's
+    ``exp`` term with a unit amplitude (one definition for the selection and the written clock)."""
+    return CLOCK_TERMS["exp"][0](np.asarray(u, float), 1.0, T)
 
 
 def basis_matrix(comps, u):

@@ -909,7 +909,7 @@ def detections_from_diagnostics(diagnostics):
 def nlos_events(diagnostics, name):
     """The events whose arrival at array ``name`` the frontend flagged reflection-only ("nlos", diagnostics.json)."""
     arrivals = (diagnostics or {}).get("arrays", {}).get(name, {}).get("arrivals", [])
-    return [int(r["event"]) for r in arrivals if "nlos" in str(r.get("flag", "")).split("+")]
+    return [int(r["event"]) for r, f in zip(arrivals, _flags(r.get("flag") for r in arrivals)) if "nlos" in f]
 
 
 def matched_findings(session, diagnostics):
