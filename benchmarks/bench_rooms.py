@@ -40,7 +40,7 @@ import numpy as np
 import pandas as pd
 
 from calib.pipeline import features
-from calib.pipeline.formats.io import read_features
+from calib.pipeline.formats.io import read_features, read_truth
 from calib.pipeline.run import run
 
 DEFAULT = ["lab:0-4", "lab:0-4:chirp.kind=exponential", "lab:0-4:directivity=omni", "hard:0-4"]  # issue 9: 5 seeds
@@ -135,8 +135,7 @@ def oracle_text(d, out):
     feats = read_features(out / "features")
     ref = str(feats["meta"]["reference_array"])
     feats = feats.replace(**{n: los_rows(feats[n], los, ref) for n in ("tdoa_m", "tdoa_s", "doa")})
-    truth = {n: pd.read_csv(d / "truth" / f"{n}.csv") for n in ("arrays", "sources")}
-    per = evaluate(calibrate(feats, loss="cauchy"), truth)["per_array"]
+    per = evaluate(calibrate(feats, loss="cauchy"), read_truth(d / "truth"))["per_array"]
     return ", ".join(f"{a['array']} {100 * a['position_m']:.1f}" for a in per if a["array"] != ref) + " cm"
 
 
