@@ -16,9 +16,12 @@ Two kinds (docs/method.md, "Screened rows"):
   alike over an array's events (the array tilts 7–10° at 3.5σ). One such row is left to the outlier tests;
   an array with most of its DOAs such is distrusted as a whole.
 
-Each kind of doubt is judged on its own: an array whose rows are mostly doubted for one reason keeps
-those rows (dropping most of an array's data leaves it to a handful of rows): it is reported as distrusted
-instead, and the verdict names it (:func:`distrusted`).
+Each kind of doubt is judged on its own. An array whose rows are mostly ``nlos`` loses them like any other
+while it keeps at least ``MIN_TRUSTED_EVENTS`` events in line of sight (in a U- or L-shaped room every array
+hears the direct path in only part of the trajectory: keeping the reflections, each such array refitted alone,
+collapsed a U-shaped room to 5.6 m, issue 27); the verdict names it (calibrated from a minority of its events).
+With fewer left, or mostly ``weak_direct``, the array keeps those rows: it is reported as distrusted instead,
+solved apart, and the verdict names it (:func:`distrusted`).
 """
 from __future__ import annotations
 
@@ -26,7 +29,11 @@ import numpy as np
 import pandas as pd
 
 ABSURD_S = 0.3              # s: 100 m of path, beyond any room's geometry; a row further off its clock line is absurd
-MAX_DOUBTED_FRACTION = 0.5  # an array with more of its rows doubted for one reason keeps them (named as distrusted instead)
+MAX_DOUBTED_FRACTION = 0.5  # an array with more of its events doubted for one reason is named by the verdict
+# An array keeps its doubted rows (distrusted as a whole instead) when fewer of its events than this would be left:
+# its pose and clock are 8 parameters and an event in line of sight gives 3 rows (TDOA-M, the DOA's 2 axes), so 4
+# events over-determine it by 4 rows, the fewest that let the outlier tests judge one row
+MIN_TRUSTED_EVENTS = 4
 # frontend doubts (the ``flag`` column) and the tables where they count; ``nlos`` rows are taken out, while
 # ``weak_direct`` ones only count towards an array mostly doubted (kept, named and solved apart): one such DOA
 # is a row like any other for the outlier tests (taking them out cost moving seeds 0-1 up to 3 cm: a
@@ -118,7 +125,7 @@ def own_doubted_events(features, doubt, array):
 
 def mostly_doubted(features, doubt):
     """Arrays whose own doubted events (:func:`own_doubted_events`) are more than MAX_DOUBTED_FRACTION of
-    the events they have rows for: {array: number of doubted events}."""
+    the events they have rows for: {array: (number of doubted events, number of events)}."""
     seen = {}
     for name in doubt:
         df = features[name]
@@ -128,18 +135,22 @@ def mostly_doubted(features, doubt):
     for a, evs in seen.items():
         n = len(own_doubted_events(features, doubt, a))
         if n > MAX_DOUBTED_FRACTION * len(evs):
-            out[a] = n
+            out[a] = (n, len(evs))
     return out
 
 
 def _doubts(features, names):
     """{reason: ({table: (rows,) bool doubted for it}, {array: its doubted events, kept because they are
-    most of its events (:func:`mostly_doubted`)})} for each reason of DROP_FLAGS with a doubted row."""
+    most of its events (:func:`mostly_doubted`) and too few would be left (MIN_TRUSTED_EVENTS; every array
+    for an ARRAY_ONLY reason)}, {array: (doubted events, events), taken out although most of its events})}
+    for each reason of DROP_FLAGS with a doubted row."""
     out = {}
     for why, tables in DROP_FLAGS.items():
         doubt = {n: _flags(features[n], (why,)) if n in tables else np.zeros(len(features[n]), bool) for n in names}
         if any(d.any() for d in doubt.values()):
-            out[why] = (doubt, mostly_doubted(features, doubt))
+            most = mostly_doubted(features, doubt)
+            kept = {a: n for a, (n, m) in most.items() if why in ARRAY_ONLY or m - n < MIN_TRUSTED_EVENTS}
+            out[why] = (doubt, kept, {a: nm for a, nm in most.items() if a not in kept})
     return out
 
 
@@ -148,20 +159,21 @@ def screen_rows(features):
 
     Returns (features copy, record): record = {"rows": [{"type", "array", "events", "reason"[, "line"]}],
     "kept_doubted": {array: its doubted events, kept because they are most of its events}, "kept_reasons":
-    {array: [the reasons its rows were kept for]}}.
+    {array: [the reasons its rows were kept for]}, "mostly_taken_out": {array: {reason: [doubted events,
+    events]}} for the arrays whose doubted rows, most of their events, were taken out all the same}.
     """
     absurd = absurd_rows(features)
     names = [n for n in ("tdoa_m", "tdoa_s", "doa") if len(features[n])]
     doubts = _doubts(features, names)
     out, rows = dict(features), []
     ref = str(features["meta"].get("reference_array"))
-    ref_bad = {why: own_doubted_events(features, d, ref) for why, (d, _) in doubts.items()}
+    ref_bad = {why: own_doubted_events(features, d, ref) for why, (d, _, _) in doubts.items()}
     for name in names:
         df = features[name]
         arr = df["array"].astype(str).to_numpy()
         bad = absurd.get(name, np.zeros(len(df), bool))
         reason = np.where(bad, "absurd", "").astype(object)
-        for why, (doubt, kept) in doubts.items():   # the first reason that takes a row out names it
+        for why, (doubt, kept, _) in doubts.items():   # the first reason that takes a row out names it
             if why not in ARRAY_ONLY:
                 reason[(reason == "") & doubt[name] & ~np.isin(arr, list(kept))] = why
         drop = reason != ""
@@ -173,12 +185,14 @@ def screen_rows(features):
                          **({"line": int(df["csv_line"].iloc[k])} if "csv_line" in df.columns else {})})
         if drop.any():
             out[name] = df[~drop]
-    kept, reasons = {}, {}
-    for why, (_, k) in doubts.items():
+    kept, reasons, most = {}, {}, {}
+    for why, (_, k, m) in doubts.items():
         for a, n in k.items():
             kept[a] = max(kept.get(a, 0), n)
             reasons.setdefault(a, []).append(why)
-    return out, {"rows": rows, "kept_doubted": kept, "kept_reasons": reasons}
+        for a, nm in m.items():
+            most.setdefault(a, {})[why] = list(nm)
+    return out, {"rows": rows, "kept_doubted": kept, "kept_reasons": reasons, "mostly_taken_out": most}
 
 
 def distrusted(record):

@@ -181,6 +181,13 @@ def name_distrusted(verdict, screened):
                                   f"{' / '.join(REASON_TEXT[w] for w in whys)}: most of its data, kept; "
                                   "its calibration is not trusted")
         worst = max(worst, "suspect", key=STATUS_RANK.get)
+    for a, counts in sorted(screened.get("mostly_taken_out", {}).items()):
+        for why, (n, m) in counts.items():
+            if a not in verdict["flagged_arrays"]:
+                verdict["flagged_arrays"].append(a)
+            verdict["reasons"].append(f"array {a}: in {n} of its {m} events its arrivals are {REASON_TEXT[why]}: "
+                                      f"taken out, calibrated from its other {m - n} events (its std says how well)")
+            worst = max(worst, "suspect", key=STATUS_RANK.get)
     absurd = sorted({a for (a, why) in groups if why == "absurd"})
     if absurd:
         verdict["reasons"].append(f"{sum(len(groups[(a, 'absurd')]) for a in absurd)} event(s) of array(s) "
