@@ -377,7 +377,7 @@ def _array_result(st, ctx, loc, t_emit, c, opt, doa=None):
         doa = _direct_path_doa(loc, mics, fs, ctx["setup"], g, c, opt, a.get("doa_hemisphere"))
         timings["doa"] = time.perf_counter() - t0
     fused = _fuse_arrivals(loc, ctx["starts"], mics, doa, asc, t_emit, ev_idx, st["redetected"], fs, c, opt,
-                           g["half"])
+                           g["half"], g["pulse"])
     warnings = doa["warnings"] + fused["warnings"]
     if doa["normal"] is not None and a.get("doa_hemisphere") is None:
         warnings.append("planar array without doa_hemisphere: the DOA's side of the mic plane is a guess")
@@ -516,15 +516,16 @@ def _direct_path_doa(loc, mics, fs, setup, g, c, opt, hemisphere):
     return {**out, "u": u, "power": power, "normal": sset["planar_normal"]}
 
 
-def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, c, opt, half):
+def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, c, opt, half, pulse=None):
     """Mic times referred to the array origin and fused into one arrival per event, with their spreads,
     doubts (flags), quality and DOA spread; an array whose direct path is often weaker than a reflection is
-    flagged occluded. Returns a dict with FUSED_KEYS and ``warnings``."""
+    flagged occluded. pulse : s, the pulse width 1 / B: mics more than PATH_GAP_PULSES of it apart are on
+    different paths (:func:`timing.earliest_path_group`). Returns a dict with FUSED_KEYS and ``warnings``."""
     u, val = doa["u"], loc["value"]
     t_mic = starts[:, None] / fs + loc["tau"]  # (J, M) local seconds
     good = val >= opt["min_mic_quality"] * np.max(val, axis=1, keepdims=True)
     t_org = np.where(good, t_mic + (u @ mics.T) / c, np.nan)
-    arrival, spread, fused = fuse_times(t_org)
+    arrival, spread, fused = fuse_times(t_org, path_gap=None if pulse is None else PATH_GAP_PULSES * pulse)
     mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
     doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, doa["normal"], doa["axis"])
@@ -618,6 +619,7 @@ LOW_SNR = 2.0            # direct path below this × the onset threshold: flagge
 SPREAD_FACTOR = 5.0      # arrival standard error above this × the array's median: flagged "mic_spread"
 DOUBT_PENALTY = 0.5      # each doubt halves an arrival's quality
 OCCLUDED_FRACTION = 0.3  # "weak_direct" in at least this fraction of an array's events: flagged "occluded"
+PATH_GAP_PULSES = 0.5    # mics' times this many pulse widths apart are on different paths (two resolve ~1 / 2B apart)
 
 
 def _redetect_missed(env, env_rate, det_t, score, asc, t_emit, c, opt, levels=None):

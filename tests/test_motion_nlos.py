@@ -307,3 +307,19 @@ def test_arrays_mostly_without_line_of_sight_lose_their_reflections():
     few = _reflection_only(f, "A2", list(range(10 - MIN_TRUSTED_EVENTS + 1)))
     _, rec = screen_rows(few)
     assert rec["kept_doubted"] == {"A2": 10 - MIN_TRUSTED_EVENTS + 1} and rec["mostly_taken_out"] == {}
+
+
+def test_reflections_do_not_make_a_crystal_clock_fast():
+    """An array whose association's scale sits at its bound is taken at its measured rate when its arrivals,
+    against the odometry, put its drift beyond what a crystal does (pipeline/headerrate.py). Reflection-only
+    arrivals (every third event 30 ms late, flagged nlos) read as ~1e-2 of drift; the decision reads the
+    line-of-sight arrivals only, so this crystal (6.6e-5) keeps its header's rate."""
+    from calib.pipeline.headerrate import fast_clocks
+
+    f, tr = simulate_features(3, 1e-5, 1.0, 0.01, seed=7, max_interval=3.0)
+    bad = _reflection_only(f, "A2", list(range(0, len(f["events"]), 3)), 0.03)
+    session = {"arrays": [{"name": "A2"}]}
+    diag = {"arrays": {"A2": {"fs": 16000, "association": {"scale": 1 + 1e-3}}}}
+    assert fast_clocks(session, bad, diag, 1e-3) == {}
+    unflagged = {**bad, "tdoa_s": bad["tdoa_s"].assign(flag="")}   # the same reflections, not known as such
+    assert list(fast_clocks(session, unflagged, diag, 1e-3)) == ["A2"]
