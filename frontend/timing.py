@@ -730,7 +730,8 @@ def _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_w
     """A reflection within ``separate_pulses`` pulse widths biases the direct path's peak (a wall just
     behind the array: 10-25 µs): model both paths, subtract the reflection, time the direct path alone.
     A pulse dispersed by clock drift (``smear`` > 0) is no single-path pulse, so the two-path fit would
-    split it: then only a strong reflection with a peak of its own (``reflection``) is separated.
+    split it: then only a strong reflection with a peak of its own (``reflection``) is separated. A smear below
+    SMEAR_SPLIT pulse widths (a crystal's 1e-4 over a 0.5 s sweep: 0.1 ms) leaves the pulse a single path's.
     Returns (c, r, env, separated (J,) bool) with the affected events' spectra and correlations updated."""
     freqs = setup["freqs"]
     separated = np.zeros(len(dp), bool)
@@ -739,7 +740,7 @@ def _separate_close_reflection(c, c_onset, r, env, dp, reflection, setup, half_w
     n_pulse = setup["fs"] / max(freqs.max() - freqs.min(), 1.0)
     src, shape = (c, setup["weights"]) if c_onset is None or not separate_plain else \
         (c_onset, setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2)
-    if smear > 0:
+    if smear > SMEAR_SPLIT * n_pulse:
         separated = (reflection >= 0) & (reflection - dp <= separate_pulses * n_pulse)
         if not np.any(separated):
             return c, r, env, separated
@@ -873,6 +874,7 @@ def separate_reflection(c, setup, shape, dp, refl, half_width, iters=3):
     return c - model(t2, a2)
 
 
+SMEAR_SPLIT = 0.5        # a pulse smeared by less than this many pulse widths is still fitted as one path (two-path fit)
 CLOSE_RATIO = 0.15       # a second path fitted at ≥ this × the direct path's amplitude (median over mics) is removed
 CLOSE_MAX_OVERLAP = 0.8  # ... if its pulse overlaps the direct one's less than this (|p(Δ)|; closer: inseparable)
 GRID_OVER = 4            # at most this many sub-sample steps per sample in the two-path fit's grid, and
@@ -983,11 +985,15 @@ def refine_two_paths(c, setup, shape, t1, a1, t2, a2, iters=3):
 
 SKIRT_LEVEL = 0.2  # excess_width compares the leading skirt of the strongest peak down to this height
 SKIRT_RISE = 0.02  # ... as long as it keeps falling (within this relative ripple)
+# the quantile over events of the excess: a clock's dispersion widens every event's pulse alike, reverberation only
+# some (a reflection-only arrival's cluster of paths, a reflection merged with the direct path): in L- and
+# U-shaped rooms the median event, with half the arrivals reflection-only, read 2 samples on clocks within 1e-4
+SKIRT_QUANTILE = 0.25
 
 
 def excess_width(env, pulse_env, level=SKIRT_LEVEL):
     """How much further (samples) the strongest peak's leading skirt reaches down to ``level`` × its height
-    than a single path's: the median over events (J, T) of the excess, ≥ 0. A drifting clock's dispersion
+    than a single path's: the SKIRT_QUANTILE over events (J, T) of the excess, ≥ 0. A drifting clock's dispersion
     gives every event's pulse a long leading ramp (at δ = 8e-4, 0.5 s: 0.2 of the peak 9 samples ahead,
     where the model pulse is below 0.2 after 4); only the leading side is used, reverberation widens the other,
     and only as long as it keeps falling: a weak direct path ahead of a reflection is a peak of its own.
@@ -1000,7 +1006,7 @@ def excess_width(env, pulse_env, level=SKIRT_LEVEL):
         while i > 0 and e[i - 1] >= level * e[k] and e[i - 1] <= e[i] * (1 + SKIRT_RISE):
             i -= 1
         out.append(k - i - model)
-    excess = int(np.median(out)) if out else 0
+    excess = int(np.quantile(out, SKIRT_QUANTILE)) if out else 0
     return excess if excess > 1 else 0  # ± 1 sample: the measure's own resolution
 
 
