@@ -29,7 +29,7 @@ from .screen import distrusted, isolated, screen_rows
 from .solver import forget_linearisation, linearise
 from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
-from .verdict import fold_ambiguity, name_distrusted
+from .verdict import fold_ambiguity, majority_apart, name_distrusted
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
 
@@ -137,6 +137,7 @@ def _name_untrusted(out, screened, basins):
     if screened is not None:
         out["report"]["screened"] = {"rows": screened["rows"], "arrays": distrusted(screened)}
         name_distrusted(out["report"]["verdict"], screened)
+    majority_apart(out["report"]["verdict"], out["report"].get("unreliable_arrays") or [], len(out["arrays"]))
     return fold_ambiguity(out, basins)
 
 

@@ -248,3 +248,17 @@ def with_setup(verdict, findings):
     failed = any(f.get("status") == "failed" for f in findings)
     generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])]
     return {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
+
+
+def majority_apart(verdict, unreliable, n_arrays):
+    """``failed`` when more than half of the non-reference arrays were solved apart (refitted alone, std NaN:
+    their rows distrusted as a whole or inconsistent with the others): no consistent majority holds the frame,
+    and the arrays left in it are as likely the odd ones out (ushape seed 62 before issue 27's screening: three
+    of four arrays refitted alone from reflections, 4.7-7.5 m off, the fourth 8 cm, verdict `suspect`). In place."""
+    apart = list(unreliable)
+    if n_arrays > 1 and len(apart) > (n_arrays - 1) / 2:
+        verdict["reasons"].append(f"{len(apart)} of the {n_arrays - 1} non-reference arrays ({', '.join(apart)}) were "
+                                  "solved apart from the others: no consistent majority holds the calibration")
+        verdict["status"] = "failed"
+        verdict["flagged_arrays"] += [a for a in apart if a not in verdict["flagged_arrays"]]
+    return verdict

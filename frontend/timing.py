@@ -985,15 +985,11 @@ def refine_two_paths(c, setup, shape, t1, a1, t2, a2, iters=3):
 
 SKIRT_LEVEL = 0.2  # excess_width compares the leading skirt of the strongest peak down to this height
 SKIRT_RISE = 0.02  # ... as long as it keeps falling (within this relative ripple)
-# the quantile over events of the excess: a clock's dispersion widens every event's pulse alike, reverberation only
-# some (a reflection-only arrival's cluster of paths, a reflection merged with the direct path): in L- and
-# U-shaped rooms the median event, with half the arrivals reflection-only, read 2 samples on clocks within 1e-4
-SKIRT_QUANTILE = 0.25
 
 
 def excess_width(env, pulse_env, level=SKIRT_LEVEL):
     """How much further (samples) the strongest peak's leading skirt reaches down to ``level`` × its height
-    than a single path's: the SKIRT_QUANTILE over events (J, T) of the excess, ≥ 0. A drifting clock's dispersion
+    than a single path's: the median over events (J, T) of the excess, ≥ 0. A drifting clock's dispersion
     gives every event's pulse a long leading ramp (at δ = 8e-4, 0.5 s: 0.2 of the peak 9 samples ahead,
     where the model pulse is below 0.2 after 4); only the leading side is used, reverberation widens the other,
     and only as long as it keeps falling: a weak direct path ahead of a reflection is a peak of its own.
@@ -1006,7 +1002,7 @@ def excess_width(env, pulse_env, level=SKIRT_LEVEL):
         while i > 0 and e[i - 1] >= level * e[k] and e[i - 1] <= e[i] * (1 + SKIRT_RISE):
             i -= 1
         out.append(k - i - model)
-    excess = int(np.quantile(out, SKIRT_QUANTILE)) if out else 0
+    excess = int(np.median(out)) if out else 0
     return excess if excess > 1 else 0  # ± 1 sample: the measure's own resolution
 
 

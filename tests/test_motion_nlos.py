@@ -323,3 +323,20 @@ def test_reflections_do_not_make_a_crystal_clock_fast():
     assert fast_clocks(session, bad, diag, 1e-3) == {}
     unflagged = {**bad, "tdoa_s": bad["tdoa_s"].assign(flag="")}   # the same reflections, not known as such
     assert list(fast_clocks(session, unflagged, diag, 1e-3)) == ["A2"]
+
+
+def test_most_arrays_solved_apart_is_a_failed_calibration():
+    """Three of four arrays with too few line-of-sight events left (2 of 10) keep their reflections, each is
+    solved apart from the others and named; with most arrays apart no consistent majority holds the frame: the
+    verdict is `failed` (before: `suspect`, the arrays metres off, ushape seed 62), naming them."""
+    f, tr = simulate_features(2, 1e-5, 1.0, 0.01, seed=7)
+    bad = f
+    for a, ok in {"A2": [0, 1], "A3": [4, 5], "A4": [8, 9]}.items():
+        bad = _reflection_only(bad, a, [e for e in range(10) if e not in ok])
+    out = calibrate(bad)
+    v = out["report"]["verdict"]
+    assert sorted(out["report"]["unreliable_arrays"]) == ["A2", "A3", "A4"]
+    assert v["status"] == "failed" and {"A2", "A3", "A4"} <= set(v["flagged_arrays"])
+    one = _reflection_only(f, "A2", list(range(2, 10)))   # one array apart of four: named, not failed
+    v = calibrate(one)["report"]["verdict"]
+    assert v["status"] == "suspect" and v["flagged_arrays"] == ["A2"]
