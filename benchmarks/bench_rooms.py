@@ -16,7 +16,9 @@ verdict is `ok`: issue 27 says no such array may be in the `ok` set), and per ar
 ratios to the stated std (``*``: named by the verdict); the frontend's CPU
 seconds (process time of `session_features` inside the run, all threads: the machine may be loaded, wall
 time is not the cost; the stage's plots and files are not counted) as a percentage of the recording
-duration (empty when a kept output's features stage was reused). Then per group the medians, the worst seed
+duration (empty when a kept output's features stage was reused); issue 27's bound where the truth records the
+line of sight (truth/los.csv): the arrays with the direct path in most events that the verdict did not name
+and that are beyond 3 cm / 1.5° ("met": none). Then per group the medians, the worst seed
 and how many unflagged arrays are beyond 2σ / 3σ. With ``--work`` the outputs are kept there too (``WORK/out``):
 a rerun with the same code reuses every stage.
 
@@ -106,8 +108,25 @@ def one(d, out, reuse=False):
             "worst_cm": 100 * worst["position_m"], "status": verdict.get("status", "?"),
             "rest": "-" if rest_worst is None or not named else
             f"{rest_worst['array']} {100 * rest_worst['position_m']:.1f} / {rest_worst['geodesic_deg']:.1f}",
-            "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-",
+            "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-", "los_check": los_check(d, per, named),
             "cpu_pct": 100 * cpu.get("s", np.nan) / diag["recording_duration_s"]}
+
+
+BOUND_CM, BOUND_DEG = 3.0, 1.5   # issue 27: an array with the direct path in most events within these, or named
+
+
+def los_check(d, per, named):
+    """Issue 27's bound: the arrays with the direct path in most of their events (truth/los.csv) that the verdict
+    did not name and that are more than BOUND_CM / BOUND_DEG off: ``A3 4.5 cm / 0.6° (LOS 0.62)``; "met" when
+    none; "" without truth/los.csv."""
+    path = d / "truth" / "los.csv"
+    if not path.is_file():
+        return ""
+    frac = pd.read_csv(path).groupby("array")["los"].mean()
+    bad = [a for a in per if a["array"] not in named and frac.get(a["array"], 1.0) > 0.5
+           and (100 * a["position_m"] > BOUND_CM or np.nan_to_num(a["geodesic_deg"]) > BOUND_DEG)]
+    return ", ".join(f"{a['array']} {100 * a['position_m']:.1f} cm / {a['geodesic_deg']:.1f}° (LOS "
+                     f"{frac[a['array']]:.2f})" for a in bad) or "met"
 
 
 def los_rows(df, los, ref):
@@ -216,9 +235,10 @@ def main():
         work = args.work or Path(tmp)
         print("| session | position RMSE (cm) | orientation (deg) | worst array (cm / deg) | verdict | flagged "
               "| worst unflagged (cm / deg) | error / stated std (RMS) | unflagged > 3σ | frontend CPU (% of audio) "
-              "| per array: error / (error ÷ stated std), position and orientation |"
+              "| per array: error / (error ÷ stated std), position and orientation "
+              "| issue 27 bound (unnamed arrays with the direct path in most events beyond 3 cm / 1.5°) |"
               + (" oracle: line-of-sight rows only |" if args.oracle else ""))
-        print("|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if args.oracle else ""))
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if args.oracle else ""))
         groups = {}
         for spec in specs:
             preset, seeds, sets = parse_spec(spec)
@@ -231,7 +251,7 @@ def main():
                 groups.setdefault(name, []).append(r)
                 print(f"| {name}, seed {seed} | {r['loc_cm']:.2f} | {r['geo_deg']:.2f} | {r['worst']} "
                       f"| {r['status']} | {r['flagged']} | {r['rest']} | {rms_z(r['z2']):.2f} | {beyond_text(r)} "
-                      f"| {r['cpu_pct']:.2f} | {per_array_text(r['arrays'])} |"
+                      f"| {r['cpu_pct']:.2f} | {per_array_text(r['arrays'])} | {r['los_check'] or 'n/a'} |"
                       + (f" {oracle_text(d, out)} |" if args.oracle else ""), flush=True)
         print()
         print("| group | sessions | median position (cm) | median orientation (deg) | worst seed (cm) "
