@@ -71,12 +71,23 @@ def linear_start(arrival, t, s, c):
     return np.r_[sol[:3], b0 + sol[3], 0.0]
 
 
-def _candidates(j, rng):
-    """Index subsets to seed the track: windows of SUBSET consecutive events (line of sight is lost and
-    regained in runs along the trajectory) and RANDOM_SUBSETS random ones."""
+def _candidates(j, rng, s=None):
+    """Index subsets to seed the track: the SUBSET events nearest each event's source position (``s`` (J, 3),
+    the odometry: line of sight is a matter of where the source is, and a trajectory that visits one arm of a
+    U-shaped room twice has its direct paths there in two runs, each shorter than SUBSET: ushape seed 71, A1,
+    7 direct paths of 16 in runs of 3 and 4, had no window of direct paths and no track judged), windows of
+    SUBSET consecutive events (line of sight is lost and regained in runs along the trajectory) and
+    RANDOM_SUBSETS random ones; each subset once."""
+    near = [] if s is None else [np.sort(np.argsort(np.linalg.norm(s - s[k], axis=1), kind="stable")[:SUBSET])
+                                 for k in range(j)]
     win = [np.arange(k, k + SUBSET) for k in range(0, j - SUBSET + 1)]
     rand = [np.sort(rng.choice(j, SUBSET, replace=False)) for _ in range(RANDOM_SUBSETS)]
-    return win + rand
+    seen, out = set(), []
+    for idx in near + win + rand:
+        if len(idx) == SUBSET and (key := tuple(idx)) not in seen:
+            seen.add(key)
+            out.append(idx)
+    return out
 
 
 def _score(res):
@@ -180,7 +191,7 @@ def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
     if _enough(arrival - model(best)):
         return best, arrival - model(best)
     # the early group itself (the direct paths when the fit followed the reflections), then the subsets
-    for idx in ([early] if early.size >= SUBSET else []) + _candidates(j, np.random.default_rng(0)):
+    for idx in ([early] if early.size >= SUBSET else []) + _candidates(j, np.random.default_rng(0), s):
         q0 = linear_start(arrival[idx] - delta0 * t[idx], t[idx], s[idx], c)
         q0 = q0 if np.all(np.isfinite(q0)) else best.copy()
         q0[4] = delta0
