@@ -196,6 +196,11 @@ CASES = {
                                                {"steps": [{"size": _size(s + 99, 1e-4, 0.05)}]}))),
     "warmup_1-5ppm": lambda s: {_pick(s): {"warmup": {"amplitude": float(np.random.default_rng([s, 3]).uniform(1e-6, 5e-6))
                                                       * (-1) ** s, "time_constant": 60.0}}},
+    # one array drops a block while another warms up (the held-back kind: a step and a varying drift at once,
+    # each bending the fit the other is scanned at); sizes, amplitudes and time constants drawn
+    "drop_and_warmup": lambda s: dict(zip(_two(s), ({"steps": [{"size": -_size(s, 1e-4, 0.05)}]},
+                                                     {"warmup": {"amplitude": _size(s + 7, 1e-6, 5e-6) * (-1) ** s,
+                                                                 "time_constant": _size(s + 5, 30.0, 240.0)}}))),
     "rate_+1%": lambda s: {_pick(s): {"rate": {"error": 0.01}}},
     "rate_-1%": lambda s: {_pick(s): {"rate": {"error": -0.01}}},
     "rate_1000ppm": lambda s: {_pick(s): "rate1000ppm"},

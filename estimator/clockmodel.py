@@ -1197,6 +1197,12 @@ def _seeded(solve, features, first, options, rounds):
         start.setdefault(j["array"], [Component("step", 0.5 * (u_of[j["after_event"]] + u_of[j["before_event"]]),
                                                 j["size"])])
     trial = solve(correct_features(features, start), **options)
+    # a jump holds the speaker's move between the two events too (0.2 ms at lab seed 21's end, where the rows
+    # after it are outliers then, and no later round resizes it): sized again by the level of the array's
+    # arrivals after it against those before, at that solve
+    sized = _level_sized(trial, correct_features(features, start), start, events, u)
+    if sized != start:
+        start, trial = sized, solve(correct_features(features, sized), **options)
     # a better verdict (the linear solve found no basin: `failed`), or as good and a robust cost over every row
     # lower by more than one step's χ² at FAMILY_ALPHA
     cost0, sig = _robust_cost(first, None, features)
@@ -1207,6 +1213,17 @@ def _seeded(solve, features, first, options, rounds):
     rounds.append([{"seeded": f"{n}: a step of {c[0].value * 1e3:+.3f} ms at {c[0].time:.3f} s (its arrivals jump "
                               "further than the speaker's move allows)"} for n, c in start.items()])
     return trial, start
+
+
+def _level_sized(result, corrected, start, events, u):
+    """``start`` ({array: [its one step]}) with each step's size corrected by the level of the array's TDOA-M
+    after it against before it at ``result`` (solved from ``corrected``, the features less ``start``:
+    :func:`_block_lag`, every row); ``events``, ``u``: the events and their times (:func:`_event_of`)."""
+    out = {}
+    for name, (c,) in start.items():
+        got = _block_lag(result, corrected, name, [int(e) for e in np.asarray(events)[np.asarray(u) > c.time]], 1)
+        out[name] = [c.with_value(c.value - got[0]) if got is not None and np.isfinite(got[0]) else c]
+    return out
 
 
 READMIT_SPREAD = 0.02   # a doubted block's lags vary by less than this share of their size: one constant lag
@@ -1264,7 +1281,7 @@ def _without_nlos(features, array, block, reference):
     return out
 
 
-def _block_lag(first, features, array, block):
+def _block_lag(first, features, array, block, min_rows=PERSIST_EVENTS):
     """(lag, spread, σ) of ``array``'s TDOA-M at the events ``block`` against its other events' at the first
     solve: the median of model − data (s) over the block less that over the rest, the block's robust spread,
     the rows' σ. (Against the rest, not the fit: an array whose doubted events are most of its own is refitted
@@ -1280,7 +1297,7 @@ def _block_lag(first, features, array, block):
     i = [str(n) for n in p.names].index(array)
     mine = (p.tdoa_m.arr == i) | (i == p.ref)
     rows = mine & np.isin(p.tdoa_m.ev, [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)])
-    if rows.sum() < PERSIST_EVENTS or not (mine & ~rows).any():
+    if rows.sum() < min_rows or not (mine & ~rows).any():
         return None
     e = f.r * np.broadcast_to(f.row_sigma, len(f.r)) * (-1.0 if i == p.ref else 1.0)
     lag = float(np.median(e[rows]))
