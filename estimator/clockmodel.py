@@ -933,8 +933,9 @@ def structure_test(result, models, name, k, features=None):
     component's part on each row group (:func:`_split_columns`) differ from the rest, after projecting out
     every parameter and component (linearised at the corrected solution, rows Huber-weighted in their robust
     scale, as :func:`joint_scan`); χ² with dof = the number of independent test columns. ``features``: the
-    corrected features ``result`` was solved from: their every row counts, the ones the solve screened out
-    too (a wrong component must not pass by the screening of the rows that contradict it)."""
+    corrected features ``result`` was solved from: every row of the component's clock counts, the ones the solve
+    screened out too (a wrong component must not pass by the screening of the rows that contradict it); those
+    it left out of the other clocks weigh nothing (:func:`_solved_rows`)."""
     from .problem import make_layout
     from .solver import linearise
 
