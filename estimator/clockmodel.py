@@ -407,7 +407,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
         return None, 0.0, None
     # (the MAD: this fit holds the sources where a large fault may have bent them, its rows are not clean yet)
     scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
-    best = None
+    best, by_kind = None, []
     for kind in ("step", "mshift", "quadratic", "hinge", "warmup"):
         fam = [f for f in fits if f[1].kind == kind]
         if not fam:
@@ -416,13 +416,26 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
         drop = 2.0 * (np.sum(cauchy_rho(rb / scale)) - np.sum(cauchy_rho(r / scale)))
         margin = drop - penalty(kind, D.n, n_arrays, len(fits) if tested <= FIT_ALL_MAX else tested)   # (Bonferroni
         # over every candidate tested, the prescreened ones too)
+        by_kind.append((margin, [c.with_value(v) for c, v in zip(base + [cand], coef)]))
         if best is None or margin > best[1]:
-            new = [c.with_value(v) for c, v in zip(base + [cand], coef)]
+            new = by_kind[-1][1]
             # candidates the rows cannot tell apart go to the rivals' solves (as in :func:`joint_scan`)
             tied = [[c.with_value(v) for c, v in zip(base + [f[1]], f[2])] for f in fam
                     if f[1] is not cand and abs(f[0] - cost) <= 1e-6 * max(abs(cost), 1.0)]
             best = (new, float(margin), {"chi2_drop": float(drop), "scale": scale, "kind": kind, "tied": tied})
+    if best is not None and best[1] > 0:
+        best[2]["kinds"] = _other_kinds(by_kind, best)
     return best
+
+
+def _other_kinds(by_kind, best):
+    """The proposals (components) of the best of each other kind whose margin (χ²) is within AMBIGUOUS_CHI2 of
+    the ``best`` one's, best first: the evidence does not tell them from it (a warm-up, a hinge and the quadratic
+    fit a drift that varies alike at a few µs: rendered lab seed 22, χ² 74.8 / 72.9 / 74.1, and the hinge, ahead
+    by 0.2 after the leave-out, left the session 2.1× its fault-free error), so they are solved as rivals
+    (:func:`_decide`: the one that explains every row best is kept). ``by_kind``: [(margin, components)]."""
+    return [c for m, c in sorted(by_kind, key=lambda x: -x[0])
+            if c is not best[0] and m > 0 and m >= best[1] - AMBIGUOUS_CHI2]
 
 
 FIT_ALL_MAX = 160   # candidates: beyond, an array's robust fits are of the SCREEN_TOP best of each kind, ranked
@@ -877,12 +890,7 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
                                   "scale": scale_i, "kind": kind,
                                   "test": "joint", "tied": tied})
     if best is not None and best[1] > 0:
-        # the best of another kind that the evidence does not tell from it (a warm-up, a hinge and the quadratic
-        # fit a drift that varies alike at a few µs: rendered lab seed 22, χ² 74.8 / 72.9 / 74.1, and the hinge,
-        # ahead by 0.2 after the leave-out, left A2 2.1x its fault-free error) is solved as a rival
-        # (:func:`_decide`: the one that explains every row best is kept)
-        best[2]["kinds"] = [c for m, c in sorted(by_kind, key=lambda x: -x[0])
-                            if c is not best[0] and m > 0 and m >= best[1] - AMBIGUOUS_CHI2]
+        best[2]["kinds"] = _other_kinds(by_kind, best)   # (rivals of another kind)
     return best
 
 
