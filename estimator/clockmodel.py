@@ -783,18 +783,26 @@ def direct_path(p, fs, i, events, doubted=frozenset()):
     return float(np.sum(z2[at])) / scale2 <= float(chdtri(2 * int(at.sum()), STRUCTURE_ALPHA))
 
 
-def clock_persistence(p, fs, i, comp, groups, hat, r, b, bb=None, br=None, ids=None, doubted=frozenset()):
+def clock_persistence(p, fs, i, comp, groups, hat, r, b, bb=None, br=None, ids=None, doubted=frozenset(),
+                      events=None):
     """:func:`persistent_drop` of component ``comp`` of clock i (-1: the emitter, ``groups`` per array; else per
     event, the events' indices ``ids``). A step with at most PERSIST_EVENTS events on one side (:func:`end_side`:
     near a session's start or end) shows in those events' arrivals alone, which no leave-out can tell from
     bad arrivals: the runs holding all of them are not left out, and it persists only where the array's DOAs
-    there are the direct path's (:func:`direct_path`, ``doubted``); 0 otherwise."""
+    there are the direct path's (:func:`direct_path`, ``doubted``); 0 otherwise. The emitter's drift term
+    (``events``: its rows per event) must persist without any one or two consecutive events too, as an array's:
+    one array's few bad arrivals in its TDOA-S read as it (rendered lab seed 22: two of A2's readmitted arrivals
+    tens of µs off kept an emitter hinge that took another array's warm-up, χ² 26 left without any two arrays);
+    its step shows in one interval's rows only, which that would leave out."""
     side = None
     if i >= 0 and comp.kind == "step" and ids is not None:
         side = end_side(p.t[ids], comp.time)
         if side is not None and not direct_path(p, fs, i, ids[side], doubted):
             return 0.0
-    return persistent_drop(hat, r, b, groups, i < 0, bb=bb, br=br, side=side)
+    out = persistent_drop(hat, r, b, groups, i < 0, bb=bb, br=br, side=side)
+    if i < 0 and comp.kind != "step" and events is not None:
+        out = min(out, persistent_drop(hat, r, b, events, bb=bb, br=br))
+    return out
 
 
 def _given(pr, rp, O, B, k, j):
@@ -851,6 +859,7 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
     pos[O] = np.arange(len(O))
     ids, groups = _event_rows(p, fs, own, ids=True) if i >= 0 else (None, _array_rows(p, fs, own))
     events = [pos[g] for g in groups]
+    by_event = [pos[g] for g in _event_rows(p, fs, own)] if i < 0 else None   # (the emitter's drift terms)
     n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
     best, by_kind = None, []
     for kind in ("step", "quadratic", "hinge", "warmup"):
@@ -865,7 +874,7 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
         # may carry it); judged only where the scan's own test passes (the margin is the smaller of the two)
         kept_drop = min(float(raw[k]), clock_persistence(p, fs, i, cands[k], events, pr.hat_of(O), rp[O],
                                                          projected(k), bb=den[k], br=-value[k] * den[k], ids=ids,
-                                                         doubted=doubted)
+                                                         doubted=doubted, events=by_event)
                         ) if raw[k] > 0 and first > 0 else None
         # chosen by the scan at its multiplicity; its persistence is one more test of that one candidate
         margin = first if kept_drop is None else min(first, kept_drop / scale_i ** 2 - PERSIST_CHI2)
@@ -1232,7 +1241,8 @@ def _level_sized(result, corrected, start, events, u):
     :func:`_block_lag`, every row); ``events``, ``u``: the events and their times (:func:`_event_of`)."""
     out = {}
     for name, (c,) in start.items():
-        got = _block_lag(result, corrected, name, [int(e) for e in np.asarray(events)[np.asarray(u) > c.time]], 1)
+        got = _block_lag(result, corrected, name, [int(e) for e in np.asarray(events)[np.asarray(u) > c.time]],
+                         c.time, 1)
         out[name] = [c.with_value(c.value - got[0]) if got is not None and np.isfinite(got[0]) else c]
     return out
 
@@ -1292,25 +1302,38 @@ def _without_nlos(features, array, block, reference):
     return out
 
 
-def _block_lag(first, features, array, block, min_rows=PERSIST_EVENTS):
-    """(lag, spread, σ) of ``array``'s TDOA-M at the events ``block`` against its other events' at the first
-    solve: the median of model − data (s) over the block less that over the rest, the block's robust spread,
-    the rows' σ. (Against the rest, not the fit: an array whose doubted events are most of its own is refitted
-    alone, to the block itself, and then the rest is what lags: rendered lab seed 27, events 0-7 of 0-13.)"""
+def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
+    """(lag, spread, σ) of ``array``'s TDOA-M at the events ``block`` (on one side of ``time``, s since t0)
+    against its other events', at the first solve's sources: model − data (s) over the block less that over the
+    rest, the block's robust spread, the rows' σ. An array's own: its robust fit (:func:`fit_array`: position,
+    clock and a step at ``time``, sources held), the step's size (its sign as a lag) and the spread of the
+    block's residuals at that fit. Not against the first solve's pose: an array whose doubted events are most of
+    its own is refitted alone to every row, neither side, and then neither lags by the step (rendered lab seed
+    27, events 0-7 of 0-13: 0 against the fit; bench_clocks, 20 of 36 events before a 5.9 ms drop: 1.9 ± 0.7
+    ms). The reference's: the medians over every array's TDOA-M (the first solve's sources are every array's)."""
     from .problem import make_layout
     from .solver import linearise
 
     p = _every_row(first, features)
     if "tdoa_m" not in _kinds(p):
         return None
-    lin = linearise(p, first["state"], make_layout(p), ["tdoa_m"])
-    f = lin.factors[0]
     i = [str(n) for n in p.names].index(array)
+    at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
     mine = (p.tdoa_m.arr == i) | (i == p.ref)
-    rows = mine & np.isin(p.tdoa_m.ev, [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)])
+    rows = mine & np.isin(p.tdoa_m.ev, at)
     if rows.sum() < min_rows or not (mine & ~rows).any():
         return None
-    e = f.r * np.broadcast_to(f.row_sigma, len(f.r)) * (-1.0 if i == p.ref else 1.0)
+    sign = 1.0 if np.all(p.t[at] < time) else -1.0   # (model − data on the block = the step's size before it)
+    if i != p.ref:
+        st = first["state"]
+        D = array_data(p, st, i)
+        _, _, _, coef, r = fit_array(D, [Component("step", time, 0.0)], st.x[i].copy(), 1.0 + st.drift[i],
+                                     st.offset[i])
+        e = r[len(D.zs):][np.isin(D.j, at)] * D.sig_m
+        return (sign * float(coef[0]), 1.4826 * float(np.median(np.abs(e - np.median(e)))),
+                float(np.median(np.broadcast_to(D.sig_m, len(D.ym)))))
+    f = linearise(p, first["state"], make_layout(p), ["tdoa_m"]).factors[0]
+    e = -f.r * np.broadcast_to(f.row_sigma, len(f.r))
     lag = float(np.median(e[rows]))
     return (lag - float(np.median(e[mine & ~rows])), 1.4826 * float(np.median(np.abs(e[rows] - lag))),
             float(np.median(np.broadcast_to(f.row_sigma, len(f.r)))))
@@ -1327,7 +1350,7 @@ def _readmitted(solve, features, first, options, rounds):
     ref = str(features["meta"]["reference_array"])
     for array, block, (before, after) in _doubted_blocks(features):
         readmitted = _without_nlos(features, array, block, array == ref)
-        got = _block_lag(first, readmitted, array, block)
+        got = _block_lag(first, readmitted, array, block, 0.5 * (u_of[before] + u_of[after]))
         if got is None:
             continue
         lag, spread, sigma = got
@@ -1597,9 +1620,10 @@ def persistence(result, models, features=None):
                        else (None, _array_rows(p, lin.factors, own)))
         hat = pr.hat_of(np.flatnonzero(own))   # (the groups are own rows: indices into them)
         pos = np.cumsum(own) - 1
+        by_event = [pos[g] for g in _event_rows(p, lin.factors, own)] if name == EMITTER else None
         out[(name, k)] = clock_persistence(p, lin.factors, index[name], models[name][k], [pos[g] for g in groups],
                                            hat, rp[own], bp[own], bb=float(bp @ bp), br=float(bp @ rp),
-                                           ids=ids, doubted=doubted) / scale_i ** 2
+                                           ids=ids, doubted=doubted, events=by_event) / scale_i ** 2
     return out
 
 
