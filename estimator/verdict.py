@@ -142,6 +142,24 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
     return {"status": status, "reasons": reasons, "flagged_arrays": flagged}
 
 
+def name_inconsistent(verdict, record):
+    """Name the arrays the leave-one-array-out test found inconsistent (``estimator.consistency``; ``record``:
+    report.json ``leave_one_out``), in place: flagged, status at least ``suspect``, the reason with the largest
+    move it caused. An array solved without (``isolated``) had its pose refitted alone."""
+    for t in record["inconsistent"]:
+        then = ("solved without its rows; its own pose, refitted alone, is unreliable" if t["isolated"] else
+                "the other arrays' positions are not trusted either")
+        verdict["reasons"].append(
+            f"array {t['array']} is inconsistent with the others: leaving it out moves {t['moved']} by "
+            f"{100 * t['move_m']:.1f} cm (Hausman T = {t['T']:.1f} on {t['dof']} dof, p = {t['p']:.1g} < "
+            f"{t['alpha']:.1g}): its rows are biased with the geometry (e.g. a clock or mic-geometry error the "
+            f"residuals do not show); {then}")
+        if t["array"] not in verdict["flagged_arrays"]:
+            verdict["flagged_arrays"].append(t["array"])
+        verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    return verdict
+
+
 REASON_TEXT = {"nlos": "reflection-only arrivals (late against the array's range track: line of sight blocked)",
                "weak_direct": "direct paths weaker than a reflection just after them (line of sight attenuated: "
                               "occlusion by a mount or obstacle), whose DOAs that reflection bends",

@@ -1,0 +1,253 @@
+"""Leave-one-array-out consistency: does leaving array a's rows out move the other arrays more than the
+noise allows? (A Hausman test; docs/method.md "Verdict".)
+
+The residual tests (``estimator.robust``) see rows that do not fit. An array whose rows are biased *with the
+geometry* — an unmodelled clock drift, a warm-up, a wrong mic geometry — does not show there: the solve
+absorbs the bias by moving the sources and the other arrays, so every residual stays small and the result
+looks right while another, clean array is centimetres off. What does show is that the solution depends on
+that array's rows more than the noise allows.
+
+Maths. Let θ̂ be the least-squares solution with every row and θ̃_a the one without array a's rows (a's
+parameters fixed, its rows out), warm-started from θ̂ (one or two Gauss-Newton steps). Compare them on the
+positions of the other free arrays, d_a = θ̃_a − θ̂ (3 m values). To first order both are linear maps of the
+whitened row errors e, θ̂ − θ = G e with G = (JᵀJ)⁻¹Jᵀ over the kept rows (θ̃_a likewise with a's rows out),
+so d_a ≈ (G_a − G) e and, with C = Cov(e),
+
+    S_a = Cov(d_a) = P_aᵀ C P_a,    P_a = (G_a − G)ᵀ restricted to those positions  (M × 3m)
+    T_a = d_aᵀ S_a⁺ d_a  ~  χ²(r),   r = rank(S_a)                                   (Hausman 1978)
+
+When the rows are independent with their stated sigmas (C = I) this is Hausman's S_a = V_a − V (the full
+solution is efficient). C is the one the ``*_std`` columns are computed with
+(``uncertainty.sandwich_covariance``: each (type, array)'s σ² factor from its residuals, TDOA rows sharing
+arrivals, planar arrays' DOA errors), so sigmas stated too small or errors shared between rows do not turn
+into false alarms. The pseudo-inverse is taken in the generalised eigenbasis of (S_a, V), V the full
+solution's plain covariance of those positions: directions whose variance grows by less than MIN_GROWTH
+when a is left out carry almost no information from a (d_a there is linearisation error, not evidence) and
+are left out of T_a and of r.
+
+Under the alternative — a's rows biased with the geometry (an unmodelled clock drift) — θ̂ is pulled and
+θ̃_a is not: T_a is large although every residual is small.
+
+Each tested array is one test; the family-wise false-alarm rate over a calibration is FAMILY_ALPHA
+(Bonferroni: p_a < FAMILY_ALPHA / m for m arrays tested). The reference array is not tested (it fixes the
+frame: leaving it out leaves nothing to compare).
+
+Cost: one warm-started solve and one covariance per tested array. At most MAX_TESTED arrays are tested
+(all when there are that few; else those with the largest mean normalised squared residual per row), and
+none when the problem has more than MAX_PARAMS free parameters (large deployments: the covariance of each
+reduced problem would cost more than the calibration).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+from scipy.special import chdtrc  # χ² survival function: chdtrc(dof, x)
+
+from .init import ObservabilityError
+from .problem import make_layout
+from .robust import FAMILY_ALPHA, array_mask, factor_sizes, per_array_kinds
+from .solver import levenberg_marquardt, linearise
+from .uncertainty import covariance, sandwich_covariance
+from .variance import covariance_factors
+
+MIN_GROWTH = 0.01    # an eigen-direction whose variance grows by < 1 % without array a: a informs it too little
+MAX_TESTED = 12      # arrays tested per calibration (the warehouse's 10-12 all; larger deployments: the worst 12)
+MAX_PARAMS = 600     # no test above this many free parameters (dense algebra: a 12-array 150-event session has
+                     # 546; a 40 x 1000 deployment ~3300, whose dense covariances would cost more than its calibration)
+MAX_ISOLATED = 2     # arrays found inconsistent and solved without, at most (then the rest is tested again); one
+                     # found beyond is named only
+
+
+@dataclass(frozen=True)
+class LeaveOneOut:
+    """One array's test. array: its name; T, dof, p: the Hausman statistic, its χ² dof and p-value;
+    moved: the other array whose position moved most when it was left out, by ``move_m`` (m), ``move_sigma``
+    (that move in its own 1-σ of the full solution); alpha: the level it was judged at (Bonferroni);
+    inconsistent: p < alpha."""
+    array: str
+    T: float
+    dof: int
+    p: float
+    moved: str
+    move_m: float
+    move_sigma: float
+    alpha: float
+    inconsistent: bool
+
+    def as_dict(self):
+        return asdict(self)
+
+
+def hausman(d, S, V, min_growth=None):
+    """(T, r): ``dᵀ S⁺ d`` over the directions whose variance S (of d) is at least ``min_growth`` (default
+    MIN_GROWTH) of V's (the full solution's); d (n,), S, V (n, n). (0, 0) when V is not positive definite
+    (a position left undetermined: nothing to test)."""
+    min_growth = MIN_GROWTH if min_growth is None else min_growth
+    D = 0.5 * (S + S.T)
+    try:
+        lam, W = scipy.linalg.eigh(D, 0.5 * (V + V.T))   # Wᵀ V W = I, Wᵀ D W = diag(lam)
+    except (np.linalg.LinAlgError, ValueError):
+        return 0.0, 0
+    keep = lam > min_growth
+    c = W[:, keep].T @ d
+    return float(np.sum(c * c / lam[keep])), int(keep.sum())
+
+
+def positions_of(st, lay, arrays):
+    """(values (3m,), columns (3m,)) of the positions of ``arrays`` (indices) in the layout ``lay``."""
+    return st.x[arrays].ravel(), lay.x[arrays].ravel()
+
+
+def influence(lin, cov, cols):
+    """(M, len(cols)): the first-order change of the parameters ``cols`` per unit whitened error of each row,
+    (JᵀJ)⁻¹Jᵀ transposed, over the kept rows of ``lin`` (0 on the others); ``cov`` dense (JᵀJ)⁻¹."""
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
+    out = np.zeros((len(lin.r), len(cols)))
+    keep = lin.w > 0
+    out[keep] = J[keep] @ cov[:, cols]
+    return out
+
+
+def error_covariance(p, lin, cov, *, shared, normals):
+    """``X -> Xᵀ C X`` for C the whitened rows' error covariance at the full solution's linearisation ``lin``
+    (``cov`` its dense (JᵀJ)⁻¹): the one ``uncertainty.sandwich_covariance`` uses for the ``*_std`` columns."""
+    factors = covariance_factors(p, lin, cov)
+
+    def quad(X):
+        return sandwich_covariance(p, lin._replace(J=X), np.eye(X.shape[1]), factors, shared, normals)
+    return quad
+
+
+def plain_covariance(lin, lay):
+    """Dense (JᵀJ)⁻¹ of the kept rows of ``lin``."""
+    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
+    return covariance(J[lin.w > 0], lay.n)
+
+
+def tested_arrays(p, st, lay, kinds, mask, free, limit=MAX_TESTED):
+    """The arrays to test (indices, not the reference, among ``free``): all when at most ``limit``, else the
+    ``limit`` with the largest mean normalised squared residual per row (their rows fit least)."""
+    cand = [i for i in free if i != p.ref]
+    if len(cand) <= limit:
+        return cand
+    lin = linearise(p, st, lay, kinds, mask=mask)
+    share, count, start = np.zeros(p.N), np.zeros(p.N), 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind in per_array_kinds():
+            arr = np.repeat(p.rows(f.kind).arr, f.dim)
+            keep = mask.get(f.kind, np.ones(n, bool))
+            np.add.at(share, arr[keep], lin.r[start:start + n][keep] ** 2)
+            np.add.at(count, arr[keep], 1.0)
+        start += n
+    score = share / np.maximum(count, 1.0)
+    return sorted(sorted(cand, key=lambda i: -score[i])[:limit])
+
+
+def leave_one_out(p, st, lay, kinds, mask, a, *, full, quad, max_iter=200):
+    """Array a's test against the full least-squares solution ``st`` at ``lay``/``mask``; ``full`` = (its
+    linearisation, its dense (JᵀJ)⁻¹); ``quad``: :func:`error_covariance`. Returns (LeaveOneOut, its level
+    not yet decided; the reduced state)."""
+    lin, cov = full
+    free = [i for i in range(p.N) if lay.x[i, 0] >= 0]
+    others = [i for i in free if i != a]
+    lay_a = make_layout(p, arrays=others)
+    mask_a = array_mask(p, mask, factor_sizes(p), a)
+    st_a, _ = levenberg_marquardt(p, st, lay_a, kinds, loss=None, mask=mask_a, max_iter=max_iter, rtol=1e-9)
+    lin_a = linearise(p, st_a, lay_a, kinds, mask=mask_a, dense=True)
+    x0, c0 = positions_of(st, lay, others)
+    x1, c1 = positions_of(st_a, lay_a, others)
+    d = x1 - x0
+    S = quad(influence(lin_a, plain_covariance(lin_a, lay_a), c1) - influence(lin, cov, c0))
+    V = cov[np.ix_(c0, c0)]
+    T, dof = hausman(d, S, V)
+    move = np.linalg.norm(d.reshape(-1, 3), axis=1)
+    sd = np.sqrt(np.maximum(np.diag(V).reshape(-1, 3).sum(axis=1), 1e-30))
+    k = int(np.argmax(move))
+    rec = LeaveOneOut(str(p.names[a]), T, dof, float(chdtrc(dof, T)) if dof else 1.0, str(p.names[others[k]]),
+                      float(move[k]), float(move[k] / sd[k]), np.nan, False)
+    return rec, st_a
+
+
+def check(p, st, kinds, mask, dropped=(), *, shared=False, normals=None, max_iter=200, alpha=FAMILY_ALPHA):
+    """Test every array (up to MAX_TESTED) of a least-squares solution: ``st`` with the rows ``mask`` and
+    the arrays ``dropped`` (indices) left out. Returns {"tested": [LeaveOneOut dicts], "worst": index of the
+    most significant inconsistent array or None, "alpha", "skipped" (why none was tested, or None), "time_s"}."""
+    t0 = time.perf_counter()
+    free = [i for i in range(p.N) if i not in dropped]
+    lay = make_layout(p, arrays=free)
+    out = {"tested": [], "worst": None, "alpha": alpha, "skipped": None, "time_s": 0.0}
+    cand = [i for i in free if i != p.ref]
+    if len(cand) < 2:
+        out["skipped"] = "fewer than two arrays besides the reference: nothing to compare"
+        return out
+    if lay.n > MAX_PARAMS:
+        out["skipped"] = f"{lay.n} free parameters (> {MAX_PARAMS}): not tested (cost)"
+        return out
+    sizes = factor_sizes(p)
+    for i in dropped:
+        mask = array_mask(p, mask, sizes, i)
+    st, _ = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter, rtol=1e-9)
+    lin = linearise(p, st, lay, kinds, mask=mask, dense=True)
+    cov = plain_covariance(lin, lay)
+    quad = error_covariance(p, lin, cov, shared=shared, normals=normals)
+    tests = tested_arrays(p, st, lay, kinds, mask, free)
+    level = alpha / len(tests)
+    recs = []
+    for a in tests:
+        rec, _ = leave_one_out(p, st, lay, kinds, mask, a, full=(lin, cov), quad=quad, max_iter=max_iter)
+        recs.append(LeaveOneOut(**{**rec.as_dict(), "alpha": level, "inconsistent": bool(rec.p < level)}))
+    bad = [(r.p, -r.T, i) for i, r in zip(tests, recs) if r.inconsistent]
+    out["worst"] = min(bad)[2] if bad else None
+    out["tested"] = [r.as_dict() for r in recs]
+    out["time_s"] = time.perf_counter() - t0
+    return out
+
+
+def check_result(result, meta, *, max_iter=200, alpha=FAMILY_ALPHA):
+    """:func:`check` on a ``calibrate`` result (its final problem, state, report ``outliers`` and
+    ``unreliable_arrays``); ``meta``: the features' meta.json (shared arrivals, planar arrays' normals)."""
+    from .assess import outlier_mask
+    from .factors import active_kinds
+    from .uncertainty import plane_normals
+
+    p, st, rep = result["problem"], result["state"], result["report"]
+    kinds = active_kinds(p)
+    index = {str(n): i for i, n in enumerate(p.names)}
+    dropped = [index[a] for a in rep.get("unreliable_arrays") or [] if a in index]
+    mask = outlier_mask(p, st, make_layout(p), kinds, rep.get("outliers"))
+    return check(p, st, kinds, mask, dropped, shared=bool(meta.get("tdoa_shared_arrivals")),
+                 normals=plane_normals(meta, p.names), max_iter=max_iter, alpha=alpha)
+
+
+def settle(result, meta, resolve, *, max_iter=200, alpha=FAMILY_ALPHA):
+    """Test ``result`` (:func:`check_result`); while some array is inconsistent (at most MAX_ISOLATED), adopt
+    ``resolve(names) -> result``: the calibration with those arrays solved without and refitted alone, and test
+    its arrays again. Returns (the result adopted, report.json ``leave_one_out``: {"rounds": [the checks, each
+    with "isolated": the names solved without before it], "inconsistent": [{array, isolated (bool), its test
+    record}]})."""
+    rounds, isolated, found = [], [], []
+    while True:
+        chk = check_result(result, meta, max_iter=max_iter, alpha=alpha)
+        rounds.append({**chk, "isolated": list(isolated)})
+        worst = chk.pop("worst")
+        if worst is None:
+            break
+        rec = next(t for t in chk["tested"] if t["array"] == str(result["problem"].names[worst]))
+        adopt = len(isolated) < MAX_ISOLATED
+        if adopt:
+            try:
+                result = resolve(tuple(isolated + [rec["array"]]))
+            except ObservabilityError:
+                adopt = False
+        found.append({**rec, "isolated": adopt})
+        if not adopt:
+            break
+        isolated.append(rec["array"])
+    for r in rounds:
+        r.pop("worst", None)
+    return result, {"rounds": rounds, "inconsistent": found}
