@@ -148,14 +148,14 @@ def tested_arrays(p, st, lay, kinds, mask, free, limit=MAX_TESTED):
     return sorted(sorted(cand, key=lambda i: -score[i])[:limit])
 
 
-def leave_one_out(p, st, lay, kinds, mask, a, *, full, quad, max_iter=200):
-    """Array a's test against the full least-squares solution ``st`` at ``lay``/``mask``; ``full`` = (its
-    linearisation, its dense (JᵀJ)⁻¹); ``quad``: :func:`error_covariance`. Returns (LeaveOneOut, its level
-    not yet decided; the reduced state)."""
+def leave_one_out(p, st, lay, kinds, mask, a, *, free, full, quad, max_iter=200):
+    """Array a's test against the full least-squares solution ``st`` at ``lay``/``mask`` (``free``: the arrays
+    solved, the reference included); ``full`` = (its linearisation, its dense (JᵀJ)⁻¹); ``quad``:
+    :func:`error_covariance`. Returns (LeaveOneOut, its level not yet decided; the reduced state)."""
     lin, cov = full
-    free = [i for i in range(p.N) if lay.x[i, 0] >= 0]
-    others = [i for i in free if i != a]
-    lay_a = make_layout(p, arrays=others)
+    solved = [i for i in free if i != a]               # the reference's drift stays free, as in the full solve
+    others = [i for i in solved if i != p.ref]         # (its position is the frame's origin: nothing to compare)
+    lay_a = make_layout(p, arrays=solved)
     mask_a = array_mask(p, mask, factor_sizes(p), a)
     st_a, _ = levenberg_marquardt(p, st, lay_a, kinds, loss=None, mask=mask_a, max_iter=max_iter, rtol=1e-9)
     lin_a = linearise(p, st_a, lay_a, kinds, mask=mask_a, dense=True)
@@ -199,7 +199,7 @@ def check(p, st, kinds, mask, dropped=(), *, shared=False, normals=None, max_ite
     level = alpha / len(tests)
     recs = []
     for a in tests:
-        rec, _ = leave_one_out(p, st, lay, kinds, mask, a, full=(lin, cov), quad=quad, max_iter=max_iter)
+        rec, _ = leave_one_out(p, st, lay, kinds, mask, a, free=free, full=(lin, cov), quad=quad, max_iter=max_iter)
         recs.append(LeaveOneOut(**{**rec.as_dict(), "alpha": level, "inconsistent": bool(rec.p < level)}))
     bad = [(r.p, -r.T, i) for i, r in zip(tests, recs) if r.inconsistent]
     out["worst"] = min(bad)[2] if bad else None
