@@ -58,6 +58,10 @@ MIN_GROWTH = 0.01    # an eigen-direction whose variance grows by < 1 % without 
 MAX_TESTED = 12      # arrays tested per calibration (the warehouse's 10-12 all; larger deployments: the worst 12)
 MAX_PARAMS = 600     # no test above this many free parameters (dense algebra: a 12-array 150-event session has
                      # 546; a 40 x 1000 deployment ~3300, whose dense covariances would cost more than its calibration)
+# An inconsistent array's rows are left out of the others' solution only when that lowers their expected squared
+# error: the bias its rows put on them, estimated |d|² − tr S, exceeds the variance leaving them out adds, tr S
+# (so |d|² > ADOPT_RATIO tr S); else the full solution is kept (the array is named either way).
+ADOPT_RATIO = 2.0
 MAX_ISOLATED = 2     # arrays found inconsistent and solved without, at most (then the rest is tested again); one
                      # found beyond is named only
 
@@ -67,7 +71,8 @@ class LeaveOneOut:
     """One array's test. array: its name; T, dof, p: the Hausman statistic, its χ² dof and p-value;
     moved: the other array whose position moved most when it was left out, by ``move_m`` (m), ``move_sigma``
     (that move in its own 1-σ of the full solution); alpha: the level it was judged at (Bonferroni);
-    inconsistent: p < alpha."""
+    inconsistent: p < alpha; shift_m: |d| over every compared position (m), noise_m: √tr S, its expected size
+    when nothing is wrong (m)."""
     array: str
     T: float
     dof: int
@@ -77,6 +82,8 @@ class LeaveOneOut:
     move_sigma: float
     alpha: float
     inconsistent: bool
+    shift_m: float = 0.0
+    noise_m: float = 0.0
 
     def as_dict(self):
         return asdict(self)
@@ -169,7 +176,8 @@ def leave_one_out(p, st, lay, kinds, mask, a, *, free, full, quad, max_iter=200)
     sd = np.sqrt(np.maximum(np.diag(V).reshape(-1, 3).sum(axis=1), 1e-30))
     k = int(np.argmax(move))
     rec = LeaveOneOut(str(p.names[a]), T, dof, float(chdtrc(dof, T)) if dof else 1.0, str(p.names[others[k]]),
-                      float(move[k]), float(move[k] / sd[k]), np.nan, False)
+                      float(move[k]), float(move[k] / sd[k]), np.nan, False, float(np.linalg.norm(d)),
+                      float(np.sqrt(max(np.trace(S), 0.0))))
     return rec, st_a
 
 
@@ -225,9 +233,9 @@ def check_result(result, meta, *, max_iter=200, alpha=FAMILY_ALPHA):
 
 
 def settle(result, meta, resolve, *, max_iter=200, alpha=FAMILY_ALPHA):
-    """Test ``result`` (:func:`check_result`); while some array is inconsistent (at most MAX_ISOLATED), adopt
-    ``resolve(names) -> result``: the calibration with those arrays solved without and refitted alone, and test
-    its arrays again. Returns (the result adopted, report.json ``leave_one_out``: {"rounds": [the checks, each
+    """Test ``result`` (:func:`check_result`); while some array is inconsistent and leaving it out lowers the
+    others' expected error (ADOPT_RATIO; at most MAX_ISOLATED), adopt ``resolve(names) -> result``: the
+    calibration with those arrays solved without and refitted alone, and test its arrays again. Returns (the result adopted, report.json ``leave_one_out``: {"rounds": [the checks, each
     with "isolated": the names solved without before it], "inconsistent": [{array, isolated (bool), its test
     record}]})."""
     rounds, isolated, found = [], [], []
@@ -238,7 +246,7 @@ def settle(result, meta, resolve, *, max_iter=200, alpha=FAMILY_ALPHA):
         if worst is None:
             break
         rec = next(t for t in chk["tested"] if t["array"] == str(result["problem"].names[worst]))
-        adopt = len(isolated) < MAX_ISOLATED
+        adopt = len(isolated) < MAX_ISOLATED and rec["shift_m"] ** 2 > ADOPT_RATIO * rec["noise_m"] ** 2
         if adopt:
             try:
                 result = resolve(tuple(isolated + [rec["array"]]))

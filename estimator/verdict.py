@@ -148,7 +148,8 @@ def name_inconsistent(verdict, record):
     move it caused. An array solved without (``isolated``) had its pose refitted alone."""
     for t in record["inconsistent"]:
         then = ("solved without its rows; its own pose, refitted alone, is unreliable" if t["isolated"] else
-                "the other arrays' positions are not trusted either")
+                f"kept: the bias it puts on the others is within the noise of that move "
+                f"({100 * t['noise_m']:.1f} cm), which leaving it out would add")
         verdict["reasons"].append(
             f"array {t['array']} is inconsistent with the others: leaving it out moves {t['moved']} by "
             f"{100 * t['move_m']:.1f} cm (Hausman T = {t['T']:.1f} on {t['dof']} dof, p = {t['p']:.1g} < "
