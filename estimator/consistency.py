@@ -62,8 +62,8 @@ MAX_PARAMS = 600     # no test above this many free parameters (dense algebra: a
 # error: the bias its rows put on them, estimated |d|² − tr S, exceeds the variance leaving them out adds, tr S
 # (so |d|² > ADOPT_RATIO tr S); else the full solution is kept (the array is named either way).
 ADOPT_RATIO = 2.0
-MAX_ISOLATED = 2     # arrays found inconsistent and solved without, at most (then the rest is tested again); one
-                     # found beyond is named only
+MAX_TRIES = 2        # inconsistent arrays tried (most significant first), each a calibration without it: the
+                     # first whose leaving out leaves the rest consistent is solved without
 
 
 @dataclass(frozen=True)
@@ -181,14 +181,16 @@ def leave_one_out(p, st, lay, kinds, mask, a, *, free, full, quad, max_iter=200)
     return rec, st_a
 
 
-def check(p, st, kinds, mask, dropped=(), *, shared=False, normals=None, max_iter=200, alpha=FAMILY_ALPHA):
+def check(p, st, kinds, mask, dropped=(), *, shared=False, normals=None, max_iter=200, alpha=FAMILY_ALPHA,
+          stated_errors=False):
     """Test every array (up to MAX_TESTED) of a least-squares solution: ``st`` with the rows ``mask`` and
-    the arrays ``dropped`` (indices) left out. Returns {"tested": [LeaveOneOut dicts], "worst": index of the
-    most significant inconsistent array or None, "alpha", "skipped" (why none was tested, or None), "time_s"}."""
+    the arrays ``dropped`` (indices) left out. ``stated_errors``: C = I (the rows independent with the sigmas
+    the solve ended with: the exact χ² case, for tests) instead of the ``*_std`` columns' C. Returns {"tested":
+    [LeaveOneOut dicts], "alpha", "skipped" (why none was tested, or None), "time_s"}."""
     t0 = time.perf_counter()
     free = [i for i in range(p.N) if i not in dropped]
     lay = make_layout(p, arrays=free)
-    out = {"tested": [], "worst": None, "alpha": alpha, "skipped": None, "time_s": 0.0}
+    out = {"tested": [], "alpha": alpha, "skipped": None, "time_s": 0.0}
     cand = [i for i in free if i != p.ref]
     if len(cand) < 2:
         out["skipped"] = "fewer than two arrays besides the reference: nothing to compare"
@@ -202,21 +204,19 @@ def check(p, st, kinds, mask, dropped=(), *, shared=False, normals=None, max_ite
     st, _ = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter, rtol=1e-9)
     lin = linearise(p, st, lay, kinds, mask=mask, dense=True)
     cov = plain_covariance(lin, lay)
-    quad = error_covariance(p, lin, cov, shared=shared, normals=normals)
+    quad = (lambda X: X.T @ X) if stated_errors else error_covariance(p, lin, cov, shared=shared, normals=normals)
     tests = tested_arrays(p, st, lay, kinds, mask, free)
     level = alpha / len(tests)
     recs = []
     for a in tests:
         rec, _ = leave_one_out(p, st, lay, kinds, mask, a, free=free, full=(lin, cov), quad=quad, max_iter=max_iter)
         recs.append(LeaveOneOut(**{**rec.as_dict(), "alpha": level, "inconsistent": bool(rec.p < level)}))
-    bad = [(r.p, -r.T, i) for i, r in zip(tests, recs) if r.inconsistent]
-    out["worst"] = min(bad)[2] if bad else None
     out["tested"] = [r.as_dict() for r in recs]
     out["time_s"] = time.perf_counter() - t0
     return out
 
 
-def check_result(result, meta, *, max_iter=200, alpha=FAMILY_ALPHA):
+def check_result(result, meta, *, max_iter=200, alpha=FAMILY_ALPHA, stated_errors=False):
     """:func:`check` on a ``calibrate`` result (its final problem, state, report ``outliers`` and
     ``unreliable_arrays``); ``meta``: the features' meta.json (shared arrivals, planar arrays' normals)."""
     from .assess import outlier_mask
@@ -229,33 +229,32 @@ def check_result(result, meta, *, max_iter=200, alpha=FAMILY_ALPHA):
     dropped = [index[a] for a in rep.get("unreliable_arrays") or [] if a in index]
     mask = outlier_mask(p, st, make_layout(p), kinds, rep.get("outliers"))
     return check(p, st, kinds, mask, dropped, shared=bool(meta.get("tdoa_shared_arrivals")),
-                 normals=plane_normals(meta, p.names), max_iter=max_iter, alpha=alpha)
+                 normals=plane_normals(meta, p.names), max_iter=max_iter, alpha=alpha, stated_errors=stated_errors)
 
 
 def settle(result, meta, resolve, *, max_iter=200, alpha=FAMILY_ALPHA):
-    """Test ``result`` (:func:`check_result`); while some array is inconsistent and leaving it out lowers the
-    others' expected error (ADOPT_RATIO; at most MAX_ISOLATED), adopt ``resolve(names) -> result``: the
-    calibration with those arrays solved without and refitted alone, and test its arrays again. Returns (the result adopted, report.json ``leave_one_out``: {"rounds": [the checks, each
-    with "isolated": the names solved without before it], "inconsistent": [{array, isolated (bool), its test
-    record}]})."""
-    rounds, isolated, found = [], [], []
-    while True:
-        chk = check_result(result, meta, max_iter=max_iter, alpha=alpha)
-        rounds.append({**chk, "isolated": list(isolated)})
-        worst = chk.pop("worst")
-        if worst is None:
-            break
-        rec = next(t for t in chk["tested"] if t["array"] == str(result["problem"].names[worst]))
-        adopt = len(isolated) < MAX_ISOLATED and rec["shift_m"] ** 2 > ADOPT_RATIO * rec["noise_m"] ** 2
-        if adopt:
-            try:
-                result = resolve(tuple(isolated + [rec["array"]]))
-            except ObservabilityError:
-                adopt = False
-        found.append({**rec, "isolated": adopt})
-        if not adopt:
-            break
-        isolated.append(rec["array"])
-    for r in rounds:
-        r.pop("worst", None)
-    return result, {"rounds": rounds, "inconsistent": found}
+    """Test ``result`` (:func:`check_result`). When arrays are inconsistent, try the most significant ones (at
+    most MAX_TRIES) whose rows bias the others more than leaving them out would cost (ADOPT_RATIO):
+    ``resolve(names) -> result`` solves without that array (refitted alone); that solution is adopted when its
+    own arrays then test consistent (the array explained the inconsistency). Returns (the result adopted or
+    ``result``, report.json ``leave_one_out``: {"rounds": [each check, with "isolated": the names solved
+    without], "inconsistent": [the inconsistent arrays' test records, each with "helps": leaving it out would
+    lower the others' expected error, "isolated": solved without],
+    "explained": whether one array solved without left the rest consistent})."""
+    first = check_result(result, meta, max_iter=max_iter, alpha=alpha)
+    rounds = [{**first, "isolated": []}]
+    bad = sorted((t for t in first["tested"] if t["inconsistent"]), key=lambda t: t["p"])
+    bad = [{**t, "helps": bool(t["shift_m"] ** 2 > ADOPT_RATIO * t["noise_m"] ** 2)} for t in bad]
+    for rec in bad[:MAX_TRIES]:
+        if not rec["helps"]:
+            continue
+        try:
+            trial = resolve((rec["array"],))
+        except ObservabilityError:
+            continue
+        again = check_result(trial, meta, max_iter=max_iter, alpha=alpha)
+        rounds.append({**again, "isolated": [rec["array"]]})
+        if not any(t["inconsistent"] for t in again["tested"]):
+            return trial, {"rounds": rounds, "inconsistent": [{**rec, "isolated": True}], "explained": True}
+    found = [{**t, "isolated": False} for t in bad]
+    return result, {"rounds": rounds, "inconsistent": found, "explained": len(found) <= 1}

@@ -145,19 +145,29 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
 def name_inconsistent(verdict, record):
     """Name the arrays the leave-one-array-out test found inconsistent (``estimator.consistency``; ``record``:
     report.json ``leave_one_out``), in place: flagged, status at least ``suspect``, the reason with the largest
-    move it caused. An array solved without (``isolated``) had its pose refitted alone."""
-    for t in record["inconsistent"]:
-        then = ("solved without its rows; its own pose, refitted alone, is unreliable" if t["isolated"] else
-                f"kept: the bias it puts on the others is within the noise of that move "
-                f"({100 * t['noise_m']:.1f} cm), which leaving it out would add")
+    move each caused and what was done: solved without it (``isolated``: the rest then tested consistent), or
+    kept (its pull within the noise that leaving it out adds, or no single array explains the inconsistency)."""
+    found = record["inconsistent"]
+    for t in found:
+        if t["isolated"]:
+            then = "solved without its rows (the others then agree); its own pose, refitted alone, is unreliable"
+        elif not t["helps"]:
+            then = (f"kept: its pull on the others is within the noise that leaving it out would add "
+                    f"({100 * t['noise_m']:.1f} cm)")
+        else:
+            then = "kept: leaving it out does not make the others agree"
         verdict["reasons"].append(
             f"array {t['array']} is inconsistent with the others: leaving it out moves {t['moved']} by "
             f"{100 * t['move_m']:.1f} cm (Hausman T = {t['T']:.1f} on {t['dof']} dof, p = {t['p']:.1g} < "
-            f"{t['alpha']:.1g}): its rows are biased with the geometry (e.g. a clock or mic-geometry error the "
-            f"residuals do not show); {then}")
+            f"{t['alpha']:.1g}): rows biased with the geometry (e.g. a clock or mic-geometry error the residuals "
+            f"do not show); {then}")
         if t["array"] not in verdict["flagged_arrays"]:
             verdict["flagged_arrays"].append(t["array"])
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    if not record.get("explained", True):
+        verdict["reasons"].append(f"the arrays' positions depend on {', '.join(t['array'] for t in found)} beyond "
+                                  "their noise and no single one of them explains it: the positions of every "
+                                  "array are in doubt")
     return verdict
 
 
