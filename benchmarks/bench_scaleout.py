@@ -6,6 +6,7 @@ its parallel efficiency (speed-up / N) measured, and projected for more workers 
     python benchmarks/bench_scaleout.py --workers 1 2 --runs 40 --save DIR   # here: measure 1, 2; project to 16
     python benchmarks/bench_scaleout.py --analyse DIR --slowdown 1.2        # the saved runs again, a what-if
     python benchmarks/bench_scaleout.py --modes local          # no Dask
+    python benchmarks/bench_scaleout.py --probe 16             # the machine's ceiling: 16 busy cores vs one
 
 Every study runs as a user runs it: ``calib montecarlo -o OUT --runs R --jobs N -q --timing-log T`` (local) or
 ``--scheduler ADDRESS`` (Dask: a ``distributed.LocalCluster(n_workers=N, threads_per_worker=1)`` of worker
@@ -145,7 +146,35 @@ def measured_table(rows):
             df.loc[g.index, "speedup"] = t1 / g["wall_s"]
             df.loc[g.index, "efficiency"] = t1 / g["wall_s"] / g["N"]
             df.loc[g.index, "cpu_ratio"] = g["cpu_s"] / c1
+    local1 = df[(df["mode"] == "local") & (df["N"] == 1) & (df["rc"] == 0)]
+    if len(local1):   # against the plain local study on one core (the stricter baseline for Dask)
+        df["eff_vs_local1"] = float(local1["wall_s"].iloc[0]) / df["wall_s"] / df["N"]
     return df
+
+
+def task_slowdown(df, timelines):
+    """The same tasks' own CPU time on N busy workers against the N = 1 run (the mode's own, else local):
+    > 1 where a core is slower with the others busy (clock speed, shared caches or memory, a virtual
+    machine's neighbours). Per run: the ratio of the sums, and the per-worker median ratios' spread; no
+    schedule can have efficiency above about 1 / ratio."""
+    def per_task(tl):
+        return {tuple(k): (t[2], c["worker"]) for c in tl["chunks"] for k, t in zip(c["keys"], c["tasks"])}
+
+    out = []
+    for _, r in df[(df["rc"] == 0) & (df["N"] > 1)].iterrows():
+        base = next((timelines[(m, 1)] for m in (r["mode"], "local") if (m, 1) in timelines), None)
+        if base is None:
+            continue
+        one, many = per_task(base), per_task(timelines[(r["mode"], r["N"])])
+        keys = [k for k in many if k in one]
+        by_worker = {}
+        for k in keys:
+            by_worker.setdefault(many[k][1], []).append(many[k][0] / one[k][0])
+        w = np.array([np.median(v) for v in by_worker.values()])
+        ratio = sum(many[k][0] for k in keys) / sum(one[k][0] for k in keys)
+        out.append({"mode": r["mode"], "N": r["N"], "task_cpu_ratio": ratio, "worker_min": w.min(),
+                    "worker_median": np.median(w), "worker_max": w.max(), "ceiling": 1 / ratio})
+    return pd.DataFrame(out)
 
 
 def validation(df, timelines):
@@ -200,6 +229,45 @@ def projections(df, timelines, project_n, slowdown=1.0):
     return pd.DataFrame(out)
 
 
+PROBE_TASKS = 12   # the paper grid's first runs: ~1-3 s of one core's work, the same in every probe process
+
+
+def probe_worker():
+    """One probe process (``--probe-worker``): import the study's worker module, then run PROBE_TASKS runs;
+    print JSON with the wall and CPU seconds of each part."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    from calib.pipeline.studyrun import run_chunk
+
+    t1, c1 = time.perf_counter(), time.process_time()
+    tasks, _ = mc._pending_tasks(Path(tempfile.gettempdir()) / "calib-no-such-study", {**mc.paper_grid(), "runs": 1})
+    settings = {"base_seed": 0, "sigma_odo": mc.SIGMA_ODO, "check_convergence": True, "with_crlb": True}
+    run_chunk(tasks[:PROBE_TASKS], settings)
+    t2, c2 = time.perf_counter(), time.process_time()
+    print(json.dumps({"import_wall_s": t1 - t0, "import_cpu_s": c1 - c0, "task_wall_s": t2 - t1,
+                      "task_cpu_s": c2 - c1}))
+
+
+def probe(n):
+    """The machine's own ceiling: ``n`` probe processes started together vs one alone. The ratio of their
+    task wall (and CPU) times is the slowdown of the same work when n cores are busy (shared cores of
+    hyper-threads, clock speed, memory bandwidth): no study can have efficiency above about 1 / that ratio.
+    The import ratio is the same for the workers' start-up (file system and CPU shared by n imports)."""
+    import subprocess
+
+    def together(k):
+        procs = [subprocess.Popen([sys.executable, __file__, "--probe-worker"], stdout=subprocess.PIPE, text=True)
+                 for _ in range(k)]
+        return pd.DataFrame([json.loads(p.communicate()[0]) for p in procs])
+
+    alone, busy = together(1).median(), together(n)
+    out = pd.DataFrame({"1 process": alone, f"{n} processes (median)": busy.median(),
+                        f"{n} processes (max)": busy.max(), "ratio": busy.median() / alone})
+    print(f"\nMACHINE PROBE: {PROBE_TASKS} study runs in one process alone, then in {n} processes at once "
+          f"({os.cpu_count()} cores)")
+    print(out.to_string(float_format=lambda v: f"{v:.3g}"))
+    print(f"efficiency ceiling from the task wall ratio alone: {1 / out.loc['task_wall_s', 'ratio']:.2f}", flush=True)
+
+
 def measure_all(args):
     """Run every (mode, N), ``--repeat`` times interleaved; keep each one's fastest. Returns (rows, timelines)."""
     best, timelines = {}, {}
@@ -234,6 +302,11 @@ def report(rows, timelines, project_n, slowdown=1.0):
     df = measured_table(rows)
     print("MEASURED")
     print(df.drop(columns=["task_wall_s"], errors="ignore").to_string(index=False, float_format=fmt))
+    slow = task_slowdown(df, timelines)
+    if len(slow):
+        print("\nTASK CPU ON N BUSY WORKERS vs N = 1 (the same tasks; per worker: its tasks' median ratio); ceiling = "
+              "1 / task_cpu_ratio")
+        print(slow.to_string(index=False, float_format=fmt))
     val = validation(df, timelines)
     if len(val):
         print("\nVALIDATION: each run replayed (its tasks' measured wall durations list-scheduled, its measured serial "
@@ -260,10 +333,19 @@ def main():
                     help="projection what-if: tasks on N > 1 workers this much slower (e.g. 1.2)")
     ap.add_argument("--save", type=Path, help="also write the measurements and timelines into this folder")
     ap.add_argument("--analyse", type=Path, help="measure nothing: report the measurements saved in this folder")
+    ap.add_argument("--probe", type=int, metavar="N", help="measure nothing else: the machine probe with N "
+                                                          "processes (see probe())")
+    ap.add_argument("--probe-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more calib montecarlo options")
     args = ap.parse_args()
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 40)
+    if args.probe_worker:
+        probe_worker()
+        return 0
+    if args.probe:
+        probe(args.probe)
+        return 0
     if args.analyse:
         report(*load_saved(args.analyse), args.project, args.slowdown)
         return 0

@@ -29,8 +29,13 @@ def session_features(recordings, progress=None, jobs=1, **options):
     session = recordings if isinstance(recordings, Mapping) else read_session(recordings)
     opt = {**DEFAULTS, **options}
 
+    done = {}   # rates read → extraction (a fast clock dropped again goes back to the first pass's)
+
     def extract(fixes):
-        return extract_features(with_rates(session, fixes), progress=progress, jobs=jobs, **options)
+        key = tuple(sorted((name, f["used"]) for name, f in fixes.items()))
+        if key not in done:
+            done[key] = extract_features(with_rates(session, fixes), progress=progress, jobs=jobs, **options)
+        return done[key]
 
     try:
         first = extract({})

@@ -158,19 +158,27 @@ def nominal_rate(rate):
 def refine_rates(session, feats, corrections):
     """The corrections with each array's rate refined by the drift a first solve of ``feats`` (extracted at
     the corrected rates) gives it: the chirps' spacing includes the source's range changes (metres over a
-    session: up to ~1e-3 of the rate), the solve's drift does not. Returns (corrections, changed: an array's
-    rate moved by more than ``RATE_REFINE``). A solve that fails or does not converge changes nothing."""
+    session: up to ~1e-3 of the rate), the solve's drift does not. A fast clock taken at a measured rate that the
+    solve still does not trust is dropped. Returns (corrections, changed: an array's rate moved by more than
+    ``RATE_REFINE``, or a fast clock dropped). A solve that fails or does not converge changes nothing."""
     from calib.pipeline.retime import first_solve
 
     sol, _ = first_solve(session, feats, outlier_threshold=OUTLIER_THRESHOLD)
     if sol is None:
         return corrections, False
     drift = dict(zip((str(n) for n in sol["problem"].names), np.asarray(sol["state"].drift, float)))
+    unreliable = {str(n) for n in sol["unreliable_arrays"]}
     out, changed = {}, False
     for name, f in corrections.items():
         d = drift.get(name, 0.0)   # (an array the rest contradict is refitted alone: its drift is its own)
         if f.get("fast_clock"):   # a header the chirps' spacing did not contradict: only a clock no crystal gives
             if f["used"] == f["header"] and abs(d) <= FAST_CLOCK:
+                continue
+            if f["used"] != f["header"] and name in unreliable:
+                # read at the measured rate, the array is still not trusted: its drift followed wrong arrivals (a
+                # U-shaped room's reflections: -829 ppm for a -85 ppm clock), not its clock; back to its header's
+                # rate. (A true fast clock is untrusted only before: its sweep off the template biases its timing.)
+                changed = True
                 continue
             rate = int(round(f["used"] * (1.0 + d)))
         else:

@@ -586,6 +586,33 @@ def test_a_wrong_header_rate_is_measured_from_the_chirps_spacing(seed):
     assert rate_corrections(session, every) == {}
 
 
+def test_a_fast_clock_stands_only_if_the_array_is_trusted_at_its_measured_rate(monkeypatch):
+    """A fast-clock candidate (its association at the search bound) is read at the rate a first solve's drift
+    gives it, trusted or not (a true fast clock's sweep is off the template: its timing is biased until then).
+    Read at that rate, it stands only if the next solve trusts the array: an untrusted one's drift followed its
+    wrong arrivals (a U-shaped room's reflections gave -829 ppm to a -85 ppm clock), and it goes back to its
+    header's rate (changed: read again)."""
+    from types import SimpleNamespace
+
+    from calib.pipeline import headerrate, retime
+
+    def solve(drift, unreliable):
+        sol = {"problem": SimpleNamespace(names=list(drift)), "unreliable_arrays": unreliable,
+               "state": SimpleNamespace(drift=np.array(list(drift.values())))}
+        monkeypatch.setattr(retime, "first_solve", lambda *a, **k: (sol, None))
+
+    cand = {n: {"header": 16000, "used": 16000, "scale": 1.0, "fast_clock": True} for n in ("A2", "A3")}
+    solve({"A1": 0.0, "A2": -8.3e-4, "A3": 5e-5}, ["A2"])
+    out, changed = headerrate.refine_rates({}, None, cand)      # A3: a crystal's drift, no fast clock
+    assert list(out) == ["A2"] and changed and out["A2"]["used"] == round(16000 * (1 - 8.3e-4))
+    taken = {"A2": {**out["A2"]}}
+    solve({"A1": 0.0, "A2": -7e-5, "A3": 5e-5}, ["A2"])          # still untrusted at that rate: dropped
+    assert headerrate.refine_rates({}, None, taken) == ({}, True)
+    solve({"A1": 0.0, "A2": -2e-5, "A3": 5e-5}, [])              # trusted: it stands (refined below RATE_REFINE)
+    out, changed = headerrate.refine_rates({}, None, taken)
+    assert not changed and out["A2"]["used"] == taken["A2"]["used"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("fault,note", [("rate1000ppm", "note"), ("{rate={error=0.1}}", "suspect")])
 def test_a_clock_no_crystal_gives_is_measured_and_calibrated(tmp_path, fault, note):
