@@ -232,29 +232,43 @@ def check_result(result, meta, *, max_iter=200, alpha=FAMILY_ALPHA, stated_error
                  normals=plane_normals(meta, p.names), max_iter=max_iter, alpha=alpha, stated_errors=stated_errors)
 
 
+def _inconsistent(chk):
+    """The inconsistent arrays' records of a check, most significant first, each with ``helps``: leaving it out
+    lowers the others' expected squared error (ADOPT_RATIO)."""
+    bad = sorted((t for t in chk["tested"] if t["inconsistent"]), key=lambda t: t["p"])
+    return [{**t, "helps": bool(t["shift_m"] ** 2 > ADOPT_RATIO * t["noise_m"] ** 2)} for t in bad]
+
+
 def settle(result, meta, resolve, *, max_iter=200, alpha=FAMILY_ALPHA):
-    """Test ``result`` (:func:`check_result`). When arrays are inconsistent, try the most significant ones (at
-    most MAX_TRIES) whose rows bias the others more than leaving them out would cost (ADOPT_RATIO):
-    ``resolve(names) -> result`` solves without that array (refitted alone); that solution is adopted when its
-    own arrays then test consistent (the array explained the inconsistency). Returns (the result adopted or
-    ``result``, report.json ``leave_one_out``: {"rounds": [each check, with "isolated": the names solved
-    without], "inconsistent": [the inconsistent arrays' test records, each with "helps": leaving it out would
-    lower the others' expected error, "isolated": solved without],
-    "explained": whether one array solved without left the rest consistent})."""
+    """Test ``result`` (:func:`check_result`). When arrays are inconsistent, try them (most significant first,
+    then any a trial's own test names; at most MAX_TRIES) where their rows bias the others more than leaving
+    them out would cost (``helps``): ``resolve(names) -> result`` solves without that array (refitted alone);
+    that solution is adopted when its own arrays then test consistent (the array explained the inconsistency).
+    Returns (the result adopted or ``result``, report.json ``leave_one_out``: {"rounds": [each check, with
+    "isolated": the names solved without], "inconsistent": [the inconsistent arrays' test records, each with
+    "helps" and "isolated": solved without], "explained": one array solved without left the rest consistent,
+    or a single array was named})."""
     first = check_result(result, meta, max_iter=max_iter, alpha=alpha)
     rounds = [{**first, "isolated": []}]
-    bad = sorted((t for t in first["tested"] if t["inconsistent"]), key=lambda t: t["p"])
-    bad = [{**t, "helps": bool(t["shift_m"] ** 2 > ADOPT_RATIO * t["noise_m"] ** 2)} for t in bad]
-    for rec in bad[:MAX_TRIES]:
+    queue, found, tried = _inconsistent(first), {}, 0
+    while queue and tried < MAX_TRIES:
+        rec = queue.pop(0)
+        if rec["array"] in found:
+            continue
+        found[rec["array"]] = rec
         if not rec["helps"]:
             continue
         try:
             trial = resolve((rec["array"],))
         except ObservabilityError:
             continue
+        tried += 1
         again = check_result(trial, meta, max_iter=max_iter, alpha=alpha)
         rounds.append({**again, "isolated": [rec["array"]]})
-        if not any(t["inconsistent"] for t in again["tested"]):
+        more = _inconsistent(again)
+        if not more:
             return trial, {"rounds": rounds, "inconsistent": [{**rec, "isolated": True}], "explained": True}
-    found = [{**t, "isolated": False} for t in bad]
-    return result, {"rounds": rounds, "inconsistent": found, "explained": len(found) <= 1}
+        queue += more   # (their figures are those of the trial without rec's array)
+    found.update({t["array"]: t for t in queue if t["array"] not in found})
+    out = [{**t, "isolated": False} for t in found.values()]
+    return result, {"rounds": rounds, "inconsistent": out, "explained": len(out) <= 1 and len(rounds) == 1}

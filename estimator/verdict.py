@@ -146,7 +146,8 @@ def name_inconsistent(verdict, record):
     """Name the arrays the leave-one-array-out test found inconsistent (``estimator.consistency``; ``record``:
     report.json ``leave_one_out``), in place: flagged, status at least ``suspect``, the reason with the largest
     move each caused and what was done: solved without it (``isolated``: the rest then tested consistent), or
-    kept (its pull within the noise that leaving it out adds, or no single array explains the inconsistency)."""
+    kept (its pull within the noise that leaving it out adds, or no single array explains the inconsistency:
+    then every array tested is flagged)."""
     found = record["inconsistent"]
     for t in found:
         if t["isolated"]:
@@ -166,8 +167,11 @@ def name_inconsistent(verdict, record):
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     if not record.get("explained", True):
         verdict["reasons"].append(f"the arrays' positions depend on {', '.join(t['array'] for t in found)} beyond "
-                                  "their noise and no single one of them explains it: the positions of every "
-                                  "array are in doubt")
+                                  "their noise and leaving out no single one of them makes the rest agree: the "
+                                  "positions of every array tested are in doubt")
+        for t in record["rounds"][0]["tested"]:
+            if t["array"] not in verdict["flagged_arrays"]:
+                verdict["flagged_arrays"].append(t["array"])
     return verdict
 
 

@@ -142,6 +142,7 @@ def test_verdict_names_the_array_the_move_and_what_was_done():
     assert v["status"] == "suspect" and v["flagged_arrays"] == ["A3"]
     assert "moves A4 by 8.4 cm" in v["reasons"][0] and "p = 2e-06" in v["reasons"][0]
     w = {"status": "ok", "reasons": [], "flagged_arrays": []}
+    tested = [{"array": a} for a in ("A2", "A3", "A4")]
     name_inconsistent(w, {"inconsistent": [{**rec, "isolated": False}, {**rec, "array": "A2", "isolated": False}],
-                          "explained": False})
-    assert w["flagged_arrays"] == ["A3", "A2"] and "no single one" in w["reasons"][-1]
+                          "explained": False, "rounds": [{"tested": tested}]})
+    assert w["flagged_arrays"] == ["A3", "A2", "A4"] and "no single one" in w["reasons"][-1]
