@@ -181,23 +181,29 @@ def leave_one_out(p, st, lay, kinds, mask, a, *, free, full, quad, max_iter=200)
     return rec, st_a
 
 
+def untestable(p, lay, free):
+    """Why the arrays ``free`` (the reference among them) of a solve with layout ``lay`` are not tested, or None."""
+    if len([i for i in free if i != p.ref]) < 2:
+        return "fewer than two arrays besides the reference: nothing to compare"
+    if lay.n > MAX_PARAMS:
+        return f"{lay.n} free parameters (> {MAX_PARAMS}): not tested (cost)"
+    return None
+
+
 def check(p, st, kinds, mask, dropped=(), *, shared=False, normals=None, max_iter=200, alpha=FAMILY_ALPHA,
           stated_errors=False):
-    """Test every array (up to MAX_TESTED) of a least-squares solution: ``st`` with the rows ``mask`` and
+    """Test every array (up to MAX_TESTED) of a least-squares solution: ``st`` with the rows ``mask`` (or a
+    function of the layout giving them, called only when there is something to test) and
     the arrays ``dropped`` (indices) left out. ``stated_errors``: C = I (the rows independent with the sigmas
     the solve ended with: the exact χ² case, for tests) instead of the ``*_std`` columns' C. Returns {"tested":
     [LeaveOneOut dicts], "alpha", "skipped" (why none was tested, or None), "time_s"}."""
     t0 = time.perf_counter()
     free = [i for i in range(p.N) if i not in dropped]
     lay = make_layout(p, arrays=free)
-    out = {"tested": [], "alpha": alpha, "skipped": None, "time_s": 0.0}
-    cand = [i for i in free if i != p.ref]
-    if len(cand) < 2:
-        out["skipped"] = "fewer than two arrays besides the reference: nothing to compare"
+    out = {"tested": [], "alpha": alpha, "skipped": untestable(p, lay, free), "time_s": 0.0}
+    if out["skipped"]:
         return out
-    if lay.n > MAX_PARAMS:
-        out["skipped"] = f"{lay.n} free parameters (> {MAX_PARAMS}): not tested (cost)"
-        return out
+    mask = mask(lay) if callable(mask) else mask
     sizes = factor_sizes(p)
     for i in dropped:
         mask = array_mask(p, mask, sizes, i)
@@ -227,7 +233,9 @@ def check_result(result, meta, *, max_iter=200, alpha=FAMILY_ALPHA, stated_error
     kinds = active_kinds(p)
     index = {str(n): i for i, n in enumerate(p.names)}
     dropped = [index[a] for a in rep.get("unreliable_arrays") or [] if a in index]
-    mask = outlier_mask(p, st, make_layout(p), kinds, rep.get("outliers"))
+
+    def mask(lay):   # (only when there is something to test: it evaluates every factor)
+        return outlier_mask(p, st, lay, kinds, rep.get("outliers"))
     return check(p, st, kinds, mask, dropped, shared=bool(meta.get("tdoa_shared_arrivals")),
                  normals=plane_normals(meta, p.names), max_iter=max_iter, alpha=alpha, stated_errors=stated_errors)
 
