@@ -32,7 +32,13 @@ Each tested array is one test; the family-wise false-alarm rate over a calibrati
 (Bonferroni: p_a < FAMILY_ALPHA / m for m arrays tested). The reference array is not tested (it fixes the
 frame: leaving it out leaves nothing to compare).
 
-Cost: one warm-started solve and one covariance per tested array. At most MAX_TESTED arrays are tested
+What follows (:func:`settle`, at the end of ``calibrate``): an inconsistent array is named. The others are solved
+without its rows (it is refitted alone, unreliable) only when that lowers their expected squared error — the
+bias its rows put on them, estimated by |d_a|² − tr S_a, exceeds the variance leaving them out adds, tr S_a —
+and the rest then tests consistent (the array explained the inconsistency); the most significant arrays are
+tried first, then any a trial's own test names (MAX_TRIES). Otherwise the full solution is kept.
+
+Cost: one warm-started solve and one covariance per tested array (a trial without an array: one calibration). At most MAX_TESTED arrays are tested
 (all when there are that few; else those with the largest mean normalised squared residual per row), and
 none when the problem has more than MAX_PARAMS free parameters (large deployments: the covariance of each
 reduced problem would cost more than the calibration).
