@@ -56,8 +56,8 @@ from scipy.special import chdtrc  # χ² survival function: chdtrc(dof, x)
 from .init import ObservabilityError
 from .problem import make_layout
 from .robust import FAMILY_ALPHA, array_mask, factor_sizes, per_array_kinds
-from .solver import levenberg_marquardt, linearise
-from .uncertainty import covariance, sandwich_covariance
+from .solver import cholesky_solve, levenberg_marquardt, linearise
+from .uncertainty import sandwich_covariance
 from .variance import covariance_factors
 
 MIN_GROWTH = 0.01    # an eigen-direction whose variance grows by < 1 % without array a: a informs it too little
@@ -115,13 +115,12 @@ def positions_of(st, lay, arrays):
     return st.x[arrays].ravel(), lay.x[arrays].ravel()
 
 
-def influence(lin, cov, cols):
-    """(M, len(cols)): the first-order change of the parameters ``cols`` per unit whitened error of each row,
-    (JᵀJ)⁻¹Jᵀ transposed, over the kept rows of ``lin`` (0 on the others); ``cov`` dense (JᵀJ)⁻¹."""
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
-    out = np.zeros((len(lin.r), len(cols)))
+def influence(lin, cov_cols):
+    """(M, k): the first-order change of k parameters per unit whitened error of each row, J (JᵀJ)⁻¹ over the
+    kept rows of ``lin`` (0 on the others); ``cov_cols`` (n, k): those parameters' columns of (JᵀJ)⁻¹."""
     keep = lin.w > 0
-    out[keep] = J[keep] @ cov[:, cols]
+    out = np.zeros((len(lin.r), cov_cols.shape[1]))
+    out[keep] = lin.J[keep] @ cov_cols
     return out
 
 
@@ -135,10 +134,22 @@ def error_covariance(p, lin, cov, *, shared, normals):
     return quad
 
 
-def plain_covariance(lin, lay):
-    """Dense (JᵀJ)⁻¹ of the kept rows of ``lin``."""
-    J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
-    return covariance(J[lin.w > 0], lay.n)
+def normal_inverse(lin, cols=None):
+    """(JᵀJ)⁻¹ of the kept rows of ``lin`` (dense or sparse J), all of it (n, n) or its columns ``cols``, by
+    Cholesky of the Jacobi-scaled matrix (a pseudo-inverse where that is singular)."""
+    J = lin.J[lin.w > 0]
+    H = J.T @ J
+    H = H.toarray() if scipy.sparse.issparse(H) else np.asarray(H)
+    d = np.sqrt(np.diag(H))
+    d = np.where(d > 0, d, 1.0)
+    Hs = H / d[:, None] / d[None, :]
+    idx = np.arange(len(d)) if cols is None else np.asarray(cols, int)
+    E = np.zeros((len(d), len(idx)))
+    E[idx, np.arange(len(idx))] = 1.0
+    X = cholesky_solve(Hs, E)
+    if X is None:
+        X = np.linalg.pinv(Hs) @ E
+    return X / d[:, None] / d[idx][None, :]
 
 
 def tested_arrays(p, st, lay, kinds, mask, free, limit=MAX_TESTED):
@@ -171,11 +182,11 @@ def leave_one_out(p, st, lay, kinds, mask, a, *, free, full, quad, max_iter=200)
     lay_a = make_layout(p, arrays=solved)
     mask_a = array_mask(p, mask, factor_sizes(p), a)
     st_a, _ = levenberg_marquardt(p, st, lay_a, kinds, loss=None, mask=mask_a, max_iter=max_iter, rtol=1e-9)
-    lin_a = linearise(p, st_a, lay_a, kinds, mask=mask_a, dense=True)
+    lin_a = linearise(p, st_a, lay_a, kinds, mask=mask_a)
     x0, c0 = positions_of(st, lay, others)
     x1, c1 = positions_of(st_a, lay_a, others)
     d = x1 - x0
-    S = quad(influence(lin_a, plain_covariance(lin_a, lay_a), c1) - influence(lin, cov, c0))
+    S = quad(influence(lin_a, normal_inverse(lin_a, c1)) - influence(lin, cov[:, c0]))
     V = cov[np.ix_(c0, c0)]
     T, dof = hausman(d, S, V)
     move = np.linalg.norm(d.reshape(-1, 3), axis=1)
@@ -214,8 +225,8 @@ def check(p, st, kinds, mask, dropped=(), *, shared=False, normals=None, max_ite
     for i in dropped:
         mask = array_mask(p, mask, sizes, i)
     st, _ = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter, rtol=1e-9)
-    lin = linearise(p, st, lay, kinds, mask=mask, dense=True)
-    cov = plain_covariance(lin, lay)
+    lin = linearise(p, st, lay, kinds, mask=mask)
+    cov = normal_inverse(lin)
     quad = (lambda X: X.T @ X) if stated_errors else error_covariance(p, lin, cov, shared=shared, normals=normals)
     tests = tested_arrays(p, st, lay, kinds, mask, free)
     level = alpha / len(tests)
