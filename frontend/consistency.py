@@ -47,12 +47,21 @@ MISFIT_FAIL = 0.15        # misfit RMS over the array's largest measured delay: 
 MISFIT_NAMED = 0.02       # ... above this, a fix that cuts it by FIX_NAMED names the channel (clean: < 0.005)
 FIX_NAMED = 5.0
 MISFIT_FLOOR_S = 3e-6     # s: below this absolute misfit a geometry always fits (clean rooms: 0.1-1.2 µs)
+MISFIT_BEST_K = 3         # a geometry that this many events fit within MISFIT_NAMED is the board's: a wrong one
+                          # fits no event, reflections bend only some (a moving robot's reference array in a
+                          # reverberant lab: 3 of 12 chirps at 1.4-1.9 %, the other 9 at 17-58 %)
 MOVE_ITERATIONS = 8        # alternating least squares that refit one mic's position (converged in 3-5)
 FIX_RATIO = 3.0           # a fix (a swap, leaving a mic out) must cut the misfit by this factor to be named
 SCALE_FAIL = 1.6          # |w|·c (the declared size's inverse scale) off 1 by more than this factor
 SCALE_FAIL_3D = 1.15      # ... a 3-D array's, agreed on by CONSENSUS_SUPPORT of its events (clean: ≤ 1.11)
 CONSENSUS_TOL = 0.05      # relative: events whose |w|·c agree this well agree on the scale (clean: ~1 %)
 CONSENSUS_SUPPORT = 0.4
+PLANAR_TOP_TOL = 0.1      # a planar array's largest |w|·c above 1 counts when PLANAR_TOP_MIN events lie within this
+PLANAR_TOP_MIN = 3        # (relative) below it: a size declared too small lifts all; a warehouse's reflections put
+                          # lone ones there (1.28, 1.63, 1.81 beside 0.86-0.98: read as 0.61 × too small by the largest)
+SCALE_SCATTER_K = 1.0     # a 3-D array's scale bound widened by this × its events' scatter (robust std of log |w|·c):
+# small arrays at low rates read the delays long in reverberant rooms (a 4 cm tetrahedron at 16 kHz in a 1.2 s
+# warehouse at 5 dB: |w|·c 0.84-1.30, consensus 1.17, std 0.09; a clean lab: ≤ 1.11, std ~0.01)
 
 
 @dataclass(frozen=True)
@@ -84,7 +93,8 @@ class GeometryFit:
     (1 = right; NaN if not measurable); loo : {mic: misfit without it}; moved : {mic: (misfit, offset (3,) m)
     with that mic's position refitted}; swaps : {(m, n): misfit with the two swapped}; used : mics in the fit; support : the fraction of the events that agree on the scale (a 3-D
     array: :func:`consensus`; a planar or linear one: those with ``|w|·c > 1``, which only a geometry declared
-    too small gives)."""
+    too small gives, 0 when their top is not supported: :func:`supported_top`); scatter : a 3-D array's robust std of ``log |w|·c`` over its
+    events (noise and reflections; 0 for a planar one); best : s, the MISFIT_BEST_K-th smallest event misfit."""
     misfit: float
     ratio: float
     scale: float
@@ -94,6 +104,8 @@ class GeometryFit:
     loo: dict = field(default_factory=dict)
     swaps: dict = field(default_factory=dict)
     moved: dict = field(default_factory=dict)
+    scatter: float = 0.0
+    best: float = np.nan
 
 
 # ----------------------------------------------------------------------------------------------- detection
@@ -241,16 +253,23 @@ def measure_delays(x, mics, template, fs, band, times, c):
 
 
 # ----------------------------------------------------------------------------------------------- fits
-def _misfit(tau, pairs, mics, use):
-    """The MISFIT_QUANTILE over events of the RMS pair residual of the per-event plane-wave fit, over the pairs
-    of mics ``use``; and the per-event fitted ``w`` (K, 3). A wrong geometry misfits every event; a
-    reflection stronger than the direct path (a reverberant room, a wall-mounted board) only some."""
+def _event_misfits(tau, pairs, mics, use):
+    """(K,) each event's RMS pair residual of its plane-wave fit over the pairs of mics ``use``, and the
+    per-event fitted ``w`` (K, 3)."""
     sel = np.isin(pairs[:, 0], use) & np.isin(pairs[:, 1], use)
     A = -(mics[pairs[sel, 0]] - mics[pairs[sel, 1]])  # (P', 3)
     y = tau[:, sel].T  # (P', K)
     w, *_ = np.linalg.lstsq(A, y, rcond=None)
     res = y - A @ w
-    return float(np.quantile(np.sqrt(np.mean(res**2, axis=0)), MISFIT_QUANTILE)), w.T
+    return np.sqrt(np.mean(res**2, axis=0)), w.T
+
+
+def _misfit(tau, pairs, mics, use):
+    """The MISFIT_QUANTILE over events of :func:`_event_misfits`, and the per-event ``w`` (K, 3). A wrong
+    geometry misfits every event; a reflection stronger than the direct path (a reverberant room, a
+    wall-mounted board) only some."""
+    r, w = _event_misfits(tau, pairs, mics, use)
+    return float(np.quantile(r, MISFIT_QUANTILE)), w
 
 
 def _moved(tau, pairs, mics, use, m, iters=MOVE_ITERATIONS):
@@ -275,6 +294,23 @@ def _rank(mics, tol=1e-3):
     """Dimension spanned by the mics (1 linear, 2 planar, 3 volume): a plane wave's unknowns."""
     sv = np.linalg.svd(mics - mics.mean(axis=0), compute_uv=False)
     return int(np.sum(sv > tol * max(sv[0], 1e-12)))
+
+
+def supported_top(x, tol=PLANAR_TOP_TOL, n=PLANAR_TOP_MIN):
+    """The largest value of ``x`` with at least ``n`` values (itself included) within a relative ``tol`` below
+    it; NaN if none. A planar array's |w|·c above 1: the events nearest its plane tell a size declared too
+    small (cos el / scale), and there are several of them; a lone high value is a reflection or noise."""
+    x = np.sort(np.asarray(x, float))[::-1]
+    for v in x:
+        if np.sum((x <= v) & (x >= v / (1.0 + tol))) >= n:
+            return float(v)
+    return np.nan
+
+
+def robust_scatter(x):
+    """Robust standard deviation (1.4826 × the median absolute deviation) of ``x``; 0 when fewer than 3."""
+    x = np.asarray(x, float)
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size >= 3 else 0.0
 
 
 def consensus(x, tol=CONSENSUS_TOL):
@@ -304,19 +340,24 @@ def fit_geometry(delays, mics, c, exclude=()):
     span = float(np.max(np.abs(delays.tau))) if delays.tau.size else 0.0
     if len(use) < 3 or not delays.tau.size:
         return GeometryFit(np.nan, np.nan, np.nan, span, used=use)
-    misfit, w = _misfit(delays.tau, delays.pairs, mics, use)
+    per_event, w = _event_misfits(delays.tau, delays.pairs, mics, use)
+    misfit = float(np.quantile(per_event, MISFIT_QUANTILE))
+    best = float(np.sort(per_event)[min(MISFIT_BEST_K, len(per_event)) - 1])
     if len(use) - 1 <= _rank(mics[list(use)]):  # as many delays as a plane wave's unknowns: any delays fit
-        misfit = np.nan
+        misfit = best = np.nan
     wc = np.linalg.norm(w, axis=1) * c
     d = mics[list(use)] - mics[list(use)].mean(axis=0)
     sv = np.linalg.svd(d, compute_uv=False)
     full3d = sv[-1] > 0.1 * sv[0]
     mode, support = consensus(wc)
+    scatter = robust_scatter(np.log(wc[wc > 0]))
     if not full3d:  # |w|·c ≤ 1 for any plane wave: the events above it, if many, say the size is too small;
         # they spread with the sources' elevations (cos el / scale): the sources nearest the plane tell the scale
         over = wc[wc > 1.0]
-        support = len(over) / len(wc)
-        mode = np.sort(over)[-2] if len(over) > 1 else np.max(wc)  # the largest but one (an outlier spared)
+        top = supported_top(over)
+        support = len(over) / len(wc) if np.isfinite(top) else 0.0
+        mode = top if np.isfinite(top) else np.max(wc)   # no supported top: the largest is only a bound
+        scatter = 0.0   # (a planar array's |w|·c spreads with the elevations, not with the noise)
     scale = 1.0 / float(mode) if mode > 0 else np.nan
     loo = {m: _misfit(delays.tau, delays.pairs, mics, tuple(u for u in use if u != m))[0]
            for m in use} if len(use) - 2 > _rank(mics[list(use)]) else {}  # the rest still over-determined
@@ -326,7 +367,8 @@ def fit_geometry(delays, mics, c, exclude=()):
         p = mics.copy()
         p[[a, b]] = p[[b, a]]
         swaps[(a, b)] = _misfit(delays.tau, delays.pairs, p, use)[0]
-    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, use, support, loo, swaps, moved)
+    return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, use, support, loo, swaps, moved, scatter,
+                       best)
 
 
 def inverted_channels(delays, exclude=()):

@@ -19,7 +19,7 @@ What is checked, and from what:
 | the same recording for two arrays | equal samples | :func:`identical_recordings` |
 | wrong speed of sound / odometry units | ranges from the metric odometry vs the arrivals | :func:`speed_of_sound_fit` |
 | events.csv of another session | arrivals the odometry cannot explain; unmatched chirps | :func:`speed_of_sound_fit` |
-| sources on a line or in one non-horizontal plane | the odometry's spread | :func:`trajectory_findings` |
+| sources on a line or in one non-horizontal plane | the odometry's spread; which arrays' DOAs are 3-D | :func:`trajectory_findings` |
 | mirrored geometry, doa_hemisphere on the wrong side, odometry axes mirrored | DOAs that fit the odometry only with an improper rotation | :func:`mirror_findings` |
 | speed of sound against the air temperature | session.toml's optional ``temperature`` | :func:`temperature_findings` |
 
@@ -175,7 +175,7 @@ def geometry_findings(a, d, c, exclude=()):
     planar = np.linalg.svd(mics[list(g.used)] - mics[list(g.used)].mean(axis=0), compute_uv=False)
     full3d = planar[-1] > 0.1 * planar[0]
     agreed = g.support >= C.CONSENSUS_SUPPORT  # a 3-D array's events, or a planar one's above |w|·c = 1
-    fail = C.SCALE_FAIL_3D if agreed else C.SCALE_FAIL
+    fail = (C.SCALE_FAIL_3D if agreed else C.SCALE_FAIL) * np.exp(C.SCALE_SCATTER_K * g.scatter)
     too_big = g.scale > (fail if full3d else PLANAR_SCALE_FAIL)
     # too small only where the events agree: one event above |w|·c = 1 (a reflection) is no evidence (a clean
     # reverberant lab: 1 of 12 at 1.9); a planar array's bound alone can still say too large
@@ -224,6 +224,12 @@ def _misfit_finding(a, g, mics, fix_ratio):
                        "many chirps (a reflection from a surface near the board?); not a set-up mistake")
     if g.ratio <= C.MISFIT_FAIL:
         return None
+    if g.best / max(g.span, 1e-12) < C.MISFIT_NAMED:   # several chirps fit it closely: no other board would
+        # (its geometry is right, but most chirps reach it by reflections: its arrivals are doubtful, and a
+        # reference array's bend every other array: a moving robot's reference in a reverberant lab, 6-17 cm)
+        return Finding("suspect", wav, "direct path", f"{head}, but {C.MISFIT_BEST_K} of its chirps fit it within "
+                       f"{us * g.best:.0f} µs, which no other board would: most chirps reach it by reflections (a "
+                       "wall or an obstacle between it and the speaker?); its arrivals are doubtful")
     return Finding("failed", wav, "geometry", f"{head}: the mics in session.toml are not this board's (shape, "
                    "order or coordinates; e.g. a circle declared as a line): enter the board's geometry")
 
@@ -872,9 +878,12 @@ def temperature_findings(session):
                     "one of them")]
 
 
-def trajectory_findings(events):
+def trajectory_findings(events, features=None):
     """Sources on a line, or in one plane that is not horizontal in the reference frame: the arrays' mirror
-    images across it (rotations about the line) explain the TDOAs as well."""
+    images across it (rotations about the line) explain the TDOAs as well. Across a plane only an array whose
+    DOAs do not fix a 3-D direction (:func:`mirror_ambiguous`) can be mirrored (a 3-D one would need an
+    improper rotation): with ``features`` known, those arrays are named (``suspect``; ``failed`` when every
+    non-reference array is one) and the others are calibrated (lab3 in a vertical plane: 0.2-0.3 cm)."""
     odo = events[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     if len(odo) < 3:
         return []
@@ -888,11 +897,33 @@ def trajectory_findings(events):
                         f"{s[0]:.2f} m along it, {s[1]:.3f} m across): each array may turn about it freely; drive "
                         "a path that turns")]
     n = vt[2]
-    if s[2] < PLANE_RATIO * s[1] and abs(n[2]) < HORIZONTAL_COS:
-        return [Finding("failed", "events.csv", "trajectory", f"events.csv: the sources lie in one plane that is not "
-                        f"horizontal (normal {n[0]:+.2f}, {n[1]:+.2f}, {n[2]:+.2f}): every array's mirror image across "
-                        "it fits the delays as well; drive a path that leaves it")]
-    return []
+    if not (s[2] < PLANE_RATIO * s[1] and abs(n[2]) < HORIZONTAL_COS):
+        return []
+    text = f"events.csv: the sources lie in one plane that is not horizontal (normal {n[0]:+.2f}, {n[1]:+.2f}, " \
+           f"{n[2]:+.2f}): "
+    if features is None:
+        return [Finding("failed", "events.csv", "trajectory", text + "every array's mirror image across it fits "
+                        "the delays as well; drive a path that leaves it")]
+    loose, others = mirror_ambiguous(features)
+    if loose and loose == others:
+        return [Finding("failed", "events.csv", "trajectory", text + "no array's DOAs fix a 3-D direction, so each "
+                        "one's mirror image across it fits the delays and DOAs as well; drive a path that leaves it")]
+    return [Finding("suspect", "events.csv", "trajectory", text + f"array {name}'s DOAs do not fix a 3-D direction "
+                    "(a planar board without doa_hemisphere, a linear board or a pair), so its mirror image across "
+                    "the plane fits as well: its pose may be mirrored; state its doa_hemisphere, or drive a path "
+                    "that leaves the plane", name) for name in loose]
+
+
+def mirror_ambiguous(features):
+    """(names, others): the non-reference arrays of ``features`` whose DOAs do not fix a 3-D direction (meta
+    ``doa_mirror_normals``: planar without a hemisphere; ``doa_axes``: linear boards and pairs; or no DOA rows),
+    and all non-reference arrays, both in the features' order."""
+    meta = features["meta"]
+    ref = meta.get("reference_array")
+    others = [str(a) for a in meta["arrays"] if str(a) != str(ref)]
+    with_doa = set(features["doa"]["array"].astype(str)) if features.get("doa") is not None else set()
+    loose = set(meta.get("doa_mirror_normals") or {}) | set(meta.get("doa_axes") or {})
+    return [a for a in others if a in loose or a not in with_doa], others
 
 
 # ----------------------------------------------------------------------------------------------- together
@@ -946,7 +977,7 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
         out += channel_findings(a, res, session["speed_of_sound"])
     out += clock_findings(session, results)
     out += identical_recordings(session)
-    out += trajectory_findings(session["events"]) + temperature_findings(session)
+    out += trajectory_findings(session["events"], features) + temperature_findings(session)
     if diagnostics is not None:
         out += matched_findings(session, diagnostics)
     if features is not None and not any(f.check in ("events vs chirps", "emission clock") for f in out):
@@ -975,7 +1006,7 @@ def feature_findings(features):
     """The set-up findings a features folder alone can show (``calib estimate``: no recordings): the speed of
     sound and the odometry against the arrivals and DOAs, mirrored DOAs, the trajectory. Dicts, as
     :func:`stage_findings`."""
-    found = sound_findings(features, source="meta.json") + trajectory_findings(features["events"])
+    found = sound_findings(features, source="meta.json") + trajectory_findings(features["events"], features)
     return [f.as_dict() for f in sorted(found, key=lambda f: -STATUS_RANK[f.status])]
 
 

@@ -139,6 +139,87 @@ def test_one_reflected_event_does_not_make_a_planar_board_too_small(bent):
     assert [f.check for f in small] == ["geometry scale"] and "smaller" in small[0].text
 
 
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_lone_high_events_do_not_make_a_planar_board_too_small(seed):
+    """A board level with the speaker (sources 1-17° from its plane: |w|·c 0.96-1.0) in a noisy reverberant
+    hall: about half its events read just above 1 and three read far above it, scattered (reflections): no
+    finding, although most events are above 1; declared 0.75 × too small, the same events name it."""
+    from calib.frontend.consistency import PairDelays
+    from calib.pipeline.setupcheck import geometry_findings
+
+    rng = np.random.default_rng(seed)
+    az, el = rng.uniform(0, 2 * np.pi, 12), rng.uniform(0.02, 0.3, 12)
+    u = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
+    t = -(u @ CIRCLE.T) / C * rng.normal(1.02, 0.03, (12, 1))      # delays read ~2 % long, ±3 %
+    pairs = np.array([(m, n) for m in range(6) for n in range(m + 1, 6)])
+    tau = t[:, pairs[:, 0]] - t[:, pairs[:, 1]]
+    tau[:3] *= np.array([[1.28], [1.63], [1.81]]) / np.cos(el[:3, None])   # three bent events, scattered
+    d = PairDelays(pairs, tau, np.ones_like(tau), np.ones_like(tau), np.ones((12, 6)), np.zeros(6), [],
+                   np.arange(12.0), 16000.0)
+    board = {"name": "A2", "mics": CIRCLE.tolist(), "wav": "A2.wav"}
+    assert geometry_findings(board, d, C) == []
+    small = geometry_findings({**board, "mics": (0.75 * CIRCLE).tolist()}, d, C)
+    assert [f.check for f in small] == ["geometry scale"] and "smaller" in small[0].text
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_board_most_of_whose_chirps_arrive_by_reflections_is_not_a_wrong_board(seed):
+    """A circle that hears 3 of 12 chirps on the direct path and 9 as reflections (each pair delay bent at
+    random, 20-60 % of the largest delay): the 3 fit its geometry, which a wrong board's would not: not failed,
+    but suspect (its arrivals are doubtful). Declared as another board (the mics in another order), every chirp
+    misfits: failed."""
+    from calib.frontend.consistency import PairDelays
+    from calib.pipeline.setupcheck import geometry_findings
+
+    rng = np.random.default_rng(seed)
+    el, pairs, tau = _circle_waves(40 + seed)
+    span = np.max(np.abs(tau))
+    tau[3:] += rng.choice([-1, 1], tau[3:].shape) * rng.uniform(0.2, 0.6, tau[3:].shape) * span
+    d = PairDelays(pairs, tau, np.ones_like(tau), np.ones_like(tau), np.ones((12, 6)), np.zeros(6), [],
+                   np.arange(12.0), 16000.0)
+    board = {"name": "A2", "mics": CIRCLE.tolist(), "wav": "A2.wav"}
+    assert [(f.status, f.check) for f in geometry_findings(board, d, C)] == [("suspect", "direct path")]
+    other = {**board, "mics": CIRCLE[[0, 3, 1, 4, 2, 5]].tolist()}
+    clean = PairDelays(pairs, _circle_waves(40 + seed)[2], np.ones_like(tau), np.ones_like(tau), np.ones((12, 6)),
+                       np.zeros(6), [], np.arange(12.0), 16000.0)
+    assert [f.status for f in geometry_findings(other, clean, C)] == ["failed"]
+
+
+def test_supported_top_needs_company():
+    from calib.frontend.consistency import supported_top
+
+    assert np.isnan(supported_top([1.28, 1.63, 1.81]))
+    assert supported_top([1.05, 1.1, 1.2, 1.22, 1.25, 1.9]) == 1.25   # the lone 1.9 spared
+    assert np.isnan(supported_top([]))
+
+
+def test_a_volume_board_s_scale_bound_widens_with_its_events_scatter():
+    """A tetrahedron whose events read |w|·c 0.84-1.30 (a small board at a low rate in a reverberant hall: the
+    consensus 1.17, beyond the clean bound 1.15) is not named, its events' scatter being 0.09; the same
+    consensus with a clean scatter is, and so is a board declared twice too large in the noisy case."""
+    from calib.frontend.consistency import PairDelays
+    from calib.pipeline.setupcheck import geometry_findings
+
+    tet = 0.02 * np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    rng = np.random.default_rng(7)
+    u = rng.normal(size=(12, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    pairs = np.array([(m, n) for m in range(4) for n in range(m + 1, 4)])
+
+    def found(wc, mics):
+        t = -(u @ tet.T) / C * np.asarray(wc)[:, None]
+        tau = t[:, pairs[:, 0]] - t[:, pairs[:, 1]]
+        d = PairDelays(pairs, tau, np.ones_like(tau), np.ones_like(tau), np.ones((12, 4)), np.zeros(4), [],
+                       np.arange(12.0), 16000.0)
+        return geometry_findings({"name": "A3", "mics": mics.tolist(), "wav": "A3.wav"}, d, C)
+
+    noisy = [0.84, 0.96, 1.04, 1.08, 1.11, 1.12, 1.15, 1.18, 1.19, 1.2, 1.25, 1.3]
+    assert found(noisy, tet) == []
+    clean = 1.17 * rng.normal(1.0, 0.005, 12)
+    assert [f.check for f in found(clean, tet)] == ["geometry scale"]
+    assert "larger" in found(noisy, 2 * tet)[0].text
+
+
 def test_consensus_ignores_the_events_a_reflection_bent():
     rng = np.random.default_rng(29)
     wc = np.r_[rng.normal(1 / 1.3, 0.005, 4), [1.15, 1.4, 1.9, 2.1, 2.7]]  # 5 of 9 events bent, scattered
