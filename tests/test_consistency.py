@@ -109,18 +109,25 @@ def _planted(seed):
 
 
 def test_a_planted_clock_warm_up_absorbed_by_the_geometry_is_named():
+    """Named when leaving it out moves another array by at least MIN_MOVE_SIGMA of that array's std (seed 2:
+    2.7 σ); a significant move inside the others' error bars is not (seed 0: p 9e-5, 0.71 σ): either way no
+    unflagged array is 3σ off."""
+    from calib.estimator.consistency import MIN_MOVE_SIGMA
+
     isolated = 0
     for seed in (0, 2):
         r, truth = _planted(seed)
         v = r["report"]["verdict"]
-        assert v["status"] != "ok" and "A3" in v["flagged_arrays"]
+        first = {t["array"]: t for t in r["report"]["leave_one_out"]["rounds"][0]["tested"]}
+        material = first["A3"]["move_sigma"] >= MIN_MOVE_SIGMA
+        assert ("A3" in v["flagged_arrays"]) == material and (v["status"] != "ok" or not material)
+        err = _position_errors(r, truth)
+        std = r["arrays"].set_index("array")[["x_std", "y_std", "z_std"]].pow(2).sum(axis=1) ** 0.5
+        assert all(err[n] < 3 * std[n] for n in err if n not in v["flagged_arrays"] and std[n] > 0)
         for t in r["report"]["leave_one_out"]["inconsistent"]:
             if t["isolated"]:
                 isolated += 1
-                # solved without it, the others' errors are what their std says (truth: simulated)
-                err = _position_errors(r, truth)
-                std = r["arrays"].set_index("array")[["x_std", "y_std", "z_std"]].pow(2).sum(axis=1) ** 0.5
-                assert all(err[n] < 3 * std[n] for n in err if n not in v["flagged_arrays"] and std[n] > 0)
+                # solved without it, the others' errors are what their std says (truth: simulated): above
     assert isolated >= 1
 
 
