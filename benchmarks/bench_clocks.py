@@ -34,7 +34,7 @@ import numpy as np
 
 from calib.estimator import ObservabilityError, calibrate
 from calib.pipeline.report.evaluate import evaluate
-from calib.pipeline.simulate.clocks import delay_arrivals
+from calib.pipeline.simulate.clocks import delay_arrivals, doubt_arrivals
 from calib.pipeline.simulate.featsim import simulate_features
 from realdata import not_found, real_world_dir  # noqa: E402 (benchmarks/, the script's folder)
 
@@ -139,6 +139,8 @@ def run_case(name, seeds, make):
         else:
             clocks = make(seed)
             f, truth = scene(seed, clocks)
+            if name in DOUBTED_CASES:
+                f = _doubt_late_side(f, truth)
         t = time.perf_counter()
         cal = calibrate(f, clock_model="auto")
         dt = time.perf_counter() - t
@@ -196,12 +198,36 @@ CASES = {
                                                {"steps": [{"size": _size(s + 99, 1e-4, 0.05)}]}))),
     "warmup_1-5ppm": lambda s: {_pick(s): {"warmup": {"amplitude": float(np.random.default_rng([s, 3]).uniform(1e-6, 5e-6))
                                                       * (-1) ** s, "time_constant": 60.0}}},
+    # one array drops a block while another warms up (the held-back kind: a step and a varying drift at once,
+    # each bending the fit the other is scanned at); sizes, amplitudes and time constants drawn
+    "drop_and_warmup": lambda s: dict(zip(_two(s), ({"steps": [{"size": -_size(s, 1e-4, 0.05)}]},
+                                                     {"warmup": {"amplitude": _size(s + 7, 1e-6, 5e-6) * (-1) ** s,
+                                                                 "time_constant": _size(s + 5, 30.0, 240.0)}}))),
+    # ... and the frontend's range track reading the drop's earlier arrivals as late (flag nlos, as on rendered
+    # lab sessions: events 0-7 of 0-13 for a 20 ms drop): :data:`DOUBTED_CASES`
+    "drop_doubted_and_warmup": lambda s: dict(zip(_two(s), ({"steps": [{"size": -_size(s, 0.005, 0.05)}]},
+                                                            {"warmup": {"amplitude": _size(s + 7, 1e-6, 5e-6) * (-1) ** s,
+                                                                        "time_constant": _size(s + 5, 30.0, 240.0)}}))),
     "rate_+1%": lambda s: {_pick(s): {"rate": {"error": 0.01}}},
     "rate_-1%": lambda s: {_pick(s): {"rate": {"error": -0.01}}},
     "rate_1000ppm": lambda s: {_pick(s): "rate1000ppm"},
     "rate_44k1_as_48k": lambda s: {_pick(s): "rate44k"},
     "rate_+10%": lambda s: {_pick(s): {"rate": {"error": 0.1}}},
 }
+
+
+DOUBTED_CASES = ("drop_doubted_and_warmup",)
+
+
+def _doubt_late_side(f, truth):
+    """``f`` with each injected step's late side doubted as reflections (flag nlos, ``clocks.doubt_arrivals``):
+    the arrivals before a drop (after an insert) sit one size late of the rest, as a range track reads them."""
+    t = f["events"]["t_emit"].to_numpy() - f["events"]["t_emit"].iloc[0]
+    ev = f["events"]["event"].to_numpy()
+    for name, steps in _steps_of(truth).items():
+        for s in steps:
+            f = doubt_arrivals(f, name, ev[t < s["time"]] if s["size"] < 0 else ev[t > s["time"]])
+    return f
 
 
 def _blocked(seed, n_events, form):

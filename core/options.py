@@ -92,7 +92,7 @@ OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
 )
 OPTION = {o.name: o for o in OPTIONS}
 DEFAULTS = {o.name: o.default for o in OPTIONS}
-INPUTS = ("init_state", "problem")  # keywords of calibrate that are data, not options (not checked here)
+INPUTS = ("init_state", "problem", "isolate")  # keywords of calibrate that are data, not options (not checked here)
 
 
 def cli_options() -> tuple[Option, ...]:

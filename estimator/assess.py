@@ -55,14 +55,18 @@ def rebuild(features, calib):
         # the estimator left out what the data do not determine: the same rank check at the estimate
         p = check_observability(p, make_layout(p), kinds, st)
     lay = make_layout(p)
-    flagged = {}
-    for o in rep.get("outliers") or []:
-        flagged.setdefault(o["type"], set()).add(int(o["line"]))
-    mask = {f.kind: ~np.isin(f.row, list(flagged[f.kind]))
-            for f in factors(p, st, lay, kinds) if f.kind in flagged}
+    mask = outlier_mask(p, st, lay, kinds, rep.get("outliers"))
     return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask,
             "shared": bool(features["meta"].get("tdoa_shared_arrivals")),
             "normals": plane_normals(features["meta"], p.names)}
+
+
+def outlier_mask(p, st, lay, kinds, outliers):
+    """{kind: (residuals,) bool} with the rows of report.json ``outliers`` (their type and CSV line) left out."""
+    flagged = {}
+    for o in outliers or []:
+        flagged.setdefault(o["type"], set()).add(int(o["line"]))
+    return {f.kind: ~np.isin(f.row, list(flagged[f.kind])) for f in factors(p, st, lay, kinds) if f.kind in flagged}
 
 
 def _rank_deficient(p, undetermined):

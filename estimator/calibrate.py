@@ -16,7 +16,7 @@ from typing import Any
 from calib.blas import single_thread_blas
 from calib.options import validate_options
 
-from . import arraynoise, clockmodel
+from . import arraynoise, clockmodel, consistency
 from .assess import labelled_array_covariance
 from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
@@ -29,7 +29,7 @@ from .screen import distrusted, isolated, screen_rows
 from .solver import forget_linearisation, linearise
 from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
-from .verdict import fold_ambiguity, majority_apart, name_distrusted
+from .verdict import fold_ambiguity, majority_apart, name_distrusted, name_inconsistent
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
 
@@ -43,14 +43,35 @@ def calibrate(features: Mapping[str, Any], **options: Any) -> CalibrationResult:
     """
     try:
         with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
-            return CalibrationResult(**clockmodel.calibrate_clocks(calibrate_features, features, **options))
+            result = clockmodel.calibrate_clocks(calibrate_features, features, **options)
+            return CalibrationResult(**_leave_one_out(result, features, options))
     finally:
         forget_linearisation()
 
 
+def _leave_one_out(result, features, options):
+    """The leave-one-array-out test (``estimator.consistency``) on a full result of the hybrid method: arrays
+    whose rows move the others more than the noise allows are solved without (the clock models chosen
+    again) and named in the verdict; report.json ``leave_one_out``."""
+    if options.get("outputs", "all") != "all" or options.get("method", "hybrid") != "hybrid":
+        return result
+    t0 = time.perf_counter()
+    before = list(options.get("isolate") or ())
+
+    def resolve(names):
+        return clockmodel.calibrate_clocks(calibrate_features, features, **{**options, "isolate": before + list(names)})
+
+    result, record = consistency.settle(result, features["meta"], resolve, max_iter=options.get("max_iter", 200))
+    record["time_s"] = time.perf_counter() - t0
+    result["report"]["leave_one_out"] = record
+    name_inconsistent(result["report"]["verdict"], record)
+    result["report"]["timings_s"]["leave_one_out"] = record["time_s"]
+    return result
+
+
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy",
                        robust_k=3.0, outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto",
-                       odometry_yaw=True, array_noise=False, outputs="all", problem=None):
+                       odometry_yaw=True, array_noise=False, outputs="all", problem=None, isolate=()):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters (declared in ``calib.options.OPTIONS``, which tests/test_options.py holds these defaults to)
@@ -79,6 +100,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     problem : optional :class:`~calib.estimator.problem.Problem` that ``build_problem(features,
         use_tdoa_s=..., sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)`` gives for these options
         (programs that calibrate the same features several times build it once; it is not changed).
+    isolate : names of arrays to solve without and refit alone (marked unreliable), as the joint solve's own
+        array tests do (``calibrate``: arrays the leave-one-array-out test, ``estimator.consistency``, found
+        inconsistent).
 
     Returns the dict form of a :class:`~calib.estimator.outputs.CalibrationResult` (its fields and units;
     ``calibrate`` returns the record): ``arrays``, ``sources`` (with 1-σ ``*_std`` columns from (JᵀWJ)⁻¹),
@@ -107,7 +131,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         p = arraynoise.start_scales(p, kinds)
     res, basins = _deployment_solve(p, st, kinds, stages, features, lambda p_, st_: joint_solve(
         p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
-        outlier_threshold=outlier_threshold, max_iter=max_iter, isolate=isolated(screened, p.names)), max_iter)
+        outlier_threshold=outlier_threshold, max_iter=max_iter,
+        isolate=isolated(screened, p.names) + [i for i, n in enumerate(p.names) if str(n) in isolate]), max_iter)
     times["joint"] = time.perf_counter() - t2
     if outputs == "solution":
         return _solution(res, kinds, stage_states)

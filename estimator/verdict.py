@@ -142,6 +142,39 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
     return {"status": status, "reasons": reasons, "flagged_arrays": flagged}
 
 
+def name_inconsistent(verdict, record):
+    """Name the arrays the leave-one-array-out test found inconsistent (``estimator.consistency``; ``record``:
+    report.json ``leave_one_out``), in place: flagged, status at least ``suspect``, the reason with the largest
+    move each caused and what was done: solved without it (``isolated``: the rest then tested consistent), or
+    kept (its pull within the noise that leaving it out adds, or no single array explains the inconsistency:
+    then every array tested is flagged)."""
+    found = record["inconsistent"]
+    for t in found:
+        if t["isolated"]:
+            then = "solved without its rows (the others then agree); its own pose, refitted alone, is unreliable"
+        elif not t["helps"]:
+            then = (f"kept: its pull on the others is within the noise that leaving it out would add "
+                    f"({100 * t['noise_m']:.1f} cm)")
+        else:
+            then = "kept: leaving it out does not make the others agree"
+        verdict["reasons"].append(
+            f"array {t['array']} is inconsistent with the others: leaving it out moves {t['moved']} by "
+            f"{100 * t['move_m']:.1f} cm (Hausman T = {t['T']:.1f} on {t['dof']} dof, p = {t['p']:.1g} < "
+            f"{t['alpha']:.1g}): rows biased with the geometry (e.g. a clock or mic-geometry error the residuals "
+            f"do not show); {then}")
+        if t["array"] not in verdict["flagged_arrays"]:
+            verdict["flagged_arrays"].append(t["array"])
+        verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    if not record.get("explained", True):
+        verdict["reasons"].append(f"the arrays' positions depend on {', '.join(t['array'] for t in found)} beyond "
+                                  "their noise and leaving out no single one of them makes the rest agree: the "
+                                  "positions of every array tested are in doubt")
+        for t in record["rounds"][0]["tested"]:
+            if t["array"] not in verdict["flagged_arrays"]:
+                verdict["flagged_arrays"].append(t["array"])
+    return verdict
+
+
 REASON_TEXT = {"nlos": "reflection-only arrivals (late against the array's range track: line of sight blocked)",
                "weak_direct": "direct paths weaker than a reflection just after them (line of sight attenuated: "
                               "occlusion by a mount or obstacle), whose DOAs that reflection bends",

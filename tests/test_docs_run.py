@@ -159,6 +159,10 @@ def test_readme_runs(tmp_path):
     res = run_page("README.md", tmp_path)
     setup, tour, notebook = (outs for _, outs in res)
     assert (tmp_path / "calib-out/calibration/calibration.json").exists()
+    # the bundled sample is a clean simulated session: no false alarm in the main job (the leave-one-array-out
+    # check once named A2 for a 1 mm move of A3, 0.5 σ)
+    verdict = json.loads((tmp_path / "calib-out/calibration/report.json").read_text())["verdict"]
+    assert verdict["status"] == "ok" and verdict["flagged_arrays"] == [], verdict
     # "again: every stage is skipped (content hashes)"
     first, again = tour[1], tour[2]
     assert "skipped" not in first

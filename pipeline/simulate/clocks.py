@@ -21,6 +21,7 @@ mid-session rate change, a 44.1 kHz board written as 48 kHz).
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
 from calib.clock import Clock, Step, Term
 from calib.geometry import local_time
@@ -160,6 +161,23 @@ def records(sc, faults):
 
 
 # ----------------------------------------------------------------------------------------------- not a clock
+def doubt_arrivals(features, array, events, flag="nlos"):
+    """A copy of (featsim) ``features`` with ``array``'s arrivals at ``events`` flagged ``flag`` (the frontend's
+    doubt, docs/frontend.md): what the range track does with the events on one side of a large clock step, whose
+    arrivals all sit one size off its track (a drop: those before it read as late, reflection-like). Its TDOA-M
+    and DOA rows at those events and its TDOA-S rows from or to them get the flag (``+``-joined to any there)."""
+    ev = {int(e) for e in events}
+    out = dict(features)
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        df = features[name].copy()
+        at = (df["event"].isin(ev) if "event" in df.columns else df["from_event"].isin(ev) | df["to_event"].isin(ev))
+        mine = at.to_numpy() & (df["array"].astype(str).to_numpy() == array)
+        old = df["flag"].fillna("").astype(str) if "flag" in df.columns else pd.Series("", index=df.index)
+        df["flag"] = np.where(mine, np.where(old == "", flag, old + "+" + flag), old)
+        out[name] = df
+    return out
+
+
 def delay_arrivals(features, array, delays):
     """A copy of (featsim) ``features`` with ``array``'s arrivals late by ``delays`` {event: s}: what a blocked
     line of sight does (the first arrival is a reflection, late by a path difference that changes from stop to
