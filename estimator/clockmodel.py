@@ -51,6 +51,7 @@ from scipy.special import chdtri, erf, erfc
 
 from calib.clock import TERMS as CLOCK_TERMS, Clock, Step, Term, header_ratio
 from calib.options import validate_options
+from calib.robust import mad_std
 from calib.tables import ARRAY_PARAMS
 
 from .init import ObservabilityError
@@ -1330,12 +1331,12 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
         _, _, _, coef, r = fit_array(D, [Component("step", time, 0.0)], st.x[i].copy(), 1.0 + st.drift[i],
                                      st.offset[i])
         e = r[len(D.zs):][np.isin(D.j, at)] * D.sig_m
-        return (sign * float(coef[0]), 1.4826 * float(np.median(np.abs(e - np.median(e)))),
+        return (sign * float(coef[0]), float(mad_std(e)),
                 float(np.median(np.broadcast_to(D.sig_m, len(D.ym)))))
     f = linearise(p, first["state"], make_layout(p), ["tdoa_m"]).factors[0]
     e = -f.r * np.broadcast_to(f.row_sigma, len(f.r))
     lag = float(np.median(e[rows]))
-    return (lag - float(np.median(e[mine & ~rows])), 1.4826 * float(np.median(np.abs(e[rows] - lag))),
+    return (lag - float(np.median(e[mine & ~rows])), float(mad_std(e[rows], center=lag)),
             float(np.median(np.broadcast_to(f.row_sigma, len(f.r)))))
 
 

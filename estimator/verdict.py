@@ -142,6 +142,13 @@ def make_verdict(*, converged, reason, ratios, n_outliers, n_measurements, cappe
     return {"status": status, "reasons": reasons, "flagged_arrays": flagged}
 
 
+def flag(verdict, *arrays):
+    """Add ``arrays`` to ``verdict["flagged_arrays"]`` (in place), each once, in order."""
+    for a in arrays:
+        if a not in verdict["flagged_arrays"]:
+            verdict["flagged_arrays"].append(a)
+
+
 def name_inconsistent(verdict, record):
     """Name the arrays the leave-one-array-out test found inconsistent (``estimator.consistency``; ``record``:
     report.json ``leave_one_out``), in place: flagged, status at least ``suspect``, the reason with the largest
@@ -162,16 +169,13 @@ def name_inconsistent(verdict, record):
             f"{100 * t['move_m']:.1f} cm (Hausman T = {t['T']:.1f} on {t['dof']} dof, p = {t['p']:.1g} < "
             f"{t['alpha']:.1g}): rows biased with the geometry (e.g. a clock or mic-geometry error the residuals "
             f"do not show); {then}")
-        if t["array"] not in verdict["flagged_arrays"]:
-            verdict["flagged_arrays"].append(t["array"])
+        flag(verdict, t["array"])
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     if not record.get("explained", True):
         verdict["reasons"].append(f"the arrays' positions depend on {', '.join(t['array'] for t in found)} beyond "
                                   "their noise and leaving out no single one of them makes the rest agree: the "
                                   "positions of every array tested are in doubt")
-        for t in record["rounds"][0]["tested"]:
-            if t["array"] not in verdict["flagged_arrays"]:
-                verdict["flagged_arrays"].append(t["array"])
+        flag(verdict, *(t["array"] for t in record["rounds"][0]["tested"]))
     return verdict
 
 
@@ -208,16 +212,14 @@ def name_distrusted(verdict, screened):
     for a, n in sorted(screened["kept_doubted"].items()):
         whys = screened.get("kept_reasons", {}).get(a, ["nlos"])
         listed += [{"array": a, "reason": why, "events": [], "taken_out": False} for why in whys]
-        if a not in verdict["flagged_arrays"]:
-            verdict["flagged_arrays"].append(a)
+        flag(verdict, a)
         verdict["reasons"].append(f"array {a}: in {n} of its events its arrivals are "
                                   f"{' / '.join(REASON_TEXT[w] for w in whys)}: most of its data, kept; "
                                   "its calibration is not trusted")
         worst = max(worst, "suspect", key=STATUS_RANK.get)
     for a, counts in sorted(screened.get("mostly_taken_out", {}).items()):
         for why, (n, m) in counts.items():
-            if a not in verdict["flagged_arrays"]:
-                verdict["flagged_arrays"].append(a)
+            flag(verdict, a)
             verdict["reasons"].append(f"array {a}: in {n} of its {m} events its arrivals are {REASON_TEXT[why]}: "
                                       f"taken out, calibrated from its other {m - n} events (its std says how well)")
             worst = max(worst, "suspect", key=STATUS_RANK.get)
@@ -249,8 +251,7 @@ def fold_ambiguity(out, basins):
         for key, least in (("rot", np.radians(b["rotation_deg"])), ("x", b["position_m"])):
             for c in array_param(key).std_columns:
                 arrays.loc[k, c] = np.maximum(arrays.loc[k, c], least)
-        if b["array"] not in verdict["flagged_arrays"]:
-            verdict["flagged_arrays"].append(b["array"])
+        flag(verdict, b["array"])
         verdict["reasons"].append(f"array {b['array']}: its sources all lie near its mic plane, where planar DOAs "
                                   f"fold; another orientation {b['rotation_deg']:.0f}° away fits as well (cost "
                                   f"+{b['dcost']:.1f}): its std covers both")
@@ -293,5 +294,5 @@ def majority_apart(verdict, unreliable, n_arrays):
         verdict["reasons"].append(f"{len(apart)} of the {n_arrays - 1} non-reference arrays ({', '.join(apart)}) were "
                                   "solved apart from the others: no consistent majority holds the calibration")
         verdict["status"] = "failed"
-        verdict["flagged_arrays"] += [a for a in apart if a not in verdict["flagged_arrays"]]
+        flag(verdict, *apart)
     return verdict

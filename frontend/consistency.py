@@ -29,6 +29,8 @@ from itertools import combinations
 
 import numpy as np
 
+from calib.robust import mad_std
+
 from .detect import matched_envelope, pick_peaks, refine_peak
 from .signals import ArrayAudio, band_weights, chirp_band, chirp_template
 
@@ -307,12 +309,6 @@ def supported_top(x, tol=PLANAR_TOP_TOL, n=PLANAR_TOP_MIN):
     return np.nan
 
 
-def robust_scatter(x):
-    """Robust standard deviation (1.4826 × the median absolute deviation) of ``x``; 0 when fewer than 3."""
-    x = np.asarray(x, float)
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size >= 3 else 0.0
-
-
 def consensus(x, tol=CONSENSUS_TOL):
     """The value most of ``x`` (> 0) agree on, within a relative ``tol``: the median of the largest group
     within ±tol of one of them, and that group's fraction of ``x``. A 3-D array's scale ``|w|·c`` per event:
@@ -350,7 +346,8 @@ def fit_geometry(delays, mics, c, exclude=()):
     sv = np.linalg.svd(d, compute_uv=False)
     full3d = sv[-1] > 0.1 * sv[0]
     mode, support = consensus(wc)
-    scatter = robust_scatter(np.log(wc[wc > 0]))
+    lwc = np.log(wc[wc > 0])
+    scatter = float(mad_std(lwc)) if lwc.size >= 3 else 0.0   # (fewer: no scatter to speak of)
     if not full3d:  # |w|·c ≤ 1 for any plane wave: the events above it, if many, say the size is too small;
         # they spread with the sources' elevations (cos el / scale): the sources nearest the plane tell the scale
         over = wc[wc > 1.0]
