@@ -1193,9 +1193,17 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
         try:
             first, start = _seeded(solve, features, first, options, rounds)
-            if not start:
+            readmit = not start
+            if readmit:
                 first, start, features = _readmitted(solve, features, first, options, rounds)
             result, models = _auto(solve, features, first, options, rounds, start)
+            if readmit and not start and models:
+                # the block's lag measured at a fit another clock's unmodelled term bent (rendered lab seed 25:
+                # A3's warm-up, the trial named A3): measured again with the models the selection chose
+                again, more, readmitted = _readmitted(solve, features, result, options, rounds, models)
+                if more != models:
+                    result, models = _auto(solve, readmitted, again, options, rounds, more)
+                    features = readmitted
         except ObservabilityError as err:   # a trial model left the data unable to fix something: linear
             result, models = first, {}
             rounds.append([{"rejected": f"a clock model left the problem unobservable ({err}): the linear clock"}])
@@ -1257,7 +1265,9 @@ def _doubted_blocks(features):
     frontend doubts as reflections (flag ``nlos``, :func:`calib.estimator.screen.own_doubted_events`) at one
     run of its consecutive events that starts or ends its session (but for at most PERSIST_EVENTS events
     before or after it, which a clock step shifts alike: :func:`end_side`), with at least PERSIST_EVENTS events
-    in it and MIN_EVENTS outside it."""
+    in it and MIN_EVENTS outside it; or the session's first or last event alone (a step next to it: rendered
+    lab seed 28, A2's event 0 of 0-13, 19.8 ms late against its range track; :func:`_readmitted` asks its DOAs
+    to be the direct path's)."""
     from .screen import DROP_FLAGS, _flags, own_doubted_events
 
     names = [n for n in DROP_FLAGS["nlos"] if len(features[n])]
@@ -1271,7 +1281,8 @@ def _doubted_blocks(features):
         evs = sorted({int(e) for n in names if "event" in features[n]
                       for e in features[n]["event"][features[n]["array"].astype(str) == a]})
         pos = np.flatnonzero(np.isin(evs, sorted(bad)))
-        if len(pos) < PERSIST_EVENTS or len(evs) - len(pos) < MIN_EVENTS or np.any(np.diff(pos) != 1):
+        edge = len(pos) == 1 and pos[0] in (0, len(evs) - 1)
+        if (len(pos) < PERSIST_EVENTS and not edge) or len(evs) - len(pos) < MIN_EVENTS or np.any(np.diff(pos) != 1):
             continue
         if pos[0] <= PERSIST_EVENTS and pos[-1] < len(evs) - 1:
             out.append((a, [evs[k] for k in pos], (evs[pos[-1]], evs[pos[-1] + 1])))
@@ -1340,18 +1351,38 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
             float(np.median(np.broadcast_to(f.row_sigma, len(f.r)))))
 
 
-def _readmitted(solve, features, first, options, rounds):
+def _block_direct(first, features, array, block):
+    """Whether ``array``'s DOAs at the events ``block`` are the direct path's at the solve ``first`` (its
+    features: ``features``, every row; :func:`direct_path`, the frontend's doubts counting): at a solve that
+    fitted them (a left-out row's residual is a prediction's, wider than its σ)."""
+    from .problem import make_layout
+    from .solver import linearise
+
+    p = _every_row(first, features)
+    if "doa" not in _kinds(p) or array not in [str(n) for n in p.names]:
+        return False
+    fs = linearise(p, first["state"], make_layout(p), ["doa"]).factors
+    at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
+    return bool(at) and direct_path(p, fs, [str(n) for n in p.names].index(array), at, doubted_arrivals(features))
+
+
+def _readmitted(solve, features, first, options, rounds, models=None):
     """(first, start models, features): where the frontend doubts an array's arrivals as reflections over a
     block of events that opens or closes its session (:func:`_doubted_blocks`) and those arrivals are late (or
     early) by ONE constant amount against the first solve (:func:`_block_lag`: a reflection's excess path
     changes as the robot moves, a dropped or inserted sample block's does not), the rows are readmitted with a
-    step at the block's edge; kept when that solves better (as :func:`_seeded`). Else (first, {}, features)."""
+    step at the block's edge; kept when that solves better (as :func:`_seeded`). Else (first, ``models``,
+    features). ``models``: the clock models ``first`` was solved with (kept, the step added to them)."""
+    models = dict(models or {})
     events, u = _event_of(features)
     u_of = dict(zip(events.tolist(), u.tolist()))
     ref = str(features["meta"]["reference_array"])
     for array, block, (before, after) in _doubted_blocks(features):
+        time = 0.5 * (u_of[before] + u_of[after])
+        if any(c.kind == "step" and abs(c.time - time) < 1e-9 for c in models.get(array, [])):
+            continue
         readmitted = _without_nlos(features, array, block, array == ref)
-        got = _block_lag(first, readmitted, array, block, 0.5 * (u_of[before] + u_of[after]))
+        got = _block_lag(first, correct_features(readmitted, models), array, block, time, len(block))
         if got is None:
             continue
         lag, spread, sigma = got
@@ -1359,19 +1390,21 @@ def _readmitted(solve, features, first, options, rounds):
             continue
         # model − data = c on the block's rows when it precedes the step (the fit follows the later clock)
         size = lag if block[-1] == before else -lag
-        start = {array: [Component("step", 0.5 * (u_of[before] + u_of[after]), size)]}
+        start = {**models, array: models.get(array, []) + [Component("step", time, size)]}
         corrected = correct_features(readmitted, start)
         trial = solve(corrected, **options)
-        cost0, sig = _robust_cost(first, None, readmitted)
+        cost0, sig = _robust_cost(first, None, correct_features(readmitted, models))
         cost1, _ = _robust_cost(trial, sig, corrected)
         if _rank(trial) > _rank(first) or 2.0 * (cost0 - cost1) <= float(chdtri(1, FAMILY_ALPHA)):
             continue   # (a worse verdict, or no better fit: STATUS_RANK grows from ok)
+        if len(block) < PERSIST_EVENTS and not _block_direct(trial, corrected, array, block):
+            continue   # one event's arrival: a clock step or a reflection alike in its TDOAs; its DOAs tell
         rounds.append([{"readmitted": f"{array}: events {block[0]}-{block[-1]}, doubted as reflections, are "
                                       f"{abs(lag) * 1e3:.3f} ms {'late' if lag < 0 else 'early'} alike (spread "
                                       f"{spread * 1e6:.1f} µs): a clock step between events {before} and {after}, "
                                       "not reflections; readmitted"}])
         return trial, start, readmitted
-    return first, {}, features
+    return first, models, features
 
 
 def _auto(solve, features, first, options, rounds, start=None):
@@ -1630,12 +1663,18 @@ def persistence(result, models, features=None):
 
 def _unpersistent(result, features, models):
     """(array name, index) of the component whose :func:`persistence` falls furthest short of PERSIST_CHI2, or
-    None (each was chosen by a scan at its multiplicity: this is one more test of it)."""
-    worst, where = 0.0, None
-    for key, chi2 in persistence(result, models, correct_features(features, models)).items():
-        if chi2 - PERSIST_CHI2 < worst:
-            worst, where = chi2 - PERSIST_CHI2, key
-    return where
+    None (each was chosen by a scan at its multiplicity: this is one more test of it). Ties (two terms of one
+    clock that a leave-out leaves alike, both at 0: a hinge near the end and a step with one event after it,
+    rendered lab seed 21) go to the one with the smaller joint (value / σ)²: the other is what the rows ask for."""
+    short = [((chi2 - PERSIST_CHI2, _z2(models[key[0]][key[1]])), key)
+             for key, chi2 in persistence(result, models, correct_features(features, models)).items()
+             if chi2 < PERSIST_CHI2]
+    return min(short)[1] if short else None
+
+
+def _z2(c):
+    """A component's joint (value / σ)² (infinite where it has no σ yet)."""
+    return (c.value / c.std) ** 2 if c.std else np.inf
 
 
 def _distrusted(result):
