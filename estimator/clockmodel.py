@@ -106,6 +106,8 @@ class Component:
         u = np.asarray(u, float)
         if self.kind in ("step", "mshift"):
             return (u >= self.time).astype(float)
+        if self.kind == "arrival":   # (one event's arrival off: a nuisance of the per-array scan, no clock's term)
+            return (u == self.time).astype(float)
         if self.kind == "quadratic":
             return 0.5 * u * u
         if self.kind == "warmup":
@@ -144,6 +146,8 @@ def basis_matrix(comps, u):
     out[:, hinge] = np.maximum(u[:, None] - time[hinge][None, :], 0.0)
     warm = kind == "warmup"
     out[:, warm] = _warmup(u[:, None], time[warm][None, :])
+    arrival = kind == "arrival"
+    out[:, arrival] = u[:, None] == time[arrival][None, :]
     return out
 
 
@@ -375,7 +379,7 @@ def _key(c):
     return c.kind, round(c.time, 9)
 
 
-def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference=True):
+def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference=True, free=()):
     """The best new component of one array and its margin over the penalty (χ²), or (None, margin <= 0).
     ``reference``: the reference's step seen from here (its TDOA-M shifted, "mshift") is a candidate too —
     not for an array the solve dropped: the reference's clock shows in every array's TDOA-M, and an array
@@ -383,9 +387,16 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
 
     The base fit (``comps``) and each candidate's fit are robust; their χ² drop is measured in the
     residuals' own robust scale (MAD of the best candidate's whitened residuals, at least 1: a sigma stated
-    too small never makes a false step)."""
+    too small never makes a false step).
+
+    ``free``: "arrival" components (one event's arrival off) fitted in every fit, base and candidates, and
+    left out of the result: the arrivals the frontend doubts for a reason no clock gives (CLOCK_BLIND_DOUBTS)
+    testify nothing about the clock (rendered warehouse seed 30: A4's arrivals at events 5 and 13, both behind
+    an obstacle and flagged mic_spread, 0.14 ms early; two steps before them and a pose moved 4 cm fitted every
+    row)."""
     if len(np.unique(D.u)) < MIN_EVENTS or D.n < MIN_EVENTS or len(comps) >= MAX_COMPONENTS:
         return None, 0.0, None
+    comps = list(comps) + list(free)
     xb, gb, tb, cb, rb = fit_array(D, comps, x0, g0, tau0)
     base = [c.with_value(v) for c, v in zip(comps, cb)]
     cands = candidates(D.u, comps)
@@ -417,11 +428,11 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
         drop = 2.0 * (np.sum(cauchy_rho(rb / scale)) - np.sum(cauchy_rho(r / scale)))
         margin = drop - penalty(kind, D.n, n_arrays, len(fits) if tested <= FIT_ALL_MAX else tested)   # (Bonferroni
         # over every candidate tested, the prescreened ones too)
-        by_kind.append((margin, [c.with_value(v) for c, v in zip(base + [cand], coef)]))
+        by_kind.append((margin, [c.with_value(v) for c, v in zip(base + [cand], coef) if c.kind != "arrival"]))
         if best is None or margin > best[1]:
             new = by_kind[-1][1]
             # candidates the rows cannot tell apart go to the rivals' solves (as in :func:`joint_scan`)
-            tied = [[c.with_value(v) for c, v in zip(base + [f[1]], f[2])] for f in fam
+            tied = [[c.with_value(v) for c, v in zip(base + [f[1]], f[2]) if c.kind != "arrival"] for f in fam
                     if f[1] is not cand and abs(f[0] - cost) <= 1e-6 * max(abs(cost), 1.0)]
             best = (new, float(margin), {"chi2_drop": float(drop), "scale": scale, "kind": kind, "tied": tied})
     if best is not None and best[1] > 0:
@@ -747,9 +758,14 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None, side=Non
 ARRIVAL_DOUBTS = ("weak_direct", "nlos", "occluded", "low_snr", "mic_spread")
 
 
-def doubted_arrivals(features):
-    """{(array name, event)} whose arrival the frontend doubts as the direct path's (ARRIVAL_DOUBTS on the
-    array's TDOA-M or DOA row at the event)."""
+# ... of which no clock can be the cause: a clock shifts every microphone of the array alike and leaves the
+# waveform as it is (not so the range track's nlos: a step moves arrivals off their track)
+CLOCK_BLIND_DOUBTS = ("weak_direct", "occluded", "low_snr", "mic_spread")
+
+
+def doubted_arrivals(features, flags=ARRIVAL_DOUBTS):
+    """{(array name, event)} whose arrival the frontend doubts as the direct path's (``flags``, by default
+    ARRIVAL_DOUBTS, on the array's TDOA-M or DOA row at the event)."""
     from .screen import _flags
 
     out = set()
@@ -757,7 +773,7 @@ def doubted_arrivals(features):
         df = features.get(name)
         if df is None or not len(df) or "flag" not in df.columns:
             continue
-        bad = _flags(df, ARRIVAL_DOUBTS)
+        bad = _flags(df, flags)
         out |= set(zip(df["array"].astype(str)[bad], df["event"].to_numpy(int)[bad].tolist()))
     return frozenset(out)
 
@@ -1002,12 +1018,13 @@ def _structure_failures(result, models, old, features):
 
 
 # ----------------------------------------------------------------------------------------------- selection
-def detect(result, models, banned=frozenset(), excluded=frozenset(), doubted=frozenset()):
+def detect(result, models, banned=frozenset(), excluded=frozenset(), doubted=frozenset(), blind=frozenset()):
     """One detection round at a solved ``result``: proposals {array name: its components with the new one}
     of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
     within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
     arrays' tests) — and the round's records. The emitter (:data:`EMITTER`, emission times off: the same term in every clock) is
-    one more candidate, tested jointly only."""
+    one more candidate, tested jointly only. ``doubted``: :func:`doubted_arrivals`; ``blind``: those doubted for a
+    reason no clock gives (CLOCK_BLIND_DOUBTS), free in the per-array scan (:func:`best_component`)."""
     p, st = result["problem"], result["state"]
     found, records, alternatives = {}, [], {}
     joint = joint_scan(result, models, banned, doubted=doubted)
@@ -1024,8 +1041,10 @@ def detect(result, models, banned=frozenset(), excluded=frozenset(), doubted=fro
             D = array_data(p, st, i)
             ref = str(p.names[p.ref])
             skip = {k[1:] for k in banned if k[0] == name} | {("mshift", k[2]) for k in banned if k[:2] == (ref, "step")}
+            free = [Component("arrival", float(p.t[k]), 0.0) for k in range(len(p.t))
+                    if (name, int(p.events[k])) in blind]
             got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1, skip,
-                                 reference=name not in _distrusted(result))
+                                 reference=name not in _distrusted(result), free=free)
         if got is not None and got[0] is not None:
             got[2]["test"] = "array"
         # both tests' best proposals stay: the per-array fit holds the sources at a fit that another array's
@@ -1465,7 +1484,7 @@ def _select(solve, features, result, options, rounds, excluded=frozenset(), star
     models, banned, aside, kept, rejected = dict(start or {}), set(banned), set(), 0, 0
     while kept < MAX_ROUNDS and rejected < MAX_REJECTED:
         proposals, records = detect(result, models, frozenset(banned | aside), frozenset(excluded),
-                                    doubted_arrivals(features))
+                                    doubted_arrivals(features), doubted_arrivals(features, CLOCK_BLIND_DOUBTS))
         rounds.append(records)
         if not proposals:
             break
