@@ -29,7 +29,7 @@ from .screen import distrusted, isolated, screen_rows
 from .solver import forget_linearisation, linearise
 from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
-from .verdict import fold_ambiguity, majority_apart, name_distrusted, name_inconsistent
+from .verdict import fold_ambiguity, imprecise, majority_apart, name_distrusted, name_inconsistent
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
 
@@ -44,7 +44,10 @@ def calibrate(features: Mapping[str, Any], **options: Any) -> CalibrationResult:
     try:
         with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
             result = clockmodel.calibrate_clocks(calibrate_features, features, **options)
-            return CalibrationResult(**_leave_one_out(result, features, options))
+            result = _leave_one_out(result, features, options)
+            if options.get("outputs", "all") == "all":
+                imprecise(result)   # last: the arrays flagged for a cause are not named imprecise too
+            return CalibrationResult(**result)
     finally:
         forget_linearisation()
 

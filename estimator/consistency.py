@@ -79,8 +79,8 @@ MAX_TRIES = 2        # inconsistent arrays tried (most significant first), each 
 @dataclass(frozen=True)
 class LeaveOneOut:
     """One array's test. array: its name; T, dof, p: the Hausman statistic, its χ² dof and p-value;
-    moved: the other array whose position moved most when it was left out, by ``move_m`` (m), ``move_sigma``
-    (that move in its own 1-σ of the full solution); alpha: the level it was judged at (Bonferroni);
+    moved: the other array whose position moved most in its own 1-σ of the full solution when it was left out,
+    by ``move_sigma`` (σ), ``move_m`` (m); alpha: the level it was judged at (Bonferroni);
     inconsistent: p < alpha and move_sigma ≥ MIN_MOVE_SIGMA; shift_m: |d| over every compared position (m), noise_m: √tr S, its expected size
     when nothing is wrong (m)."""
     array: str
@@ -195,7 +195,7 @@ def leave_one_out(p, st, lay, kinds, mask, a, *, free, full, quad, max_iter=200)
     T, dof = hausman(d, S, V)
     move = np.linalg.norm(d.reshape(-1, 3), axis=1)
     sd = np.sqrt(np.maximum(np.diag(V).reshape(-1, 3).sum(axis=1), 1e-30))
-    k = int(np.argmax(move))
+    k = int(np.argmax(move / sd))   # materiality in each array's own error bars, not in metres
     rec = LeaveOneOut(str(p.names[a]), T, dof, float(chdtrc(dof, T)) if dof else 1.0, str(p.names[others[k]]),
                       float(move[k]), float(move[k] / sd[k]), np.nan, False, float(np.linalg.norm(d)),
                       float(np.sqrt(max(np.trace(S), 0.0))))
