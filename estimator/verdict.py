@@ -286,8 +286,15 @@ def with_setup(verdict, findings):
         if f.get("array") and f["array"] not in flagged:
             flagged.append(f["array"])
     failed = any(f.get("status") == "failed" for f in findings)
-    generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])]
-    return {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
+    # an array flagged for a set-up cause is not also named imprecise (verdict.imprecise ran before)
+    loose = [f for f in verdict.get("imprecise") or [] if f["array"] not in flagged]
+    gone = {f"array {f['array']}: imprecise" for f in verdict.get("imprecise") or []} - \
+        {f"array {f['array']}: imprecise" for f in loose}
+    generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])
+               if not any(r.startswith(g) for g in gone)]
+    out = {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
+    out.pop("imprecise", None)
+    return {**out, "imprecise": loose} if loose else out
 
 
 def majority_apart(verdict, unreliable, n_arrays):

@@ -70,3 +70,13 @@ def test_named_arrays_are_the_ones_beyond_the_tolerance_in_simulated_truth():
     named, beyond = np.array(named), np.array(beyond)
     assert named.any() and (~named).any()
     assert beyond[named].mean() > 0.5 > beyond[~named].mean()
+
+
+def test_an_array_flagged_by_the_set_up_is_not_also_imprecise():
+    from calib.estimator.verdict import with_setup
+
+    out = imprecise(_out([(0.05, 0.001), (0.06, 0.001)]))
+    v = with_setup(out["report"]["verdict"], [{"status": "failed", "text": "A2.wav: not this board", "array": "A2"}])
+    assert [f["array"] for f in v["imprecise"]] == ["A3"] and v["flagged_arrays"] == ["A2"]
+    assert not any(r.startswith("array A2: imprecise") for r in v["reasons"])
+    assert any(r.startswith("array A3: imprecise") for r in v["reasons"])
