@@ -48,6 +48,7 @@ def test_imprecise_names_wide_error_bars_only_and_keeps_the_status():
     assert "imprecise" not in imprecise(_out([(0.005, deg(0.2))]))["report"]["verdict"]
 
 
+@pytest.mark.slow
 def test_named_arrays_are_the_ones_beyond_the_tolerance_in_simulated_truth():
     """The paper's protocol (its 5° DOAs, 0.1 ms TDOAs: arrays 1.5-12 cm off), eight scenes: at a tolerance near
     the errors' median, the arrays named are beyond it far more often than those not named."""
