@@ -264,53 +264,6 @@ def fold_ambiguity(out, basins):
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return out
 
-SETUP_PREFIX = "set-up: "
-# generic reasons that a set-up mistake produces as a symptom; named as such when set-up findings failed
-SYMPTOM_NOTE = " (probably a symptom of the set-up finding(s) above, not a cause of its own)"
-
-
-def with_setup(verdict, findings):
-    """The verdict with the set-up findings (``calib.pipeline.setupcheck``: dicts with status "failed",
-    "suspect" or "note", text, array) ranked above the estimator's own reasons: a mistake in the set-up is
-    the cause, the residuals and the odometry's apparent rotation its symptoms. A failed finding makes the
-    verdict failed (the result cannot be trusted, whatever the residuals say); a suspect one at least
-    suspect. The arrays named are added to ``flagged_arrays``. Returns a new dict."""
-    status = verdict.get("status", "ok")
-    setup, flagged = [], list(verdict.get("flagged_arrays", []))
-    for f in findings:
-        if f.get("status") not in STATUS_RANK:
-            continue
-        setup.append(SETUP_PREFIX + f["text"])
-        if STATUS_RANK[f["status"]] > STATUS_RANK[status]:
-            status = f["status"]
-        if f.get("array") and f["array"] not in flagged:
-            flagged.append(f["array"])
-    failed = any(f.get("status") == "failed" for f in findings)
-    # an array flagged for a set-up cause is not also named imprecise (verdict.imprecise ran before)
-    loose = [f for f in verdict.get("imprecise") or [] if f["array"] not in flagged]
-    gone = {f"array {f['array']}: imprecise" for f in verdict.get("imprecise") or []} - \
-        {f"array {f['array']}: imprecise" for f in loose}
-    generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])
-               if not any(r.startswith(g) for g in gone)]
-    out = {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
-    out.pop("imprecise", None)
-    return {**out, "imprecise": loose} if loose else out
-
-
-def majority_apart(verdict, unreliable, n_arrays):
-    """``failed`` when more than half of the non-reference arrays were solved apart (refitted alone, std NaN:
-    their rows distrusted as a whole or inconsistent with the others): no consistent majority holds the frame,
-    and the arrays left in it are as likely the odd ones out (ushape seed 62 before issue 27's screening: three
-    of four arrays refitted alone from reflections, 4.7-7.5 m off, the fourth 8 cm, verdict `suspect`). In place."""
-    apart = list(unreliable)
-    if n_arrays > 1 and len(apart) > (n_arrays - 1) / 2:
-        verdict["reasons"].append(f"{len(apart)} of the {n_arrays - 1} non-reference arrays ({', '.join(apart)}) were "
-                                  "solved apart from the others: no consistent majority holds the calibration")
-        verdict["status"] = "failed"
-        flag(verdict, *apart)
-    return verdict
-
-
 # The accuracy an array must be likely to meet not to be named imprecise: issue 27's bound for a deployment
 # (3 cm / 1.5°; larger halls state their own). An array whose stated std makes an error beyond it more likely
 # than not (BEYOND_ODDS) is named: its error bars are honest (non-convex rooms: error / std RMS 0.6-1.6) but too
@@ -369,3 +322,51 @@ def imprecise(out, tolerance_m=TOLERANCE_M, tolerance_deg=TOLERANCE_DEG, odds=BE
     if found:
         verdict["imprecise"] = found
     return out
+
+
+SETUP_PREFIX = "set-up: "
+# generic reasons that a set-up mistake produces as a symptom; named as such when set-up findings failed
+SYMPTOM_NOTE = " (probably a symptom of the set-up finding(s) above, not a cause of its own)"
+
+
+def with_setup(verdict, findings):
+    """The verdict with the set-up findings (``calib.pipeline.setupcheck``: dicts with status "failed",
+    "suspect" or "note", text, array) ranked above the estimator's own reasons: a mistake in the set-up is
+    the cause, the residuals and the odometry's apparent rotation its symptoms. A failed finding makes the
+    verdict failed (the result cannot be trusted, whatever the residuals say); a suspect one at least
+    suspect. The arrays named are added to ``flagged_arrays``. Returns a new dict."""
+    status = verdict.get("status", "ok")
+    setup, flagged = [], list(verdict.get("flagged_arrays", []))
+    for f in findings:
+        if f.get("status") not in STATUS_RANK:
+            continue
+        setup.append(SETUP_PREFIX + f["text"])
+        if STATUS_RANK[f["status"]] > STATUS_RANK[status]:
+            status = f["status"]
+        if f.get("array") and f["array"] not in flagged:
+            flagged.append(f["array"])
+    failed = any(f.get("status") == "failed" for f in findings)
+    # an array flagged for a set-up cause is not also named imprecise (verdict.imprecise ran before)
+    loose = [f for f in verdict.get("imprecise") or [] if f["array"] not in flagged]
+    gone = {f"array {f['array']}: imprecise" for f in verdict.get("imprecise") or []} - \
+        {f"array {f['array']}: imprecise" for f in loose}
+    generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])
+               if not any(r.startswith(g) for g in gone)]
+    out = {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
+    out.pop("imprecise", None)
+    return {**out, "imprecise": loose} if loose else out
+
+
+def majority_apart(verdict, unreliable, n_arrays):
+    """``failed`` when more than half of the non-reference arrays were solved apart (refitted alone, std NaN:
+    their rows distrusted as a whole or inconsistent with the others): no consistent majority holds the frame,
+    and the arrays left in it are as likely the odd ones out (ushape seed 62 before issue 27's screening: three
+    of four arrays refitted alone from reflections, 4.7-7.5 m off, the fourth 8 cm, verdict `suspect`). In place."""
+    apart = list(unreliable)
+    if n_arrays > 1 and len(apart) > (n_arrays - 1) / 2:
+        verdict["reasons"].append(f"{len(apart)} of the {n_arrays - 1} non-reference arrays ({', '.join(apart)}) were "
+                                  "solved apart from the others: no consistent majority holds the calibration")
+        verdict["status"] = "failed"
+        flag(verdict, *apart)
+    return verdict
+
