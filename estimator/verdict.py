@@ -264,6 +264,7 @@ def fold_ambiguity(out, basins):
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return out
 
+
 # The accuracy an array must be likely to meet not to be named imprecise: issue 27's bound for a deployment
 # (3 cm / 1.5°; larger halls state their own). An array whose stated std makes an error beyond it more likely
 # than not (BEYOND_ODDS) is named: its error bars are honest (non-convex rooms: error / std RMS 0.6-1.6) but too
