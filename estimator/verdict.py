@@ -20,7 +20,6 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-import scipy.stats.qmc
 from scipy.special import chdtrc, ndtri  # χ² survival function: scipy.stats.chi2.sf(x, n) = chdtrc(n, x)
 
 from calib.tables import array_param
@@ -290,6 +289,8 @@ def beyond_probability(std, bound):
 @functools.lru_cache(maxsize=4)
 def _normal_draws(k):
     """(BEYOND_DRAWS, k) standard normal draws from a scrambled Sobol sequence (seed 0)."""
+    import scipy.stats.qmc   # (here: a features run, which imports this module, does not load scipy.stats)
+
     u = scipy.stats.qmc.Sobol(k, scramble=True, seed=0).random(BEYOND_DRAWS)
     return ndtri(np.clip(u, 1e-12, 1 - 1e-12))
 

@@ -178,7 +178,9 @@ def test_wrong_emission_times_end_failed():
     f2, _ = bench.fault_t_emit(feats, truth, None)
     v = calibrate(f2)["report"]["verdict"]
     assert v["status"] == "failed" and v["reasons"]
-    assert calibrate(feats)["report"]["verdict"] == {"status": "ok", "reasons": [], "flagged_arrays": []}
+    clean = calibrate(feats)["report"]["verdict"]   # (the paper's 5° DOAs: arrays may be named imprecise, no more)
+    assert clean["status"] == "ok" and clean["flagged_arrays"] == []
+    assert all(": imprecise," in r for r in clean["reasons"])
 
 
 def test_stated_odometry_prior_is_not_inflated_beyond_its_bound():
