@@ -18,9 +18,9 @@ seconds (process time of `session_features` inside the run, all threads: the mac
 time is not the cost; the stage's plots and files are not counted) as a percentage of the recording
 duration (empty when a kept output's features stage was reused); issue 27's bound where the truth records the
 line of sight (truth/los.csv): the arrays with the direct path in most events that the verdict did not name
-(flagged or imprecise: ``flagged`` lists these after "imprecise:", estimator.verdict.imprecise) and that are
-beyond 3 cm / 1.5° ("met": none), then those named imprecise although within it (false names). Then per group the medians, the worst seed
-and how many unflagged arrays are beyond 2σ / 3σ. With ``--work`` the outputs are kept there too (``WORK/out``):
+(``flagged``; after "imprecise:" those named for their std alone, estimator.verdict.name_imprecise) and that are
+beyond 3 cm / 1.5° ("met": none), then those named imprecise although within it (false names). Then per group the
+medians, the worst seed and how many unflagged arrays are beyond 2σ / 3σ. With ``--work`` the outputs are kept there too (``WORK/out``):
 a rerun with the same code reuses every stage.
 
 ``--oracle`` adds, for sessions whose truth says which arrivals had the line of sight (truth/los.csv), each
@@ -99,7 +99,7 @@ def one(d, out, reuse=False):
     per = m["per_array"]
     worst = max(per, key=lambda a: a["position_m"])
     named = set(verdict.get("flagged_arrays") or [])
-    loose = {f["array"] for f in verdict.get("imprecise") or []}   # named imprecise: still in the `ok` set
+    loose = {a["array"] for a in (rep.get("precision") or {}).get("arrays") or []}   # named for their std alone
     rest = [a for a in per if a["array"] not in named]
     rest_worst = max(rest, key=lambda a: a["position_m"]) if rest else None
     z2 = position_z2(out / "calibration" / "arrays.csv", d / "truth" / "arrays.csv", named)
@@ -112,7 +112,7 @@ def one(d, out, reuse=False):
             f"{rest_worst['array']} {100 * rest_worst['position_m']:.1f} / {rest_worst['geodesic_deg']:.1f}",
             "flagged": (",".join(verdict.get("flagged_arrays") or []) or "-")
             + (f" (imprecise: {','.join(sorted(loose))})" if loose else ""),
-            "los_check": los_check(d, per, named | loose) + within_text(d, per, loose),
+            "los_check": los_check(d, per, named) + within_text(d, per, loose),
             "cpu_pct": 100 * cpu.get("s", np.nan) / diag["recording_duration_s"]}
 
 
@@ -215,8 +215,8 @@ def array_z(estimated, per, named, loose=()):
 
 
 def per_array_text(za):
-    """``A2 1.8 cm 1.2σ / 0.6° 1.4σ; ...`` (``*``: flagged by the verdict, ``~``: named imprecise)."""
-    return "; ".join(f"{a['array']}{'*' if a['named'] else '~' if a.get('loose') else ''} {a['cm']:.1f} cm {a['z_pos']:.1f}σ / "
+    """``A2 1.8 cm 1.2σ / 0.6° 1.4σ; ...`` (``*``: flagged by the verdict, ``~``: for its std alone)."""
+    return "; ".join(f"{a['array']}{'~' if a.get('loose') else '*' if a['named'] else ''} {a['cm']:.1f} cm {a['z_pos']:.1f}σ / "
                      f"{a['deg']:.1f}° {a['z_rot']:.1f}σ" for a in za)
 
 

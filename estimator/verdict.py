@@ -11,16 +11,13 @@ Every reason is a measured quantity against a documented level (docs/method.md, 
 | an array inconsistent with the others (dropped, its pose refitted alone) | named | |
 | the other arrays/sources move by more than MOVE_SIGMA σ when it is dropped | yes | |
 | RMS residual of a type judged against its stated sigma > SIGMA_TOLERANCE, P(χ²) < SIGNIFICANCE | yes | |
-
-An array whose stated std makes an error beyond TOLERANCE_M / TOLERANCE_DEG more likely than not is named
-``imprecise`` (:func:`imprecise`; the status does not change).
 """
 from __future__ import annotations
 
 import functools
 
 import numpy as np
-from scipy.special import chdtrc, ndtri  # χ² survival function: scipy.stats.chi2.sf(x, n) = chdtrc(n, x)
+from scipy.special import chdtrc, chdtri  # χ² survival function and its inverse: chi2.sf(x, n) = chdtrc(n, x)
 
 from calib.tables import array_param
 
@@ -263,69 +260,6 @@ def fold_ambiguity(out, basins):
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return out
 
-
-# The accuracy an array must be likely to meet not to be named imprecise: issue 27's bound for a deployment
-# (3 cm / 1.5°; larger halls state their own). An array whose stated std makes an error beyond it more likely
-# than not (BEYOND_ODDS) is named: its error bars are honest (non-convex rooms: error / std RMS 0.6-1.6) but too
-# wide for the bound, because its line-of-sight events span one arm of the room and one height (lshape, ushape,
-# office: 3-9 cm std, the errors 3-8.5 cm; the same from the line-of-sight rows alone, benchmarks/bench_rooms.py
-# --oracle): no screening makes it better, only the verdict can say so.
-TOLERANCE_M = 0.03
-TOLERANCE_DEG = 1.5
-BEYOND_ODDS = 0.5
-BEYOND_DRAWS = 4096
-
-
-def beyond_probability(std, bound):
-    """P(|e| > bound) for e ~ N(0, diag(std²)) (std (k,), the finite ones; 0 when none), over BEYOND_DRAWS
-    scrambled-Sobol normal draws (fixed seed: deterministic; within 0.005 of the exact value)."""
-    sd = np.asarray(std, float)
-    sd = sd[np.isfinite(sd) & (sd > 0)]
-    if not sd.size:
-        return 0.0
-    return float(np.mean(np.sum((_normal_draws(len(sd)) * sd) ** 2, axis=1) > bound ** 2))
-
-
-@functools.lru_cache(maxsize=4)
-def _normal_draws(k):
-    """(BEYOND_DRAWS, k) standard normal draws from a scrambled Sobol sequence (seed 0)."""
-    import scipy.stats.qmc   # (here: a features run, which imports this module, does not load scipy.stats)
-
-    u = scipy.stats.qmc.Sobol(k, scramble=True, seed=0).random(BEYOND_DRAWS)
-    return ndtri(np.clip(u, 1e-12, 1 - 1e-12))
-
-
-def imprecise(out, tolerance_m=TOLERANCE_M, tolerance_deg=TOLERANCE_DEG, odds=BEYOND_ODDS):
-    """Name the arrays not already flagged whose stated std makes an error beyond the tolerance more likely than
-    not (:func:`beyond_probability` of the position std against ``tolerance_m``, of the rotation std in degrees
-    against ``tolerance_deg``; arrays without a std, the reference and dropped ones, are not judged), in place on
-    ``calibrate``'s output: verdict ``imprecise`` (only when there is any: {array, position_std_m,
-    rotation_std_deg, p_beyond}) and a reason each. The status does not change: the error bars are honest and
-    the arrays are where they say; they are too wide for the tolerance."""
-    arrays, verdict = out["arrays"], out["report"]["verdict"]
-    found = []
-    pos, rot = array_param("x").std_columns, array_param("rot").std_columns
-    for _, row in arrays.iterrows():
-        if row["array"] in verdict["flagged_arrays"]:
-            continue
-        sp = row[list(pos)].to_numpy(float)
-        sr = np.degrees(row[list(rot)].to_numpy(float))
-        if not np.all(np.isfinite(sp)):
-            continue
-        p = max(beyond_probability(sp, tolerance_m), beyond_probability(sr, tolerance_deg))
-        if p > odds:
-            found.append({"array": str(row["array"]), "position_std_m": float(np.linalg.norm(sp)),
-                          "rotation_std_deg": float(np.linalg.norm(sr[np.isfinite(sr)])), "p_beyond": p})
-    for f in found:
-        verdict["reasons"].append(
-            f"array {f['array']}: imprecise, its stated std (position {100 * f['position_std_m']:.1f} cm, orientation "
-            f"{f['rotation_std_deg']:.1f}°) puts it beyond {100 * tolerance_m:g} cm / {tolerance_deg:g}° with "
-            f"probability {f['p_beyond']:.2f} (too few events in line of sight, or all near one line or height)")
-    if found:
-        verdict["imprecise"] = found
-    return out
-
-
 SETUP_PREFIX = "set-up: "
 # generic reasons that a set-up mistake produces as a symptom; named as such when set-up findings failed
 SYMPTOM_NOTE = " (probably a symptom of the set-up finding(s) above, not a cause of its own)"
@@ -348,15 +282,8 @@ def with_setup(verdict, findings):
         if f.get("array") and f["array"] not in flagged:
             flagged.append(f["array"])
     failed = any(f.get("status") == "failed" for f in findings)
-    # an array flagged for a set-up cause is not also named imprecise (verdict.imprecise ran before)
-    loose = [f for f in verdict.get("imprecise") or [] if f["array"] not in flagged]
-    gone = {f"array {f['array']}: imprecise" for f in verdict.get("imprecise") or []} - \
-        {f"array {f['array']}: imprecise" for f in loose}
-    generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])
-               if not any(r.startswith(g) for g in gone)]
-    out = {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
-    out.pop("imprecise", None)
-    return {**out, "imprecise": loose} if loose else out
+    generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])]
+    return {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
 
 
 def majority_apart(verdict, unreliable, n_arrays):
@@ -372,3 +299,68 @@ def majority_apart(verdict, unreliable, n_arrays):
         flag(verdict, *apart)
     return verdict
 
+
+def median_norm_factor(d):
+    """Median of |e| / sqrt(E|e|²) for e ~ N(0, σ² I_d): the typical error of a d-axis estimate over its
+    RMS std (the ``*_std`` columns' norm); 0.888 for a position (d = 3), 0.833 for an axis direction (d = 2)."""
+    return float(np.sqrt(chdtri(d, 0.5) / d))
+
+
+NORM_DRAWS = 16384  # standard normal draws (fixed seed) for the median error of unequal per-axis stds
+
+
+@functools.cache
+def _unit_draws(d):
+    return np.random.default_rng(20261128).standard_normal((NORM_DRAWS, d))
+
+
+def median_error(stds):
+    """Median of |e| for e ~ N(0, diag(stds²)) (the finite ``stds`` of one array's axes; 0 when none): a
+    position or orientation's typical error from its per-axis std. Exact for equal stds
+    (``median_norm_factor``); with one dominant axis it tends to that axis' half-normal median (0.674 σ)."""
+    s = np.asarray(stds, dtype=float)
+    s = s[np.isfinite(s)]
+    if not len(s):
+        return 0.0
+    if np.ptp(s) <= 1e-9 * s.max():
+        return median_norm_factor(len(s)) * float(np.sqrt(np.sum(s ** 2)))
+    return float(np.median(np.linalg.norm(_unit_draws(len(s)) * s, axis=1)))
+
+
+def _norm(stds):
+    """The norm of the finite per-axis stds (the summary's ±pos / ±rot)."""
+    s = np.asarray(stds, dtype=float)
+    return float(np.sqrt(np.sum(s[np.isfinite(s)] ** 2)))
+
+
+def name_imprecise(verdict, arrays, target_position, target_orientation_deg):
+    """Name the arrays whose stated std says that their error is more likely above the target than below:
+    ``median_error`` of the per-axis stds > target, position (m) or orientation (deg; the axes the board
+    determines: two for a linear board or a pair). The data do not determine those arrays to the precision asked for,
+    whatever the rest of the verdict says (e.g. a board with few chirps near it, or with its direct path in
+    few of them). 0 turns a target off; the reference array and arrays already named are left alone. In place;
+    returns report.json's ``precision`` record."""
+    record = {"target_position_m": float(target_position), "target_orientation_deg": float(target_orientation_deg),
+              "arrays": []}
+    for _, row in arrays.iterrows():
+        name = str(row["array"])
+        if name in verdict["flagged_arrays"]:
+            continue
+        pos_s = [row[c] for c in array_param("x").std_columns]
+        rot_s = np.degrees([row[c] for c in array_param("rot").std_columns])
+        pos, rot = _norm(pos_s), _norm(rot_s)
+        short = []
+        if target_position > 0 and median_error(pos_s) > target_position:
+            short.append(f"position ±{100 * pos:.1f} cm")
+        if target_orientation_deg > 0 and median_error(rot_s) > target_orientation_deg:
+            short.append(f"orientation ±{rot:.1f}°")
+        if not short:
+            continue
+        record["arrays"].append({"array": name, "position_std_m": pos, "orientation_std_deg": rot})
+        flag(verdict, name)
+        verdict["reasons"].append(
+            f"array {name} is not determined to the target {100 * target_position:g} cm / {target_orientation_deg:g}° "
+            f"({' and '.join(short)}, 1σ: its error is more likely above the target than below): more chirps near it "
+            "or with its direct path would narrow it (targets: --target-position, --target-orientation)")
+        verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    return record
