@@ -140,15 +140,14 @@ def _fit_many(fits, c, shift):
         if tr.vel is not None:
             v[i, :m] = tr.vel[f.idx]
     v = v if any(tr.vel is not None for tr, _ in fits) else None
-    f = np.zeros((k, n + 1))     # the data rows' residuals, then the prior row's
-    jf = np.zeros((k, n + 1, 5))  # their Jacobian (padded rows 0), scaled by X_SCALE (the prior's set once)
+    jf = np.zeros((k, n + 1, 5))  # the Jacobian of the data rows (padded rows 0), then the prior row, × X_SCALE
     jf[:, n, 4] = X_SCALE[4] / DRIFT_PRIOR
     scale = used / ROBUST_SCALE_S
 
-    def fun(q):
-        np.multiply(a - range_model(q, ti, si, c, shift, v), scale, out=f[:, :n])
-        np.divide(q[:, 4], DRIFT_PRIOR, out=f[:, n])
-        return f.copy()
+    def fun(q):   # q (K, ..., 5): the residuals of each problem's data rows, then its prior row's
+        lead = lambda x: x.reshape(x.shape[:1] + (1,) * (q.ndim - 2) + x.shape[1:])
+        r = (lead(a) - range_model(q, lead(ti), lead(si), c, shift, None if v is None else lead(v))) * lead(scale)
+        return np.concatenate([r, q[..., 4:5] / DRIFT_PRIOR], axis=-1)
 
     def jac(q):
         np.multiply(_jacobian(q, ti, si, c), (-X_SCALE) * scale[..., None], out=jf[:, :n])
@@ -186,18 +185,26 @@ def _levenberg_marquardt(fun, jac, q, robust):
     iters = np.zeros(k, int)
     active = np.ones(k, bool)
     eye = np.eye(q.shape[1])
+    rows, up, tens = np.arange(k), 10.0 ** np.arange(LM_LADDER), np.full((k, LM_LADDER), 10.0)
     while np.any(active):
         J = jac(q)   # (unchanged for a problem whose last step was rejected: the same J, A, g)
         Jw = J * np.where(robust[:, None], 1.0 / (1.0 + f * f), 1.0)[..., None]
         A, g = np.matmul(np.swapaxes(J, 1, 2), Jw), np.einsum("knp,kn->kp", Jw, f)
         lam = np.where(np.isnan(lam), 1e-3 * np.max(np.diagonal(A, axis1=1, axis2=2), axis=1), lam)
-        step = -_solve_each(A + lam[:, None, None] * eye, g) * X_SCALE
-        qn = q + step
+        tens[:, 0] = lam
+        ladder = np.cumprod(tens, axis=1)   # λ, 10λ, ... each ×10 in turn (as rejected steps raise it)
+        steps = -_solve_each(A[:, None] + ladder[..., None, None] * eye, np.repeat(g[:, None], LM_LADDER, 1)) * X_SCALE
+        qn = q[:, None] + steps
         fn = fun(qn)
-        cn = _lm_cost(fn, robust)
-        accept = active & (cn <= c0)
+        cn = _lm_cost(fn, robust[:, None])
+        # the first trial of the ladder that lowers the cost is the step taken (a trial after one rejected counts
+        # only while its damping is below LM_MAX_DAMPING), as if tried one after another
+        tried = (cn <= c0[:, None]) & ((ladder < LM_MAX_DAMPING) | (up == 1.0))
+        first = np.argmax(tried, axis=1)
+        accept = active & np.any(tried, axis=1)
         reject = active & ~accept
-        lam = np.where(reject, lam * 10.0, np.where(accept, lam / 10.0, lam))
+        step, qn, fn, cn = steps[rows, first], qn[rows, first], fn[rows, first], cn[rows, first]
+        lam = np.where(reject, ladder[:, -1] * 10.0, np.where(accept, ladder[rows, first] / 10.0, lam))
         active &= ~(reject & ~(lam < LM_MAX_DAMPING))   # no step lowers the cost: q is the minimum (to rounding)
         done = np.all(np.abs(step) < LM_STEP_TOL * X_SCALE, axis=1) | (c0 - cn <= 1e-15 * np.maximum(c0, 1e-300))
         q[accept], f[accept], c0[accept] = qn[accept], fn[accept], cn[accept]
@@ -206,22 +213,26 @@ def _levenberg_marquardt(fun, jac, q, robust):
     return q
 
 
+LM_LADDER = 3   # trial dampings λ, 10λ, 100λ of one Jacobian evaluated at once (a rejected step is retried at 10λ)
+
+
 def _lm_cost(f, robust):
-    """(K,) costs of residuals f (K, n): Σ log(1 + f²) where ``robust`` (K,) (Cauchy), else Σ f²; inf where
+    """Costs (...) of residuals f (..., n): Σ log(1 + f²) where ``robust`` (...) (Cauchy), else Σ f²; inf where
     a residual is not finite."""
     with np.errstate(over="ignore", invalid="ignore"):
         f2 = f * f
-        cost = np.sum(np.where(robust[:, None], np.log1p(f2), f2), axis=-1)
+        cost = np.sum(np.where(robust[..., None], np.log1p(f2), f2), axis=-1)
     return np.where(np.isfinite(cost), cost, np.inf)
 
 
 def _solve_each(a, b):
-    """x (K, p) with a[k] x[k] = b[k]; NaN for a singular a[k] (its step is then rejected)."""
+    """x (..., p) with a[i] x[i] = b[i] for every leading index i; NaN for a singular a[i] (its step is then
+    rejected)."""
     try:
         return np.linalg.solve(a, b[..., None])[..., 0]
     except np.linalg.LinAlgError:
         out = np.full(b.shape, np.nan)
-        for i in range(len(a)):
+        for i in np.ndindex(b.shape[:-1]):
             try:
                 out[i] = np.linalg.solve(a[i], b[i])
             except np.linalg.LinAlgError:
