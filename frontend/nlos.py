@@ -18,6 +18,8 @@ fewer than ``MIN_EVENTS`` arrivals nothing is judged.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .timing import _path_peaks as path_peaks  # per mic, one path's refined time and amplitude near a lag
@@ -104,26 +106,28 @@ def _refine(q0, idx, arrival, t, s, c, shift, vel, loss="cauchy"):
     trend the drift absorbs; seen 370 m away with δ = −6e-4 on the L-shaped office). ``loss``: "cauchy"
     (every row, the prior too, as scipy's ``least_squares(loss="cauchy", f_scale=1)``) or "linear"."""
     track = Track(arrival, t, s, vel)
-    return _fit_many([(track, Fit(np.asarray(q0, float), idx, loss == "cauchy"))], c, shift)[0]
+    return _fit_many([(track, Fit(np.asarray(q0, float), np.asarray(idx, int), loss == "cauchy"))], c, shift)[0]
 
 
-class Track:
+class Track(NamedTuple):
     """One array's arrivals along the odometry: arrival (J,) local s, t (J,) emission times − t_emit[0],
     s (J, 3) odometry, vel (J, 3) or None."""
-
-    def __init__(self, arrival, t, s, vel=None):
-        self.arrival, self.t, self.s, self.vel = arrival, t, s, vel
+    arrival: np.ndarray
+    t: np.ndarray
+    s: np.ndarray
+    vel: np.ndarray | None = None
 
     def residuals(self, q, c, shift):
         """measured − :func:`range_model` (J,) of the track parameters q (5,)."""
         return self.arrival - range_model(q, self.t, self.s, c, shift, self.vel)
 
 
-class Fit:
-    """A track fit to run (:func:`_refine`): start q0 (5,), the arrivals' indices, the robust loss or not."""
-
-    def __init__(self, q0, idx, robust):
-        self.q0, self.idx, self.robust = q0, np.asarray(idx, int), bool(robust)
+class Fit(NamedTuple):
+    """A track fit to run (:func:`_refine`): start q0 (5,), the indices (K,) int of the arrivals it fits, the
+    robust (Cauchy) loss or the plain one."""
+    q0: np.ndarray
+    idx: np.ndarray
+    robust: bool
 
 
 def _fit_many(fits, c, shift):
