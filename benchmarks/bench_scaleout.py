@@ -10,7 +10,8 @@ its parallel efficiency (speed-up / N) measured, and projected for more workers 
 
 Every study runs as a user runs it: ``calib montecarlo -o OUT --runs R --jobs N -q --timing-log T`` (local) or
 ``--scheduler ADDRESS`` (Dask: a ``distributed.LocalCluster(n_workers=N, threads_per_worker=1)`` of worker
-processes started by this script first, not timed), each into a fresh folder.
+processes started by this script first with ``preload=["calib.pipeline.studyrun"]``, not timed), each into a
+fresh folder.
 
 Measured, per mode and N: wall time of the command, CPU time (user + system) of the command and its
 worker processes (for Dask: the command plus the workers' own CPU time, read from them), speed-up and
@@ -83,7 +84,9 @@ def local(n, args, out, log):
 def dask(n, args, out, log):
     from distributed import Client, LocalCluster
 
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    # preload: as docs/montecarlo.md advises for a cluster's workers (a long-lived worker imports it once)
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                      preload=["calib.pipeline.studyrun"]) as cluster, \
             Client(cluster) as client:
         c0 = _worker_cpu(client)
         m = timed(calib_cmd("montecarlo", "-o", out, "--runs", args.runs, "--scheduler",

@@ -26,7 +26,11 @@ def main():
         signals.install()
         if _early:
             raise signals.exception_for(_early[0])
-        from calib.cli.main import app
+        import sys
+
+        from calib.cli.main import app_for
+
+        app = app_for(sys.argv[1:])
     except KeyboardInterrupt as exc:
         signals.leave(signals.interrupted(exc, "interrupted while starting; nothing was written"))
     try:

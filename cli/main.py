@@ -1,23 +1,33 @@
-"""Entry point of the ``calib`` command. Each command lives in its own module of this package."""
+"""Entry point of the ``calib`` command. Each command lives in its own module of this package.
+
+``app`` is the command with all its subcommands; :func:`app_for` builds it for one command line with only the
+subcommand it names, so ``calib montecarlo`` does not import the frontend and the estimator (0.3 s of CPU on
+every start; a study's parent process needs neither).
+"""
 from __future__ import annotations
 
+import importlib
 from typing import Optional
 
 import typer
 
 from calib import __version__
 
-from . import chirp, check, estimate, evaluate, export, features, import_bag, init, montecarlo, run, simulate
+# command name → its module in this package (the function has the module's name, '-' read as '_')
+COMMANDS = ("run", "simulate", "features", "estimate", "evaluate", "export", "chirp", "init", "check",
+            "import-bag", "montecarlo")
 
-app = typer.Typer(
-    name="calib",
-    help="Calibrate asynchronous microphone arrays (positions, orientations, clock offsets, drifts).",
-    no_args_is_help=True,
-    add_completion=True,  # --install-completion / --show-completion (bash, zsh, fish, PowerShell)
-    pretty_exceptions_enable=False,
-    rich_markup_mode=None,  # plain help: '[default: …]' in a help text stays visible, flags show no '<bool>'
-    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110},
-)
+
+def _typer():
+    return typer.Typer(
+        name="calib",
+        help="Calibrate asynchronous microphone arrays (positions, orientations, clock offsets, drifts).",
+        no_args_is_help=True,
+        add_completion=True,  # --install-completion / --show-completion (bash, zsh, fish, PowerShell)
+        pretty_exceptions_enable=False,
+        rich_markup_mode=None,  # plain help: '[default: …]' in a help text stays visible, flags show no '<bool>'
+        context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110},
+    )
 
 
 def _version(value: bool):
@@ -26,27 +36,39 @@ def _version(value: bool):
         raise typer.Exit()
 
 
-@app.callback()
 def _main(version: Optional[bool] = typer.Option(None, "--version", "-V", callback=_version, is_eager=True,
                                                  help="print the version and exit")):
     """Calibrate asynchronous microphone arrays (positions, orientations, clock offsets, drifts)."""
 
 
-app.command("run")(run.run)
-app.command("simulate")(simulate.simulate)
-app.command("features")(features.features)
-app.command("estimate")(estimate.estimate)
-app.command("evaluate")(evaluate.evaluate)
-app.command("export")(export.export)
-app.command("chirp")(chirp.chirp)
-app.command("init")(init.init)
-app.command("check")(check.check)
-app.command("import-bag")(import_bag.import_bag)
-app.command("montecarlo")(montecarlo.montecarlo)
+def build(names=COMMANDS):
+    """The ``calib`` Typer app with the subcommands ``names`` (in COMMANDS' order)."""
+    app = _typer()
+    app.callback()(_main)   # a callback keeps a one-command app a group: `calib NAME ...` as with all of them
+    for name in COMMANDS:
+        if name in names:
+            module = name.replace("-", "_")
+            app.command(name)(getattr(importlib.import_module(f"{__package__}.{module}"), module))
+    return app
+
+
+def app_for(argv):
+    """The app for command-line arguments ``argv`` (without the program): only the subcommand ``argv[0]``
+    names, else (help, --version, a misspelled command, completion) all of them."""
+    return build((argv[0],)) if argv and argv[0] in COMMANDS else build()
+
+
+def __getattr__(name):
+    if name == "app":   # `from calib.cli.main import app` (tests, notebooks): every subcommand, built once
+        globals()["app"] = built = build()
+        return built
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def main():
-    app()
+    import sys
+
+    app_for(sys.argv[1:])()
 
 
 if __name__ == "__main__":

@@ -136,3 +136,21 @@ def test_run_json_quiet_and_skip(session, tmp_path):
     assert "skipped" in r.stderr and "features" in r.stderr
     assert "Calibrated arrays" in r.stdout and "Calibration vs ground truth" in r.stdout
     assert "skipped (unchanged): features, estimate, report" in " ".join(r.stdout.split())
+
+
+def test_one_command_line_loads_only_its_command():
+    import subprocess
+    import sys
+
+    from calib.cli import main
+
+    script = ("import sys; from calib.cli.main import app_for; app = app_for(['montecarlo', '--help']); "
+              "print(sorted(c.name for c in app.registered_commands), "
+              "[m for m in ('calib.estimator', 'calib.frontend.signals', 'scipy') if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "['montecarlo'] []"       # the study's parent: no estimator, frontend or scipy
+    for name in main.COMMANDS:                      # each command's help is the same alone as among all
+        one = CliRunner().invoke(main.app_for([name]), [name, "--help"])
+        every = CliRunner().invoke(app, [name, "--help"])
+        assert one.exit_code == every.exit_code == 0 and one.output == every.output
+    assert [c.name for c in main.app_for(["nosuch"]).registered_commands] == list(main.COMMANDS)

@@ -1,6 +1,12 @@
 """`calib montecarlo`: the study driver writes its tables and figure, resumes instead of recomputing,
 is reproducible from its seeds (locally and on a Dask cluster), and rejects bad input cleanly."""
 
+import multiprocessing
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -108,6 +114,51 @@ def test_interrupted_study_keeps_finished_chunks_and_resumes(study, tmp_path, mo
     res = mc.run_study(out, runs=2, jobs=1, **TINY)
     assert res["computed"] == 4 and res["skipped"] == 4
     assert without_time(out / "runs.csv") == without_time(fresh / "runs.csv")
+
+
+@pytest.mark.skipif(not mc._can_fork(), reason="local workers are forked on Linux only")
+def test_an_interrupt_in_a_worker_stops_every_worker(tmp_path, monkeypatch):
+    from calib.pipeline import studyrun
+
+    real = studyrun.run_chunk
+
+    def dying(tasks, settings):
+        if tasks[0][3] == 1:
+            raise KeyboardInterrupt   # as if the worker were interrupted in its run 1
+        time.sleep(30)                # the other worker would compute on
+        return real(tasks, settings)
+
+    monkeypatch.setattr(studyrun, "run_chunk", dying)   # the forked workers inherit it
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        mc.run_study(tmp_path / "s", runs=2, jobs=2, chunk_size=1, figure=False, **TINY)
+    assert time.perf_counter() - t0 < 20          # did not wait for the sleeping worker
+    deadline = time.monotonic() + 5
+    while multiprocessing.active_children() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert multiprocessing.active_children() == []
+
+
+def _alive(pid):
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state not in ("Z", "X")
+
+
+@pytest.mark.skipif(not mc._can_fork(), reason="local workers are forked on Linux only")
+def test_a_forked_worker_ends_when_the_study_process_is_killed():
+    script = ("import multiprocessing as mp, os, time\n"
+              "from calib.pipeline import montecarlo as mc\n"
+              "p = mp.get_context('fork').Process(target=lambda: (mc._worker_init(), time.sleep(60)))\n"
+              "p.start(); print(p.pid, flush=True); os._exit(0)\n")   # the study's process vanishes
+    pid = int(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                             timeout=60).stdout)
+    deadline = time.monotonic() + 5 * mc.PARENT_POLL_S + 2
+    while _alive(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive(pid)
 
 
 @pytest.mark.slow
