@@ -142,14 +142,10 @@ def test_odometry_yaw_retested_after_the_motion_correction():
     """IVE decides the odometry yaw on arrivals that still carry the moving source's shifts, which a turned
     frame partly mimics: tested again once they are removed, a spurious yaw is dropped (no 'odometry frame
     is rotated' in the verdict), a real 5° turn is kept and found."""
-    import sys
-    from pathlib import Path
-
     from calib.estimator import calibrate
     from calib.pipeline.simulate.featsim import simulate_features
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_motion_nlos import _moving
+    from .test_motion_nlos import _moving   # (tests is a package: test_motion_nlos imports .sessions)
 
     f, tr = simulate_features(2, 2e-5, 1.0, 0.01, seed=2)
     g, _ = _moving(f, tr, with_vel=True, beta=1.5)    # a long sweep's coupling: shifts up to ~2 ms
