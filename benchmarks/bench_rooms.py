@@ -18,8 +18,9 @@ seconds (process time of `session_features` inside the run, all threads: the mac
 time is not the cost; the stage's plots and files are not counted) as a percentage of the recording
 duration (empty when a kept output's features stage was reused); issue 27's bound where the truth records the
 line of sight (truth/los.csv): the arrays with the direct path in most events that the verdict did not name
-and that are beyond 3 cm / 1.5° ("met": none). Then per group the medians, the worst seed
-and how many unflagged arrays are beyond 2σ / 3σ. With ``--work`` the outputs are kept there too (``WORK/out``):
+(``flagged``; after "imprecise:" those named for their std alone, estimator.verdict.name_imprecise) and that are
+beyond 3 cm / 1.5° ("met": none), then those named imprecise although within it (false names). Then per group the
+medians, the worst seed and how many unflagged arrays are beyond 2σ / 3σ. With ``--work`` the outputs are kept there too (``WORK/out``):
 a rerun with the same code reuses every stage.
 
 ``--oracle`` adds, for sessions whose truth says which arrivals had the line of sight (truth/los.csv), each
@@ -98,17 +99,20 @@ def one(d, out, reuse=False):
     per = m["per_array"]
     worst = max(per, key=lambda a: a["position_m"])
     named = set(verdict.get("flagged_arrays") or [])
+    loose = {a["array"] for a in (rep.get("precision") or {}).get("arrays") or []}   # named for their std alone
     rest = [a for a in per if a["array"] not in named]
     rest_worst = max(rest, key=lambda a: a["position_m"]) if rest else None
     z2 = position_z2(out / "calibration" / "arrays.csv", d / "truth" / "arrays.csv", named)
-    za = array_z(out / "calibration" / "arrays.csv", per, named)
+    za = array_z(out / "calibration" / "arrays.csv", per, named, loose)
     return {"z2": z2, "arrays": za,
             "beyond": [a for a in za if not a["named"] and max(a["z_pos"], np.nan_to_num(a["z_rot"])) > Z_BEYOND], "loc_cm": 100 * m["position_rmse_m"], "geo_deg": m["orientation_geodesic_deg"],
             "worst": f"{worst['array']} {100 * worst['position_m']:.1f} / {worst['geodesic_deg']:.1f}",
             "worst_cm": 100 * worst["position_m"], "status": verdict.get("status", "?"),
             "rest": "-" if rest_worst is None or not named else
             f"{rest_worst['array']} {100 * rest_worst['position_m']:.1f} / {rest_worst['geodesic_deg']:.1f}",
-            "flagged": ",".join(verdict.get("flagged_arrays") or []) or "-", "los_check": los_check(d, per, named),
+            "flagged": (",".join(verdict.get("flagged_arrays") or []) or "-")
+            + (f" (imprecise: {','.join(sorted(loose))})" if loose else ""),
+            "los_check": los_check(d, per, named) + within_text(d, per, loose),
             "cpu_pct": 100 * cpu.get("s", np.nan) / diag["recording_duration_s"]}
 
 
@@ -127,6 +131,19 @@ def los_check(d, per, named):
            and (100 * a["position_m"] > BOUND_CM or np.nan_to_num(a["geodesic_deg"]) > BOUND_DEG)]
     return ", ".join(f"{a['array']} {100 * a['position_m']:.1f} cm / {a['geodesic_deg']:.1f}° (LOS "
                      f"{frac[a['array']]:.2f})" for a in bad) or "met"
+
+
+def within_text(d, per, loose):
+    """``; named imprecise within the bound: A2`` for the arrays with the direct path in most events that the
+    verdict named imprecise although they are within BOUND_CM / BOUND_DEG (a false name); "" when none or no
+    truth/los.csv."""
+    path = d / "truth" / "los.csv"
+    if not path.is_file() or not loose:
+        return ""
+    frac = pd.read_csv(path).groupby("array")["los"].mean()
+    ok = [a["array"] for a in per if a["array"] in loose and frac.get(a["array"], 1.0) > 0.5
+          and 100 * a["position_m"] <= BOUND_CM and not np.nan_to_num(a["geodesic_deg"]) > BOUND_DEG]
+    return f"; named imprecise within the bound: {', '.join(ok)}" if ok else ""
 
 
 def los_rows(df, los, ref):
@@ -175,7 +192,7 @@ RSTD = ("rx_std", "ry_std", "rz_std")
 Z_BEYOND = 3.0   # an array whose error is more than 3x its stated std must not be in the `ok` set (issue 27)
 
 
-def array_z(estimated, per, named):
+def array_z(estimated, per, named, loose=()):
     """Per non-reference array with a std: position error (m) / the norm of its stated position std, and
     orientation error (geodesic, deg) / the norm of its stated rotation std (NaN when a rotation std is
     missing: a pair's roll, an orientation not estimated). For a 3-D Gaussian error with those std the
@@ -192,13 +209,14 @@ def array_z(estimated, per, named):
         zr = a["geodesic_deg"] / np.linalg.norm(rs) if np.all(np.isfinite(rs)) and np.isfinite(a["geodesic_deg"]) \
             else float("nan")
         out.append({"array": a["array"], "cm": 100 * a["position_m"], "z_pos": a["position_m"] / np.linalg.norm(sd),
-                    "deg": a["geodesic_deg"], "z_rot": zr, "named": a["array"] in named})
+                    "deg": a["geodesic_deg"], "z_rot": zr, "named": a["array"] in named,
+                    "loose": a["array"] in loose})
     return out
 
 
 def per_array_text(za):
-    """``A2 1.8 cm 1.2σ / 0.6° 1.4σ; ...`` (``*``: named by the verdict)."""
-    return "; ".join(f"{a['array']}{'*' if a['named'] else ''} {a['cm']:.1f} cm {a['z_pos']:.1f}σ / "
+    """``A2 1.8 cm 1.2σ / 0.6° 1.4σ; ...`` (``*``: flagged by the verdict, ``~``: for its std alone)."""
+    return "; ".join(f"{a['array']}{'~' if a.get('loose') else '*' if a['named'] else ''} {a['cm']:.1f} cm {a['z_pos']:.1f}σ / "
                      f"{a['deg']:.1f}° {a['z_rot']:.1f}σ" for a in za)
 
 

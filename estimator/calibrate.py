@@ -29,24 +29,32 @@ from .screen import distrusted, isolated, screen_rows
 from .solver import forget_linearisation, linearise
 from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
-from .verdict import fold_ambiguity, majority_apart, name_distrusted, name_inconsistent
+from .verdict import fold_ambiguity, majority_apart, name_distrusted, name_imprecise, name_inconsistent
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
 
-def calibrate(features: Mapping[str, Any], **options: Any) -> CalibrationResult:
+def calibrate(features: Mapping[str, Any], *, target_position: float = 0.03, target_orientation_deg: float = 1.5,
+              **options: Any) -> CalibrationResult:
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from features (a
     ``calib.records.Features`` or its dict form) → a :class:`~calib.estimator.outputs.CalibrationResult`.
 
-    See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread and chooses each
+    See :func:`calibrate_features` for the options; this wrapper pins BLAS to one thread, chooses each
     array's clock model (``clock_model="auto"``, the default: linear unless the evidence asks for more; or
-    "linear": ``estimator.clockmodel``).
+    "linear": ``estimator.clockmodel``), and names in the verdict the arrays that the data do not determine
+    to ``target_position`` (m) / ``target_orientation_deg`` (``verdict.name_imprecise``; 0 = off; report.json
+    ``precision``).
     """
+    validate_options(target_position=target_position, target_orientation_deg=target_orientation_deg)
     try:
         with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
             result = clockmodel.calibrate_clocks(calibrate_features, features, **options)
-            return CalibrationResult(**_leave_one_out(result, features, options))
+            result = _leave_one_out(result, features, options)
     finally:
         forget_linearisation()
+    if result.get("report") is not None and result.get("arrays") is not None:
+        result["report"]["precision"] = name_imprecise(result["report"]["verdict"], result["arrays"],
+                                                       target_position, target_orientation_deg)
+    return CalibrationResult(**result)
 
 
 def _leave_one_out(result, features, options):

@@ -79,8 +79,8 @@ MAX_TRIES = 2        # inconsistent arrays tried (most significant first), each 
 @dataclass(frozen=True)
 class LeaveOneOut:
     """One array's test. array: its name; T, dof, p: the Hausman statistic, its χ² dof and p-value;
-    moved: the other array whose position moved most when it was left out, by ``move_m`` (m), ``move_sigma``
-    (that move in its own 1-σ of the full solution); alpha: the level it was judged at (Bonferroni);
+    moved: the other array whose position moved most in its own 1-σ of the full solution when it was left out,
+    by ``move_sigma`` (σ), ``move_m`` (m); alpha: the level it was judged at (Bonferroni);
     inconsistent: p < alpha and move_sigma ≥ MIN_MOVE_SIGMA; shift_m: |d| over every compared position (m), noise_m: √tr S, its expected size
     when nothing is wrong (m)."""
     array: str
@@ -176,6 +176,16 @@ def tested_arrays(p, st, lay, kinds, mask, free, limit=MAX_TESTED):
     return sorted(sorted(cand, key=lambda i: -score[i])[:limit])
 
 
+def most_moved(d, V):
+    """(k, |d_k| in m, |d_k| / σ_k): the array whose position moved most in its own error bars, d (3m,) the
+    positions' change, V (3m, 3m) their covariance, σ_k = √tr of array k's 3×3 block (materiality is read in
+    each array's σ: a 5 cm move of a 5 cm-σ array is no evidence, a 2 cm move of a 0.5 cm-σ one is)."""
+    move = np.linalg.norm(d.reshape(-1, 3), axis=1)
+    sd = np.sqrt(np.maximum(np.diag(V).reshape(-1, 3).sum(axis=1), 1e-30))
+    k = int(np.argmax(move / sd))
+    return k, float(move[k]), float(move[k] / sd[k])
+
+
 def leave_one_out(p, st, lay, kinds, mask, a, *, free, full, quad, max_iter=200):
     """Array a's test against the full least-squares solution ``st`` at ``lay``/``mask`` (``free``: the arrays
     solved, the reference included); ``full`` = (its linearisation, its dense (JᵀJ)⁻¹); ``quad``:
@@ -193,11 +203,9 @@ def leave_one_out(p, st, lay, kinds, mask, a, *, free, full, quad, max_iter=200)
     S = quad(influence(lin_a, normal_inverse(lin_a, c1)) - influence(lin, cov[:, c0]))
     V = cov[np.ix_(c0, c0)]
     T, dof = hausman(d, S, V)
-    move = np.linalg.norm(d.reshape(-1, 3), axis=1)
-    sd = np.sqrt(np.maximum(np.diag(V).reshape(-1, 3).sum(axis=1), 1e-30))
-    k = int(np.argmax(move))
+    k, move_m, move_sigma = most_moved(d, V)
     rec = LeaveOneOut(str(p.names[a]), T, dof, float(chdtrc(dof, T)) if dof else 1.0, str(p.names[others[k]]),
-                      float(move[k]), float(move[k] / sd[k]), np.nan, False, float(np.linalg.norm(d)),
+                      move_m, move_sigma, np.nan, False, float(np.linalg.norm(d)),
                       float(np.sqrt(max(np.trace(S), 0.0))))
     return rec, st_a
 

@@ -14,8 +14,10 @@ Every reason is a measured quantity against a documented level (docs/method.md, 
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
-from scipy.special import chdtrc  # χ² survival function: scipy.stats.chi2.sf(x, n) = chdtrc(n, x)
+from scipy.special import chdtrc, chdtri  # χ² survival function and its inverse: chi2.sf(x, n) = chdtrc(n, x)
 
 from calib.tables import array_param
 
@@ -296,3 +298,69 @@ def majority_apart(verdict, unreliable, n_arrays):
         verdict["status"] = "failed"
         flag(verdict, *apart)
     return verdict
+
+
+def median_norm_factor(d):
+    """Median of |e| / sqrt(E|e|²) for e ~ N(0, σ² I_d): the typical error of a d-axis estimate over its
+    RMS std (the ``*_std`` columns' norm); 0.888 for a position (d = 3), 0.833 for an axis direction (d = 2)."""
+    return float(np.sqrt(chdtri(d, 0.5) / d))
+
+
+NORM_DRAWS = 16384  # standard normal draws (fixed seed) for the median error of unequal per-axis stds
+
+
+@functools.cache
+def _unit_draws(d):
+    return np.random.default_rng(20261128).standard_normal((NORM_DRAWS, d))
+
+
+def median_error(stds):
+    """Median of |e| for e ~ N(0, diag(stds²)) (the finite ``stds`` of one array's axes; 0 when none): a
+    position or orientation's typical error from its per-axis std. Exact for equal stds
+    (``median_norm_factor``); with one dominant axis it tends to that axis' half-normal median (0.674 σ)."""
+    s = np.asarray(stds, dtype=float)
+    s = s[np.isfinite(s)]
+    if not len(s):
+        return 0.0
+    if np.ptp(s) <= 1e-9 * s.max():
+        return median_norm_factor(len(s)) * float(np.sqrt(np.sum(s ** 2)))
+    return float(np.median(np.linalg.norm(_unit_draws(len(s)) * s, axis=1)))
+
+
+def _norm(stds):
+    """The norm of the finite per-axis stds (the summary's ±pos / ±rot)."""
+    s = np.asarray(stds, dtype=float)
+    return float(np.sqrt(np.sum(s[np.isfinite(s)] ** 2)))
+
+
+def name_imprecise(verdict, arrays, target_position, target_orientation_deg):
+    """Name the arrays whose stated std says that their error is more likely above the target than below:
+    ``median_error`` of the per-axis stds > target, position (m) or orientation (deg; the axes the board
+    determines: two for a linear board or a pair). The data do not determine those arrays to the precision asked for,
+    whatever the rest of the verdict says (e.g. a board with few chirps near it, or with its direct path in
+    few of them). 0 turns a target off; the reference array and arrays already named are left alone. In place;
+    returns report.json's ``precision`` record."""
+    record = {"target_position_m": float(target_position), "target_orientation_deg": float(target_orientation_deg),
+              "arrays": []}
+    for _, row in arrays.iterrows():
+        name = str(row["array"])
+        if name in verdict["flagged_arrays"]:
+            continue
+        pos_s = [row[c] for c in array_param("x").std_columns]
+        rot_s = np.degrees([row[c] for c in array_param("rot").std_columns])
+        pos, rot = _norm(pos_s), _norm(rot_s)
+        short = []
+        if target_position > 0 and median_error(pos_s) > target_position:
+            short.append(f"position ±{100 * pos:.1f} cm")
+        if target_orientation_deg > 0 and median_error(rot_s) > target_orientation_deg:
+            short.append(f"orientation ±{rot:.1f}°")
+        if not short:
+            continue
+        record["arrays"].append({"array": name, "position_std_m": pos, "orientation_std_deg": rot})
+        flag(verdict, name)
+        verdict["reasons"].append(
+            f"array {name} is not determined to the target {100 * target_position:g} cm / {target_orientation_deg:g}° "
+            f"({' and '.join(short)}, 1σ: its error is more likely above the target than below): more chirps near it "
+            "or with its direct path would narrow it (targets: --target-position, --target-orientation)")
+        verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    return record

@@ -30,7 +30,7 @@ from .arrayresult import ArrayResult
 from .detect import background, matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
 from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
-from .nlos import TRACK_SCALE_MAX, late_arrivals, retime_earlier
+from .nlos import TRACK_SCALE_MAX, late_arrivals_many, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, shared_setup,
@@ -700,16 +700,16 @@ DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's
 
 def flag_nlos(results, events, shift, c):
     """Add the doubt "nlos" to every arrival late against its array's own range track along the odometry
-    (:func:`calib.frontend.nlos.late_arrivals`: a reflection-only arrival, the direct path blocked) and halve
-    its quality (in place). Returns the results with each arrival's lateness as ``late`` (s; NaN: not judged)."""
+    (:func:`calib.frontend.nlos.late_arrivals_many`, every array's track fitted together: a reflection-only
+    arrival, the direct path blocked) and halve its quality (in place). Returns the results with each arrival's lateness as ``late`` (s; NaN: not judged)."""
     t_emit = events["t_emit"].to_numpy(float)
     odom = events[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     vel = event_velocities(events)
     out = {}
-    for name, r in results.items():
+    judged = late_arrivals_many([(np.asarray(r["arrival"], float), t_emit[r["ev_idx"]] - t_emit[0], odom[r["ev_idx"]],
+                                  None if vel is None else vel[r["ev_idx"]]) for r in results.values()], c, shift)
+    for (name, r), ev in zip(results.items(), judged):
         j = r["ev_idx"]
-        ev = late_arrivals(np.asarray(r["arrival"], float), t_emit[j] - t_emit[0], odom[j], c, shift,
-                           None if vel is None else vel[j])
         out[name] = r.replace(late=ev["late"])
         for k in np.flatnonzero(ev["nlos"]):
             r["flags"][k].append("nlos")

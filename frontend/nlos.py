@@ -18,6 +18,8 @@ fewer than ``MIN_EVENTS`` arrivals nothing is judged.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .timing import _path_peaks as path_peaks  # per mic, one path's refined time and amplitude near a lag
@@ -41,21 +43,23 @@ TRACK_SCALE_MAX = 1e-3  # s: a track whose own arrivals scatter about it by more
 
 def range_model(params, t, s, c, shift=None, vel=None):
     """Arrival times (J,) of the model ``τ + (1 + δ) t + |s − x|/c [+ shift(ṙ/c)]``; params = (x (3), τ, δ);
-    ``shift``: the matched filter's arrival shift for a sweep stretched by 1 + ε (≈ β ε)."""
-    x, tau, delta = params[:3], params[3], params[4]
+    ``shift``: the matched filter's arrival shift for a sweep stretched by 1 + ε (≈ β ε). Also for K tracks at
+    once: params (K, 5), t (K, J), s and vel (K, J, 3) → (K, J)."""
+    x, tau, delta = params[..., None, :3], params[..., 3:4], params[..., 4:5]
     w = s - x
-    d = np.sqrt(np.sum(w * w, axis=1))
+    d = np.sqrt(np.sum(w * w, axis=-1))
     out = tau + (1.0 + delta) * t + d / c
     if vel is not None and shift is not None:
-        out = out + shift(np.sum(vel * w, axis=1) / np.maximum(d, 1e-9) / c)
+        out = out + shift(np.sum(vel * w, axis=-1) / np.maximum(d, 1e-9) / c)
     return out
 
 
 def _jacobian(params, t, s, c):
-    """d(model)/d(params) (J, 5) of :func:`range_model` without the (tiny) motion term's derivative."""
-    w = s - params[:3]
-    d = np.maximum(np.sqrt(np.sum(w * w, axis=1)), 1e-9)
-    return np.column_stack([-w / (c * d[:, None]), np.ones(len(t)), t])
+    """d(model)/d(params) (J, 5) of :func:`range_model` without the (tiny) motion term's derivative
+    (K tracks: (K, J, 5))."""
+    w = s - params[..., None, :3]
+    d = np.maximum(np.sqrt(np.sum(w * w, axis=-1)), 1e-9)
+    return np.concatenate([-w / (c * d[..., None]), np.ones(t.shape + (1,)), t[..., None]], axis=-1)
 
 
 def linear_start(arrival, t, s, c):
@@ -101,61 +105,191 @@ def _refine(q0, idx, arrival, t, s, c, shift, vel, loss="cauchy"):
     a prior row δ / DRIFT_PRIOR: a far array with a fudged drift mimics a track (a plane wave whose delay
     trend the drift absorbs; seen 370 m away with δ = −6e-4 on the L-shaped office). ``loss``: "cauchy"
     (every row, the prior too, as scipy's ``least_squares(loss="cauchy", f_scale=1)``) or "linear"."""
-    a, ti, si = arrival[idx], t[idx], s[idx]
-    v = None if vel is None else vel[idx]
-    prior = np.zeros((1, 5))
-    prior[0, 4] = 1.0 / DRIFT_PRIOR
-    return _levenberg_marquardt(
-        lambda q: np.r_[(a - range_model(q, ti, si, c, shift, v)) / ROBUST_SCALE_S, q[4] / DRIFT_PRIOR],
-        lambda q: np.vstack([-_jacobian(q, ti, si, c) / ROBUST_SCALE_S, prior]), q0, loss == "cauchy")
+    track = Track(arrival, t, s, vel)
+    return _fit_many([(track, Fit(np.asarray(q0, float), np.asarray(idx, int), loss == "cauchy"))], c, shift)[0]
+
+
+class Track(NamedTuple):
+    """One array's arrivals along the odometry: arrival (J,) local s, t (J,) emission times − t_emit[0],
+    s (J, 3) odometry, vel (J, 3) or None."""
+    arrival: np.ndarray
+    t: np.ndarray
+    s: np.ndarray
+    vel: np.ndarray | None = None
+
+    def residuals(self, q, c, shift):
+        """measured − :func:`range_model` (J,) of the track parameters q (5,)."""
+        return self.arrival - range_model(q, self.t, self.s, c, shift, self.vel)
+
+
+class Fit(NamedTuple):
+    """A track fit to run (:func:`_refine`): start q0 (5,), the indices (K,) int of the arrivals it fits, the
+    robust (Cauchy) loss or the plain one."""
+    q0: np.ndarray
+    idx: np.ndarray
+    robust: bool
+
+
+def _fit_many(fits, c, shift):
+    """The track fits ``fits`` [(Track, Fit), ...] of any arrays, all at once: one :func:`_levenberg_marquardt`
+    on the stacked problems (a subset shorter than the longest padded with rows of zero residual and zero
+    Jacobian, which change no sum; each fit its own loss). Returns (K, 5)."""
+    n = max(len(f.idx) for _, f in fits)
+    k = len(fits)
+    used = np.arange(n)[None, :] < np.array([len(f.idx) for _, f in fits])[:, None]       # (K, n)
+    a, ti, si, v = np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, n, 3)), np.zeros((k, n, 3))
+    for i, (tr, f) in enumerate(fits):
+        m = len(f.idx)
+        a[i, :m], ti[i, :m], si[i, :m] = tr.arrival[f.idx], tr.t[f.idx], tr.s[f.idx]
+        if tr.vel is not None:
+            v[i, :m] = tr.vel[f.idx]
+    v = v if any(tr.vel is not None for tr, _ in fits) else None
+    jf = np.zeros((k, n + 1, 5))  # the Jacobian of the data rows (padded rows 0), then the prior row, × X_SCALE
+    jf[:, n, 4] = X_SCALE[4] / DRIFT_PRIOR
+    scale = used / ROBUST_SCALE_S
+
+    def fun(q):   # q (K, ..., 5): the residuals of each problem's data rows, then its prior row's
+        lead = lambda x: x.reshape(x.shape[:1] + (1,) * (q.ndim - 2) + x.shape[1:])
+        r = (lead(a) - range_model(q, lead(ti), lead(si), c, shift, None if v is None else lead(v))) * lead(scale)
+        return np.concatenate([r, q[..., 4:5] / DRIFT_PRIOR], axis=-1)
+
+    def jac(q):
+        np.multiply(_jacobian(q, ti, si, c), (-X_SCALE) * scale[..., None], out=jf[:, :n])
+        return jf
+
+    return _levenberg_marquardt(fun, jac, np.array([f.q0 for _, f in fits], float),
+                                np.array([f.robust for _, f in fits]))
 
 
 LM_MAX_ITER = 60        # iterations of the track fit (each one 5 × 5 solve; as scipy's max_nfev before)
 LM_STEP_TOL = 1e-9      # a step below this × X_SCALE in every parameter ends the fit (nm, fs, 1e-14 drift)
 X_SCALE = np.array([1.0, 1.0, 1.0, 1e-3, 1e-5])   # the parameters' natural sizes (m, m, m, s, 1)
+LM_MAX_DAMPING = 1e30   # no step lowers the cost at this damping: the track is at its minimum (to rounding)
 
 
 def _levenberg_marquardt(fun, jac, q, robust):
-    """Minimise Σ ρ(f_i(q)²) of the 5 track parameters: ρ(z) = log(1 + z) (Cauchy, ``robust``) or z.
+    """Minimise Σ ρ(f_i(q)²) of K independent problems in the 5 track parameters each: ρ(z) = log(1 + z)
+    (Cauchy, ``robust`` (K,) bool) or z. q (K, 5) starts; fun : (K, 5) → (K, n) residuals (a new array);
+    jac : (K, 5) → (K, n, 5) their Jacobian times X_SCALE (the parameters' sizes).
 
     Iteratively reweighted Gauss–Newton (weights ρ'(f²) = 1 / (1 + f²): its fixed point is the cost's
     stationary point) with Levenberg's damping in the parameters scaled by X_SCALE (as scipy's trust
     region with ``x_scale``: a planar trajectory leaves the height of the array nearly free, which a damping
     scaled by the curvature would not hold); a step is taken only when it lowers the cost. A closed 5 × 5
     solve per iteration instead of scipy's trust-region machinery (~4× less CPU, the same minimum: the
-    features agree to the fit's tolerance). q (5,) start; returns q (5,)."""
-    cost = (lambda f: float(np.sum(np.log1p(f * f)))) if robust else (lambda f: float(np.sum(f * f)))
-    q = np.asarray(q, float).copy()
+    features agree to the fit's tolerance). The K problems advance together, one trial step each per round
+    (every array's fits and RANSAC's candidate tracks in one numpy call instead of one per fit), each with
+    its own damping and its own end, exactly as K separate fits. Returns q (K, 5)."""
+    q = np.array(q, float)
+    k = len(q)
+    robust = np.broadcast_to(np.asarray(robust, bool), (k,))
     f = fun(q)
-    c0, lam = cost(f), None
-    for _ in range(LM_MAX_ITER):
-        J = jac(q) * X_SCALE
-        Jw = J / (1.0 + f * f)[:, None] if robust else J
-        A, g = J.T @ Jw, Jw.T @ f
-        lam = 1e-3 * float(np.max(np.diag(A))) if lam is None else lam
-        while True:
-            try:
-                step = -np.linalg.solve(A + lam * np.eye(len(q)), g) * X_SCALE
-            except np.linalg.LinAlgError:
-                step = np.full(len(q), np.nan)
-            qn = q + step
-            fn = fun(qn)
-            cn = cost(fn) if np.all(np.isfinite(fn)) else np.inf
-            if cn <= c0:
-                break
-            lam *= 10.0
-            if not lam < 1e30:   # no step lowers the cost: q is the minimum (to rounding)
-                return q
-        q, f, lam = qn, fn, lam / 10.0
-        done = np.all(np.abs(step) < LM_STEP_TOL * X_SCALE) or c0 - cn <= 1e-15 * max(c0, 1e-300)
-        c0 = cn
-        if done:
-            break
+    c0 = _lm_cost(f, robust)
+    lam = np.full(k, np.nan)
+    iters = np.zeros(k, int)
+    active = np.ones(k, bool)
+    eye = np.eye(q.shape[1])
+    rows, up, tens = np.arange(k), 10.0 ** np.arange(LM_LADDER), np.full((k, LM_LADDER), 10.0)
+    while np.any(active):
+        J = jac(q)   # (unchanged for a problem whose last step was rejected: the same J, A, g)
+        Jw = J * np.where(robust[:, None], 1.0 / (1.0 + f * f), 1.0)[..., None]
+        A, g = np.matmul(np.swapaxes(J, 1, 2), Jw), np.einsum("knp,kn->kp", Jw, f)
+        lam = np.where(np.isnan(lam), 1e-3 * np.max(np.diagonal(A, axis1=1, axis2=2), axis=1), lam)
+        tens[:, 0] = lam
+        ladder = np.cumprod(tens, axis=1)   # λ, 10λ, ... each ×10 in turn (as rejected steps raise it)
+        steps = -_solve_each(A[:, None] + ladder[..., None, None] * eye, np.repeat(g[:, None], LM_LADDER, 1)) * X_SCALE
+        qn = q[:, None] + steps
+        fn = fun(qn)
+        cn = _lm_cost(fn, robust[:, None])
+        # the first trial of the ladder that lowers the cost is the step taken (a trial after one rejected counts
+        # only while its damping is below LM_MAX_DAMPING), as if tried one after another
+        tried = (cn <= c0[:, None]) & ((ladder < LM_MAX_DAMPING) | (up == 1.0))
+        first = np.argmax(tried, axis=1)
+        accept = active & np.any(tried, axis=1)
+        reject = active & ~accept
+        step, qn, fn, cn = steps[rows, first], qn[rows, first], fn[rows, first], cn[rows, first]
+        lam = np.where(reject, ladder[:, -1] * 10.0, np.where(accept, ladder[rows, first] / 10.0, lam))
+        active &= ~(reject & ~(lam < LM_MAX_DAMPING))   # no step lowers the cost: q is the minimum (to rounding)
+        done = np.all(np.abs(step) < LM_STEP_TOL * X_SCALE, axis=1) | (c0 - cn <= 1e-15 * np.maximum(c0, 1e-300))
+        q[accept], f[accept], c0[accept] = qn[accept], fn[accept], cn[accept]
+        iters += accept
+        active &= ~(accept & (done | (iters >= LM_MAX_ITER)))
     return q
 
 
+LM_LADDER = 3   # trial dampings λ, 10λ, 100λ of one Jacobian evaluated at once (a rejected step is retried at 10λ)
+
+
+def _lm_cost(f, robust):
+    """Costs (...) of residuals f (..., n): Σ log(1 + f²) where ``robust`` (...) (Cauchy), else Σ f²; inf where
+    a residual is not finite."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        f2 = f * f
+        cost = np.sum(np.where(robust[..., None], np.log1p(f2), f2), axis=-1)
+    return np.where(np.isfinite(cost), cost, np.inf)
+
+
+def _solve_each(a, b):
+    """x (..., p) with a[i] x[i] = b[i] for every leading index i; NaN for a singular a[i] (its step is then
+    rejected)."""
+    try:
+        return np.linalg.solve(a, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.full(b.shape, np.nan)
+        for i in np.ndindex(b.shape[:-1]):
+            try:
+                out[i] = np.linalg.solve(a[i], b[i])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
 def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
-    """Fit of :func:`range_model` to one array's arrivals that follows its direct paths, not the majority.
+    """Fit of :func:`range_model` to one array's arrivals that follows its direct paths, not the majority
+    (:func:`_track_search`). arrival (J,) local s; t (J,) emission times − t_emit[0]; s (J, 3) odometry;
+    vel (J, 3) or None. Returns (params (5,), residuals (J,) s: measured − model)."""
+    return fit_range_tracks([Track(arrival, t, s, vel)], c, shift, delta0)[0]
+
+
+def fit_range_tracks(tracks, c, shift=None, delta0=0.0):
+    """:func:`fit_range_track` of several arrays ([:class:`Track`, ...]) at once: each array's search
+    (:func:`_track_search`) is a sequence of fits that depend on the ones before, but the arrays are
+    independent, so their searches advance in step and every round's fits of all arrays run as one stacked
+    fit (:func:`_fit_many`): the numpy calls per round are those of one fit. Returns [(params, residuals)]."""
+    return run_searches([_track_search(tr, c, shift, delta0) for tr in tracks], tracks, c, shift)
+
+
+def run_searches(searches, tracks, c, shift=None):
+    """Drive generators that yield track fits ([:class:`Fit`, ...] on ``tracks[i]``'s arrivals) and are sent
+    the fitted tracks ((K, 5)): each round's fits of all of them as one stacked fit (:func:`_fit_many`).
+    Returns their return values."""
+    out = [None] * len(searches)
+    pending = {}
+    for i, g in enumerate(searches):
+        _advance(g, None, i, pending, out)
+    while pending:
+        batch = [(tracks[i], f) for i, fits in pending.items() for f in fits]
+        q = _fit_many(batch, c, shift)
+        sent, k = dict(pending), 0
+        pending.clear()
+        for i, fits in sent.items():
+            _advance(searches[i], q[k : k + len(fits)], i, pending, out)
+            k += len(fits)
+    return out
+
+
+def _advance(search, value, i, pending, out):
+    """Send ``value`` (the fitted tracks it asked for; None to start it) to search ``i``: its next fits go to
+    ``pending[i]``, its result to ``out[i]``."""
+    try:
+        pending[i] = search.send(value)
+    except StopIteration as stop:
+        out[i] = stop.value
+
+
+def _track_search(track, c, shift, delta0):
+    """The search of :func:`fit_range_tracks` for one array, as a generator: it yields the fits it needs
+    ([:class:`Fit`, ...]), is sent their results ((K, 5)), and returns (params, residuals).
 
     First a robust (Cauchy) fit to all arrivals from the linear start (:func:`linear_start`) and from above
     the trajectory's centre. When it leaves arrivals EARLY (a direct path is never early: the fit followed
@@ -164,48 +298,65 @@ def fit_range_track(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
     seed) and then to their inliers, each scored by its support (:func:`_score`); the best track is kept.
     ``delta0``: a drift guess (0 is better than the association's scale − 1, which carries the trend of
     the propagation delays: up to 7e-4 in the hall, which sent one array's fit to RANSAC).
-    arrival (J,) local s; t (J,) emission times − t_emit[0]; s (J, 3) odometry; vel (J, 3) or None.
-    Returns (params (5,), residuals (J,) s: measured − model).
     """
+    arrival, t, s = track.arrival, track.t, track.s
     j, every = len(arrival), np.arange(len(arrival))
-    model = lambda q: range_model(q, t, s, c, shift, vel)
+    res_of = lambda q: track.residuals(q, c, shift)
     centre = s.mean(axis=0) + [0.0, 0.0, 4.0]
     starts = [linear_start(arrival - delta0 * t, t, s, c),
               np.r_[centre, float(np.median(arrival - t - np.linalg.norm(s - centre, axis=1) / c)), 0.0]]
     best, best_score = None, None
     for q0 in starts:   # the second start only when the first leaves arrivals early
-        if best is not None and not np.any(arrival - model(best) < -NLOS_MIN_S):
+        if best is not None and not np.any(res_of(best) < -NLOS_MIN_S):
             break
         if np.all(np.isfinite(q0)):
             q0[4] = delta0
-            q = _refine(q0, every, arrival, t, s, c, shift, vel)
-            sc = _score(arrival - model(q))
+            q = (yield [Fit(q0, every, True)])[0]
+            sc = _score(res_of(q))
             if best_score is None or sc > best_score:
                 best, best_score = q, sc
-    early = np.flatnonzero(arrival - model(best) < -NLOS_MIN_S)
+    early = np.flatnonzero(res_of(best) < -NLOS_MIN_S)
     if not early.size:
-        return best, arrival - model(best)
-    q, sc = _peel(best, arrival, t, s, c, shift, vel)
+        return best, res_of(best)
+    q, sc = yield from _peel(best, track, c, shift)
     if sc > best_score:
         best, best_score = q, sc
-    if _enough(arrival - model(best)):
-        return best, arrival - model(best)
+    if _enough(res_of(best)):
+        return best, res_of(best)
     # the early group itself (the direct paths when the fit followed the reflections), then the subsets
-    for idx in ([early] if early.size >= SUBSET else []) + _candidates(j, np.random.default_rng(0), s):
-        q0 = linear_start(arrival[idx] - delta0 * t[idx], t[idx], s[idx], c)
-        q0 = q0 if np.all(np.isfinite(q0)) else best.copy()
-        q0[4] = delta0
-        q = _refine(q0, idx, arrival, t, s, c, shift, vel, loss="linear")
-        inl = np.flatnonzero(np.abs(arrival - model(q)) < INLIER_S)
-        if len(inl) >= MIN_INLIERS:
-            q = _refine(q, inl, arrival, t, s, c, shift, vel)
-        res = arrival - model(q)
-        sc = _score(res)
-        if sc > best_score:
-            best, best_score = q, sc
-        if _enough(res):
-            break
-    return best, arrival - model(best)
+    subsets = ([early] if early.size >= SUBSET else []) + _candidates(j, np.random.default_rng(0), s)
+    for k in range(0, len(subsets), RANSAC_BATCH):
+        for q in (yield from _candidate_tracks(subsets[k : k + RANSAC_BATCH], best, track, c, shift, delta0)):
+            res = res_of(q)
+            sc = _score(res)
+            if sc > best_score:
+                best, best_score = q, sc
+            if _enough(res):
+                return best, res_of(best)
+    return best, res_of(best)
+
+
+RANSAC_BATCH = 16   # candidate tracks fitted together (one stacked fit); the search stops after the batch holding the
+                    # first track that is enough (:func:`_enough`), so at most this many - 1 are fitted in vain
+
+
+def _candidate_tracks(subsets, fallback, track, c, shift, delta0):
+    """RANSAC's tracks of the index ``subsets`` (a generator step of :func:`_track_search`), in order
+    (K, 5): each from its linear start (``fallback`` where that is not finite) fitted to its subset, then, when
+    at least MIN_INLIERS arrivals lie within INLIER_S of that, refitted (robust loss) to those inliers."""
+    arrival, t, s = track.arrival, track.t, track.s
+    fits = []
+    for idx in subsets:
+        q = linear_start(arrival[idx] - delta0 * t[idx], t[idx], s[idx], c)
+        q = q if np.all(np.isfinite(q)) else fallback.copy()
+        q[4] = delta0
+        fits.append(Fit(q, idx, False))
+    q = np.array((yield fits), float)
+    inl = [np.flatnonzero(np.abs(track.residuals(qk, c, shift)) < INLIER_S) for qk in q]
+    again = [i for i in range(len(q)) if len(inl[i]) >= MIN_INLIERS]
+    if again:
+        q[again] = yield [Fit(q[i], inl[i], True) for i in again]
+    return q
 
 
 def _enough(res):
@@ -213,19 +364,18 @@ def _enough(res):
     return not np.any(res < -NLOS_MIN_S) and np.sum(np.abs(res) < INLIER_S) >= max(MIN_INLIERS, len(res) / 3)
 
 
-def _peel(q, arrival, t, s, c, shift, vel):
+def _peel(q, track, c, shift):
     """The track left when the latest arrivals are taken off one at a time (a reflection is late, never
-    early): from the compromise track ``q`` of all arrivals, the arrival latest against it is dropped and
-    the track refitted to the rest, down to MIN_INLIERS arrivals; the best-scored (:func:`_score`) track on
-    the way. Where the line of sight comes and goes in runs shorter than SUBSET (an office's doorways:
-    8 direct paths of 16 in runs of 2–4), no window and few random subsets hold direct paths only, while
-    the reflections, metres late, are peeled off first. Returns (q (5,), score)."""
-    model = lambda qq: range_model(qq, t, s, c, shift, vel)
-    keep, best, best_score = np.arange(len(arrival)), q, _score(arrival - model(q))
+    early; a generator step of :func:`_track_search`): from the compromise track ``q`` of all arrivals, the
+    arrival latest against it is dropped and the track refitted to the rest, down to MIN_INLIERS arrivals;
+    the best-scored (:func:`_score`) track on the way. Where the line of sight comes and goes in runs shorter
+    than SUBSET (an office's doorways: 8 direct paths of 16 in runs of 2–4), no window and few random subsets
+    hold direct paths only, while the reflections, metres late, are peeled off first. Returns (q (5,), score)."""
+    keep, best, best_score = np.arange(len(track.arrival)), q, _score(track.residuals(q, c, shift))
     while len(keep) > MIN_INLIERS:
-        keep = keep[keep != keep[np.argmax((arrival - model(q))[keep])]]
-        q = _refine(q, keep, arrival, t, s, c, shift, vel, loss="linear")
-        sc = _score(arrival - model(q))
+        keep = keep[keep != keep[np.argmax(track.residuals(q, c, shift)[keep])]]
+        q = (yield [Fit(q, keep, False)])[0]
+        sc = _score(track.residuals(q, c, shift))
         if sc > best_score:
             best, best_score = q, sc
     return best, best_score
@@ -240,7 +390,15 @@ def _judge(res):
 
 
 def late_arrivals(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
-    """Per arrival, how late it is against the array's own range track and whether that makes it NLOS.
+    """Per arrival, how late it is against the array's own range track and whether that makes it NLOS
+    (:func:`late_arrivals_many` of one array)."""
+    return late_arrivals_many([(arrival, t, s, vel)], c, shift, delta0)[0]
+
+
+def late_arrivals_many(arrays, c, shift=None, delta0=0.0):
+    """Per array [(arrival (J,), t (J,), s (J, 3), vel (J, 3) or None), ...], per arrival how late it is
+    against the array's own range track and whether that makes it NLOS; the arrays' tracks fitted together
+    (:func:`fit_range_tracks`).
 
     A direct path is never late by metres, and never early: the track (:func:`fit_range_track`) is the
     one with the most support and no early arrivals, so reflections do not take it over even when they are
@@ -249,23 +407,26 @@ def late_arrivals(arrival, t, s, c, shift=None, vel=None, delta0=0.0):
     A track whose arrivals scatter about it by more than TRACK_SCALE_MAX is no direct paths' (the odometry
     in other units, or not this session's): nothing is judged (``late`` NaN, ``scale`` says why).
 
-    Returns dict: ``late`` (J,) residual (s; NaN when not judged), ``nlos`` (J,) bool, ``scale`` (robust
-    std of the residuals, s), ``early`` (arrivals still early by the margin: the track is in doubt).
+    Returns per array a dict: ``late`` (J,) residual (s; NaN when not judged), ``nlos`` (J,) bool, ``scale``
+    (robust std of the residuals, s), ``early`` (arrivals still early by the margin: the track is in doubt).
     """
-    j = len(arrival)
-    ok = np.isfinite(arrival)
-    out = {"late": np.full(j, np.nan), "nlos": np.zeros(j, bool), "scale": np.nan, "early": 0}
-    if ok.sum() < MIN_EVENTS:
-        return out
-    _, res = fit_range_track(arrival[ok], t[ok], s[ok], c, shift, None if vel is None else vel[ok], delta0)
-    scale, margin = _judge(res)
-    out["scale"] = scale
-    if not scale <= TRACK_SCALE_MAX:   # no range track along this odometry: nothing to judge against
-        return out
-    out["late"][ok] = res
-    out["nlos"][ok] = res > margin
-    out["early"] = int(np.sum(res < -margin))
-    return out
+    outs, tracks, judged = [], [], []
+    for arrival, t, s, vel in arrays:
+        j = len(arrival)
+        ok = np.isfinite(arrival)
+        outs.append({"late": np.full(j, np.nan), "nlos": np.zeros(j, bool), "scale": np.nan, "early": 0})
+        if ok.sum() >= MIN_EVENTS:
+            tracks.append(Track(arrival[ok], t[ok], s[ok], None if vel is None else vel[ok]))
+            judged.append((outs[-1], ok))
+    for (out, ok), (_, res) in zip(judged, fit_range_tracks(tracks, c, shift, delta0) if tracks else []):
+        scale, margin = _judge(res)
+        out["scale"] = scale
+        if not scale <= TRACK_SCALE_MAX:   # no range track along this odometry: nothing to judge against
+            continue
+        out["late"][ok] = res
+        out["nlos"][ok] = res > margin
+        out["early"] = int(np.sum(res < -margin))
+    return outs
 
 
 # ------------------------------------------------------------ a weak direct path before the timed arrival

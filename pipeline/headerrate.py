@@ -109,25 +109,28 @@ def fast_clocks(session, feats, diagnostics, max_drift, skip=()):
     beyond half ``FAST_CLOCK``; the first solve's drift decides. The drift is read from the arrivals in line of
     sight only (the rows the estimator keeps, ``estimator.screen``): reflection-only arrivals, 5-70 ms late in a
     U-shaped room, put 8e-4-1.5e-3 of drift on clocks within 1e-4 (ushape seed 62: A2 taken at 15987 Hz)."""
-    from calib.estimator.clockmodel import impossible_jumps
-    from calib.estimator.screen import screen_rows
-    from calib.pipeline.setupcheck import arrival_drift
-
-    out, jumped, los = {}, None, None
+    clamped = {}
     for a in session["arrays"]:
         d = ((diagnostics or {}).get("arrays", {}).get(a["name"]) or {})
         scale = (d.get("association") or {}).get("scale")
         if a["name"] in skip or a.get("sample_rate") is not None or scale is None or not d.get("fs"):
             continue
-        if abs(scale - 1) < CLAMPED * max_drift:
-            continue
-        if jumped is None:   # a clock that steps (a dropped block) tilts the association too: it is no rate
-            jumped = {j["array"] for j in impossible_jumps(feats)}
-        if a["name"] not in jumped and los is None:
-            los = screen_rows(feats)[0]
-        drift = None if a["name"] in jumped else arrival_drift(los, a["name"])
+        if abs(scale - 1) >= CLAMPED * max_drift:
+            clamped[a["name"]] = int(d["fs"])
+    if not clamped:   # (most sessions: the estimator's modules, ~0.3 s of CPU to import, are then not loaded)
+        return {}
+    from calib.estimator.clockmodel import impossible_jumps
+    from calib.estimator.screen import screen_rows
+    from calib.pipeline.setupcheck import arrival_drift
+
+    # a clock that steps (a dropped block) tilts the association too: it is no rate
+    jumped = {j["array"] for j in impossible_jumps(feats)}
+    los = screen_rows(feats)[0] if set(clamped) - jumped else None
+    out = {}
+    for name, fs in clamped.items():
+        drift = None if name in jumped else arrival_drift(los, name)
         if drift is not None and abs(drift) > 0.5 * FAST_CLOCK:
-            out[a["name"]] = {"header": int(d["fs"]), "used": int(d["fs"]), "scale": 1.0, "fast_clock": True}
+            out[name] = {"header": fs, "used": fs, "scale": 1.0, "fast_clock": True}
     return out
 
 

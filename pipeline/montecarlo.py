@@ -339,7 +339,7 @@ def _execute_forked(chunks, settings, jobs):
     n = min((os.cpu_count() or 1) if jobs == -1 else jobs, len(chunks))
     before = set(multiprocessing.active_children())
     pool = ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("fork"),
-                               initializer=_worker_init)
+                               initializer=_worker_init, initargs=(os.getpid(),))
     done, workers = False, set()
     try:
         with warnings.catch_warnings():  # Python >= 3.12 warns of fork beside BLAS's idle threads (safe: OpenBLAS
@@ -359,20 +359,20 @@ def _execute_forked(chunks, settings, jobs):
 PARENT_POLL_S = 1.0   # how often a forked worker checks that the study's process is still there
 
 
-def _worker_init():
+def _worker_init(parent):
     """A forked worker leaves interrupts to the study (the parent stops it) and dies of SIGTERM: it inherits the
     command's handlers, which raise an exception the pool would catch and carry on after. It also ends when
-    the study's process dies (killed outright), instead of waiting forever for work."""
+    the study's process (pid ``parent``, taken before the fork: it may be gone before this runs) dies
+    (killed outright), instead of waiting forever for work."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
 
 
 def _exit_with_parent(parent):
-    while True:
+    while os.getppid() == parent:
         time.sleep(PARENT_POLL_S)
-        if os.getppid() != parent:
-            os._exit(1)
+    os._exit(1)
 
 
 def _execute_joblib(chunks, settings, jobs):

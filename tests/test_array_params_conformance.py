@@ -27,6 +27,7 @@ from rich.console import Console
 
 from .test_factors import check_jacobian
 from .test_kinds_conformance import RANGE, SIGMA_RANGE, range_factor
+from .sessions import NO_TARGET
 
 # ---- the recipe: one parameter spec ...
 RANGE_BIAS = ArrayParam("range_bias", "range bias", ("range_bias",), ("range_bias",), "m", reference="free")
@@ -66,7 +67,7 @@ def _biased_scene(seed, without=None):
 
 def test_a_per_array_parameter_added_by_one_spec_is_estimated_with_its_std(range_bias, tmp_path):
     feats, truth = _biased_scene(seed=7)
-    out = calibrate(feats, noise="meta")
+    out = calibrate(feats, noise="meta", **NO_TARGET)
     arrays = out["arrays"].set_index("array")
     true_b = truth["arrays"].set_index("array")["range_bias"]
     est, std = arrays["range_bias"], arrays["range_bias_std"]
@@ -103,7 +104,7 @@ def test_an_undetermined_per_array_parameter_is_left_out_and_named(range_bias, s
     feats, truth = _biased_scene(seed=8, without=silent)   # no ranges of that array: its bias is not determined
     if silent == "A3":
         check_jacobian(feats, "range")   # (the factor's Jacobian in the bias columns too)
-    out = calibrate(feats, noise="meta")
+    out = calibrate(feats, noise="meta", **NO_TARGET)
     arrays = out["arrays"].set_index("array")
     assert np.isnan(arrays.loc[silent, "range_bias_std"]) and arrays.loc[silent, "range_bias"] == RANGE_BIAS.default
     assert {"parameter": "range bias", "array": silent} in [{k: u[k] for k in ("parameter", "array")}

@@ -15,6 +15,7 @@ from calib.pipeline.simulate.featsim import simulate_features
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_clocks import scene  # noqa: E402 (the 3-minute session of issue 28's benchmark)
+from .sessions import NO_TARGET
 
 
 def _random_spd(rng, n, rank=None):
@@ -105,7 +106,7 @@ def _planted(seed):
     """(result, truth) of issue 28's session with A3 warming up, calibrated with the linear clock (which cannot
     model it: A3's rows are biased with the geometry and pull the rest)."""
     f, truth = scene(seed, clocks=WARMUP)
-    return calibrate(f, clock_model="linear"), truth
+    return calibrate(f, clock_model="linear", **NO_TARGET), truth
 
 
 def test_a_planted_clock_warm_up_absorbed_by_the_geometry_is_named():
@@ -153,3 +154,15 @@ def test_verdict_names_the_array_the_move_and_what_was_done():
     name_inconsistent(w, {"inconsistent": [{**rec, "isolated": False}, {**rec, "array": "A2", "isolated": False}],
                           "explained": False, "rounds": [{"tested": tested}]})
     assert w["flagged_arrays"] == ["A3", "A2", "A4"] and "no single one" in w["reasons"][-1]
+
+
+def test_the_move_that_matters_is_the_largest_in_its_own_sigma():
+    """Hand values: A moves 5 cm with a 5 cm σ (1σ), B 2 cm with a 0.5 cm σ (4σ): B is the material move."""
+    from calib.estimator.consistency import most_moved
+
+    d = np.array([0.05, 0.0, 0.0, 0.0, 0.02, 0.0])
+    V = np.diag(np.r_[np.full(3, 0.05 ** 2 / 3), np.full(3, 0.005 ** 2 / 3)])
+    k, move_m, move_sigma = most_moved(d, V)
+    assert k == 1 and move_m == pytest.approx(0.02) and move_sigma == pytest.approx(4.0)
+    k, _, move_sigma = most_moved(d, np.eye(6) * 0.01 ** 2 / 3)   # equal error bars: the largest in metres
+    assert k == 0 and move_sigma == pytest.approx(5.0)

@@ -23,6 +23,7 @@ from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.simulate.featsim import simulate_features
 
 from .test_factors import check_jacobian
+from .sessions import NO_TARGET
 
 SIGMA_RANGE = 0.02   # m
 
@@ -85,7 +86,7 @@ def test_the_range_kind_added_by_one_spec_and_one_factor_works_everywhere(range_
                          & (r["array"] == feats["range"]["array"][bad_row]), LINE_COLUMN].iloc[0])
 
     # the calibration uses it (the user's path: calib run's estimate and report stages)
-    calib = estimate_stage(out, {"noise": "meta"})
+    calib = estimate_stage(out, {"noise": "meta", **NO_TARGET})
     rep = calib["report"]
     assert rep["used"]["range"] is True
     assert rep["sigmas"]["range_m"] == SIGMA_RANGE

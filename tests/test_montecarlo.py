@@ -151,7 +151,11 @@ def _alive(pid):
 def test_a_forked_worker_ends_when_the_study_process_is_killed():
     script = ("import multiprocessing as mp, os, time\n"
               "from calib.pipeline import montecarlo as mc\n"
-              "p = mp.get_context('fork').Process(target=lambda: (mc._worker_init(), time.sleep(60)))\n"
+              "parent = os.getpid()\n"
+              "def worker():\n"
+              "    null = os.open(os.devnull, os.O_WRONLY); os.dup2(null, 1); os.dup2(null, 2)  # not our pipes\n"
+              "    mc._worker_init(parent); time.sleep(60)\n"
+              "p = mp.get_context('fork').Process(target=worker)\n"
               "p.start(); print(p.pid, flush=True); os._exit(0)\n")   # the study's process vanishes
     pid = int(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                              timeout=60).stdout)

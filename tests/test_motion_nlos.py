@@ -13,6 +13,7 @@ from calib.estimator.screen import screen_rows
 from calib.frontend.nlos import late_arrivals
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.simulate.featsim import simulate_features
+from .sessions import NO_TARGET
 
 BETA = 0.57   # s per unit drift: a 0.5 s sweep 0.5-4 kHz (≈ f1 T / (f1 − f0))
 
@@ -216,7 +217,7 @@ def test_weak_direct_doas_count_only_when_most_of_an_array_has_them():
     evs = [int(e) for e in f["events"]["event"][2:5]]
     few, m = _bent_doas(f, "A2", evs, 8.0)
     unflagged = {**few, "doa": few["doa"].assign(flag=""), "tdoa_m": few["tdoa_m"].assign(flag="")}
-    out = calibrate(few)
+    out = calibrate(few, **NO_TARGET)
     assert evaluate(out, tr)["position_rmse_m"] == pytest.approx(evaluate(calibrate(unflagged), tr)["position_rmse_m"],
                                                                   rel=1e-9)
     assert "distrusted" not in out["report"]["verdict"] and out["report"]["verdict"]["flagged_arrays"] == []
@@ -224,7 +225,7 @@ def test_weak_direct_doas_count_only_when_most_of_an_array_has_them():
     assert rec["rows"] == [] and rec["kept_doubted"] == {}
     every = [int(e) for e in f["events"]["event"]]
     most, _ = _bent_doas(f, "A2", every, 8.0)
-    out = calibrate(most)
+    out = calibrate(most, **NO_TARGET)
     v = out["report"]["verdict"]
     assert "A2" in v["flagged_arrays"] and v["status"] != "ok"
     assert any(d["array"] == "A2" and d["reason"] == "weak_direct" and not d["taken_out"] for d in v["distrusted"])

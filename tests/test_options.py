@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from calib.cli.main import app
 from calib.errors import InputError
-from calib.estimator.calibrate import calibrate_features
+from calib.estimator.calibrate import calibrate, calibrate_features
 from calib.estimator.clockmodel import calibrate_clocks
 from calib.options import DEFAULTS, INPUTS, OPTIONS, cli_options, validate_options
 from calib.pipeline.formats.validate import estimate_options
@@ -22,7 +22,7 @@ DOCS = Path(__file__).resolve().parents[1] / "docs" / "cli.md"
 
 def test_calibrate_takes_every_option_with_its_declared_default():
     # ``calibrate`` is calibrate_clocks (the clock model's choice) around calibrate_features (the rest)
-    params = {n: p for f in (calibrate_features, calibrate_clocks) for n, p in inspect.signature(f).parameters.items()
+    params = {n: p for f in (calibrate_features, calibrate_clocks, calibrate) for n, p in inspect.signature(f).parameters.items()
               if p.kind is inspect.Parameter.KEYWORD_ONLY}
     assert set(params) == set(OPTION_NAMES) | set(INPUTS)
     for o in OPTIONS:

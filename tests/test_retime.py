@@ -149,7 +149,7 @@ def test_odometry_yaw_retested_after_the_motion_correction():
     from calib.pipeline.simulate.featsim import simulate_features
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from test_motion_nlos import _moving
+    from .test_motion_nlos import _moving
 
     f, tr = simulate_features(2, 2e-5, 1.0, 0.01, seed=2)
     g, _ = _moving(f, tr, with_vel=True, beta=1.5)    # a long sweep's coupling: shifts up to ~2 ms

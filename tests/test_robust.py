@@ -13,6 +13,7 @@ from calib.estimator.problem import build_problem, make_layout, retract, state_f
 from calib.estimator.robust import measurement_stats
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.simulate.featsim import simulate_features
+from .sessions import NO_TARGET
 
 _spec = importlib.util.spec_from_file_location("bench_faults", Path(__file__).parents[1] / "benchmarks" / "bench_faults.py")
 bench = importlib.util.module_from_spec(_spec)
@@ -63,8 +64,8 @@ def test_outliers_of_every_type_are_flagged_and_good_rows_kept():
 def test_an_array_biased_as_a_whole_is_named_and_dropped(seed):
     feats, truth = simulate_features(1 + seed % 3, 1e-4, 5.0, 0.03, seed=1000 + seed)
     f2, bad = bench.fault_array(feats, truth, np.random.default_rng(seed))
-    clean = calibrate(feats)
-    cal = calibrate(f2)
+    clean = calibrate(feats, **NO_TARGET)
+    cal = calibrate(f2, **NO_TARGET)
     v = cal["report"]["verdict"]
     assert v["flagged_arrays"] == [bad] and v["status"] != "ok"
     assert cal["report"]["unreliable_arrays"] == [bad]
@@ -73,7 +74,7 @@ def test_an_array_biased_as_a_whole_is_named_and_dropped(seed):
     loc, _ = bench.errors(cal, truth, skip=bad)
     loc0, _ = bench.errors(clean, truth, skip=bad)
     assert loc < 1.5 * loc0 + 0.01
-    assert calibrate(feats)["report"]["verdict"]["flagged_arrays"] == []
+    assert calibrate(feats, **NO_TARGET)["report"]["verdict"]["flagged_arrays"] == []
 
 
 def test_concentrated_candidates_name_the_array_holding_most_rows_beyond_the_level():
@@ -176,9 +177,9 @@ def test_stated_position_errors_match_the_errors_on_the_lab_preset(tmp_path):
 def test_wrong_emission_times_end_failed():
     feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
     f2, _ = bench.fault_t_emit(feats, truth, None)
-    v = calibrate(f2)["report"]["verdict"]
+    v = calibrate(f2, **NO_TARGET)["report"]["verdict"]
     assert v["status"] == "failed" and v["reasons"]
-    assert calibrate(feats)["report"]["verdict"] == {"status": "ok", "reasons": [], "flagged_arrays": []}
+    assert calibrate(feats, **NO_TARGET)["report"]["verdict"] == {"status": "ok", "reasons": [], "flagged_arrays": []}
 
 
 def test_stated_odometry_prior_is_not_inflated_beyond_its_bound():
