@@ -105,6 +105,10 @@ def leave(code):
     """
     if code in (None, EXIT_OK) and _pending is not None:
         code = interrupted(exception_for(_pending), "interrupted as the command finished; its outputs are complete")
+    elif code == EXIT_SIGINT and _pending is not None:
+        # typer turns an interrupt outside the command's own handling (parsing the arguments, entering the
+        # command) into a silent exit 130, whatever the signal: report it as any other, with its own code
+        code = interrupted(exception_for(_pending))
     if code in (EXIT_SIGINT, EXIT_SIGTERM):
         for stream in (sys.stdout, sys.stderr):
             try:

@@ -532,6 +532,18 @@ def test_interrupt_swallowed_in_a_finaliser_is_not_lost(tmp_path, name, code, wh
     assert ("re-raised" in r.stderr) == (where == "check"), r.stderr
 
 
+@pytest.mark.parametrize("name, code", [("INT", 130), ("TERM", 143)])
+def test_an_interrupt_typer_swallowed_is_reported_with_its_own_code(name, code):
+    """typer exits 130 in silence for an interrupt outside the command's own handling (while it parses the
+    arguments): the command still says it was interrupted, in one line, with the signal's code (SIGTERM 143)."""
+    script = ("import signal\nfrom calib.cli import signals\n"
+              f"signals._pending = signal.SIG{name}   # the handler ran, then typer raised Exit(130)\n"
+              "signals.leave(130)\n")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.returncode == code and len(r.stderr.strip().splitlines()) == 1, (r.returncode, r.stderr)
+    assert r.stderr.startswith("terminated (SIGTERM)" if name == "TERM" else "interrupted (SIGINT)")
+
+
 # ----------------------------------------------------------------------------------------------- writer safety
 # Every writer (issue 29): never replace or delete a file or folder calib did not create, nor an input;
 # --force replaces only calib's own outputs; a user's files named like calib's temporaries and a user's

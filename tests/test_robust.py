@@ -330,7 +330,7 @@ def test_report_first_line_states_the_verdict(tmp_path):
 
     feats, truth = simulate_features(2, 1e-4, 5.0, 0.03, seed=1001)
     for f, status in ((feats, "OK"), (bench.fault_t_emit(feats, truth, None)[0], "FAILED")):
-        write_calibration(tmp_path / status / "cal", calibrate(f))
+        write_calibration(tmp_path / status / "cal", calibrate(f, **NO_TARGET))
         make_report(tmp_path / status / "rep", f, read_calibration(tmp_path / status / "cal"))
         first = (tmp_path / status / "rep" / "summary.md").read_text().splitlines()[0]
         assert first.endswith(f"verdict: {status}"), first
