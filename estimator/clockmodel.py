@@ -1194,7 +1194,7 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
     clock_model : "auto" (default): the linear clock unless the evidence asks for steps / drift terms per
-        array (2 of 104 rendered realistic sessions get a false µs-sized step, docs/results.md); "linear":
+        array (0 of 22 clean rendered sessions get a clock term, docs/results.md); "linear":
         never more (``calib.options.OPTIONS``: ``--clock-model``).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
