@@ -7,6 +7,7 @@ module (the interpreter's own start, tens of milliseconds) the interpreter's def
 from __future__ import annotations
 
 import signal as _signal
+import sys
 
 _early: list[int] = []  # signals received while the command starts (before the handlers of cli/signals.py are in place)
 
@@ -26,8 +27,6 @@ def main():
         signals.install()
         if _early:
             raise signals.exception_for(_early[0])
-        import sys
-
         from calib.cli.main import app_for
 
         app = app_for(sys.argv[1:])

@@ -165,6 +165,7 @@ LM_MAX_ITER = 60        # iterations of the track fit (each one 5 × 5 solve; as
 LM_STEP_TOL = 1e-9      # a step below this × X_SCALE in every parameter ends the fit (nm, fs, 1e-14 drift)
 X_SCALE = np.array([1.0, 1.0, 1.0, 1e-3, 1e-5])   # the parameters' natural sizes (m, m, m, s, 1)
 LM_MAX_DAMPING = 1e30   # no step lowers the cost at this damping: the track is at its minimum (to rounding)
+LM_LADDER = 3           # trial dampings λ, 10λ, 100λ of one Jacobian evaluated at once (a rejected step: 10λ)
 
 
 def _levenberg_marquardt(fun, jac, q, robust):
@@ -216,8 +217,6 @@ def _levenberg_marquardt(fun, jac, q, robust):
         active &= ~(accept & (done | (iters >= LM_MAX_ITER)))
     return q
 
-
-LM_LADDER = 3   # trial dampings λ, 10λ, 100λ of one Jacobian evaluated at once (a rejected step is retried at 10λ)
 
 
 def _lm_cost(f, robust):

@@ -303,6 +303,11 @@ def _kill_workers():
         executor.shutdown(wait=False, kill_workers=True)
 
 
+def _local_workers(jobs):
+    """The number of local worker processes for ``jobs`` (-1: every core)."""
+    return (os.cpu_count() or 1) if jobs == -1 else jobs
+
+
 def _can_fork():
     """Whether local workers can be forked from this process: on Linux (fork is unsafe on macOS, absent on
     Windows) with no other Python thread running (a lock another thread holds at the fork stays held in every
@@ -339,7 +344,7 @@ def _execute_forked(chunks, settings, jobs):
     of the study)."""
     import calib.pipeline.studyrun  # noqa: F401 (the workers inherit it)
 
-    n = min((os.cpu_count() or 1) if jobs == -1 else jobs, len(chunks))
+    n = min(_local_workers(jobs), len(chunks))
     before = set(multiprocessing.active_children())
     pool = ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("fork"),
                                initializer=_worker_init, initargs=(os.getpid(),))
@@ -436,7 +441,7 @@ def run_study(out_dir, cells=None, trajectories=None, runs=RUNS, methods=METHODS
     if client is not None:
         n_workers = sum(client.nthreads().values())
     else:
-        n_workers = (os.cpu_count() or 1) if jobs == -1 else jobs
+        n_workers = _local_workers(jobs)
     chunks = _chunks(tasks, n_workers, chunk_size)
     total = sum(len(t[4]) for t in tasks)
     timeline.plan("dask" if client else "local" if jobs != 1 else "in-process", n_workers, tasks)
