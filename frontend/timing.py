@@ -130,7 +130,8 @@ def _band_spectra(x, starts, setup, workers=-1):
     for j0 in range(0, len(starts), per):
         batch = starts[j0 : j0 + per]
         for i, s0 in enumerate(batch):
-            a, b = max(s0, 0), max(min(s0 + seg_len, n), max(s0, 0))
+            a = max(s0, 0)
+            b = max(min(s0 + seg_len, n), a)   # [a, b): the samples inside the recording (none: a = b)
             seg[i, :, : a - s0] = 0
             seg[i, :, b - s0 :] = 0
             if b > a and fill is not None:
