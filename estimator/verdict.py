@@ -22,6 +22,7 @@ from scipy.special import chdtrc, chdtri  # χ² survival function and its inver
 from calib.tables import array_param
 
 from .robust import is_concentrated
+from .uncertainty import cover_alternative
 
 RESIDUAL_SUSPECT = 3.0   # RMS residual 3× its sigma: the weights (or the model) are wrong
 RESIDUAL_FAILED = 10.0   # 10×: the data contradict the model (e.g. wrong emission times)
@@ -257,6 +258,27 @@ def fold_ambiguity(out, basins):
         verdict["reasons"].append(f"array {b['array']}: its sources all lie near its mic plane, where planar DOAs "
                                   f"fold; another orientation {b['rotation_deg']:.0f}° away fits as well (cost "
                                   f"+{b['dcost']:.1f}): its std covers both")
+        verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    return out
+
+def mirror_ambiguity(out, records):
+    """Arrays whose mirror image across their sources' plane (``estimator.ambiguity.mirror_basins``) fits as
+    well (``ambiguous``): named in the verdict (``suspect``) with how far the other solution lies and what
+    would break the tie, and their std widened to cover it (``uncertainty.cover_alternative``). In place on
+    ``calibrate``'s output."""
+    verdict = out["report"]["verdict"]
+    for r in records:
+        if r["switched"] or not r["ambiguous"]:
+            continue
+        cover_alternative(out, r["array"], r["displacement_m"], r["rotvec"])
+        fix = {"planar": "state its doa_hemisphere or drive a path whose height varies",
+               "linear": "drive a path whose height varies (a linear board's DOAs cannot tell the sides apart)",
+               }.get(r.get("board"), "drive a path whose height varies")
+        flag(verdict, r["array"])
+        verdict["reasons"].append(
+            f"array {r['array']}: its pose has a mirror solution across the sources' plane {r['position_m']:.2f} m "
+            f"away (its sources {100 * r['plane']['source_spread_m']:.0f} cm from that plane, RMS) that fits as "
+            f"well (cost {r['dcost']:+.1f}): its std covers both; {fix}")
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return out
 
