@@ -14,8 +14,7 @@ array's own frame that its DOAs cannot see:
 - an array without DOA rows (a single mic, or too few DOAs to estimate its orientation): any D.
 
 :func:`mirror_basins` refits each such array at its mirror image, first alone (the other arrays and the
-sources held), then jointly with everything from there when the alone-fit comes near, and compares the
-costs (½ χ² with the session's sigmas, the joint solve's rows): a clearly lower cost replaces the solution
+sources held), then jointly with everything from there, and compares the joint costs (½ χ² with the session's sigmas, the joint solve's rows): a clearly lower cost replaces the solution
 (the solve had started in the wrong basin), a cost within ``MIRROR_DCOST`` is a second solution the data do not
 exclude (the verdict names the array and its std covers the other solution: ``uncertainty.cover_alternative``).
 """
@@ -32,7 +31,6 @@ from .solver import levenberg_marquardt, linearise
 MIRROR_DCOST = 4.5    # ½ Δχ²: a mirror within this cost (3σ, one parameter's worth) is not excluded by the data
 MIRROR_SWITCH = 4.5   # a mirror lower by this much replaces the solution (the joint solve started wrong)
 MIRROR_MIN_M = 0.05   # a mirror closer than this to the solution is the same basin (an array near the plane)
-NEAR_DCOST = 50.0     # an alone-fit this far above the solution is not refitted jointly (clearly excluded)
 ALONE_ITER = 40       # iterations of the alone-fit (ten parameters at most)
 
 
@@ -105,10 +103,10 @@ def mirror_pose(p, st, i):
 
 def mirror_basins(p, st, lay, kinds, mask, *, skip=(), max_iter=200):
     """Each mirror-free array's (:func:`mirror_free`) mirror image across its sources' plane, refitted: alone
-    (its pose and clock; the others and the sources held) and, when that comes within NEAR_DCOST of the
-    solution, jointly (every parameter of ``lay``, least squares on the rows of ``mask``). Returns (state,
+    (its pose and clock; the others and the sources held), then jointly (every parameter of ``lay``, least
+    squares on the rows of ``mask``): the joint cost decides. Returns (state,
     records): the state with each mirror that fits clearly better (by MIRROR_SWITCH) taken, and one record
-    per array tried {array, dcost_alone, dcost (joint; None when not refitted jointly), position_m,
+    per array tried {array, board, dcost_alone, dcost (joint), position_m,
     rotation_deg, displacement_m (3,), rotvec (3,: the array frame's rotation to the other solution),
     plane, switched, ambiguous}. ``skip``: array indices not tried (refitted alone, dropped)."""
     cost0 = linearise(p, st, lay, kinds, mask=mask).cost
@@ -136,16 +134,47 @@ def _try_mirror(p, st, lay, kinds, mask, i, cost0, max_iter):
     alone = make_layout(p, arrays=[i], sources=False, ref_drift=False, emission=False, odo_yaw=False)
     alt, _ = levenberg_marquardt(p, alt, alone, kinds, mask=mask, max_iter=ALONE_ITER)
     d_alone = float(linearise(p, alt, lay, kinds, mask=mask).cost - cost0)
-    dcost = None
-    if d_alone < NEAR_DCOST:
-        alt, _ = levenberg_marquardt(p, alt, lay, kinds, mask=mask, max_iter=max_iter)
-        dcost = float(linearise(p, alt, lay, kinds, mask=mask).cost - cost0)
+    # jointly: an array in the wrong basin pulls the sources toward it (alone +111, jointly −66 in a test scene)
+    alt, _ = levenberg_marquardt(p, alt, lay, kinds, mask=mask, max_iter=max_iter)
+    dcost = float(linearise(p, alt, lay, kinds, mask=mask).cost - cost0)
     phi = other_rotvec(p, i, st.R[i], alt.R[i])
     rec = {"array": str(p.names[i]), "board": board_kind(p, i), "dcost_alone": d_alone, "dcost": dcost,
            "position_m": float(np.linalg.norm(alt.x[i] - st.x[i])), "rotation_deg": float(np.degrees(np.linalg.norm(phi))),
            "displacement_m": (alt.x[i] - st.x[i]).tolist(), "rotvec": phi.tolist(), "plane": plane}
     apart = rec["position_m"] >= MIRROR_MIN_M   # the refit may have slid back into the solution's basin
-    rec["switched"] = bool(dcost is not None and apart and dcost < -MIRROR_SWITCH)
-    rec["ambiguous"] = bool(dcost is not None and apart and abs(dcost) < MIRROR_DCOST)
+    rec["switched"] = bool(apart and dcost < -MIRROR_SWITCH)
+    rec["ambiguous"] = bool(apart and abs(dcost) < MIRROR_DCOST)
     rec["state"] = alt
     return rec
+
+
+def retry_dropped(p, res, kinds, joint):
+    """Arrays the joint solve dropped as inconsistent (``res.dropped`` with an ``inconsistent`` record) that
+    may have been solved in their mirror basin: each mirror-free one's mirror image (across the sources'
+    plane, from its refitted-alone pose) refitted alone on its own rows (robust; the others and the sources
+    held); when that fits clearly better (by MIRROR_SWITCH), the joint solve is run again from there
+    (``joint(p, state) -> JointResult``) and kept if it no longer drops the array and drops no other. Returns
+    (the result, records {array, dcost_alone, position_m, rejoined})."""
+    q = res.problem   # (the session's sigmas; ``p``, as stated, starts the joint solve again)
+    inconsistent = {a["array"] for a in res.arrays if a.get("inconsistent")}
+    records = []
+    for i in list(res.dropped):
+        if str(p.names[i]) not in inconsistent or not mirror_free(p, i):
+            continue
+        pose = mirror_pose(q, res.state, i)
+        if pose is None:
+            continue
+        alone = make_layout(q, arrays=[i], sources=False, ref_drift=False, emission=False, odo_yaw=False)
+        here = linearise(q, res.state, alone, kinds, loss="cauchy").cost
+        alt = res.state.copy()
+        alt.x[i], alt.R[i], _ = pose
+        alt, info = levenberg_marquardt(q, alt, alone, kinds, loss="cauchy", max_iter=ALONE_ITER)
+        rec = {"array": str(p.names[i]), "dcost_alone": float(info["cost"] - here),
+               "position_m": float(np.linalg.norm(alt.x[i] - res.state.x[i])), "rejoined": False}
+        records.append(rec)
+        if rec["dcost_alone"] >= -MIRROR_SWITCH or rec["position_m"] < MIRROR_MIN_M:
+            continue
+        new = joint(p, alt)
+        if i not in new.dropped and set(new.dropped) <= set(res.dropped):
+            res, rec["rejoined"] = new, True
+    return res, records

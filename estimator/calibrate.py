@@ -17,7 +17,7 @@ from calib.blas import single_thread_blas
 from calib.options import validate_options
 
 from . import arraynoise, clockmodel, consistency
-from .ambiguity import mirror_basins
+from .ambiguity import mirror_basins, retry_dropped
 from .assess import labelled_array_covariance
 from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
@@ -179,7 +179,8 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
     """The joint solve (``joint(problem, state) -> joint.JointResult``), with a source moving during the
     sweep corrected (``estimator/motion.py``), then the other fold basin of planar arrays whose sources all
     lie near their mic plane tried (``init.fold_basins``), then the mirror image across their sources' plane
-    of arrays whose DOAs cannot see it (``ambiguity.mirror_basins``). Records go to ``stages``. Returns (the
+    of arrays whose DOAs cannot see it (``ambiguity.mirror_basins``; dropped ones first,
+    ``ambiguity.retry_dropped``). Records go to ``stages``. Returns (the
     ``JointResult`` with its state after both, fold basin records, mirror records)."""
     meta = features["meta"]
     res, motion = motion_solve(p, features["events"], joint(p, st), joint, kinds=kinds,
@@ -187,6 +188,10 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
                                t_stretch=meta.get("stretch_time_s"))
     if motion["source"] is not None:
         stages["motion"] = motion
+    else:   # (a moving source's corrected problem is motion_solve's own: not started again here)
+        res, retried = retry_dropped(p, res, kinds, joint)
+        if retried:
+            stages["mirror_rejoined"] = retried
     res.state, basins = fold_basins(res.problem, res.state, res.layout, kinds, res.mask, max_iter)
     if basins:
         stages["fold_basins"] = basins
