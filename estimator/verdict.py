@@ -243,17 +243,14 @@ def name_distrusted(verdict, screened):
 
 
 def fold_ambiguity(out, basins):
-    """Arrays whose other fold basin (``init.fold_basins``) fits as well (``ambiguous``): their std is raised to
-    cover the other basin (rotation std per axis ≥ the angle between the basins, position std ≥ the
-    distance), and the verdict names them (``suspect``). In place on ``calibrate``'s output."""
-    arrays, verdict = out["arrays"], out["report"]["verdict"]
+    """Arrays whose other fold basin (``init.fold_basins``) fits as well (``ambiguous``): their covariance
+    widened to cover the other basin (``uncertainty.cover_alternative``), and the verdict names them
+    (``suspect``). In place on ``calibrate``'s output."""
+    verdict = out["report"]["verdict"]
     for b in basins:
         if b["switched"] or not b["ambiguous"]:
             continue
-        k = arrays.index[arrays["array"] == b["array"]]
-        for key, least in (("rot", np.radians(b["rotation_deg"])), ("x", b["position_m"])):
-            for c in array_param(key).std_columns:
-                arrays.loc[k, c] = np.maximum(arrays.loc[k, c], least)
+        cover_alternative(out, b["array"], b["displacement_m"], b["rotvec"])
         flag(verdict, b["array"])
         verdict["reasons"].append(f"array {b['array']}: its sources all lie near its mic plane, where planar DOAs "
                                   f"fold; another orientation {b['rotation_deg']:.0f}° away fits as well (cost "
