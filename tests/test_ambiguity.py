@@ -132,3 +132,24 @@ def test_a_solve_started_at_the_mirror_is_taken_back(name, height):
     assert not cal["report"]["unreliable_arrays"]
     err = _errors(cal, truth)
     assert all(e < min(3.0 * s, 0.1) for e, s in err.values()), err
+
+
+def test_a_set_up_mirror_finding_the_data_decided_becomes_a_note():
+    """The set-up check names an array's possible mirror from the odometry's shape alone; where the estimate
+    refitted that mirror and the data decided (clearly worse, or better and taken) it is a note, where they did
+    not (ambiguous) it stays ``suspect``; other findings are left alone."""
+    from calib.pipeline.setupcheck import settled_by_estimate
+
+    def finding(a, check="trajectory"):
+        return {"status": "suspect", "what": "events.csv", "check": check, "text": f"{a} may be mirrored", "array": a}
+
+    def tried(a, dcost, switched=False, ambiguous=False):
+        return {"array": a, "dcost": dcost, "position_m": 1.5, "switched": switched, "ambiguous": ambiguous}
+
+    report = {"stages": {"mirror_basins": [tried("A2", 24.0), tried("A3", -6.0, switched=True),
+                                           tried("A4", 0.3, ambiguous=True)]}}
+    found = settled_by_estimate([finding("A2"), finding("A3"), finding("A4"), finding("A5"),
+                                 finding("A2", check="geometry scale")], report)
+    assert [f["status"] for f in found] == ["note", "note", "suspect", "suspect", "suspect"]
+    assert "excluded: it fits worse by 24.0" in found[0]["text"] and "taken" in found[1]["text"]
+    assert settled_by_estimate([finding("A2")], {}) == [finding("A2")]
