@@ -14,13 +14,16 @@ array's own frame that its DOAs cannot see:
 - an array without DOA rows (a single mic, or too few DOAs to estimate its orientation): any D.
 
 :func:`mirror_basins` refits each such array at its mirror image, first alone (the other arrays and the
-sources held), then jointly with everything from there, and compares the joint costs (½ χ² with the session's sigmas, the joint solve's rows): a clearly lower cost replaces the solution
-(the solve had started in the wrong basin), a cost within ``MIRROR_DCOST`` is a second solution the data do not
-exclude (the verdict names the array and its std covers the other solution: ``uncertainty.cover_alternative``).
+sources held), then jointly with everything from there, and compares the joint costs (½ χ² with the
+session's sigmas, the joint solve's rows) and how far apart the two solutions' predictions are (:func:`separation`): the lower cost is reported; when the data do not decide (costs within
+``MIRROR_DCOST``, or solutions less than ``SEPARATION_MIN`` apart) the verdict names the array and its std
+covers the other solution (``uncertainty.cover_alternative``).
 """
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
 from calib.geometry import mirror
@@ -28,8 +31,9 @@ from calib.geometry import mirror
 from .problem import make_layout
 from .solver import levenberg_marquardt, linearise
 
-MIRROR_DCOST = 4.5    # ½ Δχ²: a mirror within this cost (3σ, one parameter's worth) is not excluded by the data
-MIRROR_SWITCH = 4.5   # a mirror lower by this much replaces the solution (the joint solve started wrong)
+MIRROR_DCOST = 4.5    # ½ Δχ²: a mirror within this cost (3σ, one parameter's worth) is not excluded by the data ...
+SEPARATION_MIN = 36.0  # ... nor one whose separation δ² (χ², :func:`separation`) is below this: the observed Δχ²
+#                        is ±δ² ± 2δ, so a choice is 3σ-safe from δ/2 = 3 on (exactly symmetric scenes: δ² 2.5-17)
 MIRROR_MIN_M = 0.05   # a mirror closer than this to the solution is the same basin (an array near the plane)
 ALONE_ITER = 40       # iterations of the alone-fit (ten parameters at most)
 
@@ -104,11 +108,13 @@ def mirror_pose(p, st, i):
 def mirror_basins(p, st, lay, kinds, mask, *, skip=(), max_iter=200):
     """Each mirror-free array's (:func:`mirror_free`) mirror image across its sources' plane, refitted: alone
     (its pose and clock; the others and the sources held), then jointly (every parameter of ``lay``, least
-    squares on the rows of ``mask``): the joint cost decides. Returns (state,
-    records): the state with each mirror that fits clearly better (by MIRROR_SWITCH) taken, and one record
-    per array tried {array, board, dcost_alone, dcost (joint), position_m,
-    rotation_deg, displacement_m (3,), rotvec (3,: the array frame's rotation to the other solution),
-    plane, switched, ambiguous}. ``skip``: array indices not tried (refitted alone, dropped)."""
+    squares on the rows of ``mask``). The data decide between the two when the joint costs differ by
+    MIRROR_DCOST and the solutions are :func:`separation` SEPARATION_MIN apart; either way the lower cost is
+    taken. Returns (state, records): one record per array tried {array, board, dcost_alone, dcost (joint),
+    separation_chi2, position_m, plane, ambiguous (not decided), switched (the mirror taken), rotation_deg,
+    rotvec (3,: rad, the reported solution's array frame to the other one's; a linear board's axis turn),
+    displacement_m (3,: the other solution's position minus the reported one's)}. ``skip``: array indices
+    not tried (refitted alone, dropped)."""
     cost0 = linearise(p, st, lay, kinds, mask=mask).cost
     records = []
     for i in range(p.N):
@@ -137,22 +143,44 @@ def _try_mirror(p, st, lay, kinds, mask, i, cost0, max_iter):
     # jointly: an array in the wrong basin pulls the sources toward it (alone +111, jointly −66 in a test scene)
     alt, _ = levenberg_marquardt(p, alt, lay, kinds, mask=mask, max_iter=max_iter)
     dcost = float(linearise(p, alt, lay, kinds, mask=mask).cost - cost0)
-    phi = other_rotvec(p, i, st.R[i], alt.R[i])
     rec = {"array": str(p.names[i]), "board": board_kind(p, i), "dcost_alone": d_alone, "dcost": dcost,
-           "position_m": float(np.linalg.norm(alt.x[i] - st.x[i])), "rotation_deg": float(np.degrees(np.linalg.norm(phi))),
-           "displacement_m": (alt.x[i] - st.x[i]).tolist(), "rotvec": phi.tolist(), "plane": plane}
+           "separation_chi2": separation(p, st, alt, lay, kinds, mask),
+           "position_m": float(np.linalg.norm(alt.x[i] - st.x[i])), "plane": plane}
     apart = rec["position_m"] >= MIRROR_MIN_M   # the refit may have slid back into the solution's basin
-    rec["switched"] = bool(apart and dcost < -MIRROR_SWITCH)
-    rec["ambiguous"] = bool(apart and abs(dcost) < MIRROR_DCOST)
-    rec["state"] = alt
+    rec["ambiguous"] = bool(apart and (abs(dcost) < MIRROR_DCOST or rec["separation_chi2"] < SEPARATION_MIN))
+    # the lower cost is reported: clearly (decided) or not (ambiguous: then named, and its std covers the other)
+    rec["switched"] = bool(apart and dcost < (0.0 if rec["ambiguous"] else -MIRROR_DCOST))
+    here, other = (alt, st) if rec["switched"] else (st, alt)
+    phi = other_rotvec(p, i, here.R[i], other.R[i])   # from the reported solution to the other one
+    rec.update(rotation_deg=float(np.degrees(np.linalg.norm(phi))), rotvec=phi.tolist(),
+               displacement_m=(other.x[i] - here.x[i]).tolist(), state=alt)
     return rec
+
+
+def separation(p, st0, alt, lay, kinds, mask):
+    """δ² (χ² units): how far the predictions of the solution ``alt`` lie from those of ``st0`` beyond what the
+    parameters of ``lay`` can absorb near ``alt`` — the noise-free Δχ² that would separate the two solutions
+    (to first order: the whitened prediction difference e = r(alt) − r(st0) off the column space of J(alt),
+    ‖(I − P) e‖²). Under either solution as the truth the observed Δχ² is ±δ² with a std of 2δ, so the data
+    tell the two apart only when δ is several times 2; the observed Δχ² alone does not say so (coplanar
+    sources, exactly symmetric: the two minima's costs still differed by up to 9)."""
+    l0 = linearise(p, st0, lay, kinds, mask=mask)
+    l1 = linearise(p, alt, lay, kinds, mask=mask)
+    keep = l1.w > 0
+    e = (l1.r - l0.r)[keep]
+    J = l1.J[keep]
+    if scipy.sparse.issparse(J):
+        d = scipy.sparse.linalg.lsqr(J, e, atol=1e-10, btol=1e-10, iter_lim=10 * J.shape[1])[0]
+    else:
+        d = np.linalg.lstsq(J, e, rcond=None)[0]
+    return float(np.sum((e - J @ d) ** 2))
 
 
 def retry_dropped(p, res, kinds, joint):
     """Arrays the joint solve dropped as inconsistent (``res.dropped`` with an ``inconsistent`` record) that
     may have been solved in their mirror basin: each mirror-free one's mirror image (across the sources'
     plane, from its refitted-alone pose) refitted alone on its own rows (robust; the others and the sources
-    held); when that fits clearly better (by MIRROR_SWITCH), the joint solve is run again from there
+    held); when that fits clearly better (by MIRROR_DCOST), the joint solve is run again from there
     (``joint(p, state) -> JointResult``) and kept if it no longer drops the array and drops no other. Returns
     (the result, records {array, dcost_alone, position_m, rejoined})."""
     q = res.problem   # (the session's sigmas; ``p``, as stated, starts the joint solve again)
@@ -172,7 +200,7 @@ def retry_dropped(p, res, kinds, joint):
         rec = {"array": str(p.names[i]), "dcost_alone": float(info["cost"] - here),
                "position_m": float(np.linalg.norm(alt.x[i] - res.state.x[i])), "rejoined": False}
         records.append(rec)
-        if rec["dcost_alone"] >= -MIRROR_SWITCH or rec["position_m"] < MIRROR_MIN_M:
+        if rec["dcost_alone"] >= -MIRROR_DCOST or rec["position_m"] < MIRROR_MIN_M:
             continue
         new = joint(p, alt)
         if i not in new.dropped and set(new.dropped) <= set(res.dropped):

@@ -21,6 +21,7 @@ from scipy.special import chdtrc, chdtri  # χ² survival function and its inver
 
 from calib.tables import array_param
 
+from .ambiguity import SEPARATION_MIN
 from .robust import is_concentrated
 from .uncertainty import cover_alternative
 
@@ -259,13 +260,13 @@ def fold_ambiguity(out, basins):
     return out
 
 def mirror_ambiguity(out, records):
-    """Arrays whose mirror image across their sources' plane (``estimator.ambiguity.mirror_basins``) fits as
-    well (``ambiguous``): named in the verdict (``suspect``) with how far the other solution lies and what
-    would break the tie, and their std widened to cover it (``uncertainty.cover_alternative``). In place on
-    ``calibrate``'s output."""
+    """Arrays with a mirror solution across their sources' plane that the data do not exclude
+    (``estimator.ambiguity.mirror_basins``, ``ambiguous``; the lower-cost one is reported): named in the
+    verdict (``suspect``) with how far the other solution lies and what would break the tie, and their
+    covariance widened to cover it (``uncertainty.cover_alternative``). In place on ``calibrate``'s output."""
     verdict = out["report"]["verdict"]
     for r in records:
-        if r["switched"] or not r["ambiguous"]:
+        if not r["ambiguous"]:
             continue
         cover_alternative(out, r["array"], r["displacement_m"], r["rotvec"])
         fix = {"planar": "state its doa_hemisphere or drive a path whose height varies",
@@ -274,10 +275,12 @@ def mirror_ambiguity(out, records):
         flag(verdict, r["array"])
         verdict["reasons"].append(
             f"array {r['array']}: its pose has a mirror solution across the sources' plane {r['position_m']:.2f} m "
-            f"away (its sources {100 * r['plane']['source_spread_m']:.0f} cm from that plane, RMS) that fits as "
-            f"well (cost {r['dcost']:+.1f}): its std covers both; {fix}")
+            f"away that fits as well (cost {-r['dcost'] if r['switched'] else r['dcost']:+.1f}; the two are "
+            f"{r['separation_chi2']:.0f} apart in χ², a choice needs {SEPARATION_MIN:g}: its sources lie "
+            f"{100 * r['plane']['source_spread_m']:.0f} cm from that plane, RMS): its std covers both; {fix}")
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return out
+
 
 SETUP_PREFIX = "set-up: "
 # generic reasons that a set-up mistake produces as a symptom; named as such when set-up findings failed
