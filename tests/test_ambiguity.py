@@ -153,3 +153,28 @@ def test_a_set_up_mirror_finding_the_data_decided_becomes_a_note():
     assert [f["status"] for f in found] == ["note", "note", "suspect", "suspect", "suspect"]
     assert "excluded: it fits worse by 24.0" in found[0]["text"] and "taken" in found[1]["text"]
     assert settled_by_estimate([finding("A2")], {}) == [finding("A2")]
+
+
+def test_a_level_planar_board_below_a_level_path_is_named():
+    """A planar board with its mic plane horizontal, 25 cm below a path at constant height (a table mount; the
+    set-up check exempts horizontal source planes): its mirror is the same orientation 50 cm higher (M R D = R),
+    so neither its TDOAs nor its folded DOAs (nor the fold basins, which slide into that mirror) tell the two
+    apart: it is named, and its stated position std covers the other solution."""
+    from scipy.spatial.transform import Rotation
+
+    positions = [[0, 0, 0], [5.5, 2.0, -1.25], [0.5, 4.0, 0.3], [4.0, 4.0, 0.1]]
+    feats, truth = simulate_features(_stops(0.0), 5e-6, 1.0, 0.005, seed=3, positions=positions)
+    q = truth["arrays"].set_index("array").loc["A2", ["qx", "qy", "qz", "qw"]].to_numpy(float)
+    normal = Rotation.from_quat(q).inv().apply([0.0, 0.0, 1.0])   # A2's frame: its mic plane is horizontal
+    d = feats["doa"].copy()
+    u = d[["ux", "uy", "uz"]].to_numpy().copy()
+    a2 = (d.array == "A2").to_numpy()
+    u[a2] = fold(u[a2], normal)
+    d[["ux", "uy", "uz"]] = u
+    feats = feats.replace(doa=d, meta={**feats["meta"], "doa_mirror_normals": {"A2": normal.tolist()}})
+    cal = calibrate(feats)
+    rec = {r["array"]: r for r in cal["report"]["stages"]["mirror_basins"]}
+    assert rec["A2"]["ambiguous"] and rec["A2"]["position_m"] == pytest.approx(0.5, abs=0.05)
+    assert any(t.startswith("array A2: its pose has a mirror solution") for t in cal["report"]["verdict"]["reasons"])
+    err, std = _errors(cal, truth)["A2"]
+    assert std > 0.45 and err < 2.0 * std
