@@ -1033,8 +1033,27 @@ def apply_findings(calib, findings):
     if not findings:
         return calib
     rep = calib["report"]
+    findings = settled_by_estimate(findings, rep)
     return {**calib, "report": {**rep, "verdict": with_setup(rep.get("verdict", {}), findings),
                                 "setup": list(findings)}}
+
+
+def settled_by_estimate(findings, report):
+    """The trajectory findings that name an array's possible mirror image (:func:`trajectory_findings`, from the
+    odometry's shape alone) made notes where the estimate refitted that mirror against the data
+    (``calib.estimator.ambiguity``, report.json ``stages.mirror_basins``) and it was not a second solution:
+    clearly worse (or clearly better, and taken). An array the estimate left ambiguous keeps its finding (the
+    verdict names it too). Returns a new list of dicts."""
+    tried = {m["array"]: m for m in (report.get("stages") or {}).get("mirror_basins", [])}
+    out = []
+    for f in findings:
+        m = tried.get(f.get("array"))
+        if f.get("check") == "trajectory" and f.get("status") == "suspect" and m is not None and not m["ambiguous"]:
+            how = "taken: it fits better" if m["switched"] else "excluded: it fits worse"
+            f = {**f, "status": "note", "text": f"{f['text']} (the estimate refitted that mirror {m['position_m']:.2f} m "
+                                                f"away and the data decide: {how} by {abs(m['dcost']):.1f} in cost)"}
+        out.append(f)
+    return out
 
 
 def stage_findings(session, out, threshold=8.0):
