@@ -608,7 +608,8 @@ def _fold_record(p, st, alt, lay, kinds, mask, i, cost0):
     ambiguous = bool(apart and abs(dcost) < FOLD_DCOST)
     switched = bool(apart and dcost < 0.0)   # the lower cost is reported, decided or not
     sign = -1.0 if switched else 1.0         # from the reported basin to the other one
-    return {"array": str(p.names[i]), "dcost": dcost, "separation_chi2": separation(p, st, alt, lay, kinds, mask),
+    sep = separation(p, st, alt, lay, kinds, mask) if apart else 0.0
+    return {"array": str(p.names[i]), "dcost": dcost, "separation_chi2": sep,
             "rotation_deg": rotation, "position_m": float(np.linalg.norm(alt.x[i] - st.x[i])),
             "displacement_m": (sign * (alt.x[i] - st.x[i])).tolist(),   # (uncertainty.cover_alternative)
             "rotvec": (sign * Rotation.from_matrix(dR).as_rotvec()).tolist(), "switched": switched,
