@@ -553,7 +553,10 @@ def fold_candidates(p, st, i):
     """Other starting orientations of a mirror-ambiguous planar array ``i`` whose sources lie within
     FOLD_NEAR_PLANE_DEG of its mic plane: folded DOAs only tell each source's |elevation|, so a tilt that
     turns the elevations' mean e into −e (about the in-plane axis across the sources' mean direction, by
-    ∓2e) fits them too. Returns a list of rotation matrices (empty when the array is not in that case)."""
+    ∓2e) fits them too, and so may the orientations that put every source on one side of the plane (the
+    measured DOAs, or their mirror images, fitted to the directions: :func:`kabsch`). Returns a list of
+    rotation matrices, none within 1° of the solution's or of each other (empty when the array is not in
+    that case)."""
     m = p.doa.arr == i
     if i == p.ref or not np.any(p.fold[i]) or not p.rot_free[i] or m.sum() < 3:
         return []
@@ -568,7 +571,17 @@ def fold_candidates(p, st, i):
         return []
     k = np.cross(n, mean_dir / np.linalg.norm(mean_dir))
     e = float(np.mean(elev))
-    return [_rot(k, a) @ st.R[i] for a in (2 * e, -2 * e) if abs(a) > np.deg2rad(1.0)]
+    tilts = [_rot(k, a) @ st.R[i] for a in (2 * e, -2 * e)]
+    # every source on one side of the mic plane, then every one on the other (the DOAs as measured, or mirrored
+    # across the plane, fitted to the directions): a solution whose plane cuts through the sources (tilted about
+    # their mean direction, where e ≈ 0) has no tilt across it to the true basin
+    u = p.doa.u[m]
+    sides = [kabsch(uu, w)[0] for uu in (u, mirror(u, p.fold[i]))]
+    out = []
+    for R in tilts + sides:
+        if all(_angle_deg(R, Q) > 1.0 for Q in [st.R[i]] + out):
+            out.append(R)
+    return out
 
 
 def fold_basins(p, st, lay, kinds, mask, max_iter=200):
@@ -578,9 +591,10 @@ def fold_basins(p, st, lay, kinds, mask, max_iter=200):
     (``verdict.fold_ambiguity`` names the array, its std covers the other). Unlike a mirror solution
     (``ambiguity.mirror_basins``) the cost difference alone decides: the two basins' Δχ² follows its
     linear-Gaussian law ±δ² ± 2δ (δ²: ``ambiguity.separation``, recorded), so ½ Δχ² ≥ FOLD_DCOST is 3σ-safe
-    at any δ (231 basin pairs of feature-level scenes: (Δχ² − δ²)/2δ std 0.82, |max| 3.0; docs/method.md).
+    at any δ (169 basin pairs with δ² < 100 of feature-level scenes: (Δχ² − δ²)/2δ std 0.89, |max| 3.0;
+    docs/method.md).
     Returns (state, records): one {array, dcost, separation_chi2, rotation_deg, position_m, displacement_m,
-    rotvec, switched, ambiguous} per candidate; dcost is the other basin's cost minus the solution's before
+    rotvec, switched, ambiguous} per candidate (one that slides into a basin already tried: none); dcost is the other basin's cost minus the solution's before
     the switch, displacement_m and rotvec (array frame) go from the reported basin to the other one."""
     cands = {i: fold_candidates(p, st, i) for i in range(p.N) if np.any(p.fold[i])}
     if not any(cands.values()):
@@ -588,10 +602,14 @@ def fold_basins(p, st, lay, kinds, mask, max_iter=200):
     cost0 = linearise(p, st, lay, kinds, mask=mask).cost
     records = []
     for i in cands:
+        found = [st.R[i]]
         for R in fold_candidates(p, st, i):
             alt = st.copy()
             alt.R[i] = R
             alt, _ = levenberg_marquardt(p, alt, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+            if any(_angle_deg(Q, alt.R[i]) < FOLD_MIN_DEG for Q in found[1:]):
+                continue   # a basin already tried
+            found.append(alt.R[i])
             rec = _fold_record(p, st, alt, lay, kinds, mask, i, cost0)
             records.append(rec)
             if rec["switched"]:
@@ -599,11 +617,16 @@ def fold_basins(p, st, lay, kinds, mask, max_iter=200):
     return st, records
 
 
+def _angle_deg(Ra, Rb):
+    """The angle (deg) of the rotation between orientations ``Ra`` and ``Rb``."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
 def _fold_record(p, st, alt, lay, kinds, mask, i, cost0):
     """Array ``i``'s other fold basin ``alt`` against the solution ``st`` (:func:`fold_basins`' record)."""
     dR = st.R[i].T @ alt.R[i]
     dcost = float(linearise(p, alt, lay, kinds, mask=mask).cost - cost0)
-    rotation = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+    rotation = _angle_deg(st.R[i], alt.R[i])
     apart = rotation >= FOLD_MIN_DEG   # (the refit may have slid back into the solution's basin)
     ambiguous = bool(apart and abs(dcost) < FOLD_DCOST)
     switched = bool(apart and dcost < 0.0)   # the lower cost is reported, decided or not
