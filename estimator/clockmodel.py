@@ -884,7 +884,7 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
     events = [pos[g] for g in groups]
     by_event = [pos[g] for g in _event_rows(p, fs, own)] if i < 0 else None   # (the emitter's drift terms)
     n = len(p.tdoa_s.val) if i < 0 else int(np.sum((p.tdoa_s.arr == i))) + int(np.sum(p.tdoa_m.arr == i))
-    best, by_kind = None, []
+    best, best_rank, by_kind = None, None, []
     for kind in ("step", "quadratic", "hinge", "warmup"):
         fam = np.flatnonzero([c.kind == kind for c in cands])
         if not fam.size:
@@ -910,14 +910,16 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
             if smooth:
                 j = max(smooth, key=lambda j: raw[j])
                 margin = min(margin, _given(pr, rp, O, B, k, j) / scale_i ** 2 - PERSIST_CHI2)
-        # the persistence tests are gates: the kinds that pass them are ranked by their evidence on every row (the
-        # scan's own margin), not by what a leave-out leaves — a step's evidence is mostly in the TDOA-S of its
-        # interval, which its leave-out takes, a smooth term's is spread (bench_clocks insert_0.1ms seed 3103: the
-        # true step χ² 61.0, 11.0 left; a hinge 34.9, 14.7 left, was taken, and the step then fitted only half)
-        margin = first if margin > 0 else margin
+        # the persistence tests are gates: of this clock's kinds that pass them, the one with the most evidence on
+        # every row (the scan's own margin) is its proposal, not the one a leave-out leaves most of — a step's
+        # evidence is mostly in the TDOA-S of its interval, which its leave-out takes, a smooth term's is spread
+        # (bench_clocks insert_0.1ms seed 3103: the true step χ² 61.0, 11.0 left; a hinge 34.9, 14.7 left, was
+        # taken, and the step then fitted only half). Its margin stays the gated one: the clocks' proposals are
+        # compared on it (a reference's step and the emitter's at one interval, close there, are decided by solving)
+        rank = first if margin > 0 else margin
         by_kind.append((margin, have + [cands[k].with_value(value[k])]))
-        if best is None or margin > best[1]:
-            new = by_kind[-1][1]
+        if best is None or rank > best_rank:
+            new, best_rank = by_kind[-1][1], rank
             # candidates the rows cannot tell apart (an array without rows at the event between two
             # intervals: screened out, or missed) go to the rivals' solves (:func:`_decide`)
             tied = [have + [cands[j].with_value(value[j])] for j in fam
