@@ -850,7 +850,14 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
     residuals rp and the clock's rows, :class:`~calib.estimator.clockscan.ClockRows`; ``sw`` the rows'
     √weights, ``scale`` the TDOA rows' robust scale; ``tested``: the number of candidates the penalty counts,
     those the screen left out too), judged by its persistent χ² (:func:`persistent_drop`) in the clock's own
-    robust scale: the best of them as (components, margin, info), or None."""
+    robust scale: the best of them as (components, margin, info), or None.
+
+    The persistence tests are gates: of the kinds that pass them, the one with the most evidence on every row
+    (the scan's own margin) is the clock's proposal, not the one a leave-out leaves most of — a step's evidence is
+    mostly in the TDOA-S of its interval, which its leave-out takes, a smooth term's is spread (bench_clocks
+    insert_0.1ms seed 3103: the true step χ² 61.0, 11.0 left; a hinge 34.9, 14.7 left, was taken, and the step
+    then fitted only half). Its margin stays the gated one: the clocks' proposals are compared on it (a
+    reference's step and the emitter's at one interval, close there, are decided by solving: seed 3208)."""
     from .clockscan import family_columns
 
     pr, rp, cr = basis
@@ -902,21 +909,8 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
         # chosen by the scan at its multiplicity; its persistence is one more test of that one candidate
         margin = first if kept_drop is None else min(first, kept_drop / scale_i ** 2 - PERSIST_CHI2)
         if kept_drop is not None and kind == "step" and i >= 0 and end_side(p.t[ids], cands[k].time) is not None:
-            # a step next to the session's start or end is those few arrivals shifted alike: so is the start of a
-            # drift that varies over the session (a warm-up, a quadratic), which shifts the next events too; what
-            # the best of them leaves of its evidence is one more test of it (not a hinge: one at the first
-            # interior event IS the first interval's step, the linear clock absorbing the rest)
-            smooth = [j for j in range(len(cands)) if cands[j].kind in ("quadratic", "warmup") and raw[j] > 0]
-            if smooth:
-                j = max(smooth, key=lambda j: raw[j])
-                margin = min(margin, _given(pr, rp, O, B, k, j) / scale_i ** 2 - PERSIST_CHI2)
-        # the persistence tests are gates: of this clock's kinds that pass them, the one with the most evidence on
-        # every row (the scan's own margin) is its proposal, not the one a leave-out leaves most of — a step's
-        # evidence is mostly in the TDOA-S of its interval, which its leave-out takes, a smooth term's is spread
-        # (bench_clocks insert_0.1ms seed 3103: the true step χ² 61.0, 11.0 left; a hinge 34.9, 14.7 left, was
-        # taken, and the step then fitted only half). Its margin stays the gated one: the clocks' proposals are
-        # compared on it (a reference's step and the emitter's at one interval, close there, are decided by solving)
-        rank = first if margin > 0 else margin
+            margin = min(margin, _end_step_given(cands, raw, k, (pr, rp, O, B)) / scale_i ** 2 - PERSIST_CHI2)
+        rank = first if margin > 0 else margin   # (the gates passed: ranked by the evidence on every row)
         by_kind.append((margin, have + [cands[k].with_value(value[k])]))
         if best is None or rank > best_rank:
             new, best_rank = by_kind[-1][1], rank
@@ -931,6 +925,18 @@ def _scan_best(p, fs, i, cands, have, basis, sw, scale, tested=None, doubted=fro
     if best is not None and best[1] > 0:
         best[2]["kinds"] = _other_kinds(by_kind, best)   # (rivals of another kind)
     return best
+
+
+def _end_step_given(cands, raw, k, basis):
+    """The χ² (unscaled) a step next to the session's start or end (candidate k) keeps once the best smooth
+    drift term (a warm-up, the quadratic) is fitted: those few arrivals shifted alike are also the start of a drift
+    that varies over the session, which shifts the next events too (not a hinge: one at the first interior event
+    IS the first interval's step, the linear clock absorbing the rest); ∞ without one. ``basis``: (projector,
+    projected residuals, the clock's rows, the candidates' columns on them), as :func:`_given`."""
+    smooth = [j for j in range(len(cands)) if cands[j].kind in ("quadratic", "warmup") and raw[j] > 0]
+    if not smooth:
+        return np.inf
+    return _given(*basis, k, max(smooth, key=lambda j: raw[j]))
 
 
 # ----------------------------------------------------------------------------------------------- structure
