@@ -72,6 +72,12 @@ LINE_RATIO = 0.05         # odometry spread: second principal std below this × 
 PLANE_RATIO = 0.05        # third below this × the second: sources in one plane ...
 HORIZONTAL_COS = 0.9      # ... which is harmless when horizontal in the reference frame (|n_z| above this)
 IDENTICAL_SECONDS = 2.0   # s of audio compared between recordings
+# A geometry failed on the strongest chirps (consistency.N_EVENTS) is measured again on up to this many before
+# the verdict: at a board beside a reflector the strongest chirps are those the reflection adds to, and their
+# delays fit no board (deploy seed 101: a 7-mic circle failed with 1 of its 12 strongest chirps within 2 % of
+# the declared geometry; 5 of its 30 fit, the strongest at 14-54 %); a wrong geometry fits none of them either
+CONFIRM_EVENTS = 48
+GEOMETRY_CHECKS = ("geometry", "geometry scale", "channel geometry", "swapped channels")
 PLANAR_SCALE_FAIL = 5.0   # a planar array's scale (an upper bound only) must be off by this much
 # the scale fit keeps the DOAs the frontend doubts for a reflection inside the gate (from the surface the array
 # is mounted on, a table or a wall, the image is the source mirrored across a plane parallel to the array's:
@@ -152,6 +158,11 @@ def channel_findings(a, res, c):
                            "multiply the channel by −1"))
     out += geometry_findings(a, d, c, tuple(sorted(bad)))
     return [replace(f, array=a["name"]) for f in out]
+
+
+def _geometry_failed(found):
+    """True if ``found`` (an array's channel findings) fails its declared mic geometry."""
+    return any(f.status == "failed" and f.check in GEOMETRY_CHECKS for f in found)
 
 
 def _congruent(mics, perm):
@@ -973,8 +984,12 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
             direct = ~np.isin(events, nlos_events(diagnostics, a["name"]))
             times, scores = (times[direct], scores[direct]) if direct.any() else (times, scores)
         res = C.check_array(a, session, times, scores, threshold)
+        found = channel_findings(a, res, session["speed_of_sound"])
+        if _geometry_failed(found) and res["n_detected"] > C.N_EVENTS:
+            res = C.check_array(a, session, times, scores, threshold, n_events=CONFIRM_EVENTS)
+            found = channel_findings(a, res, session["speed_of_sound"])
         results[a["name"]] = res
-        out += channel_findings(a, res, session["speed_of_sound"])
+        out += found
     out += clock_findings(session, results)
     out += identical_recordings(session)
     out += trajectory_findings(session["events"], features) + temperature_findings(session)
@@ -1018,8 +1033,27 @@ def apply_findings(calib, findings):
     if not findings:
         return calib
     rep = calib["report"]
+    findings = settled_by_estimate(findings, rep)
     return {**calib, "report": {**rep, "verdict": with_setup(rep.get("verdict", {}), findings),
                                 "setup": list(findings)}}
+
+
+def settled_by_estimate(findings, report):
+    """The trajectory findings that name an array's possible mirror image (:func:`trajectory_findings`, from the
+    odometry's shape alone) made notes where the estimate refitted that mirror against the data
+    (``calib.estimator.ambiguity``, report.json ``stages.mirror_basins``) and it was not a second solution:
+    clearly worse (or clearly better, and taken). An array the estimate left ambiguous keeps its finding (the
+    verdict names it too). Returns a new list of dicts."""
+    tried = {m["array"]: m for m in (report.get("stages") or {}).get("mirror_basins", [])}
+    out = []
+    for f in findings:
+        m = tried.get(f.get("array"))
+        if f.get("check") == "trajectory" and f.get("status") == "suspect" and m is not None and not m["ambiguous"]:
+            how = "taken: it fits better" if m["switched"] else "excluded: it fits worse"
+            f = {**f, "status": "note", "text": f"{f['text']} (the estimate refitted that mirror {m['position_m']:.2f} m "
+                                                f"away and the data decide: {how} by {abs(m['dcost']):.1f} in cost)"}
+        out.append(f)
+    return out
 
 
 def stage_findings(session, out, threshold=8.0):
