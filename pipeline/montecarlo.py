@@ -304,8 +304,11 @@ def _kill_workers():
 
 
 def _can_fork():
-    """Whether local workers can be forked from this process (Linux; fork is unsafe on macOS, absent on Windows)."""
-    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+    """Whether local workers can be forked from this process: on Linux (fork is unsafe on macOS, absent on
+    Windows) with no other Python thread running (a lock another thread holds at the fork stays held in every
+    worker: a notebook kernel's threads; the ``calib`` command has none then)."""
+    return (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+            and threading.active_count() == 1)
 
 
 def _execute(chunks, settings, jobs, client):

@@ -4,6 +4,7 @@ is reproducible from its seeds (locally and on a Dask cluster), and rejects bad 
 import multiprocessing
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -137,6 +138,21 @@ def test_an_interrupt_in_a_worker_stops_every_worker(tmp_path, monkeypatch):
     while multiprocessing.active_children() and time.monotonic() < deadline:
         time.sleep(0.1)
     assert multiprocessing.active_children() == []
+
+
+def test_workers_are_not_forked_beside_another_thread():
+    if not sys.platform.startswith("linux"):
+        assert not mc._can_fork()
+        return
+    assert mc._can_fork()                 # the test process: one thread
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait)
+    t.start()
+    try:
+        assert not mc._can_fork()         # e.g. a notebook kernel's threads: joblib's fresh processes instead
+    finally:
+        stop.set()
+        t.join()
 
 
 def _alive(pid):
