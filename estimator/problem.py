@@ -71,21 +71,25 @@ class Rows:
 
 @dataclass(frozen=True, eq=False)
 class TdoaMRows(Rows):
-    """TDOA-M: array ``arr`` vs the reference at event ``ev`` (indices), value ``val`` (s)."""
+    """TDOA-M: array ``arr`` vs the reference at event ``ev`` (indices), value ``val`` (s); ``scale`` (n,): each
+    row's sigma relative to the type's (:func:`arrival_scales`; ones without meta ``sigma_arrival_per_array``)."""
     ev: np.ndarray
     arr: np.ndarray
     val: np.ndarray
     row: np.ndarray
+    scale: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
 class TdoaSRows(Rows):
-    """TDOA-S: array ``arr`` between events ``a`` and ``b`` (indices), value ``val`` (s)."""
+    """TDOA-S: array ``arr`` between events ``a`` and ``b`` (indices), value ``val`` (s); ``scale`` (n,) as in
+    :class:`TdoaMRows`."""
     arr: np.ndarray
     a: np.ndarray
     b: np.ndarray
     val: np.ndarray
     row: np.ndarray
+    scale: np.ndarray
 
     @property
     def event(self):
@@ -130,7 +134,8 @@ class Problem:
     ``extra_rows``: {kind: Rows} of the kinds registered beyond these, ``factors.register``);
     fold (N, 3): mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere);
     cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
-    (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,).
+    (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
+    arrival_scale (N,): each array's arrival sigma relative to the type's (:func:`arrival_scales`; None: ones).
 
     Settings of a solve (typed values a stage replaces, never edits): sigma {kind: sigma} for ``tdoa_s``,
     ``tdoa_m`` (s), ``doa``, ``cone`` (rad per tangent axis), ``odometry`` (m per axis per step),
@@ -165,6 +170,7 @@ class Problem:
     array_own: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     fixed_cols: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     unobservable: tuple = ()
+    arrival_scale: np.ndarray | None = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -269,12 +275,12 @@ def event_rows(spec):
 
 
 def tdoa_m_rows(df, ix):
-    return TdoaMRows(ix.ev(df["event"]), ix.arr(df["array"]), df["tdoa"].to_numpy(float), _lines(df))
+    return TdoaMRows(ix.ev(df["event"]), ix.arr(df["array"]), df["tdoa"].to_numpy(float), _lines(df), np.ones(len(df)))
 
 
 def tdoa_s_rows(df, ix):
     return TdoaSRows(ix.arr(df["array"]), ix.ev(df["from_event"]), ix.ev(df["to_event"]), df["tdoa"].to_numpy(float),
-                     _lines(df))
+                     _lines(df), np.ones(len(df)))
 
 
 def doa_rows(df, ix):
@@ -307,6 +313,11 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         rows[kind] = build(df if use.get(kind, True) else df.iloc[:0], ix)
     sigma = {k: s.sigma_si(meta) for k, s in KINDS.items() if s.noise_key}
     N = len(names)
+    arrival = arrival_scales(meta, names, rows["tdoa_s"].arr)
+    rows["tdoa_s"] = dataclasses.replace(rows["tdoa_s"], scale=arrival[rows["tdoa_s"].arr])
+    ref = idx[meta["reference_array"]]
+    rows["tdoa_m"] = dataclasses.replace(rows["tdoa_m"], scale=np.sqrt(0.5 * (arrival[rows["tdoa_m"].arr]**2
+                                                                              + arrival[ref]**2)))
     normals = _mirror_normals(meta, idx, N)
     doa = rows.pop("doa")
     doa, cone, cone_axis, rot_fixed_axis = _split_cones(dataclasses.replace(doa, u=fold(doa.u, normals[doa.arr])),
@@ -320,12 +331,13 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     doa = doa.select(rot_free[doa.arr] | (doa.arr == idx[meta["reference_array"]]))
     odom = columns(ev, ("odom_x", "odom_y", "odom_z"))
     return Problem(
-        names=names, ref=idx[meta["reference_array"]], c=float(meta["speed_of_sound"]),
+        names=names, ref=ref, c=float(meta["speed_of_sound"]),
         beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events, odom=odom,
         tdoa_m=rows.pop("tdoa_m"), tdoa_s=rows.pop("tdoa_s"), doa=doa, cone=cone,
         sigma={**sigma, "emission": float(sigma_emit)}, extra_rows=rows, fold=normals, cone_axis=cone_axis,
         rot_fixed_axis=rot_fixed_axis, rot_free=rot_free, n_doa_events=n_doa,
-        odo_yaw_free=bool(odometry_yaw) and odometry_yaw_observable(odom, len(doa.u), len(events)))
+        odo_yaw_free=bool(odometry_yaw) and odometry_yaw_observable(odom, len(doa.u), len(events)),
+        arrival_scale=arrival)
 
 
 MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
@@ -359,6 +371,35 @@ def doa_row_scales(doa, meta):
     own = pd.to_numeric(doa["sigma_deg"], errors="coerce").to_numpy(float) / typical
     scale2 = (1.0 - DOA_ROW_WEIGHT) + DOA_ROW_WEIGHT * own**2
     return np.where(np.isfinite(scale2), np.sqrt(scale2), 1.0)
+
+
+# An array's own arrival sigma (meta ``sigma_arrival_per_array``) is taken as it is where it claims more than
+# the pooled one, and shrunk halfway toward the pool (as DOA_ROW_WEIGHT) where it claims less: it comes from
+# the spread between a few mics, which sees only the part of an arrival's error that differs between them
+# (mixed preset seed 90: a 4-mic linear board and a 2-mic pair claim 0.5 / 0.8 µs, their TDOA-S rows scatter
+# 1.7 / 2.6 µs), so a low claim may be a blind one: it may not pull the fit as hard as it says.
+ARRIVAL_WEIGHT = 0.5
+
+
+def arrival_scales(meta, names, tdoa_s_arr):
+    """(N,): each array's arrival sigma relative to the pooled one, from meta ``sigma_arrival_per_array``
+    ({array: s (s)}, docs/formats.md; calib's frontend writes the RMS of each array's arrival_sd): own =
+    s_i / s̄ with s̄² the mean of s_i² over the TDOA-S rows ``tdoa_s_arr`` (array indices; over the arrays
+    when there are none), so that the type's sigma (``sigma_tdoa``, and its variance components) still sets
+    the scale; scale² = max(own², (1 − w) + w own²) (``ARRIVAL_WEIGHT``). A TDOA-S row of array i then has
+    sigma ∝ scale_i, a TDOA-M row ∝ √((scale_i² + scale_ref²) / 2). Ones without the key (today's weights);
+    arrays missing from it get s̄."""
+    N = len(names)
+    given = meta.get("sigma_arrival_per_array") or {}
+    s = np.array([float(given.get(str(n), np.nan)) for n in names])
+    s = np.where(np.isfinite(s) & (s > 0), s, np.nan)
+    if not np.any(np.isfinite(s)):
+        return np.ones(N)
+    over = s[tdoa_s_arr] if len(tdoa_s_arr) else s
+    over = over[np.isfinite(over)]
+    pool2 = float(np.mean(over**2)) if over.size else float(np.nanmean(s**2))
+    own2 = np.where(np.isfinite(s), s**2 / pool2, 1.0)
+    return np.sqrt(np.maximum(own2, (1.0 - ARRIVAL_WEIGHT) + ARRIVAL_WEIGHT * own2))
 
 
 def doa_axes(doa, meta, names, sigma_doa):
