@@ -314,10 +314,8 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     sigma = {k: s.sigma_si(meta) for k, s in KINDS.items() if s.noise_key}
     N = len(names)
     arrival = arrival_scales(meta, names, rows["tdoa_s"].arr)
-    rows["tdoa_s"] = dataclasses.replace(rows["tdoa_s"], scale=arrival[rows["tdoa_s"].arr])
     ref = idx[meta["reference_array"]]
-    rows["tdoa_m"] = dataclasses.replace(rows["tdoa_m"], scale=np.sqrt(0.5 * (arrival[rows["tdoa_m"].arr]**2
-                                                                              + arrival[ref]**2)))
+    rows["tdoa_s"], rows["tdoa_m"] = scaled_tdoa_rows(rows["tdoa_s"], rows["tdoa_m"], arrival, ref)
     normals = _mirror_normals(meta, idx, N)
     doa = rows.pop("doa")
     doa, cone, cone_axis, rot_fixed_axis = _split_cones(dataclasses.replace(doa, u=fold(doa.u, normals[doa.arr])),
@@ -373,12 +371,17 @@ def doa_row_scales(doa, meta):
     return np.where(np.isfinite(scale2), np.sqrt(scale2), 1.0)
 
 
-# An array's own arrival sigma (meta ``sigma_arrival_per_array``) is taken as it is where it claims more than
-# the pooled one, and shrunk halfway toward the pool (as DOA_ROW_WEIGHT) where it claims less: it comes from
-# the spread between a few mics, which sees only the part of an arrival's error that differs between them
-# (mixed preset seed 90: a 4-mic linear board and a 2-mic pair claim 0.5 / 0.8 µs, their TDOA-S rows scatter
-# 1.7 / 2.6 µs), so a low claim may be a blind one: it may not pull the fit as hard as it says.
-ARRIVAL_WEIGHT = 0.5
+# An array's own arrival sigma (meta ``sigma_arrival_per_array``) is taken as it is, either way, from a board
+# whose mics leave its arrival a residual to judge it by; a board of FEW_MICS or fewer is never taken below the
+# pooled figure. The claim comes from the spread of the mics' times about the array model (constant, direction,
+# wavefront curvature); a 2-mic pair's direction is its one delay, so its mics agree by construction, and a
+# 4-mic board has one residual degree of freedom at most. Measured against the true geometry and clocks on
+# the mixed and office presets (seeds 10–99, 261 arrays, flagged arrivals out): true / claimed arrival RMS
+# median 1.0 for the 6- and 7-mic boards (quartiles 0.8–1.5), 2.2 for the 2-mic pairs (1.9–3.7), 1.2 for the
+# 4-mic boards with tails to 4–14 (h35w: shrunk halfway for every low claim, the talkers' well-timed arrays
+# kept 0.8 × the pool where they measure 0.3 ×). Where the data determine an array's arrivals, the estimator
+# moves the scale from this prior (variance.estimate_arrival_scales).
+FEW_MICS = 4
 
 
 def arrival_scales(meta, names, tdoa_s_arr):
@@ -386,9 +389,9 @@ def arrival_scales(meta, names, tdoa_s_arr):
     ({array: s (s)}, docs/formats.md; calib's frontend writes the RMS of each array's arrival_sd): own =
     s_i / s̄ with s̄² the mean of s_i² over the TDOA-S rows ``tdoa_s_arr`` (array indices; over the arrays
     when there are none), so that the type's sigma (``sigma_tdoa``, and its variance components) still sets
-    the scale; scale² = max(own², (1 − w) + w own²) (``ARRIVAL_WEIGHT``). A TDOA-S row of array i then has
-    sigma ∝ scale_i, a TDOA-M row ∝ √((scale_i² + scale_ref²) / 2). Ones without the key (today's weights);
-    arrays missing from it get s̄."""
+    the scale; scale = own, at least 1 for boards of FEW_MICS or fewer mics (meta ``mics``; boards without
+    mics in meta count as few). A TDOA-S row of array i then has sigma ∝ scale_i, a TDOA-M row
+    ∝ √((scale_i² + scale_ref²) / 2). Ones without the key (today's weights); arrays missing from it get s̄."""
     N = len(names)
     given = meta.get("sigma_arrival_per_array") or {}
     s = np.array([float(given.get(str(n), np.nan)) for n in names])
@@ -399,7 +402,23 @@ def arrival_scales(meta, names, tdoa_s_arr):
     over = over[np.isfinite(over)]
     pool2 = float(np.mean(over**2)) if over.size else float(np.nanmean(s**2))
     own2 = np.where(np.isfinite(s), s**2 / pool2, 1.0)
-    return np.sqrt(np.maximum(own2, (1.0 - ARRIVAL_WEIGHT) + ARRIVAL_WEIGHT * own2))
+    mics = meta.get("mics") or {}
+    few = np.array([len(mics.get(str(n)) or ()) <= FEW_MICS for n in names])
+    return np.sqrt(np.where(few, np.maximum(own2, 1.0), own2))
+
+
+def scaled_tdoa_rows(tdoa_s, tdoa_m, arrival, ref):
+    """(TDOA-S rows, TDOA-M rows) with each row's scale from the arrays' arrival scales ``arrival`` (N,): a TDOA-S
+    row of array i ∝ a_i, a TDOA-M row ∝ √((a_i² + a_ref²) / 2) (a difference of two arrivals)."""
+    return (dataclasses.replace(tdoa_s, scale=arrival[tdoa_s.arr]),
+            dataclasses.replace(tdoa_m, scale=np.sqrt(0.5 * (arrival[tdoa_m.arr]**2 + arrival[ref]**2))))
+
+
+def with_arrival_scale(p, arrival):
+    """A new problem whose arrays' arrival scales are ``arrival`` (N,), its TDOA rows' scales to match."""
+    arrival = np.asarray(arrival, float)
+    tdoa_s, tdoa_m = scaled_tdoa_rows(p.tdoa_s, p.tdoa_m, arrival, p.ref)
+    return p.replace(tdoa_s=tdoa_s, tdoa_m=tdoa_m, arrival_scale=arrival)
 
 
 def doa_axes(doa, meta, names, sigma_doa):

@@ -98,3 +98,24 @@ def test_array_noise_option_is_validated():
     from calib.estimator import validate_options
     with pytest.raises(ValueError, match="array_noise"):
         validate_options(array_noise="yes")
+
+
+def test_arrival_variances_combine_the_prior_gate_normalise_and_clip():
+    """Hand values of arraynoise.arrival_variances: an array moves from its prior only with enough redundancy;
+    the mean over the TDOA-S rows is held at 1 or above (the frontend's figure redistributed, not lowered)."""
+    from calib.estimator.arraynoise import ARRAY_MIN_REDUNDANCY, ARRIVAL_MAX_FACTOR, ARRIVAL_PRIOR_DOF, arrival_variances
+
+    P = ARRIVAL_PRIOR_DOF
+    v = np.array([0.25, 0.25, 9.0, 4.0])
+    red = np.array([20.0, 20.0, 20.0, ARRAY_MIN_REDUNDANCY - 1])   # the last: too little to move it
+    prior = np.ones(4)
+    rows = np.repeat(np.arange(4), 5)
+    raw = np.array([(0.25 * 20 + P) / (20 + P)] * 2 + [(9 * 20 + P) / (20 + P), 1.0])
+    np.testing.assert_allclose(arrival_variances(v, red, prior, rows), raw / min(raw.mean(), 1.0))
+    # every array quieter than stated: normalised up to a mean of 1 (their ratios kept)
+    quiet = arrival_variances(np.array([0.1, 0.4]), np.array([50.0, 50.0]), np.ones(2), np.array([0, 1]))
+    np.testing.assert_allclose(quiet.mean(), 1.0)
+    np.testing.assert_allclose(quiet[1] / quiet[0], (0.4 * 50 + P) / (0.1 * 50 + P))
+    # clipped to the allowed factor either way
+    big = arrival_variances(np.array([1e4, 1.0]), np.array([1e3, 1e3]), np.ones(2), np.array([0, 1]))
+    assert big[0] == ARRIVAL_MAX_FACTOR ** 2

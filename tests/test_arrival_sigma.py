@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from calib.errors import InputError
 from calib.estimator import calibrate
 from calib.estimator.factors import evaluate
-from calib.estimator.problem import ARRIVAL_WEIGHT, arrival_scales, build_problem, make_layout, retract, state_from_dict
+from calib.estimator.problem import arrival_scales, build_problem, make_layout, retract, state_from_dict
 from calib.frontend.extract import noise_estimates
 from calib.pipeline.formats.io import validate_meta
 from calib.pipeline.simulate.featsim import simulate_features
@@ -17,21 +17,33 @@ SIGMA = 1e-5      # s, TDOA rows of the clean arrays
 NOISY = 6.0       # the noisy array's arrivals: this × the others'
 
 
-def test_scales_are_relative_to_the_pool_and_shrunk_only_downward():
-    names = ["A", "B", "C"]
-    meta = {"sigma_arrival_per_array": {"A": 1e-6, "B": 1e-6, "C": 4e-6}}
-    rows = np.array([0, 0, 1, 1, 2, 2])                     # two TDOA-S rows per array
-    pool2 = (1 + 1 + 16) / 3 * 1e-12
-    own2 = np.array([1e-12, 1e-12, 16e-12]) / pool2
-    want = np.sqrt([(1 - ARRIVAL_WEIGHT) + ARRIVAL_WEIGHT * own2[0]] * 2 + [own2[2]])
+def test_scales_are_relative_to_the_pool_and_few_mic_boards_never_below_it():
+    names = ["A", "B", "C", "D"]
+    six = [[0.0, 0.0, 0.0]] * 6
+    meta = {"sigma_arrival_per_array": {"A": 1e-6, "B": 1e-6, "C": 4e-6, "D": 1e-6},
+            "mics": {"A": six, "B": six, "C": six, "D": [[0.0, 0.0, 0.0]] * 2}}
+    rows = np.array([0, 0, 1, 1, 2, 2, 3, 3])                 # two TDOA-S rows per array
+    pool2 = (1 + 1 + 16 + 1) / 4 * 1e-12
+    own2 = np.array([1e-12, 1e-12, 16e-12, 1e-12]) / pool2
+    # the 6-mic boards as claimed, either way; the 2-mic pair (D) claims less than the pool: held at the pool
+    want = np.sqrt([own2[0], own2[1], own2[2], 1.0])
     np.testing.assert_allclose(arrival_scales(meta, names, rows), want)
     np.testing.assert_allclose(arrival_scales({}, names, rows), 1.0)
     # an array without a value gets the pool's
     np.testing.assert_allclose(arrival_scales({"sigma_arrival_per_array": {"C": 4e-6}}, names, rows), 1.0)
+    # without mics in meta every board counts as few: low claims held at the pool
+    np.testing.assert_allclose(arrival_scales({**meta, "mics": {}}, names, rows),
+                               np.sqrt([1.0, 1.0, own2[2], 1.0]))
+
+
+CIRCLE = [[0.0463 * np.cos(k * np.pi / 3), 0.0463 * np.sin(k * np.pi / 3), 0.0] for k in range(6)]
 
 
 def _stated(feats, own):
-    return {**feats, "meta": {**feats["meta"], "sigma_arrival_per_array": own}}
+    """``feats`` with each array's arrival sigma ``own`` stated, every array a 6-mic circle (claims taken either
+    way; problem.FEW_MICS)."""
+    return {**feats, "meta": {**feats["meta"], "sigma_arrival_per_array": own,
+                              "mics": {n: CIRCLE for n in feats["meta"]["arrays"]}}}
 
 
 def test_rows_are_weighted_by_their_arrays_sigma_and_the_jacobian_stays_exact():
