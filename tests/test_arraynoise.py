@@ -119,3 +119,34 @@ def test_arrival_variances_combine_the_prior_gate_normalise_and_clip():
     # clipped to the allowed factor either way
     big = arrival_variances(np.array([1e4, 1.0]), np.array([1e3, 1e3]), np.ones(2), np.array([0, 1]))
     assert big[0] == ARRIVAL_MAX_FACTOR ** 2
+
+
+def _arrival_noise(feats, sig, rng):
+    """``feats`` (exact TDOAs) whose TDOA rows are differences of one error per (array, event), array a's with std
+    ``sig[a]``, as a frontend's are; meta says so, and its sigma_tdoa is the frontend-style pooled figure."""
+    names, ref = feats["meta"]["arrays"], feats["meta"]["reference_array"]
+    n = {(a, int(e)): rng.normal(0.0, sig[a]) for a in names for e in feats["events"]["event"]}
+    tm, ts = feats["tdoa_m"].copy(), feats["tdoa_s"].copy()
+    tm["tdoa"] += [n[(a, int(e))] - n[(ref, int(e))] for a, e in zip(tm["array"], tm["event"])]
+    ts["tdoa"] += [n[(a, int(b))] - n[(a, int(c))] for a, c, b in zip(ts["array"], ts["from_event"], ts["to_event"])]
+    pooled = np.sqrt(2 * np.mean([sig[a] ** 2 for a in names]))
+    meta = {**feats["meta"], "sigma_tdoa": float(pooled), "sigmas_estimated": ["sigma_tdoa"],
+            "tdoa_shared_arrivals": True}
+    return feats.replace(tdoa_m=tm, tdoa_s=ts, meta=meta)
+
+
+def test_residuals_find_the_array_whose_arrivals_are_noisier():
+    """Six arrays, 40 stops, one array's arrivals 3x the others' and no per-array claim: where the redundancy
+    allows, the arrays' arrival components (variance.estimate_arrival_scales) give that array the largest
+    scale, well above the others' (with one session-wide sigma every array's would be 1)."""
+    for seed in range(4):
+        rng = np.random.default_rng(900 + seed)
+        stops = np.column_stack([rng.uniform(0, 6, 40), rng.uniform(0, 5, 40), rng.uniform(0.5, 2.0, 40)])
+        feats, _ = simulate_features(stops, 1e-9, 2.0, 0.03, seed=900 + seed, n_arrays=6)
+        names = feats["meta"]["arrays"]
+        bad = 1 + seed % 5
+        f = _arrival_noise(feats, {a: 3e-6 if k == bad else 1e-6 for k, a in enumerate(names)},
+                           np.random.default_rng(seed))
+        a = calibrate(f, noise="estimate").problem.arrival_scale
+        others = np.delete(a, [0, bad])          # (the reference's own has little redundancy here)
+        assert np.argmax(a) == bad and a[bad] > 1.4 * np.median(others), (seed, a)
