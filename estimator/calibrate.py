@@ -17,6 +17,7 @@ from calib.blas import single_thread_blas
 from calib.options import validate_options
 
 from . import arraynoise, clockmodel, consistency
+from .ambiguity import mirror_basins, retry_dropped
 from .assess import labelled_array_covariance
 from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
@@ -29,7 +30,7 @@ from .screen import distrusted, isolated, screen_rows
 from .solver import forget_linearisation, linearise
 from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
-from .verdict import fold_ambiguity, majority_apart, name_distrusted, name_imprecise, name_inconsistent
+from .verdict import fold_ambiguity, majority_apart, mirror_ambiguity, name_distrusted, name_imprecise, name_inconsistent
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
 
@@ -137,7 +138,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         noise = "estimate" if features["meta"].get("sigmas_estimated") else "meta"
     if noise == "estimate" and array_noise:
         p = arraynoise.start_scales(p, kinds)
-    res, basins = _deployment_solve(p, st, kinds, stages, features, lambda p_, st_: joint_solve(
+    res, basins, mirrors = _deployment_solve(p, st, kinds, stages, features, lambda p_, st_: joint_solve(
         p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
         outlier_threshold=outlier_threshold, max_iter=max_iter,
         isolate=isolated(screened, p.names) + [i for i, n in enumerate(p.names) if str(n) in isolate]), max_iter)
@@ -146,7 +147,7 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         return _solution(res, kinds, stage_states)
     out = _full_outputs(res, kinds, stages, stage_states, method=method, noise=noise, emission_sigma=emission_sigma,
                         times=times, t0=t0, meta=features["meta"])
-    return blank_diverged(_name_untrusted(out, screened, basins))
+    return blank_diverged(_name_untrusted(out, screened, basins, mirrors))
 
 
 def _problem(features, problem, *, use_tdoa_s, emission_sigma, odometry_yaw):
@@ -165,30 +166,40 @@ def _problem(features, problem, *, use_tdoa_s, emission_sigma, odometry_yaw):
     return features, p, screened
 
 
-def _name_untrusted(out, screened, basins):
+def _name_untrusted(out, screened, basins, mirrors=()):
     """report.json ``screened`` and the verdict's naming of the rows and arrays not trusted (in place)."""
     if screened is not None:
         out["report"]["screened"] = {"rows": screened["rows"], "arrays": distrusted(screened)}
         name_distrusted(out["report"]["verdict"], screened)
     majority_apart(out["report"]["verdict"], out["report"].get("unreliable_arrays") or [], len(out["arrays"]))
-    return fold_ambiguity(out, basins)
+    return mirror_ambiguity(fold_ambiguity(out, basins), mirrors)
 
 
 def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
     """The joint solve (``joint(problem, state) -> joint.JointResult``), with a source moving during the
     sweep corrected (``estimator/motion.py``), then the other fold basin of planar arrays whose sources all
-    lie near their mic plane tried (``init.fold_basins``). Records go to ``stages``. Returns (the
-    ``JointResult``, its state after the fold basins, fold basin records)."""
+    lie near their mic plane tried (``init.fold_basins``), then the mirror image across their sources' plane
+    of arrays whose DOAs cannot see it (``ambiguity.mirror_basins``; dropped ones first,
+    ``ambiguity.retry_dropped``). Records go to ``stages``. Returns (the
+    ``JointResult`` with its state after both, fold basin records, mirror records)."""
     meta = features["meta"]
     res, motion = motion_solve(p, features["events"], joint(p, st), joint, kinds=kinds,
                                curve=meta.get("chirp_stretch_shift"), t_doa=float(meta.get("doa_time_s") or 0.0),
                                t_stretch=meta.get("stretch_time_s"))
     if motion["source"] is not None:
         stages["motion"] = motion
+    else:   # (a moving source's corrected problem is motion_solve's own: not started again here)
+        res, retried = retry_dropped(p, res, kinds, joint)
+        if retried:
+            stages["mirror_rejoined"] = retried
     res.state, basins = fold_basins(res.problem, res.state, res.layout, kinds, res.mask, max_iter)
     if basins:
         stages["fold_basins"] = basins
-    return res, basins
+    res.state, mirrors = mirror_basins(res.problem, res.state, res.layout, kinds, res.mask, skip=res.dropped,
+                                       max_iter=max_iter)
+    if mirrors:
+        stages["mirror_basins"] = mirrors
+    return res, basins, mirrors
 
 
 def _check_given_problem(p, *, use_tdoa_s, emission_sigma):

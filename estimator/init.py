@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import minimum_filter
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from calib.errors import InputError
 from calib.geometry import fold, mirror
@@ -575,7 +576,8 @@ def fold_basins(p, st, lay, kinds, mask, max_iter=200):
     """Try each planar array's other fold basin (:func:`fold_candidates`), re-solved by least squares from
     there (the final mask). A lower cost: the solve had started in the wrong basin, and the better state is
     kept. A cost within FOLD_DCOST (and FOLD_MIN_DEG away): the data cannot tell the basins apart. Returns
-    (state, records): one {array, dcost, rotation_deg, position_m, switched, ambiguous} per candidate."""
+    (state, records): one {array, dcost, rotation_deg, position_m, displacement_m, rotvec, switched, ambiguous}
+    per candidate."""
     from .solver import linearise
     cands = {i: fold_candidates(p, st, i) for i in range(p.N) if np.any(p.fold[i])}
     if not any(cands.values()):
@@ -591,7 +593,9 @@ def fold_basins(p, st, lay, kinds, mask, max_iter=200):
             dR = st.R[i].T @ alt.R[i]
             rec = {"array": str(p.names[i]), "dcost": float(c - cost0),
                    "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
-                   "position_m": float(np.linalg.norm(alt.x[i] - st.x[i]))}
+                   "position_m": float(np.linalg.norm(alt.x[i] - st.x[i])),
+                   "displacement_m": (alt.x[i] - st.x[i]).tolist(),   # (uncertainty.cover_alternative)
+                   "rotvec": Rotation.from_matrix(dR).as_rotvec().tolist()}
             rec["switched"] = bool(c < cost0 - FOLD_SWITCH and rec["rotation_deg"] >= FOLD_MIN_DEG)
             rec["ambiguous"] = bool(abs(c - cost0) < FOLD_DCOST and rec["rotation_deg"] >= FOLD_MIN_DEG)
             records.append(rec)

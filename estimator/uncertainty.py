@@ -520,3 +520,32 @@ def param_std(J, k):
     except np.linalg.LinAlgError:
         x = np.linalg.pinv(Js.T @ Js) @ e
     return float(np.sqrt(max(x[k], 0.0)) / d[k])
+
+
+def cover_alternative(out, name, displacement, rotvec):
+    """Widen array ``name``'s reported uncertainty in ``calibrate``'s output ``out`` (in place) to cover a second
+    solution the data do not exclude (``estimator.ambiguity``): the other pose is ``displacement`` (3,, m,
+    world axes) and ``rotvec`` (3,, rad, about the array's own axes: R Exp(φ)) away. Its covariance gains
+    the outer products d dᵀ and φ φᵀ (the spread of the two solutions: were the other one the truth, its error
+    would be within 1σ of that covariance, Mahalanobis dᵀ C⁻¹ d < 1), so each ``*_std`` column becomes
+    √(std² + d_c²); a NaN std (a component the data leave undetermined) stays NaN. calibration.json's
+    ``covariance`` (``out["array_covariance"]``, when present) gains the same outer products."""
+    arrays = out["arrays"]
+    k = arrays.index[arrays["array"] == name]
+    extra = {"x": np.asarray(displacement, float), "rot": np.asarray(rotvec, float)}
+    for key, d in extra.items():
+        for c, dc in zip(array_param(key).std_columns, d):
+            arrays.loc[k, c] = np.hypot(arrays.loc[k, c].to_numpy(float), dc)
+    cov = out.get("array_covariance")
+    if cov is None:
+        return out
+    labels, C = cov
+    C = np.array(C, float)
+    for key, d in extra.items():
+        ix = [labels.index(f"{name}.{c}") if f"{name}.{c}" in labels else -1 for c in array_param(key).components]
+        sel = [(j, dc) for j, dc in zip(ix, d) if j >= 0]
+        if sel:
+            j, v = np.array([s[0] for s in sel]), np.array([s[1] for s in sel])
+            C[np.ix_(j, j)] += np.outer(v, v)
+    out["array_covariance"] = (labels, C)
+    return out

@@ -21,7 +21,9 @@ from scipy.special import chdtrc, chdtri  # χ² survival function and its inver
 
 from calib.tables import array_param
 
+from .ambiguity import SEPARATION_MIN
 from .robust import is_concentrated
+from .uncertainty import cover_alternative
 
 RESIDUAL_SUSPECT = 3.0   # RMS residual 3× its sigma: the weights (or the model) are wrong
 RESIDUAL_FAILED = 10.0   # 10×: the data contradict the model (e.g. wrong emission times)
@@ -242,23 +244,43 @@ def name_distrusted(verdict, screened):
 
 
 def fold_ambiguity(out, basins):
-    """Arrays whose other fold basin (``init.fold_basins``) fits as well (``ambiguous``): their std is raised to
-    cover the other basin (rotation std per axis ≥ the angle between the basins, position std ≥ the
-    distance), and the verdict names them (``suspect``). In place on ``calibrate``'s output."""
-    arrays, verdict = out["arrays"], out["report"]["verdict"]
+    """Arrays whose other fold basin (``init.fold_basins``) fits as well (``ambiguous``): their covariance
+    widened to cover the other basin (``uncertainty.cover_alternative``), and the verdict names them
+    (``suspect``). In place on ``calibrate``'s output."""
+    verdict = out["report"]["verdict"]
     for b in basins:
         if b["switched"] or not b["ambiguous"]:
             continue
-        k = arrays.index[arrays["array"] == b["array"]]
-        for key, least in (("rot", np.radians(b["rotation_deg"])), ("x", b["position_m"])):
-            for c in array_param(key).std_columns:
-                arrays.loc[k, c] = np.maximum(arrays.loc[k, c], least)
+        cover_alternative(out, b["array"], b["displacement_m"], b["rotvec"])
         flag(verdict, b["array"])
         verdict["reasons"].append(f"array {b['array']}: its sources all lie near its mic plane, where planar DOAs "
                                   f"fold; another orientation {b['rotation_deg']:.0f}° away fits as well (cost "
                                   f"+{b['dcost']:.1f}): its std covers both")
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return out
+
+def mirror_ambiguity(out, records):
+    """Arrays with a mirror solution across their sources' plane that the data do not exclude
+    (``estimator.ambiguity.mirror_basins``, ``ambiguous``; the lower-cost one is reported): named in the
+    verdict (``suspect``) with how far the other solution lies and what would break the tie, and their
+    covariance widened to cover it (``uncertainty.cover_alternative``). In place on ``calibrate``'s output."""
+    verdict = out["report"]["verdict"]
+    for r in records:
+        if not r["ambiguous"]:
+            continue
+        cover_alternative(out, r["array"], r["displacement_m"], r["rotvec"])
+        fix = {"planar": "state its doa_hemisphere or drive a path whose height varies",
+               "linear": "drive a path whose height varies (a linear board's DOAs cannot tell the sides apart)",
+               }.get(r.get("board"), "drive a path whose height varies")
+        flag(verdict, r["array"])
+        verdict["reasons"].append(
+            f"array {r['array']}: its pose has a mirror solution across the sources' plane {r['position_m']:.2f} m "
+            f"away that fits as well (cost {-r['dcost'] if r['switched'] else r['dcost']:+.1f}; the two are "
+            f"{r['separation_chi2']:.0f} apart in χ², a choice needs {SEPARATION_MIN:g}: its sources lie "
+            f"{100 * r['plane']['source_spread_m']:.0f} cm from that plane, RMS): its std covers both; {fix}")
+        verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    return out
+
 
 SETUP_PREFIX = "set-up: "
 # generic reasons that a set-up mistake produces as a symptom; named as such when set-up findings failed

@@ -26,9 +26,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.fft as sfft
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 WINDOW_EVENTS = 8      # events per local window: enough to make an irregular pattern unique
 PIVOT_EVENTS = 3       # window events tried as each detection (one of them is rarely missed)
@@ -289,6 +286,12 @@ def _assign(det_t, det_score, pred, tol):
 
 def _assign_groups(match, ev, det, cost, n_det):
     """Hungarian assignment within each connected group of (event, detection) candidate pairs."""
+    # imported here: scipy.optimize and scipy.sparse cost ~0.14 s of CPU to import, and most sessions have no
+    # detection that two events contend for (a `calib features` process then never loads them)
+    from scipy.optimize import linear_sum_assignment
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     n_ev = len(match)
     g = coo_matrix((np.ones(len(ev)), (ev, n_ev + det)), shape=(n_ev + n_det,) * 2)
     _, label = connected_components(g, directed=False)

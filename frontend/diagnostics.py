@@ -122,7 +122,8 @@ def plot_detections(path, diag, marks=None):
         warn = "  ⚠ " + "; ".join(a["warnings"]) if a["warnings"] else ""
         ax.set_title(f"{name}: {n_m} matched, {len(a['missed_events'])} missed "
                      f"({', '.join(map(str, a['missed_events'])) or 'none'}), {len(a['spurious'])} spurious"
-                     f"{warn}", fontsize=9, loc="left")
+                     f"{warn}", fontsize=9, loc="left", y=1.0)   # y given: no search for decorations above the axes
+                     # (matplotlib measures every tick label of the axes for it: half of the drawing)
         ax.set_ylim(-5, top * 1.2)
         ax.set_ylabel("dB", fontsize=8)
         ax.tick_params(labelsize=8)

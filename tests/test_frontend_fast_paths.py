@@ -1,12 +1,15 @@
 """Fast paths of the frontend against the straightforward computations they replace: the coarse-to-fine
 DOA grid against the exhaustive grid (and its set-up: the caps and steering phasors against their
 definitions), the timing's moments from grid samples (GridMoments) against its band sums and against the
-true delay of a path."""
+true delay of a path; the event segments' band spectra taken a few events at a time against each segment's
+own zero-padded FFT."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.fft as sfft
 
+import calib.frontend.timing as timing
 from calib.frontend.timing import BandMoments, GridMoments, lag_grid, newton_envelope, newton_peak, spectra_setup
 from calib.frontend.doa import _cap_indices, _grid_search, fibonacci_sphere, srp_setup, steering
 
@@ -197,3 +200,19 @@ def test_shared_setup_is_one_per_board_kind_and_keeps_few_doppler_banks():
         want = stretch_bank(tmpl, spectra_setup(tmpl, fs, band, 9000), eps)
         np.testing.assert_array_equal(got[0], want[0])
         assert len(a["_stretch_banks"]) <= KEPT_BANKS
+
+
+def test_segment_band_spectra_in_batches_equal_each_segments_own_fft(monkeypatch):
+    # segments before, across either end of, inside and after the recording; batches of 3 events (8 in all)
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal((3, 5000)).astype(np.float32)
+    setup = spectra_setup(rng.standard_normal(400), 16000, (500, 4000), 1000)
+    starts = np.array([-2000, -300, 0, 2000, 4500, 4999, 5000, 9000])
+    monkeypatch.setattr(timing, "SEGMENT_BATCH_BYTES", 3 * 4 * 3 * setup["nfft"])
+    got = timing._band_spectra(x, starts, setup, workers=1)
+    for s0, g in zip(starts, got):
+        seg = np.zeros((3, setup["nfft"]), np.float32)
+        a, b = max(s0, 0), min(s0 + setup["seg_len"], x.shape[1])
+        if b > a:
+            seg[:, a - s0 : b - s0] = x[:, a:b]
+        np.testing.assert_array_equal(g, sfft.rfft(seg, axis=-1)[:, setup["kb"]])
