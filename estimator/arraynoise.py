@@ -93,3 +93,34 @@ def report_scales(p):
     """{kind: {array name: a}} for the report (only arrays whose component moved)."""
     return {k: {str(n): float(v) for n, v in zip(p.names, a) if abs(v - 1.0) > 1e-9}
             for k, a in (p.array_scale or {}).items()}
+
+
+# ------------------------------------------------------------------------------------ arrival scales
+# Each array's arrival sigma relative to the type's (``p.arrival_scale``, a_i: its TDOA-S rows ∝ a_i, its TDOA-M
+# rows ∝ √((a_i² + a_ref²) / 2), problem.with_arrival_scale) from its own TDOA-S residuals, both ways. One
+# session-wide sigma_tdoa is wrong for every array when boards time their arrivals unequally well: measured
+# against the true geometry and clocks, the TDOA-S rows of mixed 90's 6- and 7-mic circles and tetrahedron
+# scatter 0.4–0.6 × the session's sigma_tdoa, its 4-mic linear board's 2.2 × and its 2-mic pair's 3.3 ×; in
+# talkers 97 a talker near the reference puts its arrivals at 1.4 × and the others' at 0.3 × (the stated stds
+# then 4–5 × the errors). The frontend's per-array claims (meta ``sigma_arrival_per_array``) are the prior, worth
+# ARRIVAL_PRIOR_DOF residual degrees of freedom; the data move each array from it. The type's own sigma is
+# not lowered by this (variance.FRONTEND_MIN_FACTOR): the arrays' relative variances are normalised so that
+# their mean over the TDOA-S rows is at least 1, a redistribution of the frontend's figure between arrays.
+ARRIVAL_PRIOR_DOF = 4.0
+ARRIVAL_MAX_FACTOR = ARRAY_MAX_FACTOR   # either way, relative to the type's sigma
+
+
+def arrival_variances(v, red, prior, rows_arr):
+    """Per array (N,) the relative arrival variance a_i²: its residuals' estimate ``v`` (N,) (relative to the type's
+    sigma, :func:`calib.estimator.variance.arrival_components`), worth its redundancy ``red`` (N,), combined
+    with the ``prior`` scales c (N,) worth ARRIVAL_PRIOR_DOF: (v red + P c²) / (red + P) where the redundancy is
+    at least ARRAY_MIN_REDUNDANCY, else c² (few arrays, rows taken out: the sources take up nearly all of an
+    array's arrival errors, Σ(1 − h) 0.01–2 on four-array sessions, and the estimate is noise); then normalised so that
+    the mean over the TDOA-S rows (``rows_arr``: their arrays) is at least 1 (never below the type's sigma on
+    average) and clipped to [1/ARRIVAL_MAX_FACTOR, ARRIVAL_MAX_FACTOR]²."""
+    red = np.maximum(red, 0.0)
+    out = np.where(red >= ARRAY_MIN_REDUNDANCY, (v * red + ARRIVAL_PRIOR_DOF * prior**2) / (red + ARRIVAL_PRIOR_DOF),
+                   prior**2)
+    if len(rows_arr):
+        out = out / min(float(np.mean(out[rows_arr])), 1.0)
+    return np.clip(out, ARRIVAL_MAX_FACTOR**-2, ARRIVAL_MAX_FACTOR**2)

@@ -14,7 +14,7 @@ from . import clockmodel
 from .factors import KINDS, active_kinds, natural
 from .factors import evaluate as factors
 from .observability import check_observability
-from .problem import build_problem, make_layout
+from .problem import build_problem, make_layout, with_arrival_scale
 from .solver import linearise
 from .uncertainty import cov_block, honest_covariance, plane_normals, state_from_frames
 
@@ -46,6 +46,9 @@ def rebuild(features, calib):
     p = p.replace(sigma={**p.sigma, **sigma}, array_scale={
         kind: np.array([float(own.get(str(n), 1.0)) for n in p.names])
         for kind, own in (sigmas.get("per_array_factor") or {}).items() if own})
+    # ... and the arrays' arrival scales (meta sigma_arrival_per_array, moved by the residuals: report.json)
+    if sigmas.get("arrival_scale"):
+        p = with_arrival_scale(p, [float(sigmas["arrival_scale"].get(str(n), 1.0)) for n in p.names])
     st = state_from_frames(p, calib["arrays"], src)
     corr = rep.get("emission_corrections_s") or {}
     st.e = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])

@@ -118,12 +118,14 @@ def _out(kind, r, J, row, dim, robust, sigma):
 
 
 def tdoa_s(p, st, lay):
-    """TDOA-S: a_{i,b} − a_{i,a} = (1+δ_i)(t_b − t_a + e_b − e_a + (d_ib − d_ia)/c)."""
+    """TDOA-S: a_{i,b} − a_{i,a} = (1+δ_i)(t_b − t_a + e_b − e_a + (d_ib − d_ia)/c); each row whitened by the
+    type's sigma × its row's scale (``TdoaSRows.scale``: its array's arrival sigma, problem.arrival_scales)."""
     i, a, b, z = p.tdoa_s.arr, p.tdoa_s.a, p.tdoa_s.b, p.tdoa_s.val
-    m, c, sig = len(z), p.c, p.sigma["tdoa_s"]
+    m, c, sig0 = len(z), p.c, p.sigma["tdoa_s"]
     J = jacobian(m, lay)
     if m == 0:
-        return _out("tdoa_s", np.zeros(0), J, p.tdoa_s.row, 1, True, sig)
+        return _out("tdoa_s", np.zeros(0), J, p.tdoa_s.row, 1, True, sig0)
+    sig = sig0 * p.tdoa_s.scale
     da, na = _dist(st, i, a)
     db, nb = _dist(st, i, b)
     h = p.t[b] - p.t[a] + st.e[b] - st.e[a] + (db - da) / c
@@ -132,16 +134,17 @@ def tdoa_s(p, st, lay):
     gc = (g / (c * sig))[:, None]
     put(J, np.arange(m), np.column_stack([lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]]),
         np.column_stack([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
-    return _out("tdoa_s", r, J, p.tdoa_s.row, 1, True, sig)
+    return _rows_out("tdoa_s", r, J, p.tdoa_s, sig0, sig)
 
 
 def tdoa_m(p, st, lay):
-    """TDOA-M: a_ij − a_{ref,j}."""
+    """TDOA-M: a_ij − a_{ref,j}; each row whitened by the type's sigma × its row's scale (``TdoaMRows.scale``)."""
     i, j, z = p.tdoa_m.arr, p.tdoa_m.ev, p.tdoa_m.val
-    ref, m, c, sig, beta = p.ref, len(z), p.c, p.sigma["tdoa_m"], p.beta
+    ref, m, c, sig0, beta = p.ref, len(z), p.c, p.sigma["tdoa_m"], p.beta
     J = jacobian(m, lay)
     if m == 0:
-        return _out("tdoa_m", np.zeros(0), J, p.tdoa_m.row, 1, True, sig)
+        return _out("tdoa_m", np.zeros(0), J, p.tdoa_m.row, 1, True, sig0)
+    sig = sig0 * p.tdoa_m.scale
     di, ni = _dist(st, i, j)
     w0 = st.s[j] - st.x[ref]   # (the reference array for every row: one broadcast, no gather)
     d0 = np.linalg.norm(w0, axis=1)
@@ -151,14 +154,21 @@ def tdoa_m(p, st, lay):
     model = (gi * (te + di / c) + st.offset[i] + beta * st.drift[i]
              - g0 * (te + d0 / c) - st.offset[ref] - beta * st.drift[ref])
     r = (model - z) / sig
-    one = np.full(m, 1.0 / sig)
+    one = 1.0 / sig
     put(J, np.arange(m), np.column_stack([lay.drift[i], np.full(m, lay.drift[ref]), lay.offset[i],
                                                   np.full(m, lay.offset[ref]), lay.x[i], np.tile(lay.x[ref], (m, 1)),
                                                   lay.s[j], lay.e[j]]),
         np.column_stack([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
-                           -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig)) * n0,
-                           (gi[:, None] * ni - g0 * n0) / (c * sig), (gi - g0) / sig]))
-    return _out("tdoa_m", r, J, p.tdoa_m.row, 1, True, sig)
+                           -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig))[:, None] * n0,
+                           (gi[:, None] * ni - g0 * n0) / (c * sig)[:, None], (gi - g0) / sig]))
+    return _rows_out("tdoa_m", r, J, p.tdoa_m, sig0, sig)
+
+
+def _rows_out(kind, r, J, rows, sig0, sig):
+    """A one-residual-per-row factor whitened per row (``sig`` (m,)); ``sigma_rows`` only where the rows' scales
+    are not all 1 (so a problem without per-row scales is evaluated exactly as before)."""
+    uniform = bool(np.all(rows.scale == 1.0))
+    return Factor(kind, r, J, rows.row, 1, True, sig0, None if uniform else sig)
 
 
 # [w]x = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]] as columns of (w0, w1, w2, −w0, −w1, −w2, 0)

@@ -18,7 +18,7 @@ from .robust import (FAMILY_ALPHA, array_candidates, array_mask, concentrated_ca
                      drop_test, factor_sizes, fit_array_alone, measurement_stats, remove_outliers, restore_inliers)
 from .solver import levenberg_marquardt, linearise
 from .uncertainty import covariance, std_from_cov, whiten
-from .variance import estimate_noise, reweighted, robust_noise_steps, sigma_bounds, sigma_floors
+from .variance import estimate_arrival_scales, estimate_noise, reweighted, robust_noise_steps, sigma_bounds, sigma_floors
 from .verdict import MOVE_SIGMA
 
 
@@ -223,8 +223,15 @@ def joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_th
         res.state, res.problem, vce = estimate_noise(res.problem, res.state, kinds, res.mask, bounds=bounds,
                                                      floors=floors, max_iter=max_iter, lay=res.layout, stated=stated)
         res.final = {**res.final, **{k: vce[k] for k in ("iterations", "cost", "converged", "reason")}}
+        # each array's arrival sigma from its TDOA-S residuals (arraynoise "arrival scales")
+        res.state, res.problem, arr_info = estimate_arrival_scales(res.problem, res.state, kinds, res.mask,
+                                                                   lay=res.layout, max_iter=max_iter)
+        if arr_info is not None:
+            res.final = {**res.final, **{k: arr_info[k] for k in ("iterations", "cost", "converged", "reason")}}
         stages["noise"] = {"scale": vce["scale"], "at_bound": vce["at_bound"], "bounds": bounds, "floors": floors,
-                           "array_scale": arraynoise.report_scales(res.problem)}
+                           "array_scale": arraynoise.report_scales(res.problem),
+                           "arrival_scale": None if res.problem.arrival_scale is None else
+                           {str(n): float(v) for n, v in zip(res.problem.names, res.problem.arrival_scale)}}
     res.scales = {k: res.problem.sigma[k] / stated[k] for k in reweighted()}
     res.bounds = bounds
     return res

@@ -71,21 +71,25 @@ class Rows:
 
 @dataclass(frozen=True, eq=False)
 class TdoaMRows(Rows):
-    """TDOA-M: array ``arr`` vs the reference at event ``ev`` (indices), value ``val`` (s)."""
+    """TDOA-M: array ``arr`` vs the reference at event ``ev`` (indices), value ``val`` (s); ``scale`` (n,): each
+    row's sigma relative to the type's (:func:`arrival_scales`; ones without meta ``sigma_arrival_per_array``)."""
     ev: np.ndarray
     arr: np.ndarray
     val: np.ndarray
     row: np.ndarray
+    scale: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
 class TdoaSRows(Rows):
-    """TDOA-S: array ``arr`` between events ``a`` and ``b`` (indices), value ``val`` (s)."""
+    """TDOA-S: array ``arr`` between events ``a`` and ``b`` (indices), value ``val`` (s); ``scale`` (n,) as in
+    :class:`TdoaMRows`."""
     arr: np.ndarray
     a: np.ndarray
     b: np.ndarray
     val: np.ndarray
     row: np.ndarray
+    scale: np.ndarray
 
     @property
     def event(self):
@@ -130,7 +134,8 @@ class Problem:
     ``extra_rows``: {kind: Rows} of the kinds registered beyond these, ``factors.register``);
     fold (N, 3): mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere);
     cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
-    (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,).
+    (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
+    arrival_scale (N,): each array's arrival sigma relative to the type's (:func:`arrival_scales`; None: ones).
 
     Settings of a solve (typed values a stage replaces, never edits): sigma {kind: sigma} for ``tdoa_s``,
     ``tdoa_m`` (s), ``doa``, ``cone`` (rad per tangent axis), ``odometry`` (m per axis per step),
@@ -165,6 +170,7 @@ class Problem:
     array_own: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     fixed_cols: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     unobservable: tuple = ()
+    arrival_scale: np.ndarray | None = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -269,12 +275,12 @@ def event_rows(spec):
 
 
 def tdoa_m_rows(df, ix):
-    return TdoaMRows(ix.ev(df["event"]), ix.arr(df["array"]), df["tdoa"].to_numpy(float), _lines(df))
+    return TdoaMRows(ix.ev(df["event"]), ix.arr(df["array"]), df["tdoa"].to_numpy(float), _lines(df), np.ones(len(df)))
 
 
 def tdoa_s_rows(df, ix):
     return TdoaSRows(ix.arr(df["array"]), ix.ev(df["from_event"]), ix.ev(df["to_event"]), df["tdoa"].to_numpy(float),
-                     _lines(df))
+                     _lines(df), np.ones(len(df)))
 
 
 def doa_rows(df, ix):
@@ -307,6 +313,9 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         rows[kind] = build(df if use.get(kind, True) else df.iloc[:0], ix)
     sigma = {k: s.sigma_si(meta) for k, s in KINDS.items() if s.noise_key}
     N = len(names)
+    arrival = arrival_scales(meta, names, rows["tdoa_s"].arr)
+    ref = idx[meta["reference_array"]]
+    rows["tdoa_s"], rows["tdoa_m"] = scaled_tdoa_rows(rows["tdoa_s"], rows["tdoa_m"], arrival, ref)
     normals = _mirror_normals(meta, idx, N)
     doa = rows.pop("doa")
     doa, cone, cone_axis, rot_fixed_axis = _split_cones(dataclasses.replace(doa, u=fold(doa.u, normals[doa.arr])),
@@ -320,12 +329,13 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
     doa = doa.select(rot_free[doa.arr] | (doa.arr == idx[meta["reference_array"]]))
     odom = columns(ev, ("odom_x", "odom_y", "odom_z"))
     return Problem(
-        names=names, ref=idx[meta["reference_array"]], c=float(meta["speed_of_sound"]),
+        names=names, ref=ref, c=float(meta["speed_of_sound"]),
         beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events, odom=odom,
         tdoa_m=rows.pop("tdoa_m"), tdoa_s=rows.pop("tdoa_s"), doa=doa, cone=cone,
         sigma={**sigma, "emission": float(sigma_emit)}, extra_rows=rows, fold=normals, cone_axis=cone_axis,
         rot_fixed_axis=rot_fixed_axis, rot_free=rot_free, n_doa_events=n_doa,
-        odo_yaw_free=bool(odometry_yaw) and odometry_yaw_observable(odom, len(doa.u), len(events)))
+        odo_yaw_free=bool(odometry_yaw) and odometry_yaw_observable(odom, len(doa.u), len(events)),
+        arrival_scale=arrival)
 
 
 MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
@@ -359,6 +369,56 @@ def doa_row_scales(doa, meta):
     own = pd.to_numeric(doa["sigma_deg"], errors="coerce").to_numpy(float) / typical
     scale2 = (1.0 - DOA_ROW_WEIGHT) + DOA_ROW_WEIGHT * own**2
     return np.where(np.isfinite(scale2), np.sqrt(scale2), 1.0)
+
+
+# An array's own arrival sigma (meta ``sigma_arrival_per_array``) is taken as it is, either way, from a board
+# whose mics leave its arrival a residual to judge it by; a board of FEW_MICS or fewer is never taken below the
+# pooled figure. The claim comes from the spread of the mics' times about the array model (constant, direction,
+# wavefront curvature); a 2-mic pair's direction is its one delay, so its mics agree by construction, and a
+# 4-mic board has one residual degree of freedom at most. Measured against the true geometry and clocks on
+# the mixed and office presets (seeds 10–99, 261 arrays, flagged arrivals out): true / claimed arrival RMS
+# median 1.0 for the 6- and 7-mic boards (quartiles 0.8–1.5), 2.2 for the 2-mic pairs (1.9–3.7), 1.2 for the
+# 4-mic boards with tails to 4–14 (h35w: shrunk halfway for every low claim, the talkers' well-timed arrays
+# kept 0.8 × the pool where they measure 0.3 ×). Where the data determine an array's arrivals, the estimator
+# moves the scale from this prior (variance.estimate_arrival_scales).
+FEW_MICS = 4
+
+
+def arrival_scales(meta, names, tdoa_s_arr):
+    """(N,): each array's arrival sigma relative to the pooled one, from meta ``sigma_arrival_per_array``
+    ({array: s (s)}, docs/formats.md; calib's frontend writes the RMS of each array's arrival_sd): own =
+    s_i / s̄ with s̄² the mean of s_i² over the TDOA-S rows ``tdoa_s_arr`` (array indices; over the arrays
+    when there are none), so that the type's sigma (``sigma_tdoa``, and its variance components) still sets
+    the scale; scale = own, at least 1 for boards of FEW_MICS or fewer mics (meta ``mics``; boards without
+    mics in meta count as few). A TDOA-S row of array i then has sigma ∝ scale_i, a TDOA-M row
+    ∝ √((scale_i² + scale_ref²) / 2). Ones without the key (today's weights); arrays missing from it get s̄."""
+    N = len(names)
+    given = meta.get("sigma_arrival_per_array") or {}
+    s = np.array([float(given.get(str(n), np.nan)) for n in names])
+    s = np.where(np.isfinite(s) & (s > 0), s, np.nan)
+    if not np.any(np.isfinite(s)):
+        return np.ones(N)
+    over = s[tdoa_s_arr] if len(tdoa_s_arr) else s
+    over = over[np.isfinite(over)]
+    pool2 = float(np.mean(over**2)) if over.size else float(np.nanmean(s**2))
+    own2 = np.where(np.isfinite(s), s**2 / pool2, 1.0)
+    mics = meta.get("mics") or {}
+    few = np.array([len(mics.get(str(n)) or ()) <= FEW_MICS for n in names])
+    return np.sqrt(np.where(few, np.maximum(own2, 1.0), own2))
+
+
+def scaled_tdoa_rows(tdoa_s, tdoa_m, arrival, ref):
+    """(TDOA-S rows, TDOA-M rows) with each row's scale from the arrays' arrival scales ``arrival`` (N,): a TDOA-S
+    row of array i ∝ a_i, a TDOA-M row ∝ √((a_i² + a_ref²) / 2) (a difference of two arrivals)."""
+    return (dataclasses.replace(tdoa_s, scale=arrival[tdoa_s.arr]),
+            dataclasses.replace(tdoa_m, scale=np.sqrt(0.5 * (arrival[tdoa_m.arr]**2 + arrival[ref]**2))))
+
+
+def with_arrival_scale(p, arrival):
+    """A new problem whose arrays' arrival scales are ``arrival`` (N,), its TDOA rows' scales to match."""
+    arrival = np.asarray(arrival, float)
+    tdoa_s, tdoa_m = scaled_tdoa_rows(p.tdoa_s, p.tdoa_m, arrival, p.ref)
+    return p.replace(tdoa_s=tdoa_s, tdoa_m=tdoa_m, arrival_scale=arrival)
 
 
 def doa_axes(doa, meta, names, sigma_doa):

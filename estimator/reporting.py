@@ -104,7 +104,9 @@ def make_report(res, stages, judged, fs, *, method, noise, emission_sigma, times
         "drift_reference": "emitter clock" if len(p.tdoa_s.val) else "reference array (no TDOA-S: its drift fixed to 0)",
         "sigmas": {**{spec.report_sigma: p.sigma[k] for k, spec in KINDS.items() if spec.report_sigma},
                    "source": noise, "per_array_factor": arraynoise.report_scales(p),
-                   "doa_row_scale": _row_scale_summary(p.doa.scale)},
+                   "doa_row_scale": _row_scale_summary(p.doa.scale),
+                   "arrival_scale": None if p.arrival_scale is None or np.all(p.arrival_scale == 1.0)
+                   else {str(n): float(v) for n, v in zip(p.names, p.arrival_scale)}},
         "timings_s": times,
         "odometry_frame": odo_frame,
         "odometry_yaw_deg": odo_frame["yaw_deg"],

@@ -190,7 +190,8 @@ def arrival_rows(p, lin, factors):
     A TDOA-M row a_ij − a_ref,j and a TDOA-S row a_ib − a_ia share arrivals: every TDOA-M row of an event
     holds the reference's arrival (correlation ½ between them), consecutive TDOA-S rows share the middle
     one (−½), a TDOA-M and a TDOA-S row of the same array and event share its arrival. An arrival's sigma is
-    its array's row sigma / √2 (the frontend's sigma_tdoa is √2 × its arrivals' spread), raised by the
+    its array's row sigma / √2 (the frontend's sigma_tdoa is √2 × its arrivals' spread) × its own arrival
+    scale (``p.arrival_scale``: meta ``sigma_arrival_per_array``, problem.arrival_scales), raised by the
     largest of the array's σ² factors of the TDOA kinds (``factors``). Rows not kept (weight 0) and the
     other kinds have no entry."""
     keep = lin.w > 0
@@ -199,6 +200,8 @@ def arrival_rows(p, lin, factors):
     for kind in ARRIVAL_KINDS:
         a = (p.array_scale or {}).get(kind)
         g = np.maximum(g, np.ones(p.N) if a is None else np.asarray(a, float))
+    if p.arrival_scale is not None:
+        g = g * np.asarray(p.arrival_scale, float)
     g = p.sigma["tdoa_s"] / np.sqrt(2.0) * g * np.sqrt(np.maximum.reduce(
         [factors.get(k, np.ones(p.N)) for k in ARRIVAL_KINDS]))
     rr, cc, vv, start = [], [], [], 0

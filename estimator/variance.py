@@ -13,9 +13,9 @@ import scipy.sparse
 
 from . import arraynoise
 from .factors import KINDS
-from .problem import make_layout
+from .problem import make_layout, with_arrival_scale
 from .robust import chi2_median, measurement_stats, sym_inverse
-from .solver import levenberg_marquardt, linearise
+from .solver import levenberg_marquardt, linearise, use_dense
 
 # A sigma the user states as measured (meta.json/session.toml, not listed in ``sigmas_estimated``) is a
 # prior: variance components may move it by at most this factor either way (the data can say "a bit
@@ -203,6 +203,83 @@ def _vce_step(w, fac, per_array, scales, base, last_dir, at_bound, *, bounds, fl
         reversed_ |= bool(d and last_dir.get(kind, d) != d)
         last_dir[kind] = d
     return changed, reversed_
+
+
+ARRIVAL_ITERATIONS = 4     # arrival-scale steps at most (each a warm re-solve); stopped when every scale settles
+ARRIVAL_SETTLED = 0.02     # ... within this fraction
+
+
+def estimate_arrival_scales(p, st, kinds, mask, *, lay, max_iter=200):
+    """Each array's arrival scale from the residuals (:func:`arrival_components`, the problem's scales from meta
+    ``sigma_arrival_per_array`` the prior; :func:`calib.estimator.arraynoise.arrival_variances`), re-solving
+    (warm, plain least squares on the kept rows) after each step. Returns (state, a new problem with the
+    scales, solver info), or (st, p, None) when there is nothing to estimate from (no TDOA-S row kept, or a
+    problem too large for the dense redundancy matrix)."""
+    if "tdoa_s" not in kinds or not len(p.tdoa_s.val) or not use_dense(lay):
+        return st, p, None
+    prior = np.ones(p.N) if p.arrival_scale is None else np.asarray(p.arrival_scale, float)
+    info = None
+    for _ in range(ARRIVAL_ITERATIONS):
+        comp = arrival_components(p, st, lay, kinds, mask)
+        if comp is None:
+            break
+        old = np.ones(p.N) if p.arrival_scale is None else np.asarray(p.arrival_scale, float)
+        new = np.sqrt(arraynoise.arrival_variances(comp["v"] * old**2, comp["red"], prior, comp["rows_arr"]))
+        p = with_arrival_scale(p, new)
+        st, info = levenberg_marquardt(p, st, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
+        if np.all(np.abs(new / old - 1.0) < ARRIVAL_SETTLED):
+            break
+    return st, p, info
+
+
+def arrival_components(p, st, lay, kinds, mask):
+    """Helmert variance components of the arrays' arrivals at ``st``: each array's arrival variance factor v_h
+    (relative to the current scales) from the whitened residuals r of the kept rows, r = R e with R = I − J (JᵀJ)⁻¹
+    Jᵀ the redundancy matrix and e the rows' errors. The TDOA rows' errors are differences of arrivals
+    (``uncertainty.arrival_rows``: e = Σ_h D_h n_h, n_h array h's arrivals in their units), the other kinds one
+    group each (nuisance components). For each group g the quadratic form q_g = Σ r² over its rows (an array:
+    its TDOA-S rows and, but for the reference, its TDOA-M rows) has E q_g = Σ_h v_h ‖P_g R D_h‖²_F; the system
+    is solved for v. So an array whose errors the fit spreads onto the others' rows (few arrays: the sources
+    take up most of one noisy array's arrivals) is still found, and the others are not charged with its noise.
+    Returns {"v": (N,), "red": (N,) each array's own redundancy ‖P_h R D_h‖², "rows_arr": TDOA-S rows' arrays
+    (kept)}, or None without kept TDOA rows."""
+    from .uncertainty import arrival_rows   # (uncertainty's covariance uses this module lazily)
+
+    lin = linearise(p, st, lay, kinds, mask=mask, dense=True)
+    keep = lin.w > 0
+    D = arrival_rows(p, lin, {})
+    if D is None:
+        return None
+    J = np.asarray(lin.J)[keep]
+    d = np.linalg.norm(J, axis=0)
+    d = np.where(d > 0, d, 1.0)
+    Jd = J / d
+    R = np.eye(len(J)) - Jd @ sym_inverse(Jd.T @ Jd) @ Jd.T
+    r = lin.r[keep]
+    D = D[np.flatnonzero(keep)].toarray()
+    kind = np.concatenate([np.full(len(f.r), f.kind, dtype=object) for f in lin.factors])[keep]
+    arr = np.full(len(kind), -1)
+    start, ks = 0, np.flatnonzero(keep)
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind in ("tdoa_s", "tdoa_m") and n:
+            at = np.searchsorted(ks, start + np.arange(n))
+            ok = (at < len(ks)) & (ks[np.minimum(at, len(ks) - 1)] == start + np.arange(n))
+            arr[at[ok]] = p.rows(f.kind).arr[ok]
+        start += n
+    K = p.K
+    cols = [D[:, h * K:(h + 1) * K] for h in range(p.N)]
+    others = [k for k in dict.fromkeys(kind) if k not in ("tdoa_s", "tdoa_m")]
+    sel = [arr == h for h in range(p.N)] + [kind == k for k in others]
+    RE = [R @ c for c in cols] + [R[:, m] for m in sel[p.N:]]
+    A = np.array([[float(np.sum(x[g] ** 2)) for x in RE] for g in sel])
+    q = np.array([float(np.sum(r[g] ** 2)) for g in sel])
+    live = np.diag(A) > 1e-9
+    v = np.ones(len(sel))
+    v[live] = np.linalg.lstsq(A[np.ix_(live, live)], q[live], rcond=None)[0]
+    red = np.diag(A)[:p.N]
+    v = np.where(red > 1e-9, np.maximum(v[:p.N], 0.0), 1.0)
+    return {"v": v, "red": red, "rows_arr": arr[(kind == "tdoa_s") & (arr >= 0)]}
 
 
 # --------------------------------------------------------------------------------- honest error bars

@@ -399,13 +399,15 @@ def channel_levels_db(delays):
 
 
 # ----------------------------------------------------------------------------------------------- one array
-def check_array(a, session, times=None, scores=None, threshold=8.0, n_events=N_EVENTS):
+def check_array(a, session, times=None, scores=None, threshold=8.0, n_events=N_EVENTS, clock_times=None):
     """Measure one array's channels (:class:`PairDelays`) and its clock against the emission times.
 
     a : the session's array dict (name, wav, mics); session : the in-memory session (chirp, events,
     speed_of_sound). times, scores : the chirps' detection times (s) and scores, if already known (the
-    features' diagnostics); else detected here. Returns a dict: delays (:class:`PairDelays` or None when no
-    chirp was found), n_detected, clock_scale, clock_support, fs."""
+    features' diagnostics); else detected here. clock_times : the detections the clock is measured on (default
+    ``times``: a caller that keeps only some chirps for the delays still times the clock on every chirp).
+    Returns a dict: delays (:class:`PairDelays` or None when no chirp was found), n_detected, clock_scale,
+    clock_support, clock_times, fs."""
     t_emit = session["events"]["t_emit"].to_numpy(float)
     with ArrayAudio(a) as x:
         fs = x.fs
@@ -414,10 +416,12 @@ def check_array(a, session, times=None, scores=None, threshold=8.0, n_events=N_E
         if times is None:
             times, scores = detect_chirps(x, template, fs, band, t_emit, threshold)
         times, scores = np.asarray(times, float), np.asarray(scores, float)
-        scale, support = clock_scale(times, t_emit)
+        clock_times = times if clock_times is None else np.asarray(clock_times, float)
+        scale, support = clock_scale(clock_times, t_emit)
         if not len(times):
-            return {"delays": None, "n_detected": 0, "clock_scale": scale, "clock_support": support, "fs": fs}
+            return {"delays": None, "n_detected": 0, "clock_scale": scale, "clock_support": support,
+                    "clock_times": clock_times, "fs": fs}
         keep = np.sort(times[np.argsort(-scores)[:n_events]])
         delays = measure_delays(x, a["mics"], template, fs, band, keep, session["speed_of_sound"])
     return {"delays": delays, "n_detected": int(len(times)), "clock_scale": scale, "clock_support": support,
-            "fs": fs}
+            "clock_times": clock_times, "fs": fs}

@@ -881,13 +881,14 @@ def _tables(session, results, ev_ids, beta):
                         _row_sigma_deg(r["doa_spread"][k]) if r.doa_axis is None else np.nan,
                         arr[name][int(ev_ids[j])][3]))
     est = noise_estimates(results)
-    est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg")}  # the rest: diagnostics
+    est = {k: v for k, v in est.items() if k in ("sigma_tdoa", "sigma_doa_deg", "sigma_arrival_per_array")}
     meta = {"speed_of_sound": session["speed_of_sound"], "reference_array": ref, "arrays": names,
             **{k: v for k, v in est.items() if v is not None}, **session["noise"], "chirp_drift_bias": beta,
             "tdoa_shared_arrivals": True}   # TDOA-M and TDOA-S are differences of one arrival per (array, event)
     # which sigmas are the frontend's own (spread-based) figures rather than the user's priors:
     # the estimator's noise="auto" then re-estimates the weights from the residuals
-    meta["sigmas_estimated"] = sorted(k for k, v in est.items() if v is not None and k not in session["noise"])
+    meta["sigmas_estimated"] = sorted(k for k, v in est.items() if v is not None and k not in session["noise"]
+                                      and k != "sigma_arrival_per_array")   # (relative weights, not a sigma key)
     planes = {n: [float(v) for v in results[n].ambiguous_plane] for n in names
               if results[n].ambiguous_plane is not None}
     if planes:
@@ -945,20 +946,30 @@ def noise_estimates(results):
     plane-wave mean is kept as ``sigma_tdoa_lower`` (diagnostics only). Only arrivals without doubts
     (``flag`` empty) count: the sigmas describe the unflagged rows; flagged ones are doubtful by definition
     (all, if none is clean).
+    sigma_arrival_per_array: {array: the RMS of its own arrivals' ``arrival_sd``} (same rules; arrays with
+    nothing to estimate from left out): boards of different makes in one session time their arrivals
+    unequally well (a 2-mic pair's scatter 6× a 6-mic circle's, mixed preset), and the estimator weights
+    their TDOA rows relative to one another by it (docs/method.md "Per-array arrival sigmas").
     sigma_doa_deg: the RMS of :func:`doa_spread` (plane-wave fit covariance, per tangent axis; planar arrays
     with the elevation Jacobian). None where there is nothing to estimate from.
     """
-    def rms(key, doubts, scale=1.0):
-        v = np.concatenate([r[key] for r in results.values()])
-        clean = np.concatenate([[not any(x in doubts for x in f) for f in r["flags"]] for r in results.values()])
-        ok = np.isfinite(v) & (v > 0)
-        v = v[ok & clean] if np.any(ok & clean) else v[ok]
-        return float(scale * np.sqrt(np.mean(v**2))) if v.size else None
-
-    dsd = rms("doa_spread", DOA_DOUBTS)
-    return {"sigma_tdoa": rms("arrival_sd", TIMING_DOUBTS, np.sqrt(2)),
+    dsd = _clean_rms(results.values(), "doa_spread", DOA_DOUBTS)
+    own = {name: _clean_rms([r], "arrival_sd", TIMING_DOUBTS) for name, r in results.items()}
+    return {"sigma_tdoa": _clean_rms(results.values(), "arrival_sd", TIMING_DOUBTS, np.sqrt(2)),
             "sigma_doa_deg": None if dsd is None else float(np.degrees(dsd)),
-            "sigma_tdoa_lower": rms("spread", TIMING_DOUBTS, np.sqrt(2))}
+            "sigma_arrival_per_array": {k: v for k, v in own.items() if v is not None} or None,
+            "sigma_tdoa_lower": _clean_rms(results.values(), "spread", TIMING_DOUBTS, np.sqrt(2))}
+
+
+def _clean_rms(results, key, doubts, scale=1.0):
+    """``scale`` × the RMS of ``key`` over the arrivals of ``results`` (per-array result dicts) without any of
+    ``doubts`` (all arrivals, if none is clean); finite positive values only; None when there are none."""
+    results = list(results)
+    v = np.concatenate([r[key] for r in results])
+    clean = np.concatenate([[not any(x in doubts for x in f) for f in r["flags"]] for r in results])
+    ok = np.isfinite(v) & (v > 0)
+    v = v[ok & clean] if np.any(ok & clean) else v[ok]
+    return float(scale * np.sqrt(np.mean(v**2))) if v.size else None
 
 
 def _diagnostics(session, results, ev_ids, beta, elapsed):

@@ -47,21 +47,27 @@ SEARCH_SCALES = tuple(np.unique(np.round(np.r_[np.arange(0.87, 1.135, 0.015), 44
                                                22050 / 24000, 24000 / 22050], 5)))
 
 
+def line_residuals(times, t_emit, scale, tol=MATCH_TOL):
+    """(nearest event, residual s) of each detection ``times`` (sorted) against the line ``scale · t_emit + b``;
+    the offset b is the mode of every (detection − predicted emission) pair, to ``tol``."""
+    pred = scale * t_emit
+    lags = (times[:, None] - pred[None, :]).ravel()
+    bins = np.round(lags / tol).astype(np.int64)
+    vals, counts = np.unique(bins, return_counts=True)
+    b = float(np.median(lags[bins == vals[np.argmax(counts)]]))
+    k = times[:, None] - (pred[None, :] + b)
+    near = np.argmin(np.abs(k), axis=1)
+    return near, k[np.arange(len(times)), near]
+
+
 def refine_scale(times, t_emit, scale, tol=MATCH_TOL):
     """(scale, n matched): the straight-line fit ``time = scale · t_emit + b`` of the detections ``times`` (s,
     local clock) matched to the emission times ``t_emit`` predicted at the coarse ``scale`` (offset: the
     median residual of each detection against its nearest predicted event)."""
     times, t_emit = np.sort(np.asarray(times, float)), np.sort(np.asarray(t_emit, float))
     for _ in range(2):
-        pred = scale * t_emit
-        # the offset: the mode of every (detection − predicted emission) pair, to a tolerance
-        lags = (times[:, None] - pred[None, :]).ravel()
-        bins = np.round(lags / tol).astype(np.int64)
-        vals, counts = np.unique(bins, return_counts=True)
-        b = float(np.median(lags[bins == vals[np.argmax(counts)]]))
-        k = np.abs(times[:, None] - (pred[None, :] + b))
-        near = np.argmin(k, axis=1)
-        ok = k[np.arange(len(times)), near] < tol
+        near, res = line_residuals(times, t_emit, scale, tol)
+        ok = np.abs(res) < tol
         if ok.sum() < MIN_MATCHED:
             return scale, int(ok.sum())
         scale = float(np.polyfit(t_emit[near[ok]], times[ok], 1)[0])

@@ -98,3 +98,55 @@ def test_array_noise_option_is_validated():
     from calib.estimator import validate_options
     with pytest.raises(ValueError, match="array_noise"):
         validate_options(array_noise="yes")
+
+
+def test_arrival_variances_combine_the_prior_gate_normalise_and_clip():
+    """Hand values of arraynoise.arrival_variances: an array moves from its prior only with enough redundancy;
+    the mean over the TDOA-S rows is held at 1 or above (the frontend's figure redistributed, not lowered)."""
+    from calib.estimator.arraynoise import ARRAY_MIN_REDUNDANCY, ARRIVAL_MAX_FACTOR, ARRIVAL_PRIOR_DOF, arrival_variances
+
+    P = ARRIVAL_PRIOR_DOF
+    v = np.array([0.25, 0.25, 9.0, 4.0])
+    red = np.array([20.0, 20.0, 20.0, ARRAY_MIN_REDUNDANCY - 1])   # the last: too little to move it
+    prior = np.ones(4)
+    rows = np.repeat(np.arange(4), 5)
+    raw = np.array([(0.25 * 20 + P) / (20 + P)] * 2 + [(9 * 20 + P) / (20 + P), 1.0])
+    np.testing.assert_allclose(arrival_variances(v, red, prior, rows), raw / min(raw.mean(), 1.0))
+    # every array quieter than stated: normalised up to a mean of 1 (their ratios kept)
+    quiet = arrival_variances(np.array([0.1, 0.4]), np.array([50.0, 50.0]), np.ones(2), np.array([0, 1]))
+    np.testing.assert_allclose(quiet.mean(), 1.0)
+    np.testing.assert_allclose(quiet[1] / quiet[0], (0.4 * 50 + P) / (0.1 * 50 + P))
+    # clipped to the allowed factor either way
+    big = arrival_variances(np.array([1e4, 1.0]), np.array([1e3, 1e3]), np.ones(2), np.array([0, 1]))
+    assert big[0] == ARRIVAL_MAX_FACTOR ** 2
+
+
+def _arrival_noise(feats, sig, rng):
+    """``feats`` (exact TDOAs) whose TDOA rows are differences of one error per (array, event), array a's with std
+    ``sig[a]``, as a frontend's are; meta says so, and its sigma_tdoa is the frontend-style pooled figure."""
+    names, ref = feats["meta"]["arrays"], feats["meta"]["reference_array"]
+    n = {(a, int(e)): rng.normal(0.0, sig[a]) for a in names for e in feats["events"]["event"]}
+    tm, ts = feats["tdoa_m"].copy(), feats["tdoa_s"].copy()
+    tm["tdoa"] += [n[(a, int(e))] - n[(ref, int(e))] for a, e in zip(tm["array"], tm["event"])]
+    ts["tdoa"] += [n[(a, int(b))] - n[(a, int(c))] for a, c, b in zip(ts["array"], ts["from_event"], ts["to_event"])]
+    pooled = np.sqrt(2 * np.mean([sig[a] ** 2 for a in names]))
+    meta = {**feats["meta"], "sigma_tdoa": float(pooled), "sigmas_estimated": ["sigma_tdoa"],
+            "tdoa_shared_arrivals": True}
+    return feats.replace(tdoa_m=tm, tdoa_s=ts, meta=meta)
+
+
+def test_residuals_find_the_array_whose_arrivals_are_noisier():
+    """Six arrays, 40 stops, one array's arrivals 3x the others' and no per-array claim: where the redundancy
+    allows, the arrays' arrival components (variance.estimate_arrival_scales) give that array the largest
+    scale, well above the others' (with one session-wide sigma every array's would be 1)."""
+    for seed in range(4):
+        rng = np.random.default_rng(900 + seed)
+        stops = np.column_stack([rng.uniform(0, 6, 40), rng.uniform(0, 5, 40), rng.uniform(0.5, 2.0, 40)])
+        feats, _ = simulate_features(stops, 1e-9, 2.0, 0.03, seed=900 + seed, n_arrays=6)
+        names = feats["meta"]["arrays"]
+        bad = 1 + seed % 5
+        f = _arrival_noise(feats, {a: 3e-6 if k == bad else 1e-6 for k, a in enumerate(names)},
+                           np.random.default_rng(seed))
+        a = calibrate(f, noise="estimate").problem.arrival_scale
+        others = np.delete(a, [0, bad])          # (the reference's own has little redundancy here)
+        assert np.argmax(a) == bad and a[bad] > 1.4 * np.median(others), (seed, a)

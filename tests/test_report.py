@@ -194,4 +194,11 @@ def test_rebuilt_model_keeps_the_arrays_own_sigmas(tmp_path):
     for kind, own in sig["per_array_factor"].items():
         typ = np.rad2deg(sig["doa_rad_per_axis"]) if kind == "doa" else sig[kind] * 1e6
         want = typ * np.array([own.get(a, 1.0) for a in feats[kind]["array"]])
+        arrival = sig.get("arrival_scale") or {}   # each array's arrival scale (variance.estimate_arrival_scales)
+        ref = feats["meta"]["reference_array"]
+        if kind == "tdoa_s":
+            want = want * np.array([arrival.get(a, 1.0) for a in feats[kind]["array"]])
+        elif kind == "tdoa_m":
+            want = want * np.array([np.sqrt((arrival.get(a, 1.0) ** 2 + arrival.get(ref, 1.0) ** 2) / 2)
+                                    for a in feats[kind]["array"]])
         np.testing.assert_allclose(res[kind]["row_sigma"], want, rtol=1e-9)

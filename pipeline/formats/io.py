@@ -247,7 +247,8 @@ def read_events(path):
 # every meta.json key calib knows (docs/formats.md); others are warned about with a did-you-mean
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
              "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s", "chirp_stretch_shift",
-             "doa_time_s", "stretch_time_s", "tdoa_shared_arrivals", "header_rates", "sample_rates")   # + the kinds' noise keys
+             "doa_time_s", "stretch_time_s", "tdoa_shared_arrivals", "header_rates", "sample_rates",
+             "sigma_arrival_per_array")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -300,6 +301,12 @@ def validate_meta(meta, path="meta.json"):
         raise InputError(f"{path}: array {sorted(both)[0]!r} is in both 'doa_mirror_normals' and 'doa_axes'")
     if meta.get("header_rates") is not None:
         out["header_rates"] = _header_rates(meta["header_rates"], arrays, path)
+    if meta.get("sigma_arrival_per_array") is not None:
+        own = meta["sigma_arrival_per_array"]
+        if not isinstance(own, dict) or not all(k in arrays for k in own):
+            raise InputError(f"{path}: 'sigma_arrival_per_array' must map array names to arrival sigmas (s)")
+        out["sigma_arrival_per_array"] = {k: V.sigma("sigma_tdoa", v, f"{path}: 'sigma_arrival_per_array' {k!r}")
+                                          for k, v in own.items()}
     if meta.get("sample_rates") is not None:
         rates = meta["sample_rates"]
         if not isinstance(rates, dict) or not all(k in arrays for k in rates):

@@ -393,7 +393,8 @@ def verdict_markdown(verdict):
 
 def _row_weight_lines(rep):
     """Notes under the residual table on why a type's rows have different σ: DOA rows weighted by their
-    own sigmas (report.json ``sigmas.doa_row_scale``), arrays by their own variance components
+    own sigmas (report.json ``sigmas.doa_row_scale``), TDOA rows by their arrays' arrival sigmas
+    (``sigmas.arrival_scale``), arrays by their own variance components
     (``sigmas.per_array_factor``)."""
     sig = rep.get("sigmas") or {}
     out = []
@@ -402,6 +403,10 @@ def _row_weight_lines(rep):
         out.append(f"- DOA rows weighted by their own sigmas (doa.csv `sigma_deg`, shrunk halfway to the type's): "
                    f"{rows['rows']} rows at {rows['min']:.2f}–{rows['max']:.2f}× the type's σ "
                    f"(median {rows['median']:.2f}).")
+    arrival = sig.get("arrival_scale")
+    if arrival:
+        out.append("- TDOA rows weighted by their arrays' own arrival sigmas (meta.json `sigma_arrival_per_array`, "
+                   "× the pooled one): " + ", ".join(f"{a} {v:.2f}" for a, v in arrival.items()) + ".")
     for kind, arrays in (sig.get("per_array_factor") or {}).items():
         if arrays:
             out.append(f"- {KINDS[kind].title if kind in KINDS else kind}: arrays with a σ of their own (× the type's): "
