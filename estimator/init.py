@@ -18,8 +18,9 @@ from scipy.spatial.transform import Rotation
 from calib.errors import InputError
 from calib.geometry import fold, mirror
 
+from .ambiguity import separation
 from .problem import empty_state, make_layout
-from .solver import levenberg_marquardt
+from .solver import levenberg_marquardt, linearise
 
 
 # The grid search of each array's pose uses at most this many events (evenly spaced): enough to rank grid
@@ -130,7 +131,6 @@ def refine_reference(p, st):
 
 def source_spread(q, st, lay):
     """RMS 1-σ source position uncertainty (m) of the reference-only solve (floored at 2 cm)."""
-    from .solver import linearise
     from .uncertainty import cov_diagonal, covariance
 
     J = linearise(q, st, lay, ["tdoa_s", "doa", "odometry"]).J
@@ -540,7 +540,6 @@ def initialise(p):
 FOLD_NEAR_PLANE_DEG = 20.0  # a planar array whose sources all lie this close to its mic plane has two basins
 FOLD_DCOST = 4.5            # an alternative basin within this cost (½ Δχ² = 3σ²/2) is not excluded by the data
 FOLD_MIN_DEG = 2.0          # ... if it is another basin: its orientation this far from the solution's
-FOLD_SWITCH = 1.0           # a basin lower by this much cost replaces the solution (the solve started wrong)
 
 
 def _rot(axis, angle):
@@ -554,7 +553,10 @@ def fold_candidates(p, st, i):
     """Other starting orientations of a mirror-ambiguous planar array ``i`` whose sources lie within
     FOLD_NEAR_PLANE_DEG of its mic plane: folded DOAs only tell each source's |elevation|, so a tilt that
     turns the elevations' mean e into −e (about the in-plane axis across the sources' mean direction, by
-    ∓2e) fits them too. Returns a list of rotation matrices (empty when the array is not in that case)."""
+    ∓2e) fits them too, and so may the orientations that put every source on one side of the plane (the
+    measured DOAs, or their mirror images, fitted to the directions: :func:`kabsch`). Returns a list of
+    rotation matrices, none within 1° of the solution's or of each other (empty when the array is not in
+    that case)."""
     m = p.doa.arr == i
     if i == p.ref or not np.any(p.fold[i]) or not p.rot_free[i] or m.sum() < 3:
         return []
@@ -569,36 +571,69 @@ def fold_candidates(p, st, i):
         return []
     k = np.cross(n, mean_dir / np.linalg.norm(mean_dir))
     e = float(np.mean(elev))
-    return [_rot(k, a) @ st.R[i] for a in (2 * e, -2 * e) if abs(a) > np.deg2rad(1.0)]
+    tilts = [_rot(k, a) @ st.R[i] for a in (2 * e, -2 * e)]
+    # every source on one side of the mic plane, then every one on the other (the DOAs as measured, or mirrored
+    # across the plane, fitted to the directions): a solution whose plane cuts through the sources (tilted about
+    # their mean direction, where e ≈ 0) has no tilt across it to the true basin
+    u = p.doa.u[m]
+    sides = [kabsch(uu, w)[0] for uu in (u, mirror(u, p.fold[i]))]
+    out = []
+    for R in tilts + sides:
+        if all(_angle_deg(R, Q) > 1.0 for Q in [st.R[i]] + out):
+            out.append(R)
+    return out
 
 
 def fold_basins(p, st, lay, kinds, mask, max_iter=200):
     """Try each planar array's other fold basin (:func:`fold_candidates`), re-solved by least squares from
-    there (the final mask). A lower cost: the solve had started in the wrong basin, and the better state is
-    kept. A cost within FOLD_DCOST (and FOLD_MIN_DEG away): the data cannot tell the basins apart. Returns
-    (state, records): one {array, dcost, rotation_deg, position_m, displacement_m, rotvec, switched, ambiguous}
-    per candidate."""
-    from .solver import linearise
+    there (the final mask). The lower cost is reported (a lower basin: the solve had started in the wrong one);
+    one within FOLD_DCOST (and FOLD_MIN_DEG away) is not excluded by the data, whichever is reported
+    (``verdict.fold_ambiguity`` names the array, its std covers the other). Unlike a mirror solution
+    (``ambiguity.mirror_basins``) the cost difference alone decides: the two basins' Δχ² follows its
+    linear-Gaussian law ±δ² ± 2δ (δ²: ``ambiguity.separation``, recorded), so ½ Δχ² ≥ FOLD_DCOST is 3σ-safe
+    at any δ (169 basin pairs with δ² < 100 of feature-level scenes: (Δχ² − δ²)/2δ std 0.89, |max| 3.0;
+    docs/method.md).
+    Returns (state, records): one {array, dcost, separation_chi2, rotation_deg, position_m, displacement_m,
+    rotvec, switched, ambiguous} per candidate (one that slides into a basin already tried: none); dcost is the other basin's cost minus the solution's before
+    the switch, displacement_m and rotvec (array frame) go from the reported basin to the other one."""
     cands = {i: fold_candidates(p, st, i) for i in range(p.N) if np.any(p.fold[i])}
     if not any(cands.values()):
         return st, []
     cost0 = linearise(p, st, lay, kinds, mask=mask).cost
     records = []
     for i in cands:
+        found = [st.R[i]]
         for R in fold_candidates(p, st, i):
             alt = st.copy()
             alt.R[i] = R
             alt, _ = levenberg_marquardt(p, alt, lay, kinds, loss=None, mask=mask, max_iter=max_iter)
-            c = linearise(p, alt, lay, kinds, mask=mask).cost
-            dR = st.R[i].T @ alt.R[i]
-            rec = {"array": str(p.names[i]), "dcost": float(c - cost0),
-                   "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
-                   "position_m": float(np.linalg.norm(alt.x[i] - st.x[i])),
-                   "displacement_m": (alt.x[i] - st.x[i]).tolist(),   # (uncertainty.cover_alternative)
-                   "rotvec": Rotation.from_matrix(dR).as_rotvec().tolist()}
-            rec["switched"] = bool(c < cost0 - FOLD_SWITCH and rec["rotation_deg"] >= FOLD_MIN_DEG)
-            rec["ambiguous"] = bool(abs(c - cost0) < FOLD_DCOST and rec["rotation_deg"] >= FOLD_MIN_DEG)
+            if any(_angle_deg(Q, alt.R[i]) < FOLD_MIN_DEG for Q in found[1:]):
+                continue   # a basin already tried
+            found.append(alt.R[i])
+            rec = _fold_record(p, st, alt, lay, kinds, mask, i, cost0)
             records.append(rec)
             if rec["switched"]:
-                st, cost0 = alt, c
+                st, cost0 = alt, cost0 + rec["dcost"]
     return st, records
+
+
+def _angle_deg(Ra, Rb):
+    """The angle (deg) of the rotation between orientations ``Ra`` and ``Rb``."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
+def _fold_record(p, st, alt, lay, kinds, mask, i, cost0):
+    """Array ``i``'s other fold basin ``alt`` against the solution ``st`` (:func:`fold_basins`' record)."""
+    dR = st.R[i].T @ alt.R[i]
+    dcost = float(linearise(p, alt, lay, kinds, mask=mask).cost - cost0)
+    rotation = _angle_deg(st.R[i], alt.R[i])
+    apart = rotation >= FOLD_MIN_DEG   # (the refit may have slid back into the solution's basin)
+    ambiguous = bool(apart and abs(dcost) < FOLD_DCOST)
+    switched = bool(apart and dcost < 0.0)   # the lower cost is reported, decided or not
+    sign = -1.0 if switched else 1.0         # from the reported basin to the other one
+    sep = separation(p, st, alt, lay, kinds, mask) if apart else 0.0
+    return {"array": str(p.names[i]), "dcost": dcost, "separation_chi2": sep,
+            "rotation_deg": rotation, "position_m": float(np.linalg.norm(alt.x[i] - st.x[i])),
+            "displacement_m": (sign * (alt.x[i] - st.x[i])).tolist(),   # (uncertainty.cover_alternative)
+            "rotvec": (sign * Rotation.from_matrix(dR).as_rotvec()).tolist(), "switched": switched,
+            "ambiguous": ambiguous}

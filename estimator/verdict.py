@@ -244,18 +244,19 @@ def name_distrusted(verdict, screened):
 
 
 def fold_ambiguity(out, basins):
-    """Arrays whose other fold basin (``init.fold_basins``) fits as well (``ambiguous``): their covariance
-    widened to cover the other basin (``uncertainty.cover_alternative``), and the verdict names them
-    (``suspect``). In place on ``calibrate``'s output."""
+    """Arrays whose other fold basin (``init.fold_basins``) fits as well (``ambiguous``; the lower-cost one is
+    reported, switched or not): their covariance widened to cover the other basin
+    (``uncertainty.cover_alternative``), and the verdict names them (``suspect``). In place on ``calibrate``'s
+    output."""
     verdict = out["report"]["verdict"]
     for b in basins:
-        if b["switched"] or not b["ambiguous"]:
+        if not b["ambiguous"]:
             continue
         cover_alternative(out, b["array"], b["displacement_m"], b["rotvec"])
         flag(verdict, b["array"])
         verdict["reasons"].append(f"array {b['array']}: its sources all lie near its mic plane, where planar DOAs "
                                   f"fold; another orientation {b['rotation_deg']:.0f}° away fits as well (cost "
-                                  f"+{b['dcost']:.1f}): its std covers both")
+                                  f"{-b['dcost'] if b['switched'] else b['dcost']:+.1f}): its std covers both")
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return out
 
