@@ -54,6 +54,7 @@ from calib.options import validate_options
 from calib.robust import mad_std
 from calib.tables import ARRAY_PARAMS
 
+from .factors import active_kinds, row_arrays
 from .init import ObservabilityError
 
 FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
@@ -499,19 +500,7 @@ def _prescreen(D, base, fit, cands):
 
 # ----------------------------------------------------------------------------------------------- joint scan
 def _kinds(p):
-    from .factors import active_kinds
-
     return active_kinds(p)
-
-
-def _row_arrays(p, fs):
-    """The array of each stacked residual row of the factors ``fs`` (-1: rows of no array, e.g. odometry)."""
-    out = []
-    for f in fs:
-        arr = getattr(getattr(p, f.kind, None), "arr", None)
-        rows = np.repeat(arr, f.dim) if arr is not None and len(arr) * f.dim == len(f.r) else None
-        out.append(rows if rows is not None else np.full(len(f.r), -1))
-    return np.concatenate(out) if out else np.zeros(0, int)
 
 
 def _robust_weights(result, lin, p=None, own=None):
@@ -523,7 +512,7 @@ def _robust_weights(result, lin, p=None, own=None):
     r = lin.r
     tdoa = np.concatenate([np.full(len(f.r), f.kind in ("tdoa_s", "tdoa_m")) for f in lin.factors])
     p = result["problem"] if p is None else p
-    dropped = np.isin(_row_arrays(p, lin.factors), [j for j, n in enumerate(p.names)
+    dropped = np.isin(row_arrays(p, lin.factors), [j for j, n in enumerate(p.names)
                                                     if str(n) in _distrusted(result) and str(n) != own])
     use = tdoa & ~dropped
     scale = max(1.0, 1.4826 * float(np.median(np.abs(r[use])))) if use.any() else 1.0
@@ -704,7 +693,7 @@ def _event_rows(p, fs, rows, ids=False):
 
 def _array_rows(p, fs, rows):
     """For each array with any of the stacked rows ``rows``: the indices of those rows that are its."""
-    arr = _row_arrays(p, fs)
+    arr = row_arrays(p, fs)
     return [np.flatnonzero(rows & (arr == a)) for a in np.unique(arr[rows]) if a >= 0]
 
 
@@ -1629,7 +1618,7 @@ def _doa_cost(result, features, sigma=None):
     if not kinds:
         return np.zeros(p.N), {}
     lin = linearise(p, result["state"], make_layout(p), kinds)
-    arr = _row_arrays(p, lin.factors)
+    arr = row_arrays(p, lin.factors)
     phys = np.concatenate([f.r * np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if sigma is None or len(sigma) != len(own) else sigma

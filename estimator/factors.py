@@ -329,6 +329,16 @@ def per_array(p, f):
     return dataclasses.replace(f, r=f.r / s, J=out, sigma_rows=f.row_sigma * s)
 
 
+def row_arrays(p, fs):
+    """The array of each stacked residual row of the factors ``fs`` (-1: rows of no array, e.g. odometry)."""
+    out = []
+    for f in fs:
+        arr = getattr(getattr(p, f.kind, None), "arr", None)
+        rows = np.repeat(arr, f.dim) if arr is not None and len(arr) * f.dim == len(f.r) else None
+        out.append(rows if rows is not None else np.full(len(f.r), -1))
+    return np.concatenate(out) if out else np.zeros(0, int)
+
+
 def natural(f):
     """A factor's residuals in SI units (whitened residual × its row's sigma)."""
     return f.r * f.row_sigma

@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse
 
 from . import arraynoise
-from .factors import KINDS
+from .factors import KINDS, row_arrays
 from .problem import make_layout, with_arrival_scale
 from .robust import chi2_median, measurement_stats, sym_inverse
 from .solver import levenberg_marquardt, linearise, use_dense
@@ -258,15 +258,7 @@ def arrival_components(p, st, lay, kinds, mask):
     r = lin.r[keep]
     D = D[np.flatnonzero(keep)].toarray()
     kind = np.concatenate([np.full(len(f.r), f.kind, dtype=object) for f in lin.factors])[keep]
-    arr = np.full(len(kind), -1)
-    start, ks = 0, np.flatnonzero(keep)
-    for f in lin.factors:
-        n = len(f.r)
-        if f.kind in ("tdoa_s", "tdoa_m") and n:
-            at = np.searchsorted(ks, start + np.arange(n))
-            ok = (at < len(ks)) & (ks[np.minimum(at, len(ks) - 1)] == start + np.arange(n))
-            arr[at[ok]] = p.rows(f.kind).arr[ok]
-        start += n
+    arr = np.where((kind == "tdoa_s") | (kind == "tdoa_m"), row_arrays(p, lin.factors)[keep], -1)
     K = p.K
     cols = [D[:, h * K:(h + 1) * K] for h in range(p.N)]
     others = [k for k in dict.fromkeys(kind) if k not in ("tdoa_s", "tdoa_m")]
