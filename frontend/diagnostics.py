@@ -80,14 +80,16 @@ def plot_detections(path, diag, marks=None):
     matched detections (green, event id where it fits beside the previous one), spurious ones (red ×), missed
     events at their predicted time (grey dashed); ``marks`` {array: [(time on its clock, label)]}: e.g. the clock steps the estimator found
     (purple dash-dot)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # a Figure on its own Agg canvas, not pyplot (nothing is shown on screen, no global state): pyplot's import
+    # and figure manager were ~15 % of the plot's CPU in a fresh process (1.20-1.38 → 1.03-1.09 s, the same pixels)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     arrays = diag["arrays"]
     n = len(arrays)
-    fig, axes = plt.subplots(n, 1, figsize=(FIG_WIDTH_IN, 1.55 * n + 0.9), sharex=True, squeeze=False)
+    fig = Figure(figsize=(FIG_WIDTH_IN, 1.55 * n + 0.9))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(n, 1, sharex=True, squeeze=False)
     t_max = max(a["duration_s"] for a in arrays.values())
     for ax, (name, a) in zip(axes[:, 0], arrays.items()):
         if "_env" in a:
@@ -134,4 +136,3 @@ def plot_detections(path, diag, marks=None):
                  "out by the estimator), orange = another doubt", fontsize=10)
     _fixed_margins(fig, n)  # tight_layout measured every label: ~0.1 s of a ~0.5 s plot
     fig.savefig(path, dpi=100)
-    plt.close(fig)

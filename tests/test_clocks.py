@@ -434,6 +434,38 @@ def test_correct_features_takes_a_model_out_of_the_tdoas():
     assert extra(models["A3"], np.array([0.0, 1e3])).tolist() == [0.0, 0.004]
 
 
+@pytest.mark.parametrize("noise, first_after", [(1.0, 6), (0.0, 6), (1.0, 10)])
+def test_the_persistent_drop_is_the_step_s_chi2_refitted_without_each_run_of_events(noise, first_after):
+    """persistent_drop's deletion formula against explicit refits: a linear model (5 columns, 12 events of 3
+    rows) with a step from event ``first_after`` on, the step's χ² drop refitted with the rows of every one or
+    two consecutive events removed; the smallest is what it returns. noise 0: the leave-out noncentrality
+    (bench_clocks.attainable). A step two events from the end: the run of both its late events is not left out."""
+    from calib.estimator.clockmodel import end_side, persistent_drop
+
+    rng = np.random.default_rng(7)
+    K, m = 12, 3
+    A = rng.normal(size=(K * m, 5))
+    ev = np.repeat(np.arange(K), m)
+    b = (ev >= first_after).astype(float)
+    y = A @ rng.normal(size=5) + 2.0 * b + noise * rng.normal(size=K * m)
+    G = np.linalg.inv(A.T @ A)
+    P = np.eye(K * m) - A @ G @ A.T
+    groups = [np.flatnonzero(ev == e) for e in range(K)]
+    side = end_side(np.arange(K, dtype=float), first_after - 0.5)
+
+    def drop(keep):   # the χ² drop of the step refitted on the rows ``keep``
+        rss = [float(np.sum((y[keep] - X @ np.linalg.lstsq(X, y[keep], rcond=None)[0]) ** 2))
+               for X in (A[keep], np.column_stack([A[keep], b[keep]]))]
+        return rss[0] - rss[1]
+
+    runs = [range(k, k + w) for w in (1, 2) for k in range(K - w + 1)
+            if side is None or not set(side) <= set(range(k, k + w))]
+    want = min([drop(np.ones(K * m, bool))] + [drop(~np.isin(ev, list(run))) for run in runs])
+    got = persistent_drop(lambda R: A[R] @ G @ A[R].T, P @ y, P @ b, groups, side=side)
+    assert (side is not None) == (first_after == 10)
+    assert got == pytest.approx(max(want, 0.0), rel=1e-8, abs=1e-9)
+
+
 # ----------------------------------------------------------------------------------------------- the user's path
 def test_estimate_clock_model_flag_and_evaluate_scores_the_clock(tmp_path):
     """`calib estimate` (its default clock model, auto) models A3's dropped block, `calib evaluate` scores it against
