@@ -27,7 +27,7 @@ end) rests on those arrivals alone: it needs the array's DOAs there on the direc
 about those arrivals (:func:`clock_persistence`, :func:`direct_path`), and to keep its evidence once the best
 smooth drift term is fitted (:func:`_given`). A last joint Gauss–Newton step adds the components' columns to the full Jacobian
 (:func:`refine`): their sizes, their 1-σ and the array parameters' 1-σ with them (the step's uncertainty in
-the error bars).
+the error bars: the solve's own honest σ widened by it, :func:`_apply_std`).
 
 At scale (:mod:`calib.estimator.clockscan`): no dense rows × parameters matrix; a large session's clocks are
 screened on their own rows first (:func:`_screen`: cumulative sums, O(rows)) and only flagged clocks are scored
@@ -35,7 +35,8 @@ jointly; a long session's per-array fits are of the locally best candidates (:fu
 frontend doubted as reflections over a block that opens or closes an array's session, off by one constant
 amount, are readmitted with a step at its edge (:func:`_readmitted`). A seeded step whose array jumps again in
 the next (or previous) interval is a chirp lost in the dropped block: that one arrival is an ``arrival`` component
-(no clock term; report.json ``clock.arrays[a].arrivals``), the step sized across both (:func:`_lost_arrivals`).
+(no clock term; report.json ``clock.arrays[a].arrivals``), the step sized across both (:func:`_lost_arrivals`);
+it goes with its step: where the selection removes the step, the arrival is removed too (:func:`_beside_steps`).
 
 A fitted |drift| >= RATE_ERROR_MIN is no crystal's: the header's sample rate is wrong; it is named (with
 the pair of common rates it matches, :func:`calib.clock.header_ratio`) and the calibration stays in the
@@ -1289,6 +1290,29 @@ def _lost_arrivals(start, jumps, u_of):
     return out
 
 
+def _beside_steps(models, t):
+    """``models`` less each "arrival" component (:func:`_lost_arrivals`) without a step of its array in an
+    interval its event ends (event times ``t``), and less the arrays left without components. A chirp lost in a
+    dropped block is at that block's edge: without the step it is one outlier, which the robust solve screens;
+    an arrival term alone takes that array's rows at the event out of the fit unjudged (no test weighs it:
+    featsim seed 6 of test_motion_noise, a source mis-placed at one event, left A5 an arrival 1.2 ms off and no
+    step, 10 cm off)."""
+    t = np.unique(np.asarray(t, float))
+
+    def ends(c):   # (the events that end the step's interval)
+        k = int(np.searchsorted(t, c.time)) - 1
+        return {t[j] for j in (k, k + 1) if 0 <= j < len(t)}
+
+    out = {}
+    for name, comps in models.items():
+        edges = set().union(*[ends(c) for c in comps if c.kind == "step"])
+        kept = [c for c in comps if c.kind != "arrival" or any(abs(c.time - e) <= 1e-9 * max(1.0, abs(e))
+                                                                for e in edges)]
+        if kept:
+            out[name] = kept
+    return out
+
+
 def _level_sized(result, corrected, start, events, u):
     """``start`` ({array: [its one step]}) with each step's size corrected by the level of the array's TDOA-M
     after it against before it at ``result`` (solved from ``corrected``, the features less ``start``:
@@ -1628,8 +1652,8 @@ def _refine_and_resolve(solve, features, result, models, options, first=None):
         if weak is not None:
             name, k = weak
             removed.append((name, *_key(models[name][k])))
-            models = {**models, name: [c for j, c in enumerate(models[name]) if j != k]}
-            models = {n: c for n, c in models.items() if c}
+            models = _beside_steps({**models, name: [c for j, c in enumerate(models[name]) if j != k]},
+                                   result["problem"].t)
         elif not moved:
             break
         result = solve(correct_features(features, models), **options)
@@ -1913,9 +1937,11 @@ def refine(result, models):
     sw = 1.0 / np.sqrt(1.0 + (r / (HUBER_K * scale)) ** 2)
     step = _normal_solve(_weighted(lin.J, B, sw), -r * sw)
     # the covariance: the estimator's rows (outliers out), as its own error bars
-    cov = _normal_covariance(_weighted(lin.J, B, np.where(keep, np.sqrt(np.maximum(lin.w, 0.0)), 0.0)))
+    sw = np.where(keep, np.sqrt(np.maximum(lin.w, 0.0)), 0.0)
+    cov = _normal_covariance(_weighted(lin.J, B, sw))
     dc, sd = step[lay.n:], np.sqrt(np.maximum(np.diag(cov)[lay.n:], 0.0))
-    return _update(models, keys, dc, sd) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n]},)
+    return _update(models, keys, dc, sd) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n],
+                                             "rows": (lin.J, B[:, :0], sw)},)
 
 
 def _scaled_normal(A):
@@ -1959,31 +1985,39 @@ def _update(models, keys, dc, sd):
 
 
 def _apply_std(result, info):
-    """The arrays' and sources' 1-σ columns from the joint covariance with the components (where they are
-    given: an unreliable array's stay empty)."""
+    """The arrays' and sources' 1-σ columns (and calibration.json's array covariance) widened by the components'
+    uncertainty: each parameter's σ times (its joint σ with the components / its σ without them), both of the
+    estimator's rows as weighted (``info`` from :func:`refine`). The solve's own σ are its honest ones (the rows'
+    σ² factors, shared arrivals, a moving source's velocity error: ``uncertainty.honest_covariance``), which the
+    plain joint covariance lacks: put in their place it held featsim seed 6 of test_motion_noise's arrays at
+    0.9 mm, 2-10 cm off. A component only adds uncertainty: no σ is made smaller (an unreliable array's stay
+    empty)."""
     if info is None or "arrays" not in result:
         return
     from .assess import labelled_array_covariance
     from .uncertainty import std_from_cov
 
-    p = info["problem"]
-    std = std_from_cov(p, info["layout"], info["cov"])
-    if result.get("array_covariance") is not None:   # calibration.json's, as the std columns
-        index = {str(n): i for i, n in enumerate(p.names)}
-        result["array_covariance"] = labelled_array_covariance(
-            p, info["layout"], info["cov"], without={index[n] for n in _unreliable(result) if n in index})
+    p, lay = info["problem"], info["layout"]
+    plain = np.diag(_normal_covariance(_weighted(*info["rows"])))
+    ratio = np.sqrt(np.divide(np.diag(info["cov"]), plain, out=np.ones_like(plain), where=plain > 0))
+    ratio = np.where(np.isfinite(ratio), np.maximum(ratio, 1.0), 1.0)
+    widen = std_from_cov(p, lay, np.diag(ratio ** 2))
+    if result.get("array_covariance") is not None:   # calibration.json's, widened as the std columns
+        labels, cov = result["array_covariance"]
+        names, block = labelled_array_covariance(p, lay, np.diag(ratio))
+        by_label = dict(zip(names, np.diag(block)))
+        d = np.array([by_label.get(lab, 1.0) for lab in labels])
+        result["array_covariance"] = (labels, np.asarray(cov) * np.outer(d, d))
     arrays, sources = result["arrays"], result["sources"]
     for a in ARRAY_PARAMS:
-        v = np.asarray(std[a.key]).reshape(len(arrays), -1)
+        v = np.asarray(widen[a.key]).reshape(len(arrays), -1)
         for k, col in enumerate(a.std_columns):
             if col in arrays:
-                old = arrays[col].to_numpy(float)
-                arrays[col] = np.where(np.isfinite(old) & np.isfinite(v[:, k]), v[:, k], old)
+                arrays[col] = arrays[col].to_numpy(float) * np.where(np.isfinite(v[:, k]), v[:, k], 1.0)
     for k, c in enumerate("xyz"):
         col = f"{c}_std"
         if col in sources:
-            old = sources[col].to_numpy(float)
-            sources[col] = np.where(np.isfinite(old), std["s"][:, k], old)
+            sources[col] = sources[col].to_numpy(float) * np.where(np.isfinite(widen["s"][:, k]), widen["s"][:, k], 1.0)
 
 
 # ----------------------------------------------------------------------------------------------- bound
