@@ -117,7 +117,7 @@ def attainable(c0, truth):
     if not want:
         return float("nan"), float("nan")
     p, st = c0["problem"], c0["state"]
-    lin = linearise(p, st, make_layout(p), cm._kinds(p))
+    lin = linearise(p, st, make_layout(p), cm.active_kinds(p))
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else lin.J
     Q, _ = np.linalg.qr(J)
     names = [str(n) for n in p.names]

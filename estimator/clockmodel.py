@@ -499,10 +499,6 @@ def _prescreen(D, base, fit, cands):
 
 
 # ----------------------------------------------------------------------------------------------- joint scan
-def _kinds(p):
-    return active_kinds(p)
-
-
 def _robust_weights(result, lin, p=None, own=None):
     """√ of the Huber weights of a linearisation's rows in the TDOA rows' robust scale, and that scale. The
     rows of the arrays the solve dropped as unreliable weigh nothing: their pose was fitted to them alone, the
@@ -546,7 +542,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None, doubted=frozenset
     lay = make_layout(p)
     if lay.n > SCAN_MAX:
         return {}
-    lin = linearise(p, st, lay, _kinds(p), dense=False)
+    lin = linearise(p, st, lay, active_kinds(p), dense=False)
     J = scipy.sparse.csr_matrix(lin.J)
     r = lin.r
     sw0, scale = _robust_weights(result, lin)
@@ -968,7 +964,7 @@ def structure_test(result, models, name, k, features=None):
     lay = make_layout(p)
     if lay.n > SCAN_MAX:
         return None
-    lin = linearise(p, st, lay, _kinds(p), dense=False)
+    lin = linearise(p, st, lay, active_kinds(p), dense=False)
     r = lin.r
     sw, scale = _robust_weights(result, lin, p, own=name)
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
@@ -1165,7 +1161,7 @@ def _robust_cost(result, row_sigma=None, features=None, rho=huber_rho):
     from .solver import linearise
 
     p = _every_row(result, features)
-    lin = linearise(p, result["state"], make_layout(p), _kinds(p))
+    lin = linearise(p, result["state"], make_layout(p), active_kinds(p))
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if row_sigma is None else row_sigma
     return float(np.sum(rho(lin.r * own / sig))), sig
@@ -1328,7 +1324,7 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
     from .solver import linearise
 
     p = _every_row(first, features)
-    if "tdoa_m" not in _kinds(p):
+    if "tdoa_m" not in active_kinds(p):
         return None
     i = [str(n) for n in p.names].index(array)
     at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
@@ -1360,7 +1356,7 @@ def _block_direct(first, features, array, block):
     from .solver import linearise
 
     p = _every_row(first, features)
-    if "doa" not in _kinds(p) or array not in [str(n) for n in p.names]:
+    if "doa" not in active_kinds(p) or array not in [str(n) for n in p.names]:
         return False
     fs = linearise(p, first["state"], make_layout(p), ["doa"]).factors
     at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
@@ -1614,7 +1610,7 @@ def _doa_cost(result, features, sigma=None):
     from .solver import linearise
 
     p = _every_row(result, features)
-    kinds = [k for k in _kinds(p) if k in ("doa", "cone")]
+    kinds = [k for k in active_kinds(p) if k in ("doa", "cone")]
     if not kinds:
         return np.zeros(p.N), {}
     lin = linearise(p, result["state"], make_layout(p), kinds)
@@ -1664,7 +1660,7 @@ def persistence(result, models, features=None):
     lay = make_layout(p)
     if lay.n > SCAN_MAX:
         return {}
-    lin = linearise(p, st, lay, _kinds(p), dense=False)
+    lin = linearise(p, st, lay, active_kinds(p), dense=False)
     E, keys = component_columns(p, lin.factors, models)
     index = {**{str(n): j for j, n in enumerate(p.names)}, EMITTER: -1}
     doubted = doubted_arrivals(features) if features is not None else frozenset()
@@ -1849,7 +1845,7 @@ def refine(result, models):
     from .solver import linearise
 
     p, st = result["problem"], result["state"]
-    kinds = _kinds(p)
+    kinds = active_kinds(p)
     lay = make_layout(p)
     full = linearise(p, st, lay, kinds)
     outliers = result["outliers"] if "outliers" in result else result["report"]["outliers"]

@@ -19,7 +19,7 @@ def _linearised(f):
     res = calibrate(f, clock_model="linear")
     p, st = res["problem"], res["state"]
     lay = make_layout(p)
-    lin = linearise(p, st, lay, cm._kinds(p), dense=False)
+    lin = linearise(p, st, lay, cm.active_kinds(p), dense=False)
     return res, p, lay, lin
 
 
