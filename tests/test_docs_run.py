@@ -167,9 +167,7 @@ def test_readme_runs(tmp_path):
     first, again = tour[1], tour[2]
     assert "skipped" not in first
     assert "skipped (unchanged): features, estimate, report" in again, again[-500:]
-    # "in well under a second of estimation": the estimator's own total (order of magnitude: load-tolerant)
-    report = json.loads((tmp_path / "out/calibration/report.json").read_text())
-    assert report["timings_s"]["total"] < 2.0, report["timings_s"]
+    # ("in well under a second of estimation" is a speed figure: benchmarks/bench_run.py's estimate_s, not a test)
     # the stages alone give the calibration `calib run` gave (same features, deterministic estimator)
     import pandas as pd
 
