@@ -849,3 +849,50 @@ def test_arrivals_doubted_for_a_reason_no_clock_gives_are_free_in_the_per_array_
     np.testing.assert_allclose(coef, [-1.4e-4, -1.4e-4], atol=3e-6)
     got = cm.best_component(D, [], st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1, free=free)
     assert got[0] is None or all(c.kind != "arrival" for c in got[0])
+
+
+# ----------------------------------------------------------------------------------------------- moving source
+def _moving_scene(seed, sigma_v, monkeypatch):
+    """test_motion_noise's moving scene: a robot that keeps moving while it chirps, the velocity the correction
+    uses off by σ_v per axis (stated as such), linear clocks."""
+    import calib.estimator.motion as motion
+    from .test_motion_nlos import _moving
+
+    monkeypatch.setattr(motion, "velocity_sigma", lambda *a, **k: sigma_v)
+    f, tr = simulate_features(2, 2e-6, 0.05, 0.01, seed=seed)
+    vel_error = np.random.default_rng(100 + seed).normal(0.0, sigma_v, (len(f["events"]), 3))
+    return _moving(f, tr, with_vel=True, vel_error=vel_error)[0], tr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_moving_source_s_velocity_error_makes_no_clock_term(monkeypatch, seed):
+    """A velocity error of 0.05 m/s per axis moves each event's corrected arrivals as 3 cm of source shift,
+    which the odometry does not follow: the clocks are linear, so no clock term (unmodelled, the nuisance made
+    an emitter step and steps of A1 on these seeds, and the selection solved the session dozens of times)."""
+    g, _ = _moving_scene(seed, 0.05, monkeypatch)
+    out = calibrate(g, noise="meta")
+    assert out["report"]["stages"]["motion"]["velocity_sigma_m_s"] == 0.05
+    clock = out["report"]["clock"]
+    assert not any(a["components"] for a in clock["arrays"].values())
+    assert not clock["emitter"]["components"]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the scan finds the step (+1.96 ms in its interval), but the solve, whose "
+                   "fit does not model the velocity error (issue 27), still drops A3 as inconsistent with it: the "
+                   "array keeps the linear clock, unreliable (on main too)")
+def test_a_step_in_a_moving_session_is_still_found(monkeypatch):
+    """The velocity nuisance does not hide a clock fault well above it: 2 ms of samples inserted on A3 between
+    two middle events (the nuisance's arrival error is ~0.1 ms) is found in its interval, its size within 3σ."""
+    g, tr = _moving_scene(7, 0.05, monkeypatch)
+    t = g["events"]["t_emit"].to_numpy(float)
+    k = len(t) // 2
+    g = correct_features(g, {"A3": [Component("step", 0.5 * (t[k - 1] + t[k]) - t[0], -0.002)]})   # (+2 ms)
+    out = calibrate(g, noise="meta")
+    steps = out["report"]["clock"]["arrays"]["A3"]["steps"]
+    ev = g["events"]["event"].to_numpy()
+    assert len(steps) == 1 and (steps[0]["after_event"], steps[0]["before_event"]) == (ev[k - 1], ev[k])
+    assert abs(steps[0]["size"] - 0.002) < 3.0 * steps[0]["std"]
+    others = [n for n, a in out["report"]["clock"]["arrays"].items() if n != "A3" and a["components"]]
+    assert not others
