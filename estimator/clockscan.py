@@ -24,19 +24,23 @@ DENSE_PROJECT = 600   # parameters: up to this AᵀA is factored dense, beyond b
 
 
 class Projector:
-    """Projection off the columns of A (CSR or dense, rows × n): P x = x − A (AᵀA)⁻¹ Aᵀ x.
+    """Projection off the columns of A (CSR or dense, rows × n): P x = x − A (AᵀA)⁻¹ Aᵀ x. ``prior`` (n,): a
+    unit prior on some columns (a nuisance of known σ, its columns scaled by it): (AᵀA + diag(prior))⁻¹, as if
+    rows [0 I] with zero residual were appended; on A's own rows every quantity is that augmented projection's.
 
     AᵀA is Jacobi-scaled (unit diagonal; a column no row touches gets 1: it projects out nothing) with a tiny
     ridge (directions the rows do not fix: a gauge) and factored once: dense Cholesky for a small problem, else
     as the solver does (``solver.Schur``: the banded event block eliminated, a dense array block; ``lay`` the
     problem's layout, columns past ``lay.n`` are array-block columns: the clock components)."""
 
-    def __init__(self, A, lay=None):
+    def __init__(self, A, lay=None, prior=None):
         from .solver import Schur
 
         self.A = scipy.sparse.csr_matrix(A)
         n = self.A.shape[1]
         H = (self.A.T @ self.A).tocsr()
+        if prior is not None:   # (n,) unit-σ prior rows on some columns (a nuisance): AᵀA + diag(prior)
+            H = (H + scipy.sparse.diags(np.asarray(prior, float))).tocsr()
         dead = H.diagonal() <= 0
         if dead.any():
             H = H + scipy.sparse.diags(dead.astype(float))

@@ -121,9 +121,6 @@ def _session(seed, n=24):
     return np.clip(walk, [0.2, 0.2, 0.3], [5.8, 4.8, 1.7])
 
 
-@pytest.mark.xfail(strict=True, reason="the lost chirp's rows (620σ, screened by the solve) fail the true step's "
-                   "structure test; excluding screened rows from that test let µs-sized false steps pass on a "
-                   "rendered hall session (docs/results.md): open")
 def test_a_chirp_lost_in_a_dropped_block_leaves_the_step_and_the_others_alone():
     # a 50 ms block dropped between two events 80 ms apart: the later chirp falls into the lost samples (its
     # arrival is the block's start), rows hundreds of σ off that the solve screens out; they must neither make
@@ -141,8 +138,107 @@ def test_a_chirp_lost_in_a_dropped_block_leaves_the_step_and_the_others_alone():
     assert (s["after_event"], s["before_event"]) == (k, k + 1) and abs(s["size"] + 0.05) < 3 * s["std"]
     assert all(not _steps(cal, a) for a in ("A1", "A2", "A4", "A5"))
     assert not cal["report"]["clock"]["emitter"]["steps"]
+    # the lost chirp's arrival is modelled as that one arrival's error (not a drift term), at event k + 1, off by
+    # its recorded arrival against the clock after the step (truth: its TDOA-M against the fault-free one's)
+    a3 = cal["report"]["clock"]["arrays"]["A3"]
+    assert not a3["drift_terms"]
+    (arr,) = a3["arrivals"]
+    m = f["tdoa_m"][(f["tdoa_m"]["array"] == "A3") & (f["tdoa_m"]["event"] == k + 1)]["tdoa"].iloc[0]
+    m0 = f0["tdoa_m"][(f0["tdoa_m"]["array"] == "A3") & (f0["tdoa_m"]["event"] == k + 1)]["tdoa"].iloc[0]
+    assert arr["event"] == k + 1 and abs(arr["size"] - (m - m0 + 0.05)) < 1e-4
     clean = evaluate(calibrate(f0), truth)["position_rmse_m"]
     assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean + 0.002
+
+
+def _walk36(seed):
+    """The clock benchmark's 3-minute session: 36 stops of a random walk (benchmarks/bench_clocks.py ``session``)."""
+    rng = np.random.default_rng([seed, 2800])
+    return np.clip(np.cumsum(rng.normal(0, 0.8, (36, 3)) * [1, 1, 0.2], axis=0) + [3.0, 2.5, 1.0],
+                   [0.2, 0.2, 0.3], [5.8, 4.8, 1.7])
+
+
+
+def _lost_chirp_seeded(size):
+    """(features, the seeded models, their solve) of the clock benchmark's session whose
+    A3 has its arrival at event k mis-detected 5 ms early and, if ``size``, a step of that size just before k;
+    seeded as the jumps seed a lost chirp (:func:`clockmodel._lost_arrivals`): a step next to k (size 0) and
+    the arrival at k."""
+    from calib.estimator.calibrate import calibrate_features
+
+    seed, k, name = 3104, 12, "A3"
+    sim = dict(seed=seed, max_interval=10.0)
+    f, _ = simulate_features(_walk36(seed), SIGMA, 5.0, 0.03, **sim)
+    t = f["events"]["t_emit"].to_numpy() - f["events"]["t_emit"].iloc[0]
+    if size:
+        f = simulate_features(_walk36(seed), SIGMA, 5.0, 0.03, **sim,
+                              clocks={name: {"steps": [{"size": size, "time": 0.5 * (t[k - 1] + t[k])}]}})[0]
+    g = ck.delay_arrivals(f, name, {int(f["events"]["event"].iloc[k]): -5e-3})
+    models = {name: [Component("step", 0.5 * (t[k - 1] + t[k]), 0.0), Component("arrival", float(t[k]), -5e-3)]}
+    return g, models, calibrate_features(correct_features(g, models))
+
+
+def test_a_lost_arrival_goes_with_its_step():
+    """An "arrival" term (a chirp lost in a dropped block, stamped at its edge) stands only beside its step. On a
+    session whose clocks are clean and whose one arrival at k is mis-detected, seeded with a step next to k and
+    that arrival: the step has no evidence and is removed, and the arrival with it (alone it takes A3's rows at k
+    out of the fit unjudged; the robust solve screens that one outlier: featsim seed 6 of test_motion_noise)."""
+    from calib.estimator import clockmodel as cm
+    from calib.estimator.calibrate import calibrate_features
+
+    g, models, res = _lost_chirp_seeded(0.0)
+    _, kept, _, _ = cm._refine_and_resolve(calibrate_features, g, res, models, {})
+    assert kept == {}
+
+
+@pytest.mark.slow
+def test_a_lost_arrival_beside_a_true_step_stays_and_only_widens_the_stds():
+    """The contrast: the same lost arrival beside a true 20 ms drop just before it: the step is kept, sized within
+    3σ, the arrival too (5 ms early), and the components widen the solve's own (honest) σ, never narrow them."""
+    from calib.estimator import clockmodel as cm
+    from calib.estimator.calibrate import calibrate_features
+
+    g, models, res = _lost_chirp_seeded(-0.02)
+    out, kept, _, _ = cm._refine_and_resolve(calibrate_features, g, res, models, {}, calibrate_features(g))
+    assert sorted(c.kind for c in kept["A3"]) == ["arrival", "step"] and list(kept) == ["A3"]
+    (st,) = [c for c in kept["A3"] if c.kind == "step"]
+    assert abs(st.value + 0.02) < 3 * st.std
+    (a,) = [c for c in kept["A3"] if c.kind == "arrival"]
+    assert abs(a.value + 5e-3) < 3 * a.std + 1e-4
+    cols = ["x_std", "y_std", "z_std"]
+    own = calibrate_features(correct_features(g, kept))["arrays"][cols].to_numpy(float)   # (the components held)
+    widened = out["arrays"][cols].to_numpy(float)
+    assert np.all(widened[np.isfinite(own)] >= own[np.isfinite(own)] * (1 - 1e-9))
+
+
+def test_a_small_insert_whose_evidence_is_mostly_its_interval_s_tdoa_s_is_found_not_a_hinge():
+    """A 0.1 ms insert (10 σ) whose later arrivals' level the sources and the linear clock mostly absorb: its
+    evidence is mostly the TDOA-S of its interval, which its persistence's leave-out takes (χ² 61, 11 left), while
+    a hinge's is spread (35, 15 left). Ranked by what the leave-out leaves, the hinge was taken and the step then
+    fitted half; ranked by the evidence once both pass, the step is found in its interval, sized within 3σ, and
+    nothing else is modelled."""
+    seed, name = 3103, "A4"
+    f, truth = simulate_features(_walk36(seed), SIGMA, 5.0, 0.03, seed=seed, max_interval=10.0,
+                                 clocks={name: {"steps": [{"size": 1e-4}]}})
+    cal = calibrate(f, clock_model="auto")
+    (s,) = _steps(cal, name)
+    assert (s["after_event"], s["before_event"]) == _interval(truth["clocks"][name], f)
+    assert abs(s["size"] - 1e-4) < 3 * s["std"]
+    rep = cal["report"]["clock"]
+    assert all(not e["steps"] and not e["drift_terms"] for a, e in rep["arrays"].items() if a != name)
+    assert not rep["arrays"][name]["drift_terms"] and not rep["emitter"]["steps"] and not rep["emitter"]["drift_terms"]
+    assert cal["report"]["unreliable_arrays"] == []
+
+
+def test_two_late_arrivals_of_one_array_make_no_clock_term_on_it_or_through_the_sources():
+    """The contrast: one array's arrivals at two consecutive stops late by 80 and 60 µs (8 and 6 σ: a reflector
+    near those stops; its step at their edge scores χ² 44, well above the penalty) are no clock term, neither its
+    nor another array's whose arrivals those two pull through the shared sources (a test of the persistence: free
+    late-only arrivals of the array under test kept the pulled array's 0.065 ms false step)."""
+    seed, k = 3101, 8
+    f, _ = simulate_features(_walk36(seed), SIGMA, 5.0, 0.03, seed=seed, max_interval=10.0)
+    ev = f["events"]["event"].to_numpy()
+    g = ck.delay_arrivals(f, "A3", {int(ev[k]): 8e-5, int(ev[k + 1]): 6e-5})
+    assert not calibrate(g, clock_model="auto")["report"]["clock"]["findings"]
 
 
 @pytest.mark.parametrize("seed,name,interval,size", [(11, "A3", 0, -0.002), (12, "A3", 1, 0.0004),
@@ -753,3 +849,50 @@ def test_arrivals_doubted_for_a_reason_no_clock_gives_are_free_in_the_per_array_
     np.testing.assert_allclose(coef, [-1.4e-4, -1.4e-4], atol=3e-6)
     got = cm.best_component(D, [], st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1, free=free)
     assert got[0] is None or all(c.kind != "arrival" for c in got[0])
+
+
+# ----------------------------------------------------------------------------------------------- moving source
+def _moving_scene(seed, sigma_v, monkeypatch):
+    """test_motion_noise's moving scene: a robot that keeps moving while it chirps, the velocity the correction
+    uses off by σ_v per axis (stated as such), linear clocks."""
+    import calib.estimator.motion as motion
+    from .test_motion_nlos import _moving
+
+    monkeypatch.setattr(motion, "velocity_sigma", lambda *a, **k: sigma_v)
+    f, tr = simulate_features(2, 2e-6, 0.05, 0.01, seed=seed)
+    vel_error = np.random.default_rng(100 + seed).normal(0.0, sigma_v, (len(f["events"]), 3))
+    return _moving(f, tr, with_vel=True, vel_error=vel_error)[0], tr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_moving_source_s_velocity_error_makes_no_clock_term(monkeypatch, seed):
+    """A velocity error of 0.05 m/s per axis moves each event's corrected arrivals as 3 cm of source shift,
+    which the odometry does not follow: the clocks are linear, so no clock term (unmodelled, the nuisance made
+    an emitter step and steps of A1 on these seeds, and the selection solved the session dozens of times)."""
+    g, _ = _moving_scene(seed, 0.05, monkeypatch)
+    out = calibrate(g, noise="meta")
+    assert out["report"]["stages"]["motion"]["velocity_sigma_m_s"] == 0.05
+    clock = out["report"]["clock"]
+    assert not any(a["components"] for a in clock["arrays"].values())
+    assert not clock["emitter"]["components"]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the scan finds the step (+1.96 ms in its interval), but the solve, whose "
+                   "fit does not model the velocity error (issue 27), still drops A3 as inconsistent with it: the "
+                   "array keeps the linear clock, unreliable (on main too)")
+def test_a_step_in_a_moving_session_is_still_found(monkeypatch):
+    """The velocity nuisance does not hide a clock fault well above it: 2 ms of samples inserted on A3 between
+    two middle events (the nuisance's arrival error is ~0.1 ms) is found in its interval, its size within 3σ."""
+    g, tr = _moving_scene(7, 0.05, monkeypatch)
+    t = g["events"]["t_emit"].to_numpy(float)
+    k = len(t) // 2
+    g = correct_features(g, {"A3": [Component("step", 0.5 * (t[k - 1] + t[k]) - t[0], -0.002)]})   # (+2 ms)
+    out = calibrate(g, noise="meta")
+    steps = out["report"]["clock"]["arrays"]["A3"]["steps"]
+    ev = g["events"]["event"].to_numpy()
+    assert len(steps) == 1 and (steps[0]["after_event"], steps[0]["before_event"]) == (ev[k - 1], ev[k])
+    assert abs(steps[0]["size"] - 0.002) < 3.0 * steps[0]["std"]
+    others = [n for n, a in out["report"]["clock"]["arrays"].items() if n != "A3" and a["components"]]
+    assert not others
