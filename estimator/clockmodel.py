@@ -66,6 +66,8 @@ from calib.tables import ARRAY_PARAMS
 
 from .factors import active_kinds, row_arrays
 from .init import ObservabilityError
+from .motion import motion_noise
+from .uncertainty import velocity_rows
 
 FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
 HUBER_K = 2.5           # robust scale of the per-array fits, in σ
@@ -276,12 +278,14 @@ def velocity_arrival_sd(result):
     """β σ_v / c (s): the error of a corrected arrival per unit of its direction that the velocity error of a
     moving source's correction makes (``motion.velocity_sigma``, the solve's stages ``motion``); 0 without a
     correction."""
+    noise = motion_noise(_motion_record(result), result["problem"])
+    return 0.0 if noise is None else noise.beta * noise.sigma / float(result["problem"].c)
+
+
+def _motion_record(result):
+    """The solve's stages ``motion`` record (``motion.motion_solve``), {} without one."""
     stages = (result.get("report") or {}).get("stages") or result.get("stages") or {}
-    rec = stages.get("motion") or {}
-    if not rec.get("applied") or not rec.get("velocity_sigma_m_s"):
-        return 0.0
-    p = result["problem"]
-    return float(p.beta) * float(rec["velocity_sigma_m_s"]) / float(p.c)
+    return stages.get("motion") or {}
 
 
 def _design(D, comps):
@@ -630,20 +634,14 @@ def joint_scan(result, models, banned=frozenset(), stats=None, doubted=frozenset
 
 def _velocity_columns(result, lin, lay):
     """(rows, 3K) sparse, or None without a moving source's correction: a nuisance column per event and axis,
-    the velocity error of the correction (σ_v: :func:`velocity_arrival_sd`; unit prior in the scan), which moves
-    the event's corrected arrivals as a source shift of β δv does: the sources' TDOA columns times β σ_v. The
-    sources themselves are pinned by the odometry and the DOAs, the arrivals' shift is not: unmodelled, 3 cm of
-    it per event made clock steps on every seed of test_motion_noise's moving scene. (The DOAs turn by t_doa δv,
-    meta doa_time_s, not known here: left out, which lets the nuisance move the arrivals' source a little more
-    freely than it does.)"""
-    sd = velocity_arrival_sd(result)
-    p = result["problem"]
-    if sd <= 0 or not len(lay.s) or np.any(lay.s < 0) or "velocity" in active_kinds(p):
-        return None   # (no correction; or the solve's own nuisance, already columns of the Jacobian)
-    scale = np.concatenate([np.full(len(f.r), sd * p.c if f.kind in ("tdoa_m", "tdoa_s") else 0.0)
-                            for f in lin.factors])
-    scale = np.where(lin.w > 0, scale, 0.0)
-    return (scipy.sparse.diags(scale) @ scipy.sparse.csr_matrix(lin.J)[:, lay.s.ravel()]).tocsr()
+    the velocity error of the correction (σ_v, unit prior in the scan), which moves the event's corrected
+    arrivals as a source shift of β δv does: the error bars' ``uncertainty.velocity_rows``. The sources
+    themselves are pinned by the odometry and the DOAs, the arrivals' shift is not: unmodelled, 3 cm of it per
+    event made clock steps on every seed of test_motion_noise's moving scene. (The DOAs turn by t_doa δv, meta
+    doa_time_s, not known here: left out (t_doa 0), which lets the nuisance move the arrivals' source a little
+    more freely than it does.)"""
+    V = velocity_rows(lin, lay, motion_noise(_motion_record(result), result["problem"]))
+    return None if V is None else scipy.sparse.csr_matrix(V)
 
 
 def _weighted(J, E, sw):
