@@ -51,6 +51,7 @@ drift (1 + δ = rate ratio × (1 + crystal drift)).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 import itertools
 
@@ -650,6 +651,18 @@ def _weighted(J, E, sw):
     return scipy.sparse.diags(sw) @ JE
 
 
+def _with_nuisance(result, lin, lay, E, sw):
+    """(A, prior): ``_weighted(lin.J, [E V], sw)`` with a moving source's velocity nuisance V
+    (:func:`_velocity_columns`) after the components' columns E, and its unit prior over A's columns (None
+    without V). Every joint test of a component (scan, structure, persistence, its size and σ) projects out
+    the same nuisance: left in, the velocity error's arrival shifts read as misfits of the clock terms."""
+    V = _velocity_columns(result, lin, lay)
+    if V is None:
+        return _weighted(lin.J, E, sw), None
+    A = _weighted(lin.J, scipy.sparse.hstack([scipy.sparse.csr_matrix(E), V]), sw)
+    return A, np.concatenate([np.zeros(lin.J.shape[1] + E.shape[1]), np.ones(V.shape[1])])
+
+
 SCAN_MAX = 4000         # parameters: the joint scans and tests up to this
 EXACT_FLOPS = 2e9     # a joint scan of every candidate of every clock within this many flops: no screen
 SCREEN_FRACTION = 0.5   # a clock's best local score (own parameters out) below this share of its penalty: clean
@@ -1045,14 +1058,15 @@ def structure_test(result, models, name, k, features=None):
     T = _split_columns(p, lin.factors, index[name], models[name][k]) * sw[:, None]
     if not T.shape[1]:
         return 0.0, 0
-    pr = Projector(_weighted(lin.J, E, sw), lay)
-    Tp = pr.resid(T)
-    rp = pr.resid(r * sw)
-    U, sv, _ = np.linalg.svd(Tp, full_matrices=False)
-    keep = sv > 1e-6 * max(np.linalg.norm(T), 1e-300)
+    A, prior = _with_nuisance(result, lin, lay, E, sw)
+    pr = Projector(A, lay, prior)
+    # (Tᵀ P T and Tᵀ P r, not the rows' |P T|²: a nuisance's prior rows hold part of the projections)
+    G, g = T.T @ pr.resid(T), T.T @ pr.resid(r * sw)
+    lam, W = np.linalg.eigh(0.5 * (G + G.T))
+    keep = lam > (1e-6 * max(np.linalg.norm(T), 1e-300)) ** 2
     if not keep.any():
         return 0.0, 0
-    proj = U[:, keep].T @ rp
+    proj = (W[:, keep].T @ g) / np.sqrt(lam[keep])
     return float(proj @ proj) / scale ** 2, int(keep.sum())
 
 
@@ -1217,8 +1231,38 @@ def _every_row(result, features=None):
         q = build_problem(features, use_tdoa_s=bool(len(p.tdoa_s.val)), sigma_emit=p.sigma.get("emission", 0.0),
                           odometry_yaw=p.odo_yaw_free)
         if q.K == p.K and q.N == p.N:
-            return q.replace(sigma={**q.sigma, **p.sigma})
+            return _motion_corrected(q.replace(sigma={**q.sigma, **p.sigma}), p, result, features)
     return p
+
+
+MOTION_CORRECTED = (("tdoa_m", "val"), ("tdoa_s", "val"), ("doa", "u"), ("cone", "cos"))   # (kind, measured field)
+
+
+def _motion_corrected(q, p, result, features):
+    """``q`` (the problem of every row of ``features``) with the moving source's correction of the solve
+    (``motion.motion_solve``) where it applied one: the solve's own corrected values on the rows it has (``p``),
+    the correction at its final state on the rows it screened out. Without it a moving session's tests of
+    every row (persistence, structure, robust costs) read the uncorrected arrivals: 100-300σ off, which made
+    a true 2 ms step of test_clocks' moving scene unpersistent (χ² 1.8 in a scale of 210)."""
+    from .motion import corrected, source_velocities
+
+    if not _motion_record(result).get("applied"):
+        return q
+    meta = features["meta"]
+    vel, _ = source_velocities(features["events"], q.t, q.odom)
+    if vel is None:
+        return q
+    c = corrected(q, result["state"], vel, meta.get("chirp_stretch_shift"), float(meta.get("doa_time_s") or 0.0),
+                  meta.get("stretch_time_s"))
+    out = {}
+    for kind, field in MOTION_CORRECTED:
+        rows, solved = getattr(c, kind), getattr(p, kind)
+        at = {int(r): k for k, r in enumerate(solved.row)}
+        pos = np.array([at.get(int(r), -1) for r in rows.row], int)
+        value = np.array(getattr(rows, field), float)
+        value[pos >= 0] = np.asarray(getattr(solved, field))[pos[pos >= 0]]
+        out[kind] = dataclasses.replace(rows, **{field: value})
+    return c.replace(**out)
 
 
 def _robust_cost(result, row_sigma=None, features=None, rho=huber_rho):
@@ -1789,11 +1833,14 @@ def persistence(result, models, features=None):
             continue
         sw, scale = _robust_weights(result, lin, p, own=name)
         sw = sw * np.maximum(solved, _own_rows(p, lin.factors, index[name]))   # (as :func:`structure_test`)
-        pr = Projector(_weighted(lin.J, np.delete(E, col, axis=1), sw), lay)
+        A, prior = _with_nuisance(result, lin, lay, np.delete(E, col, axis=1), sw)
+        pr = Projector(A, lay, prior)
         r0 = (lin.r - models[name][k].value * E[:, col]) * sw
         rp, bp = pr.resid(r0), pr.resid(E[:, col] * sw)
+        # (bᵀ P b and bᵀ P r: a nuisance's prior rows hold part of the projections, not the rows' |P b|²)
+        bb, br = float(E[:, col] * sw @ bp), float(E[:, col] * sw @ rp)
         own = (_own_rows(p, lin.factors, index[name]) > 0) & (sw > 0)
-        e = rp + bp * (-(bp @ rp) / max(float(bp @ bp), 1e-300))
+        e = rp - bp * (br / max(bb, 1e-300))
         scale_i = max(scale, spread(e[own] / sw[own])) if own.any() else scale
         ids, groups = (_event_rows(p, lin.factors, own, ids=True) if name != EMITTER
                        else (None, _array_rows(p, lin.factors, own)))
@@ -1801,7 +1848,7 @@ def persistence(result, models, features=None):
         pos = np.cumsum(own) - 1
         by_event = [pos[g] for g in _event_rows(p, lin.factors, own)] if name == EMITTER else None
         out[(name, k)] = clock_persistence(p, lin.factors, index[name], models[name][k], [pos[g] for g in groups],
-                                           hat, rp[own], bp[own], bb=float(bp @ bp), br=float(bp @ rp),
+                                           hat, rp[own], bp[own], bb=bb, br=br,
                                            ids=ids, doubted=doubted, events=by_event) / scale_i ** 2
     return out
 
@@ -1980,35 +2027,40 @@ def refine(result, models):
     r = full.r
     scale = max(1.0, 1.4826 * float(np.median(np.abs(r[keep])))) if keep.any() else 1.0
     sw = 1.0 / np.sqrt(1.0 + (r / (HUBER_K * scale)) ** 2)
-    step = _normal_solve(_weighted(lin.J, B, sw), -r * sw)
-    # the covariance: the estimator's rows (outliers out), as its own error bars
+    step = _normal_solve(_weighted(lin.J, B, sw), None, -r * sw)
+    # the covariance: the estimator's rows (outliers out), as its own error bars, with a moving source's velocity
+    # error (its nuisance columns, as the scans; not in the step: the solve that follows does not model it, and a
+    # step toward the model with it made the sizes of test_clocks' moving step swing by ±5σ from solve to solve)
     sw = np.where(keep, np.sqrt(np.maximum(lin.w, 0.0)), 0.0)
-    cov = _normal_covariance(_weighted(lin.J, B, sw))
-    dc, sd = step[lay.n:], np.sqrt(np.maximum(np.diag(cov)[lay.n:], 0.0))
+    cov = _normal_covariance(*_with_nuisance(result, lin, lay, B, sw))
+    nb = lay.n + B.shape[1]
+    dc, sd = step[lay.n:nb], np.sqrt(np.maximum(np.diag(cov)[lay.n:nb], 0.0))
     return _update(models, keys, dc, sd) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n],
-                                             "rows": (lin.J, B[:, :0], sw)},)
+                                             "rows": _with_nuisance(result, lin, lay, B[:, :0], sw)},)
 
 
-def _scaled_normal(A):
-    """(Jacobi-scaled AᵀA (dense), the scale d) of a sparse A: no dense rows × n matrix."""
-    H = (A.T @ A).toarray()
+def _scaled_normal(A, prior=None):
+    """(Jacobi-scaled AᵀA (+ diag(prior): unit-σ prior rows on some columns, a nuisance's; dense), the scale d)
+    of a sparse A: no dense rows × n matrix."""
+    H = (A.T @ A).toarray() + (0.0 if prior is None else np.diag(prior))
     d = np.sqrt(np.maximum(np.diag(H), 0.0))
     d = np.where(d > 0, d, 1.0)
     return H / d[:, None] / d[None, :], d
 
 
-def _normal_solve(A, y):
-    """The least-squares solution of A x ≈ y (A sparse) by its scaled normal equations; the minimum-norm one
-    (a symmetric pseudo-inverse, as ``lstsq``) where they are singular (a direction no row fixes)."""
-    Hs, d = _scaled_normal(A)
+def _normal_solve(A, prior, y):
+    """The least-squares solution of A x ≈ y (A sparse; ``prior``: :func:`_scaled_normal`) by its scaled normal
+    equations; the minimum-norm one (a symmetric pseudo-inverse, as ``lstsq``) where they are singular (a
+    direction no row fixes)."""
+    Hs, d = _scaled_normal(A, prior)
     return np.linalg.pinv(Hs, hermitian=True) @ ((A.T @ y) / d) / d
 
 
-def _normal_covariance(A):
+def _normal_covariance(A, prior=None):
     """(AᵀA)⁻¹ as :func:`calib.estimator.uncertainty.covariance` gives it (pseudo-inverse of the Jacobi-scaled
     normal matrix; a Cholesky inverse is no substitute: near-singular directions made a 20 ms step's σ 98 s), from
-    a sparse A (its symmetric eigendecomposition, not an SVD of the rows)."""
-    Hs, d = _scaled_normal(A)
+    a sparse A (its symmetric eigendecomposition, not an SVD of the rows); ``prior``: :func:`_scaled_normal`."""
+    Hs, d = _scaled_normal(A, prior)
     return np.linalg.pinv(Hs, hermitian=True) / d[:, None] / d[None, :]
 
 
@@ -2043,7 +2095,7 @@ def _apply_std(result, info):
     from .uncertainty import std_from_cov
 
     p, lay = info["problem"], info["layout"]
-    plain = np.diag(_normal_covariance(_weighted(*info["rows"])))
+    plain = np.diag(_normal_covariance(*info["rows"]))[:lay.n]
     ratio = np.sqrt(np.divide(np.diag(info["cov"]), plain, out=np.ones_like(plain), where=plain > 0))
     ratio = np.where(np.isfinite(ratio), np.maximum(ratio, 1.0), 1.0)
     widen = std_from_cov(p, lay, np.diag(ratio ** 2))

@@ -878,21 +878,60 @@ def test_a_moving_source_s_velocity_error_makes_no_clock_term(monkeypatch, seed)
     assert not clock["emitter"]["components"]
 
 
+def test_every_row_of_a_moving_session_is_motion_corrected(monkeypatch):
+    """The selection's tests of every row (persistence, structure, robust costs) rebuild the problem from the
+    features: in a moving session with the solve's motion correction, its rows the solve's own (uncorrected,
+    a TDOA is off by the source's move during the sweep: hundreds of σ, which made a true 2 ms step
+    unpersistent)."""
+    import calib.estimator.clockmodel as cm
+    from calib.estimator.problem import build_problem, make_layout
+    from calib.estimator.solver import linearise
+
+    g, _ = _moving_scene(7, 0.05, monkeypatch)
+    out = calibrate(g, noise="meta", clock_model="linear")
+    assert out["report"]["stages"]["motion"]["applied"]
+    p, q = out["problem"], cm._every_row(out, g)
+    for kind in ("tdoa_m", "tdoa_s"):
+        solved, every = getattr(p, kind), getattr(q, kind)
+        at = {int(r): k for k, r in enumerate(every.row)}
+        np.testing.assert_array_equal(every.val[[at[int(r)] for r in solved.row]], solved.val)
+    # at the solution its TDOA rows fit as the solve's do; uncorrected, tens of times worse
+    raw = build_problem(g, use_tdoa_s=True, odometry_yaw=p.odo_yaw_free).replace(sigma=dict(p.sigma))
+    r = [np.median(np.abs(linearise(x, out["state"], make_layout(x), ["tdoa_s", "tdoa_m"]).r)) for x in (p, q, raw)]
+    assert r[1] < 1.5 * r[0] and r[2] > 10.0 * r[1]
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the scan finds the step (+1.96 ms in its interval), but the solve, whose "
-                   "fit does not model the velocity error (issue 27), still drops A3 as inconsistent with it: the "
-                   "array keeps the linear clock, unreliable (on main too)")
 def test_a_step_in_a_moving_session_is_still_found(monkeypatch):
     """The velocity nuisance does not hide a clock fault well above it: 2 ms of samples inserted on A3 between
-    two middle events (the nuisance's arrival error is ~0.1 ms) is found in its interval, its size within 3σ."""
-    g, tr = _moving_scene(7, 0.05, monkeypatch)
+    two middle events (the nuisance's arrival error is ~0.1 ms) is found in its interval, its size within 3σ,
+    and A3 stays calibrated (before: its tests of every row read the arrivals uncorrected for the motion and
+    the step failed its persistence; the leave-one-out test, blind to the velocity error, then isolated A3)."""
+    _moving_step(monkeypatch, 7, "A3", 0.5, 0.002)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed,array,at,size", [(8, "A5", 0.5, 0.0005), (10, "A4", 0.5, -0.02)])
+def test_a_step_in_a_moving_session_on_other_seeds(monkeypatch, seed, array, at, size):
+    """As above on other seeds, arrays and places: 0.5 ms inserted, 20 ms dropped (the issue's sizes). Not yet
+    everywhere: of nine such cases on seeds 3-12, two drops of 0.5 ms go unfound (their array, dropped by the
+    solve, has only its own rows' evidence, where the velocity error is undiluted), two 20 ms drops are lost
+    with their array, and two 2 ms steps are sized 7-12 of their σ off."""
+    _moving_step(monkeypatch, seed, array, at, size)
+
+
+def _moving_step(monkeypatch, seed, array, at, size):
+    """``size`` (s; > 0 inserted) of samples on ``array`` between events k − 1 and k (k at the share ``at`` of the
+    moving scene's events): found there, its size within 3σ, no other clock term, the array calibrated."""
+    g, tr = _moving_scene(seed, 0.05, monkeypatch)
     t = g["events"]["t_emit"].to_numpy(float)
-    k = len(t) // 2
-    g = correct_features(g, {"A3": [Component("step", 0.5 * (t[k - 1] + t[k]) - t[0], -0.002)]})   # (+2 ms)
+    k = int(len(t) * at)
+    g = correct_features(g, {array: [Component("step", 0.5 * (t[k - 1] + t[k]) - t[0], -size)]})
     out = calibrate(g, noise="meta")
-    steps = out["report"]["clock"]["arrays"]["A3"]["steps"]
+    steps = out["report"]["clock"]["arrays"][array]["steps"]
     ev = g["events"]["event"].to_numpy()
     assert len(steps) == 1 and (steps[0]["after_event"], steps[0]["before_event"]) == (ev[k - 1], ev[k])
-    assert abs(steps[0]["size"] - 0.002) < 3.0 * steps[0]["std"]
-    others = [n for n, a in out["report"]["clock"]["arrays"].items() if n != "A3" and a["components"]]
+    assert abs(steps[0]["size"] - size) < 3.0 * steps[0]["std"]
+    others = [n for n, a in out["report"]["clock"]["arrays"].items() if n != array and a["components"]]
     assert not others
+    assert array not in out["report"]["unreliable_arrays"]
