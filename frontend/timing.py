@@ -1158,27 +1158,35 @@ def sweep_time(template, fs, band, locate_kw, pre, seg_len, whiten_hz, beta, up=
     (``r̈ = α c``: the path's curvature, the robot speeding up) the delay grows as ``ε t + ½ α t²`` and the
     arrival moves by ``β (ε + α t*)``. Even weights over a linear sweep give ``T/2``; the envelope peak weighs
     the band's middle more (0.44 T for a 0.5 s, 0.5-4 kHz sweep). Measured as β is, on the template received
-    with the delay ``± ½ α t²`` (central difference), evaluated at the emission times by band-limited
-    interpolation (×``up`` by FFT, then cubic). ``beta`` : :func:`drift_bias`. α keeps the group delay's
-    spread over the sweep (``~1.5 α T²``) at a quarter pulse: linear (at 4× that, t* came out 0.51 T)."""
+    with the delay ``± ½ α t²`` (central difference, :func:`delay_shift`). ``beta`` : :func:`drift_bias`.
+    α keeps the group delay's spread over the sweep (``~1.5 α T²``) at a quarter pulse: linear (at 4× that,
+    t* came out 0.51 T)."""
+    alpha = 0.25 / ((band[1] - band[0]) * 1.5 * (len(template) / fs) ** 2)
+    s1, s2 = (delay_shift(template, fs, band, locate_kw, pre, seg_len, whiten_hz, lambda t, a=a: 0.5 * a * t ** 2, up)
+              for a in (alpha, -alpha))
+    return float((s1 - s2) / (2 * alpha * beta))
+
+
+def delay_shift(template, fs, band, locate_kw, pre, seg_len, whiten_hz, delay, up=16):
+    """This estimator's arrival (s, lag from the expected start ``pre``) for the template received with the
+    time-varying delay ``delay(t)`` (s; t s after the sweep start, ``delay(0) = 0``, |delay'| ≪ 1): each
+    sample's emission time solved by a fixed point and the template evaluated there by band-limited
+    interpolation (×``up`` by FFT, then cubic). A source moving during the sweep: ``delay(t) = (r(t) −
+    r(0)) / c`` (:func:`sweep_time` takes the quadratic part; benchmarks/diag_moving_arrivals.py the cubic
+    one, the range's jerk over the sweep)."""
     from scipy.interpolate import CubicSpline
 
     n = len(template)
-    alpha = 0.25 / ((band[1] - band[0]) * 1.5 * (n / fs) ** 2)
     buf = np.r_[template, np.zeros(8)]   # faded to 0 at both ends: its periodic interpolation does not wrap
     fine = fourier_resample(buf, up * len(buf))
     spline = CubicSpline(np.arange(len(fine)) / (fs * up), fine)
     setup = spectra_setup(template, fs, band, seg_len, whiten_hz)
     u = (np.arange(seg_len) - pre) / fs
-    shifts = []
-    for a in (alpha, -alpha):
-        te = u.copy()
-        for _ in range(4):   # emission time of each sample: u = te + ½ a te² (fixed point, a te ≪ 1)
-            te = u - 0.5 * a * np.clip(te, 0, None) ** 2
-        y = np.where((te >= 0) & (te < n / fs), spline(np.clip(te, 0, None)), 0.0)
-        res = locate(segment_spectra(y[None, :], np.zeros(1, int), setup), setup, **locate_kw)
-        shifts.append(res["tau"][0, 0])
-    return float((shifts[0] - shifts[1]) / (2 * alpha * beta))
+    te = u.copy()
+    for _ in range(4):   # emission time of each sample: u = te + delay(te) (fixed point, |delay'| ≪ 1)
+        te = u - delay(np.clip(te, 0, None))
+    y = np.where((te >= 0) & (te < n / fs), spline(np.clip(te, 0, None)), 0.0)
+    return float(locate(segment_spectra(y[None, :], np.zeros(1, int), setup), setup, **locate_kw)["tau"][0, 0])
 
 
 def doa_time(template, setup):

@@ -176,10 +176,26 @@ def estimate_stage(out, options, setup=()):
     from calib.pipeline.formats.io import write_calibration
     from calib.pipeline.setupcheck import apply_findings
 
+    unselected = session_failure(setup) if options.get("clock_model", "auto") == "auto" else None
+    if unselected:
+        options = {**options, "clock_model": "linear"}
     calib, feats = estimate_features(Path(out) / "features", options)
+    if unselected:
+        clock = calib["report"]["clock"]
+        clock["findings"] = [*clock["findings"], f"clock model not selected (linear clocks): {unselected}"]
     calib = apply_findings(calib, setup)
     write_calibration(Path(out) / "calibration", calib, features=feats)  # + calibration.json
     return calib
+
+
+def session_failure(setup):
+    """Why a clock model is not selected for a session whose set-up failed as a whole (a ``failed`` finding
+    that names no array: the odometry, the emission times, the speed of sound or the trajectory contradicted
+    by the arrivals), else None. No array's estimate can then be trusted, and the selection's scans would only
+    fit clock terms to the mistake, solve after solve (minutes: a session with another session's odometry
+    took 15 min where the linear clock takes seconds)."""
+    failed = [f for f in setup if f["status"] == "failed" and not f.get("array")]
+    return f"the set-up of the whole session failed ({failed[0]['what']}: {failed[0]['check']})" if failed else None
 
 
 def estimate_features(features_dir, options, findings=False):

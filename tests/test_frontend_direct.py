@@ -12,7 +12,8 @@ import soundfile as sf
 
 from calib.frontend.detect import redetect
 from calib.frontend.signals import band_weights, sweep
-from calib.frontend.timing import direct_path_lag, drift_bias, locate, pulse_envelope, segment_spectra, spectra_setup
+from calib.frontend.timing import (delay_shift, direct_path_lag, drift_bias, locate, pulse_envelope, segment_spectra,
+                                   spectra_setup, sweep_time)
 from calib.pipeline.simulate import roomsim
 from calib.pipeline.features import session_features as extract_features
 
@@ -54,6 +55,45 @@ def test_drift_bias_matches_the_group_delay_formula(f0, f1, duration, kind, fs):
     assert abs(beta - ref) < 0.01 * ref
     # linear range: a 4x smaller stretch gives the same value (a 1e-3 stretch did not, for wide bands)
     assert abs(drift_bias(tmpl, fs, (f0, f1), kw, pre, seg_len, delta=5e-6) - beta) < 0.003 * ref
+
+
+def analytic_delay_moment(f0, f1, duration, kind, band, k, n=20001):
+    """The envelope peak's shift per unit ``j`` of a received delay ``d(t) = j t^k / k!`` (a source moving
+    during the sweep: k = 1 its range rate, 2 its acceleration, 3 its jerk): frequency f leaves at
+    ``τ_g(f)`` and arrives ``d(τ_g(f))`` late, so the phase becomes ``φ(f) − 2π f d(τ_g(f))`` and, as for β,
+    the peak moves by ``Cov_W(f, f d(τ_g)) / Var_W(f)``."""
+    f = np.linspace(band[0], band[1], n)
+    w = band_weights(f, band)
+    tg = duration * ((f - f0) / (f1 - f0) if kind == "linear" else np.log(f / f0) / np.log(f1 / f0))
+    g = f * tg ** k / float(np.prod(np.arange(1, k + 1)))
+    mean = lambda y: np.sum(w * y) / np.sum(w)  # noqa: E731
+    return float((mean(f * g) - mean(f) * mean(g)) / (mean(f * f) - mean(f) ** 2))
+
+
+@pytest.mark.parametrize("f0, f1, duration, kind, fs", [
+    (500.0, 4000.0, 0.5, "linear", 16000),     # the moving preset's sweep
+    (200.0, 8000.0, 0.5, "exponential", 24000),
+])
+def test_moving_source_delay_moments_match_the_group_delay_formula(f0, f1, duration, kind, fs):
+    """t* (the acceleration's moment over β) and the jerk's moment γ3 of this estimator, measured on the
+    template received with a time-varying delay, against the analytic formula; a range jerk r⃛ moves a
+    moving source's arrival by (γ3 − β t*²/2) r⃛ / c beyond what ṙ(t*) models (issue 27's 5-8 µs)."""
+    tmpl = sweep(np.arange(int(np.ceil(duration * fs))) / fs, f0, f1, duration, 0.005, kind)
+    pre, seg_len = 400, len(tmpl) + 1200
+    kw = {"lo": 100, "hi": 700, "half_width": 8}
+    beta = drift_bias(tmpl, fs, (f0, f1), kw, pre, seg_len)
+    t_star = sweep_time(tmpl, fs, (f0, f1), kw, pre, seg_len, 500.0, beta)
+    ref = analytic_delay_moment(f0, f1, duration, kind, (f0, f1), 2) / analytic_delay_moment(
+        f0, f1, duration, kind, (f0, f1), 1)
+    assert abs(t_star - ref) < 0.01 * ref
+    j = 0.5 / ((f1 - f0) * 1.5 * duration ** 3)   # a quarter pulse of group-delay spread over the sweep
+    s1, s2 = (delay_shift(tmpl, fs, (f0, f1), kw, pre, seg_len, 500.0, lambda t, q=q: q * t ** 3 / 6)
+              for q in (j, -j))
+    gamma3 = (s1 - s2) / (2 * j)
+    ref3 = analytic_delay_moment(f0, f1, duration, kind, (f0, f1), 3)
+    assert abs(gamma3 - ref3) < 0.01 * ref3
+    # ṙ(t*) carries the jerk only as β t*²/2: a different, smaller moment
+    assert gamma3 - beta * t_star ** 2 / 2 > 0.1 * ref3
 
 
 # ----------------------------------------------------------------------------------------------- timing

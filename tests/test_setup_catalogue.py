@@ -315,6 +315,10 @@ def test_check_and_run_name_the_mistake(case, tmp_path):
     if r.exit_code == 3:
         rep = (tmp_path / "out" / "calibration" / "report.json").read_text()
         assert re.search(want, " ".join(rep.split())), rep[:2000]
+        # a set-up failure of the whole session: no clock model is selected (its trial solves cost minutes)
+        rep = json.loads(rep)
+        whole = [f for f in rep.get("setup", []) if f["status"] == "failed" and not f.get("array")]
+        assert bool(whole) == any("not selected" in f for f in rep["clock"]["findings"]), rep["clock"]
     else:
         assert re.search(want, text), text
 
