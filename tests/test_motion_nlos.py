@@ -76,14 +76,15 @@ def test_moving_source_shift_removed(seed):
 
 
 def test_moving_source_uncorrected_is_off():
-    """Control: without the correction the same scene is off by decimetres (what the issue saw)."""
+    """Control: without the correction the same scene is off by decimetres (what the issue saw). Linear
+    clocks: the uncorrected shifts are no clock fault, and their scans cost ~40 s of every test run."""
     import calib.estimator.motion as motion
     f, tr = simulate_features(2, 2e-5, 1.0, 0.01, seed=0)
     g, _ = _moving(f, tr, with_vel=False)
     old = motion.MIN_GAIN
     try:
         motion.MIN_GAIN = np.inf
-        assert evaluate(calibrate(g), tr)["position_rmse_m"] > 0.05
+        assert evaluate(calibrate(g, clock_model="linear"), tr)["position_rmse_m"] > 0.05
     finally:
         motion.MIN_GAIN = old
 
