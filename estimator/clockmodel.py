@@ -1257,12 +1257,21 @@ def _motion_corrected(q, p, result, features):
     out = {}
     for kind, field in MOTION_CORRECTED:
         rows, solved = getattr(c, kind), getattr(p, kind)
-        at = {int(r): k for k, r in enumerate(solved.row)}
-        pos = np.array([at.get(int(r), -1) for r in rows.row], int)
+        pos = _positions(np.asarray(rows.row, int), np.asarray(solved.row, int))
         value = np.array(getattr(rows, field), float)
         value[pos >= 0] = np.asarray(getattr(solved, field))[pos[pos >= 0]]
         out[kind] = dataclasses.replace(rows, **{field: value})
     return c.replace(**out)
+
+
+def _positions(want, ids):
+    """The index in ``ids`` (unique row ids) of each of ``want``, −1 where it is not there (vectorised: every
+    row of a large session, each selection round)."""
+    if not len(ids):
+        return np.full(len(want), -1)
+    order = np.argsort(ids)
+    k = order[np.minimum(np.searchsorted(ids, want, sorter=order), len(ids) - 1)]
+    return np.where(ids[k] == want, k, -1)
 
 
 def _robust_cost(result, row_sigma=None, features=None, rho=huber_rho):

@@ -192,8 +192,8 @@ def session_failure(setup):
     """Why a clock model is not selected for a session whose set-up failed as a whole (a ``failed`` finding
     that names no array: the odometry, the emission times, the speed of sound or the trajectory contradicted
     by the arrivals), else None. No array's estimate can then be trusted, and the selection's scans would only
-    fit clock terms to the mistake, solve after solve (minutes: a session with another session's odometry
-    took 15 min where the linear clock takes seconds)."""
+    fit clock terms to the mistake, solve after solve (a session with another session's odometry: 4 min of CPU,
+    15 min wall at load 6, where the linear clock takes seconds)."""
     failed = [f for f in setup if f["status"] == "failed" and not f.get("array")]
     return f"the set-up of the whole session failed ({failed[0]['what']}: {failed[0]['check']})" if failed else None
 
