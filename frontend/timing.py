@@ -221,29 +221,40 @@ def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05
     reflection has its own Doppler, and behind a directional speaker it is often the stronger.
     c_plain : (J, M, Fb) plain spectra (:func:`segment_spectra`). stretches : the bank's ε (n,) and bound :
     (J,) the largest |ε| each event can have (|ṙ| ≤ |v|: the source's speed); None: any row. Every
-    ``coarse``-th row first, then the rows around each event's best (the peak falls smoothly off its row)."""
+    ``coarse``-th row first, then the rows around each event's best (the peak falls smoothly off its row).
+    Returns (rows (J,), (J, hi − lo) the mic-averaged plain envelope of each event with its row: the one
+    :func:`locate` searches next, given as its ``onset_env`` instead of computed again; or None)."""
     n, J = len(bank), c_plain.shape[0]
     allowed = np.ones((n, J), bool) if bound is None else np.abs(np.asarray(stretches))[:, None] <= bound[None, :]
     peak = np.full((n, J), -np.inf)
+    best = {"row": np.full(J, n), "env": np.zeros((J, hi - lo), np.float32)}   # row n: none yet
     ctx = (setup, lo, hi, pulse_envelope(setup, hi - lo, plain=True), pulse_near(setup, hi - lo, 2, plain=True),
-           (snr_factor, min_ratio, sidelobe_margin))
+           (snr_factor, min_ratio, sidelobe_margin), best)
     for i in range(0, n, coarse):
         _direct_peaks(c_plain, bank, i, allowed[i], peak, ctx)
-    best = np.argmax(peak, axis=0)
+    top = np.argmax(peak, axis=0)
     for i in range(n):
-        near = allowed[i] & (np.abs(best - i) < coarse) & ~np.isfinite(peak[i])
+        near = allowed[i] & (np.abs(top - i) < coarse) & ~np.isfinite(peak[i])
         _direct_peaks(c_plain, bank, i, near, peak, ctx)
-    return np.argmax(peak, axis=0)
+    rows = np.argmax(peak, axis=0)
+    return rows, (best["env"] if np.array_equal(rows, best["row"]) else None)   # (None: a NaN peak somewhere)
 
 
 def _direct_peaks(c_plain, bank, i, which, peak, ctx):
-    """peak[i, which] = the direct path's height in the plain envelope with bank row i (in place)."""
+    """peak[i, which] = the direct path's height in the plain envelope with bank row i (in place); the envelope
+    kept (``ctx``'s last: row and envelope per event) where row i is the event's best so far, ties to the lower
+    row (as ``argmax`` over the rows)."""
     if not np.any(which):
         return
-    setup, lo, hi, pulse, near, kw = ctx
+    setup, lo, hi, pulse, near, kw, best = ctx
     env = np.abs(lag_grid(c_plain[which] * bank[i], setup, lo, hi)).mean(axis=1)
     dp = direct_path_lag(env, pulse, *kw, near=near)[0]
-    peak[i, which] = env[np.arange(len(dp)), dp]
+    idx = np.flatnonzero(which)
+    peak[i, idx] = val = env[np.arange(len(dp)), dp]
+    old = np.where(best["row"][idx] < len(peak), peak[np.minimum(best["row"][idx], len(peak) - 1), idx], -np.inf)
+    better = (val > old) | ((val == old) & (i < best["row"][idx]))
+    best["row"][idx[better]] = i
+    best["env"][idx[better]] = env[better]
 
 
 def _power(z):
@@ -673,7 +684,7 @@ def refine_peak_along(y, k):
 
 def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, gate=0,
            phase=None, reflection_ratio=0.5, c_onset=None, separate_pulses=4.0, separate_plain=True, smear=None, smear_max=None,
-           own_phase=False):
+           own_phase=False, onset_env=None):
     """Direct path and sub-sample chirp start at every mic, for all events of one array.
 
     c : (J, M, Fb) spectra (:func:`segment_spectra`). lo, hi : lag samples searched for the direct path
@@ -683,13 +694,13 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
     window for the DOA. phase : carrier phase at the envelope peak (rad); None = estimate it from these
     measurements; own_phase : each event's own (:func:`_carrier_phase`; ``phase`` returned (J,)). reflection_ratio : a later peak at least this × the direct path's (and not its sidelobe)
     is a strong reflection (it ends the DOA gate). c_onset : (J, M, Fb) spectra for the onset search
-    (the plain matched filter of :func:`segment_spectra`, whose response is causal); None = ``c``.
-    separate_pulses : a strong reflection within this many pulse widths (1 / bandwidth) of the direct path
-    is modelled and subtracted before timing (:func:`separate_reflection`; 0 = never); separate_plain :
-    do it on the plain matched filter (exact two-pulse model) rather than the whitened one. smear :
-    samples by which the pulse is wider than the single-path model (a clock drift δ disperses a linear
-    sweep's group delay by 2|δ|T: at 1e-3 and 0.5 s, 1 ms ≫ the pulse); the sidelobe model is widened by
-    it. None = measured (:func:`excess_width`), at most ``smear_max`` samples if given.
+    (the plain matched filter of :func:`segment_spectra`, whose response is causal); None = ``c``; onset_env its
+    mic-averaged envelope on lags lo..hi if known (:func:`matched_stretch`). separate_pulses : a strong reflection
+    within this many pulse widths (1 / bandwidth) of the direct path is modelled and subtracted before timing
+    (:func:`separate_reflection`; 0 = never); separate_plain : do it on the plain matched filter (exact two-pulse
+    model) rather than the whitened one. smear : samples by which the pulse is wider than the single-path model
+    (a clock drift δ disperses a linear sweep's group delay by 2|δ|T: at 1e-3 and 0.5 s, 1 ms ≫ the pulse); the
+    sidelobe model is widened by it. None = measured (:func:`excess_width`), at most ``smear_max`` if given.
 
     Returns a dict: ``dp`` (J,) int direct-path lag; ``tau`` (J, M) start lags (s since segment start);
     ``value`` (J, M) normalised carrier peak (1 = one clean path); ``phase``; ``r`` (J, M, T) analytic
@@ -708,7 +719,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
         onset_env = mean_env[:, lo - r_lo : hi - r_lo]
     else:  # the whitened grid is needed only from the direct path on: computed once it is known
         r = env = mean_env = None
-        onset_env = np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1)
+        onset_env = np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1) if onset_env is None else onset_env
     pulse_env = pulse_envelope(setup, hi - lo + pad)
     onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
     if smear is None:
