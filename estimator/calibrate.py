@@ -44,12 +44,12 @@ def calibrate(features: Mapping[str, Any], *, target_position: float = 0.03, tar
     "linear": ``estimator.clockmodel``), and names in the verdict the arrays that the data do not determine
     to ``target_position`` (m) / ``target_orientation_deg`` (``verdict.name_imprecise``; 0 = off; report.json
     ``precision``). ``clock_veto``: a reason to keep the linear clock, asked once the first solve is done
-    (``clockmodel.calibrate_clocks``' ``veto``; each array the leave-one-array-out test isolates asks again).
+    (``clockmodel.calibrate_clocks``; each array the leave-one-array-out test isolates asks again).
     """
     validate_options(target_position=target_position, target_orientation_deg=target_orientation_deg)
     try:
         with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
-            result = clockmodel.calibrate_clocks(calibrate_features, features, veto=clock_veto, **options)
+            result = clockmodel.calibrate_clocks(calibrate_features, features, clock_veto=clock_veto, **options)
             result = _leave_one_out(result, features, options, clock_veto)
     finally:
         forget_linearisation()
@@ -69,7 +69,7 @@ def _leave_one_out(result, features, options, veto=None):
     before = list(options.get("isolate") or ())
 
     def resolve(names):
-        return clockmodel.calibrate_clocks(calibrate_features, features, veto=veto,
+        return clockmodel.calibrate_clocks(calibrate_features, features, clock_veto=veto,
                                            **{**options, "isolate": before + list(names)})
 
     result, record = consistency.settle(result, features["meta"], resolve, max_iter=options.get("max_iter", 200))

@@ -1297,13 +1297,13 @@ def _suspects(result):
     return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
 
 
-def calibrate_clocks(solve, features, *, clock_model="auto", veto=None, **options):
+def calibrate_clocks(solve, features, *, clock_model="auto", clock_veto=None, **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
     clock_model : "auto" (default): the linear clock unless the evidence asks for steps / drift terms per
         array (0 of 22 clean rendered sessions get a clock term, docs/results.md); "linear":
         never more (``calib.options.OPTIONS``: ``--clock-model``).
-    veto : with "auto", a function of no arguments asked once the linear solve is done: a reason (str) to keep
+    clock_veto : with "auto", a function of no arguments asked once the linear solve is done: a reason (str) to keep
         the linear clock (a clock finding then says so), or None. ``calib estimate`` asks the set-up findings
         it computes meanwhile: a session whose set-up failed as a whole gets no selection, whose trial solves
         only fit clock terms to the mistake (minutes of CPU on another session's odometry).
@@ -1320,7 +1320,7 @@ def calibrate_clocks(solve, features, *, clock_model="auto", veto=None, **option
     # (events.csv t_emit, or the reference's stated rate) is wrong; nothing to model (named in the report)
     base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
     first = result
-    vetoed = veto() if clock_model == "auto" and veto is not None else None
+    vetoed = clock_veto() if clock_model == "auto" and clock_veto is not None else None
     if clock_model == "auto" and len(p.tdoa_s.val) and base_ok and not vetoed:
         try:
             first, start = _seeded(solve, features, first, options, rounds)
@@ -2341,7 +2341,7 @@ def _ambiguities(rounds, models, events, u):
 
 def _attach_report(result, features, models, rounds, vetoed=None):
     """Put ``clock`` into the report (or the solution dict); a wrong nominal rate is a verdict reason.
-    ``vetoed``: why no clock model was selected (:func:`calibrate_clocks`' veto), a finding."""
+    ``vetoed``: why no clock model was selected (:func:`calibrate_clocks`' ``clock_veto``), a finding."""
     block = clock_report(result, features, models, rounds)
     if vetoed:
         block["findings"].append(f"clock model not selected (linear clocks): {vetoed}")
