@@ -20,7 +20,8 @@ Rows replaced by truth (the estimator's own row model at the true scene):
     no vel. err  the measured TDOAs with the velocity error removed (the difference between the shift at the
                  true range rate and the shift the estimator computes at the true geometry from the odometry)
 
-Columns: the worst array (largest position error of the baseline) and its error ± stated std (cm) under each
+Columns: the worst array (largest position error of the baseline) and its error ± stated std (cm) as `calib run`
+solves it, with the joint solve started at the true state (a wrong starting basin shows here), under each
 substitution, and the array whose DOAs alone, replaced by the truth, bring it closest (its error then, cm); the stated sigma_tdoa (µs) and the part of it the frontend adds for the motion (``motion_sd``);
 at the true state: the TDOA residual RMS (µs) with the measured rows, the velocity error's share per arrival
 (RMS, µs) and the worst array's own arrival error (TDOA-S RMS with the velocity error removed, µs); the worst
@@ -128,13 +129,18 @@ def replaced(feats, *, tdoa=None, doa=None):
     return Features.from_dict(d)
 
 
-def calibrate(feats, truth):
-    """{array: (position error m, stated position std m)} of `calib run`'s estimate (reference left out)."""
+def calibrate(feats, truth, from_truth=False):
+    """{array: (position error m, stated position std m)} of `calib run`'s estimate (reference left out);
+    ``from_truth``: the joint solve started at the true state instead of the initialisation's."""
     from calib.estimator import calibrate as cal
+    from calib.estimator.problem import build_problem
+    from calib.estimator.uncertainty import state_from_frames
     from calib.pipeline.run import estimate_defaults
 
     o = estimate_defaults()
     loss = o.pop("loss", "cauchy")
+    if from_truth:
+        o["init_state"] = state_from_frames(build_problem(feats), truth["arrays"], truth["sources"])
     arr = cal(feats, loss=None if loss == "linear" else loss, **o).arrays.set_index("array")
     tru = truth["arrays"].set_index("array")
     xyz, std = ["x", "y", "z"], ["x_std", "y_std", "z_std"]
@@ -213,7 +219,7 @@ def one_seed(seed, work):
     motion = motion_sd(feats["events"], meta["speed_of_sound"], meta["chirp_drift_bias"], MOTION_MODEL_ERROR_RETIMED)
     own = float(np.sqrt(max(meta["sigma_tdoa"] ** 2 - motion ** 2, 0.0)))
     fmt = lambda r: f"{100 * r[worst][0]:.1f} ± {100 * r[worst][1]:.1f}"
-    row = {"seed": seed, "worst": worst, "baseline": fmt(base)}
+    row = {"seed": seed, "worst": worst, "baseline": fmt(base), "started at truth": fmt(calibrate(feats, truth, True))}
     row |= {k: fmt(calibrate(f, truth)) for k, f in subs.items()}
     row["true DOA of one array"] = one_array_doas(feats, truth, vs, worst)
     row |= {"stopped twin": fmt(calibrate(twin, truth)),
