@@ -97,7 +97,8 @@ OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
 )
 OPTION = {o.name: o for o in OPTIONS}
 DEFAULTS = {o.name: o.default for o in OPTIONS}
-INPUTS = ("init_state", "problem", "isolate")  # keywords of calibrate that are data, not options (not checked here)
+# keywords of calibrate that are data or a callback (clock_veto), not options (not checked here)
+INPUTS = ("init_state", "problem", "isolate", "clock_veto")
 
 
 def cli_options() -> tuple[Option, ...]:

@@ -9,7 +9,7 @@ returns a new one when it changes a setting.
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 
@@ -35,7 +35,7 @@ from .verdict import fold_ambiguity, majority_apart, mirror_ambiguity, name_dist
 __all__ = ["CalibrationResult", "calibrate", "calibrate_features", "to_frames", "to_tables", "validate_options"]
 
 def calibrate(features: Mapping[str, Any], *, target_position: float = 0.03, target_orientation_deg: float = 1.5,
-              **options: Any) -> CalibrationResult:
+              clock_veto: Callable[[], str | None] | None = None, **options: Any) -> CalibrationResult:
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from features (a
     ``calib.records.Features`` or its dict form) → a :class:`~calib.estimator.outputs.CalibrationResult`.
 
@@ -43,13 +43,14 @@ def calibrate(features: Mapping[str, Any], *, target_position: float = 0.03, tar
     array's clock model (``clock_model="auto"``, the default: linear unless the evidence asks for more; or
     "linear": ``estimator.clockmodel``), and names in the verdict the arrays that the data do not determine
     to ``target_position`` (m) / ``target_orientation_deg`` (``verdict.name_imprecise``; 0 = off; report.json
-    ``precision``).
+    ``precision``). ``clock_veto``: a reason to keep the linear clock, asked once the first solve is done
+    (``clockmodel.calibrate_clocks``; each array the leave-one-array-out test isolates asks again).
     """
     validate_options(target_position=target_position, target_orientation_deg=target_orientation_deg)
     try:
         with single_thread_blas():  # tiny matrices (calib.blas): parallelism goes across calibrations
-            result = clockmodel.calibrate_clocks(calibrate_features, features, **options)
-            result = _leave_one_out(result, features, options)
+            result = clockmodel.calibrate_clocks(calibrate_features, features, clock_veto=clock_veto, **options)
+            result = _leave_one_out(result, features, options, clock_veto)
     finally:
         forget_linearisation()
     if result.get("report") is not None and result.get("arrays") is not None:
@@ -58,7 +59,7 @@ def calibrate(features: Mapping[str, Any], *, target_position: float = 0.03, tar
     return CalibrationResult(**result)
 
 
-def _leave_one_out(result, features, options):
+def _leave_one_out(result, features, options, veto=None):
     """The leave-one-array-out test (``estimator.consistency``) on a full result of the hybrid method: arrays
     whose rows move the others more than the noise allows are solved without (the clock models chosen
     again) and named in the verdict; report.json ``leave_one_out``."""
@@ -68,7 +69,8 @@ def _leave_one_out(result, features, options):
     before = list(options.get("isolate") or ())
 
     def resolve(names):
-        return clockmodel.calibrate_clocks(calibrate_features, features, **{**options, "isolate": before + list(names)})
+        return clockmodel.calibrate_clocks(calibrate_features, features, clock_veto=veto,
+                                           **{**options, "isolate": before + list(names)})
 
     result, record = consistency.settle(result, features["meta"], resolve, max_iter=options.get("max_iter", 200))
     record["time_s"] = time.perf_counter() - t0

@@ -1297,12 +1297,16 @@ def _suspects(result):
     return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
 
 
-def calibrate_clocks(solve, features, *, clock_model="auto", **options):
+def calibrate_clocks(solve, features, *, clock_model="auto", clock_veto=None, **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
     clock_model : "auto" (default): the linear clock unless the evidence asks for steps / drift terms per
         array (0 of 22 clean rendered sessions get a clock term, docs/results.md); "linear":
         never more (``calib.options.OPTIONS``: ``--clock-model``).
+    clock_veto : with "auto", a function of no arguments asked once the linear solve is done: a reason (str) to keep
+        the linear clock (a clock finding then says so), or None. ``calib estimate`` asks the set-up findings
+        it computes meanwhile: a session whose set-up failed as a whole gets no selection, whose trial solves
+        only fit clock terms to the mistake (minutes of CPU on another session's odometry).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
@@ -1316,7 +1320,8 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
     # (events.csv t_emit, or the reference's stated rate) is wrong; nothing to model (named in the report)
     base_ok = abs(float(result["state"].drift[p.ref])) < RATE_ERROR_MIN
     first = result
-    if clock_model == "auto" and len(p.tdoa_s.val) and base_ok:
+    vetoed = clock_veto() if clock_model == "auto" and clock_veto is not None else None
+    if clock_model == "auto" and len(p.tdoa_s.val) and base_ok and not vetoed:
         try:
             first, start = _seeded(solve, features, first, options, rounds)
             if start:
@@ -1326,7 +1331,7 @@ def calibrate_clocks(solve, features, *, clock_model="auto", **options):
         except ObservabilityError as err:   # a trial model left the data unable to fix something: linear
             result, models = first, {}
             rounds.append([{"rejected": f"a clock model left the problem unobservable ({err}): the linear clock"}])
-    _attach_report(result, features, models, rounds)
+    _attach_report(result, features, models, rounds, vetoed)
     return result
 
 
@@ -2334,9 +2339,12 @@ def _ambiguities(rounds, models, events, u):
     return out
 
 
-def _attach_report(result, features, models, rounds):
-    """Put ``clock`` into the report (or the solution dict); a wrong nominal rate is a verdict reason."""
+def _attach_report(result, features, models, rounds, vetoed=None):
+    """Put ``clock`` into the report (or the solution dict); a wrong nominal rate is a verdict reason.
+    ``vetoed``: why no clock model was selected (:func:`calibrate_clocks`' ``clock_veto``), a finding."""
     block = clock_report(result, features, models, rounds)
+    if vetoed:
+        block["findings"].append(f"clock model not selected (linear clocks): {vetoed}")
     # jumps no source move explains, left after the modelled terms (:func:`impossible_jumps`)
     block["jumps"] = impossible_jumps(correct_features(features, models))
     block["findings"] += [_jump_text(j) for j in block["jumps"]]

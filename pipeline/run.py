@@ -24,6 +24,7 @@ Library use (a notebook)::
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import importlib.util
 import json
@@ -176,13 +177,7 @@ def estimate_stage(out, options, setup=()):
     from calib.pipeline.formats.io import write_calibration
     from calib.pipeline.setupcheck import apply_findings
 
-    unselected = session_failure(setup) if options.get("clock_model", "auto") == "auto" else None
-    if unselected:
-        options = {**options, "clock_model": "linear"}
-    calib, feats = estimate_features(Path(out) / "features", options)
-    if unselected:
-        clock = calib["report"]["clock"]
-        clock["findings"] = [*clock["findings"], f"clock model not selected (linear clocks): {unselected}"]
+    calib, feats = estimate_features(Path(out) / "features", options, veto=functools.partial(session_failure, setup))
     calib = apply_findings(calib, setup)
     write_calibration(Path(out) / "calibration", calib, features=feats)  # + calibration.json
     return calib
@@ -198,11 +193,12 @@ def session_failure(setup):
     return f"the set-up of the whole session failed ({failed[0]['what']}: {failed[0]['check']})" if failed else None
 
 
-def estimate_features(features_dir, options, findings=False):
+def estimate_features(features_dir, options, findings=False, veto=None):
     """Read a features folder and calibrate it (options: ``estimate_defaults()``; loss "linear" = none).
     Returns (calibration, features). ``findings``: with the set-up findings the features show
     (``setupcheck.feature_findings``) in its report and verdict, computed in a second process meanwhile
-    (:class:`calib.pipeline.background.Background`).
+    (:class:`calib.pipeline.background.Background`); a session they fail as a whole gets no clock-model
+    selection (:func:`session_failure`); without them, ``veto`` is the estimator's ``clock_veto``.
 
     Data that cannot determine the calibration raises InputError naming the features folder.
     """
@@ -215,11 +211,18 @@ def estimate_features(features_dir, options, findings=False):
     opts = dict(options)
     loss = opts.pop("loss", "cauchy")
     with Background(feature_findings, feats) if findings else contextlib.nullcontext() as job:
+        if findings:   # asked by the clock-model veto once the first solve is done, then applied
+            found = functools.cache(job.result)
+            veto = functools.partial(_failure_of, found)
         try:
-            calib = calibrate(feats, loss=None if loss == "linear" else loss, **opts)
+            calib = calibrate(feats, loss=None if loss == "linear" else loss, clock_veto=veto, **opts)
         except ObservabilityError as exc:
             raise InputError(f"{features_dir}: {exc}") from None
-        return (apply_findings(calib, job.result()) if findings else calib), feats
+        return (apply_findings(calib, found()) if findings else calib), feats
+
+
+def _failure_of(findings):
+    return session_failure(findings())
 
 
 def _check_something_to_place(feats, where):

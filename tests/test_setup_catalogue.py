@@ -353,6 +353,22 @@ def test_wrong_speed_of_sound_is_named(sample_features, c):
     assert found and found[0].status == "failed" and f"speed_of_sound = {c:g}" in found[0].text
 
 
+def test_estimate_selects_no_clock_model_for_a_failed_session(sample_features, tmp_path):
+    """``calib estimate``'s findings come from a second process beside the estimate: a speed of sound the arrivals
+    contradict (a finding of the whole session) keeps the linear clock, and the report says why."""
+    from calib.pipeline.formats.io import write_features
+    from calib.pipeline.run import estimate_defaults, estimate_features
+
+    folder = tmp_path / "features"
+    write_features(folder, _with(sample_features, {"speed_of_sound": 390.0}))
+    calib, _ = estimate_features(folder, estimate_defaults(), findings=True)
+    rep = calib["report"]
+    assert any(f["status"] == "failed" and not f.get("array") for f in rep["setup"]), rep["setup"]
+    unselected = [f for f in rep["clock"]["findings"] if "not selected" in f]
+    assert len(unselected) == 1 and "speed of sound" in unselected[0], rep["clock"]["findings"]
+    assert not any(a["steps"] or a["drift_model"] != "linear" for a in rep["clock"]["arrays"].values())
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["odometry in cm", "odometry rows of another session", "odometry x and y swapped"])
 def test_odometry_mistakes_are_named(sample_features, case):
