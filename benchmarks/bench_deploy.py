@@ -218,7 +218,7 @@ def main():
                 out.parent.mkdir(parents=True, exist_ok=True)
                 code, wall, cpu, solve, imports = calibrate(d, out)
                 if not (out / "report" / "metrics.json").is_file():
-                    print(f"| {preset} | {seed} | exit {code} |" + " |" * 7 + " FAIL |" + " |" * 4
+                    print(f"| {preset} | {seed} | exit {code} |" + " |" * 8 + " FAIL |" + " |" * 4
                           + f" {sim_cpu:.1f} | {wall:.1f} |")
                     groups.setdefault(preset, []).append(None)
                     continue
