@@ -22,7 +22,11 @@ when instead the verdict names exactly the arrays outside the bound and the othe
 ``FAIL(ok>3σ)`` when the verdict is ok while an array is more than 3σ off. Frontend CPU: process time of
 the features computation inside the `calib run` subprocess (all threads) as % of the recording, without the
 first solve of a moving source's re-timing pass (pipeline/retime.py: estimator work, its own column), and the
-number of arrivals that pass timed again.
+number of arrivals that pass timed again. "of which imports": the CPU of the modules first imported inside the
+features stage (outside that solve), a fixed cost per process included in the frontend CPU: scipy.interpolate
+for a moving source's sweep time, the estimator's modules for a fast-clock check (pipeline/headerrate.py) — all
+of which the estimate stage of the same `calib run` imports anyway (in `calib features` alone they are the
+frontend's own).
 """
 from __future__ import annotations
 
@@ -45,23 +49,41 @@ BOUND = (0.03, 1.5)
 
 # `calib run` in a subprocess, its frontend's CPU time recorded (the features computation only)
 RUNNER = """
-import json, sys, time
+import importlib._bootstrap as B, json, sys, time
 from calib.pipeline import features as F
 from calib.pipeline import retime as R
-inner, cpu_file, solve = F.session_features, sys.argv[1], R.first_pass_stretches
-spent = {"solve_cpu_s": 0.0}
+inner, cpu_file, solve, find = F.session_features, sys.argv[1], R.first_pass_stretches, B._find_and_load
+spent = {"solve_cpu_s": 0.0, "import_cpu_s": 0.0}
+state = {"on": False, "depth": 0}
 def timed_solve(*a, **k):
-    t0 = time.process_time()
-    out = solve(*a, **k)
-    spent["solve_cpu_s"] += time.process_time() - t0
-    return out
+    t0, state["on"] = time.process_time(), False
+    try:
+        return solve(*a, **k)
+    finally:
+        spent["solve_cpu_s"] += time.process_time() - t0
+        state["on"] = True
+def counted_import(*a, **k):   # modules first imported inside the stage (outermost import only)
+    if not state["on"] or state["depth"]:
+        state["depth"] += 1
+        try:
+            return find(*a, **k)
+        finally:
+            state["depth"] -= 1
+    state["depth"], t0 = 1, time.process_time()
+    try:
+        return find(*a, **k)
+    finally:
+        spent["import_cpu_s"] += time.process_time() - t0
+        state["depth"] = 0
 def timed(*a, **k):
-    t0 = time.process_time()
+    t0, state["on"] = time.process_time(), True
     out = inner(*a, **k)
+    state["on"] = False
     open(cpu_file, "w").write(json.dumps({"cpu_s": time.process_time() - t0, **spent}))
     return out
 F.session_features = timed
 R.first_pass_stretches = timed_solve
+B._find_and_load = counted_import
 sys.argv = ["calib", "run", *sys.argv[2:]]
 from calib.cli.entry import main
 main()
@@ -96,7 +118,8 @@ def simulate(d, preset, seed):
 
 def calibrate(d, out):
     """`calib run` in a subprocess: (exit code, wall s, frontend CPU s, CPU s of the re-timing's first solve
-    inside the features stage: estimator work, not the frontend's)."""
+    inside the features stage: estimator work, not the frontend's, CPU s of the modules first imported in the
+    stage outside that solve: part of the frontend CPU)."""
     cpu_file = out.parent / f"{out.name}.cpu.json"
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-c", RUNNER, str(cpu_file), str(d), "-o", str(out), "--force", "--quiet"],
@@ -106,7 +129,7 @@ def calibrate(d, out):
     cpu, solve = rec.get("cpu_s", float("nan")), rec.get("solve_cpu_s", float("nan"))
     if p.returncode not in (0, 3):
         print(f"  calib run {d.name}: exit {p.returncode}: {p.stderr.strip().splitlines()[-1:]}", flush=True)
-    return p.returncode, wall, cpu - solve, solve
+    return p.returncode, wall, cpu - solve, solve, rec.get("import_cpu_s", float("nan"))
 
 
 def assess(d, out, preset):
@@ -182,8 +205,9 @@ def main():
         print(f"load: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
         print("| preset | seed | position RMSE (cm) | orientation (deg) | verdict | named | clear arrays | worst clear "
               "(cm / deg) | off, not named | > 3σ | no std | acceptance | frontend CPU (% of audio) "
-              "| re-timing's first solve CPU (% of audio) | arrivals re-timed | simulate CPU (s) | run wall (s) |")
-        print("|---" * 17 + "|")
+              "| of which imports (% of audio) | re-timing's first solve CPU (% of audio) | arrivals re-timed "
+              "| simulate CPU (s) | run wall (s) |")
+        print("|---" * 18 + "|")
         groups = {}
         for spec in specs:
             preset, seeds = parse_spec(spec, args.seeds)
@@ -192,9 +216,9 @@ def main():
                 _, sim_cpu = simulate(d, preset, seed)
                 out = (Path(args.work) if args.work else Path(tmp)) / "runs" / d.name
                 out.parent.mkdir(parents=True, exist_ok=True)
-                code, wall, cpu, solve = calibrate(d, out)
+                code, wall, cpu, solve, imports = calibrate(d, out)
                 if not (out / "report" / "metrics.json").is_file():
-                    print(f"| {preset} | {seed} | exit {code} |" + " |" * 7 + " FAIL |" + " |" * 3
+                    print(f"| {preset} | {seed} | exit {code} |" + " |" * 8 + " FAIL |" + " |" * 4
                           + f" {sim_cpu:.1f} | {wall:.1f} |")
                     groups.setdefault(preset, []).append(None)
                     continue
@@ -206,13 +230,14 @@ def main():
                     continue
                 diag = json.loads((out / "diagnostics" / "diagnostics.json").read_text())
                 dur = diag["recording_duration_s"]
-                r["cpu_pct"], r["solve_pct"] = 100 * cpu / dur, 100 * solve / dur
+                r["cpu_pct"], r["solve_pct"], r["import_pct"] = 100 * cpu / dur, 100 * solve / dur, 100 * imports / dur
                 r["retimed"] = sum((diag.get("retime") or {}).get("events", {}).values())
                 groups.setdefault(preset, []).append(r)
                 print(f"| {preset} | {seed} | {r['pos_cm']:.2f} | {r['rot_deg']:.2f} | {r['status']} | {r['named']} "
                       f"| {r['clear']} | {r['worst_clear']} | {r['off_unnamed']} | {r['over3']} | {r['no_std']} "
                       f"| {r['accept']} "
-                      f"| {r['cpu_pct']:.2f} | {r['solve_pct']:.2f} | {r['retimed']} | {sim_cpu:.1f} | {wall:.1f} |",
+                      f"| {r['cpu_pct']:.2f} | {r['import_pct']:.2f} | {r['solve_pct']:.2f} | {r['retimed']} "
+                      f"| {sim_cpu:.1f} | {wall:.1f} |",
                       flush=True)
         print()
         print("| preset | sessions | median position (cm) | median orientation (deg) | verdicts | acceptance "

@@ -586,16 +586,17 @@ def locate_events(x, starts, setup, locate_kw, chunk_bytes=TIMING_CHUNK_BYTES, w
     for j0 in range(0, max(len(starts), 1), n):
         chunk = starts[j0 : j0 + n]
         c, c_plain = segment_spectra(x, chunk, setup, plain=True, workers=workers)  # (J_c, M, Fb) each
-        stretch = np.zeros(len(chunk))
+        stretch, onset = np.zeros(len(chunk)), None
         if bank is not None:
-            k = np.asarray(rows[j0 : j0 + n], int) if rows is not None else matched_stretch(
+            k, onset = (np.asarray(rows[j0 : j0 + n], int), None) if rows is not None else matched_stretch(
                 c_plain, setup, bank[0], locate_kw["lo"], locate_kw["hi"], locate_kw["snr_factor"],
                 locate_kw["min_ratio"], stretches=bank[1], bound=bank[2][j0 : j0 + n] if len(bank) > 2 else None,
                 coarse=SEARCH_COARSE)
             c *= bank[0][k][:, None, :]
             c_plain *= bank[0][k][:, None, :]
             stretch = bank[1][k]
-        res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain)
+        # (the searched rows' onset envelope: matched_stretch's, not computed again)
+        res = locate(c, setup, **{**locate_kw, "phase": phase}, c_onset=c_plain, onset_env=onset)
         res["stretch"] = stretch
         onset_env = res.pop("onset_env")   # (J_c, lags): searched again by retime_earlier, not kept
         # a weak direct path before the timed arrival (a reflection): timed again on it (frontend.nlos); not

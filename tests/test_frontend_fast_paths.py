@@ -202,6 +202,35 @@ def test_shared_setup_is_one_per_board_kind_and_keeps_few_doppler_banks():
         assert len(a["_stretch_banks"]) <= KEPT_BANKS
 
 
+@pytest.mark.parametrize("fs", [16000, 48000])
+def test_stretched_spectra_equal_the_resampled_templates_transform(fs):
+    """The Doppler bank's stretched spectra (a chirp z-transform at the stretched bins) against their definition:
+    the template zero-padded to ``pad``, band-limited resampled to ``pad + k`` samples (stretched by 1 + k / pad)
+    and transformed at the segment's FFT size, for stretches either side of 0 (a 0.5 s sweep, with fades)."""
+    from calib.frontend.signals import chirp_band, fourier_resample, sweep
+
+    tmpl = sweep(np.arange(fs // 2) / fs, 500.0, 4000.0, 0.5, 0.005)
+    band = chirp_band({"f0": 500.0, "f1": 4000.0}, tmpl, fs)
+    setup = spectra_setup(tmpl, fs, band, len(tmpl) + fs // 20)
+    nfft, kb = setup["nfft"], setup["kb"]
+    pad, ks = sfft.next_fast_len(2 * len(tmpl)), (-37, -1, 0, 2, 53)
+    got = timing._stretched_spectra(tmpl.tobytes(), nfft, int(kb[0]), len(kb), pad, ks)
+    buf = np.r_[tmpl, np.zeros(pad - len(tmpl))]
+    want = np.array([sfft.rfft(fourier_resample(buf, pad + k)[:pad][:nfft], nfft)[kb] for k in ks])
+    assert np.max(np.abs(got - want)) < 1e-8 * np.max(np.abs(want))
+
+
+def test_cubic_interpolation_of_the_oversampled_template_is_band_limited_exact():
+    """_cubic_at on a 16× oversampled band-limited periodic signal (two tones at the top of a 4 kHz band at
+    16 kHz, sampled at 256 kHz) against the tones' exact values at arbitrary instants: ~1e-6 of the amplitude."""
+    rate, n = 256000, 25600
+    f = np.array([3990.0, 2510.0])
+    y = np.sum(np.cos(2 * np.pi * f[:, None] * np.arange(n) / rate), axis=0)
+    t = np.random.default_rng(5).uniform(0, n / rate, 500)
+    exact = np.sum(np.cos(2 * np.pi * f[:, None] * t), axis=0)
+    assert np.max(np.abs(timing._cubic_at(y, t * rate) - exact)) < 1e-5
+
+
 def test_segment_band_spectra_in_batches_equal_each_segments_own_fft(monkeypatch):
     # segments before, across either end of, inside and after the recording; batches of 3 events (8 in all)
     rng = np.random.default_rng(5)

@@ -62,6 +62,35 @@ def test_doppler_bank_times_a_moving_source_to_its_mid_sweep_range_rate():
     assert np.all(np.abs(stretch - (RDOT + RDDOT * t_mid) / C) < 2.5 * step)   # (the arrival does not depend on it)
 
 
+def test_doppler_search_hands_locate_the_chosen_rows_envelope():
+    """matched_stretch's rows are the argmax of every row's direct-path peak, and the envelope it returns is the
+    one locate computes on the spectra stretched by those rows (the same values, bit for bit), so locate given
+    it times every event exactly as without it."""
+    x, starts = _recording()
+    tpl = chirp_template(CHIRP, FS)
+    band = chirp_band(CHIRP, tpl, FS)
+    g = X._timing_layout(np.zeros((1, 3)), band, FS, C, len(tpl), X.DEFAULTS)
+    setup = T.spectra_setup(tpl, FS, band, g["seg_len"], X.DEFAULTS["whiten_hz"])
+    c, c_plain = T.segment_spectra(x, np.round(starts).astype(int) - g["pre"], setup, plain=True)
+    bank = X._doppler_bank(tpl, setup, band, np.max(np.abs(RDOT)), C)
+    kw = {**g["locate_kw"], "own_phase": True}
+    rows, env = T.matched_stretch(c_plain, setup, bank[0], kw["lo"], kw["hi"], stretches=bank[1])
+    peaks = []
+    for i in range(len(bank[0])):   # every row's direct-path peak, exhaustively
+        e = np.abs(T.lag_grid(c_plain * bank[0][i], setup, kw["lo"], kw["hi"])).mean(axis=1)
+        d = T.direct_path_lag(e, T.pulse_envelope(setup, kw["hi"] - kw["lo"], plain=True),
+                              near=T.pulse_near(setup, kw["hi"] - kw["lo"], 2, plain=True))[0]
+        peaks.append(e[np.arange(len(d)), d])
+    assert np.array_equal(rows, np.argmax(peaks, axis=0))
+    rows3, env3 = T.matched_stretch(c_plain, setup, bank[0], kw["lo"], kw["hi"], stretches=bank[1], coarse=3)
+    np.testing.assert_array_equal(env3, np.abs(T.lag_grid(c_plain * bank[0][rows3][:, None, :], setup, kw["lo"],
+                                                          kw["hi"])).mean(axis=1))   # (the coarse-to-fine search)
+    c, c_plain = c * bank[0][rows][:, None, :], c_plain * bank[0][rows][:, None, :]
+    np.testing.assert_array_equal(env, np.abs(T.lag_grid(c_plain, setup, kw["lo"], kw["hi"])).mean(axis=1))
+    given, own = (T.locate(c, setup, **kw, c_onset=c_plain, onset_env=e) for e in (env, None))
+    np.testing.assert_array_equal(given["tau"], own["tau"])
+
+
 def test_shared_phase_template_timing_slips_for_a_moving_source():
     """Control: one carrier phase for all events and the unstretched template (a robot that stops) misses
     the same arrivals by a good part of a carrier period (the stretch rotates the phase ~0.4 rad per 1e-4)."""
