@@ -59,7 +59,7 @@ def calibrate(features: Mapping[str, Any], *, target_position: float = 0.03, tar
     return CalibrationResult(**result)
 
 
-def _leave_one_out(result, features, options, veto=None):
+def _leave_one_out(result, features, options, clock_veto=None):
     """The leave-one-array-out test (``estimator.consistency``) on a full result of the hybrid method: arrays
     whose rows move the others more than the noise allows are solved without (the clock models chosen
     again) and named in the verdict; report.json ``leave_one_out``."""
@@ -69,7 +69,7 @@ def _leave_one_out(result, features, options, veto=None):
     before = list(options.get("isolate") or ())
 
     def resolve(names):
-        return clockmodel.calibrate_clocks(calibrate_features, features, clock_veto=veto,
+        return clockmodel.calibrate_clocks(calibrate_features, features, clock_veto=clock_veto,
                                            **{**options, "isolate": before + list(names)})
 
     result, record = consistency.settle(result, features["meta"], resolve, max_iter=options.get("max_iter", 200))

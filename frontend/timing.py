@@ -200,15 +200,17 @@ def _stretched_spectra(template_bytes, nfft, k0, n_bins, pad, ks):
         # bin (k0 + b) at the stretched rate: e^{−j2π φ (k0 + b) i}, φ = (pad + k) / (pad nfft); with
         # b i = (b² + i² − (b − i)²) / 2 a convolution (Bluestein). Phases in exact integer cycles of 2 pad nfft.
         num, den = pad + k, 2 * pad * nfft
-
-        def cis(q, sign):   # e^{± j2π q num / den}, q integer (reduced first: no int64 overflow)
-            return np.exp(sign * 2j * np.pi * (np.mod(np.mod(q, den) * num, den) / den))
-
         kernel = np.zeros(size, complex)
-        kernel[np.mod(m, size)] = cis(m * m, 1.0)
-        y = sfft.ifft(sfft.fft(s * cis(2 * k0 * i + i * i, -1.0), size) * sfft.fft(kernel), overwrite_x=True)
-        out[row] = (num / pad) * cis(b * b, -1.0) * y[:n_bins]
+        kernel[np.mod(m, size)] = _cis(m * m, num, den, 1.0)
+        y = sfft.ifft(sfft.fft(s * _cis(2 * k0 * i + i * i, num, den, -1.0), size) * sfft.fft(kernel),
+                      overwrite_x=True)
+        out[row] = (num / pad) * _cis(b * b, num, den, -1.0) * y[:n_bins]
     return out
+
+
+def _cis(q, num, den, sign):
+    """e^{± j2π q num / den} for integer arrays ``q`` (reduced modulo ``den`` first: no int64 overflow)."""
+    return np.exp(sign * 2j * np.pi * (np.mod(np.mod(q, den) * num, den) / den))
 
 
 def matched_stretch(c_plain, setup, bank, lo, hi, snr_factor=6.0, min_ratio=0.05, sidelobe_margin=2.0, stretches=None,
