@@ -29,7 +29,7 @@ from . import associate as assoc_mod
 from .arrayresult import ArrayResult
 from .detect import background, matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
-from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
+from .doa import band_scatter, cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
 from .nlos import TRACK_SCALE_MAX, late_arrivals_many, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
@@ -192,7 +192,7 @@ def _relocate(st, k, change, rows, c, opt):
     return _merge_events(loc, new, idx, j), _merge_events(k["doa"], doa, idx, j, DOA_EVENT_KEYS)
 
 
-DOA_EVENT_KEYS = ("u", "power", "gap")   # the per-event entries of _direct_path_doa's dict
+DOA_EVENT_KEYS = ("u", "power", "gap", "band_sd")   # the per-event entries of _direct_path_doa's dict
 
 
 def _merge_events(old, new, idx, j, keys=None):
@@ -516,7 +516,8 @@ def _direct_path_doa(loc, mics, fs, setup, g, c, opt, hemisphere):
         return {**out, "u": cone_vectors(vec, cos_t), "power": power, "axis": vec}
     sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], hemisphere)
     u, power = srp_doa(g_spec, sset, g_w)
-    return {**out, "u": u, "power": power, "normal": sset["planar_normal"]}
+    return {**out, "u": u, "power": power, "normal": sset["planar_normal"],
+            "band_sd": band_scatter(g_spec, sset, u, g_w)}
 
 
 def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, c, opt, half, pulse=None):
@@ -532,6 +533,8 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
     mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
     doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, doa["normal"], doa["axis"])
+    if "band_sd" in doa:   # the larger of the two estimates of the DOA's error: the mics' misfit of one plane
+        doa_sd = np.fmax(doa_sd, doa["band_sd"])   # wave, and the band's (a reflection a pulse behind)
     reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, doa["gap"] < half,
                             fs, opt)
     warnings = []
