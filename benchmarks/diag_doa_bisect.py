@@ -2,7 +2,7 @@
 
     python benchmarks/diag_doa_bisect.py --seeds 350,351 --conds base,anechoic,quiet --work /tmp/bis
 
-Each condition renders the stopped twin of ``moving`` SEED (the same scene with the speaker held at each sweep
+Each condition renders the stopped twin of ``moving`` SEED (``--preset``: another deployment preset) (the same scene with the speaker held at each sweep
 start: the DOA errors are the same moving or stopped, docs/results.md) with one change, runs the frontend
 (``session_features``) and compares every doa.csv row with the true direction (array frame). Rows are grouped by
 the array's mount (``wall``: 10 cm off a wall, its mic plane tilted 0–30° from the wall's; ``table``: level)
@@ -50,8 +50,13 @@ def parse_seeds(spec):
 
 
 def _mount(a):
-    """"wall" if the array's mic-plane normal is nearly horizontal, else "table"."""
-    n = np.asarray(a["R"] if "R" in a else _rot(a))[:, 2]
+    """"wall" if the array's mic-plane normal is nearly horizontal, "table" if vertical, the board's name for
+    3-D boards (tetrahedra) and the others (stands: any rotation)."""
+    from calib.geometry import mic_geometry
+    kind, normal = mic_geometry(np.asarray(a["mics"], float))
+    if kind != "planar" or a.get("doa_hemisphere") is None:
+        return f"{kind}"
+    n = np.asarray(a["R"] if "R" in a else _rot(a)) @ normal
     return "wall" if abs(n[2]) < 0.7 else "table"
 
 
@@ -61,11 +66,14 @@ def _rot(a):
     return Rotation.from_quat(q, scalar_first=True).as_matrix()
 
 
+PRESET = "moving"   # --preset: a deployment preset with wall and table mounts
+
+
 def scenario(seed, cond):
     from calib.pipeline.simulate.roomsim import make_scenario
 
     over = copy.deepcopy(CONDS[cond])
-    sc = make_scenario("moving", seed, **over)
+    sc = make_scenario(PRESET, seed, **over)
     sc = {k: v for k, v in sc.items() if k != "trajectory"}   # the stopped twin: sources = the sweep starts
     if "fs" in over:   # the boards state their own rate
         for a in sc["arrays"]:
@@ -83,7 +91,7 @@ def features(seed, cond, work, **options):
     from calib.pipeline.features import session_features
     from calib.pipeline.simulate.roomsim import simulate
 
-    folder = work / f"moving_{seed}_{cond}"
+    folder = work / f"{PRESET}_{seed}_{cond}"
     sc = scenario(seed, cond)
     if not (folder / "session.toml").exists():
         t0 = time.time()
@@ -142,8 +150,11 @@ def main(argv=None):
     ap.add_argument("--conds", default="base")
     ap.add_argument("--work", type=Path, default=Path("/tmp/doa_bisect"))
     ap.add_argument("--gate-pulses", type=float, default=None)
+    ap.add_argument("--preset", default="moving")
     ap.add_argument("--dump", type=Path, default=None, help="write every row's errors here (csv)")
     args = ap.parse_args(argv)
+    global PRESET
+    PRESET = args.preset
     args.work.mkdir(parents=True, exist_ok=True)
     opts = {} if args.gate_pulses is None else {"gate_pulses": args.gate_pulses}
     pd.set_option("display.width", 200)

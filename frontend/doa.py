@@ -329,19 +329,21 @@ def band_scatter(g, setup, u, weights=None, refine_to_deg=0.02):
 
     A reflection that the gate cannot separate (a pulse or less behind the direct path: a wall array 10 cm
     off its wall) adds to each mic a phase error ∝ a sin(2π f Δ), which changes across the band; the
-    sub-band DOAs then disagree about as much as the full band's errs (noise alike). Treating the K
-    sub-band DOAs as independent estimates of which the full band is the mean, the mean's per-axis variance
-    is Σ_k |u_k − u|² / (2 K (K − 1)). For planar and 3-D arrays (linear ones measure one angle: srp_cone).
+    sub-band DOAs then disagree about as much as the full band's errs (noise alike). Sub-band k weighs in the
+    full band's DOA by its information I_k = Σ_f w_f f² (the SRP's curvature: a delay's phase grows with f);
+    were the sub-band DOAs u_k independent with variances ∝ 1 / I_k, the full band's (their weighted mean)
+    per-axis variance is Σ_k I_k |u_k − u|² / (2 (K − 1) Σ_k I_k). For planar and 3-D arrays (linear ones
+    measure one angle: srp_cone).
 
     g : (J, M, F) PHAT-normalised gated spectra on ``setup["freqs"]`` (:func:`srp_setup`).
     """
-    w = np.ones(len(setup["freqs"])) if weights is None else np.asarray(weights, float)
-    parts = np.array_split(np.arange(len(setup["freqs"])), DOA_SUBBANDS)
+    freqs = setup["freqs"]
+    w = np.ones(len(freqs)) if weights is None else np.asarray(weights, float)
+    parts = np.array_split(np.arange(len(freqs)), DOA_SUBBANDS)
+    info = np.array([np.sum(w[idx] * freqs[idx] ** 2) for idx in parts])
+    refine = _refine_planar if setup["planar_normal"] is not None else _refine_sphere
     sq = np.zeros(len(u))
-    for idx in parts:
-        sub = {**setup, "freqs": setup["freqs"][idx]}
-        refine = _refine_planar if setup["planar_normal"] is not None else _refine_sphere
-        uk = refine(g[:, :, idx], sub, w[idx], u, refine_to_deg, SUBBAND_START)
-        sq += np.arccos(np.clip(np.sum(uk * u, axis=1), -1.0, 1.0)) ** 2
-    k = len(parts)
-    return np.sqrt(sq / (2 * k * (k - 1)))
+    for idx, i_k in zip(parts, info):
+        uk = refine(g[:, :, idx], {**setup, "freqs": freqs[idx]}, w[idx], u, refine_to_deg, SUBBAND_START)
+        sq += i_k * np.arccos(np.clip(np.sum(uk * u, axis=1), -1.0, 1.0)) ** 2
+    return np.sqrt(sq / (2 * (len(parts) - 1) * info.sum()))
