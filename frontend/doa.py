@@ -323,7 +323,7 @@ SUBBAND_START = 2.0    # grid steps: each sub-band's refinement starts this wide
                        # travel ~2x as far: a reflection moved the lowest band's DOA of wall arrays up to ~10°)
 
 
-def band_scatter(g, setup, u, weights=None, refine_to_deg=0.02):
+def band_scatter(g, setup, u, weights=None, refine_to_deg=0.1):
     """Standard deviation (rad, per tangent axis) of each DOA ``u`` (J, 3) from the scatter of the DOAs of
     ``DOA_SUBBANDS`` equal parts of the band (each the SRP maximum nearest ``u`` on its frequencies alone).
 
