@@ -10,7 +10,9 @@ which peaks when ``u`` (unit vector in the array frame, toward the source) align
 plane wave from ``u`` reaches mic ``m`` ``u·m/c`` earlier than the origin. ``P`` is evaluated on a
 spherical Fibonacci grid for all events at once (one batched complex matrix product per frequency,
 steering matrix precomputed per array), then refined from the best grid point by a few rounds of a
-quadratic fit on a shrinking tangent-plane stencil, to well below the grid step.
+quadratic fit on a shrinking tangent-plane stencil, to well below the grid step (planar arrays: in the mic
+plane, where their SRP lives, :func:`_refine_planar`). :func:`band_scatter` states each DOA's error from the
+disagreement of sub-bands (a reflection the gate cannot separate).
 
 Normalised power ``(P / Σ_f w_f − M) / (M (M − 1))`` is 1 for one clean plane wave and near 0 for
 diffuse noise: it is the ``quality`` column of doa.csv.

@@ -783,6 +783,9 @@ def flag_doa_spread(results):
                 r["flags"][k].append("doa_spread")
 
 
+IN_PLANE_FLOOR = 1e-12   # least σ_v (the in-plane part's std) in doa_spread's floor √σ_v of |u·n|
+
+
 def doa_spread(res, u, mics, c, normal=None, axis=None):
     """Internal-consistency standard deviation (rad, per tangent axis) of each DOA.
 
@@ -809,7 +812,8 @@ def doa_spread(res, u, mics, c, normal=None, axis=None):
     floor = 0.0
     if normal is not None:
         sig_v = c * np.sqrt(sig2 * np.trace(np.linalg.pinv(d.T @ d)) / 2)
-        floor = np.sqrt(sig_v)
+        floor = np.sqrt(np.maximum(sig_v, IN_PLANE_FLOOR))  # a DOA in the plane (doa._refine_planar: |v| > 1)
+                                                              # whose mics fit exactly: no 0 / 0
     tr = np.trace(doa_covariance(u, mics, normal, floor), axis1=1, axis2=2)
     return c * np.sqrt(sig2 * tr / 2)
 
@@ -954,8 +958,9 @@ def noise_estimates(results):
     nothing to estimate from left out): boards of different makes in one session time their arrivals
     unequally well (a 2-mic pair's scatter 6× a 6-mic circle's, mixed preset), and the estimator weights
     their TDOA rows relative to one another by it (docs/method.md "Per-array arrival sigmas").
-    sigma_doa_deg: the RMS of :func:`doa_spread` (plane-wave fit covariance, per tangent axis; planar arrays
-    with the elevation Jacobian). None where there is nothing to estimate from.
+    sigma_doa_deg: the RMS of the rows' ``doa_spread`` (:func:`doa_spread`: plane-wave fit covariance, per
+    tangent axis, planar arrays with the elevation Jacobian; or the sub-band scatter
+    :func:`calib.frontend.doa.band_scatter` where larger). None where there is nothing to estimate from.
     """
     dsd = _clean_rms(results.values(), "doa_spread", DOA_DOUBTS)
     own = {name: _clean_rms([r], "arrival_sd", TIMING_DOUBTS) for name, r in results.items()}
