@@ -250,7 +250,6 @@ def srp_doa(g, setup, weights=None, refine_to_deg=0.02):
     u : (J, 3) unit vectors (array frame, toward the source).
     power : (J,) normalised SRP at u (1 = one clean plane wave).
     """
-    j = g.shape[0]
     freqs, mics, c = setup["freqs"], setup["mics"], setup["c"]
     w = np.ones(len(freqs)) if weights is None else weights
     # grid search, all events at once, coarse to fine
