@@ -443,8 +443,9 @@ class GridMoments:
     ``h''`` give the slope and curvature. The values match the band sums to ~1e-7 of the nearby peak (the
     samples are single precision), which moves a timing by ~1e-11 s.
 
-    r : (..., T) complex samples; r_lo : lag of ``r[..., 0]`` (samples); setup : :func:`spectra_setup`'s
-    dict. :meth:`covers` says whether the samples reach far enough.
+    r : (..., T) complex samples, or (T,): one correlation evaluated at lags of any shape; r_lo : lag of
+    ``r[..., 0]`` (samples); setup : :func:`spectra_setup`'s dict. :meth:`covers` says whether the samples
+    reach far enough.
     """
 
     def __init__(self, r, r_lo, setup, tol=KERNEL_TOL):
@@ -472,7 +473,7 @@ class GridMoments:
     def __call__(self, tau, orders=3):
         """Like :meth:`BandMoments.__call__`: tau (...) lags (s) → (orders, ...) complex, ``Σ c ω^k e^{jωτ}``."""
         u, n = self._taps(tau)
-        x = np.take_along_axis(self.r, n, axis=-1)
+        x = self.r[n] if self.r.ndim == 1 else np.take_along_axis(self.r, n, axis=-1)   # 1-D: shared by every lag
         h = _interp_kernel(u[..., None] - n, self.a, self.sigma, orders)
         out = [np.sum(x * h[0], axis=-1)]
         if orders > 1:  # r' = j Σ c ω e^{jωτ}, r'' = −Σ c ω² e^{jωτ}; per sample → per second
@@ -636,19 +637,14 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
     peak = env[np.arange(j), kmax] if peak is None else peak
     is_max = np.zeros_like(env, bool)
     is_max[:, 1:-1] = (env[:, 1:-1] >= env[:, :-2]) & (env[:, 1:-1] > env[:, 2:])
-    own_floor = floor is None
-    floor = np.empty(j) if own_floor else floor
+    floor = _prefix_medians(env, kmax) if floor is None else floor
     shadowed = np.zeros(j, bool)
     n_pulse = len(pulse_env)
-    for i in range(j):
-        if own_floor:
-            before = env[i, : kmax[i]]
-            floor[i] = np.median(before) if before.size >= 16 else np.median(env[i])
-        thr = max(snr_factor * floor[i], min_ratio * peak[i])
-        cand = np.flatnonzero(is_max[i, : kmax[i]] & (env[i, : kmax[i]] >= thr))
-        if not cand.size:
-            continue
-        strong = np.r_[cand, kmax[i]]  # candidates and the maximum, earliest first
+    thr = np.maximum(snr_factor * np.asarray(floor, float), min_ratio * np.asarray(peak))
+    above = is_max & (env >= thr[:, None]) & (np.arange(t)[None, :] < kmax[:, None])   # candidates before the peak
+    for i in np.flatnonzero(np.any(above, axis=1)):
+        cand = np.flatnonzero(above[i])
+        strong = np.append(cand, kmax[i])  # candidates and the maximum, earliest first
         for k in cand:
             later = strong[(strong > k) & (env[i, strong] > env[i, k])]
             d = np.minimum(later - k, n_pulse - 1)
@@ -662,6 +658,20 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
     ratio = env[np.arange(j), out] / np.maximum(peak, 1e-300)
     snr = env[np.arange(j), out] / np.maximum(floor, 1e-300)
     return out, ratio, snr, shadowed
+
+
+def _prefix_medians(env, kmax, min_len=16):
+    """(J,) the median of each row of ``env`` (J, T) before its lag ``kmax`` (J,) (the whole row where fewer than
+    ``min_len`` samples precede it), as ``np.median`` row by row (the same values: the middle order statistics
+    of each prefix, averaged in the envelope's precision), from one sort of all rows."""
+    j, t = env.shape
+    if not np.all(np.isfinite(env)):   # (np.median's NaN semantics: row by row)
+        return np.array([np.median(e[:k] if k >= min_len else e) for e, k in zip(env, kmax)], float)
+    n = np.where(kmax >= min_len, kmax, t)
+    srt = np.sort(np.where(np.arange(t)[None, :] < n[:, None], env, np.inf), axis=1)
+    rows = np.arange(j)
+    mid = np.stack([srt[rows, (n - 1) // 2], srt[rows, n // 2]])
+    return np.where(n % 2 == 1, mid[1], np.mean(mid, axis=0, dtype=env.dtype)).astype(float)
 
 
 def subtract_path(c, setup, shape, lag, half_width):
@@ -1032,12 +1042,66 @@ def path_model(setup, shape, tau, a, dtype=np.complex128):
 def refine_two_paths(c, setup, shape, t1, a1, t2, a2, iters=3):
     """Refine a two-path fit (:func:`two_path_fit`, on a grid) by alternating Newton steps on each path's
     envelope with the other's model subtracted (exact at the fixed point for two paths; a single path
-    drives the second amplitude to ~0). Returns t1, a1, t2, a2 refined."""
-    freqs = setup["freqs"]
+    drives the second amplitude to ~0). The moments come from each event's lag grid around the pair and the
+    pulse's (:class:`_LessPath`): no band-wide model is formed or subtracted (the same values as doing so to
+    single precision, ~1e-6 of the peak; 0.52 → 0.31 s CPU on robot 350). Returns t1, a1, t2, a2 refined."""
+    freqs, fs = setup["freqs"], setup["fs"]
+    # Newton moves each path by at most 0.25 / f_max per step: both stay within this many samples of their start
+    move = int(np.ceil(2 * (iters + 1) * 0.25 / freqs.max() * fs))
+    own = _event_grid_moments(c, setup, np.minimum(t1, t2), np.maximum(t1, t2), move)
+    pulse = pulse_moments(setup, shape, int(np.ceil(np.max(np.abs(t2 - t1), initial=0.0) * fs)) + 2 * move)
     for _ in range(iters):
-        t2, a2 = newton_envelope(c - path_model(setup, shape, t1, a1, c.dtype), freqs, t2, iters=1)
-        t1, a1 = newton_envelope(c - path_model(setup, shape, t2, a2, c.dtype), freqs, t1, iters=1)
+        t2, a2 = newton_envelope(None, freqs, t2, iters=1, sums=_LessPath(own, pulse, t1, a1))
+        t1, a1 = newton_envelope(None, freqs, t1, iters=1, sums=_LessPath(own, pulse, t2, a2))
     return t1, a1, t2, a2
+
+
+class _LessPath:
+    """The moments of spectra less one path's model, ``c − path_model(t_o, a_o)``, without forming it: by
+    linearity ``Σ c ω^k e^{jωτ} − a_o P_k(τ − t_o)`` with the path's pulse ``P`` (:func:`pulse_moments`).
+    own : the moments of ``c`` (``(tau, orders) → (orders, ...)``, :func:`_event_grid_moments`); t_o, a_o
+    (...) the path's times (s) and amplitudes."""
+
+    def __init__(self, own, pulse, t_o, a_o):
+        self.own, self.pulse, self.t_o, self.a_o = own, pulse, t_o, a_o
+
+    def __call__(self, tau, orders=3):
+        return self.own(tau, orders) - self.a_o * self.pulse(np.asarray(tau, float) - self.t_o, orders)
+
+
+def _event_grid_moments(c, setup, first, last, margin):
+    """Moments of the spectra ``c`` (J, M, Fb) at lags within ``margin`` samples of ``first .. last`` (J, M) s:
+    :class:`GridMoments` on each event's own lag grid (its spectra shifted to its first lag, then one
+    :func:`lag_grid` for all), instead of sums over the band's bins at every evaluation. Returns a callable
+    ``(tau (J, M), orders) → (orders, J, M)``."""
+    fs = setup["fs"]
+    pad = margin + _kernel_half_length(setup) + 2
+    lo = np.floor(np.min(first, axis=-1) * fs).astype(int) - pad                     # (J,)
+    span = int(np.max(np.ceil(np.max(last, axis=-1) * fs).astype(int) + pad - lo, initial=1))
+    shifted = c * phasors(setup["freqs"], lo / fs, np.result_type(c, np.complex64))[:, None, :]
+    grid = GridMoments(lag_grid(shifted, setup, 0, span), 0.0, setup)
+    return lambda tau, orders=3: grid(np.asarray(tau, float) - (lo / fs)[:, None], orders)
+
+
+def _kernel_half_length(setup):
+    """Taps on either side of a lag that :class:`GridMoments` reads (its kernel's half-length ``g``)."""
+    return GridMoments(np.zeros(1), 0.0, setup).g
+
+
+def pulse_moments(setup, shape, reach):
+    """:class:`GridMoments` of one unit path's correlation ``P(Δ) = Σ_f u_f e^{j2πfΔ}`` (u = shape / Σ shape,
+    :func:`path_model`'s) on the lags within ``reach`` samples (and the kernel's taps) of 0, exact in double
+    precision from the full inverse transform; evaluated at any ``Δ`` (...) s within. Cached in ``setup`` per
+    shape (the plain or the whitened pulse) and reach (rounded up to a power of two)."""
+    cache = setup.setdefault("_pulse_moments", {})
+    span = 1 << int(np.ceil(np.log2(max(reach, 1) + _kernel_half_length(setup) + 2)))
+    key = (hash(np.asarray(shape).tobytes()), span)
+    if key not in cache:
+        full = np.zeros(setup["nfft"], complex)
+        full[setup["kb"]] = shape / np.sum(shape)
+        p = sfft.ifft(full) * setup["nfft"]                     # p[n] = P(n / fs), circular
+        cache[key] = GridMoments(np.r_[p[-span:], p[: span + 1]], -span, setup)
+    return cache[key]
 
 
 SKIRT_LEVEL = 0.2  # excess_width compares the leading skirt of the strongest peak down to this height

@@ -2,7 +2,8 @@
 DOA grid against the exhaustive grid (and its set-up: the caps and steering phasors against their
 definitions), the timing's moments from grid samples (GridMoments) against its band sums and against the
 true delay of a path; the event segments' band spectra taken a few events at a time against each segment's
-own zero-padded FFT."""
+own zero-padded FFT; the two-path refinement by linearity against subtracting the models; the onset search's
+noise floors from one sort against np.median row by row."""
 from __future__ import annotations
 
 import numpy as np
@@ -245,3 +246,49 @@ def test_segment_band_spectra_in_batches_equal_each_segments_own_fft(monkeypatch
         if b > a:
             seg[:, a - s0 : b - s0] = x[:, a:b]
         np.testing.assert_array_equal(g, sfft.rfft(seg, axis=-1)[:, setup["kb"]])
+
+
+@pytest.mark.parametrize("fs, band", [(48000, (500, 10000)), (16000, (500, 6000))])
+def test_two_path_refinement_by_linearity_equals_subtracting_the_models(fs, band):
+    """refine_two_paths evaluates each path's moments with the other's model subtracted by linearity (the
+    spectra's lag-grid moments less the pulse's), never forming ``c − path_model``: the same times and
+    amplitudes as the straightforward alternation, and on two clean overlapping paths their true delays."""
+    rng = np.random.default_rng(11)
+    setup, _, _, _ = _paths_setup(fs, band, rng, n_paths=1)
+    shape = setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2
+    pulse = fs / (band[1] - band[0])
+    t1 = rng.uniform(250, 300, (4, 3)) / fs
+    t2 = t1 + rng.uniform(1.5, 3.5, t1.shape) * pulse / fs
+    a1 = np.exp(1j * rng.uniform(0, 2 * np.pi, t1.shape))
+    a2 = rng.uniform(0.3, 0.8, t1.shape) * np.exp(1j * rng.uniform(0, 2 * np.pi, t1.shape))
+    c = (timing.path_model(setup, shape, t1, a1) + timing.path_model(setup, shape, t2, a2)).astype(np.complex64)
+    # a grid fit's starting values: off by a fraction of a sample, amplitudes off by 10 %
+    start = (t1 + rng.uniform(-0.3, 0.3, t1.shape) / fs, 0.9 * a1, t2 + rng.uniform(-0.3, 0.3, t1.shape) / fs, 0.9 * a2)
+    freqs = setup["freqs"]
+    w1, b1, w2, b2 = start
+    for _ in range(3):
+        w2, b2 = newton_envelope(c - timing.path_model(setup, shape, w1, b1, c.dtype), freqs, w2, iters=1)
+        w1, b1 = newton_envelope(c - timing.path_model(setup, shape, w2, b2, c.dtype), freqs, w1, iters=1)
+    got = timing.refine_two_paths(c, setup, shape, *start)
+    for x, want in zip(got, (w1, b1, w2, b2)):
+        # single precision: the lag grid's samples round at ~1e-6 of the peak (3e-6 samples, 6e-11 s at 48 kHz)
+        assert np.max(np.abs(x - want)) * (fs if np.isrealobj(want) else 1.0) < 1e-5
+    # towards the truth: three alternations from starts up to 0.3 samples off end within 0.1 samples
+    assert np.max(np.abs(got[0] - t1)) < 0.1 / fs and np.max(np.abs(got[2] - t2)) < 0.1 / fs
+
+
+def test_prefix_medians_equal_numpy_medians_row_by_row():
+    """direct_path_lag's noise floors from one sort of all rows: each row's median before its peak (or of the
+    whole row when fewer than 16 samples precede it), exactly np.median's values, odd and even lengths and
+    ties included; a non-finite row falls back to np.median's semantics."""
+    rng = np.random.default_rng(12)
+    env = np.abs(rng.standard_normal((40, 300))).astype(np.float32)
+    env[5, :50] = 0.25                                   # ties
+    kmax = rng.integers(0, 300, 40)
+    kmax[:4] = [0, 15, 16, 17]                            # short prefixes: the whole row
+    want = [np.median(e[:k] if k >= 16 else e) for e, k in zip(env, kmax)]
+    np.testing.assert_array_equal(timing._prefix_medians(env, kmax), want)
+    env[7, 3] = np.nan
+    got = timing._prefix_medians(env, kmax)
+    assert np.isnan(got[7]) == np.isnan(np.median(env[7, : kmax[7]] if kmax[7] >= 16 else env[7]))
+    np.testing.assert_array_equal(np.delete(got, 7), np.delete(want, 7))
