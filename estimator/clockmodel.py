@@ -243,6 +243,7 @@ class ArrayData:
     sig_s: float | np.ndarray   # (per row with a moving source's velocity error: :func:`array_data`)
     sig_m: float | np.ndarray
     ref: bool
+    floor: float = 1.0          # the smallest robust scale of the whitened rows: :func:`array_data`
 
     @property
     def n(self):
@@ -272,7 +273,20 @@ def array_data(p, st, i, velocity_sd=0.0):
     else:
         j, ym = np.zeros(0, int), np.zeros(0)
     return ArrayData(p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms], j, ym, st.s, p.t, t, p.c, p.beta,
-                     sig_s, sig_m, i == p.ref)
+                     sig_s, sig_m, i == p.ref, _velocity_floor(p, sig_s, sig_m))
+
+
+def _velocity_floor(p, sig_s, sig_m):
+    """The scale below which the per-array scan's whitened rows do not go: 1 (their σ as stated), or with a moving
+    source's velocity error in their σ the rows' stated σ over it (median). That error is a prior: the sources
+    held at the joint fit moved with each event's β δv where the odometry and the DOAs let them, so what is left
+    of it in the rows is the robust spread of their residuals (:func:`best_component`'s scale), not the prior
+    (test_motion_noise's moving scene: residuals at 0.2-0.4 of it; scored in the prior, a 0.5 ms step on a dropped
+    array made χ² 1.5, in its rows' own spread 30: proposed in its interval at −0.54 ms)."""
+    ratio = [np.broadcast_to(p.sigma[k], np.shape(v)) / np.asarray(v, float)
+             for k, v in (("tdoa_s", sig_s), ("tdoa_m", sig_m)) if np.ndim(v)]
+    ratio = np.concatenate([r.ravel() for r in ratio]) if ratio else np.zeros(0)
+    return float(min(1.0, np.median(ratio))) if len(ratio) else 1.0
 
 
 def velocity_arrival_sd(result):
@@ -426,7 +440,8 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
 
     The base fit (``comps``) and each candidate's fit are robust; their χ² drop is measured in the
     residuals' own robust scale (MAD of the best candidate's whitened residuals, at least 1: a sigma stated
-    too small never makes a false step).
+    too small never makes a false step; with a moving source's velocity error in the rows' σ, at least their
+    stated σ's share of it: :func:`_velocity_floor`).
 
     ``free``: "arrival" components (one event's arrival off) fitted in every fit, base and candidates, and
     left out of the result: the arrivals the frontend doubts for a reason no clock gives (CLOCK_BLIND_DOUBTS)
@@ -458,7 +473,7 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     if not fits:
         return None, 0.0, None
     # (the MAD: this fit holds the sources where a large fault may have bent them, its rows are not clean yet)
-    scale = max(1.0, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
+    scale = max(D.floor, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
     best, by_kind = None, []
     for kind in ("step", "mshift", "quadratic", "hinge", "warmup"):
         fam = [f for f in fits if f[1].kind == kind]
@@ -2048,9 +2063,29 @@ def refine(result, models):
     sw = np.where(keep, np.sqrt(np.maximum(lin.w, 0.0)), 0.0)
     cov = _normal_covariance(*_with_nuisance(result, lin, lay, B, sw))
     nb = lay.n + B.shape[1]
-    dc, sd = step[lay.n:nb], np.sqrt(np.maximum(np.diag(cov)[lay.n:nb], 0.0))
-    return _update(models, keys, dc, sd) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n],
+    dc, sd = step[lay.n:nb], np.sqrt(np.maximum(np.diag(_sandwich(result, lin, lay, B, sw))[lay.n:nb], 0.0))
+    # (moved: against the σ the rows resolve it to, without the velocity error, which no solve moves: a size left
+    # 10 µs off within its sandwich σ tipped a moving session's array over the solve's consistency test, seed 8)
+    resolved = np.sqrt(np.maximum(np.diag(cov)[lay.n:nb], 0.0))
+    return _update(models, keys, dc, sd, resolved) + ({"problem": p, "layout": lay, "cov": cov[:lay.n, :lay.n],
                                              "rows": _with_nuisance(result, lin, lay, B[:, :0], sw)},)
+
+
+def _sandwich(result, lin, lay, B, sw):
+    """The covariance of the fit's own parameters and the components' sizes as they are estimated (the solve and
+    :func:`refine`'s step weigh the rows as stated, without the velocity nuisance) under the errors as they are:
+    H + G Gᵀ, H = (AᵀA)⁻¹ of the weighted rows A = [J B] and G = H Aᵀ V their response to a moving source's
+    velocity error V (:func:`_velocity_columns`; the error bars' ``uncertainty.sandwich_covariance`` likewise).
+    The nuisance-projected covariance (:func:`_with_nuisance`) is that of an estimate that models the nuisance,
+    which this one does not: on test_motion_noise's moving scene it stated 2-8 µs for 2 and 20 ms steps
+    sized 10-90 µs off (5-15σ)."""
+    A = _weighted(lin.J, B, sw)
+    H = _normal_covariance(A)
+    V = _velocity_columns(result, lin, lay)
+    if V is None:
+        return H
+    G = H @ np.asarray((A.T @ (scipy.sparse.diags(sw) @ V)).todense())
+    return H + G @ G.T
 
 
 def _scaled_normal(A, prior=None):
@@ -2086,8 +2121,8 @@ def _conditional(lin, B, keep, keys, models):
     return _update(models, keys, dc, np.sqrt(np.maximum(np.diag(cov), 0.0))) + (None,)
 
 
-def _update(models, keys, dc, sd):
-    moved = bool(np.any(np.abs(dc) > REFIT_SIGMA * np.maximum(sd, 1e-300)))
+def _update(models, keys, dc, sd, resolved=None):
+    moved = bool(np.any(np.abs(dc) > REFIT_SIGMA * np.maximum(sd if resolved is None else resolved, 1e-300)))
     out = {name: list(comps) for name, comps in models.items()}
     for col, (name, k) in enumerate(keys):
         c = out[name][k]

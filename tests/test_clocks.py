@@ -911,12 +911,15 @@ def test_a_step_in_a_moving_session_is_still_found(monkeypatch):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed,array,at,size", [(8, "A5", 0.5, 0.0005), (10, "A4", 0.5, -0.02)])
+@pytest.mark.parametrize("seed,array,at,size", [(8, "A5", 0.5, 0.0005), (10, "A4", 0.5, -0.02),
+                                                (101, "A2", 0.4, -0.002), (100, "A4", 0.6, -0.002)])
 def test_a_step_in_a_moving_session_on_other_seeds(monkeypatch, seed, array, at, size):
-    """As above on other seeds, arrays and places: 0.5 ms inserted, 20 ms dropped (the issue's sizes). Not yet
-    everywhere: of nine such cases on seeds 3-12, two drops of 0.5 ms go unfound (their array, dropped by the
-    solve, has only its own rows' evidence, where the velocity error is undiluted), two 20 ms drops are lost
-    with their array, and two 2 ms steps are sized 7-12 of their σ off."""
+    """As above on other seeds, arrays and places: 0.5 ms inserted, 20 ms dropped (the issue's sizes), 2 ms
+    dropped (seeds 100, 101: sized 16 and 85 µs off, which the σ of an estimate that models the velocity
+    nuisance stated as 2.3 and 5.6 µs; the fit does not model it: its sandwich σ, 20 and 39 µs). Not yet
+    everywhere (benchmarks/bench_moving_clocks.py, docs/results.md): where the session's verdict names arrays
+    even without the fault (the solve's consistency tests do not count the velocity error), a step on such an
+    array is not kept."""
     _moving_step(monkeypatch, seed, array, at, size)
 
 
