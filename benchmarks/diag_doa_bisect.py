@@ -26,6 +26,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from diag_moving_arrivals import parse_seeds  # noqa: E402  (a sibling script's seed parser)
+
 INF = float("inf")
 CONDS = {
     "base": {},
@@ -39,14 +42,6 @@ CONDS = {
     "ideal": {"rt60": 0.0, "snr": INF, "diffuse_snr": INF, "hum_snr": INF, "gain_mismatch_db": 0.0},
 }
 OFF_WALL_M = 0.5
-
-
-def parse_seeds(spec):
-    out = []
-    for part in spec.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
-    return out
 
 
 def _mount(a):
