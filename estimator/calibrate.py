@@ -173,7 +173,8 @@ def _name_untrusted(out, screened, basins, mirrors=()):
     if screened is not None:
         out["report"]["screened"] = {"rows": screened["rows"], "arrays": distrusted(screened)}
         name_distrusted(out["report"]["verdict"], screened)
-    majority_apart(out["report"]["verdict"], out["report"].get("unreliable_arrays") or [], len(out["arrays"]))
+    majority_apart(out["report"]["verdict"], out["report"].get("unreliable_arrays") or [], len(out["arrays"]),
+                   str(out["problem"].names[out["problem"].ref]))
     return mirror_ambiguity(fold_ambiguity(out, basins), mirrors)
 
 

@@ -309,17 +309,26 @@ def with_setup(verdict, findings):
     return {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}
 
 
-def majority_apart(verdict, unreliable, n_arrays):
+def majority_apart(verdict, unreliable, n_arrays, reference=None):
     """``failed`` when more than half of the non-reference arrays were solved apart (refitted alone, std NaN:
     their rows distrusted as a whole or inconsistent with the others): no consistent majority holds the frame,
     and the arrays left in it are as likely the odd ones out (ushape seed 62 before issue 27's screening: three
-    of four arrays refitted alone from reflections, 4.7-7.5 m off, the fourth 8 cm, verdict `suspect`). In place."""
+    of four arrays refitted alone from reflections, 4.7-7.5 m off, the fourth 8 cm, verdict `suspect`).
+    Likewise when the ``reference`` array itself was solved apart: every pose is reported in its frame, which
+    then only the odometry ties to the others (lshape seed 390: the reference's DOAs 250× their σ, dropped, the
+    others placed through the odometry with its yaw free, 175° round and 7-11 m off, verdict `suspect`). In place."""
     apart = list(unreliable)
-    if n_arrays > 1 and len(apart) > (n_arrays - 1) / 2:
-        verdict["reasons"].append(f"{len(apart)} of the {n_arrays - 1} non-reference arrays ({', '.join(apart)}) were "
-                                  "solved apart from the others: no consistent majority holds the calibration")
+    others = [a for a in apart if a != reference]
+    if n_arrays > 1 and len(others) > (n_arrays - 1) / 2:
+        verdict["reasons"].append(f"{len(others)} of the {n_arrays - 1} non-reference arrays ({', '.join(others)}) "
+                                  "were solved apart from the others: no consistent majority holds the calibration")
         verdict["status"] = "failed"
-        flag(verdict, *apart)
+        flag(verdict, *others)
+    if reference is not None and reference in apart:
+        verdict["reasons"].append(f"the reference array {reference} was solved apart from the others: every pose is "
+                                  "given in its frame, which its own rows no longer tie to the rest")
+        verdict["status"] = "failed"
+        flag(verdict, reference)
     return verdict
 
 

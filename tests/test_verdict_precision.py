@@ -26,3 +26,19 @@ def test_named_arrays_are_the_ones_beyond_the_target_in_simulated_truth():
     named, beyond = np.array(named), np.array(beyond)
     assert named.any() and (~named).any()
     assert beyond[named].mean() > 0.5 > beyond[~named].mean()
+
+
+@pytest.mark.parametrize("apart, status", [([], "suspect"), (["A3"], "suspect"), (["A2", "A3", "A4"], "failed"),
+                                           (["A1"], "failed"), (["A1", "A3"], "failed")])
+def test_a_reference_solved_apart_fails_the_calibration(apart, status):
+    """Every pose is given in the reference's frame: with the reference solved apart (its rows dropped as
+    inconsistent), nothing ties the others to that frame but the odometry, so the verdict is `failed` and names
+    it; a minority of other arrays apart stays `suspect` (the majority rule)."""
+    from calib.estimator.verdict import majority_apart
+
+    v = majority_apart({"status": "suspect", "reasons": [], "flagged_arrays": []}, apart, 5, reference="A1")
+    assert v["status"] == status
+    if "A1" in apart:
+        assert "A1" in v["flagged_arrays"] and any("reference array A1" in r for r in v["reasons"])
+    else:
+        assert not any("the reference array" in r for r in v["reasons"])
