@@ -487,11 +487,11 @@ def earlier_paths(c_plain, setup, dp, lo, hi, half_width, snr_factor, min_ratio,
     """
     j = len(dp)
     shape = setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2
-    env = np.abs(lag_grid(c_plain, setup, lo, hi)).mean(axis=1) if env is None else env
+    env = lag_grid(c_plain, setup, lo, hi, magnitude=True).mean(axis=1) if env is None else env
     k = np.asarray(dp) - lo
     rows = np.arange(j)
     sub = subtract_path(c_plain, setup, shape, dp, half_width)
-    env2 = np.abs(lag_grid(sub, setup, lo, hi)).mean(axis=1)
+    env2 = lag_grid(sub, setup, lo, hi, magnitude=True).mean(axis=1)
     floor = np.array([np.median(env[i, : max(k[i] - half_width, 16)]) for i in rows])
     d2, q2, s2, _ = direct_path_lag(env2, pulse_envelope(setup, hi - lo, plain=True), snr_factor, min_ratio,
                                     sidelobe_margin, floor=floor, peak=env[rows, k])

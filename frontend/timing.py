@@ -249,7 +249,8 @@ def _direct_peaks(c_plain, bank, i, which, peak, ctx):
     if not np.any(which):
         return
     setup, lo, hi, pulse, near, kw, best = ctx
-    env = np.abs(lag_grid(c_plain[which] * bank[i], setup, lo, hi)).mean(axis=1)
+    env = lag_grid(c_plain if np.all(which) else c_plain[which], setup, lo, hi, factor=bank[i],
+                   magnitude=True).mean(axis=1)
     dp = direct_path_lag(env, pulse, *kw, near=near)[0]
     idx = np.flatnonzero(which)
     peak[i, idx] = val = env[np.arange(len(dp)), dp]
@@ -286,10 +287,11 @@ def _lag_plan(nfft, k0, n_q, n_t, lo, step):
     return n_fft, pre, kernel, post
 
 
-def lag_grid(c, setup, lo, hi, step=1.0):
+def lag_grid(c, setup, lo, hi, step=1.0, factor=None, magnitude=False):
     """Analytic correlation on the native lag grid: (J, M, hi − lo) complex64 for lag samples lo..hi-1
     (for peak search and gating; precise values come from :func:`newton_peak`). ``step`` < 1: ``(hi − lo) /
-    step`` lags ``lo, lo + step, ...`` instead (a finer grid).
+    step`` lags ``lo, lo + step, ...`` instead (a finer grid). factor : (Fb,) the spectra's weighting, applied
+    here (``lag_grid(c * factor)``, no product array of its own). magnitude : return ``|r|`` (float32) instead.
 
     ``r[n] = Σ_k c_k e^{j2πkn/nfft}`` over the band's bins only, evaluated at the wanted lags alone by a
     chirp z-transform (FFTs of about Fb + (hi − lo) points instead of a full-length inverse FFT per mic),
@@ -300,14 +302,22 @@ def lag_grid(c, setup, lo, hi, step=1.0):
     k0, n_q, n_t = int(kb[0]), int(kb[-1] - kb[0] + 1), int(round((hi - lo) / step))
     n_fft, pre, kernel, post = _lag_plan(nfft, k0, n_q, n_t, float(lo), float(step))
     d = np.zeros(c.shape[:-1] + (n_fft,), np.complex64)
+    cast = "same_kind" if c.dtype == np.complex64 else "unsafe"
     if len(kb) == n_q:  # contiguous band (always, from band weights): a slice, no scatter
-        np.multiply(c, pre, out=d[..., :n_q], casting="same_kind" if c.dtype == np.complex64 else "unsafe")
+        if factor is not None:   # (c × factor) × pre, the products rounded as with c × factor given
+            np.multiply(c, factor, out=d[..., :n_q], casting=cast)
+            d[..., :n_q] *= pre
+        else:
+            np.multiply(c, pre, out=d[..., :n_q], casting=cast)
     else:
-        d[..., kb - k0] = c * pre[kb - k0]
+        d[..., kb - k0] = (c if factor is None else c * factor) * pre[kb - k0]
     y = sfft.fft(d, axis=-1, overwrite_x=True)
     y *= kernel
     y = sfft.ifft(y, axis=-1, overwrite_x=True, norm="forward")  # unscaled: 1 / n is in the kernel
-    return y[..., n_q - 1 : n_q - 1 + n_t] * post
+    r = y[..., n_q - 1 : n_q - 1 + n_t]
+    if magnitude:   # (the product in place: y is this call's own)
+        return np.abs(np.multiply(r, post, out=r))
+    return r * post
 
 
 def cis_powers(tau, f0, df, n):
@@ -639,10 +649,60 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
     is_max[:, 1:-1] = (env[:, 1:-1] >= env[:, :-2]) & (env[:, 1:-1] > env[:, 2:])
     floor = _prefix_medians(env, kmax) if floor is None else floor
     shadowed = np.zeros(j, bool)
-    n_pulse = len(pulse_env)
     thr = np.maximum(snr_factor * np.asarray(floor, float), min_ratio * np.asarray(peak))
     above = is_max & (env >= thr[:, None]) & (np.arange(t)[None, :] < kmax[:, None])   # candidates before the peak
-    for i in np.flatnonzero(np.any(above, axis=1)):
+    rows = np.flatnonzero(np.any(above, axis=1))
+    if rows.size:
+        out[rows], shadowed[rows] = _first_onsets(env[rows], above[rows], kmax[rows], pulse_env, sidelobe_margin,
+                                                  near)
+    ratio = env[np.arange(j), out] / np.maximum(peak, 1e-300)
+    snr = env[np.arange(j), out] / np.maximum(floor, 1e-300)
+    return out, ratio, snr, shadowed
+
+
+def _first_onsets(env, above, kmax, pulse_env, sidelobe_margin, near):
+    """:func:`direct_path_lag`'s choice among each row's candidates ``above`` (R, T) bool (local maxima above
+    its thresholds before the strongest peak ``kmax`` (R,)): the earliest one that is no sidelobe of the later,
+    stronger peaks (candidates and the maximum), else ``kmax``; and whether a candidate before it was rejected
+    at above SHADOW_MARGIN × its exact sidelobe level (``near``; None: any rejected one). The rows advance
+    together, candidate by candidate, each undecided row's next one against all its later peaks at once
+    (:func:`_first_onsets_loop` one row at a time; the sidelobe sums of the same terms in the same order, zeros
+    between them). Returns ((R,) int, (R,) bool)."""
+    r = len(kmax)
+    n_c = above.sum(axis=1)
+    c_max = int(n_c.max())
+    valid = np.arange(c_max)[None, :] < n_c[:, None]                       # (R, C)
+    cand = np.zeros((r, c_max), int)
+    cand[valid] = np.nonzero(above)[1]                                      # each row's candidates, ascending
+    strong = np.concatenate([cand, kmax[:, None]], axis=1)                  # ... and the maximum: (R, C + 1)
+    s_valid = np.concatenate([valid, np.ones((r, 1), bool)], axis=1)
+    e_s = np.take_along_axis(env, strong, axis=1)
+    out, shadowed = kmax.copy(), np.zeros(r, bool)
+    todo = np.arange(r)                                                     # rows not decided yet
+    for slot in range(c_max):
+        todo = todo[valid[todo, slot]]
+        if not todo.size:
+            break
+        k, e_k = cand[todo, slot], e_s[todo, slot]
+        gap = strong[todo] - k[:, None]                                     # (R', C + 1)
+        later = s_valid[todo] & (gap > 0) & (e_s[todo] > e_k[:, None])
+        lobe = np.where(later, e_s[todo] * pulse_env[np.clip(gap, 0, len(pulse_env) - 1)], 0.0)
+        side = np.any(later, axis=1) & (e_k <= sidelobe_margin * np.sum(lobe, axis=1))
+        shade = side
+        if near is not None:
+            exact = np.where(later, e_s[todo] * near[np.clip(gap, 0, len(near) - 1)], -np.inf)
+            shade = side & (e_k > SHADOW_MARGIN * np.max(exact, axis=1))
+        shadowed[todo[shade]] = True
+        out[todo[~side]] = k[~side]
+        todo = todo[side]                                                   # a possible sidelobe: look on
+    return out, shadowed
+
+
+def _first_onsets_loop(env, above, kmax, pulse_env, sidelobe_margin, near):
+    """:func:`_first_onsets` row by row, candidate by candidate (the plain formula; tests compare the two)."""
+    out, shadowed = kmax.copy(), np.zeros(len(kmax), bool)
+    n_pulse = len(pulse_env)
+    for i in range(len(kmax)):
         cand = np.flatnonzero(above[i])
         strong = np.append(cand, kmax[i])  # candidates and the maximum, earliest first
         for k in cand:
@@ -655,9 +715,7 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
                 continue  # may be a later, stronger peak's sidelobe
             out[i] = k
             break
-    ratio = env[np.arange(j), out] / np.maximum(peak, 1e-300)
-    snr = env[np.arange(j), out] / np.maximum(floor, 1e-300)
-    return out, ratio, snr, shadowed
+    return out, shadowed
 
 
 def _prefix_medians(env, kmax, min_len=16):
@@ -731,7 +789,7 @@ def locate(c, setup, lo, hi, half_width, snr_factor=6.0, min_ratio=0.05, sidelob
         onset_env = mean_env[:, lo - r_lo : hi - r_lo]
     else:  # the whitened grid is needed only from the direct path on: computed once it is known
         r = env = mean_env = None
-        onset_env = np.abs(lag_grid(c_onset, setup, lo, hi)).mean(axis=1) if onset_env is None else onset_env
+        onset_env = lag_grid(c_onset, setup, lo, hi, magnitude=True).mean(axis=1) if onset_env is None else onset_env
     pulse_env = pulse_envelope(setup, hi - lo + pad)
     onset_pulse = pulse_env if c_onset is None else pulse_envelope(setup, hi - lo, plain=True)
     if smear is None:
@@ -862,7 +920,7 @@ def _clean_strongest(c, c_onset, setup, shadowed, strongest, half_width, lo, hi,
     if c_onset is not None:
         plain_shape = setup["weights"] * np.abs(setup["tmpl_conj"]) ** 2
         on_sub = subtract_path(c_onset[sel], setup, plain_shape, strongest[sel], half_width)
-    env2 = np.abs(lag_grid(c_sub if on_sub is None else on_sub, setup, lo, hi)).mean(axis=1)
+    env2 = lag_grid(c_sub if on_sub is None else on_sub, setup, lo, hi, magnitude=True).mean(axis=1)
     d2, q2, s2, _ = direct_path_lag(env2, onset_pulse, *onset_args, floor=floor, peak=peak)
     # keep the second look only where it found an arrival clearly before the subtracted path
     better = (d2 < strongest[sel] - lo - half_width) & (q2 >= onset_args[1]) & (s2 >= onset_args[0])

@@ -3,7 +3,8 @@ DOA grid against the exhaustive grid (and its set-up: the caps and steering phas
 definitions), the timing's moments from grid samples (GridMoments) against its band sums and against the
 true delay of a path; the event segments' band spectra taken a few events at a time against each segment's
 own zero-padded FFT; the two-path refinement by linearity against subtracting the models; the onset search's
-noise floors from one sort against np.median row by row."""
+noise floors from one sort against np.median row by row; its sidelobe test for all events at once against the
+event-by-event loop; the lag grid's folded weighting and magnitude against the product and np.abs."""
 from __future__ import annotations
 
 import numpy as np
@@ -292,3 +293,53 @@ def test_prefix_medians_equal_numpy_medians_row_by_row():
     got = timing._prefix_medians(env, kmax)
     assert np.isnan(got[7]) == np.isnan(np.median(env[7, : kmax[7]] if kmax[7] >= 16 else env[7]))
     np.testing.assert_array_equal(np.delete(got, 7), np.delete(want, 7))
+
+
+@pytest.mark.parametrize("near", [False, True])
+def test_onset_choice_for_all_events_at_once_equals_the_event_by_event_loop(near):
+    """direct_path_lag's choice among its candidates (the earliest peak that no later, stronger peak's sidelobes
+    explain) and its "shadowed" flag, all rows advancing together, equal the loop over events and candidates on
+    envelopes of a few paths with sidelobes, noise and ties: the rows cover a direct path kept, one rejected as
+    a sidelobe, and none before the strongest peak."""
+    rng = np.random.default_rng(5)
+    fs, band = 16000, (500.0, 4000.0)
+    t = np.arange(800) / fs
+    setup = spectra_setup(np.sin(2 * np.pi * (500 * t + 3500 / 0.1 * t * t)), fs, band, 4000)   # a 50 ms sweep
+    n = 600
+    pulse, near_p = timing.pulse_envelope(setup, n, plain=True), timing.pulse_near(setup, n, 2, plain=True)
+    lags = np.arange(n)
+    env = np.zeros((80, n), np.float32)
+    for row in env:
+        # a strong path, an earlier one near the level of its sidelobes there (0.5-4x), and others at random
+        k2, d = rng.integers(300, 550), rng.integers(2, 60)
+        paths = [(k2, 1.0), (k2 - d, rng.uniform(0.5, 4.0) * pulse[d])]
+        paths += list(zip(rng.integers(50, 550, rng.integers(0, 4)), rng.uniform(0.02, 1.0, 4)))
+        for k, a in paths:
+            row += (a * np.interp(np.abs(lags - k), np.arange(n), pulse)).astype(np.float32)
+        row += np.abs(rng.normal(0, 0.003, n)).astype(np.float32)
+    env[3, 100:110] = env[3, 100]                          # a plateau (ties)
+    got = timing.direct_path_lag(env, pulse, 6.0, 0.05, 2.0, near=near_p if near else None)
+    orig = timing._first_onsets
+    try:
+        timing._first_onsets = timing._first_onsets_loop
+        want = timing.direct_path_lag(env, pulse, 6.0, 0.05, 2.0, near=near_p if near else None)
+    finally:
+        timing._first_onsets = orig
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+    kmax = np.argmax(env, axis=1)
+    assert np.any(got[0] < kmax) and np.any(got[0] == kmax) and np.any(got[3])   # each case occurs
+
+
+def test_lag_grid_weighting_and_magnitude_equal_the_product_and_abs():
+    """lag_grid(c, factor=f, magnitude=True) is np.abs(lag_grid(c * f)) bit for bit (the Doppler search's
+    envelopes), and magnitude=True alone np.abs(lag_grid(c))."""
+    rng = np.random.default_rng(8)
+    fs = 16000
+    setup = spectra_setup(np.sin(2 * np.pi * 1000 * np.arange(800) / fs), fs, (500.0, 4000.0), 4000)
+    fb = len(setup["kb"])
+    c = (rng.standard_normal((5, 3, fb)) + 1j * rng.standard_normal((5, 3, fb))).astype(np.complex64)
+    f = np.exp(1j * rng.uniform(0, 2 * np.pi, fb)).astype(np.complex64)
+    np.testing.assert_array_equal(lag_grid(c, setup, 100, 900, factor=f, magnitude=True),
+                                  np.abs(lag_grid(c * f, setup, 100, 900)))
+    np.testing.assert_array_equal(lag_grid(c, setup, 100, 900, magnitude=True), np.abs(lag_grid(c, setup, 100, 900)))
