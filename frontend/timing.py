@@ -665,9 +665,9 @@ def _first_onsets(env, above, kmax, pulse_env, sidelobe_margin, near):
     its thresholds before the strongest peak ``kmax`` (R,)): the earliest one that is no sidelobe of the later,
     stronger peaks (candidates and the maximum), else ``kmax``; and whether a candidate before it was rejected
     at above SHADOW_MARGIN × its exact sidelobe level (``near``; None: any rejected one). The rows advance
-    together, candidate by candidate, each undecided row's next one against all its later peaks at once
-    (:func:`_first_onsets_loop` one row at a time; the sidelobe sums of the same terms in the same order, zeros
-    between them). Returns ((R,) int, (R,) bool)."""
+    together, ONSET_SLOTS candidates at a time, each undecided row's next ones against all its later peaks at
+    once (:func:`_first_onsets_loop` one row and candidate at a time; the sidelobe sums of the same terms in the
+    same order, zeros between them). Returns ((R,) int, (R,) bool)."""
     r = len(kmax)
     n_c = above.sum(axis=1)
     c_max = int(n_c.max())
@@ -679,23 +679,30 @@ def _first_onsets(env, above, kmax, pulse_env, sidelobe_margin, near):
     e_s = np.take_along_axis(env, strong, axis=1)
     out, shadowed = kmax.copy(), np.zeros(r, bool)
     todo = np.arange(r)                                                     # rows not decided yet
-    for slot in range(c_max):
-        todo = todo[valid[todo, slot]]
+    for s0 in range(0, c_max, ONSET_SLOTS):
+        todo = todo[valid[todo, s0]]
         if not todo.size:
             break
-        k, e_k = cand[todo, slot], e_s[todo, slot]
-        gap = strong[todo] - k[:, None]                                     # (R', C + 1)
-        later = s_valid[todo] & (gap > 0) & (e_s[todo] > e_k[:, None])
-        lobe = np.where(later, e_s[todo] * pulse_env[np.clip(gap, 0, len(pulse_env) - 1)], 0.0)
-        side = np.any(later, axis=1) & (e_k <= sidelobe_margin * np.sum(lobe, axis=1))
+        sl = slice(s0, min(s0 + ONSET_SLOTS, c_max))
+        k, e_k, ok_k = cand[todo, sl], e_s[todo, sl], valid[todo, sl]           # (R', S)
+        gap = strong[todo][:, None, :] - k[..., None]                           # (R', S, C + 1)
+        later = s_valid[todo][:, None, :] & (gap > 0) & (e_s[todo][:, None, :] > e_k[..., None])
+        lobe = np.where(later, e_s[todo][:, None, :] * pulse_env[np.clip(gap, 0, len(pulse_env) - 1)], 0.0)
+        side = np.any(later, axis=2) & (e_k <= sidelobe_margin * np.sum(lobe, axis=2))
         shade = side
         if near is not None:
-            exact = np.where(later, e_s[todo] * near[np.clip(gap, 0, len(near) - 1)], -np.inf)
-            shade = side & (e_k > SHADOW_MARGIN * np.max(exact, axis=1))
-        shadowed[todo[shade]] = True
-        out[todo[~side]] = k[~side]
-        todo = todo[side]                                                   # a possible sidelobe: look on
+            exact = np.where(later, e_s[todo][:, None, :] * near[np.clip(gap, 0, len(near) - 1)], -np.inf)
+            shade = side & (e_k > SHADOW_MARGIN * np.max(exact, axis=2))
+        take = ok_k & ~side
+        first = np.where(np.any(take, axis=1), np.argmax(take, axis=1), take.shape[1])   # S: none in this block
+        shadowed[todo] |= np.any(shade & ok_k & (np.arange(take.shape[1])[None, :] < first[:, None]), axis=1)
+        got = first < take.shape[1]
+        out[todo[got]] = k[got, first[got]]
+        todo = todo[~got]                                                       # possible sidelobes: look on
     return out, shadowed
+
+
+ONSET_SLOTS = 8   # candidates per row weighed at a time by :func:`_first_onsets` (most rows take their first)
 
 
 def _first_onsets_loop(env, above, kmax, pulse_env, sidelobe_margin, near):
