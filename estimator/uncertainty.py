@@ -324,8 +324,9 @@ def shared_doa_rows(p, lin, factors):
     """(M, 3N) dense: each whitened residual's error per unit of a rotation error that all DOA rows of its array
     share, times its std — None without DOA rows. What an array's DOAs have in common is not noise that its
     number of events averages down: a wall reflection 1–2 pulses behind the direct path pulls every DOA of a
-    wall array the same way (robot 370's reference: a 0.29° mean error vector over 64 rows), and so does a mic-geometry or mounting error. A non-reference array's orientation absorbs such a
-    rotation (its std then covers it); the reference's is the gauge, so the whole map turns with it (as far as
+    wall array the same way (robot 370's reference: a 0.29° mean error vector over 64 rows), and so does a
+    mic-geometry or mounting error. A non-reference array's orientation absorbs such a rotation (its std then
+    covers it); the reference's is the gauge, so the whole map turns with it (as far as
     the odometry does not hold it), which rows taken as independent never show. Its std per axis is
     SHARED_DOA_FRACTION × the median of the array's row sigmas (each with its array's σ² factor
     ``factors["doa"]``; the median: a few reflection rows' large sigma is not what the others share). A
@@ -425,7 +426,8 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
     """The covariance the ``*_std`` columns and calibration.json report, at the final linearisation ``lin``
     (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
     residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
-    TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) by :func:`sandwich_covariance`;
+    TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) and each array's DOA rows' common
+    rotation error (:func:`shared_doa_rows`) by :func:`sandwich_covariance`;
     a large (sparse) problem gets the factors alone (:func:`inflated_rows`) in its array block (its
     sources' blocks stay the plain ones: the event blocks would cost a solve per source again). ``cov``: the
     plain (JᵀJ)⁻¹ of the kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
