@@ -316,7 +316,7 @@ def planar_doa_rows(p, lin, normals, factors):
 
 
 # An array's DOAs share a rotation error of this fraction of their median row sigma (a model constant set on
-# development seeds, docs/results.md: 0.5 claimed ±5-9 cm for arrays 1.6-2.2 cm off on robot 350)
+# development seeds, docs/results.md: 0.5 × the RMS row sigma claimed ±5-9 cm for arrays 1.6-2.2 cm off on robot 350)
 SHARED_DOA_FRACTION = 0.25
 
 
