@@ -315,6 +315,50 @@ def planar_doa_rows(p, lin, normals, factors):
     return None
 
 
+# An array's DOAs share a rotation error of this fraction of their median row sigma (a model constant set on
+# development seeds, docs/results.md: 0.5 × the RMS row sigma claimed ±5-9 cm for arrays 1.6-2.2 cm off on robot 350)
+SHARED_DOA_FRACTION = 0.25
+
+
+def shared_doa_rows(p, lin, factors):
+    """(M, 3N) dense: each whitened residual's error per unit of a rotation error that all DOA rows of its array
+    share, times its std — None without DOA rows. What an array's DOAs have in common is not noise that its
+    number of events averages down: a wall reflection 1–2 pulses behind the direct path pulls every DOA of a
+    wall array the same way (robot 370's reference: a 0.29° mean error vector over 64 rows), and so does a
+    mic-geometry or mounting error. A non-reference array's orientation absorbs such a rotation (its std then
+    covers it); the reference's is the gauge, so the whole map turns with it (as far as
+    the odometry does not hold it), which rows taken as independent never show. Its std per axis is
+    SHARED_DOA_FRACTION × the median of the array's row sigmas (each with its array's σ² factor
+    ``factors["doa"]``; the median: a few reflection rows' large sigma is not what the others share). A
+    measured direction u turned by ω moves the whitened residual B (v − u) / σ by B [u]× ω / σ (B: the row's
+    whitening axes)."""
+    start = 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind != "doa" or not n:
+            start += n
+            continue
+        keep = (lin.w[start:start + n] > 0).reshape(-1, 3).all(axis=1)
+        if not keep.any():
+            return None
+        arr, u, m = p.doa.arr, p.doa.u, n // 3
+        sig = np.broadcast_to(f.row_sigma, n).reshape(m, 3)
+        ux = np.zeros((m, 3, 3))
+        ux[:, 0, 1], ux[:, 0, 2], ux[:, 1, 2] = -u[:, 2], u[:, 1], -u[:, 0]
+        ux -= np.transpose(ux, (0, 2, 1))
+        G = np.einsum("kab,kbc->kac", p.doa.axes, ux) / sig[:, :, None]   # (m, 3, 3) whitened, per unit ω
+        iso = factors.get("doa", np.ones(p.N))
+        row_sd = p.sigma["doa"] * p.doa.scale * np.sqrt(iso[arr])        # each row's sigma (rad)
+        out = np.zeros((len(lin.r), 3 * p.N))
+        for i in np.unique(arr[keep]):
+            k = np.flatnonzero(keep & (arr == i))
+            sd = SHARED_DOA_FRACTION * float(np.median(row_sd[k]))
+            rows = start + 3 * k[:, None] + np.arange(3)[None]
+            out[rows.ravel(), 3 * i:3 * i + 3] = (sd * G[k]).reshape(-1, 3)
+        return out
+    return None
+
+
 VELOCITY_SCALED_KINDS = {"tdoa_m": "beta", "tdoa_s": "beta", "doa": "t_doa", "cone": "t_doa"}
 
 
@@ -362,14 +406,15 @@ def velocity_chi2(lin, lay, motion):
     return float(e @ e)
 
 
-def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None, velocity=None):
+def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None, velocity=None, shared_doa=None):
     """Covariance of the estimate the solve made (weights as stated) under the errors as they are: H⁻¹ B H⁻¹
     with H⁻¹ = ``cov`` (dense, the kept rows' (JᵀJ)⁻¹) and B = Jᵀ C J, C the whitened rows' covariance:
     arrival-sharing TDOA rows through :func:`arrival_rows`, the other rows independent with their array's
     σ² factor (``factors`` {kind: (N,)}, :func:`calib.estimator.variance.covariance_factors`); ``shared``
     False: the TDOA rows independent too (features whose meta.json does not say ``tdoa_shared_arrivals``);
     ``normals`` (N, 3): planar arrays' DOA rows as they err (:func:`planar_doa_rows`); ``velocity``: the
-    (M, 3K) rows of a moving source's velocity error (:func:`velocity_rows`), independent of the rest.
+    (M, 3K) rows of a moving source's velocity error (:func:`velocity_rows`), independent of the rest;
+    ``shared_doa``: the (M, 3N) rows of each array's common DOA rotation error (:func:`shared_doa_rows`).
     Returns the (n, n) covariance."""
     keep = lin.w > 0
     J = lin.J.toarray() if scipy.sparse.issparse(lin.J) else np.asarray(lin.J)
@@ -389,9 +434,10 @@ def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None, velocit
     B = B + Jo.T @ Jo
     if planar is not None:
         B = B + planar["G"].T @ planar["G"]
-    if velocity is not None:
-        Gv = J.T @ velocity   # (n, 3K): each event's velocity error through every row it moves
-        B = B + Gv @ Gv.T
+    for extra in (velocity, shared_doa):   # errors shared by rows: an event's velocity, an array's DOAs
+        if extra is not None:
+            Gv = J.T @ extra   # (n, ·): each shared error through every row it moves
+            B = B + Gv @ Gv.T
     out = cov @ B @ cov
     return 0.5 * (out + out.T)
 
@@ -400,7 +446,8 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
     """The covariance the ``*_std`` columns and calibration.json report, at the final linearisation ``lin``
     (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
     residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
-    TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) by :func:`sandwich_covariance`;
+    TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) and each array's DOA rows' common
+    rotation error (:func:`shared_doa_rows`) by :func:`sandwich_covariance`;
     a large (sparse) problem gets the factors alone (:func:`inflated_rows`) in its array block (its
     sources' blocks stay the plain ones: the event blocks would cost a solve per source again). ``cov``: the
     plain (JᵀJ)⁻¹ of the kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
@@ -412,7 +459,8 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
         cov = covariance(lin.J[lin.w > 0], lay.n, lay, arrays_only)
     factors = covariance_factors(p, lin, cov)
     if isinstance(cov, np.ndarray):
-        return sandwich_covariance(p, lin, cov, factors, shared, normals, velocity_rows(lin, lay, motion))
+        return sandwich_covariance(p, lin, cov, factors, shared, normals, velocity_rows(lin, lay, motion),
+                                   shared_doa_rows(p, lin, factors))
     if not any(np.any(v > 1) for k, v in factors.items() if k in KINDS):
         return cov
     # large problems: the array block with the factors (one more Schur complement); the sources keep theirs

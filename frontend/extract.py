@@ -29,7 +29,7 @@ from . import associate as assoc_mod
 from .arrayresult import ArrayResult
 from .detect import background, matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
-from .doa import cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
+from .doa import band_scatter, cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
 from .nlos import TRACK_SCALE_MAX, late_arrivals_many, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
@@ -192,7 +192,7 @@ def _relocate(st, k, change, rows, c, opt):
     return _merge_events(loc, new, idx, j), _merge_events(k["doa"], doa, idx, j, DOA_EVENT_KEYS)
 
 
-DOA_EVENT_KEYS = ("u", "power", "gap")   # the per-event entries of _direct_path_doa's dict
+DOA_EVENT_KEYS = ("u", "power", "gap", "band_sd")   # the per-event entries of _direct_path_doa's dict
 
 
 def _merge_events(old, new, idx, j, keys=None):
@@ -516,7 +516,8 @@ def _direct_path_doa(loc, mics, fs, setup, g, c, opt, hemisphere):
         return {**out, "u": cone_vectors(vec, cos_t), "power": power, "axis": vec}
     sset = srp_setup(mics, g_freqs, c, opt["grid_deg"], hemisphere)
     u, power = srp_doa(g_spec, sset, g_w)
-    return {**out, "u": u, "power": power, "normal": sset["planar_normal"]}
+    return {**out, "u": u, "power": power, "normal": sset["planar_normal"],
+            "band_sd": band_scatter(g_spec, sset, u, g_w)}
 
 
 def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, c, opt, half, pulse=None):
@@ -532,6 +533,8 @@ def _fuse_arrivals(loc, starts, mics, doa, asc, t_emit, ev_idx, redetected, fs, 
     mic_sd = spread * np.sqrt(np.maximum(np.sum(np.isfinite(t_org), axis=1), 1))  # one mic's spread
     gcc_quality = np.nanmedian(np.where(good, val, np.nan), axis=1)
     doa_sd = doa_spread(t_org - arrival[:, None], u, mics, c, doa["normal"], doa["axis"])
+    if "band_sd" in doa:   # the larger of the two estimates of the DOA's error: the mics' misfit of one plane
+        doa_sd = np.fmax(doa_sd, doa["band_sd"])   # wave, and the band's (a reflection a pulse behind)
     reasons = arrival_flags(loc, starts, arrival, spread, asc, t_emit, ev_idx, redetected, doa["gap"] < half,
                             fs, opt)
     warnings = []
@@ -780,6 +783,9 @@ def flag_doa_spread(results):
                 r["flags"][k].append("doa_spread")
 
 
+IN_PLANE_FLOOR = 1e-12   # least σ_v (the in-plane part's std) in doa_spread's floor √σ_v of |u·n|
+
+
 def doa_spread(res, u, mics, c, normal=None, axis=None):
     """Internal-consistency standard deviation (rad, per tangent axis) of each DOA.
 
@@ -806,7 +812,8 @@ def doa_spread(res, u, mics, c, normal=None, axis=None):
     floor = 0.0
     if normal is not None:
         sig_v = c * np.sqrt(sig2 * np.trace(np.linalg.pinv(d.T @ d)) / 2)
-        floor = np.sqrt(sig_v)
+        floor = np.sqrt(np.maximum(sig_v, IN_PLANE_FLOOR))  # a DOA in the plane (doa._refine_planar: |v| > 1)
+                                                              # whose mics fit exactly: no 0 / 0
     tr = np.trace(doa_covariance(u, mics, normal, floor), axis1=1, axis2=2)
     return c * np.sqrt(sig2 * tr / 2)
 
@@ -951,8 +958,9 @@ def noise_estimates(results):
     nothing to estimate from left out): boards of different makes in one session time their arrivals
     unequally well (a 2-mic pair's scatter 6× a 6-mic circle's, mixed preset), and the estimator weights
     their TDOA rows relative to one another by it (docs/method.md "Per-array arrival sigmas").
-    sigma_doa_deg: the RMS of :func:`doa_spread` (plane-wave fit covariance, per tangent axis; planar arrays
-    with the elevation Jacobian). None where there is nothing to estimate from.
+    sigma_doa_deg: the RMS of the rows' ``doa_spread`` (:func:`doa_spread`: plane-wave fit covariance, per
+    tangent axis, planar arrays with the elevation Jacobian; or the sub-band scatter
+    :func:`calib.frontend.doa.band_scatter` where larger). None where there is nothing to estimate from.
     """
     dsd = _clean_rms(results.values(), "doa_spread", DOA_DOUBTS)
     own = {name: _clean_rms([r], "arrival_sd", TIMING_DOUBTS) for name, r in results.items()}

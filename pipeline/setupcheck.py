@@ -682,6 +682,40 @@ def _array_sound_fit(features, name, chain, sig_t, sig_d, proper):
     return (1.0 / k, sk / k**2, rms, misfit) if k > 0 else (np.inf, np.inf, rms, misfit)
 
 
+def arrival_sound_fit(features, arrays, chains):
+    """Speed of sound per array from its arrivals alone (TDOA-S chained against the ranges to the odometry's
+    positions, no DOA): {array: (c, std of c)}. Unlike :func:`speed_of_sound_fit`'s, it owes nothing to the
+    declared speed c0: the frontend measures a planar (linear) array's DOA as c0 × its slowness in the plane (on
+    the axis), so a wrong c0 bends those DOAs toward a geometry that fits c0 and scatters them across the band
+    (lab3 declared at 400 m/s: the session's DOA σ 1.4°, at 343 m/s 0.24°); the DOA-aided fit, its residuals
+    normalised by that σ, then keeps them and leans toward c0. chains: as :func:`speed_of_sound_fit`'s (the
+    missing ones built)."""
+    sig_t, sig_d = _sigmas(features["meta"])
+    out = {}
+    with single_thread_blas():  # small matrices (calib.blas)
+        for name in arrays:
+            if name not in chains:
+                chains[name] = arrival_chain(features, name, sig_t)
+            if chains[name] is None:
+                continue
+            odo, e, y, seg, _, starts = chains[name]
+            k, sk, _, _ = _fit_one_array(odo, e, y, seg, np.full((len(y), 3), np.nan), sig_t, sig_d, starts=starts)
+            if k > 0 and sk > 0:
+                out[name] = (1.0 / k, sk / k**2)
+    return out
+
+
+def _sound_mean(fits):
+    """(c, std, Birge ratio) of the arrays' speeds of sound {array: (c, std, ...)}, weighted by their errors.
+    Arrays that disagree beyond their errors (a reflection-only array, a fit with few arrivals): the spread, not
+    the stated errors, is then the mean's uncertainty (the Birge ratio)."""
+    w = np.array([1 / v[1] ** 2 for v in fits.values()])
+    cs = np.array([v[0] for v in fits.values()])
+    c_hat = float(np.sum(w * cs) / np.sum(w))
+    birge = np.sqrt(max(float(np.sum(w * (cs - c_hat) ** 2)) / max(len(cs) - 1, 1), 1.0))
+    return c_hat, float(birge / np.sqrt(np.sum(w))), float(birge)
+
+
 # ----------------------------------------------------------------------------------------------- geometry scale
 def _subspace(mics):
     """(3, r) orthonormal basis of what the array's delays measure of a direction: its axis (r = 1, a linear
@@ -841,16 +875,15 @@ def sound_findings(features, fits=None, source="session.toml"):
     good = {k: v for k, v in fits.items() if k not in bad and np.isfinite(v[1]) and v[1] > 0}
     if not good:
         return out
-    w = np.array([1 / v[1] ** 2 for v in good.values()])
-    cs = np.array([v[0] for v in good.values()])
-    c_hat = float(np.sum(w * cs) / np.sum(w))
-    # arrays that disagree beyond their errors (a reflection-only array, a fit with few arrivals): the spread,
-    # not the stated errors, is then the mean's uncertainty (the Birge ratio)
-    birge = np.sqrt(max(float(np.sum(w * (cs - c_hat) ** 2)) / max(len(cs) - 1, 1), 1.0))
-    sd = float(birge / np.sqrt(np.sum(w)))
-    rel = c_hat / c0 - 1
-    # a wrong declared speed of sound is common to every array: arrays that disagree this much show another cause
-    if abs(rel) > SOUND_TOL and abs(c_hat - c0) > SOUND_SIGMA * sd and birge <= SOUND_AGREE:
+    # a wrong declared speed of sound is common to every array: arrays that disagree this much show another cause.
+    # Tested on the DOA-aided fits (the more precise when c0 is right) and on the arrivals alone (their power owes
+    # nothing to the DOAs' σ, which a wrong c0 inflates while it bends the DOAs toward itself: arrival_sound_fit)
+    tests = [_sound_mean(f) for f in (good, arrival_sound_fit(features, list(good), chains)) if f]
+    wrong = [(c_hat, sd) for c_hat, sd, birge in tests
+             if abs(c_hat / c0 - 1) > SOUND_TOL and abs(c_hat - c0) > SOUND_SIGMA * sd and birge <= SOUND_AGREE]
+    if wrong:
+        c_hat, sd = max(wrong, key=lambda t: abs(t[0] - c0) / t[1])
+        rel = c_hat / c0 - 1
         p10 = 10 ** np.round(np.log10(c_hat / c0))
         units = (f" — or the odometry is not in metres ({p10:g} × fits)" if p10 != 1 and
                  abs(np.log10(c_hat / c0 / p10)) < 0.1 else "")

@@ -10,6 +10,7 @@ from calib.estimator import calibrate
 from calib.estimator.factors import active_kinds
 from calib.estimator.problem import make_layout
 from calib.estimator.solver import linearise
+from calib.estimator import uncertainty as U
 from calib.estimator.uncertainty import arrival_rows, covariance
 from calib.estimator.variance import covariance_factors
 from calib.pipeline.formats.io import validate_meta
@@ -212,3 +213,35 @@ def test_large_problem_raises_the_array_block_only():
     assert np.any(cov_diagonal(honest)[arr] > 1.01 * cov_diagonal(plain)[arr])
     src = np.setdiff1d(np.arange(lay.n), arr)
     np.testing.assert_array_equal(cov_diagonal(honest)[src], cov_diagonal(plain)[src])
+
+
+def _stops_scene(seed, n_stops=60):
+    """Stops scattered over 8 × 6 m (heights 0.8–1.6 m), 1° DOA noise, odometry stated at 0.5 m (too weak to
+    hold the map's rotation: the reference's DOAs do). Returns (features, truth)."""
+    rng = np.random.default_rng(50 + seed)
+    stops = np.column_stack([rng.uniform(0, 8, n_stops), rng.uniform(0, 6, n_stops), rng.uniform(0.8, 1.6, n_stops)])
+    feats, truth = simulate_features(stops, sigma_tdoa=1e-5, sigma_doa_deg=1.0, seed=seed)
+    return feats.replace(meta={**feats["meta"], "sigma_odo": 0.5}), truth
+
+
+def test_reference_doa_bias_is_in_the_std(monkeypatch):
+    """Every DOA of the reference turned by one rotation (a wall reflection's or a mounting error's bias, which
+    no number of events averages down) turns the whole map: the other arrays move by several of the std that
+    takes the rows as independent. With the shared rotation error (``shared_doa_rows``) the std covers a bias
+    of 3 of its own sigma: each array's move / its std stays below 3, where without it one goes beyond."""
+    feats, _ = _stops_scene(0)
+    sd = np.radians(feats["meta"]["sigma_doa_deg"]) * U.SHARED_DOA_FRACTION   # the model's shared sigma
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    biased = _rotate_doas(feats, "A1", np.tile(3.0 * sd * axis, (len(feats["events"]), 1)))
+    cols = ["x", "y", "z"]
+    clean = calibrate(feats, noise="meta")["arrays"].set_index("array")
+
+    def moves(fraction):
+        monkeypatch.setattr(U, "SHARED_DOA_FRACTION", fraction)
+        a = calibrate(biased, noise="meta")["arrays"].set_index("array")
+        others = [n for n in a.index if n != "A1"]
+        return np.abs(a.loc[others, cols].to_numpy() - clean.loc[others, cols].to_numpy()) / \
+            a.loc[others, [c + "_std" for c in cols]].to_numpy()
+
+    assert moves(U.SHARED_DOA_FRACTION).max() < 3.0
+    assert moves(0.0).max() > 3.0

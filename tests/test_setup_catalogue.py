@@ -353,6 +353,31 @@ def test_wrong_speed_of_sound_is_named(sample_features, c):
     assert found and found[0].status == "failed" and f"speed_of_sound = {c:g}" in found[0].text
 
 
+def _bent_doas(doa, factor):
+    """The sample's DOAs as a planar array's SRP reports them when the declared speed of sound is ``factor`` × the
+    air's: the in-plane part (the mics' plane z = 0) ``factor`` × the true one (the delays are v·m / c), clipped to
+    the horizon, on the +z side (the sample's doa_hemisphere)."""
+    v = doa[["ux", "uy"]].to_numpy(float) * factor
+    r = np.linalg.norm(v, axis=1, keepdims=True)
+    v = np.where(r > 1.0, v / r, v)
+    out = doa.copy()
+    out[["ux", "uy"]] = v
+    out["uz"] = np.sqrt(np.clip(1.0 - (v**2).sum(axis=1), 0.0, None))
+    return out
+
+
+@pytest.mark.parametrize("c", [300.0, 400.0])
+def test_wrong_speed_of_sound_is_named_whatever_the_doas_sigma(sample_features, c):
+    """A wrong declared speed of sound also bends the planar arrays' DOAs toward itself and scatters them (lab3 at
+    400 m/s: the frontend's DOA σ 1.4° against 0.24°): with the DOAs so bent and their σ 6× the sample's, the
+    check still names it, from the arrivals' ranges against the odometry."""
+    meta = {"speed_of_sound": c, "sigma_doa_deg": 6 * sample_features["meta"]["sigma_doa_deg"]}
+    feats = {**_with(sample_features, meta), "doa": _bent_doas(sample_features["doa"], c / 343.0)}
+    found = sound_findings(feats)
+    assert found and found[0].status == "failed" and f"speed_of_sound = {c:g}" in found[0].text, \
+        [f.text for f in found]
+
+
 def test_estimate_selects_no_clock_model_for_a_failed_session(sample_features, tmp_path):
     """``calib estimate``'s findings come from a second process beside the estimate: a speed of sound the arrivals
     contradict (a finding of the whole session) keeps the linear clock, and the report says why."""
