@@ -237,6 +237,16 @@ def plane_normals(meta, names):
     return out
 
 
+def _kind_blocks(lin, kind):
+    """(factor, first row, rows) of each non-empty factor of ``kind`` in the linearisation ``lin``, in row order."""
+    start = 0
+    for f in lin.factors:
+        n = len(f.r)
+        if f.kind == kind and n:
+            yield f, start, n
+        start += n
+
+
 def planar_doa_rows(p, lin, normals, factors):
     """The DOA rows of planar arrays with their errors as a planar array makes them: {"rows": (M,) bool, the
     DOA residuals it models; "G": (m, n) rows whose GᵀG is their part of Jᵀ C J}; None when there is none.
@@ -261,12 +271,7 @@ def planar_doa_rows(p, lin, normals, factors):
     at −2…+1°: robot seeds 1-2, A5/A2, a tilt 3-4σ off with these rows taken as independent). Those rows'
     elevation errors (each of its std) are therefore also taken as one error they share, which their
     number does not average down."""
-    start = 0
-    for f in lin.factors:
-        n = len(f.r)
-        if f.kind != "doa" or not n:
-            start += n
-            continue
+    for f, start, n in _kind_blocks(lin, "doa"):
         arr, u = p.doa.arr, p.doa.u
         nv = normals[arr]
         keep = (lin.w[start:start + n] > 0).reshape(-1, 3).all(axis=1) & np.any(nv != 0, axis=1)
@@ -332,12 +337,7 @@ def shared_doa_rows(p, lin, factors):
     ``factors["doa"]``; the median: a few reflection rows' large sigma is not what the others share). A
     measured direction u turned by ω moves the whitened residual B (v − u) / σ by B [u]× ω / σ (B: the row's
     whitening axes)."""
-    start = 0
-    for f in lin.factors:
-        n = len(f.r)
-        if f.kind != "doa" or not n:
-            start += n
-            continue
+    for f, start, n in _kind_blocks(lin, "doa"):
         keep = (lin.w[start:start + n] > 0).reshape(-1, 3).all(axis=1)
         if not keep.any():
             return None
