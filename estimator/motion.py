@@ -41,8 +41,7 @@ from .odoframe import yaw_decision
 from .solver import linearise
 from .uncertainty import whiten
 
-MOTION_ITERATIONS = 6    # most correction passes (each a warm joint solve)
-MOTION_TOL = 0.5         # ... until no arrival's shift moves by more than this × the TDOA sigma between passes
+MOTION_ITERATIONS = 2    # correction passes (each a warm joint solve)
 MIN_SPEED = 0.05         # m/s: slower odometry (median over the intervals) is not tested for motion
 MIN_GAIN = 0.5           # odometry velocities are used when the residuals hold at least half the shift pattern
 
@@ -172,7 +171,9 @@ def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None):
     source at ``t_doa`` after the sweep start to the source at the start (a copy; measured rows as read).
     The range rates of the shifts are taken ``t_stretch`` after the start (:func:`arrival_shifts`; meta
     ``stretch_time_s``, the instant whose stretch the frontend's timing follows); None: ``t_doa``."""
-    sh = _shifts(p, st, vel, curve, t_doa, t_stretch)
+    t_stretch = t_doa if t_stretch is None else float(t_stretch)
+    mid = sweep_middle(p.t, p.odom, vel, t_stretch) if t_stretch else None
+    sh = arrival_shifts(p, st, vel, curve, mid)
     tm, ts = p.tdoa_m, p.tdoa_s
     out = {"tdoa_m": dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
            "tdoa_s": dataclasses.replace(ts, val=ts.val - (sh[ts.arr, ts.b] - sh[ts.arr, ts.a]))}
@@ -185,31 +186,6 @@ def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None):
         d = doa_moves(p, st, sweep_middle(p.t, p.odom, vel, t_doa)[0], k.arr, k.ev, np.zeros((len(k.cos), 3)))
         out["cone"] = dataclasses.replace(k, cos=np.clip(k.cos + np.einsum("ka,ka->k", p.cone_axis[k.arr], d), -1, 1))
     return p.replace(**out)
-
-
-def _shifts(p, st, vel, curve, t_doa, t_stretch):
-    """(N, K) arrival shifts :func:`corrected` removes at ``st`` (range rates ``t_stretch`` after the sweep
-    start; None: ``t_doa``)."""
-    t_stretch = t_doa if t_stretch is None else float(t_stretch)
-    mid = sweep_middle(p.t, p.odom, vel, t_stretch) if t_stretch else None
-    return arrival_shifts(p, st, vel, curve, mid)
-
-
-def _corrected_solve(p_raw, st, solve, vel, curve, t_doa, t_stretch):
-    """Solve with the shifts removed at the solution until they hold still: a pass moves the geometry the
-    next pass's shifts are taken at (from a static solve that is centimetres to metres off, by 0.1-5 ms;
-    the pass after by 15-470 µs on the moving scene, then by ~0.4× per pass: two fixed passes left that much
-    in the rows, which then named fault-free arrays inconsistent). At most MOTION_ITERATIONS passes; stops when no shift
-    moves by more than MOTION_TOL × the TDOA sigma. ``st``: the start state. Returns (result, passes)."""
-    tol = MOTION_TOL * min(p_raw.sigma["tdoa_m"], p_raw.sigma["tdoa_s"])
-    sh = _shifts(p_raw, st, vel, curve, t_doa, t_stretch)
-    for n in range(1, MOTION_ITERATIONS + 1):
-        cur = solve(corrected(p_raw, st, vel, curve, t_doa, t_stretch), st)
-        st = cur.state
-        sh, prev = _shifts(p_raw, cur.state, vel, curve, t_doa, t_stretch), sh
-        if np.max(np.abs(sh - prev)) <= tol:
-            break
-    return cur, n
 
 
 def motion_gain(p, st, lay, mask, vel, kinds):
@@ -277,16 +253,15 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
             return first, {**rec, "applied": False}
     t_star = float(t_stretch if t_stretch is not None else t_doa)
     rec["velocity_sigma_m_s"] = velocity_sigma(p_raw.t, p_raw.odom, vel, t_star, p_raw.sigma["odometry"])
-    # the corrected rows carry the velocity's error: the solve's array test weighs them with it (p.motion)
-    p_raw = p_raw.replace(motion=motion_noise({**rec, "applied": True}, p_raw, t_doa))
-    cur, rec["passes"] = _corrected_solve(p_raw, first.state, solve, vel, curve, t_doa, t_stretch)
+    cur = first
+    for _ in range(MOTION_ITERATIONS):
+        cur = solve(corrected(p_raw, cur.state, vel, curve, t_doa, t_stretch), cur.state)
     yaw = retest_yaw(cur, kinds)
     if yaw is not None:
         rec["odometry_yaw_retest"] = yaw[0]
         if not yaw[0]["kept"]:   # IVE's yaw was the uncorrected shifts: solved again with the yaw fixed at 0
             p_raw = p_raw.replace(odo_yaw_free=False, odo_yaw_test=yaw[0])
-            cur, n = _corrected_solve(p_raw, yaw[1], solve, vel, curve, t_doa, t_stretch)
-            rec["passes"] += n
+            cur = solve(corrected(p_raw, yaw[1], vel, curve, t_doa, t_stretch), yaw[1])
     return cur, {**rec, "applied": True, "curve": bool(curve),
                  "max_shift_s": float(np.max(np.abs(arrival_shifts(
                      p_raw, cur.state, vel, curve, sweep_middle(p_raw.t, p_raw.odom, vel, t_stretch or t_doa)))))}

@@ -136,8 +136,6 @@ class Problem:
     cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
     (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
     arrival_scale (N,): each array's arrival sigma relative to the type's (:func:`arrival_scales`; None: ones).
-    motion: the velocity error a moving source's corrected rows carry (``motion.MotionNoise``, set by
-    ``motion.motion_solve``; None: none), the noise model the solve's array test weighs them with.
 
     Settings of a solve (typed values a stage replaces, never edits): sigma {kind: sigma} for ``tdoa_s``,
     ``tdoa_m`` (s), ``doa``, ``cone`` (rad per tangent axis), ``odometry`` (m per axis per step),
@@ -173,7 +171,6 @@ class Problem:
     fixed_cols: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     unobservable: tuple = ()
     arrival_scale: np.ndarray | None = None
-    motion: Any = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

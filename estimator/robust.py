@@ -28,7 +28,6 @@ from scipy.special import gammaincc, gammainccinv, gammaln, ndtri
 from .factors import KINDS
 from .problem import make_layout
 from .solver import cholesky_solve, levenberg_marquardt, linearise, use_dense
-from .uncertainty import velocity_chi2
 
 FAMILY_ALPHA = 0.01          # family-wise false-alarm rate of the outlier test (Bonferroni over measurements)
 MAX_OUTLIER_FRACTION = 0.3   # the row-wise removal stops after this fraction of the measurements
@@ -423,16 +422,16 @@ def concentrated_candidates(p, stats, threshold):
 
 
 def drop_test(p, st_all, st_without, lay, lay_without, kinds, mask, mask_without, scale):
-    """χ² drop when array i's rows are removed, against χ²(m_i − p_i), in the robust variance units. The rows
-    are weighed with the noise model of the solve: a moving source's velocity error (``p.motion``) in their
-    covariance (``uncertainty.velocity_chi2``; stated σ alone, it split fault-free moving sessions).
+    """χ² drop when array i's rows are removed, against χ²(m_i − p_i), in the robust variance units.
 
     Returns (statistic, dof, log p-value).
     """
-    lin_a = linearise(p, st_all, lay, kinds, mask=mask)
-    lin_w = linearise(p, st_without, lay_without, kinds, mask=mask_without)
-    T = velocity_chi2(lin_a, lay, p.motion) - velocity_chi2(lin_w, lay_without, p.motion)
-    m_rows = int((lin_a.w > 0).sum() - (lin_w.w > 0).sum())
+    lin = linearise(p, st_all, lay, kinds, mask=mask)
+    r_a, w_a = lin.r, lin.w
+    lin = linearise(p, st_without, lay_without, kinds, mask=mask_without)
+    r_w, w_w = lin.r, lin.w
+    T = float(np.sum(r_a[w_a > 0] ** 2) - np.sum(r_w[w_w > 0] ** 2))
+    m_rows = int((w_a > 0).sum() - (w_w > 0).sum())
     dof = max(m_rows - (lay.n - lay_without.n), 1)
     T /= max(scale, 1.0)
     return T, dof, float(chi2_logsf(max(T, 0.0), dof))

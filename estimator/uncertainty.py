@@ -386,26 +386,6 @@ def velocity_rows(lin, lay, motion):
     return J * scale[:, None]
 
 
-def velocity_chi2(lin, lay, motion):
-    """The least χ² of the kept whitened residuals of ``lin`` with a moving source's velocity error in their
-    covariance, I + V Vᵀ (V = :func:`velocity_rows`): min over δ, η of |r + J δ + V η|² + |η|², one
-    Gauss–Newton step from ``lin``'s state (the rows' fit weighed them by their stated σ alone, which leaves
-    the velocity error in whichever rows the sources could not follow); rᵀr without a correction (``motion``
-    None)."""
-    keep = lin.w > 0
-    r = lin.r[keep]
-    V = velocity_rows(lin, lay, motion)
-    if V is None:
-        return float(r @ r)
-    J = lin.J[keep]
-    J = J.toarray() if scipy.sparse.issparse(J) else np.asarray(J)
-    q = V.shape[1]
-    A = np.block([[J, V[keep]], [np.zeros((q, J.shape[1])), np.eye(q)]])
-    b = np.concatenate([r, np.zeros(q)])
-    e = b - A @ np.linalg.lstsq(A, b, rcond=None)[0]
-    return float(e @ e)
-
-
 def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None, velocity=None, shared_doa=None):
     """Covariance of the estimate the solve made (weights as stated) under the errors as they are: H⁻¹ B H⁻¹
     with H⁻¹ = ``cov`` (dense, the kept rows' (JᵀJ)⁻¹) and B = Jᵀ C J, C the whitened rows' covariance:
