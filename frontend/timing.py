@@ -660,14 +660,17 @@ def direct_path_lag(env, pulse_env, snr_factor=6.0, min_ratio=0.05, sidelobe_mar
     return out, ratio, snr, shadowed
 
 
+ONSET_SLOTS = 8   # candidates per row weighed at a time by :func:`_first_onsets` (most rows take their first)
+
+
 def _first_onsets(env, above, kmax, pulse_env, sidelobe_margin, near):
     """:func:`direct_path_lag`'s choice among each row's candidates ``above`` (R, T) bool (local maxima above
     its thresholds before the strongest peak ``kmax`` (R,)): the earliest one that is no sidelobe of the later,
     stronger peaks (candidates and the maximum), else ``kmax``; and whether a candidate before it was rejected
     at above SHADOW_MARGIN × its exact sidelobe level (``near``; None: any rejected one). The rows advance
     together, ONSET_SLOTS candidates at a time, each undecided row's next ones against all its later peaks at
-    once (:func:`_first_onsets_loop` one row and candidate at a time; the sidelobe sums of the same terms in the
-    same order, zeros between them). Returns ((R,) int, (R,) bool)."""
+    once (the loop in tests/test_frontend_fast_paths.py: one row and candidate at a time; the sidelobe sums of
+    the same terms in the same order, zeros between them). Returns ((R,) int, (R,) bool)."""
     r = len(kmax)
     n_c = above.sum(axis=1)
     c_max = int(n_c.max())
@@ -699,29 +702,6 @@ def _first_onsets(env, above, kmax, pulse_env, sidelobe_margin, near):
         got = first < take.shape[1]
         out[todo[got]] = k[got, first[got]]
         todo = todo[~got]                                                       # possible sidelobes: look on
-    return out, shadowed
-
-
-ONSET_SLOTS = 8   # candidates per row weighed at a time by :func:`_first_onsets` (most rows take their first)
-
-
-def _first_onsets_loop(env, above, kmax, pulse_env, sidelobe_margin, near):
-    """:func:`_first_onsets` row by row, candidate by candidate (the plain formula; tests compare the two)."""
-    out, shadowed = kmax.copy(), np.zeros(len(kmax), bool)
-    n_pulse = len(pulse_env)
-    for i in range(len(kmax)):
-        cand = np.flatnonzero(above[i])
-        strong = np.append(cand, kmax[i])  # candidates and the maximum, earliest first
-        for k in cand:
-            later = strong[(strong > k) & (env[i, strong] > env[i, k])]
-            d = np.minimum(later - k, n_pulse - 1)
-            if later.size and env[i, k] <= sidelobe_margin * np.sum(env[i, later] * pulse_env[d]):
-                dn = np.minimum(later - k, len(near) - 1) if near is not None else None
-                if near is None or env[i, k] > SHADOW_MARGIN * np.max(env[i, later] * near[dn]):
-                    shadowed[i] = True
-                continue  # may be a later, stronger peak's sidelobe
-            out[i] = k
-            break
     return out, shadowed
 
 

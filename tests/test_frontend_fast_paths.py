@@ -321,7 +321,7 @@ def test_onset_choice_for_all_events_at_once_equals_the_event_by_event_loop(near
     got = timing.direct_path_lag(env, pulse, 6.0, 0.05, 2.0, near=near_p if near else None)
     orig = timing._first_onsets
     try:
-        timing._first_onsets = timing._first_onsets_loop
+        timing._first_onsets = first_onsets_loop
         want = timing.direct_path_lag(env, pulse, 6.0, 0.05, 2.0, near=near_p if near else None)
     finally:
         timing._first_onsets = orig
@@ -329,6 +329,26 @@ def test_onset_choice_for_all_events_at_once_equals_the_event_by_event_loop(near
         np.testing.assert_array_equal(g, w)
     kmax = np.argmax(env, axis=1)
     assert np.any(got[0] < kmax) and np.any(got[0] == kmax) and np.any(got[3])   # each case occurs
+
+
+def first_onsets_loop(env, above, kmax, pulse_env, sidelobe_margin, near):
+    """timing._first_onsets row by row, candidate by candidate (the plain formula; tests compare the two)."""
+    out, shadowed = kmax.copy(), np.zeros(len(kmax), bool)
+    n_pulse = len(pulse_env)
+    for i in range(len(kmax)):
+        cand = np.flatnonzero(above[i])
+        strong = np.append(cand, kmax[i])  # candidates and the maximum, earliest first
+        for k in cand:
+            later = strong[(strong > k) & (env[i, strong] > env[i, k])]
+            d = np.minimum(later - k, n_pulse - 1)
+            if later.size and env[i, k] <= sidelobe_margin * np.sum(env[i, later] * pulse_env[d]):
+                dn = np.minimum(later - k, len(near) - 1) if near is not None else None
+                if near is None or env[i, k] > timing.SHADOW_MARGIN * np.max(env[i, later] * near[dn]):
+                    shadowed[i] = True
+                continue  # may be a later, stronger peak's sidelobe
+            out[i] = k
+            break
+    return out, shadowed
 
 
 def test_lag_grid_weighting_and_magnitude_equal_the_product_and_abs():
