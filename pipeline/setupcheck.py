@@ -646,14 +646,18 @@ def arrival_drift(features, name):
     return None if chain is None or not chain.starts else float(chain.starts[0][-2])
 
 
-def speed_of_sound_fit(features, proper=True, arrays=None, chains=None):
+def speed_of_sound_fit(features, proper=True, arrays=None, chains=None, doas=True):
     """Speed of sound from the metric odometry: per array, its arrivals (TDOA-S chained, less the emission
     times) against the ranges from an unknown position to the odometry's source positions, its DOAs against
     the directions to them (the angles between sources fix the metric distance, whatever c). Returns
     {array: (c, std of c, RMS arrival residual s, RMS normalised residual)} for the arrays with enough
     arrivals; c is inf (std inf) where the best fit has no positive 1/c (no range explains the arrivals).
     proper=False: each array's DOAs are fitted with a mirror (an improper rotation) instead; arrays: only these.
-    chains: {array: :class:`ArrivalChain` or None} already built (reused, the missing ones added)."""
+    chains: {array: :class:`ArrivalChain` or None} already built (reused, the missing ones added). doas=False:
+    the arrivals alone, which owe nothing to the declared speed c0: the frontend measures a planar (linear)
+    array's DOA as c0 × its slowness in the plane (on the axis), so a wrong c0 bends those DOAs toward a geometry
+    that fits c0 and scatters them across the band (lab3 declared at 400 m/s: the session's DOA σ 1.4°, at 343
+    m/s 0.24°); the DOA-aided fit, its residuals normalised by that σ, then keeps them and leans toward c0."""
     meta = features["meta"]
     sig_t, sig_d = _sigmas(meta)
     chains = {} if chains is None else chains
@@ -662,18 +666,18 @@ def speed_of_sound_fit(features, proper=True, arrays=None, chains=None):
         for name in meta["arrays"] if arrays is None else arrays:
             if name not in chains:
                 chains[name] = arrival_chain(features, name, sig_t)
-            fit = _array_sound_fit(features, name, chains[name], sig_t, sig_d, proper)
+            fit = _array_sound_fit(features, name, chains[name], sig_t, sig_d, proper, doas)
             if fit is not None:
                 out[name] = fit
     return out
 
 
-def _array_sound_fit(features, name, chain, sig_t, sig_d, proper):
+def _array_sound_fit(features, name, chain, sig_t, sig_d, proper, doas=True):
     """One array's entry of :func:`speed_of_sound_fit` from its :class:`ArrivalChain` (None: too few arrivals)."""
     if chain is None:
         return None
     odo, e, y, seg, e_id, starts = chain
-    u = _doa_rows(features, name, e_id)
+    u = _doa_rows(features, name, e_id) if doas else np.full((len(y), 3), np.nan)
     k, sk, rms, misfit = _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper, starts)
     if misfit > DOA_TRUST and np.any(np.isfinite(u)):
         # DOAs that do not fit (a wrong speed of sound also bends a planar array's elevations): c from
@@ -682,27 +686,9 @@ def _array_sound_fit(features, name, chain, sig_t, sig_d, proper):
     return (1.0 / k, sk / k**2, rms, misfit) if k > 0 else (np.inf, np.inf, rms, misfit)
 
 
-def arrival_sound_fit(features, arrays, chains):
-    """Speed of sound per array from its arrivals alone (TDOA-S chained against the ranges to the odometry's
-    positions, no DOA): {array: (c, std of c)}. Unlike :func:`speed_of_sound_fit`'s, it owes nothing to the
-    declared speed c0: the frontend measures a planar (linear) array's DOA as c0 × its slowness in the plane (on
-    the axis), so a wrong c0 bends those DOAs toward a geometry that fits c0 and scatters them across the band
-    (lab3 declared at 400 m/s: the session's DOA σ 1.4°, at 343 m/s 0.24°); the DOA-aided fit, its residuals
-    normalised by that σ, then keeps them and leans toward c0. chains: as :func:`speed_of_sound_fit`'s (the
-    missing ones built)."""
-    sig_t, sig_d = _sigmas(features["meta"])
-    out = {}
-    with single_thread_blas():  # small matrices (calib.blas)
-        for name in arrays:
-            if name not in chains:
-                chains[name] = arrival_chain(features, name, sig_t)
-            if chains[name] is None:
-                continue
-            odo, e, y, seg, _, starts = chains[name]
-            k, sk, _, _ = _fit_one_array(odo, e, y, seg, np.full((len(y), 3), np.nan), sig_t, sig_d, starts=starts)
-            if k > 0 and sk > 0:
-                out[name] = (1.0 / k, sk / k**2)
-    return out
+def _usable(fits):
+    """The speed-of-sound fits {array: (c, std, ...)} with a finite, positive std."""
+    return {k: v for k, v in fits.items() if np.isfinite(v[1]) and v[1] > 0}
 
 
 def _sound_mean(fits):
@@ -872,13 +858,14 @@ def sound_findings(features, fits=None, source="session.toml"):
         return [Finding("failed", "events.csv", "odometry vs arrivals", f"events.csv: the odometry does not explain "
                         f"the chirps' arrival times and directions (residuals up to {worst_:.0f}× their sigma in "
                         f"{', '.join(sorted(bad))}): is events.csv from this session (times and odometry)?")]
-    good = {k: v for k, v in fits.items() if k not in bad and np.isfinite(v[1]) and v[1] > 0}
+    good = _usable({k: v for k, v in fits.items() if k not in bad})
     if not good:
         return out
     # a wrong declared speed of sound is common to every array: arrays that disagree this much show another cause.
     # Tested on the DOA-aided fits (the more precise when c0 is right) and on the arrivals alone (their power owes
-    # nothing to the DOAs' σ, which a wrong c0 inflates while it bends the DOAs toward itself: arrival_sound_fit)
-    tests = [_sound_mean(f) for f in (good, arrival_sound_fit(features, list(good), chains)) if f]
+    # nothing to the DOAs' σ, which a wrong c0 inflates while it bends the DOAs toward itself: doas=False)
+    arrivals = speed_of_sound_fit(features, arrays=list(good), chains=chains, doas=False)
+    tests = [_sound_mean(f) for f in (good, _usable(arrivals)) if f]
     wrong = [(c_hat, sd) for c_hat, sd, birge in tests
              if abs(c_hat / c0 - 1) > SOUND_TOL and abs(c_hat - c0) > SOUND_SIGMA * sd and birge <= SOUND_AGREE]
     if wrong:
