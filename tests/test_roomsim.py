@@ -330,6 +330,11 @@ def test_overrides_and_toml(tmp_path):
     f.write_text('preset = "lab3"\nrt60 = -0.5\n')
     with pytest.raises(InputError, match=r"scene\.toml: rt60 must be ≥ 0"):
         rs.load_scenario(f)
+    # a table written as an array of tables ([[chirp]]: a list) is the file's error, not a crash (fuzzing found it)
+    for table in ("chirp", "priors"):
+        f.write_text(f'preset = "hard"\n[[{table}]]\nduration = 0.2\n')
+        with pytest.raises(InputError, match=rf"scene\.toml: {table} must be a table"):
+            rs.load_scenario(f)
 
 
 # ----------------------------------------------------------------------------------------------- CLI

@@ -131,6 +131,8 @@ def _rng(seed, *purpose):
 def _merge(base, over):
     out = copy.deepcopy(base)
     for k, v in over.items():
+        if isinstance(out.get(k), dict) and not isinstance(v, (dict, type(None))):
+            raise InputError(f"scenario: {k} must be a table (e.g. [{k}]), got {type(v).__name__} {v!r}")
         out[k] = {**out[k], **v} if isinstance(out.get(k), dict) and isinstance(v, dict) else copy.deepcopy(v)
     return out
 
