@@ -698,7 +698,8 @@ def arrival_quality(gcc_quality, reasons):
     return np.clip(gcc_quality, 0.0, 1.0) * DOUBT_PENALTY ** n
 
 
-DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's median is doubtful ("doa_spread")
+DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's median is doubtful ("doa_spread"): in
+                          # the RMS that sets the session's DOA sigma it would weigh as much as 900 typical rows
 
 
 def flag_nlos(results, events, shift, c):
@@ -760,8 +761,8 @@ def flag_doa_spread(results):
     ``DOA_SPREAD_FACTOR`` × the median over the session's DOAs without doubts (in place; the median over
     all of them if none is clean). The mics of such a DOA disagree with any one plane wave far beyond
     the session's typical DOA: several paths of similar strength (an occluded array's DOAs reached
-    77–151° in one session while the others' median was 0.3°). (The session's DOA sigma, the median over
-    the rows without doubts, no longer depends on such rows: :func:`noise_estimates`.)
+    77–151° in one session while the others' median was 0.3°). The session's DOA sigma is an RMS over the
+    rows without doubts, which one such row (a thousand typical rows' worth) would otherwise decide.
     The median is over all arrays: an array whose DOAs are all that poor does not set its own scale."""
     spreads, clean = [], []
     for r in results.values():
