@@ -958,17 +958,11 @@ def noise_estimates(results):
     nothing to estimate from left out): boards of different makes in one session time their arrivals
     unequally well (a 2-mic pair's scatter 6× a 6-mic circle's, mixed preset), and the estimator weights
     their TDOA rows relative to one another by it (docs/method.md "Per-array arrival sigmas").
-    sigma_doa_deg: the MEDIAN of the rows' ``doa_spread`` (:func:`doa_spread`: plane-wave fit covariance, per
+    sigma_doa_deg: the RMS of the rows' ``doa_spread`` (:func:`doa_spread`: plane-wave fit covariance, per
     tangent axis, planar arrays with the elevation Jacobian; or the sub-band scatter
     :func:`calib.frontend.doa.band_scatter` where larger). None where there is nothing to estimate from.
-    The estimator shrinks each row's own sigma (doa.csv ``sigma_deg``) halfway toward it
-    (``problem.doa_row_scales``), so it must be the typical row's, not the tail's: the rows' sigmas span 100×
-    (a source near a planar array's plane, a reflection's sub-band scatter), and their RMS followed the few
-    largest — one unflagged 1.6° row set the hall's 0.22° where its rows claim 0.01–0.14°, and when that row
-    crossed the ``doa_spread`` flag the session fell to 0.075°; the lab's near-plane rows set 0.48° while its
-    tetra-like rows claim 0.06°, de-weighting every precise DOA 5× (docs/results.md, issue 27).
     """
-    dsd = _clean_median(results.values(), "doa_spread", DOA_DOUBTS)
+    dsd = _clean_rms(results.values(), "doa_spread", DOA_DOUBTS)
     own = {name: _clean_rms([r], "arrival_sd", TIMING_DOUBTS) for name, r in results.items()}
     return {"sigma_tdoa": _clean_rms(results.values(), "arrival_sd", TIMING_DOUBTS, np.sqrt(2)),
             "sigma_doa_deg": None if dsd is None else float(np.degrees(dsd)),
@@ -976,26 +970,15 @@ def noise_estimates(results):
             "sigma_tdoa_lower": _clean_rms(results.values(), "spread", TIMING_DOUBTS, np.sqrt(2))}
 
 
-def _clean_values(results, key, doubts):
-    """The finite positive values of ``key`` over the arrivals of ``results`` (per-array result dicts) without
-    any of ``doubts`` (all arrivals, if none is clean)."""
+def _clean_rms(results, key, doubts, scale=1.0):
+    """``scale`` × the RMS of ``key`` over the arrivals of ``results`` (per-array result dicts) without any of
+    ``doubts`` (all arrivals, if none is clean); finite positive values only; None when there are none."""
     results = list(results)
     v = np.concatenate([r[key] for r in results])
     clean = np.concatenate([[not any(x in doubts for x in f) for f in r["flags"]] for r in results])
     ok = np.isfinite(v) & (v > 0)
-    return v[ok & clean] if np.any(ok & clean) else v[ok]
-
-
-def _clean_rms(results, key, doubts, scale=1.0):
-    """``scale`` × the RMS of :func:`_clean_values`; None when there are none."""
-    v = _clean_values(results, key, doubts)
+    v = v[ok & clean] if np.any(ok & clean) else v[ok]
     return float(scale * np.sqrt(np.mean(v**2))) if v.size else None
-
-
-def _clean_median(results, key, doubts):
-    """The median of :func:`_clean_values`; None when there are none."""
-    v = _clean_values(results, key, doubts)
-    return float(np.median(v)) if v.size else None
 
 
 def _diagnostics(session, results, ev_ids, beta, elapsed):
