@@ -362,13 +362,31 @@ DOA_ROW_WEIGHT = 0.5
 def doa_row_scales(doa, meta):
     """Per doa.csv row, its sigma relative to the type's (``sigma_doa_deg``): from the optional per-row
     column ``sigma_deg`` (docs/formats.md; calib's frontend writes its plane-wave-fit spread there), shrunk
-    toward 1 (``DOA_ROW_WEIGHT``). 1 for rows without a value and for files without the column."""
+    (``DOA_ROW_WEIGHT``) toward the median row's (:func:`median_row_sigma`), σ_row² = (1 − w) m² + w σ_own².
+    1 for rows without a value (the type's sigma: linear arrays' cone rows, 2-mic pairs) and for files
+    without the column. The target is the median, not the type's sigma (the frontend's RMS of the rows): the
+    rows span 100× (near-plane rows of planar arrays, a reflection's sub-band scatter) and the RMS follows the
+    few largest — one unflagged 1.6° row made the hall's 0.22° over rows claiming 0.01–0.14°, 0.075° once it
+    was flagged; the lab's near-plane rows made 0.48–0.70° and weighed its precise arrays' 0.06° rows as 0.34°
+    (docs/results.md, issue 27)."""
     if "sigma_deg" not in doa.columns or not len(doa):
         return np.ones(len(doa))
     typical = float(meta.get("sigma_doa_deg", KINDS["doa"].noise_default))
-    own = pd.to_numeric(doa["sigma_deg"], errors="coerce").to_numpy(float) / typical
-    scale2 = (1.0 - DOA_ROW_WEIGHT) + DOA_ROW_WEIGHT * own**2
+    own = pd.to_numeric(doa["sigma_deg"], errors="coerce").to_numpy(float)
+    centre = median_row_sigma(doa, own)
+    centre = typical if centre is None else centre
+    scale2 = ((1.0 - DOA_ROW_WEIGHT) * centre**2 + DOA_ROW_WEIGHT * own**2) / typical**2
     return np.where(np.isfinite(scale2), np.sqrt(scale2), 1.0)
+
+
+def median_row_sigma(doa, own):
+    """The median of the rows' own sigmas ``own`` (finite, positive) over the rows without a doubt (doa.csv
+    ``flag`` empty; all rows if none is clean, or without the column); None when there are none."""
+    ok = np.isfinite(own) & (own > 0)
+    if "flag" in doa.columns:
+        clean = ok & doa["flag"].fillna("").astype(str).eq("").to_numpy()
+        ok = clean if clean.any() else ok
+    return float(np.median(own[ok])) if ok.any() else None
 
 
 # An array's own arrival sigma (meta ``sigma_arrival_per_array``) is taken as it is, either way, from a board

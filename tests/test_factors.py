@@ -64,8 +64,9 @@ def check_jacobian(feats, kind, seed=3):
 
 
 def test_a_doa_rows_own_sigma_scales_its_residuals_and_jacobian_rows():
-    """doa.csv's sigma_deg: each row's residuals and Jacobian rows divided by √(½ + ½ (σ_row / σ)²) (σ the
-    type's sigma_doa_deg), against the same problem without the column; rows without a value unchanged."""
+    """doa.csv's sigma_deg: each row's residuals and Jacobian rows divided by √(½ (m / σ)² + ½ (σ_row / σ)²)
+    (σ the type's sigma_doa_deg, m the median row's sigma_deg), against the same problem without the column;
+    rows without a value unchanged."""
     from calib.estimator.problem import DOA_ROW_WEIGHT
 
     assert DOA_ROW_WEIGHT == 0.5
@@ -79,11 +80,30 @@ def test_a_doa_rows_own_sigma_scales_its_residuals_and_jacobian_rows():
     st = random_state(p0, rng)
     lay = make_layout(p0)
     f0, f1 = FACTORS["doa"](p0, st, lay), FACTORS["doa"](p1, st, lay)
-    want = np.sqrt(0.5 + 0.5 * (own / feats["meta"]["sigma_doa_deg"]) ** 2)
+    typ, med = feats["meta"]["sigma_doa_deg"], np.nanmedian(own)
+    want = np.sqrt(0.5 * (med / typ) ** 2 + 0.5 * (own / typ) ** 2)
     want = np.repeat(np.where(np.isnan(own), 1.0, want), 3)
     np.testing.assert_allclose(f1.r * want, f0.r, rtol=1e-12)
     np.testing.assert_allclose(np.asarray(f1.J) * want[:, None], np.asarray(f0.J), rtol=1e-12, atol=1e-300)
     np.testing.assert_allclose(f1.row_sigma, f0.sigma * want, rtol=1e-12)
+
+
+@pytest.mark.parametrize("typical", [0.05, 0.5, 5.0])
+def test_a_doa_rows_sigma_is_shrunk_toward_the_median_row_whatever_the_tail(typical):
+    """The rows' own sigmas span 100× (near-plane rows of planar arrays, reflections): shrunk toward the type's
+    sigma (the frontend's RMS, which follows the few largest) the hall's and lab's precise rows were weighed
+    as 3–5× their claim. Shrunk toward the median row's, a row's sigma is √(½ m² + ½ σ_row²) whatever the
+    type's sigma, one tail row, or a flagged row; rows without a value keep the type's sigma."""
+    import pandas as pd
+    from calib.estimator.problem import doa_row_scales
+
+    own = np.r_[np.full(9, 0.06), np.full(5, 0.6), 1.6, 25.0, np.nan]   # precise, near-plane, tail, flagged, cone
+    flag = [""] * 15 + ["doa_spread", ""]
+    doa = pd.DataFrame({"sigma_deg": own, "flag": flag})
+    sigma = typical * doa_row_scales(doa, {"sigma_doa_deg": typical})
+    m = 0.06   # the median of the 15 clean rows
+    np.testing.assert_allclose(sigma[:16], np.sqrt(0.5 * m**2 + 0.5 * own[:16] ** 2), rtol=1e-12)
+    assert sigma[0] == pytest.approx(0.06) and sigma[-1] == pytest.approx(typical)
 
 
 @pytest.mark.parametrize("elev_deg", [6.0, 40.0, -25.0])

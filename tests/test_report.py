@@ -154,11 +154,11 @@ def test_doa_rows_with_their_own_sigmas_in_residuals_and_summary(calibrated, tmp
     feats["doa"]["sigma_deg"] = own
     calib = calibrate(feats)  # sigmas as stated (meta), so the type's DOA sigma stays 6°
     res = report.residuals(report.rebuild(feats, calib))["doa"]
-    # the row's sigma: 6° × √(½ + ½ (own / 6)²) (docs/method.md), whatever rows the estimator kept
-    np.testing.assert_allclose(res["row_sigma"], 6.0 * np.sqrt(0.5 + 0.5 * (own / 6.0) ** 2), rtol=1e-9)
+    # the row's sigma: √(½ m² + ½ own²), m = 3° the median row's (docs/method.md), whatever rows the estimator kept
+    np.testing.assert_allclose(res["row_sigma"], np.sqrt(0.5 * 3.0**2 + 0.5 * own**2), rtol=1e-9)
     assert res["sigma"] == pytest.approx(6.0)
     md = report.summary_markdown(feats, calib, {"doa": res}, None, None, {"scene": "s.png", "residuals": "r.png"})
-    lo, hi = 6.0 * np.sqrt(0.5 + 0.5 * 0.25), 6.0 * np.sqrt(0.5 + 0.5 * 4.0)
+    lo, hi = np.sqrt(0.5 * 9.0 + 0.5 * 9.0), np.sqrt(0.5 * 9.0 + 0.5 * 144.0)
     assert f"per row: median {lo:.3g}, {lo:.3g}–{hi:.3g} deg/axis" in md  # two thirds of the rows at 3°
     assert f"{len(own)} rows at {lo / 6:.2f}–{hi / 6:.2f}× the type's σ" in md
     report.plot_residuals(tmp_path / "r.png", {"doa": res})
