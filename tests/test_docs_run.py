@@ -153,8 +153,8 @@ def _stated(page, pattern):
 
 @pytest.mark.slow
 def test_readme_runs(tmp_path):
-    """README.md: the set-up line, the tour (simulate → run twice → each stage alone → export → a tenth of the
-    study → chirp) and the notebook block, in one folder; the numbers the README states about them."""
+    """README.md: the set-up line, the tour (simulate → run twice → each stage alone → export → a fiftieth of
+    the study → chirp) and the notebook block, in one folder; the numbers the README states about them."""
     _link_sample_data(tmp_path)
     res = run_page("README.md", tmp_path)
     setup, tour, notebook = (outs for _, outs in res)
@@ -177,10 +177,10 @@ def test_readme_runs(tmp_path):
     metrics = json.loads((tmp_path / "out/report/metrics.json").read_text())
     assert metrics["position_rmse_m"] < 0.02  # this session calibrates to ~0.2 cm; a regression breaks 2 cm
     assert np.load(tmp_path / "mics.npy").shape == (3, 5 * 6)  # 5 arrays of 6 mics, reference frame
-    # "a tenth of the study": 20 runs of each of the 9 cells x 3 trajectories, both methods
+    # "a fiftieth of the study": 4 runs of each of the 9 cells x 3 trajectories, both methods
     runs = pd.read_csv(tmp_path / "study/runs.csv")
     final = runs[runs["stage"] == "final"]
-    assert final.groupby("method").size().to_dict() == {"hybrid": 20 * 9 * 3, "wang": 20 * 9 * 3}
+    assert final.groupby("method").size().to_dict() == {"hybrid": 4 * 9 * 3, "wang": 4 * 9 * 3}
     ours = final[final["method"] == "hybrid"]
     assert ours["converged"].mean() >= 0.99  # "converges in 100 % of runs"
     ratio = (ours["position_rmse_m"] / ours["crlb_position_rmse_m"]).median()
