@@ -19,7 +19,10 @@ orientation against the norm of its rotation std; "no std" when it was dropped);
 ``pass`` when every clear array is within the bound (3 cm / 1.5°; warehouse and bighall 5 cm / 2°),
 ``pass*`` the same but an array without the direct path is outside the bound and not named, ``named``
 when instead the verdict names exactly the arrays outside the bound and the others meet it, else ``FAIL``;
-``FAIL(ok>3σ)`` when the verdict is ok while an array is more than 3σ off. Frontend CPU: process time of
+``FAIL(ok>3σ)`` when the verdict is ok while an array is more than 3σ off. NLOS flagged: the frontend's
+reflection-only flag (``nlos``, diagnostics.json) scored per arrival against the simulator's truth/los.csv,
+``hits/blocked`` (arrivals whose direct path was blocked, flagged) and ``false alarms/clear`` (flagged although
+in line of sight); the preset summary pools them into a hit rate and a false-alarm rate. Frontend CPU: process time of
 the features computation inside the `calib run` subprocess (all threads) as % of the recording, without the
 first solve of a moving source's re-timing pass (pipeline/retime.py: estimator work, its own column), and the
 number of arrivals that pass timed again. "of which imports": the CPU of the modules first imported inside the
@@ -171,6 +174,19 @@ def assess(d, out, preset):
             "accept": accept}
 
 
+def nlos_detection(d, out):
+    """(hits, blocked, false alarms, clear) of the frontend's ``nlos`` flag per arrival against truth/los.csv."""
+    los = pd.read_csv(d / "truth" / "los.csv").set_index(["event", "array"])["los"]
+    arrays = json.loads((out / "diagnostics" / "diagnostics.json").read_text())["arrays"]
+    n = np.zeros((2, 2), int)   # [blocked, clear] x [flagged, not]
+    for name, a in arrays.items():
+        for r in a.get("arrivals") or []:
+            key = (int(r["event"]), name)
+            if key in los.index:
+                n[int(los[key] == 1), int("nlos" not in (r.get("flag") or "").split("+"))] += 1
+    return int(n[0, 0]), int(n[0].sum()), int(n[1, 0]), int(n[1].sum())
+
+
 def _sigmas(est, tru, a, per):
     """Largest error / stated std of the array (position coordinates, orientation); None without std."""
     std = est.loc[a, ["x_std", "y_std", "z_std"]].to_numpy(float)
@@ -206,8 +222,8 @@ def main():
         print("| preset | seed | position RMSE (cm) | orientation (deg) | verdict | named | clear arrays | worst clear "
               "(cm / deg) | off, not named | > 3σ | no std | acceptance | frontend CPU (% of audio) "
               "| of which imports (% of audio) | re-timing's first solve CPU (% of audio) | arrivals re-timed "
-              "| simulate CPU (s) | run wall (s) |")
-        print("|---" * 18 + "|")
+              "| NLOS flagged (hits/blocked, false alarms/clear) | simulate CPU (s) | run wall (s) |")
+        print("|---" * 19 + "|")
         groups = {}
         for spec in specs:
             preset, seeds = parse_spec(spec, args.seeds)
@@ -218,7 +234,7 @@ def main():
                 out.parent.mkdir(parents=True, exist_ok=True)
                 code, wall, cpu, solve, imports = calibrate(d, out)
                 if not (out / "report" / "metrics.json").is_file():
-                    print(f"| {preset} | {seed} | exit {code} |" + " |" * 8 + " FAIL |" + " |" * 4
+                    print(f"| {preset} | {seed} | exit {code} |" + " |" * 8 + " FAIL |" + " |" * 5
                           + f" {sim_cpu:.1f} | {wall:.1f} |")
                     groups.setdefault(preset, []).append(None)
                     continue
@@ -232,17 +248,18 @@ def main():
                 dur = diag["recording_duration_s"]
                 r["cpu_pct"], r["solve_pct"], r["import_pct"] = 100 * cpu / dur, 100 * solve / dur, 100 * imports / dur
                 r["retimed"] = sum((diag.get("retime") or {}).get("events", {}).values())
+                r["nlos"] = nlos_detection(d, out)
                 groups.setdefault(preset, []).append(r)
                 print(f"| {preset} | {seed} | {r['pos_cm']:.2f} | {r['rot_deg']:.2f} | {r['status']} | {r['named']} "
                       f"| {r['clear']} | {r['worst_clear']} | {r['off_unnamed']} | {r['over3']} | {r['no_std']} "
                       f"| {r['accept']} "
                       f"| {r['cpu_pct']:.2f} | {r['import_pct']:.2f} | {r['solve_pct']:.2f} | {r['retimed']} "
-                      f"| {sim_cpu:.1f} | {wall:.1f} |",
+                      f"| {r['nlos'][0]}/{r['nlos'][1]}, {r['nlos'][2]}/{r['nlos'][3]} | {sim_cpu:.1f} | {wall:.1f} |",
                       flush=True)
         print()
         print("| preset | sessions | median position (cm) | median orientation (deg) | verdicts | acceptance "
-              "| ok with an array > 3σ | median frontend CPU (%) |")
-        print("|---|---|---|---|---|---|---|---|")
+              "| ok with an array > 3σ | median frontend CPU (%) | NLOS hit rate | NLOS false alarms |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
         for name, rows in groups.items():
             ok = [r for r in rows if r is not None]
             st, acc = {}, {}
@@ -254,7 +271,14 @@ def main():
             print(f"| {name} | {len(rows)} | {med('pos_cm'):.2f} | {med('rot_deg'):.2f} "
                   f"| {', '.join(f'{k} {v}' for k, v in sorted(st.items()))} "
                   f"| {', '.join(f'{k} {v}' for k, v in sorted(acc.items()) if v)} "
-                  f"| {sum(r['accept'] == 'FAIL(ok>3σ)' for r in ok)} | {med('cpu_pct'):.2f} |")
+                  f"| {sum(r['accept'] == 'FAIL(ok>3σ)' for r in ok)} | {med('cpu_pct'):.2f} | {_rate(ok, 0, 1)} "
+                  f"| {_rate(ok, 2, 3)} |")
+
+
+def _rate(rows, k, n):
+    """Pooled rate of the NLOS counts r["nlos"][k] / r["nlos"][n] over sessions, as 'k/n (%)'."""
+    a, b = sum(r["nlos"][k] for r in rows), sum(r["nlos"][n] for r in rows)
+    return f"{a}/{b} ({100 * a / b:.0f} %)" if b else "-"
 
 
 if __name__ == "__main__":

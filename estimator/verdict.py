@@ -183,7 +183,8 @@ def name_inconsistent(verdict, record):
     return verdict
 
 
-REASON_TEXT = {"nlos": "reflection-only arrivals (late against the array's range track: line of sight blocked)",
+REASON_TEXT = {"nlos": "reflection-only arrivals (late against the array's range track, or no direct path in "
+                       "their waveform: line of sight blocked)",
                "weak_direct": "direct paths weaker than a reflection just after them (line of sight attenuated: "
                               "occlusion by a mount or obstacle), whose DOAs that reflection bends",
                "absurd": "TDOAs no room can produce (> 100 m of path off the array's clock line)"}

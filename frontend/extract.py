@@ -30,7 +30,7 @@ from .arrayresult import ArrayResult
 from .detect import background, matched_envelope, pick_peaks, redetect, refine_peak
 from .diagnostics import envelope_summary
 from .doa import band_scatter, cone_vectors, mic_geometry, srp_cone, srp_doa, srp_setup
-from .nlos import TRACK_SCALE_MAX, late_arrivals_many, retime_earlier
+from .nlos import TRACK_SCALE_MAX, late_arrivals_many, no_direct_path, retime_earlier
 from .noise import arrival_sd as claimed_sd, near_field_fit
 from .signals import ArrayAudio, chirp_band, chirp_template, read_header
 from .timing import (doa_time, drift_bias, estimate_phase, fuse_times, locate, matched_stretch, segment_spectra, shared_setup,
@@ -221,6 +221,7 @@ def _finish(session, results, beta, opt, t_start, sweep_times=None, motion_error
     results = {n: r.replace(arrival=r.arrival + beta * r.stretch) for n, r in results.items()}
     results = flag_nlos(results, events, lambda eps: beta * eps, c)
     flag_doa_spread(results)
+    flag_no_direct(results)
     warn_moving(results, events)
 
     feats = _tables(session, results, ev_ids, beta)
@@ -754,6 +755,20 @@ def warn_moving(results, events):
                 "the sweeps? events.csv vel_x, vel_y, vel_z let calib correct for it")
         for r in results.values():
             r["warnings"].append(text)
+
+
+def flag_no_direct(results):
+    """Add the doubt "nlos" to every arrival whose own waveform shows no direct path
+    (:func:`calib.frontend.nlos.no_direct_path`, a reflection-only arrival too little late for its range track) and
+    halve its quality (in place)."""
+    for r in results.values():
+        ks = [k for k in np.flatnonzero(no_direct_path(r["flags"])) if "nlos" not in r["flags"][k]]
+        for k in ks:
+            r["flags"][k].append("nlos")
+            r["quality"][k] *= DOUBT_PENALTY
+        if ks:
+            r["warnings"].append(f"{len(ks)} of {len(r['flags'])} arrivals show no direct path (a weak onset and mics "
+                                 "that agree with no one plane wave: reflection only, flagged nlos)")
 
 
 def flag_doa_spread(results):

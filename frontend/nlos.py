@@ -442,6 +442,22 @@ def late_arrivals_many(arrays, c, shift=None, delta0=0.0):
     return outs
 
 
+
+# ------------------------------------------------------------ no direct path in the arrival's own waveform
+# A reflection-only arrival whose detour is short (a path diffracted or reflected round a corner: 0.03-0.5 ms
+# late, 1-17 cm of path) stays on its range track, so lateness cannot tell it. Its own waveform can: the
+# onset is weak against a later peak (doubt "weak_direct") AND its mics agree with no one plane wave (doubt
+# "doa_spread": several paths of like strength, none of them a direct path standing out). Either doubt alone
+# is common in line of sight (office/L-shape seeds 50-54, 410-414: 166 and 19 of 1338 clear arrivals); both
+# at once marked 3 of the 4 blocked arrivals the range track missed (DOAs 84-103 deg off, an L-shaped room's
+# array turned 135 deg by one of them) and 2 clear ones, one of which was timed 0.61 ms early.
+NO_DIRECT_DOUBTS = ("weak_direct", "doa_spread")
+
+
+def no_direct_path(flags):
+    """(J,) bool: the arrivals whose doubts ``flags`` [[str, ...], ...] hold every one of NO_DIRECT_DOUBTS."""
+    return np.array([all(d in f for d in NO_DIRECT_DOUBTS) for f in flags], bool)
+
 # ------------------------------------------------------------ a weak direct path before the timed arrival
 # A mount or obstacle that only attenuates the direct path (10-20 dB) leaves it BEFORE a strong reflection
 # that arrives within a few pulse widths (a wall 10 cm behind the array: 0.3-0.6 ms). The onset search

@@ -146,3 +146,21 @@ def test_tracks_fitted_together_equal_each_fitted_alone():
     many = nlos.late_arrivals_many([(tr.arrival, tr.t, tr.s, None) for tr in tracks], C)
     for tr, ev in zip(tracks, many):
         assert np.array_equal(ev["nlos"], nlos.late_arrivals(tr.arrival, tr.t, tr.s, C)["nlos"])
+
+
+def test_an_arrival_with_a_weak_onset_and_no_plane_wave_is_flagged_reflection_only():
+    """A reflection-only arrival whose detour is short stays on its range track (lshape seed 50, A4: 0.18 ms
+    late, its DOA 103° off); its own waveform shows no direct path: a weak onset ("weak_direct") and mics that
+    agree with no one plane wave ("doa_spread"). Both doubts make it "nlos" (quality halved, a warning); either
+    alone, common in line of sight, does not; an arrival already "nlos" is not flagged twice."""
+    from calib.frontend.extract import DOUBT_PENALTY, flag_no_direct
+
+    flags = [["weak_direct"], ["doa_spread"], ["weak_direct", "mic_spread", "doa_spread"], [],
+             ["doa_spread", "weak_direct", "nlos"]]
+    results = {"A1": {"flags": [list(f) for f in flags], "quality": np.full(5, 0.8), "warnings": []}}
+    flag_no_direct(results)
+    r = results["A1"]
+    assert [k for k, f in enumerate(r["flags"]) if "nlos" in f] == [2, 4]
+    assert [f.count("nlos") for f in r["flags"]] == [0, 0, 1, 0, 1]
+    np.testing.assert_allclose(r["quality"], [0.8, 0.8, 0.8 * DOUBT_PENALTY, 0.8, 0.8])
+    assert len(r["warnings"]) == 1 and "1 of 5" in r["warnings"][0]
