@@ -442,7 +442,6 @@ def late_arrivals_many(arrays, c, shift=None, delta0=0.0):
     return outs
 
 
-
 # ------------------------------------------------------------ no direct path in the arrival's own waveform
 # A reflection-only arrival whose detour is short (a path diffracted or reflected round a corner: 0.03-0.5 ms
 # late, 1-17 cm of path) stays on its range track, so lateness cannot tell it. Its own waveform can: the
@@ -457,6 +456,7 @@ NO_DIRECT_DOUBTS = ("weak_direct", "doa_spread")
 def no_direct_path(flags):
     """(J,) bool: the arrivals whose doubts ``flags`` [[str, ...], ...] hold every one of NO_DIRECT_DOUBTS."""
     return np.array([all(d in f for d in NO_DIRECT_DOUBTS) for f in flags], bool)
+
 
 # ------------------------------------------------------------ a weak direct path before the timed arrival
 # A mount or obstacle that only attenuates the direct path (10-20 dB) leaves it BEFORE a strong reflection
