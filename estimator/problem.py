@@ -384,7 +384,8 @@ def median_row_sigma(doa, own):
     ``flag`` empty; all rows if none is clean, or without the column); None when there are none."""
     ok = np.isfinite(own) & (own > 0)
     if "flag" in doa.columns:
-        clean = ok & doa["flag"].fillna("").astype(str).eq("").to_numpy()
+        f = doa["flag"]   # an all-empty column reads as float NaN: no fillna("") on it (pandas warns)
+        clean = ok & f.astype(object).where(f.notna(), "").astype(str).eq("").to_numpy()
         ok = clean if clean.any() else ok
     return float(np.median(own[ok])) if ok.any() else None
 

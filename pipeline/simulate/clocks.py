@@ -172,7 +172,8 @@ def doubt_arrivals(features, array, events, flag="nlos"):
         df = features[name].copy()
         at = (df["event"].isin(ev) if "event" in df.columns else df["from_event"].isin(ev) | df["to_event"].isin(ev))
         mine = at.to_numpy() & (df["array"].astype(str).to_numpy() == array)
-        old = df["flag"].fillna("").astype(str) if "flag" in df.columns else pd.Series("", index=df.index)
+        old = df["flag"] if "flag" in df.columns else pd.Series("", index=df.index)
+        old = old.astype(object).where(old.notna(), "").astype(str)
         df["flag"] = np.where(mine, np.where(old == "", flag, old + "+" + flag), old)
         out[name] = df
     return out
