@@ -36,6 +36,7 @@ SEPARATION_MIN = 36.0  # ... nor one whose separation δ² (χ², :func:`separat
 #                        is ±δ² ± 2δ, so a choice is 3σ-safe from δ/2 = 3 on (exactly symmetric scenes: δ² 2.5-17)
 MIRROR_MIN_M = 0.05   # a mirror closer than this to the solution is the same basin (an array near the plane)
 ALONE_ITER = 40       # iterations of the alone-fit (ten parameters at most)
+RESTART_KAPPA = 3.0   # a fresh placement's robust clock scale, in the array's arrival σ (the robust passes' k)
 
 
 def mirror_free(p, i):
@@ -178,26 +179,31 @@ def separation(p, st0, alt, lay, kinds, mask):
 
 def retry_dropped(p, res, kinds, joint):
     """Arrays the joint solve dropped as inconsistent (``res.dropped`` with an ``inconsistent`` record) that
-    may have been solved in their mirror basin: each mirror-free one's mirror image (across the sources'
-    plane, from its refitted-alone pose) refitted alone on its own rows (robust; the others and the sources
-    held); when that fits clearly better (by MIRROR_DCOST), the joint solve is run again from there
-    (``joint(p, state) -> JointResult``) and kept if it no longer drops the array and drops no other. Returns
-    (the result, records {array, dcost_alone, position_m, rejoined})."""
+    may have been solved in a wrong basin: their refit alone starts where the joint solve left them, so it
+    stays there. Each one's other starts — a mirror-free array's mirror image across the sources' plane, and
+    fresh placements (``init.restart_poses``: the grid search's minima, a linear board's or a pair's cone rows
+    included, with the others' sources, which are better than the reference array's alone) — refitted alone
+    on its own rows (robust; the others and the sources held); when the best fits clearly better (by
+    MIRROR_DCOST), the joint solve is run again from there (``joint(p, state) -> JointResult``) and kept if it
+    no longer drops the array and drops no other (office: a pair's four arrivals 0.4-0.8 ms late put its start
+    55 cm off in height; solved there it was dropped and refitted alone 66 cm off). Returns (the result,
+    records {array, dcost_alone, position_m, start: "mirror" or "placed", rejoined})."""
     q = res.problem   # (the session's sigmas; ``p``, as stated, starts the joint solve again)
     inconsistent = {a["array"] for a in res.arrays if a.get("inconsistent")}
     records = []
     for i in list(res.dropped):
-        if str(p.names[i]) not in inconsistent or not mirror_free(p, i):
-            continue
-        pose = mirror_pose(q, res.state, i)
-        if pose is None:
+        if str(p.names[i]) not in inconsistent:
             continue
         alone = make_layout(q, arrays=[i], sources=False, ref_drift=False, emission=False, odo_yaw=False)
         here = linearise(q, res.state, alone, kinds, loss="cauchy").cost
-        alt = res.state.copy()
-        alt.x[i], alt.R[i], _ = pose
-        alt, info = levenberg_marquardt(q, alt, alone, kinds, loss="cauchy", max_iter=ALONE_ITER)
-        rec = {"array": str(p.names[i]), "dcost_alone": float(info["cost"] - here),
+        fits = []
+        for start, alt in _restarts(q, res.state, i):
+            alt, info = levenberg_marquardt(q, alt, alone, kinds, loss="cauchy", max_iter=ALONE_ITER)
+            fits.append((float(info["cost"] - here), start, alt))
+        if not fits:
+            continue
+        dcost, start, alt = min(fits, key=lambda f: f[0])
+        rec = {"array": str(p.names[i]), "dcost_alone": dcost, "start": start,
                "position_m": float(np.linalg.norm(alt.x[i] - res.state.x[i])), "rejoined": False}
         records.append(rec)
         if rec["dcost_alone"] >= -MIRROR_DCOST or rec["position_m"] < MIRROR_MIN_M:
@@ -206,3 +212,19 @@ def retry_dropped(p, res, kinds, joint):
         if i not in new.dropped and set(new.dropped) <= set(res.dropped):
             res, rec["rejoined"] = new, True
     return res, records
+
+
+def _restarts(q, st, i):
+    """[(kind, state)]: array ``i``'s other starts for :func:`retry_dropped`."""
+    from .init import restart_poses   # (init imports this module's separation)
+
+    out = []
+    pose = mirror_pose(q, st, i) if mirror_free(q, i) else None
+    if pose is not None:
+        alt = st.copy()
+        alt.x[i], alt.R[i], _ = pose
+        out.append(("mirror", alt))
+    scale = 1.0 if q.arrival_scale is None else float(q.arrival_scale[i])
+    kappa = RESTART_KAPPA * float(q.sigma["tdoa_m"]) * scale
+    sigma_d = float(q.sigma["cone"] if q.rot_fixed_axis[i] >= 0 else q.sigma["doa"])
+    return out + [("placed", alt) for alt in restart_poses(q, st, i, kappa, sigma_d)]

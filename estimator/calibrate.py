@@ -191,7 +191,7 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
                                t_stretch=meta.get("stretch_time_s"))
     if motion["source"] is not None:
         stages["motion"] = motion
-    else:   # (a moving source's corrected problem is motion_solve's own: not started again here)
+    if not motion["applied"]:   # (a moving source's corrected problem is motion_solve's own: not started again)
         res, retried = retry_dropped(p, res, kinds, joint)
         if retried:
             stages["mirror_rejoined"] = retried
