@@ -182,8 +182,9 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
     """The joint solve (``joint(problem, state) -> joint.JointResult``), with a source moving during the
     sweep corrected (``estimator/motion.py``), then the other fold basin of planar arrays whose sources all
     lie near their mic plane tried (``init.fold_basins``), then the mirror image across their sources' plane
-    of arrays whose DOAs cannot see it (``ambiguity.mirror_basins``; dropped ones first,
-    ``ambiguity.retry_dropped``). Records go to ``stages``. Returns (the
+    of arrays whose DOAs cannot see it (``ambiguity.mirror_basins``; dropped ones first retried at their
+    mirror and fresh placements, ``ambiguity.retry_dropped``, unless a motion correction was applied).
+    Records go to ``stages``. Returns (the
     ``JointResult`` with its state after both, fold basin records, mirror records)."""
     meta = features["meta"]
     res, motion = motion_solve(p, features["events"], joint(p, st), joint, kinds=kinds,
