@@ -21,8 +21,9 @@ orientation against the norm of its rotation std; "no std" when it was dropped);
 when instead the verdict names exactly the arrays outside the bound and the others meet it, else ``FAIL``;
 ``FAIL(ok>3σ)`` when the verdict is ok while an array is more than 3σ off. NLOS flagged: the frontend's
 reflection-only flag (``nlos``, diagnostics.json) scored per arrival against the simulator's truth/los.csv,
-``hits/blocked`` (arrivals whose direct path was blocked, flagged) and ``false alarms/clear`` (flagged although
-in line of sight); the preset summary pools them into a hit rate and a false-alarm rate. Frontend CPU: process time of
+``hits/blocked`` (arrivals whose direct path was blocked by a wall, flagged), ``false alarms/clear`` (flagged
+although in line of sight) and ``flagged/attenuated`` (the direct path there but weakened by an obstacle or the
+mount: flagging those is neither a hit nor a false alarm); the preset summary pools them into rates. Frontend CPU: process time of
 the features computation inside the `calib run` subprocess (all threads) as % of the recording, without the
 first solve of a moving source's re-timing pass (pipeline/retime.py: estimator work, its own column), and the
 number of arrivals that pass timed again. "of which imports": the CPU of the modules first imported inside the
@@ -175,16 +176,20 @@ def assess(d, out, preset):
 
 
 def nlos_detection(d, out):
-    """(hits, blocked, false alarms, clear) of the frontend's ``nlos`` flag per arrival against truth/los.csv."""
-    los = pd.read_csv(d / "truth" / "los.csv").set_index(["event", "array"])["los"]
+    """(hits, blocked, false alarms, clear, flagged attenuated, attenuated) of the frontend's ``nlos`` flag per
+    arrival against truth/los.csv: blocked = no direct path (``cause`` has ``wall``), attenuated = the direct
+    path is there but weakened (an obstacle or the array's mount: ``los`` 0 without ``wall``), clear = ``los`` 1."""
+    los = pd.read_csv(d / "truth" / "los.csv", keep_default_na=False).set_index(["event", "array"])
     arrays = json.loads((out / "diagnostics" / "diagnostics.json").read_text())["arrays"]
-    n = np.zeros((2, 2), int)   # [blocked, clear] x [flagged, not]
+    n = np.zeros((3, 2), int)   # [blocked, clear, attenuated] x [flagged, not]
     for name, a in arrays.items():
         for r in a.get("arrivals") or []:
             key = (int(r["event"]), name)
             if key in los.index:
-                n[int(los[key] == 1), int("nlos" not in (r.get("flag") or "").split("+"))] += 1
-    return int(n[0, 0]), int(n[0].sum()), int(n[1, 0]), int(n[1].sum())
+                row = los.loc[key]
+                kind = 1 if int(row["los"]) == 1 else 0 if "wall" in str(row["cause"]).split("+") else 2
+                n[kind, int("nlos" not in (r.get("flag") or "").split("+"))] += 1
+    return int(n[0, 0]), int(n[0].sum()), int(n[1, 0]), int(n[1].sum()), int(n[2, 0]), int(n[2].sum())
 
 
 def _sigmas(est, tru, a, per):
@@ -222,7 +227,7 @@ def main():
         print("| preset | seed | position RMSE (cm) | orientation (deg) | verdict | named | clear arrays | worst clear "
               "(cm / deg) | off, not named | > 3σ | no std | acceptance | frontend CPU (% of audio) "
               "| of which imports (% of audio) | re-timing's first solve CPU (% of audio) | arrivals re-timed "
-              "| NLOS flagged (hits/blocked, false alarms/clear) | simulate CPU (s) | run wall (s) |")
+              "| NLOS flagged (hits/blocked, false alarms/clear, flagged/attenuated) | simulate CPU (s) | run wall (s) |")
         print("|---" * 19 + "|")
         groups = {}
         for spec in specs:
@@ -254,12 +259,13 @@ def main():
                       f"| {r['clear']} | {r['worst_clear']} | {r['off_unnamed']} | {r['over3']} | {r['no_std']} "
                       f"| {r['accept']} "
                       f"| {r['cpu_pct']:.2f} | {r['import_pct']:.2f} | {r['solve_pct']:.2f} | {r['retimed']} "
-                      f"| {r['nlos'][0]}/{r['nlos'][1]}, {r['nlos'][2]}/{r['nlos'][3]} | {sim_cpu:.1f} | {wall:.1f} |",
+                      f"| {r['nlos'][0]}/{r['nlos'][1]}, {r['nlos'][2]}/{r['nlos'][3]}, {r['nlos'][4]}/{r['nlos'][5]} | {sim_cpu:.1f} | {wall:.1f} |",
                       flush=True)
         print()
         print("| preset | sessions | median position (cm) | median orientation (deg) | verdicts | acceptance "
-              "| ok with an array > 3σ | median frontend CPU (%) | NLOS hit rate | NLOS false alarms |")
-        print("|---|---|---|---|---|---|---|---|---|---|")
+              "| ok with an array > 3σ | median frontend CPU (%) | NLOS hit rate | NLOS false alarms "
+              "| NLOS on attenuated |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
         for name, rows in groups.items():
             ok = [r for r in rows if r is not None]
             st, acc = {}, {}
@@ -272,7 +278,7 @@ def main():
                   f"| {', '.join(f'{k} {v}' for k, v in sorted(st.items()))} "
                   f"| {', '.join(f'{k} {v}' for k, v in sorted(acc.items()) if v)} "
                   f"| {sum(r['accept'] == 'FAIL(ok>3σ)' for r in ok)} | {med('cpu_pct'):.2f} | {_rate(ok, 0, 1)} "
-                  f"| {_rate(ok, 2, 3)} |")
+                  f"| {_rate(ok, 2, 3)} | {_rate(ok, 4, 5)} |")
 
 
 def _rate(rows, k, n):

@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 
 # The readers (calib.pipeline.formats.io) add each row's line in its CSV file (header = 1) under this column, so
 # outliers can be reported by file line; it lives in memory only and is never written.
@@ -92,6 +93,18 @@ def columns(df, names):
     selection builds a new frame first: ~130 µs; the Monte-Carlo study scores every run and stage).
     """
     return np.column_stack([df[c].to_numpy(float) for c in names]) if len(names) else np.zeros((len(df), 0))
+
+
+def flag_text(df):
+    """The ``flag`` column of a features table as a str Series (a missing cell: ""; no column: "" on every row).
+
+    An all-empty column reads as float NaN, and pandas warns on ``fillna("")`` of a float column, so the
+    missing cells are replaced on an object view instead.
+    """
+    if "flag" not in df.columns:
+        return pd.Series("", index=df.index, dtype=object)
+    f = df["flag"]
+    return f.astype(object).where(f.notna(), "").astype(str)
 
 
 VELOCITY_COLUMNS = ("vel_x", "vel_y", "vel_z")   # events.csv, optional: the source's velocity during the sweep

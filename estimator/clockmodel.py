@@ -63,7 +63,7 @@ from scipy.special import chdtri, erf, erfc
 from calib.clock import TERMS as CLOCK_TERMS, Clock, Step, Term, header_ratio
 from calib.options import validate_options
 from calib.robust import mad_std
-from calib.tables import ARRAY_PARAMS
+from calib.tables import ARRAY_PARAMS, flag_text
 
 from .factors import active_kinds, row_arrays
 from .init import ObservabilityError
@@ -1494,7 +1494,7 @@ def _without_nlos(features, array, block, reference):
         mine = at & ((df["array"].astype(str) == array).to_numpy() | (reference and name == "tdoa_m"))
         if not mine.any():
             continue
-        flag = df["flag"].astype(object).where(df["flag"].notna(), "").astype(str)
+        flag = flag_text(df)
         cleared = flag.str.split("+").map(lambda parts: "+".join(x for x in parts if x and x != "nlos"))
         df = df.copy()
         df["flag"] = np.where(mine, cleared, flag)

@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.kinds import KINDS
 from calib.geometry import doa_covariance, fold, mic_geometry
-from calib.tables import ARRAY_PARAMS, LINE_COLUMN, columns
+from calib.tables import ARRAY_PARAMS, LINE_COLUMN, columns, flag_text
 
 
 def frozen_array(a):
@@ -384,8 +384,7 @@ def median_row_sigma(doa, own):
     ``flag`` empty; all rows if none is clean, or without the column); None when there are none."""
     ok = np.isfinite(own) & (own > 0)
     if "flag" in doa.columns:
-        f = doa["flag"]   # an all-empty column reads as float NaN: no fillna("") on it (pandas warns)
-        clean = ok & f.astype(object).where(f.notna(), "").astype(str).eq("").to_numpy()
+        clean = ok & flag_text(doa).eq("").to_numpy()
         ok = clean if clean.any() else ok
     return float(np.median(own[ok])) if ok.any() else None
 

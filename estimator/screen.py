@@ -28,6 +28,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from calib.tables import flag_text
+
 ABSURD_S = 0.3              # s: 100 m of path, beyond any room's geometry; a row further off its clock line is absurd
 MAX_DOUBTED_FRACTION = 0.5  # an array with more of its events doubted for one reason is named by the verdict
 # An array keeps its doubted rows (distrusted as a whole instead) when fewer of its events than this would be left:
@@ -47,8 +49,7 @@ def _flags(df, flags=tuple(DROP_FLAGS)):
     if "flag" not in df.columns:
         return np.zeros(len(df), bool)
     pattern = r"(?:^|\+)(?:" + "|".join(flags) + r")(?:\+|$)"
-    f = df["flag"]
-    return f.astype(object).where(f.notna(), "").astype(str).str.contains(pattern).to_numpy(bool)
+    return flag_text(df).str.contains(pattern).to_numpy(bool)
 
 
 def _robust_line_residuals(t, y):

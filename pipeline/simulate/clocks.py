@@ -21,10 +21,10 @@ mid-session rate change, a 44.1 kHz board written as 48 kHz).
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 
 from calib.clock import Clock, Step, Term
 from calib.geometry import local_time
+from calib.tables import flag_text
 
 WALK_STEP = 1.0   # s between the random walk's drift increments (default)
 
@@ -172,8 +172,7 @@ def doubt_arrivals(features, array, events, flag="nlos"):
         df = features[name].copy()
         at = (df["event"].isin(ev) if "event" in df.columns else df["from_event"].isin(ev) | df["to_event"].isin(ev))
         mine = at.to_numpy() & (df["array"].astype(str).to_numpy() == array)
-        old = df["flag"] if "flag" in df.columns else pd.Series("", index=df.index)
-        old = old.astype(object).where(old.notna(), "").astype(str)
+        old = flag_text(df)
         df["flag"] = np.where(mine, np.where(old == "", flag, old + "+" + flag), old)
         out[name] = df
     return out
