@@ -255,13 +255,10 @@ def planar_doa_rows(p, lin, normals, factors):
     on the rest): an in-plane error σ_p moves the azimuth by σ_p (along the sphere) and the elevation by
     σ_p / sin(el) — near the mic plane the elevation is many times less certain than the azimuth (issue 27:
     sources within a few degrees of the plane, azimuth errors ≤ 0.3°, elevation errors 1–11°), which an
-    isotropic sigma per row misses both ways. σ_p is each row's own sigma × √c, c its array's: the mean of its
-    rows' whitened residuals² along azimuth plus along elevation × sin(el), over 2n − 3 (the rotation absorbs
-    3) — a mean, so one unflagged reflection's row (25° where the others err by 1°, lshape seed 24) raises all
-    of the array's rows' (a median left arrays 3.1–3.9σ off); in each row's own sigma, so rows the frontend
-    doubted (a raised ``sigma_deg``: 8–14° where the others claim 0.1–0.3°) count as what they claim: pooled in
-    natural units, one such row set every row's σ_p (lshape 500 A4: σ_p 1.2° for rows erring by 0.06–0.3°,
-    position std 5.1 cm for a 2.0 cm error, named; test_honest_std); 1 / sin(el) stops at
+    isotropic sigma per row misses both ways. σ_p is each array's own: its residuals² along azimuth plus along
+    elevation × sin(el), over 2n − 3 (the rotation absorbs 3) — a mean, so one reflection's row (25° where the
+    others err by 1°, lshape seed 24) raises all of the array's rows' (a median, or each row's own sigma
+    weighting it, left arrays 3.1–3.9σ off: too little where it matters); 1 / sin(el) stops at
     √(2 / σ_p) (at el → 0, el ≈ √(2 (1 − ρ)): an error σ_p in ρ moves it by √(2 σ_p)). The lag-1 correlation
     inflation of ``factors`` (``factors["doa_correlation"]``) applies; the elevation's variance stays at least
     the row's sigma² × its array's σ² factor (``factors["doa"]``: a frontend's figure is only ever raised, as
@@ -299,11 +296,11 @@ def planar_doa_rows(p, lin, normals, factors):
                 continue
             t_az, t_el = np.einsum("ka,ka->k", e_az[m], r[m]), np.einsum("ka,ka->k", e_el[m], r[m])
             g_az, g_el = np.einsum("ka,kan->kn", e_az[m], J[m]), np.einsum("ka,kan->kn", e_el[m], J[m])
-            s = sin_el[m]
-            for _ in range(2):   # c (the rotation absorbs 3 of the 2n in-plane residuals) and the floor of sin(el)
-                c2 = float(np.sum(t_az ** 2 + (t_el * s) ** 2)) / max(2 * len(m) - 3, 1)
-                s = np.maximum(sin_el[m], np.sqrt(np.sqrt(c2) * sig[m] / 2.0))
-            c2_az = c2_el = c2   # in each row's sigma
+            s, x_az, x_el = sin_el[m], t_az * sig[m], t_el * sig[m]   # natural units (rad)
+            for _ in range(2):   # σ_p² (the rotation absorbs 3 of the 2n in-plane residuals) and the floor of sin(el)
+                sp2 = float(np.sum(x_az ** 2 + (x_el * s) ** 2)) / max(2 * len(m) - 3, 1)
+                s = np.maximum(sin_el[m], np.sqrt(np.sqrt(sp2) / 2.0))
+            c2_az = c2_el = sp2 / sig[m] ** 2   # in each row's sigma
             # the elevation never below the row's own sigma with its array's factor (what the fit absorbs of a
             # tilt its residuals cannot show); the azimuth is what the array measures best
             var_az = np.full(len(m), c2_az * corr[i])
@@ -324,8 +321,7 @@ def planar_doa_rows(p, lin, normals, factors):
 
 
 # An array's DOAs share a rotation error of this fraction of their median row sigma (a model constant set on
-# development seeds, docs/results.md: 0.5 × the RMS row sigma claimed ±5-9 cm for arrays 1.6-2.2 cm off on robot 350;
-# 0.5 × the median made the lab preset's position error / std RMS 0.60, below the 1/1.5 test_robust holds, issue 27)
+# development seeds, docs/results.md: 0.5 × the RMS row sigma claimed ±5-9 cm for arrays 1.6-2.2 cm off on robot 350)
 SHARED_DOA_FRACTION = 0.25
 
 
