@@ -64,6 +64,11 @@ PLANAR_TOP_MIN = 3        # (relative) below it: a size declared too small lifts
 SCALE_SCATTER_K = 1.0     # a 3-D array's scale bound widened by this × its events' scatter (robust std of log |w|·c):
 # small arrays at low rates read the delays long in reverberant rooms (a 4 cm tetrahedron at 16 kHz in a 1.2 s
 # warehouse at 5 dB: |w|·c 0.84-1.30, consensus 1.17, std 0.09; a clean lab: ≤ 1.11, std ~0.01)
+DIRECTION_AGREE_DEG = 10.0   # a 3-D array's event that says the board is too small (|w|·c > 1) testifies only if its
+# plane wave points within this of the frontend's DOA: a size error scales w, not its direction. Delays that pair one
+# mic's direct path with another's reflection do not (warehouse 403's 4 cm tetrahedron: 7 of 16 events at |w|·c
+# 1.50-1.54 whose w pointed 40-90° away from DOAs right to 1°, a false "0.66× too small"; its true plane waves
+# within 10° of the DOAs)
 
 
 @dataclass(frozen=True)
@@ -322,7 +327,7 @@ def consensus(x, tol=CONSENSUS_TOL):
     return float(np.exp(np.median(lx[near[best]]))), float(near[best].sum() / len(lx))
 
 
-def fit_geometry(delays, mics, c, exclude=()):
+def fit_geometry(delays, mics, c, exclude=(), directions=None):
     """Fit the declared geometry ``mics`` (M, 3) to the measured pair delays (:class:`PairDelays`): the plane
     wave of each event is free, so the misfit measures the geometry only (:class:`GeometryFit`).
 
@@ -330,7 +335,9 @@ def fit_geometry(delays, mics, c, exclude=()):
     (``1 / |w| c``, the value the events agree on: :func:`consensus`); a planar (or linear) one only sees the
     in-plane part of ``w``, so ``|w| c ≤ 1``: the events above 1, when many, say it is too small (the largest
     but one: the source nearest the plane, an outlier spared), else the largest is only a bound (exact for a source in the plane; its odometry tells the rest:
-    ``calib.pipeline.setupcheck.geometry_scale_fit``)."""
+    ``calib.pipeline.setupcheck.geometry_scale_fit``). directions : (K, 3) the frontend's DOA of each event in the
+    array's frame (unit; NaN rows unknown), or None: a 3-D array's events above |w|·c = 1 whose plane wave points
+    elsewhere (:data:`DIRECTION_AGREE_DEG`) do not testify to its size."""
     mics = np.asarray(mics, float)
     use = tuple(m for m in range(len(mics)) if m not in exclude)
     span = float(np.max(np.abs(delays.tau))) if delays.tau.size else 0.0
@@ -345,6 +352,8 @@ def fit_geometry(delays, mics, c, exclude=()):
     d = mics[list(use)] - mics[list(use)].mean(axis=0)
     sv = np.linalg.svd(d, compute_uv=False)
     full3d = sv[-1] > 0.1 * sv[0]
+    if full3d and directions is not None:
+        wc = np.where((wc > 1.0) & _off_direction(w, directions), np.nan, wc)   # NaN: no testimony
     mode, support = consensus(wc)
     lwc = np.log(wc[wc > 0])
     scatter = float(mad_std(lwc)) if lwc.size >= 3 else 0.0   # (fewer: no scatter to speak of)
@@ -370,6 +379,16 @@ def fit_geometry(delays, mics, c, exclude=()):
         swaps[(a, b)] = _misfit(delays.tau, delays.pairs, p, use)[0]
     return GeometryFit(misfit, misfit / max(span, 1e-12), scale, span, use, support, loo, swaps, moved, scatter,
                        best)
+
+
+def _off_direction(w, directions):
+    """(K,) True where the plane wave ``w`` (K, 3) points more than DIRECTION_AGREE_DEG from ``directions`` (K, 3),
+    the frontend's DOAs (w ∝ the direction to the source); False where either is unknown."""
+    d = np.asarray(directions, float)
+    norm = np.linalg.norm(w, axis=1) * np.linalg.norm(d, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.sum(w * d, axis=1) / norm
+    return np.isfinite(cos) & (cos < np.cos(np.radians(DIRECTION_AGREE_DEG)))
 
 
 def inverted_channels(delays, exclude=()):

@@ -121,8 +121,9 @@ def _wav(a):
 
 
 # ----------------------------------------------------------------------------------------------- channels
-def channel_findings(a, res, c):
-    """Findings of one array from :func:`calib.frontend.consistency.check_array`'s result ``res``."""
+def channel_findings(a, res, c, doas=None):
+    """Findings of one array from :func:`calib.frontend.consistency.check_array`'s result ``res``. doas : the
+    frontend's DOA of each chirp {detection time: (3,) unit in the array's frame}, or None."""
     d, wav, out = res["delays"], _wav(a), []
     if d is None or not len(d.times):
         return out
@@ -157,7 +158,8 @@ def channel_findings(a, res, c):
         out.append(Finding("failed", wav, "polarity", f"{wav} channel {m + 1}: inverted polarity (its correlation "
                            f"with the other mics is negative in {100 * frac:.0f} % of the pairs): rewire it, or "
                            "multiply the channel by −1"))
-    out += geometry_findings(a, d, c, tuple(sorted(bad)))
+    directions = None if doas is None else np.array([doas.get(t, (np.nan,) * 3) for t in d.times], float)
+    out += geometry_findings(a, d, c, tuple(sorted(bad)), directions)
     return [replace(f, array=a["name"]) for f in out]
 
 
@@ -173,11 +175,11 @@ def _congruent(mics, perm):
     return bool(np.allclose(dist, dist[np.ix_(perm, perm)], atol=1e-4 * max(dist.max(), 1e-12)))
 
 
-def geometry_findings(a, d, c, exclude=()):
+def geometry_findings(a, d, c, exclude=(), directions=None):
     """The declared geometry against the inter-mic delays: swapped channels, a channel that does not fit,
-    the wrong shape, the wrong units."""
+    the wrong shape, the wrong units. directions: the frontend's DOAs of the delays' events (``C.fit_geometry``)."""
     mics, wav = np.asarray(a["mics"], float), _wav(a)
-    g = C.fit_geometry(d, mics, c, exclude)
+    g = C.fit_geometry(d, mics, c, exclude, directions)
     if np.isfinite(g.misfit) and g.misfit > C.MISFIT_FLOOR_S and g.ratio > C.MISFIT_NAMED:
         f = _misfit_finding(a, g, mics, C.FIX_RATIO if g.ratio > C.MISFIT_FAIL else C.FIX_NAMED)
         if f is not None:
@@ -982,6 +984,17 @@ def detections_from_diagnostics(diagnostics):
     return out
 
 
+def _doas_by_time(features, name, times, events):
+    """{detection time: the frontend's DOA (3,) of its event} of array ``name`` (features' doa.csv, the array's
+    frame); None without features or detections."""
+    doa = None if features is None or times is None else features.get("doa")
+    if doa is None or not len(doa):
+        return None
+    rows = doa[doa["array"].astype(str) == name]
+    u = dict(zip(rows["event"].to_numpy(int).tolist(), rows[["ux", "uy", "uz"]].to_numpy(float)))
+    return {float(t): u[int(e)] for t, e in zip(times, events) if int(e) in u}
+
+
 def nlos_events(diagnostics, name):
     """The events whose arrival at array ``name`` the frontend flagged reflection-only ("nlos", diagnostics.json)."""
     arrivals = (diagnostics or {}).get("arrays", {}).get(name, {}).get("arrivals", [])
@@ -1017,13 +1030,15 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
             # strength from several directions, whose inter-mic delays fit no geometry (lshape seed 12: a 6-mic
             # circle with 7 of its 16 arrivals such was failed as 0.71× too small; without them: no finding)
             direct = ~np.isin(events, nlos_events(diagnostics, a["name"]))
-            times, scores = (times[direct], scores[direct]) if direct.any() else (times, scores)
+            times, scores, events = (times[direct], scores[direct], events[direct]) if direct.any() else \
+                (times, scores, events)
         res = C.check_array(a, session, times, scores, threshold, clock_times=clock_times)
-        found = channel_findings(a, res, session["speed_of_sound"])
+        doas = _doas_by_time(features, a["name"], times, events)
+        found = channel_findings(a, res, session["speed_of_sound"], doas)
         if _geometry_failed(found) and res["n_detected"] > C.N_EVENTS:
             res = C.check_array(a, session, times, scores, threshold, n_events=CONFIRM_EVENTS,
                                 clock_times=clock_times)
-            found = channel_findings(a, res, session["speed_of_sound"])
+            found = channel_findings(a, res, session["speed_of_sound"], doas)
         results[a["name"]] = res
         out += found
     out += clock_findings(session, results)

@@ -220,6 +220,39 @@ def test_a_volume_board_s_scale_bound_widens_with_its_events_scatter():
     assert "larger" in found(noisy, 2 * tet)[0].text
 
 
+def test_a_volume_board_s_events_that_point_away_from_its_doas_do_not_make_it_too_small():
+    """A tetrahedron's delays fit any plane wave, so cross-terms of one mic's direct path with another's reflection
+    show only as a wrong w: 7 of 16 events at |w|·c 1.50-1.54 pointing 40-90° from the frontend's DOAs (the other
+    9 at 0.84-1.35 along them) read as a board 0.66× too small from the delays alone; with the DOAs, not. A board
+    truly declared 0.66× too small (every event 1.5 along its DOA) is named with the DOAs too."""
+    from calib.frontend.consistency import PairDelays
+    from calib.pipeline.setupcheck import geometry_findings
+
+    tet = 0.02 * np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    rng = np.random.default_rng(11)
+    u = rng.normal(size=(16, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    pairs = np.array([(m, n) for m in range(4) for n in range(m + 1, 4)])
+    bent = np.arange(16) >= 9                                          # the last 7 events
+    axes = np.cross(u, rng.normal(size=(16, 3)))
+    turn = Rotation.from_rotvec(axes / np.linalg.norm(axes, axis=1, keepdims=True)
+                                * np.radians(rng.uniform(40, 90, 16))[:, None])
+    w = np.where(bent[:, None], turn.apply(u), u)                      # the plane waves the delays say
+    wc = np.r_[0.93, 1.01, 1.12, 0.95, 1.08, 1.10, 1.35, 0.84, 1.20, rng.uniform(1.50, 1.54, 7)]
+
+    def found(w, wc, directions):
+        t = -(w @ tet.T) / C * wc[:, None]
+        tau = t[:, pairs[:, 0]] - t[:, pairs[:, 1]]
+        d = PairDelays(pairs, tau, np.ones_like(tau), np.ones_like(tau), np.ones((16, 4)), np.zeros(4), [],
+                       np.arange(16.0), 16000.0)
+        return [f.check for f in geometry_findings({"name": "A9", "mics": tet.tolist(), "wav": "A9.wav"}, d, C,
+                                                   directions=directions)]
+
+    assert found(w, wc, None) == ["geometry scale"]                    # the delays alone: a false alarm
+    assert found(w, wc, u) == []
+    assert found(u, np.full(16, 1.5), u) == ["geometry scale"]         # a board truly too small
+
+
 def test_consensus_ignores_the_events_a_reflection_bent():
     rng = np.random.default_rng(29)
     wc = np.r_[rng.normal(1 / 1.3, 0.005, 4), [1.15, 1.4, 1.9, 2.1, 2.7]]  # 5 of 9 events bent, scattered
