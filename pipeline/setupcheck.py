@@ -504,14 +504,14 @@ def _fit_one_array(odo, e, y, seg, u, sig_t, sig_d, proper=True, starts=None):
 def _doa_rows(features, name, e_id, ambiguous=False, allow=()):
     """(K, 3) DOAs of array ``name`` at events ``e_id`` in its frame (NaN where none, or where the array's DOAs
     are ambiguous: a planar array without hemisphere, a linear one; ``ambiguous=True``: those as given).
-    The rows the frontend doubts are left out, but for those whose flags are all in ``allow``."""
+    The rows the frontend doubts are left out, but for those whose flags are all in ``allow`` (None: none left out)."""
     meta = features["meta"]
     u = np.full((len(e_id), 3), np.nan)
     if not ambiguous and (name in (meta.get("doa_mirror_normals") or {}) or name in (meta.get("doa_axes") or {})):
         return u
     doa = features["doa"]
     doa = doa[doa["array"] == name]
-    if "flag" in doa:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
+    if "flag" in doa and allow is not None:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
         doa = doa[[f <= set(allow) for f in _flags(doa["flag"])]]
     doa = doa.drop_duplicates("event").set_index("event")
     have = np.isin(e_id, doa.index)
@@ -985,14 +985,12 @@ def detections_from_diagnostics(diagnostics):
 
 
 def _doas_by_time(features, name, times, events):
-    """{detection time: the frontend's DOA (3,) of its event} of array ``name`` (features' doa.csv, the array's
-    frame); None without features or detections."""
-    doa = None if features is None or times is None else features.get("doa")
-    if doa is None or not len(doa):
+    """{detection time: the frontend's DOA (3,) of its event, NaN if none} of array ``name`` (:func:`_doa_rows`,
+    every row, doubted or not); None without features or detections."""
+    if features is None or times is None or features.get("doa") is None:
         return None
-    rows = doa[doa["array"].astype(str) == name]
-    u = dict(zip(rows["event"].to_numpy(int).tolist(), rows[["ux", "uy", "uz"]].to_numpy(float)))
-    return {float(t): u[int(e)] for t, e in zip(times, events) if int(e) in u}
+    u = _doa_rows(features, name, np.asarray(events, int), ambiguous=True, allow=None)
+    return dict(zip(np.asarray(times, float).tolist(), u))
 
 
 def nlos_events(diagnostics, name):
