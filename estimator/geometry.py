@@ -16,11 +16,9 @@ from scipy.spatial.transform import Rotation
 
 from calib.geometry import mirror
 
-from .init import subproblem
+from .init import MIN_CONE_ROWS, subproblem
 from .problem import make_layout
 from .solver import levenberg_marquardt
-
-MIN_CONE_ROWS = 3   # a world axis from fewer cone rows is left where it is
 
 
 def axis_from_cones(n, cos_theta):

@@ -376,7 +376,7 @@ def _directions(src, pts):
     return v / np.linalg.norm(v, axis=2, keepdims=True)
 
 
-MIN_CONE_ROWS = 3  # cone rows that determine a linear board's or a pair's axis (three unknowns) in the start
+MIN_CONE_ROWS = 3  # cone rows that determine a linear board's or a pair's axis (three unknowns)
 DOA_ROBUST = 3.0   # the DOA term's Cauchy scale, in σ_d (the clock term's: 3 σ_tdoa)
 DOA_IRLS = 2       # reweighted Kabsch fits after the first, for an array's rotation at its chosen start
 
@@ -464,7 +464,7 @@ def doa_rotation(p, st, i, x):
     cones = _cone_rows(p, st, i)
     if md.sum() < 2 and cones is not None:
         a = cone_cost(cones[0], _directions(cones[1], x[None]), float(p.sigma["cone"]))[1][0]
-        return axis_turn(p.cone_axis[i], a)
+        return Rotation.align_vectors(a[None], p.cone_axis[i][None])[0].as_matrix()   # the smallest turn
     if md.sum() < 2:
         return np.eye(3)
     u, v = p.doa.u[md], _directions(st.s[p.doa.ev[md]], x[None])
@@ -473,22 +473,6 @@ def doa_rotation(p, st, i, x):
         return robust_kabsch(u, v, sigma_d)[0][0]
     fits = [robust_kabsch(uu, v, sigma_d) for uu in unfold_candidates(u, p.fold[i], v)]
     return min(fits, key=lambda f: f[1][0])[0][0]
-
-
-def axis_turn(a, b):
-    """The smallest rotation matrix that turns unit vector ``a`` onto unit vector ``b``."""
-    k = np.cross(a, b)
-    sn, cs = np.linalg.norm(k), float(a @ b)
-    if sn < 1e-12:
-        return np.eye(3) if cs > 0 else Rotation.from_rotvec(np.pi * _perpendicular(a)).as_matrix()
-    return Rotation.from_rotvec(k / sn * np.arctan2(sn, cs)).as_matrix()
-
-
-def _perpendicular(a):
-    """A unit vector perpendicular to unit vector ``a``."""
-    e = np.eye(3)[int(np.argmin(np.abs(a)))]
-    k = np.cross(a, e)
-    return k / np.linalg.norm(k)
 
 
 def _subsample_mask(K, max_events):
