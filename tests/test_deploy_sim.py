@@ -11,6 +11,7 @@ import soundfile as sf
 
 from calib.pipeline.simulate import acoustics as ac
 from calib.pipeline.simulate import polyroom
+from calib.pipeline.simulate.clocks import fault_clock
 from calib.pipeline.simulate.presets import DEPLOY, ISSUE27_SCENES, PRESETS
 from calib.pipeline.simulate.roomsim import make_scenario, simulate, validate_scenario
 from calib.pipeline.simulate.simrender import line_of_sight
@@ -88,21 +89,22 @@ def test_blocked_array_hears_only_reflections(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------- motion
-def _moving(v, drift, fs=16000):
+def _moving(v, drift, fs=16000, **extra):
     s0, r = np.array([2.0, 3.0, 1.5]), np.array([5.0, 3.5, 1.4])
     tt = np.linspace(0.0, 3.0, 31)
     traj = {"t": tt.tolist(), "pos": (s0 + np.outer(tt - 0.5, v)).tolist()}
     sc = make_scenario("lab", 0, model="bands", rt60=0.0, room_dim=[8.0, 6.0, 3.0], fs=fs, **QUIET,
                        sources=[s0.tolist()], t_emit=[0.5], trajectory=traj,
-                       arrays=[_array("A1", r, tau=0.3, drift=drift)])
+                       arrays=[_array("A1", r, tau=0.3, drift=drift)], **extra)
     return sc, s0, r
 
 
-def _retarded(sc, s0, r, v, n, fs):
+def _retarded(sc, s0, r, v, n, fs, T=None):
     """Closed form: a constant-velocity source, |s0 + v (t_e − t_j) − r| = c (T − t_e), T the true time of
-    sample n on the array's drifting clock."""
+    sample n on the array's drifting clock (given: on a faulty one)."""
     a = sc["arrays"][0]
-    T = 0.5 + (n / fs - a["tau"]) / (1 + a["drift"])
+    if T is None:
+        T = 0.5 + (n / fs - a["tau"]) / (1 + a["drift"])
     w = s0 - r - v * 0.5
     qa, qb, qc = v @ v - C ** 2, 2 * (w @ v) + 2 * C ** 2 * T, w @ w - C ** 2 * T ** 2
     te = (-qb + np.sqrt(qb * qb - 4 * qa * qc)) / (2 * qa)
@@ -139,6 +141,25 @@ def test_moving_source_matches_the_retarded_time_closed_form(tmp_path):
         expected = f_emit / (1 - v @ u / C) / (1 + 4e-5)
         measured = np.mean(f_inst[n - 40:n + 40])
         assert abs(measured - expected) < 0.1 * abs(expected - f_emit / (1 + 4e-5))
+
+
+@pytest.mark.parametrize("size, at", [(0.005, -0.2), (-0.003, 0.008 + 0.25)])
+def test_a_moving_source_is_recorded_on_the_array_s_faulty_clock(tmp_path, size, at):
+    """A block of samples inserted before the sweep, or dropped while it arrives (``at``: s after the
+    emission): every sample equals the closed form at the true time the faulty clock gives it (the inverse
+    of its local time), as a static source's recording does — not the clean clock's (the direct path 5 ms or
+    3 ms off, which the truth's clock would then misstate)."""
+    v = np.array([0.45, -0.3, 0.1])
+    fault = {"steps": [{"size": size, "time": at}]}
+    sc, s0, r = _moving(v, 4e-5, clock_faults={"A1": fault})
+    clk = fault_clock(0.3, 4e-5, fault, event_times=[0.0], rng=None, t0=0.5)   # the clock attached when rendering
+    y, fs = sf.read(simulate(sc, tmp_path / "m") / "A1.wav")
+    n = np.arange(len(y))
+    for T, fits in ((clk.emitter(n / fs), True), (None, False)):
+        te, d = _retarded(sc, s0, r, v, n, fs, T)
+        ref = chirp_signal(te - 0.5, sc["chirp"]) / d
+        k = (ref @ y) / (ref @ ref)
+        assert (np.max(np.abs(y - k * ref)) < 1e-4 * np.max(np.abs(y))) == fits
 
 
 @pytest.mark.slow

@@ -147,6 +147,13 @@ def local(a, t, t0):
     return clk.local(t) if clk is not None else local_time(t, a["tau"], a["drift"], t0)
 
 
+def true_time(a, L, t0):
+    """True (emitter) time(s) of array ``a``'s local time(s) L, the inverse of :func:`local`: its fault
+    clock's (:meth:`calib.clock.Clock.emitter`) if it has one, else ``t0 + (L − τ) / (1 + δ)``."""
+    clk = a.get("clock")
+    return clk.emitter(L) if clk is not None else t0 + (np.asarray(L, float) - a["tau"]) / (1 + a["drift"])
+
+
 def rate(a, t):
     """dL/dt of array ``a`` at true time t (1 + δ without faults): its samples' true-time rate is fs × this."""
     clk = a.get("clock")

@@ -27,6 +27,7 @@ import numpy as np
 from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
 
 from calib.pipeline.simulate import acoustics as ac
+from calib.pipeline.simulate import clocks
 
 MOVING_EARLY = 0.02   # s after the direct path: paths rendered with the exact time-varying delay
 N_VIS_KNOTS = 5       # instants of the sweep at which a moving source's path visibility is evaluated
@@ -67,23 +68,24 @@ def early_mask(paths, fsp):
     return rel <= MOVING_EARLY * fsp
 
 
-def early_part(e, a, paths, sel, sc, t0, level, local_time, vis_gain=None):
+def early_part(e, a, paths, sel, sc, t0, level, vis_gain=None):
     """The moving emitter ``e``'s early paths ``sel`` at array ``a``: (first sample, (M, n) samples) on
-    the array's sample grid (its nominal rate ``a['fs']``, drifting clock).
+    the array's sample grid (its nominal rate ``a['fs']``, its clock: drifting, and with its faults —
+    dropped or inserted blocks, drift terms, a wrong rate — when it has them, as :func:`render.segment`).
 
     paths : :func:`render.band_paths` at the middle of the sweep; vis_gain : optional function(times (k,))
     → (k, n_img, M, B) path gains at those emission times (polygonal rooms), else the middle's gains.
     """
     fs, c, traj = a["fs"], sc["speed_of_sound"], e["trajectory"]
-    fsp = fs * (1 + a["drift"])
     t_s, dur = e["t_start"], e["dur"]
+    fsp = fs * clocks.rate(a, t_s)
     mics = a["mics_room"]
     idx = np.flatnonzero(sel)               # never empty: the direct path is always selected
     d = paths["dist"][idx]
-    lo = int(math.floor(fs * local_time(t_s + np.nanmin(d) / c - 0.01, a["tau"], a["drift"], t0))) - MARGIN
-    hi = int(math.ceil(fs * local_time(t_s + dur + np.nanmax(d) / c + 0.01, a["tau"], a["drift"], t0))) + MARGIN
+    lo = int(math.floor(fs * clocks.local(a, t_s + np.nanmin(d) / c - 0.01, t0))) - MARGIN
+    hi = int(math.ceil(fs * clocks.local(a, t_s + dur + np.nanmax(d) / c + 0.01, t0))) + MARGIN
     n_out = np.arange(lo, hi)
-    T = t0 + (n_out / fs - a["tau"]) / (1 + a["drift"])            # true receive time of each sample
+    T = clocks.true_time(a, n_out / fs, t0)                       # true receive time of each sample
     grid, table = traj.table(t_s - 0.1, t_s + dur + 0.1)
     s_mid = e["pos"]
     knots = t_s + dur * np.linspace(0, 1, N_VIS_KNOTS)

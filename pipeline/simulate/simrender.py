@@ -212,7 +212,7 @@ def _segment(sc, e, a, delay):
         def vis(times):
             return np.stack([polyroom.path_gains(geo, e["images"], a["mics_room"],
                                                  polyroom.moved(e["images"], traj(t)), only=early) for t in times])
-    lo, part = motion.early_part(e, a, paths, early, sc, t0, e["level"], local_time, vis)
+    lo, part = motion.early_part(e, a, paths, early, sc, t0, e["level"], vis)
     first = min(start, lo)
     out = np.zeros((seg.shape[0], max(start + seg.shape[1], lo + part.shape[1]) - first))
     out[:, start - first:start - first + seg.shape[1]] += seg
