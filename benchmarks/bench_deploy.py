@@ -26,7 +26,8 @@ although in line of sight) and ``flagged/attenuated`` (the direct path there but
 mount: flagging those is neither a hit nor a false alarm); the preset summary pools them into rates. Frontend CPU: process time of
 the features computation inside the `calib run` subprocess (all threads) as % of the recording, without the
 first solve of a moving source's re-timing pass (pipeline/retime.py: estimator work, its own column), and the
-number of arrivals that pass timed again. "of which imports": the CPU of the modules first imported inside the
+number of arrivals that pass timed again. Error bars: each non-reference array's position error over the median
+error its stated x/y/z std imply (honest: median 1, half above 1, ~1 % above 3), pooled per preset and overall. "of which imports": the CPU of the modules first imported inside the
 features stage (outside that solve), a fixed cost per process included in the frontend CPU: scipy.interpolate
 for a moving source's sweep time, the estimator's modules for a fast-clock check (pipeline/headerrate.py) — all
 of which the estimate stage of the same `calib run` imports anyway (in `calib features` alone they are the
@@ -45,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from calib.estimator.verdict import median_error
 
 SCENES = ["occluded-lab", "office", "robot", "warehouse"]
 SINGLE = ["lshape", "moving", "mixed", "talkers", "occluded", "bighall", "deploy"]
@@ -153,6 +156,7 @@ def assess(d, out, preset):
     off = {a for a, p in per.items() if p["position_m"] > bound[0] or p["rot_deg"] > bound[1]}
     sig = {a: _sigmas(est, tru, a, per[a]) for a in per}
     over3 = sorted(a for a, s in sig.items() if s is not None and s > 3)
+    z = [_error_over_std(est, tru, a) for a in per if a != ref]
     no_std = sorted(a for a, s in sig.items() if s is None)
     worst = max(clear, key=lambda a: max(per[a]["position_m"] / bound[0], per[a]["rot_deg"] / bound[1]),
                 default=None)                          # the clear array furthest beyond the bound
@@ -172,7 +176,7 @@ def assess(d, out, preset):
             f"{worst} {100 * per[worst]['position_m']:.1f} / {per[worst]['rot_deg']:.1f}",
             "over3": ",".join(f"{a} {sig[a]:.0f}σ" for a in over3) or "-", "no_std": ",".join(no_std) or "-",
             "off_unnamed": ",".join(sorted(off - named)) or "-",
-            "accept": accept}
+            "accept": accept, "err_std": [v for v in z if v is not None]}
 
 
 def nlos_detection(d, out):
@@ -203,6 +207,16 @@ def _sigmas(est, tru, a, per):
     if np.all(np.isfinite(r)) and np.linalg.norm(r) > 0:
         z = max(z, float(np.deg2rad(per["rot_deg"]) / np.linalg.norm(r)))
     return z
+
+
+def _error_over_std(est, tru, a):
+    """The array's position error over the median error its stated x/y/z std imply
+    (``verdict.median_error``): 1 is honest in the median, < 1 the std too wide; None without std."""
+    std = est.loc[a, ["x_std", "y_std", "z_std"]].to_numpy(float)
+    if not np.all(np.isfinite(std)) or np.any(std <= 0):
+        return None
+    err = est.loc[a, ["x", "y", "z"]].to_numpy(float) - tru.loc[a, ["x", "y", "z"]].to_numpy(float)
+    return float(np.linalg.norm(err) / median_error(std))
 
 
 def _rot_deg(p):
@@ -264,8 +278,8 @@ def main():
         print()
         print("| preset | sessions | median position (cm) | median orientation (deg) | verdicts | acceptance "
               "| ok with an array > 3σ | median frontend CPU (%) | NLOS hit rate | NLOS false alarms "
-              "| NLOS on attenuated |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
+              "| NLOS on attenuated | error / stated median error: median, share > 1, > 3 (arrays) |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         for name, rows in groups.items():
             ok = [r for r in rows if r is not None]
             st, acc = {}, {}
@@ -278,7 +292,23 @@ def main():
                   f"| {', '.join(f'{k} {v}' for k, v in sorted(st.items()))} "
                   f"| {', '.join(f'{k} {v}' for k, v in sorted(acc.items()) if v)} "
                   f"| {sum(r['accept'] == 'FAIL(ok>3σ)' for r in ok)} | {med('cpu_pct'):.2f} | {_rate(ok, 0, 1)} "
-                  f"| {_rate(ok, 2, 3)} | {_rate(ok, 4, 5)} |")
+                  f"| {_rate(ok, 2, 3)} | {_rate(ok, 4, 5)} | {_calibration(ok)} |")
+        every = [r for rows in groups.values() for r in rows if r is not None]
+        acc = {}
+        for r in every:
+            acc[r["accept"]] = acc.get(r["accept"], 0) + 1
+        off = sum(len(r["off_unnamed"].split(",")) for r in every if r["off_unnamed"] != "-")
+        print(f"\nAll {len(every)} sessions: {', '.join(f'{k} {v}' for k, v in sorted(acc.items()))}; arrays off the "
+              f"bound and not named: {off}; error / stated median error: {_calibration(every)}")
+
+
+def _calibration(rows):
+    """Pooled error / stated median error of the non-reference arrays with a std: 'median, % > 1, % > 3 (n)'
+    (honest: 1.0, 50 %, ~1 %)."""
+    z = np.array([v for r in rows for v in r["err_std"]])
+    if not len(z):
+        return "-"
+    return f"{np.median(z):.2f}, {100 * np.mean(z > 1):.0f} %, {100 * np.mean(z > 3):.0f} % ({len(z)})"
 
 
 def _rate(rows, k, n):
