@@ -31,7 +31,7 @@ class ArrayResult(Record):
     doa_axis : (3,) a linear array's axis (its DOAs are cones about it), else None. warnings : list of str.
     timings : {stage: s}.
     late : (J,) s late against the array's range track (NaN: not judged; ``extract.flag_nlos``), None
-    before that check.
+    before that check. track_drift : that track's clock drift δ (NaN: not judged), None before that check.
 
     Frozen (a changed copy: :meth:`replace`); reads like the dict of earlier versions (``r["arrival"]``,
     ``r.get``; a field that is None is not a key). flags, quality and warnings are filled in place by the
@@ -65,3 +65,4 @@ class ArrayResult(Record):
     warnings: list
     timings: dict
     late: np.ndarray | None = None
+    track_drift: float | None = None

@@ -706,7 +706,8 @@ DOA_SPREAD_FACTOR = 30.0  # a DOA whose own spread exceeds this × the session's
 def flag_nlos(results, events, shift, c):
     """Add the doubt "nlos" to every arrival late against its array's own range track along the odometry
     (:func:`calib.frontend.nlos.late_arrivals_many`, every array's track fitted together: a reflection-only
-    arrival, the direct path blocked) and halve its quality (in place). Returns the results with each arrival's lateness as ``late`` (s; NaN: not judged)."""
+    arrival, the direct path blocked) and halve its quality (in place). Returns the results with each arrival's lateness as ``late`` (s; NaN: not judged)
+    and the track's clock drift as ``track_drift`` (NaN: not judged)."""
     t_emit = events["t_emit"].to_numpy(float)
     odom = events[["odom_x", "odom_y", "odom_z"]].to_numpy(float)
     vel = event_velocities(events)
@@ -715,7 +716,7 @@ def flag_nlos(results, events, shift, c):
                                   None if vel is None else vel[r["ev_idx"]]) for r in results.values()], c, shift)
     for (name, r), ev in zip(results.items(), judged):
         j = r["ev_idx"]
-        out[name] = r.replace(late=ev["late"])
+        out[name] = r.replace(late=ev["late"], track_drift=ev["drift"])
         for k in np.flatnonzero(ev["nlos"]):
             r["flags"][k].append("nlos")
             r["quality"][k] *= DOUBT_PENALTY
@@ -1018,6 +1019,8 @@ def _diagnostics(session, results, ev_ids, beta, elapsed):
                             "n_matched": int(asc["n_matched"]), "tolerance_s": asc["tolerance"],
                             "residual_rms_s": float(asc["residual_rms"]), "ambiguous": bool(asc["ambiguous"])},
             "arrival_spread_median_s": float(np.nanmedian(r["spread"])),
+            # the clock drift of the array's range track along the odometry (flag_nlos; None: not judged)
+            "track_drift": float(r["track_drift"]) if np.isfinite(r.get("track_drift", np.nan)) else None,
             "arrivals": [{"event": int(ev_ids[j]), "time": float(r["arrival"][k]),
                           "quality": float(r["quality"][k]), "flag": "+".join(r["flags"][k]),
                           "mic_sd_s": float(r["mic_sd"][k]), "sd_s": float(r["arrival_sd"][k]), "doa_sd_deg": float(np.degrees(r["doa_spread"][k])),

@@ -421,22 +421,24 @@ def late_arrivals_many(arrays, c, shift=None, delta0=0.0):
     in other units, or not this session's): nothing is judged (``late`` NaN, ``scale`` says why).
 
     Returns per array a dict: ``late`` (J,) residual (s; NaN when not judged), ``nlos`` (J,) bool, ``scale``
-    (robust std of the residuals, s), ``early`` (arrivals still early by the margin: the track is in doubt).
+    (robust std of the residuals, s), ``early`` (arrivals still early by the margin: the track is in doubt),
+    ``drift`` (the track's clock drift δ against the emission times; NaN when not judged).
     """
     outs, tracks, judged = [], [], []
     for arrival, t, s, vel in arrays:
         j = len(arrival)
         ok = np.isfinite(arrival)
-        outs.append({"late": np.full(j, np.nan), "nlos": np.zeros(j, bool), "scale": np.nan, "early": 0})
+        outs.append({"late": np.full(j, np.nan), "nlos": np.zeros(j, bool), "scale": np.nan, "early": 0,
+                     "drift": np.nan})
         if ok.sum() >= MIN_EVENTS:
             tracks.append(Track(arrival[ok], t[ok], s[ok], None if vel is None else vel[ok]))
             judged.append((outs[-1], ok))
-    for (out, ok), (_, res) in zip(judged, fit_range_tracks(tracks, c, shift, delta0) if tracks else []):
+    for (out, ok), (q, res) in zip(judged, fit_range_tracks(tracks, c, shift, delta0) if tracks else []):
         scale, margin = _judge(res)
         out["scale"] = scale
         if not scale <= TRACK_SCALE_MAX:   # no range track along this odometry: nothing to judge against
             continue
-        out["late"][ok] = res
+        out["late"][ok], out["drift"] = res, float(q[4])
         out["nlos"][ok] = res > margin
         out["early"] = int(np.sum(res < -margin))
     return outs

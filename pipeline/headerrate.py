@@ -39,6 +39,11 @@ FAST_CLOCK = 3e-4
 OUTLIER_THRESHOLD = 5.0   # the refining solve's outlier test (calibrate's default: a drift, not a geometry)
 REFINE_ROUNDS = 2   # first solves that refine the rates (the second when the first moved a rate)
 CLAMPED = 0.98   # an association scale this close to its search bound (× max_drift) is a fast-clock candidate
+# ... unless the array's range track along the odometry (the frontend's NLOS check, frontend/nlos.py: position,
+# offset and drift fitted to its direct paths) already puts its drift within a crystal's ±1e-4: the association's
+# line then carries the range's trend (a source crossing a 40 m hall: 1e-3), not the clock's (warehouse 500 A6:
+# association 1.0e-3, track -2.7e-5, true -2.4e-5; tracks within 1.2e-4 of the truth on its 11 arrays)
+CRYSTAL_DRIFT = 1e-4
 # An array whose detections match fewer of the events than this is searched at other rates ...
 MATCHED_MIN = 0.8
 # ... these multiples of its header's: every ratio of two common rates within ±13 % (44.1 kHz written as 48: 0.91875)
@@ -110,18 +115,21 @@ def fast_clocks(session, feats, diagnostics, max_drift, skip=()):
     """Candidates for :func:`refine_rates` ({array: {"header", "used" = header, "scale": 1, "fast_clock": True}}):
     the arrays (not ``skip``, no declared rate) whose association's scale sits at its search bound 1 ± ``max_drift``
     (the frontend's option) — a clock faster or slower than a crystal runs, range changes that tilt the
-    association's line, or a clock that steps — whose arrivals jump nowhere (``clockmodel.impossible_jumps``: a
-    dropped block is no rate) and against the odometry (``setupcheck.arrival_drift``, no solve) put their drift
-    beyond half ``FAST_CLOCK``; the first solve's drift decides. The drift is read from the arrivals in line of
-    sight only (the rows the estimator keeps, ``estimator.screen``): reflection-only arrivals, 5-70 ms late in a
-    U-shaped room, put 8e-4-1.5e-3 of drift on clocks within 1e-4 (ushape seed 62: A2 taken at 15987 Hz)."""
+    association's line, or a clock that steps — whose range track along the odometry (diagnostics ``track_drift``,
+    the frontend's NLOS check) does not already put their drift within ``CRYSTAL_DRIFT``, whose arrivals jump
+    nowhere (``clockmodel.impossible_jumps``: a dropped block is no rate) and against the odometry
+    (``setupcheck.arrival_drift``, no solve) put their drift beyond half ``FAST_CLOCK``; the first solve's drift
+    decides. The drift is read from the arrivals in line of sight only (the rows the estimator keeps,
+    ``estimator.screen``): reflection-only arrivals, 5-70 ms late in a U-shaped room, put 8e-4-1.5e-3 of drift on
+    clocks within 1e-4 (ushape seed 62: A2 taken at 15987 Hz)."""
     clamped = {}
     for a in session["arrays"]:
         d = ((diagnostics or {}).get("arrays", {}).get(a["name"]) or {})
         scale = (d.get("association") or {}).get("scale")
         if a["name"] in skip or a.get("sample_rate") is not None or scale is None or not d.get("fs"):
             continue
-        if abs(scale - 1) >= CLAMPED * max_drift:
+        track = d.get("track_drift")
+        if abs(scale - 1) >= CLAMPED * max_drift and not (track is not None and abs(track) <= CRYSTAL_DRIFT):
             clamped[a["name"]] = int(d["fs"])
     if not clamped:   # (most sessions: the estimator's modules, ~0.3 s of CPU to import, are then not loaded)
         return {}

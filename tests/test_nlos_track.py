@@ -164,3 +164,34 @@ def test_an_arrival_with_a_weak_onset_and_no_plane_wave_is_flagged_reflection_on
     assert [f.count("nlos") for f in r["flags"]] == [0, 0, 1, 0, 1]
     np.testing.assert_allclose(r["quality"], [0.8, 0.8, 0.8 * DOUBT_PENALTY, 0.8, 0.8])
     assert len(r["warnings"]) == 1 and "1 of 5" in r["warnings"][0]
+
+
+@pytest.mark.parametrize("drift", [5e-5, -5e-5, 1.2e-3])
+def test_a_range_trend_is_no_fast_clock(drift, monkeypatch):
+    """A source crossing a 40 m hall away from an array (0.9 m/s of range rate): a straight line through the
+    arrivals (the association's) slopes by δ + ṙ/c ≈ 2.7e-3, at the association's bound (1e-3) even for a
+    crystal. The range track along the odometry (``late_arrivals_many``, the NLOS check's, a quarter of the
+    arrivals reflections) recovers the simulated drift (within 2e-5; 5 % of a fast clock's), so ``fast_clocks`` drops a crystal (its
+    |δ| ≤ CRYSTAL_DRIFT) without the estimator's look (``arrival_drift``: not called), while a true fast clock
+    (1.2e-3) still gets that look and stands."""
+    from calib.estimator import clockmodel, screen
+    from calib.pipeline import headerrate, setupcheck
+
+    rng = np.random.default_rng(3)
+    n = 24
+    t = np.linspace(0.0, 40.0, n)
+    s = np.column_stack([np.linspace(2.0, 38.0, n), 1.0 + np.sin(np.linspace(0.0, 4.0, n)), np.full(n, 1.5)])
+    rng_m = np.linalg.norm(s - np.array([0.0, 0.0, 0.2]), axis=1)
+    late = np.where(rng.random(n) < 0.25, rng.uniform(3e-3, 8e-3, n), 0.0)
+    arrival = 0.4 + (1.0 + drift) * t + rng_m / C + late + rng.normal(0.0, 2e-5, n)
+    assert np.polyfit(t, arrival, 1)[0] - 1.0 > 2e-3   # the association's line: clamped at its bound
+    ev = nlos.late_arrivals_many([(arrival, t, s, None)], C)[0]
+    assert abs(ev["drift"] - drift) < max(2e-5, 0.05 * abs(drift))   # (its weak drift prior pulls 1.2e-3 by 2 %)
+    asked = []
+    monkeypatch.setattr(setupcheck, "arrival_drift", lambda los, name: asked.append(name) or drift)
+    monkeypatch.setattr(clockmodel, "impossible_jumps", lambda feats: [])
+    monkeypatch.setattr(screen, "screen_rows", lambda feats: (None, {}))
+    diag = {"arrays": {"A1": {"fs": 16000, "association": {"scale": 1.0 + 1e-3}, "track_drift": ev["drift"]}}}
+    got = headerrate.fast_clocks({"arrays": [{"name": "A1"}]}, None, diag, 1e-3)
+    fast = abs(drift) > headerrate.FAST_CLOCK
+    assert list(got) == (["A1"] if fast else []) and asked == (["A1"] if fast else [])
