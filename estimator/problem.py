@@ -66,7 +66,8 @@ class Rows:
 
     def select(self, keep):
         """The rows where the boolean (n,) ``keep`` is True (or at the integer indices ``keep``)."""
-        return dataclasses.replace(self, **{f.name: getattr(self, f.name)[keep] for f in dataclasses.fields(self)})
+        return dataclasses.replace(self, **{f.name: getattr(self, f.name)[keep] for f in dataclasses.fields(self)
+                                            if getattr(self, f.name) is not None})
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,6 +110,7 @@ class DoaRows(Rows):
     scale: np.ndarray
     axes: np.ndarray
     axis_scale: np.ndarray
+    reflection: np.ndarray | None = None   # (n,) bool: doa.csv flags the row ``doa_reflection`` (None: unknown)
 
 
 @dataclass(frozen=True, eq=False)
@@ -286,7 +288,11 @@ def tdoa_s_rows(df, ix):
 def doa_rows(df, ix):
     n = len(df)
     return DoaRows(ix.ev(df["event"]), ix.arr(df["array"]), columns(df, ("ux", "uy", "uz")).reshape(-1, 3), _lines(df),
-                   doa_row_scales(df, ix.meta), np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), np.ones((n, 3)))
+                   doa_row_scales(df, ix.meta), np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), np.ones((n, 3)),
+                   flag_text(df).str.split("+").map(lambda f: REFLECTION_FLAG in f).to_numpy(bool))
+
+
+REFLECTION_FLAG = "doa_reflection"   # the frontend's doubt: a reflection close behind the direct path shaped the DOA
 
 
 def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0, odometry_yaw=False):

