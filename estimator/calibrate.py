@@ -141,10 +141,11 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     if noise == "estimate" and array_noise:
         p = arraynoise.start_scales(p, kinds)
     res, basins, mirrors = _deployment_solve(p, st, kinds, stages, features, lambda p_, st_: joint_solve(
-        p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
+        p_, st_, active_kinds(p_), stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
         outlier_threshold=outlier_threshold, max_iter=max_iter,
         isolate=isolated(screened, p.names) + [i for i, n in enumerate(p.names) if str(n) in isolate]), max_iter)
     times["joint"] = time.perf_counter() - t2
+    kinds = active_kinds(res.problem)   # (a moving source's velocity error adds its prior)
     if outputs == "solution":
         return _solution(res, kinds, stage_states)
     out = _full_outputs(res, kinds, stages, stage_states, method=method, noise=noise, emission_sigma=emission_sigma,
@@ -196,6 +197,7 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
         res, retried = retry_dropped(p, res, kinds, joint)
         if retried:
             stages["mirror_rejoined"] = retried
+    kinds = active_kinds(res.problem)   # (a moving source's velocity error adds its prior)
     res.state, basins = fold_basins(res.problem, res.state, res.layout, kinds, res.mask, max_iter)
     if basins:
         stages["fold_basins"] = basins

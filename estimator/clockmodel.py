@@ -611,7 +611,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None, doubted=frozenset
     nuisance = np.arange(J.shape[1] + E.shape[1], JE.shape[1])
     prior = np.concatenate([np.zeros(J.shape[1] + E.shape[1]), np.ones(len(nuisance))]) if len(nuisance) else None
     local = np.setdiff1d(np.arange(JE.shape[1]), np.concatenate([lay.s.ravel(), lay.e.ravel(), lay.odo_yaw.ravel(),
-                                                                 nuisance]))
+                                                                 lay.dv.ravel(), nuisance]))
     exact = _exact_affordable(lay.n, len(p.t), p.N + 1)
     out, bases, cache = {}, {}, {}
     for i in range(-1, p.N):   # -1: the emitter

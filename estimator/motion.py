@@ -37,6 +37,7 @@ from scipy.interpolate import CubicHermiteSpline
 from calib.geometry import mirror, yaw_rotate
 from calib.tables import event_velocities
 
+from .factors import active_kinds
 from .odoframe import yaw_decision
 from .solver import linearise
 from .uncertainty import whiten
@@ -216,6 +217,16 @@ def motion_noise(record, p, t_doa=0.0):
     return MotionNoise(float(record["velocity_sigma_m_s"]), float(p.beta), float(t_doa or 0.0))
 
 
+def with_velocity_error(p, noise):
+    """``p`` solving for the velocity error of its correction (``noise`` a :class:`MotionNoise`; None: ``p``):
+    one nuisance 3-vector δv_j per event (``State.dv``) that moves event j's arrivals as a source shift of
+    β δv_j and its turned DOAs as one of t_doa δv_j, with its prior N(0, σ_v²) (factor ``velocity``). The solve's
+    χ², its array and outlier tests and its covariance then hold the error the rows of one event share."""
+    if noise is None or not noise.sigma > 0:
+        return p
+    return p.replace(motion=noise, sigma={**p.sigma, "velocity": float(noise.sigma)})
+
+
 def retest_yaw(res, kinds):
     """The odometry yaw tested again (``odoframe.yaw_decision``) at the motion-corrected solution ``res`` (a
     ``joint.JointResult``) when IVE kept it: IVE decides on the arrivals before the shifts are removed, and a
@@ -253,10 +264,11 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
             return first, {**rec, "applied": False}
     t_star = float(t_stretch if t_stretch is not None else t_doa)
     rec["velocity_sigma_m_s"] = velocity_sigma(p_raw.t, p_raw.odom, vel, t_star, p_raw.sigma["odometry"])
+    p_raw = with_velocity_error(p_raw, motion_noise({**rec, "applied": True}, p_raw, t_doa))
     cur = first
     for _ in range(MOTION_ITERATIONS):
         cur = solve(corrected(p_raw, cur.state, vel, curve, t_doa, t_stretch), cur.state)
-    yaw = retest_yaw(cur, kinds)
+    yaw = retest_yaw(cur, active_kinds(cur.problem))
     if yaw is not None:
         rec["odometry_yaw_retest"] = yaw[0]
         if not yaw[0]["kept"]:   # IVE's yaw was the uncorrected shifts: solved again with the yaw fixed at 0
