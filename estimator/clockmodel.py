@@ -1268,7 +1268,7 @@ def _motion_corrected(q, p, result, features):
     if vel is None:
         return q
     c = corrected(q, result["state"], vel, meta.get("chirp_stretch_shift"), float(meta.get("doa_time_s") or 0.0),
-                  meta.get("stretch_time_s"))
+                  meta.get("stretch_time_s"), p.motion.sigma if p.motion is not None else 0.0)
     out = {}
     for kind, field in MOTION_CORRECTED:
         rows, solved = getattr(c, kind), getattr(p, kind)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -93,6 +93,44 @@ def _dist(st, arr, ev, s=None):
     return d, w / d[:, None]
 
 
+class Shifts(NamedTuple):
+    """A moving source's arrival shifts at a state (:func:`arrival_shifts`): ``sh`` (N, K) s, their
+    derivatives ``ds`` (N, K, 3) with respect to the source (the array's position: −ds) and ``dyaw`` (N, K)
+    with respect to the odometry yaw."""
+    sh: np.ndarray
+    ds: np.ndarray
+    dyaw: np.ndarray
+
+
+def arrival_shifts(p, st):
+    """The matched filter's arrival shift of every array and event at ``st`` for a source moving during the
+    sweep (``p.motion``, :class:`~calib.estimator.problem.SourceMotion`): β ṙ_ij / c, or the measured curve
+    at ε = ṙ_ij / c, ṙ the range rate from the displaced source; None for a stopped one. In the factor, so
+    that every solve fits the shifts at its own geometry and its Jacobian holds their derivative (β|v|/(c r)
+    of the range's: 0.07 on test_motion_noise's scene) instead of passes that hold them fixed."""
+    m = p.motion
+    if m is None:
+        return None
+    psi = float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0
+    v, disp = yaw_rotate(m.vel, psi), yaw_rotate(m.disp, psi)
+    w = (st.s + disp)[None] - st.x[:, None]
+    d = np.linalg.norm(w, axis=2)
+    u = w / np.maximum(d, 1e-9)[..., None]
+    rdot = np.einsum("kc,nkc->nk", v, u)
+    if m.curve is not None:
+        x, y = (np.asarray(c, float) for c in m.curve)
+        sh = np.interp(rdot / p.c, x, y)
+        seg = np.clip(np.searchsorted(x, rdot / p.c) - 1, 0, len(x) - 2)
+        inside = (rdot / p.c > x[0]) & (rdot / p.c < x[-1])   # (np.interp holds the ends)
+        g = np.where(inside, (y[seg + 1] - y[seg]) / (x[seg + 1] - x[seg]), 0.0) / p.c
+    else:
+        sh, g = m.beta * rdot / p.c, np.full(rdot.shape, m.beta / p.c)
+    ds = g[..., None] * (v[None] - rdot[..., None] * u) / np.maximum(d, 1e-9)[..., None]
+    turn = lambda a: np.column_stack([-a[:, 1], a[:, 0], np.zeros(len(a))])   # noqa: E731  d(Rz(ψ) a)/dψ
+    dyaw = g * np.einsum("kc,nkc->nk", turn(v), u) + np.einsum("nkc,kc->nk", ds, turn(disp))
+    return Shifts(sh, ds, dyaw)
+
+
 @dataclass
 class Factor:
     """One kind's factor evaluated at a state: whitened residuals r (m,), their Jacobian J (m, n) (a
@@ -135,7 +173,13 @@ def tdoa_s(p, st, lay):
     gc = (g / (c * sig))[:, None]
     cols = [lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]]
     vals = [h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]
-    if p.motion is not None:   # the velocity errors move the arrivals as source shifts of β δv
+    sh = arrival_shifts(p, st)
+    if sh is not None:   # a moving source: shift_b − shift_a of the array's arrivals
+        r = r + (sh.sh[i, b] - sh.sh[i, a]) / sig
+        dsb, dsa = sh.ds[i, b] / sig[:, None], sh.ds[i, a] / sig[:, None]
+        vals[1:4] = [vals[1] - dsb + dsa, vals[2] + dsb, vals[3] - dsa]
+        cols, vals = cols + [np.full(m, lay.odo_yaw[0])], vals + [(sh.dyaw[i, b] - sh.dyaw[i, a]) / sig]
+    if src is not st.s:   # the velocity errors move the arrivals as source shifts of β δv
         cols, vals = cols + [lay.dv[b], lay.dv[a]], vals + [p.motion.beta * gc * nb, -p.motion.beta * gc * na]
     put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals))
     return _rows_out("tdoa_s", r, J, p.tdoa_s, sig0, sig)
@@ -165,7 +209,13 @@ def tdoa_m(p, st, lay):
             np.tile(lay.x[ref], (m, 1)), lay.s[j], lay.e[j]]
     vals = [(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one, -(gi / (c * sig))[:, None] * ni,
             (g0 / (c * sig))[:, None] * n0, ds, (gi - g0) / sig]
-    if p.motion is not None:   # the velocity errors move the arrivals as source shifts of β δv
+    sh = arrival_shifts(p, st)
+    if sh is not None:   # a moving source: shift_i − shift_ref of the event's arrivals
+        r = r + (sh.sh[i, j] - sh.sh[ref, j]) / sig
+        dsi, ds0 = sh.ds[i, j] / sig[:, None], sh.ds[ref, j] / sig[:, None]
+        vals[4:7] = [vals[4] - dsi, vals[5] + ds0, vals[6] + dsi - ds0]
+        cols, vals = cols + [np.full(m, lay.odo_yaw[0])], vals + [(sh.dyaw[i, j] - sh.dyaw[ref, j]) / sig]
+    if src is not st.s:   # the velocity errors move the arrivals as source shifts of β δv
         cols, vals = cols + [lay.dv[j]], vals + [p.motion.beta * ds]
     put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals))
     return _rows_out("tdoa_m", r, J, p.tdoa_m, sig0, sig)
@@ -228,7 +278,7 @@ def doa(p, st, lay):
 def _doa_time(p):
     """t_doa (s) of a problem whose velocity error is modelled (``p.motion``; the DOAs were turned from
     ``t_doa`` after the sweep start, estimator/motion.py), else 0."""
-    return float(p.motion.t_doa) if p.motion is not None else 0.0
+    return float(p.motion.t_doa) if p.motion is not None and p.motion.sigma > 0 else 0.0
 
 
 def _doa_sources(p, st, t_doa):

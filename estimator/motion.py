@@ -38,6 +38,7 @@ from calib.geometry import mirror, yaw_rotate
 from calib.tables import event_velocities
 
 from .factors import active_kinds
+from .problem import SourceMotion
 from .odoframe import yaw_decision
 from .solver import linearise
 from .uncertainty import whiten
@@ -167,17 +168,21 @@ def doa_moves(p, st, disp, arr, ev, u):
     return d_arr
 
 
-def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None):
-    """``p`` with its TDOAs freed of the motion's arrival shifts at ``st`` and its DOAs turned from the
-    source at ``t_doa`` after the sweep start to the source at the start (a copy; measured rows as read).
-    The range rates of the shifts are taken ``t_stretch`` after the start (:func:`arrival_shifts`; meta
-    ``stretch_time_s``, the instant whose stretch the frontend's timing follows); None: ``t_doa``."""
+def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None, sigma_v=0.0):
+    """``p`` modelling the motion: its TDOA factors take the arrival shifts at the state they are evaluated
+    at (``problem.SourceMotion``, ``factors.arrival_shifts``; the rows as read), its DOAs turned from the source
+    at ``t_doa`` after the sweep start to the source at the start at ``st`` (a copy; measured rows as read),
+    and with ``sigma_v`` > 0 the velocity error as a nuisance per event (``State.dv``, prior factor
+    ``velocity``). The
+    range rates of the shifts are taken ``t_stretch`` after the start (meta ``stretch_time_s``, the instant
+    whose stretch the frontend's timing follows); None: ``t_doa``."""
     t_stretch = t_doa if t_stretch is None else float(t_stretch)
-    mid = sweep_middle(p.t, p.odom, vel, t_stretch) if t_stretch else None
-    sh = arrival_shifts(p, st, vel, curve, mid)
-    tm, ts = p.tdoa_m, p.tdoa_s
-    out = {"tdoa_m": dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
-           "tdoa_s": dataclasses.replace(ts, val=ts.val - (sh[ts.arr, ts.b] - sh[ts.arr, ts.a]))}
+    disp, v = sweep_middle(p.t, p.odom, vel, t_stretch) if t_stretch else (np.zeros_like(vel), vel)
+    shape = None if not curve else (np.asarray(curve["stretch"], float), np.asarray(curve["shift_s"], float))
+    out = {"motion": SourceMotion(np.asarray(v, float), np.asarray(disp, float), shape, float(p.beta),
+                                  float(sigma_v or 0.0), float(t_doa or 0.0))}
+    if sigma_v and sigma_v > 0:
+        out["sigma"] = {**p.sigma, "velocity": float(sigma_v)}
     if t_doa and len(p.doa.u):
         disp = sweep_middle(p.t, p.odom, vel, t_doa)[0]
         u = p.doa.u + doa_moves(p, st, disp, p.doa.arr, p.doa.ev, p.doa.u)
@@ -217,16 +222,6 @@ def motion_noise(record, p, t_doa=0.0):
     return MotionNoise(float(record["velocity_sigma_m_s"]), float(p.beta), float(t_doa or 0.0))
 
 
-def with_velocity_error(p, noise):
-    """``p`` solving for the velocity error of its correction (``noise`` a :class:`MotionNoise`; None: ``p``):
-    one nuisance 3-vector δv_j per event (``State.dv``) that moves event j's arrivals as a source shift of
-    β δv_j and its turned DOAs as one of t_doa δv_j, with its prior N(0, σ_v²) (factor ``velocity``). The solve's
-    χ², its array and outlier tests and its covariance then hold the error the rows of one event share."""
-    if noise is None or not noise.sigma > 0:
-        return p
-    return p.replace(motion=noise, sigma={**p.sigma, "velocity": float(noise.sigma)})
-
-
 def retest_yaw(res, kinds):
     """The odometry yaw tested again (``odoframe.yaw_decision``) at the motion-corrected solution ``res`` (a
     ``joint.JointResult``) when IVE kept it: IVE decides on the arrivals before the shifts are removed, and a
@@ -263,17 +258,16 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
         if not gain >= MIN_GAIN:
             return first, {**rec, "applied": False}
     t_star = float(t_stretch if t_stretch is not None else t_doa)
-    rec["velocity_sigma_m_s"] = velocity_sigma(p_raw.t, p_raw.odom, vel, t_star, p_raw.sigma["odometry"])
-    p_raw = with_velocity_error(p_raw, motion_noise({**rec, "applied": True}, p_raw, t_doa))
+    sigma_v = rec["velocity_sigma_m_s"] = velocity_sigma(p_raw.t, p_raw.odom, vel, t_star, p_raw.sigma["odometry"])
     cur = first
-    for _ in range(MOTION_ITERATIONS):
-        cur = solve(corrected(p_raw, cur.state, vel, curve, t_doa, t_stretch), cur.state)
+    for _ in range(MOTION_ITERATIONS if t_doa else 1):   # (the shifts are in the factors; the DOAs turn at a state)
+        cur = solve(corrected(p_raw, cur.state, vel, curve, t_doa, t_stretch, sigma_v), cur.state)
     yaw = retest_yaw(cur, active_kinds(cur.problem))
     if yaw is not None:
         rec["odometry_yaw_retest"] = yaw[0]
         if not yaw[0]["kept"]:   # IVE's yaw was the uncorrected shifts: solved again with the yaw fixed at 0
             p_raw = p_raw.replace(odo_yaw_free=False, odo_yaw_test=yaw[0])
-            cur = solve(corrected(p_raw, yaw[1], vel, curve, t_doa, t_stretch), yaw[1])
+            cur = solve(corrected(p_raw, yaw[1], vel, curve, t_doa, t_stretch, sigma_v), yaw[1])
     return cur, {**rec, "applied": True, "curve": bool(curve),
                  "max_shift_s": float(np.max(np.abs(arrival_shifts(
                      p_raw, cur.state, vel, curve, sweep_middle(p_raw.t, p_raw.odom, vel, t_stretch or t_doa)))))}

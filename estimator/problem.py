@@ -144,9 +144,10 @@ class Problem:
     estimator/arraynoise.py; the three together: :class:`Weights`); odo_yaw_free: the odometry frame's yaw
     is estimated, odo_yaw_test: the test that decided it; fixed_cols {layout field: (shape of that field)
     bool} the columns the data leave undetermined (left out of the solve) and unobservable (one report
-    entry per (array, parameter)): estimator/observability.py; motion: the velocity error of a moving
-    source's correction (``motion.MotionNoise``, set by ``motion.motion_solve``; None: not modelled), a
-    nuisance parameter per event (``State.dv``, :func:`velocity_error`) with its prior (kind ``velocity``).
+    entry per (array, parameter)): estimator/observability.py; motion: a source moving during the
+    sweep (:class:`SourceMotion`, set by ``motion.motion_solve``; None: a stopped one): its arrival shifts in
+    the TDOA factors, and its velocity error as a nuisance per event (``State.dv``, :func:`velocity_error`)
+    with its prior (kind ``velocity``).
     """
     names: np.ndarray
     ref: int
@@ -224,6 +225,22 @@ class Problem:
 
 
 _ARRAY_MAPS = ("array_scale", "array_own", "fixed_cols")
+
+
+@dataclass(frozen=True, eq=False)
+class SourceMotion:
+    """A source that moves during the sweep, as the solve models it (estimator/motion.py): the arrivals of
+    event j at array i are shifted by β ṙ_ij / c (or the frontend's measured ``curve`` (stretch, shift_s) at
+    ε = ṙ/c), ṙ taken at the current state from the source displaced by ``disp`` (K, 3) moving at ``vel``
+    (K, 3; both odometry axes, turned by the odometry yaw) — inside the factors, with its derivative. The
+    velocity has an error of ``sigma`` m/s per axis (0: not modelled), which moves the arrivals as a source
+    shift of ``beta`` δv and the DOAs turned from ``t_doa`` after the sweep start as one of ``t_doa`` δv."""
+    vel: np.ndarray
+    disp: np.ndarray
+    curve: tuple | None
+    beta: float
+    sigma: float = 0.0
+    t_doa: float = 0.0
 
 
 @dataclass
@@ -534,7 +551,7 @@ class State:
 def velocity_error(p, st):
     """(K, 3) or None: the velocity error δv of each event (m/s, reference axes) of a problem that models it
     (``p.motion``); zeros for a state that has none yet."""
-    if p.motion is None:
+    if p.motion is None or not p.motion.sigma > 0:
         return None
     dv = vars(st).get("dv")
     return np.zeros((p.K, 3)) if dv is None else dv
@@ -612,7 +629,7 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     if odo_yaw is None:
         odo_yaw = bool(p.odo_yaw_free) and sources
     lay.odo_yaw = take(1) if odo_yaw else -np.ones(1, int)
-    if sources and p.motion is not None:   # a moving source's velocity error: one nuisance 3-vector per event
+    if sources and p.motion is not None and p.motion.sigma > 0:   # a moving source's velocity error: one nuisance 3-vector per event
         lay.dv[:] = take(3 * K).reshape(K, 3)
     return _without_fixed(lay, p.fixed_cols)
 
