@@ -194,6 +194,15 @@ def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None, sigma_v=0.0):
     return p.replace(**out)
 
 
+def _shifted(p, st, vel):
+    """``p`` with its TDOAs freed of the arrival shifts at ``st`` (at the sweep start, β ε): the pattern
+    :func:`motion_gain` tests the static solve's residuals for."""
+    sh = arrival_shifts(p, st, vel)
+    tm, ts = p.tdoa_m, p.tdoa_s
+    return p.replace(tdoa_m=dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
+                     tdoa_s=dataclasses.replace(ts, val=ts.val - (sh[ts.arr, ts.b] - sh[ts.arr, ts.a])))
+
+
 def motion_gain(p, st, lay, mask, vel, kinds):
     """How much of the motion's arrival-shift pattern the residuals of the static solve hold: γ̂ of
     ``r + γ P⊥ δr`` (r the whitened residuals at the solution, δr their change when the shifts are removed,
@@ -202,7 +211,7 @@ def motion_gain(p, st, lay, mask, vel, kinds):
     one least-squares solve, not a second calibration. ``lay``, ``mask``: the solve's layout and kept
     residuals. Returns (γ̂, its std)."""
     lin = linearise(p, st, lay, kinds, mask=mask)
-    dr = linearise(corrected(p, st, vel), st, lay, kinds, mask=mask).r - lin.r
+    dr = linearise(_shifted(p, st, vel), st, lay, kinds, mask=mask).r - lin.r
     sw = np.sqrt(lin.w)
     A = scipy.sparse.diags(sw) @ scipy.sparse.csr_matrix(lin.J) if not scipy.sparse.issparse(lin.J) else \
         scipy.sparse.diags(sw) @ lin.J
