@@ -8,9 +8,12 @@ shifts the arrival by ``β ṙ_ij / c`` (β = meta ``chirp_drift_bias``, the cou
 the clock drift; ≈ f1·T/(f1 − f0): 0.57 s for a 0.5 s 0.5–4 kHz sweep, so 0.5 m/s moves an arrival by
 0.8 ms = 28 cm of path). With ``u`` the unit vector from the source to the array this is ``−β (v·u)/c``.
 
-The estimator removes the shift from TDOA-M (``shift_i − shift_ref``) and TDOA-S (``shift_to − shift_from``)
-at the current geometry and re-solves (a fixed point: the shift's derivative with respect to the
-geometry is ``β|v|/(c r)`` ~ 3e-4 of the range's, so two passes converge).
+The estimator models the shift in TDOA-M (``shift_i − shift_ref``) and TDOA-S (``shift_to − shift_from``)
+at the state each factor is evaluated at, its derivative in the Jacobian (``factors.arrival_shifts``;
+``problem.SourceMotion``): the derivative with respect to the geometry is ``β|v|/(c r)`` of the range's,
+0.07 on test_motion_noise's scene (1 m/s), which the earlier fixed-point passes with the shifts held between
+solves missed — two passes left shift errors of a few σ_TDOA there and arrays named inconsistent without any
+fault. Only the DOAs turned from ``doa_time_s`` are still turned at a state between passes (second order).
 
 Velocities: events.csv ``vel_x, vel_y, vel_z`` when present (used as given), else central differences of
 the odometry over the emission times — which are also nonzero for a robot that stops for every chirp, so
@@ -21,9 +24,12 @@ The velocity the correction uses is not the source's: the odometry's own noise a
 between events (seconds apart) miss it by σ_v per axis (:func:`velocity_sigma`). An error δv_j moves every
 corrected arrival of event j by β (δv_j · w_ij)/c (w_ij the unit vector from array i to the source): exactly
 what moving the source by β δv_j does to the times of flight, so it is shared by all the arrays of the event
-and no row's own sigma can hold it. The error bars take it as an event-level nuisance
-(:class:`MotionNoise`, ``uncertainty.velocity_rows``); the DOAs turned from ``doa_time_s`` to the start
-carry δv_j × doa_time_s of source displacement likewise.
+and no row's own sigma can hold it. The solve takes it as an event-level nuisance parameter (``State.dv``,
+prior factor ``velocity`` N(0, σ_v²) per axis): the arrivals of event j see the source at s_j + β δv_j, the
+DOAs turned from ``doa_time_s`` to the start at s_j + doa_time_s δv_j, the odometry at s_j; so the solve's χ²,
+its array and outlier tests, its covariance and the clock selection's scans all hold it (before, only the
+error bars did, :class:`MotionNoise`, ``uncertainty.velocity_rows``, and the solve's array test named fault-free
+arrays inconsistent on 7 of 8 sessions of that scene).
 """
 from __future__ import annotations
 
@@ -43,7 +49,7 @@ from .odoframe import yaw_decision
 from .solver import linearise
 from .uncertainty import whiten
 
-MOTION_ITERATIONS = 2    # correction passes (each a warm joint solve)
+MOTION_ITERATIONS = 2    # passes turning the DOAs (doa_time_s > 0) at a state (each a warm joint solve)
 MIN_SPEED = 0.05         # m/s: slower odometry (median over the intervals) is not tested for motion
 MIN_GAIN = 0.5           # odometry velocities are used when the residuals hold at least half the shift pattern
 
