@@ -34,9 +34,12 @@ def _whitened(p, st, lay, kinds):
 
 @pytest.mark.parametrize("seed", [0, 3])
 def test_velocity_rows_are_the_corrections_derivative(seed):
-    """Finite differences of the corrected arrivals (and of the turned DOAs) against ``velocity_rows``, at
-    the truth of noise-free features (a measured DOA off the predicted one turns the normalisation by its
-    error: 1-2 % at 1°)."""
+    """Finite differences of the corrected arrivals (and of the turned DOAs) against the solve's velocity-error
+    columns (``State.dv``: the arrivals see the source at s + β δv, DOAs turned from t_doa at s + t_doa δv),
+    at the truth of noise-free features (a measured DOA off the predicted one turns the normalisation by its
+    error: 1-2 % at 1°); with them in the solve, ``velocity_rows`` adds nothing (no double count)."""
+    import dataclasses
+
     f, tr = simulate_features(2, 2e-5, 1.0, 0.01, seed=seed, noise=False)
     g = _moving(f, tr)
     p = build_problem(g)
@@ -45,8 +48,13 @@ def test_velocity_rows_are_the_corrections_derivative(seed):
     pc = corrected(p, st, vel)
     lay, kinds = make_layout(pc), active_kinds(pc)
     lin = linearise(pc, st, lay, kinds)
-    A = velocity_rows(lin, lay, MotionNoise(1.0, p.beta, 1.0))   # per m/s (arrivals), per m (DOAs)
-    assert A is not None and A.shape == (len(lin.r), 3 * p.K)
+    # the same problem with the velocity error modelled (t_doa 1 s: its DOA columns per m); δv = 0 at st
+    pv = pc.replace(motion=dataclasses.replace(pc.motion, sigma=1.0, t_doa=1.0), sigma={**pc.sigma, "velocity": 1.0})
+    lay_v = make_layout(pv)
+    lin_v = linearise(pv, st, lay_v, active_kinds(pv))
+    assert velocity_rows(lin_v, lay_v, MotionNoise(1.0, p.beta, 1.0)) is None
+    A = np.asarray(lin_v.J)[:len(lin.r), lay_v.dv.ravel()]   # per m/s (arrivals), per m (DOAs); (prior rows last)
+    np.testing.assert_array_equal(lin_v.r[:len(lin.r)], lin.r)
     r0 = lin.r
     doa = np.zeros(len(r0), bool)
     start = 0
