@@ -51,8 +51,7 @@ def _moving(feats, truth, *, with_vel, shift=True, beta=BETA, vel_error=None):
 def test_moving_source_shift_removed(seed):
     """Arrival errors against the analytic shift: slope ~1 in the raw TDOAs, ~0 once the solve's modelled shifts
     are taken off; the calibration of the moving robot as good as the stopped one's, with or without a velocity
-    column; a
-    stopped robot (odometry moving between chirps) is left uncorrected."""
+    column; a stopped robot (odometry moving between chirps) is left uncorrected."""
     f, tr = simulate_features(2, 2e-5, 1.0, 0.01, seed=seed)
     static = calibrate(_moving(f, tr, with_vel=False, shift=False)[0])
     assert not static["report"]["stages"]["motion"]["applied"]
