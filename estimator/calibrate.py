@@ -22,7 +22,7 @@ from .assess import labelled_array_covariance
 from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
 from .joint import joint_solve
-from .motion import motion_noise, motion_solve
+from .motion import motion_noise, motion_solve, velocity_in_sigma
 from .outputs import CalibrationResult, blank_diverged, to_frames, to_tables, undetermined_parameters, without_claims
 from .problem import State, build_problem, make_layout, state_from_dict
 from .reporting import judge, make_report
@@ -190,7 +190,7 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
     meta = features["meta"]
     res, motion = motion_solve(p, features["events"], joint(p, st), joint, kinds=kinds,
                                curve=meta.get("chirp_stretch_shift"), t_doa=float(meta.get("doa_time_s") or 0.0),
-                               t_stretch=meta.get("stretch_time_s"))
+                               t_stretch=meta.get("stretch_time_s"), nuisance=not velocity_in_sigma(meta))
     if motion["source"] is not None:
         stages["motion"] = motion
     if not motion["applied"]:   # (a moving source's corrected problem is motion_solve's own: not started again)

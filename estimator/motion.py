@@ -229,6 +229,15 @@ def motion_gain(p, st, lay, mask, vel, kinds):
     return float(-(sw * lin.r) @ g_perp / gg), float(1.0 / np.sqrt(gg))
 
 
+def velocity_in_sigma(meta):
+    """Whether the features' σ_TDOA already holds a moving source's velocity error: a frontend's own estimate
+    (meta ``sigmas_estimated`` lists ``sigma_tdoa``) adds the shift model's error to it as row noise
+    (``frontend.extract.motion_sd``, 0.1-0.2 of the RMS shift). A nuisance parameter on top counts it twice: on
+    the rendered moving sessions 503, 505, 507 (dev) it left the arrays 1.93 / 2.46 / 2.65 cm off, without it
+    1.25 / 2.27 / 2.68 cm."""
+    return "sigma_tdoa" in (meta.get("sigmas_estimated") or [])
+
+
 def motion_noise(record, p, t_doa=0.0):
     """The :class:`MotionNoise` of a corrected moving source from :func:`motion_solve`'s ``record`` (None
     when no correction was applied); ``p`` the problem (its β), ``t_doa`` meta ``doa_time_s``."""
@@ -252,7 +261,7 @@ def retest_yaw(res, kinds):
     return test, st
 
 
-def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t_stretch=None):
+def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t_stretch=None, nuisance=True):
     """The joint solve with the moving source's arrival shifts removed, when the source moves.
 
     p_raw : the problem as built (before a solve changed its sigmas); first : ``solve``'s result (a
@@ -261,7 +270,10 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
     ``doa_time_s``, when after the sweep start the DOAs look (0: not corrected); t_stretch: meta
     ``stretch_time_s``, when the range rate of the arrival shift is taken (None: t_doa).
     Odometry velocities are used only when the static solve's residuals hold the shift pattern
-    (:func:`motion_gain` ≥ MIN_GAIN). Returns (the result kept, record for report.json ``motion``).
+    (:func:`motion_gain` ≥ MIN_GAIN). ``nuisance``: the velocity error a parameter of the solve (``State.dv``,
+    :func:`corrected`'s ``sigma_v``); False where the rows' σ already holds it (:func:`velocity_in_sigma`): then
+    only the error bars take it (:class:`MotionNoise`). Returns (the result kept, record for report.json
+    ``motion``; ``velocity_nuisance``: whether it was a parameter).
     """
     vel, source = source_velocities(events, p_raw.t, p_raw.odom)
     if vel is None or not p_raw.beta:   # β = 0: the features state no coupling (a frontend that has none)
@@ -273,7 +285,9 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
         if not gain >= MIN_GAIN:
             return first, {**rec, "applied": False}
     t_star = float(t_stretch if t_stretch is not None else t_doa)
-    sigma_v = rec["velocity_sigma_m_s"] = velocity_sigma(p_raw.t, p_raw.odom, vel, t_star, p_raw.sigma["odometry"])
+    rec["velocity_sigma_m_s"] = velocity_sigma(p_raw.t, p_raw.odom, vel, t_star, p_raw.sigma["odometry"])
+    rec["velocity_nuisance"] = bool(nuisance)
+    sigma_v = rec["velocity_sigma_m_s"] if nuisance else 0.0
     cur = first
     for _ in range(MOTION_ITERATIONS if t_doa else 1):   # (the shifts are in the factors; the DOAs turn at a state)
         cur = solve(corrected(p_raw, cur.state, vel, curve, t_doa, t_stretch, sigma_v), cur.state)
