@@ -936,10 +936,9 @@ def test_a_step_in_a_moving_session_is_still_found(monkeypatch):
 def test_a_step_in_a_moving_session_on_other_seeds(monkeypatch, seed, array, at, size):
     """As above on other seeds, arrays and places: 0.5 ms inserted, 20 ms dropped (the issue's sizes), 2 ms
     dropped (seeds 100, 101: sized 16 and 85 µs off, which the σ of an estimate that models the velocity
-    nuisance stated as 2.3 and 5.6 µs; the fit does not model it: its sandwich σ, 20 and 39 µs). Not yet
-    everywhere (benchmarks/bench_moving_clocks.py, docs/results.md): where the session's verdict names arrays
-    even without the fault (the solve's consistency tests do not count the velocity error), a step on such an
-    array is not kept."""
+    nuisance stated as 2.3 and 5.6 µs; the fit did not model it then: its sandwich σ, 20 and 39 µs; now the solve
+    models it, ``State.dv``). Still lost (benchmarks/bench_moving_clocks.py, docs/results.md): a 20 ms step whose
+    unmodelled first solve sends its array hundreds of metres away."""
     _moving_step(monkeypatch, seed, array, at, size)
 
 
