@@ -108,6 +108,9 @@ KINDS: dict[str, KindSpec] = {k.name: k for k in (
              per_array=False, dim=3, dof=3, reweight=True, stages=("ive", "joint")),
     KindSpec("emission", None, None, "us", 1e6, "emission-interval correction (µs)", "Emission",
              report_sigma="emission_s", per_array=False),
+    # a moving source's velocity error (estimator/motion.py): one 3-vector per event, prior σ_v (m/s per axis)
+    KindSpec("velocity", None, None, "mm/s", 1e3, "velocity error of the motion correction (mm/s)", "Velocity",
+             per_array=False, dim=3),
     # cone (linear arrays, mic pairs: meta ``doa_axes``): their doa.csv rows; cosine difference ≈ rad · sin θ
     KindSpec("cone", None, "doa", "deg", _DEG, "cone (axis angle) residual, cos × 57.3 (≈ deg)", "Cone",
              report_sigma="cone_rad", dof=1, **_DOA),

@@ -22,7 +22,7 @@ from .assess import labelled_array_covariance
 from .factors import active_kinds
 from .init import ObservabilityError, fold_basins
 from .joint import joint_solve
-from .motion import motion_noise, motion_solve
+from .motion import motion_noise, motion_solve, velocity_in_sigma
 from .outputs import CalibrationResult, blank_diverged, to_frames, to_tables, undetermined_parameters, without_claims
 from .problem import State, build_problem, make_layout, state_from_dict
 from .reporting import judge, make_report
@@ -141,10 +141,11 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     if noise == "estimate" and array_noise:
         p = arraynoise.start_scales(p, kinds)
     res, basins, mirrors = _deployment_solve(p, st, kinds, stages, features, lambda p_, st_: joint_solve(
-        p_, st_, kinds, stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
+        p_, st_, active_kinds(p_), stages, features["meta"], noise=noise, loss=loss, robust_k=robust_k,
         outlier_threshold=outlier_threshold, max_iter=max_iter,
         isolate=isolated(screened, p.names) + [i for i, n in enumerate(p.names) if str(n) in isolate]), max_iter)
     times["joint"] = time.perf_counter() - t2
+    kinds = active_kinds(res.problem)   # (a moving source's velocity error adds its prior)
     if outputs == "solution":
         return _solution(res, kinds, stage_states)
     out = _full_outputs(res, kinds, stages, stage_states, method=method, noise=noise, emission_sigma=emission_sigma,
@@ -189,13 +190,14 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
     meta = features["meta"]
     res, motion = motion_solve(p, features["events"], joint(p, st), joint, kinds=kinds,
                                curve=meta.get("chirp_stretch_shift"), t_doa=float(meta.get("doa_time_s") or 0.0),
-                               t_stretch=meta.get("stretch_time_s"))
+                               t_stretch=meta.get("stretch_time_s"), nuisance=not velocity_in_sigma(meta))
     if motion["source"] is not None:
         stages["motion"] = motion
     if not motion["applied"]:   # (a moving source's corrected problem is motion_solve's own: not started again)
         res, retried = retry_dropped(p, res, kinds, joint)
         if retried:
             stages["mirror_rejoined"] = retried
+    kinds = active_kinds(res.problem)   # (a moving source's velocity error adds its prior)
     res.state, basins = fold_basins(res.problem, res.state, res.layout, kinds, res.mask, max_iter)
     if basins:
         stages["fold_basins"] = basins

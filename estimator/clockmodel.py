@@ -65,9 +65,10 @@ from calib.options import validate_options
 from calib.robust import mad_std
 from calib.tables import ARRAY_PARAMS, flag_text
 
-from .factors import active_kinds, row_arrays
+from .factors import active_kinds, arrival_shifts, row_arrays
 from .init import ObservabilityError
 from .motion import motion_noise
+from .problem import arrival_sources, velocity_error
 from .uncertainty import velocity_rows
 
 FAMILY_ALPHA = 0.002    # false-model rate per session (Bonferroni over targets × candidates × 2 tests; measured ~1 %)
@@ -254,26 +255,36 @@ def array_data(p, st, i, velocity_sd=0.0):
     """:class:`ArrayData` of array i at the state ``st`` of problem ``p``. ``velocity_sd`` (s, β σ_v / c:
     :func:`velocity_arrival_sd`): a moving source's velocity error, which moves each event's corrected arrivals
     as a source shift of β δv does; the sources held here cannot take it up, so it is each row's noise too: a
-    TDOA-S row's two arrivals' (independent events: √2 of it), a TDOA-M row's along its two directions."""
+    TDOA-S row's two arrivals' (independent events: √2 of it), a TDOA-M row's along its two directions. A
+    problem that models the motion (``p.motion``) gives the rows freed of its arrival shifts at ``st`` and the
+    sources its arrivals see (``s + β δv``, the velocity error as the joint fit estimated it)."""
     ms = p.tdoa_s.arr == i
     t = p.t + st.e
+    sh = arrival_shifts(p, st)
+    sh = np.zeros((p.N, p.K)) if sh is None else sh.sh
+    src = arrival_sources(p, st)
     sig_s, sig_m = p.sigma["tdoa_s"], p.sigma["tdoa_m"]
     if velocity_sd > 0:
         sig_s = np.full(int(ms.sum()), float(np.hypot(sig_s, np.sqrt(2.0) * velocity_sd)))
     if i != p.ref:
         mm = p.tdoa_m.arr == i
         j = p.tdoa_m.ev[mm]
-        d0 = np.linalg.norm(st.s[j] - st.x[p.ref], axis=1)
+        d0 = np.linalg.norm(src[j] - st.x[p.ref], axis=1)
         aref = (1 + st.drift[p.ref]) * (t[j] + d0 / p.c) + st.offset[p.ref] + p.beta * st.drift[p.ref]
         ym = p.tdoa_m.val[mm] + aref
+        if p.motion is not None:
+            ym = ym - (sh[i, j] - sh[p.ref, j])
         if velocity_sd > 0:
-            w = st.s[j] - st.x[i]
-            du = w / np.linalg.norm(w, axis=1)[:, None] - (st.s[j] - st.x[p.ref]) / d0[:, None]
+            w = src[j] - st.x[i]
+            du = w / np.linalg.norm(w, axis=1)[:, None] - (src[j] - st.x[p.ref]) / d0[:, None]
             sig_m = np.hypot(sig_m, velocity_sd * np.linalg.norm(du, axis=1))
     else:
         j, ym = np.zeros(0, int), np.zeros(0)
-    return ArrayData(p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms], j, ym, st.s, p.t, t, p.c, p.beta,
-                     sig_s, sig_m, i == p.ref, _velocity_floor(p, sig_s, sig_m))
+    a, b, zs = p.tdoa_s.a[ms], p.tdoa_s.b[ms], p.tdoa_s.val[ms]
+    if p.motion is not None:
+        zs = zs - (sh[i, b] - sh[i, a])
+    return ArrayData(a, b, zs, j, ym, src, p.t, t, p.c, p.beta, sig_s, sig_m, i == p.ref,
+                     _velocity_floor(p, sig_s, sig_m))
 
 
 def _velocity_floor(p, sig_s, sig_m):
@@ -293,6 +304,8 @@ def velocity_arrival_sd(result):
     """β σ_v / c (s): the error of a corrected arrival per unit of its direction that the velocity error of a
     moving source's correction makes (``motion.velocity_sigma``, the solve's stages ``motion``); 0 without a
     correction."""
+    if velocity_error(result["problem"], result["state"]) is not None:
+        return 0.0   # (the joint fit estimated each event's error: its arrival sources carry it)
     noise = motion_noise(_motion_record(result), result["problem"])
     return 0.0 if noise is None else noise.beta * noise.sigma / float(result["problem"].c)
 
@@ -611,7 +624,7 @@ def joint_scan(result, models, banned=frozenset(), stats=None, doubted=frozenset
     nuisance = np.arange(J.shape[1] + E.shape[1], JE.shape[1])
     prior = np.concatenate([np.zeros(J.shape[1] + E.shape[1]), np.ones(len(nuisance))]) if len(nuisance) else None
     local = np.setdiff1d(np.arange(JE.shape[1]), np.concatenate([lay.s.ravel(), lay.e.ravel(), lay.odo_yaw.ravel(),
-                                                                 nuisance]))
+                                                                 lay.dv.ravel(), nuisance]))
     exact = _exact_affordable(lay.n, len(p.t), p.N + 1)
     out, bases, cache = {}, {}, {}
     for i in range(-1, p.N):   # -1: the emitter
@@ -1268,7 +1281,7 @@ def _motion_corrected(q, p, result, features):
     if vel is None:
         return q
     c = corrected(q, result["state"], vel, meta.get("chirp_stretch_shift"), float(meta.get("doa_time_s") or 0.0),
-                  meta.get("stretch_time_s"))
+                  meta.get("stretch_time_s"), p.motion.sigma if p.motion is not None else 0.0)
     out = {}
     for kind, field in MOTION_CORRECTED:
         rows, solved = getattr(c, kind), getattr(p, kind)

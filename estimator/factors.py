@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -23,7 +23,7 @@ from calib import kinds as K
 from calib.geometry import yaw_rotate
 from calib.kinds import KINDS
 
-from .problem import doa_rows, event_rows, tdoa_m_rows, tdoa_s_rows
+from .problem import arrival_sources, doa_rows, event_rows, tdoa_m_rows, tdoa_s_rows, velocity_error
 
 
 
@@ -86,11 +86,49 @@ def put(J, rows, cols, vals):
         J[rr, cc] += vv
 
 
-def _dist(st, arr, ev):
-    """Distances (m,) and unit vectors (m, 3) from arrays ``arr`` to sources ``ev``."""
-    w = st.s[ev] - st.x[arr]
+def _dist(st, arr, ev, s=None):
+    """Distances (m,) and unit vectors (m, 3) from arrays ``arr`` to sources ``ev`` (of ``s``, default ``st.s``)."""
+    w = (st.s if s is None else s)[ev] - st.x[arr]
     d = np.linalg.norm(w, axis=1)
     return d, w / d[:, None]
+
+
+class Shifts(NamedTuple):
+    """A moving source's arrival shifts at a state (:func:`arrival_shifts`): ``sh`` (N, K) s, their
+    derivatives ``ds`` (N, K, 3) with respect to the source (the array's position: −ds) and ``dyaw`` (N, K)
+    with respect to the odometry yaw."""
+    sh: np.ndarray
+    ds: np.ndarray
+    dyaw: np.ndarray
+
+
+def arrival_shifts(p, st):
+    """The matched filter's arrival shift of every array and event at ``st`` for a source moving during the
+    sweep (``p.motion``, :class:`~calib.estimator.problem.SourceMotion`): β ṙ_ij / c, or the measured curve
+    at ε = ṙ_ij / c, ṙ the range rate from the displaced source; None for a stopped one. In the factor, so
+    that every solve fits the shifts at its own geometry and its Jacobian holds their derivative (β|v|/(c r)
+    of the range's: 0.07 on test_motion_noise's scene) instead of passes that hold them fixed."""
+    m = p.motion
+    if m is None:
+        return None
+    psi = float(st.odo_yaw[0]) if len(st.odo_yaw) else 0.0
+    v, disp = yaw_rotate(m.vel, psi), yaw_rotate(m.disp, psi)
+    w = (st.s + disp)[None] - st.x[:, None]
+    d = np.linalg.norm(w, axis=2)
+    u = w / np.maximum(d, 1e-9)[..., None]
+    rdot = np.einsum("kc,nkc->nk", v, u)
+    if m.curve is not None:
+        x, y = (np.asarray(c, float) for c in m.curve)
+        sh = np.interp(rdot / p.c, x, y)
+        seg = np.clip(np.searchsorted(x, rdot / p.c) - 1, 0, len(x) - 2)
+        inside = (rdot / p.c > x[0]) & (rdot / p.c < x[-1])   # (np.interp holds the ends)
+        g = np.where(inside, (y[seg + 1] - y[seg]) / (x[seg + 1] - x[seg]), 0.0) / p.c
+    else:
+        sh, g = m.beta * rdot / p.c, np.full(rdot.shape, m.beta / p.c)
+    ds = g[..., None] * (v[None] - rdot[..., None] * u) / np.maximum(d, 1e-9)[..., None]
+    turn = lambda a: np.column_stack([-a[:, 1], a[:, 0], np.zeros(len(a))])   # noqa: E731  d(Rz(ψ) a)/dψ
+    dyaw = g * np.einsum("kc,nkc->nk", turn(v), u) + np.einsum("nkc,kc->nk", ds, turn(disp))
+    return Shifts(sh, ds, dyaw)
 
 
 @dataclass
@@ -126,14 +164,24 @@ def tdoa_s(p, st, lay):
     if m == 0:
         return _out("tdoa_s", np.zeros(0), J, p.tdoa_s.row, 1, True, sig0)
     sig = sig0 * p.tdoa_s.scale
-    da, na = _dist(st, i, a)
-    db, nb = _dist(st, i, b)
+    src = arrival_sources(p, st)
+    da, na = _dist(st, i, a, src)
+    db, nb = _dist(st, i, b, src)
     h = p.t[b] - p.t[a] + st.e[b] - st.e[a] + (db - da) / c
     g = 1.0 + st.drift[i]
     r = (g * h - z) / sig
     gc = (g / (c * sig))[:, None]
-    put(J, np.arange(m), np.column_stack([lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]]),
-        np.column_stack([h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]))
+    cols = [lay.drift[i], lay.x[i], lay.s[b], lay.s[a], lay.e[b], lay.e[a]]
+    vals = [h / sig, -gc * (nb - na), gc * nb, -gc * na, g / sig, -g / sig]
+    sh = arrival_shifts(p, st)
+    if sh is not None:   # a moving source: shift_b − shift_a of the array's arrivals
+        r = r + (sh.sh[i, b] - sh.sh[i, a]) / sig
+        dsb, dsa = sh.ds[i, b] / sig[:, None], sh.ds[i, a] / sig[:, None]
+        vals[1:4] = [vals[1] - dsb + dsa, vals[2] + dsb, vals[3] - dsa]
+        cols, vals = cols + [np.full(m, lay.odo_yaw[0])], vals + [(sh.dyaw[i, b] - sh.dyaw[i, a]) / sig]
+    if src is not st.s:   # the velocity errors move the arrivals as source shifts of β δv
+        cols, vals = cols + [lay.dv[b], lay.dv[a]], vals + [p.motion.beta * gc * nb, -p.motion.beta * gc * na]
+    put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals))
     return _rows_out("tdoa_s", r, J, p.tdoa_s, sig0, sig)
 
 
@@ -145,8 +193,9 @@ def tdoa_m(p, st, lay):
     if m == 0:
         return _out("tdoa_m", np.zeros(0), J, p.tdoa_m.row, 1, True, sig0)
     sig = sig0 * p.tdoa_m.scale
-    di, ni = _dist(st, i, j)
-    w0 = st.s[j] - st.x[ref]   # (the reference array for every row: one broadcast, no gather)
+    src = arrival_sources(p, st)
+    di, ni = _dist(st, i, j, src)
+    w0 = src[j] - st.x[ref]   # (the reference array for every row: one broadcast, no gather)
     d0 = np.linalg.norm(w0, axis=1)
     n0 = w0 / d0[:, None]
     te = p.t[j] + st.e[j]
@@ -155,12 +204,20 @@ def tdoa_m(p, st, lay):
              - g0 * (te + d0 / c) - st.offset[ref] - beta * st.drift[ref])
     r = (model - z) / sig
     one = 1.0 / sig
-    put(J, np.arange(m), np.column_stack([lay.drift[i], np.full(m, lay.drift[ref]), lay.offset[i],
-                                                  np.full(m, lay.offset[ref]), lay.x[i], np.tile(lay.x[ref], (m, 1)),
-                                                  lay.s[j], lay.e[j]]),
-        np.column_stack([(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one,
-                           -(gi / (c * sig))[:, None] * ni, (g0 / (c * sig))[:, None] * n0,
-                           (gi[:, None] * ni - g0 * n0) / (c * sig)[:, None], (gi - g0) / sig]))
+    ds = (gi[:, None] * ni - g0 * n0) / (c * sig)[:, None]
+    cols = [lay.drift[i], np.full(m, lay.drift[ref]), lay.offset[i], np.full(m, lay.offset[ref]), lay.x[i],
+            np.tile(lay.x[ref], (m, 1)), lay.s[j], lay.e[j]]
+    vals = [(te + di / c + beta) / sig, -(te + d0 / c + beta) / sig, one, -one, -(gi / (c * sig))[:, None] * ni,
+            (g0 / (c * sig))[:, None] * n0, ds, (gi - g0) / sig]
+    sh = arrival_shifts(p, st)
+    if sh is not None:   # a moving source: shift_i − shift_ref of the event's arrivals
+        r = r + (sh.sh[i, j] - sh.sh[ref, j]) / sig
+        dsi, ds0 = sh.ds[i, j] / sig[:, None], sh.ds[ref, j] / sig[:, None]
+        vals[4:7] = [vals[4] - dsi, vals[5] + ds0, vals[6] + dsi - ds0]
+        cols, vals = cols + [np.full(m, lay.odo_yaw[0])], vals + [(sh.dyaw[i, j] - sh.dyaw[ref, j]) / sig]
+    if src is not st.s:   # the velocity errors move the arrivals as source shifts of β δv
+        cols, vals = cols + [lay.dv[j]], vals + [p.motion.beta * ds]
+    put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals))
     return _rows_out("tdoa_m", r, J, p.tdoa_m, sig0, sig)
 
 
@@ -183,7 +240,8 @@ def doa(p, st, lay):
     J = jacobian(3 * m, lay)
     if m == 0:
         return _out("doa", np.zeros(0), J, p.doa.row, 3, True, p.sigma["doa"])
-    d, n = _dist(st, i, j)
+    t_doa = _doa_time(p)
+    d, n = _dist(st, i, j, _doa_sources(p, st, t_doa))
     Rt = np.ascontiguousarray(np.transpose(st.R[i], (0, 2, 1)))   # (the memory order H @ Rt would have)
     v = np.einsum("kab,kb->ka", Rt, n)
     # Mirror-ambiguous (planar) arrays: compare the prediction folded to the measured side, v → H v with
@@ -209,9 +267,23 @@ def doa(p, st, lay):
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = Rt @ P
     vals = (B @ np.concatenate([vx, dvds, -dvds], axis=2)).reshape(3 * m, 9) / sig[:, None]
-    put(J, np.arange(3 * m), np.repeat(np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]), 3, axis=0),
-          vals)
+    cols = np.column_stack([lay.rot[i], lay.s[j], lay.x[i]])
+    if t_doa:   # the turned DOAs see the velocity error as a source shift of t_doa δv
+        vals = np.column_stack([vals, t_doa * vals[:, 3:6]])
+        cols = np.column_stack([cols, lay.dv[j]])
+    put(J, np.arange(3 * m), np.repeat(cols, 3, axis=0), vals)
     return Factor("doa", r, J, np.repeat(p.doa.row, 3), 3, True, p.sigma["doa"], sig)
+
+
+def _doa_time(p):
+    """t_doa (s) of a problem whose velocity error is modelled (``p.motion``; the DOAs were turned from
+    ``t_doa`` after the sweep start, estimator/motion.py), else 0."""
+    return float(p.motion.t_doa) if p.motion is not None and p.motion.sigma > 0 else 0.0
+
+
+def _doa_sources(p, st, t_doa):
+    """(K, 3) the source the turned DOAs see: ``st.s``, with a modelled velocity error ``st.s + t_doa δv``."""
+    return st.s + t_doa * velocity_error(p, st) if t_doa else st.s
 
 
 def emission(p, st, lay):
@@ -266,7 +338,8 @@ def cone(p, st, lay):
     J = jacobian(m, lay)
     if m == 0:
         return _out("cone", np.zeros(0), J, np.zeros(0, int), 1, True, sig)
-    d, n = _dist(st, i, j)
+    t_doa = _doa_time(p)
+    d, n = _dist(st, i, j, _doa_sources(p, st, t_doa))
     a = p.cone_axis[i]                                    # (m, 3) array frame
     w = np.einsum("kba,kb->ka", st.R[i], n)               # Rᵀ n
     r = (np.einsum("ka,ka->k", a, w) - c0) / sig
@@ -274,16 +347,30 @@ def cone(p, st, lay):
     dphi = np.cross(a, w)
     b = np.einsum("kab,kb->ka", st.R[i], a)
     ds = (b - np.einsum("ka,ka->k", b, n)[:, None] * n) / d[:, None]
-    put(J, np.arange(m), np.column_stack([lay.rot[i], lay.s[j], lay.x[i]]),
-        np.column_stack([dphi, ds, -ds]) / sig)
+    cols, vals = [lay.rot[i], lay.s[j], lay.x[i]], [dphi, ds, -ds]
+    if t_doa:
+        cols, vals = cols + [lay.dv[j]], vals + [t_doa * ds]
+    put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals) / sig)
     return _out("cone", r, J, p.cone.row, 1, True, sig)
+
+
+def velocity(p, st, lay):
+    """Prior on a moving source's velocity errors (``p.motion``, estimator/motion.py): δv_j ~ N(0, σ_v² I)
+    per event, σ_v = ``p.sigma["velocity"]``; three components per event. Empty when not modelled."""
+    dv, sig = velocity_error(p, st), p.sigma.get("velocity", 0.0)
+    if dv is None or sig <= 0 or not (lay.dv >= 0).any():
+        return _out("velocity", np.zeros(0), jacobian(0, lay), np.zeros(0, int), 3, False, max(sig, 1.0))
+    K = p.K
+    J = jacobian(3 * K, lay)
+    put(J, np.arange(3 * K), lay.dv.ravel(), np.full(3 * K, 1.0 / sig))
+    return _out("velocity", (dv / sig).ravel(), J, np.repeat(np.arange(K), 3), 3, False, sig)
 
 
 # The estimator's half of each measurement kind (its spec, ``calib.kinds.KINDS``, says the rest): the factor
 # function, and the rows builder ``build(df, index) -> Rows`` (``problem.RowIndex``) of the kinds with rows of
 # their own in a features table (``spec.source``); the others' rows are derived in ``problem.build_problem``.
 FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission,
-           "cone": cone}
+           "cone": cone, "velocity": velocity}
 ROWS = {"tdoa_s": tdoa_s_rows, "tdoa_m": tdoa_m_rows, "doa": doa_rows}
 
 
@@ -309,7 +396,7 @@ def unregister(name: str) -> None:
 def active_kinds(p, stage="joint"):
     """The kinds a ``stage`` of the estimator uses on problem ``p``, in registry order: those whose spec
     lists the stage; a kind whose sigma is an option (no meta key: the emission prior) only when it is > 0."""
-    return [k for k in FACTORS if stage in KINDS[k].stages and (KINDS[k].noise_key or p.sigma[k] > 0)]
+    return [k for k in FACTORS if stage in KINDS[k].stages and (KINDS[k].noise_key or p.sigma.get(k, 0.0) > 0)]
 
 
 def per_array(p, f):

@@ -8,9 +8,12 @@ shifts the arrival by ``β ṙ_ij / c`` (β = meta ``chirp_drift_bias``, the cou
 the clock drift; ≈ f1·T/(f1 − f0): 0.57 s for a 0.5 s 0.5–4 kHz sweep, so 0.5 m/s moves an arrival by
 0.8 ms = 28 cm of path). With ``u`` the unit vector from the source to the array this is ``−β (v·u)/c``.
 
-The estimator removes the shift from TDOA-M (``shift_i − shift_ref``) and TDOA-S (``shift_to − shift_from``)
-at the current geometry and re-solves (a fixed point: the shift's derivative with respect to the
-geometry is ``β|v|/(c r)`` ~ 3e-4 of the range's, so two passes converge).
+The estimator models the shift in TDOA-M (``shift_i − shift_ref``) and TDOA-S (``shift_to − shift_from``)
+at the state each factor is evaluated at, its derivative in the Jacobian (``factors.arrival_shifts``;
+``problem.SourceMotion``): the derivative with respect to the geometry is ``β|v|/(c r)`` of the range's,
+0.07 on test_motion_noise's scene (1 m/s), which the earlier fixed-point passes with the shifts held between
+solves missed — two passes left shift errors of a few σ_TDOA there and arrays named inconsistent without any
+fault. Only the DOAs turned from ``doa_time_s`` are still turned at a state between passes (second order).
 
 Velocities: events.csv ``vel_x, vel_y, vel_z`` when present (used as given), else central differences of
 the odometry over the emission times — which are also nonzero for a robot that stops for every chirp, so
@@ -21,9 +24,12 @@ The velocity the correction uses is not the source's: the odometry's own noise a
 between events (seconds apart) miss it by σ_v per axis (:func:`velocity_sigma`). An error δv_j moves every
 corrected arrival of event j by β (δv_j · w_ij)/c (w_ij the unit vector from array i to the source): exactly
 what moving the source by β δv_j does to the times of flight, so it is shared by all the arrays of the event
-and no row's own sigma can hold it. The error bars take it as an event-level nuisance
-(:class:`MotionNoise`, ``uncertainty.velocity_rows``); the DOAs turned from ``doa_time_s`` to the start
-carry δv_j × doa_time_s of source displacement likewise.
+and no row's own sigma can hold it. The solve takes it as an event-level nuisance parameter (``State.dv``,
+prior factor ``velocity`` N(0, σ_v²) per axis): the arrivals of event j see the source at s_j + β δv_j, the
+DOAs turned from ``doa_time_s`` to the start at s_j + doa_time_s δv_j, the odometry at s_j; so the solve's χ²,
+its array and outlier tests, its covariance and the clock selection's scans all hold it (before, only the
+error bars did, :class:`MotionNoise`, ``uncertainty.velocity_rows``, and the solve's array test named fault-free
+arrays inconsistent on 7 of 8 sessions of that scene).
 """
 from __future__ import annotations
 
@@ -37,11 +43,13 @@ from scipy.interpolate import CubicHermiteSpline
 from calib.geometry import mirror, yaw_rotate
 from calib.tables import event_velocities
 
+from .factors import active_kinds
+from .problem import SourceMotion
 from .odoframe import yaw_decision
 from .solver import linearise
 from .uncertainty import whiten
 
-MOTION_ITERATIONS = 2    # correction passes (each a warm joint solve)
+MOTION_ITERATIONS = 2    # passes turning the DOAs (doa_time_s > 0) at a state (each a warm joint solve)
 MIN_SPEED = 0.05         # m/s: slower odometry (median over the intervals) is not tested for motion
 MIN_GAIN = 0.5           # odometry velocities are used when the residuals hold at least half the shift pattern
 
@@ -166,17 +174,21 @@ def doa_moves(p, st, disp, arr, ev, u):
     return d_arr
 
 
-def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None):
-    """``p`` with its TDOAs freed of the motion's arrival shifts at ``st`` and its DOAs turned from the
-    source at ``t_doa`` after the sweep start to the source at the start (a copy; measured rows as read).
-    The range rates of the shifts are taken ``t_stretch`` after the start (:func:`arrival_shifts`; meta
-    ``stretch_time_s``, the instant whose stretch the frontend's timing follows); None: ``t_doa``."""
+def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None, sigma_v=0.0):
+    """``p`` modelling the motion: its TDOA factors take the arrival shifts at the state they are evaluated
+    at (``problem.SourceMotion``, ``factors.arrival_shifts``; the rows as read), its DOAs turned from the source
+    at ``t_doa`` after the sweep start to the source at the start at ``st`` (a copy; measured rows as read),
+    and with ``sigma_v`` > 0 the velocity error as a nuisance per event (``State.dv``, prior factor
+    ``velocity``). The
+    range rates of the shifts are taken ``t_stretch`` after the start (meta ``stretch_time_s``, the instant
+    whose stretch the frontend's timing follows); None: ``t_doa``."""
     t_stretch = t_doa if t_stretch is None else float(t_stretch)
-    mid = sweep_middle(p.t, p.odom, vel, t_stretch) if t_stretch else None
-    sh = arrival_shifts(p, st, vel, curve, mid)
-    tm, ts = p.tdoa_m, p.tdoa_s
-    out = {"tdoa_m": dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
-           "tdoa_s": dataclasses.replace(ts, val=ts.val - (sh[ts.arr, ts.b] - sh[ts.arr, ts.a]))}
+    disp, v = sweep_middle(p.t, p.odom, vel, t_stretch) if t_stretch else (np.zeros_like(vel), vel)
+    shape = None if not curve else (np.asarray(curve["stretch"], float), np.asarray(curve["shift_s"], float))
+    out = {"motion": SourceMotion(np.asarray(v, float), np.asarray(disp, float), shape, float(p.beta),
+                                  float(sigma_v or 0.0), float(t_doa or 0.0))}
+    if sigma_v and sigma_v > 0:
+        out["sigma"] = {**p.sigma, "velocity": float(sigma_v)}
     if t_doa and len(p.doa.u):
         disp = sweep_middle(p.t, p.odom, vel, t_doa)[0]
         u = p.doa.u + doa_moves(p, st, disp, p.doa.arr, p.doa.ev, p.doa.u)
@@ -188,6 +200,15 @@ def corrected(p, st, vel, curve=None, t_doa=0.0, t_stretch=None):
     return p.replace(**out)
 
 
+def _shifted(p, st, vel):
+    """``p`` with its TDOAs freed of the arrival shifts at ``st`` (at the sweep start, β ε): the pattern
+    :func:`motion_gain` tests the static solve's residuals for."""
+    sh = arrival_shifts(p, st, vel)
+    tm, ts = p.tdoa_m, p.tdoa_s
+    return p.replace(tdoa_m=dataclasses.replace(tm, val=tm.val - (sh[tm.arr, tm.ev] - sh[p.ref, tm.ev])),
+                     tdoa_s=dataclasses.replace(ts, val=ts.val - (sh[ts.arr, ts.b] - sh[ts.arr, ts.a])))
+
+
 def motion_gain(p, st, lay, mask, vel, kinds):
     """How much of the motion's arrival-shift pattern the residuals of the static solve hold: γ̂ of
     ``r + γ P⊥ δr`` (r the whitened residuals at the solution, δr their change when the shifts are removed,
@@ -196,7 +217,7 @@ def motion_gain(p, st, lay, mask, vel, kinds):
     one least-squares solve, not a second calibration. ``lay``, ``mask``: the solve's layout and kept
     residuals. Returns (γ̂, its std)."""
     lin = linearise(p, st, lay, kinds, mask=mask)
-    dr = linearise(corrected(p, st, vel), st, lay, kinds, mask=mask).r - lin.r
+    dr = linearise(_shifted(p, st, vel), st, lay, kinds, mask=mask).r - lin.r
     sw = np.sqrt(lin.w)
     A = scipy.sparse.diags(sw) @ scipy.sparse.csr_matrix(lin.J) if not scipy.sparse.issparse(lin.J) else \
         scipy.sparse.diags(sw) @ lin.J
@@ -206,6 +227,15 @@ def motion_gain(p, st, lay, mask, vel, kinds):
     if gg <= 0:
         return 0.0, np.inf
     return float(-(sw * lin.r) @ g_perp / gg), float(1.0 / np.sqrt(gg))
+
+
+def velocity_in_sigma(meta):
+    """Whether the features' σ_TDOA already holds a moving source's velocity error: a frontend's own estimate
+    (meta ``sigmas_estimated`` lists ``sigma_tdoa``) adds the shift model's error to it as row noise
+    (``frontend.extract.motion_sd``, 0.1-0.2 of the RMS shift). A nuisance parameter on top counts it twice: on
+    the rendered moving sessions 503, 505, 507 (dev) it left the arrays 1.93 / 2.46 / 2.65 cm off, without it
+    1.25 / 2.27 / 2.68 cm."""
+    return "sigma_tdoa" in (meta.get("sigmas_estimated") or [])
 
 
 def motion_noise(record, p, t_doa=0.0):
@@ -231,7 +261,7 @@ def retest_yaw(res, kinds):
     return test, st
 
 
-def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t_stretch=None):
+def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t_stretch=None, nuisance=True):
     """The joint solve with the moving source's arrival shifts removed, when the source moves.
 
     p_raw : the problem as built (before a solve changed its sigmas); first : ``solve``'s result (a
@@ -240,7 +270,10 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
     ``doa_time_s``, when after the sweep start the DOAs look (0: not corrected); t_stretch: meta
     ``stretch_time_s``, when the range rate of the arrival shift is taken (None: t_doa).
     Odometry velocities are used only when the static solve's residuals hold the shift pattern
-    (:func:`motion_gain` ≥ MIN_GAIN). Returns (the result kept, record for report.json ``motion``).
+    (:func:`motion_gain` ≥ MIN_GAIN). ``nuisance``: the velocity error a parameter of the solve (``State.dv``,
+    :func:`corrected`'s ``sigma_v``); False where the rows' σ already holds it (:func:`velocity_in_sigma`): then
+    only the error bars take it (:class:`MotionNoise`). Returns (the result kept, record for report.json
+    ``motion``; ``velocity_nuisance``: whether it was a parameter).
     """
     vel, source = source_velocities(events, p_raw.t, p_raw.odom)
     if vel is None or not p_raw.beta:   # β = 0: the features state no coupling (a frontend that has none)
@@ -253,15 +286,17 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
             return first, {**rec, "applied": False}
     t_star = float(t_stretch if t_stretch is not None else t_doa)
     rec["velocity_sigma_m_s"] = velocity_sigma(p_raw.t, p_raw.odom, vel, t_star, p_raw.sigma["odometry"])
+    rec["velocity_nuisance"] = bool(nuisance)
+    sigma_v = rec["velocity_sigma_m_s"] if nuisance else 0.0
     cur = first
-    for _ in range(MOTION_ITERATIONS):
-        cur = solve(corrected(p_raw, cur.state, vel, curve, t_doa, t_stretch), cur.state)
-    yaw = retest_yaw(cur, kinds)
+    for _ in range(MOTION_ITERATIONS if t_doa else 1):   # (the shifts are in the factors; the DOAs turn at a state)
+        cur = solve(corrected(p_raw, cur.state, vel, curve, t_doa, t_stretch, sigma_v), cur.state)
+    yaw = retest_yaw(cur, active_kinds(cur.problem))
     if yaw is not None:
         rec["odometry_yaw_retest"] = yaw[0]
         if not yaw[0]["kept"]:   # IVE's yaw was the uncorrected shifts: solved again with the yaw fixed at 0
             p_raw = p_raw.replace(odo_yaw_free=False, odo_yaw_test=yaw[0])
-            cur = solve(corrected(p_raw, yaw[1], vel, curve, t_doa, t_stretch), yaw[1])
+            cur = solve(corrected(p_raw, yaw[1], vel, curve, t_doa, t_stretch, sigma_v), yaw[1])
     return cur, {**rec, "applied": True, "curve": bool(curve),
                  "max_shift_s": float(np.max(np.abs(arrival_shifts(
                      p_raw, cur.state, vel, curve, sweep_middle(p_raw.t, p_raw.odom, vel, t_stretch or t_doa)))))}

@@ -146,7 +146,10 @@ class Problem:
     estimator/arraynoise.py; the three together: :class:`Weights`); odo_yaw_free: the odometry frame's yaw
     is estimated, odo_yaw_test: the test that decided it; fixed_cols {layout field: (shape of that field)
     bool} the columns the data leave undetermined (left out of the solve) and unobservable (one report
-    entry per (array, parameter)): estimator/observability.py.
+    entry per (array, parameter)): estimator/observability.py; motion: a source moving during the
+    sweep (:class:`SourceMotion`, set by ``motion.motion_solve``; None: a stopped one): its arrival shifts in
+    the TDOA factors, and its velocity error as a nuisance per event (``State.dv``, :func:`velocity_error`)
+    with its prior (kind ``velocity``).
     """
     names: np.ndarray
     ref: int
@@ -173,6 +176,7 @@ class Problem:
     fixed_cols: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     unobservable: tuple = ()
     arrival_scale: np.ndarray | None = None
+    motion: Any = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -223,6 +227,22 @@ class Problem:
 
 
 _ARRAY_MAPS = ("array_scale", "array_own", "fixed_cols")
+
+
+@dataclass(frozen=True, eq=False)
+class SourceMotion:
+    """A source that moves during the sweep, as the solve models it (estimator/motion.py): the arrivals of
+    event j at array i are shifted by β ṙ_ij / c (or the frontend's measured ``curve`` (stretch, shift_s) at
+    ε = ṙ/c), ṙ taken at the current state from the source displaced by ``disp`` (K, 3) moving at ``vel``
+    (K, 3; both odometry axes, turned by the odometry yaw) — inside the factors, with its derivative. The
+    velocity has an error of ``sigma`` m/s per axis (0: not modelled), which moves the arrivals as a source
+    shift of ``beta`` δv and the DOAs turned from ``t_doa`` after the sweep start as one of ``t_doa`` δv."""
+    vel: np.ndarray
+    disp: np.ndarray
+    curve: tuple | None
+    beta: float
+    sigma: float = 0.0
+    t_doa: float = 0.0
 
 
 @dataclass
@@ -534,6 +554,23 @@ class State:
         return State(**{k: np.array(v, dtype=float, copy=True) for k, v in vars(self).items()})
 
 
+def velocity_error(p, st):
+    """(K, 3) or None: the velocity error δv of each event (m/s, reference axes) of a problem that models it
+    (``p.motion``); zeros for a state that has none yet."""
+    if p.motion is None or not p.motion.sigma > 0:
+        return None
+    dv = vars(st).get("dv")
+    return np.zeros((p.K, 3)) if dv is None else dv
+
+
+def arrival_sources(p, st):
+    """(K, 3) the source each event's corrected arrivals see: ``st.s``, or with a velocity error modelled
+    ``st.s + β δv`` (an error δv of the correction's velocity moves the arrivals as that source shift does,
+    estimator/motion.py)."""
+    dv = velocity_error(p, st)
+    return st.s if dv is None else st.s + p.motion.beta * dv
+
+
 def empty_state(p):
     """A state for ``p.N`` arrays and ``p.K`` events: every per-array parameter at its start value (rotations
     identity), zero sources and corrections."""
@@ -553,8 +590,9 @@ def state_from_dict(d):
 class Layout:
     """Where each free parameter sits in the parameter vector: index arrays (-1 where a parameter is fixed),
     one per block: the per-array parameters by ``key`` (``ArrayParam.shape``: x (N, 3), rot (N, 3) tangent-space
-    rotation components, offset (N,), drift (N,), ...), s (K, 3), e (K,), odo_yaw (1,); n the number of free
-    parameters."""
+    rotation components, offset (N,), drift (N,), ...), s (K, 3), e (K,), odo_yaw (1,), dv (K, 3) a moving
+    source's velocity errors (free only when the problem models them, ``Problem.motion``); n the number of
+    free parameters."""
 
     def __init__(self, n=0, **blocks: np.ndarray):
         self.__dict__.update(blocks)
@@ -578,7 +616,7 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     free_arr = np.zeros(N, bool)
     free_arr[np.arange(N) if arrays is None else np.asarray(arrays, int)] = True
     lay = Layout(**{a.key: -np.ones(a.shape(N), int) for a in ARRAY_PARAMS}, s=-np.ones((K, 3), int),
-                 e=-np.ones(K, int), odo_yaw=-np.ones(1, int))
+                 e=-np.ones(K, int), odo_yaw=-np.ones(1, int), dv=-np.ones((K, 3), int))
 
     def take(k):
         out = np.arange(lay.n, lay.n + k)
@@ -597,6 +635,8 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     if odo_yaw is None:
         odo_yaw = bool(p.odo_yaw_free) and sources
     lay.odo_yaw = take(1) if odo_yaw else -np.ones(1, int)
+    if sources and p.motion is not None and p.motion.sigma > 0:   # a moving source's velocity error: one nuisance 3-vector per event
+        lay.dv[:] = take(3 * K).reshape(K, 3)
     return _without_fixed(lay, p.fixed_cols)
 
 
@@ -639,6 +679,8 @@ def retract(st, lay, delta):
     """Apply a parameter step ``delta`` (n,) to a state; rotations by right perturbation R Exp(φ)."""
     additive, rotated = _retract_index(lay)
     out = st.copy()
+    if (lay.dv >= 0).any() and "dv" not in vars(out):   # (a state from before the velocity error was modelled)
+        out.dv = np.zeros(lay.dv.shape)
     for key, m, cols in additive:
         if m is None:   # every entry free: the whole field, in its own order (the same sums, no masking)
             v = getattr(out, key)
@@ -661,7 +703,7 @@ def _retract_index(lay):
             rows = np.flatnonzero(np.any(getattr(lay, a.key) >= 0, axis=1))
             idx = getattr(lay, a.key)[rows]
             rotated.append((a.state, rows, np.maximum(idx, 0), None if (idx >= 0).all() else idx >= 0))
-    for key in [a.key for a in ARRAY_PARAMS if not a.rotation] + ["s", "e", "odo_yaw"]:
+    for key in [a.key for a in ARRAY_PARAMS if not a.rotation] + ["s", "e", "odo_yaw", "dv"]:
         cols = getattr(lay, key)
         m = cols >= 0
         if m.any():   # (fields without a free entry are left out; m None: all entries free)

@@ -195,7 +195,7 @@ def event_columns(lay):
     In this order the event block of JᵀJ is banded: events couple only to their neighbours in time
     (odometry, TDOA-S between consecutive events, the emission prior).
     """
-    cols = np.column_stack([lay.s, lay.e[:, None]]).ravel()
+    cols = np.column_stack([lay.s, lay.dv, lay.e[:, None]]).ravel()   # (dv: a moving source's velocity errors)
     return cols[cols >= 0]
 
 

@@ -384,8 +384,8 @@ def velocity_rows(lin, lay, motion):
     shift of β δv_j moves their times of flight, and its turned DOAs as one of t_doa δv_j, so the whitened
     error is J[:, s_j] (β or t_doa) δv_j: the source's columns of the Jacobian, shared by every array of the
     event (rows not kept, and the odometry's, have none)."""
-    if motion is None or not len(lay.s) or np.any(lay.s < 0):
-        return None
+    if motion is None or not len(lay.s) or np.any(lay.s < 0) or np.any(lay.dv >= 0):
+        return None   # (a solve that models the velocity error, ``Problem.motion``, has it in its own J)
     scale, start = np.zeros(len(lin.r)), 0
     for f in lin.factors:
         n = len(f.r)

