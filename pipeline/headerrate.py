@@ -44,6 +44,9 @@ CLAMPED = 0.98   # an association scale this close to its search bound (× max_d
 # line then carries the range's trend (a source crossing a 40 m hall: 1e-3), not the clock's (warehouse 500 A6:
 # association 1.0e-3, track -2.7e-5, true -2.4e-5; tracks within 1.2e-4 of the truth on its 11 arrays)
 CRYSTAL_DRIFT = 1e-4
+# A track that puts the drift beyond this is a candidate on its own: half FAST_CLOCK, the tracks’ error (≤ 5.3e-5 on
+# dev seeds 500-501 of six presets, crystals and ±1e-3 clocks) above a crystal's 1e-4
+TRACK_FAST = 0.5 * FAST_CLOCK
 # An array whose detections match fewer of the events than this is searched at other rates ...
 MATCHED_MIN = 0.8
 # ... these multiples of its header's: every ratio of two common rates within ±13 % (44.1 kHz written as 48: 0.91875)
@@ -113,39 +116,49 @@ def rate_corrections(session, diagnostics, threshold=8.0):
 
 def fast_clocks(session, feats, diagnostics, max_drift, skip=()):
     """Candidates for :func:`refine_rates` ({array: {"header", "used" = header, "scale": 1, "fast_clock": True}}):
-    the arrays (not ``skip``, no declared rate) whose association's scale sits at its search bound 1 ± ``max_drift``
-    (the frontend's option) — a clock faster or slower than a crystal runs, range changes that tilt the
-    association's line, or a clock that steps — whose range track along the odometry (diagnostics ``track_drift``,
-    the frontend's NLOS check) does not already put their drift within ``CRYSTAL_DRIFT``, whose arrivals jump
-    nowhere (``clockmodel.impossible_jumps``: a dropped block is no rate) and against the odometry
-    (``setupcheck.arrival_drift``, no solve) put their drift beyond half ``FAST_CLOCK``; the first solve's drift
-    decides. The drift is read from the arrivals in line of sight only (the rows the estimator keeps,
-    ``estimator.screen``): reflection-only arrivals, 5-70 ms late in a U-shaped room, put 8e-4-1.5e-3 of drift on
-    clocks within 1e-4 (ushape seed 62: A2 taken at 15987 Hz)."""
-    clamped = {}
+    the arrays (not ``skip``, no declared rate) whose arrivals jump nowhere (``clockmodel.impossible_jumps``: a
+    dropped block is no rate) and either
+
+    - whose range track along the odometry (diagnostics ``track_drift``, the frontend's NLOS check; only a track
+      its direct paths follow within ``TRACK_SCALE_MAX`` is exported) puts their drift beyond half ``FAST_CLOCK``
+      (``TRACK_FAST``), wherever the association's scale sits: a range trend tilts that line by up to ~1e-3
+      either way, hiding a fast clock inside the bound (paper-traj3 500 A2 at -1e-3: association -8.9e-4, track
+      -1.04e-3), and ``arrival_drift`` finds no chain in a U-shaped room (ushape 500 A2 at +1e-3: track 1.08e-3);
+    - or whose association's scale sits at its search bound 1 ± ``max_drift`` (the frontend's option) — a clock
+      faster or slower than a crystal runs, range changes that tilt the association's line, or a clock that
+      steps — whose track does not already put their drift within ``CRYSTAL_DRIFT`` and whose arrivals against
+      the odometry (``setupcheck.arrival_drift``, no solve) put their drift beyond half ``FAST_CLOCK``. That
+      drift is read from the arrivals in line of sight only (the rows the estimator keeps, ``estimator.screen``):
+      reflection-only arrivals, 5-70 ms late in a U-shaped room, put 8e-4-1.5e-3 of drift on clocks within 1e-4
+      (ushape seed 62: A2 taken at 15987 Hz).
+
+    The first solve's drift decides (:func:`refine_rates`)."""
+    clamped, tracked = {}, {}
     for a in session["arrays"]:
         d = ((diagnostics or {}).get("arrays", {}).get(a["name"]) or {})
         scale = (d.get("association") or {}).get("scale")
         if a["name"] in skip or a.get("sample_rate") is not None or scale is None or not d.get("fs"):
             continue
         track = d.get("track_drift")
-        if abs(scale - 1) >= CLAMPED * max_drift and not (track is not None and abs(track) <= CRYSTAL_DRIFT):
+        if track is not None and abs(track) > TRACK_FAST:
+            tracked[a["name"]] = int(d["fs"])
+        elif abs(scale - 1) >= CLAMPED * max_drift and not (track is not None and abs(track) <= CRYSTAL_DRIFT):
             clamped[a["name"]] = int(d["fs"])
-    if not clamped:   # (most sessions: the estimator's modules, ~0.3 s of CPU to import, are then not loaded)
+    if not (clamped or tracked):   # (most sessions: the estimator's modules, ~0.3 s of CPU to import, not loaded)
         return {}
     from calib.estimator.clockmodel import impossible_jumps
     from calib.estimator.screen import screen_rows
     from calib.pipeline.setupcheck import arrival_drift
 
-    # a clock that steps (a dropped block) tilts the association too: it is no rate
+    # a clock that steps (a dropped block) tilts the association and the track too: it is no rate
     jumped = {j["array"] for j in impossible_jumps(feats)}
     los = screen_rows(feats)[0] if set(clamped) - jumped else None
-    out = {}
+    fast = {name: fs for name, fs in tracked.items() if name not in jumped}
     for name, fs in clamped.items():
         drift = None if name in jumped else arrival_drift(los, name)
         if drift is not None and abs(drift) > 0.5 * FAST_CLOCK:
-            out[name] = {"header": fs, "used": fs, "scale": 1.0, "fast_clock": True}
-    return out
+            fast[name] = fs
+    return {name: {"header": fs, "used": fs, "scale": 1.0, "fast_clock": True} for name, fs in fast.items()}
 
 
 def searched_scale(array, session, threshold=8.0):

@@ -173,7 +173,7 @@ def test_a_range_trend_is_no_fast_clock(drift, monkeypatch):
     crystal. The range track along the odometry (``late_arrivals_many``, the NLOS check's, a quarter of the
     arrivals reflections) recovers the simulated drift (within 2e-5; 5 % of a fast clock's), so ``fast_clocks`` drops a crystal (its
     |δ| ≤ CRYSTAL_DRIFT) without the estimator's look (``arrival_drift``: not called), while a true fast clock
-    (1.2e-3) still gets that look and stands."""
+    (1.2e-3) is named by its track alone (``TRACK_FAST``; no look either)."""
     from calib.estimator import clockmodel, screen
     from calib.pipeline import headerrate, setupcheck
 
@@ -194,4 +194,39 @@ def test_a_range_trend_is_no_fast_clock(drift, monkeypatch):
     diag = {"arrays": {"A1": {"fs": 16000, "association": {"scale": 1.0 + 1e-3}, "track_drift": ev["drift"]}}}
     got = headerrate.fast_clocks({"arrays": [{"name": "A1"}]}, None, diag, 1e-3)
     fast = abs(drift) > headerrate.FAST_CLOCK
-    assert list(got) == (["A1"] if fast else []) and asked == (["A1"] if fast else [])
+    assert list(got) == (["A1"] if fast else []) and asked == []   # (its track alone names a fast clock)
+
+
+
+@pytest.mark.parametrize("drift", [-1e-3, 1.2e-3, 5e-5, -5e-5])
+def test_a_fast_clock_the_association_hides_is_a_candidate(drift, monkeypatch):
+    """A source receding 36 m over 100 s (ṙ/c ≈ 1e-3): a straight line through the arrivals (the association's)
+    slopes by δ + ṙ/c, inside its bound for a clock 1e-3 slow (as paper-traj3 500 A2 at -1e-3: association
+    -8.9e-4) and at it for one 1.2e-3 fast, and the arrivals give ``arrival_drift`` no chain (None: ushape 500
+    A2 at +1e-3). The range track along the odometry (``late_arrivals_many``, a quarter of the arrivals
+    reflections) recovers the simulated drift within 2e-5 (1e-5 for a crystal), and that alone makes
+    ``fast_clocks`` name the fast ones for the first solve to decide; a crystal (±5e-5) is named nowhere, nor
+    a clock that steps."""
+    from calib.estimator import clockmodel, screen
+    from calib.pipeline import headerrate, setupcheck
+
+    rng = np.random.default_rng(3)
+    n = 40
+    t = np.linspace(0.0, 100.0, n)
+    s = np.column_stack([np.linspace(2.0, 38.0, n), 1.0 + np.sin(np.linspace(0.0, 4.0, n)), np.full(n, 1.5)])
+    rng_m = np.linalg.norm(s - np.array([0.0, 0.0, 0.2]), axis=1)
+    late = np.where(rng.random(n) < 0.25, rng.uniform(3e-3, 8e-3, n), 0.0)
+    arrival = 0.4 + (1.0 + drift) * t + rng_m / C + late + rng.normal(0.0, 2e-5, n)
+    slope = np.polyfit(t, arrival, 1)[0] - 1.0   # the association's line: the range's trend, not the clock
+    assert abs(slope - drift) > 9e-4 and (abs(slope) < headerrate.CLAMPED * 1e-3) == (drift == -1e-3)
+    ev = nlos.late_arrivals_many([(arrival, t, s, None)], C)[0]
+    assert abs(ev["drift"] - drift) < 2e-5
+    monkeypatch.setattr(setupcheck, "arrival_drift", lambda los, name: None)
+    monkeypatch.setattr(clockmodel, "impossible_jumps", lambda feats: [])
+    monkeypatch.setattr(screen, "screen_rows", lambda feats: (None, {}))
+    diag = {"arrays": {"A1": {"fs": 16000, "association": {"scale": 1.0 + np.clip(slope, -1e-3, 1e-3)},
+                              "track_drift": ev["drift"]}}}
+    got = headerrate.fast_clocks({"arrays": [{"name": "A1"}]}, None, diag, 1e-3)
+    assert list(got) == (["A1"] if abs(drift) > headerrate.FAST_CLOCK else [])
+    monkeypatch.setattr(clockmodel, "impossible_jumps", lambda feats: [{"array": "A1"}])   # a step is no rate
+    assert headerrate.fast_clocks({"arrays": [{"name": "A1"}]}, None, diag, 1e-3) == {}
