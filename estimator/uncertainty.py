@@ -379,12 +379,12 @@ def _shared_fraction(flagged, clear_fraction):
     return SHARED_DOA_FRACTION_REFLECTION if float(np.mean(flagged)) > REFLECTION_MAJORITY else clear_fraction
 
 
-# A cone array's (linear board's, pair's) rows share an axis rotation only when most are flagged ``doa_reflection``.
-# Measured against truth on development seeds (office 500-508: per cone array the axis rotation that best explains
-# its kept rows' cos errors at the true geometry, per axis, less its own noise, over the median row sigma): RMS 1.32
-# over the 8 with most rows flagged (linear boards on a wall: 0.98-2.57 where the fit's chi² says it is real), 0.00
-# over the 10 with at most half (pairs on a stand: 0.01-0.07 before the noise is taken out, chi² of noise alone)
-SHARED_CONE_FRACTION = 0.0
+# A cone array's (linear board's, pair's) rows share an axis rotation as an array's DOAs do. Measured against truth on
+# development seeds (office, mixed 500-509: per cone array the axis rotation that best explains its kept rows' cos
+# errors at the true geometry, per axis, less its own noise, over the median row sigma): RMS 0.82 over the 23 with
+# most rows flagged ``doa_reflection`` (wall linear boards in the office: 0.98-2.57 where the fit's chi² says it is
+# real), 0.27 over the 17 with at most half (the DOAs': 0.95 and 0.44)
+SHARED_CONE_FRACTION = SHARED_DOA_FRACTION
 
 
 def shared_cone_rows(p, lin, st, factors):

@@ -222,11 +222,11 @@ def test_single_mic_and_linear_array_from_simulated_recordings(tmp_path):
 
 def test_reflection_flagged_cone_rows_share_their_axis_rotation():
     """A wall board's reflection pulls all its cones the same way (measured against truth on development seeds: an
-    axis rotation of RMS 1.3 × the median row sigma per axis for cone arrays with most rows flagged
-    ``doa_reflection``, none for the others): every cone row of a pair measured about an axis turned by 3 of its
+    axis rotation of RMS 0.82 × the median row sigma per axis for cone arrays with most rows flagged
+    ``doa_reflection``, 0.27 for the others): every cone row of a pair measured about an axis turned by 3 of its
     row sigma. Flagged, the pair's axis error against the true axis stays within 3 of its stated std
-    (``uncertainty.shared_cone_rows``); the same rows without the flag (no shared term, SHARED_CONE_FRACTION) leave
-    it beyond 3σ, as did every flagged pair before the term."""
+    (``uncertainty.shared_cone_rows``: 2.0); the same rows without the flag (SHARED_CONE_FRACTION's smaller share)
+    leave it beyond 3σ (3.6), as did the flagged ones before the term (3.9)."""
     from calib.estimator import uncertainty as U
 
     feats, truth = simulate_features(3, 1e-5, 1.0, 0.03, seed=7)
