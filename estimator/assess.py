@@ -127,7 +127,8 @@ def position_covariances(model):
     p, lay = model["problem"], model["layout"]
     lin = linearise(p, model["state"], lay, model["kinds"], mask=model["mask"])
     with single_thread_blas():   # (calib.blas)
-        cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), normals=model.get("normals"))
+        cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), normals=model.get("normals"),
+                                state=model["state"])
 
     def blocks(idx, skip=()):
         out = np.full((len(idx), 3, 3), np.nan)
@@ -151,7 +152,7 @@ def array_covariance(model):
     with single_thread_blas():   # small dense blocks (calib.blas): threads only add synchronisation
         # large problems: the array block alone
         cov = honest_covariance(p, lin, lay, shared=model.get("shared", False), normals=model.get("normals"),
-                                arrays_only=True)
+                                arrays_only=True, state=model["state"])
     return labelled_array_covariance(p, lay, cov)
 
 

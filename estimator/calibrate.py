@@ -227,7 +227,7 @@ def _full_outputs(res, kinds, stages, stage_states, *, method, noise, emission_s
     meta = meta or {}
     std_cov = honest_covariance(p, lin, lay, shared=bool(meta.get("tdoa_shared_arrivals")), cov=cov,
                                 normals=plane_normals(meta, p.names),   # the verdict's tests keep the plain one
-                                motion=motion_noise(stages.get("motion"), p, meta.get("doa_time_s")))
+                                motion=motion_noise(stages.get("motion"), p, meta.get("doa_time_s")), state=st)
     times["uncertainty"] = time.perf_counter() - t_cov
     arrays, sources = to_frames(p, st, without_claims(std_from_cov(p, lay, std_cov), res.dropped))
     arr_cov = labelled_array_covariance(p, lay, std_cov, without=set(res.dropped))

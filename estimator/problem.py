@@ -120,6 +120,7 @@ class ConeRows(Rows):
     arr: np.ndarray
     cos: np.ndarray
     row: np.ndarray
+    reflection: np.ndarray | None = None   # (n,) bool: doa.csv flags the row ``doa_reflection`` (None: unknown)
 
 
 @dataclass(frozen=True, eq=False)
@@ -514,7 +515,8 @@ def _split_cones(doa, meta, idx, N):
         rot_fixed_axis[idx[name]] = int(np.argmax(np.abs(a)))
     is_cone = rot_fixed_axis[doa.arr] >= 0
     d = doa.select(is_cone)
-    cone = ConeRows(d.ev, d.arr, np.clip(np.einsum("ka,ka->k", cone_axis[d.arr], d.u), -1.0, 1.0), d.row)
+    cone = ConeRows(d.ev, d.arr, np.clip(np.einsum("ka,ka->k", cone_axis[d.arr], d.u), -1.0, 1.0), d.row,
+                    d.reflection)
     return doa.select(~is_cone), cone, cone_axis, rot_fixed_axis
 
 

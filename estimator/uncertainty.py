@@ -365,13 +365,60 @@ def shared_doa_rows(p, lin, factors):
         out = np.zeros((len(lin.r), 3 * p.N))
         for i in np.unique(arr[keep]):
             k = np.flatnonzero(keep & (arr == i))
-            # most of its kept rows shaped by a reflection close behind the direct path: that reflection's pull
-            mostly = float(np.mean(refl[k])) > REFLECTION_MAJORITY
-            sd = float(np.median(row_sd[k])) * (SHARED_DOA_FRACTION_REFLECTION if mostly else SHARED_DOA_FRACTION)
+            sd = float(np.median(row_sd[k])) * _shared_fraction(refl[k], SHARED_DOA_FRACTION)
             rows = start + 3 * k[:, None] + np.arange(3)[None]
             out[rows.ravel(), 3 * i:3 * i + 3] = (sd * G[k]).reshape(-1, 3)
         return out
     return None
+
+
+def _shared_fraction(flagged, clear_fraction):
+    """The shared rotation's fraction of an array's median row sigma: SHARED_DOA_FRACTION_REFLECTION when more than
+    REFLECTION_MAJORITY of its kept rows (``flagged`` (n,) bool) were shaped by a reflection close behind the
+    direct path (that reflection's pull), else ``clear_fraction``."""
+    return SHARED_DOA_FRACTION_REFLECTION if float(np.mean(flagged)) > REFLECTION_MAJORITY else clear_fraction
+
+
+# A cone array's (linear board's, pair's) rows share an axis rotation as an array's DOAs do. Measured against truth on
+# development seeds (office, mixed 500-509: per cone array the axis rotation that best explains its kept rows' cos
+# errors at the true geometry, per axis, less its own noise, over the median row sigma): RMS 0.82 over the 23 with
+# most rows flagged ``doa_reflection`` (wall linear boards in the office: 0.98-2.57 where the fit's chi² says it is
+# real), 0.27 over the 17 with at most half (the DOAs': 0.95 and 0.44)
+SHARED_CONE_FRACTION = SHARED_DOA_FRACTION
+
+
+def shared_cone_rows(p, lin, st, factors):
+    """(M, 3N) dense: as :func:`shared_doa_rows` for the cone rows (linear boards, 2-mic pairs) at the state ``st``:
+    each whitened residual's error per unit of an axis rotation error all kept cone rows of its array share, times
+    its std — None without cone rows. A wall board's reflection (flagged ``doa_reflection``) pulls all its cones
+    the same way: office 505's linear board, axis 6.2° off at 4 of its std, its rows sharing a 4.4° rotation (2.2 ×
+    its median row sigma). The std per axis is the median row sigma (the type's, with its array's σ² factor
+    ``factors["cone"]``) × :func:`_shared_fraction` (SHARED_CONE_FRACTION when few are flagged). An axis a turned
+    by ω moves the row's cos aᵀw (w = Rᵀ n, the source's direction in the array frame) by (a × w)ᵀ ω."""
+    for f, start, n in _kind_blocks(lin, "cone"):
+        keep = lin.w[start:start + n] > 0
+        if not keep.any():
+            return None
+        arr, ev = p.cone.arr, p.cone.ev
+        d = st.s[ev] - st.x[arr]
+        w = np.einsum("kba,kb->ka", st.R[arr], d / np.linalg.norm(d, axis=1, keepdims=True))
+        sig = np.broadcast_to(f.row_sigma, n)
+        G = np.cross(p.cone_axis[arr], w) / sig[:, None]               # (n, 3) whitened, per unit ω
+        row_sd = sig * np.sqrt(factors.get("cone", np.ones(p.N))[arr])
+        refl = np.zeros(n, bool) if p.cone.reflection is None else np.asarray(p.cone.reflection, bool)
+        out = np.zeros((len(lin.r), 3 * p.N))
+        for i in np.unique(arr[keep]):
+            k = np.flatnonzero(keep & (arr == i))
+            out[start + k, 3 * i:3 * i + 3] = float(np.median(row_sd[k])) * _shared_fraction(
+                refl[k], SHARED_CONE_FRACTION) * G[k]
+        return out
+    return None
+
+
+def _sum_shared(*parts):
+    """The sum of the (M, 3N) shared-rotation rows that are not None (None when all are)."""
+    parts = [x for x in parts if x is not None]
+    return sum(parts[1:], parts[0]) if parts else None
 
 
 VELOCITY_SCALED_KINDS = {"tdoa_m": "beta", "tdoa_s": "beta", "doa": "t_doa", "cone": "t_doa"}
@@ -437,12 +484,14 @@ def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None, velocit
     return 0.5 * (out + out.T)
 
 
-def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arrays_only=False, motion=None):
+def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arrays_only=False, motion=None,
+                      state=None):
     """The covariance the ``*_std`` columns and calibration.json report, at the final linearisation ``lin``
     (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
     residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
     TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) and each array's DOA rows' common
-    rotation error (:func:`shared_doa_rows`) by :func:`sandwich_covariance`;
+    rotation error (:func:`shared_doa_rows`; its cone rows' at the ``state`` of ``lin``, :func:`shared_cone_rows`)
+    by :func:`sandwich_covariance`;
     a large (sparse) problem gets the factors alone (:func:`inflated_rows`) in its array block (its
     sources' blocks stay the plain ones: the event blocks would cost a solve per source again). ``cov``: the
     plain (JᵀJ)⁻¹ of the kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
@@ -454,8 +503,9 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
         cov = covariance(lin.J[lin.w > 0], lay.n, lay, arrays_only)
     factors = covariance_factors(p, lin, cov)
     if isinstance(cov, np.ndarray):
+        cone = None if state is None else shared_cone_rows(p, lin, state, factors)
         return sandwich_covariance(p, lin, cov, factors, shared, normals, velocity_rows(lin, lay, motion),
-                                   shared_doa_rows(p, lin, factors))
+                                   _sum_shared(shared_doa_rows(p, lin, factors), cone))
     if not any(np.any(v > 1) for k, v in factors.items() if k in KINDS):
         return cov
     # large problems: the array block with the factors (one more Schur complement); the sources keep theirs
