@@ -202,3 +202,17 @@ def test_rebuilt_model_keeps_the_arrays_own_sigmas(tmp_path):
             want = want * np.array([np.sqrt((arrival.get(a, 1.0) ** 2 + arrival.get(ref, 1.0) ** 2) / 2)
                                     for a in feats[kind]["array"]])
         np.testing.assert_allclose(res[kind]["row_sigma"], want, rtol=1e-9)
+
+
+def test_a_fast_clock_s_note_is_in_the_summary_s_clock_section():
+    """The set-up check's note on an array taken at its measured rate (report.json ``setup``, status note,
+    check "sample rate") is a line of summary.md's Clocks section, with the clock's own findings; other notes
+    and the verdict's set-up reasons are not repeated there."""
+    fast = {"status": "note", "what": "A2.wav", "check": "sample rate", "array": "A2",
+            "text": "A2.wav (array A2): its clock runs +938 ppm against the emission times"}
+    other = {"status": "note", "what": "events.csv", "check": "trajectory", "text": "a mirror refitted"}
+    wrong = {"status": "suspect", "what": "A3.wav", "check": "sample rate", "text": "A3.wav: the header's rate"}
+    lines = report.clock_lines({"findings": ["A4: a step of -20 ms"]}, [fast, other, wrong])
+    assert lines[0] == "## Clocks" and f"- {fast['text']}" in lines and "- A4: a step of -20 ms" in lines
+    assert not any(other["text"] in x or wrong["text"] in x for x in lines)
+    assert report.clock_lines({}, [other]) == []

@@ -432,7 +432,7 @@ def summary_markdown(features, calib, res, metrics, diag, images):
             by.setdefault(u["array"], []).append(u["parameter"])
         L += ["Not determined by the data (not estimated, no σ; the rest is): "
               + "; ".join(f"{a}: {', '.join(v)}" for a, v in by.items()) + ".", ""]
-    L += clock_lines(rep.get("clock") or {})
+    L += clock_lines(rep.get("clock") or {}, rep.get("setup"))
     if metrics is not None:
         L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
     L += ["## Scene", "", f"![scene]({images['scene']})", ""]
@@ -492,9 +492,12 @@ def step_marks(clock, diag):
     return out
 
 
-def clock_lines(clock):
-    """summary.md's clock section: one line per finding (steps, drift models, wrong rates, emission times)."""
-    f = clock.get("findings") or []
+def clock_lines(clock, setup=()):
+    """summary.md's clock section: one line per finding (steps, drift models, wrong rates, emission times), and
+    the set-up check's notes on sample rates (report.json ``setup``: a clock faster than a crystal runs, taken at
+    its measured rate; a wrong header is a verdict reason already)."""
+    f = (clock.get("findings") or []) + [x["text"] for x in setup or ()
+                                         if x.get("status") == "note" and x.get("check") == "sample rate"]
     if not f:
         return []
     return ["## Clocks", "", "Each array's clock model, chosen by the evidence (docs/method.md \"Clock models\"):",
