@@ -107,6 +107,14 @@ def flag_text(df):
     return f.astype(object).where(f.notna(), "").astype(str)
 
 
+def has_flag(df, flags):
+    """(rows,) bool: the row's ``flag`` (doubts joined by "+") holds one of ``flags`` (names)."""
+    if "flag" not in df.columns:
+        return np.zeros(len(df), bool)
+    pattern = r"(?:^|\+)(?:" + "|".join(flags) + r")(?:\+|$)"
+    return flag_text(df).str.contains(pattern).to_numpy(bool)
+
+
 VELOCITY_COLUMNS = ("vel_x", "vel_y", "vel_z")   # events.csv, optional: the source's velocity during the sweep
 
 

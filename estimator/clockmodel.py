@@ -63,7 +63,7 @@ from scipy.special import chdtri, erf, erfc
 from calib.clock import TERMS as CLOCK_TERMS, Clock, Step, Term, header_ratio
 from calib.options import validate_options
 from calib.robust import mad_std
-from calib.tables import ARRAY_PARAMS, flag_text
+from calib.tables import ARRAY_PARAMS, flag_text, has_flag
 
 from .factors import active_kinds, arrival_shifts, row_arrays
 from .init import ObservabilityError
@@ -848,14 +848,12 @@ CLOCK_BLIND_DOUBTS = ("weak_direct", "occluded", "low_snr", "mic_spread")
 def doubted_arrivals(features, flags=ARRIVAL_DOUBTS):
     """{(array name, event)} whose arrival the frontend doubts as the direct path's (``flags``, by default
     ARRIVAL_DOUBTS, on the array's TDOA-M or DOA row at the event)."""
-    from .screen import _flags
-
     out = set()
     for name in ("tdoa_m", "doa"):
         df = features.get(name)
         if df is None or not len(df) or "flag" not in df.columns:
             continue
-        bad = _flags(df, flags)
+        bad = has_flag(df, flags)
         out |= set(zip(df["array"].astype(str)[bad], df["event"].to_numpy(int)[bad].tolist()))
     return frozenset(out)
 
@@ -1469,10 +1467,10 @@ def _doubted_blocks(features):
     in it and MIN_EVENTS outside it; or the session's first or last event alone (a step next to it: rendered
     lab seed 28, A2's event 0 of 0-13, 19.8 ms late against its range track; :func:`_readmitted` asks its DOAs
     to be the direct path's)."""
-    from .screen import DROP_FLAGS, _flags, own_doubted_events
+    from .screen import DROP_FLAGS, own_doubted_events
 
     names = [n for n in DROP_FLAGS["nlos"] if len(features[n])]
-    doubt = {n: _flags(features[n], ("nlos",)) for n in names}
+    doubt = {n: has_flag(features[n], ("nlos",)) for n in names}
     if not any(d.any() for d in doubt.values()):
         return []
     out = []

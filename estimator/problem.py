@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.kinds import KINDS
 from calib.geometry import doa_covariance, fold, mic_geometry
-from calib.tables import ARRAY_PARAMS, LINE_COLUMN, columns, flag_text
+from calib.tables import ARRAY_PARAMS, LINE_COLUMN, columns, flag_text, has_flag
 
 
 def frozen_array(a):
@@ -310,7 +310,7 @@ def doa_rows(df, ix):
     n = len(df)
     return DoaRows(ix.ev(df["event"]), ix.arr(df["array"]), columns(df, ("ux", "uy", "uz")).reshape(-1, 3), _lines(df),
                    doa_row_scales(df, ix.meta), np.broadcast_to(np.eye(3), (n, 3, 3)).copy(), np.ones((n, 3)),
-                   flag_text(df).str.split("+").map(lambda f: REFLECTION_FLAG in f).to_numpy(bool))
+                   has_flag(df, (REFLECTION_FLAG,)))
 
 
 REFLECTION_FLAG = "doa_reflection"   # the frontend's doubt: a reflection close behind the direct path shaped the DOA

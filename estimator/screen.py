@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from calib.tables import flag_text
+from calib.tables import has_flag
 
 ABSURD_S = 0.3              # s: 100 m of path, beyond any room's geometry; a row further off its clock line is absurd
 MAX_DOUBTED_FRACTION = 0.5  # an array with more of its events doubted for one reason is named by the verdict
@@ -42,14 +42,6 @@ MIN_TRUSTED_EVENTS = 4
 # reference array's DOAs), only a bias shared by most of an array's events escapes those tests
 DROP_FLAGS = {"nlos": ("tdoa_m", "tdoa_s", "doa"), "weak_direct": ("doa",)}
 ARRAY_ONLY = ("weak_direct",)
-
-
-def _flags(df, flags=tuple(DROP_FLAGS)):
-    """(rows,) bool: the row's ``flag`` holds one of ``flags``."""
-    if "flag" not in df.columns:
-        return np.zeros(len(df), bool)
-    pattern = r"(?:^|\+)(?:" + "|".join(flags) + r")(?:\+|$)"
-    return flag_text(df).str.contains(pattern).to_numpy(bool)
 
 
 def _robust_line_residuals(t, y):
@@ -147,7 +139,7 @@ def _doubts(features, names):
     for each reason of DROP_FLAGS with a doubted row."""
     out = {}
     for why, tables in DROP_FLAGS.items():
-        doubt = {n: _flags(features[n], (why,)) if n in tables else np.zeros(len(features[n]), bool) for n in names}
+        doubt = {n: has_flag(features[n], (why,)) if n in tables else np.zeros(len(features[n]), bool) for n in names}
         if any(d.any() for d in doubt.values()):
             most = mostly_doubted(features, doubt)
             kept = {a: n for a, (n, m) in most.items() if why in ARRAY_ONLY or m - n < MIN_TRUSTED_EVENTS}
