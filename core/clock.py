@@ -49,6 +49,9 @@ TERMS = {"exp": (_exp_term, ("amplitude", "time_constant")),
          "hinge": (_hinge_term, ("time", "change")),
          "table": (_table_term, ("knots", "values"))}
 
+# The parameters of each term that are local time (or its rate): those a change of time base scales.
+SCALED_PARAMS = {"exp": ("amplitude",), "quadratic": ("slope",), "hinge": ("change",), "table": ("values",)}
+
 
 @dataclass(frozen=True)
 class Step:
@@ -131,6 +134,16 @@ class Clock:
         u = np.asarray(t, float) - self.t0
         return self.local(t) - self.offset - (1.0 + self.drift) * u
 
+    def scaled(self, r):
+        """The same clock with every local time multiplied by ``r``: the samples of a clock counted at a rate
+        ``f`` (local time n / f) read at a rate ``f / r`` (n · r / f); ``r = f_used / f_header`` gives an array
+        taken at a measured rate on its header's time base. Offset, steps and terms scale by r, 1 + δ too."""
+        r = float(r)
+        terms = tuple(Term(d.kind, {k: (np.asarray(v, float) * r if k in SCALED_PARAMS[d.kind] else v)
+                                    for k, v in d.params.items()}) for d in self.terms)
+        return Clock(r * self.offset, r * (1.0 + self.drift) - 1.0, self.t0,
+                     tuple(Step(s.time, r * s.size, None if s.std is None else r * s.std) for s in self.steps), terms)
+
     def to_dict(self):
         """JSON form: {offset, drift, t0, steps: [{time, size, std}], terms: [{kind, ...params}]}."""
         return {"offset": float(self.offset), "drift": float(self.drift), "t0": float(self.t0),
@@ -160,3 +173,24 @@ def header_ratio(ratio, tol):
     ``ratio`` and within ``tol`` of it, or None."""
     pairs = [(h, a) for h in COMMON_RATES for a in COMMON_RATES if a != h and abs(a / h - ratio) <= tol]
     return min(pairs, key=lambda p: abs(p[1] / p[0] - ratio)) if pairs else None
+
+
+def time_bases(meta):
+    """{array: (sample_rate, header_sample_rate)} (Hz) of the arrays whose local time counts WAV samples at
+    another rate than their header's (features meta ``sample_rates``: declared in session.toml or measured),
+    with the header's rate (meta ``header_sample_rates``; for features before it, ``header_rates``' ``header``
+    of a measured one; None: unknown). Their local time is WAV sample / sample_rate."""
+    headers = {**{n: f.get("header") for n, f in (meta.get("header_rates") or {}).items()},
+               **(meta.get("header_sample_rates") or {})}
+    return {n: (int(r), None if headers.get(n) is None else int(headers[n]))
+            for n, r in (meta.get("sample_rates") or {}).items()}
+
+
+def header_time_base(offset, drift, scale, ref_scale, reference_offset):
+    """(offset, drift) of an array's linear clock on its header's time base (WAV sample / header rate): the
+    calibration's, on the time base of the rate its samples were taken at, composed with ``scale`` = that rate /
+    its header's (``ref_scale``: the reference array's). With L = r·L' (r = ``scale``), 1 + δ = r(1 + δ') and,
+    the offsets relative to the reference's local time τ_ref' at t0 (``reference_offset``, on the reference's
+    taken time base), offset = r·offset' + (r − r_ref)·τ_ref'. Arrays (numpy) broadcast."""
+    r, r_ref = np.asarray(scale, float), np.asarray(ref_scale, float)
+    return r * np.asarray(offset, float) + (r - r_ref) * reference_offset, r * (1.0 + np.asarray(drift, float)) - 1.0

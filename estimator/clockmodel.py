@@ -60,7 +60,7 @@ import scipy.linalg
 import scipy.sparse
 from scipy.special import chdtri, erf, erfc
 
-from calib.clock import TERMS as CLOCK_TERMS, Clock, Step, Term, header_ratio
+from calib.clock import TERMS as CLOCK_TERMS, Clock, Step, Term, header_ratio, time_bases
 from calib.options import validate_options
 from calib.robust import mad_std
 from calib.tables import ARRAY_PARAMS, flag_text, has_flag
@@ -2332,8 +2332,10 @@ def clock_report(result, features, models, rounds):
     std = result["arrays"]["drift_std"].to_numpy(float) if "arrays" in result else np.full(len(st.drift), np.nan)
     arrays, findings = {}, []
     rates, base = _rate_drifts(result)
+    taken = time_bases(features["meta"])   # arrays whose samples were read at another rate than their header's
     for i, name in enumerate(str(n) for n in features["meta"]["arrays"]):
         e = array_clock_entry(models.get(name, []), events, u, rates[i], std[i])
+        e["sample_rate"], e["header_sample_rate"] = taken.get(name, (None, None))
         if e["nominal_rate"]:
             e["nominal_rate"]["relative_to"] = "emitter (events.csv t_emit)"
         arrays[name] = e

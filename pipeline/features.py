@@ -89,7 +89,28 @@ def add_session_meta(feats, session, diag):
     rates = {a["name"]: int(a["sample_rate"]) for a in session["arrays"] if a.get("sample_rate") is not None}
     if rates:
         meta["sample_rates"] = rates
+        meta["header_sample_rates"] = header_sample_rates(session, diag.get("header_rates") or {})
     return Features.from_dict({**feats, "meta": meta})
+
+
+def header_sample_rates(session, measured):
+    """{array: Hz its WAV header states} of the arrays read at another rate (a ``sample_rate`` declared in
+    session.toml, or one ``measured``: ``header_rates``), so that a calibration can be put on the header's time
+    base (calibration.json ``header_sample_rate``); an unreadable header is left out (unknown)."""
+    from calib.frontend.signals import read_header
+
+    out = {}
+    for a in session["arrays"]:
+        if a.get("sample_rate") is None:
+            continue
+        if a["name"] in measured:
+            out[a["name"]] = int(measured[a["name"]]["header"])
+            continue
+        try:
+            out[a["name"]] = int(read_header({**a, "sample_rate": None}).samplerate)
+        except (InputError, OSError):
+            pass
+    return out
 
 
 def write_diagnostics_files(folder, diag):

@@ -221,8 +221,8 @@ def refine_rates(session, feats, corrections):
         moved = abs(rate / f["used"] - 1) > RATE_REFINE
         changed |= moved
         out[name] = {**f, "used": rate if moved else f["used"], "refined_by_drift": float(d)}
-        if f.get("fast_clock"):
-            out[name]["scale"] = rate / f["header"]
+        if f.get("fast_clock"):   # the measured rate (the samples are taken at it rounded to the hertz)
+            out[name]["scale"] = f["used"] * (1.0 + d) / f["header"]
     return out, changed
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib import __version__
+from calib.clock import time_bases
 from calib.errors import InputError
 from calib.robust import mad_std
 from calib.tables import ARRAY_PARAMS
@@ -30,12 +31,16 @@ CONVENTIONS = {
 UNITS = {"position": "m", "time": "s", "drift": "1 (s per s)", "rotation_std": "rad", "speed_of_sound": "m/s",
          "chirp_drift_bias": "s (per unit drift)"}
 CLOCK_MODEL = ("T_i = (1 + drift_i) * (t - t0) + offset_i + reference_offset + h_i(t - t0) [+ chirp_drift_bias * "
-               "drift_i]: T_i the array's local time (WAV sample / fs), t the emitter's time (events.csv t_emit), t0 "
+               "drift_i]: T_i the array's local time (WAV sample / fs; fs its clock's sample_rate where given, else its WAV "
+               "header's), t the emitter's time (events.csv t_emit), t0 "
                "the first event's t_emit. h_i: the array's clock steps (samples inserted: size > 0; dropped: size < 0, "
                "applied from their time, the middle of the interval between the two events they lie between) and "
                "drift terms (quadratic: slope * u^2 / 2; hinge: change * max(0, u - time)); absent: 0. The bracketed "
                "term applies to arrival times measured by matched filtering the calibration chirp (as calib's "
-               "frontend does), not to other sounds.")
+               "frontend does), not to other sounds. An array whose sample_rate differs from its header_sample_rate "
+               "(r = sample_rate / header_sample_rate, r_ref the reference array's, 1 where not given): on its header's "
+               "time base (WAV sample / header_sample_rate) its local time is r * T_i, its drift r * (1 + drift_i) - 1 "
+               "and its offset r * offset_i + (r - r_ref) * reference_offset.")
 # the keys of an array's clock model (report.json ``clock.arrays``) copied into its calibration.json ``clock``
 CLOCK_MODEL_KEYS = ("drift_model", "steps", "drift_terms", "nominal_rate")
 # A clock offset seen through coarse detections: fewer than this many matched events → no estimate.
@@ -106,12 +111,12 @@ def _std(row, param):
     return vals[0] if vals and len(vals) == 1 else vals
 
 
-def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None, sample_rate=None):
+def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None, rates=(None, None)):
     """One array's entry: pose, mics (own and reference frame), clock, 1-σ, and what the data left
     undetermined (report.json ``undetermined`` of this array: parameter names, the axis of a linear array);
     ``clock_model``: its report.json ``clock.arrays`` entry (steps, drift terms, a wrong nominal rate);
-    ``sample_rate``: the rate (Hz) its local time counts WAV samples at, None: its header's (meta.json
-    ``sample_rates``)."""
+    ``rates``: (the rate (Hz) its local time counts WAV samples at, the rate its WAV header states), (None, None):
+    its header's (:func:`calib.clock.time_bases`)."""
     from scipy.spatial.transform import Rotation  # (~0.1 s to load: not at every command's start)
 
     pos = row[["x", "y", "z"]].to_numpy(float)
@@ -127,7 +132,8 @@ def _array_entry(row, mics, tau_ref, undetermined=(), clock_model=None, sample_r
         "mics": None if mics is None else mics.tolist(),
         "mics_reference": None if mics is None else (mics @ R.T + pos).tolist(),
         "clock": {"offset": offset, "drift": drift,
-                  "offset_emitter": None if tau_ref is None else offset + tau_ref, "sample_rate": sample_rate,
+                  "offset_emitter": None if tau_ref is None else offset + tau_ref, "sample_rate": rates[0],
+                  "header_sample_rate": rates[1],
                   **{k: (clock_model or {}).get(k) for k in CLOCK_MODEL_KEYS if clock_model}},
         "std": {("rotation" if a.rotation else a.label): _std(row, a) for a in ARRAY_PARAMS},
         "undetermined": [u["parameter"] for u in undetermined],
@@ -158,6 +164,7 @@ def calibration_document(calib, features):
     rows = sorted((r for _, r in arrays.iterrows()), key=lambda r: order.get(r["array"], len(order)))
     labels, cov = array_covariance_of(calib, features)
     src = calib.get("sources")
+    bases = time_bases(meta)
     return {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -182,7 +189,7 @@ def calibration_document(calib, features):
         "arrays": [_array_entry(r, mics.get(r["array"]), tau,
                                 [u for u in report.get("undetermined") or [] if u.get("array") == r["array"]],
                                 ((report.get("clock") or {}).get("arrays") or {}).get(r["array"]),
-                                (meta.get("sample_rates") or {}).get(r["array"]))
+                                bases.get(r["array"], (None, None)))
                    for r in rows],
         "covariance": None if labels is None else {"parameters": labels, "matrix": np.asarray(cov)},
         # the odometry-frame rotation when the estimator estimated it (report.json always says whether)

@@ -248,7 +248,7 @@ def read_events(path):
 META_KEYS = ("speed_of_sound", "reference_array", "arrays", "chirp_drift_bias", "sigmas_estimated",
              "doa_mirror_normals", "doa_axes", "mics", "reference_detections_s", "chirp_stretch_shift",
              "doa_time_s", "stretch_time_s", "tdoa_shared_arrivals", "header_rates", "sample_rates",
-             "sigma_arrival_per_array")   # + the kinds' noise keys
+             "header_sample_rates", "sigma_arrival_per_array")   # + the kinds' noise keys
 
 
 def validate_meta(meta, path="meta.json"):
@@ -307,12 +307,14 @@ def validate_meta(meta, path="meta.json"):
             raise InputError(f"{path}: 'sigma_arrival_per_array' must map array names to arrival sigmas (s)")
         out["sigma_arrival_per_array"] = {k: V.sigma("sigma_tdoa", v, f"{path}: 'sigma_arrival_per_array' {k!r}")
                                           for k, v in own.items()}
-    if meta.get("sample_rates") is not None:
-        rates = meta["sample_rates"]
+    for key in ("sample_rates", "header_sample_rates"):
+        rates = meta.get(key)
+        if rates is None:
+            continue
         if not isinstance(rates, dict) or not all(k in arrays for k in rates):
-            raise InputError(f"{path}: 'sample_rates' must map array names to rates (Hz)")
-        out["sample_rates"] = {k: V.number(v, f"{path}: 'sample_rates' {k!r}", lo=V.SAMPLE_RATE[0], hi=V.SAMPLE_RATE[1],
-                                           integer=True) for k, v in rates.items()}
+            raise InputError(f"{path}: '{key}' must map array names to rates (Hz)")
+        out[key] = {k: V.number(v, f"{path}: '{key}' {k!r}", lo=V.SAMPLE_RATE[0], hi=V.SAMPLE_RATE[1], integer=True)
+                    for k, v in rates.items()}
     return out
 
 
@@ -522,12 +524,23 @@ def _arrays_and_sources(directory, why_needed=""):
 
 
 def read_calibration(directory):
-    """Read a ``calibration/`` directory (arrays.csv, sources.csv, optional report.json)."""
+    """Read a ``calibration/`` directory (arrays.csv, sources.csv, optional report.json; from an optional
+    calibration.json its ``clock.reference_offset``, the reference array's local time at t0 that puts an array
+    taken at another rate on its header's time base: ``calib.pipeline.report.evaluate.header_arrays``)."""
     d, arrays, sources = _arrays_and_sources(directory)
     report = _read_json(d / "report.json") if (d / "report.json").exists() else {}
     if not isinstance(report, dict):
         raise InputError(f"{d / 'report.json'}: must be a JSON object")
-    return {"arrays": arrays, "sources": sources, "report": report}
+    out = {"arrays": arrays, "sources": sources, "report": report}
+    taken = [e for e in (((report.get("clock") or {}).get("arrays") or {}).values()) if isinstance(e, dict)
+             and e.get("header_sample_rate") and e.get("sample_rate") != e.get("header_sample_rate")]
+    if taken and (d / "calibration.json").exists():
+        doc = _read_json(d / "calibration.json")
+        clock = doc.get("clock") if isinstance(doc, dict) else None
+        tau = clock.get("reference_offset") if isinstance(clock, dict) else None
+        out["reference_offset"] = V.number(tau, f"{d / 'calibration.json'}: clock.reference_offset",
+                                           lo=-V.MAX_ABS_TIME, hi=V.MAX_ABS_TIME, allow_none=True)
+    return out
 
 
 def write_calibration(directory, calib, features=None, command="calib"):

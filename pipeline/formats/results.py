@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike
 if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
+from calib.clock import header_time_base
 from calib.errors import InputError
 from calib.jsonutil import dumps_json
 
@@ -54,6 +55,16 @@ class ArrayCalibration:
     clock_extra: object = None
     # Hz: the rate its local time counts WAV samples at (local time = sample / sample_rate); None: its header's
     sample_rate: int | None = None
+    # Hz: the rate its WAV header states, where sample_rate differs from it (None: unknown, or files before it)
+    header_sample_rate: int | None = None
+
+    @property
+    def rate_scale(self) -> float:
+        """sample_rate / header_sample_rate: its local time on its header's time base (WAV sample / header
+        rate) is this × its local time; 1 where either is not known."""
+        if self.sample_rate is None or self.header_sample_rate is None:
+            return 1.0
+        return self.sample_rate / self.header_sample_rate
 
     @property
     def rotation(self) -> Rotation:
@@ -163,26 +174,41 @@ class Calibration:
         e = self.clock.emitter
         return 0.0 if e is None else e.extra(np.asarray(t, float) - self.clock.t0)
 
-    def to_emitter_time(self, name: str, local_time: ArrayLike, chirp: bool = False) -> np.ndarray:
+    def to_emitter_time(self, name: str, local_time: ArrayLike, chirp: bool = False,
+                        header: bool = False) -> np.ndarray:
         """Emitter time (events.csv clock) of the array's local time(s) (s), through its clock model (steps:
         inside an inserted block, the step's time). chirp: the arrival was measured by matched filtering the
-        calibration chirp (subtract its bias β·δ)."""
+        calibration chirp (subtract its bias β·δ). header: the local time is WAV sample / its header's rate
+        (``header_sample_rate``), not / its ``sample_rate`` (an array taken at a declared or measured rate)."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
-        t = self._clock(name).emitter(np.asarray(local_time, float) - bias)
+        local = np.asarray(local_time, float) / (a.rate_scale if header else 1.0)
+        t = self._clock(name).emitter(local - bias)
         return t - self._emitter_extra(t)
 
-    def to_local_time(self, name: str, emitter_time: ArrayLike, chirp: bool = False) -> np.ndarray:
+    def to_local_time(self, name: str, emitter_time: ArrayLike, chirp: bool = False,
+                      header: bool = False) -> np.ndarray:
         """The array's local time(s) of emitter time(s): the inverse of :meth:`to_emitter_time`."""
         a = self.array(name)
         bias = self.clock.chirp_drift_bias * a.drift if chirp else 0.0
         t = np.asarray(emitter_time, float)
-        return self._clock(name).local(t + self._emitter_extra(t)) + bias
+        return (self._clock(name).local(t + self._emitter_extra(t)) + bias) * (a.rate_scale if header else 1.0)
 
-    def to_reference_time(self, name: str, local_time: ArrayLike, chirp: bool = False) -> np.ndarray:
+    def to_reference_time(self, name: str, local_time: ArrayLike, chirp: bool = False,
+                          header: bool = False) -> np.ndarray:
         """The reference array's local time of the instant the array ``name`` reads as ``local_time``."""
-        t = self.to_emitter_time(name, local_time, chirp)
-        return self.to_local_time(self.reference_array, t, chirp)
+        t = self.to_emitter_time(name, local_time, chirp, header)
+        return self.to_local_time(self.reference_array, t, chirp, header)
+
+    def header_clock(self, name: str) -> tuple[float, float]:
+        """(offset, drift) of the array's linear clock on its header's time base (WAV sample / header rate):
+        for an array taken at a declared or measured rate, its total drift and offset against the emitter
+        (``calib.clock.header_time_base``; the offset relative to the reference array's header time base)."""
+        a, ref = self.array(name), self.array(self.reference_array)
+        tau = self.clock.reference_offset   # (needed only where the two time bases differ: NaN when unknown)
+        tau = 0.0 if a.rate_scale == ref.rate_scale else np.nan if tau is None else tau
+        offset, drift = header_time_base(a.offset, a.drift, a.rate_scale, ref.rate_scale, tau)
+        return float(offset), float(drift)
 
 
 # ------------------------------------------------------------------ reading calibration.json (validated)
@@ -268,7 +294,9 @@ def _array(entry, where):
         axis=None if axis is None else np.array(V.vector3(axis, f"{where}.axis", nonzero=True)),
         clock_extra=_clock_extra(clock, f"{where}.clock"),
         sample_rate=V.number(clock.get("sample_rate"), f"{where}.clock.sample_rate", lo=V.SAMPLE_RATE[0],
-                             hi=V.SAMPLE_RATE[1], integer=True, allow_none=True))
+                             hi=V.SAMPLE_RATE[1], integer=True, allow_none=True),
+        header_sample_rate=V.number(clock.get("header_sample_rate"), f"{where}.clock.header_sample_rate",
+                                    lo=V.SAMPLE_RATE[0], hi=V.SAMPLE_RATE[1], integer=True, allow_none=True))
 
 
 def _clock_extra(ck, where):

@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
+from calib.clock import header_time_base
 from calib.pipeline.formats.io import InputError
 from calib.geometry import mirror
 from calib.tables import columns
@@ -137,6 +138,32 @@ def truth_tables(truth):
     return out
 
 
+def rate_scales(calib):
+    """{array: r = sample_rate / header_sample_rate} of the arrays whose samples the calibration took at another
+    rate than their WAV header's (report.json ``clock.arrays``; files before 30 Nov 2026 lack the header rate: none, scored as is)."""
+    entries = ((calib.get("report") or {}).get("clock") or {}).get("arrays") or {}
+    return {str(n): e["sample_rate"] / e["header_sample_rate"] for n, e in entries.items()
+            if e.get("sample_rate") and e.get("header_sample_rate")}
+
+
+def header_arrays(calib):
+    """The calibration's :func:`array_table` on each array's header time base (WAV sample / its header's rate,
+    the simulator's truth's): an array taken at a declared or measured rate scored on its total drift and
+    offset (:func:`calib.clock.header_time_base`). The offset needs the reference's local time at t0 (calib
+    dict ``reference_offset``, calibration.json's): without it, NaN (unscored) where the time bases differ."""
+    table = calib["arrays"] if isinstance(calib["arrays"], dict) else array_table(calib["arrays"])
+    scales = rate_scales(calib)
+    if not scales:
+        return table
+    r = np.array([scales.get(str(n), 1.0) for n in table["names"]])
+    at_origin = (np.linalg.norm(table["xyz"], axis=1) < 1e-12) & (table["offset"] == 0.0)   # the reference
+    r_ref = float(r[np.argmax(at_origin)]) if at_origin.any() else 1.0
+    tau = calib.get("reference_offset")
+    tau = np.where(r == r_ref, 0.0, np.nan if tau is None else float(tau))
+    offset, drift = header_time_base(table["offset"], table["drift"], r, r_ref, tau)
+    return {**table, "offset": offset, "drift": drift}
+
+
 def evaluate(calib: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     """Metrics of a calibration dict against a truth dict (both as in ``pipeline.formats.io``).
 
@@ -148,7 +175,7 @@ def evaluate(calib: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     ``offset_rmse_s``, ``drift_rmse`` (absolute drifts), ``relative_drift_rmse`` (δ_i − δ_ref, the paper's),
     ``source_rmse_m`` (when both have sources) and ``per_array`` (list of dicts). NaN where truth is unknown.
     """
-    errs = array_errors(calib["arrays"], truth["arrays"],
+    errs = array_errors(header_arrays(calib), truth["arrays"],
                         undetermined=(calib.get("report") or {}).get("undetermined", ()))
     out = {
         "position_rmse_m": _rms(errs["position_m"]),
@@ -260,7 +287,9 @@ def clock_errors(calib, truth):
     t0 = float(rec0.get("t0", 0.0))
     # (a clocks.json from before event_times: no interval nor local-time error to score)
     u = np.asarray(rec0.get("event_times") or [], float)
-    true = {n: Clock.from_dict(records[n]) if n in records else Clock(offset[k], drift[k], t0)
+    # (a record's offset is its local time at t0, the truth's arrays.csv offset relative to the reference's: the
+    # frame the calibration's offsets are in)
+    true = {n: _relative(Clock.from_dict(records[n]), offset[k]) if n in records else Clock(offset[k], drift[k], t0)
             for k, n in enumerate(names)}
     est = _estimated_clocks(calib, t0)
     err = {n: (est[n].local(t0 + u) - true[n].local(t0 + u)) if n in est else np.full(len(u), np.nan) for n in names}
@@ -274,7 +303,7 @@ def clock_errors(calib, truth):
                     "drift_model_true": _true_drift_model(records.get(n, {})),
                     "drift_model": (entries.get(n) or {}).get("drift_model", "linear"),
                     "rate_ratio_true": float(records.get(n, {}).get("rate_ratio", 1.0)),
-                    "rate_ratio": ((entries.get(n) or {}).get("nominal_rate") or {}).get("ratio"),
+                    "rate_ratio": _rate_ratio(entries.get(n) or {}, est.get(n)),
                     "local_time_max_error_s": (float(np.max(np.abs(rel))) if n != ref else 0.0) if len(u) else None,
                     "local_time_rms_error_s": (_rms(rel) if n != ref else 0.0) if len(u) else None})
     steps = [s for a in per for s in a["steps"]]
@@ -292,12 +321,31 @@ def clock_errors(calib, truth):
 def _estimated_clocks(calib, t0):
     """{array: its recovered :class:`calib.clock.Clock`}: the calibration's offset and drift, and the steps
     and drift terms of its report's clock models."""
+    from dataclasses import replace
+
     from calib.estimator.clockmodel import as_clock, models_from_report
 
     models = models_from_report(calib.get("report"))
-    a = calib["arrays"]
-    return {str(n): as_clock(models.get(str(n), []), o, d, t0=t0)
-            for n, o, d in zip(a["array"], a["offset"].to_numpy(float), a["drift"].to_numpy(float))}
+    a = calib["arrays"] if isinstance(calib["arrays"], dict) else array_table(calib["arrays"])
+    h, scales = header_arrays(calib), rate_scales(calib)
+    # on the header's time base (the truth's): steps and terms × r, offset and drift composed (:func:`header_arrays`)
+    return {str(n): replace(as_clock(models.get(str(n), []), o, d, t0=t0).scaled(scales.get(str(n), 1.0)), offset=oh)
+            for n, o, d, oh in zip(a["names"], a["offset"], a["drift"], h["offset"])}
+
+
+def _rate_ratio(entry, clock):
+    """The recovered nominal-rate ratio: the estimator's wrong-rate finding's, or for an array taken at a
+    declared or measured rate its clock's total rate against its header's (None: a crystal's)."""
+    if entry.get("sample_rate") and entry.get("header_sample_rate") and clock is not None:
+        return 1.0 + float(clock.drift)
+    return (entry.get("nominal_rate") or {}).get("ratio")
+
+
+def _relative(clock, offset):
+    """The true clock with the truth's relative ``offset`` (kept where that is unknown)."""
+    from dataclasses import replace
+
+    return replace(clock, offset=float(offset)) if np.isfinite(offset) else clock
 
 
 def _true_drift_model(record):

@@ -432,7 +432,7 @@ def summary_markdown(features, calib, res, metrics, diag, images):
             by.setdefault(u["array"], []).append(u["parameter"])
         L += ["Not determined by the data (not estimated, no σ; the rest is): "
               + "; ".join(f"{a}: {', '.join(v)}" for a, v in by.items()) + ".", ""]
-    L += clock_lines(rep.get("clock") or {}, rep.get("setup"))
+    L += clock_lines(rep.get("clock") or {}, rep.get("setup"), calib["arrays"])
     if metrics is not None:
         L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
     L += ["## Scene", "", f"![scene]({images['scene']})", ""]
@@ -492,16 +492,45 @@ def step_marks(clock, diag):
     return out
 
 
-def clock_lines(clock, setup=()):
-    """summary.md's clock section: one line per finding (steps, drift models, wrong rates, emission times), and
-    the set-up check's notes on sample rates (report.json ``setup``: a clock faster than a crystal runs, taken at
-    its measured rate; a wrong header is a verdict reason already)."""
+def clock_lines(clock, setup=(), arrays=None):
+    """summary.md's clock section: one line per finding (steps, drift models, wrong rates, emission times), the
+    set-up check's notes on sample rates (report.json ``setup``: a clock faster than a crystal runs, taken at
+    its measured rate; a wrong header is a verdict reason already), and for each array taken at another rate
+    than its header's its clock's rate as calibrated (:func:`rate_lines`; ``arrays``: arrays.csv's frame)."""
     f = (clock.get("findings") or []) + [x["text"] for x in setup or ()
                                          if x.get("status") == "note" and x.get("check") == "sample rate"]
+    f += rate_lines(clock, arrays)
     if not f:
         return []
     return ["## Clocks", "", "Each array's clock model, chosen by the evidence (docs/method.md \"Clock models\"):",
             ""] + [f"- {x}" for x in f] + [""]
+
+
+def rate_lines(clock, arrays):
+    """One line per array whose samples were taken at another rate than its WAV header's (report.json
+    ``clock.arrays``: ``sample_rate``, ``header_sample_rate``): the rate its clock runs at against the emitter's,
+    sample_rate × (1 + drift), to the digits its 1-σ (sample_rate × drift_std) gives, and that drift on its
+    header's time base (r(1 + δ) − 1, what a reader trusting the header sees)."""
+    if arrays is None:
+        return []
+    rows = {str(r["array"]): r for _, r in arrays.iterrows()}
+    out = []
+    for name, e in (clock.get("arrays") or {}).items():
+        fs, header, row = e.get("sample_rate"), e.get("header_sample_rate"), rows.get(name)
+        if not (fs and header and row is not None and np.isfinite(row["drift"])):
+            continue
+        rate, sd = fs * (1.0 + float(row["drift"])), fs * float(row.get("drift_std", np.nan))
+        ppm, sd_ppm = 1e6 * (rate / header - 1.0), 1e6 * sd / header
+        pm = (lambda v: f" ± {v:.{_digits(v)}f}") if np.isfinite(sd) and sd > 0 else (lambda v: "")
+        out.append(f"{name}: its samples taken at {fs} Hz (WAV header: {header} Hz); its clock runs at "
+                   f"{rate:.{_digits(sd)}f}{pm(sd)} Hz against the emitter's, {ppm:+.{_digits(sd_ppm)}f}{pm(sd_ppm)} "
+                   f"ppm on its header's rate (its offset and drift are relative to {fs} Hz)")
+    return out
+
+
+def _digits(sd, default=3):
+    """Decimals that show a value to its 1-σ ``sd``'s second significant digit (``default`` when unknown)."""
+    return max(0, 1 - int(np.floor(np.log10(sd)))) if np.isfinite(sd) and sd > 0 else default
 
 
 # ----------------------------------------------------------------------------------------------- driver
@@ -510,8 +539,12 @@ def make_report(directory, features, calib, truth=None, diagnostics_dir=None, pr
     step = (lambda k, msg: progress(k, 5, msg)) if progress else (lambda k, msg: None)
     metrics = None
     if truth is not None:
-        from calib.pipeline.report.evaluate import evaluate
+        from calib.pipeline.formats.calibration_json import reference_offset
+        from calib.pipeline.report.evaluate import evaluate, rate_scales
 
+        if rate_scales(calib) and calib.get("reference_offset") is None:   # (an in-memory calibration)
+            tau = reference_offset(features["meta"], calib["arrays"], calib.get("sources"), features["events"])[0]
+            calib = {**calib, "reference_offset": tau}
         metrics = evaluate(calib, truth)
     step(0, "residuals")
     model = rebuild(features, calib)
