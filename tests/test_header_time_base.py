@@ -107,3 +107,43 @@ def test_evaluate_scores_an_array_taken_at_its_measured_rate_on_its_total_clock(
     by = {a["array"]: a["drift"] for a in evaluate(read_calibration(cdir), truth)["per_array"]}
     assert by["A2"] == pytest.approx(HEADER / rates["A2"][0] - 1, abs=1e-4)   # ≈ −1000 ppm
     assert by["A3"] == pytest.approx(HEADER / rates["A3"][0] - 1, abs=1e-3)   # ≈ +1 %
+
+
+def test_evaluate_composes_a_perfect_calibration_on_the_rate_used_back_to_the_truth():
+    """A perfect calibration of a simulated +1000 ppm board (roomsim-like truth: its clock record holds its
+    absolute offset τ, arrays.csv τ − τ_ref) taken at 16016 Hz: `evaluate` scores it 0 on the header's time base
+    (drift, offset, the clock's local time), and as 1000 ppm off when the report lacks the header's rate (files
+    before it), as it always did."""
+    import pandas as pd
+
+    from calib.pipeline.report.evaluate import evaluate
+
+    t = np.array([0.0, 2.1, 4.0, 6.3, 8.2])
+    tau_ref, drift_ref, used = 0.39, -4.7e-5, 16016
+    true = ck.fault_clock(0.30, 1.3e-5, {"rate": {"error": 1e-3}}, event_times=t, rng=np.random.default_rng(0),
+                          t0=10.0)
+    r = used / HEADER
+
+    def frame(offset, drift):
+        return pd.DataFrame({"array": ["A1", "A2"], "x": [0.0, 1.0], "y": [0.0, 2.0], "z": [0.0, 0.5],
+                             "qw": [1.0, 1.0], "qx": 0.0, "qy": 0.0, "qz": 0.0, "offset": [0.0, offset],
+                             "drift": [drift_ref, drift]})
+
+    truth = {"arrays": frame(true.offset - tau_ref, true.drift), "sources": None,
+             "clocks": {"A2": ck.clock_record(true, {"rate": {"error": 1e-3}}, t)}}
+    taken = true.scaled(1.0 / r)
+    entry = {"sample_rate": used, "header_sample_rate": HEADER}
+    calib = {"arrays": frame(taken.offset - tau_ref, taken.drift), "sources": None, "reference_offset": tau_ref,
+             "report": {"clock": {"arrays": {"A1": {}, "A2": {**entry, "components": []}}}}}
+    m = evaluate(calib, truth)
+    (a2,) = m["per_array"]
+    assert abs(a2["drift"]) < 1e-12 and abs(a2["offset_s"]) < 1e-12
+    (c2,) = m["clock"]["per_array"]
+    assert c2["local_time_max_error_s"] < 1e-12 and c2["rate_ratio"] == pytest.approx(1 + true.drift, abs=1e-12)
+    # no reference offset (a calibration without calibration.json): the drift composed, the offset not scored
+    (a2,) = evaluate({**calib, "reference_offset": None}, truth)["per_array"]
+    assert abs(a2["drift"]) < 1e-12 and np.isnan(a2["offset_s"])
+    # older files: the header's rate unknown, scored on the rate used
+    calib["report"]["clock"]["arrays"]["A2"] = {"components": []}
+    (a2,) = evaluate(calib, truth)["per_array"]
+    assert a2["drift"] == pytest.approx((1 + true.drift) / r - 1 - true.drift, abs=1e-12)   # ≈ −1000 ppm

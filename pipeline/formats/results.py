@@ -9,6 +9,9 @@
 - ``cal.to_emitter_time("A2", T)`` / ``cal.to_local_time("A2", t)``: an array's local time (WAV sample / fs)
   ↔ the emitter's time (events.csv ``t_emit``); ``cal.to_reference_time("A2", T)``: the reference array's local
   time of the same instant. ``chirp=True`` adds the matched-filter bias β·δ of the calibration chirp;
+  ``header=True`` counts local time as WAV sample / the header's rate (an array taken at a measured or declared
+  ``sample_rate``: calibration.json ``header_sample_rate``); ``cal.header_clock("A2")``: its total offset and
+  drift on that time base;
 - ``cal.arrays_frame()``, ``cal.sources_frame()``: DataFrame views (public columns only).
 """
 from __future__ import annotations
