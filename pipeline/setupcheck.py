@@ -1134,8 +1134,9 @@ def header_rate_findings(session, fixed):
         f = fixed.get(a["name"])
         if f and f.get("fast_clock"):
             out.append(Finding("note", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): its clock runs "
-                               f"{1e6 * (f['scale'] - 1):+.0f} ppm against the emission times ({f['header'] * f['scale']:.1f}"
-                               f" Hz for its header's {f['header']} Hz; more than a crystal drifts): its samples taken "
+                               f"{1e6 * (f['scale'] - 1):+.0f} ppm against the emission times "
+                               f"({f['header'] * f['scale']:.1f} Hz for its header's {f['header']} Hz; more than a "
+                               f"crystal drifts): its samples taken "
                                f"at {f['used']} Hz (its offset and drift are relative to that rate)", a["name"]))
         elif f:
             out.append(Finding("suspect", _wav(a), "sample rate", f"{_wav(a)} (array {a['name']}): the header's "

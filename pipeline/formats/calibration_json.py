@@ -31,16 +31,16 @@ CONVENTIONS = {
 UNITS = {"position": "m", "time": "s", "drift": "1 (s per s)", "rotation_std": "rad", "speed_of_sound": "m/s",
          "chirp_drift_bias": "s (per unit drift)"}
 CLOCK_MODEL = ("T_i = (1 + drift_i) * (t - t0) + offset_i + reference_offset + h_i(t - t0) [+ chirp_drift_bias * "
-               "drift_i]: T_i the array's local time (WAV sample / fs; fs its clock's sample_rate where given, else its WAV "
-               "header's), t the emitter's time (events.csv t_emit), t0 "
-               "the first event's t_emit. h_i: the array's clock steps (samples inserted: size > 0; dropped: size < 0, "
-               "applied from their time, the middle of the interval between the two events they lie between) and "
-               "drift terms (quadratic: slope * u^2 / 2; hinge: change * max(0, u - time)); absent: 0. The bracketed "
-               "term applies to arrival times measured by matched filtering the calibration chirp (as calib's "
-               "frontend does), not to other sounds. An array whose sample_rate differs from its header_sample_rate "
-               "(r = sample_rate / header_sample_rate, r_ref the reference array's, 1 where not given): on its header's "
-               "time base (WAV sample / header_sample_rate) its local time is r * T_i, its drift r * (1 + drift_i) - 1 "
-               "and its offset r * offset_i + (r - r_ref) * reference_offset.")
+               "drift_i]: T_i the array's local time (WAV sample / fs; fs its clock's sample_rate where given, else "
+               "its WAV header's), t the emitter's time (events.csv t_emit), t0 the first event's t_emit. h_i: the "
+               "array's clock steps (samples inserted: size > 0; dropped: size < 0, applied from their time, the "
+               "middle of the interval between the two events they lie between) and drift terms (quadratic: slope * "
+               "u^2 / 2; hinge: change * max(0, u - time)); absent: 0. The bracketed term applies to arrival times "
+               "measured by matched filtering the calibration chirp (as calib's frontend does), not to other sounds. "
+               "An array whose sample_rate differs from its header_sample_rate (r = sample_rate / "
+               "header_sample_rate, r_ref the reference array's, 1 where not given): on its header's time base (WAV "
+               "sample / header_sample_rate) its local time is r * T_i, its drift r * (1 + drift_i) - 1 and its "
+               "offset r * offset_i + (r - r_ref) * reference_offset.")
 # the keys of an array's clock model (report.json ``clock.arrays``) copied into its calibration.json ``clock``
 CLOCK_MODEL_KEYS = ("drift_model", "steps", "drift_terms", "nominal_rate")
 # A clock offset seen through coarse detections: fewer than this many matched events → no estimate.

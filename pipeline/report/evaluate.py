@@ -140,7 +140,8 @@ def truth_tables(truth):
 
 def rate_scales(calib):
     """{array: r = sample_rate / header_sample_rate} of the arrays whose samples the calibration took at another
-    rate than their WAV header's (report.json ``clock.arrays``; files before 30 Nov 2026 lack the header rate: none, scored as is)."""
+    rate than their WAV header's (report.json ``clock.arrays``; files before 30 Nov 2026 lack the header rate:
+    none, scored as is)."""
     entries = ((calib.get("report") or {}).get("clock") or {}).get("arrays") or {}
     return {str(n): e["sample_rate"] / e["header_sample_rate"] for n, e in entries.items()
             if e.get("sample_rate") and e.get("header_sample_rate")}
