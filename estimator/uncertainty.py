@@ -488,7 +488,10 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
                       state=None):
     """The covariance the ``*_std`` columns and calibration.json report, at the final linearisation ``lin``
     (``solver.Linearised``, weights 0 on excluded rows): each (type, array)'s rows with the σ² factor its
-    residuals ask for (:func:`calib.estimator.variance.covariance_factors`), and for a dense problem the
+    residuals ask for (:func:`calib.estimator.variance.covariance_factors`; below 1 for the direction kinds whose
+    residuals say their sigma is wide, ``variance.LOWERED_KINDS``, and for the TDOA kinds of a moving source whose
+    velocity error the rows' sigma holds, as that error is then in the covariance as the per-event error it is,
+    :func:`velocity_rows`), and for a dense problem the
     TDOA rows' shared arrivals (``shared``, meta.json ``tdoa_shared_arrivals``) and each array's DOA rows' common
     rotation error (:func:`shared_doa_rows`; its cone rows' at the ``state`` of ``lin``, :func:`shared_cone_rows`)
     by :func:`sandwich_covariance`;
@@ -497,15 +500,19 @@ def honest_covariance(p, lin, lay, *, shared=False, normals=None, cov=None, arra
     plain (JᵀJ)⁻¹ of the kept rows when already computed; ``normals``: planar arrays' mic-plane normals (:func:`plane_normals`,
     dense problems); ``arrays_only`` as :func:`covariance`; ``motion``: a moving source's velocity error
     (:class:`calib.estimator.motion.MotionNoise`, dense problems: :func:`velocity_rows`)."""
-    from .variance import covariance_factors   # (variance's stages use this module's neighbours, not it)
+    from .variance import LOWERED_KINDS, covariance_factors   # (variance's stages use this module's neighbours)
 
     if cov is None:
         cov = covariance(lin.J[lin.w > 0], lay.n, lay, arrays_only)
-    factors = covariance_factors(p, lin, cov)
     if isinstance(cov, np.ndarray):
-        cone = None if state is None else shared_cone_rows(p, lin, state, factors)
-        return sandwich_covariance(p, lin, cov, factors, shared, normals, velocity_rows(lin, lay, motion),
-                                   _sum_shared(shared_doa_rows(p, lin, factors), cone))
+        velocity = velocity_rows(lin, lay, motion)
+        factors = covariance_factors(p, lin, cov, lower=LOWERED_KINDS + (ARRIVAL_KINDS if velocity is not None else ()))
+        # the shared rotations' fractions were measured against the rows' stated sigma (SHARED_DOA_FRACTION): not lowered
+        stated = covariance_factors(p, lin, cov)
+        cone = None if state is None else shared_cone_rows(p, lin, state, stated)
+        return sandwich_covariance(p, lin, cov, factors, shared, normals, velocity,
+                                   _sum_shared(shared_doa_rows(p, lin, stated), cone))
+    factors = covariance_factors(p, lin, cov)
     if not any(np.any(v > 1) for k, v in factors.items() if k in KINDS):
         return cov
     # large problems: the array block with the factors (one more Schur complement); the sources keep theirs

@@ -284,13 +284,27 @@ def arrival_components(p, st, lay, kinds, mask):
 # worth COVARIANCE_PRIOR_DOF residual degrees of freedom, so an array with little redundancy is not inflated
 # by the scatter of a handful of residuals.
 COVARIANCE_PRIOR_DOF = 4.0
+# The direction kinds' sigma is a frontend's spread figure that the solve never lowers (FRONTEND_MIN_FACTOR), and
+# it is wide: against simulated truth the DOA rows err 0.31-0.93 of it (RMS at the true geometry; moving 500, 501,
+# 503, lshape 500, 503, office 501), while their variance components Σ r² / Σ(1 − h) read 0.98-1.28 × the truth's.
+# For the covariance only, the factors of the kinds asked for (``lower``: these, and the TDOA kinds of a moving
+# source whose σ_TDOA holds its velocity error, ``uncertainty.honest_covariance``: that error is one per event and in
+# the covariance as such; less a per-event source shift the rows err 0.03-0.12 of σ at the true geometry, moving
+# 500-504, their components read 0.26-0.55) may therefore go below 1, to the type's own variance component (pooled
+# over its arrays), never below COVARIANCE_MIN_FACTOR (σ down to a third, as PRIOR_MAX_FACTOR) and only with
+# COVARIANCE_MIN_REDUNDANCY residual degrees of freedom behind it; an array's factor is shrunk toward the type's.
+LOWERED_KINDS = ("doa", "cone")
+COVARIANCE_MIN_FACTOR = 1.0 / 9.0
+COVARIANCE_MIN_REDUNDANCY = 20.0
 
 
-def covariance_factors(p, lin, cov=None):
-    """Per (type, array) σ² factors ≥ 1 for the covariance: {kind: (N,)} from the final linearisation ``lin``
+def covariance_factors(p, lin, cov=None, lower=()):
+    """Per (type, array) σ² factors for the covariance: {kind: (N,)} from the final linearisation ``lin``
     (``solver.Linearised``, weights 0 on excluded rows) and its covariance ``cov`` when dense (leverages;
     0 for a sparse problem, see :func:`_leverages`), and under ``<kind>_correlation`` the part of it from the
-    residuals' lag-1 correlation. Types without per-array rows or not re-weighted by the data are left out."""
+    residuals' lag-1 correlation. Types without per-array rows or not re-weighted by the data are left out.
+    The factors are ≥ 1, but those of the kinds in ``lower`` are ≥ the type's own variance component
+    (:func:`_type_floor`), which may be below 1."""
     keep = lin.w > 0
     h = _leverages(lin.J, keep, cov if isinstance(cov, np.ndarray) else None)
     out, start = {}, 0
@@ -302,11 +316,21 @@ def covariance_factors(p, lin, cov=None):
             continue
         g = arraynoise.vce_groups(p, f, lin.r[sl], h[sl], keep[sl])
         red = np.maximum(g["red"], 0.0)
-        v = np.maximum(1.0, (g["ss"] + COVARIANCE_PRIOR_DOF) / (red + COVARIANCE_PRIOR_DOF))
+        t = _type_floor(g["ss"], red) if f.kind in lower else 1.0
+        v = np.maximum(t, (g["ss"] + t * COVARIANCE_PRIOR_DOF) / (red + COVARIANCE_PRIOR_DOF))
         corr = _correlation_inflation(p, f, lin.r[sl], keep[sl])
         out[f.kind] = v * corr
         out[f.kind + "_correlation"] = corr
     return out
+
+
+def _type_floor(ss, red):
+    """The lowest σ² factor of a type's rows (per array Σ r² ``ss`` and redundancy ``red``, (N,)): its pooled variance
+    component Σ ss / Σ red, within [COVARIANCE_MIN_FACTOR, 1]; 1 with less than COVARIANCE_MIN_REDUNDANCY."""
+    total = float(np.sum(red))
+    if total < COVARIANCE_MIN_REDUNDANCY:
+        return 1.0
+    return float(np.clip(np.sum(ss) / total, COVARIANCE_MIN_FACTOR, 1.0))
 
 
 MAX_CORRELATION = 0.8   # lag-1 correlation used at most: (1 + ρ) / (1 − ρ) ≤ 9

@@ -271,3 +271,43 @@ def test_reflection_flagged_reference_doas_turn_the_map_within_the_std():
 
     assert moves("doa_reflection").max() < 3.0
     assert moves("").max() > 3.0
+
+
+def _rotation_z(cal, truth, normals=None, lower=True):
+    """Each non-reference array's orientation error (about its own axes) over its std from the sandwich
+    covariance with the covariance factors (``lower`` as ``covariance_factors``) and no shared terms."""
+    p, lay, lin = _final_linearisation(cal)
+    cov = covariance(lin.J[lin.w > 0], lay.n, lay)
+    sd = np.sqrt(np.diag(U.sandwich_covariance(p, lin, cov, covariance_factors(p, lin, cov, lower=("doa",) if lower else ()), False,
+                                               normals)))
+    t = truth["arrays"].set_index("array")
+    z = []
+    for i, name in enumerate(p.names):
+        if i == p.ref:
+            continue
+        q = t.loc[name, ["qw", "qx", "qy", "qz"]].to_numpy(float)
+        err = (Rotation.from_quat(q, scalar_first=True).inv() * Rotation.from_matrix(cal["state"].R[i])).as_rotvec()
+        z += list(err / sd[lay.rot[i]])
+    return z
+
+
+def test_stated_doa_sigma_wider_than_the_errors_is_lowered_in_the_std():
+    """DOAs whose stated sigma (a frontend's own figure, which the solve never lowers) is 3× their real noise:
+    the DOA rows' covariance factor recovers (1/3)² from the residuals, and the orientation errors over their std
+    then have an RMS near 1 (a Gaussian's); with the factors held ≥ 1 it was 0.52 (the TDOAs hold the orientations too)."""
+    z = {True: [], False: []}
+    factors = []
+    for seed in range(4):
+        feats, truth = simulate_features(3, sigma_tdoa=SIGMA, sigma_doa_deg=1.0, seed=seed)
+        meta = {**feats["meta"], "sigma_doa_deg": 3.0 * feats["meta"]["sigma_doa_deg"],
+                "sigmas_estimated": ["sigma_doa_deg"]}
+        cal = calibrate(feats.replace(meta=meta))
+        p, lay, lin = _final_linearisation(cal)
+        factors.append(covariance_factors(p, lin, covariance(lin.J[lin.w > 0], lay.n, lay), lower=("doa",))["doa"])
+        for lower in (True, False):
+            z[lower] += _rotation_z(cal, truth, lower=lower)
+    factors = np.concatenate(factors)
+    assert np.all(factors > 1 / 9 - 1e-9) and 1 / 9 <= np.median(factors) < 0.3   # (1/3)² = 0.11, the floor
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
+    assert 0.7 < rms[True] < 1.35
+    assert rms[False] < 0.65
