@@ -184,19 +184,22 @@ def _deployment_solve(p, st, kinds, stages, features, joint, max_iter):
     sweep corrected (``estimator/motion.py``), then the other fold basin of planar arrays whose sources all
     lie near their mic plane tried (``init.fold_basins``), then the mirror image across their sources' plane
     of arrays whose DOAs cannot see it (``ambiguity.mirror_basins``; dropped ones first retried at their
-    mirror and fresh placements, ``ambiguity.retry_dropped``, unless a motion correction was applied).
+    mirror and fresh placements, ``ambiguity.retry_dropped``; a moving source's correction made again at each
+    start).
     Records go to ``stages``. Returns (the
     ``JointResult`` with its state after both, fold basin records, mirror records)."""
     meta = features["meta"]
-    res, motion = motion_solve(p, features["events"], joint(p, st), joint, kinds=kinds,
-                               curve=meta.get("chirp_stretch_shift"), t_doa=float(meta.get("doa_time_s") or 0.0),
-                               t_stretch=meta.get("stretch_time_s"), nuisance=not velocity_in_sigma(meta))
+    res, motion, (p_again, joint_again) = motion_solve(
+        p, features["events"], joint(p, st), joint, kinds=kinds, curve=meta.get("chirp_stretch_shift"),
+        t_doa=float(meta.get("doa_time_s") or 0.0), t_stretch=meta.get("stretch_time_s"),
+        nuisance=not velocity_in_sigma(meta))
     if motion["source"] is not None:
         stages["motion"] = motion
-    if not motion["applied"]:   # (a moving source's corrected problem is motion_solve's own: not started again)
-        res, retried = retry_dropped(p, res, kinds, joint)
-        if retried:
-            stages["mirror_rejoined"] = retried
+    # (a moving source's joint solve started again with its correction: deploy 501's clear pair was dropped in
+    # its mirror basin, 3 m off, and never restarted while the retry was skipped for a moving source)
+    res, retried = retry_dropped(p_again, res, kinds, joint_again)
+    if retried:
+        stages["mirror_rejoined"] = retried
     kinds = active_kinds(res.problem)   # (a moving source's velocity error adds its prior)
     res.state, basins = fold_basins(res.problem, res.state, res.layout, kinds, res.mask, max_iter)
     if basins:

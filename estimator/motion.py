@@ -273,17 +273,19 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
     (:func:`motion_gain` ≥ MIN_GAIN). ``nuisance``: the velocity error a parameter of the solve (``State.dv``,
     :func:`corrected`'s ``sigma_v``); False where the rows' σ already holds it (:func:`velocity_in_sigma`): then
     only the error bars take it (:class:`MotionNoise`). Returns (the result kept, record for report.json
-    ``motion``; ``velocity_nuisance``: whether it was a parameter).
+    ``motion``; ``velocity_nuisance``: whether it was a parameter; the joint solve to start again from another
+    state: (problem, solve) for ``solve(problem, state)``, the correction made at that state when one was
+    applied — ``ambiguity.retry_dropped``'s rejoin).
     """
     vel, source = source_velocities(events, p_raw.t, p_raw.odom)
     if vel is None or not p_raw.beta:   # β = 0: the features state no coupling (a frontend that has none)
-        return first, {"source": None, "applied": False}
+        return first, {"source": None, "applied": False}, (p_raw, solve)
     rec = {"source": source, "median_speed_m_s": float(np.median(np.linalg.norm(vel, axis=1)))}
     if source == "odometry":
         gain, sd = motion_gain(first.problem, first.state, first.layout, first.mask, vel, kinds)
         rec.update(gain=gain, gain_std=sd)
         if not gain >= MIN_GAIN:
-            return first, {**rec, "applied": False}
+            return first, {**rec, "applied": False}, (p_raw, solve)
     t_star = float(t_stretch if t_stretch is not None else t_doa)
     rec["velocity_sigma_m_s"] = velocity_sigma(p_raw.t, p_raw.odom, vel, t_star, p_raw.sigma["odometry"])
     rec["velocity_nuisance"] = bool(nuisance)
@@ -297,6 +299,11 @@ def motion_solve(p_raw, events, first, solve, *, kinds, curve=None, t_doa=0.0, t
         if not yaw[0]["kept"]:   # IVE's yaw was the uncorrected shifts: solved again with the yaw fixed at 0
             p_raw = p_raw.replace(odo_yaw_free=False, odo_yaw_test=yaw[0])
             cur = solve(corrected(p_raw, yaw[1], vel, curve, t_doa, t_stretch, sigma_v), yaw[1])
+
+    def corrected_solve(p_, st):   # (the shifts in the factors; the DOAs turned at the start state, as above)
+        return solve(corrected(p_, st, vel, curve, t_doa, t_stretch, sigma_v), st)
+
     return cur, {**rec, "applied": True, "curve": bool(curve),
                  "max_shift_s": float(np.max(np.abs(arrival_shifts(
-                     p_raw, cur.state, vel, curve, sweep_middle(p_raw.t, p_raw.odom, vel, t_stretch or t_doa)))))}
+                     p_raw, cur.state, vel, curve, sweep_middle(p_raw.t, p_raw.odom, vel, t_stretch or t_doa)))))}, \
+        (p_raw, corrected_solve)
