@@ -152,7 +152,7 @@ def assess(d, out, preset):
     ref = tru.index[np.all(tru[["x", "y", "z", "offset"]].to_numpy() == 0, axis=1)
                     & (tru["qw"].to_numpy() == 1)][0]
     clear = [a for a, f in los.groupby("array")["los"].mean().items() if f > 0.5 and a != ref]
-    per = {p["array"]: {**p, "rot_deg": _rot_deg(p)} for p in m["per_array"]}
+    per = {p["array"]: {**p, "rot_deg": _rot_deg(p), "position_m": _position_m(p)} for p in m["per_array"]}
     bound = WIDE.get(preset, BOUND)
     off = {a for a, p in per.items() if p["position_m"] > bound[0] or p["rot_deg"] > bound[1]}
     sig = {a: _sigmas(est, tru, a, per[a]) for a in per}
@@ -219,6 +219,11 @@ def _error_over_std(est, tru, a):
         return None
     err = est.loc[a, ["x", "y", "z"]].to_numpy(float) - tru.loc[a, ["x", "y", "z"]].to_numpy(float)
     return float(np.linalg.norm(err) / median_error(std))
+
+
+def _position_m(p):
+    """Position error (m); an array the calibration gave no position (a `failed` verdict's) is off: inf."""
+    return float("inf") if p.get("position_m") is None else float(p["position_m"])
 
 
 def _rot_deg(p):
