@@ -1256,8 +1256,15 @@ def _decide(solve, features, models, proposals, options):
         costs.append(cost)
         if best is None or cost < best[0]:
             best = (cost, (trial, res), prop)
-    rivals = [prop for prop, c in zip(proposals, costs) if prop is not best[2] and 2.0 * (c - best[0]) < AMBIGUOUS_CHI2]
+    # (the array's scan and the joint scan may propose the same component, sized a little apart: no rival)
+    rivals = [prop for prop, c in zip(proposals, costs)
+              if _shape(prop) != _shape(best[2]) and 2.0 * (c - best[0]) < AMBIGUOUS_CHI2]
     return (*best[1], rivals)
+
+
+def _shape(prop):
+    """{clock: its components' (kind, time)} of a proposal: what it models, whatever the sizes."""
+    return {n: [(c.kind, round(c.time, 9)) for c in comps] for n, comps in prop.items()}
 
 
 def _last(trial, models):
