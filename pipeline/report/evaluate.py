@@ -1,6 +1,7 @@
 """Calibration vs ground truth: the metrics of docs/formats.md section 4 (the paper's, Zhang et al. 2025)."""
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -322,8 +323,6 @@ def clock_errors(calib, truth):
 def _estimated_clocks(calib, t0):
     """{array: its recovered :class:`calib.clock.Clock`}: the calibration's offset and drift, and the steps
     and drift terms of its report's clock models."""
-    from dataclasses import replace
-
     from calib.estimator.clockmodel import as_clock, models_from_report
 
     models = models_from_report(calib.get("report"))
@@ -344,8 +343,6 @@ def _rate_ratio(entry, clock):
 
 def _relative(clock, offset):
     """The true clock with the truth's relative ``offset`` (kept where that is unknown)."""
-    from dataclasses import replace
-
     return replace(clock, offset=float(offset)) if np.isfinite(offset) else clock
 
 
