@@ -12,8 +12,8 @@ and lateness (diagnostics.json) and the truth's line of sight (truth/los.csv).
 
 Printed: (1) per doubt kind (``nlos`` rows are screened out before the solve, so absent; ``mic_spread`` before
 ``weak_direct`` before any other timing doubt; ``-`` none) the arrivals' true error: RMS, median, 90th percentile,
-the share beyond ``--blunder-us`` and beyond 200 µs, and beyond 5× the arrival's own whitening sigma (the row
-sigma the solve used, / √2); (2) per array more than ``--min-cm`` off, the part of its error (along it, linear:
+the share beyond ``--blunder-us`` and beyond 200 µs, and beyond 5× the arrival's whitening sigma (its array's
+median TDOA-S row sigma in the solve, / √2); (2) per array more than ``--min-cm`` off, the part of its error (along it, linear:
 ``diag_row_attribution``) that the rows of blunder arrivals carry, flagged and unflagged, and (unless
 ``--no-oracle``) its error when every such row is taken out of the features before calibrating (an oracle: the
 most any treatment of blunders could give; the linear share is not that, the other rows and the outlier tests
@@ -95,7 +95,8 @@ def kind_table(arr, blunder_us):
     a = arr.assign(abs=arr.err_us.abs(), far=arr.err_us.abs() > FAR_SIGMA * arr.sig_us)
     g = a.groupby("kind").agg(n=("abs", "size"), rms=("err_us", lambda x: np.sqrt(np.mean(x**2))),
                               median=("abs", "median"), p90=("abs", lambda x: np.quantile(x, 0.9)),
-                              blunder=("abs", lambda x: np.mean(x > blunder_us)), over_200=("abs", lambda x: np.mean(x > 200)),
+                              blunder=("abs", lambda x: np.mean(x > blunder_us)),
+                              over_200=("abs", lambda x: np.mean(x > 200)),
                               over_5sigma=("far", "mean"), row_sigma=("sig_us", "median"), los=("los", "mean"))
     return g.rename(columns={"blunder": f"> {blunder_us:g} µs"})
 
@@ -154,7 +155,8 @@ def main(argv=None):
                 continue
             c = 100 * contrib[cols]
             along = (lambda m: float(c[:, m & used].sum(1) @ err / np.linalg.norm(err)))
-            print(f"{name} {a}: {np.linalg.norm(err):.1f} cm; along it, blunder rows flagged {along(hit & flagged):+.1f} "
+            print(f"{name} {a}: {np.linalg.norm(err):.1f} cm; along it, blunder rows flagged "
+                  f"{along(hit & flagged):+.1f} "
                   f"({int((hit & flagged & used).sum())} rows), unflagged {along(hit & ~flagged):+.1f} "
                   f"({int((hit & ~flagged & used).sum())}); without them (oracle) "
                   f"{'-' if oracle is None else f'{oracle.get(a, np.nan):.1f} cm'}", flush=True)
