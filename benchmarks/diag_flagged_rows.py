@@ -34,7 +34,8 @@ import scipy.sparse.linalg as spl
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from diag_row_attribution import attribution  # noqa: E402
 
-TIMING_DOUBTS = ("redetected", "weak_direct", "early_onset", "low_snr", "mic_spread", "track", "occluded", "nlos")
+from calib.frontend.extract import TIMING_DOUBTS
+
 KIND_ORDER = ("nlos", "mic_spread", "weak_direct")   # an arrival's doubt kind: the first of these it has
 FAR_SIGMA = 5.0        # "beyond 5× its sigma": the estimator's outlier level (outlier_threshold)
 
