@@ -826,6 +826,37 @@ def test_a_wrong_header_rate_is_measured_from_the_chirps_spacing(seed):
     assert rate_corrections(session, every) == {}
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_an_array_that_missed_chirps_at_its_right_rate_is_not_searched_at_other_rates(monkeypatch, seed):
+    """An array that matched fewer than 80 % of the events (chirps lost behind an obstacle, at low SNR) but whose
+    detections' intervals agree with the emission intervals at its header's rate keeps that rate, without the
+    search that reads its whole recording at 22 other rates; one whose few detections agree with too few
+    intervals is still searched, and its wrong rate found."""
+    import pandas as pd
+
+    from calib.pipeline import headerrate
+
+    rng = np.random.default_rng(seed)
+    t_emit = np.cumsum(rng.uniform(2.0, 3.0, 16))
+    session = {"events": pd.DataFrame({"event": np.arange(16), "t_emit": t_emit}),
+               "arrays": [{"name": n, "sample_rate": None} for n in ("A1", "A2")]}
+    t = t_emit + 0.02 * rng.standard_normal(16) / 343.0 + rng.uniform(0, 5)   # crystal-true clocks, a wandering range
+    lost = rng.choice(16, 5, replace=False)                                     # 11 of 16 matched
+    diag = {"arrays": {"A1": {"fs": 16000, "detections": [{"time": float(x), "event": k} for k, x in enumerate(t)]},
+                       "A2": {"fs": 16000, "detections": [{"time": float(x), "event": k} for k, x in enumerate(t)
+                                                          if k not in lost]}}}
+    searched = []
+
+    def search(array, session, threshold=8.0):   # the search: here a 44.1 kHz board written as 48
+        searched.append(array["name"])
+        return 44100 / 48000, 0.9, (44100 / 48000) * t
+    monkeypatch.setattr(headerrate, "searched_scale", search)
+    assert headerrate.rate_corrections(session, diag) == {} and searched == []
+    few = {**diag["arrays"]["A2"], "detections": diag["arrays"]["A2"]["detections"][:2]}   # mostly missed
+    fixes = headerrate.rate_corrections(session, {"arrays": {**diag["arrays"], "A2": few}})
+    assert searched == ["A2"] and list(fixes) == ["A2"] and fixes["A2"]["used"] == round(16000 * 44100 / 48000)
+
+
 def test_a_fast_clock_stands_only_if_the_array_is_trusted_at_its_measured_rate(monkeypatch):
     """A fast-clock candidate (its association at the search bound) is read at the rate a first solve's drift
     gives it, trusted or not (a true fast clock's sweep is off the template: its timing is biased until then).
