@@ -438,6 +438,25 @@ def test_an_array_isolated_for_its_unmodelled_step_is_readmitted_with_it():
     assert np.all(np.asarray(errors[0]) < 1.5 * np.asarray(errors[1]) + 0.002)   # every array, A5 too
 
 
+def test_an_array_isolated_by_request_keeps_its_step_in_its_own_fit():
+    """An array solved without (``isolate``) is unreliable by construction, which says nothing of its clock terms:
+    its step stays, and its pose refitted alone is as good as without the fault (before: the step was removed for
+    the array being unreliable, and A3 refitted alone without it was 37 cm off)."""
+    from calib.pipeline.report.evaluate import array_errors, array_table
+
+    f, truth = _bench_steps(512, {"A3": (15, -0.005)})
+    cal = calibrate(f, clock_model="auto", isolate=["A3"], **NO_TARGET)
+    (s,) = _steps(cal, "A3")
+    assert (s["after_event"], s["before_event"]) == (15, 16) and abs(s["size"] + 0.005) < 3 * s["std"]
+    assert cal["report"]["unreliable_arrays"] == ["A3"]
+    f0, truth0 = _bench_steps(512, {})
+
+    def a3(c, t):
+        e = array_errors(array_table(c["arrays"]), array_table(t["arrays"]))
+        return dict(zip(e["array"], e["position_m"]))["A3"]
+    assert a3(cal, truth) < 1.5 * a3(calibrate(f0, clock_model="linear", isolate=["A3"]), truth0) + 0.002
+
+
 @pytest.mark.parametrize("seed,name,k,size,seen", [(525, "A4", 21, 1e-4, True), (525, "A4", 21, -1e-4, True),
                                                     (550, "A5", 27, 1e-4, False)])
 def test_a_0_1_ms_step_is_found_where_the_data_hold_it_and_costs_little_where_they_do_not(seed, name, k, size, seen):
