@@ -97,8 +97,9 @@ OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
 )
 OPTION = {o.name: o for o in OPTIONS}
 DEFAULTS = {o.name: o.default for o in OPTIONS}
-# keywords of calibrate that are data or a callback (clock_veto), not options (not checked here)
-INPUTS = ("init_state", "problem", "isolate", "clock_veto")
+# keywords of calibrate that are data or a callback (clock_veto), not options (not checked here); readmit: the
+# leave-one-array-out test's isolated arrays that may come back with their clock terms (clockmodel._readmit)
+INPUTS = ("init_state", "problem", "isolate", "clock_veto", "readmit")
 
 
 def cli_options() -> tuple[Option, ...]:

@@ -62,14 +62,16 @@ def calibrate(features: Mapping[str, Any], *, target_position: float = 0.03, tar
 def _leave_one_out(result, features, options, clock_veto=None):
     """The leave-one-array-out test (``estimator.consistency``) on a full result of the hybrid method: arrays
     whose rows move the others more than the noise allows are solved without (the clock models chosen
-    again) and named in the verdict; report.json ``leave_one_out``."""
+    again; one whose own new clock terms then explain its rows is given back: ``clockmodel._readmit``) and named
+    in the verdict; report.json ``leave_one_out``."""
     if options.get("outputs", "all") != "all" or options.get("method", "hybrid") != "hybrid":
         return result
     t0 = time.perf_counter()
     before = list(options.get("isolate") or ())
 
-    def resolve(names):
+    def resolve(names, readmit=True):
         return clockmodel.calibrate_clocks(calibrate_features, features, clock_veto=clock_veto,
+                                           readmit=names if readmit else (),
                                            **{**options, "isolate": before + list(names)})
 
     result, record = consistency.settle(result, features["meta"], resolve, max_iter=options.get("max_iter", 200))

@@ -1350,7 +1350,7 @@ def _suspects(result):
     return out | {o["array"] for o in outliers if o.get("type") in ("tdoa_s", "tdoa_m") and o.get("array")}
 
 
-def calibrate_clocks(solve, features, *, clock_model="auto", clock_veto=None, **options):
+def calibrate_clocks(solve, features, *, clock_model="auto", clock_veto=None, readmit=(), **options):
     """``solve(features, **options)`` with per-array clock models chosen by the evidence (module docstring).
 
     clock_model : "auto" (default): the linear clock unless the evidence asks for steps / drift terms per
@@ -1360,6 +1360,9 @@ def calibrate_clocks(solve, features, *, clock_model="auto", clock_veto=None, **
         the linear clock (a clock finding then says so), or None. ``calib estimate`` asks the set-up findings
         it computes meanwhile: a session whose set-up failed as a whole gets no selection, whose trial solves
         only fit clock terms to the mistake (minutes of CPU on another session's odometry).
+    readmit : names among ``options["isolate"]`` that the leave-one-array-out test isolated
+        (``calibrate``): one whose clock gets components is solved with them and its rows again, and kept in
+        where its rows then agree (:func:`_readmit`).
     The result's report (and ``outputs="solution"`` results) get ``clock`` (:func:`clock_report`); the
     arrays' and sources' 1-σ include the components' uncertainty.
     """
@@ -1381,6 +1384,7 @@ def calibrate_clocks(solve, features, *, clock_model="auto", clock_veto=None, **
                 result, models = _auto(solve, features, first, options, rounds, start)
             else:
                 result, models, features = _auto_readmitting(solve, features, first, options, rounds)
+            result, models = _readmit(solve, features, result, models, options, readmit, first, rounds)
         except ObservabilityError as err:   # a trial model left the data unable to fix something: linear
             result, models = first, {}
             rounds.append([{"rejected": f"a clock model left the problem unobservable ({err}): the linear clock"}])
@@ -1846,8 +1850,10 @@ def _refine_and_resolve(solve, features, result, models, options, first=None):
     # an array the session still contradicts with its components (dropped as inconsistent, or named for
     # holding the outliers: biased as a whole): they did not explain it, a reflection's bias is no clock's; it
     # keeps the linear clock and the consistency tests name it as before
+    # (an array isolated by request is unreliable by construction: that says nothing of its terms)
     flagged = ((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or []
-    bad = [n for n in set(_unreliable(result)) | set(flagged) if n in models]
+    isolated = set(options.get("isolate") or ())
+    bad = [n for n in (set(_unreliable(result)) - isolated) | set(flagged) if n in models]
     bad += [n for n, comps in models.items() if n not in bad and _has_pulse(comps)]
     # a clock term moves no DOA: an array whose DOAs fit worse with its terms (its pose moved to where the terms
     # and the TDOAs agree: reflections, not a clock) keeps the linear clock
@@ -1858,6 +1864,31 @@ def _refine_and_resolve(solve, features, result, models, options, first=None):
         cov_info = refine(result, models)[2] if models else None
     _apply_std(result, cov_info)
     return result, models, bad, removed
+
+
+def _readmit(solve, features, result, models, options, names, first, rounds):
+    """(result, models): ``result`` solved again with the arrays ``names`` (isolated by the leave-one-array-out
+    test) that got clock components back in, where the joint judgement (:func:`_refine_and_resolve`) then keeps
+    every one of their components and names none of them (unreliable, flagged, DOAs worse). An array whose
+    unmodelled step bent the first fit is found inconsistent with the others; only once its rows are out does
+    its step show in the scan (the sources no longer bent around it), and isolated it is then refitted alone:
+    bench_clocks seed 529, A5's 0.91 ms drop found at margin 492 χ², and A5 lost (refitted alone, unreliable)."""
+    back = [n for n in names if models.get(n)]
+    if not back:
+        return result, models
+    opts = {**options, "isolate": [n for n in options.get("isolate") or () if n not in back]}
+    try:
+        trial = solve(correct_features(features, models), **opts)
+        trial, got, bad, removed = _refine_and_resolve(solve, features, trial, models, opts, first)
+        lost = set(bad) | {r[0] for r in removed} | set(_unreliable(trial))
+    except ObservabilityError:
+        lost = set(back)
+    if lost & set(back) or _worse(trial, result):
+        rounds.append([{"rejected": f"{n}: not readmitted (its rows with its clock terms still disagree with the "
+                                    "others'): solved without them"} for n in back])
+        return result, models
+    rounds.append([{"readmitted": f"{n}: its clock terms explain its rows: solved with them"} for n in back])
+    return trial, got
 
 
 def _doa_cost(result, features, sigma=None):

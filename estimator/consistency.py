@@ -289,15 +289,31 @@ def _inconsistent(chk):
     return [{**t, "helps": bool(t["shift_m"] ** 2 > ADOPT_RATIO * t["noise_m"] ** 2)} for t in bad]
 
 
+def _trial(resolve, name, meta, **kw):
+    """(result, its check, readmitted) of ``resolve((name,))``: the session without array ``name``, or with it
+    given back (``readmitted``: not among the result's unreliable arrays). Given back, it must leave every array
+    consistent; else the session is solved without it after all (``resolve(names, readmit=False)``)."""
+    trial = resolve((name,))
+    again = check_result(trial, meta, **kw)
+    back = name not in (trial["report"].get("unreliable_arrays") or ())
+    if back and _inconsistent(again):
+        trial = resolve((name,), readmit=False)
+        again, back = check_result(trial, meta, **kw), False
+    return trial, again, back
+
+
 def settle(result, meta, resolve, *, max_iter=200, alpha=FAMILY_ALPHA):
     """Test ``result`` (:func:`check_result`). When arrays are inconsistent, try them (most significant first,
     then any a trial's own test names; at most MAX_TRIES) where their rows bias the others more than leaving
-    them out would cost (``helps``): ``resolve(names) -> result`` solves without that array (refitted alone);
+    them out would cost (``helps``): ``resolve(names, readmit=True) -> result`` solves without that array (refitted alone);
     that solution is adopted when its own arrays then test consistent (the array explained the inconsistency).
+    ``resolve`` may give the array back, solved with its rows again (``clockmodel.calibrate_clocks``' ``readmit``:
+    clock terms the scan found once its rows were out explain them): kept so when every array then tests
+    consistent, else solved without it (``readmit=False``, :func:`_trial`).
     Returns (the result adopted or ``result``, report.json ``leave_one_out``: {"rounds": [each check, with
     "isolated": the names solved without], "inconsistent": [the inconsistent arrays' test records, each with
-    "helps" and "isolated": solved without], "explained": one array solved without left the rest consistent,
-    or a single array was named})."""
+    "helps", "isolated": solved without, and "readmitted": the trial gave it back with its rows, consistent],
+    "explained": one array solved without left the rest consistent, or a single array was named})."""
     first = check_result(result, meta, max_iter=max_iter, alpha=alpha)
     rounds = [{**first, "isolated": []}]
     queue, found, tried = _inconsistent(first), {}, 0
@@ -309,15 +325,15 @@ def settle(result, meta, resolve, *, max_iter=200, alpha=FAMILY_ALPHA):
         if not rec["helps"]:
             continue
         try:
-            trial = resolve((rec["array"],))
+            trial, again, back = _trial(resolve, rec["array"], meta, max_iter=max_iter, alpha=alpha)
         except ObservabilityError:
             continue
         tried += 1
-        again = check_result(trial, meta, max_iter=max_iter, alpha=alpha)
         rounds.append({**again, "isolated": [rec["array"]]})
         more = _inconsistent(again)
         if not more:
-            return trial, {"rounds": rounds, "inconsistent": [{**rec, "isolated": True}], "explained": True}
+            return trial, {"rounds": rounds, "inconsistent": [{**rec, "isolated": not back, "readmitted": back}],
+                           "explained": True}
         queue += more   # (their figures are those of the trial without rec's array)
     found.update({t["array"]: t for t in queue if t["array"] not in found})
     out = [{**t, "isolated": False} for t in found.values()]

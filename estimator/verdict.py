@@ -158,9 +158,18 @@ def name_inconsistent(verdict, record):
     report.json ``leave_one_out``), in place: flagged, status at least ``suspect``, the reason with the largest
     move each caused and what was done: solved without it (``isolated``: the rest then tested consistent), or
     kept (its pull within the noise that leaving it out adds, or no single array explains the inconsistency:
-    then every array tested is flagged)."""
+    then every array tested is flagged). An array the trial without it gave back (``readmitted``: clock terms,
+    found once its rows were out, explain them; the whole then tests consistent) is not flagged: the reason says
+    what its rows did before those terms."""
     found = record["inconsistent"]
     for t in found:
+        if t.get("readmitted"):
+            verdict["reasons"].append(
+                f"array {t['array']} was inconsistent with the others until its clock terms were modelled: leaving "
+                f"it out moved {t['moved']} by {100 * t['move_m']:.1f} cm (Hausman T = {t['T']:.1f} on {t['dof']} "
+                f"dof, p = {t['p']:.1g} < {t['alpha']:.1g}); without its rows its clock's terms showed (report.json "
+                "clock), and with them its rows agree with the others'")
+            continue
         if t["isolated"]:
             then = "solved without its rows (the others then agree); its own pose, refitted alone, is unreliable"
         elif not t["helps"]:
