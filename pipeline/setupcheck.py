@@ -512,7 +512,8 @@ def _doa_rows(features, name, e_id, ambiguous=False, allow=()):
     doa = features["doa"]
     doa = doa[doa["array"] == name]
     if "flag" in doa and allow is not None:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
-        doa = doa[[f <= set(allow) for f in _flags(doa["flag"])]]
+        # a boolean array, not a list: an array without DOA rows gives [], which pandas reads as "no columns"
+        doa = doa[np.array([f <= set(allow) for f in _flags(doa["flag"])], bool)]
     doa = doa.drop_duplicates("event").set_index("event")
     have = np.isin(e_id, doa.index)
     u[have] = doa.loc[e_id[have], ["ux", "uy", "uz"]].to_numpy(float)
