@@ -554,3 +554,13 @@ def test_an_array_without_doas_is_fitted_from_its_arrivals(sample_features):
     c, sd, rms, _ = fits[name]
     assert abs(c - 343.0) < 3 * sd and rms < 1e-3
     assert sound_findings(feats, fits) == []
+
+
+def test_a_mis_scaled_odometry_is_offered_as_the_cause_too(sample_features):
+    """The arrivals against the odometry fix only c / (the odometry's scale): odometry 5 % long (a wheel-diameter
+    error) with the right speed of sound reads as c 5 % high. The finding must offer that cause beside the
+    temperature (before: only "set it to the air's", advice that would put every array 5 % off)."""
+    ev = _odo(sample_features["events"], lambda o: o * 1.05)
+    found = sound_findings(_with(sample_features, events=ev))
+    assert found and "speed_of_sound = 343" in found[0].text, found
+    assert "odometry's distances" in found[0].text and "too long" in found[0].text
