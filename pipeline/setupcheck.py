@@ -512,7 +512,8 @@ def _doa_rows(features, name, e_id, ambiguous=False, allow=()):
     doa = features["doa"]
     doa = doa[doa["array"] == name]
     if "flag" in doa and allow is not None:  # the frontend's doubts (reflections, occlusion, spread): not the geometry's evidence
-        doa = doa[[f <= set(allow) for f in _flags(doa["flag"])]]
+        # a boolean array, not a list: an array without DOA rows gives [], which pandas reads as "no columns"
+        doa = doa[np.array([f <= set(allow) for f in _flags(doa["flag"])], bool)]
     doa = doa.drop_duplicates("event").set_index("event")
     have = np.isin(e_id, doa.index)
     u[have] = doa.loc[e_id[have], ["ux", "uy", "uz"]].to_numpy(float)
@@ -874,8 +875,12 @@ def sound_findings(features, fits=None, source="session.toml"):
         c_hat, sd = max(wrong, key=lambda t: abs(t[0] - c0) / t[1])
         rel = c_hat / c0 - 1
         p10 = 10 ** np.round(np.log10(c_hat / c0))
+        # the ranges fix only c / (the odometry's scale): a wheel-diameter or encoder error reads the same
         units = (f" — or the odometry is not in metres ({p10:g} × fits)" if p10 != 1 and
-                 abs(np.log10(c_hat / c0 / p10)) < 0.1 else "")
+                 abs(np.log10(c_hat / c0 / p10)) < 0.1 else
+                 f" — or, if the declared speed of sound is right, the odometry's distances are {abs(100 * rel):.0f} % "
+                 f"too {'long' if rel > 0 else 'short'} (wheel diameter, encoder scale): then correct events.csv, "
+                 "not the speed of sound")
         out.append(Finding("failed", source, "speed of sound", f"{source}: speed_of_sound = {c0:g} m/s, "
                            f"but the metric odometry says {c_hat:.0f} ± {sd:.0f} m/s ({100 * rel:+.0f} %): set it "
                            f"to the air's (343 m/s at 20 °C; 331.3 + 0.606·T °C){units}"))

@@ -254,3 +254,23 @@ def test_a_combined_preset_renders_with_its_truth(tmp_path):
     again = simulate(load_scenario(out / "truth" / "manifest.json"), tmp_path / "again")
     for f in ["A1.wav", "A5.wav", "events.csv", "truth/los.csv", "truth/manifest.json"]:
         assert filecmp.cmp(out / f, again / f, shallow=False), f
+
+
+@pytest.mark.parametrize("key,value,needle", [("boards", "pair", None), ("boards", "[pair,tetra]", "'[pair,tetra]'"),
+                                              ("boards", ["pair", "quad9"], "'quad9'"), ("mounts", ["wall", "ceiling"],
+                                                                                         "'ceiling'")])
+def test_board_and_mount_names_are_checked_as_input(key, value, needle):
+    """`--set boards=...` as a user types it (a bare name, TOML without quotes: a string; a misspelt board): one
+    board name is that board on every array; anything else is an input error naming the value and the choices,
+    never an internal error (a KeyError on the string's first character)."""
+    from calib.pipeline.formats.io import InputError
+    from calib.pipeline.simulate.deploy import BOARDS
+
+    if needle is None:
+        sc = make_scenario("mixed", 0, n_events=2, **{key: value})
+        assert {a["board"] for a in sc["arrays"]} == {value}
+        assert all(len(a["mics"]) == len(BOARDS[value][0]) for a in sc["arrays"])
+        return
+    with pytest.raises(InputError) as exc:
+        make_scenario("mixed", 0, n_events=2, **{key: value})
+    assert needle in str(exc.value) and key in str(exc.value)

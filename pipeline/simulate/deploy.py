@@ -314,9 +314,28 @@ def _robot_curve(geo, room, rng, way):
     raise ValueError("deploy: no robot path fits this room (give 'sources' for a floor plan of your own)")
 
 
+MOUNTS = ("wall", "table", "stand")
+
+
+def _names(value, key, choices):
+    """``value`` (one name, or a list of names) as a list of names from ``choices`` (a board name may carry
+    ``@rate``); else a ValueError naming the value and the choices (``--set boards=pair`` is one board for
+    every array; ``--set boards=[pair,tetra]``, TOML without quotes, arrives as one string)."""
+    names = [value] if isinstance(value, str) else value
+    known = isinstance(names, list) and len(names) > 0 and all(
+        isinstance(v, str) and v.partition("@")[0] in choices and (v.partition("@")[2] or "0").isdigit()
+        for v in names)
+    if not known:
+        bad = next((v for v in names if not isinstance(v, str) or v.partition("@")[0] not in choices), value) \
+            if isinstance(names, list) else value
+        raise ValueError(f"{key}: unknown {bad!r} (give a name or a list of names, quoted in TOML: "
+                         f"{key}=[\"{choices[0]}\", ...]; one of {', '.join(choices)})")
+    return names
+
+
 def _arrays(g, geo, path, n, rng_pose, rng_clock):
-    boards = list(g["boards"] or ["circle6"])
-    mounts = list(g["mounts"] or ["wall", "table"])
+    boards = _names(g["boards"] or ["circle6"], "boards", tuple(BOARDS))
+    mounts = _names(g["mounts"] or ["wall", "table"], "mounts", MOUNTS)
     kinds = [mounts[i % len(mounts)] for i in range(n)]
     hi = min(geo["height"] - 0.3, 4.0)
     poses = place_arrays([("wall", (1.5, hi)) if m == "wall" else (m,) for m in kinds], geo, path, rng_pose)

@@ -1,0 +1,112 @@
+"""Red-team sweep for wrong answers that look right: `calib simulate` sessions under conditions beyond the
+presets, `calib run` on each (the user's path, exit code kept), each array scored against truth.
+
+    python benchmarks/bench_redteam.py CASES --work /tmp/redteam        # one case per line of CASES:
+    #   NAME|PRESET|SEED|simulate options, e.g.
+    #   c03|lab|602|--n-events 6
+    #   c33|mixed|632|--set 'boards=["pair","circle6","linear4","tetra","circle7c"]' --clock A3=drop
+    #   s1|lab|650|--set speed_of_sound=349.0 @c=343      # rendered at 349 m/s, session.toml then says 343
+    #   o1|lab|652|@odo=1.03                              # events.csv odometry x, y scaled by 1.03 (wheel error)
+
+Tokens ``@c=V`` (declare the speed of sound V in session.toml after rendering: a thermometer-less user) and
+``@odo=S`` (scale the odometry's x, y: a wheel-diameter error) edit the rendered session. Sessions are reused
+when present (delete the folder to render again). Per case: exit code, verdict, named arrays, and per array
+its position / orientation error, the largest position error over its stated std (bench_deploy's scoring),
+and the flags: (a) verdict ok with an array > 3σ off; (b) an array beyond the bound (3 cm / 1.5°; warehouse,
+bighall 5 cm / 2°) that the verdict does not name; (c) an exit code other than 0/2/3, or anything on stderr.
+Seeds: use the development range for tuning; a held-out check uses its reserved seeds once.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_deploy import BOUND, WIDE  # noqa: E402
+
+SIGMA_FLAG = 3.0   # (a): an array this many stated std off in an `ok` verdict
+
+
+def render(d, preset, seed, opts):
+    """`calib simulate` (unless ``d`` holds a session), then the @c / @odo edits; '' or its error."""
+    sim = [o for o in opts if not o.startswith("@")]
+    edits = dict(o[1:].split("=", 1) for o in opts if o.startswith("@"))
+    if not (d / "truth" / "manifest.json").is_file():
+        p = subprocess.run([sys.executable, "-m", "calib", "simulate", "-o", str(d), "--preset", preset, "--seed",
+                            str(seed), "--quiet", "--force", *sim], capture_output=True, text=True)
+        if p.returncode:
+            return f"simulate exit {p.returncode}: {p.stderr.strip()[-200:]}"
+        if "c" in edits:
+            toml = d / "session.toml"
+            lines = [f"speed_of_sound = {float(edits['c'])}" if ln.startswith("speed_of_sound") else ln
+                     for ln in toml.read_text().splitlines()]
+            toml.write_text("\n".join(lines) + "\n")
+        if "odo" in edits:
+            ev = pd.read_csv(d / "events.csv")
+            ev[["odom_x", "odom_y"]] *= float(edits["odo"])
+            ev.to_csv(d / "events.csv", index=False, float_format="%.9f")
+    return ""
+
+
+def score(d, out, preset):
+    """(verdict, named, per-array rows [(array, cm, deg, σ-multiple or nan)], flags)."""
+    v = json.loads((out / "calibration" / "report.json").read_text())["verdict"]
+    named = set(v.get("flagged_arrays") or [])
+    m = json.loads((out / "report" / "metrics.json").read_text())
+    est = pd.read_csv(out / "calibration" / "arrays.csv").set_index("array")
+    tru = pd.read_csv(d / "truth" / "arrays.csv").set_index("array")
+    bound, rows, flags = WIDE.get(preset, BOUND), [], []
+    for p in m["per_array"]:
+        a = p["array"]
+        cm = np.inf if p.get("position_m") is None else 100 * p["position_m"]
+        deg = next((p[k] for k in ("geodesic_deg", "axis_deg") if p.get(k) is not None), 0.0)
+        std = est.loc[a, ["x_std", "y_std", "z_std"]].to_numpy(float)
+        err = est.loc[a, ["x", "y", "z"]].to_numpy(float) - tru.loc[a, ["x", "y", "z"]].to_numpy(float)
+        z = float(np.max(np.abs(err) / std)) if np.all(np.isfinite(std) & (std > 0)) else np.nan
+        rows.append((a, cm, deg, z))
+        if (cm > 100 * bound[0] or deg > bound[1]) and a not in named:
+            flags.append(f"(b) {a} off, unnamed")
+        if v.get("status") == "ok" and z > SIGMA_FLAG:
+            flags.append(f"(a) ok with {a} {z:.1f}σ")
+    return v.get("status"), named, rows, flags
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("cases", type=Path, help="NAME|PRESET|SEED|OPTIONS per line (# comments)")
+    ap.add_argument("--work", type=Path, required=True, help="sessions and runs (reused when present)")
+    args = ap.parse_args()
+    print("| case | preset:seed | options | exit | verdict | named | per array: cm / deg (σ-multiple), * named "
+          "| flags |\n|---|---|---|---|---|---|---|---|")
+    for line in args.cases.read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        name, preset, seed, opts = (f.strip() for f in line.split("|", 3))
+        d, out = args.work / name, args.work / f"{name}_run"
+        err = render(d, preset, seed, shlex.split(opts))
+        if err:
+            print(f"| {name} | {preset}:{seed} | `{opts}` | - | - | - | {err} | simulate rejects |", flush=True)
+            continue
+        p = subprocess.run([sys.executable, "-m", "calib", "run", str(d), "-o", str(out), "--force", "--quiet"],
+                           capture_output=True, text=True)
+        try:
+            status, named, rows, flags = score(d, out, preset)
+        except (OSError, KeyError, ValueError) as exc:
+            status, named, rows, flags = "-", set(), [], [f"no result: {exc!r}"]
+        flags += [f"(c) exit {p.returncode}"] * (p.returncode not in (0, 2, 3))
+        if p.stderr.strip():
+            flags.append(f"(c) stderr: {p.stderr.strip().splitlines()[-1][:100]}")
+        per = "; ".join(f"{a}{'*' * (a in named)} {cm:.1f}/{deg:.1f} ({z:.1f}σ)" for a, cm, deg, z in rows)
+        print(f"| {name} | {preset}:{seed} | `{opts}` | {p.returncode} | {status} | {','.join(sorted(named)) or '-'} "
+              f"| {per} | {'; '.join(flags) or '-'} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
