@@ -300,7 +300,7 @@ SYMPTOM_NOTE = " (probably a symptom of the set-up finding(s) above, not a cause
 
 def with_setup(verdict, findings):
     """The verdict with the set-up findings (``calib.pipeline.setupcheck``: dicts with status "failed",
-    "suspect" or "note", text, array) ranked above the estimator's own reasons: a mistake in the set-up is
+    "suspect" or "note", text, array or arrays) ranked above the estimator's own reasons: a mistake in the set-up is
     the cause, the residuals and the odometry's apparent rotation its symptoms. A failed finding makes the
     verdict failed (the result cannot be trusted, whatever the residuals say); a suspect one at least
     suspect. The arrays named are added to ``flagged_arrays``. Returns a new dict."""
@@ -312,8 +312,9 @@ def with_setup(verdict, findings):
         setup.append(SETUP_PREFIX + f["text"])
         if STATUS_RANK[f["status"]] > STATUS_RANK[status]:
             status = f["status"]
-        if f.get("array") and f["array"] not in flagged:
-            flagged.append(f["array"])
+        for a in [f["array"]] if f.get("array") else list(f.get("arrays") or ()):
+            if a not in flagged:
+                flagged.append(a)
     failed = any(f.get("status") == "failed" for f in findings)
     generic = [r + SYMPTOM_NOTE if failed else r for r in verdict.get("reasons", [])]
     return {**verdict, "status": status, "reasons": setup + generic, "flagged_arrays": flagged}

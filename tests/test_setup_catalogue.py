@@ -353,6 +353,34 @@ def test_wrong_speed_of_sound_is_named(sample_features, c):
     assert found and found[0].status == "failed" and f"speed_of_sound = {c:g}" in found[0].text
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_speed_of_sound_1_to_3_percent_off_names_every_array(seed):
+    """Features simulated in air at 343 m/s (the paper's protocol; σ_TDOA 10 µs, DOAs 1°, odometry 5 mm): declared
+    1.8 % above or 1.5 % below it, under the 3 % that fails a session, the poses would bend with it (every range
+    from the reference scaled), so the finding is `suspect` and names every non-reference array; declared right,
+    or 0.5 % off (about 3 °C, what a thermometer allows), nothing is said."""
+    from calib.pipeline.simulate.featsim import simulate_features
+
+    feats, _ = simulate_features(3, 1e-5, 1.0, 0.005, seed=seed, c=343.0)
+    ref = feats["meta"]["reference_array"]
+    others = {a for a in feats["meta"]["arrays"] if a != ref}
+    for factor in (1.018, 0.985):
+        found = sound_findings(_with(feats, {"speed_of_sound": 343.0 * factor}))
+        assert len(found) == 1 and found[0].status == "suspect" and set(found[0].arrays) == others, found
+        c_hat, sd = map(float, re.search(r"say ([\d.]+) ± ([\d.]+) m/s", found[0].text).groups())
+        assert abs(c_hat - 343.0) < 3 * sd, found[0].text   # the air's, to its stated error
+    for factor in (1.0, 1.005, 0.995):
+        assert sound_findings(_with(feats, {"speed_of_sound": 343.0 * factor})) == []
+
+
+def test_a_finding_naming_several_arrays_flags_each():
+    from calib.estimator.verdict import with_setup
+
+    v = with_setup({"status": "ok", "reasons": [], "flagged_arrays": ["A4"]},
+                   [{"status": "suspect", "text": "t", "array": None, "arrays": ["A2", "A4"]}])
+    assert v["status"] == "suspect" and v["flagged_arrays"] == ["A4", "A2"]
+
+
 def _bent_doas(doa, factor):
     """The sample's DOAs as a planar array's SRP reports them when the declared speed of sound is ``factor`` × the
     air's: the in-plane part (the mics' plane z = 0) ``factor`` × the true one (the delays are v·m / c), clipped to
