@@ -9,25 +9,16 @@ import pytest
 import calib.frontend.doa as doa
 from calib.frontend.doa import band_scatter, srp_cone, srp_doa, srp_setup
 
-C = 343.0
-CIRCLE6 = np.c_[0.0463 * np.cos(np.arange(6) * np.pi / 3), 0.0463 * np.sin(np.arange(6) * np.pi / 3), np.zeros(6)]
+from .test_doa_reflection import CIRCLE6, C, angle_deg, plane_waves, reflected, unit
+
 TETRA = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) * 0.03
 LINEAR4 = np.c_[np.linspace(-0.06, 0.06, 4), np.zeros(4), np.zeros(4)]
 FREQS = np.linspace(500.0, 4000.0, 57)   # a 16 kHz session's gated band (gated_spectra)
 UP = np.array([0.0, 0.0, 1.0])
 
 
-def _unit(el, az):
-    return np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
-
-
 def _wave(u, mics):
-    """(J, M, F) spectra of plane waves from u (J, 3): mic m leads the origin by u·m / c."""
-    return np.exp(2j * np.pi * FREQS[None, None, :] * (u @ mics.T)[:, :, None] / C)
-
-
-def _angle_deg(a, b):
-    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+    return plane_waves(u, mics, FREQS)
 
 
 def _counted(monkeypatch):
@@ -46,11 +37,11 @@ def _counted(monkeypatch):
 @pytest.mark.parametrize("mics,hemisphere", [(CIRCLE6, UP), (TETRA, None)])
 def test_settled_refinement_finds_plane_waves_in_few_stencils(monkeypatch, mics, hemisphere):
     rng = np.random.default_rng(5)
-    u = _unit(np.radians(rng.uniform(5.0, 80.0, 64)), rng.uniform(-np.pi, np.pi, 64))
+    u = unit(np.radians(rng.uniform(5.0, 80.0, 64)), rng.uniform(-np.pi, np.pi, 64))
     setup = srp_setup(mics, FREQS, C, 3.0, hemisphere)
     calls = _counted(monkeypatch)
     est, _ = srp_doa(_wave(u, mics), setup)
-    assert _angle_deg(est, u).max() < 0.005
+    assert angle_deg(est, u).max() < 0.005
     # the full schedule from half a 3° step down to 0.02°: 7 stencils and the power at the result
     assert calls["n"] <= 5 * len(u)
 
@@ -69,27 +60,18 @@ def test_settled_refinement_equals_the_full_schedule_under_a_reflection(monkeypa
     # a wall reflection a pulse behind the direct path (test_doa_reflection): the SRP's peak is off the truth
     # and misshapen, the sub-bands' even more; the early stop lands where the full shrinking schedule does
     # (SETTLED_STEP < 0: never settled) and where a refinement 100× finer does, in fewer stencils
-    rng = np.random.default_rng(7)
-    n = 200
-    u = _unit(np.radians(rng.uniform(10.0, 60.0, n)), rng.uniform(-np.pi, np.pi, n))
-    wall = _unit(np.pi / 2 - np.radians(rng.uniform(5.0, 30.0, n)), rng.uniform(-np.pi, np.pi, n))
-    u2 = u - 2 * np.sum(u * wall, axis=1)[:, None] * wall
-    u2[:, 2] = np.abs(u2[:, 2])
-    level, delay = rng.uniform(0.5, 0.9, n), rng.uniform(0.1e-3, 0.6e-3, n)
-    g = _wave(u, CIRCLE6) + (level[:, None] * np.exp(-2j * np.pi * FREQS[None, :] * delay[:, None]))[:, None, :] \
-        * _wave(u2, CIRCLE6)
-    g /= np.abs(g)
+    u, g = reflected(np.random.default_rng(7), 200, CIRCLE6, FREQS)
     setup = srp_setup(CIRCLE6, FREQS, C, 3.0, UP)
     calls = _counted(monkeypatch)
     est, _ = srp_doa(g, setup)
     sd = band_scatter(g, setup, est)
     n_settled = calls["n"]
     fine, _ = srp_doa(g, setup, refine_to_deg=2e-4)
-    assert _angle_deg(est, fine).max() < 0.005
+    assert angle_deg(est, fine).max() < 0.005
     monkeypatch.setattr(doa, "SETTLED_STEP", -1.0)
     calls["n"] = 0
     full, _ = srp_doa(g, setup)
     sd_full = band_scatter(g, setup, full)
-    assert _angle_deg(est, full).max() < 0.005           # srp_doa's tolerance: 0.02°
+    assert angle_deg(est, full).max() < 0.005           # srp_doa's tolerance: 0.02°
     assert np.degrees(np.abs(sd - sd_full)).max() < 0.05   # band_scatter's: 0.1° (sub-band DOAs within 0.1° / 3)
     assert n_settled < 0.7 * calls["n"]
