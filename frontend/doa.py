@@ -83,9 +83,7 @@ def srp_cone(g, mics, axis, freqs, c, weights=None, step_deg=1.0, refine_to_deg=
         bad = (curv >= 0) | (np.abs(step) > 1.0)   # not a maximum inside: move to the best stencil point
         step = np.where(bad, np.argmax(v, axis=1) - 1.0, step)
         t[act] = np.clip(t[act] + h * step, 0.0, np.pi)
-        short = _short_step(h * np.abs(step), bad, tol)
-        done, was_short[act] = short & was_short[act], short
-        act = act[~done]
+        act = _unsettled(act, was_short, _short_step(h * np.abs(step), bad, tol))
         h *= 0.5
     return np.cos(t), power(t[:, None])[:, 0]
 
@@ -304,6 +302,15 @@ def _short_step(step, bad, tol):
     return ~bad & (step <= SETTLED_STEP * tol)
 
 
+def _unsettled(act, was_short, short):
+    """The rows of ``act`` (indices) still refined after a stencil step whose ``short`` (len(act),
+    :func:`_short_step`) says which were fitted and short: all but those whose previous step was short too.
+    ``was_short`` (every row's last step) is updated in place."""
+    done = short & was_short[act]
+    was_short[act] = short
+    return act[~done]
+
+
 def _refine_sphere(g, setup, w, u, refine_to_deg, start=0.5):
     """The grid's maxima u (J, 3) refined on the sphere: 3x3 stencil in the tangent plane, quadratic fit, shrink
     (from ``start`` grid steps) down to ``refine_to_deg``, a row done sooner after two fitted steps in a row
@@ -316,9 +323,7 @@ def _refine_sphere(g, setup, w, u, refine_to_deg, start=0.5):
         pts /= np.linalg.norm(pts, axis=-1, keepdims=True)
         delta, bad = _stencil_step(srp_power(g[act], setup["mics"], setup["freqs"], setup["c"], pts, w))
         u[act] = _fold(u[act] + h * (delta[:, 0:1] * e1 + delta[:, 1:2] * e2), setup)
-        short = _short_step(h * np.linalg.norm(delta, axis=1), bad, tol)
-        done, was_short[act] = short & was_short[act], short
-        act = act[~done]
+        act = _unsettled(act, was_short, _short_step(h * np.linalg.norm(delta, axis=1), bad, tol))
         h *= 0.7 if bad.all() else 0.5
     return u
 
@@ -341,9 +346,7 @@ def _refine_planar(g, setup, w, u, refine_to_deg, start=0.5):
         pts = (x[act, None, :] + h * STENCIL[None]) @ basis  # (J, 9, 3): in-plane vectors, |v| may exceed 1
         delta, bad = _stencil_step(srp_power(g[act], setup["mics"], setup["freqs"], setup["c"], pts, w))
         x[act] += h * delta
-        short = _short_step(h * np.linalg.norm(delta, axis=1), bad, tol)
-        done, was_short[act] = short & was_short[act], short
-        act = act[~done]
+        act = _unsettled(act, was_short, _short_step(h * np.linalg.norm(delta, axis=1), bad, tol))
         h *= 0.7 if bad.all() else 0.5
     r = np.linalg.norm(x, axis=1, keepdims=True)
     up = np.sqrt(np.clip(1.0 - r**2, 0.0, None)) * side[:, None]

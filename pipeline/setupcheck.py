@@ -895,7 +895,7 @@ def sound_findings(features, fits=None, source="session.toml"):
                            f"but the metric odometry says {c_hat:.0f} ± {sd:.0f} m/s ({100 * rel:+.0f} %): set it "
                            f"to the air's (343 m/s at 20 °C; 331.3 + 0.606·T °C){units}"))
     if not wrong:
-        out += _near_sound(features, *tests[0], c0, source) if good and tests else []
+        out += _near_sound(features, *tests[0], c0, source)   # (tests[0]: the DOA-aided fit of ``good``)
     if not out:  # the speed of sound fits the odometry: each planar or linear array's size against it
         # (the arrays whose arrivals fit: a wrong size raises the DOAs' misfit, not the arrivals')
         # (arrays too short for a speed of sound of their own are tried: their DOAs place them)
