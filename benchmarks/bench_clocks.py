@@ -213,11 +213,20 @@ CASES = {
                                                {"steps": [{"size": _size(s + 99, 1e-4, 0.05)}]}))),
     "warmup_1-5ppm": lambda s: {_pick(s): {"warmup": {"amplitude": float(np.random.default_rng([s, 3]).uniform(1e-6, 5e-6))
                                                       * (-1) ** s, "time_constant": 60.0}}},
+    # ... on the reference (A1): its warm-up shifts every array's TDOA-M of an event alike, which the sources take
+    # up (diag_ref_warmup.py: ~94 % of what the linear clocks leave), so it is seen less and bends the others more
+    "warmup_ref": lambda s: {"A1": {"warmup": {"amplitude": float(np.random.default_rng([s, 3]).uniform(1e-6, 5e-6))
+                                               * (-1) ** s, "time_constant": 60.0}}},
     # one array drops a block while another warms up (the held-back kind: a step and a varying drift at once,
     # each bending the fit the other is scanned at); sizes, amplitudes and time constants drawn
     "drop_and_warmup": lambda s: dict(zip(_two(s), ({"steps": [{"size": -_size(s, 1e-4, 0.05)}]},
                                                      {"warmup": {"amplitude": _size(s + 7, 1e-6, 5e-6) * (-1) ** s,
                                                                  "time_constant": _size(s + 5, 30.0, 240.0)}}))),
+    # ... the warm-up on the reference, the drop on another array (check seed 3608's kind)
+    "drop_and_ref_warmup": lambda s: {f"A{2 + np.random.default_rng([s, 8]).integers(4)}":
+                                      {"steps": [{"size": -_size(s, 1e-4, 0.05)}]},
+                                      "A1": {"warmup": {"amplitude": _size(s + 7, 1e-6, 5e-6) * (-1) ** s,
+                                                        "time_constant": _size(s + 5, 30.0, 240.0)}}},
     # ... and the frontend's range track reading the drop's earlier arrivals as late (flag nlos, as on rendered
     # lab sessions: events 0-7 of 0-13 for a 20 ms drop): :data:`DOUBTED_CASES`
     "drop_doubted_and_warmup": lambda s: dict(zip(_two(s), ({"steps": [{"size": -_size(s, 0.005, 0.05)}]},
