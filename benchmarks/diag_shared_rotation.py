@@ -9,7 +9,9 @@ directions (ω, deg per axis; "noise": its part that the rows' own scatter about
 stated std; per array: the position error split by the final linearisation into the part that ω makes
 (H⁻¹ Jᵀ G ω, G the reference's whitened rows per unit turn: the rows err by −ω) and the rest, each beside its std term (the honest
 covariance's with and without the reference's block of ``shared_doa_rows``), as median errors (cm). The last
-line pools error / std: an honest term reads ~1 in the median.
+line pools error / std: an honest term reads ~1 in the median. The part ω makes holds the reference rows' own
+noise too (the plain covariance's, not the term's): where ω is within its "noise" the ratio overstates the term's
+share (deploy 511-512: ω ≈ noise, part / term 2-5). An array without a std (dropped) prints 0.
 """
 from __future__ import annotations
 
