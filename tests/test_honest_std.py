@@ -312,3 +312,46 @@ def test_stated_doa_sigma_wider_than_the_errors_is_lowered_in_the_std():
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
     assert 0.7 < rms[True] < 1.35
     assert rms[False] < 0.65
+
+
+def _positions(cal):
+    return cal["arrays"].set_index("array")[["x", "y", "z"]].to_numpy(float)
+
+
+def test_a_shared_doa_rotation_moves_positions_only_through_the_reference():
+    """Where the shared DOA rotation term widens the position std (issue 27's over-naming): a rotation common to a
+    non-reference array's DOAs is its orientation's (R_i Exp(φ) fits the turned rows exactly, nothing else moves),
+    so no array's position moves, in the re-solve and in the covariance; the reference's orientation is the gauge,
+    so its DOAs' common rotation turns the map and moves every other array, by what the final linearisation predicts
+    (−H⁻¹ Jᵀ Δr, Δr the turned rows' whitened change B [u]× ω / σ). Its width in the std is the reference's term."""
+    feats, _ = _stops_scene(0)
+    clean = calibrate(feats, noise="meta")
+    omega = np.radians(2.0) * np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    turned = {a: calibrate(_rotate_doas(feats, a, np.tile(omega, (len(feats["events"]), 1))), noise="meta")
+              for a in ("A1", "A2")}
+    assert np.abs(_positions(turned["A2"]) - _positions(clean)).max() < 1e-4
+    p, lay, lin = _final_linearisation(clean)
+    keep = lin.w > 0
+    cov = covariance(lin.J[keep], lay.n, lay)
+    shared = U.shared_doa_rows(p, lin, {})
+    own = shared.copy()
+    own[:, 3 * p.ref:3 * p.ref + 3] = 0.0           # the non-reference arrays' blocks alone
+    x = lay.x[[i for i in range(p.N) if i != p.ref]].ravel()
+    moved = np.diag(U.sandwich_covariance(p, lin, cov, {}, False, None, None, own) - U.sandwich_covariance(
+        p, lin, cov, {}, False))[x]
+    assert np.abs(moved).max() < 1e-8      # (0.1 mm)²: only through u ≠ v at the estimate
+    start = sum(len(f.r) for f in lin.factors[:[f.kind for f in lin.factors].index("doa")])
+    k = np.flatnonzero(keep[start:start + 3 * len(p.doa.u)].reshape(-1, 3).all(axis=1) & (p.doa.arr == p.ref))
+    u = p.doa.u[k]
+    ux = np.zeros((len(k), 3, 3))
+    ux[:, 0, 1], ux[:, 0, 2], ux[:, 1, 2] = -u[:, 2], u[:, 1], -u[:, 0]
+    ux -= np.transpose(ux, (0, 2, 1))
+    sig = np.broadcast_to(lin.factors[[f.kind for f in lin.factors].index("doa")].row_sigma, (3 * len(p.doa.u),))
+    dr = np.zeros(len(lin.r))
+    rows = start + 3 * k[:, None] + np.arange(3)
+    dr[rows] = np.einsum("kab,kbc,c->ka", p.doa.axes[k], ux, omega) / sig[rows]
+    J = np.asarray(lin.J)
+    predicted = -(cov @ (J[keep].T @ dr[keep]))[x].reshape(-1, 3)
+    actual = (_positions(turned["A1"]) - _positions(clean))[[i for i in range(p.N) if i != p.ref]]
+    assert np.linalg.norm(actual, axis=1).min() > 0.05      # 2° at metres: centimetres
+    np.testing.assert_allclose(predicted, actual, atol=0.15 * np.abs(actual).max())
