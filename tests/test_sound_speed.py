@@ -1,0 +1,65 @@
+"""The speed of sound solved (estimator/soundspeed.py): its derivatives, and on simulated scenes whose
+declared c is wrong, c and the geometry against the simulated truth; at the right c nothing changes."""
+import numpy as np
+import pytest
+
+from calib.estimator import calibrate
+from calib.estimator.soundspeed import SPEED_SIGNIFICANCE
+from calib.pipeline.report.evaluate import evaluate
+from calib.pipeline.simulate.featsim import simulate_features
+
+from .test_factors import check_jacobian
+
+TRUE_C = 349.0   # the air at 30 °C; the user declares 343 m/s (20 °C)
+
+
+def scene(seed, declared, sigma_tdoa=1e-5):
+    """A paper-protocol scene rendered at TRUE_C whose meta.json declares ``declared`` m/s."""
+    f, truth = simulate_features(3, sigma_tdoa=sigma_tdoa, sigma_doa_deg=2.0, sigma_odo=0.01, seed=seed, c=TRUE_C)
+    return f.replace(meta={**f["meta"], "speed_of_sound": declared}), truth
+
+
+@pytest.mark.parametrize("kind", ["tdoa_s", "tdoa_m", "speed"])
+@pytest.mark.parametrize("moving", [False, True, "curve"])
+def test_speed_of_sound_jacobian_matches_finite_differences(kind, moving):
+    f, _ = simulate_features(3, seed=4)
+    if kind == "speed" and moving:
+        pytest.skip("the prior does not depend on the motion")
+    check_jacobian(f, kind, moving=moving, speed=True)
+
+
+def _worst_sigma(res, truth):
+    est, tru = res["arrays"].set_index("array"), truth["arrays"].set_index("array")
+    out = 0.0
+    for a in est.index[1:]:
+        err = est.loc[a, ["x", "y", "z"]].to_numpy(float) - tru.loc[a, ["x", "y", "z"]].to_numpy(float)
+        out = max(out, float(np.max(np.abs(err) / est.loc[a, ["x_std", "y_std", "z_std"]].to_numpy(float))))
+    return out
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_wrong_declared_speed_is_solved_and_the_geometry_comes_out_right(seed):
+    """Declared 343 m/s, true 349 (1.7 %): with c fixed the arrays are centimetres off and many σ; solved,
+    c lands within 3σ of 349, its σ from the covariance, and every array within 3σ of the truth."""
+    f, truth = scene(seed, 343.0)
+    fixed = calibrate(f, speed_of_sound="fixed")
+    solved = calibrate(f)
+    sp = solved["report"]["speed_of_sound"]
+    assert sp["estimated"] and sp["declared_m_s"] == 343.0 and sp["test"]["kept"]
+    assert abs(sp["value_m_s"] - TRUE_C) < 3 * sp["std_m_s"] and sp["std_m_s"] < 0.01 * TRUE_C
+    e_fixed, e_solved = (evaluate(r, truth)["position_rmse_m"] for r in (fixed, solved))
+    assert e_solved < 0.5 * e_fixed
+    assert _worst_sigma(fixed, truth) > 3 and _worst_sigma(solved, truth) < 3
+
+
+def test_at_the_right_speed_the_solution_is_the_one_with_c_fixed():
+    """Declared = true c: the free fit does not tell c apart from the declaration (below SPEED_SIGNIFICANCE σ),
+    so c stays as declared and the arrays are exactly those of speed_of_sound="fixed"."""
+    f, _ = scene(1, TRUE_C)
+    auto, fixed = calibrate(f), calibrate(f, speed_of_sound="fixed")
+    sp = auto["report"]["speed_of_sound"]
+    assert not sp["estimated"] and sp["value_m_s"] == TRUE_C and sp["std_m_s"] is None
+    assert abs(sp["test"]["relative"]) < SPEED_SIGNIFICANCE * sp["test"]["std_relative"]
+    cols = ["x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
+    np.testing.assert_array_equal(auto["arrays"][cols].to_numpy(), fixed["arrays"][cols].to_numpy())
+    assert fixed["report"]["speed_of_sound"]["test"] is None
