@@ -63,3 +63,20 @@ def test_at_the_right_speed_the_solution_is_the_one_with_c_fixed():
     cols = ["x", "y", "z", "qw", "qx", "qy", "qz", "offset", "drift"]
     np.testing.assert_array_equal(auto["arrays"][cols].to_numpy(), fixed["arrays"][cols].to_numpy())
     assert fixed["report"]["speed_of_sound"]["test"] is None
+
+
+def test_the_solved_speeds_std_is_honest_and_the_test_is_calibrated():
+    """Over 12 scenes (Monte Carlo against the simulated truth): declared 343, true 349, c is solved in every
+    one and its errors over the reported σ (the covariance's: the Cramér-Rao bound at the solution) have RMS
+    ≈ 1 (1.23 here, 1.09 over seeds 20-39); declared = true, the test's z has RMS ≈ 1 too (1.34: a test
+    calibrated to the σ the covariance states, which these scenes exceed by as much)."""
+    wrong, null = [], []
+    for seed in range(20, 32):
+        f, _ = scene(seed, 343.0)
+        sp = calibrate(f, outputs="all")["report"]["speed_of_sound"]
+        assert sp["estimated"]
+        wrong.append((sp["value_m_s"] - TRUE_C) / sp["std_m_s"])
+        t = calibrate(scene(seed, TRUE_C)[0])["report"]["speed_of_sound"]["test"]
+        null.append(t["relative"] / t["std_relative"])
+    assert 0.6 < np.sqrt(np.mean(np.square(wrong))) < 1.5
+    assert 0.5 < np.sqrt(np.mean(np.square(null))) < 1.5
