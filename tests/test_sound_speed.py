@@ -80,3 +80,31 @@ def test_the_solved_speeds_std_is_honest_and_the_test_is_calibrated():
         null.append(t["relative"] / t["std_relative"])
     assert 0.6 < np.sqrt(np.mean(np.square(wrong))) < 1.5
     assert 0.5 < np.sqrt(np.mean(np.square(null))) < 1.5
+
+
+def test_calibration_json_and_the_rebuilt_model_use_the_solved_speed():
+    """calibration.json states the c the solution used (and how it was found); the report stage's rebuilt
+    model (``estimator.assess.rebuild``) evaluates the residuals at that c, so its covariance is the
+    estimator's: its diagonal is the square of arrays.csv's std, c's uncertainty included."""
+    from calib.estimator.assess import rebuild, residuals
+    from calib.pipeline.formats.calibration_json import calibration_document
+
+    f, _ = scene(1, 343.0)
+    res = calibrate(f)
+    doc = calibration_document(res, f)
+    sp = res["report"]["speed_of_sound"]
+    assert doc["speed_of_sound"] == pytest.approx(sp["value_m_s"]) and doc["speed_of_sound_fit"]["estimated"]
+    assert doc["speed_of_sound_fit"]["declared_m_s"] == 343.0
+    labels, cov = doc["covariance"]["parameters"], np.asarray(doc["covariance"]["matrix"])
+    arr = res["arrays"].set_index("array")
+    for k, lab in enumerate(labels):
+        name, par = lab.split(".")
+        if par in ("x", "y", "z"):
+            assert np.sqrt(cov[k, k]) == pytest.approx(arr.loc[name, f"{par}_std"], rel=1e-6)
+    def tdoa_rms_us(calib):
+        r = residuals(rebuild(f, calib))
+        v = np.concatenate([np.asarray(d["values"])[~np.asarray(d["outlier"])] for k, d in r.items() if "tdoa" in k])
+        return float(np.sqrt(np.mean(v ** 2)))
+
+    declared = {k: v for k, v in res["report"].items() if k != "speed_of_sound"}   # (a report from before)
+    assert tdoa_rms_us(res) < 15 < 45 < tdoa_rms_us({**dict(res.items()), "report": declared})   # (10 µs noise)
