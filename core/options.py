@@ -99,7 +99,7 @@ OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
     # c in air is 331.3 + 0.606·T m/s: 343 m/s declared without a thermometer is off by up to ±3.5 % over 0–40 °C
     Option("speed_of_sound_sigma", 0.035, float, "relative 1-σ of the declared speed of sound (its prior when solved): "
            "0.035 for a c declared without a thermometer (0–40 °C), ~0.005 when taken from the measured air "
-           "temperature", lo=0.0, lo_open=True, hi=0.5, flag="--speed-of-sound-sigma"),
+           "temperature", lo=0.0, lo_open=True, hi=0.5, flag="--speed-sigma"),
     Option("outputs", "all", str, "all, or solution (the solve only)", choices=("all", "solution")),
 )
 OPTION = {o.name: o for o in OPTIONS}
