@@ -86,7 +86,7 @@ def _leave_one_out(result, features, options, clock_veto=None):
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy",
                        robust_k=3.0, outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto",
                        odometry_yaw=True, array_noise=False, outputs="all", problem=None, isolate=(),
-                       speed_of_sound="auto", speed_of_sound_sigma=0.035):
+                       speed_of_sound="fixed", speed_of_sound_sigma=0.035):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters (declared in ``calib.options.OPTIONS``, which tests/test_options.py holds these defaults to)
@@ -110,8 +110,9 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     array_noise : with noise="estimate", also one sigma factor per (type, array) where the redundancy
         allows (``estimator.arraynoise``); no effect with noise="meta".
     odometry_yaw : estimate the odometry frame's yaw (kept only when significant; docs/method.md).
-    speed_of_sound : "auto" (default): c solved with the rest when the data tell it from meta.json's
-        ``speed_of_sound`` (estimator/soundspeed.py), else as declared; "fixed": as declared.
+    speed_of_sound : "fixed" (default): c as meta.json's ``speed_of_sound`` declares; "auto": solved with the
+        rest when the data tell it from the declared value (estimator/soundspeed.py). The data fix c only
+        against the odometry's scale: "auto" trusts the odometry's metres over the declared c.
     speed_of_sound_sigma : relative 1-σ of the declared c, its prior when solved.
     outputs : "all" (default, below) or "solution": the solve only, for programs that score many runs
         (the Monte-Carlo study): no covariance, frames, verdict or report, so a few ms less per call.

@@ -43,7 +43,7 @@ def test_a_wrong_declared_speed_is_solved_and_the_geometry_comes_out_right(seed)
     c lands within 3σ of 349, its σ from the covariance, and every array within 3σ of the truth."""
     f, truth = scene(seed, 343.0)
     fixed = calibrate(f, speed_of_sound="fixed")
-    solved = calibrate(f)
+    solved = calibrate(f, speed_of_sound="auto")
     sp = solved["report"]["speed_of_sound"]
     assert sp["estimated"] and sp["declared_m_s"] == 343.0 and sp["test"]["kept"]
     assert abs(sp["value_m_s"] - TRUE_C) < 3 * sp["std_m_s"] and sp["std_m_s"] < 0.01 * TRUE_C
@@ -56,7 +56,7 @@ def test_at_the_right_speed_the_solution_is_the_one_with_c_fixed():
     """Declared = true c: the free fit does not tell c apart from the declaration (below SPEED_SIGNIFICANCE σ),
     so c stays as declared and the arrays are exactly those of speed_of_sound="fixed"."""
     f, _ = scene(1, TRUE_C)
-    auto, fixed = calibrate(f), calibrate(f, speed_of_sound="fixed")
+    auto, fixed = calibrate(f, speed_of_sound="auto"), calibrate(f)
     sp = auto["report"]["speed_of_sound"]
     assert not sp["estimated"] and sp["value_m_s"] == TRUE_C and sp["std_m_s"] is None
     assert abs(sp["test"]["relative"]) < SPEED_SIGNIFICANCE * sp["test"]["std_relative"]
@@ -73,10 +73,10 @@ def test_the_solved_speeds_std_is_honest_and_the_test_is_calibrated():
     wrong, null = [], []
     for seed in range(20, 32):
         f, _ = scene(seed, 343.0)
-        sp = calibrate(f, outputs="all")["report"]["speed_of_sound"]
+        sp = calibrate(f, speed_of_sound="auto")["report"]["speed_of_sound"]
         assert sp["estimated"]
         wrong.append((sp["value_m_s"] - TRUE_C) / sp["std_m_s"])
-        t = calibrate(scene(seed, TRUE_C)[0])["report"]["speed_of_sound"]["test"]
+        t = calibrate(scene(seed, TRUE_C)[0], speed_of_sound="auto")["report"]["speed_of_sound"]["test"]
         null.append(t["relative"] / t["std_relative"])
     assert 0.6 < np.sqrt(np.mean(np.square(wrong))) < 1.5
     assert 0.5 < np.sqrt(np.mean(np.square(null))) < 1.5
@@ -90,7 +90,7 @@ def test_calibration_json_and_the_rebuilt_model_use_the_solved_speed():
     from calib.pipeline.formats.calibration_json import calibration_document
 
     f, _ = scene(1, 343.0)
-    res = calibrate(f)
+    res = calibrate(f, speed_of_sound="auto")
     doc = calibration_document(res, f)
     sp = res["report"]["speed_of_sound"]
     assert doc["speed_of_sound"] == pytest.approx(sp["value_m_s"]) and doc["speed_of_sound_fit"]["estimated"]
@@ -108,3 +108,19 @@ def test_calibration_json_and_the_rebuilt_model_use_the_solved_speed():
 
     declared = {k: v for k, v in res["report"].items() if k != "speed_of_sound"}   # (a report from before)
     assert tdoa_rms_us(res) < 15 < 45 < tdoa_rms_us({**dict(res.items()), "report": declared})   # (10 µs noise)
+
+
+def test_c_and_the_odometrys_scale_are_one_unknown_so_c_stays_declared_by_default():
+    """Right c, odometry 2 % long (a wheel-diameter error): solving c reads it as c 2 % high and places the arrays
+    in the odometry's metre, 2 % of their ranges off; with c as declared (the default) the arrivals keep the
+    arrays right and the odometry's misfit goes to its sigma. The data cannot tell the two apart: why
+    speed_of_sound="auto" is a choice the user makes (trusting the odometry's metre), not the default."""
+    f, truth = scene(1, TRUE_C)
+    ev = f["events"].copy()
+    ev[["odom_x", "odom_y", "odom_z"]] *= 1.02
+    f = f.replace(events=ev)
+    default, auto = calibrate(f), calibrate(f, speed_of_sound="auto")
+    assert not default["report"]["speed_of_sound"]["estimated"]
+    assert auto["report"]["speed_of_sound"]["value_m_s"] == pytest.approx(1.02 * TRUE_C, rel=0.005)
+    e_default, e_auto = (evaluate(r, truth)["position_rmse_m"] for r in (default, auto))
+    assert e_default < 0.5 * e_auto
