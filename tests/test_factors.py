@@ -20,7 +20,8 @@ def test_jacobian_matches_central_differences(kind, planar):
     feats, _ = simulate_features(trajectory=3, seed=1, planar=planar)
     if kind == "cone":   # array A3 as a linear array along its y axis (roll about y not in the layout)
         feats["meta"]["doa_axes"] = {"A3": [0, -1, 0]}
-    check_jacobian(feats, kind, moving=kind == "velocity")   # (the velocity prior: only a moving source has one)
+    # (the velocity prior: only a moving source has one; the speed of sound's: only a free c)
+    check_jacobian(feats, kind, moving=kind == "velocity", speed=kind == "speed")
 
 
 @pytest.mark.parametrize("curve", [False, True])
