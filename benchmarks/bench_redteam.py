@@ -82,6 +82,9 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("cases", type=Path, help="NAME|PRESET|SEED|OPTIONS per line (# comments)")
     ap.add_argument("--work", type=Path, required=True, help="sessions and runs (reused when present)")
+    ap.add_argument("--run-args", default="", help="more `calib run` options, e.g. '--speed-of-sound fixed' (the "
+                    "runs then go to NAME_run<--suffix>)")
+    ap.add_argument("--suffix", default="", help="appended to each run folder's name")
     args = ap.parse_args()
     print("| case | preset:seed | options | exit | verdict | named | per array: cm / deg (σ-multiple), * named "
           "| flags |\n|---|---|---|---|---|---|---|---|")
@@ -89,13 +92,13 @@ def main():
         if not line.strip() or line.startswith("#"):
             continue
         name, preset, seed, opts = (f.strip() for f in line.split("|", 3))
-        d, out = args.work / name, args.work / f"{name}_run"
+        d, out = args.work / name, args.work / f"{name}_run{args.suffix}"
         err = render(d, preset, seed, shlex.split(opts))
         if err:
             print(f"| {name} | {preset}:{seed} | `{opts}` | - | - | - | {err} | simulate rejects |", flush=True)
             continue
-        p = subprocess.run([sys.executable, "-m", "calib", "run", str(d), "-o", str(out), "--force", "--quiet"],
-                           capture_output=True, text=True)
+        p = subprocess.run([sys.executable, "-m", "calib", "run", str(d), "-o", str(out), "--force", "--quiet",
+                            *shlex.split(args.run_args)], capture_output=True, text=True)
         try:
             status, named, rows, flags = score(d, out, preset)
         except (OSError, KeyError, ValueError) as exc:

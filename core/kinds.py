@@ -111,6 +111,9 @@ KINDS: dict[str, KindSpec] = {k.name: k for k in (
     # a moving source's velocity error (estimator/motion.py): one 3-vector per event, prior σ_v (m/s per axis)
     KindSpec("velocity", None, None, "mm/s", 1e3, "velocity error of the motion correction (mm/s)", "Velocity",
              per_array=False, dim=3),
+    # the speed of sound's prior (estimator/soundspeed.py): ln(c / declared) ~ N(0, σ²), σ relative (an option)
+    KindSpec("speed", None, None, "%", 100.0, "speed of sound against the declared one (%)", "Speed of sound",
+             per_array=False),
     # cone (linear arrays, mic pairs: meta ``doa_axes``): their doa.csv rows; cosine difference ≈ rad · sin θ
     KindSpec("cone", None, "doa", "deg", _DEG, "cone (axis angle) residual, cos × 57.3 (≈ deg)", "Cone",
              report_sigma="cone_rad", dof=1, **_DOA),

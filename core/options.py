@@ -93,6 +93,14 @@ OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
     Option("robust_k", 3.0, float, "robust scale, in units of each type's sigma", lo=0.0, lo_open=True),
     Option("max_iter", 200, int, "iterations of each Levenberg-Marquardt solve", lo=1),
     Option("odometry_yaw", True, bool, "estimate the odometry frame's yaw (kept only when significant)"),
+    # (fixed by default: the data fix c only against the odometry's scale, docs/method.md "Speed of sound")
+    Option("speed_of_sound", "fixed", str, "speed of sound: fixed (as declared) or auto (solved with the rest where "
+           "the data tell it from the declared value: trusts the odometry's metres over the declared c)",
+           choices=("fixed", "auto"), flag="--speed-of-sound"),
+    # c in air is 331.3 + 0.606·T m/s: 343 m/s declared without a thermometer is off by up to ±3.5 % over 0–40 °C
+    Option("speed_of_sound_sigma", 0.035, float, "relative 1-σ of the declared speed of sound (its prior when solved): "
+           "0.035 for a c declared without a thermometer (0–40 °C), ~0.005 when taken from the measured air "
+           "temperature", lo=0.0, lo_open=True, hi=0.5, flag="--speed-sigma"),
     Option("outputs", "all", str, "all, or solution (the solve only)", choices=("all", "solution")),
 )
 OPTION = {o.name: o for o in OPTIONS}

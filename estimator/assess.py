@@ -53,6 +53,7 @@ def rebuild(features, calib):
     corr = rep.get("emission_corrections_s") or {}
     st.e = np.array([float(corr.get(str(e), corr.get(e, 0.0)) or 0.0) for e in p.events])
     st.odo_yaw = np.array([np.deg2rad(float(frame.get("yaw_deg") or 0.0))])
+    p, st = _solved_speed(p, st, rep.get("speed_of_sound"))
     kinds = active_kinds(p)
     if _rank_deficient(p, rep.get("undetermined") or []):
         # the estimator left out what the data do not determine: the same rank check at the estimate
@@ -62,6 +63,17 @@ def rebuild(features, calib):
     return {"problem": p, "state": st, "layout": lay, "kinds": kinds, "mask": mask,
             "shared": bool(features["meta"].get("tdoa_shared_arrivals")),
             "normals": plane_normals(features["meta"], p.names)}
+
+
+def _solved_speed(p, st, speed):
+    """(problem, state) with the speed of sound the estimator solved (report.json ``speed_of_sound``, when
+    ``estimated``): free with its prior, at its value (``State.cs``); as they are otherwise."""
+    if not (speed or {}).get("estimated"):
+        return p, st
+    test = speed.get("test") or {}
+    p = p.replace(c_free=True, c_test=test or None, sigma={**p.sigma, "speed": float(test.get("prior_relative") or 0.0)})
+    st.cs = np.array([np.log(float(speed["value_m_s"]) / p.c)])
+    return p, st
 
 
 def outlier_mask(p, st, lay, kinds, outliers):

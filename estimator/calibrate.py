@@ -28,6 +28,7 @@ from .problem import State, build_problem, make_layout, state_from_dict
 from .reporting import judge, make_report
 from .screen import distrusted, isolated, screen_rows
 from .solver import forget_linearisation, linearise
+from .soundspeed import speed_report
 from .staging import initial_state
 from .uncertainty import covariance, honest_covariance, plane_normals, std_from_cov
 from .verdict import fold_ambiguity, majority_apart, mirror_ambiguity, name_distrusted, name_imprecise, name_inconsistent
@@ -84,7 +85,8 @@ def _leave_one_out(result, features, options, clock_veto=None):
 
 def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_sigma=0.0, loss="cauchy",
                        robust_k=3.0, outlier_threshold=5.0, max_iter=200, init_state=None, noise="auto",
-                       odometry_yaw=True, array_noise=False, outputs="all", problem=None, isolate=()):
+                       odometry_yaw=True, array_noise=False, outputs="all", problem=None, isolate=(),
+                       speed_of_sound="fixed", speed_of_sound_sigma=0.035):
     """Calibrate arrays (positions, rotations, offsets, drifts) and sources from a features dict.
 
     Parameters (declared in ``calib.options.OPTIONS``, which tests/test_options.py holds these defaults to)
@@ -108,6 +110,10 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     array_noise : with noise="estimate", also one sigma factor per (type, array) where the redundancy
         allows (``estimator.arraynoise``); no effect with noise="meta".
     odometry_yaw : estimate the odometry frame's yaw (kept only when significant; docs/method.md).
+    speed_of_sound : "fixed" (default): c as meta.json's ``speed_of_sound`` declares; "auto": solved with the
+        rest when the data tell it from the declared value (estimator/soundspeed.py). The data fix c only
+        against the odometry's scale: "auto" trusts the odometry's metres over the declared c.
+    speed_of_sound_sigma : relative 1-σ of the declared c, its prior when solved.
     outputs : "all" (default, below) or "solution": the solve only, for programs that score many runs
         (the Monte-Carlo study): no covariance, frames, verdict or report, so a few ms less per call.
     problem : optional :class:`~calib.estimator.problem.Problem` that ``build_problem(features,
@@ -124,12 +130,14 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
                      robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise,
-                     array_noise=array_noise, outputs=outputs, odometry_yaw=odometry_yaw)
+                     array_noise=array_noise, outputs=outputs, odometry_yaw=odometry_yaw, speed_of_sound=speed_of_sound,
+                     speed_of_sound_sigma=speed_of_sound_sigma)
     loss = None if loss == "linear" else loss
     times, t0 = {}, time.perf_counter()
     use_tdoa_s = use_tdoa_s and method != "wang"
     features, p, screened = _problem(features, problem, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma,
-                                     odometry_yaw=odometry_yaw)
+                                     odometry_yaw=odometry_yaw,
+                                     speed_sigma=speed_of_sound_sigma if speed_of_sound == "auto" else 0.0)
     kinds = active_kinds(p)
     if init_state is None:
         p, st, stages, stage_states = initial_state(p, kinds, method=method, loss=loss, robust_k=robust_k,
@@ -155,17 +163,20 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     return blank_diverged(_name_untrusted(out, screened, basins, mirrors))
 
 
-def _problem(features, problem, *, use_tdoa_s, emission_sigma, odometry_yaw):
-    """The problem to solve: ``problem`` when given (checked against the options), else built from the
-    features with absurd and reflection-only rows screened out first (estimator/screen.py). Returns
-    (features, problem, screening record or None)."""
+def _problem(features, problem, *, use_tdoa_s, emission_sigma, odometry_yaw, speed_sigma):
+    """The problem to solve: ``problem`` when given (checked against the options; its speed-of-sound prior
+    ``speed_sigma`` set), else built from the features with absurd and reflection-only rows screened out first
+    (estimator/screen.py). Returns (features, problem, screening record or None)."""
     screened = None
     if problem is None:
         features, screened = screen_rows(features)
-        p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw)
+        p = build_problem(features, use_tdoa_s=use_tdoa_s, sigma_emit=emission_sigma, odometry_yaw=odometry_yaw,
+                          speed_sigma=speed_sigma)
     else:
         _check_given_problem(problem, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma)
-        p = problem   # (immutable: every stage that changes a setting makes a new one)
+        # (immutable: every stage that changes a setting makes a new one)
+        p = problem if problem.sigma.get("speed", 0.0) == speed_sigma else \
+            problem.replace(sigma={**problem.sigma, "speed": float(speed_sigma)})
     if p.K < 3:
         raise ObservabilityError(f"only {p.K} event(s): at least 3 are needed to calibrate")
     return features, p, screened
@@ -240,6 +251,7 @@ def _full_outputs(res, kinds, stages, stage_states, *, method, noise, emission_s
     judged = judge(res, lay, cov, lin.w, lin.cost, noise=noise, kinds=kinds)
     report = make_report(res, stages, judged, lin.factors, method=method, noise=noise, emission_sigma=emission_sigma,
                          times=times)
+    report["speed_of_sound"] = speed_report(p, st, lay, cov, lin)
     return {"arrays": arrays, "sources": sources, "report": report, "state": st, "problem": p,
             "stage_states": stage_states, "array_covariance": arr_cov}
 

@@ -1300,7 +1300,8 @@ def _every_row(result, features=None):
         q = build_problem(features, use_tdoa_s=bool(len(p.tdoa_s.val)), sigma_emit=p.sigma.get("emission", 0.0),
                           odometry_yaw=p.odo_yaw_free)
         if q.K == p.K and q.N == p.N:
-            return _motion_corrected(q.replace(sigma={**q.sigma, **p.sigma}), p, result, features)
+            return _motion_corrected(q.replace(sigma={**q.sigma, **p.sigma}, c_free=p.c_free, c_test=p.c_test), p,
+                                     result, features)
     return p
 
 
@@ -1352,7 +1353,8 @@ def _robust_cost(result, row_sigma=None, features=None, rho=huber_rho):
     from .solver import linearise
 
     p = _every_row(result, features)
-    lin = linearise(p, result["state"], make_layout(p), active_kinds(p))
+    # (rows only: the speed of sound's prior is there when one trial solved c and not when another did not)
+    lin = linearise(p, result["state"], make_layout(p), [k for k in active_kinds(p) if k != "speed"])
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if row_sigma is None else row_sigma
     return float(np.sum(rho(lin.r * own / sig))), sig

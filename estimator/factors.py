@@ -23,7 +23,7 @@ from calib import kinds as K
 from calib.geometry import yaw_rotate
 from calib.kinds import KINDS
 
-from .problem import arrival_sources, doa_rows, event_rows, tdoa_m_rows, tdoa_s_rows, velocity_error
+from .problem import arrival_sources, doa_rows, event_rows, speed, tdoa_m_rows, tdoa_s_rows, velocity_error
 
 
 
@@ -95,11 +95,12 @@ def _dist(st, arr, ev, s=None):
 
 class Shifts(NamedTuple):
     """A moving source's arrival shifts at a state (:func:`arrival_shifts`): ``sh`` (N, K) s, their
-    derivatives ``ds`` (N, K, 3) with respect to the source (the array's position: −ds) and ``dyaw`` (N, K)
-    with respect to the odometry yaw."""
+    derivatives ``ds`` (N, K, 3) with respect to the source (the array's position: −ds), ``dyaw`` (N, K)
+    with respect to the odometry yaw and ``dcs`` (N, K) with respect to ln c (``State.cs``)."""
     sh: np.ndarray
     ds: np.ndarray
     dyaw: np.ndarray
+    dcs: np.ndarray
 
 
 def arrival_shifts(p, st):
@@ -117,18 +118,19 @@ def arrival_shifts(p, st):
     d = np.linalg.norm(w, axis=2)
     u = w / np.maximum(d, 1e-9)[..., None]
     rdot = np.einsum("kc,nkc->nk", v, u)
+    c = speed(p, st)
     if m.curve is not None:
-        x, y = (np.asarray(c, float) for c in m.curve)
-        sh = np.interp(rdot / p.c, x, y)
-        seg = np.clip(np.searchsorted(x, rdot / p.c) - 1, 0, len(x) - 2)
-        inside = (rdot / p.c > x[0]) & (rdot / p.c < x[-1])   # (np.interp holds the ends)
-        g = np.where(inside, (y[seg + 1] - y[seg]) / (x[seg + 1] - x[seg]), 0.0) / p.c
+        x, y = (np.asarray(a, float) for a in m.curve)
+        sh = np.interp(rdot / c, x, y)
+        seg = np.clip(np.searchsorted(x, rdot / c) - 1, 0, len(x) - 2)
+        inside = (rdot / c > x[0]) & (rdot / c < x[-1])   # (np.interp holds the ends)
+        g = np.where(inside, (y[seg + 1] - y[seg]) / (x[seg + 1] - x[seg]), 0.0) / c
     else:
-        sh, g = m.beta * rdot / p.c, np.full(rdot.shape, m.beta / p.c)
+        sh, g = m.beta * rdot / c, np.full(rdot.shape, m.beta / c)
     ds = g[..., None] * (v[None] - rdot[..., None] * u) / np.maximum(d, 1e-9)[..., None]
     turn = lambda a: np.column_stack([-a[:, 1], a[:, 0], np.zeros(len(a))])   # noqa: E731  d(Rz(ψ) a)/dψ
     dyaw = g * np.einsum("kc,nkc->nk", turn(v), u) + np.einsum("nkc,kc->nk", ds, turn(disp))
-    return Shifts(sh, ds, dyaw)
+    return Shifts(sh, ds, dyaw, -g * rdot)   # (d sh / d ln c = −g ṙ: ε = ṙ/c)
 
 
 @dataclass
@@ -159,7 +161,7 @@ def tdoa_s(p, st, lay):
     """TDOA-S: a_{i,b} − a_{i,a} = (1+δ_i)(t_b − t_a + e_b − e_a + (d_ib − d_ia)/c); each row whitened by the
     type's sigma × its row's scale (``TdoaSRows.scale``: its array's arrival sigma, problem.arrival_scales)."""
     i, a, b, z = p.tdoa_s.arr, p.tdoa_s.a, p.tdoa_s.b, p.tdoa_s.val
-    m, c, sig0 = len(z), p.c, p.sigma["tdoa_s"]
+    m, c, sig0 = len(z), speed(p, st), p.sigma["tdoa_s"]
     J = jacobian(m, lay)
     if m == 0:
         return _out("tdoa_s", np.zeros(0), J, p.tdoa_s.row, 1, True, sig0)
@@ -181,6 +183,10 @@ def tdoa_s(p, st, lay):
         cols, vals = cols + [np.full(m, lay.odo_yaw[0])], vals + [(sh.dyaw[i, b] - sh.dyaw[i, a]) / sig]
     if src is not st.s:   # the velocity errors move the arrivals as source shifts of β δv
         cols, vals = cols + [lay.dv[b], lay.dv[a]], vals + [p.motion.beta * gc * nb, -p.motion.beta * gc * na]
+    k = _cs_col(lay)
+    if k >= 0:   # d/d ln c: −(1+δ)(d_b − d_a)/c, and the moving source's shifts
+        cols.append(np.full(m, k))
+        vals.append(-gc[:, 0] * (db - da) + (0.0 if sh is None else (sh.dcs[i, b] - sh.dcs[i, a]) / sig))
     put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals))
     return _rows_out("tdoa_s", r, J, p.tdoa_s, sig0, sig)
 
@@ -188,7 +194,7 @@ def tdoa_s(p, st, lay):
 def tdoa_m(p, st, lay):
     """TDOA-M: a_ij − a_{ref,j}; each row whitened by the type's sigma × its row's scale (``TdoaMRows.scale``)."""
     i, j, z = p.tdoa_m.arr, p.tdoa_m.ev, p.tdoa_m.val
-    ref, m, c, sig0, beta = p.ref, len(z), p.c, p.sigma["tdoa_m"], p.beta
+    ref, m, c, sig0, beta = p.ref, len(z), speed(p, st), p.sigma["tdoa_m"], p.beta
     J = jacobian(m, lay)
     if m == 0:
         return _out("tdoa_m", np.zeros(0), J, p.tdoa_m.row, 1, True, sig0)
@@ -217,8 +223,18 @@ def tdoa_m(p, st, lay):
         cols, vals = cols + [np.full(m, lay.odo_yaw[0])], vals + [(sh.dyaw[i, j] - sh.dyaw[ref, j]) / sig]
     if src is not st.s:   # the velocity errors move the arrivals as source shifts of β δv
         cols, vals = cols + [lay.dv[j]], vals + [p.motion.beta * ds]
+    k = _cs_col(lay)
+    if k >= 0:   # d/d ln c: −((1+δ_i) d_i − (1+δ_ref) d_ref)/c, and the moving source's shifts
+        cols.append(np.full(m, k))
+        vals.append(-(gi * di - g0 * d0) / (c * sig) + (0.0 if sh is None else (sh.dcs[i, j] - sh.dcs[ref, j]) / sig))
     put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals))
     return _rows_out("tdoa_m", r, J, p.tdoa_m, sig0, sig)
+
+
+def _cs_col(lay):
+    """The column of ln c (``State.cs``) in ``lay`` (-1: the speed of sound is not estimated)."""
+    cs = getattr(lay, "cs", None)
+    return -1 if cs is None else int(cs[0])
 
 
 def _rows_out(kind, r, J, rows, sig0, sig):
@@ -366,11 +382,22 @@ def velocity(p, st, lay):
     return _out("velocity", (dv / sig).ravel(), J, np.repeat(np.arange(K), 3), 3, False, sig)
 
 
+def speed_prior(p, st, lay):
+    """Prior on the speed of sound: ln(c / c_declared) ~ N(0, σ²), σ = ``p.sigma["speed"]`` (relative; the
+    declared value's uncertainty, estimator/soundspeed.py). Empty when c is not estimated."""
+    sig, k = p.sigma.get("speed", 0.0), _cs_col(lay)
+    if sig <= 0 or k < 0:
+        return _out("speed", np.zeros(0), jacobian(0, lay), np.zeros(0, int), 1, False, max(sig, 1.0))
+    J = jacobian(1, lay)
+    put(J, np.zeros(1, int), np.full(1, k), np.full(1, 1.0 / sig))
+    return _out("speed", np.asarray(st.cs[:1], float) / sig, J, np.zeros(1, int), 1, False, sig)
+
+
 # The estimator's half of each measurement kind (its spec, ``calib.kinds.KINDS``, says the rest): the factor
 # function, and the rows builder ``build(df, index) -> Rows`` (``problem.RowIndex``) of the kinds with rows of
 # their own in a features table (``spec.source``); the others' rows are derived in ``problem.build_problem``.
 FACTORS = {"tdoa_s": tdoa_s, "tdoa_m": tdoa_m, "doa": doa, "odometry": odometry_frame, "emission": emission,
-           "cone": cone, "velocity": velocity}
+           "cone": cone, "velocity": velocity, "speed": speed_prior}
 ROWS = {"tdoa_s": tdoa_s_rows, "tdoa_m": tdoa_m_rows, "doa": doa_rows}
 
 

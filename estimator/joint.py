@@ -12,11 +12,13 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from . import arraynoise
+from .factors import active_kinds
 from .odoframe import yaw_decision
 from .problem import Layout, Problem, State, make_layout
 from .robust import (FAMILY_ALPHA, array_candidates, array_mask, concentrated_candidates, count_measurements,
                      drop_test, factor_sizes, fit_array_alone, measurement_stats, remove_outliers, restore_inliers)
 from .solver import levenberg_marquardt, linearise
+from .soundspeed import speed_test
 from .uncertainty import covariance, std_from_cov, whiten
 from .variance import estimate_arrival_scales, estimate_noise, reweighted, robust_noise_steps, sigma_bounds, sigma_floors
 from .verdict import MOVE_SIGMA
@@ -232,6 +234,16 @@ def joint_solve(p, st, kinds, stages, meta, *, noise, loss, robust_k, outlier_th
                            "array_scale": arraynoise.report_scales(res.problem),
                            "arrival_scale": None if res.problem.arrival_scale is None else
                            {str(n): float(v) for n, v in zip(res.problem.names, res.problem.arrival_scale)}}
+    if p.sigma.get("speed", 0.0) > 0 and p.c_test is None and loss:
+        # the speed of sound, tested at the solution with the final sigmas (estimator/soundspeed.py); kept: the
+        # whole solve again with c free, from the free fit (the array and outlier tests and sigmas judged anew)
+        st_c, p_c, _, test = speed_test(res.problem, res.state, res.layout, active_kinds(res.problem),
+                                        max_iter=max_iter, mask=res.mask, dropped=res.dropped)
+        if test["kept"]:
+            return joint_solve(p.replace(c_free=True, c_test=test), st_c, kinds, stages, meta, noise=noise, loss=loss,
+                               robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter,
+                               isolate=isolate)
+        res.problem = p_c
     res.scales = {k: res.problem.sigma[k] / stated[k] for k in reweighted()}
     res.bounds = bounds
     return res

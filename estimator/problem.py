@@ -178,6 +178,8 @@ class Problem:
     unobservable: tuple = ()
     arrival_scale: np.ndarray | None = None
     motion: Any = None
+    c_free: bool = False
+    c_test: Mapping[str, Any] | None = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -186,7 +188,7 @@ class Problem:
                 v = frozen_array(v)
             elif f.name in _ARRAY_MAPS:
                 v = frozen_arrays(v)
-            elif f.name in ("sigma", "extra_rows", "odo_yaw_test") and v is not None:
+            elif f.name in ("sigma", "extra_rows", "odo_yaw_test", "c_test") and v is not None:
                 v = MappingProxyType(dict(v))
             elif f.name == "unobservable":
                 v = tuple(v)
@@ -316,12 +318,14 @@ def doa_rows(df, ix):
 REFLECTION_FLAG = "doa_reflection"   # the frontend's doubt: a reflection close behind the direct path shaped the DOA
 
 
-def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0, odometry_yaw=False):
+def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, sigma_emit=0.0, odometry_yaw=False,
+                  speed_sigma=0.0):
     """Index the measurements of a (validated) features dict → :class:`Problem`.
 
     Each kind with a rows builder (``factors.ROWS``) gets its rows from its features table (``use_*``: False
     leaves that kind empty); the cone rows are split from the DOA rows (meta ``doa_axes``); each kind's sigma
-    comes from meta (``calib.kinds``: key and default), the emission prior's from ``sigma_emit``.
+    comes from meta (``calib.kinds``: key and default), the emission prior's from ``sigma_emit``, the speed
+    of sound's relative prior σ from ``speed_sigma`` (> 0: c may be estimated, estimator/soundspeed.py).
     """
     from .factors import ROWS   # (factors builds on this module)
 
@@ -359,7 +363,7 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         names=names, ref=ref, c=float(meta["speed_of_sound"]),
         beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events, odom=odom,
         tdoa_m=rows.pop("tdoa_m"), tdoa_s=rows.pop("tdoa_s"), doa=doa, cone=cone,
-        sigma={**sigma, "emission": float(sigma_emit)}, extra_rows=rows, fold=normals, cone_axis=cone_axis,
+        sigma={**sigma, "emission": float(sigma_emit), "speed": float(speed_sigma)}, extra_rows=rows, fold=normals, cone_axis=cone_axis,
         rot_fixed_axis=rot_fixed_axis, rot_free=rot_free, n_doa_events=n_doa,
         odo_yaw_free=bool(odometry_yaw) and odometry_yaw_observable(odom, len(doa.u), len(events)),
         arrival_scale=arrival)
@@ -541,7 +545,7 @@ class State:
     """The unknowns (mutable; each solve returns a new one): the per-array parameters (``ARRAY_PARAMS``: x (N, 3)
     positions (m), R (N, 3, 3) rotations (array → reference frame), offset (N,) clock offsets (s), drift (N,)
     clock drifts, ...), s (K, 3) sources (m), e (K,) emission-time corrections (s; e[0] = 0), odo_yaw (1,) the
-    odometry frame's yaw (rad)."""
+    odometry frame's yaw (rad), cs (1,) ln of the speed of sound over the declared one (:func:`speed`)."""
 
     def __init__(self, **fields: np.ndarray):
         self.__dict__.update(fields)
@@ -565,6 +569,13 @@ def velocity_error(p, st):
     return np.zeros((p.K, 3)) if dv is None else dv
 
 
+def speed(p, st):
+    """The speed of sound (m/s) at ``st``: the declared ``p.c`` times exp(``st.cs``) (ln c / c_declared, 0 when
+    c is not estimated or the state has no such field)."""
+    cs = vars(st).get("cs")
+    return p.c if cs is None or not len(cs) or cs[0] == 0.0 else p.c * float(np.exp(cs[0]))
+
+
 def arrival_sources(p, st):
     """(K, 3) the source each event's corrected arrivals see: ``st.s``, or with a velocity error modelled
     ``st.s + β δv`` (an error δv of the correction's velocity moves the arrivals as that source shift does,
@@ -579,7 +590,7 @@ def empty_state(p):
     N, K = p.N, p.K
     arrays = {a.state: np.tile(np.eye(3), (N, 1, 1)) if a.rotation else np.full(a.shape(N), a.default)
               for a in ARRAY_PARAMS}
-    return State(**arrays, s=np.zeros((K, 3)), e=np.zeros(K), odo_yaw=np.zeros(1))
+    return State(**arrays, s=np.zeros((K, 3)), e=np.zeros(K), odo_yaw=np.zeros(1), cs=np.zeros(1))
 
 
 def state_from_dict(d):
@@ -593,8 +604,8 @@ class Layout:
     """Where each free parameter sits in the parameter vector: index arrays (-1 where a parameter is fixed),
     one per block: the per-array parameters by ``key`` (``ArrayParam.shape``: x (N, 3), rot (N, 3) tangent-space
     rotation components, offset (N,), drift (N,), ...), s (K, 3), e (K,), odo_yaw (1,), dv (K, 3) a moving
-    source's velocity errors (free only when the problem models them, ``Problem.motion``); n the number of
-    free parameters."""
+    source's velocity errors (free only when the problem models them, ``Problem.motion``), cs (1,) the speed
+    of sound (free when ``Problem.c_free`` and the sources are); n the number of free parameters."""
 
     def __init__(self, n=0, **blocks: np.ndarray):
         self.__dict__.update(blocks)
@@ -618,7 +629,7 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     free_arr = np.zeros(N, bool)
     free_arr[np.arange(N) if arrays is None else np.asarray(arrays, int)] = True
     lay = Layout(**{a.key: -np.ones(a.shape(N), int) for a in ARRAY_PARAMS}, s=-np.ones((K, 3), int),
-                 e=-np.ones(K, int), odo_yaw=-np.ones(1, int), dv=-np.ones((K, 3), int))
+                 e=-np.ones(K, int), odo_yaw=-np.ones(1, int), dv=-np.ones((K, 3), int), cs=-np.ones(1, int))
 
     def take(k):
         out = np.arange(lay.n, lay.n + k)
@@ -639,6 +650,8 @@ def make_layout(p, *, rotations=True, ref_drift=None, emission=None, sources=Tru
     lay.odo_yaw = take(1) if odo_yaw else -np.ones(1, int)
     if sources and p.motion is not None and p.motion.sigma > 0:   # a moving source's velocity error: one nuisance 3-vector per event
         lay.dv[:] = take(3 * K).reshape(K, 3)
+    if sources and p.c_free:   # the speed of sound: one global column, after the others (layouts without it unchanged)
+        lay.cs = take(1)
     return _without_fixed(lay, p.fixed_cols)
 
 
@@ -683,6 +696,8 @@ def retract(st, lay, delta):
     out = st.copy()
     if (lay.dv >= 0).any() and "dv" not in vars(out):   # (a state from before the velocity error was modelled)
         out.dv = np.zeros(lay.dv.shape)
+    if "cs" not in vars(out):   # (a state built before the speed of sound was a field)
+        out.cs = np.zeros(1)
     for key, m, cols in additive:
         if m is None:   # every entry free: the whole field, in its own order (the same sums, no masking)
             v = getattr(out, key)
@@ -705,8 +720,10 @@ def _retract_index(lay):
             rows = np.flatnonzero(np.any(getattr(lay, a.key) >= 0, axis=1))
             idx = getattr(lay, a.key)[rows]
             rotated.append((a.state, rows, np.maximum(idx, 0), None if (idx >= 0).all() else idx >= 0))
-    for key in [a.key for a in ARRAY_PARAMS if not a.rotation] + ["s", "e", "odo_yaw", "dv"]:
-        cols = getattr(lay, key)
+    for key in [a.key for a in ARRAY_PARAMS if not a.rotation] + ["s", "e", "odo_yaw", "dv", "cs"]:
+        cols = getattr(lay, key, None)
+        if cols is None:   # (a layout built by hand without the field)
+            continue
         m = cols >= 0
         if m.any():   # (fields without a free entry are left out; m None: all entries free)
             additive.append((key, None if m.all() else m, cols[m]))

@@ -1128,10 +1128,17 @@ def settled_by_estimate(findings, report):
     odometry's shape alone) made notes where the estimate refitted that mirror against the data
     (``calib.estimator.ambiguity``, report.json ``stages.mirror_basins``) and it was not a second solution:
     clearly worse (or clearly better, and taken). An array the estimate left ambiguous keeps its finding (the
-    verdict names it too). Returns a new list of dicts."""
+    verdict names it too). A speed-of-sound finding says the c the estimate solved (report.json
+    ``speed_of_sound``), its status kept. Returns a new list of dicts."""
     tried = {m["array"]: m for m in (report.get("stages") or {}).get("mirror_basins", [])}
+    speed = report.get("speed_of_sound") or {}
     out = []
     for f in findings:
+        if f.get("check") == "speed of sound" and speed.get("estimated"):
+            # the estimate solved c (estimator/soundspeed.py): said, the status kept — the data fix c only against
+            # the odometry's scale, and a wheel-diameter error reads the same
+            f = {**f, "text": f"{f['text']} (the estimate solved it: {speed['value_m_s']:.1f} ± {speed['std_m_s']:.1f} "
+                              "m/s, the arrays placed with it: right if the odometry's distances are metric)"}
         m = tried.get(f.get("array"))
         if f.get("check") == "trajectory" and f.get("status") == "suspect" and m is not None and not m["ambiguous"]:
             how = "taken: it fits better" if m["switched"] else "excluded: it fits worse"

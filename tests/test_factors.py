@@ -20,7 +20,8 @@ def test_jacobian_matches_central_differences(kind, planar):
     feats, _ = simulate_features(trajectory=3, seed=1, planar=planar)
     if kind == "cone":   # array A3 as a linear array along its y axis (roll about y not in the layout)
         feats["meta"]["doa_axes"] = {"A3": [0, -1, 0]}
-    check_jacobian(feats, kind, moving=kind == "velocity")   # (the velocity prior: only a moving source has one)
+    # (the velocity prior: only a moving source has one; the speed of sound's: only a free c)
+    check_jacobian(feats, kind, moving=kind == "velocity", speed=kind == "speed")
 
 
 @pytest.mark.parametrize("curve", [False, True])
@@ -50,11 +51,11 @@ def test_doa_jacobian_with_per_row_axes(planar):
     check_jacobian(feats, "doa")
 
 
-def check_jacobian(feats, kind, seed=3, moving=False):
+def check_jacobian(feats, kind, seed=3, moving=False, speed=False):
     """``kind``'s analytic Jacobian on ``feats`` at a random state against central differences (every
     parameter free, emission corrections included; ``moving``: a source moving during the sweep, its velocity
-    error and the odometry yaw free too, "curve": its shifts from a measured curve). Also used for kinds
-    registered by other tests."""
+    error and the odometry yaw free too, "curve": its shifts from a measured curve; ``speed``: the speed of
+    sound free too). Also used for kinds registered by other tests."""
     rng = np.random.default_rng(seed)
     feats = {**feats, "meta": {**feats["meta"], "chirp_drift_bias": 0.3}}
     p = build_problem(feats, sigma_emit=1e-3)
@@ -65,6 +66,9 @@ def check_jacobian(feats, kind, seed=3, moving=False):
                                           (x, 0.5 * x + 20 * x**2) if moving == "curve" else None, p.beta, 0.05, 0.2),
                       sigma={**p.sigma, "velocity": 0.05}, odo_yaw_free=True)
         st.odo_yaw, st.dv = np.array([0.3]), rng.normal(0, 0.05, (p.K, 3))
+    if speed:   # the speed of sound free (estimator/soundspeed.py), away from the declared value
+        p = p.replace(c_free=True, sigma={**p.sigma, "speed": 0.01})
+        st.cs = np.array([0.02])
     lay = make_layout(p, emission=True, ref_drift=True)
     f = FACTORS[kind](p, st, lay)
     J = np.asarray(f.J)

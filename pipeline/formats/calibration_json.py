@@ -157,6 +157,9 @@ def array_covariance_of(calib, features):
 def calibration_document(calib, features):
     """The calibration.json dict of a calibration (arrays, sources, report) and the features it came from."""
     meta, arrays, report = features["meta"], calib["arrays"], calib.get("report") or {}
+    speed = report.get("speed_of_sound") or {}
+    if speed.get("estimated"):   # the speed of sound the estimator solved: every range of this calibration uses it
+        meta = {**meta, "speed_of_sound": float(speed["value_m_s"])}
     events = features["events"]
     tau, tau_std, n_anchor = reference_offset(meta, arrays, calib.get("sources"), events)
     mics = mic_geometry(meta)
@@ -171,6 +174,9 @@ def calibration_document(calib, features):
         "software": {"name": "calib", "version": __version__},
         "reference_array": meta["reference_array"],
         "speed_of_sound": float(meta["speed_of_sound"]),
+        # how that c was found: declared (session.toml / meta.json) or solved with its 1-σ (m/s); None from a
+        # report without it
+        "speed_of_sound_fit": {k: speed.get(k) for k in ("declared_m_s", "std_m_s", "estimated")} if speed else None,
         "conventions": CONVENTIONS,
         "units": UNITS,
         "clock": {

@@ -433,6 +433,7 @@ def summary_markdown(features, calib, res, metrics, diag, images):
         L += ["Not determined by the data (not estimated, no σ; the rest is): "
               + "; ".join(f"{a}: {', '.join(v)}" for a, v in by.items()) + ".", ""]
     L += clock_lines(rep.get("clock") or {}, rep.get("setup"), calib["arrays"])
+    L += speed_lines(rep.get("speed_of_sound"))
     if metrics is not None:
         L += ["## Evaluation against ground truth", "", metrics_markdown(metrics), ""]
     L += ["## Scene", "", f"![scene]({images['scene']})", ""]
@@ -471,6 +472,22 @@ def summary_markdown(features, calib, res, metrics, diag, images):
     for k, v in (rep.get("timings_s") or {}).items():
         L.append(f"- estimator {k}: {v:.3f} s")
     return "\n".join(L) + "\n"
+
+
+def speed_lines(speed):
+    """The speed of sound the calibration used (report.json ``speed_of_sound``): solved, with its 1-σ and the
+    declared value, or as declared (and why: the data did not tell it apart, or it was fixed)."""
+    if not speed:
+        return []
+    c, c0 = speed.get("value_m_s"), speed.get("declared_m_s")
+    if speed.get("estimated"):
+        return [f"Speed of sound **{c:.1f} ± {speed['std_m_s']:.1f} m/s**, solved from the data "
+                f"({100 * (c / c0 - 1):+.1f} % against the declared {c0:.1f} m/s: the arrays' positions use it).", ""]
+    test = speed.get("test")
+    why = "fixed by option" if not test else (
+        f"the data put it at {test['fitted_m_s']:.1f} ± {test['std_relative'] * c0:.1f} m/s, not told apart"
+        if test.get("std_relative") else "not testable on these data")
+    return [f"Speed of sound {c:.1f} m/s as declared ({why}).", ""]
 
 
 def rep_clock(calib):
