@@ -1508,12 +1508,14 @@ READMIT_SIGMAS = 20.0   # ... and that lag is this many times their spread (and 
 
 def _doubted_blocks(features):
     """[(array, block events, (event before, event after) the boundary)]: each array whose own arrivals the
-    frontend doubts as reflections (flag ``nlos``, :func:`calib.estimator.screen.own_doubted_events`) at one
+    frontend doubts as reflections (flag ``nlos``, :func:`calib.estimator.screen.own_doubted_events`) at a
     run of its consecutive events that starts or ends its session (but for at most PERSIST_EVENTS events
     before or after it, which a clock step shifts alike: :func:`end_side`), with at least PERSIST_EVENTS events
-    in it and MIN_EVENTS outside it; or the session's first or last event alone (a step next to it: rendered
-    lab seed 28, A2's event 0 of 0-13, 19.8 ms late against its range track; :func:`_readmitted` asks its DOAs
-    to be the direct path's)."""
+    in it and MIN_EVENTS outside every doubted one; or the session's first or last event alone (a step next to
+    it: rendered lab seed 28, A2's event 0 of 0-13, 19.8 ms late against its range track; :func:`_readmitted`
+    asks its DOAs to be the direct path's). Other doubted events of the array (true reflections elsewhere:
+    rendered hall seed 675, A2's 20 ms drop after events 0-3, events 5 and 11 doubted too) do not hide the
+    run; they stay doubted."""
     from .screen import DROP_FLAGS, own_doubted_events
 
     names = [n for n in DROP_FLAGS["nlos"] if len(features[n])]
@@ -1527,13 +1529,16 @@ def _doubted_blocks(features):
         evs = sorted({int(e) for n in names if "event" in features[n]
                       for e in features[n]["event"][features[n]["array"].astype(str) == a]})
         pos = np.flatnonzero(np.isin(evs, sorted(bad)))
-        edge = len(pos) == 1 and pos[0] in (0, len(evs) - 1)
-        if (len(pos) < PERSIST_EVENTS and not edge) or len(evs) - len(pos) < MIN_EVENTS or np.any(np.diff(pos) != 1):
+        if len(evs) - len(pos) < MIN_EVENTS:
             continue
-        if pos[0] <= PERSIST_EVENTS and pos[-1] < len(evs) - 1:
-            out.append((a, [evs[k] for k in pos], (evs[pos[-1]], evs[pos[-1] + 1])))
-        elif pos[-1] >= len(evs) - 1 - PERSIST_EVENTS and pos[0] > 0:
-            out.append((a, [evs[k] for k in pos], (evs[pos[0] - 1], evs[pos[0]])))
+        for run in np.split(pos, np.flatnonzero(np.diff(pos) != 1) + 1) if len(pos) else ():
+            edge = len(run) == 1 and run[0] in (0, len(evs) - 1)
+            if len(run) < PERSIST_EVENTS and not edge:
+                continue
+            if run[0] <= PERSIST_EVENTS and run[-1] < len(evs) - 1:
+                out.append((a, [evs[k] for k in run], (evs[run[-1]], evs[run[-1] + 1])))
+            elif run[-1] >= len(evs) - 1 - PERSIST_EVENTS and run[0] > 0:
+                out.append((a, [evs[k] for k in run], (evs[run[0] - 1], evs[run[0]])))
     return out
 
 
