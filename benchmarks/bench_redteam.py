@@ -18,7 +18,9 @@ A session with clock faults (truth/clocks.json) is scored against its true clock
 ``clock`` block, :func:`clock_cells`): per true step found / in the right event interval / size within 3σ,
 false steps, the drift model and the nominal-rate ratio recovered; flag (d) a true step not found, misplaced
 or its size beyond 3σ; (e) a wrong rate (≥ 0.1 %) not reported as such; (f) a false step.
-``--no-run`` rescores the runs already under ``--work`` (exit code then read from ``<run>/exit_code``).
+``--no-run`` rescores the runs already under ``--work`` (exit code then read from ``<run>/exit_code``);
+``--rerun TAG`` runs `calib run` again into a copy ``<case>_TAG`` of each case's run, whose cached features
+it reuses (the estimator and report stages run again: another software's before/after at a fraction of the CPU).
 Seeds: use the development range for tuning; a held-out check uses its reserved seeds once.
 """
 from __future__ import annotations
@@ -26,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -61,13 +64,17 @@ def render(d, preset, seed, opts):
     return ""
 
 
-def run(d, out, reuse):
+def run(d, out, reuse, cached=None):
     """(exit code, stderr) of `calib run` on session ``d`` into ``out`` (kept in ``out/exit_code``), or with
-    ``reuse`` those of the run already there."""
+    ``reuse`` those of the run already there; ``cached``: a run folder copied to ``out`` first (its features
+    reused: no --force)."""
     if reuse:
         f = out / "exit_code"
         return (int(f.read_text()) if f.is_file() else "?"), ""
-    p = subprocess.run([sys.executable, "-m", "calib", "run", str(d), "-o", str(out), "--force", "--quiet"],
+    if cached is not None and not out.exists():
+        shutil.copytree(cached, out)
+    force = [] if cached is not None else ["--force"]
+    p = subprocess.run([sys.executable, "-m", "calib", "run", str(d), "-o", str(out), *force, "--quiet"],
                        capture_output=True, text=True)
     (out / "exit_code").write_text(f"{p.returncode}\n") if out.is_dir() else None
     return p.returncode, p.stderr
@@ -129,6 +136,7 @@ def main():
     ap.add_argument("cases", type=Path, help="NAME|PRESET|SEED|OPTIONS per line (# comments)")
     ap.add_argument("--work", type=Path, required=True, help="sessions and runs (reused when present)")
     ap.add_argument("--no-run", action="store_true", help="rescore the runs already there")
+    ap.add_argument("--rerun", metavar="TAG", help="run again into <case>_TAG, a copy of <case>_run (its features)")
     args = ap.parse_args()
     print("| case | preset:seed | options | exit | verdict | named | per array: cm / deg (σ-multiple), * named "
           "| clock block vs truth | flags |\n|---|---|---|---|---|---|---|---|---|")
@@ -137,11 +145,17 @@ def main():
             continue
         name, preset, seed, opts = (f.strip() for f in line.split("|", 3))
         d, out = args.work / name, args.work / f"{name}_run"
+        cached = out if args.rerun else None
+        if args.rerun:
+            out = args.work / f"{name}_{args.rerun}"
+            if not (cached / "features").is_dir():
+                print(f"| {name} | {preset}:{seed} | `{opts}` | - | - | - | no run to reuse | - |", flush=True)
+                continue
         err = render(d, preset, seed, shlex.split(opts))
         if err:
             print(f"| {name} | {preset}:{seed} | `{opts}` | - | - | - | {err} | simulate rejects |", flush=True)
             continue
-        rc, stderr = run(d, out, args.no_run)
+        rc, stderr = run(d, out, args.no_run, cached)
         try:
             status, named, rows, flags = score(d, out, preset)
             clock, more = clock_cells(out)
