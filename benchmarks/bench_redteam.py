@@ -14,6 +14,13 @@ when present (delete the folder to render again). Per case: exit code, verdict, 
 its position / orientation error, the largest position error over its stated std (bench_deploy's scoring),
 and the flags: (a) verdict ok with an array > 3σ off; (b) an array beyond the bound (3 cm / 1.5°; warehouse,
 bighall 5 cm / 2°) that the verdict does not name; (c) an exit code other than 0/2/3, or anything on stderr.
+A session with clock faults (truth/clocks.json) is scored against its true clocks too (``calib evaluate``'s
+``clock`` block, :func:`clock_cells`): per true step found / in the right event interval / size within 3σ,
+false steps, the drift model and the nominal-rate ratio recovered; flag (d) a true step not found, misplaced
+or its size beyond 3σ; (e) a wrong rate (≥ 0.1 %) not reported as such; (f) a false step.
+``--no-run`` rescores the runs already under ``--work`` (exit code then read from ``<run>/exit_code``);
+``--rerun TAG`` runs `calib run` again into a copy ``<case>_TAG`` of each case's run, whose cached features
+it reuses (the estimator and report stages run again: another software's before/after at a fraction of the CPU).
 Seeds: use the development range for tuning; a held-out check uses its reserved seeds once.
 """
 from __future__ import annotations
@@ -21,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -32,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from bench_deploy import BOUND, WIDE  # noqa: E402
 
 SIGMA_FLAG = 3.0   # (a): an array this many stated std off in an `ok` verdict
+RATE_NAMED = 1e-3  # (e): a nominal-rate error this large is a wrong header, to be reported as one (issue 28)
 
 
 def render(d, preset, seed, opts):
@@ -53,6 +62,22 @@ def render(d, preset, seed, opts):
             ev[["odom_x", "odom_y"]] *= float(edits["odo"])
             ev.to_csv(d / "events.csv", index=False, float_format="%.9f")
     return ""
+
+
+def run(d, out, reuse, cached=None, more=()):
+    """(exit code, stderr) of `calib run` on session ``d`` into ``out`` (kept in ``out/exit_code``), or with
+    ``reuse`` those of the run already there; ``cached``: a run folder copied to ``out`` first (its features
+    reused: no --force); ``more``: further `calib run` options."""
+    if reuse:
+        f = out / "exit_code"
+        return (int(f.read_text()) if f.is_file() else "?"), ""
+    if cached is not None and not out.exists():
+        shutil.copytree(cached, out)
+    force = [] if cached is not None else ["--force"]
+    p = subprocess.run([sys.executable, "-m", "calib", "run", str(d), "-o", str(out), *force, "--quiet", *more],
+                       capture_output=True, text=True)
+    (out / "exit_code").write_text(f"{p.returncode}\n") if out.is_dir() else None
+    return p.returncode, p.stderr
 
 
 def score(d, out, preset):
@@ -78,6 +103,34 @@ def score(d, out, preset):
     return v.get("status"), named, rows, flags
 
 
+def clock_cells(out):
+    """(text, flags) of a run's clock block against its truth (metrics.json ``clock``; ('', []) without faults)."""
+    c = json.loads((out / "report" / "metrics.json").read_text()).get("clock")
+    if not c:
+        return "", []
+    cells, flags = [], []
+    for a in c["per_array"]:
+        n = a["array"]
+        for s in a["steps"]:
+            z = s["size_error_sigma"]
+            cells.append(f"{n} step {1e3 * s['size']:+g} ms ({s['after_event']}-{s['before_event']}): "
+                         + ("missed" if not s["found"] else f"{'in' if s['placed'] else 'NOT in'} interval, "
+                            f"{'nan' if z is None else f'{z:.1f}'}σ"))
+            if not s["found"] or not s["placed"] or z is None or z > SIGMA_FLAG:
+                flags.append(f"(d) {n} step {1e3 * s['size']:+g} ms " + ("missed" if not s["found"] else "wrong"))
+        if a["false_steps"]:
+            cells.append(f"{n} {a['false_steps']} false step(s)")
+            flags.append(f"(f) {n} false step")
+        if a["drift_model_true"] != "linear" or a["drift_model"] != "linear":
+            cells.append(f"{n} drift {a['drift_model_true']} → {a['drift_model']}")
+        rt, r = a["rate_ratio_true"], a["rate_ratio"]
+        if abs(rt - 1.0) >= RATE_NAMED or r is not None:
+            cells.append(f"{n} rate {rt:.5f} → {'-' if r is None else f'{r:.5f}'}")
+            if abs(rt - 1.0) >= RATE_NAMED and (r is None or abs(r - rt) > 0.1 * abs(rt - 1.0)):
+                flags.append(f"(e) {n} wrong rate not named")
+    return "; ".join(cells), flags
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("cases", type=Path, help="NAME|PRESET|SEED|OPTIONS per line (# comments)")
@@ -85,30 +138,39 @@ def main():
     ap.add_argument("--run-args", default="", help="more `calib run` options, e.g. '--speed-of-sound fixed' (the "
                     "runs then go to NAME_run<--suffix>)")
     ap.add_argument("--suffix", default="", help="appended to each run folder's name")
+    ap.add_argument("--no-run", action="store_true", help="rescore the runs already there")
+    ap.add_argument("--rerun", metavar="TAG", help="run again into <case>_TAG, a copy of <case>_run (its features)")
     args = ap.parse_args()
     print("| case | preset:seed | options | exit | verdict | named | per array: cm / deg (σ-multiple), * named "
-          "| flags |\n|---|---|---|---|---|---|---|---|")
+          "| clock block vs truth | flags |\n|---|---|---|---|---|---|---|---|---|")
     for line in args.cases.read_text().splitlines():
         if not line.strip() or line.startswith("#"):
             continue
         name, preset, seed, opts = (f.strip() for f in line.split("|", 3))
         d, out = args.work / name, args.work / f"{name}_run{args.suffix}"
+        cached = args.work / f"{name}_run" if args.rerun else None
+        if args.rerun:
+            out = args.work / f"{name}_{args.rerun}"
+            if not (cached / "features").is_dir():
+                print(f"| {name} | {preset}:{seed} | `{opts}` | - | - | - | no run to reuse | - |", flush=True)
+                continue
         err = render(d, preset, seed, shlex.split(opts))
         if err:
             print(f"| {name} | {preset}:{seed} | `{opts}` | - | - | - | {err} | simulate rejects |", flush=True)
             continue
-        p = subprocess.run([sys.executable, "-m", "calib", "run", str(d), "-o", str(out), "--force", "--quiet",
-                            *shlex.split(args.run_args)], capture_output=True, text=True)
+        rc, stderr = run(d, out, args.no_run, cached, shlex.split(args.run_args))
         try:
             status, named, rows, flags = score(d, out, preset)
+            clock, more = clock_cells(out)
+            flags += more
         except (OSError, KeyError, ValueError) as exc:
-            status, named, rows, flags = "-", set(), [], [f"no result: {exc!r}"]
-        flags += [f"(c) exit {p.returncode}"] * (p.returncode not in (0, 2, 3))
-        if p.stderr.strip():
-            flags.append(f"(c) stderr: {p.stderr.strip().splitlines()[-1][:100]}")
+            status, named, rows, flags, clock = "-", set(), [], [f"no result: {exc!r}"], ""
+        flags += [f"(c) exit {rc}"] * (rc not in (0, 2, 3))
+        if stderr.strip():
+            flags.append(f"(c) stderr: {stderr.strip().splitlines()[-1][:100]}")
         per = "; ".join(f"{a}{'*' * (a in named)} {cm:.1f}/{deg:.1f} ({z:.1f}σ)" for a, cm, deg, z in rows)
-        print(f"| {name} | {preset}:{seed} | `{opts}` | {p.returncode} | {status} | {','.join(sorted(named)) or '-'} "
-              f"| {per} | {'; '.join(flags) or '-'} |", flush=True)
+        print(f"| {name} | {preset}:{seed} | `{opts}` | {rc} | {status} | {','.join(sorted(named)) or '-'} "
+              f"| {per} | {clock or '-'} | {'; '.join(flags) or '-'} |", flush=True)
 
 
 if __name__ == "__main__":
