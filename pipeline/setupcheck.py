@@ -62,6 +62,7 @@ TYPICAL_RANGE_M = 2.0     # m: source distance that turns the odometry's noise i
 SOUND_AT_0C, SOUND_PER_C = 331.3, 0.606  # m/s, m/s per °C: dry air
 TEMPERATURE_TOL = 0.015   # relative: humidity and the thermometer allow this much (±5 °C ≈ ±0.9 %)
 DOA_TRUST = 2.5           # RMS normalised residual above which the DOAs do not help the speed of sound
+VOUCH_DOA_ROWS = 6        # undoubted DOAs fitting the odometry that clear a geometry its pair delays fail (_doa_vouched)
 MIRROR_MIN = 4.0          # an array whose quick fit is this many sigmas off (RMS) is also fitted mirrored ...
 MIRROR_RATIO = 4.0        # ... and named when the mirror cuts that by this factor (clean: 1.3σ vs 26σ)
 S2_FLOOR = 0.25           # the residuals may shrink the stated sigmas by at most 2x in the speed's std
@@ -254,8 +255,11 @@ def _misfit_finding(a, g, mics, fix_ratio):
         return Finding("suspect", wav, "direct path", f"{head}, but {C.MISFIT_BEST_K} of its chirps fit it within "
                        f"{us * g.best:.0f} µs, which no other board would: most chirps reach it by reflections (a "
                        "wall or an obstacle between it and the speaker?); its arrivals are doubtful")
-    return Finding("failed", wav, "geometry", f"{head}: the mics in session.toml are not this board's (shape, "
-                   "order or coordinates; e.g. a circle declared as a line): enter the board's geometry")
+    return Finding("failed", wav, "geometry", head + WRONG_GEOMETRY)
+
+
+WRONG_GEOMETRY = (": the mics in session.toml are not this board's (shape, order or coordinates; e.g. a circle "
+                  "declared as a line): enter the board's geometry")
 
 
 def _swap_perm(n, a, b):
@@ -852,11 +856,11 @@ def scale_findings(features, source="session.toml", arrays=None):
     return out
 
 
-def sound_findings(features, fits=None, source="session.toml"):
+def sound_findings(features, fits=None, source="session.toml", chains=None):
     """The declared speed of sound against the odometry's metric scale, and arrivals the odometry cannot
     explain (events.csv of another session). source: the file that declares the speed of sound (a features
-    folder's meta.json for ``calib estimate``)."""
-    chains = {}  # each array's arrivals, split and started once for the proper and the mirrored fits
+    folder's meta.json for ``calib estimate``); fits, chains: :func:`speed_of_sound_fit`'s, if already made."""
+    chains = {} if chains is None else chains  # each array's arrivals, split and started once for every fit
     fits = speed_of_sound_fit(features, chains=chains) if fits is None else fits
     c0 = float(features["meta"]["speed_of_sound"])
     out = mirror_findings(features, fits, chains)
@@ -1083,9 +1087,37 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
     if features is not None and not any(f.check in ("events vs chirps", "emission clock") for f in out):
         mics = {a["name"]: np.asarray(a["mics"], float).tolist() for a in session["arrays"]}
         named = {f.array for f in out if f.status == "failed"}  # the delays already explain those arrays
-        out += [f for f in sound_findings({**features, "meta": {**features["meta"], "mics": mics}})
+        features = {**features, "meta": {**features["meta"], "mics": mics}}
+        chains = {}
+        fits = speed_of_sound_fit(features, chains=chains)
+        out = [_doa_vouched(f, features, chains) for f in out]
+        out += [f for f in sound_findings(features, fits, chains=chains)
                 if not (f.check == "geometry scale" and f.array in named)]
     return sorted(out, key=lambda f: -STATUS_RANK[f.status])
+
+
+def _doa_vouched(f, features, chains):
+    """Finding ``f``, or — a whole-geometry failure ("geometry": the pair delays of the array's strongest chirps
+    fit no plane wave on its declared mics) of an array whose DOAs fit the directions to the odometry's positions
+    (with its arrivals, RMS ≤ DOA_TRUST σ over ≥ VOUCH_DOA_ROWS DOAs, those doubted for a reflection inside the
+    gate or a spread peak kept) — the `suspect` direct-path finding. ``chains``: :func:`speed_of_sound_fit`'s.
+    The frontend's SRP finds those DOAs on that same geometry: a wrong one bends them (a mirror, a shape, a mic
+    order), while reflections bend the pair delays more, where the whitened band weighs a direct path from near
+    the board's normal (small in-plane delays) no more than the larger delays of reflections from low elevations
+    (moving seed 692's reference, the robot 53–89° above its plane: 9 of its 12 strongest chirps misfit by
+    68–251 µs; its DOAs 0.8–6.1° from the truth, median 1.8°)."""
+    chain = chains.get(f.array) if f.check == "geometry" and f.status == "failed" else None
+    if chain is None:
+        return f
+    u = _doa_rows(features, f.array, chain.e_id, allow=SCALE_DOA_DOUBTS)
+    n = int(np.sum(np.all(np.isfinite(u), axis=1)))
+    misfit = _fit_one_array(*chain[:4], u, *_sigmas(features["meta"]), starts=chain.starts)[3] \
+        if n >= VOUCH_DOA_ROWS else np.inf
+    if not misfit <= DOA_TRUST:
+        return f
+    return replace(f, status="suspect", check="direct path", text=f"{f.text.removesuffix(WRONG_GEOMETRY)}, but its "
+                   f"DOAs on this geometry fit the directions to the odometry's positions ({misfit:.1f}σ over {n} chirps), which a wrong geometry's would not: reflections bend most chirps' inter-mic delays (a "
+                   "wall or an obstacle near it, or the speaker near its normal?); its arrivals are doubtful")
 
 
 def folder_findings(folder, mics=None, threshold=8.0):

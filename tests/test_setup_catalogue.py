@@ -475,6 +475,32 @@ def test_mirrored_doas_of_one_array_are_named(sample_features):
     assert [(f.array, f.check) for f in found] == [("A2", "mirrored geometry")]
 
 
+def test_a_geometry_whose_doas_fit_the_odometry_is_not_failed_on_its_pair_delays(sample_features):
+    """A2's pair delays failed as a whole ("geometry"), but the sample's DOAs, found by SRP on that geometry, fit
+    the odometry's directions: the delays were bent (reflections), not the geometry, so the finding is the
+    `suspect` direct-path one. DOAs that a wrong shape gives (stretched 2× along one axis of the board) fit no
+    rotation of the directions, and the failure stands; so does it for an array without enough DOAs."""
+    from calib.pipeline.setupcheck import WRONG_GEOMETRY, Finding, _doa_vouched
+
+    failed = Finding("failed", "A2.wav", "geometry", "A2.wav (array A2): the inter-mic delays do not fit the "
+                     "declared mic geometry (misfit 80 µs, 18 % of the largest delay)" + WRONG_GEOMETRY, "A2")
+    chains = {}
+    speed_of_sound_fit(sample_features, chains=chains)
+    vouched = _doa_vouched(failed, sample_features, chains)
+    assert (vouched.status, vouched.check, vouched.array) == ("suspect", "direct path", "A2")
+    assert "fit the directions" in vouched.text and WRONG_GEOMETRY not in vouched.text
+    doa = sample_features["doa"].copy()
+    a2 = doa["array"] == "A2"
+    u = doa.loc[a2, ["ux", "uy", "uz"]].to_numpy() * [2.0, 1.0, 1.0]
+    doa.loc[a2, ["ux", "uy", "uz"]] = u / np.linalg.norm(u, axis=1, keepdims=True)
+    chains = {}
+    stretched = {**sample_features, "doa": doa}
+    speed_of_sound_fit(stretched, chains=chains)
+    assert _doa_vouched(failed, stretched, chains) == failed
+    few = {**sample_features, "doa": sample_features["doa"][~a2 | (sample_features["doa"]["event"] < 3)]}
+    assert _doa_vouched(failed, few, chains) == failed
+
+
 from .sessions import REAL_WORLD as REAL  # noqa: E402
 
 
