@@ -1116,8 +1116,9 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
         mics = {a["name"]: np.asarray(a["mics"], float).tolist() for a in session["arrays"]}
         named = {f.array for f in out if f.status == "failed"}  # the delays already explain those arrays
         board = board_sound({k: v for k, v in boards.items() if k not in named})
-        out += [f for f in sound_findings({**features, "meta": {**features["meta"], "mics": mics}}, board=board)
-                if not (f.check == "geometry scale" and f.array in named)]
+        sound = [f for f in sound_findings({**features, "meta": {**features["meta"], "mics": mics}}, board=board)
+                 if not (f.check == "geometry scale" and f.array in named)]
+        out += sound + (board_findings(board, session["speed_of_sound"], features) if not sound else [])
     return sorted(out, key=lambda f: -STATUS_RANK[f.status])
 
 
@@ -1153,6 +1154,25 @@ def sound_cause(c_hat, sd, c0, board):
     with_odo = abs(c_b - c_hat) <= BOARD_SIGMA * np.hypot(sd, sd_b)
     with_decl = abs(c_b - c0) <= BOARD_SIGMA * sd_b
     return "sound" if with_odo and not with_decl else "odometry" if with_decl and not with_odo else None
+
+
+def board_findings(board, c0, features, source="session.toml"):
+    """The declared speed of sound against the 3-D boards' own (:func:`board_sound`) where the odometry's test said
+    nothing (a source moving during its sweeps: :func:`_near_sound` is off; a small trajectory): beyond BOARD_SIGMA
+    of the board's and SOUND_NEAR_TOL, `suspect`, every non-reference array named (their ranges from the reference
+    scale with c / c0). [] otherwise. The board's declared size is the other reading (a board 2 % smaller than
+    declared reads c 2 % slow): said."""
+    if board is None or abs(board[0] / c0 - 1) <= SOUND_NEAR_TOL or abs(board[0] - c0) <= BOARD_SIGMA * board[1]:
+        return []
+    rel = board[0] / c0 - 1
+    ref = features["meta"].get("reference_array")
+    names = tuple(str(a) for a in features["meta"]["arrays"] if str(a) != str(ref))
+    return [Finding("suspect", source, "speed of sound", f"{source}: speed_of_sound = {c0:g} m/s, but "
+                    f"{_board_text(board)} ({100 * rel:+.1f} %, {abs(board[0] - c0) / board[1]:.0f}σ): every array's "
+                    f"distance from the reference is scaled by it (about {abs(100 * rel):.1f} cm per metre; named: "
+                    f"{', '.join(names)}); set it to the air's at the session's temperature (331.3 + 0.606·T °C) — or, "
+                    f"if it is right, measure the board{'s' if len(board[2]) > 1 else ''}: "
+                    f"{abs(100 * rel):.1f} % {'larger' if rel > 0 else 'smaller'} than declared", arrays=names)]
 
 
 def _board_text(board):

@@ -92,3 +92,16 @@ def test_an_odometry_blamed_unnames_the_arrays_only_where_c_stayed_declared():
     assert kept["arrays"] == [] and kept["status"] == "suspect"
     solved = settled_by_estimate([f], {"speed_of_sound": {"estimated": True, "value_m_s": 349.0, "std_m_s": 0.5}})[0]
     assert tuple(solved["arrays"]) == ("A2", "A3")   # c solved against a mis-scaled odometry: every array scaled
+
+
+def test_the_board_alone_names_a_declared_speed_the_odometry_did_not():
+    """A moving source (no odometry test below 3 %): the board's own c beyond 3σ and 1 % of the declared is named,
+    every non-reference array with it; within them, nothing (clean rendered sessions: |error| ≤ 1.0 σ)."""
+    from calib.pipeline.setupcheck import board_findings
+
+    feats = {"meta": {"arrays": ["A1", "A2", "A3"], "reference_array": "A1"}}
+    f = board_findings((343.6, 1.7, ("A2",)), 352.0, feats)
+    assert len(f) == 1 and f[0].status == "suspect" and f[0].arrays == ("A2", "A3") and "-2.4 %" in f[0].text
+    assert board_findings((343.6, 1.7, ("A2",)), 346.0, feats) == []       # 1.4σ
+    assert board_findings((343.0, 0.1, ("A2",)), 345.0, feats) == []       # 0.6 %: below SOUND_NEAR_TOL
+    assert board_findings(None, 352.0, feats) == []
