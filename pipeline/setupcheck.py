@@ -18,6 +18,7 @@ What is checked, and from what:
 | wrong sample rate in a header | the detections' interval ratio to the emission times | ``frontend.consistency`` |
 | the same recording for two arrays | equal samples | :func:`identical_recordings` |
 | wrong speed of sound / odometry units | ranges from the metric odometry vs the arrivals | :func:`speed_of_sound_fit` |
+| which: the declared speed or the odometry's scale | a 3-D board's own c (its mic delays, no odometry) | :func:`sound_cause`, :func:`board_findings` |
 | events.csv of another session | arrivals the odometry cannot explain; unmatched chirps | :func:`speed_of_sound_fit` |
 | sources on a line or in one non-horizontal plane | the odometry's spread; which arrays' DOAs are 3-D | :func:`trajectory_findings` |
 | mirrored geometry, doa_hemisphere on the wrong side, odometry axes mirrored | DOAs that fit the odometry only with an improper rotation | :func:`mirror_findings` |
