@@ -37,6 +37,7 @@ from .signals import ArrayAudio, band_weights, chirp_band, chirp_template
 N_EVENTS = 12             # strongest chirps whose inter-mic delays are measured
 MAX_BOARD_M = 0.5         # m: no single board is wider; bounds the lag search when the declared size is wrong
 MIN_BOARD_M = 0.15        # m: the lag search covers at least this (a geometry declared too small)
+GATE_FLAT_PULSES = 1.5    # the gate is flat over the largest pair delay plus this many pulse widths (1 / band)
 UPSAMPLE = 8              # cross-correlation interpolation factor (before the parabolic refinement)
 DEAD_DB = -30.0           # a channel this far below the array's median energy in the chirps is dead
 WEAK_DB = -12.0           # ... this far below: weak (a loose connector, a covered mic)
@@ -69,6 +70,14 @@ DIRECTION_AGREE_DEG = 10.0   # a 3-D array's event that says the board is too sm
 # mic's direct path with another's reflection do not (warehouse 403's 4 cm tetrahedron: 7 of 16 events at |w|·c
 # 1.50-1.54 whose w pointed 40-90° away from DOAs right to 1°, a false "0.66× too small"; its true plane waves
 # within 10° of the DOAs)
+# A 3-D board's speed of sound (board_speed): the declared mic positions against the delays
+BOARD_MIN_EVENTS = 6      # events that must agree on |w| (within CONSENSUS_TOL) for a board's c ...
+BOARD_SUPPORT = 0.5       # ... and at least this fraction of those whose plane wave points at the DOA
+BOARD_MIC_TOL_M = 3e-4    # m: each mic's acoustic centre vs its declared position (PCB placement, the MEMS port);
+# the fitted size's error is this over (RMS radius · √M): 0.4 % for a 3.5 cm tetrahedron
+BOARD_SCATTER_FLOOR = 0.003   # relative: the events' scatter taken as at least this (a near source's curvature:
+# 0.3 % per event at 2 m on a 3.5 cm tetrahedron; the MAD of a few nearly equal values can be ~0)
+BOARD_BIAS = 0.002        # relative: residual bias of the delays (the gate: 0.07 %; a source at 2 m: +0.08 %)
 
 
 @dataclass(frozen=True)
@@ -79,7 +88,9 @@ class PairDelays:
     the cross-correlation peak. coherence : (K, P) normalised peak height in [0, 1]. energy : (K, M) matched
     filter energy of each channel in the gated direct path. plateau : (M,) fraction of the chirp samples on
     clipping plateaus. identical : list of (m, n) channel pairs with identical samples. times : (K,) s, the
-    chirps' detection times used. fs : Hz.
+    chirps' detection times used. fs : Hz. tau_flat : (K, P) s, the delays through a flat-topped gate
+    (:func:`flat_taper`): unbiased, for :func:`board_speed`; ``tau`` (a Hann gate, which the geometry checks'
+    thresholds were set on) reads every delay short by a fraction (0.9 % on a 3.5 kHz band).
     """
     pairs: np.ndarray
     tau: np.ndarray
@@ -91,6 +102,7 @@ class PairDelays:
     times: np.ndarray
     fs: float
     digest: str = ""
+    tau_flat: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -225,6 +237,18 @@ def _pair_lags(g, fs, band, max_lag):
     return pairs, lag, np.clip(peak, -1.0, 1.0)
 
 
+def flat_taper(n, flat):
+    """(n,) gate window: 1 within ``flat`` samples of its centre, a raised-cosine roll-off to 0 beyond. A taper
+    across the pulses themselves (a Hann window over the whole gate) pulls each pulse toward the gate's centre
+    and shrinks every pair delay by the same fraction: 0.9 % on a 3.5 kHz chirp band, 0.5 % on 9.5 kHz, measured on
+    exact plane waves (tests/test_board_speed.py) — a 3-D board's speed of sound (:func:`board_speed`) read that
+    much fast; the flat top leaves 0.07 %. (The geometry checks keep the Hann gate: a flat one lets a wall's
+    reflection in at full weight, robot seed 500's wall-mounted 6-mic circle then misfit 23 %: a false finding.)"""
+    x = np.abs(np.arange(n) - (n - 1) / 2)
+    edge = max((n - 1) / 2 - flat, 1.0)
+    return np.where(x <= flat, 1.0, 0.5 + 0.5 * np.cos(np.pi * np.clip((x - flat) / edge, 0.0, 1.0)))
+
+
 def measure_delays(x, mics, template, fs, band, times, c):
     """:class:`PairDelays` on the chirps detected at ``times`` (s) in recording ``x`` ((M, N), sliceable)."""
     mics = np.asarray(mics, float)
@@ -233,7 +257,9 @@ def measure_delays(x, mics, template, fs, band, times, c):
     half = int(np.ceil((max_lag + 3 * pulse) * fs))
     pre = 2 * half + int(0.02 * fs)  # the direct path may precede the strongest peak a little
     n_lags = 2 * pre
-    taus, signs, cohs, energies, plateau, identical = [], [], [], [], [], set()
+    taper = np.hanning(2 * half + 1)
+    flat = flat_taper(2 * half + 1, (max_lag + GATE_FLAT_PULSES * pulse) * fs)
+    taus, flats, signs, cohs, energies, plateau, identical = [], [], [], [], [], [], set()
     for t in times:
         s0 = int(round(t * fs)) - pre
         seg = np.asarray(x[:, s0 : s0 + n_lags + len(template)], np.float64)
@@ -242,10 +268,10 @@ def measure_delays(x, mics, template, fs, band, times, c):
                       if np.any(seg[a]) and np.array_equal(seg[a], seg[b])}
         r, env = _matched(seg, template, fs, band, n_lags)
         p = int(np.argmax(env[half : n_lags - half])) + half
-        taper = np.hanning(2 * half + 1)
         g = r[:, p - half : p + half + 1] * taper
         pairs, lag, peak = _pair_lags(g, fs, band, max_lag)
         taus.append(lag)
+        flats.append(_pair_lags(r[:, p - half : p + half + 1] * flat, fs, band, max_lag)[1])
         signs.append(np.sign(peak))
         cohs.append(np.abs(peak))
         energies.append(np.sum(g**2, axis=1))
@@ -256,7 +282,7 @@ def measure_delays(x, mics, template, fs, band, times, c):
                       sign=np.array(signs).reshape(k, len(pairs)), coherence=np.array(cohs).reshape(k, len(pairs)),
                       energy=np.array(energies).reshape(k, m),
                       plateau=np.max(plateau, axis=0) if plateau else np.zeros(m), identical=sorted(identical),
-                      times=np.asarray(times, float), fs=float(fs))
+                      times=np.asarray(times, float), fs=float(fs), tau_flat=np.array(flats).reshape(k, len(pairs)))
 
 
 # ----------------------------------------------------------------------------------------------- fits
@@ -415,6 +441,54 @@ def channel_levels_db(delays):
     ref = np.median(e)
     with np.errstate(divide="ignore"):
         return 10 * np.log10(np.maximum(e, 0) / ref) if ref > 0 else np.full(len(e), -np.inf)
+
+
+@dataclass(frozen=True)
+class BoardSpeed:
+    """:func:`board_speed`'s result: c (m/s) the board's own delays say, its std (m/s: the events' scatter, the
+    mic positions' tolerance, the delays' residual bias), n the events that agree on it, n_events those used."""
+    c: float
+    std: float
+    n: int
+    n_events: int
+
+
+def board_speed(delays, mics, c0, directions=None, exclude=()):
+    """The speed of sound a 3-D board's own inter-mic delays measure: a plane wave's slowness ``|w| = 1 / c``
+    against the declared geometry (metres), no odometry involved — the absolute scale that tells a wrong declared
+    speed of sound from a mis-scaled odometry, which the arrivals against the odometry cannot (they fix c / the
+    odometry's scale). None for a planar or linear board (its delays see ``cos(el) / c`` only) or too few events.
+
+    The events used: those whose plane wave points within DIRECTION_AGREE_DEG of the frontend's DOA
+    (``directions`` (K, 3), NaN rows unknown: kept), then the largest group agreeing on ``|w|`` within
+    CONSENSUS_TOL (a reflection that bends one mic's delay scales ``|w|`` anywhere from 0.1 to 3). std: the
+    group's robust scatter over √n, the declared positions' tolerance (BOARD_MIC_TOL_M over the board's RMS
+    radius: a wrong size reads as a wrong c) and BOARD_BIAS (the gate's and a near source's curvature: exact
+    plane and spherical waves, tests/test_consistency.py)."""
+    mics = np.asarray(mics, float)
+    use = tuple(m for m in range(len(mics)) if m not in exclude)
+    p = mics[list(use)]
+    if len(use) < 4 or _rank(p) < 3 or not delays.tau.size:
+        return None
+    sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    if sv[-1] <= 0.1 * sv[0]:   # (nearly planar: its out-of-plane slowness is too poorly measured)
+        return None
+    tau = delays.tau if delays.tau_flat is None else delays.tau_flat
+    _, w = _event_misfits(tau, delays.pairs, mics, use)
+    wc = np.linalg.norm(w, axis=1) * c0
+    if directions is not None:
+        wc = wc[~_off_direction(w, directions)]
+    wc = wc[np.isfinite(wc) & (wc > 0)]
+    lx = np.log(wc)
+    near = np.abs(lx[:, None] - lx[None, :]) <= np.log1p(CONSENSUS_TOL)
+    group = lx[near[int(np.argmax(near.sum(axis=1)))]] if lx.size else lx
+    if group.size < BOARD_MIN_EVENTS or group.size < BOARD_SUPPORT * lx.size:
+        return None
+    radius = float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+    rel = np.sqrt(max(float(mad_std(group)), BOARD_SCATTER_FLOOR) ** 2 / group.size
+                  + (BOARD_MIC_TOL_M / (radius * np.sqrt(len(use)))) ** 2 + BOARD_BIAS ** 2)
+    c = float(c0 * np.exp(-np.median(group)))
+    return BoardSpeed(c, c * rel, int(group.size), int(len(wc)))
 
 
 # ----------------------------------------------------------------------------------------------- one array

@@ -18,6 +18,7 @@ What is checked, and from what:
 | wrong sample rate in a header | the detections' interval ratio to the emission times | ``frontend.consistency`` |
 | the same recording for two arrays | equal samples | :func:`identical_recordings` |
 | wrong speed of sound / odometry units | ranges from the metric odometry vs the arrivals | :func:`speed_of_sound_fit` |
+| which: the declared speed or the odometry's scale | a 3-D board's own c (its mic delays, no odometry) | :func:`sound_cause`, :func:`board_findings` |
 | events.csv of another session | arrivals the odometry cannot explain; unmatched chirps | :func:`speed_of_sound_fit` |
 | sources on a line or in one non-horizontal plane | the odometry's spread; which arrays' DOAs are 3-D | :func:`trajectory_findings` |
 | mirrored geometry, doa_hemisphere on the wrong side, odometry axes mirrored | DOAs that fit the odometry only with an improper rotation | :func:`mirror_findings` |
@@ -55,6 +56,7 @@ SOUND_AGREE = 3.0         # ... the arrays agreeing on it (the spread of their e
 # at most 3.1σ; the arrivals-only fit is not used here: it read one right-c hall −0.3 % at −5.5σ). Not for a source
 # moving during the sweep (meta ``doa_time_s``): its arrivals' Doppler shifts bias the fit, +0.4-1.3 % at 2-5σ on
 # moving and robot sessions with the right c, +2.8 % at 7σ with a 1 s sweep
+BOARD_SIGMA = 3.0         # σ (combined): a 3-D board's own c agrees with the declared one or the odometry's
 SOUND_NEAR_TOL = 0.01
 SOUND_NEAR_SIGMA = 6.0
 ODO_SIGMA_DEFAULT = 0.02  # m: odometry noise per event when meta.json states none
@@ -856,10 +858,12 @@ def scale_findings(features, source="session.toml", arrays=None):
     return out
 
 
-def sound_findings(features, fits=None, source="session.toml", chains=None):
+def sound_findings(features, fits=None, source="session.toml", board=None, chains=None):
     """The declared speed of sound against the odometry's metric scale, and arrivals the odometry cannot
     explain (events.csv of another session). source: the file that declares the speed of sound (a features
-    folder's meta.json for ``calib estimate``); fits, chains: :func:`speed_of_sound_fit`'s, if already made."""
+    folder's meta.json for ``calib estimate``). board: the 3-D boards' own speed of sound (:func:`board_sound`)
+    or None: where it tells which is wrong, the declared speed or the odometry's scale (:func:`sound_cause`), the
+    finding names that one alone. fits, chains: :func:`speed_of_sound_fit`'s, if already made."""
     chains = {} if chains is None else chains  # each array's arrivals, split and started once for every fit
     fits = speed_of_sound_fit(features, chains=chains) if fits is None else fits
     c0 = float(features["meta"]["speed_of_sound"])
@@ -888,6 +892,9 @@ def sound_findings(features, fits=None, source="session.toml", chains=None):
     if wrong:
         c_hat, sd = max(wrong, key=lambda t: abs(t[0] - c0) / t[1])
         rel = c_hat / c0 - 1
+        cause = sound_cause(c_hat, sd, c0, board)
+        if cause is not None:
+            return out + [_blamed(cause, "failed", c_hat, sd, c0, board, source)]
         p10 = 10 ** np.round(np.log10(c_hat / c0))
         # the ranges fix only c / (the odometry's scale): a wheel-diameter or encoder error reads the same
         units = (f" — or the odometry is not in metres ({p10:g} × fits)" if p10 != 1 and
@@ -899,7 +906,7 @@ def sound_findings(features, fits=None, source="session.toml", chains=None):
                            f"but the metric odometry says {c_hat:.0f} ± {sd:.0f} m/s ({100 * rel:+.0f} %): set it "
                            f"to the air's (343 m/s at 20 °C; 331.3 + 0.606·T °C){units}"))
     if not wrong:
-        out += _near_sound(features, *tests[0], c0, source)   # (tests[0]: the DOA-aided fit of ``good``)
+        out += _near_sound(features, *tests[0], c0, source, board)   # (tests[0]: the DOA-aided fit of ``good``)
     if not out:  # the speed of sound fits the odometry: each planar or linear array's size against it
         # (the arrays whose arrivals fit: a wrong size raises the DOAs' misfit, not the arrivals')
         # (arrays too short for a speed of sound of their own are tried: their DOAs place them)
@@ -908,7 +915,28 @@ def sound_findings(features, fits=None, source="session.toml", chains=None):
     return out
 
 
-def _near_sound(features, c_hat, sd, birge, c0, source):
+def _blamed(cause, status, c_hat, sd, c0, board, source, arrays=()):
+    """The speed-of-sound finding when the boards' own delays (:func:`sound_cause`) name the culprit: the declared
+    speed ("sound": `--speed-of-sound auto` then places the arrays at the odometry's metre, which the boards
+    vouch for) or the odometry's scale ("odometry": c stays declared, as by default; auto would scale every array
+    by the odometry's error)."""
+    rel = c_hat / c0 - 1
+    said = (f"the arrivals against the odometry say {c_hat:.1f} ± {sd:.1f} m/s ({100 * rel:+.1f} %) and "
+            f"{_board_text(board)}")
+    if cause == "sound":
+        return Finding(status, source, "speed of sound", f"{source}: speed_of_sound = {c0:g} m/s is off: {said}, "
+                       f"within their errors, so the odometry's scale is right: set it to about {board[0]:.0f} m/s "
+                       "(the air's at the session's temperature, 331.3 + 0.606·T °C), or solve it "
+                       "(`--speed-of-sound auto`: the boards confirm the odometry's metre it relies on)",
+                       arrays=arrays)
+    return Finding(status, "events.csv", "odometry scale", f"events.csv: the odometry's distances are "
+                   f"{abs(100 * rel):.1f} % too {'long' if rel > 0 else 'short'} (wheel diameter, encoder scale), "
+                   f"not the speed of sound: {said}, the declared {c0:g} m/s within their errors; correct the "
+                   "odometry (its positions × " f"{c0 / c_hat:.4f}) and keep the declared speed fixed (the "
+                   "default; `--speed-of-sound auto` would scale every array by the odometry's error)", arrays=arrays)
+
+
+def _near_sound(features, c_hat, sd, birge, c0, source, board=None):
     """A declared speed of sound between SOUND_NEAR_TOL and SOUND_TOL off the DOA-aided fit ``c_hat`` ± ``sd``
     (:func:`_sound_mean`), at SOUND_NEAR_SIGMA and the arrays agreeing, the source static during its sweeps: a
     `suspect` finding naming every non-reference array (their ranges from the reference scale with c / c0). []
@@ -919,6 +947,9 @@ def _near_sound(features, c_hat, sd, birge, c0, source):
         return []
     ref = features["meta"].get("reference_array")
     names = tuple(str(a) for a in features["meta"]["arrays"] if str(a) != str(ref))
+    cause = sound_cause(c_hat, sd, c0, board)
+    if cause is not None:
+        return [_blamed(cause, "suspect", c_hat, sd, c0, board, source, names)]
     text = (f"{source}: speed_of_sound = {c0:g} m/s, but the arrivals and DOAs against the metric odometry say "
             f"{c_hat:.1f} ± {sd:.1f} m/s ({100 * rel:+.1f} %, {abs(c_hat - c0) / sd:.0f}σ): every array's distance "
             f"from the reference is scaled by it (about {abs(100 * rel):.1f} cm per metre; named: "
@@ -1059,7 +1090,7 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
     are detected here); features : the features (speed of sound and the odometry's checks; skipped if None).
     """
     dets = detections_from_diagnostics(diagnostics)
-    results, out = {}, []
+    results, out, boards = {}, [], {}
     for a in session["arrays"]:
         times, scores, events = dets.get(a["name"], (None, None, None))
         clock_times = times   # every chirp times the clock (a reflection is milliseconds late, over seconds)
@@ -1079,6 +1110,8 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
             found = channel_findings(a, res, session["speed_of_sound"], doas)
         results[a["name"]] = res
         out += found
+        if not any(f.status == "failed" for f in found):
+            boards[a["name"]] = _board_speed(a, res, session["speed_of_sound"], doas)
     out += clock_findings(session, results)
     out += identical_recordings(session)
     out += trajectory_findings(session["events"], features) + temperature_findings(session)
@@ -1091,8 +1124,10 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
         chains = {}
         fits = speed_of_sound_fit(features, chains=chains)
         out = [_doa_vouched(f, features, chains) for f in out]
-        out += [f for f in sound_findings(features, fits, chains=chains)
-                if not (f.check == "geometry scale" and f.array in named)]
+        board = board_sound({k: v for k, v in boards.items() if k not in named})
+        sound = [f for f in sound_findings(features, fits, board=board, chains=chains)
+                 if not (f.check == "geometry scale" and f.array in named)]
+        out += sound + (board_findings(board, session["speed_of_sound"], features) if not sound else [])
     return sorted(out, key=lambda f: -STATUS_RANK[f.status])
 
 
@@ -1116,8 +1151,68 @@ def _doa_vouched(f, features, chains):
     if not misfit <= DOA_TRUST:
         return f
     return replace(f, status="suspect", check="direct path", text=f"{f.text.removesuffix(WRONG_GEOMETRY)}, but its "
-                   f"DOAs on this geometry fit the directions to the odometry's positions ({misfit:.1f}σ over {n} chirps), which a wrong geometry's would not: reflections bend most chirps' inter-mic delays (a "
+                   f"DOAs on this geometry fit the directions to the odometry's positions ({misfit:.1f}σ over {n} "
+                   "chirps), which a wrong geometry's would not: reflections bend most chirps' inter-mic delays (a "
                    "wall or an obstacle near it, or the speaker near its normal?); its arrivals are doubtful")
+
+
+def _board_speed(a, res, c0, doas):
+    """:func:`calib.frontend.consistency.board_speed` of array ``a`` from its :func:`check_array` result ``res``
+    (None: a planar or linear board, no chirps, too few agreeing events)."""
+    d = res["delays"]
+    if d is None or not len(d.times):
+        return None
+    directions = None if doas is None else np.array([doas.get(t, (np.nan,) * 3) for t in d.times], float)
+    return C.board_speed(d, np.asarray(a["mics"], float), c0, directions)
+
+
+def board_sound(boards):
+    """(c, std, names) of the 3-D boards' own speed of sound ({array: :class:`~calib.frontend.consistency.
+    BoardSpeed` or None}), their weighted mean (:func:`_sound_mean`: boards that disagree widen it); None if no
+    board measured one."""
+    got = {k: (b.c, b.std) for k, b in boards.items() if b is not None}
+    if not got:
+        return None
+    c, sd, _ = _sound_mean(got)
+    return c, sd, tuple(sorted(got))
+
+
+def sound_cause(c_hat, sd, c0, board):
+    """Which of the two the boards' own delays blame when the arrivals against the odometry say ``c_hat`` ± ``sd``
+    m/s where ``c0`` is declared (they fix only c / the odometry's scale): "sound" (the board agrees with
+    ``c_hat``, not with ``c0``), "odometry" (the reverse: the odometry is mis-scaled) or None (no board, or it
+    cannot tell: both or neither within BOARD_SIGMA). board: :func:`board_sound`'s (c, std, names) or None."""
+    if board is None:
+        return None
+    c_b, sd_b, _ = board
+    with_odo = abs(c_b - c_hat) <= BOARD_SIGMA * np.hypot(sd, sd_b)
+    with_decl = abs(c_b - c0) <= BOARD_SIGMA * sd_b
+    return "sound" if with_odo and not with_decl else "odometry" if with_decl and not with_odo else None
+
+
+def board_findings(board, c0, features, source="session.toml"):
+    """The declared speed of sound against the 3-D boards' own (:func:`board_sound`) where the odometry's test said
+    nothing (a source moving during its sweeps: :func:`_near_sound` is off; a small trajectory): beyond BOARD_SIGMA
+    of the board's and SOUND_NEAR_TOL, `suspect`, every non-reference array named (their ranges from the reference
+    scale with c / c0). [] otherwise. The board's declared size is the other reading (a board 2 % smaller than
+    declared reads c 2 % slow): said."""
+    if board is None or abs(board[0] / c0 - 1) <= SOUND_NEAR_TOL or abs(board[0] - c0) <= BOARD_SIGMA * board[1]:
+        return []
+    rel = board[0] / c0 - 1
+    ref = features["meta"].get("reference_array")
+    names = tuple(str(a) for a in features["meta"]["arrays"] if str(a) != str(ref))
+    return [Finding("suspect", source, "speed of sound", f"{source}: speed_of_sound = {c0:g} m/s, but "
+                    f"{_board_text(board)} ({100 * rel:+.1f} %, {abs(board[0] - c0) / board[1]:.0f}σ): every array's "
+                    f"distance from the reference is scaled by it (about {abs(100 * rel):.1f} cm per metre; named: "
+                    f"{', '.join(names)}); set it to the air's at the session's temperature (331.3 + 0.606·T °C) — or, "
+                    f"if it is right, measure the board{'s' if len(board[2]) > 1 else ''}: "
+                    f"{abs(100 * rel):.1f} % {'larger' if rel > 0 else 'smaller'} than declared", arrays=names)]
+
+
+def _board_text(board):
+    c_b, sd_b, names = board
+    return (f"the mic delays of the 3-D board{'s' if len(names) > 1 else ''} {', '.join(names)} (their declared "
+            f"geometry in metres, no odometry) say {c_b:.1f} ± {sd_b:.1f} m/s")
 
 
 def folder_findings(folder, mics=None, threshold=8.0):
@@ -1171,6 +1266,11 @@ def settled_by_estimate(findings, report):
             # the odometry's scale, and a wheel-diameter error reads the same
             f = {**f, "text": f"{f['text']} (the estimate solved it: {speed['value_m_s']:.1f} ± {speed['std_m_s']:.1f} "
                               "m/s, the arrays placed with it: right if the odometry's distances are metric)"}
+        if f.get("check") == "odometry scale" and f.get("status") == "suspect" and not speed.get("estimated"):
+            # the boards blamed the odometry and c stayed declared: the arrivals, not the odometry, set the metre
+            # (lab 522 with its odometry 2 % long: arrays 0.3-0.6 cm off with c fixed, 2-6 cm with c solved)
+            f = {**f, "arrays": [], "text": f"{f['text']} (the estimate kept the declared speed of sound: the arrays "
+                                             "are placed by the arrivals' metre, not the odometry's)"}
         m = tried.get(f.get("array"))
         if f.get("check") == "trajectory" and f.get("status") == "suspect" and m is not None and not m["ambiguous"]:
             how = "taken: it fits better" if m["switched"] else "excluded: it fits worse"
