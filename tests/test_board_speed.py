@@ -7,6 +7,8 @@ little white noise), the true c 343 m/s whatever is declared.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -105,3 +107,17 @@ def test_the_board_alone_names_a_declared_speed_the_odometry_did_not():
     assert board_findings((343.6, 1.7, ("A2",)), 346.0, feats) == []       # 1.4σ
     assert board_findings((343.0, 0.1, ("A2",)), 345.0, feats) == []       # 0.6 %: below SOUND_NEAR_TOL
     assert board_findings(None, 352.0, feats) == []
+
+
+def test_the_board_alone_speaks_only_where_the_odometry_does_not_test_the_speed():
+    """A static source with arrays whose arrivals fit the odometry: its (far more precise) test of c stands and the
+    boards' own c does not name the arrays alone; a source moving during its sweeps, or no array to fit: it does."""
+    from calib.frontend import extract_features
+    from calib.pipeline.formats.session import read_session
+    from calib.pipeline.setupcheck import _odometry_tested, speed_of_sound_fit
+
+    feats = extract_features(read_session(Path(__file__).resolve().parents[1] / "sample_data" / "lab3"))[0]
+    fits = speed_of_sound_fit(feats)
+    assert _odometry_tested(feats, fits)
+    assert not _odometry_tested({**feats, "meta": {**feats["meta"], "doa_time_s": 0.25}}, fits)
+    assert not _odometry_tested(feats, {})
