@@ -1127,6 +1127,7 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
         board = board_sound({k: v for k, v in boards.items() if k not in named})
         sound = [f for f in sound_findings(features, fits, board=board, chains=chains)
                  if not (f.check == "geometry scale" and f.array in named)]
+        out += sound
         if not sound and not _odometry_tested(features, fits):
             out += board_findings(board, session["speed_of_sound"], features)
     return sorted(out, key=lambda f: -STATUS_RANK[f.status])
