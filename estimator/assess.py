@@ -71,7 +71,8 @@ def _solved_speed(p, st, speed):
     if not (speed or {}).get("estimated"):
         return p, st
     test = speed.get("test") or {}
-    p = p.replace(c_free=True, c_test=test or None, sigma={**p.sigma, "speed": float(test.get("prior_relative") or 0.0)})
+    p = p.replace(c_free=True, c_test=test or None,
+                  sigma={**p.sigma, "speed": float(test.get("prior_relative") or 0.0)})
     st.cs = np.array([np.log(float(speed["value_m_s"]) / p.c)])
     return p, st
 

@@ -130,8 +130,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
     """
     validate_options(method=method, use_tdoa_s=use_tdoa_s, emission_sigma=emission_sigma, loss=loss,
                      robust_k=robust_k, outlier_threshold=outlier_threshold, max_iter=max_iter, noise=noise,
-                     array_noise=array_noise, outputs=outputs, odometry_yaw=odometry_yaw, speed_of_sound=speed_of_sound,
-                     speed_of_sound_sigma=speed_of_sound_sigma)
+                     array_noise=array_noise, outputs=outputs, odometry_yaw=odometry_yaw,
+                     speed_of_sound=speed_of_sound, speed_of_sound_sigma=speed_of_sound_sigma)
     loss = None if loss == "linear" else loss
     times, t0 = {}, time.perf_counter()
     use_tdoa_s = use_tdoa_s and method != "wang"

@@ -363,7 +363,8 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         names=names, ref=ref, c=float(meta["speed_of_sound"]),
         beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events, odom=odom,
         tdoa_m=rows.pop("tdoa_m"), tdoa_s=rows.pop("tdoa_s"), doa=doa, cone=cone,
-        sigma={**sigma, "emission": float(sigma_emit), "speed": float(speed_sigma)}, extra_rows=rows, fold=normals, cone_axis=cone_axis,
+        sigma={**sigma, "emission": float(sigma_emit), "speed": float(speed_sigma)}, extra_rows=rows, fold=normals,
+        cone_axis=cone_axis,
         rot_fixed_axis=rot_fixed_axis, rot_free=rot_free, n_doa_events=n_doa,
         odo_yaw_free=bool(odometry_yaw) and odometry_yaw_observable(odom, len(doa.u), len(events)),
         arrival_scale=arrival)
@@ -573,7 +574,7 @@ def speed(p, st):
     """The speed of sound (m/s) at ``st``: the declared ``p.c`` times exp(``st.cs``) (ln c / c_declared, 0 when
     c is not estimated or the state has no such field)."""
     cs = vars(st).get("cs")
-    return p.c if cs is None or not len(cs) or cs[0] == 0.0 else p.c * float(np.exp(cs[0]))
+    return p.c if cs is None or not len(cs) else p.c * float(np.exp(cs[0]))
 
 
 def arrival_sources(p, st):

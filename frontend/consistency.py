@@ -88,8 +88,8 @@ class PairDelays:
     the cross-correlation peak. coherence : (K, P) normalised peak height in [0, 1]. energy : (K, M) matched
     filter energy of each channel in the gated direct path. plateau : (M,) fraction of the chirp samples on
     clipping plateaus. identical : list of (m, n) channel pairs with identical samples. times : (K,) s, the
-    chirps' detection times used. fs : Hz. tau_flat : (K, P) s, the delays through a flat-topped gate
-    (:func:`flat_taper`): unbiased, for :func:`board_speed`; ``tau`` (a Hann gate, which the geometry checks'
+    chirps' detection times used. fs : Hz. tau_flat : (K, P) s, a 3-D board's delays through a flat-topped gate
+    (:func:`flat_taper`; None for another board): unbiased, for :func:`board_speed`; ``tau`` (a Hann gate, which the geometry checks'
     thresholds were set on) reads every delay short by a fraction (0.9 % on a 3.5 kHz band).
     """
     pairs: np.ndarray
@@ -258,7 +258,8 @@ def measure_delays(x, mics, template, fs, band, times, c):
     pre = 2 * half + int(0.02 * fs)  # the direct path may precede the strongest peak a little
     n_lags = 2 * pre
     taper = np.hanning(2 * half + 1)
-    flat = flat_taper(2 * half + 1, (max_lag + GATE_FLAT_PULSES * pulse) * fs)
+    # (the flat gate's delays serve a 3-D board's own c only: board_speed)
+    flat = flat_taper(2 * half + 1, (max_lag + GATE_FLAT_PULSES * pulse) * fs) if is_volume(mics) else None
     taus, flats, signs, cohs, energies, plateau, identical = [], [], [], [], [], [], set()
     for t in times:
         s0 = int(round(t * fs)) - pre
@@ -271,7 +272,8 @@ def measure_delays(x, mics, template, fs, band, times, c):
         g = r[:, p - half : p + half + 1] * taper
         pairs, lag, peak = _pair_lags(g, fs, band, max_lag)
         taus.append(lag)
-        flats.append(_pair_lags(r[:, p - half : p + half + 1] * flat, fs, band, max_lag)[1])
+        if flat is not None:
+            flats.append(_pair_lags(r[:, p - half : p + half + 1] * flat, fs, band, max_lag)[1])
         signs.append(np.sign(peak))
         cohs.append(np.abs(peak))
         energies.append(np.sum(g**2, axis=1))
@@ -282,7 +284,8 @@ def measure_delays(x, mics, template, fs, band, times, c):
                       sign=np.array(signs).reshape(k, len(pairs)), coherence=np.array(cohs).reshape(k, len(pairs)),
                       energy=np.array(energies).reshape(k, m),
                       plateau=np.max(plateau, axis=0) if plateau else np.zeros(m), identical=sorted(identical),
-                      times=np.asarray(times, float), fs=float(fs), tau_flat=np.array(flats).reshape(k, len(pairs)))
+                      times=np.asarray(times, float), fs=float(fs),
+                      tau_flat=None if flat is None else np.array(flats).reshape(k, len(pairs)))
 
 
 # ----------------------------------------------------------------------------------------------- fits
@@ -329,6 +332,13 @@ def _rank(mics, tol=1e-3):
     return int(np.sum(sv > tol * max(sv[0], 1e-12)))
 
 
+def is_volume(mics):
+    """True for a board whose mics span 3-D well (its thinnest extent over 0.1 of its widest): its delays measure
+    the whole slowness, |w| = 1 / c; a (nearly) planar or linear one sees only its in-plane part."""
+    sv = np.linalg.svd(mics - mics.mean(axis=0), compute_uv=False)
+    return bool(len(sv) == 3 and sv[-1] > 0.1 * sv[0])
+
+
 def supported_top(x, tol=PLANAR_TOP_TOL, n=PLANAR_TOP_MIN):
     """The largest value of ``x`` with at least ``n`` values (itself included) within a relative ``tol`` below
     it; NaN if none. A planar array's |w|·c above 1: the events nearest its plane tell a size declared too
@@ -348,9 +358,14 @@ def consensus(x, tol=CONSENSUS_TOL):
     lx = np.log(np.asarray(x, float)[np.asarray(x, float) > 0])
     if not lx.size:
         return np.nan, 0.0
+    group = _largest_group(lx, tol)
+    return float(np.exp(np.median(group))), float(group.size / len(lx))
+
+
+def _largest_group(lx, tol):
+    """The largest group of the logs ``lx`` (n,) within ±log(1 + tol) of one of them (empty for none)."""
     near = np.abs(lx[:, None] - lx[None, :]) <= np.log1p(tol)
-    best = int(np.argmax(near.sum(axis=1)))
-    return float(np.exp(np.median(lx[near[best]]))), float(near[best].sum() / len(lx))
+    return lx[near[int(np.argmax(near.sum(axis=1)))]] if lx.size else lx
 
 
 def fit_geometry(delays, mics, c, exclude=(), directions=None):
@@ -375,9 +390,7 @@ def fit_geometry(delays, mics, c, exclude=(), directions=None):
     if len(use) - 1 <= _rank(mics[list(use)]):  # as many delays as a plane wave's unknowns: any delays fit
         misfit = best = np.nan
     wc = np.linalg.norm(w, axis=1) * c
-    d = mics[list(use)] - mics[list(use)].mean(axis=0)
-    sv = np.linalg.svd(d, compute_uv=False)
-    full3d = sv[-1] > 0.1 * sv[0]
+    full3d = is_volume(mics[list(use)])
     if full3d and directions is not None:
         wc = np.where((wc > 1.0) & _off_direction(w, directions), np.nan, wc)   # NaN: no testimony
     mode, support = consensus(wc)
@@ -464,15 +477,12 @@ def board_speed(delays, mics, c0, directions=None, exclude=()):
     CONSENSUS_TOL (a reflection that bends one mic's delay scales ``|w|`` anywhere from 0.1 to 3). std: the
     group's robust scatter over √n, the declared positions' tolerance (BOARD_MIC_TOL_M over the board's RMS
     radius: a wrong size reads as a wrong c) and BOARD_BIAS (the gate's and a near source's curvature: exact
-    plane and spherical waves, tests/test_consistency.py)."""
+    plane and spherical waves, tests/test_board_speed.py)."""
     mics = np.asarray(mics, float)
     use = tuple(m for m in range(len(mics)) if m not in exclude)
     p = mics[list(use)]
-    if len(use) < 4 or _rank(p) < 3 or not delays.tau.size:
-        return None
-    sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
-    if sv[-1] <= 0.1 * sv[0]:   # (nearly planar: its out-of-plane slowness is too poorly measured)
-        return None
+    if len(use) < 4 or not is_volume(p) or not delays.tau.size:   # (nearly planar: its out-of-plane slowness
+        return None                                                  # is too poorly measured)
     tau = delays.tau if delays.tau_flat is None else delays.tau_flat
     _, w = _event_misfits(tau, delays.pairs, mics, use)
     wc = np.linalg.norm(w, axis=1) * c0
@@ -480,8 +490,7 @@ def board_speed(delays, mics, c0, directions=None, exclude=()):
         wc = wc[~_off_direction(w, directions)]
     wc = wc[np.isfinite(wc) & (wc > 0)]
     lx = np.log(wc)
-    near = np.abs(lx[:, None] - lx[None, :]) <= np.log1p(CONSENSUS_TOL)
-    group = lx[near[int(np.argmax(near.sum(axis=1)))]] if lx.size else lx
+    group = _largest_group(lx, CONSENSUS_TOL)
     if group.size < BOARD_MIN_EVENTS or group.size < BOARD_SUPPORT * lx.size:
         return None
     radius = float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))

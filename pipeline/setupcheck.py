@@ -171,7 +171,7 @@ def channel_findings(a, res, c, doas=None):
         out.append(Finding("failed", wav, "polarity", f"{wav} channel {m + 1}: inverted polarity (its correlation "
                            f"with the other mics is negative in {100 * frac:.0f} % of the pairs): rewire it, or "
                            "multiply the channel by −1"))
-    directions = None if doas is None else np.array([doas.get(t, (np.nan,) * 3) for t in d.times], float)
+    directions = _directions(doas, d.times)
     out += geometry_findings(a, d, c, tuple(sorted(bad)), directions)
     return [replace(f, array=a["name"]) for f in out]
 
@@ -199,8 +199,7 @@ def geometry_findings(a, d, c, exclude=(), directions=None):
             return [f]
     if not np.isfinite(g.scale):
         return []
-    planar = np.linalg.svd(mics[list(g.used)] - mics[list(g.used)].mean(axis=0), compute_uv=False)
-    full3d = planar[-1] > 0.1 * planar[0]
+    full3d = C.is_volume(mics[list(g.used)])
     agreed = g.support >= C.CONSENSUS_SUPPORT  # a 3-D array's events, or a planar one's above |w|·c = 1
     fail = (C.SCALE_FAIL_3D if agreed else C.SCALE_FAIL) * np.exp(C.SCALE_SCATTER_K * g.scatter)
     too_big = g.scale > (fail if full3d else PLANAR_SCALE_FAIL)
@@ -915,6 +914,12 @@ def sound_findings(features, fits=None, source="session.toml", board=None, chain
     return out
 
 
+def _non_reference(features):
+    """The names of every array but the reference (those a wrong speed of sound moves)."""
+    ref = features["meta"].get("reference_array")
+    return tuple(str(a) for a in features["meta"]["arrays"] if str(a) != str(ref))
+
+
 def _blamed(cause, status, c_hat, sd, c0, board, source, arrays=()):
     """The speed-of-sound finding when the boards' own delays (:func:`sound_cause`) name the culprit: the declared
     speed ("sound": `--speed-of-sound auto` then places the arrays at the odometry's metre, which the boards
@@ -945,8 +950,7 @@ def _near_sound(features, c_hat, sd, birge, c0, source, board=None):
     if (features["meta"].get("doa_time_s") or abs(rel) <= SOUND_NEAR_TOL or abs(c_hat - c0) <= SOUND_NEAR_SIGMA * sd
             or birge > SOUND_AGREE):
         return []
-    ref = features["meta"].get("reference_array")
-    names = tuple(str(a) for a in features["meta"]["arrays"] if str(a) != str(ref))
+    names = _non_reference(features)
     cause = sound_cause(c_hat, sd, c0, board)
     if cause is not None:
         return [_blamed(cause, "suspect", c_hat, sd, c0, board, source, names)]
@@ -1167,13 +1171,18 @@ def _doa_vouched(f, features, chains):
                    "wall or an obstacle near it, or the speaker near its normal?); its arrivals are doubtful")
 
 
+def _directions(doas, times):
+    """(K, 3) the frontend's DOA at each chirp ``times`` ({detection time: (3,)}, NaN rows where none), or None."""
+    return None if doas is None else np.array([doas.get(t, (np.nan,) * 3) for t in times], float)
+
+
 def _board_speed(a, res, c0, doas):
     """:func:`calib.frontend.consistency.board_speed` of array ``a`` from its :func:`check_array` result ``res``
     (None: a planar or linear board, no chirps, too few agreeing events)."""
     d = res["delays"]
     if d is None or not len(d.times):
         return None
-    directions = None if doas is None else np.array([doas.get(t, (np.nan,) * 3) for t in d.times], float)
+    directions = _directions(doas, d.times)
     return C.board_speed(d, np.asarray(a["mics"], float), c0, directions)
 
 
@@ -1202,16 +1211,15 @@ def sound_cause(c_hat, sd, c0, board):
 
 
 def board_findings(board, c0, features, source="session.toml"):
-    """The declared speed of sound against the 3-D boards' own (:func:`board_sound`) where the odometry's test is off
-    (a source moving during its sweeps: :func:`_near_sound` is off; nothing to fit: :func:`_odometry_tested`): beyond BOARD_SIGMA
-    of the board's and SOUND_NEAR_TOL, `suspect`, every non-reference array named (their ranges from the reference
+    """The declared speed of sound against the 3-D boards' own (:func:`board_sound`) where the odometry's test is
+    off (a source moving during its sweeps: :func:`_near_sound` is off; nothing to fit: :func:`_odometry_tested`):
+    beyond BOARD_SIGMA of the board's and SOUND_NEAR_TOL, `suspect`, every non-reference array named (their ranges from the reference
     scale with c / c0). [] otherwise. The board's declared size is the other reading (a board 2 % smaller than
     declared reads c 2 % slow): said."""
     if board is None or abs(board[0] / c0 - 1) <= SOUND_NEAR_TOL or abs(board[0] - c0) <= BOARD_SIGMA * board[1]:
         return []
     rel = board[0] / c0 - 1
-    ref = features["meta"].get("reference_array")
-    names = tuple(str(a) for a in features["meta"]["arrays"] if str(a) != str(ref))
+    names = _non_reference(features)
     return [Finding("suspect", source, "speed of sound", f"{source}: speed_of_sound = {c0:g} m/s, but "
                     f"{_board_text(board)} ({100 * rel:+.1f} %, {abs(board[0] - c0) / board[1]:.0f}σ): every array's "
                     f"distance from the reference is scaled by it (about {abs(100 * rel):.1f} cm per metre; named: "
