@@ -383,3 +383,28 @@ def test_an_arrays_own_doa_errors_move_its_position_as_the_linearisation_predict
     actual = _positions(turned)[i] - _positions(clean)[i]
     assert np.linalg.norm(actual) > 0.0005       # half a millimetre at least: the test sees the move
     np.testing.assert_allclose(predicted, actual, atol=0.15 * np.abs(actual).max())
+
+
+def test_std_sources_add_up_to_the_stated_std():
+    """benchmarks/diag_std_sources.py's instrument (issue 27's over-naming: which terms make an array's std): the
+    terms it splits the honest covariance's B into (arrivals, planar/own rows, shared rotations, per array) add
+    up to each array's stated position variance, as calibrate reports it (x/y/z_std)."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from diag_std_sources import std_parts
+
+    feats, _ = _stops_scene(0)
+    feats = feats.replace(meta={**feats["meta"], "tdoa_shared_arrivals": True})
+    cal = calibrate(feats, noise="meta")
+    p, lay, lin = _final_linearisation(cal)
+    cov = covariance(lin.J[lin.w > 0], lay.n, lay)
+    parts, honest, _, _ = std_parts(p, lin, lay, cal["state"], cov, feats["meta"], None)
+    assert {t.split(":")[0] for t in parts} >= {"shared_doa", "arrival"}
+    std = cal["arrays"].set_index("array")
+    for i, a in enumerate(map(str, p.names)):
+        if i == p.ref:
+            continue
+        H = cov[:, lay.x[i]]
+        var = sum(np.sum((g @ H) ** 2, axis=0) for g in parts.values())
+        np.testing.assert_allclose(np.sqrt(var), std.loc[a, ["x_std", "y_std", "z_std"]].to_numpy(float), rtol=1e-6)
