@@ -1265,8 +1265,26 @@ def apply_findings(calib, findings):
         return calib
     rep = calib["report"]
     findings = settled_by_estimate(findings, rep)
-    return {**calib, "report": {**rep, "verdict": with_setup(rep.get("verdict", {}), findings),
-                                "setup": list(findings)}}
+    verdict = odometry_blamed(rep.get("verdict", {}), findings, rep)
+    return {**calib, "report": {**rep, "verdict": with_setup(verdict, findings), "setup": list(findings)}}
+
+
+def odometry_blamed(verdict, findings, report):
+    """The estimator's verdict with the arrays its speed-of-sound check named alone (report.json
+    ``speed_of_sound.check.added``, ``calib.estimator.verdict.name_speed``: c fixed, the data asking for
+    another) given back where a set-up finding blames the odometry's scale instead (``odometry scale``: the 3-D
+    boards' own c agrees with the declared one, :func:`sound_cause`): the declared c then places them right (lab
+    522 with its odometry 2 % long: 0.3-0.6 cm). Its reason says so. Returns a new dict (``verdict`` when
+    nothing changes)."""
+    check = (report.get("speed_of_sound") or {}).get("check") or {}
+    if not check.get("added") or not any(f.get("check") == "odometry scale" for f in findings):
+        return verdict
+    back = set(check["added"])
+    reasons = [r + " — the 3-D boards' own c agrees with the declared one (set-up: odometry scale): the "
+               "odometry's scale is off, the arrays are right and not named for it"
+               if r.startswith("the speed of sound") else r for r in verdict.get("reasons", [])]
+    return {**verdict, "reasons": reasons, "status": check.get("status_before", verdict.get("status")),
+            "flagged_arrays": [a for a in verdict.get("flagged_arrays", []) if a not in back]}
 
 
 def settled_by_estimate(findings, report):
