@@ -5,10 +5,13 @@ session's truth. Features do not depend on c at first order (the frontend's dela
 c off by e is the user's session at c / (1 + e) without a new render.
 
     python benchmarks/bench_sound_speed.py RUN_DIR:SESSION_DIR ... [--errors -0.03,-0.015,0,0.01,0.02]
-        [--modes fixed,auto] [--jsonl OUT]
+        [--odo 1,0.98,1.02] [--modes fixed,auto] [--jsonl OUT]
 
+--odo scales the odometry's x, y (a wheel-diameter error: the right c, the odometry's metre wrong).
 Per run: position RMSE (cm), orientation (deg), the largest array error over its stated std, verdict, c used
-and its std, whether it was estimated.
+and its std, whether it was estimated; the arrays > 3σ off (``off``) and those of them not named
+(``unnamed_off``), c mode fixed's check (``check_*``: soundspeed.speed_check) with the arrays it named alone
+(``speed_added``) and each array's move with the data's c over its std (``shift_sigma``).
 """
 from __future__ import annotations
 
