@@ -158,17 +158,27 @@ def test_fixed_mode_at_the_right_speed_names_nothing_for_it():
         assert not any(r.startswith("the speed of sound") for r in res["report"]["verdict"]["reasons"])
 
 
-def test_a_board_that_blames_the_odometry_gives_the_arrays_back():
-    """Right c, odometry 2 % long: the estimator's check cannot tell it from c 2 % off and names the arrays (with
-    both readings); a set-up finding from the 3-D boards' own c blaming the odometry's scale gives them back
-    (``setupcheck.odometry_blamed``): the declared c placed them right (the truth), the status stays `suspect` from
-    that finding, and no array the check named alone is flagged."""
-    from calib.pipeline.setupcheck import apply_findings
-
-    f, truth = scene(1, TRUE_C)
+def _odometry_long(seed):
+    f, truth = scene(seed, TRUE_C)
     ev = f["events"].copy()
     ev[["odom_x", "odom_y", "odom_z"]] *= 1.02
-    res = calibrate(f.replace(events=ev))
+    return f.replace(events=ev), truth
+
+
+def _board_note(c, sd):
+    return {"status": "note", "what": "session.toml", "check": "board speed", "text": "board", "array": None,
+            "arrays": [], "reading": [c, sd, ["A2"]]}
+
+
+def test_a_board_that_blames_the_odometry_gives_the_arrays_back():
+    """Right c, odometry 2 % long: the estimator's check cannot tell it from c 2 % off and names the arrays (with
+    both readings); the 3-D boards' own c at the declared one — a set-up `odometry scale` finding, or their
+    `board speed` note read against the check (``setupcheck.sound_cause``) — gives them back
+    (``setupcheck.odometry_blamed``): the declared c placed them right (the truth)."""
+    from calib.pipeline.setupcheck import apply_findings
+
+    f, truth = _odometry_long(1)
+    res = calibrate(f)
     check = res["report"]["speed_of_sound"]["check"]
     assert check["significant"] and check["added"] and set(check["added"]) <= set(res["report"]["verdict"]["flagged_arrays"])
     assert _worst_sigma(res, truth) < 3   # (the arrays are right: named only because the data cannot tell)
@@ -176,3 +186,23 @@ def test_a_board_that_blames_the_odometry_gives_the_arrays_back():
                "array": None, "arrays": []}
     verdict = apply_findings(dict(res.items()), [finding])["report"]["verdict"]
     assert verdict["status"] == "suspect" and not set(check["added"]) & set(verdict["flagged_arrays"])
+    verdict = apply_findings(dict(res.items()), [_board_note(TRUE_C + 0.3, 0.7)])["report"]["verdict"]
+    assert not set(check["added"]) & set(verdict["flagged_arrays"])
+    assert any("the odometry's scale is off" in r for r in verdict["reasons"])
+
+
+def test_a_board_that_confirms_the_datas_speed_keeps_the_arrays_named():
+    """Declared 343, true 349: the boards' own c near 349 sides with the data's c (not the declared): the arrays
+    stay named and the reason says the declared c is off; a board that cannot tell (within 3σ of both) changes
+    nothing."""
+    from calib.pipeline.setupcheck import apply_findings
+
+    f, _ = scene(2, 343.0)
+    res = calibrate(f)
+    named = res["report"]["speed_of_sound"]["check"]["added"]
+    assert named
+    verdict = apply_findings(dict(res.items()), [_board_note(TRUE_C - 0.4, 0.7)])["report"]["verdict"]
+    assert set(named) <= set(verdict["flagged_arrays"]) and verdict["status"] == "suspect"
+    assert any("the declared c is off" in r for r in verdict["reasons"])
+    vague = apply_findings(dict(res.items()), [_board_note(346.0, 5.0)])["report"]["verdict"]
+    assert vague["flagged_arrays"] == res["report"]["verdict"]["flagged_arrays"]
