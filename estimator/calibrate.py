@@ -165,11 +165,8 @@ def calibrate_features(features, *, method="hybrid", use_tdoa_s=True, emission_s
         return _solution(res, kinds, stage_states)
     out = _full_outputs(res, kinds, stages, stage_states, method=method, noise=noise, emission_sigma=emission_sigma,
                         times=times, t0=t0, meta=features["meta"])
-    if speed_of_sound == "fixed" and loss:
-        # the data's c checked, never used (soundspeed.speed_check)
-        check = speed_check(res.problem, res.state, res.layout, kinds, prior=speed_of_sound_sigma, max_iter=max_iter,
-                            mask=res.mask, dropped=res.dropped)
-        out["report"]["speed_of_sound"]["check"] = check   # (named in the verdict by ``calibrate``, last)
+    if speed_of_sound == "fixed" and loss:   # the data's c checked, never used (named in the verdict by ``calibrate``)
+        out["report"]["speed_of_sound"]["check"] = _speed_check(res, kinds, speed_of_sound_sigma, max_iter)
     return blank_diverged(_name_untrusted(out, screened, basins, mirrors))
 
 
@@ -190,6 +187,12 @@ def _problem(features, problem, *, use_tdoa_s, emission_sigma, odometry_yaw, spe
     if p.K < 3:
         raise ObservabilityError(f"only {p.K} event(s): at least 3 are needed to calibrate")
     return features, p, screened
+
+
+def _speed_check(res, kinds, prior, max_iter):
+    """``soundspeed.speed_check`` at the joint result ``res`` (its outlier rows out, its dropped arrays fixed)."""
+    return speed_check(res.problem, res.state, res.layout, kinds, prior=prior, max_iter=max_iter, mask=res.mask,
+                       dropped=res.dropped)
 
 
 def _name_untrusted(out, screened, basins, mirrors=()):
