@@ -146,6 +146,8 @@ def test_fixed_mode_names_the_arrays_a_wrong_declared_speed_moves():
     assert off and verdict["status"] != "ok" and set(off) <= set(verdict["flagged_arrays"])
     said = [r for r in verdict["reasons"] if r.startswith("the speed of sound")]
     assert len(said) == 1 and "--speed-of-sound auto" in said[0] and "odometry" in said[0]
+    from calib.pipeline.report.summary import speed_lines
+    assert "the data ask for" in speed_lines(res["report"]["speed_of_sound"])[0]   # (summary.md says it too)
 
 
 def test_fixed_mode_at_the_right_speed_names_nothing_for_it():
