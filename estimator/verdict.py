@@ -407,3 +407,39 @@ def name_imprecise(verdict, arrays, target_position, target_orientation_deg):
             "or with its direct path would narrow it (targets: --target-position, --target-orientation)")
         verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
     return record
+
+
+SPEED_SHIFT_SIGMA = 1.0   # an array that the data's c moves by more than this many of its σ (one axis) is named
+
+
+def name_speed(verdict, check, arrays):
+    """Name the arrays a declared speed of sound off the data's leaves wrong (``speed_of_sound="fixed"``; ``check``:
+    ``soundspeed.speed_check``'s record or None; ``arrays``: arrays.csv's frame, its stated std), in place: when
+    the data ask for another c (``significant``), each non-reference array that c would move beyond
+    SPEED_SHIFT_SIGMA of its std on some axis is flagged, status at least ``suspect``. The data fix c only against
+    the odometry's metre, so the reason offers both readings. ``check`` gets ``named`` (those arrays), ``added``
+    (those no other reason had flagged) and ``status_before``, so that a finding blaming the odometry's scale can
+    give them back (``pipeline.setupcheck.settled_by_estimate``). Returns the arrays named."""
+    if not check or not check.get("significant"):
+        return []
+    std = arrays.set_index("array")[list(array_param("x").std_columns)].astype(float)
+    moved = {a: float(np.max(np.abs(d) / std.loc[a].to_numpy())) for a, d in check["shift_m"].items()
+             if a in std.index and np.all(std.loc[a].to_numpy() > 0)}
+    named = [a for a, z in moved.items() if z > SPEED_SHIFT_SIGMA]
+    if not named:
+        return []
+    c0, c, rel = check["declared_m_s"], check["fitted_m_s"], check["relative"]
+    shift = max(float(np.linalg.norm(check["shift_m"][a])) for a in named)
+    check.update(named=named, added=[a for a in named if a not in verdict["flagged_arrays"]],
+                 status_before=verdict["status"])
+    flag(verdict, *named)
+    verdict["reasons"].append(
+        f"the speed of sound: the arrivals against the metric odometry ask for {c:.1f} ± {c0 * check['std_relative']:.1f} "
+        f"m/s, {100 * rel:+.1f} % ({check['z']:.1f}σ) from the declared {c0:g} m/s, which places every array "
+        f"in the arrivals' metre: with the data's c {', '.join(named)} move by up to {100 * shift:.1f} cm (up to "
+        f"{max(moved[a] for a in named):.1f}× their std). Check the air's temperature (331.3 + 0.606·T °C) and "
+        "declare its c, or solve it (`--speed-of-sound auto`) — or, if the declared c is right, the odometry's "
+        f"distances are {abs(100 * rel):.1f} % too {'long' if rel > 0 else 'short'} (wheel diameter, encoder "
+        "scale): then the arrays are right as they are")
+    verdict["status"] = max(verdict["status"], "suspect", key=STATUS_RANK.get)
+    return named

@@ -118,9 +118,13 @@ class Finding:
     text: str
     array: str | None = None
     arrays: tuple = ()   # the arrays concerned when the finding names several (``array`` then None)
+    reading: tuple = ()  # a measured value the estimate's verdict weighs (``board speed``: :func:`board_sound`'s)
 
     def as_dict(self):
-        return asdict(self)
+        d = asdict(self)
+        if not d["reading"]:
+            del d["reading"]
+        return d
 
 
 def worst(findings):
@@ -1134,6 +1138,8 @@ def setup_findings(session, diagnostics=None, features=None, threshold=8.0):
         out += sound
         if not sound and not _odometry_tested(features, fits):
             out += board_findings(board, session["speed_of_sound"], features)
+        if board is not None and not any(f.check in ("speed of sound", "odometry scale") for f in out):
+            out.append(_board_note(board, session["speed_of_sound"]))
     return sorted(out, key=lambda f: -STATUS_RANK[f.status])
 
 
@@ -1228,6 +1234,15 @@ def board_findings(board, c0, features, source="session.toml"):
                     f"{abs(100 * rel):.1f} % {'larger' if rel > 0 else 'smaller'} than declared", arrays=names)]
 
 
+def _board_note(board, c0):
+    """A `note` of the 3-D boards' own c (:func:`board_sound`) where no speed-of-sound finding was made: the
+    estimate's own check of c (``calib.estimator.soundspeed.speed_check``, far more precise than this stage's fit)
+    may still ask for another c, and the boards then tell which of the two it is (:func:`odometry_blamed`)."""
+    return Finding("note", "session.toml", "board speed", f"{_board_text(board)}, the declared {c0:g} m/s "
+                   f"{abs(board[0] - c0) / board[1]:.1f}σ away", reading=(float(board[0]), float(board[1]),
+                                                                       tuple(board[2])))
+
+
 def _board_text(board):
     c_b, sd_b, names = board
     return (f"the mic delays of the 3-D board{'s' if len(names) > 1 else ''} {', '.join(names)} (their declared "
@@ -1265,8 +1280,38 @@ def apply_findings(calib, findings):
         return calib
     rep = calib["report"]
     findings = settled_by_estimate(findings, rep)
-    return {**calib, "report": {**rep, "verdict": with_setup(rep.get("verdict", {}), findings),
-                                "setup": list(findings)}}
+    verdict = odometry_blamed(rep.get("verdict", {}), findings, rep)
+    return {**calib, "report": {**rep, "verdict": with_setup(verdict, findings), "setup": list(findings)}}
+
+
+def odometry_blamed(verdict, findings, report):
+    """The estimator's verdict with the arrays its speed-of-sound check named alone (report.json
+    ``speed_of_sound.check.added``, ``calib.estimator.verdict.name_speed``: c fixed, the data asking for
+    another) given back where the 3-D boards blame the odometry's scale instead: a set-up finding ``odometry
+    scale``, or their own c (the ``board speed`` note) within BOARD_SIGMA of the declared one and beyond it of the
+    data's (:func:`sound_cause`). The declared c then places those arrays right (lab 522 with its odometry 2 %
+    long: 0.3-0.6 cm). Where the boards side with the data's c the reason says so. Returns a new dict
+    (``verdict`` when nothing changes)."""
+    check = (report.get("speed_of_sound") or {}).get("check") or {}
+    if not check.get("added"):
+        return verdict
+    c0 = check["declared_m_s"]
+    board = next((tuple(f["reading"]) for f in findings if f.get("check") == "board speed" and f.get("reading")), None)
+    cause = "odometry" if any(f.get("check") == "odometry scale" for f in findings) else \
+        sound_cause(check["fitted_m_s"], c0 * check["std_relative"], c0, board)
+    if cause is None:
+        return verdict
+    said = "the 3-D boards' own c (set-up: " + (_board_text(board) if board else "odometry scale") + ")"
+    if cause == "sound":
+        why = f" — {said} agrees with the data's, not the declared one: the declared c is off"
+        return {**verdict, "reasons": [r + why if r.startswith("the speed of sound") else r
+                                       for r in verdict.get("reasons", [])]}
+    why = f" — {said} agrees with the declared one: the odometry's scale is off, the arrays are right, not named"
+    back = set(check["added"])
+    return {**verdict, "reasons": [r + why if r.startswith("the speed of sound") else r
+                                   for r in verdict.get("reasons", [])],
+            "status": check.get("status_before", verdict.get("status")),
+            "flagged_arrays": [a for a in verdict.get("flagged_arrays", []) if a not in back]}
 
 
 def settled_by_estimate(findings, report):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from calib.estimator import calibrate
-from calib.estimator.soundspeed import SPEED_SIGNIFICANCE
+from calib.estimator.soundspeed import CHECK_TOL, SPEED_SIGNIFICANCE
 from calib.pipeline.report.evaluate import evaluate
 from calib.pipeline.simulate.featsim import simulate_features
 
@@ -124,3 +124,87 @@ def test_c_and_the_odometrys_scale_are_one_unknown_so_c_stays_declared_by_defaul
     assert auto["report"]["speed_of_sound"]["value_m_s"] == pytest.approx(1.02 * TRUE_C, rel=0.005)
     e_default, e_auto = (evaluate(r, truth)["position_rmse_m"] for r in (default, auto))
     assert e_default < 0.5 * e_auto
+
+
+def test_fixed_mode_names_the_arrays_a_wrong_declared_speed_moves():
+    """speed_of_sound="fixed" (the default), declared 343 m/s, true 349 (1.7 %): the arrays are off by their ranges
+    × 1.7 %, many σ (the truth); the check at the fixed solution (soundspeed.speed_check) reads c beyond its tolerance and level,
+    the verdict is `suspect` and names every array more than 3σ off, with both readings (the air's c, or the
+    odometry's scale) and what to do."""
+    f, truth = scene(1, 343.0)
+    res = calibrate(f)
+    check = res["report"]["speed_of_sound"]["check"]
+    assert not res["report"]["speed_of_sound"]["estimated"] and check["significant"]
+    # (toward 349, beyond the tolerance: here 346.3 ± 0.6, as a spurious emission-interval step the clock selection
+    # fitted takes part of it; the linear clock's solve reads 348.0)
+    assert check["relative"] > CHECK_TOL and check["z"] > SPEED_SIGNIFICANCE
+    est, tru = res["arrays"].set_index("array"), truth["arrays"].set_index("array")
+    off = [a for a in est.index[1:] if np.max(np.abs(est.loc[a, ["x", "y", "z"]].to_numpy(float)
+                                                     - tru.loc[a, ["x", "y", "z"]].to_numpy(float))
+                                              / est.loc[a, ["x_std", "y_std", "z_std"]].to_numpy(float)) > 3]
+    verdict = res["report"]["verdict"]
+    assert off and verdict["status"] != "ok" and set(off) <= set(verdict["flagged_arrays"])
+    said = [r for r in verdict["reasons"] if r.startswith("the speed of sound")]
+    assert len(said) == 1 and "--speed-of-sound auto" in said[0] and "odometry" in said[0]
+    from calib.pipeline.report.summary import speed_lines
+    assert "the data ask for" in speed_lines(res["report"]["speed_of_sound"])[0]   # (summary.md says it too)
+
+
+def test_fixed_mode_at_the_right_speed_names_nothing_for_it():
+    """Declared = true c: the check reads c within its σ of the declaration, below its level: no array is named for
+    the speed of sound and the solution is unchanged by the check."""
+    for seed in (1, 2):
+        res = calibrate(scene(seed, TRUE_C)[0])
+        check = res["report"]["speed_of_sound"]["check"]
+        assert not check["significant"] and "named" not in check
+        assert not any(r.startswith("the speed of sound") for r in res["report"]["verdict"]["reasons"])
+
+
+def _odometry_long(seed):
+    f, truth = scene(seed, TRUE_C)
+    ev = f["events"].copy()
+    ev[["odom_x", "odom_y", "odom_z"]] *= 1.02
+    return f.replace(events=ev), truth
+
+
+def _board_note(c, sd):
+    return {"status": "note", "what": "session.toml", "check": "board speed", "text": "board", "array": None,
+            "arrays": [], "reading": [c, sd, ["A2"]]}
+
+
+def test_a_board_that_blames_the_odometry_gives_the_arrays_back():
+    """Right c, odometry 2 % long: the estimator's check cannot tell it from c 2 % off and names the arrays (with
+    both readings); the 3-D boards' own c at the declared one — a set-up `odometry scale` finding, or their
+    `board speed` note read against the check (``setupcheck.sound_cause``) — gives them back
+    (``setupcheck.odometry_blamed``): the declared c placed them right (the truth)."""
+    from calib.pipeline.setupcheck import apply_findings
+
+    f, truth = _odometry_long(1)
+    res = calibrate(f)
+    check = res["report"]["speed_of_sound"]["check"]
+    assert check["significant"] and check["added"] and set(check["added"]) <= set(res["report"]["verdict"]["flagged_arrays"])
+    assert _worst_sigma(res, truth) < 3   # (the arrays are right: named only because the data cannot tell)
+    finding = {"status": "suspect", "what": "events.csv", "check": "odometry scale", "text": "odometry 2 % long",
+               "array": None, "arrays": []}
+    verdict = apply_findings(dict(res.items()), [finding])["report"]["verdict"]
+    assert verdict["status"] == "suspect" and not set(check["added"]) & set(verdict["flagged_arrays"])
+    verdict = apply_findings(dict(res.items()), [_board_note(TRUE_C + 0.3, 0.7)])["report"]["verdict"]
+    assert not set(check["added"]) & set(verdict["flagged_arrays"])
+    assert any("the odometry's scale is off" in r for r in verdict["reasons"])
+
+
+def test_a_board_that_confirms_the_datas_speed_keeps_the_arrays_named():
+    """Declared 343, true 349: the boards' own c near 349 sides with the data's c (not the declared): the arrays
+    stay named and the reason says the declared c is off; a board that cannot tell (within 3σ of both) changes
+    nothing."""
+    from calib.pipeline.setupcheck import apply_findings
+
+    f, _ = scene(2, 343.0)
+    res = calibrate(f)
+    named = res["report"]["speed_of_sound"]["check"]["added"]
+    assert named
+    verdict = apply_findings(dict(res.items()), [_board_note(TRUE_C - 0.4, 0.7)])["report"]["verdict"]
+    assert set(named) <= set(verdict["flagged_arrays"]) and verdict["status"] == "suspect"
+    assert any("the declared c is off" in r for r in verdict["reasons"])
+    vague = apply_findings(dict(res.items()), [_board_note(346.0, 5.0)])["report"]["verdict"]
+    assert vague["flagged_arrays"] == res["report"]["verdict"]["flagged_arrays"]

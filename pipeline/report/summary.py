@@ -476,14 +476,19 @@ def summary_markdown(features, calib, res, metrics, diag, images):
 
 def speed_lines(speed):
     """The speed of sound the calibration used (report.json ``speed_of_sound``): solved, with its 1-σ and the
-    declared value, or as declared (and why: the data did not tell it apart, or it was fixed)."""
+    declared value, or as declared (and why: the data did not tell it apart, or it was fixed — then what the data
+    ask for when its check is significant)."""
     if not speed:
         return []
     c, c0 = speed.get("value_m_s"), speed.get("declared_m_s")
     if speed.get("estimated"):
         return [f"Speed of sound **{c:.1f} ± {speed['std_m_s']:.1f} m/s**, solved from the data "
                 f"({100 * (c / c0 - 1):+.1f} % against the declared {c0:.1f} m/s: the arrays' positions use it).", ""]
-    test = speed.get("test")
+    test, check = speed.get("test"), speed.get("check") or {}
+    if not test and check.get("significant"):   # c fixed, the data's checked (estimator/soundspeed.speed_check)
+        return [f"Speed of sound {c:.1f} m/s as declared (fixed by option), but the data ask for "
+                f"{check['fitted_m_s']:.1f} ± {check['std_relative'] * c0:.1f} m/s ({100 * check['relative']:+.1f} %, "
+                f"{check['z']:.1f}σ): see the verdict.", ""]
     why = "fixed by option" if not test else (
         f"the data put it at {test['fitted_m_s']:.1f} ± {test['std_relative'] * c0:.1f} m/s, not told apart"
         if test.get("std_relative") else "not testable on these data")
