@@ -91,7 +91,10 @@ def interrupted(exc, message="interrupted; nothing partial was kept"):
     global _pending
     _pending = None
     what = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted (SIGINT)"
-    print(f"{what}: {message.removeprefix('interrupted; ').removeprefix('interrupted: ')}", file=sys.stderr)
+    try:
+        print(f"{what}: {message.removeprefix('interrupted; ').removeprefix('interrupted: ')}", file=sys.stderr)
+    except (OSError, ValueError):
+        pass  # stderr is a closed pipe (e.g. `calib run ... 2>&1 | head` stopped reading): the exit code still tells
     return interrupt_code(exc)
 
 

@@ -544,6 +544,18 @@ def test_an_interrupt_typer_swallowed_is_reported_with_its_own_code(name, code):
     assert r.stderr.startswith("terminated (SIGTERM)" if name == "TERM" else "interrupted (SIGINT)")
 
 
+@pytest.mark.parametrize("name, code", [("INT", 130), ("TERM", 143)])
+def test_an_interrupt_with_stderr_a_closed_pipe_still_exits_with_its_code(name, code):
+    """`calib run ... 2>&1 | head` whose reader has gone: the one-line message cannot be written (EPIPE), and
+    the command still exits with the signal's code, not with an internal error."""
+    script = ("import os, signal\nfrom calib.cli import signals\n"
+              "r, w = os.pipe(); os.close(r); os.dup2(w, 2)   # stderr: a pipe nobody reads any more\n"
+              f"signals._pending = signal.SIG{name}\n"
+              "signals.leave(130)\n")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.returncode == code, (r.returncode, r.stdout)
+
+
 # ----------------------------------------------------------------------------------------------- writer safety
 # Every writer (issue 29): never replace or delete a file or folder calib did not create, nor an input;
 # --force replaces only calib's own outputs; a user's files named like calib's temporaries and a user's
