@@ -14,9 +14,15 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 
 
 def _child(conn, fn, args):
+    # the parent's handlers (calib.cli.signals) turn SIGTERM into an exception, which a forked child would print
+    # as a traceback when close() ends it mid-send: here SIGTERM just ends it, and Ctrl-C (sent to the whole
+    # process group) is the parent's to handle (it then ends this one)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         out = ("ok", fn(*args))
     except BaseException as exc:  # noqa: BLE001 (handed to the parent, which raises it)

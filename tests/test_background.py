@@ -38,3 +38,17 @@ def test_leaving_early_ends_the_second_process():
     with job:
         pass   # result never asked for (an error in the main work)
     assert job.proc is None
+
+
+def test_ended_mid_send_under_calibs_signal_handlers_prints_nothing():
+    """`calib estimate` installs handlers that turn SIGTERM into an exception; a forked second process ended by
+    close() while it sends a result nobody reads (larger than the pipe) must die quietly, not print a
+    traceback the user sees."""
+    import subprocess
+    import sys
+    script = ("import time\nfrom calib.cli import signals\nsignals.install()\n"
+              "from calib.pipeline.background import Background\n"
+              "def big():\n    return b'x' * 10_000_000\n"
+              "with Background(big):\n    time.sleep(1.0)\nprint('done')\n")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout == "done\n" and r.stderr == "", r.stderr
