@@ -6,7 +6,8 @@
 Per planar board (mics in its z = 0 plane) whose true source directions are mostly > 30° off that plane: each DOA
 row's error at the simulator's truth (true pose, true source; a moving source at t_emit + meta ``doa_time_s`` on
 truth/trajectory.csv), in the array frame as (azimuth, elevation) arc components, the truth folded into the board's
-hemisphere. Fitted by weighted least squares (each component whitened by its RMS after the richest model) with
+hemisphere. Fitted by weighted least squares (rows by their stated sigma_deg, as the solve; --whiten: each
+component by its scatter after the richest model) with
 nested low-order fields: a rigid rotation (3); + an in-plane scale k of |u_xy| (1: a wrong aperture, elevation
 error toward the normal); + an elevation offset (1); + a general linear field P(u) M u (8); the array's pose
 (rotation + displacement δx with the sources held at the truth, δu = −P(u) Rᵀδx / d: what the joint solve's
@@ -65,16 +66,20 @@ def _lstsq(E, X, w):
     return float(r @ r), c, int(np.linalg.matrix_rank(A, tol=1e-8 * np.abs(A).max()))
 
 
-def fit_fields(u0, um, d, v=None):
-    """Per model {explained, p, F, p_value, c}: u0 true, um measured unit directions (n, 3), array frame."""
+def fit_fields(u0, um, d, v=None, sigma=None):
+    """Per model {explained, p, F, p_value, c}: u0 true, um measured unit directions (n, 3), array frame; sigma
+    (n,) the rows' stated sd (rad; the solve's weights), None: each component whitened by its own scatter."""
     T = tangent(u0)
     E = np.einsum("nij,nj->ni", T, um - u0)
+    if sigma is not None:
+        E, T = E / sigma[:, None], T / sigma[:, None, None]
     X = {k: np.einsum("nij,njp->nip", T, f) for k, f in fields(u0, d, v).items()}
     richest = np.concatenate([X["rot"], X["pos"], X["lin"]], 2)
     A = richest.reshape(-1, richest.shape[2])
     c, *_ = np.linalg.lstsq(A, E.reshape(-1), rcond=None)
     r = (E.reshape(-1) - A @ c).reshape(-1, 2)
-    w = 1.0 / np.maximum(np.sqrt(np.mean(r ** 2, 0) * len(r) / max(len(r) - richest.shape[2] / 2, 1)), 1e-9)
+    w = (np.ones(2) if sigma is not None else
+         1.0 / np.maximum(np.sqrt(np.mean(r ** 2, 0) * len(r) / max(len(r) - richest.shape[2] / 2, 1)), 1e-9))
     total = float(np.sum((E * w) ** 2))
     fits, n2 = {}, E.size
     for m, (base, keys) in NESTED.items():
@@ -85,7 +90,8 @@ def fit_fields(u0, um, d, v=None):
         F = ((b_rss - rss) / max(p - b_p, 1)) / (rss / max(n2 - p, 1))
         fits[m] = {"rss": rss, "p": p, "explained": 1 - rss / total, "F": F, "c": c.tolist(),
                    "p_value": float(stats.f.sf(F, max(p - b_p, 1), max(n2 - p, 1)))}
-    return fits, np.rad2deg(np.sqrt(np.mean(E ** 2, 0)))
+    scale = 1.0 if sigma is None else sigma[:, None]
+    return fits, np.rad2deg(np.sqrt(np.mean((E * scale) ** 2, 0)))
 
 
 def sources_at_doa(truth, meta, src):
@@ -101,8 +107,8 @@ def sources_at_doa(truth, meta, src):
             pd.DataFrame((at(te + step) - at(te - step)) / (2 * step), index=src.index, columns=list("xyz")))
 
 
-def session(work, name):
-    """One row per off-plane planar array of session ``name``."""
+def session(work, name, weighted=True):
+    """One row per off-plane planar array of session ``name`` (weighted: rows by their stated sigma_deg)."""
     feats, truth = work / "runs" / name / "features", work / name / "truth"
     meta = json.load(open(feats / "meta.json"))
     doa = pd.read_csv(feats / "doa.csv", dtype={"array": str})
@@ -123,10 +129,11 @@ def session(work, name):
         u0 = rel / d[:, None] * np.stack([np.ones_like(fold)] * 2 + [fold], 1)
         v = None if vel is None else vel.loc[g.event, list("xyz")].to_numpy(float) @ R * np.stack(
             [np.ones_like(fold)] * 2 + [fold], 1)
-        ok = np.isfinite(um).all(1)
+        sig = np.deg2rad(g["sigma_deg"].to_numpy(float)) if weighted else None
+        ok = np.isfinite(um).all(1) & (np.isfinite(sig) if weighted else True)
         if ok.sum() < MIN_ROWS or np.median(np.abs(u0[ok, 2])) <= OFF_PLANE:
             continue
-        fits, rms = fit_fields(u0[ok], um[ok], d[ok], None if v is None else v[ok])
+        fits, rms = fit_fields(u0[ok], um[ok], d[ok], None if v is None else v[ok], sig[ok] if weighted else None)
         out.append({"session": name, "array": a, "ref": bool(np.all(x == 0)), "n": int(ok.sum()),
                     "uz_med": float(np.median(np.abs(u0[ok, 2]))), "rms_az_deg": float(rms[0]),
                     "rms_el_deg": float(rms[1]), "dx_cm": (100 * np.asarray(fits["pose"]["c"][3:6])).tolist(),
@@ -139,8 +146,9 @@ def main(argv=None):
     ap.add_argument("work", type=Path)
     ap.add_argument("sessions", nargs="+")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--whiten", action="store_true", help="weight by each component's scatter, not sigma_deg")
     args = ap.parse_args(argv)
-    rows = [r for s in args.sessions for r in session(args.work, s)]
+    rows = [r for s in args.sessions for r in session(args.work, s, weighted=not args.whiten)]
     models = [m for m in NESTED if any(m in r["fits"] for r in rows)]
     print("session      array n  |uz|  az° el° | explained (F) per model | pose δx cm (array frame)")
     for r in rows:

@@ -54,3 +54,15 @@ def test_independent_noise_reads_as_chance():
         fits, _ = F.fit_fields(u, _measure(rng, u, 0.0), d)
         small += [fits[m]["p_value"] < 0.01 for m in ("rot+k", "pose", "rot+lin")]
     assert np.mean(small) < 0.06
+
+
+def test_stated_sigma_weights_the_rows():
+    """With each row's stated sd the F tests read the same planted displacement, and noise at chance."""
+    rng = np.random.default_rng(3)
+    u, d = _geometry(rng, 60)
+    sigma = np.full(len(u), NOISE)
+    dx = np.array([0.0, 0.04, 0.0])
+    fits, _ = F.fit_fields(u, _measure(rng, u, np.einsum("nij,j->ni", F.fields(u, d)["pos"], dx)), d, sigma=sigma)
+    assert fits["pose"]["p_value"] < 1e-4 and np.linalg.norm(np.array(fits["pose"]["c"][3:6]) - dx) < 0.02
+    fits, _ = F.fit_fields(u, _measure(rng, u, 0.0), d, sigma=sigma)
+    assert fits["pose"]["p_value"] > 1e-3
