@@ -1139,14 +1139,20 @@ def _structure_failures(result, models, old, features):
 
 
 # ----------------------------------------------------------------------------------------------- selection
-def detect(result, models, banned=frozenset(), excluded=frozenset(), doubted=frozenset(), blind=frozenset()):
+def detect(result, models, banned=frozenset(), excluded=frozenset(), doubted=frozenset(), blind=frozenset(),
+           features=None):
     """One detection round at a solved ``result``: proposals {array name: its components with the new one}
     of the arrays whose best new component beats its penalty — the one with the largest margin, and rivals
     within TIE_MARGIN of it (one component per round: a fault bends the fit, and through it the other
     arrays' tests) — and the round's records. The emitter (:data:`EMITTER`, emission times off: the same term in every clock) is
     one more candidate, tested jointly only. ``doubted``: :func:`doubted_arrivals`; ``blind``: those doubted for a
-    reason no clock gives (CLOCK_BLIND_DOUBTS), free in the per-array scan (:func:`best_component`)."""
+    reason no clock gives (CLOCK_BLIND_DOUBTS), free in the per-array scan (:func:`best_component`). ``features``:
+    those ``result`` was solved from; the per-array scan then fits every row of them, the screened ones too
+    (:func:`_every_row`): an array's screened rows testify about its own clock, as in its structure test
+    (without them a step inside a run of screened events fits every interval of the run alike, and the rivals
+    tried were the run's first ones)."""
     p, st = result["problem"], result["state"]
+    every = None
     found, records, alternatives = {}, [], {}
     joint = joint_scan(result, models, banned, doubted=doubted)
     suspects = _suspects(result)
@@ -1159,7 +1165,9 @@ def detect(result, models, banned=frozenset(), excluded=frozenset(), doubted=fro
         # the fit may be bent around this array: its own robust fits, sources held (not the reference's: a
         # step of its clock shows in every other array's TDOA-M, which its own fit does not see)
         if i >= 0 and i != p.ref and name in suspects:
-            D = array_data(p, st, i, velocity_arrival_sd(result))
+            if every is None:   # (built once a round, where a per-array scan runs)
+                every = p if features is None else _every_row(result, features)
+            D = array_data(every, st, i, velocity_arrival_sd(result))
             ref = str(p.names[p.ref])
             skip = {k[1:] for k in banned if k[0] == name} | {("mshift", k[2]) for k in banned if k[:2] == (ref, "step")}
             free = [Component("arrival", float(p.t[k]), 0.0) for k in range(len(p.t))
@@ -1736,7 +1744,8 @@ def _select(solve, features, result, options, rounds, excluded=frozenset(), star
     models, banned, aside, kept, rejected = dict(start or {}), set(banned), set(), 0, 0
     while kept < MAX_ROUNDS and rejected < MAX_REJECTED:
         proposals, records, partners = detect(result, models, frozenset(banned | aside), frozenset(excluded),
-                                              doubted_arrivals(features), doubted_arrivals(features, CLOCK_BLIND_DOUBTS))
+                                              doubted_arrivals(features), doubted_arrivals(features, CLOCK_BLIND_DOUBTS),
+                                              correct_features(features, models))
         rounds.append(records)
         if not proposals:
             break

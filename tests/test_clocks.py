@@ -396,6 +396,27 @@ def test_a_drop_whose_earlier_arrivals_are_doubted_beside_a_warm_up_is_modelled(
     assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean + 0.002
 
 
+@pytest.mark.parametrize("seed", [530, 534])
+def test_a_step_at_the_end_of_a_doubted_run_inside_the_session_is_placed_by_the_doubted_rows(seed):
+    """A3 drops 508 µs (an ESP board) between events 14 and 15 of 30, and the frontend doubts its six arrivals
+    before the drop (flag nlos: its range track reads them as late), a run inside the session (no readmitted
+    block). The screen takes them out, so the undoubted rows fit a step anywhere in events 8-15 alike; the
+    doubted rows, on the old level, say where. Without them the per-array scan proposed the run's first
+    intervals, each failed its structure test on those rows, and A3 ended unreliable (refitted alone)."""
+    stops = _session(seed, 30)
+    f0, truth0 = simulate_features(stops, SIGMA, seed=seed, max_interval=10.0)
+    t = f0["events"]["t_emit"].to_numpy() - f0["events"]["t_emit"].iloc[0]
+    clocks = {"A3": {"steps": [{"time": 0.5 * (t[14] + t[15]), "size": -5.08e-4}]}}
+    f, truth = simulate_features(stops, SIGMA, seed=seed, max_interval=10.0, clocks=clocks)
+    cal = calibrate(ck.doubt_arrivals(f, "A3", range(9, 15)), clock_model="auto")
+    (s,) = cal["report"]["clock"]["arrays"]["A3"]["steps"]
+    assert (s["after_event"], s["before_event"]) == (14, 15) and abs(s["size"] + 5.08e-4) < 3 * s["std"]
+    assert all(not _steps(cal, a) for a in ("A1", "A2", "A4", "A5"))
+    assert cal["report"]["unreliable_arrays"] == []
+    clean = evaluate(calibrate(f0), truth0)["position_rmse_m"]
+    assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * clean + 0.002
+
+
 def test_a_large_reference_step_beside_another_arrays_step_is_the_references():
     # a 7 ms reference step bends the fit: its scanned size is off by tens of σ, and the other array's
     # unmodelled step shows in its structure test's row groups; it is resized and set aside, not banned
