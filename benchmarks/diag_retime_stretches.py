@@ -5,12 +5,13 @@
 SESSION: a rendered session folder (`calib simulate`, truth/manifest.json). The first pass of the frontend runs
 (``extract_features``), then the re-timing pass's first solve (pipeline/retime.py ``first_solve``) and its
 predicted stretches (``estimator.motion.predicted_stretches``). Per array, over its events, in bank steps: how
-many searched stretches (the frontend's own Doppler bank search) are half a step or more from the truth's
-ε = ṙ(t*)/c + drift (ṙ by central differences of the true trajectory), how many predicted ones are a step or
-more off it, how many predicted and searched ones are half a step apart (what a consistency test would see),
-the first solve's position error (cm, against truth/arrays.csv as the state gives it, no alignment: deploy 507's
-metres with stretches right are its frame, not its geometry) and whether it called the array unreliable. deploy 505–513: searched 13–30 of 30 half a step off for most arrays (the
-reflections' Doppler), predicted 0–6 of 30 a step off except an array the first solve misplaces by metres.
+many searched stretches (the frontend's own Doppler bank search) are half a step or more from the truth's ε =
+ṙ(t*)/c + drift (ṙ by central differences of the true trajectory), how many predicted ones are a step or more
+off it, how many predicted and searched ones are half a step apart (what a consistency test would see), the
+first solve's position error (cm, against truth/arrays.csv as the state gives it, no alignment: deploy 507's
+metres with stretches right are its frame, not its geometry) and whether it called the array unreliable. deploy
+505–513: searched 13–30 of 30 half a step off for most arrays (the reflections' Doppler), predicted 0–6 of 30 a
+step off except 505 A5 (18 of 30) and 507 A5 (19, a diverged first solve).
 """
 from __future__ import annotations
 
