@@ -65,6 +65,44 @@ def mic_geometry(mics: ArrayLike, tol: float = MIC_GEOMETRY_TOL) -> tuple[str, N
     return "volume", None
 
 
+def steered_doas(u: ArrayLike, ratio: float, normal: ArrayLike | None = None,
+                 axis: ArrayLike | None = None) -> NDArray:
+    """The DOAs (n, 3) a steered-response frontend reports for true directions ``u`` (n, 3) when it steers with
+    ``ratio`` = c_steered / c_true (docs/method.md, "The DOAs' speed of sound").
+
+    A planar array (unit mic-plane ``normal``) sees only the in-plane part v of u through its delays v·m / c,
+    so its peak lies at ratio·v, and the frontend completes it to u' = ratio·v + √(1 − ratio²|v|²) n on u's
+    side of the plane (in the plane, ratio·v / |ratio·v|, past |ratio·v| = 1: frontend.doa._refine_planar).
+    A linear array (unit ``axis``) measures cos θ = a·u through the same delays: ratio·cos θ (clipped), here
+    returned as u with its axial part scaled and the rest renormalised. A 3-D array: u (its best unit
+    direction is unchanged by a scale)."""
+    u = np.asarray(u, float)
+    if normal is not None:
+        n = np.asarray(normal, float)
+        a = _dot(u, n)
+        x = ratio * (u - a[..., None] * n)
+        r = np.linalg.norm(x, axis=-1)
+        up = np.sqrt(np.clip(1.0 - r * r, 0.0, None)) * np.where(a < 0, -1.0, 1.0)
+        inside = (r <= 1.0)[..., None]
+        return np.where(inside, x + up[..., None] * n, x / np.maximum(r, 1e-12)[..., None])
+    if axis is not None:
+        ax = np.asarray(axis, float)
+        cos = _dot(u, ax)
+        rest = u - cos[..., None] * ax
+        cn = np.clip(ratio * cos, -1.0, 1.0)
+        rn = np.linalg.norm(rest, axis=-1)
+        perp = np.where((rn > 1e-12)[..., None], rest / np.maximum(rn, 1e-12)[..., None], _any_perp(ax))
+        return cn[..., None] * ax + np.sqrt(1.0 - cn * cn)[..., None] * perp
+    return u
+
+
+def _any_perp(a):
+    """A unit vector perpendicular to the unit vector ``a`` (3,)."""
+    e = np.eye(3)[int(np.argmin(np.abs(a)))]
+    v = e - (e @ a) * a
+    return v / np.linalg.norm(v)
+
+
 def plane_normal(mics: ArrayLike) -> NDArray | None:
     """Unit normal (3,) of a planar array's mic plane (:func:`mic_geometry`), None for any other geometry."""
     kind, v = mic_geometry(mics)

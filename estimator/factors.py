@@ -249,7 +249,8 @@ _SKEW = np.array([6, 5, 1, 2, 6, 3, 4, 0, 6])
 
 
 def doa(p, st, lay):
-    """DOA: R_iᵀ (s_j − x_i)/|s_j − x_i| − u_ij, three components per measurement."""
+    """DOA: R_iᵀ (s_j − x_i)/|s_j − x_i| − u_ij, three components per measurement; a planar array's prediction as
+    the frontend steered it with the declared c when c is free or moved (:func:`_planar_steering`)."""
     i, j, u = p.doa.arr, p.doa.ev, p.doa.u
     m = len(i)
     sig = p.sigma["doa"] * np.repeat(p.doa.scale, 3)  # per residual: the type's sigma × the row's scale
@@ -274,7 +275,9 @@ def doa(p, st, lay):
     # whitened along each row's axes (``DoaRows.axes``: its fit's principal tangent axes, then u)
     B = p.doa.axes
     sig = sig * p.doa.axis_scale.ravel()
-    r = np.einsum("kab,kb->ka", B, v - u).ravel() / sig
+    k_cs = _cs_col(lay)
+    steered = _planar_steering(p, st, i, v) if k_cs >= 0 or _kappa(st) != 0.0 else None
+    r = np.einsum("kab,kb->ka", B, (v if steered is None else steered.q) - u).ravel() / sig
     # dv/dφ = H [w]x with w = Rᵀn (unfolded) for R → R Exp(φ); dv/ds = H Rᵀ (I − n nᵀ)/d = −dv/dx
     w = np.einsum("kab,kb->ka", H, v) if folded else v  # H is its own inverse
     # [w]x gathered from (w, −w, 0) in one indexing (exact negations, +0.0 on the diagonal)
@@ -282,13 +285,69 @@ def doa(p, st, lay):
     vx = H @ wx if folded else wx
     P = (np.eye(3)[None] - n[:, :, None] * n[:, None, :]) / d[:, None, None]
     dvds = Rt @ P
-    vals = (B @ np.concatenate([vx, dvds, -dvds], axis=2)).reshape(3 * m, 9) / sig[:, None]
+    Bq = B if steered is None else B @ steered.dv   # the steered prediction's chain rule (planar rows)
+    vals = (Bq @ np.concatenate([vx, dvds, -dvds], axis=2)).reshape(3 * m, 9) / sig[:, None]
     cols = np.column_stack([lay.rot[i], lay.s[j], lay.x[i]])
     if t_doa:   # the turned DOAs see the velocity error as a source shift of t_doa δv
         vals = np.column_stack([vals, t_doa * vals[:, 3:6]])
         cols = np.column_stack([cols, lay.dv[j]])
+    if k_cs >= 0:
+        vals = np.column_stack([vals, np.einsum("kab,kb->ka", B, steered.dk).ravel() / sig])
+        cols = np.column_stack([cols, np.full(m, k_cs)])
     put(J, np.arange(3 * m), np.repeat(cols, 3, axis=0), vals)
     return Factor("doa", r, J, np.repeat(p.doa.row, 3), 3, True, p.sigma["doa"], sig)
+
+
+def _kappa(st):
+    """ln(c / c_declared) at ``st`` (``State.cs``; 0 without it)."""
+    cs = vars(st).get("cs")
+    return 0.0 if cs is None or not len(cs) else float(cs[0])
+
+
+# |u·n| below which a planar row's elevation derivative is taken at this floor (it is 1/|u·n|: infinite in the
+# plane, where the row's elevation axis is whitened by a sigma growing alike, problem.doa_axes)
+PLANE_DERIVATIVE_FLOOR = 1e-3
+
+
+class Steered(NamedTuple):
+    """DOA predictions as the frontend steered them (:func:`_planar_steering`): q (m, 3), dq/dv (m, 3, 3)
+    and dq/d ln c (m, 3)."""
+    q: np.ndarray
+    dv: np.ndarray
+    dk: np.ndarray
+
+
+def _planar_steering(p, st, i, v):
+    """The DOAs v (m, 3) (array frame, unit) of arrays ``i`` as the frontend measured them: it steered with the
+    declared c, so a planar array's in-plane part x = e^{−κ} v_p (κ = ln c/c_declared) completed to
+    q = x + sgn(v·n) √(1 − |x|²) n (x/|x| past |x| = 1: frontend.doa._refine_planar; calib.geometry.steered_doas).
+    dq/dv = e^{−κ} (I − n nᵀ) − sgn (e^{−2κ}/h) n v_pᵀ and dq/dκ = −x + sgn (|x|²/h) n, h = √(1 − |x|²). Other
+    arrays (zero ``p.plane``; 3-D boards: unchanged to first order): q = v, dq/dv = I, dq/dκ = 0."""
+    m = len(i)
+    q, dv, dk = v.copy(), np.repeat(np.eye(3)[None], m, axis=0), np.zeros((m, 3))
+    nrm = np.zeros((m, 3)) if p.plane is None else p.plane[i]
+    rows = np.flatnonzero(np.any(nrm != 0, axis=1))
+    if not rows.size:
+        return Steered(q, dv, dk)
+    s, n, w = float(np.exp(-_kappa(st))), nrm[rows], v[rows]
+    a = np.einsum("ka,ka->k", w, n)
+    sgn = np.where(a < 0, -1.0, 1.0)
+    vp = w - a[:, None] * n
+    x = s * vp
+    r2 = np.einsum("ka,ka->k", x, x)
+    h = np.sqrt(np.clip(1.0 - r2, 0.0, None))
+    hd = np.maximum(h, PLANE_DERIVATIVE_FLOOR)
+    Pn = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+    inside = r2 <= 1.0
+    rn = np.sqrt(np.maximum(r2, 1e-24))
+    q_in = x + (sgn * h)[:, None] * n
+    q_out = x / rn[:, None]
+    q[rows] = np.where(inside[:, None], q_in, q_out)
+    d_in = s * Pn - ((sgn * s * s / hd)[:, None, None] * n[:, :, None] * vp[:, None, :])
+    d_out = (np.eye(3)[None] - q_out[:, :, None] * q_out[:, None, :]) @ Pn * (s / rn)[:, None, None]
+    dv[rows] = np.where(inside[:, None, None], d_in, d_out)
+    dk[rows] = np.where(inside[:, None], -x + (sgn * r2 / hd)[:, None] * n, 0.0)
+    return Steered(q, dv, dk)
 
 
 def _doa_time(p):
@@ -342,7 +401,8 @@ def odometry_frame(p, st, lay):
 
 
 def cone(p, st, lay):
-    """Cone (linear arrays, 2-mic pairs): aᵀ R_iᵀ (s_j − x_i)/|s_j − x_i| − cos θ_ij, one per measurement.
+    """Cone (linear arrays, 2-mic pairs): e^{−κ} aᵀ R_iᵀ (s_j − x_i)/|s_j − x_i| − cos θ_ij, one per measurement
+    (κ = ln c/c_declared: the frontend steered with the declared c; the scale only when c is free or moved).
 
     ``a`` (array frame) is the array's axis, θ the measured angle between it and the source direction
     (``p.cone``; ``problem.build_problem`` reads them from meta ``doa_axes``). The roll about the
@@ -358,7 +418,14 @@ def cone(p, st, lay):
     d, n = _dist(st, i, j, _doa_sources(p, st, t_doa))
     a = p.cone_axis[i]                                    # (m, 3) array frame
     w = np.einsum("kba,kb->ka", st.R[i], n)               # Rᵀ n
-    r = (np.einsum("ka,ka->k", a, w) - c0) / sig
+    cos = np.einsum("ka,ka->k", a, w)
+    k_cs = _cs_col(lay)
+    steer = k_cs >= 0 or _kappa(st) != 0.0
+    if steer:   # steered with the declared c, the frontend measured e^{−κ} cos θ (clipped to ±1, frontend.doa.srp_cone)
+        scaled = float(np.exp(-_kappa(st))) * cos
+        gain = np.where(np.abs(scaled) <= 1.0, float(np.exp(-_kappa(st))), 0.0)
+        cos = np.clip(scaled, -1.0, 1.0)
+    r = (cos - c0) / sig
     # R → R Exp(φ): w → w + w × φ, so d(aᵀw)/dφ = (a × w)ᵀ; d(aᵀw)/ds = (R a)ᵀ (I − n nᵀ)/d = −d/dx
     dphi = np.cross(a, w)
     b = np.einsum("kab,kb->ka", st.R[i], a)
@@ -366,6 +433,10 @@ def cone(p, st, lay):
     cols, vals = [lay.rot[i], lay.s[j], lay.x[i]], [dphi, ds, -ds]
     if t_doa:
         cols, vals = cols + [lay.dv[j]], vals + [t_doa * ds]
+    if steer:
+        vals = [gain[:, None] * np.asarray(vv).reshape(m, -1) for vv in vals]
+    if k_cs >= 0:   # d(e^{−κ} cos θ)/dκ = −e^{−κ} cos θ
+        cols, vals = cols + [np.full(m, k_cs)], vals + [-gain * np.einsum("ka,ka->k", a, w)]
     put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals) / sig)
     return _out("cone", r, J, p.cone.row, 1, True, sig)
 

@@ -135,7 +135,9 @@ class Problem:
     drift: the matched filter's drift bias), t (K,) emission times minus t_0, events (K,) event ids, odom
     (K, 3) cumulative odometry; the rows of each kind (``tdoa_m``, ``tdoa_s``, ``doa``, ``cone``, and
     ``extra_rows``: {kind: Rows} of the kinds registered beyond these, ``factors.register``);
-    fold (N, 3): mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere);
+    fold (N, 3): mic-plane normal of arrays whose DOAs are mirror-ambiguous (zeros elsewhere); plane (N, 3):
+    mic-plane normal of every planar array (meta ``mics``, else ``fold``; zeros elsewhere; None: none known),
+    whose DOAs' in-plane part scales with the speed of sound (factors.doa);
     cone_axis (N, 3) and rot_fixed_axis (N,): a linear array's axis and the rotation component about it
     (not observable; -1 for other arrays); rot_free (N,): orientation estimated; n_doa_events (N,);
     arrival_scale (N,): each array's arrival sigma relative to the type's (:func:`arrival_scales`; None: ones).
@@ -180,6 +182,7 @@ class Problem:
     motion: Any = None
     c_free: bool = False
     c_test: Mapping[str, Any] | None = None
+    plane: np.ndarray | None = None
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -364,13 +367,25 @@ def build_problem(features, *, use_tdoa_s=True, use_tdoa_m=True, use_doa=True, s
         beta=float(meta.get("chirp_drift_bias", 0.0) or 0.0), t=t_emit - t_emit[0], events=events, odom=odom,
         tdoa_m=rows.pop("tdoa_m"), tdoa_s=rows.pop("tdoa_s"), doa=doa, cone=cone,
         sigma={**sigma, "emission": float(sigma_emit), "speed": float(speed_sigma)}, extra_rows=rows, fold=normals,
-        cone_axis=cone_axis,
+        cone_axis=cone_axis, plane=_plane_normals(meta, names, normals),
         rot_fixed_axis=rot_fixed_axis, rot_free=rot_free, n_doa_events=n_doa,
         odo_yaw_free=bool(odometry_yaw) and odometry_yaw_observable(odom, len(doa.u), len(events)),
         arrival_scale=arrival)
 
 
 MIN_DOA_EVENTS = 2   # DOAs (events) an array needs for its orientation
+
+
+def _plane_normals(meta, names, mirror):
+    """(N, 3): the mic-plane normal (array frame) of each planar array: from its mics in meta (``mic_geometry``),
+    else its mirror normal (``mirror``, :func:`_mirror_normals`); zeros for the other arrays."""
+    mics = meta.get("mics") or {}
+    out = np.array(mirror, float)
+    for k, name in enumerate(names):
+        if len(mics.get(str(name)) or ()) >= 3:
+            kind, n = mic_geometry(mics[str(name)])
+            out[k] = n if kind == "planar" else 0.0
+    return out
 
 
 def _mirror_normals(meta, idx, N):

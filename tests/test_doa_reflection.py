@@ -86,3 +86,25 @@ def test_band_scatter_small_for_a_clean_plane_wave():
     est3, _ = srp_doa(g3, s3)
     assert angle_deg(est3, u3).max() < 0.05
     assert np.degrees(band_scatter(g3, s3, est3)).max() < 0.01
+
+
+def test_a_frontend_steering_with_a_wrong_speed_gives_the_steered_doas():
+    """Plane waves at 349 m/s steered with C = 343 (the declared c, 1.7 % low): the planar array's SRP DOA is
+    calib.geometry.steered_doas of the truth (its in-plane part × 343/349, the elevation raised), the linear
+    array's cos θ is × 343/349: the model the DOA and cone factors predict at the solved c."""
+    from calib.frontend.doa import srp_cone
+    from calib.geometry import steered_doas
+
+    true_c = 349.0
+    rng = np.random.default_rng(2)
+    u = unit(np.radians(rng.uniform(5.0, 70.0, 40)), rng.uniform(-np.pi, np.pi, 40))
+    g = np.exp(2j * np.pi * FREQS[None, None, :] * (u @ CIRCLE6.T)[:, :, None] / true_c)
+    est, _ = srp_doa(g, srp_setup(CIRCLE6, FREQS, C, 3.0, UP))
+    assert angle_deg(est, u).max() > 0.3   # the bias is there (elevation)
+    assert angle_deg(est, steered_doas(u, C / true_c, normal=UP)).max() < 0.02
+    line = np.c_[np.linspace(-0.1, 0.1, 4), np.zeros(4), np.zeros(4)]
+    gl = np.exp(2j * np.pi * FREQS[None, None, :] * (u @ line.T)[:, :, None] / true_c)
+    cos_t, _ = srp_cone(gl, line, np.array([1.0, 0.0, 0.0]), FREQS, C)
+    expect = steered_doas(u, C / true_c, axis=np.array([1.0, 0.0, 0.0]))[:, 0]
+    np.testing.assert_allclose(cos_t, expect, atol=3e-4)
+    np.testing.assert_allclose(expect, C / true_c * u[:, 0], atol=1e-12)

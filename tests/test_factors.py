@@ -157,3 +157,42 @@ def test_doa_axes_follow_a_planar_fits_errors(elev_deg):
     assert abs(B[0] @ np.array([-np.sin(az), np.cos(az), 0.0])) > 0.99    # the azimuth axis
     if abs(elev_deg) < 10:
         assert f[1] > 5.0
+
+
+@pytest.mark.parametrize("case", ["mirror", "mics", "moving", "cone"])
+def test_doa_and_cone_rows_as_steered_with_the_declared_speed_keep_the_jacobian_exact(case):
+    """c free and moved (ln c/c_declared = 0.02): a planar array's DOA prediction has its in-plane part scaled by
+    e^{−κ} (planar from ``doa_mirror_normals`` or from its mics in meta, a 3-D board unchanged), a linear
+    array's cos θ too; their derivatives in κ and in the rest against central differences."""
+    planar = (0.3, -0.2, 0.9) if case == "mirror" else None
+    feats, _ = simulate_features(trajectory=3, seed=1, planar=planar)
+    if case == "mics":
+        tetra = [[0.05, 0.05, 0.05], [0.05, -0.05, -0.05], [-0.05, 0.05, -0.05], [-0.05, -0.05, 0.05]]
+        feats["meta"]["mics"] = {a: (tetra if k == 1 else CIRCLE6) for k, a in enumerate(feats["meta"]["arrays"])}
+    if case == "cone":
+        feats["meta"]["doa_axes"] = {"A3": [0, -1, 0]}
+    check_jacobian(feats, "cone" if case == "cone" else "doa", moving=case == "moving", speed=True)
+
+
+def test_the_steered_doa_prediction_is_the_frontends_and_vanishes_at_the_declared_speed():
+    """The factor's prediction at κ ≠ 0 equals calib.geometry.steered_doas of the true direction (the frontend's
+    planar completion), its residual is zero on DOAs so made; at κ = 0 with c not free the factor is the plain
+    one bit for bit."""
+    from calib.estimator.factors import _planar_steering
+    from calib.geometry import steered_doas
+
+    rng = np.random.default_rng(7)
+    feats, _ = simulate_features(trajectory=3, seed=1, planar=(0.0, 0.0, 1.0))
+    p = build_problem(feats)
+    st = random_state(p, rng)
+    st.cs = np.array([np.log(349.0 / 343.0)])
+    v = rng.normal(size=(50, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    got = _planar_steering(p, st, np.zeros(50, int), v).q
+    np.testing.assert_allclose(got, steered_doas(v, 343.0 / 349.0, normal=(0.0, 0.0, 1.0)), atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(got[:, 2] * np.sign(v[:, 2]) >= np.abs(v[:, 2]), True)   # elevation raised
+    st.cs = np.zeros(1)
+    lay = make_layout(p)
+    plain = FACTORS["doa"](p.replace(plane=None), st, lay)
+    np.testing.assert_array_equal(FACTORS["doa"](p, st, lay).r, plain.r)

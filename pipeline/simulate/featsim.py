@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from calib.geometry import arrival_time, fold
+from calib.geometry import arrival_time, fold, steered_doas
 from calib.records import Features
 
 # The paper's three trajectories (speaker stops, metres, before the +0.5 m shift) and the boxes the
@@ -75,6 +75,9 @@ class SceneSpec:
         are mirror-ambiguous, given folded to n·u >= 0 with meta ``doa_mirror_normals``.
     positions : None, or the array positions (N, 3) (then ``n_arrays`` = N); positions[0] is the
         reference array and must be the origin (it defines the frame).
+    declared_c : None, or the speed of sound (m/s) meta.json declares and the frontend steered its DOAs with
+        (the scene is rendered at ``c``): a planar array's DOAs then carry that steering's bias (their in-plane
+        part scaled by declared_c / c, ``calib.geometry.steered_doas``), as calib's frontend gives them.
     """
     n_arrays: int = 5
     c: float = 340.0
@@ -85,6 +88,7 @@ class SceneSpec:
     reference_drift: float | None = None
     planar: tuple | None = None
     positions: Any = None
+    declared_c: float | None = None
 
 
 def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4, sigma_doa_deg: float = 5.0,
@@ -128,7 +132,7 @@ def simulate_features(trajectory: int | np.ndarray = 3, sigma_tdoa: float = 1e-4
     features = _measure(rng, stops, truth, spec, sig, 1.0 if noise else 0.0, tdoa_s, tdoa_m)
     # meta's sigma_doa_deg is the std per tangent axis: a rotation by N(0, σ²) about an isotropic random
     # axis moves a direction by σ/√3 along each axis perpendicular to it
-    features["meta"] = {"speed_of_sound": spec.c, "reference_array": truth["names"][0],
+    features["meta"] = {"speed_of_sound": spec.c if spec.declared_c is None else float(spec.declared_c), "reference_array": truth["names"][0],
                         "arrays": list(truth["names"]), "sigma_tdoa": sigma_tdoa,
                         "sigma_doa_deg": sigma_doa_deg / np.sqrt(3.0), "sigma_odo": sigma_odo}
     if spec.planar is not None:
@@ -216,6 +220,8 @@ def _measure(rng, stops, tr, spec, sig, scale, use_tdoa_s, use_tdoa_m):
     u = perturb_directions(rng, u_true, scale * sig["doa"])
     if spec.planar is not None:
         n = _unit(spec.planar)
+        if spec.declared_c is not None:
+            u = steered_doas(u, spec.declared_c / spec.c, normal=n)
         u = fold(u, n)
     doa = pd.DataFrame({"event": jj, "array": names[ii], "ux": u[:, 0], "uy": u[:, 1], "uz": u[:, 2]})
     return {"events": events, "tdoa_m": tm if use_tdoa_m else tm.iloc[:0].reset_index(drop=True),
