@@ -290,13 +290,14 @@ def _findings(folder, target=None, factor=1.0):
 @pytest.mark.parametrize("preset", list(ROOMS))
 def test_mis_scaled_arrays_are_named_in_simulated_rooms(rooms, preset):
     """Each seed's arrays in turn, each factor in turn (array k gets FACTORS[(k + seed) % 3]): most are named,
-    none other is, and the clean rooms raise nothing."""
+    none other is, and the clean rooms raise nothing (a note, e.g. the 3-D boards' own speed of sound, is no
+    alarm: it changes no verdict)."""
     from calib.pipeline.formats.session import read_session
 
     caught, total = 0, 0
     for seed in (1, 2, 3):
         folder = rooms[(preset, seed)]
-        assert _findings(folder) == [], (preset, seed)
+        assert [f for f in _findings(folder) if f.status != "note"] == [], (preset, seed)
         for k, a in enumerate(read_session(folder)["arrays"]):
             f = FACTORS[(k + seed) % len(FACTORS)]
             found = _findings(folder, a["name"], f)
