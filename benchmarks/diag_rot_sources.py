@@ -72,6 +72,8 @@ def session(work, name):
         var = {t: np.sum((g @ H) ** 2, axis=0) for t, g in parts.items()}
         var0 = {t: np.sum((g @ H) ** 2, axis=0) for t, g in nofold.items()}
         std = np.sqrt(np.diag(honest)[ix])
+        if not np.all(np.isfinite(std) & (std > 0)):
+            continue   # (no std: the array was dropped from the covariance)
         total = float(np.sum(std ** 2))
         rows = np.array([DS.group_of(k, b, a, ref) for k, b in zip(kind, arr)])
         claim = defaultdict(float)
