@@ -45,6 +45,15 @@ def session(work, name):
     finally:
         U.FOLD_SIGMAS = keep_fold
     alt = {}
+    plain_scatter = U._row_scatter
+
+    def excess_scatter(e, ux, sig):   # the scatter beyond the rows' own sigma (a candidate: noise is not shared)
+        return float(np.sqrt(max(plain_scatter(e, ux, sig) ** 2 - float(np.median(sig)) ** 2, 0.0)))
+    U._row_scatter = excess_scatter
+    try:
+        alt["excess"] = DS.std_parts(p, lin, lay, st, cov, meta, motion)[1]
+    finally:
+        U._row_scatter = plain_scatter
     for label, key, value in (("floor_only", "SHARED_DOA_SCATTER", 0.0), ("no_shared", "SHARED_DOA_FRACTION", 0.0)):
         keep_value = getattr(U, key)
         setattr(U, key, value)
@@ -110,6 +119,8 @@ def main(argv=None):
                              if g in r["error"] and v > 0), flush=True)
     f = pd.DataFrame(rows)
     for cls, d in list(f.groupby("class")) + [("all", f), ("named", f[f.named])]:
+        if d.empty:
+            continue
         e, s = np.concatenate(d.err_deg.values), np.concatenate(d.std_deg.values)
         c, g = defaultdict(float), defaultdict(float)
         for r in d.to_dict("records"):
@@ -118,7 +129,7 @@ def main(argv=None):
                 g[k] += r["error"].get(k, np.nan)
         print(f"{cls:7s} {len(d):3d} arrays: err/std RMS per axis {np.sqrt(np.mean((e / s) ** 2)):.2f} "
               f"z3 RMS {np.sqrt(np.mean(d.z3 ** 2)):.2f} max {d.z3.max():.2f} "
-              + " ".join(f"[{k}: z RMS {np.sqrt(np.mean([z[k] ** 2 for z in d.z_alt])):.2f} max {max(z[k] for z in d.z_alt):.2f} named>1.5 {sum(m[k] > 1.5 for m in d.med_alt)}]" for k in ("floor_only", "no_shared")) + f" named now {(d.med_std > 1.5).sum()}"
+              + " ".join(f"[{k}: z RMS {np.sqrt(np.mean([z[k] ** 2 for z in d.z_alt])):.2f} max {max(z[k] for z in d.z_alt):.2f} named>1.5 {sum(m[k] > 1.5 for m in d.med_alt)}]" for k in ("excess", "floor_only", "no_shared")) + f" named now {(d.med_std > 1.5).sum()}"
               + f" fold share {d.fold_share.mean():.2f} | "
               + "  ".join(f"{k} {np.sqrt(g[k] / c[k]):.2f} ({c[k] / sum(c.values()):.2f})" for k in sorted(c)
                           if c[k] > 0 and k != "tdoa"))
