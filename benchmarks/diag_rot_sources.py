@@ -7,7 +7,10 @@ rotation, its rotation std per axis (array frame, right perturbation R Exp(φ)) 
 Log(R_trueᵀ R_est) per axis, the three largest terms' shares of its rotation variance, the part of the planar DOA
 term that the near-plane fold adds (the same term with FOLD_SIGMAS = 0, subtracted), and per group the linearised
 error its rows make at the truth against the group's claim. Pooled: RMS of error / std per axis over all arrays,
-per class (planar, 3-D, linear), and √(Σ error² / Σ claim) per group.
+per class (planar, 3-D, linear), and √(Σ error² / Σ claim) per group. What-ifs (the covariance only, same solve):
+``excess`` the own shared rotation keyed on the scatter less the rows' own sigma in quadrature, ``floor_only``
+(SHARED_DOA_SCATTER = 0), ``no_shared`` (no own shared rotation); "named>1.5" counts arrays whose rotation std's
+median_error would exceed 1.5° (position naming not counted). Results: docs/results.md (h52o).
 """
 from __future__ import annotations
 
@@ -84,6 +87,7 @@ def session(work, name):
         if not np.all(np.isfinite(std) & (std > 0)):
             continue   # (no std: the array was dropped from the covariance)
         total = float(np.sum(std ** 2))
+        assert abs(sum(float(v.sum()) for v in var.values()) / total - 1.0) < 1e-6, "the parts do not add up to the std"
         rows = np.array([DS.group_of(k, b, a, ref) for k, b in zip(kind, arr)])
         claim = defaultdict(float)
         for t, v in var.items():
