@@ -30,7 +30,6 @@ from calib.estimator.motion import motion_noise
 from calib.estimator.problem import make_layout
 from calib.estimator.solver import linearise
 from calib.estimator.verdict import median_error
-from calib.pipeline.formats.io import read_truth
 
 
 def session(work, name):
@@ -67,12 +66,7 @@ def session(work, name):
         finally:
             setattr(U, key, keep_value)
             U.SHARED_DOA_SCATTER = keep_scatter
-    truth = read_truth(work / name / "truth")
-    st0, tr = st.copy(), U.state_from_frames(p, truth["arrays"], truth["sources"])
-    for f in ("x", "R", "offset", "drift", "s"):
-        setattr(st0, f, getattr(tr, f))
-    lin0 = linearise(p, st0, lay, kinds, mask=res.mask, dense=True)
-    r0, J0 = np.where(lin.w > 0, lin0.r, 0.0), np.asarray(lin0.J)
+    r0, J0, tr = DS.truth_linearisation(work, name, p, st, lay, kinds, res, lin)
     ref, named = str(p.names[p.ref]), set((cal["report"].get("verdict") or {}).get("flagged_arrays") or [])
     normals = U.plane_normals(meta, p.names)
     out = []

@@ -33,8 +33,9 @@ from calib.pipeline.run import estimate_defaults, estimate_features
 CAL = importlib.import_module("calib.estimator.calibrate")
 
 
-def final_solve(features_dir):
-    """(calibration, the final JointResult, kinds, stages, meta) of `calib run`'s estimate of ``features_dir``."""
+def final_solve(features_dir, findings=True):
+    """(calibration, the final JointResult, kinds, stages, meta) of `calib run`'s estimate of ``features_dir``
+    (``findings``: with the set-up findings the features show, as `calib run`)."""
     seen, inner = {}, CAL._full_outputs
 
     def grab(res, kinds, stages, *a, **k):
@@ -42,7 +43,7 @@ def final_solve(features_dir):
         return inner(res, kinds, stages, *a, **k)
     CAL._full_outputs = grab
     try:
-        cal, _ = estimate_features(features_dir, estimate_defaults(), findings=True)
+        cal, _ = estimate_features(features_dir, estimate_defaults(), findings=findings)
     finally:
         CAL._full_outputs = inner
     return cal, seen["res"], seen["kinds"], seen["stages"], seen["meta"]

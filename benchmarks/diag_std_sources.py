@@ -23,7 +23,6 @@ linear board's roll, which bench_deploy leaves out, counts here).
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
 from collections import defaultdict
@@ -34,6 +33,7 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_deploy as BD   # noqa: E402
+from diag_shared_rotation import final_solve as _final_solve   # noqa: E402
 
 from calib.estimator import uncertainty as U
 from calib.estimator import variance as V
@@ -42,25 +42,24 @@ from calib.estimator.problem import make_layout
 from calib.estimator.solver import linearise
 from calib.estimator.verdict import median_error
 from calib.pipeline.formats.io import read_truth
-from calib.pipeline.run import estimate_defaults, estimate_features
 
-CAL = importlib.import_module("calib.estimator.calibrate")
 DIRECTION_PARTS = ("doa_planar", "shared_doa", "shared_cone", "doa", "cone")
 
 
 def final_solve(features_dir):
-    """(calibration, the final JointResult, kinds, stages, meta) of `calib run`'s estimate of ``features_dir``."""
-    seen, inner = {}, CAL._full_outputs
+    """`diag_shared_rotation.final_solve` without the set-up findings (the estimator's own std)."""
+    return _final_solve(features_dir, findings=False)
 
-    def grab(res, kinds, stages, *a, **k):
-        seen.update(res=res, kinds=kinds, stages=stages, meta=k.get("meta") or {})
-        return inner(res, kinds, stages, *a, **k)
-    CAL._full_outputs = grab
-    try:
-        cal, _ = estimate_features(features_dir, estimate_defaults(), findings=False)
-    finally:
-        CAL._full_outputs = inner
-    return cal, seen["res"], seen["kinds"], seen["stages"], seen["meta"]
+
+def truth_linearisation(work, name, p, st, lay, kinds, res, lin):
+    """(r0, J0, truth state): the final solve's kept rows (weight > 0) re-linearised at the simulator's truth
+    (arrays, sources; the solved clocks and the rest): the error each row makes at the truth, its Jacobian there."""
+    truth = read_truth(work / name / "truth")
+    st0, tr = st.copy(), U.state_from_frames(p, truth["arrays"], truth["sources"])
+    for f in ("x", "R", "offset", "drift", "s"):
+        setattr(st0, f, getattr(tr, f))
+    lin0 = linearise(p, st0, lay, kinds, mask=res.mask, dense=True)
+    return np.where(lin.w > 0, lin0.r, 0.0), np.asarray(lin0.J), tr
 
 
 def row_labels(p, lin):
@@ -129,12 +128,7 @@ def session(work, name):
         return []
     parts, honest, kind, arr = std_parts(p, lin, lay, st, cov, meta,
                                         motion_noise(stages.get("motion"), p, meta.get("doa_time_s")))
-    truth = read_truth(work / name / "truth")
-    st0, tr = st.copy(), U.state_from_frames(p, truth["arrays"], truth["sources"])
-    for f in ("x", "R", "offset", "drift", "s"):
-        setattr(st0, f, getattr(tr, f))
-    lin0 = linearise(p, st0, lay, kinds, mask=res.mask, dense=True)
-    r0, J0 = np.where(lin.w > 0, lin0.r, 0.0), np.asarray(lin0.J)
+    r0, J0, tr = truth_linearisation(work, name, p, st, lay, kinds, res, lin)
     ref, named = str(p.names[p.ref]), set((cal["report"].get("verdict") or {}).get("flagged_arrays") or [])
     bound = BD.WIDE.get(name.rsplit("_", 1)[0], BD.BOUND)
     out = []
