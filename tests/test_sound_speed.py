@@ -135,8 +135,8 @@ def test_fixed_mode_names_the_arrays_a_wrong_declared_speed_moves():
     res = calibrate(f)
     check = res["report"]["speed_of_sound"]["check"]
     assert not res["report"]["speed_of_sound"]["estimated"] and check["significant"]
-    # (toward 349, beyond the tolerance: here 346.3 ± 0.6, as a spurious emission-interval step the clock selection
-    # fitted takes part of it; the linear clock's solve reads 348.0)
+    # (toward 349, beyond the tolerance: 348.0 ± 0.5, the linear clock's check; the final solution's reads 346.3 ± 0.6,
+    # a spurious emission-interval step the clock selection fitted taking part of it: clockmodel._speed_at_linear)
     assert check["relative"] > CHECK_TOL and check["z"] > SPEED_SIGNIFICANCE
     est, tru = res["arrays"].set_index("array"), truth["arrays"].set_index("array")
     off = [a for a in est.index[1:] if np.max(np.abs(est.loc[a, ["x", "y", "z"]].to_numpy(float)
