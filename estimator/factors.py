@@ -418,13 +418,14 @@ def cone(p, st, lay):
     d, n = _dist(st, i, j, _doa_sources(p, st, t_doa))
     a = p.cone_axis[i]                                    # (m, 3) array frame
     w = np.einsum("kba,kb->ka", st.R[i], n)               # Rᵀ n
-    cos = np.einsum("ka,ka->k", a, w)
+    cos_true = np.einsum("ka,ka->k", a, w)
+    cos = cos_true
     k_cs = _cs_col(lay)
     steer = k_cs >= 0 or _kappa(st) != 0.0
     if steer:   # steered with the declared c, the frontend measured e^{−κ} cos θ (clipped to ±1, frontend.doa.srp_cone)
-        scaled = float(np.exp(-_kappa(st))) * cos
-        gain = np.where(np.abs(scaled) <= 1.0, float(np.exp(-_kappa(st))), 0.0)
-        cos = np.clip(scaled, -1.0, 1.0)
+        scale = float(np.exp(-_kappa(st)))
+        gain = np.where(np.abs(scale * cos_true) <= 1.0, scale, 0.0)
+        cos = np.clip(scale * cos_true, -1.0, 1.0)
     r = (cos - c0) / sig
     # R → R Exp(φ): w → w + w × φ, so d(aᵀw)/dφ = (a × w)ᵀ; d(aᵀw)/ds = (R a)ᵀ (I − n nᵀ)/d = −d/dx
     dphi = np.cross(a, w)
@@ -436,7 +437,7 @@ def cone(p, st, lay):
     if steer:
         vals = [gain[:, None] * np.asarray(vv).reshape(m, -1) for vv in vals]
     if k_cs >= 0:   # d(e^{−κ} cos θ)/dκ = −e^{−κ} cos θ
-        cols, vals = cols + [np.full(m, k_cs)], vals + [-gain * np.einsum("ka,ka->k", a, w)]
+        cols, vals = cols + [np.full(m, k_cs)], vals + [-gain * cos_true]
     put(J, np.arange(m), np.column_stack(cols), np.column_stack(vals) / sig)
     return _out("cone", r, J, p.cone.row, 1, True, sig)
 
