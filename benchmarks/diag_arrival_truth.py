@@ -7,11 +7,12 @@ Reads RUN/features (no frontend run: seconds) and SESSION/truth. Each TDOA-S row
 compared with the truth's local arrival difference, and each TDOA-M row (an array and the reference, one event)
 with the truth's arrival difference, under the manifest's clock model L_i(t) = (1 + drift_i)(t − t_emit[0]) + τ_i
 and a source at rest at its truth position (a moving source's rows differ by its motion during the sweep). A
-constant per array (a clock-offset convention, the chirp's drift bias) is removed: errors are about the array's
-median. Printed: per array and kind the rows' robust spread, and the rows more than ``--us`` µs off whose events
+constant per array (a clock-offset convention, the chirp's drift bias) is removed: errors are about the median of
+the array's clean rows. Printed: per array and kind the rows' robust spread, and the rows more than ``--us`` µs off whose events
 are in line of sight at the array (truth/los.csv) and that carry no ``nlos`` flag (kept by the screening). On
-the dev sessions of issue 27's round-23 check (h53o) such rows were 10-35 µs off at arrays whose stated arrival
-sigma is 0.5-3 µs: lshape 508 A3 event 7 (+25-33 µs) moved A3 1.1 cm and was fitted to 0.3 σ at the estimate.
+the dev sessions of issue 27's round-23 check (h53o) such rows were 20-50 µs off at arrays whose stated arrival
+sigma is 0.5-3 µs, often at the same two events of the robot's repeated loop (office 501 A3 events 4 and 14, office
+505 / 508 A3 events 3 and 13); lshape 508 A3 event 7 (+25-34 µs) moved A3 1.1 cm and was fitted to 0.3σ.
 """
 from __future__ import annotations
 
@@ -55,8 +56,10 @@ def row_errors(session, run):
     ts["los"] = [int(los[(j, a)] and los[(k, a)]) for a, j, k in zip(ts["array"], ts["from_event"], ts["to_event"])]
     tm["los"] = [int(los[(e, a)] and los[(e, ref)]) for a, e in zip(tm["array"], tm["event"])]
     for t in (ts, tm):
-        t["err_us"] = 1e6 * (t["err"] - t.groupby("array")["err"].transform("median"))
         t["kept"] = ~t["flag"].fillna("").astype(str).str.contains("nlos")
+        clean = t["err"].where((t["los"] == 1) & t["kept"])        # the constant from the clean rows (NaN: all rows)
+        base = clean.groupby(t["array"]).transform("median").fillna(t.groupby("array")["err"].transform("median"))
+        t["err_us"] = 1e6 * (t["err"] - base)
     return ts, tm, ref
 
 
