@@ -1641,7 +1641,7 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
     its own is refitted alone to every row, neither side, and then neither lags by the step (rendered lab seed
     27, events 0-7 of 0-13: 0 against the fit; bench_clocks, 20 of 36 events before a 5.9 ms drop: 1.9 ± 0.7
     ms). The reference's: the medians over every array's TDOA-M (the first solve's sources are every array's).
-    The agreeing events: the block's whose lag is the block's within HUBER_K of its spread (:func:`_agreeing`;
+    The agreeing events: the block's whose lag is the block's (:func:`_agreeing`;
     a reflection-only arrival beside a step lags by its excess path too: rendered lshape, an array's occluded
     first event 19 ms late beside two 5 ms late of a drop, readmitted with them, failed the step's structure)."""
     from .problem import make_layout
@@ -1667,19 +1667,22 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
         e = r[len(D.zs):][on] * D.sig_m
         sigma = float(np.median(np.broadcast_to(D.sig_m, len(D.ym))))
         return (sign * float(coef[0]), float(mad_std(e)), sigma,
-                _agreeing(p.events[D.j[on]], e, float(np.median(e)), max(float(mad_std(e)), sigma)))
+                _agreeing(p.events[D.j[on]], e, float(np.median(e)), float(coef[0]), max(float(mad_std(e)), sigma)))
     f = linearise(p, first["state"], make_layout(p), ["tdoa_m"]).factors[0]
     e = -f.r * np.broadcast_to(f.row_sigma, len(f.r))
     lag = float(np.median(e[rows]))
     spread, sigma = float(mad_std(e[rows], center=lag)), float(np.median(np.broadcast_to(f.row_sigma, len(f.r))))
     return (lag - float(np.median(e[mine & ~rows])), spread, sigma,
-            _agreeing(p.events[p.tdoa_m.ev[rows]], e[rows], lag, max(spread, sigma)))
+            _agreeing(p.events[p.tdoa_m.ev[rows]], e[rows], lag, lag - float(np.median(e[mine & ~rows])),
+                      max(spread, sigma)))
 
 
-def _agreeing(events, e, lag, spread):
-    """The events (sorted) whose rows' median lag ``e`` is within HUBER_K ``spread`` of the block's ``lag``."""
+def _agreeing(events, e, center, lag, spread):
+    """The events (sorted) whose rows' median ``e`` is the block's ``center`` within what its readmission allows
+    of a ``lag``'s spread (READMIT_SPREAD of it) or HUBER_K of the block's ``spread``, whichever is larger."""
     ev = np.asarray(events, int)
-    return [int(k) for k in np.unique(ev) if abs(float(np.median(e[ev == k])) - lag) <= HUBER_K * spread]
+    tol = max(READMIT_SPREAD * abs(lag), HUBER_K * spread)
+    return [int(k) for k in np.unique(ev) if abs(float(np.median(e[ev == k])) - center) <= tol]
 
 
 def _block_direct(first, features, array, block):
