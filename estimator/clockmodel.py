@@ -1120,7 +1120,9 @@ def structure_test(result, models, name, k, features=None):
     # arrival hundreds of σ off (another array's step left unmodelled where its one earlier event was screened
     # as a reflection) reads, through the sources it shares, as this component's misfit (rendered lab seed 28)
     doubted = doubted_arrivals(features) if features is not None else frozenset()
-    sw = sw * np.maximum(_solved_rows(result, lin.factors), _witnesses(result, lin, p, index[name], scale, doubted))
+    sizes = [c.value for c in models[name] if c.kind == "step"]
+    sw = sw * np.maximum(_solved_rows(result, lin.factors), _witnesses(result, lin, p, index[name], scale, doubted,
+                                                                      sizes))
     E, _ = component_columns(p, lin.factors, models)
     T = _split_columns(p, lin.factors, index[name], models[name][k]) * sw[:, None]
     if not T.shape[1]:
@@ -2076,7 +2078,8 @@ def persistence(result, models, features=None):
         if models[name][k].kind == "arrival":
             continue
         sw, scale = _robust_weights(result, lin, p, own=name)
-        sw = sw * np.maximum(solved, _witnesses(result, lin, p, index[name], scale, doubted))   # (as
+        sizes = [c.value for c in models[name] if c.kind == "step"]
+        sw = sw * np.maximum(solved, _witnesses(result, lin, p, index[name], scale, doubted, sizes))   # (as
         # :func:`structure_test`)
         A, prior = _with_nuisance(result, lin, lay, np.delete(E, col, axis=1), sw)
         pr = Projector(A, lay, prior)
@@ -2217,7 +2220,7 @@ def _doubted_rows(p, fs, doubted):
     return np.concatenate(out) if out else np.zeros(0, bool)
 
 
-def _witnesses(result, lin, p, i, scale, doubted):
+def _witnesses(result, lin, p, i, scale, doubted, sizes=()):
     """The clock i's own rows that testify in the joint tests of its components at ``result`` (solved with
     them), as a 0/1 weight on the stacked rows (:func:`_own_rows`): every one the solve used, and those it
     left out (screened, outliers) but for the arrivals the frontend doubts (``doubted``) that the model leaves
@@ -2225,11 +2228,17 @@ def _witnesses(result, lin, p, i, scale, doubted):
     a clock-shifted direct path (a step inside a run of doubted events: its evidence); one they leave ms off is a
     reflection (an occluded office array's reflection-only arrivals, 16-19 ms late in 8 of its 20 events), whose
     excess path is no clock's: under Huber's weight it read as a 200σ misfit of every row group and failed a true
-    5 ms step's structure test at χ² 1164 on 3 dof."""
+    5 ms step's structure test at χ² 1164 on 3 dof. One off by a step's size (``sizes``, s: the clock's steps) either
+    way is a clock-shifted arrival on the other side of that step and testifies against its placement (a step
+    placed inside a run of doubted events, early: diag_doubted_step 570-579, 4 of 10 misplaced so)."""
     own = _own_rows(p, lin.factors, i)
     if not doubted or i < 0:
         return own
-    far = _doubted_rows(p, lin.factors, doubted) & (np.abs(lin.r) > HUBER_K * scale)
+    reach = HUBER_K * scale
+    far = _doubted_rows(p, lin.factors, doubted) & (np.abs(lin.r) > reach)
+    sig = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors]) if lin.factors else 1.0
+    for c in sizes:
+        far &= np.minimum(np.abs(lin.r - c / sig), np.abs(lin.r + c / sig)) > reach
     return np.where(far & (_solved_rows(result, lin.factors) == 0), 0.0, own)
 
 
