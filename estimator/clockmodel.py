@@ -2220,6 +2220,9 @@ def _doubted_rows(p, fs, doubted):
     return np.concatenate(out) if out else np.zeros(0, bool)
 
 
+SHIFT_MATCH = 0.25   # a doubted arrival off by a step's size to this share of it is shifted by that clock
+
+
 def _witnesses(result, lin, p, i, scale, doubted, sizes=()):
     """The clock i's own rows that testify in the joint tests of its components at ``result`` (solved with
     them), as a 0/1 weight on the stacked rows (:func:`_own_rows`): every one the solve used, and those it
@@ -2228,17 +2231,19 @@ def _witnesses(result, lin, p, i, scale, doubted, sizes=()):
     a clock-shifted direct path (a step inside a run of doubted events: its evidence); one they leave ms off is a
     reflection (an occluded office array's reflection-only arrivals, 16-19 ms late in 8 of its 20 events), whose
     excess path is no clock's: under Huber's weight it read as a 200σ misfit of every row group and failed a true
-    5 ms step's structure test at χ² 1164 on 3 dof. One off by a step's size (``sizes``, s: the clock's steps) either
-    way is a clock-shifted arrival on the other side of that step and testifies against its placement (a step
-    placed inside a run of doubted events, early: diag_doubted_step 570-579, 4 of 10 misplaced so)."""
+    5 ms step's structure test at χ² 1164 on 3 dof. One off by a step's size (``sizes``, s: the clock's steps; to
+    SHIFT_MATCH of it) either way is a clock-shifted arrival on the other side of that step and testifies against
+    its placement (a step placed inside a run of doubted events, early: diag_doubted_step 570-579, 4 of 10
+    misplaced so)."""
     own = _own_rows(p, lin.factors, i)
     if not doubted or i < 0:
         return own
     reach = HUBER_K * scale
     far = _doubted_rows(p, lin.factors, doubted) & (np.abs(lin.r) > reach)
     sig = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors]) if lin.factors else 1.0
-    for c in sizes:
-        far &= np.minimum(np.abs(lin.r - c / sig), np.abs(lin.r + c / sig)) > reach
+    for c in sizes:   # (the size is an estimate: a 0.51 ms step sized ± 63 µs left such rows 30 µs beyond reach)
+        off = np.minimum(np.abs(lin.r - c / sig), np.abs(lin.r + c / sig))
+        far &= off > np.maximum(reach, SHIFT_MATCH * abs(c) / sig)
     return np.where(far & (_solved_rows(result, lin.factors) == 0), 0.0, own)
 
 
