@@ -2220,7 +2220,8 @@ def _doubted_rows(p, fs, doubted):
     return np.concatenate(out) if out else np.zeros(0, bool)
 
 
-SHIFT_MATCH = 0.25   # a doubted arrival off by a step's size to this share of it is shifted by that clock
+SHIFT_MATCH = 0.1   # a doubted arrival off by a step's size to this share of it is shifted by that clock (wider: TDOA-S
+# rows between two reflections, differences of 15-20 ms detours, fell in the band of a 5 ms step and testified)
 
 
 def _witnesses(result, lin, p, i, scale, doubted, sizes=()):
