@@ -376,11 +376,17 @@ def spread(r, k=HUBER_K, iterations=3):
     return s
 
 
-def fit_array(D, comps, x0, g0, tau0):
+def fit_array(D, comps, x0, g0, tau0, trusted=None):
     """Robust Gauss–Newton fit of one array's position (not the reference's), clock and the components'
     coefficients: Huber's loss first (convex in the clock: it converges from a pose fitted to data a large step
     contaminates, every row hundreds of σ off), then Cauchy's from there (:func:`cauchy_rho`: a gross
-    outlier pulls nothing). Returns (x, g, τ, coef, whitened residuals)."""
+    outlier pulls nothing). ``trusted`` (per row, :func:`_trusted`): Huber's stage fits those rows only where
+    MIN_EVENTS are (Huber's linear tail lets reflection-only arrivals ms late, most of an occluded array's rows,
+    pull the pose into a basin the Cauchy stage does not leave); Cauchy's fits every row from there, so a doubted
+    arrival the model fits still testifies (a step inside a run of doubted events). Returns (x, g, τ, coef,
+    whitened residuals)."""
+    use = (np.asarray(trusted, float) if trusted is not None and len(trusted) == D.n
+           and int(np.sum(trusted)) >= MIN_EVENTS else np.ones(D.n))
     PS, PM = _design(D, comps)
     theta = np.concatenate([x0, [g0, tau0], [c.value for c in comps]]).astype(float)
     free = np.ones(len(theta), bool)
@@ -390,7 +396,7 @@ def fit_array(D, comps, x0, g0, tau0):
     for loss in ("huber", "cauchy"):
         for _ in range(GN_ITERATIONS):
             r, J = _residuals(D, theta[:3], theta[3], theta[4], theta[5:], PS, PM)
-            w = _sqrt_weights(r, loss)
+            w = _sqrt_weights(r, loss) * (use if loss == "huber" else 1.0)
             A = J[:, free] * w[:, None]
             d = np.linalg.norm(A, axis=0)
             d = np.where(d > 0, d, 1.0)
@@ -445,7 +451,17 @@ def _key(c):
     return c.kind, round(c.time, 9)
 
 
-def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference=True, free=()):
+def _trusted(D, p, name, doubted):
+    """Per row of ``D`` (:func:`array_data` of array ``name`` in problem ``p``; TDOA-S rows, then TDOA-M): whether
+    none of its arrivals is one the frontend doubts as the direct path's (``doubted``: :func:`doubted_arrivals`; a
+    TDOA-M holds the reference's too)."""
+    ev, ref = [int(e) for e in p.events], str(p.names[p.ref])
+    s = [(name, ev[a]) not in doubted and (name, ev[b]) not in doubted for a, b in zip(D.a, D.b)]
+    m = [(name, ev[j]) not in doubted and (ref, ev[j]) not in doubted for j in D.j]
+    return np.array(s + m, bool)
+
+
+def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference=True, free=(), trusted=None):
     """The best new component of one array and its margin over the penalty (χ²), or (None, margin <= 0).
     ``reference``: the reference's step seen from here (its TDOA-M shifted, "mshift") is a candidate too —
     not for an array the solve dropped: the reference's clock shows in every array's TDOA-M, and an array
@@ -460,12 +476,13 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     left out of the result: the arrivals the frontend doubts for a reason no clock gives (CLOCK_BLIND_DOUBTS)
     testify nothing about the clock (rendered warehouse seed 30: A4's arrivals at events 5 and 13, both behind
     an obstacle and flagged mic_spread, 0.14 ms early; two steps before them and a pose moved 4 cm fitted every
-    row)."""
+    row). ``trusted``: per row of ``D``, whether its arrivals are undoubted (:func:`_trusted`): the robust scale's
+    rows."""
     if len(np.unique(D.u)) < MIN_EVENTS or D.n < MIN_EVENTS or len(comps) >= MAX_COMPONENTS:
         return None, 0.0, None
     own = len(comps)   # (the model's components, its arrivals too; the free ones after them are left out)
     comps = list(comps) + list(free)
-    xb, gb, tb, cb, rb = fit_array(D, comps, x0, g0, tau0)
+    xb, gb, tb, cb, rb = fit_array(D, comps, x0, g0, tau0, trusted)
     base = [c.with_value(v) for c, v in zip(comps, cb)]
     cands = candidates(D.u, comps)
     if not D.ref and reference:   # the reference's step, seen from here
@@ -480,13 +497,19 @@ def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference
     fits = []
     duration = float(np.ptp(D.u))
     for cand in cands:
-        x, g, tau, coef, r = fit_array(D, base + [cand], xb, gb, tb)
+        x, g, tau, coef, r = fit_array(D, base + [cand], xb, gb, tb, trusted)
         if np.all(np.isfinite(r)) and cand.with_value(coef[-1]).plausible(duration):
             fits.append((float(np.sum(cauchy_rho(r))), cand, coef, r))
     if not fits:
         return None, 0.0, None
-    # (the MAD: this fit holds the sources where a large fault may have bent them, its rows are not clean yet)
-    scale = max(D.floor, 1.4826 * float(np.median(np.abs(min(fits, key=lambda f: f[0])[3]))))
+    # (the MAD: this fit holds the sources where a large fault may have bent them, its rows are not clean yet; of
+    # the rows whose arrivals the frontend does not doubt (``trusted``) where MIN_EVENTS are: reflection-only
+    # arrivals ms late in 8 of an occluded office array's 20 events, most of its rows, made it 0.3-2 ms and the
+    # scan then fitted steps to the reflections' excess paths)
+    rbest = min(fits, key=lambda f: f[0])[3]
+    if trusted is not None and len(trusted) == len(rbest) and trusted.sum() >= MIN_EVENTS:
+        rbest = rbest[trusted]
+    scale = max(D.floor, 1.4826 * float(np.median(np.abs(rbest))))
     best, by_kind = None, []
     for kind in ("step", "mshift", "quadratic", "hinge", "warmup"):
         fam = [f for f in fits if f[1].kind == kind]
@@ -1096,7 +1119,10 @@ def structure_test(result, models, name, k, features=None):
     # the rows the solve left out testify about the clock that stamped them only (as in :func:`joint_scan`): an
     # arrival hundreds of σ off (another array's step left unmodelled where its one earlier event was screened
     # as a reflection) reads, through the sources it shares, as this component's misfit (rendered lab seed 28)
-    sw = sw * np.maximum(_solved_rows(result, lin.factors), _own_rows(p, lin.factors, index[name]))
+    doubted = doubted_arrivals(features) if features is not None else frozenset()
+    sizes = [c.value for c in models[name] if c.kind == "step"]
+    sw = sw * np.maximum(_solved_rows(result, lin.factors), _witnesses(result, lin, p, index[name], scale, doubted,
+                                                                      sizes))
     E, _ = component_columns(p, lin.factors, models)
     T = _split_columns(p, lin.factors, index[name], models[name][k]) * sw[:, None]
     if not T.shape[1]:
@@ -1173,7 +1199,8 @@ def detect(result, models, banned=frozenset(), excluded=frozenset(), doubted=fro
             free = [Component("arrival", float(p.t[k]), 0.0) for k in range(len(p.t))
                     if (name, int(p.events[k])) in blind]
             got = best_component(D, zero, st.x[i].copy(), 1.0 + st.drift[i], st.offset[i], p.N + 1, skip,
-                                 reference=name not in _distrusted(result), free=free)
+                                 reference=name not in _distrusted(result), free=free,
+                                 trusted=_trusted(D, every, name, doubted))
         if got is not None and got[0] is not None:
             got[2]["test"] = "array"
         # both tests' best proposals stay: the per-array fit holds the sources at a fit that another array's
@@ -1608,14 +1635,17 @@ def _without_nlos(features, array, block, reference):
 
 
 def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
-    """(lag, spread, σ) of ``array``'s TDOA-M at the events ``block`` (on one side of ``time``, s since t0)
+    """(lag, spread, σ, agreeing events) of ``array``'s TDOA-M at the events ``block`` (on one side of ``time``, s since t0)
     against its other events', at the first solve's sources: model − data (s) over the block less that over the
     rest, the block's robust spread, the rows' σ. An array's own: its robust fit (:func:`fit_array`: position,
     clock and a step at ``time``, sources held), the step's size (its sign as a lag) and the spread of the
     block's residuals at that fit. Not against the first solve's pose: an array whose doubted events are most of
     its own is refitted alone to every row, neither side, and then neither lags by the step (rendered lab seed
     27, events 0-7 of 0-13: 0 against the fit; bench_clocks, 20 of 36 events before a 5.9 ms drop: 1.9 ± 0.7
-    ms). The reference's: the medians over every array's TDOA-M (the first solve's sources are every array's)."""
+    ms). The reference's: the medians over every array's TDOA-M (the first solve's sources are every array's).
+    The agreeing events: the block's whose lag is the block's (:func:`_agreeing`;
+    a reflection-only arrival beside a step lags by its excess path too: rendered lshape, an array's occluded
+    first event 19 ms late beside two 5 ms late of a drop, readmitted with them, failed the step's structure)."""
     from .problem import make_layout
     from .solver import linearise
 
@@ -1632,16 +1662,29 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
     if i != p.ref:
         st = first["state"]
         D = array_data(p, st, i)
+        # (its pose held by the rows the frontend does not doubt, the block's and the rest: :func:`fit_array`)
         _, _, _, coef, r = fit_array(D, [Component("step", time, 0.0)], st.x[i].copy(), 1.0 + st.drift[i],
-                                     st.offset[i])
-        e = r[len(D.zs):][np.isin(D.j, at)] * D.sig_m
-        return (sign * float(coef[0]), float(mad_std(e)),
-                float(np.median(np.broadcast_to(D.sig_m, len(D.ym)))))
+                                     st.offset[i], _trusted(D, p, array, doubted_arrivals(features)))
+        on = np.isin(D.j, at)
+        e = r[len(D.zs):][on] * D.sig_m
+        sigma = float(np.median(np.broadcast_to(D.sig_m, len(D.ym))))
+        return (sign * float(coef[0]), float(mad_std(e)), sigma,
+                _agreeing(p.events[D.j[on]], e, float(np.median(e)), float(coef[0]), max(float(mad_std(e)), sigma)))
     f = linearise(p, first["state"], make_layout(p), ["tdoa_m"]).factors[0]
     e = -f.r * np.broadcast_to(f.row_sigma, len(f.r))
     lag = float(np.median(e[rows]))
-    return (lag - float(np.median(e[mine & ~rows])), float(mad_std(e[rows], center=lag)),
-            float(np.median(np.broadcast_to(f.row_sigma, len(f.r)))))
+    spread, sigma = float(mad_std(e[rows], center=lag)), float(np.median(np.broadcast_to(f.row_sigma, len(f.r))))
+    return (lag - float(np.median(e[mine & ~rows])), spread, sigma,
+            _agreeing(p.events[p.tdoa_m.ev[rows]], e[rows], lag, lag - float(np.median(e[mine & ~rows])),
+                      max(spread, sigma)))
+
+
+def _agreeing(events, e, center, lag, spread):
+    """The events (sorted) whose rows' median ``e`` is the block's ``center`` within what its readmission allows
+    of a ``lag``'s spread (READMIT_SPREAD of it) or HUBER_K of the block's ``spread``, whichever is larger."""
+    ev = np.asarray(events, int)
+    tol = max(READMIT_SPREAD * abs(lag), HUBER_K * spread)
+    return [int(k) for k in np.unique(ev) if abs(float(np.median(e[ev == k])) - center) <= tol]
 
 
 def _block_direct(first, features, array, block):
@@ -1678,9 +1721,14 @@ def _readmitted(solve, features, first, options, rounds, models=None):
         got = _block_lag(first, correct_features(readmitted, models), array, block, time, len(block))
         if got is None:
             continue
-        lag, spread, sigma = got
+        lag, spread, sigma, agree = got
         if not (spread <= READMIT_SPREAD * abs(lag) and abs(lag) >= READMIT_SIGMAS * max(spread, sigma)):
             continue
+        if agree != list(block):   # (the rest lag by more: reflections on top of the step, still doubted)
+            if (before if block[-1] == before else after) not in agree:
+                continue
+            block = agree
+            readmitted = _without_nlos(features, array, block, array == ref)
         # model − data = c on the block's rows when it precedes the step (the fit follows the later clock)
         size = lag if block[-1] == before else -lag
         start = {**models, array: models.get(array, []) + [Component("step", time, size)]}
@@ -1955,9 +2003,9 @@ def _readmit(solve, features, result, models, options, names, first, rounds):
     return trial, got
 
 
-def _doa_cost(result, features, sigma=None):
-    """(per array: 2 Σ Huber of its DOA and cone residuals, every row of ``features``, whitened by ``sigma``
-    (default the result's own row σ), those row σ)."""
+def _doa_cost(result, features, sigma=None, doubted=frozenset()):
+    """(per array: 2 Σ Huber of its DOA and cone residuals, every row of ``features`` but those of the arrivals in
+    ``doubted``, whitened by ``sigma`` (default the result's own row σ), those row σ)."""
     from .problem import make_layout
     from .solver import linearise
 
@@ -1970,18 +2018,26 @@ def _doa_cost(result, features, sigma=None):
     phys = np.concatenate([f.r * np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if sigma is None or len(sigma) != len(own) else sigma
-    cost = 2.0 * huber_rho(phys / sig)
+    names, events = [str(n) for n in p.names], [int(e) for e in p.events]
+    out = np.concatenate([np.repeat([(names[a], events[e]) in doubted for a, e in
+                                     zip(getattr(p, f.kind).arr, getattr(p, f.kind).ev)], f.dim) for f in lin.factors])
+    cost = np.where(out, 0.0, 2.0 * huber_rho(phys / sig))
     return np.array([float(np.sum(cost[arr == i])) for i in range(p.N)]), sig
 
 
 def _doa_worse(first, result, features, models):
     """The arrays with clock terms in ``models`` whose DOAs fit ``result`` worse than the linear clock's
     ``first`` by more than the χ² of a pose (6 dof) at STRUCTURE_ALPHA: a clock term changes no DOA, it can
-    only let the pose fitted to the TDOAs agree better with them."""
+    only let the pose fitted to the TDOAs agree better with them. The DOAs of the arrivals the frontend doubts
+    as the direct path's (:func:`doubted_arrivals`) do not count: a reflection's points at an image source, and
+    an array refitted alone at the linear clock bends its pose to them (rendered office, an occluded array's 5 ms
+    insert: its 12 undoubted DOAs' cost 268 at the linear clock, 3.6 with the true step; with its 8 reflection
+    DOAs, 9878 against 9909, and the step was removed)."""
     if first is None or not any(n != EMITTER for n in models):
         return []
-    c0, sig = _doa_cost(first, features)
-    c1, _ = _doa_cost(result, correct_features(features, models), sig)
+    doubted = doubted_arrivals(features)
+    c0, sig = _doa_cost(first, features, doubted=doubted)
+    c1, _ = _doa_cost(result, correct_features(features, models), sig, doubted)
     names = [str(n) for n in result["problem"].names]
     limit = float(chdtri(6, STRUCTURE_ALPHA))
     return [n for n in models if n in names and c1[names.index(n)] - c0[names.index(n)] > limit]
@@ -2022,7 +2078,9 @@ def persistence(result, models, features=None):
         if models[name][k].kind == "arrival":
             continue
         sw, scale = _robust_weights(result, lin, p, own=name)
-        sw = sw * np.maximum(solved, _own_rows(p, lin.factors, index[name]))   # (as :func:`structure_test`)
+        sizes = [c.value for c in models[name] if c.kind == "step"]
+        sw = sw * np.maximum(solved, _witnesses(result, lin, p, index[name], scale, doubted, sizes))   # (as
+        # :func:`structure_test`)
         A, prior = _with_nuisance(result, lin, lay, np.delete(E, col, axis=1), sw)
         pr = Projector(A, lay, prior)
         r0 = (lin.r - models[name][k].value * E[:, col]) * sw
@@ -2142,6 +2200,52 @@ def _own_rows(p, fs, i):
         else:
             out.append((arr == i) | (f.kind == "tdoa_m" and i == p.ref))
     return np.concatenate(out).astype(float) if out else np.zeros(0)
+
+
+def _doubted_rows(p, fs, doubted):
+    """1 for each stacked residual row of the factors ``fs`` that holds an arrival the frontend doubts as the
+    direct path's (``doubted``: :func:`doubted_arrivals`; a TDOA-M holds its array's and the reference's, a
+    TDOA-S its array's at both of its events)."""
+    names = [str(n) for n in p.names]
+    bad = np.array([[(n, int(e)) in doubted for e in p.events] for n in names], bool).reshape(len(names), -1)
+    out = []
+    for f in fs:
+        rows = getattr(p, f.kind, None)
+        if f.kind == "tdoa_m" and len(rows.arr) == len(f.r):
+            out.append(bad[rows.arr, rows.ev] | bad[p.ref, rows.ev])
+        elif f.kind == "tdoa_s" and len(rows.arr) == len(f.r):
+            out.append(bad[rows.arr, rows.a] | bad[rows.arr, rows.b])
+        else:
+            out.append(np.zeros(len(f.r), bool))
+    return np.concatenate(out) if out else np.zeros(0, bool)
+
+
+SHIFT_MATCH = 0.1   # a doubted arrival off by a step's size to this share of it is shifted by that clock (wider: TDOA-S
+# rows between two reflections, differences of 15-20 ms detours, fell in the band of a 5 ms step and testified)
+
+
+def _witnesses(result, lin, p, i, scale, doubted, sizes=()):
+    """The clock i's own rows that testify in the joint tests of its components at ``result`` (solved with
+    them), as a 0/1 weight on the stacked rows (:func:`_own_rows`): every one the solve used, and those it
+    left out (screened, outliers) but for the arrivals the frontend doubts (``doubted``) that the model leaves
+    beyond Huber's reach (HUBER_K × ``scale``, in whitened units). A doubted arrival the clock's terms fit is
+    a clock-shifted direct path (a step inside a run of doubted events: its evidence); one they leave ms off is a
+    reflection (an occluded office array's reflection-only arrivals, 16-19 ms late in 8 of its 20 events), whose
+    excess path is no clock's: under Huber's weight it read as a 200σ misfit of every row group and failed a true
+    5 ms step's structure test at χ² 1164 on 3 dof. One off by a step's size (``sizes``, s: the clock's steps; to
+    SHIFT_MATCH of it) either way is a clock-shifted arrival on the other side of that step and testifies against
+    its placement (a step placed inside a run of doubted events, early: diag_doubted_step 570-579, 4 of 10
+    misplaced so)."""
+    own = _own_rows(p, lin.factors, i)
+    if not doubted or i < 0:
+        return own
+    reach = HUBER_K * scale
+    far = _doubted_rows(p, lin.factors, doubted) & (np.abs(lin.r) > reach)
+    sig = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors]) if lin.factors else 1.0
+    for c in sizes:   # (the size is an estimate: a 0.51 ms step sized ± 63 µs left such rows 30 µs beyond reach)
+        off = np.minimum(np.abs(lin.r - c / sig), np.abs(lin.r + c / sig))
+        far &= off > np.maximum(reach, SHIFT_MATCH * abs(c) / sig)
+    return np.where(far & (_solved_rows(result, lin.factors) == 0), 0.0, own)
 
 
 def _columns(p, fs, i, comps):
