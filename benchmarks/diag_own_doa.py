@@ -24,12 +24,10 @@ from scipy.spatial.transform import Rotation
 from calib.estimator import uncertainty as U
 from calib.estimator import variance as V
 from calib.estimator.motion import motion_noise
-from calib.estimator.problem import make_layout
-from calib.estimator.solver import linearise
 from calib.estimator.verdict import median_error
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from diag_shared_rotation import final_solve  # noqa: E402
+from diag_shared_rotation import final_linearisation  # noqa: E402
 
 HIGH_ELEVATION_DEG = 30.0   # a planar array whose sources sit mostly above this (a ceiling array) vs near its plane
 MOSTLY_FLAGGED = 0.5        # as uncertainty.REFLECTION_MAJORITY
@@ -37,11 +35,8 @@ MOSTLY_FLAGGED = 0.5        # as uncertainty.REFLECTION_MAJORITY
 
 def session(work, name):
     """Print the session's arrays; return [(class, |own error| / |own share|)]."""
-    cal, res, kinds, stages, meta = final_solve(work / "runs" / name / "features")
+    cal, res, kinds, stages, meta, lay, lin, cov = final_linearisation(work / "runs" / name / "features")
     p, st = res.problem, res.state
-    lay = make_layout(p)
-    lin = linearise(p, st, lay, kinds, mask=res.mask)
-    cov = U.covariance(lin.J[lin.w > 0], lay.n, lay)
     if not isinstance(cov, np.ndarray) or not len(p.doa.u):
         return []
     vel = U.velocity_rows(lin, lay, motion_noise(stages.get("motion"), p, meta.get("doa_time_s")))

@@ -27,17 +27,12 @@ import diag_std_sources as DS   # noqa: E402
 
 from calib.estimator import uncertainty as U
 from calib.estimator.motion import motion_noise
-from calib.estimator.problem import make_layout
-from calib.estimator.solver import linearise
 from calib.estimator.verdict import median_error
 
 
 def session(work, name):
-    cal, res, kinds, stages, meta = DS.final_solve(work / "runs" / name / "features")
+    cal, res, kinds, stages, meta, lay, lin, cov = DS.final_linearisation(work / "runs" / name / "features")
     p, st = res.problem, res.state
-    lay = make_layout(p)
-    lin = linearise(p, st, lay, kinds, mask=res.mask)
-    cov = U.covariance(lin.J[lin.w > 0], lay.n, lay)
     motion = motion_noise(stages.get("motion"), p, meta.get("doa_time_s"))
     parts, honest, kind, arr = DS.std_parts(p, lin, lay, st, cov, meta, motion)
     keep_fold, keep_scatter = U.FOLD_SIGMAS, U.SHARED_DOA_SCATTER

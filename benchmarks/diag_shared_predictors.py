@@ -28,12 +28,10 @@ from scipy.optimize import minimize_scalar
 from scipy.stats import spearmanr
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from diag_shared_rotation import cross, final_solve   # noqa: E402
+from diag_shared_rotation import cross, final_linearisation   # noqa: E402
 
 from calib.estimator import uncertainty as U
 from calib.estimator import variance as V
-from calib.estimator.problem import make_layout
-from calib.estimator.solver import linearise
 from calib.pipeline.formats.io import read_truth
 
 BLOCKED = 0.1   # an array with more than this share of its DOA rows flagged nlos / occluded sees the source around things
@@ -61,11 +59,8 @@ def blocked_share(work, name):
 
 def session(work, name):
     """One record per array with ≥ 3 kept DOA rows."""
-    cal, res, kinds, stages, meta = final_solve(work / "runs" / name / "features")
+    cal, res, kinds, stages, meta, lay, lin, cov = final_linearisation(work / "runs" / name / "features")
     p, st = res.problem, res.state
-    lay = make_layout(p)
-    lin = linearise(p, st, lay, kinds, mask=res.mask)
-    cov = U.covariance(lin.J[lin.w > 0], lay.n, lay)
     fac = V.covariance_factors(p, lin, cov) if isinstance(cov, np.ndarray) else {}
     truth = read_truth(work / name / "truth")
     tr = U.state_from_frames(p, truth["arrays"], truth["sources"])

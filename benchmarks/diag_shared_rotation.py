@@ -49,6 +49,16 @@ def final_solve(features_dir, findings=True):
     return cal, seen["res"], seen["kinds"], seen["stages"], seen["meta"]
 
 
+def final_linearisation(features_dir, findings=True):
+    """:func:`final_solve` (``findings`` as there) and its linearisation at the final state: (cal, res, kinds,
+    stages, meta, lay, lin, cov), ``cov`` the estimator's covariance of the kept rows (not an ndarray when it
+    failed)."""
+    cal, res, kinds, stages, meta = final_solve(features_dir, findings)
+    lay = make_layout(res.problem)
+    lin = linearise(res.problem, res.state, lay, kinds, mask=res.mask)
+    return cal, res, kinds, stages, meta, lay, lin, U.covariance(lin.J[lin.w > 0], lay.n, lay)
+
+
 def cross(u):
     ux = np.zeros((len(u), 3, 3))
     ux[:, 0, 1], ux[:, 0, 2], ux[:, 1, 2] = -u[:, 2], u[:, 1], -u[:, 0]
@@ -70,12 +80,9 @@ def reference_rows(p, lin):
 
 def session(work, name):
     """Print the session's lines; return [(error part / its std term) for the reference's part, the rest]."""
-    cal, res, kinds, stages, meta = final_solve(work / "runs" / name / "features")
+    cal, res, kinds, stages, meta, lay, lin, cov = final_linearisation(work / "runs" / name / "features")
     p, st = res.problem, res.state
-    lay = make_layout(p)
-    lin = linearise(p, st, lay, kinds, mask=res.mask)
     keep = lin.w > 0
-    cov = U.covariance(lin.J[keep], lay.n, lay)
     if not isinstance(cov, np.ndarray) or not len(p.doa.u):
         return []
     vel = U.velocity_rows(lin, lay, motion_noise(stages.get("motion"), p, meta.get("doa_time_s")))

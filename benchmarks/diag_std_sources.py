@@ -33,12 +33,11 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_deploy as BD   # noqa: E402
-from diag_shared_rotation import final_solve as _final_solve   # noqa: E402
+from diag_shared_rotation import final_linearisation as _final_linearisation   # noqa: E402
 
 from calib.estimator import uncertainty as U
 from calib.estimator import variance as V
 from calib.estimator.motion import motion_noise
-from calib.estimator.problem import make_layout
 from calib.estimator.solver import linearise
 from calib.estimator.verdict import median_error
 from calib.pipeline.formats.io import read_truth
@@ -46,9 +45,9 @@ from calib.pipeline.formats.io import read_truth
 DIRECTION_PARTS = ("doa_planar", "shared_doa", "shared_cone", "doa", "cone")
 
 
-def final_solve(features_dir):
-    """`diag_shared_rotation.final_solve` without the set-up findings (the estimator's own std)."""
-    return _final_solve(features_dir, findings=False)
+def final_linearisation(features_dir):
+    """`diag_shared_rotation.final_linearisation` without the set-up findings (the estimator's own std)."""
+    return _final_linearisation(features_dir, findings=False)
 
 
 def truth_linearisation(work, name, p, st, lay, kinds, res, lin):
@@ -119,11 +118,8 @@ def group_of(kind, array, name, ref):
 def session(work, name):
     """Per non-reference array: {array, std_cm, err_cm, named, off, parts {term: share}, claim {group: m²},
     error {group: m²}}."""
-    cal, res, kinds, stages, meta = final_solve(work / "runs" / name / "features")
+    cal, res, kinds, stages, meta, lay, lin, cov = final_linearisation(work / "runs" / name / "features")
     p, st = res.problem, res.state
-    lay = make_layout(p)
-    lin = linearise(p, st, lay, kinds, mask=res.mask)
-    cov = U.covariance(lin.J[lin.w > 0], lay.n, lay)
     if not isinstance(cov, np.ndarray):
         return []
     parts, honest, kind, arr = std_parts(p, lin, lay, st, cov, meta,
