@@ -455,10 +455,10 @@ def _trusted(D, p, name, doubted):
     """Per row of ``D`` (:func:`array_data` of array ``name`` in problem ``p``; TDOA-S rows, then TDOA-M): whether
     none of its arrivals is one the frontend doubts as the direct path's (``doubted``: :func:`doubted_arrivals`; a
     TDOA-M holds the reference's too)."""
-    ev, ref = [int(e) for e in p.events], str(p.names[p.ref])
-    s = [(name, ev[a]) not in doubted and (name, ev[b]) not in doubted for a, b in zip(D.a, D.b)]
-    m = [(name, ev[j]) not in doubted and (ref, ev[j]) not in doubted for j in D.j]
-    return np.array(s + m, bool)
+    bad = _doubted_table(p, doubted)
+    own = bad[[str(n) for n in p.names].index(name)]
+    a, b, j = (np.asarray(x, int) for x in (D.a, D.b, D.j))
+    return ~np.concatenate([own[a] | own[b], own[j] | bad[p.ref, j]])
 
 
 def best_component(D, comps, x0, g0, tau0, n_arrays, skip=frozenset(), reference=True, free=(), trusted=None):
@@ -2018,9 +2018,8 @@ def _doa_cost(result, features, sigma=None, doubted=frozenset()):
     phys = np.concatenate([f.r * np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     own = np.concatenate([np.broadcast_to(f.row_sigma, len(f.r)) for f in lin.factors])
     sig = own if sigma is None or len(sigma) != len(own) else sigma
-    names, events = [str(n) for n in p.names], [int(e) for e in p.events]
-    out = np.concatenate([np.repeat([(names[a], events[e]) in doubted for a, e in
-                                     zip(getattr(p, f.kind).arr, getattr(p, f.kind).ev)], f.dim) for f in lin.factors])
+    bad = _doubted_table(p, doubted)
+    out = np.concatenate([np.repeat(bad[getattr(p, f.kind).arr, getattr(p, f.kind).ev], f.dim) for f in lin.factors])
     cost = np.where(out, 0.0, 2.0 * huber_rho(phys / sig))
     return np.array([float(np.sum(cost[arr == i])) for i in range(p.N)]), sig
 
@@ -2202,12 +2201,19 @@ def _own_rows(p, fs, i):
     return np.concatenate(out).astype(float) if out else np.zeros(0)
 
 
+def _doubted_table(p, doubted):
+    """(N, E) bool: whether array i's arrival at the problem ``p``'s event k is one the frontend doubts as the direct
+    path's (``doubted``: :func:`doubted_arrivals`, (array name, event id) pairs)."""
+    names = [str(n) for n in p.names]
+    return np.array([[(n, int(e)) in doubted for e in p.events] for n in names], bool).reshape(len(names),
+                                                                                              len(p.events))
+
+
 def _doubted_rows(p, fs, doubted):
     """1 for each stacked residual row of the factors ``fs`` that holds an arrival the frontend doubts as the
     direct path's (``doubted``: :func:`doubted_arrivals`; a TDOA-M holds its array's and the reference's, a
     TDOA-S its array's at both of its events)."""
-    names = [str(n) for n in p.names]
-    bad = np.array([[(n, int(e)) in doubted for e in p.events] for n in names], bool).reshape(len(names), -1)
+    bad = _doubted_table(p, doubted)
     out = []
     for f in fs:
         rows = getattr(p, f.kind, None)
