@@ -12,6 +12,8 @@ import signal
 import sys
 import threading
 
+from calib import interrupts
+
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_INPUT = 2
@@ -37,6 +39,9 @@ def exception_for(signum):
 
 def _on_signal(signum, frame):
     global _pending
+    if interrupts.deferring():  # a few statements that must run together (calib.interrupts): raised after them
+        interrupts.hold(signum)
+        return
     _pending = signum
     raise exception_for(signum)
 

@@ -34,6 +34,7 @@ import shutil
 from pathlib import Path
 
 from calib.errors import InputError
+from calib.interrupts import deferred
 
 MARKER = ".calib-output"
 STAGE_STAMP = ".calib-stage.json"
@@ -171,9 +172,10 @@ def _write_manifest(folder, files, command, writers=None):
     if writers:
         data["writers"] = dict(sorted(writers.items()))
     tmp = temp_path(Path(folder) / MARKER)
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    publish_mode(tmp)
-    os.replace(tmp, Path(folder) / MARKER)
+    with removed_on_error(tmp):
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
+        publish_mode(tmp)
+        os.replace(tmp, Path(folder) / MARKER)
 
 
 def _update_manifest(folder, name, digest, command):
@@ -283,8 +285,10 @@ def output_lock(folder, on_wait=None):
     """
     folder = Path(folder)
     path = lock_path(folder)
-    created = _make_parents(path.parent, folder)
+    created = []
     try:
+        with deferred():
+            created = _make_parents(path.parent, folder)
         with _locked(path, folder, on_wait):
             yield
     finally:
@@ -323,37 +327,71 @@ def _missing(path):
 @contextlib.contextmanager
 def _locked(path, folder, on_wait):
     """flock the file ``path`` (created), retrying if its holder removed it meanwhile; removed on release."""
-    told = False
-    while True:
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
-        except FileNotFoundError:  # another command removed its empty parent folder meanwhile: make it again
-            _make_parents(path.parent, folder)
-            continue
-        except OSError as exc:
-            raise InputError(f"{exc.filename or folder}: cannot create the output ({exc.strerror})") from None
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-                if on_wait is not None and not told:
-                    on_wait(f"{folder}: another calib (pid {holder}) is writing here; waiting for it to finish")
-                    told = True
-                fcntl.flock(fd, fcntl.LOCK_EX)
-            if _same_file(fd, path):
-                break
-        except BaseException:
-            os.close(fd)
-            raise
-        os.close(fd)  # the holder removed that lock file while we waited: lock the current one
+    held = []  # the locked descriptor, once this process holds the lock
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        _acquire(path, folder, on_wait, held)
+        os.ftruncate(held[0], 0)
+        os.pwrite(held[0], f"{os.getpid()}\n".encode(), 0)
         yield
     finally:
-        with contextlib.suppress(OSError):
-            os.unlink(path)  # while still holding the lock (see the docstring)
+        if held:
+            with contextlib.suppress(OSError):
+                os.unlink(path)  # while still holding the lock (see output_lock)
+            os.close(held[0])
+
+
+def _acquire(path, folder, on_wait, held):
+    """Lock ``path`` and append its descriptor to ``held``; an interrupt on the way leaves no lock file."""
+    told = False
+    while True:
+        fd = None
+        try:
+            with deferred():
+                fd = _open_lock_file(path, folder)
+            told = _wait_for(fd, folder, on_wait, told)
+            with deferred():
+                if _same_file(fd, path):
+                    held.append(fd)
+                    return
+        except BaseException:
+            if fd is not None and not held:
+                _discard_lock_file(fd, path)
+            raise
+        os.close(fd)  # the holder removed that lock file while we waited: lock the current one
+
+
+def _open_lock_file(path, folder):
+    while True:
+        try:
+            return os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+        except FileNotFoundError:  # another command removed its empty parent folder meanwhile: make it again
+            _make_parents(path.parent, folder)
+        except OSError as exc:
+            raise InputError(f"{exc.filename or folder}: cannot create the output ({exc.strerror})") from None
+
+
+def _wait_for(fd, folder, on_wait, told):
+    """flock ``fd``, waiting (interruptibly) for another holder; returns whether the wait was announced."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        if on_wait is not None and not told:
+            on_wait(f"{folder}: another calib (pid {holder}) is writing here; waiting for it to finish")
+            told = True
+        fcntl.flock(fd, fcntl.LOCK_EX)
+    return told
+
+
+def _discard_lock_file(fd, path):
+    """Close ``fd`` after an interrupt; the lock file goes too when no other command holds it."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        if _same_file(fd, path):
+            os.unlink(path)
+    except OSError:
+        pass  # another command holds it: it removes the file on release
+    finally:
         os.close(fd)
 
 
@@ -373,6 +411,20 @@ def remove_temp(path):
     else:
         with contextlib.suppress(OSError):
             path.unlink()
+
+
+@contextlib.contextmanager
+def removed_on_error(tmp):
+    """Remove the temporary ``tmp`` if the block that makes it raises (an interrupt included).
+
+    The block creates ``tmp``: an interrupt may land between its creation and any code that would note it,
+    so the clean-up looks at the path itself. Its name carries a fresh 128-bit token (:func:`temp_path`):
+    whatever is there, calib made it."""
+    try:
+        yield tmp
+    except BaseException:
+        remove_temp(tmp)
+        raise
 
 
 def remove_litter(target):
@@ -418,8 +470,9 @@ def make_temp_dir(target):
     """A new temporary folder beside ``target`` (``.<name>.calib-tmp-<token>``, holding ``.calib-tmp``)."""
     token = temp_token()
     tmp = temp_path(target, "tmp", token)
-    tmp.mkdir(mode=0o700)
-    (tmp / TMP_MARK).write_text(token + "\n")
+    with removed_on_error(tmp):
+        tmp.mkdir(mode=0o700)
+        (tmp / TMP_MARK).write_text(token + "\n")
     return tmp
 
 
@@ -445,7 +498,8 @@ def publish(folders, command="calib"):
         try:
             for f in folders:
                 f.parent.mkdir(parents=True, exist_ok=True)
-                tmps.append(make_temp_dir(f))
+                with deferred():
+                    tmps.append(make_temp_dir(f))
                 publish_mode(tmps[-1], directory=True)
         except OSError as exc:
             raise os_error(exc, folders[len(tmps)]) from None
@@ -454,8 +508,9 @@ def publish(folders, command="calib"):
             for f, tmp in zip(folders, tmps):
                 write_marker(tmp, command)
                 check_replaceable(f)
-            for f, tmp in zip(folders, tmps):
-                _swap(f, tmp)
+            with deferred():  # every folder, or (an OSError) none: an interrupt waits for the renames
+                for f, tmp in zip(folders, tmps):
+                    _swap(f, tmp)
         except OSError as exc:
             if exc.errno not in ENVIRONMENT_ERRNOS:
                 raise
@@ -478,8 +533,14 @@ def _swap(target, tmp):
             (target / TMP_MARK).write_text(token + "\n")  # calib's own folder: mark it as a temporary
             old = temp_path(target, "old", token)
             target.rename(old)
-    _drop_temp_mark(tmp)
-    tmp.rename(target)
+    try:
+        tmp.rename(target)
+    except BaseException:  # an interrupt or a failed rename: the previous output goes back in place
+        if old is not None and not target.exists():
+            old.rename(target)
+            _drop_temp_mark(target)
+        raise
+    _drop_temp_mark(target)  # after the rename: until then the temporary stays provably calib's (is_own_temp)
     if old is not None:
         remove_temp(old)
 
@@ -492,9 +553,8 @@ def _manifest_lock(folder):
         yield
 
 
-def _write_temp_file(path, data):
-    """A temporary beside ``path`` holding ``data`` (bytes, str, or a function writing to a given path)."""
-    tmp = temp_path(path)
+def _write_temp_file(tmp, data):
+    """Write the new temporary ``tmp`` with ``data`` (bytes, str, or a function writing to a given path)."""
     if callable(data):
         data(tmp)
     else:
@@ -502,7 +562,6 @@ def _write_temp_file(path, data):
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode() if isinstance(data, str) else data)
     publish_mode(tmp)
-    return tmp
 
 
 def write_file(path, data, *, command="calib", inputs=(), replace=True, kin=()):
@@ -523,16 +582,17 @@ def write_file(path, data, *, command="calib", inputs=(), replace=True, kin=()):
     try:
         with output_lock(path):
             remove_litter(path)
-            tmp = _write_temp_file(path, data)
+            tmp = temp_path(path)
             try:
+                _write_temp_file(tmp, data)
                 digest = _sha256(tmp)
                 with _manifest_lock(path.parent):
                     check_file_replaceable(path, inputs, replace, command, kin)
-                    os.replace(tmp, path)
-                    _update_manifest(path.parent, path.name, digest, command)
+                    with deferred():  # the file and its manifest entry together
+                        os.replace(tmp, path)
+                        _update_manifest(path.parent, path.name, digest, command)
             finally:
-                if tmp.exists():
-                    remove_temp(tmp)
+                remove_temp(tmp)  # still there if the write failed (an interrupt included)
     except OSError as exc:
         if exc.errno not in ENVIRONMENT_ERRNOS:
             raise
