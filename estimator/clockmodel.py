@@ -826,7 +826,7 @@ def end_side(t, time, n_events=PERSIST_EVENTS):
     return None
 
 
-def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None, side=None):
+def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None, side=None, also=()):
     """The smallest χ² drop (unscaled) of a column b (projected off the model's columns) against residuals r
     (projected too) with the rows of up to PERSIST_EVENTS groups left out: ``groups`` are row indices (into r
     and b) per event in time order (any run of consecutive events: a clock term's evidence is in every row
@@ -836,7 +836,8 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None, side=Non
     and with it (H_RR + b_R b_R'/b'b). r and b may hold only some of the rows (the clock's own): ``bb`` = |b|²
     and ``br`` = b'r over every row then. ``side``: the positions (into ``groups``) of a step's events on its
     short side (:func:`end_side`): a run holding all of them is not left out (it would leave the step no
-    event on that side: no leave-out can tell those events' arrivals from a clock; :func:`direct_path` does)."""
+    event on that side: no leave-out can tell those events' arrivals from a clock; :func:`direct_path` does).
+    ``also``: more sets of positions (into ``groups``) left out each at once (:func:`penumbra`)."""
     bb = float(b @ b) if bb is None else float(bb)
     if bb <= 0:
         return 0.0
@@ -848,14 +849,40 @@ def persistent_drop(hat, r, b, groups, emitter=False, bb=None, br=None, side=Non
         runs = (itertools.combinations(groups, w) if emitter else
                 (groups[m:m + w] for m in range(len(groups) - w + 1) if side is None or not set(side) <= set(range(m, m + w))))
         for run in runs:
-            R = np.unique(np.concatenate(run))
-            I = np.eye(len(R))
-            HA = hat(R)
-            HB = HA + np.outer(b[R], b[R]) / bb
-            dA = r[R] @ np.linalg.lstsq(I - HA, r[R], rcond=1e-10)[0]
-            dB = e[R] @ np.linalg.lstsq(I - HB, e[R], rcond=1e-10)[0]
-            out = min(out, full - dA + dB)
+            out = min(out, _drop_without(hat, r, b, e, bb, full, np.unique(np.concatenate(run))))
+    for at in also:
+        if at and (side is None or not set(side) <= set(at)):
+            out = min(out, _drop_without(hat, r, b, e, bb, full, np.unique(np.concatenate([groups[m] for m in at]))))
     return max(float(out), 0.0)
+
+
+def _drop_without(hat, r, b, e, bb, full, R):
+    """:func:`persistent_drop`'s χ² drop ``full`` with the rows R left out (the deletion formula)."""
+    I = np.eye(len(R))
+    HA = hat(R)
+    HB = HA + np.outer(b[R], b[R]) / bb
+    dA = r[R] @ np.linalg.lstsq(I - HA, r[R], rcond=1e-10)[0]
+    dB = e[R] @ np.linalg.lstsq(I - HB, e[R], rcond=1e-10)[0]
+    return full - dA + dB
+
+
+def penumbra(p, i, doubted):
+    """Indices of the events (into ``p.events``) at which array i's arrival, or the reference's that its TDOA-M
+    rows hold, is undoubted but next (in time) to one the frontend doubts (``doubted``: :func:`doubted_arrivals`):
+    the edge of a run whose line of sight was blocked. There the direct path grazes the obstacle: diffracted and
+    weak, a reflection merged with it within the chirp's resolution makes the pick 20-40 µs late, unflagged (rendered
+    office dev 501: A4's last arrivals before its reflection-only runs 6-9 and 16-19, events 5 and 15, 38 and 36 µs
+    late; dev 503: the reference's events 7 and 17 before its runs 8-9 and 18-19, 23-27 µs late in every array's
+    TDOA-M). Two such edges, ten events apart, made a 75 µs and a 30 µs step that no leave-out of PERSIST_EVENTS
+    consecutive events removed."""
+    bad = _doubted_table(p, doubted)
+    order = np.argsort(p.t, kind="stable")
+    out = set()
+    for a in {i, p.ref}:
+        d = bad[a][order]
+        edge = ~d & (np.r_[False, d[:-1]] | np.r_[d[1:], False])
+        out.update(int(e) for e in order[edge])
+    return out
 
 
 # frontend doubts that an arrival is the direct path's (docs/frontend.md, ``flag``): a direct path weaker than a
@@ -919,7 +946,10 @@ def clock_persistence(p, fs, i, comp, groups, hat, r, b, bb=None, br=None, ids=N
         side = end_side(p.t[ids], comp.time)
         if side is not None and not direct_path(p, fs, i, ids[side], doubted):
             return 0.0
-    out = persistent_drop(hat, r, b, groups, i < 0, bb=bb, br=br, side=side)
+    # (and without every arrival at the edge of a doubted run at once: :func:`penumbra`)
+    edges = penumbra(p, i, doubted) if i >= 0 and ids is not None and doubted else set()
+    also = [[m for m, e in enumerate(ids) if int(e) in edges]] if edges else ()
+    out = persistent_drop(hat, r, b, groups, i < 0, bb=bb, br=br, side=side, also=also)
     if i < 0 and comp.kind != "step" and events is not None:
         out = min(out, persistent_drop(hat, r, b, events, bb=bb, br=br))
     return out
@@ -2132,7 +2162,11 @@ def _unreliable(result):
 
 
 def _weakest(p, models):
-    """(array name, index) of the component with the most negative (value/σ)² − penalty, or None."""
+    """(array name, index) of the component with the most negative (value/σ)² − penalty, or None; first, one
+    implausible or refined to a σ of exactly 0: every row its column touches is out of the solve (screened as
+    doubted, or an outlier), so the solve's data say nothing of it and it moves nothing but the rows left out
+    (rendered deploy dev 513: a 6.93 ms step of the reference proposed from A1's TDOA-M alone, whose rows after
+    it were all doubted reflections, kept with σ 0.0 µs, the elimination skipping it for want of a σ)."""
     sizes = family_sizes(p.t)
     index = {str(n): i for i, n in enumerate(p.names)}
     worst, where = 0.0, None
@@ -2143,6 +2177,8 @@ def _weakest(p, models):
         for k, c in enumerate(comps):
             if not c.plausible(duration):
                 return name, k
+            if c.std == 0.0 and c.kind != "arrival":
+                return name, k   # (refined to a σ of 0: no row the solve uses holds it, :func:`refine`)
             if not c.std:
                 continue
             m = (c.value / c.std) ** 2 - penalty(c.kind, n, p.N + 1, sizes)
