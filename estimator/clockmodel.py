@@ -2240,9 +2240,13 @@ def _own_rows(p, fs, i):
 def _doubted_table(p, doubted):
     """(N, E) bool: whether array i's arrival at the problem ``p``'s event k is one the frontend doubts as the direct
     path's (``doubted``: :func:`doubted_arrivals`, (array name, event id) pairs)."""
-    names = [str(n) for n in p.names]
-    return np.array([[(n, int(e)) in doubted for e in p.events] for n in names], bool).reshape(len(names),
-                                                                                              len(p.events))
+    row = {str(n): i for i, n in enumerate(p.names)}
+    col = {int(e): k for k, e in enumerate(p.events)}
+    out = np.zeros((len(row), len(col)), bool)
+    at = [(row[n], col[e]) for n, e in doubted if n in row and e in col]   # (the doubted pairs, not every cell)
+    if at:
+        out[tuple(np.transpose(at))] = True
+    return out
 
 
 def _doubted_rows(p, fs, doubted):

@@ -24,7 +24,6 @@ import contextlib
 import dataclasses
 import io
 import json
-import os
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -42,7 +41,7 @@ from calib.errors import InputError  # noqa: F401  (re-exported: readers raise i
 from calib.jsonutil import dumps_json  # noqa: F401
 
 from calib.pipeline.formats import validate as V
-from calib.pipeline.formats.outputs import publish, publish_mode, removed_on_error, temp_path
+from calib.pipeline.formats.outputs import publish, write_replacing
 
 
 EVENTS_COLS = ["event", "t_emit", "odom_x", "odom_y", "odom_z"]
@@ -70,13 +69,7 @@ def atomic_write_text(path, text):
     user names goes through ``outputs.write_file`` (the output policy)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temp_path(path)
-    with removed_on_error(tmp):
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        publish_mode(tmp)
-        os.replace(tmp, path)
+    write_replacing(path, text)
 
 
 # ----------------------------------------------------------------------------------------------- CSV

@@ -171,11 +171,7 @@ def _write_manifest(folder, files, command, writers=None):
     data = {"written_by": "calib", "command": command, "files": dict(sorted(files.items()))}
     if writers:
         data["writers"] = dict(sorted(writers.items()))
-    tmp = temp_path(Path(folder) / MARKER)
-    with removed_on_error(tmp):
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
-        publish_mode(tmp)
-        os.replace(tmp, Path(folder) / MARKER)
+    write_replacing(Path(folder) / MARKER, json.dumps(data, indent=1) + "\n")
 
 
 def _update_manifest(folder, name, digest, command):
@@ -553,8 +549,9 @@ def _manifest_lock(folder):
         yield
 
 
-def _write_temp_file(tmp, data):
-    """Write the new temporary ``tmp`` with ``data`` (bytes, str, or a function writing to a given path)."""
+def write_new(tmp, data):
+    """Write the new file ``tmp`` (created here: never an existing file, never through a symlink) with ``data``
+    (bytes, str as UTF-8, or a function writing to a given path), with an output's mode (:func:`publish_mode`)."""
     if callable(data):
         data(tmp)
     else:
@@ -562,6 +559,16 @@ def _write_temp_file(tmp, data):
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode() if isinstance(data, str) else data)
     publish_mode(tmp)
+
+
+def write_replacing(path, data):
+    """Write ``path`` through a new temporary beside it (:func:`write_new`) and a rename, for calib's own files in a
+    folder it writes (a temporary of :func:`publish`, a stage's stamp, a manifest); a file a user names goes
+    through :func:`write_file` (the output policy)."""
+    tmp = temp_path(path)
+    with removed_on_error(tmp):
+        write_new(tmp, data)
+        os.replace(tmp, path)
 
 
 def write_file(path, data, *, command="calib", inputs=(), replace=True, kin=()):
@@ -584,7 +591,7 @@ def write_file(path, data, *, command="calib", inputs=(), replace=True, kin=()):
             remove_litter(path)
             tmp = temp_path(path)
             try:
-                _write_temp_file(tmp, data)
+                write_new(tmp, data)
                 digest = _sha256(tmp)
                 with _manifest_lock(path.parent):
                     check_file_replaceable(path, inputs, replace, command, kin)
