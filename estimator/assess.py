@@ -15,6 +15,7 @@ from .factors import KINDS, active_kinds, natural
 from .factors import evaluate as factors
 from .observability import check_observability
 from .problem import build_problem, make_layout, with_arrival_scale
+from .screen import without_screened
 from .solver import linearise
 from .uncertainty import cov_block, honest_covariance, plane_normals, state_from_frames
 
@@ -35,8 +36,10 @@ def rebuild(features, calib):
     sig_e = float((rep.get("sigmas") or {}).get("emission_s") or 0.0)
     use_ts = bool((rep.get("used") or {}).get("tdoa_s", True))
     frame = rep.get("odometry_frame") or {}
-    # the clock models the estimator chose (steps, drift terms): taken out of the TDOAs as it did
-    features = clockmodel.correct_features(features, clockmodel.models_from_report(rep))
+    # the rows it solved with (the screened ones out) and the clock models it chose (steps, drift terms): taken out
+    # of the TDOAs as it did
+    features = clockmodel.correct_features(without_screened(features, rep.get("screened")),
+                                           clockmodel.models_from_report(rep))
     p = build_problem(features, use_tdoa_s=use_ts, sigma_emit=sig_e, odometry_yaw=bool(frame.get("estimated")))
     # the weights the estimator ended with (meta.json's, or re-estimated from the residuals: noise="estimate")
     sigmas = rep.get("sigmas") or {}

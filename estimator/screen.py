@@ -188,6 +188,19 @@ def screen_rows(features):
     return out, {"rows": rows, "kept_doubted": kept, "kept_reasons": reasons, "mostly_taken_out": most}
 
 
+def without_screened(features, record):
+    """``features`` without the rows report.json's ``screened`` record (:func:`screen_rows`) took out, matched by
+    table, array and events: the rows the estimator solved with, for a calibration read back from disk."""
+    out = dict(features)
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        gone = {(r["array"], tuple(r["events"])) for r in (record or {}).get("rows", []) if r.get("type") == name}
+        df = features.get(name)
+        if gone and df is not None and len(df):
+            keys = zip(df["array"].astype(str), map(tuple, _row_events(df)))
+            out[name] = df[[k not in gone for k in keys]]
+    return out
+
+
 def distrusted(record):
     """Summary for the report: {array: {reason: number of rows}} of the screened rows, plus the arrays whose
     doubted rows were kept (``"<reason>_kept"``: its doubted events)."""

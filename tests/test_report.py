@@ -179,6 +179,33 @@ def _calibration_with_an_array_component():
     pytest.fail("no array got a component of its own in 6 scenes with one array at 5x the DOA noise")
 
 
+def test_rebuilt_model_leaves_out_the_rows_the_estimator_screened(tmp_path):
+    """Reflection-only rows (flag ``nlos``, 3 ms late) are screened before the solve: a calibration read back from
+    disk must leave them out too, or the report's residual table shows them as fitted and the covariance counts
+    them as information."""
+    stops = np.cumsum(np.random.default_rng(11).normal(0, 0.4, (12, 3)), axis=0) * [1, 1, 0.2] + [0, 0, 1.2]
+    feats, _ = simulate_features(trajectory=stops, seed=11, n_arrays=5)
+    for name in ("tdoa_m", "tdoa_s", "doa"):
+        df = feats[name]
+        ev = df["event"] if "event" in df else df["to_event"]
+        late = (df["array"] == "A3").to_numpy() & ev.isin([4, 5]).to_numpy()
+        df["flag"] = np.where(late, "nlos", "")
+        if name != "doa":
+            df.loc[late, "tdoa"] += 3e-3
+    calib = calibrate(feats)
+    assert len(calib["report"]["screened"]["rows"]) == 6
+    write_calibration(tmp_path / "c", calib, features=feats)
+    model = report.rebuild(feats, read_calibration(tmp_path / "c"))
+    res = report.residuals(model)
+    for kind in ("tdoa_s", "tdoa_m"):
+        assert len(res[kind]["values"]) == calib["report"]["residuals"][kind]["n"]
+        assert np.sqrt(np.mean(res[kind]["values"] ** 2)) == pytest.approx(
+            calib["report"]["residuals"][kind]["rms_us"], rel=1e-4)
+    cov_a, _ = report.position_covariances(model)
+    np.testing.assert_allclose(np.sqrt(np.diagonal(cov_a[1:], axis1=1, axis2=2)),
+                               calib["arrays"][["x_std", "y_std", "z_std"]].to_numpy()[1:], rtol=1e-4)
+
+
 def test_rebuilt_model_keeps_the_arrays_own_sigmas(tmp_path):
     """With per-array components (array_noise=True), the report's covariances and row sigmas are the
     estimator's."""
