@@ -102,3 +102,31 @@ def test_doa_lag_correlation_is_read_in_the_array_frame():
     base = inflation(p.doa.axes)
     assert np.all(base[np.unique(p.doa.arr)] > 1.2)   # the drift is seen
     assert np.allclose(inflation(turn @ p.doa.axes), base, rtol=1e-12)
+
+
+def test_planar_model_at_the_stated_variances_is_the_plain_information():
+    """Analytic identity: the planar arrays' error model (``planar_doa_rows``' rows, read back in the array frame)
+    given the very variances along azimuth and elevation that the rows' whitening states gives back the plain
+    information JᵀJ of their tangent components (on main it mixed array-frame directions with whitened axes)."""
+    from calib.estimator.factors import active_kinds
+    from calib.estimator.problem import make_layout
+    from calib.estimator.solver import linearise
+    from calib.estimator import uncertainty as U
+    feats, _ = simulate_features(3, seed=503)
+    feats = feats.replace(meta={**feats["meta"], "mics": {a: CIRCLE6 for a in feats["meta"]["arrays"]}})
+    cal = calibrate(feats, target_position=0, target_orientation_deg=0)
+    p, st = cal["problem"], cal["state"]
+    lin = linearise(p, st, make_layout(p), active_kinds(p))
+    f, start, n = next(U._kind_blocks(lin, "doa"))
+    _, J, _ = U._array_frame_rows(p, lin, f, start, n)
+    nv, u = U.plane_normals(feats["meta"], p.names)[p.doa.arr], p.doa.u
+    e_el = nv - np.einsum("ka,ka->k", nv, u)[:, None] * u
+    e_el /= np.linalg.norm(e_el, axis=1, keepdims=True)
+    e_az = np.cross(u, e_el)
+    C = np.einsum("kba,kb,kbc->kac", p.doa.axes, p.doa.axis_scale ** 2, p.doa.axes)   # stated, in sig0² units
+    assert np.ptp(p.doa.axis_scale[:, 1]) > 0.1   # the rows' elevations are whitened apart from their azimuths
+    G = [np.sqrt(np.einsum("ka,kab,kb->k", e, C, e))[:, None] * np.einsum("ka,kan->kn", e, J) for e in (e_az, e_el)]
+    Jw = lin.J[start:start + n]
+    Jw = (Jw.toarray() if hasattr(Jw, "toarray") else np.asarray(Jw)).reshape(n // 3, 3, -1)[:, :2]
+    plain = np.einsum("kin,kim->nm", Jw, Jw)
+    assert np.abs(G[0].T @ G[0] + G[1].T @ G[1] - plain).max() < 1e-9 * np.abs(plain).max()
