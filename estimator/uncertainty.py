@@ -247,6 +247,23 @@ def _kind_blocks(lin, kind):
         start += n
 
 
+def _array_frame_rows(p, lin, f, start, n):
+    """The DOA block of ``lin`` (rows ``start``…``start + n`` of factor ``f``) back in the array frame, in units of
+    each row's sigma ``sig`` (m,) (its best axis', ``DoaRows.axis_scale`` 1): residuals r (m, 3) = (v − u) / sig and
+    J (m, 3, n) the estimator's sensitivity to them, sig × Bᵀ W J_w (W = diag(1 / σ_axis) B the row's whitening,
+    J_w the whitened Jacobian), so that an error ε (rad, array frame) moves the estimate by H⁻¹ Jᵀ ε / sig. The
+    factor whitens along each row's own axes B (:func:`calib.estimator.problem.doa_axes`), which are arbitrary in a
+    tangent plane where the fit's two stds are (nearly) equal; these are not (identity / ones axes: the block as is)."""
+    B = p.doa.axes
+    s3 = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)
+    sig = s3[:, 0]
+    Jw = lin.J[start:start + n]
+    Jw = (Jw.toarray() if scipy.sparse.issparse(Jw) else np.asarray(Jw)).reshape(n // 3, 3, -1)
+    r = np.einsum("kba,kb->ka", B, lin.r[start:start + n].reshape(-1, 3) * s3) / sig[:, None]
+    J = np.einsum("kba,kbn->kan", B, Jw / s3[:, :, None]) * sig[:, None, None]
+    return r, J, sig
+
+
 def planar_doa_rows(p, lin, normals, factors):
     """The DOA rows of planar arrays with their errors as a planar array makes them: {"rows": (M,) bool, the
     DOA residuals it models; "G": (m, n) rows whose GᵀG is their part of Jᵀ C J}; None when there is none.
@@ -281,10 +298,7 @@ def planar_doa_rows(p, lin, normals, factors):
         e_el = nv - cos_n[:, None] * u
         e_el /= np.maximum(np.linalg.norm(e_el, axis=1), 1e-12)[:, None]
         e_az = np.cross(u, e_el)
-        sig = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)[:, 0]
-        r = lin.r[start:start + n].reshape(-1, 3)           # whitened: each row in units of its own sigma
-        J = lin.J[start:start + n]
-        J = (J.toarray() if scipy.sparse.issparse(J) else np.asarray(J)).reshape(n // 3, 3, -1)
+        r, J, sig = _array_frame_rows(p, lin, f, start, n)
         sin_el = np.abs(cos_n)
         corr = factors.get("doa_correlation", np.ones(p.N))
         iso_factor = factors.get("doa", np.ones(p.N))
