@@ -82,12 +82,12 @@ def std_parts(p, lin, lay, st, cov, meta, motion):
     J = lin.J.toarray() if hasattr(lin.J, "toarray") else np.asarray(lin.J)
     kind, arr = row_labels(p, lin)
     own, parts = lin.w > 0, {}
-    whole = U.planar_doa_rows(p, lin, normals, fac)
+    whole = U.planar_doa_rows(p, lin, normals, fac, cov)
     if whole is not None:
         own &= ~whole["rows"]
         for i in np.flatnonzero(np.any(normals != 0, axis=1)):
             alone = np.where(np.arange(p.N)[:, None] == i, normals, 0.0)
-            g = U.planar_doa_rows(p, lin, alone, fac)
+            g = U.planar_doa_rows(p, lin, alone, fac, cov)
             if g is not None:
                 parts[f"doa_planar:{p.names[i]}"] = g["G"]
     D = U.arrival_rows(p, lin, fac) if shared_arrivals else None

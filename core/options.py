@@ -85,8 +85,8 @@ OPTIONS = (  # in the order ``calib estimate --help`` shows the flagged ones
     Option("clock_model", "auto", str, "each array's clock: auto (one offset and drift, plus clock steps from dropped "
            "or inserted sample blocks and a varying drift where the evidence asks for them), or linear (never more)",
            choices=("linear", "auto"), flag="--clock-model"),
-    Option("target_position", 0.03, float, "precision asked of each array's position, m: an array whose std says "
-           "its error is more likely above it is named (verdict suspect); 0 = off", lo=0.0, hi=100.0,
+    Option("target_position", 0.03, float, "precision asked of each array's position, m: an array whose std gives "
+           "its error more than a 20 % chance of lying beyond it is named (verdict suspect); 0 = off", lo=0.0, hi=100.0,
            flag="--target-position"),
     Option("target_orientation_deg", 1.5, float, "precision asked of each array's orientation, degrees (as "
            "--target-position); 0 = off", lo=0.0, hi=180.0, flag="--target-orientation"),

@@ -2150,9 +2150,12 @@ def _distrusted(result):
     """The arrays whose rows say nothing about the others' clocks: dropped as unreliable, or named by the
     verdict as inconsistent (their rows bend the sources, and a scan of the others would read that bend as
     their clocks) — the named ones only while they are fewer than half the other arrays (a fault most arrays
-    show is the reference's clock, seen from each)."""
+    show is the reference's clock, seen from each). Arrays named only as short of the precision target
+    (report ``precision``: their rows agree with the rest, the data just determine them loosely) are not."""
     out = set(_unreliable(result))
-    flagged = set(((result.get("report") or {}).get("verdict") or {}).get("flagged_arrays") or ())
+    report = result.get("report") or {}
+    flagged = set((report.get("verdict") or {}).get("flagged_arrays") or ()) - \
+        {a["array"] for a in (report.get("precision") or {}).get("arrays", ())}
     n_others = len(result["problem"].names) - 1
     return out | flagged if len(out | flagged) < 0.5 * n_others else out
 

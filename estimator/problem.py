@@ -511,9 +511,38 @@ def doa_axes(doa, meta, names, sigma_doa):
         pu = np.eye(3)[None] - u[:, :, None] * u[:, None, :]
         lam, vec = np.linalg.eigh(pu @ cov @ pu)              # ascending: [≈0 along u, tangent, tangent]
         lam = np.maximum(lam[:, 1:], 1e-12 * lam[:, 2:])
-        axes[m] = np.concatenate([np.transpose(vec[:, :, 1:], (0, 2, 1)), u[:, None, :]], axis=1)
+        tang = np.transpose(vec[:, :, 1:], (0, 2, 1))
+        iso = lam[:, 1] <= (1.0 + ISOTROPIC_AXES_RTOL) * lam[:, 0]
+        tang[iso] = canonical_tangents(u[iso], np.eye(3)[2] if normal is None else normal)
+        lam[iso] = lam[iso, :1]
+        axes[m] = np.concatenate([tang, u[:, None, :]], axis=1)
         scale[m] = np.column_stack([np.sqrt(lam / lam[:, :1]), np.ones(len(m))])
     return dataclasses.replace(doa, axes=axes, axis_scale=scale)
+
+
+# A row whose two tangent variances are within this fraction of each other is whitened isotropically along
+# :func:`canonical_tangents`: such a pair's eigenvectors are no property of the row (they turn by ~ε / gap for a
+# relative input change ε: 1e-5 rad at 1e-8 here, and anywhere at all for a regular tetrahedron's exactly equal
+# ones, set by rounding), while every per-component step downstream (the robust loss's weights, the residuals'
+# lag correlation) reads the row in them; their stds differ by 0.05 % at most, nothing a weight tells apart
+ISOTROPIC_AXES_RTOL = 1e-3
+# a direction within this (rad) of the reference axis takes the array's x axis as its reference instead
+CANONICAL_AXIS_MIN_SIN = 1e-6
+
+
+def canonical_tangents(u, ref):
+    """(n, 2, 3): per unit direction ``u`` (n, 3) its azimuth and elevation directions about the axis ``ref`` (3,,
+    unit; a planar array's mic-plane normal, else the array's z): e_el the tangent toward ``ref``, e_az = e_el × u
+    (the array's x axis stands in for ``ref`` within CANONICAL_AXIS_MIN_SIN of it). The basis depends on ``u``
+    continuously (away from the axis), unlike the eigenvectors of an isotropic covariance."""
+    u = np.asarray(u, float).reshape(-1, 3)
+    ref = np.broadcast_to(np.asarray(ref, float), u.shape)
+    e_el = ref - np.einsum("ka,ka->k", ref, u)[:, None] * u
+    on_axis = np.linalg.norm(e_el, axis=1) < CANONICAL_AXIS_MIN_SIN
+    x = np.eye(3)[0]
+    e_el[on_axis] = x - (u[on_axis] @ x)[:, None] * u[on_axis]
+    e_el /= np.linalg.norm(e_el, axis=1, keepdims=True)
+    return np.stack([np.cross(e_el, u), e_el], axis=1)
 
 
 def _split_cones(doa, meta, idx, N):

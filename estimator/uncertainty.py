@@ -247,7 +247,47 @@ def _kind_blocks(lin, kind):
         start += n
 
 
-def planar_doa_rows(p, lin, normals, factors):
+def _array_frame_rows(p, lin, f, start, n):
+    """The DOA block of ``lin`` (rows ``start``…``start + n`` of factor ``f``) back in the array frame, in units of
+    each row's sigma ``sig`` (m,) (its best axis', ``DoaRows.axis_scale`` 1): residuals r (m, 3) = (v − u) / sig and
+    J (m, 3, n) the estimator's sensitivity to them, sig × Bᵀ W J_w (W = diag(1 / σ_axis) B the row's whitening,
+    J_w the whitened Jacobian), so that an error ε (rad, array frame) moves the estimate by H⁻¹ Jᵀ ε / sig. The
+    factor whitens along each row's own axes B (:func:`calib.estimator.problem.doa_axes`), which are arbitrary in a
+    tangent plane where the fit's two stds are (nearly) equal; these are not (identity / ones axes: the block as is)."""
+    B = p.doa.axes
+    s3 = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)
+    sig = s3[:, 0]
+    Jw = lin.J[start:start + n]
+    Jw = (Jw.toarray() if scipy.sparse.issparse(Jw) else np.asarray(Jw)).reshape(n // 3, 3, -1)
+    r = np.einsum("kba,kb->ka", B, lin.r[start:start + n].reshape(-1, 3) * s3) / sig[:, None]
+    J = np.einsum("kba,kbn->kan", B, Jw / s3[:, :, None]) * sig[:, None, None]
+    return r, J, sig
+
+
+def _array_frame_prediction(p, lin, f, start, n):
+    """(m, 3, n): how the parameters move each DOA row of ``lin``'s block (``_array_frame_rows``' rows) in the
+    array frame, in units of the row's sigma: Bᵀ diag(σ_axis) J_w / sig (J_w the whitened Jacobian). For a row
+    whitened isotropically it equals the sensitivity ``_array_frame_rows`` gives."""
+    B = p.doa.axes
+    s3 = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)
+    Jw = lin.J[start:start + n]
+    Jw = (Jw.toarray() if scipy.sparse.issparse(Jw) else np.asarray(Jw)).reshape(n // 3, 3, -1)
+    return np.einsum("kba,kbn->kan", B, Jw * s3[:, :, None]) / s3[:, :1, None]
+
+
+# A row component the fit takes more than this share of (leverage h) tells little of its error: 1 − h stops here
+MIN_RESIDUAL_SHARE = 0.1
+
+
+def _leverages_along(pred, sens, cov, even):
+    """(m,): the leverage of one component of each row, pred_kᵀ cov sens_k (``pred`` (m, n) how the parameters move
+    it, ``sens`` (m, n) how its error moves them, ``cov`` the kept rows' (JᵀJ)⁻¹); ``even`` for every row without a
+    dense ``cov``. At most 1 − MIN_RESIDUAL_SHARE."""
+    h = np.full(len(pred), even) if not isinstance(cov, np.ndarray) else np.einsum("kn,nm,km->k", pred, cov, sens)
+    return np.clip(h, 0.0, 1.0 - MIN_RESIDUAL_SHARE)
+
+
+def planar_doa_rows(p, lin, normals, factors, cov=None):
     """The DOA rows of planar arrays with their errors as a planar array makes them: {"rows": (M,) bool, the
     DOA residuals it models; "G": (m, n) rows whose GᵀG is their part of Jᵀ C J}; None when there is none.
 
@@ -255,10 +295,17 @@ def planar_doa_rows(p, lin, normals, factors):
     on the rest): an in-plane error σ_p moves the azimuth by σ_p (along the sphere) and the elevation by
     σ_p / sin(el) — near the mic plane the elevation is many times less certain than the azimuth (issue 27:
     sources within a few degrees of the plane, azimuth errors ≤ 0.3°, elevation errors 1–11°), which an
-    isotropic sigma per row misses both ways. σ_p is each array's own: its residuals² along azimuth plus along
-    elevation × sin(el), over 2n − 3 (the rotation absorbs 3) — a mean, so one reflection's row (25° where the
-    others err by 1°, lshape seed 24) raises all of the array's rows' (a median, or each row's own sigma
-    weighting it, left arrays 3.1–3.9σ off: too little where it matters); 1 / sin(el) stops at
+    isotropic sigma per row misses both ways. Each row's in-plane errors are its own residuals (along azimuth,
+    and along elevation × sin(el)), each over the share 1 − h of its error the fit leaves in it (h its leverage
+    at ``cov``, the kept rows' (JᵀJ)⁻¹; without ``cov`` the rotation's 3 of the array's 2n components, spread
+    evenly): the Eicker–White (HC2) sandwich, unbiased when the rows err alike and right when they do not. An
+    array's rows do not: a few reflections' rows err by 10–25° where the others err by 1° (lshape 500's A4), and
+    the fit follows them little. Their mean square σ_p² taken as every row's error (before h54o) let the precise
+    rows claim the reflections' error through their own (large) influence: that A4's std 6° at a 0.6° error;
+    planar orientation error / std RMS 0.45 over 131 dev arrays (lshape 0.41, ushape 0.37), position 0.70; on
+    simulated rows of unequal sigma 0.15–0.21 (``test_planar_rows_of_unequal_sigma_each_claim_their_own_error``;
+    now 1.0–1.1). σ_p, the array's pooled in-plane
+    scatter (over 2n − 3: the rotation absorbs 3), sets only where 1 / sin(el) stops: at
     √(2 / σ_p) (at el → 0, el ≈ √(2 (1 − ρ)): an error σ_p in ρ moves it by √(2 σ_p)). The lag-1 correlation
     inflation of ``factors`` (``factors["doa_correlation"]``) applies; the elevation's variance stays at least
     the row's sigma² × its array's σ² factor (``factors["doa"]``: a frontend's figure is only ever raised, as
@@ -281,10 +328,8 @@ def planar_doa_rows(p, lin, normals, factors):
         e_el = nv - cos_n[:, None] * u
         e_el /= np.maximum(np.linalg.norm(e_el, axis=1), 1e-12)[:, None]
         e_az = np.cross(u, e_el)
-        sig = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)[:, 0]
-        r = lin.r[start:start + n].reshape(-1, 3)           # whitened: each row in units of its own sigma
-        J = lin.J[start:start + n]
-        J = (J.toarray() if scipy.sparse.issparse(J) else np.asarray(J)).reshape(n // 3, 3, -1)
+        r, J, sig = _array_frame_rows(p, lin, f, start, n)
+        P = _array_frame_prediction(p, lin, f, start, n)
         sin_el = np.abs(cos_n)
         corr = factors.get("doa_correlation", np.ones(p.N))
         iso_factor = factors.get("doa", np.ones(p.N))
@@ -300,10 +345,13 @@ def planar_doa_rows(p, lin, normals, factors):
             for _ in range(2):   # σ_p² (the rotation absorbs 3 of the 2n in-plane residuals) and the floor of sin(el)
                 sp2 = float(np.sum(x_az ** 2 + (x_el * s) ** 2)) / max(2 * len(m) - 3, 1)
                 s = np.maximum(sin_el[m], np.sqrt(np.sqrt(sp2) / 2.0))
-            c2_az = c2_el = sp2 / sig[m] ** 2   # in each row's sigma
+            # each row's own in-plane error² (in its sigma), over the share of it the fit leaves in the residual
+            h_az, h_el = (_leverages_along(np.einsum("ka,kan->kn", e, P[m]), g, cov, 3.0 / (2 * len(m)))
+                          for e, g in ((e_az[m], g_az), (e_el[m], g_el)))
+            c2_az, c2_el = t_az ** 2 / (1.0 - h_az), (t_el * s) ** 2 / (1.0 - h_el)
             # the elevation never below the row's own sigma with its array's factor (what the fit absorbs of a
             # tilt its residuals cannot show); the azimuth is what the array measures best
-            var_az = np.full(len(m), c2_az * corr[i])
+            var_az = c2_az * corr[i]
             var_el = np.maximum(c2_el * corr[i] / s ** 2, iso_factor[i])
             # a row within FOLD_SIGMAS of its elevation noise of the plane cannot tell the plane's sides apart
             # (a stated hemisphere, or the fold, puts it on one): its elevation may be off by up to twice itself
@@ -489,7 +537,7 @@ def sandwich_covariance(p, lin, cov, factors, shared=True, normals=None, velocit
     f_rows = row_factors(p, lin, factors)
     D = arrival_rows(p, lin, factors) if shared else None
     own = keep.copy()
-    planar = None if normals is None else planar_doa_rows(p, lin, normals, factors)
+    planar = None if normals is None else planar_doa_rows(p, lin, normals, factors, cov)
     if planar is not None:
         own &= ~planar["rows"]
     if D is not None:

@@ -347,6 +347,8 @@ def _correlation_inflation(p, f, r, keep):
     rows = p.rows(f.kind)
     order = rows.a if hasattr(rows, "a") else rows.ev
     R = r.reshape(len(order), f.dim)
+    if f.kind == "doa":   # each row whitened along its own axes: compare them in the array frame
+        R = np.einsum("kba,kb->ka", p.doa.axes, R)
     k = keep.reshape(len(order), f.dim).all(axis=1)
     out = np.ones(p.N)
     for i in np.unique(rows.arr[k]):

@@ -1,5 +1,5 @@
-"""Arrays named imprecise (estimator.verdict.name_imprecise) against simulated truth (issue 27): at a target near
-the errors' median, the arrays named are beyond it far more often than those not named."""
+"""Arrays named imprecise (estimator.verdict.name_imprecise) against simulated truth (issue 27): the arrays left
+unnamed are beyond the target at most at the rule's stated chance, and less often than those named."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,13 +8,15 @@ import pytest
 
 @pytest.mark.slow
 def test_named_arrays_are_the_ones_beyond_the_target_in_simulated_truth():
-    """The paper's protocol (its 5° DOAs, 0.1 ms TDOAs: arrays 1.5-12 cm off), eight scenes, target 5 cm
-    (orientation off): named ones beyond it 17 of 24 (h35n, 28 Nov), not named 2 of 8."""
+    """The paper's protocol (its 5° DOAs, 0.1 ms TDOAs: arrays 1.5-12 cm off), eight scenes, target 8 cm
+    (orientation off): named ones beyond it 7 of 24, not named 1 of 8 (≤ EXCEED_ALPHA; h55p, 1 Dec). The median
+    rule it replaced (alpha 0.5) left 5 of 22 unnamed beyond it."""
     from calib.estimator import calibrate
+    from calib.estimator.verdict import EXCEED_ALPHA
     from calib.pipeline.report.evaluate import evaluate
     from calib.pipeline.simulate.featsim import simulate_features
 
-    target = 0.05
+    target = 0.08
     named, beyond = [], []
     for seed in range(8):
         f, truth = simulate_features(1 + seed % 3, seed=seed)
@@ -25,7 +27,7 @@ def test_named_arrays_are_the_ones_beyond_the_target_in_simulated_truth():
             beyond.append(a["position_m"] > target)
     named, beyond = np.array(named), np.array(beyond)
     assert named.any() and (~named).any()
-    assert beyond[named].mean() > 0.5 > beyond[~named].mean()
+    assert beyond[named].mean() > beyond[~named].mean() and beyond[~named].mean() <= EXCEED_ALPHA
 
 
 @pytest.mark.parametrize("apart, status", [([], "suspect"), (["A3"], "suspect"), (["A2", "A3", "A4"], "failed"),
