@@ -33,7 +33,9 @@ At scale (:mod:`calib.estimator.clockscan`): no dense rows × parameters matrix;
 screened on their own rows first (:func:`_screen`: cumulative sums, O(rows)) and only flagged clocks are scored
 jointly; a long session's per-array fits are of the locally best candidates (:func:`_prescreen`). Rows the
 frontend doubted as reflections over a block that opens or closes an array's session, off by one constant
-amount, are readmitted with a step at its edge (:func:`_readmitted`). A seeded step whose array jumps again in
+amount, are readmitted with a step at its edge (:func:`_readmitted`) where the step persists (the array's undoubted
+arrivals beyond the block, on its side, lag with it) and the block's DOAs are the direct path's (a paused robot's
+reflections are late by one amount too; their DOAs point at the reflector). A seeded step whose array jumps again in
 the next (or previous) interval is a chirp lost in the dropped block: that one arrival is an ``arrival`` component
 (no clock term; report.json ``clock.arrays[a].arrivals``), the step sized across both (:func:`_lost_arrivals`);
 it goes with its step: where the selection removes the step, the arrival is removed too (:func:`_beside_steps`).
@@ -1733,16 +1735,42 @@ def _disagreeing(events, e, center, lag, spread):
 def _block_direct(first, features, array, block):
     """Whether ``array``'s DOAs at the events ``block`` are the direct path's at the solve ``first`` (its
     features: ``features``, every row; :func:`direct_path`, the frontend's doubts counting): at a solve that
-    fitted them (a left-out row's residual is a prediction's, wider than its σ)."""
+    fitted them (a left-out row's residual is a prediction's, wider than its σ). A linear array or a pair (no
+    DOA rows: its bearing is a cone about its axis) by its cone rows alike (:func:`_cone_direct`)."""
     from .problem import make_layout
     from .solver import linearise
 
     p = _every_row(first, features)
-    if "doa" not in active_kinds(p) or array not in [str(n) for n in p.names]:
+    names = [str(n) for n in p.names]
+    kinds = [k for k in ("doa", "cone") if k in active_kinds(p)]
+    if array not in names or not kinds:
         return False
-    fs = linearise(p, first["state"], make_layout(p), ["doa"]).factors
+    i = names.index(array)
+    fs = linearise(p, first["state"], make_layout(p), kinds).factors
     at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
-    return bool(at) and direct_path(p, fs, [str(n) for n in p.names].index(array), at, doubted_arrivals(features))
+    if not at:
+        return False
+    if "doa" in kinds and np.any(p.doa.arr == i):
+        return direct_path(p, fs, i, at, doubted_arrivals(features))
+    return _cone_direct(p, fs, i, at, doubted_arrivals(features))
+
+
+def _cone_direct(p, fs, i, events, doubted=frozenset()):
+    """:func:`direct_path` of a cone array (linear, pair): none of its arrivals at ``events`` doubted, and its
+    cone rows there (one angle each) within the χ²ₘ quantile at STRUCTURE_ALPHA, in its own cone scale."""
+    name = str(p.names[i])
+    if any((name, int(p.events[e])) in doubted for e in events):
+        return False
+    f = next((f for f in fs if f.kind == "cone" and len(f.r) == len(p.cone.arr)), None)
+    if f is None:
+        return False
+    mine = p.cone.arr == i
+    at = mine & np.isin(p.cone.ev, events)
+    if not at.any():
+        return False
+    z2 = f.r ** 2
+    scale2 = max(1.0, float(np.median(z2[mine])) / float(chdtri(1, 0.5)))   # (χ²₁'s median)
+    return float(np.sum(z2[at])) / scale2 <= float(chdtri(int(at.sum()), STRUCTURE_ALPHA))
 
 
 def _readmitted(solve, features, first, options, rounds, models=None):
@@ -1750,8 +1778,10 @@ def _readmitted(solve, features, first, options, rounds, models=None):
     block of events that opens or closes its session (:func:`_doubted_blocks`) and those arrivals are late (or
     early) by ONE constant amount against the first solve (:func:`_block_lag`: a reflection's excess path
     changes as the robot moves, a dropped or inserted sample block's does not), the rows are readmitted with a
-    step at the block's edge; kept when that solves better (as :func:`_seeded`). Else (first, ``models``,
-    features). ``models``: the clock models ``first`` was solved with (kept, the step added to them)."""
+    step at the block's edge; kept when that solves better (as :func:`_seeded`), the step persists (the array's
+    undoubted events beyond the block on its side lag with it: reflections end where the line of sight returns)
+    and the block's DOAs are the direct path's (:func:`_block_direct`: a robot standing still behind an obstacle
+    gets one reflection, late by one amount, at each chirp). Else (first, ``models``, features). ``models``: the clock models ``first`` was solved with (kept, the step added to them)."""
     models = dict(models or {})
     events, u = _event_of(features)
     u_of = dict(zip(events.tolist(), u.tolist()))
