@@ -892,6 +892,11 @@ def penumbra(p, i, doubted):
 ARRIVAL_DOUBTS = ("weak_direct", "nlos", "occluded", "low_snr", "mic_spread")
 
 
+# ... of which those said of the one arrival ("occluded" is said of every arrival of an array whose direct path is
+# weak in 30 % of its events, frontend.extract.OCCLUDED_FRACTION: nothing about this one)
+OWN_DOUBTS = tuple(f for f in ARRIVAL_DOUBTS if f != "occluded")
+
+
 # ... of which no clock can be the cause: a clock shifts every microphone of the array alike and leaves the
 # waveform as it is (not so the range track's nlos: a step moves arrivals off their track)
 CLOCK_BLIND_DOUBTS = ("weak_direct", "occluded", "low_snr", "mic_spread")
@@ -1790,7 +1795,7 @@ def _readmitted(solve, features, first, options, rounds, models=None):
     events, u = _event_of(features)
     u_of = dict(zip(events.tolist(), u.tolist()))
     ref = str(features["meta"]["reference_array"])
-    doubted = doubted_arrivals(features)
+    doubted = doubted_arrivals(features, OWN_DOUBTS)   # (a doubted arrival beyond a block: no evidence either way)
     for array, block, (before, after), beyond in _doubted_blocks(features):
         time = 0.5 * (u_of[before] + u_of[after])
         if any(c.kind == "step" and abs(c.time - time) < 1e-9 for c in models.get(array, [])):
