@@ -1739,9 +1739,10 @@ def _disagreeing(events, e, center, lag, spread):
 
 def _block_direct(first, features, array, block):
     """Whether ``array``'s bearings at the events ``block`` are the direct path's at the solve ``first`` (its
-    features: ``features``, every row; :func:`_bearings_direct`, the frontend's doubts counting): at a solve
-    that fitted them (a left-out row's residual is a prediction's, wider than its σ). Its DOA rows, or a linear
-    array's or pair's cone rows (its bearing a cone about its axis)."""
+    features: ``features``, every row): at a solve that fitted them (a left-out row's residual is a prediction's,
+    wider than its σ). One event: :func:`direct_path` (its DOA, the frontend's doubts counting); a block of them:
+    :func:`_bearings_direct` (its DOA rows, or a linear array's or pair's cone rows: its bearing a cone about its
+    axis)."""
     from .problem import make_layout
     from .solver import linearise
 
