@@ -33,7 +33,9 @@ At scale (:mod:`calib.estimator.clockscan`): no dense rows × parameters matrix;
 screened on their own rows first (:func:`_screen`: cumulative sums, O(rows)) and only flagged clocks are scored
 jointly; a long session's per-array fits are of the locally best candidates (:func:`_prescreen`). Rows the
 frontend doubted as reflections over a block that opens or closes an array's session, off by one constant
-amount, are readmitted with a step at its edge (:func:`_readmitted`). A seeded step whose array jumps again in
+amount, are readmitted with a step at its edge (:func:`_readmitted`) where the step persists (the array's undoubted
+arrivals beyond the block, on its side, lag with it) and the block's DOAs are the direct path's (a paused robot's
+reflections are late by one amount too; their DOAs point at the reflector). A seeded step whose array jumps again in
 the next (or previous) interval is a chirp lost in the dropped block: that one arrival is an ``arrival`` component
 (no clock term; report.json ``clock.arrays[a].arrivals``), the step sized across both (:func:`_lost_arrivals`);
 it goes with its step: where the selection removes the step, the arrival is removed too (:func:`_beside_steps`).
@@ -890,6 +892,11 @@ def penumbra(p, i, doubted):
 ARRIVAL_DOUBTS = ("weak_direct", "nlos", "occluded", "low_snr", "mic_spread")
 
 
+# ... of which those said of the one arrival ("occluded" is said of every arrival of an array whose direct path is
+# weak in 30 % of its events, frontend.extract.OCCLUDED_FRACTION: nothing about this one)
+OWN_DOUBTS = tuple(f for f in ARRIVAL_DOUBTS if f != "occluded")
+
+
 # ... of which no clock can be the cause: a clock shifts every microphone of the array alike and leaves the
 # waveform as it is (not so the range track's nlos: a step moves arrivals off their track)
 CLOCK_BLIND_DOUBTS = ("weak_direct", "occluded", "low_snr", "mic_spread")
@@ -1606,7 +1613,7 @@ READMIT_SIGMAS = 20.0   # ... and that lag is this many times their spread (and 
 
 
 def _doubted_blocks(features):
-    """[(array, block events, (event before, event after) the boundary)]: each array whose own arrivals the
+    """[(array, block events, (event before, event after) the boundary, the events beyond it)]: each array whose own arrivals the
     frontend doubts as reflections (flag ``nlos``, :func:`calib.estimator.screen.own_doubted_events`) at a
     run of its consecutive events that starts or ends its session (but for at most PERSIST_EVENTS events
     before or after it, which a clock step shifts alike: :func:`end_side`), with at least PERSIST_EVENTS events
@@ -1614,7 +1621,8 @@ def _doubted_blocks(features):
     it: rendered lab seed 28, A2's event 0 of 0-13, 19.8 ms late against its range track; :func:`_readmitted`
     asks its DOAs to be the direct path's). Other doubted events of the array (true reflections elsewhere:
     rendered hall seed 675, A2's 20 ms drop after events 0-3, events 5 and 11 doubted too) do not hide the
-    run; they stay doubted."""
+    run; they stay doubted. The events beyond it: the array's on the block's side of the boundary, outside it
+    (those a step there shifts as it, :func:`_readmitted`)."""
     from .screen import DROP_FLAGS, own_doubted_events
 
     names = [n for n in DROP_FLAGS["nlos"] if len(features[n])]
@@ -1635,9 +1643,9 @@ def _doubted_blocks(features):
             if len(run) < PERSIST_EVENTS and not edge:
                 continue
             if run[0] <= PERSIST_EVENTS and run[-1] < len(evs) - 1:
-                out.append((a, [evs[k] for k in run], (evs[run[-1]], evs[run[-1] + 1])))
+                out.append((a, [evs[k] for k in run], (evs[run[-1]], evs[run[-1] + 1]), evs[:run[0]]))
             elif run[-1] >= len(evs) - 1 - PERSIST_EVENTS and run[0] > 0:
-                out.append((a, [evs[k] for k in run], (evs[run[0] - 1], evs[run[0]])))
+                out.append((a, [evs[k] for k in run], (evs[run[0] - 1], evs[run[0]]), evs[run[-1] + 1:]))
     return out
 
 
@@ -1664,8 +1672,8 @@ def _without_nlos(features, array, block, reference):
     return out
 
 
-def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
-    """(lag, spread, σ, agreeing events) of ``array``'s TDOA-M at the events ``block`` (on one side of ``time``, s since t0)
+def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS, beyond=()):
+    """(lag, spread, σ, agreeing events, events off) of ``array``'s TDOA-M at the events ``block`` (on one side of ``time``, s since t0)
     against its other events', at the first solve's sources: model − data (s) over the block less that over the
     rest, the block's robust spread, the rows' σ. An array's own: its robust fit (:func:`fit_array`: position,
     clock and a step at ``time``, sources held), the step's size (its sign as a lag) and the spread of the
@@ -1675,7 +1683,9 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
     ms). The reference's: the medians over every array's TDOA-M (the first solve's sources are every array's).
     The agreeing events: the block's whose lag is the block's (:func:`_agreeing`;
     a reflection-only arrival beside a step lags by its excess path too: rendered lshape, an array's occluded
-    first event 19 ms late beside two 5 ms late of a drop, readmitted with them, failed the step's structure)."""
+    first event 19 ms late beside two 5 ms late of a drop, readmitted with them, failed the step's structure).
+    The events off: those of ``beyond`` (events on the block's side of ``time``, outside it) with rows, whose
+    level is not the block's by the same tolerance (:func:`_agreeing`)."""
     from .problem import make_layout
     from .solver import linearise
 
@@ -1684,6 +1694,7 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
         return None
     i = [str(n) for n in p.names].index(array)
     at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
+    out = [int(np.flatnonzero(p.events == e)[0]) for e in beyond if np.any(p.events == e)]
     mine = (p.tdoa_m.arr == i) | (i == p.ref)
     rows = mine & np.isin(p.tdoa_m.ev, at)
     if rows.sum() < min_rows or not (mine & ~rows).any():
@@ -1695,18 +1706,21 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS):
         # (its pose held by the rows the frontend does not doubt, the block's and the rest: :func:`fit_array`)
         _, _, _, coef, r = fit_array(D, [Component("step", time, 0.0)], st.x[i].copy(), 1.0 + st.drift[i],
                                      st.offset[i], _trusted(D, p, array, doubted_arrivals(features)))
-        on = np.isin(D.j, at)
-        e = r[len(D.zs):][on] * D.sig_m
+        on, off = np.isin(D.j, at), np.isin(D.j, out)
+        e = r[len(D.zs):] * np.broadcast_to(D.sig_m, len(D.ym))
         sigma = float(np.median(np.broadcast_to(D.sig_m, len(D.ym))))
-        return (sign * float(coef[0]), float(mad_std(e)), sigma,
-                _agreeing(p.events[D.j[on]], e, float(np.median(e)), float(coef[0]), max(float(mad_std(e)), sigma)))
+        center, spread = float(np.median(e[on])), float(mad_std(e[on]))
+        return (sign * float(coef[0]), spread, sigma,
+                _agreeing(p.events[D.j[on]], e[on], center, float(coef[0]), max(spread, sigma)),
+                _disagreeing(p.events[D.j[off]], e[off], center, float(coef[0]), max(spread, sigma)))
     f = linearise(p, first["state"], make_layout(p), ["tdoa_m"]).factors[0]
     e = -f.r * np.broadcast_to(f.row_sigma, len(f.r))
     lag = float(np.median(e[rows]))
     spread, sigma = float(mad_std(e[rows], center=lag)), float(np.median(np.broadcast_to(f.row_sigma, len(f.r))))
-    return (lag - float(np.median(e[mine & ~rows])), spread, sigma,
-            _agreeing(p.events[p.tdoa_m.ev[rows]], e[rows], lag, lag - float(np.median(e[mine & ~rows])),
-                      max(spread, sigma)))
+    size = lag - float(np.median(e[mine & ~rows]))
+    off = mine & np.isin(p.tdoa_m.ev, out)
+    return (size, spread, sigma, _agreeing(p.events[p.tdoa_m.ev[rows]], e[rows], lag, size, max(spread, sigma)),
+            _disagreeing(p.events[p.tdoa_m.ev[off]], e[off], lag, size, max(spread, sigma)))
 
 
 def _agreeing(events, e, center, lag, spread):
@@ -1717,19 +1731,56 @@ def _agreeing(events, e, center, lag, spread):
     return [int(k) for k in np.unique(ev) if abs(float(np.median(e[ev == k])) - center) <= tol]
 
 
+def _disagreeing(events, e, center, lag, spread):
+    """The events (sorted) with rows that :func:`_agreeing` does not count as the block's."""
+    ev = np.asarray(events, int)
+    return sorted(set(np.unique(ev).tolist()) - set(_agreeing(ev, e, center, lag, spread)))
+
+
 def _block_direct(first, features, array, block):
-    """Whether ``array``'s DOAs at the events ``block`` are the direct path's at the solve ``first`` (its
-    features: ``features``, every row; :func:`direct_path`, the frontend's doubts counting): at a solve that
-    fitted them (a left-out row's residual is a prediction's, wider than its σ)."""
+    """Whether ``array``'s bearings at the events ``block`` are the direct path's at the solve ``first`` (its
+    features: ``features``, every row): at a solve that fitted them (a left-out row's residual is a prediction's,
+    wider than its σ). One event: :func:`direct_path` (its DOA, the frontend's doubts counting); a block of them:
+    :func:`_bearings_direct` (its DOA rows, or a linear array's or pair's cone rows: its bearing a cone about its
+    axis)."""
     from .problem import make_layout
     from .solver import linearise
 
     p = _every_row(first, features)
-    if "doa" not in active_kinds(p) or array not in [str(n) for n in p.names]:
+    names = [str(n) for n in p.names]
+    kinds = [k for k in ("doa", "cone") if k in active_kinds(p)]
+    if array not in names or not kinds:
         return False
-    fs = linearise(p, first["state"], make_layout(p), ["doa"]).factors
+    i = names.index(array)
+    fs = linearise(p, first["state"], make_layout(p), kinds).factors
     at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
-    return bool(at) and direct_path(p, fs, [str(n) for n in p.names].index(array), at, doubted_arrivals(features))
+    if len(at) < PERSIST_EVENTS:   # (one event: its DOA, and no frontend doubt about it)
+        return bool(at) and direct_path(p, fs, i, at, doubted_arrivals(features))
+    return _bearings_direct(p, fs, i, at)
+
+
+def _bearings_direct(p, fs, i, events):
+    """Whether array i's bearings at ``events`` (a block of them) are mostly the direct path's: the MEDIAN over
+    them of its bearing's χ² (DOA: 2 dof; a linear array's or pair's cone row: 1), in the array's own scale,
+    within the χ² quantile at STRUCTURE_ALPHA. A blocked line of sight sends every arrival of the run by the
+    reflector, far off; a step's DOAs sit among the array's others. The median, not :func:`direct_path`'s sum
+    and its veto of any doubted arrival: a sum over many events at a trial fit that something unmodelled bends
+    (another array's warm-up) rejects a step whose DOAs sit 1.4× their σ (bench_clocks drop_doubted_and_warmup
+    seed 3501: 18 events, χ² 74 > 68), and rendered rooms doubt some of a step's arrivals (weak_direct, and then
+    ``occluded`` on every arrival of the array: rendered deploy dev 543, A2's 20 ms drop, events 0-7)."""
+    kind, rows = ("doa", p.doa) if np.any(p.doa.arr == i) else ("cone", p.cone)
+    dim = 3 if kind == "doa" else 1
+    f = next((f for f in fs if f.kind == kind and len(f.r) == dim * len(rows.arr)), None)
+    if f is None:
+        return False
+    z2 = np.sum(f.r.reshape(-1, dim) ** 2, axis=1)
+    dof = 2 if kind == "doa" else 1
+    mine = rows.arr == i
+    at = mine & np.isin(rows.ev, events)
+    if not at.any():
+        return False
+    scale2 = max(1.0, float(np.median(z2[mine])) / float(chdtri(dof, 0.5)))
+    return float(np.median(z2[at])) / scale2 <= float(chdtri(dof, STRUCTURE_ALPHA))
 
 
 def _readmitted(solve, features, first, options, rounds, models=None):
@@ -1737,22 +1788,28 @@ def _readmitted(solve, features, first, options, rounds, models=None):
     block of events that opens or closes its session (:func:`_doubted_blocks`) and those arrivals are late (or
     early) by ONE constant amount against the first solve (:func:`_block_lag`: a reflection's excess path
     changes as the robot moves, a dropped or inserted sample block's does not), the rows are readmitted with a
-    step at the block's edge; kept when that solves better (as :func:`_seeded`). Else (first, ``models``,
-    features). ``models``: the clock models ``first`` was solved with (kept, the step added to them)."""
+    step at the block's edge; kept when that solves better (as :func:`_seeded`), the step persists (the array's
+    undoubted events beyond the block on its side lag with it: reflections end where the line of sight returns)
+    and the block's DOAs are the direct path's (:func:`_block_direct`: a robot standing still behind an obstacle
+    gets one reflection, late by one amount, at each chirp). Else (first, ``models``, features). ``models``: the clock models ``first`` was solved with (kept, the step added to them)."""
     models = dict(models or {})
     events, u = _event_of(features)
     u_of = dict(zip(events.tolist(), u.tolist()))
     ref = str(features["meta"]["reference_array"])
-    for array, block, (before, after) in _doubted_blocks(features):
+    doubted = doubted_arrivals(features, OWN_DOUBTS)   # (a doubted arrival beyond a block: no evidence either way)
+    for array, block, (before, after), beyond in _doubted_blocks(features):
         time = 0.5 * (u_of[before] + u_of[after])
         if any(c.kind == "step" and abs(c.time - time) < 1e-9 for c in models.get(array, [])):
             continue
         readmitted = _without_nlos(features, array, block, array == ref)
-        got = _block_lag(first, correct_features(readmitted, models), array, block, time, len(block))
+        got = _block_lag(first, correct_features(readmitted, models), array, block, time, len(block),
+                         [k for k in beyond if (array, int(k)) not in doubted])
         if got is None:
             continue
-        lag, spread, sigma, agree = got
+        lag, spread, sigma, agree, off = got
         if not (spread <= READMIT_SPREAD * abs(lag) and abs(lag) >= READMIT_SIGMAS * max(spread, sigma)):
+            continue
+        if off:   # the direct path's arrivals beyond it are not shifted with it: the run of reflections ended
             continue
         if agree != list(block):   # (the rest lag by more: reflections on top of the step, still doubted)
             if (before if block[-1] == before else after) not in agree:
@@ -1768,8 +1825,8 @@ def _readmitted(solve, features, first, options, rounds, models=None):
         cost1, _ = _robust_cost(trial, sig, corrected)
         if _rank(trial) > _rank(first) or 2.0 * (cost0 - cost1) <= float(chdtri(1, FAMILY_ALPHA)):
             continue   # (a worse verdict, or no better fit: STATUS_RANK grows from ok)
-        if len(block) < PERSIST_EVENTS and not _block_direct(trial, corrected, array, block):
-            continue   # one event's arrival: a clock step or a reflection alike in its TDOAs; its DOAs tell
+        if not _block_direct(trial, corrected, array, block):
+            continue   # a constant lag is a step's or a paused robot's reflections alike in the TDOAs; the DOAs tell
         rounds.append([{"readmitted": f"{array}: events {block[0]}-{block[-1]}, doubted as reflections, are "
                                       f"{abs(lag) * 1e3:.3f} ms {'late' if lag < 0 else 'early'} alike (spread "
                                       f"{spread * 1e6:.1f} µs): a clock step between events {before} and {after}, "

@@ -240,6 +240,69 @@ def test_a_late_block_is_readmitted_beside_isolated_reflections_of_the_same_arra
     assert evaluate(cal, truth)["position_rmse_m"] < 1.5 * evaluate(clean, truth0)["position_rmse_m"] + 0.002
 
 
+def _paused(seed, k, pause):
+    """k stops of a random walk in a 6 × 5 × 1 m box (bench_clocks' session), the robot standing still over the
+    events ``pause`` (one stop for each of their chirps)."""
+    rng = np.random.default_rng([seed, 2800])
+    stops = np.clip(np.cumsum(rng.normal(0, 0.8, (k, 3)) * [1, 1, 0.2], axis=0) + [3.0, 2.5, 1.0],
+                    [0.2, 0.2, 0.3], [5.8, 4.8, 1.7])
+    stops[pause] = stops[pause[0]]
+    return stops
+
+
+def _doa_turned(features, array, events, deg):
+    """``array``'s DOAs at ``events`` turned by ``deg`` about its local z axis (a reflector's direction)."""
+    out, df = dict(features), features["doa"].copy()
+    at = ((df["array"] == array) & df["event"].isin(events)).to_numpy()
+    a, u = np.radians(deg), df.loc[at, ["ux", "uy", "uz"]].to_numpy()
+    df.loc[at, "ux"], df.loc[at, "uy"] = np.cos(a) * u[:, 0] - np.sin(a) * u[:, 1], np.sin(a) * u[:, 0] + np.cos(a) * u[:, 1]
+    out["doa"] = df
+    return out
+
+
+def _as_cone(features, array, axis=(1.0, 0.0, 0.0)):
+    """``features`` with ``array`` a linear array / pair along ``axis`` (meta doa_axes): its DOAs are cone rows."""
+    return {**features, "meta": {**features["meta"], "doa_axes": {array: list(axis)}}}
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+@pytest.mark.parametrize("form", ["bounded", "at_end", "at_end_cone"])
+def test_reflections_of_a_paused_robot_late_by_one_constant_amount_are_no_clock_step(form, seed):
+    """The robot stands still for four chirps while A3's line of sight is blocked: its arrivals there are one
+    reflection, 23.5 ms late alike (the warehouse check session's false step: a constant lag passes the readmission's
+    spread test). No clock fault: nothing may be modelled. "bounded": events 10-13 of 0-15, the line of sight back
+    at events 14-15 (undoubted, on time: a step between events 9 and 10 would shift them too), the DOAs those of the
+    diffracted path (the source's); "at_end": events 12-15, the last of the session, nothing beyond them, the DOAs
+    a reflector's (60° off); "at_end_cone": the same, A3 a linear array (its bearing a cone about its axis). Main
+    readmitted each with a 23.5 ms step."""
+    block = list(range(10, 14)) if form == "bounded" else list(range(12, 16))
+    f, truth = simulate_features(_paused(seed, 16, block), SIGMA, 5.0, 0.03, seed=seed, max_interval=10.0)
+    from calib.pipeline.simulate.clocks import delay_arrivals
+
+    f = _flag_nlos(delay_arrivals(f, "A3", {e: 0.0235 for e in block}), "A3", block)
+    if form != "bounded":
+        f = _doa_turned(f, "A3", block, 60.0)
+    cal = calibrate(_as_cone(f, "A3") if form.endswith("cone") else f)
+    assert "clocks" not in truth or not any(c["steps"] for c in truth["clocks"].values())
+    assert not any("readmitted" in r for rnd in cal["report"]["clock"]["detection"] for r in rnd)
+    assert _modelled(cal["report"]["clock"]) == []
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_late_block_of_a_linear_array_is_readmitted_by_its_cone_rows(seed):
+    """A 20 ms drop between events 6 and 7 of A3, a linear array (cone rows, no DOA), whose earlier arrivals the
+    range track doubts (events 0-6): its cone rows there are the direct path's, so the block is readmitted and the
+    step found in its interval, sized within 3σ (a DOA-only check never readmitted a cone array's block)."""
+    f0, _ = simulate_features(3, SIGMA, seed=seed)
+    t = f0["events"]["t_emit"].to_numpy() - f0["events"]["t_emit"].iloc[0]
+    f, truth = simulate_features(3, SIGMA, seed=seed, clocks={"A3": {"steps": [{"time": 0.5 * (t[6] + t[7]),
+                                                                                  "size": -0.02}]}})
+    cal = calibrate(_as_cone(_flag_nlos(f, "A3", list(range(7))), "A3"))
+    (s,) = cal["report"]["clock"]["arrays"]["A3"]["steps"]
+    assert (s["after_event"], s["before_event"]) == (6, 7) and abs(s["size"] + 0.02) < 3 * s["std"]
+    assert _modelled(cal["report"]["clock"]) == ["A3"]
+
+
 def test_a_step_at_sub_microsecond_noise_is_kept_beside_a_few_reflection_late_arrivals():
     """0.4 µs TDOAs (a rendered hall at high SNR), A3 drops 20 ms between events 3 and 4, its arrivals before it
     doubted by the range track (readmitted), and three of its arrivals 61 µs late (a wall mount's reflection,
