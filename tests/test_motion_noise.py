@@ -178,8 +178,10 @@ def test_near_plane_rows_share_their_elevation_error(monkeypatch):
     """Planar array level with a robot's speaker (70 % of the sources within 3° of its mic plane, some below
     it), elevations rectified by ρ ≤ 1, sigmas estimated: its orientation error over seeds against its stated
     std. With the near-plane rows' shared error the std covers the error (error / std RMS < 1) and is wider
-    than with those rows independent; on this scene it is conservative (0.3 against 0.55 without: the
-    rectified bias here, ≈ 1.3°, is less than the 2.5-3.5° the rendered robot sessions show), not useless."""
+    than with those rows independent; on this scene it is conservative, not useless (the rectified bias here,
+    ≈ 1.3°, is less than the 2.5-3.5° the rendered robot sessions show). With the array's pooled in-plane error
+    it was 0.3 against 0.55 without; since each planar row carries its own leverage-corrected in-plane residual
+    (h54o) the rectified rows' large residuals hold most of it themselves: 0.57 against 0.63."""
     import calib.estimator.uncertainty as U
     z_with, z_without = [], []
     for seed in range(8):
@@ -199,4 +201,4 @@ def test_near_plane_rows_share_their_elevation_error(monkeypatch):
     rms = lambda z: float(np.sqrt(np.mean(np.square(z))))
     assert len(z_with) >= 5
     assert 0.15 < rms(z_with) < 1.0
-    assert rms(z_without) > 1.3 * rms(z_with)
+    assert rms(z_without) > 1.05 * rms(z_with)
