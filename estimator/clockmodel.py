@@ -1672,6 +1672,12 @@ def _without_nlos(features, array, block, reference):
     return out
 
 
+def _event_positions(p, events):
+    """Positions (into ``p.events``) of the event ids ``events`` the problem has, in their order."""
+    index = {int(e): k for k, e in enumerate(p.events)}
+    return [index[int(e)] for e in events if int(e) in index]
+
+
 def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS, beyond=()):
     """(lag, spread, σ, agreeing events, events off) of ``array``'s TDOA-M at the events ``block`` (on one side of ``time``, s since t0)
     against its other events', at the first solve's sources: model − data (s) over the block less that over the
@@ -1693,8 +1699,7 @@ def _block_lag(first, features, array, block, time, min_rows=PERSIST_EVENTS, bey
     if "tdoa_m" not in active_kinds(p):
         return None
     i = [str(n) for n in p.names].index(array)
-    at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
-    out = [int(np.flatnonzero(p.events == e)[0]) for e in beyond if np.any(p.events == e)]
+    at, out = _event_positions(p, block), _event_positions(p, beyond)
     mine = (p.tdoa_m.arr == i) | (i == p.ref)
     rows = mine & np.isin(p.tdoa_m.ev, at)
     if rows.sum() < min_rows or not (mine & ~rows).any():
@@ -1753,7 +1758,7 @@ def _block_direct(first, features, array, block):
         return False
     i = names.index(array)
     fs = linearise(p, first["state"], make_layout(p), kinds).factors
-    at = [int(np.flatnonzero(p.events == e)[0]) for e in block if np.any(p.events == e)]
+    at = _event_positions(p, block)
     if len(at) < PERSIST_EVENTS:   # (one event: its DOA, and no frontend doubt about it)
         return bool(at) and direct_path(p, fs, i, at, doubted_arrivals(features))
     return _bearings_direct(p, fs, i, at)
