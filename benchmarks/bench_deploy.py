@@ -228,8 +228,8 @@ def _position_m(p):
 
 def _rot_deg(p):
     """Orientation error (deg): geodesic, or for a linear array / pair (roll undetermined) its axis error."""
-    for k in ("geodesic_deg", "axis_deg"):
-        if p.get(k) is not None:
+    for k in ("geodesic_deg", "axis_deg"):   # absent: None from metrics.json, NaN from evaluate() in-process
+        if p.get(k) is not None and np.isfinite(p[k]):
             return float(p[k])
     return 0.0
 
