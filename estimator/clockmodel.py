@@ -1804,7 +1804,8 @@ def _one_arrival(rounds, array, event, before, after, lag):
 
 def _readmitted(solve, features, first, options, rounds, models=None):
     """(first, start models, features): where the frontend doubts an array's arrivals as reflections over a
-    block of events that opens or closes its session (:func:`_doubted_blocks`) and those arrivals are late (or
+    block of events (two or more: one alone, :func:`_one_arrival`) that opens or closes its session
+    (:func:`_doubted_blocks`) and those arrivals are late (or
     early) by ONE constant amount against the first solve (:func:`_block_lag`: a reflection's excess path
     changes as the robot moves, a dropped or inserted sample block's does not), the rows are readmitted with a
     step at the block's edge; kept when that solves better (as :func:`_seeded`), the step persists (the array's
