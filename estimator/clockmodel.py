@@ -1618,10 +1618,10 @@ def _doubted_blocks(features):
     run of its consecutive events that starts or ends its session (but for at most PERSIST_EVENTS events
     before or after it, which a clock step shifts alike: :func:`end_side`), with at least PERSIST_EVENTS events
     in it and MIN_EVENTS outside every doubted one; or the session's first or last event alone (a step next to
-    it: rendered lab seed 28, A2's event 0 of 0-13, 19.8 ms late against its range track; :func:`_readmitted`
-    asks its DOAs to be the direct path's). Other doubted events of the array (true reflections elsewhere:
-    rendered hall seed 675, A2's 20 ms drop after events 0-3, events 5 and 11 doubted too) do not hide the
-    run; they stay doubted. The events beyond it: the array's on the block's side of the boundary, outside it
+    it, rendered lab seed 28, A2's event 0 of 0-13, 19.8 ms late against its range track, or a reflection:
+    :func:`_readmitted` does not readmit it and says so, :func:`_one_arrival`). Other doubted events of the
+    array (true reflections elsewhere: rendered hall seed 675, A2's 20 ms drop after events 0-3, events 5 and
+    11 doubted too) do not hide the run; they stay doubted. The events beyond it: the array's on the block's side of the boundary, outside it
     (those a step there shifts as it, :func:`_readmitted`)."""
     from .screen import DROP_FLAGS, own_doubted_events
 
@@ -1743,11 +1743,10 @@ def _disagreeing(events, e, center, lag, spread):
 
 
 def _block_direct(first, features, array, block):
-    """Whether ``array``'s bearings at the events ``block`` are the direct path's at the solve ``first`` (its
-    features: ``features``, every row): at a solve that fitted them (a left-out row's residual is a prediction's,
-    wider than its σ). One event: :func:`direct_path` (its DOA, the frontend's doubts counting); a block of them:
-    :func:`_bearings_direct` (its DOA rows, or a linear array's or pair's cone rows: its bearing a cone about its
-    axis)."""
+    """Whether ``array``'s bearings at the events ``block`` (two or more) are the direct path's at the solve
+    ``first`` (its features: ``features``, every row): at a solve that fitted them (a left-out row's residual is a
+    prediction's, wider than its σ): :func:`_bearings_direct` (its DOA rows, or a linear array's or pair's cone
+    rows: its bearing a cone about its axis)."""
     from .problem import make_layout
     from .solver import linearise
 
@@ -1759,9 +1758,7 @@ def _block_direct(first, features, array, block):
     i = names.index(array)
     fs = linearise(p, first["state"], make_layout(p), kinds).factors
     at = _event_positions(p, block)
-    if len(at) < PERSIST_EVENTS:   # (one event: its DOA, and no frontend doubt about it)
-        return bool(at) and direct_path(p, fs, i, at, doubted_arrivals(features))
-    return _bearings_direct(p, fs, i, at)
+    return len(at) >= PERSIST_EVENTS and _bearings_direct(p, fs, i, at)
 
 
 def _bearings_direct(p, fs, i, events):
@@ -1788,9 +1785,27 @@ def _bearings_direct(p, fs, i, events):
     return float(np.median(z2[at])) / scale2 <= float(chdtri(dof, STRUCTURE_ALPHA))
 
 
+def _one_arrival(rounds, array, event, before, after, lag):
+    """Say (in ``rounds``, once) that ``array``'s doubted arrival at the session's first or last ``event``, off
+    by ``lag`` (s) against its other events, stays out: one arrival cannot tell a clock step
+    between ``before`` and ``after`` from a reflection-only arrival. Both shift every row of that one arrival
+    (its TDOA-M with each array, its TDOA-S, its range track) by one amount, and a step there changes nothing
+    else in the solution; its DOA is no proof (a reflection's bearing can lie near the source's, within a wide
+    DOA σ: fault-free dev renders deploy 515 A1 and ushape 501 A3, event 0 15.7 and 16.1 ms late, passed
+    :func:`direct_path`, and the warehouse check session's false 23.5 ms step was one such at its last event),
+    and reflection-only arrivals at a session's ends (36 over 123 fault-free dev renders) are far likelier than
+    a fault in its first or last interval."""
+    note = (f"{array}: event {event} alone, doubted as a reflection, is {abs(lag) * 1e3:.3f} ms off its other "
+            f"events: a clock step between events {before} and {after} would look the same in every row of one "
+            "arrival; not modelled, its rows stay out (doubted)")
+    if not any(r.get("rejected") == note for rnd in rounds for r in rnd):
+        rounds.append([{"rejected": note}])
+
+
 def _readmitted(solve, features, first, options, rounds, models=None):
     """(first, start models, features): where the frontend doubts an array's arrivals as reflections over a
-    block of events that opens or closes its session (:func:`_doubted_blocks`) and those arrivals are late (or
+    block of events (two or more: one alone, :func:`_one_arrival`) that opens or closes its session
+    (:func:`_doubted_blocks`) and those arrivals are late (or
     early) by ONE constant amount against the first solve (:func:`_block_lag`: a reflection's excess path
     changes as the robot moves, a dropped or inserted sample block's does not), the rows are readmitted with a
     step at the block's edge; kept when that solves better (as :func:`_seeded`), the step persists (the array's
@@ -1813,6 +1828,9 @@ def _readmitted(solve, features, first, options, rounds, models=None):
             continue
         lag, spread, sigma, agree, off = got
         if not (spread <= READMIT_SPREAD * abs(lag) and abs(lag) >= READMIT_SIGMAS * max(spread, sigma)):
+            continue
+        if len(block) < PERSIST_EVENTS:   # one arrival: a step beside it or a reflection, alike (:func:`_one_arrival`)
+            _one_arrival(rounds, array, block[0], before, after, lag)
             continue
         if off:   # the direct path's arrivals beyond it are not shifted with it: the run of reflections ended
             continue
