@@ -544,12 +544,20 @@ def without_cones(p):
     return p.replace(cone=p.cone.select(np.zeros(len(p.cone.ev), bool))) if len(p.cone.ev) else p
 
 
+# A dropped array's bearings may be what held it in its wrong basin (a horizontal planar board whose sources all lie
+# near its mic plane reads no elevation: every minimum of its cost with its DOAs lay in that basin, 1 m off), so it
+# is placed by its clock rows alone too: its DOA and cone costs scaled away by this factor on their sigma (its
+# DOAs then only turn it, by Kabsch)
+BEARINGS_BLIND = 1e6
+
+
 def restart_poses(p, st, i, kappa, sigma_d):
     """Fresh starts for array ``i`` with the sources and the other arrays of ``st`` held (an array the joint
     solve dropped as inconsistent: its refit alone stays in the basin it was solved in): every zoomed local
-    minimum of its concentrated cost, with its cone rows (a linear board or a pair) and without, not only
-    the lowest (``ambiguity.retry_dropped`` refits each on all the array's rows and keeps the best)."""
-    out = placed_poses(p, st, i, kappa, sigma_d)
+    minimum of its concentrated cost, with its cone rows (a linear board or a pair) and without, and of its
+    clock rows' cost alone (BEARINGS_BLIND), not only the lowest (``ambiguity.retry_dropped`` refits each on
+    all the array's rows and keeps the best)."""
+    out = placed_poses(p, st, i, kappa, sigma_d) + placed_poses(p, st, i, kappa, BEARINGS_BLIND * sigma_d)
     return out + placed_poses(without_cones(p), st, i, kappa, sigma_d) if len(p.cone.ev) else out
 
 
