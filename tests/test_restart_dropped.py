@@ -29,15 +29,8 @@ def _late_pair_scene(seed, late_fraction=0.25):
     d = f["doa"].copy()
     m = (d.array == PAIR).to_numpy()
     d.loc[m, ["ux", "uy", "uz"]] = cone_vectors(AXIS, d.loc[m, ["ux", "uy", "uz"]].to_numpy() @ AXIS)
-    events = np.sort(f["tdoa_m"].event.unique())
-    late = np.random.default_rng(seed).choice(events, int(late_fraction * len(events)), replace=False)
-    tm, ts = f["tdoa_m"].copy(), f["tdoa_s"].copy()
-    tm.loc[(tm.array == PAIR) & tm.event.isin(late), "tdoa"] += LATE_S
-    mine = ts.array == PAIR
-    ts.loc[mine & ts.to_event.isin(late), "tdoa"] += LATE_S
-    ts.loc[mine & ts.from_event.isin(late), "tdoa"] -= LATE_S
     meta = {**f["meta"], "doa_axes": {PAIR: AXIS.tolist()}}
-    return {**f, "doa": d, "tdoa_m": tm, "tdoa_s": ts, "meta": meta}, truth
+    return _late({**f, "doa": d, "meta": meta}, PAIR, seed, late_fraction), truth
 
 
 def test_cone_cost_recovers_a_pairs_axis_and_is_lowest_at_its_place():
