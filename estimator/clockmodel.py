@@ -1621,8 +1621,8 @@ def _doubted_blocks(features):
     it, rendered lab seed 28, A2's event 0 of 0-13, 19.8 ms late against its range track, or a reflection:
     :func:`_readmitted` does not readmit it and says so, :func:`_one_arrival`). Other doubted events of the
     array (true reflections elsewhere: rendered hall seed 675, A2's 20 ms drop after events 0-3, events 5 and
-    11 doubted too) do not hide the run; they stay doubted. The events beyond it: the array's on the block's side of the boundary, outside it
-    (those a step there shifts as it, :func:`_readmitted`)."""
+    11 doubted too) do not hide the run; they stay doubted. The events beyond it: the array's on the block's
+    side of the boundary, outside it (those a step there shifts as it, :func:`_readmitted`)."""
     from .screen import DROP_FLAGS, own_doubted_events
 
     names = [n for n in DROP_FLAGS["nlos"] if len(features[n])]

@@ -247,7 +247,16 @@ def _kind_blocks(lin, kind):
         start += n
 
 
-def _array_frame_rows(p, lin, f, start, n):
+def _doa_block(lin, f, start, n):
+    """(s3 (m, 3) each DOA row's axis sigmas, Jw (m, 3, n) its whitened Jacobian, dense) of ``lin``'s DOA block
+    (rows ``start``…``start + n`` of factor ``f``): what :func:`_array_frame_rows` and
+    :func:`_array_frame_prediction` read (``block``: computed once for both)."""
+    s3 = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)
+    Jw = lin.J[start:start + n]
+    return s3, (Jw.toarray() if scipy.sparse.issparse(Jw) else np.asarray(Jw)).reshape(n // 3, 3, -1)
+
+
+def _array_frame_rows(p, lin, f, start, n, block=None):
     """The DOA block of ``lin`` (rows ``start``…``start + n`` of factor ``f``) back in the array frame, in units of
     each row's sigma ``sig`` (m,) (its best axis', ``DoaRows.axis_scale`` 1): residuals r (m, 3) = (v − u) / sig and
     J (m, 3, n) the estimator's sensitivity to them, sig × Bᵀ W J_w (W = diag(1 / σ_axis) B the row's whitening,
@@ -255,23 +264,19 @@ def _array_frame_rows(p, lin, f, start, n):
     factor whitens along each row's own axes B (:func:`calib.estimator.problem.doa_axes`), which are arbitrary in a
     tangent plane where the fit's two stds are (nearly) equal; these are not (identity / ones axes: the block as is)."""
     B = p.doa.axes
-    s3 = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)
+    s3, Jw = _doa_block(lin, f, start, n) if block is None else block
     sig = s3[:, 0]
-    Jw = lin.J[start:start + n]
-    Jw = (Jw.toarray() if scipy.sparse.issparse(Jw) else np.asarray(Jw)).reshape(n // 3, 3, -1)
     r = np.einsum("kba,kb->ka", B, lin.r[start:start + n].reshape(-1, 3) * s3) / sig[:, None]
     J = np.einsum("kba,kbn->kan", B, Jw / s3[:, :, None]) * sig[:, None, None]
     return r, J, sig
 
 
-def _array_frame_prediction(p, lin, f, start, n):
+def _array_frame_prediction(p, lin, f, start, n, block=None):
     """(m, 3, n): how the parameters move each DOA row of ``lin``'s block (``_array_frame_rows``' rows) in the
     array frame, in units of the row's sigma: Bᵀ diag(σ_axis) J_w / sig (J_w the whitened Jacobian). For a row
     whitened isotropically it equals the sensitivity ``_array_frame_rows`` gives."""
     B = p.doa.axes
-    s3 = np.broadcast_to(f.row_sigma, n).reshape(-1, 3)
-    Jw = lin.J[start:start + n]
-    Jw = (Jw.toarray() if scipy.sparse.issparse(Jw) else np.asarray(Jw)).reshape(n // 3, 3, -1)
+    s3, Jw = _doa_block(lin, f, start, n) if block is None else block
     return np.einsum("kba,kbn->kan", B, Jw * s3[:, :, None]) / s3[:, :1, None]
 
 
@@ -328,8 +333,9 @@ def planar_doa_rows(p, lin, normals, factors, cov=None):
         e_el = nv - cos_n[:, None] * u
         e_el /= np.maximum(np.linalg.norm(e_el, axis=1), 1e-12)[:, None]
         e_az = np.cross(u, e_el)
-        r, J, sig = _array_frame_rows(p, lin, f, start, n)
-        P = _array_frame_prediction(p, lin, f, start, n)
+        block = _doa_block(lin, f, start, n)
+        r, J, sig = _array_frame_rows(p, lin, f, start, n, block)
+        P = _array_frame_prediction(p, lin, f, start, n, block)
         sin_el = np.abs(cos_n)
         corr = factors.get("doa_correlation", np.ones(p.N))
         iso_factor = factors.get("doa", np.ones(p.N))
